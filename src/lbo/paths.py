@@ -1,0 +1,25 @@
+"""Where the project lives: the repo root holds conf/, data/, mlflow.db and optuna.db."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+from omegaconf import OmegaConf
+
+
+def _find_root() -> Path:
+    if "LBO_ROOT" in os.environ:
+        return Path(os.environ["LBO_ROOT"]).resolve()
+    here = Path(__file__).resolve().parents[2]
+    if (here / "conf").is_dir():
+        return here
+    return Path.cwd().resolve()
+
+
+REPO_ROOT: Path = _find_root()
+CONF_DIR: Path = REPO_ROOT / "conf"
+
+# `${lbo.root:}` in any config resolves to the repo root, whatever the working directory.
+if not OmegaConf.has_resolver("lbo.root"):
+    OmegaConf.register_new_resolver("lbo.root", lambda: str(REPO_ROOT))

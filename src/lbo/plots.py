@@ -1,0 +1,67 @@
+"""Figures: arrays in, matplotlib figures out. Nothing here knows about Hydra or MLflow."""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+
+def save(fig, path: str | Path, dpi: int = 110) -> Path:
+    """Save a figure atomically (temp file, then rename) and close it."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=path.suffix)
+    os.close(fd)
+    try:
+        fig.savefig(tmp, dpi=dpi, bbox_inches="tight")
+        os.replace(tmp, path)
+    finally:
+        Path(tmp).unlink(missing_ok=True)
+        plt.close(fig)
+    return path
+
+
+def friction_circle(acc: np.ndarray, radius: float, edges: np.ndarray, speed: np.ndarray,
+                    heading: np.ndarray, coverage: float):
+    """The paper's Fig. 2: density of (a_lat, a_lon) over the friction circle, with speed and
+    heading histograms. acc: (S, 2) as (a_lon, a_lat) in m/s^2; speed, heading: (S,)."""
+    fig, axes = plt.subplots(1, 3, figsize=(13, 4.2), gridspec_kw={"width_ratios": [1.2, 1, 1]})
+    ax = axes[0]
+    h = ax.hist2d(acc[:, 1], acc[:, 0], bins=[edges, edges], cmap="viridis", cmin=1)
+    fig.colorbar(h[3], ax=ax, label="samples per cell")
+    th = np.linspace(0, 2 * np.pi, 200)
+    ax.plot(radius * np.cos(th), radius * np.sin(th), "r-", lw=1.2)
+    ax.set(xlabel="lateral acceleration (m/s$^2$)", ylabel="longitudinal acceleration (m/s$^2$)",
+           title=f"friction circle, {coverage:.0%} of cells filled", aspect="equal")
+    axes[1].hist(speed, bins=50, color="tab:blue")
+    axes[1].set(xlabel="V (m/s)", ylabel="samples", title="speed")
+    axes[2].hist(np.degrees(heading), bins=72, color="tab:green")
+    axes[2].set(xlabel="psi (deg)", title="heading")
+    fig.tight_layout()
+    return fig
+
+
+def paths(xy: dict[str, np.ndarray], scored_from: int = 0):
+    """Small multiples of driven paths. xy: name -> (T, 2); the run-in is drawn grey."""
+    n = len(xy)
+    cols = min(5, n)
+    rows = int(np.ceil(n / cols))
+    fig, axes = plt.subplots(rows, cols, figsize=(3.2 * cols, 3.0 * rows), squeeze=False)
+    for ax, (name, p) in zip(axes.ravel(), xy.items()):
+        ax.plot(p[: scored_from + 1, 0], p[: scored_from + 1, 1], color="0.7", lw=1)
+        ax.plot(p[scored_from:, 0], p[scored_from:, 1], color="tab:blue", lw=1.2)
+        ax.plot(*p[scored_from], "o", color="tab:red", ms=3)
+        ax.set_title(name.replace("_", " "), fontsize=9)
+        ax.set_aspect("equal", adjustable="datalim")
+        ax.tick_params(labelsize=7)
+    for ax in axes.ravel()[n:]:
+        ax.axis("off")
+    fig.tight_layout()
+    return fig

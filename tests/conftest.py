@@ -1,0 +1,23 @@
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+from hydra import compose, initialize_config_dir
+
+from lbo.paths import CONF_DIR
+
+
+def compose_cfg(name: str, overrides: list[str] | None = None):
+    """Compose a config from conf/ the way the entry points do, without running Hydra."""
+    with initialize_config_dir(str(CONF_DIR), version_base="1.3"):
+        return compose(config_name=name, overrides=overrides or [])
+
+
+@pytest.fixture(scope="session")
+def smoke_data(tmp_path_factory) -> Path:
+    """The smoke data sets, generated once per test session."""
+    from lbo.datagen.__main__ import run
+
+    root = tmp_path_factory.mktemp("data")
+    return Path(run(compose_cfg("datagen", ["data=smoke", f"data.root={root}"])))
