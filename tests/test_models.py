@@ -1,0 +1,133 @@
+"""CNN and LSTM observers: shapes, validation, initialisation, scripting, gradients."""
+
+import math
+
+import pytest
+import torch
+
+from lbo.errors import LboError
+from lbo.models import MODELS, CNNObserver, LSTMObserver, build_model
+
+WINDOWS = [4, 20, 40, 60, 80]
+
+
+@pytest.mark.parametrize("name", sorted(MODELS))
+@pytest.mark.parametrize("window", WINDOWS)
+def test_output_shape(name, window):
+    torch.manual_seed(0)
+    model = build_model(name, window)
+    out = model(torch.randn(6, window, 5))
+    assert out.shape == (6, 3)
+    assert out.dtype == torch.float32
+    assert torch.isfinite(out).all()
+
+
+@pytest.mark.parametrize("name", sorted(MODELS))
+@pytest.mark.parametrize("window", [0, 3])
+def test_short_window_is_rejected(name, window):
+    with pytest.raises(LboError, match=r"window.*>= 4"):
+        build_model(name, window)
+
+
+def test_unknown_model_names_field_and_choices():
+    with pytest.raises(LboError, match=r"^model: .*'gru'.*cnn, lstm"):
+        build_model("gru", 20)
+
+
+def test_unknown_kwarg_names_it_and_accepted_ones():
+    with pytest.raises(LboError) as err:
+        build_model("cnn", 20, hidden_sizes=(8, 8))
+    msg = str(err.value)
+    assert "\n" not in msg
+    assert "hidden_sizes" in msg and "conv_channels" in msg and "dense_units" in msg
+    with pytest.raises(LboError, match=r"conv_channels.*hidden_sizes"):
+        build_model("lstm", 20, conv_channels=8)
+
+
+@pytest.mark.parametrize("kwargs", [{"dense_units": 0}, {"conv_channels": 2.5},
+                                    {"feature_channels": -1}])
+def test_bad_cnn_values(kwargs):
+    with pytest.raises(LboError, match=next(iter(kwargs))):
+        build_model("cnn", 20, **kwargs)
+
+
+@pytest.mark.parametrize("sizes", [(), "8", (8, 0)])
+def test_bad_lstm_sizes(sizes):
+    with pytest.raises(LboError, match="hidden_sizes"):
+        build_model("lstm", 20, hidden_sizes=sizes)
+
+
+def test_kwargs_reach_the_model():
+    cnn = build_model("cnn", 20, conv_channels=4, feature_channels=6, dense_units=10)
+    assert cnn.measurements.layers[0].out_channels == 4
+    assert cnn.head[0].out_features == 10
+    lstm = build_model("lstm", 20, hidden_sizes=[4, 12], dense_units=7)
+    assert [m.hidden_size for m in lstm.lstms] == [4, 12]
+    assert lstm(torch.randn(2, 20, 5)).shape == (2, 3)
+
+
+def _xavier_std(fan_in: int, fan_out: int) -> float:
+    # U(-a, a) with a = sqrt(6 / (fan_in + fan_out)) has std a / sqrt(3).
+    return math.sqrt(6.0 / (fan_in + fan_out)) / math.sqrt(3.0)
+
+
+def test_cnn_xavier_init():
+    torch.manual_seed(0)
+    model = CNNObserver(80, conv_channels=32, feature_channels=32, dense_units=64)
+    for m in model.modules():
+        if isinstance(m, (torch.nn.Conv2d, torch.nn.Linear)):
+            w = m.weight
+            receptive = w[0, 0].numel() if w.dim() > 2 else 1
+            expected = _xavier_std(w.shape[1] * receptive, w.shape[0] * receptive)
+            assert w.std().item() == pytest.approx(expected, rel=0.25)
+            assert w.abs().max().item() <= expected * math.sqrt(3) + 1e-6
+            assert torch.count_nonzero(m.bias) == 0
+
+
+def test_lstm_xavier_init_and_forget_bias():
+    torch.manual_seed(0)
+    model = LSTMObserver(20, hidden_sizes=(32, 32))
+    for lstm in model.lstms:
+        h = lstm.hidden_size
+        for name, p in lstm.named_parameters():
+            if name.startswith("weight"):
+                for gate in p.split(h):
+                    expected = _xavier_std(gate.shape[1], gate.shape[0])
+                    assert gate.std().item() == pytest.approx(expected, rel=0.25)
+            elif name.startswith("bias_ih"):
+                assert torch.equal(p[h:2 * h], torch.ones(h))
+                assert torch.count_nonzero(p[:h]) == 0 and torch.count_nonzero(p[2 * h:]) == 0
+            else:
+                assert torch.count_nonzero(p) == 0
+    for m in model.head:
+        if isinstance(m, torch.nn.Linear):
+            assert torch.count_nonzero(m.bias) == 0
+
+
+@pytest.mark.parametrize("name", sorted(MODELS))
+def test_torchscript_matches_eager(name):
+    torch.manual_seed(0)
+    model = build_model(name, 20).eval()
+    scripted = torch.jit.script(model)
+    x = torch.randn(5, 20, 5)
+    torch.testing.assert_close(scripted(x), model(x))
+
+
+def test_gradients_reach_both_cnn_branches():
+    torch.manual_seed(0)
+    model = CNNObserver(20)
+    loss = torch.nn.functional.mse_loss(model(torch.randn(8, 20, 5)), torch.randn(8, 3))
+    loss.backward()
+    for branch in (model.measurements, model.inputs):
+        for p in branch.parameters():
+            assert p.grad is not None and p.grad.abs().sum() > 0
+
+
+@pytest.mark.parametrize("channels", [slice(0, 3), slice(3, 5)])
+def test_cnn_output_depends_on_each_branch(channels):
+    torch.manual_seed(0)
+    model = CNNObserver(20)
+    x = torch.randn(2, 20, 5)
+    y = x.clone()
+    y[:, :, channels] += 1.0
+    assert not torch.allclose(model(x), model(y))
