@@ -6,15 +6,14 @@ import numpy as np
 import pandas as pd
 import pytest
 
+from conftest import compose_cfg
 from lbo import schema
 from lbo.datagen import MANOEUVRES, Grid, accelerations, generate_train
-from lbo.datagen.build import G, build, make_test, spec_from_cfg
 from lbo.datagen.__main__ import run
+from lbo.datagen.build import G, build, make_test, spec_from_cfg
 from lbo.errors import LboError
 from lbo.noise import Noise
 from lbo.vehicle import Vehicle
-
-from conftest import compose_cfg
 
 
 def smoke_spec(root, *overrides):

@@ -1,11 +1,10 @@
 import numpy as np
 import pytest
 
+from conftest import compose_cfg
 from lbo.errors import LboError
 from lbo.noise import PRESETS, Noise
 from lbo.vehicle import Vehicle, f, jacobian, measure, simulate, step, wrap_angle
-
-from conftest import compose_cfg
 
 
 def test_straight_line():

@@ -2,4 +2,4 @@
 
 
 class LboError(ValueError):
-    """Bad input (config, data file, checkpoint): the message names the field and the expected form."""
+    """Bad input (config, data file, checkpoint); the message names the field and its form."""

@@ -53,7 +53,8 @@ def _cat_last(parts: list[Array]) -> Array:
 def check_mode(mode: str) -> str:
     """Return ``mode`` if it is one of :data:`FEATURE_MODES`, else raise :class:`LboError`."""
     if mode not in FEATURE_MODES:
-        raise LboError(f"features: unknown mode {mode!r}; expected one of {', '.join(FEATURE_MODES)}")
+        raise LboError(f"features: unknown mode {mode!r}; "
+                       f"expected one of {', '.join(FEATURE_MODES)}")
     return mode
 
 

@@ -6,8 +6,6 @@ plus ``alpha`` and ``scored`` for the validation and test sets.
 
 from __future__ import annotations
 
-import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -15,6 +13,7 @@ import pandas as pd
 import pyarrow as pa
 import pyarrow.parquet as pq
 
+from lbo.atomic import atomic_path
 from lbo.errors import LboError
 
 COLUMNS = ("traj", "k", "t", "x", "y", "psi", "V", "delta", "x_m", "y_m", "psi_m")
@@ -55,18 +54,9 @@ def write_set(df: pd.DataFrame, path: str | Path) -> Path:
 
     A killed writer leaves at most a ``.tmp`` file, never a half-written ``path``.
     """
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    table = pa.Table.from_pandas(df, preserve_index=False)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    os.close(fd)
-    try:
-        pq.write_table(table, tmp, compression="zstd")
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return path
+    with atomic_path(path) as tmp:
+        pq.write_table(pa.Table.from_pandas(df, preserve_index=False), tmp, compression="zstd")
+    return Path(path)
 
 
 def frame(traj: np.ndarray, k: np.ndarray, dt: float, z: np.ndarray, u: np.ndarray,

@@ -12,6 +12,7 @@ import pandas as pd
 from omegaconf import DictConfig, OmegaConf
 
 from lbo import schema
+from lbo.atomic import write_text
 from lbo.config import positive, require
 from lbo.datagen import clothoid
 from lbo.datagen.friction import G, Grid, accelerations, generate_train
@@ -249,7 +250,5 @@ def build(spec: Spec, progress: bool = True) -> tuple[Path, dict[str, pd.DataFra
                            "train": spec.train, "val": spec.val, "test": spec.test,
                            "alphas": spec.alphas.tolist(),
                            "test_trajectories": spec.test["manoeuvres"]}, indent=1)
-        tmp = manifest.with_suffix(".tmp")
-        tmp.write_text(text)
-        tmp.replace(manifest)
+        write_text(manifest, text)
     return folder, sets, cached

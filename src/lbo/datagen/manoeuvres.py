@@ -7,8 +7,8 @@ add up to the paper's 9,829 scored test points.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable
 
 import numpy as np
 from pyclothoids import Clothoid
@@ -27,15 +27,15 @@ class Chain:
     def pose(self) -> Pose:
         return end_pose(self.segments[-1]) if self.segments else self._start
 
-    def straight(self, length: float) -> "Chain":
+    def straight(self, length: float) -> Chain:
         self.segments.append(spiral(self.pose, 0.0, 0.0, length))
         return self
 
-    def spiral(self, kappa0: float, kappa1: float, length: float) -> "Chain":
+    def spiral(self, kappa0: float, kappa1: float, length: float) -> Chain:
         self.segments.append(spiral(self.pose, kappa0, kappa1, length))
         return self
 
-    def turn(self, radius: float, angle_deg: float, transition: float) -> "Chain":
+    def turn(self, radius: float, angle_deg: float, transition: float) -> Chain:
         """Turn by angle (left > 0) on a circle of ``radius`` entered and left by clothoids."""
         kappa = np.sign(angle_deg) / radius
         arc = abs(np.radians(angle_deg)) - transition / radius  # each easing turns by L/(2R)
@@ -126,5 +126,6 @@ def validation_path(length: float = 200.0, amplitude: float = 5.0,
     """
     xs = np.arange(0.0, length + 1e-9, period / 4)
     ys = amplitude * np.sin(2 * np.pi * xs / period)
-    heading = np.degrees(np.arctan(amplitude * 2 * np.pi / period * np.cos(2 * np.pi * xs / period)))
+    slope = amplitude * 2 * np.pi / period * np.cos(2 * np.pi * xs / period)
+    heading = np.degrees(np.arctan(slope))
     return _poses(*zip(xs, ys, heading))

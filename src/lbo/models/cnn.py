@@ -18,7 +18,7 @@ FEATURE_KERNEL = 3
 
 
 def check_count(name: str, value: int, minimum: int = 1) -> int:
-    """Return ``value`` as an int if it is an integer >= ``minimum``, else raise :class:`LboError`."""
+    """``value`` as an int if it is an integer >= ``minimum``, else raise :class:`LboError`."""
     if isinstance(value, bool) or not isinstance(value, Integral) or value < minimum:
         raise LboError(f"{name}: expected an integer >= {minimum}, got {value!r}")
     return int(value)
@@ -46,7 +46,8 @@ class _Branch(nn.Module):
         self.layers = nn.Sequential(
             nn.Conv2d(1, conv_channels, (TIME_KERNEL, 1), padding=(TIME_KERNEL // 2, 0)),
             nn.Sigmoid(),
-            nn.Conv2d(conv_channels, conv_channels, (TIME_KERNEL, 1), padding=(TIME_KERNEL // 2, 0)),
+            nn.Conv2d(conv_channels, conv_channels, (TIME_KERNEL, 1),
+                      padding=(TIME_KERNEL // 2, 0)),
             nn.Sigmoid(),
             nn.MaxPool2d((POOL, 1)),
             nn.Conv2d(conv_channels, feature_channels, (1, FEATURE_KERNEL),
