@@ -70,13 +70,13 @@ class Noise:
         return np.diag(np.square(self.meas(alpha)))
 
     @classmethod
-    def preset(cls, name: str) -> "Noise":
+    def preset(cls, name: str) -> Noise:
         if name not in PRESETS:
             raise LboError(f"noise preset must be one of {sorted(PRESETS)}, got {name!r}")
         return cls(name=name, **PRESETS[name])
 
     @classmethod
-    def from_cfg(cls, cfg) -> "Noise":
+    def from_cfg(cls, cfg) -> Noise:
         """From the Hydra group ``noise`` (keys name, process_sigma, measurement_sigma)."""
         return cls(process_sigma=tuple(cfg.process_sigma),
                    measurement_sigma=tuple(cfg.measurement_sigma),

@@ -47,7 +47,7 @@ class Vehicle:
                 raise LboError(f"{field} must be {form}, got {getattr(self, field.split('.')[1])}")
 
     @classmethod
-    def from_cfg(cls, cfg) -> "Vehicle":
+    def from_cfg(cls, cfg) -> Vehicle:
         """Build from a mapping with the fields above (e.g. the Hydra group ``vehicle``)."""
         return cls(**{k: float(cfg[k]) for k in ("dt", "wheelbase", "v_min", "v_max", "delta_max")})
 
