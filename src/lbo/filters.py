@@ -364,7 +364,8 @@ def ukf_batch(m: np.ndarray, u: np.ndarray, vehicle: Vehicle, Q: np.ndarray, R: 
     m, u = _check_trajectories(m, u)
     R = _batch_cov(R, m.shape[0], "R")
     est = np.empty_like(m)
-    for i in tqdm(range(m.shape[0]), desc="UKF", unit="traj", disable=not progress):
+    for i in tqdm(range(m.shape[0]), desc="UKF", unit="traj", disable=not progress,
+                  mininterval=2.0):
         est[i] = ukf(m[i], u[i], vehicle, Q, R[i], spread=spread)
     return est
 

@@ -60,3 +60,21 @@ def paths(xy: dict[str, np.ndarray], scored_from: int = 0):
         ax.axis("off")
     fig.tight_layout()
     return fig
+
+
+def nrmse_curves(table, title: str = "", observers: list[str] | None = None,
+                 styles: dict[str, dict] | None = None):
+    """NRMSE against alpha, one curve per observer, from a score table
+    (columns ``observer, alpha, nrmse``)."""
+    fig, ax = plt.subplots(figsize=(6.4, 4.2))
+    names = observers or list(dict.fromkeys(table["observer"]))
+    for name in names:
+        rows = table[table["observer"] == name].sort_values("alpha")
+        style = {"marker": ".", "lw": 1.4, **(styles or {}).get(name, {})}
+        ax.plot(rows["alpha"], rows["nrmse"], label=name, **style)
+    ax.axhline(1.0, color="0.6", lw=0.8, ls=":")
+    ax.set(xlabel=r"noise scale $\alpha$", ylabel="NRMSE", title=title)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    return fig

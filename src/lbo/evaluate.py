@@ -1,0 +1,180 @@
+"""Score any observer, classical or learned, on the test grid; `python -m lbo.evaluate`.
+
+Every observer is scored on the same points: the ``scored`` rows of the test set (after each
+manoeuvre's run-in), pooled per alpha level. The learned observers' evaluation callback uses
+:func:`score` and :func:`classical_table` from here.
+"""
+
+from __future__ import annotations
+
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+
+import hydra
+import numpy as np
+import pandas as pd
+from omegaconf import DictConfig
+
+from lbo import schema
+from lbo.atomic import atomic_path
+from lbo.errors import LboError
+from lbo.filters import adaptive_ekf_batch, ekf_batch, pcrb, ukf_batch
+from lbo.metrics import PAPER_REFERENCE, SCORE_COLUMNS, rmse, score_table
+from lbo.noise import Noise
+from lbo.paths import CONF_DIR
+from lbo.vehicle import Vehicle
+
+CLASSICAL = ("ekf", "oracle", "adaptive", "ukf", "pcrb")
+REFERENCES = ("ekf", "paper")
+
+
+def load_test(path: str | Path) -> dict[str, np.ndarray]:
+    """Read a test set (Parquet with the evaluation schema) into padded arrays.
+
+    Returns the dict of :func:`lbo.schema.to_arrays`: ``z, m`` (G, T, 3), ``u`` (G, T, 2),
+    ``mask`` (G, T) scored steps, ``alpha`` (G,), with G = trajectories x alpha levels.
+    """
+    return schema.to_arrays(schema.read_set(path, schema.EVAL_COLUMNS))
+
+
+def classical(name: str, arr: dict[str, np.ndarray], vehicle: Vehicle, noise: Noise,
+              progress: bool = False, seed: int = 0) -> np.ndarray:
+    """Estimates (G, T, 3) of classical observer ``name`` on the padded test arrays.
+
+    ``ekf`` keeps R at alpha=1 on every level (the paper's baseline); ``oracle`` is told each
+    level's alpha; ``adaptive`` learns R from its innovations, starting from alpha=1; ``ukf``
+    is filterpy's UKF with the paper's R. For ``pcrb`` the result is the bound's standard
+    deviation per step, not an estimate.
+    """
+    m, u, Q, R1 = arr["m"], arr["u"], noise.Q, noise.R(1.0)
+    if name == "ekf":
+        return ekf_batch(m, u, vehicle, Q, R1)
+    if name == "oracle":
+        return ekf_batch(m, u, vehicle, Q, _per_level_R(noise, arr["alpha"]))
+    if name == "adaptive":
+        return adaptive_ekf_batch(m, u, vehicle, Q, R1)
+    if name == "ukf":
+        return ukf_batch(m, u, vehicle, Q, R1, progress=progress)
+    if name == "pcrb":
+        return np.sqrt(pcrb(arr["z"], u, vehicle, Q, _per_level_R(noise, arr["alpha"]), rng=seed))
+    raise LboError(f"observers: unknown observer {name!r}; expected names from {list(CLASSICAL)}")
+
+
+def _per_level_R(noise: Noise, alpha: np.ndarray) -> np.ndarray:
+    """(G, 3, 3) measurement covariance of each trajectory's own alpha."""
+    return np.einsum("gi,ij->gij", np.square(noise.meas(alpha)), np.eye(3))
+
+
+def reference(arr: dict[str, np.ndarray], vehicle: Vehicle, noise: Noise,
+              mode: str = "ekf") -> np.ndarray:
+    """E_ref (3,) for the NRMSE: our EKF's RMSE at alpha=1 (``ekf``) or the paper's constants."""
+    if mode == "paper":
+        return np.asarray(PAPER_REFERENCE)
+    if mode != "ekf":
+        raise LboError(f"metric.reference must be one of {list(REFERENCES)}, got {mode!r}")
+    at1 = np.isclose(arr["alpha"], 1.0)
+    if not at1.any():
+        raise LboError("metric.reference=ekf needs alpha=1 in the test grid; "
+                       "use metric.reference=paper")
+    sub = {k: v[at1] for k, v in arr.items() if isinstance(v, np.ndarray) and len(v) == len(at1)}
+    est = ekf_batch(sub["m"], sub["u"], vehicle, noise.Q, noise.R(1.0))
+    return _pooled_rmse(est, sub["z"], sub["mask"])
+
+
+def _pooled_rmse(est: np.ndarray, truth: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """(3,) RMSE over every masked step of every trajectory together."""
+    return rmse(est.reshape(1, -1, 3), truth.reshape(1, -1, 3), mask.reshape(1, -1))[0]
+
+
+def score(observer: str, est: np.ndarray, arr: dict[str, np.ndarray],
+          ref: np.ndarray) -> pd.DataFrame:
+    """Rows ``observer, alpha, rmse_x, rmse_y, rmse_psi, nrmse`` of estimates (G, T, 3).
+
+    Steps outside ``arr["mask"]`` are ignored and may hold NaN.
+    """
+    return score_table(observer, est, arr["z"], arr["mask"], arr["alpha"], ref)
+
+
+def bound_table(std: np.ndarray, arr: dict[str, np.ndarray], ref: np.ndarray) -> pd.DataFrame:
+    """PCRB rows: the root of the mean bound variance over the scored points of each level.
+
+    Scoring ``truth + std`` as an estimate gives exactly that, since its squared error at
+    each step is the bound's variance.
+    """
+    return score("pcrb", arr["z"] + std, arr, ref)
+
+
+def classical_table(arr: dict[str, np.ndarray], vehicle: Vehicle, noise: Noise,
+                    observers: Sequence[str] = CLASSICAL, ref: np.ndarray | None = None,
+                    progress: bool = False, seed: int = 0) -> pd.DataFrame:
+    """Score the classical observers on the test arrays; ``ref`` defaults to our EKF's."""
+    unknown = [o for o in observers if o not in CLASSICAL]
+    if unknown:
+        raise LboError(f"observers: unknown observer {unknown[0]!r}; "
+                       f"expected names from {list(CLASSICAL)}")
+    ref = reference(arr, vehicle, noise) if ref is None else ref
+    tables = []
+    for name in observers:
+        out = classical(name, arr, vehicle, noise, progress=progress, seed=seed)
+        tables.append(bound_table(out, arr, ref) if name == "pcrb" else score(name, out, arr, ref))
+    return pd.concat(tables, ignore_index=True)[list(SCORE_COLUMNS)]
+
+
+def nrmse_at(table: pd.DataFrame, observer: str, alpha: float) -> float:
+    """The NRMSE of ``observer`` at ``alpha`` in a score table."""
+    row = table[(table["observer"] == observer) & np.isclose(table["alpha"], alpha)]
+    if row.empty:
+        raise LboError(f"no row for observer {observer!r} at alpha={alpha}")
+    return float(row["nrmse"].iloc[0])
+
+
+def run(cfg: DictConfig) -> Path:
+    """Score the configured classical observers; write evaluation.csv and nrmse_classical.png."""
+    from lbo import plots
+    from lbo.datagen.build import build, spec_from_cfg
+
+    observers = list(cfg.observers)
+    for name in observers:
+        if name not in CLASSICAL:
+            raise LboError(f"observers: unknown observer {name!r}; "
+                           f"expected names from {list(CLASSICAL)}")
+    if cfg.metric.reference not in REFERENCES:
+        raise LboError(f"metric.reference must be one of {list(REFERENCES)}, "
+                       f"got {cfg.metric.reference!r}")
+    vehicle, noise = Vehicle.from_cfg(cfg.vehicle), Noise.from_cfg(cfg.noise)
+    if cfg.get("test_file"):
+        path = Path(cfg.test_file)
+    else:
+        folder, _, _ = build(spec_from_cfg(cfg))
+        path = folder / "test.parquet"
+    arr = load_test(path)
+    ref = reference(arr, vehicle, noise, cfg.metric.reference)
+    table = classical_table(arr, vehicle, noise, observers, ref, progress=True)
+    out = Path(cfg.output_dir)
+    csv = out / "evaluation.csv"
+    with atomic_path(csv) as tmp:
+        table.to_csv(tmp, index=False)
+    plots.save(plots.nrmse_curves(table, title="classical observers"),
+               out / "nrmse_classical.png")
+    with pd.option_context("display.width", 120, "display.precision", 4):
+        pivot = table.pivot(index="alpha", columns="observer", values="nrmse")[observers]
+        print(f"NRMSE (E_ref = {cfg.metric.reference}: {ref[0]:.3f} m, {ref[1]:.3f} m, "
+              f"{ref[2] * 1e3:.2f} mrad)")
+        print(pivot.to_string())
+    print(f"evaluation: {csv}")
+    return csv
+
+
+@hydra.main(version_base="1.3", config_path=str(CONF_DIR), config_name="evaluate")
+def main(cfg: DictConfig) -> None:
+    from lbo.cli import fail
+
+    try:
+        run(cfg)
+    except LboError as e:
+        fail(e)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

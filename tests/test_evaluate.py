@@ -1,0 +1,130 @@
+import subprocess
+import sys
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from conftest import compose_cfg
+from lbo import schema
+from lbo.errors import LboError
+from lbo.evaluate import classical, classical_table, load_test, reference, run
+from lbo.filters import ekf_batch, pcrb
+from lbo.metrics import PAPER_REFERENCE, SCORE_COLUMNS
+from lbo.noise import Noise
+from lbo.vehicle import Vehicle, measure, simulate, wrap_angle
+
+VEHICLE, NOISE = Vehicle(), Noise.preset("paper")
+
+
+@pytest.fixture(scope="module")
+def smoke_table(smoke_data):
+    arr = load_test(smoke_data / "test.parquet")
+    return classical_table(arr, VEHICLE, NOISE, ["ekf", "oracle", "adaptive", "pcrb"])
+
+
+def curve(table, name):
+    return table[table["observer"] == name].set_index("alpha")["nrmse"]
+
+
+def test_orderings_on_the_smoke_grid(smoke_table):
+    ekf, oracle = curve(smoke_table, "ekf"), curve(smoke_table, "oracle")
+    adaptive, bound = curve(smoke_table, "adaptive"), curve(smoke_table, "pcrb")
+    assert (oracle <= ekf + 1e-9).all()
+    assert (oracle[oracle.index >= 3] < 0.8 * ekf[ekf.index >= 3]).all()
+    # one noise draw per level over 1,500 correlated points: "within noise" is a few percent,
+    # and up to ~15 % for the bound at high alpha (its expectation is tested below)
+    assert (bound <= 1.15 * oracle + 1e-9).all()
+    assert (oracle <= 1.05 * adaptive).all()
+    assert (adaptive[adaptive.index >= 3] < 0.85 * ekf[ekf.index >= 3]).all()
+
+
+def test_pcrb_is_a_floor_in_expectation(smoke_data):
+    """The bound is on the MSE averaged over process and measurement noise: re-simulate both."""
+    arr = load_test(smoke_data / "test.parquet")
+    one = np.isclose(arr["alpha"], 0.0)
+    z, u, mask = arr["z"][one], arr["u"][one], arr["mask"][one]
+    rng = np.random.default_rng(0)
+    for alpha in (1.0, 3.0, 6.0):
+        R = NOISE.R(alpha)
+        bound = pcrb(z, u, VEHICLE, NOISE.Q, R, rng=1)[mask].mean(axis=0)
+        mse = []
+        for _ in range(16):
+            zk = simulate(z[:, 0], u, VEHICLE.dt, VEHICLE.wheelbase, NOISE.process_sigma, rng)
+            err = ekf_batch(measure(zk, NOISE.meas(alpha), rng), u, VEHICLE, NOISE.Q, R) - zk
+            err[..., 2] = wrap_angle(err[..., 2])
+            mse.append((err[mask] ** 2).mean(axis=0))
+        ratio = np.mean(mse, axis=0) / bound
+        assert np.all(ratio > 0.95), (alpha, ratio)
+        assert np.all(ratio < 1.3), (alpha, ratio)
+
+
+def test_ekf_is_its_own_reference(smoke_data, smoke_table):
+    arr = load_test(smoke_data / "test.parquet")
+    ref = reference(arr, VEHICLE, NOISE, "ekf")
+    row = smoke_table[(smoke_table["observer"] == "ekf") & (smoke_table["alpha"] == 1.0)]
+    np.testing.assert_allclose(row[["rmse_x", "rmse_y", "rmse_psi"]].to_numpy()[0], ref)
+    assert row["nrmse"].iloc[0] == pytest.approx(1.0)
+    np.testing.assert_allclose(reference(arr, VEHICLE, NOISE, "paper"), PAPER_REFERENCE)
+    with pytest.raises(LboError, match="metric.reference"):
+        reference(arr, VEHICLE, NOISE, "mine")
+
+
+def test_alpha_zero_oracle_is_exact(smoke_data):
+    arr = load_test(smoke_data / "test.parquet")
+    est = classical("oracle", arr, VEHICLE, NOISE)
+    zero = np.isclose(arr["alpha"], 0.0)
+    err = (est - arr["z"])[zero][arr["mask"][zero]]
+    err[:, 2] = wrap_angle(err[:, 2])
+    np.testing.assert_allclose(err, 0.0, atol=1e-6)
+
+
+def eval_cfg(tmp_path, smoke_data, *overrides):
+    return compose_cfg("evaluate", ["data=smoke", f"data.root={smoke_data.parent}",
+                                    f"output_dir={tmp_path / 'out'}",
+                                    "observers=[ekf,oracle,adaptive,pcrb]", *overrides])
+
+
+def test_evaluate_writes_the_table_and_the_figure(tmp_path, smoke_data, capsys):
+    csv = run(eval_cfg(tmp_path, smoke_data))
+    table = pd.read_csv(csv)
+    assert list(table.columns) == list(SCORE_COLUMNS)
+    assert set(table["observer"]) == {"ekf", "oracle", "adaptive", "pcrb"}
+    assert len(table) == 4 * 7
+    assert (tmp_path / "out" / "nrmse_classical.png").stat().st_size > 10_000
+    assert capsys.readouterr().out.strip().splitlines()[-1] == f"evaluation: {csv}"
+
+
+def broken_copies(smoke_data, tmp_path):
+    df = pd.read_parquet(smoke_data / "test.parquet")
+    no_col = tmp_path / "no_psi_m.parquet"
+    schema.write_set(df.drop(columns=["psi_m"]), no_col)
+    nan = df.copy()
+    nan.loc[5, "y_m"] = np.nan
+    with_nan = tmp_path / "nan.parquet"
+    schema.write_set(nan, with_nan)
+    return no_col, with_nan
+
+
+def test_bad_data_files_name_the_column_and_write_nothing(tmp_path, smoke_data):
+    no_col, with_nan = broken_copies(smoke_data, tmp_path)
+    with pytest.raises(LboError, match="missing column 'psi_m'"):
+        run(eval_cfg(tmp_path, smoke_data, f"test_file={no_col}"))
+    with pytest.raises(LboError, match="column 'y_m' has NaN"):
+        run(eval_cfg(tmp_path, smoke_data, f"test_file={with_nan}"))
+    with pytest.raises(LboError, match="unknown observer 'kalman'"):
+        run(eval_cfg(tmp_path, smoke_data, "observers=[ekf,kalman]"))
+    assert not (tmp_path / "out").exists()
+
+
+def test_cli_exit_code_and_one_line_error(tmp_path, smoke_data):
+    no_col, _ = broken_copies(smoke_data, tmp_path)
+    out = tmp_path / "cli"
+    res = subprocess.run([sys.executable, "-m", "lbo.evaluate", "data=smoke",
+                          f"data.root={smoke_data.parent}", f"test_file={no_col}",
+                          f"hydra.run.dir={out}", "observers=[ekf]"],
+                         capture_output=True, text=True)
+    assert res.returncode == 2
+    assert res.stderr.strip().splitlines()[-1].startswith("error: ")
+    assert "missing column 'psi_m'" in res.stderr
+    assert not (out / "evaluation.csv").exists()
