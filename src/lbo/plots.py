@@ -62,6 +62,16 @@ def paths(xy: dict[str, np.ndarray], scored_from: int = 0):
     return fig
 
 
+# Classical observers keep one look in every figure; curves that coincide stay visible.
+STYLES: dict[str, dict] = {
+    "ekf": {"color": "black", "lw": 2.2},
+    "ukf": {"color": "tab:orange", "ls": "--", "lw": 1.2},
+    "oracle": {"color": "tab:green", "lw": 2.0},
+    "adaptive": {"color": "tab:olive", "ls": "--", "lw": 1.2},
+    "pcrb": {"color": "tab:gray", "ls": ":", "lw": 1.6, "marker": ""},
+}
+
+
 def nrmse_curves(table, title: str = "", observers: list[str] | None = None,
                  styles: dict[str, dict] | None = None):
     """NRMSE against alpha, one curve per observer, from a score table
@@ -70,7 +80,7 @@ def nrmse_curves(table, title: str = "", observers: list[str] | None = None,
     names = observers or list(dict.fromkeys(table["observer"]))
     for name in names:
         rows = table[table["observer"] == name].sort_values("alpha")
-        style = {"marker": ".", "lw": 1.4, **(styles or {}).get(name, {})}
+        style = {"marker": ".", "lw": 1.4, **STYLES.get(name, {}), **(styles or {}).get(name, {})}
         ax.plot(rows["alpha"], rows["nrmse"], label=name, **style)
     ax.axhline(1.0, color="0.6", lw=0.8, ls=":")
     ax.set(xlabel=r"noise scale $\alpha$", ylabel="NRMSE", title=title)
