@@ -178,3 +178,34 @@ def main(cfg: DictConfig) -> None:
 
 if __name__ == "__main__":
     sys.exit(main())
+
+
+def predict_grid(net, arr: dict[str, np.ndarray], window: int, batch_size: int = 8192,
+                 device: str = "cpu") -> np.ndarray:
+    """Run a learned observer on every scored step of the padded test arrays.
+
+    Parameters
+    ----------
+    net : a module mapping windows (B, N, 5) to states (B, 3), e.g. an ObserverNet.
+    arr : padded test arrays from :func:`load_test`.
+
+    Returns
+    -------
+    (G, T, 3) estimates at the scored steps, NaN elsewhere.
+    """
+    import torch
+
+    g, t = arr["mask"].shape
+    if window - 1 > int(np.argmax(arr["mask"], axis=1).min()):
+        raise LboError(f"window={window} is longer than the test set's run-in")
+    series = torch.from_numpy(np.concatenate([arr["m"], arr["u"]], axis=-1))  # (G, T, 5)
+    windows = series.unfold(1, window, 1)  # (G, T-N+1, 5, N) view
+    gi, ti = np.nonzero(arr["mask"])
+    est = np.full((g, t, 3), np.nan)
+    net = net.to(device).eval()
+    with torch.inference_mode():
+        for s in range(0, len(gi), batch_size):
+            a, b = gi[s:s + batch_size], ti[s:s + batch_size] - window + 1
+            win = windows[a, b].transpose(-1, -2).to(device)
+            est[gi[s:s + batch_size], ti[s:s + batch_size]] = net(win).cpu().numpy()
+    return est

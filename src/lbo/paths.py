@@ -23,3 +23,16 @@ CONF_DIR: Path = REPO_ROOT / "conf"
 # `${lbo.root:}` in any config resolves to the repo root, whatever the working directory.
 if not OmegaConf.has_resolver("lbo.root"):
     OmegaConf.register_new_resolver("lbo.root", lambda: str(REPO_ROOT))
+
+
+def artifact_location(tracking_uri: str) -> str | None:
+    """Where a new MLflow experiment keeps its artifacts: beside a SQLite store, or None to
+    let a tracking server decide. Without this, MLflow writes ./mlruns wherever it is run."""
+    prefix = "sqlite:///"
+    if tracking_uri.startswith(prefix):
+        return (Path(tracking_uri[len(prefix):]).resolve().parent / "mlartifacts").as_uri()
+    return None
+
+
+if not OmegaConf.has_resolver("lbo.artifacts"):
+    OmegaConf.register_new_resolver("lbo.artifacts", artifact_location)

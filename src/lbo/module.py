@@ -1,0 +1,57 @@
+"""The LightningModule: loss, optimiser and logging around an :class:`ObserverNet`."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+import lightning as L
+import torch
+
+from lbo.network import ObserverNet
+
+# Bumped when the checkpoint layout changes; lbo refuses checkpoints it cannot read.
+CHECKPOINT_FORMAT = 1
+
+
+class ObserverModule(L.LightningModule):
+    """Trains an observer with MSE on its (normalised, heading-wrapped) targets.
+
+    Parameters
+    ----------
+    model : ``{"name": "cnn"|"lstm", **hyperparameters}``.
+    window : N.
+    features : ``"relative"`` or ``"absolute"``.
+    optimizer : a partial optimiser (``params -> Optimizer``), e.g. from Hydra's
+        ``_partial_: true``; Adam(lr=1e-3) when None.
+    meta : what a checkpoint must carry to rebuild the observer elsewhere (dt, wheelbase,
+        noise preset, data hash, ...); stored in the hyperparameters.
+    """
+
+    def __init__(self, model: dict[str, Any], window: int, features: str = "relative",
+                 optimizer: Callable[..., torch.optim.Optimizer] | None = None,
+                 meta: dict[str, Any] | None = None) -> None:
+        super().__init__()
+        self.save_hyperparameters(ignore=["optimizer"])
+        self.hparams["format"] = CHECKPOINT_FORMAT
+        kwargs = {k: v for k, v in model.items() if k != "name"}
+        self.observer = ObserverNet(model["name"], window, features, **kwargs)
+        self.optimizer_factory = optimizer
+
+    def forward(self, win: torch.Tensor) -> torch.Tensor:
+        return self.observer(win)
+
+    def training_step(self, batch, batch_idx: int) -> torch.Tensor:
+        loss = self.observer.loss(*batch)
+        self.log("train_loss", loss, on_step=False, on_epoch=True, prog_bar=True,
+                 batch_size=len(batch[1]))
+        return loss
+
+    def validation_step(self, batch, batch_idx: int) -> None:
+        self.log("val_loss", self.observer.loss(*batch), on_step=False, on_epoch=True,
+                 prog_bar=True, batch_size=len(batch[1]))
+
+    def configure_optimizers(self) -> torch.optim.Optimizer:
+        if self.optimizer_factory is None:
+            return torch.optim.Adam(self.parameters(), lr=1e-3)
+        return self.optimizer_factory(params=self.parameters())

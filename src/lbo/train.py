@@ -1,0 +1,165 @@
+"""`python -m lbo.train`: train one learned observer (or a sweep with -m), log it to MLflow.
+
+    python -m lbo.train -m model=cnn,lstm window=20,40,60,80 experiment=quick
+
+``train(cfg)`` is plain Python: it takes a composed config and returns the metrics. ``main``
+is the thin Hydra shell around it.
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any
+
+import hydra
+import lightning as L
+import torch
+from hydra.utils import instantiate
+from lightning.pytorch.loggers import MLFlowLogger
+from omegaconf import DictConfig, OmegaConf
+
+from lbo.atomic import write_text
+from lbo.cli import fail
+from lbo.config import require
+from lbo.errors import LboError
+from lbo.features import FEATURE_MODES
+from lbo.paths import CONF_DIR, REPO_ROOT
+
+
+def git_commit() -> str:
+    try:
+        out = subprocess.run(["git", "rev-parse", "HEAD"], cwd=REPO_ROOT, capture_output=True,
+                             text=True, timeout=10)
+        return out.stdout.strip() or "unknown"
+    except OSError:
+        return "unknown"
+
+
+def check(cfg: DictConfig) -> None:
+    """Reject bad training settings with one line naming the field, before any work."""
+    w = cfg.window
+    require(isinstance(w, int) and not isinstance(w, bool) and w >= 4, "window",
+            "an integer >= 4 (the CNN pools windows by 4)", w)
+    require(cfg.features in FEATURE_MODES, "features", f"one of {list(FEATURE_MODES)}",
+            cfg.features)
+    require(isinstance(cfg.batch_size, int) and cfg.batch_size >= 1, "batch_size",
+            "an integer >= 1", cfg.batch_size)
+    require(isinstance(cfg.seed, int) and cfg.seed >= 0, "seed", "an integer >= 0", cfg.seed)
+    if cfg.trainer.accelerator == "gpu" and not torch.cuda.is_available():
+        raise LboError("trainer=gpu needs CUDA, which torch does not see here; "
+                       "use trainer=cpu or trainer=auto")
+
+
+def prepare_data(cfg: DictConfig) -> tuple[Path, str]:
+    """The data-set folder (generated if missing, or ``data_dir`` as given) and its hash."""
+    if cfg.get("data_dir"):
+        folder = Path(cfg.data_dir)
+        if not (folder / "train.parquet").is_file():
+            raise LboError(f"data_dir: no train.parquet in {folder} "
+                           "(give a folder printed by `python -m lbo.datagen`)")
+        return folder, folder.name
+    from lbo.datagen.build import build, spec_from_cfg
+
+    spec = spec_from_cfg(cfg)
+    folder, _, _ = build(spec)
+    return folder, spec.digest
+
+
+def meta(cfg: DictConfig, data_hash: str) -> dict[str, Any]:
+    """What a checkpoint carries besides the weights, to rebuild the observer elsewhere."""
+    return {"vehicle": OmegaConf.to_container(cfg.vehicle, resolve=True),
+            "noise": OmegaConf.to_container(cfg.noise, resolve=True),
+            "data": cfg.data.name, "data_hash": data_hash, "seed": cfg.seed}
+
+
+def train(cfg: DictConfig, callbacks: list[L.Callback] | None = None,
+          tags: dict[str, str] | None = None) -> dict[str, Any]:
+    """Train the observer described by ``cfg``; return its metrics.
+
+    Parameters
+    ----------
+    cfg : a composed ``train`` config.
+    callbacks : extra Lightning callbacks (e.g. Optuna's pruning), added to the configured ones.
+    tags : extra MLflow tags (e.g. ``mlflow.parentRunId`` to nest the run under a study).
+
+    Returns
+    -------
+    ``name``, ``val_loss`` (best), ``test_nrmse_alpha_{1,3,6}``, ``run_id``, ``checkpoint``,
+    ``epochs``.
+    """
+    from lbo.callbacks import Evaluation
+    from lbo.data import WindowDataModule
+    from lbo.module import ObserverModule
+
+    check(cfg)
+    L.seed_everything(cfg.seed, workers=True, verbose=False)
+    folder, data_hash = prepare_data(cfg)
+    dm = WindowDataModule(folder, cfg.window, cfg.batch_size, seed=cfg.seed)
+    dm.setup("fit")
+    module = ObserverModule(OmegaConf.to_container(cfg.model, resolve=True), cfg.window,
+                            cfg.features, instantiate(cfg.optimizer), meta(cfg, data_hash))
+    module.observer.set_normalisation(**dm.normalisation(cfg.features))
+
+    name = f"{cfg.model.name}-N{cfg.window}"
+    tags = {"git_commit": git_commit(), "data_hash": data_hash, "data": cfg.data.name,
+            "model": cfg.model.name, "window": str(cfg.window), "features": cfg.features,
+            **(tags or {})}
+    logger = instantiate(cfg.logger, tags=tags) if cfg.get("logger") else None
+    callbacks = [*(instantiate(c) for c in (cfg.get("callbacks") or {}).values()),
+                 *(callbacks or [])]
+    trainer = instantiate(cfg.trainer, logger=logger if logger is not None else False,
+                          callbacks=callbacks)
+    output = Path(cfg.output_dir)
+    try:
+        if isinstance(logger, MLFlowLogger):
+            logger.log_hyperparams(_flat(cfg))
+            config_yaml = write_text(output / "config.yaml", OmegaConf.to_yaml(cfg, resolve=True))
+            logger.experiment.log_artifact(logger.run_id, str(config_yaml))
+        trainer.fit(module, datamodule=dm)
+    except BaseException:
+        if isinstance(logger, MLFlowLogger):
+            logger.finalize("failed")  # also when the crash is outside Lightning's own hooks
+        raise
+    ckpt = getattr(trainer.checkpoint_callback, "best_model_path", "") or ""
+    best = getattr(trainer.checkpoint_callback, "best_model_score", None)
+    metrics: dict[str, Any] = {
+        "name": name,
+        "val_loss": float(best) if best is not None
+        else float(trainer.callback_metrics.get("val_loss", float("nan"))),
+        "checkpoint": ckpt,
+        "run_id": logger.run_id if isinstance(logger, MLFlowLogger) else None,
+        "epochs": trainer.current_epoch,
+    }
+    for cb in callbacks:
+        if isinstance(cb, Evaluation):
+            metrics.update(cb.metrics)
+    return metrics
+
+
+def _flat(cfg: DictConfig) -> dict[str, Any]:
+    """The resolved config as flat ``a.b.c`` params (lists as strings), Hydra's own left out."""
+    out: dict[str, Any] = {}
+
+    def walk(node: Any, prefix: str) -> None:
+        if isinstance(node, dict):
+            for k, v in node.items():
+                walk(v, f"{prefix}{k}.")
+        else:
+            out[prefix[:-1]] = node
+
+    walk(OmegaConf.to_container(cfg, resolve=True), "")
+    return out
+
+
+@hydra.main(version_base="1.3", config_path=str(CONF_DIR), config_name="train")
+def main(cfg: DictConfig) -> float | None:
+    try:
+        return train(cfg)["val_loss"]
+    except LboError as e:
+        fail(e)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
