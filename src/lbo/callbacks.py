@@ -35,6 +35,8 @@ class Evaluation(L.Callback):
         self.batch_size = batch_size
         self.table: pd.DataFrame | None = None
         self.metrics: dict[str, float] = {}
+        # set by lbo.train: Lightning hides the run's logger behind a dummy in fast_dev_run
+        self.mlflow: MLFlowLogger | None = None
 
     def on_fit_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         start = time.perf_counter()
@@ -61,7 +63,7 @@ class Evaluation(L.Callback):
         self.metrics = {f"test_nrmse_alpha_{a:g}": nrmse_at(self.table, name, a)
                         for a in LOGGED_ALPHAS if (abs(self.table["alpha"] - a) < 1e-9).any()}
         self.metrics["eval_seconds"] = time.perf_counter() - start
-        logger = trainer.logger
+        logger = self.mlflow or trainer.logger
         if isinstance(logger, MLFlowLogger):
             client, run = logger.experiment, logger.run_id
             for key, value in self.metrics.items():

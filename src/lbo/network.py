@@ -58,7 +58,8 @@ class ObserverNet(nn.Module):
     def target_units(self, win: torch.Tensor) -> torch.Tensor:
         """Network output in target units (relative or absolute state). (B, N, 5) -> (B, 3)."""
         x = (window_features(win, self.features) - self.in_mean) / self.in_std
-        out = self.net(x.float()).to(win.dtype)
+        net_dtype = next(self.net.parameters()).dtype
+        out = self.net(x.to(net_dtype)).to(win.dtype)
         return out * self.out_std + self.out_mean
 
     def forward(self, win: torch.Tensor) -> torch.Tensor:

@@ -112,6 +112,9 @@ def train(cfg: DictConfig, callbacks: list[L.Callback] | None = None,
     trainer = instantiate(cfg.trainer, logger=logger if logger is not None else False,
                           callbacks=callbacks)
     output = Path(cfg.output_dir)
+    for cb in callbacks:
+        if isinstance(cb, Evaluation) and isinstance(logger, MLFlowLogger):
+            cb.mlflow = logger
     try:
         if isinstance(logger, MLFlowLogger):
             logger.log_hyperparams(_flat(cfg))
@@ -122,6 +125,8 @@ def train(cfg: DictConfig, callbacks: list[L.Callback] | None = None,
         if isinstance(logger, MLFlowLogger):
             logger.finalize("failed")  # also when the crash is outside Lightning's own hooks
         raise
+    if isinstance(logger, MLFlowLogger):
+        logger.finalize("success")  # fast_dev_run swaps the logger out, so Lightning would not
     ckpt = getattr(trainer.checkpoint_callback, "best_model_path", "") or ""
     best = getattr(trainer.checkpoint_callback, "best_model_score", None)
     metrics: dict[str, Any] = {

@@ -1,0 +1,211 @@
+import subprocess
+import sys
+
+import mlflow
+import numpy as np
+import pandas as pd
+import pytest
+import torch
+
+from conftest import compose_cfg
+from lbo.data import WindowDataModule, rows, window_ends
+from lbo.errors import LboError
+from lbo.metrics import SCORE_COLUMNS
+from lbo.module import ObserverModule
+from lbo.network import ObserverNet
+from lbo.train import train
+
+
+@pytest.fixture
+def tracking(tmp_path, monkeypatch):
+    uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", uri)
+    return uri
+
+
+def train_cfg(tmp_path, smoke_data, *overrides):
+    return compose_cfg("train", ["experiment=smoke", f"data.root={smoke_data.parent}",
+                                 f"output_dir={tmp_path / 'out'}", *overrides])
+
+
+def runs(uri):
+    client = mlflow.MlflowClient(uri)
+    exp = client.get_experiment_by_name("lbo")
+    return client, client.search_runs([exp.experiment_id]) if exp else []
+
+
+# --- data -------------------------------------------------------------------------------
+
+
+def test_windows_are_views_that_never_cross_trajectories(smoke_data):
+    dm = WindowDataModule(smoke_data, window=20)
+    dm.setup()
+    ds = dm.train_set
+    assert ds.windows.untyped_storage().data_ptr() == ds.x.untyped_storage().data_ptr()
+    train = pd.read_parquet(smoke_data / "train.parquet")
+    win, state = ds[list(range(len(ds)))]
+    ends = ds.ends.numpy()
+    traj = train["traj"].to_numpy()
+    starts = ends - 19
+    assert np.all(traj[starts] == traj[ends])  # first and last row of each window: one trajectory
+    np.testing.assert_array_equal(win[:, -1].numpy(), ds.x[ends].numpy())
+    np.testing.assert_array_equal(win[:, 0].numpy(), ds.x[starts].numpy())
+    np.testing.assert_array_equal(state.numpy(), train[["x", "y", "psi"]].to_numpy()[ends])
+    per_traj = train.groupby("traj").size().to_numpy()
+    assert len(ds) == int(np.sum(per_traj - 19))
+
+
+def test_window_memory_stays_under_one_and_a_half_raw_arrays(smoke_data):
+    dm = WindowDataModule(smoke_data, window=80)
+    dm.setup()
+    ds = dm.train_set
+    raw = ds.x.nbytes + ds.y.nbytes
+    held = {t.untyped_storage().data_ptr(): t.untyped_storage().nbytes()
+            for t in (ds.x, ds.y, ds.ends, ds.windows)}
+    assert sum(held.values()) < 1.5 * raw
+
+
+def test_validation_windows_end_on_scored_points(smoke_data):
+    dm = WindowDataModule(smoke_data, window=80)
+    dm.setup()
+    val = pd.read_parquet(smoke_data / "val.parquet")
+    assert len(dm.val_set) == int(val["scored"].sum()) == 995
+    assert set(window_ends(val["k"].to_numpy(), 80, val["scored"].to_numpy())) == set(
+        dm.val_set.ends.numpy())
+
+
+# --- model behaviour ---------------------------------------------------------------------
+
+
+def test_relative_observer_ignores_where_the_vehicle_is(smoke_data):
+    torch.manual_seed(0)
+    net = ObserverNet("cnn", 20)
+    test = pd.read_parquet(smoke_data / "test.parquet")
+    x, y = rows(test[test["alpha"] == 3.0])
+    win = x.unfold(0, 20, 1)[:300].transpose(-1, -2)
+    state = y[19:319]
+    shift = torch.tensor([1234.5, -987.25, 0.0, 0.0, 0.0], dtype=torch.float64)
+    with torch.no_grad():
+        err = net(win) - state
+        err_shifted = net(win + shift) - (state + shift[:3])
+    torch.testing.assert_close(err_shifted, err, atol=1e-6, rtol=0)
+    absolute = ObserverNet("cnn", 20, features="absolute")
+    with torch.no_grad():
+        moved = absolute(win + shift) - (state + shift[:3]) - (absolute(win) - state)
+    assert moved.abs().max() > 1e-3  # the paper-literal observer does care
+
+
+@pytest.mark.parametrize("model", ["cnn", "lstm"])
+@pytest.mark.parametrize("window", [20, 40, 60, 80])
+def test_observer_shapes(model, window):
+    net = ObserverNet(model, window)
+    assert net(torch.randn(7, window, 5, dtype=torch.float64)).shape == (7, 3)
+
+
+# --- training ------------------------------------------------------------------------------
+
+
+def test_fast_dev_run_trains_and_scores(tmp_path, smoke_data, tracking):
+    cfg = train_cfg(tmp_path, smoke_data, "trainer.fast_dev_run=true", "model=lstm", "window=40")
+    out = train(cfg)
+    assert out["name"] == "lstm-N40"
+    for a in (1, 3, 6):
+        assert np.isfinite(out[f"test_nrmse_alpha_{a}"])
+    table = pd.read_csv(tmp_path / "out" / "evaluation.csv")
+    assert set(table["observer"]) == {"lstm-N40", "ekf"}
+    client, found = runs(tracking)
+    assert [r.info.status for r in found] == ["FINISHED"]
+
+
+def test_same_seed_same_metrics(tmp_path, smoke_data, tracking):
+    a = train(train_cfg(tmp_path / "a", smoke_data, "seed=0"))
+    b = train(train_cfg(tmp_path / "b", smoke_data, "seed=0"))
+    c = train(train_cfg(tmp_path / "c", smoke_data, "seed=1"))
+    for key in ("val_loss", "test_nrmse_alpha_1", "test_nrmse_alpha_6"):
+        assert a[key] == b[key]
+    assert a["val_loss"] != c["val_loss"]
+
+
+def test_checkpoint_carries_what_rebuilds_the_observer(tmp_path, smoke_data, tracking):
+    out = train(train_cfg(tmp_path, smoke_data))
+    module = ObserverModule.load_from_checkpoint(out["checkpoint"], map_location="cpu")
+    hp = module.hparams
+    assert hp["window"] == 20 and hp["features"] == "relative" and hp["model"]["name"] == "cnn"
+    assert hp["meta"]["vehicle"]["dt"] == 0.02 and hp["meta"]["noise"]["name"] == "paper"
+    assert hp["format"] == 1
+    assert torch.all(module.observer.in_std != 1.0)  # the training set's statistics
+
+
+@pytest.mark.parametrize("override, message", [
+    ("window=3", "window must be an integer >= 4"),
+    ("window=600", "longer than the shortest training trajectory"),
+    ("window=150", "choose window <= 101"),
+    ("features=polar", "features must be one of"),
+    ("data_dir=/nonexistent/lbo", "data_dir: no train.parquet"),
+])
+def test_bad_training_input_is_one_clear_line(tmp_path, smoke_data, tracking, override, message):
+    with pytest.raises(LboError, match=message) as err:
+        train(train_cfg(tmp_path, smoke_data, override))
+    assert "\n" not in str(err.value)
+    assert runs(tracking)[1] == []  # refused before any MLflow run was opened
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="checks the message on a CPU-only machine")
+def test_gpu_trainer_without_cuda_is_refused(tmp_path, smoke_data, tracking):
+    with pytest.raises(LboError, match="trainer=gpu needs CUDA"):
+        train(train_cfg(tmp_path, smoke_data, "trainer=gpu"))
+
+
+@pytest.mark.parametrize("override, listed", [("model=gru", "cnn"), ("trainer=tpu", "auto")])
+def test_unknown_group_options_are_listed_by_hydra(tmp_path, override, listed):
+    res = subprocess.run([sys.executable, "-m", "lbo.train", override,
+                          f"hydra.run.dir={tmp_path}"], capture_output=True, text=True)
+    assert res.returncode != 0
+    assert "Available options" in res.stderr and listed in res.stderr
+
+
+def test_a_crash_is_marked_failed_and_leaves_no_half_artifact(tmp_path, smoke_data, tracking,
+                                                              monkeypatch):
+    def boom(self, batch, batch_idx):
+        if batch_idx == 3:
+            raise RuntimeError("simulated crash")
+        return self.observer.loss(*batch)
+
+    monkeypatch.setattr(ObserverModule, "training_step", boom)
+    with pytest.raises(RuntimeError, match="simulated crash"):
+        train(train_cfg(tmp_path, smoke_data))
+    client, found = runs(tracking)
+    assert [r.info.status for r in found] == ["FAILED"]
+    logged = {a.path for a in client.list_artifacts(found[0].info.run_id)}
+    assert logged == {"config.yaml"}
+    assert not (tmp_path / "out" / "evaluation.csv").exists()
+
+
+@pytest.mark.slow
+def test_multirun_sweep_logs_eight_runs(tmp_path, smoke_data, tracking):
+    res = subprocess.run(
+        [sys.executable, "-m", "lbo.train", "-m", "model=cnn,lstm", "window=20,40,60,80",
+         "experiment=smoke", f"data.root={smoke_data.parent}",
+         f"hydra.sweep.dir={tmp_path / 'sweep'}"], capture_output=True, text=True)
+    assert res.returncode == 0, res.stderr[-3000:]
+    client, found = runs(tracking)
+    names = sorted(r.info.run_name for r in found)
+    assert names == sorted(f"{m}-N{n}" for m in ("cnn", "lstm") for n in (20, 40, 60, 80))
+    for r in found:
+        assert r.info.status == "FINISHED"
+        for key in ("test_nrmse_alpha_1", "test_nrmse_alpha_3", "test_nrmse_alpha_6"):
+            assert np.isfinite(r.data.metrics[key])
+        assert len(client.get_metric_history(r.info.run_id, "val_loss")) == 2
+        assert len(client.get_metric_history(r.info.run_id, "train_loss")) == 2
+        assert {"git_commit", "data_hash"} <= set(r.data.tags)
+        assert r.data.params["window"] == r.info.run_name.split("-N")[1]
+        top = {a.path for a in client.list_artifacts(r.info.run_id)}
+        assert {"evaluation.csv", "nrmse.png", "config.yaml", "checkpoints"} <= top
+        ckpt = [a.path for a in client.list_artifacts(r.info.run_id, "checkpoints")]
+        assert ckpt == ["checkpoints/best.ckpt"]
+        local = client.download_artifacts(r.info.run_id, "evaluation.csv", str(tmp_path))
+        table = pd.read_csv(local)
+        assert list(table.columns) == list(SCORE_COLUMNS)
+        assert set(table["observer"]) == {r.info.run_name, "ekf"}
+    jobs = sorted(p.name for p in (tmp_path / "sweep").iterdir() if p.name.isdigit())
+    assert jobs == [str(i) for i in range(8)]
