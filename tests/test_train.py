@@ -209,3 +209,19 @@ def test_multirun_sweep_logs_eight_runs(tmp_path, smoke_data, tracking):
         assert set(table["observer"]) == {r.info.run_name, "ekf"}
     jobs = sorted(p.name for p in (tmp_path / "sweep").iterdir() if p.name.isdigit())
     assert jobs == [str(i) for i in range(8)]
+
+
+def test_resume_reuses_a_finished_run_and_replaces_a_killed_one(tmp_path, smoke_data, tracking):
+    first = train(train_cfg(tmp_path / "a", smoke_data, "resume=true"))
+    again = train(train_cfg(tmp_path / "b", smoke_data, "resume=true"))
+    assert again["reused"] and again["run_id"] == first["run_id"]
+    assert again["test_nrmse_alpha_1"] == first["test_nrmse_alpha_1"]
+    other = train(train_cfg(tmp_path / "c", smoke_data, "resume=true", "seed=3"))
+    assert not other["reused"] and other["run_id"] != first["run_id"]
+    # a run killed mid-way stays RUNNING; the rerun deletes it and trains once more
+    client, _ = runs(tracking)
+    client.set_terminated(other["run_id"], "RUNNING")
+    rerun = train(train_cfg(tmp_path / "d", smoke_data, "resume=true", "seed=3"))
+    assert not rerun["reused"]
+    _, found = runs(tracking)
+    assert sorted(r.info.status for r in found) == ["FINISHED", "FINISHED"]

@@ -18,7 +18,7 @@ import lightning as L
 import torch
 from hydra.utils import instantiate
 from lightning.pytorch.loggers import MLFlowLogger
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig, OmegaConf, open_dict
 
 from lbo.atomic import write_text
 from lbo.cli import fail
@@ -67,6 +67,45 @@ def prepare_data(cfg: DictConfig) -> tuple[Path, str]:
     return folder, spec.digest
 
 
+def config_hash(cfg: DictConfig) -> str:
+    """Fingerprint of what a run computes: the resolved config without where it writes."""
+    import hashlib
+
+    c = cfg.copy()
+    with open_dict(c):
+        c.output_dir, c.data.root, c.resume, c.data_dir = "-", "-", False, None
+        c.pop("logger", None)
+    text = OmegaConf.to_yaml(c, resolve=True)
+    return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+def finished_run(cfg: DictConfig, digest: str) -> dict[str, Any] | None:
+    """With ``resume=true``: the metrics of a FINISHED MLflow run of the same config, if any.
+
+    Runs of the same config that never finished (killed, crashed) are deleted, so a rerun
+    replaces them instead of adding a duplicate.
+    """
+    import mlflow
+
+    client = mlflow.MlflowClient(cfg.logger.tracking_uri)
+    exp = client.get_experiment_by_name(cfg.logger.experiment_name)
+    if exp is None:
+        return None
+    found = client.search_runs([exp.experiment_id], f"tags.config_hash = '{digest}'")
+    done = [r for r in found if r.info.status == "FINISHED"]
+    for r in found:
+        if r.info.status != "FINISHED":
+            client.delete_run(r.info.run_id)
+    if not done:
+        return None
+    run = max(done, key=lambda r: r.info.end_time or 0)
+    history = client.get_metric_history(run.info.run_id, "val_loss")
+    return {"name": run.info.run_name, "run_id": run.info.run_id, "reused": True,
+            "val_loss": min((m.value for m in history), default=float("nan")),
+            "checkpoint": f"{run.info.artifact_uri}/checkpoints/best.ckpt",
+            **{k: v for k, v in run.data.metrics.items() if k.startswith("test_")}}
+
+
 def meta(cfg: DictConfig, data_hash: str) -> dict[str, Any]:
     """What a checkpoint carries besides the weights, to rebuild the observer elsewhere."""
     return {"vehicle": OmegaConf.to_container(cfg.vehicle, resolve=True),
@@ -94,6 +133,12 @@ def train(cfg: DictConfig, callbacks: list[L.Callback] | None = None,
     from lbo.module import ObserverModule
 
     check(cfg)
+    digest = config_hash(cfg)
+    if cfg.get("resume") and cfg.get("logger"):
+        reused = finished_run(cfg, digest)
+        if reused is not None:
+            print(f"reusing finished run {reused['run_id']} ({reused['name']}, same config)")
+            return reused
     L.seed_everything(cfg.seed, workers=True, verbose=False)
     folder, data_hash = prepare_data(cfg)
     dm = WindowDataModule(folder, cfg.window, cfg.batch_size, seed=cfg.seed)
@@ -105,7 +150,7 @@ def train(cfg: DictConfig, callbacks: list[L.Callback] | None = None,
     name = f"{cfg.model.name}-N{cfg.window}"
     tags = {"git_commit": git_commit(), "data_hash": data_hash, "data": cfg.data.name,
             "model": cfg.model.name, "window": str(cfg.window), "features": cfg.features,
-            **(tags or {})}
+            "config_hash": digest, **(tags or {})}
     logger = instantiate(cfg.logger, tags=tags) if cfg.get("logger") else None
     callbacks = [*(instantiate(c) for c in (cfg.get("callbacks") or {}).values()),
                  *(callbacks or [])]
@@ -136,6 +181,7 @@ def train(cfg: DictConfig, callbacks: list[L.Callback] | None = None,
         "checkpoint": ckpt,
         "run_id": logger.run_id if isinstance(logger, MLFlowLogger) else None,
         "epochs": trainer.current_epoch,
+        "reused": False,
     }
     for cb in callbacks:
         if isinstance(cb, Evaluation):
