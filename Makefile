@@ -6,7 +6,7 @@ PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 SCALE ?= paper
 
-.PHONY: help install test test-fast data bench lint clean
+.PHONY: help install test test-fast data reproduce bench lint clean
 
 help:  ## list the targets
 	@grep -E '^[a-z-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  make %-10s %s\n", $$1, $$2}'
@@ -29,9 +29,13 @@ test-fast: install  ## run the tests without the slow marker
 data: install  ## generate the data sets: make data SCALE=smoke|quick|paper
 	$(PY) -m lbo.datagen data=$(SCALE)
 
+reproduce: install  ## the paper's study, resumable: make reproduce SCALE=paper|quick -> reports/<scale>/
+	$(PY) -m lbo.reproduce scale=$(SCALE)
+
 bench: install  ## benchmarks: data generation, filters (prints medians)
 	$(PY) benchmarks/bench_datagen.py
 	$(PY) benchmarks/bench_filters.py
+	$(PY) benchmarks/bench_train.py
 
 lint: install  ## ruff
 	$(VENV)/bin/ruff check src tests benchmarks

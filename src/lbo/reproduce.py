@@ -1,0 +1,236 @@
+"""`make reproduce SCALE=paper|quick`: the paper's study from one command, resumable.
+
+    python -m lbo.reproduce scale=quick
+
+Stages: 1 data, 2 tune (CNN and LSTM at N=20), 3 train the 8 observers with the tuned
+parameters, 4 evaluate the classical observers, 5 write the report. A rerun reuses the
+cached data sets, the Optuna studies (only missing trials run), the MLflow runs that
+finished with the same config (``resume=true``) and the classical table, and redoes only
+what is missing.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import hydra
+import numpy as np
+import pandas as pd
+from hydra import compose
+from omegaconf import DictConfig
+
+from lbo.atomic import write_text
+from lbo.cli import fail
+from lbo.errors import LboError
+from lbo.paths import CONF_DIR
+
+STAGES = ("data", "tune", "train", "evaluate", "report")
+
+
+class Stages:
+    """Banners, progress and timings; the timings persist in ``stages.json``."""
+
+    def __init__(self, folder: Path) -> None:
+        self.path = folder / "stages.json"
+        self.record: dict[str, dict] = (json.loads(self.path.read_text())
+                                        if self.path.is_file() else {})
+
+    def run(self, i: int, name: str, what: str, fn: Callable[[], tuple[Any, str]]) -> Any:
+        print(f"\n==> [{i}/{len(STAGES)}] {name}: {what}", flush=True)
+        start = time.perf_counter()
+        result, status = fn()
+        seconds = time.perf_counter() - start
+        prev = self.record.get(name, {})
+        if status == "reused" and prev.get("seconds") is not None:
+            entry = {"status": "reused", "seconds": prev["seconds"], "check_seconds": seconds}
+        else:
+            entry = {"status": status, "seconds": seconds}
+        self.record[name] = entry
+        write_text(self.path, json.dumps(self.record, indent=1))
+        print(f"<== [{i}/{len(STAGES)}] {name}: {status} in {seconds:.1f} s", flush=True)
+        return result
+
+
+def _compose(name: str, overrides: list[str]) -> DictConfig:
+    return compose(config_name=name, overrides=overrides)
+
+
+def run(cfg: DictConfig) -> Path:
+    """Run the five stages for ``cfg.scale``; return the report folder."""
+    from lbo import report
+    from lbo.datagen.__main__ import run as datagen
+    from lbo.evaluate import run as evaluate
+    from lbo.train import train
+    from lbo.tune import tune
+
+    scale = cfg.scale
+    if scale not in cfg.trials:
+        raise LboError(f"scale must be one of {sorted(cfg.trials)}, got {scale!r}")
+    out = Path(cfg.report_dir)
+    extra = list(cfg.overrides)
+    stages = Stages(out)
+    t0 = time.perf_counter()
+
+    def data() -> tuple[Path, str]:
+        c = _compose("datagen", [f"data={scale}", *extra])
+        folder = Path(datagen(c))
+        return folder, "done"
+
+    folder = stages.run(1, "data", f"generate the {scale} data sets (or reuse them)", data)
+
+    def tune_all() -> tuple[dict, str]:
+        results, reused = {}, True
+        for model in cfg.models:
+            c = _compose("tune", [f"hparams_search={model}", f"experiment={scale}",
+                                  f"tune.n_trials={cfg.trials[scale]}",
+                                  f"tune.handoff={out / 'tuned' / f'{model}.yaml'}",
+                                  f"tune.storage={cfg.optuna_storage}",
+                                  f"output_dir={out / 'tune' / model}",
+                                  *cfg.tune_overrides[scale], *extra, *cfg.train_overrides])
+            results[model] = tune(c)
+            reused &= not results[model]["new_trials"]
+        return results, "reused" if reused else "done"
+
+    tuned = stages.run(2, "tune", f"{' and '.join(m.upper() for m in cfg.models)} at N=20, "
+                       f"{cfg.trials[scale]} Optuna trials each", tune_all)
+
+    def train_all() -> tuple[dict, str]:
+        runs, n, done = {}, len(cfg.models) * len(cfg.windows), 0
+        for model in cfg.models:
+            for window in cfg.windows:
+                name = f"{model}-N{window}"
+                c = _compose("train", [
+                    f"experiment={scale}", f"model={model}", f"window={window}",
+                    f"+tuned={model}", f"hydra.searchpath=[file://{out}]", "resume=true",
+                    f"output_dir={out / 'runs' / name}", *extra, *cfg.train_overrides])
+                start = time.perf_counter()
+                runs[name] = train(c)
+                done += 1
+                how = "reused" if runs[name].get("reused") else \
+                    f"trained in {time.perf_counter() - start:.0f} s"
+                print(f"    {done}/{n} {name}: {how}, NRMSE at alpha=1/3/6 "
+                      + "/".join(f"{runs[name].get(f'test_nrmse_alpha_{a}', np.nan):.2f}"
+                                 for a in (1, 3, 6))
+                      + f"  (stage {time.perf_counter() - t_train:.0f} s)", flush=True)
+        return runs, "reused" if all(r.get("reused") for r in runs.values()) else "done"
+
+    t_train = time.perf_counter()
+    runs = stages.run(3, "train", f"{len(cfg.models) * len(cfg.windows)} observers "
+                      f"({', '.join(cfg.models)} x N={list(cfg.windows)}) with the tuned "
+                      "parameters", train_all)
+
+    def classical() -> tuple[pd.DataFrame, str]:
+        csv = out / "classical" / "evaluation.csv"
+        stamp = out / "classical" / "stamp.json"
+        key = {"data": str(folder), "observers": list(cfg.classical)}
+        if csv.is_file() and stamp.is_file() and json.loads(stamp.read_text()) == key:
+            return pd.read_csv(csv), "reused"
+        c = _compose("evaluate", [f"data={scale}", f"observers=[{','.join(cfg.classical)}]",
+                                  f"output_dir={out / 'classical'}", *extra])
+        table = pd.read_csv(evaluate(c))
+        write_text(stamp, json.dumps(key))
+        return table, "done"
+
+    classical_table = stages.run(4, "evaluate", f"classical observers "
+                                 f"({', '.join(cfg.classical)}) on the test grid; the learned "
+                                 "ones were scored by their runs", classical)
+
+    def write_report() -> tuple[list[Path], str]:
+        learned = pd.concat([pd.read_csv(_artifact(r, "evaluation.csv", cfg.tracking_uri))
+                             for r in runs.values()], ignore_index=True)
+        table = pd.concat([learned[learned["observer"] != "ekf"], classical_table],
+                          ignore_index=True)
+        run_ids = {name: r["run_id"] for name, r in runs.items()}
+        for model, res in tuned.items():
+            if res.get("parent_run_id"):
+                run_ids[f"tune-{model}"] = res["parent_run_id"]
+        best_cnn = report.best_window(table, "cnn")
+        traj = _trajectory(folder, runs.get(best_cnn), cfg.trajectory_manoeuvre,
+                           cfg.tracking_uri) if best_cnn else None
+        files = report.write(out, scale, table, run_ids, stages.record, traj,
+                             folder / "friction_circle.png")
+        _log_report(cfg, scale, out, files, folder.name)
+        return files, "done"
+
+    stages.run(5, "report", f"tables and figures in {out}", write_report)
+    print(f"\nreport: {out / 'report.md'}  ({time.perf_counter() - t0:.0f} s in all)")
+    return out
+
+
+def _artifact(run: dict[str, Any], path: str, tracking_uri: str) -> Path:
+    """A file logged by a training run, fetched from its MLflow artifacts."""
+    import mlflow
+
+    return Path(mlflow.artifacts.download_artifacts(run_id=run["run_id"], artifact_path=path,
+                                                    tracking_uri=tracking_uri))
+
+
+def _trajectory(folder: Path, run: dict[str, Any] | None, manoeuvre: str,
+                tracking_uri: str) -> dict[str, np.ndarray] | None:
+    """Fig. 6 arrays: one manoeuvre at alpha=3 with the best CNN and the EKF."""
+    from lbo.evaluate import classical, load_test, predict_grid
+    from lbo.module import ObserverModule
+    from lbo.noise import Noise
+    from lbo.vehicle import Vehicle
+
+    if run is None:
+        return None
+    names = json.loads((folder / "manifest.json").read_text())["test_trajectories"]
+    if manoeuvre not in names:
+        manoeuvre = names[0]
+    arr = load_test(folder / "test.parquet")
+    pick = np.flatnonzero(np.isclose(arr["alpha"], 3.0) & (arr["traj"] == names.index(manoeuvre)))
+    if pick.size == 0:
+        return None
+    sub = {k: v[pick] for k, v in arr.items() if isinstance(v, np.ndarray)
+           and v.shape[:1] == arr["alpha"].shape}
+    ckpt = _artifact(run, "checkpoints/best.ckpt", tracking_uri)
+    module = ObserverModule.load_from_checkpoint(ckpt, map_location="cpu")
+    meta = module.hparams["meta"]
+    vehicle = Vehicle(**meta["vehicle"])
+    noise = Noise(meta["noise"]["process_sigma"], meta["noise"]["measurement_sigma"])
+    learned = predict_grid(module.observer, sub, module.hparams["window"])[0]
+    ekf = classical("ekf", sub, vehicle, noise)[0]
+    keep = sub["mask"][0]
+    return {"truth": sub["z"][0][keep, :2], "meas": sub["m"][0][keep, :2],
+            "title": f"{manoeuvre.replace('_', ' ')}, alpha = 3",
+            run["name"]: learned[keep, :2], "EKF": ekf[keep, :2]}
+
+
+def _log_report(cfg: DictConfig, scale: str, out: Path, files: list[Path], data: str) -> None:
+    """Log the report as an MLflow run of its own; a rerun updates the same run."""
+    import mlflow
+
+    client = mlflow.MlflowClient(cfg.tracking_uri)
+    exp = client.get_experiment_by_name(cfg.experiment_name)
+    if exp is None:
+        from lbo.paths import artifact_location
+
+        exp_id = client.create_experiment(cfg.experiment_name,
+                                          artifact_location(cfg.tracking_uri))
+    else:
+        exp_id = exp.experiment_id
+    found = client.search_runs([exp_id], f"tags.lbo_report = '{scale}' and tags.data = '{data}'")
+    run_id = found[0].info.run_id if found else client.create_run(
+        exp_id, run_name=f"report-{scale}", tags={"lbo_report": scale, "data": data}).info.run_id
+    for f in files:
+        client.log_artifact(run_id, str(f))
+    client.set_terminated(run_id, "FINISHED")
+    print(f"    report logged to MLflow run {run_id}")
+
+
+@hydra.main(version_base="1.3", config_path=str(CONF_DIR), config_name="reproduce")
+def main(cfg: DictConfig) -> None:
+    try:
+        run(cfg)
+    except LboError as e:
+        fail(e)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,79 @@
+import json
+import os
+import signal
+import subprocess
+import sys
+
+import mlflow
+import optuna
+import pandas as pd
+import pytest
+
+REPORT_FILES = ["rmse_alpha1.csv", "rmse_alpha6.csv", "nrmse.csv", "report.md",
+                "friction_circle.png", "nrmse_cnn.png", "nrmse_lstm.png", "nrmse_all.png",
+                "trajectory_alpha3.png"]
+
+
+def command(tmp_path):
+    return [sys.executable, "-m", "lbo.reproduce", "scale=smoke",
+            f"report_dir={tmp_path / 'report'}",
+            f"optuna_storage=sqlite:///{tmp_path / 'optuna.db'}",
+            f"overrides=['data.root={tmp_path / 'data'}']",
+            "train_overrides=['trainer.limit_train_batches=4','trainer.max_epochs=1']",
+            f"hydra.run.dir={tmp_path / 'hydra'}"]
+
+
+@pytest.mark.slow
+def test_reproduce_smoke_killed_and_resumed_without_duplicates(tmp_path):
+    env = {**os.environ, "MLFLOW_TRACKING_URI": f"sqlite:///{tmp_path / 'mlflow.db'}",
+           "PYTHONUNBUFFERED": "1"}
+    proc = subprocess.Popen(command(tmp_path), env=env, stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT, text=True, start_new_session=True)
+    seen = []
+    for line in proc.stdout:
+        seen.append(line)
+        if "3/8 cnn-N60" in line:  # two observers finished, the third done: kill mid-stage
+            os.killpg(proc.pid, signal.SIGKILL)
+            break
+    proc.wait(timeout=60)
+    assert proc.returncode == -signal.SIGKILL, "".join(seen[-30:])
+    assert not (tmp_path / "report" / "report.md").exists()
+
+    done = subprocess.run(command(tmp_path), env=env, capture_output=True, text=True)
+    assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:]
+    out = done.stdout
+    for i in range(1, 6):
+        assert f"==> [{i}/5]" in out and f"<== [{i}/5]" in out  # a banner per stage
+    assert "<== [1/5] data: done" in out
+    assert "<== [2/5] tune: reused" in out
+    assert out.count("reusing finished run") == 3  # cnn-N20, N40, N60 finished before the kill
+
+    report = tmp_path / "report"
+    for name in REPORT_FILES:
+        assert (report / name).stat().st_size > 100, name
+    t1 = pd.read_csv(report / "rmse_alpha1.csv")
+    assert list(t1["variable"]) == ["x", "y", "psi"]
+    assert {"ekf", "ekf_paper", "cnn", "cnn_paper", "lstm", "lstm_paper"} <= set(t1.columns)
+    assert t1.loc[t1["variable"] == "x", "ekf_paper"].item() == 0.24
+    nrmse = pd.read_csv(report / "nrmse.csv")
+    expected = {f"{m}-N{n}" for m in ("cnn", "lstm") for n in (20, 40, 60, 80)}
+    assert expected | {"ekf", "oracle", "adaptive", "ukf", "pcrb"} == set(nrmse["observer"])
+    assert nrmse.groupby("observer").size().eq(7).all()  # every observer at every alpha
+    md = (report / "report.md").read_text()
+    assert "Table I" in md and "overtakes the EKF" in md and "cnn-N20" in md
+    stages = json.loads((report / "stages.json").read_text())
+    assert list(stages) == ["data", "tune", "train", "evaluate", "report"]
+
+    client = mlflow.MlflowClient(env["MLFLOW_TRACKING_URI"])
+    exp = client.get_experiment_by_name("lbo")
+    runs = client.search_runs([exp.experiment_id], "attributes.status = 'FINISHED'")
+    trained = [r.info.run_name for r in runs if "optuna_trial" not in r.data.tags
+               and r.info.run_name in expected]
+    assert sorted(trained) == sorted(expected)  # each observer once: no duplicates
+    reports = [r for r in runs if r.data.tags.get("lbo_report") == "smoke"]
+    assert len(reports) == 1
+    assert {a.path for a in client.list_artifacts(reports[0].info.run_id)} >= set(REPORT_FILES)
+    for model in ("cnn", "lstm"):
+        study = optuna.load_study(study_name=f"{model}-smoke-N20",
+                                  storage=f"sqlite:///{tmp_path / 'optuna.db'}")
+        assert len(study.trials) == 2
