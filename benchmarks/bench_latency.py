@@ -1,0 +1,111 @@
+"""Per-step latency of an observer in a control loop, on one CPU thread.
+
+    python benchmarks/bench_latency.py [--steps 2000] [--repeats 3]
+
+Observers: the CNN at N=60 and the LSTM at N=80 (the paper's best windows) in PyTorch eager,
+TorchScript and ONNX Runtime, and the EKF. One step is one call of ``Observer.step``, as a
+50 Hz loop makes it: the sample goes into the ring buffer, the window (1, N, 5) is taken as
+a view, the network (feature transform and normalisation included) runs on it. The networks
+have random (untrained) weights: the latency does not depend on their values.
+
+Each repeat resets the observer, feeds it a simulated drive of ``warm-up + steps`` samples and
+times the last ``steps`` calls one by one (the warm-up fills the window, so every timed
+call runs the network). The table gives p50 and p99 of these per-call times, each the median
+over ``repeats``. torch and ONNX Runtime use one intra-op thread.
+Target: CNN p99 < 1 ms in every engine; the budget at 50 Hz is 20 ms.
+"""
+
+from __future__ import annotations
+
+import argparse
+import platform
+import time
+
+import numpy as np
+import onnxruntime
+import torch
+
+from lbo.network import ObserverNet
+from lbo.noise import Noise
+from lbo.observer import Observer
+from lbo.vehicle import Vehicle, measure, simulate
+
+WARM_UP = 200
+TARGET_MS = 1.0
+BUDGET_MS = 20.0
+
+
+def drive(steps: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """A simulated drive: (T, 3) measurements at alpha=1 and (T, 2) smooth inputs."""
+    vehicle, noise = Vehicle(), Noise.preset("paper")
+    rng = np.random.default_rng(seed)
+    k = np.arange(steps)
+    u = np.stack([12.0 + 3.0 * np.sin(2 * np.pi * k / 900), 0.1 * np.sin(2 * np.pi * k / 400)],
+                 axis=1)
+    z = simulate(np.zeros((1, 3)), u[None], vehicle.dt, vehicle.wheelbase,
+                 noise.process_sigma, rng)[0]
+    return measure(z, noise.meas(1.0), rng), u
+
+
+def latency(obs: Observer, m: np.ndarray, u: np.ndarray, steps: int) -> np.ndarray:
+    """Per-call times (ms) of the last ``steps`` calls of ``obs.step`` over the drive."""
+    obs.reset()
+    times = np.empty(steps)
+    start = len(m) - steps
+    for k in range(start):
+        obs.step(m[k], u[k])
+    clock = time.perf_counter_ns
+    for k in range(start, len(m)):
+        t0 = clock()
+        obs.step(m[k], u[k])
+        times[k - start] = clock() - t0
+    return times / 1e6
+
+
+def observers():
+    """(label, engine, observer) for every row of the table."""
+    torch.manual_seed(0)
+    for model, window in (("cnn", 60), ("lstm", 80)):
+        net = ObserverNet(model, window).eval()
+        for engine in ("torch", "torchscript", "onnx"):
+            yield f"{model.upper()} N={window}", engine, Observer.from_net(net, engine=engine)
+    yield "EKF", "numpy", Observer.load("ekf")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--steps", type=int, default=2000, help="timed steps per repeat")
+    parser.add_argument("--repeats", type=int, default=3)
+    args = parser.parse_args()
+    torch.set_num_threads(1)
+    m, u = drive(WARM_UP + args.steps)
+    cpu = platform.processor() or platform.machine()
+    try:
+        with open("/proc/cpuinfo") as f:
+            cpu = next(line.split(":", 1)[1].strip() for line in f if "model name" in line)
+    except (OSError, StopIteration):
+        pass
+    print(f"per-step latency of Observer.step, one thread ({cpu}; torch {torch.__version__}, "
+          f"onnxruntime {onnxruntime.__version__})")
+    print(f"{args.steps} timed steps after {WARM_UP} warm-up, p50/p99 = median over "
+          f"{args.repeats} repeats; networks untrained (random weights)")
+    print()
+    print("| observer | engine | p50 (ms) | p99 (ms) |")
+    print("|---|---|---|---|")
+    cnn_p99 = []
+    for label, engine, obs in observers():
+        runs = [latency(obs, m, u, args.steps) for _ in range(args.repeats)]
+        p50 = float(np.median([np.percentile(r, 50) for r in runs]))
+        p99 = float(np.median([np.percentile(r, 99) for r in runs]))
+        if label.startswith("CNN"):
+            cnn_p99.append(p99)
+        print(f"| {label} | {engine} | {p50:.3f} | {p99:.3f} |", flush=True)
+    print()
+    worst = max(cnn_p99)
+    print(f"CNN N=60 p99 < {TARGET_MS:g} ms in every engine: "
+          f"{'met' if worst < TARGET_MS else 'NOT met'} (worst {worst:.3f} ms); "
+          f"budget at 50 Hz: {BUDGET_MS:g} ms")
+
+
+if __name__ == "__main__":
+    main()

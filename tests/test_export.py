@@ -1,0 +1,122 @@
+import json
+import subprocess
+import sys
+
+import numpy as np
+import onnxruntime as ort
+import pandas as pd
+import pytest
+import torch
+
+from conftest import compose_cfg
+from lbo.errors import LboError
+from lbo.export import export, run
+from lbo.network import ObserverNet
+from lbo.observer import Observer
+from lbo.train import train
+
+
+@pytest.fixture(scope="module", autouse=True)
+def one_thread():
+    """One torch thread, here and in the CLIs: on a busy 2-core machine, intra-op threads
+    make small batches 10-100x slower (measured), and the tests check numbers, not speed."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("OMP_NUM_THREADS", "1")
+        yield
+    torch.set_num_threads(threads)
+
+
+@pytest.fixture(scope="module")
+def checkpoint(tmp_path_factory, smoke_data):
+    """A smoke CNN (N=20): one short epoch, no MLflow, no evaluation."""
+    tmp = tmp_path_factory.mktemp("export")
+    out = train(compose_cfg("train", [
+        "experiment=smoke", f"data.root={smoke_data.parent}", f"output_dir={tmp / 'out'}",
+        "trainer.max_epochs=1", "trainer.limit_train_batches=5", "~logger",
+        "~callbacks.evaluation"]))
+    return out["checkpoint"]
+
+
+@pytest.fixture(scope="module")
+def windows(smoke_data):
+    """(B, 80, 5) raw windows of a simulated manoeuvre at alpha=3: real inputs, not noise."""
+    test = pd.read_parquet(smoke_data / "test.parquet")
+    frame = test[(test["traj"] == 2) & (test["alpha"] == 3.0)].sort_values("k")
+    series = torch.tensor(frame[["x_m", "y_m", "psi_m", "V", "delta"]].to_numpy())
+    return series.unfold(0, 80, 1).transpose(-1, -2)[::3].contiguous()
+
+
+def compare(net, script, session, win):
+    with torch.no_grad():
+        ref = net(win).numpy()
+        ts = script(win).numpy()
+    onnx = session.run(None, {"window": win.numpy()})[0]
+    assert ts.dtype == onnx.dtype == np.float64 and onnx.shape == ref.shape
+    return np.abs(ts - ref).max(), np.abs(onnx - ref).max()
+
+
+def test_export_cli_files_match_pytorch(tmp_path, checkpoint, windows):
+    res = subprocess.run([sys.executable, "-m", "lbo.export", f"observer={checkpoint}",
+                          "out_dir=exports"], cwd=tmp_path, capture_output=True, text=True)
+    assert res.returncode == 0, res.stderr[-3000:]
+    folder = tmp_path / "exports"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["exports"]  # nothing else written
+    assert sorted(p.name for p in folder.iterdir()) == ["cnn-N20.json", "cnn-N20.onnx",
+                                                        "cnn-N20.pt"]
+    meta = json.loads((folder / "cnn-N20.json").read_text())
+    assert (meta["window"], meta["dt"], meta["features"]) == (20, 0.02, "relative")
+    assert meta["input"]["columns"] == ["x_m", "y_m", "psi_m", "V", "delta"]
+    assert meta["noise"]["name"] == "paper"
+
+    net = Observer.load(checkpoint).net
+    script = torch.jit.load(str(folder / "cnn-N20.pt"))
+    session = ort.InferenceSession(str(folder / "cnn-N20.onnx"),
+                                   providers=["CPUExecutionProvider"])
+    win = windows[:, -20:]
+    for batch in (win[:1], win):  # one window as in the loop, and a batch
+        ts_diff, onnx_diff = compare(net, script, session, batch)
+        assert ts_diff < 1e-5 and onnx_diff < 1e-5
+    # the trained observer, not a fresh one: these would differ
+    assert not torch.allclose(net(win[:4]), ObserverNet("cnn", 20)(win[:4]))
+
+
+def test_lstm_exports_for_any_batch(tmp_path, windows):
+    torch.manual_seed(0)
+    net = ObserverNet("lstm", 80)
+    net.set_normalisation([0.0, 0.0, 0.0, 10.0, 0.0], [1.0, 1.0, 0.02, 5.0, 0.1],
+                          [0.0, 0.0, 0.0], [0.5, 0.5, 0.01])
+    paths = export(Observer.from_net(net), tmp_path)
+    assert paths["onnx"].name == "lstm-N80.onnx"
+    script = torch.jit.load(str(paths["torchscript"]))
+    session = ort.InferenceSession(str(paths["onnx"]), providers=["CPUExecutionProvider"])
+    for batch in (windows[:1], windows[:7], windows):
+        ts_diff, onnx_diff = compare(net.eval(), script, session, batch)
+        assert ts_diff < 1e-5 and onnx_diff < 1e-5
+
+
+@pytest.mark.parametrize("engine", ["torchscript", "onnx"])
+def test_engines_step_like_pytorch(checkpoint, smoke_data, engine):
+    test = pd.read_parquet(smoke_data / "test.parquet")
+    frame = test[(test["traj"] == 0) & (test["alpha"] == 6.0)].sort_values("k").iloc[:120]
+    m, u = frame[["x_m", "y_m", "psi_m"]].to_numpy(), frame[["V", "delta"]].to_numpy()
+    ref, valid = Observer.load(checkpoint).run(m, u)
+    obs = Observer.load(checkpoint, engine=engine)
+    assert obs.engine == engine
+    streamed = np.array([obs.step(a, b).state for a, b in zip(m, u)])
+    assert np.abs(streamed - ref).max() < 1e-5
+    np.testing.assert_array_equal(obs.run(m, u)[1], valid)
+
+
+@pytest.mark.parametrize("overrides, message", [
+    (["observer=ekf"], "export needs a learned observer"),
+    ([], "observer: give a checkpoint path"),
+    (["observer=CKPT", "register=lbo"], "register needs observer=<MLflow run id>"),
+    (["observer=CKPT", "features=absolute"], "trained with features=relative"),
+])
+def test_export_refusals(tmp_path, checkpoint, overrides, message):
+    overrides = [o.replace("CKPT", str(checkpoint)) for o in overrides]
+    with pytest.raises(LboError, match=message):
+        run(compose_cfg("export", [*overrides, f"out_dir={tmp_path / 'x'}"]))
+    assert not (tmp_path / "x").exists()

@@ -1,0 +1,335 @@
+import re
+import subprocess
+import sys
+
+import numpy as np
+import pandas as pd
+import pytest
+import torch
+
+from conftest import compose_cfg
+from lbo import schema
+from lbo.errors import LboError
+from lbo.evaluate import classical, predict_grid
+from lbo.export import register
+from lbo.filters import ekf_batch
+from lbo.metrics import rmse
+from lbo.noise import Noise
+from lbo.observe import resample, run
+from lbo.observer import Observer
+from lbo.train import train
+from lbo.vehicle import Vehicle, wrap_angle
+
+VEHICLE, NOISE = Vehicle(), Noise.preset("paper")
+LOG = ["t", "x_m", "y_m", "psi_m", "V", "delta", "x", "y", "psi"]
+
+
+@pytest.fixture(scope="module", autouse=True)
+def one_thread():
+    """One torch thread, here and in the CLIs: on a busy 2-core machine, intra-op threads
+    make small batches 10-100x slower (measured), and the tests check numbers, not speed."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("OMP_NUM_THREADS", "1")
+        yield
+    torch.set_num_threads(threads)
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory, smoke_data):
+    """One smoke CNN (N=20), logged to its own MLflow store, shared by this module."""
+    tmp = tmp_path_factory.mktemp("observe")
+    uri = f"sqlite:///{tmp / 'mlflow.db'}"
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("MLFLOW_TRACKING_URI", uri)
+        out = train(compose_cfg("train", [
+            "experiment=smoke", f"data.root={smoke_data.parent}", f"output_dir={tmp / 'out'}",
+            "trainer.max_epochs=1", "trainer.limit_train_batches=5"]))
+    return {"checkpoint": out["checkpoint"], "run_id": out["run_id"], "uri": uri}
+
+
+@pytest.fixture(scope="module")
+def manoeuvre(smoke_data):
+    """One simulated manoeuvre of the smoke test set at alpha=1, as a user's log would be."""
+    test = pd.read_parquet(smoke_data / "test.parquet")
+    return test[(test["traj"] == 0) & (test["alpha"] == 1.0)].sort_values("k")
+
+
+@pytest.fixture
+def log_csv(tmp_path, manoeuvre):
+    path = tmp_path / "log.csv"
+    manoeuvre[LOG].to_csv(path, index=False)
+    return path
+
+
+def arrays(frame, window=1):
+    """Padded arrays of one trajectory with every row from the window's end on scored."""
+    arr = schema.to_arrays(frame.drop(columns=["scored"]))
+    arr["mask"] &= np.arange(arr["mask"].shape[1]) >= window - 1
+    return arr
+
+
+def observe(*overrides, check=True):
+    res = subprocess.run([sys.executable, "-m", "lbo.observe", *overrides],
+                         capture_output=True, text=True)
+    if check:
+        assert res.returncode == 0, res.stderr[-3000:]
+    return res
+
+
+def printed_rmse(stdout):
+    found = re.search(r"rmse x (\S+) m, y (\S+) m, psi (\S+) rad", stdout)
+    assert found, stdout
+    return np.array([float(v) for v in found.groups()])
+
+
+# --- the CLI on a simulated log --------------------------------------------------------------
+
+
+@pytest.mark.parametrize("which", ["learned", "ekf"])
+def test_observe_prints_the_evaluation_rmse(tmp_path, trained, manoeuvre, log_csv, which):
+    out = tmp_path / "est.csv"
+    if which == "learned":
+        net = Observer.load(trained["checkpoint"]).net
+        arr = arrays(manoeuvre, net.window)
+        expected = rmse(predict_grid(net, arr, net.window), arr["z"], arr["mask"])[0]
+        res = observe(f"observer={trained['checkpoint']}", f"input={log_csv}", f"output={out}")
+        valid = len(manoeuvre) - net.window + 1
+    else:
+        arr = arrays(manoeuvre)
+        expected = rmse(classical("ekf", arr, VEHICLE, NOISE), arr["z"])[0]
+        res = observe("observer=ekf", f"input={log_csv}", f"output={out}")
+        valid = len(manoeuvre)
+    np.testing.assert_allclose(printed_rmse(res.stdout), expected, rtol=1e-5)
+    assert f"observed: {out}" in res.stdout
+    est = pd.read_csv(out)
+    assert list(est.columns) == ["t", "x", "y", "psi", "valid"]
+    assert len(est) == len(manoeuvre) and int(est["valid"].sum()) == valid
+    np.testing.assert_array_equal(est["t"], manoeuvre["t"])
+    assert not est["valid"].iloc[:len(est) - valid].any()
+
+
+def test_ekf_output_is_the_batched_ekf(tmp_path, manoeuvre, log_csv):
+    out = tmp_path / "est.parquet"  # Parquet by extension
+    cfg = compose_cfg("observe", ["observer=ekf", f"input={log_csv}", f"output={out}",
+                                  "vehicle.wheelbase=3.1", "noise=literal"])
+    result = run(cfg)
+    m, u = manoeuvre[["x_m", "y_m", "psi_m"]].to_numpy(), manoeuvre[["V", "delta"]].to_numpy()
+    noise = Noise.from_cfg(cfg.noise)
+    ref = ekf_batch(m[None], u[None], Vehicle(wheelbase=3.1), noise.Q, noise.R(1.0))[0]
+    est = pd.read_parquet(out)
+    np.testing.assert_allclose(est[["x", "y"]], ref[:, :2], rtol=0, atol=1e-9)
+    np.testing.assert_allclose(est["psi"], wrap_angle(ref[:, 2]), rtol=0, atol=1e-9)
+    z = manoeuvre[["x", "y", "psi"]].to_numpy()
+    np.testing.assert_allclose(result["rmse"], rmse(ref, z), rtol=1e-12)
+
+
+def test_observe_writes_only_its_output(tmp_path, log_csv):
+    res = subprocess.run([sys.executable, "-m", "lbo.observe", "observer=ekf",
+                          f"input={log_csv}", "output=est.csv"], cwd=tmp_path,
+                         capture_output=True, text=True)
+    assert res.returncode == 0, res.stderr
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["est.csv", "log.csv"]
+
+
+# --- bad input: one line, exit 2, no output ---------------------------------------------------
+
+
+def _set(df, row, column, value):
+    d = df.copy()
+    d.loc[d.index[row], column] = value
+    return d
+
+
+BAD_LOGS = {  # case: (log from the good one, what the message must say)
+    "missing": (lambda d: d.drop(columns=["V", "delta"]), "missing columns V, delta"),
+    "nan": (lambda d: _set(d, 5, "y_m", np.nan), "column 'y_m' has NaN or inf"),
+    "inf": (lambda d: _set(d, 9, "V", np.inf), "column 'V' has NaN or inf"),
+    "repeated_t": (lambda d: _set(d, 7, "t", d["t"].iloc[6]), "'t' is not strictly increasing"),
+    "backwards_t": (lambda d: d.iloc[::-1], "'t' is not strictly increasing"),
+    "dt": (lambda d: d.assign(t=d["t"] * 1.5),
+           r"sampling period .* differs from the observer's dt=0.02 s by more than 1%; "
+           r"pass resample=true"),
+    "degrees": (lambda d: d.assign(psi_m=np.degrees(d["psi_m"]) + 90.0),
+                "'psi_m' looks like degrees"),
+    "header_only": (lambda d: d.iloc[:0], "empty file"),
+    "empty": (None, "empty file"),
+}
+
+
+@pytest.mark.parametrize("case", list(BAD_LOGS))
+def test_bad_log_is_refused_before_any_output(tmp_path, manoeuvre, case):
+    make, message = BAD_LOGS[case]
+    log = tmp_path / "log.csv"
+    if make is None:
+        log.write_text("")
+    else:
+        make(manoeuvre[LOG]).to_csv(log, index=False)
+    out = tmp_path / "est.csv"
+    res = observe("observer=ekf", f"input={log}", f"output={out}", check=False)
+    assert res.returncode == 2
+    lines = res.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error: input "), res.stderr
+    assert re.search(message, lines[0]), lines[0]
+    assert not out.exists()
+    assert [p.name for p in tmp_path.iterdir()] == ["log.csv"]  # no temp file left either
+
+
+@pytest.mark.parametrize("override, message", [
+    ("observer=kalman", "not a checkpoint file, an MLflow run id"),
+    ("observer=missing.ckpt", "checkpoint not found: missing.ckpt"),
+    ("observer=pcrb", "pcrb is a bound"),
+    ("output=est.txt", "output must be a .csv or .parquet file"),
+    ("input=log.json", "input must be a .csv or .parquet file"),
+    ("input=nowhere.csv", "file not found"),
+    ("output=LOG", "output must not be the input log"),
+])
+def test_bad_arguments_are_refused(tmp_path, log_csv, override, message):
+    overrides = {"observer": "ekf", "input": str(log_csv), "output": str(tmp_path / "est.csv")}
+    key, value = override.replace("LOG", str(log_csv)).split("=", 1)
+    overrides[key] = value
+    before = log_csv.read_bytes()
+    with pytest.raises(LboError, match=re.escape(message)):
+        run(compose_cfg("observe", [f"{k}={v}" for k, v in overrides.items()]))
+    assert not (tmp_path / "est.csv").exists()
+    assert log_csv.read_bytes() == before
+
+
+def test_a_log_shorter_than_the_window_is_all_fallback(tmp_path, trained, manoeuvre, capsys):
+    path, out = tmp_path / "short.parquet", tmp_path / "est.csv"
+    manoeuvre[LOG].iloc[:12].to_parquet(path)
+    result = run(compose_cfg("observe", [f"observer={trained['checkpoint']}",
+                                         f"input={path}", f"output={out}"]))
+    assert result["valid"] == 0 and not pd.read_csv(out)["valid"].any()
+    assert "no valid row to score" in capsys.readouterr().out
+
+
+def test_resample_interpolates_to_the_observer_dt(tmp_path, manoeuvre):
+    # the log at 0.01 s (midpoints interpolated): refused, then resampled back to 0.02 s
+    fine_t = np.arange(2 * len(manoeuvre) - 1) * 0.01
+    fine = resample(manoeuvre[LOG], 0.01, tuple(LOG[1:]))
+    np.testing.assert_allclose(fine["t"], fine_t, atol=1e-12)
+    path, out = tmp_path / "fine.csv", tmp_path / "est.csv"
+    fine.to_csv(path, index=False)
+    base = [f"input={path}", f"output={out}", "observer=ekf"]
+    with pytest.raises(LboError, match="resample=true"):
+        run(compose_cfg("observe", base))
+    result = run(compose_cfg("observe", [*base, "resample=true"]))
+    m, u = manoeuvre[["x_m", "y_m", "psi_m"]].to_numpy(), manoeuvre[["V", "delta"]].to_numpy()
+    ref = ekf_batch(m[None], u[None], VEHICLE, NOISE.Q, NOISE.R(1.0))[0]
+    est = pd.read_csv(out)
+    assert result["rows"] == len(manoeuvre)
+    np.testing.assert_allclose(est[["x", "y"]], ref[:, :2], atol=1e-6)
+    # a vehicle.dt override changes what the classical observers accept
+    run(compose_cfg("observe", [*base, "vehicle.dt=0.01"]))
+
+
+def test_resample_takes_the_short_way_round_for_headings():
+    df = pd.DataFrame({"t": [0.0, 0.04], "psi_m": [3.1, -3.1], "x_m": [0.0, 4.0]})
+    out = resample(df, 0.02, ("psi_m", "x_m"))
+    np.testing.assert_allclose(out["x_m"], [0.0, 2.0, 4.0])
+    assert abs(abs(out["psi_m"][1]) - np.pi) < 1e-12
+    np.testing.assert_allclose(out["psi_m"][[0, 2]], [3.1, -3.1])
+
+
+# --- streaming --------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("source", ["learned", "ekf", "oracle", "adaptive", "ukf"])
+def test_streaming_equals_batch(trained, smoke_data, source):
+    test = pd.read_parquet(smoke_data / "test.parquet")
+    frame = test[(test["traj"] == 1) & (test["alpha"] == 3.0)].sort_values("k")
+    m, u = frame[["x_m", "y_m", "psi_m"]].to_numpy(), frame[["V", "delta"]].to_numpy()
+    obs = Observer.load(trained["checkpoint"] if source == "learned" else source, alpha=3.0)
+    est, valid = obs.run(m, u)
+    for _ in range(2):  # reset() starts a new log
+        obs.reset()
+        steps = [obs.step(mk, uk) for mk, uk in zip(m, u)]
+        streamed = np.array([s.state for s in steps])
+        err = streamed - est
+        err[:, 2] = wrap_angle(err[:, 2])
+        assert np.abs(err).max() < 1e-6
+        np.testing.assert_array_equal([s.valid for s in steps], valid)
+    n = obs.window
+    assert valid.sum() == len(m) - n + 1
+    if source == "learned":
+        # the first N-1 rows are the paper's EKF; from row N-1 on, the network's windows
+        ekf = ekf_batch(m[None], u[None], obs.vehicle, obs.noise.Q, obs.noise.R(1.0))[0]
+        np.testing.assert_allclose(est[:n - 1, :2], ekf[:n - 1, :2], atol=1e-12)
+        win = torch.from_numpy(np.concatenate([m, u], axis=1)[None, -n:])
+        with torch.no_grad():
+            np.testing.assert_allclose(est[-1], obs.net(win)[0].numpy(), atol=1e-6)
+        assert obs._ring.shape == (2 * n, 5)  # the history is never kept
+
+
+def test_step_refuses_nan():
+    obs = Observer.load("ekf")
+    with pytest.raises(LboError, match="NaN or inf"):
+        obs.step([0.0, np.nan, 0.0], [1.0, 0.0])
+
+
+# --- checkpoints and where they come from -----------------------------------------------------
+
+
+def _edited(trained, tmp_path, edit):
+    ckpt = torch.load(trained["checkpoint"], map_location="cpu", weights_only=True)
+    edit(ckpt)
+    path = tmp_path / "edited.ckpt"
+    torch.save(ckpt, path)
+    return path
+
+
+@pytest.mark.parametrize("edit, kwargs, message", [
+    (lambda c: c["hyper_parameters"].update(format=99), {},
+     "checkpoint format 99, this lbo reads format 1"),
+    (lambda c: c["hyper_parameters"].pop("format"), {}, "checkpoint format None"),
+    (lambda c: c["hyper_parameters"].update(features="polar"), {},
+     "feature mode 'polar' is unknown to this lbo"),
+    (lambda c: None, {"features": "absolute"},
+     "trained with features=relative, but features=absolute was asked for"),
+    (lambda c: c["state_dict"].pop("observer.in_mean"), {}, "weights do not fit"),
+    (lambda c: c.pop("hyper_parameters"), {}, "not an lbo observer checkpoint"),
+])
+def test_foreign_checkpoints_are_refused(trained, tmp_path, edit, kwargs, message):
+    with pytest.raises(LboError, match=re.escape(message)) as err:
+        Observer.load(_edited(trained, tmp_path, edit), **kwargs)
+    assert "\n" not in str(err.value)
+
+
+def test_corrupt_checkpoint_is_one_line(trained, tmp_path):
+    path = tmp_path / "cut.ckpt"
+    path.write_bytes(open(trained["checkpoint"], "rb").read()[:5000])
+    with pytest.raises(LboError, match="cannot read it as a torch checkpoint") as err:
+        Observer.load(path)
+    assert "\n" not in str(err.value)
+
+
+def test_checkpoint_carries_the_observer(trained):
+    obs = Observer.load(trained["checkpoint"], features="relative")
+    assert (obs.name, obs.window, obs.dt, obs.features) == ("cnn-N20", 20, 0.02, "relative")
+    assert obs.noise.name == "paper" and obs.vehicle == VEHICLE
+    assert torch.all(obs.net.in_std != 1.0)  # normalisation statistics of the training set
+
+
+def test_run_id_and_registered_model_load_the_same_observer(trained, manoeuvre, monkeypatch):
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", trained["uri"])
+    m, u = manoeuvre[["x_m", "y_m", "psi_m"]].to_numpy(), manoeuvre[["V", "delta"]].to_numpy()
+    ref, _ = Observer.load(trained["checkpoint"]).run(m, u)
+    by_run = Observer.load(trained["run_id"])
+    np.testing.assert_array_equal(by_run.run(m, u)[0], ref)
+    uri = register(trained["run_id"], "lbo-test")
+    assert uri == "models:/lbo-test/1"
+    np.testing.assert_array_equal(Observer.load(uri).run(m, u)[0], ref)
+    with pytest.raises(LboError, match=f"MLflow run {'0' * 31}1 not found"):
+        Observer.load("0" * 31 + "1")
+    with pytest.raises(LboError, match="models:/lbo-test/7 not found"):
+        Observer.load("models:/lbo-test/7")
+
+
+def test_import_lbo_stays_light():
+    code = ("import sys, lbo; assert 'torch' not in sys.modules; "
+            "assert lbo.Observer.load('ekf').name == 'ekf'; print(sorted(lbo.__all__))")
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert res.returncode == 0, res.stderr
+    assert "Observer" in res.stdout
