@@ -36,6 +36,7 @@ bench: install  ## benchmarks: data generation, filters (prints medians)
 	$(PY) benchmarks/bench_datagen.py
 	$(PY) benchmarks/bench_filters.py
 	$(PY) benchmarks/bench_train.py
+	$(PY) benchmarks/bench_latency.py
 
 lint: install  ## ruff
 	$(VENV)/bin/ruff check src tests benchmarks

@@ -72,8 +72,8 @@ def test_presets_read_the_table_two_ways():
 def test_hydra_noise_configs_match_the_presets(name):
     cfg = compose_cfg("datagen", [f"noise={name}"])
     from_cfg, preset = Noise.from_cfg(cfg.noise), Noise.preset(name)
-    np.testing.assert_allclose(from_cfg.process_sigma, preset.process_sigma, rtol=1e-5)
-    np.testing.assert_allclose(from_cfg.measurement_sigma, preset.measurement_sigma, rtol=1e-5)
+    assert from_cfg.process_sigma == preset.process_sigma  # exactly: same data, same hashes
+    assert from_cfg.measurement_sigma == preset.measurement_sigma
 
 
 def test_wrap_angle_range():

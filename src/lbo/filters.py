@@ -159,56 +159,102 @@ def run_filterpy_ekf(m: np.ndarray, u: np.ndarray, vehicle: Vehicle,
 # --------------------------------------------------------------------------- batched EKFs
 
 
-def _ekf_loop(m: np.ndarray, u: np.ndarray, vehicle: Vehicle, Q: np.ndarray, R: np.ndarray,
-              return_cov: bool, forgetting: float | None = None, prior_weight: float = 0.0,
-              r_floor: np.ndarray | None = None):
-    """Shared time loop of :func:`ekf_batch` (forgetting None) and :func:`adaptive_ekf_batch`."""
-    m, u = _check_trajectories(m, u)
-    Q = _check_q(Q)
-    g, t = m.shape[:2]
-    R = _batch_cov(R, g, "R")
-    dt, wheelbase = vehicle.dt, vehicle.wheelbase
-    adaptive = forgetting is not None
-    if adaptive:
-        diag = np.arange(3)
-        r_hat = R[:, diag, diag].copy()         # (G, 3) diagonal of the learned R
-        weight = np.full(g, float(prior_weight))  # how many innovations r_hat is worth
-        R = np.zeros((g, 3, 3))
-        R[:, diag, diag] = r_hat
+class KalmanStepper:
+    """The EKF of :func:`ekf_batch` (or, with ``forgetting``, the Sage-Husa EKF of
+    :func:`adaptive_ekf_batch`) one time step per call, over G trajectories.
 
-    x = m[:, 0].copy()
-    P = _floor_diag(R)
-    est = np.empty_like(m)
-    est[:, 0] = x
-    covs = np.empty((g, t, 3, 3)) if return_cov else None
-    if return_cov:
-        covs[:, 0] = P
-    for k in range(1, t):
-        F = jacobian(x, u[:, k - 1], dt)
-        x = step(x, u[:, k - 1], dt, wheelbase)
-        P = F @ P @ F.swapaxes(-1, -2) + Q
-        y = m[:, k] - x
+    Both batch filters loop over it, and :class:`lbo.Observer` steps it one sample at a time,
+    so streaming and batch give the same numbers.
+
+    Parameters
+    ----------
+    m0 : (G, 3) first measurements; the state starts there with P_0 = R.
+    vehicle : Vehicle
+    Q : (3, 3) process covariance.
+    R : (G, 3, 3) measurement covariance (the starting one when adaptive).
+    forgetting, prior_weight, r_floor : Sage-Husa settings (see :func:`adaptive_ekf_batch`);
+        ``forgetting=None`` is the plain EKF. r_floor: (G, 3) absolute floor on diag(R).
+
+    Attributes
+    ----------
+    x : (G, 3) current estimate. P : (G, 3, 3) its covariance. R : (G, 3, 3) current R.
+    k : steps taken since m0.
+    """
+
+    def __init__(self, m0: np.ndarray, vehicle: Vehicle, Q: np.ndarray, R: np.ndarray,
+                 forgetting: float | None = None, prior_weight: float = 0.0,
+                 r_floor: np.ndarray | None = None) -> None:
+        self.vehicle, self.Q = vehicle, Q
+        self.forgetting, self.r_floor = forgetting, r_floor
+        self.R = np.array(R, dtype=float)
+        if forgetting is not None:
+            diag = np.arange(3)
+            self.r_hat = self.R[:, diag, diag].copy()          # (G, 3) diagonal of the learned R
+            self.weight = np.full(len(m0), float(prior_weight))  # innovations r_hat is worth
+            self.R = np.zeros_like(self.R)
+            self.R[:, diag, diag] = self.r_hat
+        self.x = np.array(m0, dtype=float)
+        self.P = _floor_diag(self.R)
+        self.k = 0
+
+    def update(self, m: np.ndarray, u_prev: np.ndarray) -> np.ndarray:
+        """Predict with u_{k-1} (G, 2), update with m_k (G, 3); returns x_k (G, 3)."""
+        self.k += 1
+        F = jacobian(self.x, u_prev, self.vehicle.dt)
+        x = step(self.x, u_prev, self.vehicle.dt, self.vehicle.wheelbase)
+        P = F @ self.P @ F.swapaxes(-1, -2) + self.Q
+        y = m - x
         y[:, 2] = wrap_angle(y[:, 2])
-        if adaptive:
+        R = self.R
+        if self.forgetting is not None:
+            diag = np.arange(3)
             # P_0 = R0 is wrong by the unknown alpha^2; k samples m_0..m_{k-1} of noise R
             # cannot give a prior error below R / k, so hold P there until it settles.
-            P[:, diag, diag] = np.maximum(P[:, diag, diag], r_hat / k)
+            P[:, diag, diag] = np.maximum(P[:, diag, diag], self.r_hat / self.k)
             # Sage-Husa: E[y y^T] = P_prior + R, so y^2 - diag(P_prior) is one sample of R;
             # exponentially forgotten running mean, weights 1 / (b W + 1).
-            weight = forgetting * weight + 1.0
-            d = (1.0 / weight)[:, None]
-            r_hat = np.maximum((1.0 - d) * r_hat + d * (y**2 - P[:, diag, diag]), r_floor)
-            R[:, diag, diag] = r_hat
-        S = P + R
+            self.weight = self.forgetting * self.weight + 1.0
+            d = (1.0 / self.weight)[:, None]
+            self.r_hat = np.maximum((1.0 - d) * self.r_hat + d * (y**2 - P[:, diag, diag]),
+                                    self.r_floor)
+            R[:, diag, diag] = self.r_hat
         # K = P S^-1 = (S^-1 P)^T for symmetric P, S
-        K = np.linalg.solve(S, P).swapaxes(-1, -2)
-        x = x + np.einsum("gij,gj->gi", K, y)
+        K = np.linalg.solve(P + R, P).swapaxes(-1, -2)
+        self.x = x + np.einsum("gij,gj->gi", K, y)
         I_K = _I3 - K
         # Joseph form, as filterpy: stays symmetric PSD and matches the reference
-        P = I_K @ P @ I_K.swapaxes(-1, -2) + K @ R @ K.swapaxes(-1, -2)
-        est[:, k] = x
+        self.P = I_K @ P @ I_K.swapaxes(-1, -2) + K @ R @ K.swapaxes(-1, -2)
+        return self.x
+
+
+def adaptive_settings(R0: np.ndarray, g: int, forgetting: float = 0.99,
+                      prior_weight: float = 1.0, r_floor: float = 1e-4) -> dict:
+    """Checked keyword arguments of a Sage-Husa :class:`KalmanStepper` (R0 (3,3) or (G,3,3))."""
+    if not 0.0 < forgetting <= 1.0:
+        raise LboError(f"forgetting must be in (0, 1], got {forgetting}")
+    if prior_weight < 0 or r_floor < 0:
+        raise LboError(f"prior_weight and r_floor must be >= 0, got {prior_weight}, {r_floor}")
+    R0 = _batch_cov(R0, g, "R0")
+    idx = np.arange(3)
+    return {"R": R0, "forgetting": forgetting, "prior_weight": prior_weight,
+            "r_floor": np.maximum(r_floor * R0[:, idx, idx], COV_FLOOR)}
+
+
+def _ekf_loop(m: np.ndarray, u: np.ndarray, vehicle: Vehicle, Q: np.ndarray, R: np.ndarray,
+              return_cov: bool, **adaptive):
+    """Shared time loop of :func:`ekf_batch` and :func:`adaptive_ekf_batch`."""
+    m, u = _check_trajectories(m, u)
+    g, t = m.shape[:2]
+    kf = KalmanStepper(m[:, 0], vehicle, _check_q(Q), _batch_cov(R, g, "R"), **adaptive)
+    est = np.empty_like(m)
+    est[:, 0] = kf.x
+    covs = np.empty((g, t, 3, 3)) if return_cov else None
+    if return_cov:
+        covs[:, 0] = kf.P
+    for k in range(1, t):
+        est[:, k] = kf.update(m[:, k], u[:, k - 1])
         if return_cov:
-            covs[:, k] = P
+            covs[:, k] = kf.P
     return (est, covs) if return_cov else est
 
 
@@ -276,16 +322,8 @@ def adaptive_ekf_batch(m: np.ndarray, u: np.ndarray, vehicle: Vehicle, Q: np.nda
     est : (G, T, 3) filtered estimates.
     P : (G, T, 3, 3) posterior covariances, only when ``return_cov``.
     """
-    if not 0.0 < forgetting <= 1.0:
-        raise LboError(f"forgetting must be in (0, 1], got {forgetting}")
-    if prior_weight < 0 or r_floor < 0:
-        raise LboError(f"prior_weight and r_floor must be >= 0, got {prior_weight}, {r_floor}")
-    g = np.shape(m)[0]
-    R0 = _batch_cov(R0, g, "R0")
-    idx = np.arange(3)
-    floor = np.maximum(r_floor * R0[:, idx, idx], COV_FLOOR)
-    return _ekf_loop(m, u, vehicle, Q, R0, return_cov, forgetting=forgetting,
-                     prior_weight=prior_weight, r_floor=floor)
+    settings = adaptive_settings(R0, np.shape(m)[0], forgetting, prior_weight, r_floor)
+    return _ekf_loop(m, u, vehicle, Q, return_cov=return_cov, **settings)
 
 
 # --------------------------------------------------------------------------- UKF

@@ -35,9 +35,19 @@ from lbo.errors import LboError
 
 # The UKF's sigma-point helpers are lbo.filters' own, so that the streaming UKF below is the
 # batch one (filters.ukf) to rounding.
-from lbo.filters import _circular_mean, _floor_diag, _residual, adaptive_ekf_batch, ekf_batch, ukf
+from lbo.filters import (
+    KalmanStepper,
+    _circular_mean,
+    _floor_diag,
+    _residual,
+    adaptive_ekf_batch,
+    adaptive_settings,
+    ekf_batch,
+    ukf,
+)
 from lbo.noise import Noise
-from lbo.vehicle import Vehicle, jacobian, step, wrap_angle
+from lbo.paths import tracking_uri
+from lbo.vehicle import Vehicle, step, wrap_angle
 
 CLASSICAL = ("ekf", "oracle", "adaptive", "ukf")
 """Classical observers by name (see :func:`lbo.evaluate.classical`)."""
@@ -49,10 +59,8 @@ INPUT_COLUMNS = ("x_m", "y_m", "psi_m", "V", "delta")
 """Channel order of a window (N, 5)."""
 
 # Sage-Husa settings of the streaming and the batch adaptive EKF: one dict, so they agree.
-_ADAPTIVE = {"forgetting": 0.99, "prior_weight": 1.0, "r_floor": 1e-4}
 _UKF_SPREAD = 0.1
 _RUN_ID = re.compile(r"[0-9a-f]{32}")
-_I3 = np.eye(3)
 
 
 class Estimate(NamedTuple):
@@ -63,65 +71,33 @@ class Estimate(NamedTuple):
     valid: bool
 
 
-def tracking_uri() -> str:
-    """The MLflow store that ``lbo.train`` logs to: ``MLFLOW_TRACKING_URI`` or the SQLite
-    file at the repo root (as ``conf/logger/mlflow.yaml``)."""
-    from lbo.paths import REPO_ROOT
-
-    return os.environ.get("MLFLOW_TRACKING_URI") or f"sqlite:///{REPO_ROOT / 'mlflow.db'}"
-
-
 # --------------------------------------------------------------------------- streaming filters
 
 
 class _KalmanStep:
     """One trajectory of :func:`lbo.filters.ekf_batch` (or, with ``adaptive``, of
-    :func:`lbo.filters.adaptive_ekf_batch`), one time step per call.
+    :func:`lbo.filters.adaptive_ekf_batch`), one time step per call: the same
+    :class:`lbo.filters.KalmanStepper` with G=1.
 
     Call with ``(m_k, u_{k-1})``; the first call (``u_prev`` None) initialises from ``m_0``.
     """
 
     def __init__(self, vehicle: Vehicle, Q: np.ndarray, R: np.ndarray,
-                 adaptive: dict[str, float] | None = None) -> None:
+                 adaptive: bool = False) -> None:
         self.vehicle, self.Q, self.R0 = vehicle, np.asarray(Q, float), np.asarray(R, float)
         self.adaptive = adaptive
         self.reset()
 
     def reset(self) -> None:
-        self.x: np.ndarray | None = None
+        self.kf: KalmanStepper | None = None
 
     def __call__(self, m: np.ndarray, u_prev: np.ndarray | None) -> np.ndarray:
-        if self.x is None:
-            self.x, self.k = m.copy(), 0
-            self.R = self.R0.copy()
-            if self.adaptive is not None:
-                diag = np.arange(3)
-                self.r_hat = self.R[diag, diag].copy()
-                self.weight = float(self.adaptive["prior_weight"])
-                self.r_floor = np.maximum(self.adaptive["r_floor"] * self.r_hat, 1e-9)
-                self.R = np.diag(self.r_hat)
-            self.P = _floor_diag(self.R)
-            return self.x.copy()
-        dt = self.vehicle.dt
-        self.k += 1
-        F = jacobian(self.x, u_prev, dt)
-        x = step(self.x, u_prev, dt, self.vehicle.wheelbase)
-        P = F @ self.P @ F.T + self.Q
-        y = m - x
-        y[2] = wrap_angle(y[2])
-        if self.adaptive is not None:  # the same Sage-Husa update as filters._ekf_loop
-            diag = np.arange(3)
-            P[diag, diag] = np.maximum(P[diag, diag], self.r_hat / self.k)
-            self.weight = self.adaptive["forgetting"] * self.weight + 1.0
-            d = 1.0 / self.weight
-            self.r_hat = np.maximum((1.0 - d) * self.r_hat + d * (y**2 - P[diag, diag]),
-                                    self.r_floor)
-            self.R[diag, diag] = self.r_hat
-        K = np.linalg.solve(P + self.R, P).T
-        self.x = x + K @ y
-        I_K = _I3 - K
-        self.P = I_K @ P @ I_K.T + K @ self.R @ K.T
-        return self.x.copy()
+        if self.kf is None:
+            # the batch filters' own defaults, so stepping and run() agree
+            settings = adaptive_settings(self.R0, 1) if self.adaptive else {"R": self.R0[None]}
+            self.kf = KalmanStepper(m[None], self.vehicle, self.Q, **settings)
+            return m.copy()
+        return self.kf.update(m[None], np.asarray(u_prev, float)[None])[0].copy()
 
 
 class _UnscentedStep:
@@ -247,7 +223,7 @@ class Observer:
             else:
                 R = self.noise.R(self.alpha) if name == "oracle" else R1
                 self._filter = _KalmanStep(self.vehicle, Q, R,
-                                           _ADAPTIVE if name == "adaptive" else None)
+                                           adaptive=name == "adaptive")
         else:
             self.kind, self.window, self.features = "learned", int(net.window), net.features
             self.engine = engine
@@ -416,7 +392,7 @@ class Observer:
         if self.name == "oracle":
             return ekf_batch(m, u, self.vehicle, Q, self.noise.R(self.alpha))
         if self.name == "adaptive":
-            return adaptive_ekf_batch(m, u, self.vehicle, Q, R1, **_ADAPTIVE)
+            return adaptive_ekf_batch(m, u, self.vehicle, Q, R1)
         return ukf(m[0], u[0], self.vehicle, Q, R1, spread=_UKF_SPREAD)[None]
 
     def __repr__(self) -> str:

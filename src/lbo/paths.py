@@ -25,6 +25,12 @@ if not OmegaConf.has_resolver("lbo.root"):
     OmegaConf.register_new_resolver("lbo.root", lambda: str(REPO_ROOT))
 
 
+def tracking_uri() -> str:
+    """The MLflow store every entry point uses: ``MLFLOW_TRACKING_URI``, else the SQLite
+    file at the repo root (the same rule as ``conf/logger/mlflow.yaml``)."""
+    return os.environ.get("MLFLOW_TRACKING_URI") or f"sqlite:///{REPO_ROOT / 'mlflow.db'}"
+
+
 def artifact_location(tracking_uri: str) -> str | None:
     """Where a new MLflow experiment keeps its artifacts: beside a SQLite store, or None to
     let a tracking server decide. Without this, MLflow writes ./mlruns wherever it is run."""
