@@ -174,7 +174,7 @@ def register(run_id: str, name: str, uri: str | None = None) -> str:
     import mlflow
     from mlflow.exceptions import MlflowException
 
-    from lbo.observer import tracking_uri
+    from lbo.paths import tracking_uri
 
     uri = uri or tracking_uri()
     client = mlflow.MlflowClient(uri, registry_uri=uri)
