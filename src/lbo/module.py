@@ -37,15 +37,25 @@ class ObserverModule(L.LightningModule):
         kwargs = {k: v for k, v in model.items() if k != "name"}
         self.observer = ObserverNet(model["name"], window, features, **kwargs)
         self.optimizer_factory = optimizer
+        self._loss_sum: torch.Tensor | float = 0.0
+        self._loss_count = 0
 
     def forward(self, win: torch.Tensor) -> torch.Tensor:
         return self.observer(win)
 
     def training_step(self, batch, batch_idx: int) -> torch.Tensor:
         loss = self.observer.loss(*batch)
-        self.log("train_loss", loss, on_step=False, on_epoch=True, prog_bar=True,
-                 batch_size=len(batch[1]))
+        # summed here and logged once per epoch: self.log on every step costs about 1 ms,
+        # 10 % of a small CNN step on the CPU (benchmarks/bench_train.py)
+        n = len(batch[1])
+        self._loss_sum = self._loss_sum + loss.detach() * n
+        self._loss_count += n
         return loss
+
+    def on_train_epoch_end(self) -> None:
+        if self._loss_count:
+            self.log("train_loss", self._loss_sum / self._loss_count, prog_bar=True)
+        self._loss_sum, self._loss_count = 0.0, 0
 
     def validation_step(self, batch, batch_idx: int) -> None:
         self.log("val_loss", self.observer.loss(*batch), on_step=False, on_epoch=True,
