@@ -21,3 +21,18 @@ def smoke_data(tmp_path_factory) -> Path:
 
     root = tmp_path_factory.mktemp("data")
     return Path(run(compose_cfg("datagen", ["data=smoke", f"data.root={root}"])))
+
+
+@pytest.fixture(scope="module")
+def one_torch_thread():
+    """One torch thread, in the test process and in the CLIs it starts: on a busy 2-core
+    machine, intra-op threads make small batches 10-100x slower (measured), and these tests
+    check numbers, not speed."""
+    import torch
+
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("OMP_NUM_THREADS", "1")
+        yield
+    torch.set_num_threads(threads)

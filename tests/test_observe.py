@@ -24,16 +24,8 @@ VEHICLE, NOISE = Vehicle(), Noise.preset("paper")
 LOG = ["t", "x_m", "y_m", "psi_m", "V", "delta", "x", "y", "psi"]
 
 
-@pytest.fixture(scope="module", autouse=True)
-def one_thread():
-    """One torch thread, here and in the CLIs: on a busy 2-core machine, intra-op threads
-    make small batches 10-100x slower (measured), and the tests check numbers, not speed."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    with pytest.MonkeyPatch.context() as mp:
-        mp.setenv("OMP_NUM_THREADS", "1")
-        yield
-    torch.set_num_threads(threads)
+# one torch thread, here and in the CLIs: see conftest.one_torch_thread
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 @pytest.fixture(scope="module")

@@ -11,18 +11,17 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-import hydra
 import numpy as np
 import pandas as pd
 from omegaconf import DictConfig
 
 from lbo import schema
 from lbo.atomic import atomic_path
+from lbo.cli import entry
 from lbo.errors import LboError
 from lbo.filters import adaptive_ekf_batch, ekf_batch, pcrb, ukf_batch
 from lbo.metrics import PAPER_REFERENCE, SCORE_COLUMNS, rmse, score_table
 from lbo.noise import Noise
-from lbo.paths import CONF_DIR
 from lbo.vehicle import Vehicle
 
 CLASSICAL = ("ekf", "oracle", "adaptive", "ukf", "pcrb")
@@ -166,14 +165,7 @@ def run(cfg: DictConfig) -> Path:
     return csv
 
 
-@hydra.main(version_base="1.3", config_path=str(CONF_DIR), config_name="evaluate")
-def main(cfg: DictConfig) -> None:
-    from lbo.cli import fail
-
-    try:
-        run(cfg)
-    except LboError as e:
-        fail(e)
+main = entry("evaluate", run)
 
 
 if __name__ == "__main__":

@@ -22,13 +22,12 @@ import warnings
 from pathlib import Path
 from typing import Any
 
-import hydra
 import numpy as np
 from omegaconf import DictConfig
 
 from lbo.atomic import atomic_path, write_text
+from lbo.cli import entry
 from lbo.errors import LboError
-from lbo.paths import CONF_DIR
 
 OPSET = 17
 TOLERANCE = 1e-5
@@ -223,14 +222,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     return result
 
 
-@hydra.main(version_base="1.3", config_path=str(CONF_DIR), config_name="export")
-def main(cfg: DictConfig) -> None:
-    from lbo.cli import fail
-
-    try:
-        run(cfg)
-    except LboError as e:
-        fail(e)
+main = entry("export", run)
 
 
 if __name__ == "__main__":

@@ -18,15 +18,14 @@ import sys
 from pathlib import Path
 from typing import Any
 
-import hydra
 import numpy as np
 import pandas as pd
 from omegaconf import DictConfig
 
 from lbo.atomic import atomic_path
+from lbo.cli import entry
 from lbo.errors import LboError
 from lbo.metrics import PAPER_REFERENCE, nrmse, rmse
-from lbo.paths import CONF_DIR
 from lbo.vehicle import wrap_angle
 
 LOG_COLUMNS = ("t", "x_m", "y_m", "psi_m", "V", "delta")
@@ -225,14 +224,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     return result
 
 
-@hydra.main(version_base="1.3", config_path=str(CONF_DIR), config_name="observe")
-def main(cfg: DictConfig) -> None:
-    from lbo.cli import fail
-
-    try:
-        run(cfg)
-    except LboError as e:
-        fail(e)
+main = entry("observe", run)
 
 
 if __name__ == "__main__":

@@ -18,16 +18,14 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-import hydra
 import numpy as np
 import pandas as pd
 from hydra import compose
 from omegaconf import DictConfig
 
 from lbo.atomic import write_text
-from lbo.cli import fail
+from lbo.cli import entry
 from lbo.errors import LboError
-from lbo.paths import CONF_DIR
 
 STAGES = ("data", "tune", "train", "evaluate", "report")
 
@@ -224,12 +222,7 @@ def _log_report(cfg: DictConfig, scale: str, out: Path, files: list[Path], data:
     print(f"    report logged to MLflow run {run_id}")
 
 
-@hydra.main(version_base="1.3", config_path=str(CONF_DIR), config_name="reproduce")
-def main(cfg: DictConfig) -> None:
-    try:
-        run(cfg)
-    except LboError as e:
-        fail(e)
+main = entry("reproduce", run)
 
 
 if __name__ == "__main__":

@@ -13,7 +13,6 @@ import sys
 from pathlib import Path
 from typing import Any
 
-import hydra
 import lightning as L
 import torch
 from hydra.utils import instantiate
@@ -21,11 +20,11 @@ from lightning.pytorch.loggers import MLFlowLogger
 from omegaconf import DictConfig, OmegaConf, open_dict
 
 from lbo.atomic import write_text
-from lbo.cli import fail
+from lbo.cli import entry
 from lbo.config import require
 from lbo.errors import LboError
 from lbo.features import FEATURE_MODES
-from lbo.paths import CONF_DIR, REPO_ROOT
+from lbo.paths import REPO_ROOT
 
 
 def git_commit() -> str:
@@ -204,12 +203,7 @@ def _flat(cfg: DictConfig) -> dict[str, Any]:
     return out
 
 
-@hydra.main(version_base="1.3", config_path=str(CONF_DIR), config_name="train")
-def main(cfg: DictConfig) -> float | None:
-    try:
-        return train(cfg)["val_loss"]
-    except LboError as e:
-        fail(e)
+main = entry("train", lambda cfg: train(cfg)["val_loss"])  # the value a sweeper minimises
 
 
 if __name__ == "__main__":

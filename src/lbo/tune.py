@@ -31,7 +31,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import hydra
 import numpy as np
 import optuna
 from hydra.utils import instantiate
@@ -41,7 +40,7 @@ from optuna.trial import FrozenTrial, TrialState
 from optuna_integration import PyTorchLightningPruningCallback
 
 from lbo.atomic import write_text
-from lbo.cli import fail
+from lbo.cli import entry
 from lbo.config import require
 from lbo.errors import LboError
 from lbo.models import model_parameters
@@ -635,15 +634,14 @@ def train_command(model: str, handoff: Path) -> str:
     return command
 
 
-@hydra.main(version_base="1.3", config_path=str(CONF_DIR), config_name="tune")
-def main(cfg: DictConfig) -> float | None:
+def _quiet_tune(cfg: DictConfig) -> float:
     # one line per trial from tune() instead of Optuna's and Lightning's own per-trial chatter
     optuna.logging.set_verbosity(optuna.logging.WARNING)
     logging.getLogger("lightning.pytorch").setLevel(logging.WARNING)
-    try:
-        return tune(cfg)["best_value"]
-    except LboError as e:
-        fail(e)
+    return tune(cfg)["best_value"]
+
+
+main = entry("tune", _quiet_tune)
 
 
 if __name__ == "__main__":

@@ -5,12 +5,9 @@ from __future__ import annotations
 import sys
 import time
 
-import hydra
 from omegaconf import DictConfig
 
-from lbo.cli import fail
-from lbo.errors import LboError
-from lbo.paths import CONF_DIR
+from lbo.cli import entry
 
 
 def run(cfg: DictConfig) -> str:
@@ -37,12 +34,7 @@ def run(cfg: DictConfig) -> str:
     return str(folder)
 
 
-@hydra.main(version_base="1.3", config_path=str(CONF_DIR), config_name="datagen")
-def main(cfg: DictConfig) -> None:
-    try:
-        run(cfg)
-    except LboError as e:
-        fail(e)
+main = entry("datagen", run)
 
 
 if __name__ == "__main__":
