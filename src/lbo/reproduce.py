@@ -64,7 +64,7 @@ def run(cfg: DictConfig) -> Path:
     from lbo.datagen.__main__ import run as datagen
     from lbo.evaluate import run as evaluate
     from lbo.train import train
-    from lbo.tune import tune
+    from lbo.tune import quiet, tune
 
     scale = cfg.scale
     if scale not in cfg.trials:
@@ -82,6 +82,7 @@ def run(cfg: DictConfig) -> Path:
     folder = stages.run(1, "data", f"generate the {scale} data sets (or reuse them)", data)
 
     def tune_all() -> tuple[dict, str]:
+        quiet()
         results, reused = {}, True
         for model in cfg.models:
             c = _compose("tune", [f"hparams_search={model}", f"experiment={scale}",

@@ -634,10 +634,14 @@ def train_command(model: str, handoff: Path) -> str:
     return command
 
 
-def _quiet_tune(cfg: DictConfig) -> float:
-    # one line per trial from tune() instead of Optuna's and Lightning's own per-trial chatter
+def quiet() -> None:
+    """One line per trial from :func:`tune` instead of Optuna's and Lightning's own chatter."""
     optuna.logging.set_verbosity(optuna.logging.WARNING)
     logging.getLogger("lightning.pytorch").setLevel(logging.WARNING)
+
+
+def _quiet_tune(cfg: DictConfig) -> float:
+    quiet()
     return tune(cfg)["best_value"]
 
 
