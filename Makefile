@@ -5,6 +5,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 SCALE ?= paper
+TRAINER ?= cpu
 
 .PHONY: help install test test-fast data reproduce bench lint clean
 
@@ -29,8 +30,8 @@ test-fast: install  ## run the tests without the slow marker
 data: install  ## generate the data sets: make data SCALE=smoke|quick|paper
 	$(PY) -m lbo.datagen data=$(SCALE)
 
-reproduce: install  ## the paper's study, resumable: make reproduce SCALE=paper|quick -> reports/<scale>/
-	$(PY) -m lbo.reproduce scale=$(SCALE)
+reproduce: install  ## the paper's study, resumable: make reproduce SCALE=paper|quick [TRAINER=gpu]
+	$(PY) -m lbo.reproduce scale=$(SCALE) "train_overrides=['trainer=$(TRAINER)']"
 
 bench: install  ## benchmarks: data generation, filters (prints medians)
 	$(PY) benchmarks/bench_datagen.py

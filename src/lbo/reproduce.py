@@ -90,7 +90,8 @@ def run(cfg: DictConfig) -> Path:
                                   f"tune.handoff={out / 'tuned' / f'{model}.yaml'}",
                                   f"tune.storage={cfg.optuna_storage}",
                                   f"output_dir={out / 'tune' / model}",
-                                  *cfg.tune_overrides[scale], *extra, *cfg.train_overrides])
+                                  *cfg.tune_overrides[scale], *cfg.search_overrides[scale][model],
+                                  *extra, *cfg.train_overrides])
             results[model] = tune(c)
             reused &= not results[model]["new_trials"]
         return results, "reused" if reused else "done"
