@@ -78,9 +78,13 @@ def nrmse_curves(table, title: str = "", observers: list[str] | None = None,
     (columns ``observer, alpha, nrmse``)."""
     fig, ax = plt.subplots(figsize=(6.4, 4.2))
     names = observers or list(dict.fromkeys(table["observer"]))
+    # learned observers take colours the classical ones do not use
+    palette = iter(["tab:blue", "tab:red", "tab:purple", "tab:brown", "tab:pink", "tab:cyan",
+                    "navy", "darkred", "indigo", "sienna"])
     for name in names:
         rows = table[table["observer"] == name].sort_values("alpha")
-        style = {"marker": ".", "lw": 1.4, **STYLES.get(name, {}), **(styles or {}).get(name, {})}
+        style = {"marker": ".", "lw": 1.4, **(STYLES.get(name) or {"color": next(palette)}),
+                 **(styles or {}).get(name, {})}
         ax.plot(rows["alpha"], rows["nrmse"], label=name, **style)
     ax.axhline(1.0, color="0.6", lw=0.8, ls=":")
     ax.set(xlabel=r"noise scale $\alpha$", ylabel="NRMSE", title=title)
