@@ -26,6 +26,7 @@ from lbo.atomic import atomic_path
 from lbo.cli import entry
 from lbo.errors import LboError
 from lbo.metrics import PAPER_REFERENCE, nrmse, rmse
+from lbo.schema import check_values, write_set
 from lbo.vehicle import wrap_angle
 
 LOG_COLUMNS = ("t", "x_m", "y_m", "psi_m", "V", "delta")
@@ -78,14 +79,7 @@ def check_log(df: pd.DataFrame, source: str = "input") -> bool:
                        f"{', '.join(missing)} (a log needs {', '.join(LOG_COLUMNS)}; "
                        "t in s, x_m and y_m in m, psi_m in rad, V in m/s, delta in rad)")
     truth = all(c in df.columns for c in TRUTH_COLUMNS)
-    for c in LOG_COLUMNS + (TRUTH_COLUMNS if truth else ()):
-        if df[c].dtype.kind not in "iuf":
-            raise LboError(f"{source}: column {c!r} is not numeric (dtype {df[c].dtype})")
-        values = df[c].to_numpy(dtype=float)
-        bad = ~np.isfinite(values)
-        if bad.any():
-            raise LboError(f"{source}: column {c!r} has NaN or inf (first at row "
-                           f"{int(np.flatnonzero(bad)[0])})")
+    check_values(df, LOG_COLUMNS + (TRUTH_COLUMNS if truth else ()), source, kinds="iuf")
     t = df["t"].to_numpy(dtype=float)
     steps = np.diff(t)
     if (steps <= 0).any():
@@ -135,8 +129,6 @@ def resample(df: pd.DataFrame, dt: float, columns: tuple[str, ...]) -> pd.DataFr
 
 def write_table(df: pd.DataFrame, path: Path) -> Path:
     """Write CSV or Parquet by extension, atomically: a failed write leaves no file."""
-    from lbo.schema import write_set
-
     if path.suffix.lower() == ".parquet":
         return write_set(df, path)
     with atomic_path(path) as tmp:

@@ -24,6 +24,19 @@ INPUT = ("V", "delta")
 _INT = ("traj", "k")
 
 
+def check_values(df: pd.DataFrame, columns: tuple[str, ...], source: str = "data",
+                 kinds: str = "iufb") -> None:
+    """Raise LboError naming the first of ``columns`` that is not numeric (dtype kind outside
+    ``kinds``) or holds NaN or inf."""
+    for c in columns:
+        values = df[c].to_numpy()
+        if values.dtype.kind not in kinds:
+            raise LboError(f"{source}: column {c!r} is not numeric (dtype {df[c].dtype})")
+        if values.dtype.kind == "f" and not np.isfinite(values).all():
+            bad = int(np.flatnonzero(~np.isfinite(values))[0])
+            raise LboError(f"{source}: column {c!r} has NaN or inf (first at row {bad})")
+
+
 def check_frame(df: pd.DataFrame, required: tuple[str, ...], source: str = "data") -> None:
     """Raise LboError naming the first missing column, or the first column with NaN/inf."""
     missing = [c for c in required if c not in df.columns]
@@ -32,11 +45,7 @@ def check_frame(df: pd.DataFrame, required: tuple[str, ...], source: str = "data
                        f"{', '.join(required)})")
     if len(df) == 0:
         raise LboError(f"{source}: the file holds no rows")
-    for c in required:
-        values = df[c].to_numpy()
-        if values.dtype.kind == "f" and not np.isfinite(values).all():
-            bad = int(np.flatnonzero(~np.isfinite(values))[0])
-            raise LboError(f"{source}: column {c!r} has NaN or inf (first at row {bad})")
+    check_values(df, required, source)
 
 
 def read_set(path: str | Path, required: tuple[str, ...] = COLUMNS) -> pd.DataFrame:
