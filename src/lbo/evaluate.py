@@ -57,7 +57,16 @@ def classical(name: str, arr: dict[str, np.ndarray], vehicle: Vehicle, noise: No
         return ukf_batch(m, u, vehicle, Q, R1, progress=progress)
     if name == "pcrb":
         return np.sqrt(pcrb(arr["z"], u, vehicle, Q, _per_level_R(noise, arr["alpha"]), rng=seed))
-    raise LboError(f"observers: unknown observer {name!r}; expected names from {list(CLASSICAL)}")
+    check_observers([name])
+    raise AssertionError(name)  # every classical name is handled above
+
+
+def check_observers(names: Sequence[str]) -> None:
+    """Raise LboError naming the first name that is not a classical observer."""
+    for name in names:
+        if name not in CLASSICAL:
+            raise LboError(f"observers: unknown observer {name!r}; "
+                           f"expected names from {list(CLASSICAL)}")
 
 
 def _per_level_R(noise: Noise, alpha: np.ndarray) -> np.ndarray:
@@ -108,10 +117,7 @@ def classical_table(arr: dict[str, np.ndarray], vehicle: Vehicle, noise: Noise,
                     observers: Sequence[str] = CLASSICAL, ref: np.ndarray | None = None,
                     progress: bool = False, seed: int = 0) -> pd.DataFrame:
     """Score the classical observers on the test arrays; ``ref`` defaults to our EKF's."""
-    unknown = [o for o in observers if o not in CLASSICAL]
-    if unknown:
-        raise LboError(f"observers: unknown observer {unknown[0]!r}; "
-                       f"expected names from {list(CLASSICAL)}")
+    check_observers(observers)
     ref = reference(arr, vehicle, noise) if ref is None else ref
     tables = []
     for name in observers:
@@ -134,10 +140,7 @@ def run(cfg: DictConfig) -> Path:
     from lbo.datagen.build import build, spec_from_cfg
 
     observers = list(cfg.observers)
-    for name in observers:
-        if name not in CLASSICAL:
-            raise LboError(f"observers: unknown observer {name!r}; "
-                           f"expected names from {list(CLASSICAL)}")
+    check_observers(observers)
     if cfg.metric.reference not in REFERENCES:
         raise LboError(f"metric.reference must be one of {list(REFERENCES)}, "
                        f"got {cfg.metric.reference!r}")

@@ -54,10 +54,6 @@ class Stages:
         return result
 
 
-def _compose(name: str, overrides: list[str]) -> DictConfig:
-    return compose(config_name=name, overrides=overrides)
-
-
 def run(cfg: DictConfig) -> Path:
     """Run the five stages for ``cfg.scale``; return the report folder."""
     from lbo import report
@@ -75,7 +71,7 @@ def run(cfg: DictConfig) -> Path:
     t0 = time.perf_counter()
 
     def data() -> tuple[Path, str]:
-        c = _compose("datagen", [f"data={scale}", *extra])
+        c = compose("datagen", [f"data={scale}", *extra])
         folder = Path(datagen(c))
         return folder, "done"
 
@@ -85,7 +81,7 @@ def run(cfg: DictConfig) -> Path:
         quiet()
         results, reused = {}, True
         for model in cfg.models:
-            c = _compose("tune", [f"hparams_search={model}", f"experiment={scale}",
+            c = compose("tune", [f"hparams_search={model}", f"experiment={scale}",
                                   f"tune.n_trials={cfg.trials[scale]}",
                                   f"tune.handoff={out / 'tuned' / f'{model}.yaml'}",
                                   f"tune.storage={cfg.optuna_storage}",
@@ -104,7 +100,7 @@ def run(cfg: DictConfig) -> Path:
         for model in cfg.models:
             for window in cfg.windows:
                 name = f"{model}-N{window}"
-                c = _compose("train", [
+                c = compose("train", [
                     f"experiment={scale}", f"model={model}", f"window={window}",
                     f"+tuned={model}", f"hydra.searchpath=[file://{out}]", "resume=true",
                     f"output_dir={out / 'runs' / name}", *extra, *cfg.train_overrides])
@@ -130,7 +126,7 @@ def run(cfg: DictConfig) -> Path:
         key = {"data": str(folder), "observers": list(cfg.classical)}
         if csv.is_file() and stamp.is_file() and json.loads(stamp.read_text()) == key:
             return pd.read_csv(csv), "reused"
-        c = _compose("evaluate", [f"data={scale}", f"observers=[{','.join(cfg.classical)}]",
+        c = compose("evaluate", [f"data={scale}", f"observers=[{','.join(cfg.classical)}]",
                                   f"output_dir={out / 'classical'}", *extra])
         table = pd.read_csv(evaluate(c))
         write_text(stamp, json.dumps(key))
