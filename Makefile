@@ -33,7 +33,7 @@ data: install  ## generate the data sets: make data SCALE=smoke|quick|paper
 reproduce: install  ## the paper's study, resumable: make reproduce SCALE=paper|quick [TRAINER=gpu]
 	$(PY) -m lbo.reproduce scale=$(SCALE) "train_overrides=['trainer=$(TRAINER)']"
 
-bench: install  ## benchmarks: data generation, filters (prints medians)
+bench: install  ## benchmarks: data generation, filters, training throughput, latency (medians)
 	$(PY) benchmarks/bench_datagen.py
 	$(PY) benchmarks/bench_filters.py
 	$(PY) benchmarks/bench_train.py
