@@ -7,7 +7,7 @@ For each model (its default config from conf/model/) and window N, on the quick 
 batch size 256, on the CPU:
 
 - bare: ``ObserverNet`` + ``WindowDataModule.train_dataloader()`` + Adam(lr=1e-3);
-  loss = net.loss(win, state); zero_grad; backward; step.
+  loss = net.loss(*batch); zero_grad; backward; step.
 - lightning: ``ObserverModule`` with the same model, fitted by a minimal ``lightning.Trainer``
   (no logger, checkpoint, progress bar, model summary or validation) on the same datamodule.
 
@@ -103,8 +103,8 @@ def bare(cfg: DictConfig, dm: WindowDataModule, norm: dict, warmup: int, measure
     opt = torch.optim.Adam(net.parameters(), lr=1e-3)
     stamps: list[float] = []
     losses: list[float] = []
-    for step, (win, state) in enumerate(dm.train_dataloader()):
-        loss = net.loss(win, state)
+    for step, batch in enumerate(dm.train_dataloader()):
+        loss = net.loss(*batch)
         opt.zero_grad()
         loss.backward()
         opt.step()

@@ -36,7 +36,7 @@ def test_unknown_mode_names_field_and_choices(mode):
     for call in (lambda: window_features(win, mode),
                  lambda: state_to_target(win[0, :3], win[0, :3], mode),
                  lambda: target_to_state(win[0, :3], win[0, :3], mode)):
-        with pytest.raises(LboError, match=r"^features: .*relative, absolute"):
+        with pytest.raises(LboError, match=r"^features: .*relative, frame, absolute"):
             call()
 
 

@@ -43,7 +43,8 @@ def test_windows_are_views_that_never_cross_trajectories(smoke_data):
     ds = dm.train_set
     assert ds.windows.untyped_storage().data_ptr() == ds.x.untyped_storage().data_ptr()
     train = pd.read_parquet(smoke_data / "train.parquet")
-    win, state = ds[list(range(len(ds)))]
+    win, state, weight = ds[list(range(len(ds)))]
+    assert torch.all(weight == 1)  # stored measurements: equal loss weights
     ends = ds.ends.numpy()
     traj = train["traj"].to_numpy()
     starts = ends - 19

@@ -10,6 +10,12 @@ A window is N consecutive steps ending at the current step t, with the channels
     starts every trajectory at x=y=0, the test manoeuvres do not, and an absolute-position
     network would have to extrapolate. The target is the state relative to the current
     measurement, so the network learns a correction to it.
+``"frame"``
+    Invariant: the window and the target in the frame of the current measurement, translated
+    to its position and rotated by its measured heading. Positions are
+    ``R(-psi_m[t]) (p - p_m[t])``, headings ``wrap(psi - psi_m[t])``. Shifting and rotating a
+    whole trajectory leaves the features unchanged, so the estimates shift and rotate with it
+    exactly: the network never has to learn rotations.
 ``"absolute"``
     The paper's literal setting: windows and states as they are (target heading wrapped).
 
@@ -28,7 +34,7 @@ import torch
 
 from lbo.errors import LboError
 
-FEATURE_MODES = ("relative", "absolute")
+FEATURE_MODES = ("relative", "frame", "absolute")
 
 Array = TypeVar("Array", np.ndarray, torch.Tensor)
 
@@ -48,6 +54,16 @@ def _cat_last(parts: list[Array]) -> Array:
     if isinstance(parts[0], torch.Tensor):
         return torch.cat(parts, dim=-1)
     return np.concatenate(parts, axis=-1)
+
+
+def _rotate(xy: Array, psi: Array, sign: int) -> Array:
+    """Rotate (..., 2) vectors by ``sign * psi`` (psi broadcasts as (..., 1))."""
+    if isinstance(xy, torch.Tensor):
+        c, s = torch.cos(psi), torch.sin(psi) * sign
+    else:
+        c, s = np.cos(psi), np.sin(psi) * sign
+    x, y = xy[..., :1], xy[..., 1:2]
+    return _cat_last([c * x - s * y, s * x + c * y])
 
 
 def check_mode(mode: str) -> str:
@@ -74,17 +90,17 @@ def window_features(win: Array, mode: str = "relative") -> Array:
     Returns
     -------
     (..., N, 5) features. ``"relative"``: ``[x_m - x_m[t], y_m - y_m[t],
-    wrap(psi_m - psi_m[t]), V, delta]`` (a new array). ``"absolute"``: ``win`` itself
-    (no copy, so a view of a larger array stays a view).
+    wrap(psi_m - psi_m[t]), V, delta]`` (a new array). ``"frame"``: the same with the
+    position offsets rotated by ``-psi_m[t]``. ``"absolute"``: ``win`` itself (no copy, so
+    a view of a larger array stays a view).
     """
     if check_mode(mode) == "absolute":
         return win
     last = win[..., -1:, :3]
-    return _cat_last([
-        win[..., :2] - last[..., :2],
-        _wrap(win[..., 2:3] - last[..., 2:3]),
-        win[..., 3:],
-    ])
+    xy = win[..., :2] - last[..., :2]
+    if mode == "frame":
+        xy = _rotate(xy, last[..., 2:3], -1)
+    return _cat_last([xy, _wrap(win[..., 2:3] - last[..., 2:3]), win[..., 3:]])
 
 
 def state_to_target(state: Array, last_meas: Array, mode: str = "relative") -> Array:
@@ -99,15 +115,16 @@ def state_to_target(state: Array, last_meas: Array, mode: str = "relative") -> A
 
     Returns
     -------
-    (..., 3) ``[x - x_m, y - y_m, wrap(psi - psi_m)]`` for ``"relative"``,
-    ``[x, y, wrap(psi)]`` for ``"absolute"``.
+    (..., 3) ``[x - x_m, y - y_m, wrap(psi - psi_m)]`` for ``"relative"``, the same with
+    the position offset rotated by ``-psi_m`` for ``"frame"``, ``[x, y, wrap(psi)]`` for
+    ``"absolute"``.
     """
     if check_mode(mode) == "absolute":
         return _cat_last([state[..., :2], _wrap(state[..., 2:3])])
-    return _cat_last([
-        state[..., :2] - last_meas[..., :2],
-        _wrap(state[..., 2:3] - last_meas[..., 2:3]),
-    ])
+    xy = state[..., :2] - last_meas[..., :2]
+    if mode == "frame":
+        xy = _rotate(xy, last_meas[..., 2:3], -1)
+    return _cat_last([xy, _wrap(state[..., 2:3] - last_meas[..., 2:3])])
 
 
 def target_to_state(out: Array, last_meas: Array, mode: str = "relative") -> Array:
@@ -125,7 +142,7 @@ def target_to_state(out: Array, last_meas: Array, mode: str = "relative") -> Arr
     """
     if check_mode(mode) == "absolute":
         return _cat_last([out[..., :2], _wrap(out[..., 2:3])])
-    return _cat_last([
-        out[..., :2] + last_meas[..., :2],
-        _wrap(out[..., 2:3] + last_meas[..., 2:3]),
-    ])
+    xy = out[..., :2]
+    if mode == "frame":
+        xy = _rotate(xy, last_meas[..., 2:3], 1)
+    return _cat_last([xy + last_meas[..., :2], _wrap(out[..., 2:3] + last_meas[..., 2:3])])

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from typing import Any
 
@@ -12,6 +13,7 @@ from lbo.network import ObserverNet
 
 # Bumped when the checkpoint layout changes; lbo refuses checkpoints it cannot read.
 CHECKPOINT_FORMAT = 1
+SCHEDULES = ("constant", "cosine")
 
 
 class ObserverModule(L.LightningModule):
@@ -26,13 +28,16 @@ class ObserverModule(L.LightningModule):
         ``_partial_: true``; Adam(lr=1e-3) when None.
     meta : what a checkpoint must carry to rebuild the observer elsewhere (dt, wheelbase,
         noise preset, data hash, ...); stored in the hyperparameters.
+    lr_schedule : ``"constant"``, or ``"cosine"``: the learning rate falls along a half
+        cosine to zero over every step the trainer will take (``max_epochs`` of them).
     """
 
     def __init__(self, model: dict[str, Any], window: int, features: str = "relative",
                  optimizer: Callable[..., torch.optim.Optimizer] | None = None,
-                 meta: dict[str, Any] | None = None) -> None:
+                 meta: dict[str, Any] | None = None, lr_schedule: str = "constant") -> None:
         super().__init__()
-        self.save_hyperparameters(ignore=["optimizer"])
+        self.save_hyperparameters(ignore=["optimizer", "lr_schedule"])
+        self.lr_schedule = lr_schedule
         self.hparams["format"] = CHECKPOINT_FORMAT
         kwargs = {k: v for k, v in model.items() if k != "name"}
         self.observer = ObserverNet(model["name"], window, features, **kwargs)
@@ -61,7 +66,14 @@ class ObserverModule(L.LightningModule):
         self.log("val_loss", self.observer.loss(*batch), on_step=False, on_epoch=True,
                  prog_bar=True, batch_size=len(batch[1]))
 
-    def configure_optimizers(self) -> torch.optim.Optimizer:
+    def configure_optimizers(self) -> Any:
         if self.optimizer_factory is None:
-            return torch.optim.Adam(self.parameters(), lr=1e-3)
-        return self.optimizer_factory(params=self.parameters())
+            opt = torch.optim.Adam(self.parameters(), lr=1e-3)
+        else:
+            opt = self.optimizer_factory(params=self.parameters())
+        if self.lr_schedule == "constant":
+            return opt
+        total = max(int(self.trainer.estimated_stepping_batches), 1)
+        cosine = torch.optim.lr_scheduler.LambdaLR(
+            opt, lambda step: 0.5 * (1.0 + math.cos(math.pi * min(step, total) / total)))
+        return {"optimizer": opt, "lr_scheduler": {"scheduler": cosine, "interval": "step"}}

@@ -22,8 +22,10 @@ from omegaconf import DictConfig, OmegaConf, open_dict
 from lbo.atomic import write_text
 from lbo.cli import entry
 from lbo.config import require
+from lbo.draws import SOURCES, AlphaDraw
 from lbo.errors import LboError
 from lbo.features import FEATURE_MODES
+from lbo.module import SCHEDULES
 from lbo.paths import REPO_ROOT
 
 
@@ -46,9 +48,33 @@ def check(cfg: DictConfig) -> None:
     require(isinstance(cfg.batch_size, int) and cfg.batch_size >= 1, "batch_size",
             "an integer >= 1", cfg.batch_size)
     require(isinstance(cfg.seed, int) and cfg.seed >= 0, "seed", "an integer >= 0", cfg.seed)
+    require(cfg.get("lr_schedule", "constant") in SCHEDULES, "lr_schedule",
+            f"one of {list(SCHEDULES)}", cfg.get("lr_schedule"))
+    noise_settings(cfg)
     if cfg.trainer.accelerator == "gpu" and not torch.cuda.is_available():
         raise LboError("trainer=gpu needs CUDA, which torch does not see here; "
                        "use trainer=cpu or trainer=auto")
+
+
+def noise_settings(cfg: DictConfig) -> dict[str, Any]:
+    """Keyword arguments of :class:`~lbo.data.WindowDataModule` for the ``train_noise`` group.
+
+    Raises LboError naming the field for a bad source, distribution, alpha or range.
+    """
+    tn = cfg.get("train_noise")
+    if tn is None or tn.get("source", "stored") == "stored":
+        return {}
+    require(tn.source in SOURCES, "train_noise.source", f"one of {list(SOURCES)}", tn.source)
+    draw = AlphaDraw.from_cfg(tn)
+    offset = tn.get("loss_weight_offset")
+    require(offset is None or (isinstance(offset, (int, float)) and not isinstance(offset, bool)
+                               and offset > 0), "train_noise.loss_weight_offset",
+            "null or a number > 0", offset)
+    repeats = tn.get("val_repeats", 1)
+    require(isinstance(repeats, int) and not isinstance(repeats, bool) and repeats >= 1,
+            "train_noise.val_repeats", "an integer >= 1", repeats)
+    return {"draw": draw, "sigma": tuple(cfg.noise.measurement_sigma),
+            "weight_offset": offset, "val_repeats": repeats}
 
 
 def prepare_data(cfg: DictConfig) -> tuple[Path, str]:
@@ -140,15 +166,18 @@ def train(cfg: DictConfig, callbacks: list[L.Callback] | None = None,
             return reused
     L.seed_everything(cfg.seed, workers=True, verbose=False)
     folder, data_hash = prepare_data(cfg)
-    dm = WindowDataModule(folder, cfg.window, cfg.batch_size, seed=cfg.seed)
+    dm = WindowDataModule(folder, cfg.window, cfg.batch_size, seed=cfg.seed,
+                          **noise_settings(cfg))
     dm.setup("fit")
     module = ObserverModule(OmegaConf.to_container(cfg.model, resolve=True), cfg.window,
-                            cfg.features, instantiate(cfg.optimizer), meta(cfg, data_hash))
+                            cfg.features, instantiate(cfg.optimizer), meta(cfg, data_hash),
+                            cfg.get("lr_schedule", "constant"))
     module.observer.set_normalisation(**dm.normalisation(cfg.features))
 
     name = f"{cfg.model.name}-N{cfg.window}"
     tags = {"git_commit": git_commit(), "data_hash": data_hash, "data": cfg.data.name,
             "model": cfg.model.name, "window": str(cfg.window), "features": cfg.features,
+            "train_noise": _noise_tag(cfg),
             "config_hash": digest, **(tags or {})}
     logger = instantiate(cfg.logger, tags=tags) if cfg.get("logger") else None
     callbacks = [*(instantiate(c) for c in (cfg.get("callbacks") or {}).values()),
@@ -186,6 +215,18 @@ def train(cfg: DictConfig, callbacks: list[L.Callback] | None = None,
         if isinstance(cb, Evaluation):
             metrics.update(cb.metrics)
     return metrics
+
+
+def _noise_tag(cfg: DictConfig) -> str:
+    """``stored``, ``fixed 1``, ``uniform [0, 6.5]``, ...: the training noise in a few words."""
+    tn = cfg.get("train_noise")
+    if tn is None or tn.source == "stored":
+        return "stored"
+    if tn.distribution == "fixed":
+        return f"fixed {tn.alpha:g}"
+    if tn.distribution == "levels":
+        return f"levels {list(tn.levels)}"
+    return f"{tn.distribution} [{tn.low:g}, {tn.high:g}]"
 
 
 def _flat(cfg: DictConfig) -> dict[str, Any]:

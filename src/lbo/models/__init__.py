@@ -14,9 +14,11 @@ from torch import nn
 
 from lbo.errors import LboError
 from lbo.models.cnn import CNNObserver
+from lbo.models.filternet import FilterObserver
 from lbo.models.lstm import LSTMObserver
 
-MODELS: dict[str, type[nn.Module]] = {"cnn": CNNObserver, "lstm": LSTMObserver}
+MODELS: dict[str, type[nn.Module]] = {"cnn": CNNObserver, "lstm": LSTMObserver,
+                                      "filternet": FilterObserver}
 
 
 def model_parameters(name: str) -> tuple[str, ...]:
@@ -53,4 +55,4 @@ def build_model(name: str, window: int, **kwargs: Any) -> nn.Module:
     return MODELS[name](window, **kwargs)
 
 
-__all__ = ["MODELS", "CNNObserver", "LSTMObserver", "build_model", "model_parameters"]
+__all__ = ["MODELS", "CNNObserver", "FilterObserver", "LSTMObserver", "build_model", "model_parameters"]
