@@ -11,7 +11,7 @@ import pytest
 
 REPORT_FILES = ["rmse_alpha1.csv", "rmse_alpha6.csv", "nrmse.csv", "report.md",
                 "friction_circle.png", "nrmse_cnn.png", "nrmse_lstm.png", "nrmse_all.png",
-                "trajectory_alpha3.png"]
+                "trajectory_alpha3.png", "nrmse_robust.png"]
 
 
 def command(tmp_path):
@@ -32,7 +32,7 @@ def test_reproduce_smoke_killed_and_resumed_without_duplicates(tmp_path):
     seen = []
     for line in proc.stdout:
         seen.append(line)
-        if "3/8 cnn-N60" in line:  # two observers finished, the third done: kill mid-stage
+        if "3/9 cnn-N60" in line:  # two observers finished, the third done: kill mid-stage
             os.killpg(proc.pid, signal.SIGKILL)
             break
     proc.wait(timeout=60)
@@ -57,10 +57,17 @@ def test_reproduce_smoke_killed_and_resumed_without_duplicates(tmp_path):
     assert t1.loc[t1["variable"] == "x", "ekf_paper"].item() == 0.24
     nrmse = pd.read_csv(report / "nrmse.csv")
     expected = {f"{m}-N{n}" for m in ("cnn", "lstm") for n in (20, 40, 60, 80)}
+    expected.add("filternet-N100")  # the robust observer, beyond the paper
     assert expected | {"ekf", "oracle", "adaptive", "ukf", "pcrb"} == set(nrmse["observer"])
     assert nrmse.groupby("observer").size().eq(7).all()  # every observer at every alpha
+    ratio = nrmse.set_index(["observer", "alpha"])["ratio_to_oracle"]
+    assert ratio[("oracle", 1.0)] == pytest.approx(1.0)
+    assert ratio[("filternet-N100", 3.0)] == pytest.approx(
+        nrmse.set_index(["observer", "alpha"]).loc[("filternet-N100", 3.0), "nrmse"]
+        / nrmse.set_index(["observer", "alpha"]).loc[("oracle", 3.0), "nrmse"])
     md = (report / "report.md").read_text()
     assert "Table I" in md and "overtakes the EKF" in md and "cnn-N20" in md
+    assert "Beyond the paper" in md and "crosses the EKF" in md and "filternet-N100" in md
     stages = json.loads((report / "stages.json").read_text())
     assert list(stages) == ["data", "tune", "train", "evaluate", "report"]
 

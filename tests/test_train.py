@@ -113,7 +113,8 @@ def test_fast_dev_run_trains_and_scores(tmp_path, smoke_data, tracking):
     for a in (1, 3, 6):
         assert np.isfinite(out[f"test_nrmse_alpha_{a}"])
     table = pd.read_csv(tmp_path / "out" / "evaluation.csv")
-    assert set(table["observer"]) == {"lstm-N40", "ekf"}
+    assert set(table["observer"]) == {"lstm-N40", "ekf", "oracle"}
+    assert np.isfinite(out["worst_oracle_ratio"]) and out["worst_oracle_ratio"] > 0
     client, found = runs(tracking)
     assert [r.info.status for r in found] == ["FINISHED"]
 
@@ -207,7 +208,7 @@ def test_multirun_sweep_logs_eight_runs(tmp_path, smoke_data, tracking):
         local = client.download_artifacts(r.info.run_id, "evaluation.csv", str(tmp_path))
         table = pd.read_csv(local)
         assert list(table.columns) == list(SCORE_COLUMNS)
-        assert set(table["observer"]) == {r.info.run_name, "ekf"}
+        assert set(table["observer"]) == {r.info.run_name, "ekf", "oracle"}
     jobs = sorted(p.name for p in (tmp_path / "sweep").iterdir() if p.name.isdigit())
     assert jobs == [str(i) for i in range(8)]
 

@@ -11,7 +11,15 @@ from lightning.pytorch.loggers import MLFlowLogger
 
 from lbo import plots
 from lbo.atomic import atomic_path
-from lbo.evaluate import classical_table, load_test, nrmse_at, predict_grid, reference, score
+from lbo.evaluate import (
+    classical_table,
+    load_test,
+    nrmse_at,
+    oracle_ratio,
+    predict_grid,
+    reference,
+    score,
+)
 from lbo.noise import Noise
 from lbo.vehicle import Vehicle
 
@@ -20,8 +28,10 @@ LOGGED_ALPHAS = (1.0, 3.0, 6.0)
 
 class Evaluation(L.Callback):
     """At the end of fit: load the best checkpoint, run it on every test level, score it
-    against the EKF with :func:`lbo.evaluate.score`, write ``evaluation.csv`` and
-    ``nrmse.png`` to ``output_dir`` and log them, the metrics and the checkpoint to MLflow.
+    beside the EKF and the oracle EKF with :func:`lbo.evaluate.score`, write
+    ``evaluation.csv`` and ``nrmse.png`` to ``output_dir`` and log them, the metrics and the
+    checkpoint to MLflow. ``worst_oracle_ratio`` is the largest NRMSE ratio to the oracle over
+    alpha in [0.25, 6], so that ``mlflow ui`` can sort observers by it.
 
     Parameters
     ----------
@@ -54,7 +64,7 @@ class Evaluation(L.Callback):
         est = predict_grid(module.observer, arr, hp["window"], self.batch_size,
                            device=str(trainer.strategy.root_device))
         self.table = pd.concat([score(name, est, arr, ref),
-                                classical_table(arr, vehicle, noise, ["ekf"], ref)],
+                                classical_table(arr, vehicle, noise, ["ekf", "oracle"], ref)],
                                ignore_index=True)
         csv, png = self.output_dir / "evaluation.csv", self.output_dir / "nrmse.png"
         with atomic_path(csv) as tmp:
@@ -62,6 +72,9 @@ class Evaluation(L.Callback):
         plots.save(plots.nrmse_curves(self.table, title=f"{name} against the EKF"), png)
         self.metrics = {f"test_nrmse_alpha_{a:g}": nrmse_at(self.table, name, a)
                         for a in LOGGED_ALPHAS if (abs(self.table["alpha"] - a) < 1e-9).any()}
+        ratio = oracle_ratio(self.table, name)
+        if len(ratio):
+            self.metrics["worst_oracle_ratio"] = float(ratio.max())
         self.metrics["eval_seconds"] = time.perf_counter() - start
         logger = self.mlflow or trainer.logger
         if isinstance(logger, MLFlowLogger):

@@ -134,6 +134,21 @@ def nrmse_at(table: pd.DataFrame, observer: str, alpha: float) -> float:
     return float(row["nrmse"].iloc[0])
 
 
+def oracle_ratio(table: pd.DataFrame, observer: str, low: float = 0.25,
+                 high: float = 6.0) -> pd.Series:
+    """NRMSE of ``observer`` over the oracle EKF's, per alpha in [low, high] (index alpha).
+
+    The oracle is told each level's alpha, so it is the practical floor of a causal observer;
+    a ratio of 1.1 means 10 % above that floor.
+    """
+    piv = table.pivot_table(index="alpha", columns="observer", values="nrmse")
+    for name in (observer, "oracle"):
+        if name not in piv:
+            raise LboError(f"no rows for observer {name!r} in the score table")
+    keep = (piv.index >= low - 1e-9) & (piv.index <= high + 1e-9)
+    return (piv[observer] / piv["oracle"])[keep].rename("ratio_to_oracle")
+
+
 def run(cfg: DictConfig) -> Path:
     """Score the configured classical observers; write evaluation.csv and nrmse_classical.png."""
     from lbo import plots

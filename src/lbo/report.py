@@ -78,6 +78,54 @@ def rmse_table(table: pd.DataFrame, alpha: float, cnn: str | None,
     return out
 
 
+def with_oracle_ratio(table: pd.DataFrame) -> pd.DataFrame:
+    """``table`` plus ``ratio_to_oracle``: each row's NRMSE over the oracle EKF's at its alpha.
+
+    NaN where there is no oracle row, or where the oracle's NRMSE is 0 (alpha = 0).
+    """
+    out = table.copy()
+    if "oracle" not in set(table["observer"]):
+        out["ratio_to_oracle"] = np.nan
+        return out
+    oracle = table[table["observer"] == "oracle"].groupby("alpha")["nrmse"].first()
+    floor = out["alpha"].map(oracle)
+    out["ratio_to_oracle"] = (out["nrmse"] / floor.where(floor > 1e-9)).astype(float)
+    return out
+
+
+def robust_markdown(table: pd.DataFrame, robust: str) -> list[str]:
+    """The robust observer against the classical peers, per alpha, with its oracle ratio."""
+    peers = [o for o in (robust, "ekf", "oracle", "adaptive", "pcrb")
+             if o in set(table["observer"])]
+    nr = table.pivot(index="alpha", columns="observer", values="nrmse")[peers]
+    ratio = table[table["observer"] == robust].set_index("alpha")["ratio_to_oracle"]
+    nr[f"{robust} / oracle"] = ratio
+    worst = ratio[(ratio.index >= 0.25 - 1e-9)].max()
+    cross = crossover(table, robust)
+    where = "never on 0..6" if cross is None else f"from alpha = {cross:.2f}"
+    return ["## Beyond the paper: one observer for every noise level", "",
+            f"`{robust}` (`experiment=robust`) is never told alpha. NRMSE per alpha beside the "
+            "EKF (R at alpha=1), the oracle EKF (told alpha), the adaptive EKF and the PCRB, "
+            f"and its ratio to the oracle. Worst ratio over alpha in [0.25, 6]: {worst:.3f}. "
+            f"It is below the EKF {where}.", "",
+            _md(nr.reset_index()), "", "![robust](nrmse_robust.png)", ""]
+
+
+def crossover_markdown(table: pd.DataFrame) -> list[str]:
+    """Where each learned observer crosses the EKF."""
+    learned = [o for o in dict.fromkeys(table["observer"])
+               if o not in ("ekf", "oracle", "adaptive", "ukf", "pcrb")]
+    out = ["## Where each learned observer crosses the EKF", "",
+           "| observer | training noise | below the EKF from alpha |", "|---|---|---|"]
+    for name in learned:
+        cross = crossover(table, name)
+        noise = "alpha ~ U[0, 6.5], never told" if not name.startswith(("cnn", "lstm")) \
+            else "alpha = 1 (the paper's protocol)"
+        out.append(f"| {name} | {noise} | "
+                   f"{'never on 0..6' if cross is None else f'{cross:.2f}'} |")
+    return [*out, ""]
+
+
 def _md(df: pd.DataFrame, digits: int = 3) -> str:
     cols = list(df.columns)
     lines = ["| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
@@ -88,7 +136,8 @@ def _md(df: pd.DataFrame, digits: int = 3) -> str:
 
 
 def markdown(scale: str, tables: dict[str, pd.DataFrame], table: pd.DataFrame,
-             best: dict[str, str | None], runs: dict[str, str], stages: dict[str, dict]) -> str:
+             best: dict[str, str | None], runs: dict[str, str], stages: dict[str, dict],
+             robust: str | None = None) -> str:
     """report.md: the tables, crossovers, best windows, run ids and stage times."""
     out = [f"# lbo report: scale `{scale}`", "",
            "RMSE of the EKF and of the best CNN and LSTM, ours beside the paper's "
@@ -108,30 +157,37 @@ def markdown(scale: str, tables: dict[str, pd.DataFrame], table: pd.DataFrame,
                    f"| about {PAPER_CROSSOVER[model]:g} |")
     nr = table.pivot(index="alpha", columns="observer", values="nrmse")
     out += ["", "## NRMSE at alpha = 1, 3, 6", "",
-            _md(nr.loc[nr.index.isin([1.0, 3.0, 6.0])].reset_index()), "",
-            "## Runs", "", "| observer | MLflow run id |", "|---|---|"]
+            _md(nr.loc[nr.index.isin([1.0, 3.0, 6.0])].reset_index()), ""]
+    out += crossover_markdown(table)
+    if robust is not None:
+        out += robust_markdown(table, robust)
+    out += ["## Runs", "", "| observer | MLflow run id |", "|---|---|"]
     out += [f"| {k} | `{v}` |" for k, v in sorted(runs.items())]
     out += ["", "## Stages", "", "| stage | status | seconds |", "|---|---|---|"]
     out += [f"| {k} | {v.get('status', '')} | {v.get('seconds', float('nan')):.1f} |"
             for k, v in stages.items()]
     out += ["", "Figures: friction_circle.png, nrmse_cnn.png, nrmse_lstm.png, nrmse_all.png, "
-            "trajectory_alpha3.png.", ""]
+            "trajectory_alpha3.png" + (", nrmse_robust.png." if robust else "."), ""]
     return "\n".join(out)
 
 
 def write(folder: str | Path, scale: str, table: pd.DataFrame, runs: dict[str, str],
           stages: dict[str, dict], trajectory: dict[str, np.ndarray] | None = None,
-          friction_png: str | Path | None = None) -> list[Path]:
+          friction_png: str | Path | None = None, robust: str | None = None) -> list[Path]:
     """Write every report file into ``folder``; returns their paths.
 
     Parameters
     ----------
-    table : score table with every observer (learned and classical) at every alpha.
+    table : score table with every observer (learned and classical) at every alpha;
+        ``nrmse.csv`` is this table with a ``ratio_to_oracle`` column.
     runs : observer name -> MLflow run id.
     trajectory : arrays for Fig. 6: ``truth``, ``meas`` and one (T, 2) array per estimate.
     friction_png : the data set's friction_circle.png, copied beside the report.
+    robust : the name of the robust observer in ``table``, which gets a section and
+        ``nrmse_robust.png`` of its own.
     """
     folder = Path(folder)
+    table = with_oracle_ratio(table)
     best = {m: best_window(table, m) for m in ("cnn", "lstm")}
     tables = {"rmse_alpha1": rmse_table(table, 1.0, best["cnn"], best["lstm"]),
               "rmse_alpha6": rmse_table(table, 6.0, best["cnn"], best["lstm"])}
@@ -145,7 +201,13 @@ def write(folder: str | Path, scale: str, table: pd.DataFrame, runs: dict[str, s
         fig = plots.nrmse_curves(table, title=f"{model.upper()} observers against the EKF",
                                  observers=[*names, "ekf"])
         written.append(plots.save(fig, folder / f"nrmse_{model}.png"))
-    every = [n for n in (best["cnn"], best["lstm"]) if n] + [
+    if robust is not None:
+        peers = [robust, *(o for o in ("ekf", "oracle", "adaptive", "pcrb")
+                           if o in set(table["observer"]))]
+        written.append(plots.save(plots.nrmse_curves(
+            table, f"{robust}, never told alpha, against the classical peers", observers=peers),
+            folder / "nrmse_robust.png"))
+    every = [n for n in (best["cnn"], best["lstm"], robust) if n] + [
         o for o in ("ekf", "oracle", "adaptive", "ukf", "pcrb") if o in set(table["observer"])]
     written.append(plots.save(plots.nrmse_curves(table, "best observers, classical peers and "
                                                  "the PCRB", observers=every),
@@ -157,5 +219,5 @@ def write(folder: str | Path, scale: str, table: pd.DataFrame, runs: dict[str, s
             tmp.write_bytes(Path(friction_png).read_bytes())
         written.append(folder / "friction_circle.png")
     written.append(write_text(folder / "report.md",
-                              markdown(scale, tables, table, best, runs, stages)))
+                              markdown(scale, tables, table, best, runs, stages, robust)))
     return written

@@ -3,7 +3,8 @@
     python -m lbo.reproduce scale=quick
 
 Stages: 1 data, 2 tune (CNN and LSTM at N=20), 3 train the 8 observers with the tuned
-parameters, 4 evaluate the classical observers, 5 write the report. A rerun reuses the
+parameters and the robust observer (``experiment=robust``, beyond the paper), 4 evaluate the
+classical observers, 5 write the report. A rerun reuses the
 cached data sets, the Optuna studies (only missing trials run), the MLflow runs that
 finished with the same config (``resume=true``) and the classical table, and redoes only
 what is missing.
@@ -95,30 +96,34 @@ def run(cfg: DictConfig) -> Path:
     tuned = stages.run(2, "tune", f"{' and '.join(m.upper() for m in cfg.models)} at N=20, "
                        f"{cfg.trials[scale]} Optuna trials each", tune_all)
 
+    jobs = [(f"{model}-N{window}",
+             [f"experiment={scale}", f"model={model}", f"window={window}", f"+tuned={model}",
+              f"hydra.searchpath=[file://{out}]"])
+            for model in cfg.models for window in cfg.windows]
+    if cfg.robust:
+        jobs.append(("robust", ["experiment=robust", f"data={scale}",
+                                *cfg.robust_overrides[scale]]))
+
     def train_all() -> tuple[dict, str]:
-        runs, n, done = {}, len(cfg.models) * len(cfg.windows), 0
-        for model in cfg.models:
-            for window in cfg.windows:
-                name = f"{model}-N{window}"
-                c = compose("train", [
-                    f"experiment={scale}", f"model={model}", f"window={window}",
-                    f"+tuned={model}", f"hydra.searchpath=[file://{out}]", "resume=true",
-                    f"output_dir={out / 'runs' / name}", *extra, *cfg.train_overrides])
-                start = time.perf_counter()
-                runs[name] = train(c)
-                done += 1
-                how = "reused" if runs[name].get("reused") else \
-                    f"trained in {time.perf_counter() - start:.0f} s"
-                print(f"    {done}/{n} {name}: {how}, NRMSE at alpha=1/3/6 "
-                      + "/".join(f"{runs[name].get(f'test_nrmse_alpha_{a}', np.nan):.2f}"
-                                 for a in (1, 3, 6))
-                      + f"  (stage {time.perf_counter() - t_train:.0f} s)", flush=True)
+        runs = {}
+        for done, (key, overrides) in enumerate(jobs, 1):
+            c = compose("train", [*overrides, "resume=true", f"output_dir={out / 'runs' / key}",
+                                  *extra, *cfg.train_overrides])
+            start = time.perf_counter()
+            runs[key] = train(c)
+            how = "reused" if runs[key].get("reused") else \
+                f"trained in {time.perf_counter() - start:.0f} s"
+            print(f"    {done}/{len(jobs)} {runs[key]['name']}: {how}, NRMSE at alpha=1/3/6 "
+                  + "/".join(f"{runs[key].get(f'test_nrmse_alpha_{a}', np.nan):.2f}"
+                             for a in (1, 3, 6))
+                  + f"  (stage {time.perf_counter() - t_train:.0f} s)", flush=True)
         return runs, "reused" if all(r.get("reused") for r in runs.values()) else "done"
 
     t_train = time.perf_counter()
     runs = stages.run(3, "train", f"{len(cfg.models) * len(cfg.windows)} observers "
                       f"({', '.join(cfg.models)} x N={list(cfg.windows)}) with the tuned "
-                      "parameters", train_all)
+                      "parameters" + (", and the robust observer" if cfg.robust else ""),
+                      train_all)
 
     def classical() -> tuple[pd.DataFrame, str]:
         csv = out / "classical" / "evaluation.csv"
@@ -141,15 +146,16 @@ def run(cfg: DictConfig) -> Path:
                              for r in runs.values()], ignore_index=True)
         table = pd.concat([learned[learned["observer"] != "ekf"], classical_table],
                           ignore_index=True)
-        run_ids = {name: r["run_id"] for name, r in runs.items()}
+        run_ids = {r["name"]: r["run_id"] for r in runs.values()}
         for model, res in tuned.items():
             if res.get("parent_run_id"):
                 run_ids[f"tune-{model}"] = res["parent_run_id"]
         best_cnn = report.best_window(table, "cnn")
         traj = _trajectory(folder, runs.get(best_cnn), cfg.trajectory_manoeuvre,
                            cfg.tracking_uri) if best_cnn else None
+        robust = runs["robust"]["name"] if "robust" in runs else None
         files = report.write(out, scale, table, run_ids, stages.record, traj,
-                             folder / "friction_circle.png")
+                             folder / "friction_circle.png", robust=robust)
         _log_report(cfg, scale, out, files, folder.name)
         return files, "done"
 
