@@ -119,8 +119,8 @@ class FilterObserver(nn.Module):
         r = self.measurement_sigma(x) ** 2  # (B, 3)
         q = torch.exp(2 * (self.log_q0 + self.log_q_scale))  # (3,)
         eye = torch.eye(3, dtype=x.dtype, device=x.device)
-        R = torch.diag_embed(r)
-        Q = torch.diag(q)
+        R = r.unsqueeze(-1) * eye  # diagonal matrices, written so that ONNX exports them
+        Q = q * eye
         z = x[:, 0, :3]
         P = R
         dt, L = self.dt, self.wheelbase
