@@ -27,6 +27,7 @@ from omegaconf import DictConfig
 from lbo.atomic import write_text
 from lbo.cli import entry
 from lbo.errors import LboError
+from lbo.evaluate import CLASSICAL
 
 STAGES = ("data", "tune", "train", "evaluate", "report")
 
@@ -144,7 +145,8 @@ def run(cfg: DictConfig) -> Path:
     def write_report() -> tuple[list[Path], str]:
         learned = pd.concat([pd.read_csv(_artifact(r, "evaluation.csv", cfg.tracking_uri))
                              for r in runs.values()], ignore_index=True)
-        table = pd.concat([learned[learned["observer"] != "ekf"], classical_table],
+        # each run's table also holds the EKF and oracle rows; the classical stage has them all
+        table = pd.concat([learned[~learned["observer"].isin(CLASSICAL)], classical_table],
                           ignore_index=True)
         run_ids = {r["name"]: r["run_id"] for r in runs.values()}
         for model, res in tuned.items():
