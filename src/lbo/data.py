@@ -19,7 +19,14 @@ import lightning as L
 import numpy as np
 import pandas as pd
 import torch
-from torch.utils.data import BatchSampler, DataLoader, Dataset, RandomSampler, SequentialSampler
+from torch.utils.data import (
+    BatchSampler,
+    DataLoader,
+    Dataset,
+    RandomSampler,
+    SequentialSampler,
+    get_worker_info,
+)
 
 from lbo import schema
 from lbo.draws import AlphaDraw, loss_weights, noisy_measurements
@@ -75,11 +82,18 @@ class WindowDataset(Dataset):
         self.draw, self.weight_offset = draw, weight_offset
         self.sigma = None if sigma is None else torch.as_tensor(sigma, dtype=x.dtype)
         self.generator = torch.Generator().manual_seed(seed)
+        self._worker_seed: int | None = None
 
     def __len__(self) -> int:
         return len(self.ends)
 
     def __getitem__(self, idx) -> Batch:
+        info = get_worker_info()
+        if info is not None and info.seed != self._worker_seed:
+            # a worker holds a copy of this dataset, made anew every epoch: reseed it from the
+            # loader's per-epoch, per-worker seed, or each epoch would repeat the first's draws
+            self.generator.manual_seed(info.seed)
+            self._worker_seed = info.seed
         return self.batch(idx, self.generator)
 
     def batch(self, idx, generator: torch.Generator) -> Batch:

@@ -1,0 +1,172 @@
+"""The robust experiment (filternet, frame features, drawn noise) end to end at smoke scale:
+train, then observe a log with its checkpoint."""
+
+import re
+import subprocess
+import sys
+
+import mlflow
+import numpy as np
+import pandas as pd
+import pytest
+import torch
+
+from conftest import compose_cfg
+from lbo.errors import LboError
+from lbo.module import ObserverModule
+from lbo.observer import Observer
+from lbo.train import train
+from lbo.vehicle import wrap_angle
+
+LOG = ["t", "x_m", "y_m", "psi_m", "V", "delta", "x", "y", "psi"]
+
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
+
+
+@pytest.fixture(scope="module")
+def robust(tmp_path_factory, smoke_data):
+    """One robust observer trained at smoke scale, logged to its own MLflow store."""
+    tmp = tmp_path_factory.mktemp("robust")
+    uri = f"sqlite:///{tmp / 'mlflow.db'}"
+    cfg = compose_cfg("train", [
+        "experiment=robust", "data=smoke", f"data.root={smoke_data.parent}",
+        f"output_dir={tmp / 'out'}", "trainer.max_epochs=1", "trainer.limit_train_batches=5",
+        "window=40", "batch_size=64"])
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("MLFLOW_TRACKING_URI", uri)
+        out = train(cfg)
+    return {"cfg": cfg, "out": out, "uri": uri, "dir": tmp / "out"}
+
+
+@pytest.fixture(scope="module")
+def manoeuvre(smoke_data):
+    test = pd.read_parquet(smoke_data / "test.parquet")
+    return test[(test["traj"] == 0) & (test["alpha"] == 3.0)].sort_values("k")
+
+
+def test_robust_experiment_composes_at_smoke_scale(robust):
+    cfg = robust["cfg"]
+    assert (cfg.data.name, cfg.model.name, cfg.features, cfg.window) == \
+        ("smoke", "filternet", "frame", 40)
+    assert (cfg.train_noise.source, cfg.train_noise.distribution) == ("drawn", "uniform")
+    assert cfg.trainer.max_epochs == 1 and cfg.trainer.limit_train_batches == 5
+
+
+def test_robust_experiment_trains_and_scores(robust):
+    out = robust["out"]
+    assert out["name"] == "filternet-N40"
+    assert np.isfinite(out["val_loss"])
+    for a in (1, 3, 6):
+        assert np.isfinite(out[f"test_nrmse_alpha_{a}"])
+    table = pd.read_csv(robust["dir"] / "evaluation.csv")
+    assert set(table["observer"]) == {"filternet-N40", "ekf", "oracle"}
+    client = mlflow.MlflowClient(robust["uri"])
+    run = client.get_run(out["run_id"])
+    assert run.info.status == "FINISHED"
+    assert run.data.tags["train_noise"] == "uniform [0, 6.5]"
+    assert run.data.tags["features"] == "frame" and run.data.tags["model"] == "filternet"
+    module = ObserverModule.load_from_checkpoint(out["checkpoint"], map_location="cpu")
+    hp = module.hparams
+    assert hp["features"] == "frame" and hp["window"] == 40 and hp["model"]["name"] == "filternet"
+    # the filter's model comes from the run's vehicle and noise preset, resolved
+    assert hp["model"]["dt"] == 0.02 and list(hp["model"]["measurement_sigma"]) == [1.0, 1.0,
+                                                                                     0.0174]
+    # five steps of training moved the learned parts off their initial values
+    net = module.observer.net
+    assert net.noise[-1].weight.abs().max() > 0 or net.log_q_scale.abs().max() > 0
+
+
+def test_observe_cli_runs_the_robust_checkpoint(robust, manoeuvre, tmp_path):
+    log, est_path = tmp_path / "log.csv", tmp_path / "est.csv"
+    manoeuvre[LOG].to_csv(log, index=False)
+    res = subprocess.run([sys.executable, "-m", "lbo.observe",
+                          f"observer={robust['out']['checkpoint']}", f"input={log}",
+                          f"output={est_path}"], capture_output=True, text=True)
+    assert res.returncode == 0, res.stderr[-3000:]
+    assert "features frame" in res.stdout
+    found = re.search(r"rmse x (\S+) m, y (\S+) m, psi (\S+) rad", res.stdout)
+    assert found, res.stdout
+    assert np.all(np.isfinite([float(v) for v in found.groups()]))
+    est = pd.read_csv(est_path)
+    assert list(est.columns) == ["t", "x", "y", "psi", "valid"]
+    assert len(est) == len(manoeuvre) and int(est["valid"].sum()) == len(manoeuvre) - 39
+    assert np.isfinite(est[["x", "y", "psi"]].to_numpy()).all()
+    # the same numbers as the Python API
+    m, u = manoeuvre[["x_m", "y_m", "psi_m"]].to_numpy(), manoeuvre[["V", "delta"]].to_numpy()
+    ref, valid = Observer.load(robust["out"]["checkpoint"]).run(m, u)
+    np.testing.assert_array_equal(est["valid"].to_numpy(), valid)
+    np.testing.assert_allclose(est[["x", "y"]].to_numpy(), ref[:, :2], rtol=0, atol=1e-9)
+    np.testing.assert_allclose(wrap_angle(est["psi"].to_numpy() - ref[:, 2]), 0, atol=1e-9)
+
+
+def test_observer_load_runs_and_streams_the_robust_checkpoint(robust, manoeuvre):
+    obs = Observer.load(robust["out"]["checkpoint"])
+    assert (obs.name, obs.kind, obs.window, obs.features) == ("filternet-N40", "learned", 40,
+                                                              "frame")
+    m, u = manoeuvre[["x_m", "y_m", "psi_m"]].to_numpy(), manoeuvre[["V", "delta"]].to_numpy()
+    est, valid = obs.run(m, u)
+    assert est.shape == (len(m), 3) and np.isfinite(est).all()
+    assert valid.sum() == len(m) - 39 and not valid[:39].any()
+    z = manoeuvre[["x", "y", "psi"]].to_numpy()
+    err = np.abs(est[valid, :2] - z[valid, :2])
+    assert err.mean() < 3.0  # a filter at alpha=3 (sigma 3 m), not garbage
+    # step by step: the same estimates
+    n = 120
+    obs.reset()
+    streamed = np.array([obs.step(mk, uk).state for mk, uk in zip(m[:n], u[:n])])
+    gap = streamed - est[:n]
+    gap[:, 2] = wrap_angle(gap[:, 2])
+    assert np.abs(gap).max() < 1e-6
+    # rotate and shift the whole log: the estimates rotate and shift with it
+    theta, shift = 0.8, np.array([500.0, -250.0])
+    c, s = np.cos(theta), np.sin(theta)
+    rot = np.array([[c, -s], [s, c]])
+    moved = np.column_stack([m[:, :2] @ rot.T + shift, wrap_angle(m[:, 2] + theta)])
+    est_moved, _ = obs.run(moved, u)
+    np.testing.assert_allclose(est_moved[valid, :2], est[valid, :2] @ rot.T + shift, atol=1e-6)
+    np.testing.assert_allclose(wrap_angle(est_moved[valid, 2] - est[valid, 2] - theta), 0,
+                               atol=1e-6)
+
+
+def test_robust_checkpoint_refuses_another_feature_mode(robust):
+    for mode in ("relative", "absolute"):
+        with pytest.raises(LboError, match=re.escape(
+                f"trained with features=frame, but features={mode} was asked for")) as err:
+            Observer.load(robust["out"]["checkpoint"], features=mode)
+        assert "\n" not in str(err.value)
+    assert Observer.load(robust["out"]["checkpoint"], features="frame").features == "frame"
+
+
+# --- filternet needs frame features --------------------------------------------------------
+
+
+def _filternet_relative(tmp_path, root):
+    return compose_cfg("train", ["experiment=smoke", f"data.root={root}",
+                                 f"output_dir={tmp_path / 'out'}", "model=filternet"])
+
+
+def test_filternet_with_relative_features_is_refused_before_training(tmp_path, smoke_data,
+                                                                      monkeypatch):
+    uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", uri)
+    cfg = _filternet_relative(tmp_path, smoke_data.parent)
+    assert cfg.features == "relative"
+    with pytest.raises(LboError, match=r"^features: model 'filternet' needs features in "
+                                       r"\['frame'\], got 'relative'$") as err:
+        train(cfg)
+    assert "\n" not in str(err.value)
+    assert not (tmp_path / "out").exists()
+    exp = mlflow.MlflowClient(uri).get_experiment_by_name("lbo")
+    assert exp is None or mlflow.MlflowClient(uri).search_runs([exp.experiment_id]) == []
+
+
+def test_filternet_with_relative_features_is_refused_before_the_data_is_generated(
+        tmp_path, monkeypatch):
+    """Bad settings are refused "before any work" (lbo.train.check): a data set that is not
+    cached yet (at paper scale, a long job) must not be generated first."""
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{tmp_path / 'mlflow.db'}")
+    root = tmp_path / "data"
+    with pytest.raises(LboError, match="^features: model 'filternet' needs features"):
+        train(_filternet_relative(tmp_path, root))
+    assert not root.exists() or not any(root.iterdir()), "a data set was generated first"
+    assert not (tmp_path / "out").exists()
