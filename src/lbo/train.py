@@ -51,6 +51,11 @@ def check(cfg: DictConfig) -> None:
     require(cfg.get("lr_schedule", "constant") in SCHEDULES, "lr_schedule",
             f"one of {list(SCHEDULES)}", cfg.get("lr_schedule"))
     noise_settings(cfg)
+    # the model's own checks (its parameters, the feature modes it reads) before any data
+    from lbo.network import ObserverNet
+
+    model = OmegaConf.to_container(cfg.model, resolve=True)
+    ObserverNet(model.pop("name"), w, cfg.features, **model)
     if cfg.trainer.accelerator == "gpu" and not torch.cuda.is_available():
         raise LboError("trainer=gpu needs CUDA, which torch does not see here; "
                        "use trainer=cpu or trainer=auto")
