@@ -9,7 +9,6 @@ import mlflow
 import numpy as np
 import pandas as pd
 import pytest
-import torch
 
 from conftest import compose_cfg
 from lbo.errors import LboError

@@ -191,7 +191,8 @@ class Observer:
     kind : ``"learned"`` or ``"classical"``.
     window : N, samples per window (1 for the classical observers).
     dt : the sampling period (s) the observer expects.
-    features : feature mode of a learned observer (``"relative"``, ``"frame"`` or ``"absolute"``), else None.
+    features : feature mode of a learned observer (``"relative"``, ``"frame"``,
+        ``"absolute"``), else None.
     vehicle, noise : the model the filters use (for a learned observer: its checkpoint's,
         used by the fallback EKF).
     alpha : measurement-noise scale the ``oracle`` is told (R = noise.R(alpha)).

@@ -55,4 +55,5 @@ def build_model(name: str, window: int, **kwargs: Any) -> nn.Module:
     return MODELS[name](window, **kwargs)
 
 
-__all__ = ["MODELS", "CNNObserver", "FilterObserver", "LSTMObserver", "build_model", "model_parameters"]
+__all__ = ["MODELS", "CNNObserver", "FilterObserver", "LSTMObserver", "build_model",
+           "model_parameters"]

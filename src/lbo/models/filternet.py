@@ -25,7 +25,6 @@ from lbo.errors import LboError
 from lbo.models.cnn import check_count
 
 
-
 def _check_sigmas(name: str, values: Sequence[float]) -> tuple[float, float, float]:
     try:
         out = tuple(float(v) for v in values)
