@@ -199,8 +199,10 @@ class WindowDataModule(L.LightningDataModule):
         # one __getitem__ per batch: the gather is vectorised, never a loop over samples
         base = (RandomSampler(ds, generator=torch.Generator().manual_seed(self.seed))
                 if shuffle else SequentialSampler(ds))
+        # the loader's generator seeds the workers' per-epoch noise draws from `seed` alone
         return DataLoader(ds, sampler=BatchSampler(base, batch, drop_last=False),
-                          batch_size=None, num_workers=self.num_workers)
+                          batch_size=None, num_workers=self.num_workers,
+                          generator=torch.Generator().manual_seed(self.seed))
 
     def train_dataloader(self) -> DataLoader:
         return self._loader(self.train_set, self.batch_size, shuffle=True)
