@@ -36,3 +36,17 @@ def one_torch_thread():
         mp.setenv("OMP_NUM_THREADS", "1")
         yield
     torch.set_num_threads(threads)
+
+
+@pytest.fixture
+def tracking(tmp_path, monkeypatch):
+    """A fresh MLflow SQLite store for one test, through MLFLOW_TRACKING_URI."""
+    uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", uri)
+    return uri
+
+
+def train_cfg(tmp_path, smoke_data, *overrides):
+    """The training config at smoke scale, writing under ``tmp_path / 'out'``."""
+    return compose_cfg("train", ["experiment=smoke", f"data.root={smoke_data.parent}",
+                                 f"output_dir={tmp_path / 'out'}", *overrides])

@@ -6,7 +6,7 @@ import pytest
 import torch
 from scipy import stats
 
-from conftest import compose_cfg
+from conftest import train_cfg
 from lbo.data import FixedDataset, WindowDataModule, WindowDataset, rows, window_ends
 from lbo.draws import AlphaDraw, loss_weights
 from lbo.errors import LboError
@@ -15,18 +15,6 @@ from lbo.train import check, noise_settings, train
 
 SIGMA = torch.tensor([1.0, 1.0, 0.0174], dtype=torch.float64)  # the paper preset at alpha=1
 N = 80  # long windows, so that one window's noise std is a usable estimate of its alpha
-
-
-@pytest.fixture
-def tracking(tmp_path, monkeypatch):
-    uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
-    monkeypatch.setenv("MLFLOW_TRACKING_URI", uri)
-    return uri
-
-
-def train_cfg(tmp_path, smoke_data, *overrides):
-    return compose_cfg("train", ["experiment=smoke", f"data.root={smoke_data.parent}",
-                                 f"output_dir={tmp_path / 'out'}", *overrides])
 
 
 @pytest.fixture(scope="module")

@@ -7,25 +7,13 @@ import pandas as pd
 import pytest
 import torch
 
-from conftest import compose_cfg
+from conftest import train_cfg
 from lbo.data import WindowDataModule, rows, window_ends
 from lbo.errors import LboError
 from lbo.metrics import SCORE_COLUMNS
 from lbo.module import ObserverModule
 from lbo.network import ObserverNet
 from lbo.train import train
-
-
-@pytest.fixture
-def tracking(tmp_path, monkeypatch):
-    uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
-    monkeypatch.setenv("MLFLOW_TRACKING_URI", uri)
-    return uri
-
-
-def train_cfg(tmp_path, smoke_data, *overrides):
-    return compose_cfg("train", ["experiment=smoke", f"data.root={smoke_data.parent}",
-                                 f"output_dir={tmp_path / 'out'}", *overrides])
 
 
 def runs(uri):

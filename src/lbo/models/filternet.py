@@ -114,7 +114,7 @@ class FilterObserver(nn.Module):
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         """(B, N, 5) features -> (B, 3) state in the current measurement's frame."""
-        b, n = x.shape[:2]
+        n = x.shape[1]
         r = self.measurement_sigma(x) ** 2  # (B, 3)
         q = torch.exp(2 * (self.log_q0 + self.log_q_scale))  # (3,)
         eye = torch.eye(3, dtype=x.dtype, device=x.device)
