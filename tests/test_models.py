@@ -131,3 +131,42 @@ def test_cnn_output_depends_on_each_branch(channels):
     y = x.clone()
     y[:, :, channels] += 1.0
     assert not torch.allclose(model(x), model(y))
+
+
+def test_cnn_activation_choice_and_refusal():
+    from lbo.models.cnn import CentredSigmoid
+
+    paper = build_model("cnn", 20)  # a checkpoint without the key keeps the paper's sigmoid
+    assert not any(isinstance(m, CentredSigmoid) for m in paper.modules())
+    centred = build_model("cnn", 20, activation="centred_sigmoid")
+    acts = [m for m in centred.modules() if isinstance(m, CentredSigmoid)]
+    assert len(acts) == 9  # four per branch and the dense layer's
+    x = torch.linspace(-6, 6, 101)
+    assert torch.allclose(acts[0](x), torch.sigmoid(x) - 0.5)
+    assert torch.allclose(acts[0](-x), -acts[0](x), atol=1e-7)  # zero-mean: odd around 0
+    with pytest.raises(LboError, match=r"^model.activation: expected one of sigmoid, "
+                                       r"centred_sigmoid, got 'relu'$"):
+        build_model("cnn", 20, activation="relu")
+
+
+def test_centred_cnn_keeps_the_dense_layer_out_of_saturation_at_n80():
+    """The cause of the N>=60 CNNs that learned nothing: with sigmoid inputs near 0.5, one Adam
+    step at the lr tuned at N=20 moves the dense layer's pre-activations by about lr * 10 N.
+    Centred, the same step moves them by a fraction of that."""
+    torch.manual_seed(0)
+    x = torch.randn(256, 80, 5)
+    y = torch.randn(256, 3)
+    shift = {}
+    for act in ("sigmoid", "centred_sigmoid"):
+        torch.manual_seed(1)
+        net = build_model("cnn", 80, activation=act)
+        dense = net.head[0]
+        feats = torch.cat([net.measurements(x[:, :, :3]), net.inputs(x[:, :, 3:])], 1)
+        before = dense(feats).detach()
+        opt = torch.optim.Adam(net.parameters(), lr=2.7e-3)
+        torch.nn.functional.mse_loss(net(x), y).backward()
+        opt.step()
+        feats = torch.cat([net.measurements(x[:, :, :3]), net.inputs(x[:, :, 3:])], 1)
+        shift[act] = (dense(feats).detach() - before).abs().mean().item()
+    assert shift["sigmoid"] > 2.0                   # lr * 10 N = 2.2: saturation in a step
+    assert shift["centred_sigmoid"] < shift["sigmoid"] / 5
