@@ -11,6 +11,7 @@ from omegaconf import DictConfig
 
 from lbo.errors import LboError
 from lbo.paths import CONF_DIR
+from lbo.tracking import check_launcher, launcher_from_argv
 
 
 def fail(err: Exception) -> NoReturn:
@@ -22,7 +23,8 @@ def entry(config_name: str, run: Callable[[DictConfig], Any]) -> Callable[[], An
     """A ``@hydra.main`` around ``run(cfg)`` composing ``conf/<config_name>.yaml``.
 
     ``run``'s return value goes back to Hydra (a sweeper's objective); an LboError becomes
-    ``error: <message>`` on stderr and exit code 2.
+    ``error: <message>`` on stderr and exit code 2. A launcher plugin named on the command
+    line that is not installed is reported the same way, before Hydra composes anything.
     """
 
     @hydra.main(version_base="1.3", config_path=str(CONF_DIR), config_name=config_name)
@@ -32,4 +34,11 @@ def entry(config_name: str, run: Callable[[DictConfig], Any]) -> Callable[[], An
         except LboError as e:
             fail(e)
 
-    return main
+    def checked() -> Any:
+        try:
+            check_launcher(launcher_from_argv(sys.argv[1:]))
+        except LboError as e:
+            fail(e)
+        return main()
+
+    return checked

@@ -208,17 +208,11 @@ def _trajectory(folder: Path, run: dict[str, Any] | None, manoeuvre: str,
 
 def _log_report(cfg: DictConfig, scale: str, out: Path, files: list[Path], data: str) -> None:
     """Log the report as an MLflow run of its own; a rerun updates the same run."""
-    import mlflow
+    from lbo.paths import artifact_location
+    from lbo.tracking import ensure_experiment
 
-    client = mlflow.MlflowClient(cfg.tracking_uri)
-    exp = client.get_experiment_by_name(cfg.experiment_name)
-    if exp is None:
-        from lbo.paths import artifact_location
-
-        exp_id = client.create_experiment(cfg.experiment_name,
-                                          artifact_location(cfg.tracking_uri))
-    else:
-        exp_id = exp.experiment_id
+    client, exp_id = ensure_experiment(cfg.tracking_uri, cfg.experiment_name,
+                                       artifact_location(cfg.tracking_uri), "tracking_uri")
     found = client.search_runs([exp_id], f"tags.lbo_report = '{scale}' and tags.data = '{data}'")
     run_id = found[0].info.run_id if found else client.create_run(
         exp_id, run_name=f"report-{scale}", tags={"lbo_report": scale, "data": data}).info.run_id

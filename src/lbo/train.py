@@ -27,6 +27,7 @@ from lbo.errors import LboError
 from lbo.features import FEATURE_MODES
 from lbo.module import SCHEDULES
 from lbo.paths import REPO_ROOT
+from lbo.tracking import check_server, ensure_experiment
 
 
 def git_commit() -> str:
@@ -56,6 +57,8 @@ def check(cfg: DictConfig) -> None:
 
     model = OmegaConf.to_container(cfg.model, resolve=True)
     ObserverNet(model.pop("name"), w, cfg.features, **model)
+    if cfg.get("logger") and cfg.logger.get("tracking_uri"):
+        check_server(cfg.logger.tracking_uri)
     if cfg.trainer.accelerator == "gpu" and not torch.cuda.is_available():
         raise LboError("trainer=gpu needs CUDA, which torch does not see here; "
                        "use trainer=cpu or trainer=auto")
@@ -164,6 +167,10 @@ def train(cfg: DictConfig, callbacks: list[L.Callback] | None = None,
 
     check(cfg)
     digest = config_hash(cfg)
+    if cfg.get("logger") and str(cfg.logger.get("_target_", "")).endswith("MLFlowLogger"):
+        # under a parallel launcher the first job creates the store and the experiment
+        ensure_experiment(cfg.logger.tracking_uri, cfg.logger.experiment_name,
+                          cfg.logger.get("artifact_location"))
     if cfg.get("resume") and cfg.get("logger"):
         reused = finished_run(cfg, digest)
         if reused is not None:

@@ -18,15 +18,16 @@ outcome. ``main`` is the thin Hydra shell around it.
 
 from __future__ import annotations
 
-import contextlib
 import copy
 import hashlib
 import json
 import logging
+import os
+import socket
 import sys
 import tempfile
+import time
 import warnings
-from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -45,6 +46,7 @@ from lbo.config import require
 from lbo.errors import LboError
 from lbo.models import model_parameters
 from lbo.paths import CONF_DIR
+from lbo.tracking import creation_lock, ensure_experiment
 from lbo.train import check, train
 
 #: Trials that count towards ``tune.n_trials``; failed ones (crashes, killed processes) do not.
@@ -246,29 +248,6 @@ def redact(url: str) -> str:
                        f"(sqlite:///path/optuna.db or postgresql://user:pass@host/db)") from e
 
 
-@contextlib.contextmanager
-def creation_lock(url: str) -> Iterator[None]:
-    """Hold a lock, per machine, on the SQLite database behind ``url`` (no-op for a server).
-
-    Neither optuna nor MLflow survives two processes creating the same new SQLite file at once
-    (both migrate its tables), and workers started together would do just that.
-    """
-    from filelock import FileLock
-    from sqlalchemy.engine import make_url
-
-    try:
-        parsed = make_url(url)
-        path = parsed.database if parsed.get_backend_name() == "sqlite" else None
-    except Exception:  # an MLflow server or file URI: not ours to lock
-        path = None
-    if not path or path == ":memory:":
-        yield
-        return
-    key = hashlib.sha1(str(Path(path).resolve()).encode()).hexdigest()[:16]
-    with FileLock(Path(tempfile.gettempdir()) / f"lbo-sqlite-{key}.lock", timeout=600):
-        yield
-
-
 def open_storage(url: str, heartbeat_interval: int,
                  grace_period: int) -> optuna.storages.RDBStorage:
     """Connect to (and if new, initialise) the study database; one line if it cannot.
@@ -305,6 +284,67 @@ def open_storage(url: str, heartbeat_interval: int,
             from e
 
 
+class ClaimLock:
+    """A lock, shared by every worker of one study, held from "is a trial still needed?" until
+    that trial is RUNNING in the storage, so that workers together start exactly
+    ``tune.n_trials`` trials.
+
+    PostgreSQL: a session advisory lock on a connection of its own, which the server drops
+    when a killed worker's connection goes. SQLite (one machine): a file lock. Other
+    databases: none, and each extra worker may add one trial.
+    """
+
+    def __init__(self, storage: optuna.storages.RDBStorage, url: str, study: str) -> None:
+        from sqlalchemy.engine import make_url
+
+        self.backend = make_url(url).get_backend_name()
+        digest = hashlib.sha1(f"lbo-tune:{study}".encode()).digest()
+        self.key = int.from_bytes(digest[:8], "big", signed=True)
+        self.engine = storage.engine
+        self.file = None
+        if self.backend == "sqlite":
+            from filelock import FileLock
+
+            where = hashlib.sha1(f"{url}:{study}".encode()).hexdigest()[:16]
+            self.file = FileLock(Path(tempfile.gettempdir()) / f"lbo-study-{where}.lock")
+        self.conn = None
+
+    def acquire(self) -> None:
+        from sqlalchemy import text
+
+        if self.file is not None:
+            self.file.acquire()
+        elif self.backend == "postgresql":
+            self.conn = self.engine.connect()
+            self.conn.execute(text("SELECT pg_advisory_lock(:k)"), {"k": self.key})
+
+    def release(self) -> None:
+        """Idempotent: the objective releases it as its trial starts, the loop once more."""
+        from sqlalchemy import text
+
+        if self.file is not None and self.file.is_locked:
+            self.file.release()
+        if self.conn is not None:
+            try:
+                self.conn.execute(text("SELECT pg_advisory_unlock(:k)"), {"k": self.key})
+            finally:
+                self.conn.close()
+                self.conn = None
+
+
+def needs_trial(study: optuna.Study, n_trials: int) -> bool:
+    """Whether the study needs another trial: fewer than ``n_trials`` finished or running.
+
+    Trials whose worker went silent are failed first (and queued again once, with their
+    parameters, for the next ``ask``), so a killed worker's trial does not count as running.
+    """
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # fail_stale_trials is marked experimental
+        optuna.storages.fail_stale_trials(study)
+    busy = study.get_trials(deepcopy=False, states=(*FINISHED, TrialState.RUNNING))
+    return len(busy) < n_trials
+
+
 def _describe(trial: FrozenTrial, space: list[Param]) -> str:
     params = " ".join(f"{p.key}={_short(p.decode(trial.params[p.key]))}" for p in space
                       if p.key in trial.params)
@@ -333,21 +373,10 @@ class StudyRun:
     resumed or shared study keeps one parent. Child runs are the trials' training runs."""
 
     def __init__(self, cfg: DictConfig, study: optuna.Study, storage: str) -> None:
-        from mlflow import MlflowClient
-        from mlflow.exceptions import MlflowException
 
         log = cfg.logger
-        with creation_lock(log.tracking_uri):  # the first client creates a new store's tables
-            self.client = MlflowClient(log.tracking_uri)
-            exp = self.client.get_experiment_by_name(log.experiment_name)
-            if exp is None:
-                try:
-                    exp_id = self.client.create_experiment(
-                        log.experiment_name, artifact_location=log.artifact_location)
-                except MlflowException:  # a worker on another machine created it just now
-                    exp_id = self.client.get_experiment_by_name(log.experiment_name).experiment_id
-            else:
-                exp_id = exp.experiment_id
+        self.client, exp_id = ensure_experiment(log.tracking_uri, log.experiment_name,
+                                                log.artifact_location)
         self.run_id = study.user_attrs.get(PARENT_ATTR)
         if self._status(self.run_id) is not None:
             self.client.update_run(self.run_id, status="RUNNING")
@@ -538,7 +567,11 @@ def tune(cfg: DictConfig) -> dict[str, Any]:
           + (f", running {remaining} more" if remaining > 0 else ""), flush=True)
     new: list[int] = []
 
+    claim = ClaimLock(storage, t.storage, t.study_name)
+
     def objective(trial: optuna.Trial) -> float:
+        claim.release()  # the trial is RUNNING in the storage: other workers count it now
+        trial.set_user_attr("worker", f"{socket.gethostname()}:{os.getpid()}")
         values = {p.key: p.suggest(trial) for p in space}
         trial_cfg = trial_config(cfg, values, trial.number, t.study_name, output)
         trial.set_user_attr("output_dir", trial_cfg.output_dir)
@@ -563,10 +596,17 @@ def tune(cfg: DictConfig) -> dict[str, Any]:
 
     status = "FINISHED"
     try:
-        if remaining > 0:
-            study.optimize(objective, n_trials=remaining, timeout=t.timeout, callbacks=[
-                # workers sharing the study stop once it holds n_trials finished trials
-                optuna.study.MaxTrialsCallback(t.n_trials, states=FINISHED), progress])
+        # one trial at a time, each claimed under the study's lock: workers sharing the
+        # study stop once it holds n_trials finished (or running) trials, and never overshoot
+        start = time.monotonic()
+        while t.timeout is None or time.monotonic() - start < t.timeout:
+            claim.acquire()
+            try:
+                if not needs_trial(study, t.n_trials):
+                    break
+                study.optimize(objective, n_trials=1, callbacks=[progress])
+            finally:
+                claim.release()
     except KeyboardInterrupt:
         status = "KILLED"
         raise

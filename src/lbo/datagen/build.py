@@ -228,7 +228,17 @@ def build(spec: Spec, progress: bool = True) -> tuple[Path, dict[str, pd.DataFra
     Returns the folder, the frames, and whether they came from the cache. Files are written
     atomically; a set is reused only when its Parquet file is complete.
     """
+    from filelock import FileLock
+
     folder = spec.folder
+    folder.parent.mkdir(parents=True, exist_ok=True)
+    # jobs of a parallel sweep share one data set: the first generates it, the others wait
+    with FileLock(folder.parent / f".{folder.name}.lock", timeout=-1):
+        return _build(spec, folder, progress)
+
+
+def _build(spec: Spec, folder: Path, progress: bool
+           ) -> tuple[Path, dict[str, pd.DataFrame], bool]:
     paths = {n: folder / f"{n}.parquet" for n in SETS}
     cached = all(p.is_file() for p in paths.values())
     sets: dict[str, pd.DataFrame] = {}
