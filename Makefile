@@ -6,8 +6,13 @@ PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 SCALE ?= paper
 TRAINER ?= cpu
+LAUNCHER ?= null
+JOBS ?= 2
+MLFLOW_PORT ?= 5000
+MLFLOW_BACKEND ?= sqlite:///$(CURDIR)/mlflow-server.db
+MLFLOW_ARTIFACTS ?= $(CURDIR)/mlflow-server-artifacts
 
-.PHONY: help install test test-fast data reproduce bench lint clean
+.PHONY: help install test test-fast data reproduce bench lint clean mlflow-server
 
 help:  ## list the targets
 	@grep -E '^[a-z-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  make %-10s %s\n", $$1, $$2}'
@@ -18,7 +23,7 @@ $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	# torch is pinned in its own step: an unpinned torch pulls gigabytes of CUDA packages
 	$(PY) -m pip install -q torch==2.13.0
-	$(PY) -m pip install -q -e ".[dev]"
+	$(PY) -m pip install -q -e ".[dev,launchers,cluster]"
 	touch $@
 
 test: install  ## run every test, the slow ones included
@@ -30,8 +35,13 @@ test-fast: install  ## run the tests without the slow marker
 data: install  ## generate the data sets: make data SCALE=smoke|quick|paper
 	$(PY) -m lbo.datagen data=$(SCALE)
 
-reproduce: install  ## the paper's study, resumable: make reproduce SCALE=paper|quick [TRAINER=gpu]
-	$(PY) -m lbo.reproduce scale=$(SCALE) "train_overrides=['trainer=$(TRAINER)']"
+reproduce: install  ## the paper's study, resumable: make reproduce SCALE=paper|quick [TRAINER=gpu] [LAUNCHER=joblib JOBS=4]
+	$(PY) -m lbo.reproduce scale=$(SCALE) "train_overrides=['trainer=$(TRAINER)']" \
+		launcher=$(LAUNCHER) jobs=$(JOBS)
+
+mlflow-server: install  ## a shared MLflow tracking server on 127.0.0.1:$(MLFLOW_PORT) [MLFLOW_BACKEND=postgresql://...]
+	$(VENV)/bin/mlflow server --host 127.0.0.1 --port $(MLFLOW_PORT) \
+		--backend-store-uri "$(MLFLOW_BACKEND)" --artifacts-destination "$(MLFLOW_ARTIFACTS)"
 
 bench: install  ## benchmarks: data generation, filters, training throughput, latency (medians)
 	$(PY) benchmarks/bench_datagen.py

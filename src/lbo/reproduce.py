@@ -26,8 +26,10 @@ from omegaconf import DictConfig
 
 from lbo.atomic import write_text
 from lbo.cli import entry
+from lbo.config import require
 from lbo.errors import LboError
 from lbo.evaluate import CLASSICAL
+from lbo.tracking import check_launcher, check_server
 
 STAGES = ("data", "tune", "train", "evaluate", "report")
 
@@ -67,6 +69,10 @@ def run(cfg: DictConfig) -> Path:
     scale = cfg.scale
     if scale not in cfg.trials:
         raise LboError(f"scale must be one of {sorted(cfg.trials)}, got {scale!r}")
+    require(isinstance(cfg.jobs, int) and not isinstance(cfg.jobs, bool) and cfg.jobs >= 1,
+            "jobs", "an integer >= 1", cfg.jobs)
+    check_launcher(cfg.launcher, "launcher")
+    check_server(cfg.tracking_uri, "tracking_uri")
     out = Path(cfg.report_dir)
     extra = list(cfg.overrides)
     stages = Stages(out)
@@ -105,25 +111,38 @@ def run(cfg: DictConfig) -> Path:
         jobs.append(("robust", ["experiment=robust", f"data={scale}",
                                 *cfg.robust_overrides[scale]]))
 
+    def job_overrides(key: str, overrides: list[str]) -> list[str]:
+        return [*overrides, "resume=true", f"output_dir={out / 'runs' / key}", *extra,
+                *cfg.train_overrides]
+
+    def report_line(done: int, run: dict, how: str) -> None:
+        print(f"    {done}/{len(jobs)} {run['name']}: {how}, NRMSE at alpha=1/3/6 "
+              + "/".join(f"{run.get(f'test_nrmse_alpha_{a}', np.nan):.2f}" for a in (1, 3, 6))
+              + f"  (stage {time.perf_counter() - t_train:.0f} s)", flush=True)
+
     def train_all() -> tuple[dict, str]:
         runs = {}
+        if cfg.launcher:
+            results = launch(cfg, [job_overrides(k, o) for k, o in jobs], out / "runs",
+                             [k for k, _ in jobs])
+            for done, ((key, _), res) in enumerate(zip(jobs, results, strict=True), 1):
+                runs[key] = res
+                report_line(done, res, "reused" if res.get("reused") else "trained")
         for done, (key, overrides) in enumerate(jobs, 1):
-            c = compose("train", [*overrides, "resume=true", f"output_dir={out / 'runs' / key}",
-                                  *extra, *cfg.train_overrides])
+            if key in runs:
+                continue
+            c = compose("train", job_overrides(key, overrides))
             start = time.perf_counter()
             runs[key] = train(c)
-            how = "reused" if runs[key].get("reused") else \
-                f"trained in {time.perf_counter() - start:.0f} s"
-            print(f"    {done}/{len(jobs)} {runs[key]['name']}: {how}, NRMSE at alpha=1/3/6 "
-                  + "/".join(f"{runs[key].get(f'test_nrmse_alpha_{a}', np.nan):.2f}"
-                             for a in (1, 3, 6))
-                  + f"  (stage {time.perf_counter() - t_train:.0f} s)", flush=True)
+            report_line(done, runs[key], "reused" if runs[key].get("reused") else
+                        f"trained in {time.perf_counter() - start:.0f} s")
         return runs, "reused" if all(r.get("reused") for r in runs.values()) else "done"
 
     t_train = time.perf_counter()
     runs = stages.run(3, "train", f"{len(cfg.models) * len(cfg.windows)} observers "
                       f"({', '.join(cfg.models)} x N={list(cfg.windows)}) with the tuned "
-                      "parameters" + (", and the robust observer" if cfg.robust else ""),
+                      "parameters" + (", and the robust observer" if cfg.robust else "")
+                      + (f", through hydra/launcher={cfg.launcher}" if cfg.launcher else ""),
                       train_all)
 
     def classical() -> tuple[pd.DataFrame, str]:
@@ -164,6 +183,46 @@ def run(cfg: DictConfig) -> Path:
     stages.run(5, "report", f"tables and figures in {out}", write_report)
     print(f"\nreport: {out / 'report.md'}  ({time.perf_counter() - t0:.0f} s in all)")
     return out
+
+
+def _train_job(cfg: DictConfig) -> dict[str, Any]:
+    """One training job of a launcher (a module-level function, so that it pickles)."""
+    from lbo.train import train
+
+    return train(cfg)
+
+
+def launch(cfg: DictConfig, job_overrides: list[list[str]], sweep_dir: Path,
+           names: list[str]) -> list[dict[str, Any]]:
+    """Train the jobs through the Hydra launcher ``cfg.launcher`` (joblib, submitit_local,
+    submitit_slurm, ...); return each job's metrics, in order.
+
+    The launcher gets what ``python -m lbo.train -m`` would give it: the training config with
+    its Hydra node, and one override list per job. The jobs may differ in more than a grid's
+    keys (the robust observer), which a command-line sweep cannot say.
+    """
+    from hydra._internal.callbacks import Callbacks
+    from hydra.core.global_hydra import GlobalHydra
+    from hydra.core.hydra_config import HydraConfig
+    from hydra.core.plugins import Plugins
+    from hydra.types import HydraContext
+
+    master = compose("train", [f"hydra/launcher={cfg.launcher}", f"hydra.sweep.dir={sweep_dir}",
+                               *([f"hydra.launcher.n_jobs={cfg.jobs}"]
+                                 if cfg.launcher == "joblib" else []),
+                               *cfg.launcher_overrides], return_hydra_config=True)
+    own = HydraConfig.instance().cfg
+    try:
+        launcher = Plugins.instance().instantiate_launcher(
+            hydra_context=HydraContext(config_loader=GlobalHydra.instance().config_loader(),
+                                       callbacks=Callbacks(master)),
+            task_function=_train_job, config=master)
+        returns = launcher.launch([[*o, f"hydra.sweep.subdir={n}"]
+                                   for o, n in zip(job_overrides, names, strict=True)],
+                                  initial_job_idx=0)
+    finally:
+        HydraConfig.instance().cfg = own  # the launcher set each job's in this process too
+    return [r.return_value for r in returns]  # raises the first failed job's error
 
 
 def _artifact(run: dict[str, Any], path: str, tracking_uri: str) -> Path:

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import subprocess
 import sys
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -28,6 +29,10 @@ from lbo.features import FEATURE_MODES
 from lbo.module import SCHEDULES
 from lbo.paths import REPO_ROOT
 from lbo.tracking import check_server, ensure_experiment
+
+# Lightning 2.6 on torch 2.13 warns once per fit about its own use of a torch API; a sweep or a
+# study would print it once per run
+warnings.filterwarnings("ignore", message=r"`isinstance\(treespec, LeafSpec\)` is deprecated")
 
 
 def git_commit() -> str:

@@ -1,0 +1,137 @@
+"""Real servers for the tests: PostgreSQL and an MLflow tracking server, each on 127.0.0.1, on a
+free port, in a temporary folder of its own, and stopped when the test ends, pass or fail."""
+
+from __future__ import annotations
+
+import contextlib
+import glob
+import os
+import pwd
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import pytest
+
+PG_USER = "lbo"
+PG_PASSWORD = "pg-test-pw-7f3a"  # a throwaway password, so the tests can look for leaks
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def pg_binary(name: str) -> str:
+    """A PostgreSQL server program (initdb, pg_ctl) from PATH or Debian's install folder."""
+    found = shutil.which(name) or next(iter(sorted(glob.glob(
+        f"/usr/lib/postgresql/*/bin/{name}"), reverse=True)), None)
+    if found is None:
+        pytest.fail(f"{name} not found: install the PostgreSQL server (.ci/run does)")
+    return found
+
+
+@dataclass
+class Postgres:
+    port: int
+    folder: Path
+
+    def url(self, password: str = PG_PASSWORD, database: str = "postgres") -> str:
+        return f"postgresql://{PG_USER}:{password}@127.0.0.1:{self.port}/{database}"
+
+
+@contextlib.contextmanager
+def postgres() -> Iterator[Postgres]:
+    """A PostgreSQL server with password authentication for user ``lbo``.
+
+    The server refuses to run as root: as root it runs as the ``postgres`` system user, in a
+    folder handed to that user.
+    """
+    user = None
+    if os.geteuid() == 0:
+        user = "postgres"
+        try:
+            pw = pwd.getpwnam(user)
+        except KeyError:
+            pytest.fail("running as root needs the 'postgres' system user (.ci/run creates it)")
+    folder = Path(tempfile.mkdtemp(prefix="lbo-pg-"))
+    data, port = folder / "data", free_port()
+    if user is not None:
+        os.chown(folder, pw.pw_uid, pw.pw_gid)
+
+    def run(*args: str, **kw) -> subprocess.CompletedProcess:
+        return subprocess.run(list(args), user=user, cwd=folder, capture_output=True,
+                              text=True, timeout=120, **kw)
+
+    pwfile = folder / "pw"
+    pwfile.write_text(PG_PASSWORD + "\n")
+    if user is not None:
+        os.chown(pwfile, pw.pw_uid, pw.pw_gid)
+    started = False
+    try:
+        out = run(pg_binary("initdb"), "-D", str(data), "-U", PG_USER, f"--pwfile={pwfile}",
+                  "--auth=scram-sha-256", "-E", "UTF8", "--no-locale")
+        assert out.returncode == 0, out.stderr
+        opts = f"-p {port} -c listen_addresses=127.0.0.1 -k {folder} -c max_connections=50"
+        out = run(pg_binary("pg_ctl"), "-D", str(data), "-o", opts, "-l",
+                  str(folder / "server.log"), "-w", "-t", "60", "start")
+        started = True
+        assert out.returncode == 0, out.stderr + (folder / "server.log").read_text()
+        yield Postgres(port, folder)
+    finally:
+        if started:
+            run(pg_binary("pg_ctl"), "-D", str(data), "-m", "immediate", "-w", "stop")
+        shutil.rmtree(folder, ignore_errors=True)
+
+
+@dataclass
+class MlflowServer:
+    url: str
+    folder: Path
+
+
+@contextlib.contextmanager
+def mlflow_server(backend: str | None = None) -> Iterator[MlflowServer]:
+    """``mlflow server`` with a SQLite backend store (or ``backend``) and an artifact root of
+    its own, serving the artifacts itself (clients upload and download through it)."""
+    import requests
+
+    folder = Path(tempfile.mkdtemp(prefix="lbo-mlflow-"))
+    port = free_port()
+    backend = backend or f"sqlite:///{folder / 'mlflow.db'}"
+    log = open(folder / "server.log", "w")
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "mlflow", "server", "--host", "127.0.0.1", "--port", str(port),
+         "--backend-store-uri", backend, "--artifacts-destination", str(folder / "artifacts"),
+         "--workers", "1"],
+        stdout=log, stderr=subprocess.STDOUT, start_new_session=True, cwd=folder)
+    url = f"http://127.0.0.1:{port}"
+    try:
+        deadline = time.monotonic() + 120
+        while True:
+            with contextlib.suppress(requests.RequestException):
+                if requests.get(f"{url}/health", timeout=2).status_code == 200:
+                    break
+            if proc.poll() is not None or time.monotonic() > deadline:
+                pytest.fail("mlflow server did not start:\n"
+                            + (folder / "server.log").read_text()[-3000:])
+            time.sleep(0.5)
+        yield MlflowServer(url, folder)
+    finally:
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(proc.pid, signal.SIGTERM)
+        try:
+            proc.wait(timeout=20)
+        except subprocess.TimeoutExpired:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+        log.close()
+        shutil.rmtree(folder, ignore_errors=True)

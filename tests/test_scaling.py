@@ -1,0 +1,261 @@
+"""Scaling out, against the real engines: Hydra's joblib launcher, an MLflow tracking server and
+Optuna on PostgreSQL. Every server is started by the test itself (tests/servers.py)."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import mlflow
+import numpy as np
+import optuna
+import pandas as pd
+import pytest
+
+from conftest import train_cfg
+from lbo.errors import LboError
+from lbo.tracking import check_launcher, launcher_from_argv
+from servers import PG_PASSWORD, free_port, mlflow_server, postgres
+
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
+optuna.logging.set_verbosity(optuna.logging.WARNING)
+SWEEP = ["model=cnn,lstm", "window=20,40"]
+
+
+def cli(module: str, *args: str, env: dict | None = None, timeout: int = 600):
+    return subprocess.run([sys.executable, "-m", module, *args], capture_output=True, text=True,
+                          env={**os.environ, **(env or {})}, timeout=timeout)
+
+
+def finished_runs(uri: str) -> pd.DataFrame:
+    client = mlflow.MlflowClient(uri)
+    exp = client.get_experiment_by_name("lbo")
+    found = client.search_runs([exp.experiment_id]) if exp else []
+    return pd.DataFrame([{"name": r.info.run_name, "status": r.info.status,
+                          "output": r.data.params.get("output_dir"),
+                          **{k: v for k, v in r.data.metrics.items()
+                             if k.startswith("test_nrmse")}} for r in found])
+
+
+# --- launchers ----------------------------------------------------------------------------------
+
+
+def test_the_launcher_named_on_the_command_line_is_found():
+    assert launcher_from_argv(["-m", "model=cnn", "hydra/launcher=joblib"]) == "joblib"
+    assert launcher_from_argv(["model=cnn"]) is None
+    check_launcher("joblib")  # installed by make install (lbo[launchers])
+    check_launcher("basic")   # Hydra's own
+
+
+def test_a_missing_launcher_plugin_is_one_line_with_its_install_command(tmp_path):
+    res = cli("lbo.train", "-m", "hydra/launcher=ray", "experiment=smoke",
+              f"hydra.sweep.dir={tmp_path / 'sweep'}",
+              env={"MLFLOW_TRACKING_URI": f"sqlite:///{tmp_path / 'mlflow.db'}"})
+    assert res.returncode == 2
+    assert res.stderr.strip() == (
+        "error: hydra/launcher=ray: the Hydra plugin hydra-ray-launcher is not installed "
+        "(pip install hydra-ray-launcher, or make install, which installs lbo[launchers])")
+    assert not (tmp_path / "sweep").exists() and not (tmp_path / "mlflow.db").exists()
+
+
+def test_an_unreachable_tracking_server_is_one_line_and_starts_nothing(tmp_path):
+    dead = f"http://127.0.0.1:{free_port()}"
+    res = cli("lbo.train", "experiment=smoke", f"output_dir={tmp_path / 'out'}",
+              env={"MLFLOW_TRACKING_URI": dead})
+    assert res.returncode == 2, res.stderr[-2000:]
+    assert res.stderr.strip() == (
+        f"error: logger.tracking_uri: no MLflow tracking server answers at {dead} "
+        "(ConnectionError); start one (make mlflow-server) or unset MLFLOW_TRACKING_URI")
+    assert not (tmp_path / "out").exists()
+
+
+def test_check_launcher_names_the_package_when_its_module_is_missing(monkeypatch):
+    from lbo import tracking
+
+    monkeypatch.setitem(tracking.LAUNCHERS, "joblib", ("hydra_plugins.not_here",
+                                                       "hydra-joblib-launcher"))
+    with pytest.raises(LboError, match=r"^hydra/launcher=joblib: the Hydra plugin "
+                                       r"hydra-joblib-launcher is not installed \(pip install"):
+        check_launcher("joblib")
+
+
+@pytest.mark.slow
+def test_joblib_sweep_matches_the_serial_sweep(tmp_path, smoke_data):
+    """Four smoke jobs two at a time, each job's MLflow writes racing the others' on one SQLite
+    file: four finished runs in four folders, with the serial sweep's numbers."""
+    results = {}
+    for how, extra in (("serial", []), ("joblib", ["hydra/launcher=joblib",
+                                                   "hydra.launcher.n_jobs=2"])):
+        uri = f"sqlite:///{tmp_path / how / 'mlflow.db'}"
+        start = time.perf_counter()
+        res = cli("lbo.train", "-m", *SWEEP, "experiment=smoke", f"data.root={smoke_data.parent}",
+                  "trainer.max_epochs=2", f"hydra.sweep.dir={tmp_path / how / 'sweep'}", *extra,
+                  env={"MLFLOW_TRACKING_URI": uri})
+        assert res.returncode == 0, res.stderr[-3000:]
+        assert "database is locked" not in res.stderr
+        print(f"{how}: {time.perf_counter() - start:.1f} s")
+        table = finished_runs(uri)
+        assert len(table) == 4 and set(table["status"]) == {"FINISHED"}
+        assert table["output"].nunique() == 4  # one folder, and one checkpoint, per job
+        assert all(str(o).startswith(str(tmp_path / how / "sweep")) for o in table["output"])
+        assert len(list((tmp_path / how / "sweep").glob("*/checkpoints/best*.ckpt"))) == 4
+        results[how] = table.set_index("name").drop(columns=["status", "output"]).sort_index()
+    assert sorted(results["serial"].index) == ["cnn-N20", "cnn-N40", "lstm-N20", "lstm-N40"]
+    pd.testing.assert_frame_equal(results["joblib"], results["serial"], rtol=1e-6)
+
+
+# --- an MLflow tracking server ------------------------------------------------------------------
+
+
+@pytest.mark.slow
+def test_training_and_observe_through_a_tracking_server(tmp_path, smoke_data, monkeypatch,
+                                                        manoeuvre_csv):
+    from lbo.observer import Observer
+    from lbo.train import train
+
+    with mlflow_server() as server:
+        monkeypatch.setenv("MLFLOW_TRACKING_URI", server.url)
+        out = train(train_cfg(tmp_path, smoke_data, "trainer.max_epochs=1",
+                              "trainer.limit_train_batches=5"))
+        client = mlflow.MlflowClient(server.url)
+        run = client.get_run(out["run_id"])
+        assert run.info.status == "FINISHED"
+        assert {"val_loss", "test_nrmse_alpha_1"} <= set(run.data.metrics)
+        assert run.info.artifact_uri.startswith("mlflow-artifacts:")  # stored by the server
+        files = [a.path for a in client.list_artifacts(out["run_id"], "checkpoints")]
+        assert files == ["checkpoints/best.ckpt"]
+        assert list((server.folder / "artifacts").rglob("best.ckpt"))
+
+        est = tmp_path / "est.csv"
+        res = cli("lbo.observe", f"observer={out['run_id']}", f"input={manoeuvre_csv}",
+                  f"output={est}", env={"MLFLOW_TRACKING_URI": server.url})
+        assert res.returncode == 0, res.stderr[-3000:]
+        assert f"observed: {est}" in res.stdout
+        log = pd.read_csv(manoeuvre_csv).head(60)
+        m, u = log[["x_m", "y_m", "psi_m"]].to_numpy(), log[["V", "delta"]].to_numpy()
+        remote = Observer.load(out["run_id"]).run(m, u)  # the checkpoint, through the server
+        local = Observer.load(out["checkpoint"]).run(m, u)
+        np.testing.assert_array_equal(remote[0], local[0])
+
+
+@pytest.fixture
+def manoeuvre_csv(tmp_path, smoke_data):
+    test = pd.read_parquet(smoke_data / "test.parquet")
+    one = test[(test["traj"] == 0) & (test["alpha"] == 1.0)].sort_values("k")
+    path = tmp_path / "log.csv"
+    one[["t", "x_m", "y_m", "psi_m", "V", "delta"]].to_csv(path, index=False)
+    return path
+
+
+# --- Optuna on PostgreSQL ---------------------------------------------------------------------
+
+
+def tune_args(tmp_path, smoke_data, storage, *extra):
+    return ["hparams_search=cnn", "experiment=smoke", f"data.root={smoke_data.parent}",
+            "trainer.limit_train_batches=5", "tune.n_trials=4", f"tune.storage={storage}",
+            f"tune.handoff={tmp_path / 'tuned' / 'cnn.yaml'}", "tune.study_name=pg",
+            "tune.heartbeat_interval=1", "tune.grace_period=3",
+            f"output_dir={tmp_path / 'trials'}", *extra]
+
+
+@pytest.mark.slow
+def test_workers_on_postgres_finish_exactly_n_trials_after_a_kill(tmp_path, smoke_data):
+    uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
+    env = {"MLFLOW_TRACKING_URI": uri}
+    with postgres() as pg:
+        storage = pg.url()
+        args = [sys.executable, "-m", "lbo.tune", *tune_args(tmp_path, smoke_data, storage)]
+        workers = {w: subprocess.Popen([*args, f"hydra.run.dir={tmp_path / w}"], text=True,
+                                       stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                                       env={**os.environ, **env}) for w in "ab"}
+        # kill worker a with SIGKILL while one of its trials runs
+        victim, deadline, killed = workers["a"], time.monotonic() + 240, None
+        while killed is None and time.monotonic() < deadline and victim.poll() is None:
+            time.sleep(0.2)
+            try:
+                study = optuna.load_study(study_name="pg", storage=storage)
+            except KeyError:  # not created yet
+                continue
+            for t in study.get_trials(states=(optuna.trial.TrialState.RUNNING,)):
+                if t.user_attrs.get("worker", "").endswith(f":{victim.pid}"):
+                    victim.send_signal(signal.SIGKILL)
+                    killed = t.number
+        assert killed is not None, "worker a finished before it could be killed mid-trial"
+        victim.communicate(timeout=60)
+        out_b, err_b = workers["b"].communicate(timeout=600)
+        assert workers["b"].returncode == 0, err_b[-3000:]
+        # worker a again: it finds what is missing, if anything, and stops at n_trials
+        again = cli("lbo.tune", *tune_args(tmp_path, smoke_data, storage,
+                                           f"hydra.run.dir={tmp_path / 'a2'}"), env=env)
+        assert again.returncode == 0, again.stderr[-3000:]
+        for text in (out_b, err_b, again.stdout, again.stderr):
+            assert PG_PASSWORD not in text
+
+        study = optuna.load_study(study_name="pg", storage=storage)
+        states = {t.number: t.state for t in study.trials}
+        finished = [t for t in study.trials if t.state in (optuna.trial.TrialState.COMPLETE,
+                                                           optuna.trial.TrialState.PRUNED)]
+        assert len(finished) == 4
+        assert states[killed] == optuna.trial.TrialState.FAIL
+        assert len({tuple(sorted(t.params.items())) for t in finished}) == 4
+        client = mlflow.MlflowClient(uri)
+        exp = client.get_experiment_by_name("lbo")
+        live = client.search_runs([exp.experiment_id], "attributes.status = 'RUNNING'")
+        assert live == []  # the killed trial's run was closed FAILED, the study's FINISHED
+        tags = [r.data.tags.get("optuna_storage", "") for r in client.search_runs(
+            [exp.experiment_id], "tags.optuna_role = 'study'")]
+        assert tags and all("***" in t and PG_PASSWORD not in t for t in tags)
+
+
+@pytest.mark.slow
+def test_a_wrong_postgres_password_is_one_line_and_leaves_no_run(tmp_path, smoke_data):
+    uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
+    with postgres() as pg:
+        res = cli("lbo.tune", *tune_args(tmp_path, smoke_data, pg.url("not-the-password"),
+                                         f"hydra.run.dir={tmp_path / 'run'}"),
+                  env={"MLFLOW_TRACKING_URI": uri})
+    assert res.returncode == 2
+    lines = res.stderr.strip().splitlines()
+    assert len(lines) == 1 and "not-the-password" not in res.stderr
+    assert lines[0].startswith(f"error: tune.storage: cannot open postgresql://lbo:***@"
+                               f"127.0.0.1:{pg.port}/postgres (OperationalError: ")
+    assert "password authentication failed" in lines[0]
+    client = mlflow.MlflowClient(uri)
+    exp = client.get_experiment_by_name("lbo")
+    assert exp is None or client.search_runs([exp.experiment_id]) == []
+
+
+
+@pytest.mark.slow
+def test_reproduce_trains_through_the_launcher_and_resumes_without_duplicates(
+        tmp_path, smoke_data, monkeypatch):
+    """make reproduce LAUNCHER=joblib: the train stage hands its jobs (which differ in more
+    than a grid: +tuned, the robust observer) to Hydra's joblib launcher; a second pass reuses
+    every finished run and adds none."""
+    from hydra import compose, initialize_config_dir
+
+    from lbo.paths import CONF_DIR
+    from lbo.reproduce import launch
+
+    uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", uri)
+    base = [f"data.root={smoke_data.parent}", "trainer.max_epochs=1",
+            "trainer.limit_train_batches=5", "resume=true"]
+    jobs = {"cnn-N20": ["experiment=smoke", *base, "model=cnn", "window=20",
+                        f"output_dir={tmp_path / 'cnn'}"],
+            "robust": ["experiment=robust", *base, "data=smoke", "batch_size=64",
+                       f"output_dir={tmp_path / 'robust'}"]}
+    with initialize_config_dir(str(CONF_DIR), version_base="1.3"):
+        cfg = compose("reproduce", ["launcher=joblib", "jobs=2"])
+        first = launch(cfg, list(jobs.values()), tmp_path / "runs", list(jobs))
+        second = launch(cfg, list(jobs.values()), tmp_path / "runs", list(jobs))
+    assert [r["name"] for r in first] == ["cnn-N20", "filternet-N100"]
+    assert [r["reused"] for r in first] == [False, False]
+    assert [r["reused"] for r in second] == [True, True]
+    assert [r["run_id"] for r in second] == [r["run_id"] for r in first]
+    assert (tmp_path / "runs" / "robust" / ".hydra" / "overrides.yaml").is_file()
+    table = finished_runs(uri)
+    assert len(table) == 2 and set(table["status"]) == {"FINISHED"}
