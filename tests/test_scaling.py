@@ -111,7 +111,7 @@ def test_joblib_sweep_matches_the_serial_sweep(tmp_path, smoke_data):
 
 
 @pytest.mark.slow
-def test_training_and_observe_through_a_tracking_server(tmp_path, smoke_data, monkeypatch,
+def test_train_observe_export_and_tune_through_a_tracking_server(tmp_path, smoke_data, monkeypatch,
                                                         manoeuvre_csv):
     from lbo.observer import Observer
     from lbo.train import train
@@ -139,6 +139,23 @@ def test_training_and_observe_through_a_tracking_server(tmp_path, smoke_data, mo
         remote = Observer.load(out["run_id"]).run(m, u)  # the checkpoint, through the server
         local = Observer.load(out["checkpoint"]).run(m, u)
         np.testing.assert_array_equal(remote[0], local[0])
+
+        res = cli("lbo.export", f"observer={out['run_id']}", "register=lbo-served",
+                  f"out_dir={tmp_path / 'exports'}", env={"MLFLOW_TRACKING_URI": server.url})
+        assert res.returncode == 0, res.stderr[-3000:]
+        assert client.get_model_version("lbo-served", "1").run_id == out["run_id"]
+        assert list((tmp_path / "exports").glob("*.onnx"))
+        registered = Observer.load("models:/lbo-served/1").run(m, u)
+        np.testing.assert_array_equal(registered[0], local[0])
+
+        res = cli("lbo.tune", *tune_args(tmp_path, smoke_data,
+                                         f"sqlite:///{tmp_path / 'optuna.db'}",
+                                         "tune.n_trials=1", f"hydra.run.dir={tmp_path / 't'}"),
+                  env={"MLFLOW_TRACKING_URI": server.url})
+        assert res.returncode == 0, res.stderr[-3000:]
+        study = client.search_runs([run.info.experiment_id], "tags.optuna_role = 'study'")
+        assert len(study) == 1 and study[0].info.status == "FINISHED"
+        assert client.list_artifacts(study[0].info.run_id, "tuned")
 
 
 @pytest.fixture
