@@ -186,3 +186,16 @@ def test_alpha0_is_exact_and_finite():
                 filters.ukf_batch(m, u, VEHICLE, NOISE.Q, R)):
         assert np.all(np.isfinite(est))
         assert np.all(pooled(est[:2], z[:2]) < 0.1 * np.array(REF))
+
+
+def test_batched_ukf_gives_filterpy_numbers_on_the_smoke_grid(smoke_data):
+    """The vectorised UKF against filterpy's loop on every trajectory and alpha level of the
+    smoke test grid (R at alpha=1, and R at each level's own alpha)."""
+    from lbo.evaluate import _per_level_R, load_test
+
+    arr = load_test(smoke_data / "test.parquet")
+    for R in (NOISE.R(1.0), _per_level_R(NOISE, arr["alpha"])):
+        ref = filters.ukf_filterpy_batch(arr["m"], arr["u"], VEHICLE, NOISE.Q, R)
+        new = filters.ukf_batch(arr["m"], arr["u"], VEHICLE, NOISE.Q, R)
+        assert np.isfinite(new[arr["mask"]]).all()
+        assert np.abs(new - ref)[arr["mask"]].max() <= 1e-9

@@ -43,8 +43,8 @@ def classical(name: str, arr: dict[str, np.ndarray], vehicle: Vehicle, noise: No
 
     ``ekf`` keeps R at alpha=1 on every level (the paper's baseline); ``oracle`` is told each
     level's alpha; ``adaptive`` learns R from its innovations, starting from alpha=1; ``ukf``
-    is filterpy's UKF with the paper's R. For ``pcrb`` the result is the bound's standard
-    deviation per step, not an estimate.
+    is filterpy's UKF, vectorised (:func:`~lbo.filters.ukf_batch`), with the paper's R. For
+    ``pcrb`` the result is the bound's standard deviation per step, not an estimate.
     """
     m, u, Q, R1 = arr["m"], arr["u"], noise.Q, noise.R(1.0)
     if name == "ekf":

@@ -13,7 +13,8 @@ branch of the measurements (continuous, not wrapped); metrics wrap the error.
 - :func:`ekf_batch`: the same EKF vectorised over trajectories; ``R`` per trajectory gives the
   paper's EKF (alpha=1 R everywhere) and the oracle (R at the true alpha) in one call.
 - :func:`adaptive_ekf_batch`: Sage-Husa EKF that learns a diagonal R from its innovations.
-- :func:`ukf` / :func:`ukf_batch`: filterpy's unscented filter on the same model.
+- :func:`ukf` / :func:`ukf_filterpy_batch`: filterpy's unscented filter on the same model;
+  :func:`ukf_batch`: the same filter vectorised over trajectories.
 - :func:`pcrb`: posterior Cramer-Rao bound (Tichavsky et al. 1998) on the error variances.
 """
 
@@ -381,9 +382,67 @@ def ukf(m: np.ndarray, u: np.ndarray, vehicle: Vehicle, Q: np.ndarray, R: np.nda
     return est
 
 
+def ukf_filterpy_batch(m: np.ndarray, u: np.ndarray, vehicle: Vehicle, Q: np.ndarray,
+                       R: np.ndarray, spread: float = 0.1, progress: bool = False) -> np.ndarray:
+    """:func:`ukf` over G trajectories, one after the other: filterpy's loop, the reference
+    that :func:`ukf_batch` is tested and benchmarked against.
+
+    Shapes as :func:`ukf_batch`; ``progress`` shows a tqdm bar.
+    """
+    m, u = _check_trajectories(m, u)
+    R = _batch_cov(R, m.shape[0], "R")
+    est = np.empty_like(m)
+    for i in tqdm(range(m.shape[0]), desc="UKF (filterpy)", unit="traj", disable=not progress,
+                  mininterval=2.0):
+        est[i] = ukf(m[i], u[i], vehicle, Q, R[i], spread=spread)
+    return est
+
+
+def merwe_weights(n: int, spread: float, beta: float = 2.0,
+                  kappa: float = 0.0) -> tuple[np.ndarray, np.ndarray, float]:
+    """Merwe's scaled sigma-point weights, as filterpy: ``(Wm, Wc, lambda)``, each (2n+1,)."""
+    lam = spread**2 * (n + kappa) - n
+    wm = np.full(2 * n + 1, 0.5 / (n + lam))
+    wc = wm.copy()
+    wm[0] = lam / (n + lam)
+    wc[0] = lam / (n + lam) + (1.0 - spread**2 + beta)
+    return wm, wc, lam
+
+
+def _sigma_points(x: np.ndarray, P: np.ndarray, lam: float) -> np.ndarray:
+    """(G, 3), (G, 3, 3) -> (G, 7, 3): x, then x + and - the rows of the upper Cholesky factor
+    of (n + lambda) P, headings wrapped (filterpy's order, with :func:`_residual` as its
+    ``subtract``)."""
+    n = x.shape[-1]
+    rows = np.linalg.cholesky((n + lam) * P).swapaxes(-1, -2)  # upper factor U: rows U[k]
+    sig = np.concatenate([x[:, None], x[:, None] + rows, x[:, None] - rows], axis=1)
+    sig[:, 1:, 2] = wrap_angle(sig[:, 1:, 2])
+    return sig
+
+
+def _batch_mean(sig: np.ndarray, wm: np.ndarray) -> np.ndarray:
+    """:func:`_circular_mean` over G sets of sigma points (G, S, 3) -> (G, 3)."""
+    mean = np.einsum("s,gsi->gi", wm, sig)
+    d = wrap_angle(sig[:, :, 2] - sig[:, :1, 2])
+    mean[:, 2] = sig[:, 0, 2] + np.arctan2(np.sin(d) @ wm, np.cos(d) @ wm)
+    return mean
+
+
+def _deviations(sig: np.ndarray, mean: np.ndarray) -> np.ndarray:
+    """Sigma points minus their mean (G, S, 3), heading wrapped."""
+    d = sig - mean[:, None]
+    d[..., 2] = wrap_angle(d[..., 2])
+    return d
+
+
 def ukf_batch(m: np.ndarray, u: np.ndarray, vehicle: Vehicle, Q: np.ndarray, R: np.ndarray,
               spread: float = 0.1, progress: bool = False) -> np.ndarray:
-    """:func:`ukf` over G trajectories, one after the other (filterpy has no batch mode).
+    """:func:`ukf` vectorised over G trajectories (a loop over time only).
+
+    The same sigma points (Merwe, beta=2, kappa=0, upper Cholesky factor, wrapped headings),
+    weights, circular means, redrawn prior sigma points and covariance update as filterpy's
+    :class:`~filterpy.kalman.UnscentedKalmanFilter`, so it gives the numbers of
+    :func:`ukf_filterpy_batch` to rounding.
 
     Parameters
     ----------
@@ -393,18 +452,40 @@ def ukf_batch(m: np.ndarray, u: np.ndarray, vehicle: Vehicle, Q: np.ndarray, R: 
     Q : (3, 3) process covariance.
     R : (3, 3) shared or (G, 3, 3) per trajectory.
     spread : Merwe's alpha.
-    progress : show a tqdm progress bar.
+    progress : show a tqdm bar over the time steps.
 
     Returns
     -------
     (G, T, 3) filtered estimates.
     """
     m, u = _check_trajectories(m, u)
-    R = _batch_cov(R, m.shape[0], "R")
+    g, t = m.shape[:2]
+    Q = _check_q(Q)
+    R = _floor_diag(_batch_cov(R, g, "R"))
+    wm, wc, lam = merwe_weights(3, spread)
+    x, P = m[:, 0].copy(), R.copy()
     est = np.empty_like(m)
-    for i in tqdm(range(m.shape[0]), desc="UKF", unit="traj", disable=not progress,
-                  mininterval=2.0):
-        est[i] = ukf(m[i], u[i], vehicle, Q, R[i], spread=spread)
+    est[:, 0] = x
+    for k in tqdm(range(1, t), desc="UKF", unit="step", disable=not progress, mininterval=2.0):
+        # predict: sigma points through the bicycle step, unscented transform plus Q
+        sig = _sigma_points(x, P, lam)
+        sig = step(sig, np.broadcast_to(u[:, None, k - 1], sig.shape[:2] + (2,)), vehicle.dt,
+                   vehicle.wheelbase)
+        x = _batch_mean(sig, wm)
+        d = _deviations(sig, x)
+        P = np.einsum("s,gsi,gsj->gij", wc, d, d) + Q
+        # update (h = identity) on sigma points redrawn from the prior, as filterpy does
+        sig = _sigma_points(x, P, lam)
+        zp = _batch_mean(sig, wm)
+        dz = _deviations(sig, zp)
+        S = np.einsum("s,gsi,gsj->gij", wc, dz, dz) + R
+        Pxz = np.einsum("s,gsi,gsj->gij", wc, _deviations(sig, x), dz)
+        K = Pxz @ np.linalg.inv(S)
+        y = m[:, k] - zp
+        y[:, 2] = wrap_angle(y[:, 2])
+        x = x + np.einsum("gij,gj->gi", K, y)
+        P = P - K @ S @ K.swapaxes(-1, -2)
+        est[:, k] = x
     return est
 
 
