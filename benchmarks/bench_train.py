@@ -1,13 +1,14 @@
 """Training throughput: a bare PyTorch loop against Lightning, same network, same data.
 
     python benchmarks/bench_train.py [--repeats 5] [--models cnn lstm] [--windows 20 80]
-                                     [--threads T]
+                                     [--threads T] [--set optimizer.fused=false ...]
 
 For each model (its default config from conf/model/) and window N, on the quick data set,
 batch size 256, on the CPU:
 
-- bare: ``ObserverNet`` + ``WindowDataModule.train_dataloader()`` + Adam(lr=1e-3);
-  loss = net.loss(*batch); zero_grad; backward; step.
+- bare: ``ObserverNet`` + ``WindowDataModule.train_dataloader()`` + the training config's
+  optimizer (``conf/train.yaml``: Adam, lr 1e-3, fused); loss = net.loss(*batch); zero_grad;
+  backward; step.
 - lightning: ``ObserverModule`` with the same model, fitted by a minimal ``lightning.Trainer``
   (no logger, checkpoint, progress bar, model summary or validation) on the same datamodule.
 
@@ -44,6 +45,7 @@ from dataclasses import dataclass
 import lightning as L
 import torch
 from hydra import compose, initialize_config_dir
+from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
 import lbo.paths
@@ -83,9 +85,10 @@ class Run:
         return sum(p > STALL * med for p in self.periods)
 
 
-def compose_cfg(model: str, window: int) -> DictConfig:
+def compose_cfg(model: str, window: int, overrides: list[str] | None = None) -> DictConfig:
     with initialize_config_dir(str(lbo.paths.CONF_DIR), version_base="1.3"):
-        return compose("train", [f"model={model}", f"window={window}", "data=quick"])
+        return compose("train", [f"model={model}", f"window={window}", "data=quick",
+                                 *(overrides or [])])
 
 
 def _periods(stamps: list[float]) -> list[float]:
@@ -100,7 +103,7 @@ def bare(cfg: DictConfig, dm: WindowDataModule, norm: dict, warmup: int, measure
     net = ObserverNet(model["name"], cfg.window, cfg.features, **kwargs)
     net.set_normalisation(**norm)
     net.train()
-    opt = torch.optim.Adam(net.parameters(), lr=1e-3)
+    opt = instantiate(cfg.optimizer)(params=net.parameters())
     stamps: list[float] = []
     losses: list[float] = []
     for step, batch in enumerate(dm.train_dataloader()):
@@ -139,7 +142,7 @@ def lightning(cfg: DictConfig, dm: WindowDataModule, norm: dict, warmup: int,
     """``Trainer.fit`` for ``warmup + measured`` steps."""
     torch.manual_seed(SEED)
     module = ObserverModule(OmegaConf.to_container(cfg.model, resolve=True), cfg.window,
-                            cfg.features)
+                            cfg.features, instantiate(cfg.optimizer))
     module.observer.set_normalisation(**norm)
     clock = StepClock(warmup)
     trainer = L.Trainer(accelerator="cpu", devices=1, max_steps=warmup + measured,
@@ -159,6 +162,8 @@ def main() -> None:
     ap.add_argument("--windows", nargs="+", type=int, default=[20, 80])
     ap.add_argument("--threads", type=int, default=None,
                     help="torch.set_num_threads(T) first (default: torch's own choice)")
+    ap.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE",
+                    help="training config overrides, e.g. optimizer.fused=false")
     args = ap.parse_args()
     if args.threads:
         torch.set_num_threads(args.threads)
@@ -184,7 +189,7 @@ def main() -> None:
     rows = []
     for m in args.models:
         for n in args.windows:
-            cfg = compose_cfg(m, n)
+            cfg = compose_cfg(m, n, args.set)
             folder, _, _ = build(spec_from_cfg(cfg), progress=False)
             dm = WindowDataModule(folder, n, BATCH, seed=SEED)
             dm.setup("fit")

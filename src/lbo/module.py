@@ -68,7 +68,7 @@ class ObserverModule(L.LightningModule):
 
     def configure_optimizers(self) -> Any:
         if self.optimizer_factory is None:
-            opt = torch.optim.Adam(self.parameters(), lr=1e-3)
+            opt = torch.optim.Adam(self.parameters(), lr=1e-3, fused=True)
         else:
             opt = self.optimizer_factory(params=self.parameters())
         if self.lr_schedule == "constant":
