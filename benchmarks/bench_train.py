@@ -91,6 +91,12 @@ def compose_cfg(model: str, window: int, overrides: list[str] | None = None) -> 
                                  *(overrides or [])])
 
 
+def _sync(device: torch.device) -> None:
+    """Wait for the GPU's queued work, so that a clock reading ends a whole step."""
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
 def _periods(stamps: list[float]) -> list[float]:
     return [b - a for a, b in zip(stamps, stamps[1:])]
 
@@ -100,7 +106,7 @@ def bare(cfg: DictConfig, dm: WindowDataModule, norm: dict, warmup: int, measure
     torch.manual_seed(SEED)
     model = OmegaConf.to_container(cfg.model, resolve=True)
     kwargs = {k: v for k, v in model.items() if k != "name"}
-    net = ObserverNet(model["name"], cfg.window, cfg.features, **kwargs)
+    net = ObserverNet(model["name"], cfg.window, cfg.features, **kwargs).to(dm.device)
     net.set_normalisation(**norm)
     net.train()
     opt = instantiate(cfg.optimizer)(params=net.parameters())
@@ -112,6 +118,7 @@ def bare(cfg: DictConfig, dm: WindowDataModule, norm: dict, warmup: int, measure
         loss.backward()
         opt.step()
         if step >= warmup - 1:
+            _sync(dm.device)
             stamps.append(time.perf_counter())
             losses.append(loss.item())
         if step == warmup + measured - 1 or (stamps and stamps[-1] - stamps[0] > CAP_S):
@@ -130,6 +137,7 @@ class StepClock(L.Callback):
 
     def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx) -> None:
         if batch_idx >= self.warmup - 1:
+            _sync(pl_module.device)
             self.stamps.append(time.perf_counter())
             self.losses.append(float(outputs["loss"]))
             self.threads = torch.get_num_threads()
@@ -145,7 +153,8 @@ def lightning(cfg: DictConfig, dm: WindowDataModule, norm: dict, warmup: int,
                             cfg.features, instantiate(cfg.optimizer))
     module.observer.set_normalisation(**norm)
     clock = StepClock(warmup)
-    trainer = L.Trainer(accelerator="cpu", devices=1, max_steps=warmup + measured,
+    trainer = L.Trainer(accelerator="gpu" if dm.device.type == "cuda" else "cpu", devices=1,
+                        max_steps=warmup + measured,
                         logger=False, enable_checkpointing=False, enable_progress_bar=False,
                         enable_model_summary=False, num_sanity_val_steps=0,
                         limit_val_batches=0, callbacks=[clock])
@@ -162,6 +171,7 @@ def main() -> None:
     ap.add_argument("--windows", nargs="+", type=int, default=[20, 80])
     ap.add_argument("--threads", type=int, default=None,
                     help="torch.set_num_threads(T) first (default: torch's own choice)")
+    ap.add_argument("--device", default="cpu", help="cpu or cuda (batches made there)")
     ap.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE",
                     help="training config overrides, e.g. optimizer.fused=false")
     args = ap.parse_args()
@@ -175,7 +185,7 @@ def main() -> None:
     warnings.filterwarnings("ignore", message=".*LeafSpec.*")
 
     t0 = time.perf_counter()
-    print(f"torch {torch.__version__}, lightning {L.__version__}, device cpu, "
+    print(f"torch {torch.__version__}, lightning {L.__version__}, device {args.device}, "
           f"torch.get_num_threads() = {torch.get_num_threads()}, os.cpu_count() = "
           f"{os.cpu_count()}, batch size {BATCH}, load average {os.getloadavg()[0]:.2f}")
     print("timing: clock at the end of every step (Lightning: a Callback's on_train_batch_end, "
@@ -191,7 +201,7 @@ def main() -> None:
         for n in args.windows:
             cfg = compose_cfg(m, n, args.set)
             folder, _, _ = build(spec_from_cfg(cfg), progress=False)
-            dm = WindowDataModule(folder, n, BATCH, seed=SEED)
+            dm = WindowDataModule(folder, n, BATCH, seed=SEED, device=args.device)
             dm.setup("fit")
             norm = dm.normalisation(cfg.features)
             warmup, measured = STEPS.get((m, n), (10, 100))

@@ -53,15 +53,15 @@ def profile(model: str, window: int, steps: int, device: torch.device) -> dict[s
     cfg = compose_cfg(model, window)
     folder, _, _ = build(spec_from_cfg(cfg), progress=False)
     dm = WindowDataModule(folder, window, BATCH, seed=SEED, draw=AlphaDraw(),
-                          sigma=tuple(cfg.noise.measurement_sigma))
+                          sigma=tuple(cfg.noise.measurement_sigma), device=str(device))
     dm.setup("fit")
     norm = dm.normalisation("frame")
     spec = OmegaConf.to_container(cfg.model, resolve=True)
     net = ObserverNet(spec.pop("name"), window, "frame", **spec).to(device)
     net.set_normalisation(**norm)
     opt = instantiate(cfg.optimizer)(params=net.parameters())
-    ds, gen = dm.train_set, torch.Generator().manual_seed(SEED)
-    order = torch.randperm(len(ds), generator=gen)
+    ds, gen = dm.train_set, torch.Generator(device=device).manual_seed(SEED)
+    order = torch.randperm(len(ds), generator=gen, device=device)
     times: dict[str, list[float]] = {p: [] for p in PARTS}
     for i in range(steps + 5):
         idx = order[i * BATCH:(i + 1) * BATCH]

@@ -215,3 +215,29 @@ def test_resume_reuses_a_finished_run_and_replaces_a_killed_one(tmp_path, smoke_
     assert not rerun["reused"]
     _, found = runs(tracking)
     assert sorted(r.info.status for r in found) == ["FINISHED", "FINISHED"]
+
+
+@pytest.mark.parametrize("accelerator, cuda, device", [
+    ("cpu", True, "cpu"), ("gpu", False, "cuda"), ("auto", False, "cpu"), ("auto", True, "cuda")])
+def test_batches_are_made_on_the_trainers_device(accelerator, cuda, device, monkeypatch):
+    from omegaconf import OmegaConf
+
+    from lbo.train import data_device
+
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: cuda)
+    assert data_device(OmegaConf.create({"trainer": {"accelerator": accelerator}})) == device
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(),
+                    reason="needs CUDA, which this machine lacks: run it where a GPU is present")
+def test_training_on_cuda_draws_batches_on_the_gpu(tmp_path, smoke_data, tracking):
+    from lbo.draws import AlphaDraw
+
+    dm = WindowDataModule(smoke_data, 20, 64, draw=AlphaDraw(), sigma=(0.25, 0.25, 0.004),
+                          device="cuda")
+    dm.setup("fit")
+    win, state, weight = next(iter(dm.train_dataloader()))
+    assert {t.device.type for t in (win, state, weight)} == {"cuda"}
+    out = train(train_cfg(tmp_path, smoke_data, "trainer=gpu", "trainer.max_epochs=1",
+                          "trainer.limit_train_batches=5"))
+    assert np.isfinite(out["test_nrmse_alpha_1"])

@@ -87,6 +87,21 @@ class WindowDataset(Dataset):
     def __len__(self) -> int:
         return len(self.ends)
 
+    def to(self, device: str | torch.device, seed: int = 0) -> WindowDataset:
+        """Move the rows to ``device`` (in place), so that batches and their noise are made
+        there, with a generator of that device seeded with ``seed`` (CUDA's stream differs
+        from the CPU's: a run on the GPU is repeatable, not equal to one on the CPU)."""
+        device = torch.device(device)
+        if device == self.x.device:
+            return self
+        self.x, self.y, self.ends = self.x.to(device), self.y.to(device), self.ends.to(device)
+        self.windows = self.x.unfold(0, self.window, 1)
+        self.truth = self.y.unfold(0, self.window, 1)
+        if self.sigma is not None:
+            self.sigma = self.sigma.to(device)
+        self.generator = torch.Generator(device=device).manual_seed(seed)
+        return self
+
     def __getitem__(self, idx) -> Batch:
         info = get_worker_info()
         if info is not None and info.seed != self._worker_seed:
@@ -98,11 +113,11 @@ class WindowDataset(Dataset):
 
     def batch(self, idx, generator: torch.Generator) -> Batch:
         """The windows ``idx``, any noise drawn with ``generator``."""
-        e = self.ends[torch.as_tensor(idx)]
+        e = self.ends[torch.as_tensor(idx, device=self.ends.device)]
         s = e - self.window + 1
         win = self.windows[s].transpose(-1, -2)
         if self.draw is None:
-            return win, self.y[e], torch.ones(len(e), dtype=self.x.dtype)
+            return win, self.y[e], torch.ones(len(e), dtype=self.x.dtype, device=e.device)
         alpha = self.draw.sample(len(e), generator)
         m = noisy_measurements(self.truth[s].transpose(-1, -2), alpha, self.sigma, generator)
         return (torch.cat([m, win[..., 3:]], dim=-1), self.y[e],
@@ -118,8 +133,12 @@ class FixedDataset(Dataset):
     def __len__(self) -> int:
         return len(self.tensors[0])
 
+    def to(self, device: str | torch.device, seed: int = 0) -> FixedDataset:
+        self.tensors = tuple(t.to(device) for t in self.tensors)
+        return self
+
     def __getitem__(self, idx) -> Batch:
-        idx = torch.as_tensor(idx)
+        idx = torch.as_tensor(idx, device=self.tensors[0].device)
         return tuple(t[idx] for t in self.tensors)  # type: ignore[return-value]
 
 
@@ -145,13 +164,17 @@ class WindowDataModule(L.LightningDataModule):
     sigma : (3,) measurement sigmas at alpha=1 (needed with ``draw``).
     weight_offset : loss weights ``1 / (alpha + offset)^2``; None: equal weights.
     val_repeats : fixed noise draws per validation window (with ``draw``).
+    device : where the rows live and batches and noise draws are made (``"cuda"`` on a GPU:
+        no copy from the host per batch, and no loader workers).
     """
 
     def __init__(self, folder: str | Path, window: int, batch_size: int = 256,
                  eval_batch_size: int = 4096, num_workers: int = 0, seed: int = 0,
                  draw: AlphaDraw | None = None, sigma=None,
-                 weight_offset: float | None = None, val_repeats: int = 1) -> None:
+                 weight_offset: float | None = None, val_repeats: int = 1,
+                 device: str = "cpu") -> None:
         super().__init__()
+        self.device = torch.device(device)
         self.folder = Path(folder)
         self.window, self.batch_size = int(window), int(batch_size)
         self.eval_batch_size, self.num_workers, self.seed = eval_batch_size, num_workers, seed
@@ -183,15 +206,17 @@ class WindowDataModule(L.LightningDataModule):
             g = torch.Generator().manual_seed(self.seed + 1)
             idx = torch.arange(len(val_set)).repeat(self.val_repeats)
             self.val_set = FixedDataset(*val_set.batch(idx, g))
+        self.train_set.to(self.device, self.seed)
+        self.val_set.to(self.device, self.seed)
 
     def normalisation(self, features: str, n: int = 20_000) -> dict[str, torch.Tensor]:
         """Channel means and stds of ``n`` random training windows' features and targets."""
         self.setup()
-        g = torch.Generator().manual_seed(self.seed)
-        pick = torch.randperm(len(self.train_set), generator=g)[:n]
+        g = torch.Generator(device=self.device).manual_seed(self.seed)
+        pick = torch.randperm(len(self.train_set), generator=g, device=self.device)[:n]
         win, state, _ = self.train_set.batch(pick, g)
-        f = window_features(win, features).reshape(-1, 5)
-        t = state_to_target(state, last_measurement(win), features)
+        f = window_features(win, features).reshape(-1, 5).cpu()
+        t = state_to_target(state, last_measurement(win), features).cpu()
         return {"in_mean": f.mean(0), "in_std": f.std(0),
                 "out_mean": t.mean(0), "out_std": t.std(0)}
 
@@ -200,8 +225,10 @@ class WindowDataModule(L.LightningDataModule):
         base = (RandomSampler(ds, generator=torch.Generator().manual_seed(self.seed))
                 if shuffle else SequentialSampler(ds))
         # the loader's generator seeds the workers' per-epoch noise draws from `seed` alone
+        # tensors on a GPU cannot go to worker processes: the main process gathers there
+        workers = self.num_workers if self.device.type == "cpu" else 0
         return DataLoader(ds, sampler=BatchSampler(base, batch, drop_last=False),
-                          batch_size=None, num_workers=self.num_workers,
+                          batch_size=None, num_workers=workers,
                           generator=torch.Generator().manual_seed(self.seed))
 
     def train_dataloader(self) -> DataLoader:

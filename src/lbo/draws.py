@@ -63,16 +63,17 @@ class AlphaDraw:
                 _check_alpha("train_noise.levels", a)
 
     def sample(self, n: int, generator: torch.Generator) -> torch.Tensor:
-        """(n,) float64 alpha values, drawn with ``generator``."""
+        """(n,) float64 alpha values, drawn with ``generator``, on its device."""
+        dev = generator.device
         if self.distribution == "fixed":
-            return torch.full((n,), float(self.alpha), dtype=torch.float64)
-        r = torch.rand(n, generator=generator, dtype=torch.float64)
+            return torch.full((n,), float(self.alpha), dtype=torch.float64, device=dev)
+        r = torch.rand(n, generator=generator, dtype=torch.float64, device=dev)
         if self.distribution == "uniform":
             return self.low + (self.high - self.low) * r
         if self.distribution == "loguniform":
             lo, hi = np.log(self.low), np.log(self.high)
             return torch.exp(lo + (hi - lo) * r)
-        levels = torch.tensor(self.levels, dtype=torch.float64)
+        levels = torch.tensor(self.levels, dtype=torch.float64, device=dev)
         return levels[(r * len(levels)).long().clamp_max(len(levels) - 1)]
 
     @classmethod
@@ -113,6 +114,6 @@ def noisy_measurements(z: torch.Tensor, alpha: torch.Tensor, sigma: torch.Tensor
     """
     from lbo.features import wrap_angle_torch
 
-    eps = torch.randn(z.shape, generator=generator, dtype=z.dtype)
+    eps = torch.randn(z.shape, generator=generator, dtype=z.dtype, device=z.device)
     m = z + alpha[:, None, None] * sigma * eps
     return torch.cat([m[..., :2], wrap_angle_torch(m[..., 2:])], dim=-1)

@@ -69,6 +69,15 @@ def check(cfg: DictConfig) -> None:
                        "use trainer=cpu or trainer=auto")
 
 
+def data_device(cfg: DictConfig) -> str:
+    """Where the training rows live and batches are drawn: the trainer's CUDA device, so a
+    GPU run never copies a batch from the host, else the CPU."""
+    acc = str(cfg.trainer.get("accelerator", "cpu"))
+    if acc in ("gpu", "cuda") or (acc == "auto" and torch.cuda.is_available()):
+        return "cuda"
+    return "cpu"
+
+
 def noise_settings(cfg: DictConfig) -> dict[str, Any]:
     """Keyword arguments of :class:`~lbo.data.WindowDataModule` for the ``train_noise`` group.
 
@@ -184,7 +193,7 @@ def train(cfg: DictConfig, callbacks: list[L.Callback] | None = None,
     L.seed_everything(cfg.seed, workers=True, verbose=False)
     folder, data_hash = prepare_data(cfg)
     dm = WindowDataModule(folder, cfg.window, cfg.batch_size, seed=cfg.seed,
-                          **noise_settings(cfg))
+                          device=data_device(cfg), **noise_settings(cfg))
     dm.setup("fit")
     module = ObserverModule(OmegaConf.to_container(cfg.model, resolve=True), cfg.window,
                             cfg.features, instantiate(cfg.optimizer), meta(cfg, data_hash),
