@@ -84,3 +84,32 @@ def test_reproduce_smoke_killed_and_resumed_without_duplicates(tmp_path):
         study = optuna.load_study(study_name=f"{model}-smoke-N20",
                                   storage=f"sqlite:///{tmp_path / 'optuna.db'}")
         assert len(study.trials) == 2
+
+
+def test_expected_steps_and_eta_arithmetic():
+    from omegaconf import OmegaConf
+
+    from lbo.eta import Eta, duration, steps_per_run
+
+    def cfg(limit):
+        return OmegaConf.create({"trainer": {"max_epochs": 6, "limit_train_batches": limit}})
+
+    assert steps_per_run(cfg(0.2), 1000) == 6 * 200      # a fraction of the epoch
+    assert steps_per_run(cfg(100), 1000) == 6 * 100      # a count
+    assert steps_per_run(cfg(5000), 1000) == 6 * 1000    # never more than the epoch has
+    assert steps_per_run(cfg(None), 1000) == 6 * 1000
+    assert [duration(s) for s in (42, 95, 7300)] == ["42 s", "1 min 35 s", "2 h 2 min"]
+    eta = Eta([10.0, 20.0, 30.0])
+    assert eta.skipped(0) == 50.0                        # a reused run takes nothing
+    assert eta.finished(1, 40.0) == 60.0                 # twice as slow as measured: x2
+    assert eta.finished(2, 60.0) == 0.0
+
+
+def test_a_measured_step_gives_the_runs_expected_time(tmp_path, smoke_data):
+    from conftest import train_cfg
+    from lbo.eta import measure
+
+    m = measure(train_cfg(tmp_path, smoke_data, "trainer.max_epochs=2",
+                          "trainer.limit_train_batches=5"), steps=4)
+    assert m["steps"] == 10 and 0 < m["step_s"] < 5
+    assert m["seconds"] == pytest.approx(m["setup_s"] + 10 * m["step_s"])

@@ -28,6 +28,7 @@ from lbo.atomic import write_text
 from lbo.cli import entry
 from lbo.config import require
 from lbo.errors import LboError
+from lbo.eta import Eta, duration, measure
 from lbo.evaluate import CLASSICAL
 from lbo.tracking import check_launcher, check_server
 
@@ -120,8 +121,30 @@ def run(cfg: DictConfig) -> Path:
               + "/".join(f"{run.get(f'test_nrmse_alpha_{a}', np.nan):.2f}" for a in (1, 3, 6))
               + f"  (stage {time.perf_counter() - t_train:.0f} s)", flush=True)
 
+    def expected() -> Eta:
+        """Measure a few steps of every run still to train; print the stage's expected time."""
+        from lbo.train import config_hash, data_device, finished_run
+
+        estimates = []
+        for key, overrides in jobs:
+            c = compose("train", job_overrides(key, overrides))
+            if finished_run(c, config_hash(c), clean=False) is not None:
+                estimates.append(0.0)
+                continue
+            m = measure(c)
+            estimates.append(m["seconds"])
+            print(f"    {key}: {m['steps']} steps x {1e3 * m['step_s']:.1f} ms + "
+                  f"{m['setup_s']:.1f} s setup = {duration(m['seconds'])}", flush=True)
+        total = sum(estimates) / (min(cfg.jobs, len(jobs)) if cfg.launcher == "joblib" else 1)
+        device = data_device(compose("train", job_overrides(*jobs[0])))
+        print(f"    expected: about {duration(total)} of training at scale {scale} on {device}"
+              " (measured steps x steps per run; early stopping can only shorten it)",
+              flush=True)
+        return Eta(estimates)
+
     def train_all() -> tuple[dict, str]:
         runs = {}
+        eta = expected()
         if cfg.launcher:
             results = launch(cfg, [job_overrides(k, o) for k, o in jobs], out / "runs",
                              [k for k, _ in jobs])
@@ -134,8 +157,12 @@ def run(cfg: DictConfig) -> Path:
             c = compose("train", job_overrides(key, overrides))
             start = time.perf_counter()
             runs[key] = train(c)
-            report_line(done, runs[key], "reused" if runs[key].get("reused") else
-                        f"trained in {time.perf_counter() - start:.0f} s")
+            seconds = time.perf_counter() - start
+            left = eta.skipped(done - 1) if runs[key].get("reused") else \
+                eta.finished(done - 1, seconds)
+            report_line(done, runs[key], ("reused" if runs[key].get("reused") else
+                                          f"trained in {seconds:.0f} s")
+                        + (f", ETA {duration(left)}" if done < len(jobs) else ""))
         return runs, "reused" if all(r.get("reused") for r in runs.values()) else "done"
 
     t_train = time.perf_counter()

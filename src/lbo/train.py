@@ -126,11 +126,11 @@ def config_hash(cfg: DictConfig) -> str:
     return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 
-def finished_run(cfg: DictConfig, digest: str) -> dict[str, Any] | None:
+def finished_run(cfg: DictConfig, digest: str, clean: bool = True) -> dict[str, Any] | None:
     """With ``resume=true``: the metrics of a FINISHED MLflow run of the same config, if any.
 
-    Runs of the same config that never finished (killed, crashed) are deleted, so a rerun
-    replaces them instead of adding a duplicate.
+    Runs of the same config that never finished (killed, crashed) are deleted (unless
+    ``clean`` is False), so a rerun replaces them instead of adding a duplicate.
     """
     import mlflow
 
@@ -141,7 +141,7 @@ def finished_run(cfg: DictConfig, digest: str) -> dict[str, Any] | None:
     found = client.search_runs([exp.experiment_id], f"tags.config_hash = '{digest}'")
     done = [r for r in found if r.info.status == "FINISHED"]
     for r in found:
-        if r.info.status != "FINISHED":
+        if clean and r.info.status != "FINISHED":
             client.delete_run(r.info.run_id)
     if not done:
         return None
