@@ -12,7 +12,7 @@ from lbo import schema
 from lbo.errors import LboError
 from lbo.evaluate import classical, predict_grid
 from lbo.export import register
-from lbo.filters import ekf_batch
+from lbo.filters import ekf_batch, run_filterpy_ekf
 from lbo.metrics import rmse
 from lbo.noise import Noise
 from lbo.observe import resample, run
@@ -102,14 +102,15 @@ def test_observe_prints_the_evaluation_rmse(tmp_path, trained, manoeuvre, log_cs
     assert not est["valid"].iloc[:len(est) - valid].any()
 
 
-def test_ekf_output_is_the_batched_ekf(tmp_path, manoeuvre, log_csv):
+def test_ekf_output_matches_filterpys_ekf(tmp_path, manoeuvre, log_csv):
     out = tmp_path / "est.parquet"  # Parquet by extension
     cfg = compose_cfg("observe", ["observer=ekf", f"input={log_csv}", f"output={out}",
                                   "vehicle.wheelbase=3.1", "noise=literal"])
     result = run(cfg)
     m, u = manoeuvre[["x_m", "y_m", "psi_m"]].to_numpy(), manoeuvre[["V", "delta"]].to_numpy()
     noise = Noise.from_cfg(cfg.noise)
-    ref = ekf_batch(m[None], u[None], Vehicle(wheelbase=3.1), noise.Q, noise.R(1.0))[0]
+    # the expected values come from filterpy's EKF, an implementation independent of lbo's
+    ref = run_filterpy_ekf(m, u, Vehicle(wheelbase=3.1), noise.Q, noise.R(1.0))
     est = pd.read_parquet(out)
     np.testing.assert_allclose(est[["x", "y"]], ref[:, :2], rtol=0, atol=1e-9)
     np.testing.assert_allclose(est["psi"], wrap_angle(ref[:, 2]), rtol=0, atol=1e-9)
@@ -213,8 +214,10 @@ def test_resample_interpolates_to_the_observer_dt(tmp_path, manoeuvre):
     est = pd.read_csv(out)
     assert result["rows"] == len(manoeuvre)
     np.testing.assert_allclose(est[["x", "y"]], ref[:, :2], atol=1e-6)
-    # a vehicle.dt override changes what the classical observers accept
-    run(compose_cfg("observe", [*base, "vehicle.dt=0.01"]))
+    # a vehicle.dt override changes what the classical observers accept: the 0.01 s log as is
+    fine_out = run(compose_cfg("observe", [*base, "vehicle.dt=0.01"]))
+    assert fine_out["rows"] == len(fine)
+    np.testing.assert_allclose(pd.read_csv(out)["t"], fine_t, atol=1e-12)
 
 
 def test_resample_takes_the_short_way_round_for_headings():
