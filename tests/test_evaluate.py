@@ -10,7 +10,7 @@ from lbo import schema
 from lbo.errors import LboError
 from lbo.evaluate import classical, classical_table, load_test, reference, run
 from lbo.filters import ekf_batch, pcrb
-from lbo.metrics import PAPER_REFERENCE, SCORE_COLUMNS
+from lbo.metrics import SCORE_COLUMNS
 from lbo.noise import Noise
 from lbo.vehicle import Vehicle, measure, simulate, wrap_angle
 

@@ -278,3 +278,13 @@ def test_an_unknown_search_is_listed_by_hydra():
     with pytest.raises(MissingConfigException, match="hparams_search/gru") as err:
         compose_cfg("tune", ["hparams_search=gru"])
     assert "cnn" in str(err.value.options) and "lstm" in str(err.value.options)
+
+
+def test_locks_live_beside_the_database_not_in_the_temp_folder(tmp_path, smoke_data, tracking):
+    import glob
+    import tempfile
+
+    before = set(glob.glob(f"{tempfile.gettempdir()}/lbo-*.lock"))
+    tune(tune_cfg(tmp_path, smoke_data, tracking, "tune.n_trials=1", "tune.study_name=locks"))
+    assert set(glob.glob(f"{tempfile.gettempdir()}/lbo-*.lock")) == before
+    assert list(tmp_path.glob("optuna.db*.lock"))  # the study's and the store's, with the db

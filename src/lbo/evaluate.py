@@ -186,10 +186,6 @@ def run(cfg: DictConfig) -> Path:
 main = entry("evaluate", run)
 
 
-if __name__ == "__main__":
-    sys.exit(main())
-
-
 def predict_grid(net, arr: dict[str, np.ndarray], window: int, batch_size: int = 8192,
                  device: str = "cpu") -> np.ndarray:
     """Run a learned observer on every scored step of the padded test arrays.
@@ -219,3 +215,7 @@ def predict_grid(net, arr: dict[str, np.ndarray], window: int, batch_size: int =
             win = windows[a, b].transpose(-1, -2).to(device)
             est[gi[s:s + batch_size], ti[s:s + batch_size]] = net(win).cpu().numpy()
     return est
+
+
+if __name__ == "__main__":
+    sys.exit(main())

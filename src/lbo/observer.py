@@ -58,7 +58,7 @@ ENGINES = ("torch", "torchscript", "onnx")
 INPUT_COLUMNS = ("x_m", "y_m", "psi_m", "V", "delta")
 """Channel order of a window (N, 5)."""
 
-# Sage-Husa settings of the streaming and the batch adaptive EKF: one dict, so they agree.
+# Merwe's sigma-point spread of the UKF, the same in streaming and batch use
 _UKF_SPREAD = 0.1
 _RUN_ID = re.compile(r"[0-9a-f]{32}")
 

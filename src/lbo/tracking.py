@@ -8,10 +8,8 @@ RUNNING.
 from __future__ import annotations
 
 import contextlib
-import hashlib
 import importlib.util
 import sqlite3
-import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 from urllib.parse import urlparse
@@ -98,16 +96,16 @@ def creation_lock(uri: str) -> Iterator[None]:
     """Hold a lock, per machine, on the SQLite database behind ``uri`` (no-op for a server).
 
     Neither optuna nor MLflow survives two processes creating the same new SQLite file at once
-    (both migrate its tables), and jobs started together would do just that.
+    (both migrate its tables), and jobs started together would do just that. The lock file
+    sits beside the database (``<name>.lock``), so it goes where the database goes.
     """
     from filelock import FileLock
 
     path = sqlite_path(uri)
-    if path is None:
+    if path is None or not path.parent.is_dir():  # no folder: opening the store will say so
         yield
         return
-    key = hashlib.sha1(str(path.resolve()).encode()).hexdigest()[:16]
-    with FileLock(Path(tempfile.gettempdir()) / f"lbo-sqlite-{key}.lock", timeout=600):
+    with FileLock(path.with_name(path.name + ".lock"), timeout=600):
         yield
 
 

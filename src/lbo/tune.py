@@ -46,7 +46,7 @@ from lbo.config import require
 from lbo.errors import LboError
 from lbo.models import model_parameters
 from lbo.paths import CONF_DIR
-from lbo.tracking import creation_lock, ensure_experiment
+from lbo.tracking import creation_lock, ensure_experiment, sqlite_path
 from lbo.train import check, train
 
 #: Trials that count towards ``tune.n_trials``; failed ones (crashes, killed processes) do not.
@@ -302,11 +302,11 @@ class ClaimLock:
         self.key = int.from_bytes(digest[:8], "big", signed=True)
         self.engine = storage.engine
         self.file = None
-        if self.backend == "sqlite":
+        db = sqlite_path(url) if self.backend == "sqlite" else None
+        if db is not None and db.parent.is_dir():  # beside the database, one per study
             from filelock import FileLock
 
-            where = hashlib.sha1(f"{url}:{study}".encode()).hexdigest()[:16]
-            self.file = FileLock(Path(tempfile.gettempdir()) / f"lbo-study-{where}.lock")
+            self.file = FileLock(db.with_name(f"{db.name}.{digest.hex()[:12]}.lock"))
         self.conn = None
 
     def acquire(self) -> None:
