@@ -20,8 +20,7 @@ from lbo.evaluate import (
     reference,
     score,
 )
-from lbo.noise import Noise
-from lbo.vehicle import Vehicle
+from lbo.observer import read_checkpoint, trained_conditions
 
 LOGGED_ALPHAS = (1.0, 3.0, 6.0)
 
@@ -51,17 +50,13 @@ class Evaluation(L.Callback):
     def on_fit_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         start = time.perf_counter()
         best = getattr(trainer.checkpoint_callback, "best_model_path", "") or ""
-        module = type(pl_module).load_from_checkpoint(best, map_location="cpu") if best \
-            else pl_module
-        hp = pl_module.hparams
-        meta = hp["meta"]
-        vehicle = Vehicle(**meta["vehicle"])
-        noise = Noise(meta["noise"]["process_sigma"], meta["noise"]["measurement_sigma"],
-                      meta["noise"]["name"])
+        # the best weights through the one checkpoint reader, with its format checks
+        net, hp = read_checkpoint(best) if best else (pl_module.observer, pl_module.hparams)
+        vehicle, noise = trained_conditions(hp, best or "(in memory)")
         arr = load_test(Path(trainer.datamodule.folder) / "test.parquet")
         ref = reference(arr, vehicle, noise, self.reference)
         name = f"{hp['model']['name']}-N{hp['window']}"
-        est = predict_grid(module.observer, arr, hp["window"], self.batch_size,
+        est = predict_grid(net, arr, hp["window"], self.batch_size,
                            device=str(trainer.strategy.root_device))
         self.table = pd.concat([score(name, est, arr, ref),
                                 classical_table(arr, vehicle, noise, ["ekf", "oracle"], ref)],

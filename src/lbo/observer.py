@@ -277,12 +277,12 @@ class Observer:
         with _checkpoint_file(source) as path:
             net, hp = read_checkpoint(path, features=features, device=device)
         meta = dict(hp.get("meta") or {})
-        trained = _vehicle_from_meta(meta, path)
+        trained, trained_noise = trained_conditions(hp, path)
         if vehicle is not None and not np.isclose(vehicle.dt, trained.dt, rtol=1e-9):
             raise LboError(f"vehicle.dt={vehicle.dt:g} s, but the observer was trained at "
                            f"dt={trained.dt:g} s; resample the data to {trained.dt:g} s")
         return cls(f"{hp['model']['name']}-N{hp['window']}", vehicle or trained,
-                   noise or _noise_from_meta(meta, path), net=net, alpha=alpha,
+                   noise or trained_noise, net=net, alpha=alpha,
                    engine=engine, device=device, meta={**meta, "source": source})
 
     @classmethod
@@ -467,19 +467,22 @@ def read_checkpoint(path: str | os.PathLike, features: str | None = None,
     return net.to(device).eval(), hp
 
 
-def _vehicle_from_meta(meta: dict[str, Any], path: Path) -> Vehicle:
+def trained_conditions(hp: dict[str, Any], path: str | os.PathLike) -> tuple[Vehicle, Noise]:
+    """The vehicle and noise preset a checkpoint was trained with (``hp["meta"]``), for the
+    reference filters and the streaming fallback; raises LboError naming the file."""
+    meta = hp.get("meta") or {}
     try:
-        return Vehicle(**meta["vehicle"])
+        vehicle = Vehicle(**meta["vehicle"])
     except (KeyError, TypeError) as e:
         raise LboError(f"checkpoint {path}: no usable meta.vehicle ({e})") from None
-
-
-def _noise_from_meta(meta: dict[str, Any], path: Path) -> Noise:
+    except LboError as e:
+        raise LboError(f"checkpoint {path}: its stored {e}") from None
     try:
         n = meta["noise"]
-        return Noise(n["process_sigma"], n["measurement_sigma"], n.get("name", "custom"))
+        noise = Noise(n["process_sigma"], n["measurement_sigma"], n.get("name", "custom"))
     except (KeyError, TypeError) as e:
         raise LboError(f"checkpoint {path}: no usable meta.noise ({e})") from None
+    return vehicle, noise
 
 
 @contextlib.contextmanager

@@ -264,9 +264,7 @@ def _trajectory(folder: Path, run: dict[str, Any] | None, manoeuvre: str,
                 tracking_uri: str) -> dict[str, np.ndarray] | None:
     """Fig. 6 arrays: one manoeuvre at alpha=3 with the best CNN and the EKF."""
     from lbo.evaluate import classical, load_test, predict_grid
-    from lbo.module import ObserverModule
-    from lbo.noise import Noise
-    from lbo.vehicle import Vehicle
+    from lbo.observer import read_checkpoint, trained_conditions
 
     if run is None:
         return None
@@ -280,11 +278,9 @@ def _trajectory(folder: Path, run: dict[str, Any] | None, manoeuvre: str,
     sub = {k: v[pick] for k, v in arr.items() if isinstance(v, np.ndarray)
            and v.shape[:1] == arr["alpha"].shape}
     ckpt = _artifact(run, "checkpoints/best.ckpt", tracking_uri)
-    module = ObserverModule.load_from_checkpoint(ckpt, map_location="cpu")
-    meta = module.hparams["meta"]
-    vehicle = Vehicle(**meta["vehicle"])
-    noise = Noise(meta["noise"]["process_sigma"], meta["noise"]["measurement_sigma"])
-    learned = predict_grid(module.observer, sub, module.hparams["window"])[0]
+    net, hp = read_checkpoint(ckpt)
+    vehicle, noise = trained_conditions(hp, ckpt)
+    learned = predict_grid(net, sub, hp["window"])[0]
     ekf = classical("ekf", sub, vehicle, noise)[0]
     keep = sub["mask"][0]
     return {"truth": sub["z"][0][keep, :2], "meas": sub["m"][0][keep, :2],
