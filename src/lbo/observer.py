@@ -60,7 +60,8 @@ INPUT_COLUMNS = ("x_m", "y_m", "psi_m", "V", "delta")
 
 # Merwe's sigma-point spread of the UKF, the same in streaming and batch use
 _UKF_SPREAD = 0.1
-_RUN_ID = re.compile(r"[0-9a-f]{32}")
+RUN_ID = re.compile(r"[0-9a-f]{32}")
+"""An MLflow run id, as ``observer=<run id>`` takes it."""
 
 
 class Estimate(NamedTuple):
@@ -158,12 +159,12 @@ def make_predictor(net: Any, engine: str = "torch", device: str = "cpu") -> Pred
                        f"got device={device}")
     net = net.to(device).eval()
     if engine == "onnx":
-        from lbo.export import onnx_bytes, onnx_session
+        from lbo.engines import onnx_bytes, onnx_session
 
         session = onnx_session(onnx_bytes(net.cpu()), threads=1)
         return lambda win: session.run(None, {"window": win})[0]
     if engine == "torchscript":
-        from lbo.export import trace
+        from lbo.engines import trace
 
         net = trace(net)
 
@@ -493,7 +494,7 @@ def _checkpoint_file(source: str) -> Iterator[Path]:
     if Path(src).is_file():
         yield Path(src)
         return
-    if _RUN_ID.fullmatch(src):
+    if RUN_ID.fullmatch(src):
         uri, run_id = f"runs:/{src}/checkpoints/best.ckpt", src
     elif src.startswith(("runs:/", "models:/")):
         uri, run_id = src, None
