@@ -204,23 +204,43 @@ def check_tune(cfg: DictConfig) -> list[Param]:
 # --- Optuna ---------------------------------------------------------------------------------
 
 
-class TrialSeededTPESampler(optuna.samplers.TPESampler):
+class TrialSeededTPESampler(optuna.samplers.BaseSampler):
     """TPE whose random draws for trial n depend only on (seed, n).
 
     A plain seeded sampler restarts its random stream in every process: a resumed study would
     repeat its first proposals, and workers sharing a study would propose the same ones. Seeding
-    per trial keeps a study repeatable and lets any number of processes share it.
+    per trial keeps a study repeatable and lets any number of processes share it. Each trial
+    gets a fresh :class:`optuna.samplers.TPESampler` seeded with (seed, n), through Optuna's
+    public sampler interface: TPE keeps no state between trials but its random stream, and
+    reads the history from the study.
     """
 
     def __init__(self, *, seed: int, **kwargs: Any) -> None:
-        super().__init__(seed=seed, **kwargs)
-        self._base_seed = seed
+        self.seed, self.tpe_kwargs = seed, kwargs
+        self.tpe = self.for_trial(0)
+
+    def for_trial(self, number: int) -> optuna.samplers.TPESampler:
+        seed = int(np.random.SeedSequence([self.seed, number]).generate_state(1)[0])
+        return optuna.samplers.TPESampler(seed=seed, **self.tpe_kwargs)
+
+    def reseed_rng(self) -> None:  # the per-trial seeds already differ
+        return None
 
     def before_trial(self, study: optuna.Study, trial: FrozenTrial) -> None:
-        seed = int(np.random.SeedSequence([self._base_seed, trial.number]).generate_state(1)[0])
-        self._rng.rng.seed(seed)
-        self._random_sampler._rng.rng.seed(seed)
-        super().before_trial(study, trial)
+        self.tpe = self.for_trial(trial.number)
+        self.tpe.before_trial(study, trial)
+
+    def infer_relative_search_space(self, study, trial):
+        return self.tpe.infer_relative_search_space(study, trial)
+
+    def sample_relative(self, study, trial, search_space):
+        return self.tpe.sample_relative(study, trial, search_space)
+
+    def sample_independent(self, study, trial, param_name, param_distribution):
+        return self.tpe.sample_independent(study, trial, param_name, param_distribution)
+
+    def after_trial(self, study, trial, state, values) -> None:
+        self.tpe.after_trial(study, trial, state, values)
 
 
 def make_pruner(node: DictConfig) -> optuna.pruners.BasePruner:
@@ -493,11 +513,12 @@ class Pruning(PyTorchLightningPruningCallback):
 
     def __init__(self, trial: optuna.Trial) -> None:
         super().__init__(trial, monitor="val_loss")
+        self.optuna_trial = trial  # our own reference, not the parent's private attribute
 
     def on_fit_start(self, trainer, pl_module) -> None:
         super().on_fit_start(trainer, pl_module)
         if isinstance(trainer.logger, MLFlowLogger):
-            self._trial.set_user_attr(RUN_ATTR, trainer.logger.run_id)
+            self.optuna_trial.set_user_attr(RUN_ATTR, trainer.logger.run_id)
 
 
 def trial_config(cfg: DictConfig, values: dict[str, Any], number: int, study_name: str,
