@@ -27,8 +27,12 @@ if not OmegaConf.has_resolver("lbo.root"):
 
 def tracking_uri() -> str:
     """The MLflow store every entry point uses: ``MLFLOW_TRACKING_URI``, else the SQLite
-    file at the repo root (the same rule as ``conf/logger/mlflow.yaml``)."""
+    file at the repo root. The configs read it too, as ``${lbo.tracking_uri:}``."""
     return os.environ.get("MLFLOW_TRACKING_URI") or f"sqlite:///{REPO_ROOT / 'mlflow.db'}"
+
+
+if not OmegaConf.has_resolver("lbo.tracking_uri"):
+    OmegaConf.register_new_resolver("lbo.tracking_uri", tracking_uri)
 
 
 def artifact_location(tracking_uri: str) -> str | None:
