@@ -193,10 +193,11 @@ def test_alpha0_is_exact_and_finite():
 def test_batched_ukf_gives_filterpy_numbers_on_the_smoke_grid(smoke_data):
     """The vectorised UKF against filterpy's loop on every trajectory and alpha level of the
     smoke test grid (R at alpha=1, and R at each level's own alpha)."""
-    from lbo.evaluate import _per_level_R, load_test
+    from lbo.classical import measurement_cov
+    from lbo.evaluate import load_test
 
     arr = load_test(smoke_data / "test.parquet")
-    for R in (NOISE.R(1.0), _per_level_R(NOISE, arr["alpha"])):
+    for R in (NOISE.R(1.0), measurement_cov("oracle", NOISE, arr["alpha"], len(arr["alpha"]))):
         ref = filters.ukf_filterpy_batch(arr["m"], arr["u"], VEHICLE, NOISE.Q, R)
         new = filters.ukf_batch(arr["m"], arr["u"], VEHICLE, NOISE.Q, R)
         assert np.isfinite(new[arr["mask"]]).all()

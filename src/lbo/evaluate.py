@@ -17,14 +17,17 @@ from omegaconf import DictConfig
 
 from lbo import schema
 from lbo.atomic import atomic_path
+from lbo.classical import BOUND, NAMES, measurement_cov
+from lbo.classical import run as run_classical
 from lbo.cli import entry
 from lbo.errors import LboError
-from lbo.filters import adaptive_ekf_batch, ekf_batch, pcrb, ukf_batch
+from lbo.filters import pcrb
 from lbo.metrics import PAPER_REFERENCE, SCORE_COLUMNS, rmse, score_table
 from lbo.noise import Noise
 from lbo.vehicle import Vehicle
 
-CLASSICAL = ("ekf", "oracle", "adaptive", "ukf", "pcrb")
+CLASSICAL = NAMES
+"""What ``observers=`` may name: the classical observers and the PCRB."""
 REFERENCES = ("ekf", "paper")
 
 
@@ -39,26 +42,16 @@ def load_test(path: str | Path) -> dict[str, np.ndarray]:
 
 def classical(name: str, arr: dict[str, np.ndarray], vehicle: Vehicle, noise: Noise,
               progress: bool = False, seed: int = 0) -> np.ndarray:
-    """Estimates (G, T, 3) of classical observer ``name`` on the padded test arrays.
-
-    ``ekf`` keeps R at alpha=1 on every level (the paper's baseline); ``oracle`` is told each
-    level's alpha; ``adaptive`` learns R from its innovations, starting from alpha=1; ``ukf``
-    is filterpy's UKF, vectorised (:func:`~lbo.filters.ukf_batch`), with the paper's R. For
-    ``pcrb`` the result is the bound's standard deviation per step, not an estimate.
+    """Estimates (G, T, 3) of classical observer ``name`` (:mod:`lbo.classical`) on the padded
+    test arrays; the oracle is told each trajectory's alpha. For ``pcrb`` the result is the
+    bound's standard deviation per step, not an estimate.
     """
-    m, u, Q, R1 = arr["m"], arr["u"], noise.Q, noise.R(1.0)
-    if name == "ekf":
-        return ekf_batch(m, u, vehicle, Q, R1)
-    if name == "oracle":
-        return ekf_batch(m, u, vehicle, Q, _per_level_R(noise, arr["alpha"]))
-    if name == "adaptive":
-        return adaptive_ekf_batch(m, u, vehicle, Q, R1)
-    if name == "ukf":
-        return ukf_batch(m, u, vehicle, Q, R1, progress=progress)
-    if name == "pcrb":
-        return np.sqrt(pcrb(arr["z"], u, vehicle, Q, _per_level_R(noise, arr["alpha"]), rng=seed))
     check_observers([name])
-    raise AssertionError(name)  # every classical name is handled above
+    if name == BOUND:
+        R = measurement_cov("oracle", noise, arr["alpha"], len(arr["alpha"]))
+        return np.sqrt(pcrb(arr["z"], arr["u"], vehicle, noise.Q, R, rng=seed))
+    return run_classical(name, arr["m"], arr["u"], vehicle, noise, alpha=arr["alpha"],
+                         progress=progress)
 
 
 def check_observers(names: Sequence[str]) -> None:
@@ -67,11 +60,6 @@ def check_observers(names: Sequence[str]) -> None:
         if name not in CLASSICAL:
             raise LboError(f"observers: unknown observer {name!r}; "
                            f"expected names from {list(CLASSICAL)}")
-
-
-def _per_level_R(noise: Noise, alpha: np.ndarray) -> np.ndarray:
-    """(G, 3, 3) measurement covariance of each trajectory's own alpha."""
-    return np.einsum("gi,ij->gij", np.square(noise.meas(alpha)), np.eye(3))
 
 
 def reference(arr: dict[str, np.ndarray], vehicle: Vehicle, noise: Noise,
@@ -86,7 +74,7 @@ def reference(arr: dict[str, np.ndarray], vehicle: Vehicle, noise: Noise,
         raise LboError("metric.reference=ekf needs alpha=1 in the test grid; "
                        "use metric.reference=paper")
     sub = {k: v[at1] for k, v in arr.items() if isinstance(v, np.ndarray) and len(v) == len(at1)}
-    est = ekf_batch(sub["m"], sub["u"], vehicle, noise.Q, noise.R(1.0))
+    est = run_classical("ekf", sub["m"], sub["u"], vehicle, noise)
     return _pooled_rmse(est, sub["z"], sub["mask"])
 
 

@@ -435,14 +435,63 @@ def _deviations(sig: np.ndarray, mean: np.ndarray) -> np.ndarray:
     return d
 
 
-def ukf_batch(m: np.ndarray, u: np.ndarray, vehicle: Vehicle, Q: np.ndarray, R: np.ndarray,
-              spread: float = 0.1, progress: bool = False) -> np.ndarray:
-    """:func:`ukf` vectorised over G trajectories (a loop over time only).
+class UnscentedStepper:
+    """The UKF of :func:`ukf_batch` one time step per call, over G trajectories.
 
     The same sigma points (Merwe, beta=2, kappa=0, upper Cholesky factor, wrapped headings),
     weights, circular means, redrawn prior sigma points and covariance update as filterpy's
-    :class:`~filterpy.kalman.UnscentedKalmanFilter`, so it gives the numbers of
-    :func:`ukf_filterpy_batch` to rounding.
+    :class:`~filterpy.kalman.UnscentedKalmanFilter`. :func:`ukf_batch` loops over it and
+    :class:`lbo.Observer` steps it one sample at a time, so streaming and batch agree.
+
+    Parameters
+    ----------
+    m0 : (G, 3) first measurements; the state starts there with P_0 = R.
+    vehicle : Vehicle
+    Q : (3, 3) process covariance.
+    R : (G, 3, 3) measurement covariance (diagonal floored at :data:`COV_FLOOR`).
+    spread : Merwe's alpha.
+
+    Attributes
+    ----------
+    x : (G, 3) current estimate. P : (G, 3, 3) its covariance.
+    """
+
+    def __init__(self, m0: np.ndarray, vehicle: Vehicle, Q: np.ndarray, R: np.ndarray,
+                 spread: float = 0.1) -> None:
+        self.vehicle, self.Q = vehicle, _check_q(Q)
+        self.R = _floor_diag(R)
+        self.wm, self.wc, self.lam = merwe_weights(3, spread)
+        self.x = np.array(m0, dtype=float)
+        self.P = self.R.copy()
+
+    def update(self, m: np.ndarray, u_prev: np.ndarray) -> np.ndarray:
+        """Predict with u_{k-1} (G, 2), update with m_k (G, 3); returns x_k (G, 3)."""
+        wm, wc, lam = self.wm, self.wc, self.lam
+        # predict: sigma points through the bicycle step, unscented transform plus Q
+        sig = _sigma_points(self.x, self.P, lam)
+        sig = step(sig, np.broadcast_to(u_prev[:, None], sig.shape[:2] + (2,)),
+                   self.vehicle.dt, self.vehicle.wheelbase)
+        x = _batch_mean(sig, wm)
+        d = _deviations(sig, x)
+        P = np.einsum("s,gsi,gsj->gij", wc, d, d) + self.Q
+        # update (h = identity) on sigma points redrawn from the prior, as filterpy does
+        sig = _sigma_points(x, P, lam)
+        zp = _batch_mean(sig, wm)
+        dz = _deviations(sig, zp)
+        S = np.einsum("s,gsi,gsj->gij", wc, dz, dz) + self.R
+        Pxz = np.einsum("s,gsi,gsj->gij", wc, _deviations(sig, x), dz)
+        K = Pxz @ np.linalg.inv(S)
+        y = m - zp
+        y[:, 2] = wrap_angle(y[:, 2])
+        self.x = x + np.einsum("gij,gj->gi", K, y)
+        self.P = P - K @ S @ K.swapaxes(-1, -2)
+        return self.x
+
+
+def ukf_batch(m: np.ndarray, u: np.ndarray, vehicle: Vehicle, Q: np.ndarray, R: np.ndarray,
+              spread: float = 0.1, progress: bool = False) -> np.ndarray:
+    """:func:`ukf` vectorised over G trajectories (a loop over time only, of
+    :class:`UnscentedStepper`): the numbers of :func:`ukf_filterpy_batch` to rounding.
 
     Parameters
     ----------
@@ -460,32 +509,11 @@ def ukf_batch(m: np.ndarray, u: np.ndarray, vehicle: Vehicle, Q: np.ndarray, R: 
     """
     m, u = _check_trajectories(m, u)
     g, t = m.shape[:2]
-    Q = _check_q(Q)
-    R = _floor_diag(_batch_cov(R, g, "R"))
-    wm, wc, lam = merwe_weights(3, spread)
-    x, P = m[:, 0].copy(), R.copy()
+    flt = UnscentedStepper(m[:, 0], vehicle, Q, _batch_cov(R, g, "R"), spread)
     est = np.empty_like(m)
-    est[:, 0] = x
+    est[:, 0] = flt.x
     for k in tqdm(range(1, t), desc="UKF", unit="step", disable=not progress, mininterval=2.0):
-        # predict: sigma points through the bicycle step, unscented transform plus Q
-        sig = _sigma_points(x, P, lam)
-        sig = step(sig, np.broadcast_to(u[:, None, k - 1], sig.shape[:2] + (2,)), vehicle.dt,
-                   vehicle.wheelbase)
-        x = _batch_mean(sig, wm)
-        d = _deviations(sig, x)
-        P = np.einsum("s,gsi,gsj->gij", wc, d, d) + Q
-        # update (h = identity) on sigma points redrawn from the prior, as filterpy does
-        sig = _sigma_points(x, P, lam)
-        zp = _batch_mean(sig, wm)
-        dz = _deviations(sig, zp)
-        S = np.einsum("s,gsi,gsj->gij", wc, dz, dz) + R
-        Pxz = np.einsum("s,gsi,gsj->gij", wc, _deviations(sig, x), dz)
-        K = Pxz @ np.linalg.inv(S)
-        y = m[:, k] - zp
-        y[:, 2] = wrap_angle(y[:, 2])
-        x = x + np.einsum("gij,gj->gi", K, y)
-        P = P - K @ S @ K.swapaxes(-1, -2)
-        est[:, k] = x
+        est[:, k] = flt.update(m[:, k], u[:, k - 1])
     return est
 
 

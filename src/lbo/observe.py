@@ -144,8 +144,9 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     ``output`` (Path), ``observer`` (name), ``rows``, ``valid`` (rows with a full window),
     and, when the log holds the true state, ``rmse`` (3,) (m, m, rad) and ``nrmse``.
     """
+    from lbo.classical import OBSERVERS as CLASSICAL
     from lbo.noise import Noise
-    from lbo.observer import CLASSICAL, Observer
+    from lbo.observer import Observer
     from lbo.vehicle import Vehicle
 
     for field in ("observer", "input", "output"):

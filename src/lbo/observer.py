@@ -29,28 +29,13 @@ from typing import Any, NamedTuple
 from urllib.parse import unquote, urlparse
 
 import numpy as np
-from filterpy.kalman import MerweScaledSigmaPoints, UnscentedKalmanFilter
 
+from lbo import classical
+from lbo.classical import OBSERVERS as CLASSICAL
 from lbo.errors import LboError
-
-# The UKF's sigma-point helpers are lbo.filters' own, so that the streaming UKF below is the
-# batch one (filters.ukf) to rounding.
-from lbo.filters import (
-    KalmanStepper,
-    _circular_mean,
-    _floor_diag,
-    _residual,
-    adaptive_ekf_batch,
-    adaptive_settings,
-    ekf_batch,
-    ukf,
-)
 from lbo.noise import Noise
 from lbo.paths import tracking_uri
-from lbo.vehicle import Vehicle, step, wrap_angle
-
-CLASSICAL = ("ekf", "oracle", "adaptive", "ukf")
-"""Classical observers by name (see :func:`lbo.evaluate.classical`)."""
+from lbo.vehicle import Vehicle, wrap_angle
 
 ENGINES = ("torch", "torchscript", "onnx")
 """Inference engines for learned observers."""
@@ -58,8 +43,6 @@ ENGINES = ("torch", "torchscript", "onnx")
 INPUT_COLUMNS = ("x_m", "y_m", "psi_m", "V", "delta")
 """Channel order of a window (N, 5)."""
 
-# Merwe's sigma-point spread of the UKF, the same in streaming and batch use
-_UKF_SPREAD = 0.1
 RUN_ID = re.compile(r"[0-9a-f]{32}")
 """An MLflow run id, as ``observer=<run id>`` takes it."""
 
@@ -75,62 +58,23 @@ class Estimate(NamedTuple):
 # --------------------------------------------------------------------------- streaming filters
 
 
-class _KalmanStep:
-    """One trajectory of :func:`lbo.filters.ekf_batch` (or, with ``adaptive``, of
-    :func:`lbo.filters.adaptive_ekf_batch`), one time step per call: the same
-    :class:`lbo.filters.KalmanStepper` with G=1.
+class _Stream:
+    """Classical observer ``name`` of :mod:`lbo.classical`, one sample per call: its batch
+    filter's stepper, so stepping and :meth:`Observer.run` give the same numbers."""
 
-    Call with ``(m_k, u_{k-1})``; the first call (``u_prev`` None) initialises from ``m_0``.
-    """
-
-    def __init__(self, vehicle: Vehicle, Q: np.ndarray, R: np.ndarray,
-                 adaptive: bool = False) -> None:
-        self.vehicle, self.Q, self.R0 = vehicle, np.asarray(Q, float), np.asarray(R, float)
-        self.adaptive = adaptive
+    def __init__(self, name: str, vehicle: Vehicle, noise: Noise, alpha: float) -> None:
+        self.name, self.vehicle, self.noise, self.alpha = name, vehicle, noise, alpha
         self.reset()
 
     def reset(self) -> None:
-        self.kf: KalmanStepper | None = None
-
-    def __call__(self, m: np.ndarray, u_prev: np.ndarray | None) -> np.ndarray:
-        if self.kf is None:
-            # the batch filters' own defaults, so stepping and run() agree
-            settings = adaptive_settings(self.R0, 1) if self.adaptive else {"R": self.R0[None]}
-            self.kf = KalmanStepper(m[None], self.vehicle, self.Q, **settings)
-            return m.copy()
-        return self.kf.update(m[None], np.asarray(u_prev, float)[None])[0].copy()
-
-
-class _UnscentedStep:
-    """:func:`lbo.filters.ukf` one time step per call (same filterpy filter and settings)."""
-
-    def __init__(self, vehicle: Vehicle, Q: np.ndarray, R: np.ndarray,
-                 spread: float = _UKF_SPREAD) -> None:
-        self.vehicle, self.Q, self.R, self.spread = vehicle, np.asarray(Q, float), R, spread
-        self.reset()
-
-    def reset(self) -> None:
-        self.flt: UnscentedKalmanFilter | None = None
+        self.flt: Any = None
 
     def __call__(self, m: np.ndarray, u_prev: np.ndarray | None) -> np.ndarray:
         if self.flt is None:
-            wheelbase = self.vehicle.wheelbase
-            points = MerweScaledSigmaPoints(3, alpha=self.spread, beta=2.0, kappa=0.0,
-                                            subtract=_residual)
-            self.flt = UnscentedKalmanFilter(
-                dim_x=3, dim_z=3, dt=self.vehicle.dt, points=points,
-                fx=lambda z, dt, u: step(z, u, dt, wheelbase), hx=lambda z: z,
-                x_mean_fn=_circular_mean, z_mean_fn=_circular_mean,
-                residual_x=_residual, residual_z=_residual,
-            )
-            self.flt.Q = self.Q.copy()
-            self.flt.R = _floor_diag(self.R)
-            self.flt.x = m.copy()
-            self.flt.P = self.flt.R.copy()
+            self.flt = classical.stepper(self.name, m[None], self.vehicle, self.noise,
+                                         self.alpha)
             return m.copy()
-        self.flt.predict(u=u_prev)
-        self.flt.update(m)
-        return np.array(self.flt.x, dtype=float)
+        return self.flt.update(m[None], np.asarray(u_prev, float)[None])[0].copy()
 
 
 # --------------------------------------------------------------------------- inference engines
@@ -214,23 +158,15 @@ class Observer:
         self.meta = dict(meta or {})
         self.net = net
         self.device = device
-        Q, R1 = self.noise.Q, self.noise.R(1.0)
         if net is None:
-            if name not in CLASSICAL:
-                raise LboError(f"observer: unknown classical observer {name!r}; "
-                               f"expected one of {', '.join(CLASSICAL)}")
+            classical.check(name)
             self.kind, self.window, self.features, self.engine = "classical", 1, None, None
-            if name == "ukf":
-                self._filter: _KalmanStep | _UnscentedStep = _UnscentedStep(self.vehicle, Q, R1)
-            else:
-                R = self.noise.R(self.alpha) if name == "oracle" else R1
-                self._filter = _KalmanStep(self.vehicle, Q, R,
-                                           adaptive=name == "adaptive")
+            self._filter = _Stream(name, self.vehicle, self.noise, self.alpha)
         else:
             self.kind, self.window, self.features = "learned", int(net.window), net.features
             self.engine = engine
             self._predict = make_predictor(net, engine, device)
-            self._filter = _KalmanStep(self.vehicle, Q, R1)  # the fallback: the paper's EKF
+            self._filter = _Stream("ekf", self.vehicle, self.noise, 1.0)  # the fallback
             # Ring buffer written twice (rows i and i+N): the last N samples are always the
             # contiguous rows i+1 .. i+N, so a window is a view, never a copy or a roll.
             self._ring = np.zeros((2 * self.window, 5))
@@ -270,11 +206,9 @@ class Observer:
             checkpoint, ...
         """
         source = os.fspath(source)
-        if source in CLASSICAL:
+        if source in classical.NAMES:
+            classical.check(source)  # pcrb: a bound, not an observer
             return cls(source, vehicle, noise, alpha=alpha)
-        if source == "pcrb":
-            raise LboError("observer: pcrb is a bound on the error, not an observer; "
-                           f"use one of {', '.join(CLASSICAL)} or a checkpoint")
         with _checkpoint_file(source) as path:
             net, hp = read_checkpoint(path, features=features, device=device)
         meta = dict(hp.get("meta") or {})
@@ -368,14 +302,15 @@ class Observer:
         t = len(m)
         valid = np.arange(t) >= self.window - 1
         if self.net is None:
-            est = self._classical_batch(m[None], u[None])[0]
+            est = classical.run(self.name, m[None], u[None], self.vehicle, self.noise,
+                                self.alpha)[0]
         else:
             n = self.window
             est = np.empty((t, 3))
             head = min(n - 1, t)
             if head:
-                est[:head] = ekf_batch(m[None, :head], u[None, :head], self.vehicle,
-                                       self.noise.Q, self.noise.R(1.0))[0]
+                est[:head] = classical.run("ekf", m[None, :head], u[None, :head],
+                                           self.vehicle, self.noise)[0]
             if t >= n:
                 series = np.ascontiguousarray(np.concatenate([m, u], axis=1))
                 # (T-N+1, N, 5) view of every window, as lbo.evaluate.predict_grid's unfold
@@ -386,16 +321,6 @@ class Observer:
                     est[n - 1 + s:n - 1 + s + len(chunk)] = self._predict(chunk)
         est[:, 2] = wrap_angle(est[:, 2])
         return est, valid
-
-    def _classical_batch(self, m: np.ndarray, u: np.ndarray) -> np.ndarray:
-        Q, R1 = self.noise.Q, self.noise.R(1.0)
-        if self.name == "ekf":
-            return ekf_batch(m, u, self.vehicle, Q, R1)
-        if self.name == "oracle":
-            return ekf_batch(m, u, self.vehicle, Q, self.noise.R(self.alpha))
-        if self.name == "adaptive":
-            return adaptive_ekf_batch(m, u, self.vehicle, Q, R1)
-        return ukf(m[0], u[0], self.vehicle, Q, R1, spread=_UKF_SPREAD)[None]
 
     def __repr__(self) -> str:
         extra = (f", window={self.window}, features={self.features!r}, engine={self.engine!r}"

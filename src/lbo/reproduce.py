@@ -25,11 +25,11 @@ from hydra import compose
 from omegaconf import DictConfig
 
 from lbo.atomic import write_text
+from lbo.classical import NAMES as CLASSICAL
 from lbo.cli import entry
 from lbo.config import require
 from lbo.errors import LboError
 from lbo.eta import Eta, duration, measure
-from lbo.evaluate import CLASSICAL
 from lbo.tracking import check_launcher, check_server
 
 STAGES = ("data", "tune", "train", "evaluate", "report")
