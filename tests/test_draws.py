@@ -34,7 +34,7 @@ def scaled_noise(ds, idx):
     """(m - z) / sigma of windows ``idx`` (heading difference wrapped), and the batch."""
     win, state, weight = ds[idx]
     s = ds.ends[torch.as_tensor(idx)] - ds.window + 1
-    z = ds.truth[s].transpose(-1, -2)
+    z = ds.truth[s]  # (B, N, 3) true states of the windows
     torch.testing.assert_close(state, z[:, -1], rtol=0, atol=0)  # the truth the noise is drawn on
     d = win[..., :3] - z
     d = torch.cat([d[..., :2], wrap_angle_torch(d[..., 2:])], dim=-1)
@@ -97,7 +97,7 @@ def test_indexing_twice_redraws_only_the_measurements(train_rows):
     torch.testing.assert_close(s2, s1, rtol=0, atol=0)
     torch.testing.assert_close(w2[..., 3:], w1[..., 3:], rtol=0, atol=0)
     e = ds.ends[idx]
-    stored = ds.windows[e - N + 1].transpose(-1, -2)
+    stored = ds.windows[e - N + 1]  # (B, N, 5): the stored rows of those windows
     torch.testing.assert_close(w1[..., 3:], stored[..., 3:], rtol=0, atol=0)
     assert (w1[..., :3] != w2[..., :3]).all()
     assert not torch.equal(w1[..., :3], stored[..., :3])  # not the stored draw either
@@ -122,7 +122,7 @@ def test_epochs_do_not_repeat_a_draw_with_loader_workers(smoke_data, workers):
 
 def scaled_noise_of_batch(ds, batch, start):
     s = ds.ends[start:start + len(batch[1])] - ds.window + 1
-    z = ds.truth[s].transpose(-1, -2)
+    z = ds.truth[s]  # (B, N, 3) true states of the windows
     torch.testing.assert_close(batch[1], z[:, -1], rtol=0, atol=0)
     d = batch[0][..., :3] - z
     return torch.cat([d[..., :2], wrap_angle_torch(d[..., 2:])], dim=-1) / SIGMA

@@ -282,3 +282,18 @@ def test_filternet_needs_frame_features():
         with pytest.raises(LboError, match=r"^features: model 'filternet' needs features in "
                                            r"\['frame'\], got '" + mode + "'$"):
             ObserverNet("filternet", 20, features=mode)
+
+
+def test_window_view_is_one_extractor_for_torch_and_numpy():
+    import numpy as np
+    import torch
+
+    from lbo.features import window_view
+
+    series = np.arange(2 * 9 * 5, dtype=float).reshape(2, 9, 5)  # (G, T, C)
+    for arr in (series, torch.from_numpy(series)):
+        w = window_view(arr, 4)
+        assert tuple(w.shape) == (2, 6, 4, 5)
+        for g, j in ((0, 0), (1, 5), (1, 2)):
+            np.testing.assert_array_equal(np.asarray(w[g, j]), series[g, j:j + 4])
+    assert np.shares_memory(window_view(series, 4), series)  # a view, not a copy

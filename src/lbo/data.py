@@ -1,7 +1,7 @@
 """Data sets on disk -> zero-copy windows -> a LightningDataModule.
 
 Rows of a set are stored once as a (R, 5) tensor ``[x_m, y_m, psi_m, V, delta]`` and a (R, 3)
-tensor of true states. ``unfold`` gives every window as a view into the rows; a batch gathers
+tensor of true states. ``window_view`` gives every window as a view into the rows; a batch gathers
 only the windows it needs. A window ends at row e and covers rows e-N+1..e; it is valid when
 k >= N-1 at e, which keeps it inside one trajectory because k restarts at 0 in each.
 
@@ -31,7 +31,7 @@ from torch.utils.data import (
 from lbo import schema
 from lbo.draws import AlphaDraw, loss_weights, noisy_measurements
 from lbo.errors import LboError
-from lbo.features import last_measurement, state_to_target, window_features
+from lbo.features import last_measurement, state_to_target, window_features, window_view
 
 INPUT_COLUMNS = [*schema.MEAS, *schema.INPUT]
 
@@ -77,8 +77,8 @@ class WindowDataset(Dataset):
                  seed: int = 0, weight_offset: float | None = None):
         self.x, self.y, self.window = x, y, window
         self.ends = torch.from_numpy(ends)
-        self.windows = x.unfold(0, window, 1)  # (R-N+1, 5, N), a view: no copy
-        self.truth = y.unfold(0, window, 1)  # (R-N+1, 3, N), a view
+        self.windows = window_view(x, window)  # (R-N+1, N, 5), a view: no copy
+        self.truth = window_view(y, window)  # (R-N+1, N, 3), a view
         self.draw, self.weight_offset = draw, weight_offset
         self.sigma = None if sigma is None else torch.as_tensor(sigma, dtype=x.dtype)
         self.generator = torch.Generator().manual_seed(seed)
@@ -95,8 +95,8 @@ class WindowDataset(Dataset):
         if device == self.x.device:
             return self
         self.x, self.y, self.ends = self.x.to(device), self.y.to(device), self.ends.to(device)
-        self.windows = self.x.unfold(0, self.window, 1)
-        self.truth = self.y.unfold(0, self.window, 1)
+        self.windows = window_view(self.x, self.window)
+        self.truth = window_view(self.y, self.window)
         if self.sigma is not None:
             self.sigma = self.sigma.to(device)
         self.generator = torch.Generator(device=device).manual_seed(seed)
@@ -115,11 +115,11 @@ class WindowDataset(Dataset):
         """The windows ``idx``, any noise drawn with ``generator``."""
         e = self.ends[torch.as_tensor(idx, device=self.ends.device)]
         s = e - self.window + 1
-        win = self.windows[s].transpose(-1, -2)
+        win = self.windows[s]
         if self.draw is None:
             return win, self.y[e], torch.ones(len(e), dtype=self.x.dtype, device=e.device)
         alpha = self.draw.sample(len(e), generator)
-        m = noisy_measurements(self.truth[s].transpose(-1, -2), alpha, self.sigma, generator)
+        m = noisy_measurements(self.truth[s], alpha, self.sigma, generator)
         return (torch.cat([m, win[..., 3:]], dim=-1), self.y[e],
                 loss_weights(alpha, self.weight_offset))
 

@@ -189,18 +189,20 @@ def predict_grid(net, arr: dict[str, np.ndarray], window: int, batch_size: int =
     """
     import torch
 
+    from lbo.features import window_view
+
     g, t = arr["mask"].shape
     if window - 1 > int(np.argmax(arr["mask"], axis=1).min()):
         raise LboError(f"window={window} is longer than the test set's run-in")
     series = torch.from_numpy(np.concatenate([arr["m"], arr["u"]], axis=-1))  # (G, T, 5)
-    windows = series.unfold(1, window, 1)  # (G, T-N+1, 5, N) view
+    windows = window_view(series, window)  # (G, T-N+1, N, 5) view
     gi, ti = np.nonzero(arr["mask"])
     est = np.full((g, t, 3), np.nan)
     net = net.to(device).eval()
     with torch.inference_mode():
         for s in range(0, len(gi), batch_size):
             a, b = gi[s:s + batch_size], ti[s:s + batch_size] - window + 1
-            win = windows[a, b].transpose(-1, -2).to(device)
+            win = windows[a, b].to(device)
             est[gi[s:s + batch_size], ti[s:s + batch_size]] = net(win).cpu().numpy()
     return est
 

@@ -66,6 +66,20 @@ def _rotate(xy: Array, psi: Array, sign: int) -> Array:
     return _cat_last([c * x - s * y, s * x + c * y])
 
 
+def window_view(series: Array, n: int) -> Array:
+    """Every window of ``n`` consecutive steps, as a view (no copy): (..., T, C) ->
+    (..., T-n+1, n, C), window ``j`` being steps ``j .. j+n-1``, oldest first.
+
+    The one window extractor of lbo: training batches (:mod:`lbo.data`), the test grid
+    (:func:`lbo.evaluate.predict_grid`) and a log (:meth:`lbo.Observer.run`) all cut their
+    windows here, torch tensors and numpy arrays alike.
+    """
+    axis = series.ndim - 2
+    if isinstance(series, torch.Tensor):
+        return series.unfold(axis, n, 1).transpose(-1, -2)
+    return np.lib.stride_tricks.sliding_window_view(series, n, axis=axis).swapaxes(-1, -2)
+
+
 def check_mode(mode: str) -> str:
     """Return ``mode`` if it is one of :data:`FEATURE_MODES`, else raise :class:`LboError`."""
     if mode not in FEATURE_MODES:

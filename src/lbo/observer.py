@@ -33,6 +33,7 @@ import numpy as np
 from lbo import classical
 from lbo.classical import OBSERVERS as CLASSICAL
 from lbo.errors import LboError
+from lbo.features import window_view
 from lbo.noise import Noise
 from lbo.paths import tracking_uri
 from lbo.vehicle import Vehicle, wrap_angle
@@ -313,9 +314,7 @@ class Observer:
                                            self.vehicle, self.noise)[0]
             if t >= n:
                 series = np.ascontiguousarray(np.concatenate([m, u], axis=1))
-                # (T-N+1, N, 5) view of every window, as lbo.evaluate.predict_grid's unfold
-                windows = np.lib.stride_tricks.sliding_window_view(series, n, axis=0)
-                windows = windows.transpose(0, 2, 1)
+                windows = window_view(series, n)  # (T-N+1, N, 5) view
                 for s in range(0, t - n + 1, batch_size):
                     chunk = np.ascontiguousarray(windows[s:s + batch_size])
                     est[n - 1 + s:n - 1 + s + len(chunk)] = self._predict(chunk)
