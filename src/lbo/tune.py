@@ -13,22 +13,20 @@ parent MLflow run with one child run per trial. The best settings are written to
 ``tune.handoff`` (``conf/tuned/<model>.yaml``), which training composes with ``+tuned=<model>``.
 
 ``tune(cfg)`` is plain Python: it takes a composed ``tune`` config and returns the study's
-outcome. ``main`` is the thin Hydra shell around it.
+outcome. ``main`` is the thin Hydra shell around it. The parts live beside it: the search
+space in :mod:`lbo.search`, the database and the claim lock in :mod:`lbo.study_storage`,
+the MLflow runs and figures in :mod:`lbo.study_mlflow`.
 """
 
 from __future__ import annotations
 
 import copy
-import hashlib
 import json
 import logging
 import os
 import socket
 import sys
-import tempfile
 import time
-import warnings
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -44,140 +42,11 @@ from lbo.atomic import write_text
 from lbo.cli import entry
 from lbo.config import require
 from lbo.errors import LboError
-from lbo.models import model_parameters
 from lbo.paths import CONF_DIR
-from lbo.tracking import creation_lock, ensure_experiment, sqlite_path
+from lbo.search import Param, search_space
+from lbo.study_mlflow import RUN_ATTR, StudyRun
+from lbo.study_storage import FINISHED, ClaimLock, needs_trial, open_storage, redact
 from lbo.train import check, train
-
-#: Trials that count towards ``tune.n_trials``; failed ones (crashes, killed processes) do not.
-FINISHED = (TrialState.COMPLETE, TrialState.PRUNED)
-DISTRIBUTIONS = {"float": {"low", "high", "log", "step"}, "int": {"low", "high", "log", "step"},
-                 "categorical": {"choices"}}
-#: MLflow run status for each final Optuna state; the child run also gets tag ``optuna_state``.
-MLFLOW_STATUS = {TrialState.COMPLETE: "FINISHED", TrialState.PRUNED: "KILLED",
-                 TrialState.FAIL: "FAILED"}
-#: How to install the database drivers that SQLAlchemy asks for.
-DRIVERS = {"psycopg": ' (pip install "psycopg[binary]")',
-           "psycopg2": " (pip install psycopg2-binary)", "pymysql": " (pip install pymysql)",
-           "MySQLdb": " (pip install mysqlclient)"}
-PARENT_ATTR = "mlflow_parent_run_id"   # study user attribute: the study's MLflow run
-RUN_ATTR = "mlflow_run_id"             # trial user attribute: the trial's MLflow run
-
-
-# --- the search space -----------------------------------------------------------------------
-
-
-@dataclass(frozen=True)
-class Param:
-    """One searched training setting: a dotted config key and its distribution.
-
-    Categorical choices that Optuna cannot store (lists, such as LSTM widths) are offered to it
-    as their JSON text and turned back into values by :meth:`decode`.
-    """
-
-    key: str
-    kind: str
-    low: float | int | None = None
-    high: float | int | None = None
-    log: bool = False
-    step: float | int | None = None
-    choices: tuple[Any, ...] = ()
-
-    @property
-    def labels(self) -> tuple[Any, ...]:
-        return tuple(json.dumps(c) if isinstance(c, (list, dict)) else c for c in self.choices)
-
-    def suggest(self, trial: optuna.Trial) -> Any:
-        if self.kind == "float":
-            return trial.suggest_float(self.key, self.low, self.high, log=self.log, step=self.step)
-        if self.kind == "int":
-            return trial.suggest_int(self.key, self.low, self.high, log=self.log,
-                                     step=self.step or 1)
-        return self.decode(trial.suggest_categorical(self.key, self.labels))
-
-    def decode(self, raw: Any) -> Any:
-        """A value as Optuna stores it -> the config value."""
-        if self.kind == "categorical" and raw in self.labels:
-            return self.choices[self.labels.index(raw)]
-        return raw
-
-
-def search_space(cfg: DictConfig) -> list[Param]:
-    """``tune.search_space`` as a list of :class:`Param`, checked against the training config
-    and the model's parameters; raise :class:`LboError` (one line) for anything wrong."""
-    node = cfg.tune.get("search_space")
-    raw = OmegaConf.to_container(node, resolve=True) if node is not None else {}
-    if not isinstance(raw, dict):
-        raise LboError(f"tune.search_space must be a mapping of config keys to distributions, "
-                       f"got {raw!r}")
-    params: list[Param] = []
-
-    def walk(tree: dict[str, Any], prefix: str) -> None:
-        for name, value in tree.items():
-            key = f"{prefix}{name}"
-            if isinstance(value, dict) and "type" not in value:
-                walk(value, f"{key}.")
-            else:
-                params.append(_param(cfg, key, value))
-
-    walk(raw, "")
-    if not params:
-        raise LboError("tune.search_space is empty: choose a search with hparams_search=cnn "
-                       "or hparams_search=lstm, or declare one under tune.search_space")
-    return params
-
-
-def _param(cfg: DictConfig, key: str, spec: Any) -> Param:
-    field = f"tune.search_space.{key}"
-    if not isinstance(spec, dict) or spec.get("type") not in DISTRIBUTIONS:
-        raise LboError(f"{field} must be {{type: float|int|categorical, ...}}, got {spec!r}")
-    kind = spec["type"]
-    extra = set(spec) - DISTRIBUTIONS[kind] - {"type"}
-    if extra:
-        raise LboError(f"{field}: unknown field {sorted(extra)[0]!r} for a {kind} distribution; "
-                       f"expected {', '.join(sorted(DISTRIBUTIONS[kind]))}")
-    _check_key(cfg, key, field)
-    if kind == "categorical":
-        choices = spec.get("choices")
-        require(isinstance(choices, list) and len(choices) > 0, f"{field}.choices",
-                "a non-empty list", choices)
-        return Param(key, kind, choices=tuple(choices))
-    low, high, log, step = spec.get("low"), spec.get("high"), spec.get("log", False), \
-        spec.get("step")
-    number = int if kind == "int" else (int, float)
-    for name, value in (("low", low), ("high", high)):
-        require(isinstance(value, number) and not isinstance(value, bool), f"{field}.{name}",
-                f"an {kind}" if kind == "int" else "a number", value)
-    require(low <= high, f"{field}.high", f">= low ({low})", high)
-    require(isinstance(log, bool), f"{field}.log", "true or false", log)
-    require(not log or low > 0, f"{field}.low", "> 0 on a log scale", low)
-    require(step is None or (isinstance(step, number) and not isinstance(step, bool)
-                             and step > 0 and not log),
-            f"{field}.step", "a positive number, and not with log: true", step)
-    return Param(key, kind, low, high, log, step)
-
-
-_MISSING = object()
-
-
-def _check_key(cfg: DictConfig, key: str, field: str) -> None:
-    """The key must name a setting that training reads: a parameter the model accepts, or a
-    value already in the training config."""
-    if key.startswith("model."):
-        name = key[len("model."):]
-        accepted = model_parameters(cfg.model.name)
-        if name not in accepted:
-            raise LboError(f"{field}: {name!r} is not a parameter of model {cfg.model.name!r}; "
-                           f"accepted: {', '.join(accepted)}")
-        return
-    if key.split(".")[0] in ("tune", "hydra", "window", "seed", "data", "data_dir", "output_dir"):
-        raise LboError(f"{field}: {key.split('.')[0]!r} is not a hyperparameter; the study "
-                       f"searches training settings at a fixed window, seed and data set")
-    value = OmegaConf.select(cfg, key, default=_MISSING, throw_on_missing=False)
-    if value is _MISSING:
-        raise LboError(f"{field}: no key {key!r} in the training config")
-    if OmegaConf.is_config(value):
-        raise LboError(f"{field}: {key!r} is a group of settings; search its values one by one")
 
 
 def check_tune(cfg: DictConfig) -> list[Param]:
@@ -257,114 +126,6 @@ def make_pruner(node: DictConfig) -> optuna.pruners.BasePruner:
     return pruner
 
 
-def redact(url: str) -> str:
-    """The storage URL as it may be printed and logged: without its password."""
-    from sqlalchemy.engine import make_url
-
-    try:
-        return make_url(url).render_as_string(hide_password=True)
-    except Exception as e:  # sqlalchemy.exc.ArgumentError
-        raise LboError(f"tune.storage: {url!r} is not a database URL "
-                       f"(sqlite:///path/optuna.db or postgresql://user:pass@host/db)") from e
-
-
-def open_storage(url: str, heartbeat_interval: int,
-                 grace_period: int) -> optuna.storages.RDBStorage:
-    """Connect to (and if new, initialise) the study database; one line if it cannot.
-
-    A trial whose process stops sending heartbeats for ``grace_period`` s (killed, preempted)
-    is marked failed and queued once more with the same parameters.
-    """
-    from sqlalchemy.engine import make_url
-
-    shown = redact(url)
-    backend = make_url(url).get_backend_name()
-    engine_kwargs: dict[str, Any] = {}
-    if backend == "sqlite":
-        # workers on one SQLite file wait for each other's writes instead of failing at once
-        engine_kwargs = {"connect_args": {"timeout": 60}}
-    elif backend == "postgresql":
-        engine_kwargs = {"connect_args": {"connect_timeout": 10}, "pool_pre_ping": True}
-    try:
-        with creation_lock(url), warnings.catch_warnings():
-            warnings.simplefilter("ignore")  # heartbeats are marked experimental
-            return optuna.storages.RDBStorage(
-                url, engine_kwargs=engine_kwargs, heartbeat_interval=heartbeat_interval,
-                grace_period=grace_period,
-                heartbeat_stale_trial_callback=optuna.storages.RetryFailedTrialCallback(
-                    max_retry=1))
-    except ImportError as e:  # optuna wraps the driver's ModuleNotFoundError
-        missing = getattr(e.__cause__, "name", None) or getattr(e, "name", None) or "?"
-        hint = DRIVERS.get(missing, "")
-        raise LboError(f"tune.storage: cannot open {shown}: its database driver {missing!r} "
-                       f"is not installed{hint}") from e
-    except Exception as e:
-        reason = (str(getattr(e, "orig", None) or e).strip().splitlines() or [""])[0]
-        raise LboError(f"tune.storage: cannot open {shown} ({type(e).__name__}: {reason})") \
-            from e
-
-
-class ClaimLock:
-    """A lock, shared by every worker of one study, held from "is a trial still needed?" until
-    that trial is RUNNING in the storage, so that workers together start exactly
-    ``tune.n_trials`` trials.
-
-    PostgreSQL: a session advisory lock on a connection of its own, which the server drops
-    when a killed worker's connection goes. SQLite (one machine): a file lock. Other
-    databases: none, and each extra worker may add one trial.
-    """
-
-    def __init__(self, storage: optuna.storages.RDBStorage, url: str, study: str) -> None:
-        from sqlalchemy.engine import make_url
-
-        self.backend = make_url(url).get_backend_name()
-        digest = hashlib.sha1(f"lbo-tune:{study}".encode()).digest()
-        self.key = int.from_bytes(digest[:8], "big", signed=True)
-        self.engine = storage.engine
-        self.file = None
-        db = sqlite_path(url) if self.backend == "sqlite" else None
-        if db is not None and db.parent.is_dir():  # beside the database, one per study
-            from filelock import FileLock
-
-            self.file = FileLock(db.with_name(f"{db.name}.{digest.hex()[:12]}.lock"))
-        self.conn = None
-
-    def acquire(self) -> None:
-        from sqlalchemy import text
-
-        if self.file is not None:
-            self.file.acquire()
-        elif self.backend == "postgresql":
-            self.conn = self.engine.connect()
-            self.conn.execute(text("SELECT pg_advisory_lock(:k)"), {"k": self.key})
-
-    def release(self) -> None:
-        """Idempotent: the objective releases it as its trial starts, the loop once more."""
-        from sqlalchemy import text
-
-        if self.file is not None and self.file.is_locked:
-            self.file.release()
-        if self.conn is not None:
-            try:
-                self.conn.execute(text("SELECT pg_advisory_unlock(:k)"), {"k": self.key})
-            finally:
-                self.conn.close()
-                self.conn = None
-
-
-def needs_trial(study: optuna.Study, n_trials: int) -> bool:
-    """Whether the study needs another trial: fewer than ``n_trials`` finished or running.
-
-    Trials whose worker went silent are failed first (and queued again once, with their
-    parameters, for the next ``ask``), so a killed worker's trial does not count as running.
-    """
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # fail_stale_trials is marked experimental
-        optuna.storages.fail_stale_trials(study)
-    busy = study.get_trials(deepcopy=False, states=(*FINISHED, TrialState.RUNNING))
-    return len(busy) < n_trials
-
-
 def _describe(trial: FrozenTrial, space: list[Param]) -> str:
     params = " ".join(f"{p.key}={_short(p.decode(trial.params[p.key]))}" for p in space
                       if p.key in trial.params)
@@ -383,125 +144,6 @@ def _short(value: Any) -> str:
     if isinstance(value, float):
         return f"{value:.4g}"
     return json.dumps(value, separators=(",", ":")) if isinstance(value, list) else str(value)
-
-
-# --- MLflow ---------------------------------------------------------------------------------
-
-
-class StudyRun:
-    """The study's parent MLflow run, found again through the study on a rerun, so that a
-    resumed or shared study keeps one parent. Child runs are the trials' training runs."""
-
-    def __init__(self, cfg: DictConfig, study: optuna.Study, storage: str) -> None:
-
-        log = cfg.logger
-        self.client, exp_id = ensure_experiment(log.tracking_uri, log.experiment_name,
-                                                log.artifact_location)
-        self.run_id = study.user_attrs.get(PARENT_ATTR)
-        if self._status(self.run_id) is not None:
-            self.client.update_run(self.run_id, status="RUNNING")
-            return
-        name = study.study_name
-        own = self.client.create_run(exp_id, run_name=f"study-{name}", tags={
-            "optuna_study": name, "optuna_storage": storage, "optuna_role": "study",
-            "model": cfg.model.name, "window": str(cfg.window), "data": cfg.data.name}).info
-        self.run_id = self._first(exp_id, name, storage, own)
-        if self.run_id != own.run_id:  # a worker that started with this one was first
-            self.client.delete_run(own.run_id)
-            return
-        study.set_user_attr(PARENT_ATTR, self.run_id)
-        for key, value in {"study_name": name, "storage": storage, "model": cfg.model.name,
-                           "window": cfg.window, "data": cfg.data.name, "sampler": "TPE",
-                           "sampler_seed": cfg.tune.seed,
-                           "pruner": cfg.tune.pruner.get("_target_", "")}.items():
-            self.client.log_param(self.run_id, key, value)
-        self.client.log_text(self.run_id, OmegaConf.to_yaml(cfg.tune.search_space),
-                             "search_space.yaml")
-
-    def _first(self, exp_id: str, name: str, storage: str, own: Any) -> str:
-        """Workers started together each open a parent before any has saved its id in the
-        study; all of them keep the earliest, whichever of them looks last."""
-        found = self.client.search_runs(
-            [exp_id], "tags.optuna_role = 'study' and attributes.status = 'RUNNING' and "
-            f"attributes.start_time >= {own.start_time - 600_000}", max_results=1000)
-        same = [r.info for r in found if r.data.tags.get("optuna_study") == name
-                and r.data.tags.get("optuna_storage") == storage]
-        return min([*same, own], key=lambda i: (i.start_time, i.run_id)).run_id
-
-    def _status(self, run_id: str | None) -> str | None:
-        """The run's status, or None when this tracking store has no such live run."""
-        from mlflow.exceptions import MlflowException
-
-        try:
-            info = self.client.get_run(run_id).info if run_id else None
-        except MlflowException:
-            return None
-        return info.status if info is not None and info.lifecycle_stage == "active" else None
-
-    def mark(self, trial: FrozenTrial) -> None:
-        """Close the trial's run with its final Optuna state; log a completed one's loss here."""
-        epochs = trial.intermediate_values
-        self.close_trial(trial.user_attrs.get(RUN_ATTR), trial.state,
-                         max(epochs) if trial.state == TrialState.PRUNED and epochs else None)
-        if trial.state == TrialState.COMPLETE:
-            self.client.log_metric(self.run_id, "trial_val_loss", trial.value, step=trial.number)
-
-    def close_trial(self, run_id: str | None, state: TrialState,
-                    pruned_epoch: int | None = None) -> None:
-        if run_id is None or state not in MLFLOW_STATUS:
-            return
-        self.client.set_tag(run_id, "optuna_state", state.name)
-        if pruned_epoch is not None:
-            self.client.set_tag(run_id, "optuna_pruned_epoch", str(pruned_epoch))
-        self.client.set_terminated(run_id, MLFLOW_STATUS[state])
-
-    def close_stale(self, study: optuna.Study) -> None:
-        """Trials failed for a silent heartbeat left their runs RUNNING: close them FAILED."""
-        for trial in study.get_trials(deepcopy=False, states=(TrialState.FAIL,)):
-            if self._status(trial.user_attrs.get(RUN_ATTR)) == "RUNNING":
-                self.mark(trial)
-
-    def summarise(self, study: optuna.Study, space: list[Param], handoff: Path | None,
-                  status: str) -> None:
-        counts = {s: len(study.get_trials(deepcopy=False, states=(s,))) for s in TrialState}
-        finished = counts[TrialState.COMPLETE] + counts[TrialState.PRUNED]
-        for state in (TrialState.COMPLETE, TrialState.PRUNED, TrialState.FAIL):
-            self.client.log_metric(self.run_id, f"n_{state.name.lower()}", counts[state],
-                                   step=finished)
-        if counts[TrialState.COMPLETE]:
-            best = study.best_trial
-            self.client.log_metric(self.run_id, "best_val_loss", best.value, step=finished)
-            self.client.set_tag(self.run_id, "best_trial", str(best.number))
-            # tags, not params: a resumed study may find a better trial, and MLflow params
-            # cannot change once logged
-            for p in space:
-                if p.key in best.params:
-                    self.client.set_tag(self.run_id, f"best.{p.key}",
-                                        str(p.decode(best.params[p.key])))
-            with tempfile.TemporaryDirectory() as tmp:
-                for png in _figures(study, Path(tmp)):
-                    self.client.log_artifact(self.run_id, str(png))
-        if handoff is not None:
-            self.client.log_artifact(self.run_id, str(handoff), artifact_path="tuned")
-        self.client.set_terminated(self.run_id, status)
-
-
-def _figures(study: optuna.Study, folder: Path) -> list[Path]:
-    """The optimisation history and the trials' validation curves, as PNGs."""
-    import matplotlib.pyplot as plt
-    from optuna.visualization import matplotlib as ovm
-
-    from lbo import plots
-
-    out = []
-    # optuna's plots switch the global style to ggplot: keep that to these two figures
-    with warnings.catch_warnings(), plt.rc_context():
-        warnings.simplefilter("ignore")  # optuna marks its matplotlib plots experimental
-        for name, plot in (("optimization_history", ovm.plot_optimization_history),
-                           ("intermediate_values", ovm.plot_intermediate_values)):
-            ax = plot(study)
-            out.append(plots.save(ax.figure, folder / f"{name}.png"))
-    return out
 
 
 # --- trials ---------------------------------------------------------------------------------
