@@ -61,155 +61,171 @@ class Stages:
 
 def run(cfg: DictConfig) -> Path:
     """Run the five stages for ``cfg.scale``; return the report folder."""
-    from lbo import report
-    from lbo.datagen.__main__ import run as datagen
-    from lbo.evaluate import run as evaluate
-    from lbo.train import train
-    from lbo.tune import quiet, tune
-
-    scale = cfg.scale
-    if scale not in cfg.trials:
-        raise LboError(f"scale must be one of {sorted(cfg.trials)}, got {scale!r}")
-    require(isinstance(cfg.jobs, int) and not isinstance(cfg.jobs, bool) and cfg.jobs >= 1,
-            "jobs", "an integer >= 1", cfg.jobs)
-    check_launcher(cfg.launcher, "launcher")
-    check_server(cfg.tracking_uri, "tracking_uri")
-    out = Path(cfg.report_dir)
-    extra = list(cfg.overrides)
+    check_reproduce(cfg)
+    scale, out = cfg.scale, Path(cfg.report_dir)
     stages = Stages(out)
     t0 = time.perf_counter()
-
-    def data() -> tuple[Path, str]:
-        c = compose("datagen", [f"data={scale}", *extra])
-        folder = Path(datagen(c))
-        return folder, "done"
-
-    folder = stages.run(1, "data", f"generate the {scale} data sets (or reuse them)", data)
-
-    def tune_all() -> tuple[dict, str]:
-        quiet()
-        results, reused = {}, True
-        for model in cfg.models:
-            c = compose("tune", [f"hparams_search={model}", f"experiment={scale}",
-                                  f"tune.n_trials={cfg.trials[scale]}",
-                                  f"tune.handoff={out / 'tuned' / f'{model}.yaml'}",
-                                  f"tune.storage={cfg.optuna_storage}",
-                                  f"output_dir={out / 'tune' / model}",
-                                  *cfg.tune_overrides[scale], *cfg.search_overrides[scale][model],
-                                  *extra, *cfg.train_overrides])
-            results[model] = tune(c)
-            reused &= not results[model]["new_trials"]
-        return results, "reused" if reused else "done"
-
+    folder = stages.run(1, "data", f"generate the {scale} data sets (or reuse them)",
+                        lambda: stage_data(cfg))
     tuned = stages.run(2, "tune", f"{' and '.join(m.upper() for m in cfg.models)} at N=20, "
-                       f"{cfg.trials[scale]} Optuna trials each", tune_all)
-
-    jobs = [(f"{model}-N{window}",
-             [f"experiment={scale}", f"model={model}", f"window={window}", f"+tuned={model}",
-              f"hydra.searchpath=[file://{out}]"])
-            for model in cfg.models for window in cfg.windows]
-    if cfg.robust:
-        jobs.append(("robust", ["experiment=robust", f"data={scale}",
-                                *cfg.robust_overrides[scale]]))
-
-    def job_overrides(key: str, overrides: list[str]) -> list[str]:
-        return [*overrides, "resume=true", f"output_dir={out / 'runs' / key}", *extra,
-                *cfg.train_overrides]
-
-    def report_line(done: int, run: dict, how: str) -> None:
-        print(f"    {done}/{len(jobs)} {run['name']}: {how}, NRMSE at alpha=1/3/6 "
-              + "/".join(f"{run.get(f'test_nrmse_alpha_{a}', np.nan):.2f}" for a in (1, 3, 6))
-              + f"  (stage {time.perf_counter() - t_train:.0f} s)", flush=True)
-
-    def expected() -> Eta:
-        """Measure a few steps of every run still to train; print the stage's expected time."""
-        from lbo.train import config_hash, data_device, finished_run
-
-        estimates = []
-        for key, overrides in jobs:
-            c = compose("train", job_overrides(key, overrides))
-            if finished_run(c, config_hash(c), clean=False) is not None:
-                estimates.append(0.0)
-                continue
-            m = measure(c)
-            estimates.append(m["seconds"])
-            print(f"    {key}: {m['steps']} steps x {1e3 * m['step_s']:.1f} ms + "
-                  f"{m['setup_s']:.1f} s setup = {duration(m['seconds'])}", flush=True)
-        total = sum(estimates) / (min(cfg.jobs, len(jobs)) if cfg.launcher == "joblib" else 1)
-        device = data_device(compose("train", job_overrides(*jobs[0])))
-        print(f"    expected: about {duration(total)} of training at scale {scale} on {device}"
-              " (measured steps x steps per run; early stopping can only shorten it)",
-              flush=True)
-        return Eta(estimates)
-
-    def train_all() -> tuple[dict, str]:
-        runs = {}
-        eta = expected()
-        if cfg.launcher:
-            results = launch(cfg, [job_overrides(k, o) for k, o in jobs], out / "runs",
-                             [k for k, _ in jobs])
-            for done, ((key, _), res) in enumerate(zip(jobs, results, strict=True), 1):
-                runs[key] = res
-                report_line(done, res, "reused" if res.get("reused") else "trained")
-        for done, (key, overrides) in enumerate(jobs, 1):
-            if key in runs:
-                continue
-            c = compose("train", job_overrides(key, overrides))
-            start = time.perf_counter()
-            runs[key] = train(c)
-            seconds = time.perf_counter() - start
-            left = eta.skipped(done - 1) if runs[key].get("reused") else \
-                eta.finished(done - 1, seconds)
-            report_line(done, runs[key], ("reused" if runs[key].get("reused") else
-                                          f"trained in {seconds:.0f} s")
-                        + (f", ETA {duration(left)}" if done < len(jobs) else ""))
-        return runs, "reused" if all(r.get("reused") for r in runs.values()) else "done"
-
-    t_train = time.perf_counter()
+                       f"{cfg.trials[scale]} Optuna trials each", lambda: stage_tune(cfg, out))
+    jobs = train_jobs(cfg, out)
     runs = stages.run(3, "train", f"{len(cfg.models) * len(cfg.windows)} observers "
                       f"({', '.join(cfg.models)} x N={list(cfg.windows)}) with the tuned "
                       "parameters" + (", and the robust observer" if cfg.robust else "")
                       + (f", through hydra/launcher={cfg.launcher}" if cfg.launcher else ""),
-                      train_all)
-
-    def classical() -> tuple[pd.DataFrame, str]:
-        csv = out / "classical" / "evaluation.csv"
-        stamp = out / "classical" / "stamp.json"
-        key = {"data": str(folder), "observers": list(cfg.classical)}
-        if csv.is_file() and stamp.is_file() and json.loads(stamp.read_text()) == key:
-            return pd.read_csv(csv), "reused"
-        c = compose("evaluate", [f"data={scale}", f"observers=[{','.join(cfg.classical)}]",
-                                  f"output_dir={out / 'classical'}", *extra])
-        table = pd.read_csv(evaluate(c))
-        write_text(stamp, json.dumps(key))
-        return table, "done"
-
-    classical_table = stages.run(4, "evaluate", f"classical observers "
-                                 f"({', '.join(cfg.classical)}) on the test grid; the learned "
-                                 "ones were scored by their runs", classical)
-
-    def write_report() -> tuple[list[Path], str]:
-        learned = pd.concat([pd.read_csv(_artifact(r, "evaluation.csv", cfg.tracking_uri))
-                             for r in runs.values()], ignore_index=True)
-        # each run's table also holds the EKF and oracle rows; the classical stage has them all
-        table = pd.concat([learned[~learned["observer"].isin(CLASSICAL)], classical_table],
-                          ignore_index=True)
-        run_ids = {r["name"]: r["run_id"] for r in runs.values()}
-        for model, res in tuned.items():
-            if res.get("parent_run_id"):
-                run_ids[f"tune-{model}"] = res["parent_run_id"]
-        best_cnn = report.best_window(table, "cnn")
-        traj = _trajectory(folder, runs.get(best_cnn), cfg.trajectory_manoeuvre,
-                           cfg.tracking_uri) if best_cnn else None
-        robust = runs["robust"]["name"] if "robust" in runs else None
-        files = report.write(out, scale, table, run_ids, stages.record, traj,
-                             folder / "friction_circle.png", robust=robust)
-        _log_report(cfg, scale, out, files, folder.name)
-        return files, "done"
-
-    stages.run(5, "report", f"tables and figures in {out}", write_report)
+                      lambda: stage_train(cfg, out, jobs))
+    table = stages.run(4, "evaluate", f"classical observers ({', '.join(cfg.classical)}) on "
+                       "the test grid; the learned ones were scored by their runs",
+                       lambda: stage_classical(cfg, out, folder))
+    stages.run(5, "report", f"tables and figures in {out}",
+               lambda: stage_report(cfg, out, folder, tuned, runs, table, stages.record))
     print(f"\nreport: {out / 'report.md'}  ({time.perf_counter() - t0:.0f} s in all)")
     return out
+
+
+def check_reproduce(cfg: DictConfig) -> None:
+    """Reject a bad scale, job count, launcher or tracking server before any stage runs."""
+    if cfg.scale not in cfg.trials:
+        raise LboError(f"scale must be one of {sorted(cfg.trials)}, got {cfg.scale!r}")
+    require(isinstance(cfg.jobs, int) and not isinstance(cfg.jobs, bool) and cfg.jobs >= 1,
+            "jobs", "an integer >= 1", cfg.jobs)
+    check_launcher(cfg.launcher, "launcher")
+    check_server(cfg.tracking_uri, "tracking_uri")
+
+
+def stage_data(cfg: DictConfig) -> tuple[Path, str]:
+    """1: the scale's data sets, generated or reused; returns their folder."""
+    from lbo.datagen.__main__ import run as datagen
+
+    return Path(datagen(compose("datagen", [f"data={cfg.scale}", *cfg.overrides]))), "done"
+
+
+def stage_tune(cfg: DictConfig, out: Path) -> tuple[dict, str]:
+    """2: one Optuna study per architecture at N=20 (resumed if it exists)."""
+    from lbo.tune import quiet, tune
+
+    quiet()
+    results, reused = {}, True
+    for model in cfg.models:
+        c = compose("tune", [f"hparams_search={model}", f"experiment={cfg.scale}",
+                              f"tune.n_trials={cfg.trials[cfg.scale]}",
+                              f"tune.handoff={out / 'tuned' / f'{model}.yaml'}",
+                              f"tune.storage={cfg.optuna_storage}",
+                              f"output_dir={out / 'tune' / model}",
+                              *cfg.tune_overrides[cfg.scale],
+                              *cfg.search_overrides[cfg.scale][model],
+                              *cfg.overrides, *cfg.train_overrides])
+        results[model] = tune(c)
+        reused &= not results[model]["new_trials"]
+    return results, "reused" if reused else "done"
+
+
+def train_jobs(cfg: DictConfig, out: Path) -> list[tuple[str, list[str]]]:
+    """(name, training overrides) of every observer the train stage trains."""
+    jobs = [(f"{model}-N{window}",
+             [f"experiment={cfg.scale}", f"model={model}", f"window={window}",
+              f"+tuned={model}", f"hydra.searchpath=[file://{out}]"])
+            for model in cfg.models for window in cfg.windows]
+    if cfg.robust:
+        jobs.append(("robust", ["experiment=robust", f"data={cfg.scale}",
+                                *cfg.robust_overrides[cfg.scale]]))
+    return [(key, [*o, "resume=true", f"output_dir={out / 'runs' / key}", *cfg.overrides,
+                   *cfg.train_overrides]) for key, o in jobs]
+
+
+def expected(cfg: DictConfig, jobs: list[tuple[str, list[str]]]) -> Eta:
+    """Measure a few steps of every run still to train; print the stage's expected time."""
+    from lbo.train import config_hash, data_device, finished_run
+
+    estimates = []
+    for key, overrides in jobs:
+        c = compose("train", overrides)
+        if finished_run(c, config_hash(c), clean=False) is not None:
+            estimates.append(0.0)
+            continue
+        m = measure(c)
+        estimates.append(m["seconds"])
+        print(f"    {key}: {m['steps']} steps x {1e3 * m['step_s']:.1f} ms + "
+              f"{m['setup_s']:.1f} s setup = {duration(m['seconds'])}", flush=True)
+    total = sum(estimates) / (min(cfg.jobs, len(jobs)) if cfg.launcher == "joblib" else 1)
+    device = data_device(compose("train", jobs[0][1]))
+    print(f"    expected: about {duration(total)} of training at scale {cfg.scale} on "
+          f"{device} (measured steps x steps per run; early stopping can only shorten it)",
+          flush=True)
+    return Eta(estimates)
+
+
+def stage_train(cfg: DictConfig, out: Path,
+                jobs: list[tuple[str, list[str]]]) -> tuple[dict, str]:
+    """3: train (or reuse) every observer, serially or through ``cfg.launcher``."""
+    from lbo.train import train
+
+    start_stage = time.perf_counter()
+
+    def report_line(done: int, run: dict, how: str) -> None:
+        print(f"    {done}/{len(jobs)} {run['name']}: {how}, NRMSE at alpha=1/3/6 "
+              + "/".join(f"{run.get(f'test_nrmse_alpha_{a}', np.nan):.2f}" for a in (1, 3, 6))
+              + f"  (stage {time.perf_counter() - start_stage:.0f} s)", flush=True)
+
+    runs: dict[str, dict] = {}
+    eta = expected(cfg, jobs)
+    if cfg.launcher:
+        results = launch(cfg, [o for _, o in jobs], out / "runs", [k for k, _ in jobs])
+        for done, ((key, _), res) in enumerate(zip(jobs, results, strict=True), 1):
+            runs[key] = res
+            report_line(done, res, "reused" if res.get("reused") else "trained")
+    for done, (key, overrides) in enumerate(jobs, 1):
+        if key in runs:
+            continue
+        start = time.perf_counter()
+        runs[key] = train(compose("train", overrides))
+        seconds = time.perf_counter() - start
+        reused = bool(runs[key].get("reused"))
+        left = eta.skipped(done - 1) if reused else eta.finished(done - 1, seconds)
+        report_line(done, runs[key], ("reused" if reused else f"trained in {seconds:.0f} s")
+                    + (f", ETA {duration(left)}" if done < len(jobs) else ""))
+    return runs, "reused" if all(r.get("reused") for r in runs.values()) else "done"
+
+
+def stage_classical(cfg: DictConfig, out: Path, folder: Path) -> tuple[pd.DataFrame, str]:
+    """4: the classical observers on the test grid, reused while the data are the same."""
+    from lbo.evaluate import run as evaluate
+
+    csv = out / "classical" / "evaluation.csv"
+    stamp = out / "classical" / "stamp.json"
+    key = {"data": str(folder), "observers": list(cfg.classical)}
+    if csv.is_file() and stamp.is_file() and json.loads(stamp.read_text()) == key:
+        return pd.read_csv(csv), "reused"
+    c = compose("evaluate", [f"data={cfg.scale}", f"observers=[{','.join(cfg.classical)}]",
+                              f"output_dir={out / 'classical'}", *cfg.overrides])
+    table = pd.read_csv(evaluate(c))
+    write_text(stamp, json.dumps(key))
+    return table, "done"
+
+
+def stage_report(cfg: DictConfig, out: Path, folder: Path, tuned: dict, runs: dict,
+                 classical_table: pd.DataFrame, record: dict) -> tuple[list[Path], str]:
+    """5: the tables and figures, also logged to MLflow as a run of their own."""
+    from lbo import report
+
+    learned = pd.concat([pd.read_csv(_artifact(r, "evaluation.csv", cfg.tracking_uri))
+                         for r in runs.values()], ignore_index=True)
+    # each run's table also holds the EKF and oracle rows; the classical stage has them all
+    table = pd.concat([learned[~learned["observer"].isin(CLASSICAL)], classical_table],
+                      ignore_index=True)
+    run_ids = {r["name"]: r["run_id"] for r in runs.values()}
+    for model, res in tuned.items():
+        if res.get("parent_run_id"):
+            run_ids[f"tune-{model}"] = res["parent_run_id"]
+    best_cnn = report.best_window(table, "cnn")
+    traj = _trajectory(folder, runs.get(best_cnn), cfg.trajectory_manoeuvre,
+                       cfg.tracking_uri) if best_cnn else None
+    robust = runs["robust"]["name"] if "robust" in runs else None
+    files = report.write(out, cfg.scale, table, run_ids, record, traj,
+                         folder / "friction_circle.png", robust=robust)
+    _log_report(cfg, cfg.scale, out, files, folder.name)
+    return files, "done"
 
 
 def _train_job(cfg: DictConfig) -> dict[str, Any]:
