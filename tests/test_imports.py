@@ -64,3 +64,12 @@ def test_export_and_observer_import_in_a_fresh_interpreter():
     res = subprocess.run([sys.executable, "-c", "import lbo.export, lbo.observer"],
                          capture_output=True, text=True)
     assert res.returncode == 0, res.stderr
+
+
+def test_a_missing_conf_folder_is_one_line(tmp_path):
+    res = subprocess.run([sys.executable, "-m", "lbo.evaluate"], capture_output=True,
+                         text=True, env={"LBO_ROOT": str(tmp_path), "PATH": "/usr/bin:/bin"})
+    assert res.returncode == 2
+    assert res.stderr.strip() == (f"error: lbo's configs are not in {tmp_path / 'conf'}: run "
+                                  "from the lbo repository (pip install -e . there), or set "
+                                  "LBO_ROOT=<repo>")

@@ -36,6 +36,9 @@ def entry(config_name: str, run: Callable[[DictConfig], Any]) -> Callable[[], An
 
     def checked() -> Any:
         try:
+            if not (CONF_DIR / f"{config_name}.yaml").is_file():
+                raise LboError(f"lbo's configs are not in {CONF_DIR}: run from the lbo "
+                               "repository (pip install -e . there), or set LBO_ROOT=<repo>")
             check_launcher(launcher_from_argv(sys.argv[1:]))
         except LboError as e:
             fail(e)
