@@ -50,3 +50,27 @@ def train_cfg(tmp_path, smoke_data, *overrides):
     """The training config at smoke scale, writing under ``tmp_path / 'out'``."""
     return compose_cfg("train", ["experiment=smoke", f"data.root={smoke_data.parent}",
                                  f"output_dir={tmp_path / 'out'}", *overrides])
+
+
+def train_in_own_store(tmp: Path, smoke_data: Path, *overrides: str):
+    """Train at smoke size into ``tmp / 'out'``, logged to an MLflow store of its own.
+
+    Returns ``(cfg, metrics, tracking_uri)``; ``overrides`` choose the experiment and sizes.
+    """
+    from lbo.train import train
+
+    uri = f"sqlite:///{tmp / 'mlflow.db'}"
+    cfg = compose_cfg("train", [*overrides, f"data.root={smoke_data.parent}",
+                                f"output_dir={tmp / 'out'}"])
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("MLFLOW_TRACKING_URI", uri)
+        return cfg, train(cfg), uri
+
+
+@pytest.fixture(scope="module")
+def manoeuvre(smoke_data):
+    """One simulated manoeuvre of the smoke test set at alpha=1, as a user's log would be."""
+    import pandas as pd
+
+    test = pd.read_parquet(smoke_data / "test.parquet")
+    return test[(test["traj"] == 0) & (test["alpha"] == 1.0)].sort_values("k")

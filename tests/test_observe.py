@@ -7,7 +7,7 @@ import pandas as pd
 import pytest
 import torch
 
-from conftest import compose_cfg
+from conftest import compose_cfg, train_in_own_store
 from lbo import schema
 from lbo.errors import LboError
 from lbo.evaluate import classical, predict_grid
@@ -17,7 +17,6 @@ from lbo.metrics import rmse
 from lbo.noise import Noise
 from lbo.observe import resample, run
 from lbo.observer import Observer
-from lbo.train import train
 from lbo.vehicle import Vehicle, wrap_angle
 
 VEHICLE, NOISE = Vehicle(), Noise.preset("paper")
@@ -31,21 +30,10 @@ pytestmark = pytest.mark.usefixtures("one_torch_thread")
 @pytest.fixture(scope="module")
 def trained(tmp_path_factory, smoke_data):
     """One smoke CNN (N=20), logged to its own MLflow store, shared by this module."""
-    tmp = tmp_path_factory.mktemp("observe")
-    uri = f"sqlite:///{tmp / 'mlflow.db'}"
-    with pytest.MonkeyPatch.context() as mp:
-        mp.setenv("MLFLOW_TRACKING_URI", uri)
-        out = train(compose_cfg("train", [
-            "experiment=smoke", f"data.root={smoke_data.parent}", f"output_dir={tmp / 'out'}",
-            "trainer.max_epochs=1", "trainer.limit_train_batches=5"]))
+    _, out, uri = train_in_own_store(tmp_path_factory.mktemp("observe"), smoke_data,
+                                     "experiment=smoke", "trainer.max_epochs=1",
+                                     "trainer.limit_train_batches=5")
     return {"checkpoint": out["checkpoint"], "run_id": out["run_id"], "uri": uri}
-
-
-@pytest.fixture(scope="module")
-def manoeuvre(smoke_data):
-    """One simulated manoeuvre of the smoke test set at alpha=1, as a user's log would be."""
-    test = pd.read_parquet(smoke_data / "test.parquet")
-    return test[(test["traj"] == 0) & (test["alpha"] == 1.0)].sort_values("k")
 
 
 @pytest.fixture

@@ -10,7 +10,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from conftest import compose_cfg
+from conftest import compose_cfg, train_in_own_store
 from lbo.errors import LboError
 from lbo.module import ObserverModule
 from lbo.observer import Observer
@@ -26,14 +26,9 @@ pytestmark = pytest.mark.usefixtures("one_torch_thread")
 def robust(tmp_path_factory, smoke_data):
     """One robust observer trained at smoke scale, logged to its own MLflow store."""
     tmp = tmp_path_factory.mktemp("robust")
-    uri = f"sqlite:///{tmp / 'mlflow.db'}"
-    cfg = compose_cfg("train", [
-        "experiment=robust", "data=smoke", f"data.root={smoke_data.parent}",
-        f"output_dir={tmp / 'out'}", "trainer.max_epochs=1", "trainer.limit_train_batches=5",
-        "window=40", "batch_size=64"])
-    with pytest.MonkeyPatch.context() as mp:
-        mp.setenv("MLFLOW_TRACKING_URI", uri)
-        out = train(cfg)
+    cfg, out, uri = train_in_own_store(tmp, smoke_data, "experiment=robust", "data=smoke",
+                                       "trainer.max_epochs=1", "trainer.limit_train_batches=5",
+                                       "window=40", "batch_size=64")
     return {"cfg": cfg, "out": out, "uri": uri, "dir": tmp / "out"}
 
 

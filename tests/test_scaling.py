@@ -159,11 +159,9 @@ def test_train_observe_export_and_tune_through_a_tracking_server(tmp_path, smoke
 
 
 @pytest.fixture
-def manoeuvre_csv(tmp_path, smoke_data):
-    test = pd.read_parquet(smoke_data / "test.parquet")
-    one = test[(test["traj"] == 0) & (test["alpha"] == 1.0)].sort_values("k")
+def manoeuvre_csv(tmp_path, manoeuvre):
     path = tmp_path / "log.csv"
-    one[["t", "x_m", "y_m", "psi_m", "V", "delta"]].to_csv(path, index=False)
+    manoeuvre[["t", "x_m", "y_m", "psi_m", "V", "delta"]].to_csv(path, index=False)
     return path
 
 

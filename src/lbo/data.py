@@ -224,9 +224,9 @@ class WindowDataModule(L.LightningDataModule):
         # one __getitem__ per batch: the gather is vectorised, never a loop over samples
         base = (RandomSampler(ds, generator=torch.Generator().manual_seed(self.seed))
                 if shuffle else SequentialSampler(ds))
-        # the loader's generator seeds the workers' per-epoch noise draws from `seed` alone
         # tensors on a GPU cannot go to worker processes: the main process gathers there
         workers = self.num_workers if self.device.type == "cpu" else 0
+        # the loader's generator seeds the workers' per-epoch noise draws from `seed` alone
         return DataLoader(ds, sampler=BatchSampler(base, batch, drop_last=False),
                           batch_size=None, num_workers=workers,
                           generator=torch.Generator().manual_seed(self.seed))

@@ -13,7 +13,7 @@ from typing import Any
 
 import torch
 from hydra.utils import instantiate
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 
 
 def steps_per_run(cfg: DictConfig, batches_per_epoch: int) -> int:
@@ -36,18 +36,12 @@ def measure(cfg: DictConfig, steps: int = 8, warmup: int = 3) -> dict[str, Any]:
     ``setup_s`` (reading the data set and building the model, once per run) and ``seconds``
     (setup plus steps x step time: the expected training time, early stopping aside).
     """
-    from lbo.data import WindowDataModule
-    from lbo.network import ObserverNet
-    from lbo.train import data_device, noise_settings, prepare_data
+    from lbo.train import build_net, data_device, datamodule, prepare_data
 
     begin = time.perf_counter()
-    folder, _ = prepare_data(cfg)
     device = data_device(cfg)
-    dm = WindowDataModule(folder, cfg.window, cfg.batch_size, seed=cfg.seed, device=device,
-                          **noise_settings(cfg))
-    dm.setup("fit")
-    spec = OmegaConf.to_container(cfg.model, resolve=True)
-    net = ObserverNet(spec.pop("name"), cfg.window, cfg.features, **spec).to(device)
+    dm = datamodule(cfg, prepare_data(cfg)[0])
+    net = build_net(cfg).to(device)
     net.set_normalisation(**dm.normalisation(cfg.features))
     opt = instantiate(cfg.optimizer)(params=net.parameters())
     loader = dm.train_dataloader()

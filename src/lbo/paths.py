@@ -35,13 +35,20 @@ if not OmegaConf.has_resolver("lbo.tracking_uri"):
     OmegaConf.register_new_resolver("lbo.tracking_uri", tracking_uri)
 
 
+def sqlite_path(uri: str) -> Path | None:
+    """The database file behind a ``sqlite:///`` URL, or None for anything else."""
+    prefix = "sqlite:///"
+    if not uri.startswith(prefix):
+        return None
+    path = uri[len(prefix):].split("?")[0]
+    return None if path in ("", ":memory:") else Path(path)
+
+
 def artifact_location(tracking_uri: str) -> str | None:
     """Where a new MLflow experiment keeps its artifacts: beside a SQLite store, or None to
     let a tracking server decide. Without this, MLflow writes ./mlruns wherever it is run."""
-    prefix = "sqlite:///"
-    if tracking_uri.startswith(prefix):
-        return (Path(tracking_uri[len(prefix):]).resolve().parent / "mlartifacts").as_uri()
-    return None
+    path = sqlite_path(tracking_uri)
+    return None if path is None else (path.resolve().parent / "mlartifacts").as_uri()
 
 
 if not OmegaConf.has_resolver("lbo.artifacts"):

@@ -13,6 +13,7 @@ import pandas as pd
 
 from lbo import plots
 from lbo.atomic import atomic_path, write_text
+from lbo.classical import NAMES as CLASSICAL
 
 # The paper's Tables I and II (RMSE; psi in rad) and its reading of Fig. 5.
 PAPER_RMSE = {
@@ -21,6 +22,8 @@ PAPER_RMSE = {
 }
 PAPER_BEST_WINDOW = {"cnn": 60, "lstm": 80}
 PAPER_CROSSOVER = {"cnn": 2.0, "lstm": 3.0}
+ROBUST_PEERS = ("ekf", "oracle", "adaptive", "pcrb")
+"""What the robust observer is shown against."""
 VARIABLES = (("x", "m", 1.0), ("y", "m", 1.0), ("psi", "mrad", 1e3))
 
 
@@ -95,8 +98,7 @@ def with_oracle_ratio(table: pd.DataFrame) -> pd.DataFrame:
 
 def robust_markdown(table: pd.DataFrame, robust: str) -> list[str]:
     """The robust observer against the classical peers, per alpha, with its oracle ratio."""
-    peers = [o for o in (robust, "ekf", "oracle", "adaptive", "pcrb")
-             if o in set(table["observer"])]
+    peers = _present(table, (robust, *ROBUST_PEERS))
     nr = table.pivot(index="alpha", columns="observer", values="nrmse")[peers]
     ratio = table[table["observer"] == robust].set_index("alpha")["ratio_to_oracle"]
     nr[f"{robust} / oracle"] = ratio
@@ -114,7 +116,7 @@ def robust_markdown(table: pd.DataFrame, robust: str) -> list[str]:
 def crossover_markdown(table: pd.DataFrame) -> list[str]:
     """Where each learned observer crosses the EKF."""
     learned = [o for o in dict.fromkeys(table["observer"])
-               if o not in ("ekf", "oracle", "adaptive", "ukf", "pcrb")]
+               if o not in CLASSICAL]
     out = ["## Where each learned observer crosses the EKF", "",
            "| observer | training noise | below the EKF from alpha |", "|---|---|---|"]
     for name in learned:
@@ -124,6 +126,12 @@ def crossover_markdown(table: pd.DataFrame) -> list[str]:
         out.append(f"| {name} | {noise} | "
                    f"{'never on 0..6' if cross is None else f'{cross:.2f}'} |")
     return [*out, ""]
+
+
+def _present(table: pd.DataFrame, names) -> list[str]:
+    """The observers of ``names`` that ``table`` has rows for, in that order."""
+    have = set(table["observer"])
+    return [n for n in names if n in have]
 
 
 def _md(df: pd.DataFrame, digits: int = 3) -> str:
@@ -202,13 +210,11 @@ def write(folder: str | Path, scale: str, table: pd.DataFrame, runs: dict[str, s
                                  observers=[*names, "ekf"])
         written.append(plots.save(fig, folder / f"nrmse_{model}.png"))
     if robust is not None:
-        peers = [robust, *(o for o in ("ekf", "oracle", "adaptive", "pcrb")
-                           if o in set(table["observer"]))]
+        peers = [robust, *_present(table, ROBUST_PEERS)]
         written.append(plots.save(plots.nrmse_curves(
             table, f"{robust}, never told alpha, against the classical peers", observers=peers),
             folder / "nrmse_robust.png"))
-    every = [n for n in (best["cnn"], best["lstm"], robust) if n] + [
-        o for o in ("ekf", "oracle", "adaptive", "ukf", "pcrb") if o in set(table["observer"])]
+    every = [n for n in (best["cnn"], best["lstm"], robust) if n] + _present(table, CLASSICAL)
     written.append(plots.save(plots.nrmse_curves(table, "best observers, classical peers and "
                                                  "the PCRB", observers=every),
                               folder / "nrmse_all.png"))

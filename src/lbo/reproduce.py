@@ -310,7 +310,7 @@ def _log_report(cfg: DictConfig, scale: str, out: Path, files: list[Path], data:
     from lbo.tracking import ensure_experiment
 
     client, exp_id = ensure_experiment(cfg.tracking_uri, cfg.experiment_name,
-                                       artifact_location(cfg.tracking_uri), "tracking_uri")
+                                       artifact_location(cfg.tracking_uri))
     found = client.search_runs([exp_id], f"tags.lbo_report = '{scale}' and tags.data = '{data}'")
     run_id = found[0].info.run_id if found else client.create_run(
         exp_id, run_name=f"report-{scale}", tags={"lbo_report": scale, "data": data}).info.run_id

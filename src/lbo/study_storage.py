@@ -11,7 +11,8 @@ import optuna
 from optuna.trial import TrialState
 
 from lbo.errors import LboError
-from lbo.tracking import creation_lock, sqlite_path
+from lbo.paths import sqlite_path
+from lbo.tracking import creation_lock
 
 #: Trials that count towards ``tune.n_trials``; failed ones (crashes, killed processes) do not.
 FINISHED = (TrialState.COMPLETE, TrialState.PRUNED)

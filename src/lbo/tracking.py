@@ -11,10 +11,10 @@ import contextlib
 import importlib.util
 import sqlite3
 from collections.abc import Iterator
-from pathlib import Path
 from urllib.parse import urlparse
 
 from lbo.errors import LboError
+from lbo.paths import sqlite_path
 
 #: Launchers named on the command line (``hydra/launcher=<name>``) -> (plugin module, package).
 LAUNCHERS = {
@@ -82,15 +82,6 @@ def check_server(uri: str, field: str = "logger.tracking_uri") -> None:
                        f"HTTP {reply.status_code})")
 
 
-def sqlite_path(uri: str) -> Path | None:
-    """The database file behind a ``sqlite:///`` URL, or None for anything else."""
-    prefix = "sqlite:///"
-    if not uri.startswith(prefix):
-        return None
-    path = uri[len(prefix):].split("?")[0]
-    return None if path in ("", ":memory:") else Path(path)
-
-
 @contextlib.contextmanager
 def creation_lock(uri: str) -> Iterator[None]:
     """Hold a lock, per machine, on the SQLite database behind ``uri`` (no-op for a server).
@@ -109,16 +100,14 @@ def creation_lock(uri: str) -> Iterator[None]:
         yield
 
 
-def prepare_store(uri: str, field: str = "logger.tracking_uri") -> None:
-    """Check the MLflow store at ``uri`` before any run starts: a server must answer, and a
-    SQLite file is switched to write-ahead logging.
+def use_wal(uri: str) -> None:
+    """Switch the SQLite file behind ``uri`` (if any, and if it exists) to write-ahead logging.
 
     In WAL mode readers never block the writer, so parallel jobs (``hydra/launcher=joblib``)
     that log metrics while others read do not fail with "database is locked"; writers still
     take turns, and MLflow's connections wait for each other (SQLite's busy timeout). The
     mode is stored in the file, so one call covers every later process.
     """
-    check_server(uri, field)
     path = sqlite_path(uri)
     if path is None or not path.is_file():
         return
@@ -127,10 +116,10 @@ def prepare_store(uri: str, field: str = "logger.tracking_uri") -> None:
             db.execute("PRAGMA journal_mode=WAL")
 
 
-def ensure_experiment(uri: str, name: str, artifact_location: str | None,
-                      field: str = "logger.tracking_uri"):
+def ensure_experiment(uri: str, name: str, artifact_location: str | None):
     """An MLflow client on the store at ``uri`` and the id of experiment ``name``, created if
-    missing. Returns ``(client, experiment_id)``.
+    missing, the store in WAL mode if it is SQLite. Returns ``(client, experiment_id)``.
+    Callers have checked a server with :func:`check_server` first.
 
     Jobs started together would each create the store's tables, or the experiment, and all but
     one would fail: the first one does it under :func:`creation_lock`, and an experiment that
@@ -139,10 +128,9 @@ def ensure_experiment(uri: str, name: str, artifact_location: str | None,
     from mlflow import MlflowClient
     from mlflow.exceptions import MlflowException
 
-    prepare_store(uri, field)
     with creation_lock(uri):
-        client = MlflowClient(uri)
-        prepare_store(uri, field)  # a file the client has just created
+        client = MlflowClient(uri)  # creates the tables of a new SQLite file
+        use_wal(uri)
         exp = client.get_experiment_by_name(name)
         if exp is not None:
             return client, exp.experiment_id

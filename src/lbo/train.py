@@ -57,16 +57,31 @@ def check(cfg: DictConfig) -> None:
     require(cfg.get("lr_schedule", "constant") in SCHEDULES, "lr_schedule",
             f"one of {list(SCHEDULES)}", cfg.get("lr_schedule"))
     noise_settings(cfg)
-    # the model's own checks (its parameters, the feature modes it reads) before any data
-    from lbo.network import ObserverNet
-
-    model = OmegaConf.to_container(cfg.model, resolve=True)
-    ObserverNet(model.pop("name"), w, cfg.features, **model)
+    build_net(cfg)  # the model's own checks (its parameters, feature modes) before any data
     if cfg.get("logger") and cfg.logger.get("tracking_uri"):
         check_server(cfg.logger.tracking_uri)
     if cfg.trainer.accelerator == "gpu" and not torch.cuda.is_available():
         raise LboError("trainer=gpu needs CUDA, which torch does not see here; "
                        "use trainer=cpu or trainer=auto")
+
+
+def build_net(cfg: DictConfig):
+    """The :class:`~lbo.network.ObserverNet` that ``cfg.model`` describes, untrained."""
+    from lbo.network import ObserverNet
+
+    model = OmegaConf.to_container(cfg.model, resolve=True)
+    return ObserverNet(model.pop("name"), cfg.window, cfg.features, **model)
+
+
+def datamodule(cfg: DictConfig, folder: Path):
+    """The training and validation windows of ``folder`` as ``cfg`` asks for them (batch size,
+    seed, training noise, device), set up."""
+    from lbo.data import WindowDataModule
+
+    dm = WindowDataModule(folder, cfg.window, cfg.batch_size, seed=cfg.seed,
+                          device=data_device(cfg), **noise_settings(cfg))
+    dm.setup("fit")
+    return dm
 
 
 def data_device(cfg: DictConfig) -> str:
@@ -176,7 +191,6 @@ def train(cfg: DictConfig, callbacks: list[L.Callback] | None = None,
     ``epochs``.
     """
     from lbo.callbacks import Evaluation
-    from lbo.data import WindowDataModule
     from lbo.module import ObserverModule
 
     check(cfg)
@@ -192,9 +206,7 @@ def train(cfg: DictConfig, callbacks: list[L.Callback] | None = None,
             return reused
     L.seed_everything(cfg.seed, workers=True, verbose=False)
     folder, data_hash = prepare_data(cfg)
-    dm = WindowDataModule(folder, cfg.window, cfg.batch_size, seed=cfg.seed,
-                          device=data_device(cfg), **noise_settings(cfg))
-    dm.setup("fit")
+    dm = datamodule(cfg, folder)
     module = ObserverModule(OmegaConf.to_container(cfg.model, resolve=True), cfg.window,
                             cfg.features, instantiate(cfg.optimizer), meta(cfg, data_hash),
                             cfg.get("lr_schedule", "constant"))
