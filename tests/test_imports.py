@@ -70,6 +70,6 @@ def test_a_missing_conf_folder_is_one_line(tmp_path):
     res = subprocess.run([sys.executable, "-m", "lbo.evaluate"], capture_output=True,
                          text=True, env={"LBO_ROOT": str(tmp_path), "PATH": "/usr/bin:/bin"})
     assert res.returncode == 2
-    assert res.stderr.strip() == (f"error: lbo's configs are not in {tmp_path / 'conf'}: run "
-                                  "from the lbo repository (pip install -e . there), or set "
-                                  "LBO_ROOT=<repo>")
+    assert res.stderr.strip() == (f"error: lbo's configs are neither in {tmp_path / 'conf'} "
+                                  "nor in the installed package: reinstall lbo (pip install "
+                                  "<repo>), or set LBO_ROOT=<repo>")

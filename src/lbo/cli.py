@@ -10,7 +10,7 @@ import hydra
 from omegaconf import DictConfig
 
 from lbo.errors import LboError
-from lbo.paths import CONF_DIR
+from lbo.paths import CONF_DIR, REPO_ROOT
 from lbo.tracking import check_launcher, launcher_from_argv
 
 
@@ -37,8 +37,9 @@ def entry(config_name: str, run: Callable[[DictConfig], Any]) -> Callable[[], An
     def checked() -> Any:
         try:
             if not (CONF_DIR / f"{config_name}.yaml").is_file():
-                raise LboError(f"lbo's configs are not in {CONF_DIR}: run from the lbo "
-                               "repository (pip install -e . there), or set LBO_ROOT=<repo>")
+                raise LboError(f"lbo's configs are neither in {REPO_ROOT / 'conf'} nor in the "
+                               "installed package: reinstall lbo (pip install <repo>), or set "
+                               "LBO_ROOT=<repo>")
             check_launcher(launcher_from_argv(sys.argv[1:]))
         except LboError as e:
             fail(e)

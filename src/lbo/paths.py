@@ -1,4 +1,5 @@
-"""Where the project lives: the repo root holds conf/, data/, mlflow.db and optuna.db."""
+"""Where the project lives: the project root holds data/, mlflow.db and optuna.db; conf/ is
+the repository's, or the copy shipped inside the package when lbo is not installed editable."""
 
 from __future__ import annotations
 
@@ -17,8 +18,14 @@ def _find_root() -> Path:
     return Path.cwd().resolve()
 
 
+def _find_conf(root: Path) -> Path:
+    if (root / "conf" / "train.yaml").is_file():
+        return root / "conf"
+    return Path(__file__).resolve().parent / "conf"
+
+
 REPO_ROOT: Path = _find_root()
-CONF_DIR: Path = REPO_ROOT / "conf"
+CONF_DIR: Path = _find_conf(REPO_ROOT)
 
 # `${lbo.root:}` in any config resolves to the repo root, whatever the working directory.
 if not OmegaConf.has_resolver("lbo.root"):

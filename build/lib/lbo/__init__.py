@@ -1,0 +1,34 @@
+"""lbo: learning-based observers for the kinematic bicycle.
+
+The names below are loaded on first use, so ``import lbo`` stays light (no torch)::
+
+    import lbo
+    obs = lbo.Observer.load("ekf")          # imports lbo.observer (and its dependencies) now
+"""
+
+from __future__ import annotations
+
+from importlib import import_module
+from typing import Any
+
+_EXPORTS = {
+    "Observer": "lbo.observer",
+    "Estimate": "lbo.observer",
+    "Vehicle": "lbo.vehicle",
+    "Noise": "lbo.noise",
+    "LboError": "lbo.errors",
+}
+
+__all__ = sorted(_EXPORTS)
+
+
+def __getattr__(name: str) -> Any:
+    if name in _EXPORTS:
+        value = getattr(import_module(_EXPORTS[name]), name)
+        globals()[name] = value  # later look-ups skip this function
+        return value
+    raise AttributeError(f"module 'lbo' has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(__all__))

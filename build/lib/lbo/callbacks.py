@@ -1,0 +1,82 @@
+"""Lightning callbacks: score the best checkpoint on the whole test grid at the end of fit."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import lightning as L
+import pandas as pd
+from lightning.pytorch.loggers import MLFlowLogger
+
+from lbo import plots
+from lbo.atomic import atomic_path
+from lbo.evaluate import (
+    classical_table,
+    load_test,
+    nrmse_at,
+    oracle_ratio,
+    predict_grid,
+    reference,
+    score,
+)
+from lbo.observer import read_checkpoint, trained_conditions
+
+LOGGED_ALPHAS = (1.0, 3.0, 6.0)
+
+
+class Evaluation(L.Callback):
+    """At the end of fit: load the best checkpoint, run it on every test level, score it
+    beside the EKF and the oracle EKF with :func:`lbo.evaluate.score`, write
+    ``evaluation.csv`` and ``nrmse.png`` to ``output_dir`` and log them, the metrics and the
+    checkpoint to MLflow. ``worst_oracle_ratio`` is the largest NRMSE ratio to the oracle over
+    alpha in [0.25, 6], so that ``mlflow ui`` can sort observers by it.
+
+    Parameters
+    ----------
+    output_dir : where the table and the figure are written.
+    reference : ``"ekf"`` (our EKF's RMSE at alpha=1) or ``"paper"``.
+    """
+
+    def __init__(self, output_dir: str, reference: str = "ekf", batch_size: int = 8192) -> None:
+        self.output_dir = Path(output_dir)
+        self.reference = reference
+        self.batch_size = batch_size
+        self.table: pd.DataFrame | None = None
+        self.metrics: dict[str, float] = {}
+        # set by lbo.train: Lightning hides the run's logger behind a dummy in fast_dev_run
+        self.mlflow: MLFlowLogger | None = None
+
+    def on_fit_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        start = time.perf_counter()
+        best = getattr(trainer.checkpoint_callback, "best_model_path", "") or ""
+        # the best weights through the one checkpoint reader, with its format checks
+        net, hp = read_checkpoint(best) if best else (pl_module.observer, pl_module.hparams)
+        vehicle, noise = trained_conditions(hp, best or "(in memory)")
+        arr = load_test(Path(trainer.datamodule.folder) / "test.parquet")
+        ref = reference(arr, vehicle, noise, self.reference)
+        name = f"{hp['model']['name']}-N{hp['window']}"
+        est = predict_grid(net, arr, hp["window"], self.batch_size,
+                           device=str(trainer.strategy.root_device))
+        self.table = pd.concat([score(name, est, arr, ref),
+                                classical_table(arr, vehicle, noise, ["ekf", "oracle"], ref)],
+                               ignore_index=True)
+        csv, png = self.output_dir / "evaluation.csv", self.output_dir / "nrmse.png"
+        with atomic_path(csv) as tmp:
+            self.table.to_csv(tmp, index=False)
+        plots.save(plots.nrmse_curves(self.table, title=f"{name} against the EKF"), png)
+        self.metrics = {f"test_nrmse_alpha_{a:g}": nrmse_at(self.table, name, a)
+                        for a in LOGGED_ALPHAS if (abs(self.table["alpha"] - a) < 1e-9).any()}
+        ratio = oracle_ratio(self.table, name)
+        if len(ratio):
+            self.metrics["worst_oracle_ratio"] = float(ratio.max())
+        self.metrics["eval_seconds"] = time.perf_counter() - start
+        logger = self.mlflow or trainer.logger
+        if isinstance(logger, MLFlowLogger):
+            client, run = logger.experiment, logger.run_id
+            for key, value in self.metrics.items():
+                client.log_metric(run, key, value)
+            client.log_artifact(run, str(csv))
+            client.log_artifact(run, str(png))
+            if best:
+                client.log_artifact(run, best, artifact_path="checkpoints")

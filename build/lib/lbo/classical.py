@@ -1,0 +1,84 @@
+"""The classical observers by name: the one registry that ``lbo.evaluate``, ``lbo.observe``,
+:class:`lbo.Observer` and ``make reproduce`` use.
+
+- ``ekf``: the paper's EKF, R at alpha = 1 whatever the noise;
+- ``oracle``: the same EKF told the true alpha (R = alpha^2 R_1);
+- ``adaptive``: the Sage-Husa EKF that learns R from its innovations, starting from R_1;
+- ``ukf``: the unscented filter (filterpy's, vectorised), R at alpha = 1;
+- ``pcrb``: not an observer but the bound on any observer's error (needs the true states).
+
+Each runs over a batch (:func:`run`) or one step at a time (:func:`stepper`), with the same
+numbers either way.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from lbo.errors import LboError
+from lbo.filters import (
+    KalmanStepper,
+    UnscentedStepper,
+    adaptive_ekf_batch,
+    adaptive_settings,
+    ekf_batch,
+    ukf_batch,
+)
+from lbo.noise import Noise
+from lbo.vehicle import Vehicle
+
+OBSERVERS = ("ekf", "oracle", "adaptive", "ukf")
+"""Causal observers that run on a log."""
+BOUND = "pcrb"
+NAMES = (*OBSERVERS, BOUND)
+"""Everything ``lbo.evaluate`` scores on the test grid."""
+UKF_SPREAD = 0.1
+"""Merwe's sigma-point spread of the UKF."""
+
+
+def check(name: str, field: str = "observer") -> None:
+    """Raise one line naming ``field`` unless ``name`` is a classical observer."""
+    if name == BOUND:
+        raise LboError(f"{field}: pcrb is a bound on the error, not an observer; "
+                       f"use one of {', '.join(OBSERVERS)} or a checkpoint")
+    if name not in OBSERVERS:
+        raise LboError(f"{field}: unknown classical observer {name!r}; "
+                       f"expected one of {', '.join(OBSERVERS)}")
+
+
+def measurement_cov(name: str, noise: Noise, alpha: float | np.ndarray, g: int) -> np.ndarray:
+    """(G, 3, 3) R of each trajectory: R at its own alpha for the oracle, else R at 1."""
+    scale = np.broadcast_to(np.asarray(alpha, dtype=float), (g,)) if name == "oracle" \
+        else np.ones(g)
+    return np.einsum("gi,ij->gij", np.square(noise.meas(scale)), np.eye(3))
+
+
+def run(name: str, m: np.ndarray, u: np.ndarray, vehicle: Vehicle, noise: Noise,
+        alpha: float | np.ndarray = 1.0, progress: bool = False) -> np.ndarray:
+    """Estimates (G, T, 3) of observer ``name`` over G trajectories.
+
+    m : (G, T, 3) measurements; u : (G, T, 2) inputs; alpha : the noise scale the oracle is
+    told, one for all or (G,) per trajectory (the others ignore it).
+    """
+    check(name)
+    R = measurement_cov(name, noise, alpha, np.shape(m)[0])
+    if name == "adaptive":
+        return adaptive_ekf_batch(m, u, vehicle, noise.Q, R)
+    if name == "ukf":
+        return ukf_batch(m, u, vehicle, noise.Q, R, spread=UKF_SPREAD, progress=progress)
+    return ekf_batch(m, u, vehicle, noise.Q, R)
+
+
+def stepper(name: str, m0: np.ndarray, vehicle: Vehicle, noise: Noise,
+            alpha: float | np.ndarray = 1.0) -> Any:
+    """Observer ``name`` started at the first measurements m0 (G, 3); its ``update(m (G, 3),
+    u_prev (G, 2))`` returns the next estimates (G, 3), as :func:`run` would."""
+    check(name)
+    R = measurement_cov(name, noise, alpha, len(m0))
+    if name == "adaptive":
+        return KalmanStepper(m0, vehicle, noise.Q, **adaptive_settings(R, len(m0)))
+    if name == "ukf":
+        return UnscentedStepper(m0, vehicle, noise.Q, R, UKF_SPREAD)
+    return KalmanStepper(m0, vehicle, noise.Q, R)

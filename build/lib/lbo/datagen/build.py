@@ -1,0 +1,264 @@
+"""The paper's three data sets from one config: checked, hashed, cached and written atomically."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+from omegaconf import DictConfig, OmegaConf
+
+from lbo import schema
+from lbo.atomic import write_text
+from lbo.config import positive, require
+from lbo.datagen import clothoid
+from lbo.datagen.friction import G, Grid, accelerations, generate_train
+from lbo.datagen.manoeuvres import MANOEUVRES, validation_path
+from lbo.datagen.pursuit import drive, smooth_noise
+from lbo.noise import Noise
+from lbo.vehicle import Vehicle, measure, wrap_angle
+
+# Bump when a generator changes what it writes, so old caches are not reused.
+DATAGEN_VERSION = 1
+SETS = ("train", "val", "test")
+DS = 0.1  # path sampling (m)
+
+
+@dataclass(frozen=True)
+class Spec:
+    """A checked data config: everything the generators need, nothing from Hydra."""
+
+    name: str
+    root: Path
+    seed: int
+    vehicle: Vehicle
+    noise: Noise
+    train: dict
+    val: dict
+    test: dict
+    digest: str
+
+    @property
+    def folder(self) -> Path:
+        return self.root / f"{self.name}-{self.digest}"
+
+    @property
+    def alphas(self) -> np.ndarray:
+        t = self.test
+        n = int(round(t["alpha_max"] / t["alpha_step"]))
+        return np.round(np.arange(n + 1) * t["alpha_step"], 10)
+
+
+def spec_from_cfg(cfg: DictConfig) -> Spec:
+    """Check a composed config (groups ``data``, ``vehicle``, ``noise``) and build the Spec.
+
+    Raises LboError with one line naming the first bad field.
+    """
+    vehicle = Vehicle.from_cfg(cfg.vehicle)
+    noise = Noise.from_cfg(cfg.noise)
+    d = cfg.data
+    require(isinstance(d.seed, int) and d.seed >= 0, "data.seed", "an integer >= 0", d.seed)
+    tr = OmegaConf.to_container(d.train, resolve=True)
+    for key in ("n_traj", "candidates", "grid"):
+        positive(tr, key, "data.train", integer=True)
+    for key in ("duration", "radius_g", "jerk"):
+        positive(tr, key, "data.train")
+    require(tr["duration"] >= 2 * vehicle.dt, "data.train.duration",
+            f"at least two steps ({2 * vehicle.dt} s)", tr["duration"])
+    hold = tr["hold"]
+    require(len(hold) == 2 and 0 < hold[0] <= hold[1], "data.train.hold",
+            "[min, max] seconds with 0 < min <= max", hold)
+    require(tr["alpha"] >= 0, "data.train.alpha", "a noise scale >= 0", tr["alpha"])
+    va = OmegaConf.to_container(d.val, resolve=True)
+    for key in ("steps", "run_in"):
+        positive(va, key, "data.val", integer=True)
+    for key in ("length", "amplitude", "period"):
+        positive(va, key, "data.val")
+    require(0 <= va["speed_variation"] < 1, "data.val.speed_variation", "in [0, 1)",
+            va["speed_variation"])
+    require(va["alpha"] >= 0, "data.val.alpha", "a noise scale >= 0", va["alpha"])
+    te = OmegaConf.to_container(d.test, resolve=True)
+    positive(te, "run_in", "data.test", integer=True)
+    require(te["run_in"] >= 80 and va["run_in"] >= 80, "data.test.run_in and data.val.run_in",
+            "at least 80 steps, so every window N <= 80 is scored on the same points",
+            (te["run_in"], va["run_in"]))
+    positive(te, "alpha_step", "data.test")
+    require(te["alpha_max"] >= 0, "data.test.alpha_max", "a noise scale >= 0", te["alpha_max"])
+    require(0 <= te["speed_variation"] < 1, "data.test.speed_variation", "in [0, 1)",
+            te["speed_variation"])
+    names = te["manoeuvres"]
+    require(len(names) > 0, "data.test.manoeuvres", "a non-empty list of manoeuvre names", names)
+    for n in names:
+        require(n in MANOEUVRES, "data.test.manoeuvres",
+                f"names from {sorted(MANOEUVRES)}", n)
+    require(len(set(names)) == len(names), "data.test.manoeuvres", "names without repeats", names)
+
+    hashed = {"version": DATAGEN_VERSION, "seed": d.seed, "train": tr, "val": va, "test": te,
+              "vehicle": vehicle.__dict__,
+              "noise": [noise.process_sigma, noise.measurement_sigma]}
+    digest = hashlib.sha256(json.dumps(hashed, sort_keys=True).encode()).hexdigest()[:12]
+    return Spec(str(d.name), Path(d.root), int(d.seed), vehicle, noise, tr, va, te, digest)
+
+
+def _rng(spec: Spec, *key: int) -> np.random.Generator:
+    return np.random.default_rng([spec.seed, *key])
+
+
+def make_train(spec: Spec) -> pd.DataFrame:
+    tr, v = spec.train, spec.vehicle
+    n_steps = int(round(tr["duration"] / v.dt))
+    out = generate_train(tr["n_traj"], n_steps, v, spec.noise, _rng(spec, 1),
+                         radius=tr["radius_g"] * G, grid=tr["grid"], hold=tuple(tr["hold"]),
+                         jerk=tr["jerk"], candidates=tr["candidates"], alpha=tr["alpha"])
+    b = tr["n_traj"]
+    traj = np.repeat(np.arange(b), n_steps)
+    k = np.tile(np.arange(n_steps), b)
+    return schema.frame(traj, k, v.dt, out["z"].reshape(-1, 3), out["u"].reshape(-1, 2),
+                        out["m"].reshape(-1, 3))
+
+
+def _drive(spec: Spec, segments: list, steps: np.ndarray, shapes: np.ndarray, run_in: int,
+           variation: float, rng: np.random.Generator) -> dict[str, np.ndarray]:
+    """Drive G clothoid chains with pure pursuit. steps, shapes: (G,), (G, 2)."""
+    v = spec.vehicle
+    lengths = np.array([clothoid.path_length(s) for s in segments])
+    t_max = run_in + int(steps.max())
+    # linear speed shape over the scored steps, mean 1, held at its start value in the run-in
+    frac = np.clip((np.arange(t_max)[None, :] - run_in) / steps[:, None], 0.0, 1.0)
+    shape = shapes / shapes.mean(axis=1, keepdims=True)
+    v_mean = lengths / (steps * v.dt)
+    speed = v_mean[:, None] * (shape[:, :1] + (shape[:, 1:] - shape[:, :1]) * frac)
+    speed *= 1 + variation * smooth_noise(len(segments), t_max, v.dt, rng)
+    speed = np.clip(speed, v.v_min, v.v_max)
+    lead = run_in * v.dt * speed[:, :run_in].mean(axis=1)
+    paths = [clothoid.sample(s, DS, lead_in=li, tail=0.6 * L + 60)
+             for s, li, L in zip(segments, lead, lengths)]
+    return drive(paths, speed, v, np.asarray(spec.noise.process_sigma), rng, ds=DS)
+
+
+def _scored_frame(spec: Spec, z: np.ndarray, u: np.ndarray, n_real: np.ndarray, run_in: int,
+                  alphas: np.ndarray, key: int) -> pd.DataFrame:
+    """Rows for every alpha level (independent seeded noise per level), alpha-major.
+
+    z, u: (G, T, 3|2) padded; n_real: (G,) real steps per trajectory.
+    """
+    g, t_max = z.shape[:2]
+    real = np.arange(t_max)[None, :] < n_real[:, None]
+    traj, k = np.nonzero(real)
+    zs, us = z[real], u[real]
+    frames = []
+    for i, a in enumerate(alphas):
+        m = measure(zs, spec.noise.meas(a), _rng(spec, key, i))
+        m[:, 2] = wrap_angle(m[:, 2])
+        frames.append(schema.frame(traj, k, spec.vehicle.dt, zs, us, m,
+                                   alpha=np.full(len(k), a), scored=k >= run_in))
+    return pd.concat(frames, ignore_index=True)
+
+
+def make_val(spec: Spec) -> pd.DataFrame:
+    va = spec.val
+    seg = validation_path(va["length"], va["amplitude"], va["period"])
+    out = _drive(spec, [seg], np.array([va["steps"]]), np.ones((1, 2)), va["run_in"],
+                 va["speed_variation"], _rng(spec, 2))
+    return _scored_frame(spec, out["z"], out["u"], np.array([va["run_in"] + va["steps"]]),
+                         va["run_in"], np.array([va["alpha"]]), 3)
+
+
+def make_test(spec: Spec) -> pd.DataFrame:
+    te = spec.test
+    man = [MANOEUVRES[n] for n in te["manoeuvres"]]
+    steps = np.array([m.steps for m in man])
+    out = _drive(spec, [m.build() for m in man], steps, np.array([m.speed_shape for m in man]),
+                 te["run_in"], te["speed_variation"], _rng(spec, 4))
+    return _scored_frame(spec, out["z"], out["u"], te["run_in"] + steps, te["run_in"],
+                         spec.alphas, 5)
+
+
+MAKERS = {"train": make_train, "val": make_val, "test": make_test}
+
+
+def summary(spec: Spec, sets: dict[str, pd.DataFrame]) -> dict[str, float]:
+    """Rows per set, friction-circle coverage of the training set, speed and heading ranges."""
+    tr = sets["train"]
+    acc = train_accelerations(spec, tr)
+    grid = Grid(spec.train["radius_g"] * G, spec.train["grid"])
+    out = {f"rows_{n}": len(df) for n, df in sets.items()}
+    out["scored_val"] = int(sets["val"]["scored"].sum())
+    out["scored_test_per_alpha"] = int(sets["test"]["scored"].sum() // len(spec.alphas))
+    out["scored_test"] = int(sets["test"]["scored"].sum())
+    out["coverage"] = grid.coverage(acc)
+    for n, df in sets.items():
+        out[f"V_{n}"] = (float(df["V"].min()), float(df["V"].max()))
+        out[f"psi_{n}"] = (float(df["psi"].min()), float(df["psi"].max()))
+    return out
+
+
+def train_accelerations(spec: Spec, train: pd.DataFrame) -> np.ndarray:
+    """(S, 2) vehicle-frame accelerations (a_lon, a_lat) of the training set."""
+    n = spec.train["n_traj"]
+    V = train["V"].to_numpy().reshape(n, -1)
+    delta = train["delta"].to_numpy().reshape(n, -1)
+    return accelerations(V, delta, spec.vehicle.dt, spec.vehicle.wheelbase).reshape(-1, 2)
+
+
+def figures(spec: Spec, sets: dict[str, pd.DataFrame], folder: Path) -> list[Path]:
+    """friction_circle.png and test_manoeuvres.png in ``folder``."""
+    from lbo import plots
+
+    grid = Grid(spec.train["radius_g"] * G, spec.train["grid"])
+    acc = train_accelerations(spec, sets["train"])
+    tr = sets["train"]
+    fc = plots.friction_circle(acc, grid.radius, grid.edges, tr["V"].to_numpy(),
+                               tr["psi"].to_numpy(), grid.coverage(acc))
+    te = sets["test"]
+    one = te[te["alpha"] == spec.alphas[0]]
+    xy = {name: one.loc[one["traj"] == i, ["x", "y"]].to_numpy()
+          for i, name in enumerate(spec.test["manoeuvres"])}
+    tm = plots.paths(xy, scored_from=spec.test["run_in"])
+    return [plots.save(fc, folder / "friction_circle.png"),
+            plots.save(tm, folder / "test_manoeuvres.png")]
+
+
+def build(spec: Spec, progress: bool = True) -> tuple[Path, dict[str, pd.DataFrame], bool]:
+    """Generate (or reuse) the three sets under ``spec.folder``.
+
+    Returns the folder, the frames, and whether they came from the cache. Files are written
+    atomically; a set is reused only when its Parquet file is complete.
+    """
+    from filelock import FileLock
+
+    folder = spec.folder
+    folder.parent.mkdir(parents=True, exist_ok=True)
+    # jobs of a parallel sweep share one data set: the first generates it, the others wait
+    with FileLock(folder.parent / f".{folder.name}.lock", timeout=-1):
+        return _build(spec, folder, progress)
+
+
+def _build(spec: Spec, folder: Path, progress: bool
+           ) -> tuple[Path, dict[str, pd.DataFrame], bool]:
+    paths = {n: folder / f"{n}.parquet" for n in SETS}
+    cached = all(p.is_file() for p in paths.values())
+    sets: dict[str, pd.DataFrame] = {}
+    for name in SETS:
+        if paths[name].is_file():
+            sets[name] = pd.read_parquet(paths[name])
+            continue
+        if progress:
+            print(f"generating {name} set ...", flush=True)
+        sets[name] = MAKERS[name](spec)
+        schema.write_set(sets[name], paths[name])
+    manifest = folder / "manifest.json"
+    if not manifest.is_file():
+        text = json.dumps({"name": spec.name, "digest": spec.digest, "seed": spec.seed,
+                           "version": DATAGEN_VERSION, "vehicle": spec.vehicle.__dict__,
+                           "noise": {"name": spec.noise.name,
+                                     "process_sigma": spec.noise.process_sigma,
+                                     "measurement_sigma": spec.noise.measurement_sigma},
+                           "train": spec.train, "val": spec.val, "test": spec.test,
+                           "alphas": spec.alphas.tolist(),
+                           "test_trajectories": spec.test["manoeuvres"]}, indent=1)
+        write_text(manifest, text)
+    return folder, sets, cached

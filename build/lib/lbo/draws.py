@@ -1,0 +1,119 @@
+"""Measurement noise drawn on the fly for training windows.
+
+A data set stores one noise draw per step, so a network trained on the stored measurements
+soon fits that one draw. Drawing the noise afresh for every window from the true states,
+``m = z + alpha * sigma * eps`` with ``eps ~ N(0, I)``, gives a new draw every epoch. The
+noise scale ``alpha`` is either fixed (the paper's protocol, alpha = 1) or drawn per window
+from a distribution, so one network learns to judge the noise from the window itself.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from lbo.errors import LboError
+
+DISTRIBUTIONS = ("fixed", "uniform", "loguniform", "levels")
+SOURCES = ("stored", "drawn")
+
+
+@dataclass(frozen=True)
+class AlphaDraw:
+    """How the noise scale alpha of each training window is chosen.
+
+    Attributes
+    ----------
+    distribution : ``fixed`` (always ``alpha``), ``uniform`` or ``loguniform`` on
+        ``[low, high]``, or ``levels`` (one of ``levels``, equally likely).
+    alpha : the value of ``fixed``.
+    low, high : the range of ``uniform`` and ``loguniform`` (``loguniform`` needs low > 0).
+    levels : the values of ``levels``.
+    """
+
+    distribution: str = "fixed"
+    alpha: float = 1.0
+    low: float = 0.0
+    high: float = 6.5
+    levels: tuple[float, ...] = ()
+
+    def __post_init__(self) -> None:
+        d = self.distribution
+        if d not in DISTRIBUTIONS:
+            raise LboError(f"train_noise.distribution: unknown distribution {d!r}; "
+                           f"expected one of {', '.join(DISTRIBUTIONS)}")
+        if d == "fixed":
+            _check_alpha("train_noise.alpha", self.alpha)
+        elif d in ("uniform", "loguniform"):
+            _check_alpha("train_noise.low", self.low)
+            _check_alpha("train_noise.high", self.high)
+            if not self.high > self.low:
+                raise LboError(f"train_noise.high: expected a range with high > low, got "
+                               f"[{self.low}, {self.high}]")
+            if d == "loguniform" and self.low <= 0:
+                raise LboError(f"train_noise.low: loguniform needs low > 0, got {self.low}")
+        else:
+            if len(self.levels) == 0:
+                raise LboError("train_noise.levels: expected a non-empty list of alpha >= 0, "
+                               "got []")
+            for a in self.levels:
+                _check_alpha("train_noise.levels", a)
+
+    def sample(self, n: int, generator: torch.Generator) -> torch.Tensor:
+        """(n,) float64 alpha values, drawn with ``generator``, on its device."""
+        dev = generator.device
+        if self.distribution == "fixed":
+            return torch.full((n,), float(self.alpha), dtype=torch.float64, device=dev)
+        r = torch.rand(n, generator=generator, dtype=torch.float64, device=dev)
+        if self.distribution == "uniform":
+            return self.low + (self.high - self.low) * r
+        if self.distribution == "loguniform":
+            lo, hi = np.log(self.low), np.log(self.high)
+            return torch.exp(lo + (hi - lo) * r)
+        levels = torch.tensor(self.levels, dtype=torch.float64, device=dev)
+        return levels[(r * len(levels)).long().clamp_max(len(levels) - 1)]
+
+    @classmethod
+    def from_cfg(cls, cfg) -> AlphaDraw:
+        """From the Hydra group ``train_noise``."""
+        levels = cfg.get("levels") or ()
+        if isinstance(levels, (str, bytes)) or not isinstance(levels, Sequence):
+            raise LboError(f"train_noise.levels: expected a list of alpha >= 0, got {levels!r}")
+        return cls(distribution=str(cfg.get("distribution", "fixed")),
+                   alpha=cfg.get("alpha", 1.0), low=cfg.get("low", 0.0),
+                   high=cfg.get("high", 6.5), levels=tuple(levels))
+
+
+def _check_alpha(field: str, value) -> None:
+    ok = isinstance(value, (int, float)) and not isinstance(value, bool) and \
+        np.isfinite(value) and value >= 0
+    if not ok:
+        raise LboError(f"{field}: expected a noise scale alpha >= 0, got {value!r}")
+
+
+def loss_weights(alpha: torch.Tensor, offset: float | None) -> torch.Tensor:
+    """Per-window loss weights ``1 / (alpha + offset)^2`` (ones when ``offset`` is None).
+
+    A window's squared error grows as alpha^2, so unweighted, the noisiest windows would
+    dominate the loss and the low-noise ones would hardly be learned.
+    """
+    if offset is None:
+        return torch.ones_like(alpha)
+    return 1.0 / (alpha + offset) ** 2
+
+
+def noisy_measurements(z: torch.Tensor, alpha: torch.Tensor, sigma: torch.Tensor,
+                       generator: torch.Generator) -> torch.Tensor:
+    """Measurements of the true states ``z`` (B, N, 3) at noise scales ``alpha`` (B,).
+
+    ``sigma`` (3,) are the measurement sigmas at alpha=1. Returns (B, N, 3), heading wrapped
+    to (-pi, pi] like the stored measurements.
+    """
+    from lbo.features import wrap_angle_torch
+
+    eps = torch.randn(z.shape, generator=generator, dtype=z.dtype, device=z.device)
+    m = z + alpha[:, None, None] * sigma * eps
+    return torch.cat([m[..., :2], wrap_angle_torch(m[..., 2:])], dim=-1)

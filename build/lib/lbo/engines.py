@@ -1,0 +1,84 @@
+"""Inference engines of a learned observer: TorchScript and ONNX Runtime next to PyTorch.
+
+Both :mod:`lbo.observer` (``engine=``) and :mod:`lbo.export` (the files) build on these, so
+neither imports the other's internals.
+"""
+
+from __future__ import annotations
+
+import io
+import warnings
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+OPSET = 17
+TOLERANCE = 1e-5
+"""Largest difference to PyTorch that an exported file may show (tested)."""
+
+
+def _example(net: Any, batch: int = 1, seed: int = 0):
+    """Plausible raw windows (B, N, 5) float64: a vehicle near (100 m, -50 m), noisy."""
+    import torch
+
+    g = torch.Generator().manual_seed(seed)
+    win = torch.randn(batch, net.window, 5, generator=g, dtype=torch.float64)
+    return win * torch.tensor([1.0, 1.0, 0.02, 2.0, 0.05], dtype=torch.float64) + torch.tensor(
+        [100.0, -50.0, 0.5, 10.0, 0.0], dtype=torch.float64)
+
+
+def trace(net: Any) -> Any:
+    """TorchScript of an :class:`~lbo.network.ObserverNet`, traced on one float64 window
+    on the net's device.
+
+    Traced rather than scripted: the feature functions branch on Python types. The trace
+    holds for any batch size (checked in the tests).
+    """
+    import torch
+
+    net = net.eval()
+    example = _example(net).to(net.in_mean.device)
+    with warnings.catch_warnings():
+        # torch 2.13 marks jit.trace deprecated; nn.LSTM's shape checks warn while traced
+        warnings.simplefilter("ignore")
+        return torch.jit.trace(net, example, check_trace=False)
+
+
+def onnx_bytes(net: Any) -> bytes:
+    """ONNX model of an :class:`~lbo.network.ObserverNet`: input ``window`` (batch, N, 5),
+    output ``state`` (batch, 3), both float64. Legacy (TorchScript-based) exporter."""
+    import torch
+
+    buf = io.BytesIO()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the legacy exporter's deprecation and LSTM notes
+        torch.onnx.export(net.eval(), (_example(net),), buf, dynamo=False, opset_version=OPSET,
+                          input_names=["window"], output_names=["state"],
+                          dynamic_axes={"window": {0: "batch"}, "state": {0: "batch"}})
+    return buf.getvalue()
+
+
+def onnx_session(model: bytes | str | Path, threads: int | None = None) -> Any:
+    """An ONNX Runtime CPU session; ``threads`` intra-op threads (None: its default)."""
+    import onnxruntime as ort
+
+    opts = ort.SessionOptions()
+    if threads is not None:
+        opts.intra_op_num_threads = int(threads)
+        opts.inter_op_num_threads = 1
+    source = model if isinstance(model, bytes) else str(model)
+    return ort.InferenceSession(source, opts, providers=["CPUExecutionProvider"])
+
+
+def check_exported(net: Any, script: Any, session: Any, batch: int = 64) -> dict[str, float]:
+    """Largest |difference| of TorchScript and ONNX Runtime to PyTorch on random windows."""
+    import torch
+
+    win = _example(net, batch=batch, seed=1)
+    with torch.inference_mode():
+        ref = net(win).numpy()
+        ts = script(win).numpy()
+    ort_out = session.run(None, {"window": win.numpy()})[0]
+    return {"torchscript": float(np.abs(ts - ref).max()),
+            "onnx": float(np.abs(ort_out - ref).max())}

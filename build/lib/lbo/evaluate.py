@@ -1,0 +1,211 @@
+"""Score any observer, classical or learned, on the test grid; `python -m lbo.evaluate`.
+
+Every observer is scored on the same points: the ``scored`` rows of the test set (after each
+manoeuvre's run-in), pooled per alpha level. The learned observers' evaluation callback uses
+:func:`score` and :func:`classical_table` from here.
+"""
+
+from __future__ import annotations
+
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+from omegaconf import DictConfig
+
+from lbo import schema
+from lbo.atomic import atomic_path
+from lbo.classical import BOUND, NAMES, measurement_cov
+from lbo.classical import run as run_classical
+from lbo.cli import entry
+from lbo.errors import LboError
+from lbo.filters import pcrb
+from lbo.metrics import PAPER_REFERENCE, SCORE_COLUMNS, rmse, score_table
+from lbo.noise import Noise
+from lbo.vehicle import Vehicle
+
+CLASSICAL = NAMES
+"""What ``observers=`` may name: the classical observers and the PCRB."""
+REFERENCES = ("ekf", "paper")
+
+
+def load_test(path: str | Path) -> dict[str, np.ndarray]:
+    """Read a test set (Parquet with the evaluation schema) into padded arrays.
+
+    Returns the dict of :func:`lbo.schema.to_arrays`: ``z, m`` (G, T, 3), ``u`` (G, T, 2),
+    ``mask`` (G, T) scored steps, ``alpha`` (G,), with G = trajectories x alpha levels.
+    """
+    return schema.to_arrays(schema.read_set(path, schema.EVAL_COLUMNS))
+
+
+def classical(name: str, arr: dict[str, np.ndarray], vehicle: Vehicle, noise: Noise,
+              progress: bool = False, seed: int = 0) -> np.ndarray:
+    """Estimates (G, T, 3) of classical observer ``name`` (:mod:`lbo.classical`) on the padded
+    test arrays; the oracle is told each trajectory's alpha. For ``pcrb`` the result is the
+    bound's standard deviation per step, not an estimate.
+    """
+    check_observers([name])
+    if name == BOUND:
+        R = measurement_cov("oracle", noise, arr["alpha"], len(arr["alpha"]))
+        return np.sqrt(pcrb(arr["z"], arr["u"], vehicle, noise.Q, R, rng=seed))
+    return run_classical(name, arr["m"], arr["u"], vehicle, noise, alpha=arr["alpha"],
+                         progress=progress)
+
+
+def check_observers(names: Sequence[str]) -> None:
+    """Raise LboError naming the first name that is not a classical observer."""
+    for name in names:
+        if name not in CLASSICAL:
+            raise LboError(f"observers: unknown observer {name!r}; "
+                           f"expected names from {list(CLASSICAL)}")
+
+
+def reference(arr: dict[str, np.ndarray], vehicle: Vehicle, noise: Noise,
+              mode: str = "ekf") -> np.ndarray:
+    """E_ref (3,) for the NRMSE: our EKF's RMSE at alpha=1 (``ekf``) or the paper's constants."""
+    if mode == "paper":
+        return np.asarray(PAPER_REFERENCE)
+    if mode != "ekf":
+        raise LboError(f"metric.reference must be one of {list(REFERENCES)}, got {mode!r}")
+    at1 = np.isclose(arr["alpha"], 1.0)
+    if not at1.any():
+        raise LboError("metric.reference=ekf needs alpha=1 in the test grid; "
+                       "use metric.reference=paper")
+    sub = {k: v[at1] for k, v in arr.items() if isinstance(v, np.ndarray) and len(v) == len(at1)}
+    est = run_classical("ekf", sub["m"], sub["u"], vehicle, noise)
+    return _pooled_rmse(est, sub["z"], sub["mask"])
+
+
+def _pooled_rmse(est: np.ndarray, truth: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """(3,) RMSE over every masked step of every trajectory together."""
+    return rmse(est.reshape(1, -1, 3), truth.reshape(1, -1, 3), mask.reshape(1, -1))[0]
+
+
+def score(observer: str, est: np.ndarray, arr: dict[str, np.ndarray],
+          ref: np.ndarray) -> pd.DataFrame:
+    """Rows ``observer, alpha, rmse_x, rmse_y, rmse_psi, nrmse`` of estimates (G, T, 3).
+
+    Steps outside ``arr["mask"]`` are ignored and may hold NaN.
+    """
+    return score_table(observer, est, arr["z"], arr["mask"], arr["alpha"], ref)
+
+
+def bound_table(std: np.ndarray, arr: dict[str, np.ndarray], ref: np.ndarray) -> pd.DataFrame:
+    """PCRB rows: the root of the mean bound variance over the scored points of each level.
+
+    Scoring ``truth + std`` as an estimate gives exactly that, since its squared error at
+    each step is the bound's variance.
+    """
+    return score("pcrb", arr["z"] + std, arr, ref)
+
+
+def classical_table(arr: dict[str, np.ndarray], vehicle: Vehicle, noise: Noise,
+                    observers: Sequence[str] = CLASSICAL, ref: np.ndarray | None = None,
+                    progress: bool = False, seed: int = 0) -> pd.DataFrame:
+    """Score the classical observers on the test arrays; ``ref`` defaults to our EKF's."""
+    check_observers(observers)
+    ref = reference(arr, vehicle, noise) if ref is None else ref
+    tables = []
+    for name in observers:
+        out = classical(name, arr, vehicle, noise, progress=progress, seed=seed)
+        tables.append(bound_table(out, arr, ref) if name == "pcrb" else score(name, out, arr, ref))
+    return pd.concat(tables, ignore_index=True)[list(SCORE_COLUMNS)]
+
+
+def nrmse_at(table: pd.DataFrame, observer: str, alpha: float) -> float:
+    """The NRMSE of ``observer`` at ``alpha`` in a score table."""
+    row = table[(table["observer"] == observer) & np.isclose(table["alpha"], alpha)]
+    if row.empty:
+        raise LboError(f"no row for observer {observer!r} at alpha={alpha}")
+    return float(row["nrmse"].iloc[0])
+
+
+def oracle_ratio(table: pd.DataFrame, observer: str, low: float = 0.25,
+                 high: float = 6.0) -> pd.Series:
+    """NRMSE of ``observer`` over the oracle EKF's, per alpha in [low, high] (index alpha).
+
+    The oracle is told each level's alpha, so it is the practical floor of a causal observer;
+    a ratio of 1.1 means 10 % above that floor.
+    """
+    piv = table.pivot_table(index="alpha", columns="observer", values="nrmse")
+    for name in (observer, "oracle"):
+        if name not in piv:
+            raise LboError(f"no rows for observer {name!r} in the score table")
+    keep = (piv.index >= low - 1e-9) & (piv.index <= high + 1e-9)
+    return (piv[observer] / piv["oracle"])[keep].rename("ratio_to_oracle")
+
+
+def run(cfg: DictConfig) -> Path:
+    """Score the configured classical observers; write evaluation.csv and nrmse_classical.png."""
+    from lbo import plots
+    from lbo.datagen.build import build, spec_from_cfg
+
+    observers = list(cfg.observers)
+    check_observers(observers)
+    if cfg.metric.reference not in REFERENCES:
+        raise LboError(f"metric.reference must be one of {list(REFERENCES)}, "
+                       f"got {cfg.metric.reference!r}")
+    vehicle, noise = Vehicle.from_cfg(cfg.vehicle), Noise.from_cfg(cfg.noise)
+    if cfg.get("test_file"):
+        path = Path(cfg.test_file)
+    else:
+        folder, _, _ = build(spec_from_cfg(cfg))
+        path = folder / "test.parquet"
+    arr = load_test(path)
+    ref = reference(arr, vehicle, noise, cfg.metric.reference)
+    table = classical_table(arr, vehicle, noise, observers, ref, progress=True)
+    out = Path(cfg.output_dir)
+    csv = out / "evaluation.csv"
+    with atomic_path(csv) as tmp:
+        table.to_csv(tmp, index=False)
+    plots.save(plots.nrmse_curves(table, title="classical observers"),
+               out / "nrmse_classical.png")
+    with pd.option_context("display.width", 120, "display.precision", 4):
+        pivot = table.pivot(index="alpha", columns="observer", values="nrmse")[observers]
+        print(f"NRMSE (E_ref = {cfg.metric.reference}: {ref[0]:.3f} m, {ref[1]:.3f} m, "
+              f"{ref[2] * 1e3:.2f} mrad)")
+        print(pivot.to_string())
+    print(f"evaluation: {csv}")
+    return csv
+
+
+main = entry("evaluate", run)
+
+
+def predict_grid(net, arr: dict[str, np.ndarray], window: int, batch_size: int = 8192,
+                 device: str = "cpu") -> np.ndarray:
+    """Run a learned observer on every scored step of the padded test arrays.
+
+    Parameters
+    ----------
+    net : a module mapping windows (B, N, 5) to states (B, 3), e.g. an ObserverNet.
+    arr : padded test arrays from :func:`load_test`.
+
+    Returns
+    -------
+    (G, T, 3) estimates at the scored steps, NaN elsewhere.
+    """
+    import torch
+
+    from lbo.features import window_view
+
+    g, t = arr["mask"].shape
+    if window - 1 > int(np.argmax(arr["mask"], axis=1).min()):
+        raise LboError(f"window={window} is longer than the test set's run-in")
+    series = torch.from_numpy(np.concatenate([arr["m"], arr["u"]], axis=-1))  # (G, T, 5)
+    windows = window_view(series, window)  # (G, T-N+1, N, 5) view
+    gi, ti = np.nonzero(arr["mask"])
+    est = np.full((g, t, 3), np.nan)
+    net = net.to(device).eval()
+    with torch.inference_mode():
+        for s in range(0, len(gi), batch_size):
+            a, b = gi[s:s + batch_size], ti[s:s + batch_size] - window + 1
+            win = windows[a, b].to(device)
+            est[gi[s:s + batch_size], ti[s:s + batch_size]] = net(win).cpu().numpy()
+    return est
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,157 @@
+"""`python -m lbo.export`: a trained observer as TorchScript and ONNX files, for a control loop.
+
+    python -m lbo.export observer=<checkpoint | run id | models:/name/version> out_dir=exports
+    python -m lbo.export observer=<run id> register=lbo-cnn     # also: models:/lbo-cnn/<version>
+
+Writes ``<name>.pt`` (TorchScript, traced), ``<name>.onnx`` (opset 17, dynamic batch axis) and
+``<name>.json`` (window, dt, features, channel order, vehicle, noise). Both files take the raw
+window (B, N, 5) float64 ``[x_m, y_m, psi_m, V, delta]``, oldest sample first, and return
+(B, 3) float64 ``[x, y, psi]`` at the window's last step: the feature transform and the
+normalisation are inside. Each file is checked against PyTorch on random windows before it
+is kept.
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+from omegaconf import DictConfig
+
+from lbo.atomic import atomic_path, write_text
+from lbo.cli import entry
+from lbo.engines import OPSET, TOLERANCE, check_exported, onnx_bytes, onnx_session, trace
+from lbo.errors import LboError
+
+
+def export(observer: Any, out_dir: str | Path, name: str | None = None) -> dict[str, Path]:
+    """Write ``<name>.pt``, ``<name>.onnx`` and ``<name>.json`` of a learned observer.
+
+    Parameters
+    ----------
+    observer : a learned :class:`~lbo.observer.Observer`.
+    out_dir : folder to write to (created).
+    name : file stem; default the observer's name (``cnn-N60``).
+
+    Returns
+    -------
+    ``{"torchscript": path, "onnx": path, "json": path}``.
+
+    Raises
+    ------
+    LboError
+        For a classical observer, or an export that differs from PyTorch by more than
+        :data:`TOLERANCE`.
+    """
+    import torch
+
+    if observer.net is None:
+        raise LboError(f"export needs a learned observer (a checkpoint, run id or models:/ "
+                       f"URI), not the classical {observer.name!r}")
+    net = copy.deepcopy(observer.net).cpu().eval()  # the observer keeps its device
+    name = name or observer.name
+    out = Path(out_dir)
+    script, model = trace(net), onnx_bytes(net)
+    diff = check_exported(net, script, onnx_session(model))
+    worst = max(diff, key=diff.get)
+    if diff[worst] > TOLERANCE:
+        raise LboError(f"export: {worst} differs from PyTorch by {diff[worst]:.2e} "
+                       f"(> {TOLERANCE:g}); nothing written")
+    paths = {"torchscript": out / f"{name}.pt", "onnx": out / f"{name}.onnx",
+             "json": out / f"{name}.json"}
+    with atomic_path(paths["torchscript"]) as tmp:
+        torch.jit.save(script, str(tmp))
+    with atomic_path(paths["onnx"]) as tmp:
+        tmp.write_bytes(model)
+    sidecar = {
+        "name": name,
+        "model": type(net.net).__name__,
+        "window": observer.window,
+        "dt": observer.dt,
+        "features": observer.features,
+        "input": {"name": "window", "shape": ["batch", observer.window, 5], "dtype": "float64",
+                  "columns": ["x_m", "y_m", "psi_m", "V", "delta"],
+                  "order": "oldest sample first; the last row is the current step"},
+        "output": {"name": "state", "shape": ["batch", 3], "dtype": "float64",
+                   "columns": ["x", "y", "psi"], "units": ["m", "m", "rad"]},
+        "vehicle": dataclasses.asdict(observer.vehicle),
+        "noise": {"name": observer.noise.name,
+                  "process_sigma": list(observer.noise.process_sigma),
+                  "measurement_sigma": list(observer.noise.measurement_sigma)},
+        "onnx_opset": OPSET,
+        "max_abs_diff_to_pytorch": diff,
+        "source": observer.meta.get("source"),
+        "data_hash": observer.meta.get("data_hash"),
+        "files": {k: p.name for k, p in paths.items() if k != "json"},
+    }
+    write_text(paths["json"], json.dumps(sidecar, indent=2) + "\n")
+    return paths
+
+
+def register(run_id: str, name: str, uri: str | None = None) -> str:
+    """Register run ``run_id``'s ``checkpoints/`` as a new version of model ``name``.
+
+    Returns the ``models:/<name>/<version>`` URI that :meth:`Observer.load` and
+    ``python -m lbo.observe observer=...`` accept.
+    """
+    import mlflow
+    from mlflow.exceptions import MlflowException
+
+    from lbo.paths import tracking_uri
+
+    uri = uri or tracking_uri()
+    client = mlflow.MlflowClient(uri, registry_uri=uri)
+    try:
+        run = client.get_run(run_id)
+        files = [a.path for a in client.list_artifacts(run_id, "checkpoints")]
+        if "checkpoints/best.ckpt" not in files:
+            raise LboError(f"register: MLflow run {run_id} has no checkpoints/best.ckpt")
+        try:
+            client.get_registered_model(name)
+        except MlflowException:
+            client.create_registered_model(name)
+        version = client.create_model_version(name, f"runs:/{run_id}/checkpoints",
+                                              run_id=run.info.run_id).version
+    except MlflowException as e:
+        raise LboError(f"register: {str(e.message).strip().splitlines()[0]}") from None
+    return f"models:/{name}/{version}"
+
+
+def run(cfg: DictConfig) -> dict[str, Any]:
+    """Export the configured observer; print the files and, with ``register``, the model URI."""
+    from lbo.observer import RUN_ID, Observer
+
+    if not cfg.get("observer"):
+        raise LboError("observer: give a checkpoint path, an MLflow run id or a "
+                       "models:/<name>/<version> URI")
+    if not isinstance(cfg.observer, str):  # e.g. a run id of digits only
+        raise LboError(f"observer: Hydra read {cfg.observer!r} as a number; quote it: "
+                       "observer=\"'<run id>'\"")
+    source = cfg.observer
+    if cfg.get("register") and not RUN_ID.fullmatch(source):
+        raise LboError(f"register needs observer=<MLflow run id> (32 hex digits), got {source!r}")
+    obs = Observer.load(source, features=cfg.get("features"))
+    paths = export(obs, cfg.out_dir, cfg.get("name"))
+    diff = json.loads(paths["json"].read_text())["max_abs_diff_to_pytorch"]
+    print(f"exported {obs.name} (window {obs.window}, dt {obs.dt:g} s, features {obs.features}); "
+          f"max |diff| to PyTorch: TorchScript {diff['torchscript']:.1e}, "
+          f"ONNX Runtime {diff['onnx']:.1e}")
+    for kind, path in paths.items():
+        print(f"  {kind:11s} {path}")
+    result: dict[str, Any] = {"paths": paths, "diff": diff}
+    if cfg.get("register"):
+        result["model_uri"] = register(source, str(cfg.register))
+        print(f"registered: {result['model_uri']}")
+    print(f"exported: {paths['onnx'].parent}")
+    return result
+
+
+main = entry("export", run)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,145 @@
+"""A learned noise model over a differentiable window EKF: the robust observer.
+
+The network judges the measurement noise from the window and a Kalman filter on the
+kinematic bicycle, run over the window, turns that judgement into an estimate. It is never
+told alpha. What it learns:
+
+- the measurement-noise sigmas R (one per channel): an MLP reads the log mean squares of
+  the window's second differences (a statistic dominated by measurement noise, which the
+  smooth motion hardly touches) and the mean speed, and outputs log sigma;
+- a scale on the process noise Q (initialised at the noise preset's).
+
+Trained end to end through the filter on the MSE of the final estimate, over windows whose
+alpha is drawn from a wide range, it learns to be the EKF that alpha calls for.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import torch
+from torch import nn
+
+from lbo.errors import LboError
+from lbo.models.cnn import check_count
+
+
+def _check_sigmas(name: str, values: Sequence[float]) -> tuple[float, float, float]:
+    try:
+        out = tuple(float(v) for v in values)
+    except (TypeError, ValueError):
+        out = ()
+    if len(out) != 3 or not all(math.isfinite(v) and v > 0 for v in out):
+        raise LboError(f"model.{name}: expected three sigmas > 0 for [x (m), y (m), psi (rad)], "
+                       f"got {values!r}")
+    return out  # type: ignore[return-value]
+
+
+def _wrap(a: torch.Tensor) -> torch.Tensor:
+    return math.pi - torch.remainder(math.pi - a, 2 * math.pi)
+
+
+def _inverse_sym3(s: torch.Tensor) -> torch.Tensor:
+    """Inverse of symmetric positive-definite (B, 3, 3) matrices by cofactors.
+
+    Written out so that TorchScript and ONNX export it (ONNX has no matrix inverse).
+    """
+    a, b, c = s[:, 0, 0], s[:, 0, 1], s[:, 0, 2]
+    d, e, f = s[:, 1, 1], s[:, 1, 2], s[:, 2, 2]
+    c00, c01, c02 = d * f - e * e, c * e - b * f, b * e - c * d
+    c11, c12, c22 = a * f - c * c, b * c - a * e, a * d - b * b
+    det = a * c00 + b * c01 + c * c02
+    rows = [torch.stack([c00, c01, c02], -1), torch.stack([c01, c11, c12], -1),
+            torch.stack([c02, c12, c22], -1)]
+    return torch.stack(rows, -2) / det[:, None, None]
+
+
+class FilterObserver(nn.Module):
+    """Window EKF on the kinematic bicycle with a learned noise model.
+
+    Reads ``"frame"`` features in physical units (:mod:`lbo.features`): the window's
+    measurements relative to the current one, rotated into its measured heading, and the
+    inputs V (m/s) and delta (rad). Returns the estimate of the current state in the same
+    frame (the ``"frame"`` target).
+
+    Parameters
+    ----------
+    window : N, steps per window (>= 4).
+    dt, wheelbase : the vehicle's sampling period (s) and wheelbase (m).
+    process_sigma : (3,) sigma of the process noise per step (m, m, rad), the training preset's.
+    measurement_sigma : (3,) measurement sigmas at alpha=1, the scale of the noise model.
+    hidden : width of the noise model's two hidden layers.
+    in_features : channels per step (5).
+    """
+
+    def __init__(self, window: int, dt: float = 0.02, wheelbase: float = 2.7,
+                 process_sigma: Sequence[float] = (0.0667, 0.0667, 0.00113),
+                 measurement_sigma: Sequence[float] = (1.0, 1.0, 0.0174),
+                 hidden: int = 32, in_features: int = 5) -> None:
+        super().__init__()
+        self.physical = True  # reads and writes metres and radians (see ObserverNet)
+        self.feature_modes = ("frame",)
+        self.window = check_count("window", window, 4)
+        self.in_features = check_count("in_features", in_features, 5)
+        hidden = check_count("hidden", hidden)
+        if not (isinstance(dt, (int, float)) and dt > 0):
+            raise LboError(f"model.dt: expected a period in seconds > 0, got {dt!r}")
+        if not (isinstance(wheelbase, (int, float)) and wheelbase > 0):
+            raise LboError(f"model.wheelbase: expected a length in metres > 0, got {wheelbase!r}")
+        self.dt, self.wheelbase = float(dt), float(wheelbase)
+        q = torch.tensor(_check_sigmas("process_sigma", process_sigma))
+        r = torch.tensor(_check_sigmas("measurement_sigma", measurement_sigma))
+        self.register_buffer("log_q0", q.log())
+        self.register_buffer("log_r0", r.log())
+        self.log_q_scale = nn.Parameter(torch.zeros(3))
+        # features: log mean square second difference per channel (in units of r0), log(1+V)
+        self.noise = nn.Sequential(nn.Linear(4, hidden), nn.GELU(), nn.Linear(hidden, hidden),
+                                   nn.GELU(), nn.Linear(hidden, 3))
+        nn.init.zeros_(self.noise[-1].weight)
+        nn.init.zeros_(self.noise[-1].bias)
+
+    def measurement_sigma(self, x: torch.Tensor) -> torch.Tensor:
+        """The noise model: (B, N, 5) features -> (B, 3) measurement sigmas."""
+        m = x[:, :, :3]
+        d2 = m[:, 2:] - 2 * m[:, 1:-1] + m[:, :-2]
+        d2 = torch.cat([d2[..., :2], _wrap(d2[..., 2:])], -1)
+        # second differences of i.i.d. noise of variance s^2 have variance 6 s^2
+        ms = (d2 ** 2).mean(1) / 6.0
+        log_ratio = 0.5 * torch.log(ms + 1e-12) - self.log_r0  # about log alpha
+        speed = torch.log1p(x[:, :, 3].abs().mean(1, keepdim=True))
+        # start from the plain moment estimate, exp(log_ratio) * r0 = sqrt(ms)
+        log_sigma = log_ratio + self.log_r0 + self.noise(torch.cat([log_ratio, speed], 1))
+        return torch.exp(log_sigma).clamp_min(1e-6)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """(B, N, 5) features -> (B, 3) state in the current measurement's frame."""
+        n = x.shape[1]
+        r = self.measurement_sigma(x) ** 2  # (B, 3)
+        q = torch.exp(2 * (self.log_q0 + self.log_q_scale))  # (3,)
+        eye = torch.eye(3, dtype=x.dtype, device=x.device)
+        R = r.unsqueeze(-1) * eye  # diagonal matrices, written so that ONNX exports them
+        Q = q * eye
+        z = x[:, 0, :3]
+        P = R
+        dt, L = self.dt, self.wheelbase
+        for k in range(1, n):
+            v, delta = x[:, k - 1, 3], x[:, k - 1, 4]
+            psi = z[:, 2]
+            c, s = torch.cos(psi), torch.sin(psi)
+            z = z + torch.stack([v * c, v * s, v * torch.tan(delta) / L], -1) * dt
+            # F = I + dt * [[0, 0, -v s], [0, 0, v c], [0, 0, 0]]
+            f02, f12 = -v * s * dt, v * c * dt
+            zero = torch.zeros_like(v)
+            one = torch.ones_like(v)
+            F = torch.stack([torch.stack([one, zero, f02], -1),
+                             torch.stack([zero, one, f12], -1),
+                             torch.stack([zero, zero, one], -1)], -2)
+            P = F @ P @ F.transpose(1, 2) + Q
+            y = x[:, k, :3] - z
+            y = torch.cat([y[:, :2], _wrap(y[:, 2:])], -1)
+            K = P @ _inverse_sym3(P + R)
+            z = z + (K @ y.unsqueeze(-1)).squeeze(-1)
+            P = (eye - K) @ P
+            P = 0.5 * (P + P.transpose(1, 2))
+        return torch.cat([z[:, :2], _wrap(z[:, 2:])], -1)

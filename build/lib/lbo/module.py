@@ -1,0 +1,79 @@
+"""The LightningModule: loss, optimiser and logging around an :class:`ObserverNet`."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from typing import Any
+
+import lightning as L
+import torch
+
+from lbo.network import ObserverNet
+
+# Bumped when the checkpoint layout changes; lbo refuses checkpoints it cannot read.
+CHECKPOINT_FORMAT = 1
+SCHEDULES = ("constant", "cosine")
+
+
+class ObserverModule(L.LightningModule):
+    """Trains an observer with MSE on its (normalised, heading-wrapped) targets.
+
+    Parameters
+    ----------
+    model : ``{"name": "cnn"|"lstm", **hyperparameters}``.
+    window : N.
+    features : ``"relative"`` or ``"absolute"``.
+    optimizer : a partial optimiser (``params -> Optimizer``), e.g. from Hydra's
+        ``_partial_: true``; Adam(lr=1e-3) when None.
+    meta : what a checkpoint must carry to rebuild the observer elsewhere (dt, wheelbase,
+        noise preset, data hash, ...); stored in the hyperparameters.
+    lr_schedule : ``"constant"``, or ``"cosine"``: the learning rate falls along a half
+        cosine to zero over every step the trainer will take (``max_epochs`` of them).
+    """
+
+    def __init__(self, model: dict[str, Any], window: int, features: str = "relative",
+                 optimizer: Callable[..., torch.optim.Optimizer] | None = None,
+                 meta: dict[str, Any] | None = None, lr_schedule: str = "constant") -> None:
+        super().__init__()
+        self.save_hyperparameters(ignore=["optimizer", "lr_schedule"])
+        self.lr_schedule = lr_schedule
+        self.hparams["format"] = CHECKPOINT_FORMAT
+        kwargs = {k: v for k, v in model.items() if k != "name"}
+        self.observer = ObserverNet(model["name"], window, features, **kwargs)
+        self.optimizer_factory = optimizer
+        self._loss_sum: torch.Tensor | float = 0.0
+        self._loss_count = 0
+
+    def forward(self, win: torch.Tensor) -> torch.Tensor:
+        return self.observer(win)
+
+    def training_step(self, batch, batch_idx: int) -> torch.Tensor:
+        loss = self.observer.loss(*batch)
+        # summed here and logged once per epoch: self.log on every step costs about 1 ms,
+        # 10 % of a small CNN step on the CPU (benchmarks/bench_train.py)
+        n = len(batch[1])
+        self._loss_sum = self._loss_sum + loss.detach() * n
+        self._loss_count += n
+        return loss
+
+    def on_train_epoch_end(self) -> None:
+        if self._loss_count:
+            self.log("train_loss", self._loss_sum / self._loss_count, prog_bar=True)
+        self._loss_sum, self._loss_count = 0.0, 0
+
+    def validation_step(self, batch, batch_idx: int) -> None:
+        self.log("val_loss", self.observer.loss(*batch), on_step=False, on_epoch=True,
+                 prog_bar=True, batch_size=len(batch[1]))
+
+    def configure_optimizers(self) -> Any:
+        if self.optimizer_factory is None:
+            opt = torch.optim.Adam(self.parameters(), lr=1e-3, fused=True)
+        else:
+            opt = self.optimizer_factory(params=self.parameters())
+        if self.lr_schedule == "constant":
+            return opt
+        total = max(int(self.trainer.estimated_stepping_batches), 1)
+        cosine = torch.optim.lr_scheduler.LambdaLR(
+            opt, lambda step: 0.5 * (1.0 + math.cos(math.pi * min(step, total) / total)))
+        return {"optimizer": opt, "lr_scheduler": {"scheduler": cosine, "interval": "step"}}

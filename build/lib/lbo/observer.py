@@ -1,0 +1,477 @@
+"""Run an observer, learned or classical, on a log: step by step in a control loop, or over a
+whole log at once, with the same numbers either way.
+
+    from lbo import Observer
+
+    obs = Observer.load("outputs/.../checkpoints/best.ckpt")   # or a run id, models:/..., "ekf"
+    for m_k, u_k in log:                   # m_k = [x_m, y_m, psi_m], u_k = [V, delta]
+        est, valid = obs.step(m_k, u_k)    # est = [x, y, psi] at step k
+
+A learned observer needs N samples before its window is full. Until then (the first N-1
+steps) it returns the estimate of the paper's EKF (noise preset of the checkpoint, R at
+alpha=1), which runs beside the window, and flags it ``valid=False``. Classical observers
+are valid from the first step.
+
+Conventions as in :mod:`lbo.filters`: ``u_k`` moves ``z_k`` to ``z_{k+1}``, so the estimate at
+step k uses ``m_0 .. m_k`` and ``u_0 .. u_{k-1}`` (the filters) or the window of
+``[m_j, u_j]``, j = k-N+1 .. k (the networks). Estimated headings are wrapped to (-pi, pi].
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import re
+import tempfile
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any, NamedTuple
+from urllib.parse import unquote, urlparse
+
+import numpy as np
+
+from lbo import classical
+from lbo.classical import OBSERVERS as CLASSICAL
+from lbo.errors import LboError
+from lbo.features import window_view
+from lbo.noise import Noise
+from lbo.paths import tracking_uri
+from lbo.vehicle import Vehicle, wrap_angle
+
+ENGINES = ("torch", "torchscript", "onnx")
+"""Inference engines for learned observers."""
+
+INPUT_COLUMNS = ("x_m", "y_m", "psi_m", "V", "delta")
+"""Channel order of a window (N, 5)."""
+
+RUN_ID = re.compile(r"[0-9a-f]{32}")
+"""An MLflow run id, as ``observer=<run id>`` takes it."""
+
+
+class Estimate(NamedTuple):
+    """One step's result: ``state`` (3,) ``[x, y, psi]`` (m, m, rad; psi in (-pi, pi]) and
+    ``valid``, False while a learned observer's window is not yet full (EKF fallback)."""
+
+    state: np.ndarray
+    valid: bool
+
+
+# --------------------------------------------------------------------------- streaming filters
+
+
+class _Stream:
+    """Classical observer ``name`` of :mod:`lbo.classical`, one sample per call: its batch
+    filter's stepper, so stepping and :meth:`Observer.run` give the same numbers."""
+
+    def __init__(self, name: str, vehicle: Vehicle, noise: Noise, alpha: float) -> None:
+        self.name, self.vehicle, self.noise, self.alpha = name, vehicle, noise, alpha
+        self.reset()
+
+    def reset(self) -> None:
+        self.flt: Any = None
+
+    def __call__(self, m: np.ndarray, u_prev: np.ndarray | None) -> np.ndarray:
+        if self.flt is None:
+            self.flt = classical.stepper(self.name, m[None], self.vehicle, self.noise,
+                                         self.alpha)
+            return m.copy()
+        return self.flt.update(m[None], np.asarray(u_prev, float)[None])[0].copy()
+
+
+# --------------------------------------------------------------------------- inference engines
+
+
+Predictor = Callable[[np.ndarray], np.ndarray]
+"""Windows (B, N, 5) float64 ``[x_m, y_m, psi_m, V, delta]`` -> states (B, 3) float64."""
+
+
+def make_predictor(net: Any, engine: str = "torch", device: str = "cpu") -> Predictor:
+    """Wrap an :class:`~lbo.network.ObserverNet` as a numpy-in, numpy-out predictor.
+
+    ``torchscript`` traces the net; ``onnx`` exports it in memory and runs it in ONNX Runtime
+    on one thread (one window per step gains nothing from more). The torch engines use
+    torch's threads: in a control loop call ``torch.set_num_threads(1)``, as intra-op threads
+    slow a single window down, by 10x on a busy 2-core machine (measured).
+    """
+    import torch
+
+    if engine not in ENGINES:
+        raise LboError(f"engine must be one of {list(ENGINES)}, got {engine!r}")
+    if str(device).startswith("cuda") and not torch.cuda.is_available():
+        raise LboError(f"device={device} needs CUDA, which torch does not see here; use cpu")
+    if engine == "onnx" and str(device) != "cpu":
+        raise LboError(f"engine=onnx runs on the CPU (ONNX Runtime's CPU provider), "
+                       f"got device={device}")
+    net = net.to(device).eval()
+    if engine == "onnx":
+        from lbo.engines import onnx_bytes, onnx_session
+
+        session = onnx_session(onnx_bytes(net.cpu()), threads=1)
+        return lambda win: session.run(None, {"window": win})[0]
+    if engine == "torchscript":
+        from lbo.engines import trace
+
+        net = trace(net)
+
+    def predict(win: np.ndarray) -> np.ndarray:
+        with torch.inference_mode():
+            return net(torch.from_numpy(win).to(device)).cpu().numpy()
+
+    return predict
+
+
+# --------------------------------------------------------------------------- the observer
+
+
+class Observer:
+    """A state observer for the kinematic bicycle, learned or classical, for logs and loops.
+
+    Build one with :meth:`load` (checkpoint, MLflow run, registered model or classical name)
+    or :meth:`from_net`. Then either :meth:`step` through a log sample by sample (O(1) per
+    step: a ring buffer of the last N samples, no history kept) or :meth:`run` it over a
+    whole log at once; both give the same numbers (to 1e-6, tested).
+
+    Attributes
+    ----------
+    name : ``"cnn-N60"``, ``"ekf"``, ...
+    kind : ``"learned"`` or ``"classical"``.
+    window : N, samples per window (1 for the classical observers).
+    dt : the sampling period (s) the observer expects.
+    features : feature mode of a learned observer (``"relative"``, ``"frame"``,
+        ``"absolute"``), else None.
+    vehicle, noise : the model the filters use (for a learned observer: its checkpoint's,
+        used by the fallback EKF).
+    alpha : measurement-noise scale the ``oracle`` is told (R = noise.R(alpha)).
+    engine : ``"torch"``, ``"torchscript"`` or ``"onnx"`` (learned observers).
+    meta : the checkpoint's metadata (data set, data hash, seed, ...), {} for classical.
+    net : the :class:`~lbo.network.ObserverNet`, or None.
+    """
+
+    def __init__(self, name: str, vehicle: Vehicle | None = None, noise: Noise | None = None,
+                 *, net: Any = None, alpha: float = 1.0, engine: str = "torch",
+                 device: str = "cpu", meta: dict[str, Any] | None = None) -> None:
+        self.name = name
+        self.vehicle = vehicle or Vehicle()
+        self.noise = noise or Noise.preset("paper")
+        self.alpha = float(alpha)
+        if not np.isfinite(self.alpha) or self.alpha < 0:
+            raise LboError(f"alpha must be a number >= 0, got {alpha!r}")
+        self.meta = dict(meta or {})
+        self.net = net
+        self.device = device
+        if net is None:
+            classical.check(name)
+            self.kind, self.window, self.features, self.engine = "classical", 1, None, None
+            self._filter = _Stream(name, self.vehicle, self.noise, self.alpha)
+        else:
+            self.kind, self.window, self.features = "learned", int(net.window), net.features
+            self.engine = engine
+            self._predict = make_predictor(net, engine, device)
+            self._filter = _Stream("ekf", self.vehicle, self.noise, 1.0)  # the fallback
+            # Ring buffer written twice (rows i and i+N): the last N samples are always the
+            # contiguous rows i+1 .. i+N, so a window is a view, never a copy or a roll.
+            self._ring = np.zeros((2 * self.window, 5))
+        self.reset()
+
+    # ----------------------------------------------------------------------- construction
+
+    @classmethod
+    def load(cls, source: str | os.PathLike, vehicle: Vehicle | None = None,
+             noise: Noise | None = None, *, alpha: float = 1.0, features: str | None = None,
+             engine: str = "torch", device: str = "cpu") -> Observer:
+        """Load an observer.
+
+        Parameters
+        ----------
+        source : one of
+            - a checkpoint file (``.ckpt``, as ``lbo.train`` writes) or a ``file://`` URI;
+            - an MLflow run id (32 hex digits): its ``checkpoints/best.ckpt``;
+            - ``runs:/<run id>/<path>``, ``models:/<name>/<version>`` or
+              ``models:/<name>@<alias>``: the checkpoint there, in the store that
+              :func:`tracking_uri` names;
+            - ``"ekf"`` (R at alpha=1, the paper's), ``"oracle"`` (R at ``alpha``),
+              ``"adaptive"`` (learns R, starts at alpha=1) or ``"ukf"``.
+        vehicle, noise : for classical observers (defaults: ``Vehicle()``, the ``paper``
+            preset). For a learned one they replace its checkpoint's in the fallback EKF;
+            ``vehicle.dt`` must then be the dt it was trained at.
+        alpha : measurement-noise scale told to the ``oracle``.
+        features : refuse a checkpoint trained with another feature mode (None: any).
+        engine : ``"torch"``, ``"torchscript"`` or ``"onnx"`` for learned observers.
+        device : torch device of a learned observer (``"cpu"``, ``"cuda"``).
+
+        Raises
+        ------
+        LboError
+            One line naming the problem: unknown source, unreadable or foreign checkpoint,
+            checkpoint format or feature mode this lbo does not read, MLflow run without a
+            checkpoint, ...
+        """
+        source = os.fspath(source)
+        if source in classical.NAMES:
+            classical.check(source)  # pcrb: a bound, not an observer
+            return cls(source, vehicle, noise, alpha=alpha)
+        with _checkpoint_file(source) as path:
+            net, hp = read_checkpoint(path, features=features, device=device)
+        meta = dict(hp.get("meta") or {})
+        trained, trained_noise = trained_conditions(hp, path)
+        if vehicle is not None and not np.isclose(vehicle.dt, trained.dt, rtol=1e-9):
+            raise LboError(f"vehicle.dt={vehicle.dt:g} s, but the observer was trained at "
+                           f"dt={trained.dt:g} s; resample the data to {trained.dt:g} s")
+        return cls(f"{hp['model']['name']}-N{hp['window']}", vehicle or trained,
+                   noise or trained_noise, net=net, alpha=alpha,
+                   engine=engine, device=device, meta={**meta, "source": source})
+
+    @classmethod
+    def from_net(cls, net: Any, vehicle: Vehicle | None = None, noise: Noise | None = None,
+                 *, name: str | None = None, engine: str = "torch",
+                 device: str = "cpu") -> Observer:
+        """Wrap an :class:`~lbo.network.ObserverNet` (trained or not) as an observer."""
+        name = name or f"{type(net.net).__name__.removesuffix('Observer').lower()}-N{net.window}"
+        return cls(name, vehicle, noise, net=net, engine=engine, device=device)
+
+    # ----------------------------------------------------------------------- streaming
+
+    @property
+    def dt(self) -> float:
+        return self.vehicle.dt
+
+    def reset(self) -> None:
+        """Forget the history: the next :meth:`step` is the first of a new log."""
+        self._count = 0
+        self._u_prev: np.ndarray | None = None
+        self._filter.reset()
+
+    def step(self, measurement: np.ndarray, input: np.ndarray) -> Estimate:
+        """Take one sample and return the estimate at this step.
+
+        Parameters
+        ----------
+        measurement : (3,) ``[x_m, y_m, psi_m]`` (m, m, rad).
+        input : (2,) ``[V, delta]`` (m/s, rad) applied from this step to the next.
+
+        Returns
+        -------
+        :class:`Estimate` ``(state (3,), valid)``; unpacks as ``est, valid = obs.step(m, u)``.
+
+        Notes
+        -----
+        Cost per call: one ring-buffer write and one network call on a (1, N, 5) view (or one
+        filter step), whatever the length of the log. For a control loop, run torch on one
+        thread (``torch.set_num_threads(1)``) or use ``engine="onnx"`` (one thread already).
+        """
+        m = np.asarray(measurement, dtype=float).reshape(3)
+        u = np.asarray(input, dtype=float).reshape(2)
+        if not (np.isfinite(m).all() and np.isfinite(u).all()):
+            raise LboError(f"step {self._count}: measurement {m.tolist()} or input "
+                           f"{u.tolist()} has NaN or inf")
+        n = self.window
+        if self.net is not None:
+            i = self._count % n
+            self._ring[i, :3] = self._ring[i + n, :3] = m
+            self._ring[i, 3:] = self._ring[i + n, 3:] = u
+        self._count += 1
+        if self.net is not None and self._count >= n:
+            state = self._predict(self._ring[None, i + 1:i + 1 + n])[0]
+            return Estimate(state, True)
+        state = self._filter(m, self._u_prev)
+        self._u_prev = u
+        state[2] = wrap_angle(state[2])
+        return Estimate(state, self.net is None)
+
+    # ----------------------------------------------------------------------- batch
+
+    def run(self, m: np.ndarray, u: np.ndarray,
+            batch_size: int = 4096) -> tuple[np.ndarray, np.ndarray]:
+        """Estimates over a whole log at once (vectorised; the streaming state is untouched).
+
+        Parameters
+        ----------
+        m : (T, 3) measurements ``[x_m, y_m, psi_m]``.
+        u : (T, 2) inputs ``[V, delta]``.
+        batch_size : windows per network call.
+
+        Returns
+        -------
+        est : (T, 3) ``[x, y, psi]``, psi in (-pi, pi]; the same numbers as T calls of
+            :meth:`step` after :meth:`reset`.
+        valid : (T,) bool, False on the first N-1 rows of a learned observer (EKF fallback).
+        """
+        m = np.asarray(m, dtype=float)
+        u = np.asarray(u, dtype=float)
+        if m.ndim != 2 or m.shape[1] != 3 or u.shape != (len(m), 2):
+            raise LboError(f"run needs m (T, 3) and u (T, 2), got {m.shape} and {u.shape}")
+        t = len(m)
+        valid = np.arange(t) >= self.window - 1
+        if self.net is None:
+            est = classical.run(self.name, m[None], u[None], self.vehicle, self.noise,
+                                self.alpha)[0]
+        else:
+            n = self.window
+            est = np.empty((t, 3))
+            head = min(n - 1, t)
+            if head:
+                est[:head] = classical.run("ekf", m[None, :head], u[None, :head],
+                                           self.vehicle, self.noise)[0]
+            if t >= n:
+                series = np.ascontiguousarray(np.concatenate([m, u], axis=1))
+                windows = window_view(series, n)  # (T-N+1, N, 5) view
+                for s in range(0, t - n + 1, batch_size):
+                    chunk = np.ascontiguousarray(windows[s:s + batch_size])
+                    est[n - 1 + s:n - 1 + s + len(chunk)] = self._predict(chunk)
+        est[:, 2] = wrap_angle(est[:, 2])
+        return est, valid
+
+    def __repr__(self) -> str:
+        extra = (f", window={self.window}, features={self.features!r}, engine={self.engine!r}"
+                 if self.kind == "learned" else
+                 (f", alpha={self.alpha:g}" if self.name == "oracle" else ""))
+        return f"Observer({self.name!r}, dt={self.dt:g}{extra})"
+
+
+# --------------------------------------------------------------------------- checkpoints
+
+
+def read_checkpoint(path: str | os.PathLike, features: str | None = None,
+                    device: str = "cpu") -> tuple[Any, dict[str, Any]]:
+    """Rebuild the :class:`~lbo.network.ObserverNet` of an ``lbo.train`` checkpoint.
+
+    The checkpoint's hyperparameters name the architecture, window and feature mode, its
+    buffers hold the normalisation statistics and ``meta`` the vehicle (dt) and noise preset.
+    Only tensors and plain containers are unpickled (``weights_only``).
+
+    Returns
+    -------
+    (net in eval mode, hyperparameters dict).
+
+    Raises
+    ------
+    LboError
+        Unreadable file, not an lbo checkpoint, another checkpoint format, an unknown
+        feature mode or not the ``features`` asked for, weights that do not fit.
+    """
+    import torch
+
+    from lbo.features import FEATURE_MODES
+    from lbo.module import CHECKPOINT_FORMAT
+    from lbo.network import ObserverNet
+
+    path = Path(path)
+    try:
+        ckpt = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as e:  # zip, pickle, EOF, permission: all "cannot read"
+        reason = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+        raise LboError(f"checkpoint {path}: cannot read it as a torch checkpoint "
+                       f"({reason})") from None
+    hp = ckpt.get("hyper_parameters") if isinstance(ckpt, dict) else None
+    if not isinstance(hp, dict) or "state_dict" not in ckpt:
+        raise LboError(f"checkpoint {path}: not an lbo observer checkpoint "
+                       "(no hyper_parameters and state_dict)")
+    fmt = hp.get("format")
+    if fmt != CHECKPOINT_FORMAT:
+        raise LboError(f"checkpoint {path}: checkpoint format {fmt}, this lbo reads format "
+                       f"{CHECKPOINT_FORMAT}; retrain it, or use the lbo version that wrote it")
+    mode = hp.get("features")
+    if mode not in FEATURE_MODES:
+        raise LboError(f"checkpoint {path}: feature mode {mode!r} is unknown to this lbo "
+                       f"(it knows {', '.join(FEATURE_MODES)})")
+    if features is not None and features != mode:
+        raise LboError(f"checkpoint {path}: trained with features={mode}, "
+                       f"but features={features} was asked for")
+    try:
+        model = dict(hp["model"])
+        net = ObserverNet(model.pop("name"), hp["window"], mode, **model)
+        state = {k.removeprefix("observer."): v for k, v in ckpt["state_dict"].items()
+                 if k.startswith("observer.")}
+        net.load_state_dict(state)
+    except LboError as e:
+        raise LboError(f"checkpoint {path}: {e}") from None
+    except (KeyError, TypeError, RuntimeError) as e:
+        reason = str(e).strip().splitlines()[0]
+        raise LboError(f"checkpoint {path}: its weights do not fit the architecture it "
+                       f"names ({reason})") from None
+    return net.to(device).eval(), hp
+
+
+def trained_conditions(hp: dict[str, Any], path: str | os.PathLike) -> tuple[Vehicle, Noise]:
+    """The vehicle and noise preset a checkpoint was trained with (``hp["meta"]``), for the
+    reference filters and the streaming fallback; raises LboError naming the file."""
+    meta = hp.get("meta") or {}
+    try:
+        vehicle = Vehicle(**meta["vehicle"])
+    except (KeyError, TypeError) as e:
+        raise LboError(f"checkpoint {path}: no usable meta.vehicle ({e})") from None
+    except LboError as e:
+        raise LboError(f"checkpoint {path}: its stored {e}") from None
+    try:
+        n = meta["noise"]
+        noise = Noise(n["process_sigma"], n["measurement_sigma"], n.get("name", "custom"))
+    except (KeyError, TypeError) as e:
+        raise LboError(f"checkpoint {path}: no usable meta.noise ({e})") from None
+    return vehicle, noise
+
+
+@contextlib.contextmanager
+def _checkpoint_file(source: str) -> Iterator[Path]:
+    """The local checkpoint file for a source; one downloaded from MLflow lives in a
+    temporary folder that is removed on exit."""
+    src = unquote(urlparse(source).path) if source.startswith("file://") else source
+    if Path(src).is_file():
+        yield Path(src)
+        return
+    if RUN_ID.fullmatch(src):
+        uri, run_id = f"runs:/{src}/checkpoints/best.ckpt", src
+    elif src.startswith(("runs:/", "models:/")):
+        uri, run_id = src, None
+    elif Path(src).suffix or "/" in src or os.sep in src:
+        raise LboError(f"observer: checkpoint not found: {src}")
+    else:
+        raise LboError(f"observer: {src!r} is not a checkpoint file, an MLflow run id "
+                       "(32 hex digits), a runs:/ or models:/ URI, nor one of "
+                       f"{', '.join(CLASSICAL)}")
+    with tempfile.TemporaryDirectory(prefix="lbo-ckpt-") as tmp:
+        yield _download(uri, run_id, Path(tmp))
+
+
+def _download(uri: str, run_id: str | None, folder: Path) -> Path:
+    """Download ``uri`` (runs:/ or models:/) into ``folder``; return the .ckpt in it."""
+    import mlflow
+    from mlflow.exceptions import MlflowException
+
+    store = tracking_uri()
+    client = mlflow.MlflowClient(store, registry_uri=store)
+    if run_id is not None:
+        try:
+            client.get_run(run_id)
+        except MlflowException:
+            raise LboError(f"observer: MLflow run {run_id} not found in {store}") from None
+    try:
+        where = _model_version_uri(client, uri) if uri.startswith("models:/") else uri
+        local = Path(mlflow.artifacts.download_artifacts(artifact_uri=where, dst_path=str(folder),
+                                                         tracking_uri=store))
+    except MlflowException as e:
+        reason = str(e.message).strip().splitlines()[0]
+        if run_id is not None:
+            raise LboError(f"observer: MLflow run {run_id} has no checkpoints/best.ckpt "
+                           f"(did it finish training?): {reason}") from None
+        raise LboError(f"observer: {uri} not found in {store}: {reason}") from None
+    if local.is_file():
+        return local
+    found = sorted(local.rglob("*.ckpt"))
+    best = [p for p in found if p.name == "best.ckpt"]
+    if len(best) == 1 or len(found) == 1:
+        return (best or found)[0]
+    raise LboError(f"observer: {uri} holds {len(found)} .ckpt files, "
+                   "expected one (or one best.ckpt)")
+
+
+def _model_version_uri(client: Any, uri: str) -> str:
+    """``models:/name/version`` or ``models:/name@alias`` -> where that version's files are."""
+    ref = uri[len("models:/"):].strip("/")
+    if "@" in ref:
+        name, alias = ref.split("@", 1)
+        version = client.get_model_version_by_alias(name, alias).version
+    elif "/" in ref:
+        name, version = ref.rsplit("/", 1)
+    else:
+        raise LboError(f"observer: {uri}: give models:/<name>/<version> or models:/<name>@<alias>")
+    return client.get_model_version_download_uri(name, version)

@@ -1,0 +1,327 @@
+"""`make reproduce SCALE=paper|quick`: the paper's study from one command, resumable.
+
+    python -m lbo.reproduce scale=quick
+
+Stages: 1 data, 2 tune (CNN and LSTM at N=20), 3 train the 8 observers with the tuned
+parameters and the robust observer (``experiment=robust``, beyond the paper), 4 evaluate the
+classical observers, 5 write the report. A rerun reuses the
+cached data sets, the Optuna studies (only missing trials run), the MLflow runs that
+finished with the same config (``resume=true``) and the classical table, and redoes only
+what is missing.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+from hydra import compose
+from omegaconf import DictConfig
+
+from lbo.atomic import write_text
+from lbo.classical import NAMES as CLASSICAL
+from lbo.cli import entry
+from lbo.config import require
+from lbo.errors import LboError
+from lbo.eta import Eta, duration, measure
+from lbo.tracking import check_launcher, check_server
+
+STAGES = ("data", "tune", "train", "evaluate", "report")
+
+
+class Stages:
+    """Banners, progress and timings; the timings persist in ``stages.json``."""
+
+    def __init__(self, folder: Path) -> None:
+        self.path = folder / "stages.json"
+        self.record: dict[str, dict] = (json.loads(self.path.read_text())
+                                        if self.path.is_file() else {})
+
+    def run(self, i: int, name: str, what: str, fn: Callable[[], tuple[Any, str]]) -> Any:
+        print(f"\n==> [{i}/{len(STAGES)}] {name}: {what}", flush=True)
+        start = time.perf_counter()
+        result, status = fn()
+        seconds = time.perf_counter() - start
+        prev = self.record.get(name, {})
+        if status == "reused" and prev.get("seconds") is not None:
+            entry = {"status": "reused", "seconds": prev["seconds"], "check_seconds": seconds}
+        else:
+            entry = {"status": status, "seconds": seconds}
+        self.record[name] = entry
+        write_text(self.path, json.dumps(self.record, indent=1))
+        print(f"<== [{i}/{len(STAGES)}] {name}: {status} in {seconds:.1f} s", flush=True)
+        return result
+
+
+def run(cfg: DictConfig) -> Path:
+    """Run the five stages for ``cfg.scale``; return the report folder."""
+    check_reproduce(cfg)
+    scale, out = cfg.scale, Path(cfg.report_dir)
+    stages = Stages(out)
+    t0 = time.perf_counter()
+    folder = stages.run(1, "data", f"generate the {scale} data sets (or reuse them)",
+                        lambda: stage_data(cfg))
+    tuned = stages.run(2, "tune", f"{' and '.join(m.upper() for m in cfg.models)} at N=20, "
+                       f"{cfg.trials[scale]} Optuna trials each", lambda: stage_tune(cfg, out))
+    jobs = train_jobs(cfg, out)
+    runs = stages.run(3, "train", f"{len(cfg.models) * len(cfg.windows)} observers "
+                      f"({', '.join(cfg.models)} x N={list(cfg.windows)}) with the tuned "
+                      "parameters" + (", and the robust observer" if cfg.robust else "")
+                      + (f", through hydra/launcher={cfg.launcher}" if cfg.launcher else ""),
+                      lambda: stage_train(cfg, out, jobs))
+    table = stages.run(4, "evaluate", f"classical observers ({', '.join(cfg.classical)}) on "
+                       "the test grid; the learned ones were scored by their runs",
+                       lambda: stage_classical(cfg, out, folder))
+    stages.run(5, "report", f"tables and figures in {out}",
+               lambda: stage_report(cfg, out, folder, tuned, runs, table, stages.record))
+    print(f"\nreport: {out / 'report.md'}  ({time.perf_counter() - t0:.0f} s in all)")
+    return out
+
+
+def check_reproduce(cfg: DictConfig) -> None:
+    """Reject a bad scale, job count, launcher or tracking server before any stage runs."""
+    if cfg.scale not in cfg.trials:
+        raise LboError(f"scale must be one of {sorted(cfg.trials)}, got {cfg.scale!r}")
+    require(isinstance(cfg.jobs, int) and not isinstance(cfg.jobs, bool) and cfg.jobs >= 1,
+            "jobs", "an integer >= 1", cfg.jobs)
+    check_launcher(cfg.launcher, "launcher")
+    check_server(cfg.tracking_uri, "tracking_uri")
+
+
+def stage_data(cfg: DictConfig) -> tuple[Path, str]:
+    """1: the scale's data sets, generated or reused; returns their folder."""
+    from lbo.datagen.__main__ import run as datagen
+
+    return Path(datagen(compose("datagen", [f"data={cfg.scale}", *cfg.overrides]))), "done"
+
+
+def stage_tune(cfg: DictConfig, out: Path) -> tuple[dict, str]:
+    """2: one Optuna study per architecture at N=20 (resumed if it exists)."""
+    from lbo.tune import quiet, tune
+
+    quiet()
+    results, reused = {}, True
+    for model in cfg.models:
+        c = compose("tune", [f"hparams_search={model}", f"experiment={cfg.scale}",
+                              f"tune.n_trials={cfg.trials[cfg.scale]}",
+                              f"tune.handoff={out / 'tuned' / f'{model}.yaml'}",
+                              f"tune.storage={cfg.optuna_storage}",
+                              f"output_dir={out / 'tune' / model}",
+                              *cfg.tune_overrides[cfg.scale],
+                              *cfg.search_overrides[cfg.scale][model],
+                              *cfg.overrides, *cfg.train_overrides])
+        results[model] = tune(c)
+        reused &= not results[model]["new_trials"]
+    return results, "reused" if reused else "done"
+
+
+def train_jobs(cfg: DictConfig, out: Path) -> list[tuple[str, list[str]]]:
+    """(name, training overrides) of every observer the train stage trains."""
+    jobs = [(f"{model}-N{window}",
+             [f"experiment={cfg.scale}", f"model={model}", f"window={window}",
+              f"+tuned={model}", f"hydra.searchpath=[file://{out}]"])
+            for model in cfg.models for window in cfg.windows]
+    if cfg.robust:
+        jobs.append(("robust", ["experiment=robust", f"data={cfg.scale}",
+                                *cfg.robust_overrides[cfg.scale]]))
+    return [(key, [*o, "resume=true", f"output_dir={out / 'runs' / key}", *cfg.overrides,
+                   *cfg.train_overrides]) for key, o in jobs]
+
+
+def expected(cfg: DictConfig, jobs: list[tuple[str, list[str]]]) -> Eta:
+    """Measure a few steps of every run still to train; print the stage's expected time."""
+    from lbo.train import config_hash, data_device, finished_run
+
+    estimates = []
+    for key, overrides in jobs:
+        c = compose("train", overrides)
+        if finished_run(c, config_hash(c), clean=False) is not None:
+            estimates.append(0.0)
+            continue
+        m = measure(c)
+        estimates.append(m["seconds"])
+        print(f"    {key}: {m['steps']} steps x {1e3 * m['step_s']:.1f} ms + "
+              f"{m['setup_s']:.1f} s setup = {duration(m['seconds'])}", flush=True)
+    total = sum(estimates) / (min(cfg.jobs, len(jobs)) if cfg.launcher == "joblib" else 1)
+    device = data_device(compose("train", jobs[0][1]))
+    print(f"    expected: about {duration(total)} of training at scale {cfg.scale} on "
+          f"{device} (measured steps x steps per run; early stopping can only shorten it)",
+          flush=True)
+    return Eta(estimates)
+
+
+def stage_train(cfg: DictConfig, out: Path,
+                jobs: list[tuple[str, list[str]]]) -> tuple[dict, str]:
+    """3: train (or reuse) every observer, serially or through ``cfg.launcher``."""
+    from lbo.train import train
+
+    start_stage = time.perf_counter()
+
+    def report_line(done: int, run: dict, how: str) -> None:
+        print(f"    {done}/{len(jobs)} {run['name']}: {how}, NRMSE at alpha=1/3/6 "
+              + "/".join(f"{run.get(f'test_nrmse_alpha_{a}', np.nan):.2f}" for a in (1, 3, 6))
+              + f"  (stage {time.perf_counter() - start_stage:.0f} s)", flush=True)
+
+    runs: dict[str, dict] = {}
+    eta = expected(cfg, jobs)
+    if cfg.launcher:
+        results = launch(cfg, [o for _, o in jobs], out / "runs", [k for k, _ in jobs])
+        for done, ((key, _), res) in enumerate(zip(jobs, results, strict=True), 1):
+            runs[key] = res
+            report_line(done, res, "reused" if res.get("reused") else "trained")
+    for done, (key, overrides) in enumerate(jobs, 1):
+        if key in runs:
+            continue
+        start = time.perf_counter()
+        runs[key] = train(compose("train", overrides))
+        seconds = time.perf_counter() - start
+        reused = bool(runs[key].get("reused"))
+        left = eta.skipped(done - 1) if reused else eta.finished(done - 1, seconds)
+        report_line(done, runs[key], ("reused" if reused else f"trained in {seconds:.0f} s")
+                    + (f", ETA {duration(left)}" if done < len(jobs) else ""))
+    return runs, "reused" if all(r.get("reused") for r in runs.values()) else "done"
+
+
+def stage_classical(cfg: DictConfig, out: Path, folder: Path) -> tuple[pd.DataFrame, str]:
+    """4: the classical observers on the test grid, reused while the data are the same."""
+    from lbo.evaluate import run as evaluate
+
+    csv = out / "classical" / "evaluation.csv"
+    stamp = out / "classical" / "stamp.json"
+    key = {"data": str(folder), "observers": list(cfg.classical)}
+    if csv.is_file() and stamp.is_file() and json.loads(stamp.read_text()) == key:
+        return pd.read_csv(csv), "reused"
+    c = compose("evaluate", [f"data={cfg.scale}", f"observers=[{','.join(cfg.classical)}]",
+                              f"output_dir={out / 'classical'}", *cfg.overrides])
+    table = pd.read_csv(evaluate(c))
+    write_text(stamp, json.dumps(key))
+    return table, "done"
+
+
+def stage_report(cfg: DictConfig, out: Path, folder: Path, tuned: dict, runs: dict,
+                 classical_table: pd.DataFrame, record: dict) -> tuple[list[Path], str]:
+    """5: the tables and figures, also logged to MLflow as a run of their own."""
+    from lbo import report
+
+    learned = pd.concat([pd.read_csv(_artifact(r, "evaluation.csv", cfg.tracking_uri))
+                         for r in runs.values()], ignore_index=True)
+    # each run's table also holds the EKF and oracle rows; the classical stage has them all
+    table = pd.concat([learned[~learned["observer"].isin(CLASSICAL)], classical_table],
+                      ignore_index=True)
+    run_ids = {r["name"]: r["run_id"] for r in runs.values()}
+    for model, res in tuned.items():
+        if res.get("parent_run_id"):
+            run_ids[f"tune-{model}"] = res["parent_run_id"]
+    best_cnn = report.best_window(table, "cnn")
+    traj = _trajectory(folder, runs.get(best_cnn), cfg.trajectory_manoeuvre,
+                       cfg.tracking_uri) if best_cnn else None
+    robust = runs["robust"]["name"] if "robust" in runs else None
+    files = report.write(out, cfg.scale, table, run_ids, record, traj,
+                         folder / "friction_circle.png", robust=robust)
+    _log_report(cfg, cfg.scale, out, files, folder.name)
+    return files, "done"
+
+
+def _train_job(cfg: DictConfig) -> dict[str, Any]:
+    """One training job of a launcher (a module-level function, so that it pickles)."""
+    from lbo.train import train
+
+    return train(cfg)
+
+
+def launch(cfg: DictConfig, job_overrides: list[list[str]], sweep_dir: Path,
+           names: list[str]) -> list[dict[str, Any]]:
+    """Train the jobs through the Hydra launcher ``cfg.launcher`` (joblib, submitit_local,
+    submitit_slurm, ...); return each job's metrics, in order.
+
+    The launcher gets what ``python -m lbo.train -m`` would give it: the training config with
+    its Hydra node, and one override list per job. The jobs may differ in more than a grid's
+    keys (the robust observer), which a command-line sweep cannot say.
+    """
+    from hydra._internal.callbacks import Callbacks
+    from hydra.core.global_hydra import GlobalHydra
+    from hydra.core.hydra_config import HydraConfig
+    from hydra.core.plugins import Plugins
+    from hydra.types import HydraContext
+
+    master = compose("train", [f"hydra/launcher={cfg.launcher}", f"hydra.sweep.dir={sweep_dir}",
+                               *([f"hydra.launcher.n_jobs={cfg.jobs}"]
+                                 if cfg.launcher == "joblib" else []),
+                               *cfg.launcher_overrides], return_hydra_config=True)
+    own = HydraConfig.instance().cfg
+    try:
+        launcher = Plugins.instance().instantiate_launcher(
+            hydra_context=HydraContext(config_loader=GlobalHydra.instance().config_loader(),
+                                       callbacks=Callbacks(master)),
+            task_function=_train_job, config=master)
+        returns = launcher.launch([[*o, f"hydra.sweep.subdir={n}"]
+                                   for o, n in zip(job_overrides, names, strict=True)],
+                                  initial_job_idx=0)
+    finally:
+        HydraConfig.instance().cfg = own  # the launcher set each job's in this process too
+    return [r.return_value for r in returns]  # raises the first failed job's error
+
+
+def _artifact(run: dict[str, Any], path: str, tracking_uri: str) -> Path:
+    """A file logged by a training run, fetched from its MLflow artifacts."""
+    import mlflow
+
+    return Path(mlflow.artifacts.download_artifacts(run_id=run["run_id"], artifact_path=path,
+                                                    tracking_uri=tracking_uri))
+
+
+def _trajectory(folder: Path, run: dict[str, Any] | None, manoeuvre: str,
+                tracking_uri: str) -> dict[str, np.ndarray] | None:
+    """Fig. 6 arrays: one manoeuvre at alpha=3 with the best CNN and the EKF."""
+    from lbo.evaluate import classical, load_test, predict_grid
+    from lbo.observer import read_checkpoint, trained_conditions
+
+    if run is None:
+        return None
+    names = json.loads((folder / "manifest.json").read_text())["test_trajectories"]
+    if manoeuvre not in names:
+        manoeuvre = names[0]
+    arr = load_test(folder / "test.parquet")
+    pick = np.flatnonzero(np.isclose(arr["alpha"], 3.0) & (arr["traj"] == names.index(manoeuvre)))
+    if pick.size == 0:
+        return None
+    sub = {k: v[pick] for k, v in arr.items() if isinstance(v, np.ndarray)
+           and v.shape[:1] == arr["alpha"].shape}
+    ckpt = _artifact(run, "checkpoints/best.ckpt", tracking_uri)
+    net, hp = read_checkpoint(ckpt)
+    vehicle, noise = trained_conditions(hp, ckpt)
+    learned = predict_grid(net, sub, hp["window"])[0]
+    ekf = classical("ekf", sub, vehicle, noise)[0]
+    keep = sub["mask"][0]
+    return {"truth": sub["z"][0][keep, :2], "meas": sub["m"][0][keep, :2],
+            "title": f"{manoeuvre.replace('_', ' ')}, alpha = 3",
+            run["name"]: learned[keep, :2], "EKF": ekf[keep, :2]}
+
+
+def _log_report(cfg: DictConfig, scale: str, out: Path, files: list[Path], data: str) -> None:
+    """Log the report as an MLflow run of its own; a rerun updates the same run."""
+    from lbo.paths import artifact_location
+    from lbo.tracking import ensure_experiment
+
+    client, exp_id = ensure_experiment(cfg.tracking_uri, cfg.experiment_name,
+                                       artifact_location(cfg.tracking_uri))
+    found = client.search_runs([exp_id], f"tags.lbo_report = '{scale}' and tags.data = '{data}'")
+    run_id = found[0].info.run_id if found else client.create_run(
+        exp_id, run_name=f"report-{scale}", tags={"lbo_report": scale, "data": data}).info.run_id
+    for f in files:
+        client.log_artifact(run_id, str(f))
+    client.set_terminated(run_id, "FINISHED")
+    print(f"    report logged to MLflow run {run_id}")
+
+
+main = entry("reproduce", run)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,143 @@
+"""The stores that runs share: an MLflow tracking server or SQLite file, and Hydra launchers.
+
+Every entry point checks these before any work starts, so that a wrong address, a missing
+plugin or a store that concurrent jobs would lock stops with one line, and no run is left
+RUNNING.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import importlib.util
+import sqlite3
+from collections.abc import Iterator
+from urllib.parse import urlparse
+
+from lbo.errors import LboError
+from lbo.paths import sqlite_path
+
+#: Launchers named on the command line (``hydra/launcher=<name>``) -> (plugin module, package).
+LAUNCHERS = {
+    "joblib": ("hydra_plugins.hydra_joblib_launcher", "hydra-joblib-launcher"),
+    "submitit_local": ("hydra_plugins.hydra_submitit_launcher", "hydra-submitit-launcher"),
+    "submitit_slurm": ("hydra_plugins.hydra_submitit_launcher", "hydra-submitit-launcher"),
+    "ray": ("hydra_plugins.hydra_ray_launcher", "hydra-ray-launcher"),
+    "rq": ("hydra_plugins.hydra_rq_launcher", "hydra-rq-launcher"),
+}
+#: Seconds a probe of a tracking server waits before saying it does not answer.
+PROBE_TIMEOUT = 5.0
+#: Seconds a SQLite writer waits for another process's write before failing.
+SQLITE_BUSY_S = 120
+
+
+def check_launcher(name: str | None, field: str = "hydra/launcher") -> None:
+    """Raise one line, with the install command, if launcher ``name``'s plugin is missing.
+
+    ``basic`` (Hydra's own, serial) and launchers not listed in :data:`LAUNCHERS` pass.
+    """
+    if not name or name not in LAUNCHERS:
+        return
+    module, package = LAUNCHERS[name]
+    try:
+        found = importlib.util.find_spec(module) is not None
+    except ModuleNotFoundError:
+        found = False
+    if not found:
+        raise LboError(f"{field}={name}: the Hydra plugin {package} is not installed "
+                       f"(pip install {package}, or make install, which installs lbo[launchers])")
+
+
+def launcher_from_argv(argv: list[str]) -> str | None:
+    """The launcher a Hydra command line picks (``hydra/launcher=joblib``), if any."""
+    for arg in argv:
+        key, _, value = arg.lstrip("+~").partition("=")
+        if key == "hydra/launcher" and value:
+            return value
+    return None
+
+
+def is_server(uri: str) -> bool:
+    return urlparse(uri).scheme in ("http", "https")
+
+
+def check_server(uri: str, field: str = "logger.tracking_uri") -> None:
+    """Raise one line unless the MLflow tracking server at ``uri`` answers its health check.
+
+    Without this, MLflow's client retries a dead address with backoff for minutes and then
+    prints a page of urllib3 errors.
+    """
+    if not is_server(uri):
+        return
+    import requests
+
+    health = uri.rstrip("/") + "/health"
+    try:
+        reply = requests.get(health, timeout=PROBE_TIMEOUT)
+    except requests.RequestException as e:
+        reason = type(e).__name__
+        raise LboError(f"{field}: no MLflow tracking server answers at {uri} ({reason}); "
+                       "start one (make mlflow-server) or unset MLFLOW_TRACKING_URI") from e
+    if reply.status_code != 200:
+        raise LboError(f"{field}: {uri} is not an MLflow tracking server (GET /health gave "
+                       f"HTTP {reply.status_code})")
+
+
+@contextlib.contextmanager
+def creation_lock(uri: str) -> Iterator[None]:
+    """Hold a lock, per machine, on the SQLite database behind ``uri`` (no-op for a server).
+
+    Neither optuna nor MLflow survives two processes creating the same new SQLite file at once
+    (both migrate its tables), and jobs started together would do just that. The lock file
+    sits beside the database (``<name>.lock``), so it goes where the database goes.
+    """
+    from filelock import FileLock
+
+    path = sqlite_path(uri)
+    if path is None or not path.parent.is_dir():  # no folder: opening the store will say so
+        yield
+        return
+    with FileLock(path.with_name(path.name + ".lock"), timeout=600):
+        yield
+
+
+def use_wal(uri: str) -> None:
+    """Switch the SQLite file behind ``uri`` (if any, and if it exists) to write-ahead logging.
+
+    In WAL mode readers never block the writer, so parallel jobs (``hydra/launcher=joblib``)
+    that log metrics while others read do not fail with "database is locked"; writers still
+    take turns, and MLflow's connections wait for each other (SQLite's busy timeout). The
+    mode is stored in the file, so one call covers every later process.
+    """
+    path = sqlite_path(uri)
+    if path is None or not path.is_file():
+        return
+    with contextlib.closing(sqlite3.connect(path, timeout=SQLITE_BUSY_S)) as db:
+        if db.execute("PRAGMA journal_mode").fetchone()[0].lower() != "wal":
+            db.execute("PRAGMA journal_mode=WAL")
+
+
+def ensure_experiment(uri: str, name: str, artifact_location: str | None):
+    """An MLflow client on the store at ``uri`` and the id of experiment ``name``, created if
+    missing, the store in WAL mode if it is SQLite. Returns ``(client, experiment_id)``.
+    Callers have checked a server with :func:`check_server` first.
+
+    Jobs started together would each create the store's tables, or the experiment, and all but
+    one would fail: the first one does it under :func:`creation_lock`, and an experiment that
+    another machine created a moment ago is looked up again.
+    """
+    from mlflow import MlflowClient
+    from mlflow.exceptions import MlflowException
+
+    with creation_lock(uri):
+        client = MlflowClient(uri)  # creates the tables of a new SQLite file
+        use_wal(uri)
+        exp = client.get_experiment_by_name(name)
+        if exp is not None:
+            return client, exp.experiment_id
+        try:
+            return client, client.create_experiment(name, artifact_location=artifact_location)
+        except MlflowException:
+            exp = client.get_experiment_by_name(name)
+            if exp is None:
+                raise
+            return client, exp.experiment_id

@@ -1,0 +1,289 @@
+"""`python -m lbo.train`: train one learned observer (or a sweep with -m), log it to MLflow.
+
+    python -m lbo.train -m model=cnn,lstm window=20,40,60,80 experiment=quick
+
+``train(cfg)`` is plain Python: it takes a composed config and returns the metrics. ``main``
+is the thin Hydra shell around it.
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import warnings
+from pathlib import Path
+from typing import Any
+
+import lightning as L
+import torch
+from hydra.utils import instantiate
+from lightning.pytorch.loggers import MLFlowLogger
+from omegaconf import DictConfig, OmegaConf, open_dict
+
+from lbo.atomic import write_text
+from lbo.cli import entry
+from lbo.config import require
+from lbo.draws import SOURCES, AlphaDraw
+from lbo.errors import LboError
+from lbo.features import FEATURE_MODES
+from lbo.module import SCHEDULES
+from lbo.paths import REPO_ROOT
+from lbo.tracking import check_server, ensure_experiment
+
+# Lightning 2.6 on torch 2.13 warns once per fit about its own use of a torch API; a sweep or a
+# study would print it once per run
+warnings.filterwarnings("ignore", message=r"`isinstance\(treespec, LeafSpec\)` is deprecated")
+
+
+def git_commit() -> str:
+    try:
+        out = subprocess.run(["git", "rev-parse", "HEAD"], cwd=REPO_ROOT, capture_output=True,
+                             text=True, timeout=10)
+        return out.stdout.strip() or "unknown"
+    except OSError:
+        return "unknown"
+
+
+def check(cfg: DictConfig) -> None:
+    """Reject bad training settings with one line naming the field, before any work."""
+    w = cfg.window
+    require(isinstance(w, int) and not isinstance(w, bool) and w >= 4, "window",
+            "an integer >= 4 (the CNN pools windows by 4)", w)
+    require(cfg.features in FEATURE_MODES, "features", f"one of {list(FEATURE_MODES)}",
+            cfg.features)
+    require(isinstance(cfg.batch_size, int) and cfg.batch_size >= 1, "batch_size",
+            "an integer >= 1", cfg.batch_size)
+    require(isinstance(cfg.seed, int) and cfg.seed >= 0, "seed", "an integer >= 0", cfg.seed)
+    require(cfg.get("lr_schedule", "constant") in SCHEDULES, "lr_schedule",
+            f"one of {list(SCHEDULES)}", cfg.get("lr_schedule"))
+    noise_settings(cfg)
+    build_net(cfg)  # the model's own checks (its parameters, feature modes) before any data
+    if cfg.get("logger") and cfg.logger.get("tracking_uri"):
+        check_server(cfg.logger.tracking_uri)
+    if cfg.trainer.accelerator == "gpu" and not torch.cuda.is_available():
+        raise LboError("trainer=gpu needs CUDA, which torch does not see here; "
+                       "use trainer=cpu or trainer=auto")
+
+
+def build_net(cfg: DictConfig):
+    """The :class:`~lbo.network.ObserverNet` that ``cfg.model`` describes, untrained."""
+    from lbo.network import ObserverNet
+
+    model = OmegaConf.to_container(cfg.model, resolve=True)
+    return ObserverNet(model.pop("name"), cfg.window, cfg.features, **model)
+
+
+def datamodule(cfg: DictConfig, folder: Path):
+    """The training and validation windows of ``folder`` as ``cfg`` asks for them (batch size,
+    seed, training noise, device), set up."""
+    from lbo.data import WindowDataModule
+
+    dm = WindowDataModule(folder, cfg.window, cfg.batch_size, seed=cfg.seed,
+                          device=data_device(cfg), **noise_settings(cfg))
+    dm.setup("fit")
+    return dm
+
+
+def data_device(cfg: DictConfig) -> str:
+    """Where the training rows live and batches are drawn: the trainer's CUDA device, so a
+    GPU run never copies a batch from the host, else the CPU."""
+    acc = str(cfg.trainer.get("accelerator", "cpu"))
+    if acc in ("gpu", "cuda") or (acc == "auto" and torch.cuda.is_available()):
+        return "cuda"
+    return "cpu"
+
+
+def noise_settings(cfg: DictConfig) -> dict[str, Any]:
+    """Keyword arguments of :class:`~lbo.data.WindowDataModule` for the ``train_noise`` group.
+
+    Raises LboError naming the field for a bad source, distribution, alpha or range.
+    """
+    tn = cfg.get("train_noise")
+    if tn is None or tn.get("source", "stored") == "stored":
+        return {}
+    require(tn.source in SOURCES, "train_noise.source", f"one of {list(SOURCES)}", tn.source)
+    draw = AlphaDraw.from_cfg(tn)
+    offset = tn.get("loss_weight_offset")
+    require(offset is None or (isinstance(offset, (int, float)) and not isinstance(offset, bool)
+                               and offset > 0), "train_noise.loss_weight_offset",
+            "null or a number > 0", offset)
+    repeats = tn.get("val_repeats", 1)
+    require(isinstance(repeats, int) and not isinstance(repeats, bool) and repeats >= 1,
+            "train_noise.val_repeats", "an integer >= 1", repeats)
+    return {"draw": draw, "sigma": tuple(cfg.noise.measurement_sigma),
+            "weight_offset": offset, "val_repeats": repeats}
+
+
+def prepare_data(cfg: DictConfig) -> tuple[Path, str]:
+    """The data-set folder (generated if missing, or ``data_dir`` as given) and its hash."""
+    if cfg.get("data_dir"):
+        folder = Path(cfg.data_dir)
+        if not (folder / "train.parquet").is_file():
+            raise LboError(f"data_dir: no train.parquet in {folder} "
+                           "(give a folder printed by `python -m lbo.datagen`)")
+        return folder, folder.name
+    from lbo.datagen.build import build, spec_from_cfg
+
+    spec = spec_from_cfg(cfg)
+    folder, _, _ = build(spec)
+    return folder, spec.digest
+
+
+def config_hash(cfg: DictConfig) -> str:
+    """Fingerprint of what a run computes: the resolved config without where it writes."""
+    import hashlib
+
+    c = cfg.copy()
+    with open_dict(c):
+        c.output_dir, c.data.root, c.resume, c.data_dir = "-", "-", False, None
+        c.pop("logger", None)
+    text = OmegaConf.to_yaml(c, resolve=True)
+    return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+def finished_run(cfg: DictConfig, digest: str, clean: bool = True) -> dict[str, Any] | None:
+    """With ``resume=true``: the metrics of a FINISHED MLflow run of the same config, if any.
+
+    Runs of the same config that never finished (killed, crashed) are deleted (unless
+    ``clean`` is False), so a rerun replaces them instead of adding a duplicate.
+    """
+    import mlflow
+
+    client = mlflow.MlflowClient(cfg.logger.tracking_uri)
+    exp = client.get_experiment_by_name(cfg.logger.experiment_name)
+    if exp is None:
+        return None
+    found = client.search_runs([exp.experiment_id], f"tags.config_hash = '{digest}'")
+    done = [r for r in found if r.info.status == "FINISHED"]
+    for r in found:
+        if clean and r.info.status != "FINISHED":
+            client.delete_run(r.info.run_id)
+    if not done:
+        return None
+    run = max(done, key=lambda r: r.info.end_time or 0)
+    history = client.get_metric_history(run.info.run_id, "val_loss")
+    return {"name": run.info.run_name, "run_id": run.info.run_id, "reused": True,
+            "val_loss": min((m.value for m in history), default=float("nan")),
+            "checkpoint": f"{run.info.artifact_uri}/checkpoints/best.ckpt",
+            **{k: v for k, v in run.data.metrics.items() if k.startswith("test_")}}
+
+
+def meta(cfg: DictConfig, data_hash: str) -> dict[str, Any]:
+    """What a checkpoint carries besides the weights, to rebuild the observer elsewhere."""
+    return {"vehicle": OmegaConf.to_container(cfg.vehicle, resolve=True),
+            "noise": OmegaConf.to_container(cfg.noise, resolve=True),
+            "data": cfg.data.name, "data_hash": data_hash, "seed": cfg.seed}
+
+
+def train(cfg: DictConfig, callbacks: list[L.Callback] | None = None,
+          tags: dict[str, str] | None = None) -> dict[str, Any]:
+    """Train the observer described by ``cfg``; return its metrics.
+
+    Parameters
+    ----------
+    cfg : a composed ``train`` config.
+    callbacks : extra Lightning callbacks (e.g. Optuna's pruning), added to the configured ones.
+    tags : extra MLflow tags (e.g. ``mlflow.parentRunId`` to nest the run under a study).
+
+    Returns
+    -------
+    ``name``, ``val_loss`` (best), ``test_nrmse_alpha_{1,3,6}``, ``run_id``, ``checkpoint``,
+    ``epochs``.
+    """
+    from lbo.callbacks import Evaluation
+    from lbo.module import ObserverModule
+
+    check(cfg)
+    digest = config_hash(cfg)
+    if cfg.get("logger") and str(cfg.logger.get("_target_", "")).endswith("MLFlowLogger"):
+        # under a parallel launcher the first job creates the store and the experiment
+        ensure_experiment(cfg.logger.tracking_uri, cfg.logger.experiment_name,
+                          cfg.logger.get("artifact_location"))
+    if cfg.get("resume") and cfg.get("logger"):
+        reused = finished_run(cfg, digest)
+        if reused is not None:
+            print(f"reusing finished run {reused['run_id']} ({reused['name']}, same config)")
+            return reused
+    L.seed_everything(cfg.seed, workers=True, verbose=False)
+    folder, data_hash = prepare_data(cfg)
+    dm = datamodule(cfg, folder)
+    module = ObserverModule(OmegaConf.to_container(cfg.model, resolve=True), cfg.window,
+                            cfg.features, instantiate(cfg.optimizer), meta(cfg, data_hash),
+                            cfg.get("lr_schedule", "constant"))
+    module.observer.set_normalisation(**dm.normalisation(cfg.features))
+
+    name = f"{cfg.model.name}-N{cfg.window}"
+    tags = {"git_commit": git_commit(), "data_hash": data_hash, "data": cfg.data.name,
+            "model": cfg.model.name, "window": str(cfg.window), "features": cfg.features,
+            "train_noise": _noise_tag(cfg),
+            "config_hash": digest, **(tags or {})}
+    logger = instantiate(cfg.logger, tags=tags) if cfg.get("logger") else None
+    callbacks = [*(instantiate(c) for c in (cfg.get("callbacks") or {}).values()),
+                 *(callbacks or [])]
+    trainer = instantiate(cfg.trainer, logger=logger if logger is not None else False,
+                          callbacks=callbacks)
+    output = Path(cfg.output_dir)
+    for cb in callbacks:
+        if isinstance(cb, Evaluation) and isinstance(logger, MLFlowLogger):
+            cb.mlflow = logger
+    try:
+        if isinstance(logger, MLFlowLogger):
+            logger.log_hyperparams(_flat(cfg))
+            config_yaml = write_text(output / "config.yaml", OmegaConf.to_yaml(cfg, resolve=True))
+            logger.experiment.log_artifact(logger.run_id, str(config_yaml))
+        trainer.fit(module, datamodule=dm)
+    except BaseException:
+        if isinstance(logger, MLFlowLogger):
+            logger.finalize("failed")  # also when the crash is outside Lightning's own hooks
+        raise
+    if isinstance(logger, MLFlowLogger):
+        logger.finalize("success")  # fast_dev_run swaps the logger out, so Lightning would not
+    ckpt = getattr(trainer.checkpoint_callback, "best_model_path", "") or ""
+    best = getattr(trainer.checkpoint_callback, "best_model_score", None)
+    metrics: dict[str, Any] = {
+        "name": name,
+        "val_loss": float(best) if best is not None
+        else float(trainer.callback_metrics.get("val_loss", float("nan"))),
+        "checkpoint": ckpt,
+        "run_id": logger.run_id if isinstance(logger, MLFlowLogger) else None,
+        "epochs": trainer.current_epoch,
+        "reused": False,
+    }
+    for cb in callbacks:
+        if isinstance(cb, Evaluation):
+            metrics.update(cb.metrics)
+    return metrics
+
+
+def _noise_tag(cfg: DictConfig) -> str:
+    """``stored``, ``fixed 1``, ``uniform [0, 6.5]``, ...: the training noise in a few words."""
+    tn = cfg.get("train_noise")
+    if tn is None or tn.source == "stored":
+        return "stored"
+    if tn.distribution == "fixed":
+        return f"fixed {tn.alpha:g}"
+    if tn.distribution == "levels":
+        return f"levels {list(tn.levels)}"
+    return f"{tn.distribution} [{tn.low:g}, {tn.high:g}]"
+
+
+def _flat(cfg: DictConfig) -> dict[str, Any]:
+    """The resolved config as flat ``a.b.c`` params (lists as strings), Hydra's own left out."""
+    out: dict[str, Any] = {}
+
+    def walk(node: Any, prefix: str) -> None:
+        if isinstance(node, dict):
+            for k, v in node.items():
+                walk(v, f"{prefix}{k}.")
+        else:
+            out[prefix[:-1]] = node
+
+    walk(OmegaConf.to_container(cfg, resolve=True), "")
+    return out
+
+
+main = entry("train", lambda cfg: train(cfg)["val_loss"])  # the value a sweeper minimises
+
+
+if __name__ == "__main__":
+    sys.exit(main())

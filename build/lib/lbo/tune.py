@@ -1,0 +1,355 @@
+"""`python -m lbo.tune`: the paper's hyperparameter search at N=20, as a resumable Optuna study.
+
+    python -m lbo.tune hparams_search=cnn [experiment=quick] [tune.n_trials=40]
+    python -m lbo.train -m model=cnn +tuned=cnn window=20,40,60,80
+
+The paper tunes each architecture by grid search at N=20 and reuses the result for N=40..80. Here
+a seeded TPE sampler proposes the settings of ``tune.search_space``, a median pruner stops trials
+whose validation loss lags after an epoch, and the objective is the best validation loss, the
+paper's own criterion; the test set is never touched. The study lives in ``tune.storage``
+(SQLite by default, any SQLAlchemy URL for a cluster): a rerun with the same ``tune.study_name``
+adds only the missing trials, and several processes on one study share the work. The study is a
+parent MLflow run with one child run per trial. The best settings are written to
+``tune.handoff`` (``conf/tuned/<model>.yaml``), which training composes with ``+tuned=<model>``.
+
+``tune(cfg)`` is plain Python: it takes a composed ``tune`` config and returns the study's
+outcome. ``main`` is the thin Hydra shell around it. The parts live beside it: the search
+space in :mod:`lbo.search`, the database and the claim lock in :mod:`lbo.study_storage`,
+the MLflow runs and figures in :mod:`lbo.study_mlflow`.
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+import logging
+import os
+import socket
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import optuna
+from hydra.utils import instantiate
+from lightning.pytorch.loggers import MLFlowLogger
+from omegaconf import DictConfig, OmegaConf, open_dict
+from optuna.trial import FrozenTrial, TrialState
+from optuna_integration import PyTorchLightningPruningCallback
+
+from lbo.atomic import write_text
+from lbo.cli import entry
+from lbo.config import require
+from lbo.errors import LboError
+from lbo.paths import CONF_DIR
+from lbo.search import Param, search_space
+from lbo.study_mlflow import RUN_ATTR, StudyRun
+from lbo.study_storage import FINISHED, ClaimLock, needs_trial, open_storage, redact
+from lbo.train import check, train
+
+
+def check_tune(cfg: DictConfig) -> list[Param]:
+    """Reject bad study settings with one line naming the field, before any work starts."""
+    t = cfg.tune
+    require(isinstance(t.n_trials, int) and not isinstance(t.n_trials, bool) and t.n_trials >= 1,
+            "tune.n_trials", "an integer >= 1", t.n_trials)
+    require(t.timeout is None or (isinstance(t.timeout, (int, float))
+                                  and not isinstance(t.timeout, bool) and t.timeout > 0),
+            "tune.timeout", "a number of seconds > 0, or null", t.timeout)
+    require(isinstance(t.seed, int) and not isinstance(t.seed, bool) and t.seed >= 0,
+            "tune.seed", "an integer >= 0", t.seed)
+    require(isinstance(t.study_name, str) and t.study_name != "", "tune.study_name",
+            "a non-empty string", t.study_name)
+    require(isinstance(t.handoff, str) and t.handoff.endswith(".yaml"), "tune.handoff",
+            "a path ending in .yaml", t.handoff)
+    for key in ("heartbeat_interval", "grace_period", "n_startup_trials"):
+        require(isinstance(t[key], int) and not isinstance(t[key], bool) and t[key] >= 1,
+                f"tune.{key}", "an integer >= 1", t[key])
+    check(cfg)
+    return search_space(cfg)
+
+
+# --- Optuna ---------------------------------------------------------------------------------
+
+
+class TrialSeededTPESampler(optuna.samplers.BaseSampler):
+    """TPE whose random draws for trial n depend only on (seed, n).
+
+    A plain seeded sampler restarts its random stream in every process: a resumed study would
+    repeat its first proposals, and workers sharing a study would propose the same ones. Seeding
+    per trial keeps a study repeatable and lets any number of processes share it. Each trial
+    gets a fresh :class:`optuna.samplers.TPESampler` seeded with (seed, n), through Optuna's
+    public sampler interface: TPE keeps no state between trials but its random stream, and
+    reads the history from the study.
+    """
+
+    def __init__(self, *, seed: int, **kwargs: Any) -> None:
+        self.seed, self.tpe_kwargs = seed, kwargs
+        self.tpe = self.for_trial(0)
+
+    def for_trial(self, number: int) -> optuna.samplers.TPESampler:
+        seed = int(np.random.SeedSequence([self.seed, number]).generate_state(1)[0])
+        return optuna.samplers.TPESampler(seed=seed, **self.tpe_kwargs)
+
+    def reseed_rng(self) -> None:  # the per-trial seeds already differ
+        return None
+
+    def before_trial(self, study: optuna.Study, trial: FrozenTrial) -> None:
+        self.tpe = self.for_trial(trial.number)
+        self.tpe.before_trial(study, trial)
+
+    def infer_relative_search_space(self, study, trial):
+        return self.tpe.infer_relative_search_space(study, trial)
+
+    def sample_relative(self, study, trial, search_space):
+        return self.tpe.sample_relative(study, trial, search_space)
+
+    def sample_independent(self, study, trial, param_name, param_distribution):
+        return self.tpe.sample_independent(study, trial, param_name, param_distribution)
+
+    def after_trial(self, study, trial, state, values) -> None:
+        self.tpe.after_trial(study, trial, state, values)
+
+
+def make_pruner(node: DictConfig) -> optuna.pruners.BasePruner:
+    """``tune.pruner`` (a ``_target_`` config, MedianPruner by default) as a pruner."""
+    try:
+        pruner = instantiate(node)
+    except Exception as e:
+        cause = e.__cause__ or e
+        reason = " ".join(str(cause).split())[:300]
+        raise LboError(f"tune.pruner: cannot build {node.get('_target_')!r} "
+                       f"({type(cause).__name__}: {reason})") from e
+    if not isinstance(pruner, optuna.pruners.BasePruner):
+        raise LboError(f"tune.pruner must build an optuna pruner, got {type(pruner).__name__}")
+    return pruner
+
+
+def _describe(trial: FrozenTrial, space: list[Param]) -> str:
+    params = " ".join(f"{p.key}={_short(p.decode(trial.params[p.key]))}" for p in space
+                      if p.key in trial.params)
+    seconds = trial.duration.total_seconds() if trial.duration else float("nan")
+    if trial.state == TrialState.COMPLETE:
+        outcome = f"val_loss {trial.value:.6g}"
+    elif trial.state == TrialState.PRUNED:
+        steps = trial.intermediate_values
+        outcome = f"pruned after epoch {max(steps)}" if steps else "pruned"
+    else:
+        outcome = trial.state.name.lower()
+    return f"trial {trial.number:3d}  {outcome:<26s} {seconds:7.1f} s  {params}"
+
+
+def _short(value: Any) -> str:
+    if isinstance(value, float):
+        return f"{value:.4g}"
+    return json.dumps(value, separators=(",", ":")) if isinstance(value, list) else str(value)
+
+
+# --- trials ---------------------------------------------------------------------------------
+
+
+class Pruning(PyTorchLightningPruningCallback):
+    """Optuna's Lightning pruning callback (reports ``val_loss`` after each validation epoch,
+    raises :class:`optuna.TrialPruned`), which also records the trial's MLflow run."""
+
+    def __init__(self, trial: optuna.Trial) -> None:
+        super().__init__(trial, monitor="val_loss")
+        self.optuna_trial = trial  # our own reference, not the parent's private attribute
+
+    def on_fit_start(self, trainer, pl_module) -> None:
+        super().on_fit_start(trainer, pl_module)
+        if isinstance(trainer.logger, MLFlowLogger):
+            self.optuna_trial.set_user_attr(RUN_ATTR, trainer.logger.run_id)
+
+
+def trial_config(cfg: DictConfig, values: dict[str, Any], number: int, study_name: str,
+                 output_dir: Path) -> DictConfig:
+    """The training config of one trial: ``cfg`` with the sampled values, its own output folder,
+    and nothing that reads the test set."""
+    out = copy.deepcopy(cfg)
+    with open_dict(out):
+        for key, value in values.items():
+            OmegaConf.update(out, key, value, merge=False)
+        out.output_dir = str(output_dir / f"trial_{number:03d}")
+        del out.tune
+        callbacks = out.get("callbacks") or {}
+        for name in list(callbacks):
+            target = str(callbacks[name].get("_target_", ""))
+            # Tuning must never see the test set: the evaluation callback scores the test grid
+            # at the end of fit, so it is left out of every trial. Progress bars would bury the
+            # one line per trial.
+            if target == "lbo.callbacks.Evaluation" or target.endswith("ProgressBar"):
+                del callbacks[name]
+        out.trainer.enable_progress_bar = False
+        out.trainer.enable_model_summary = False
+        if out.get("logger"):
+            out.logger.run_name = f"{study_name}-trial{number}"
+    return out
+
+
+# --- the study ------------------------------------------------------------------------------
+
+
+def tune(cfg: DictConfig) -> dict[str, Any]:
+    """Run (or resume, or join) the study described by ``cfg.tune``; write the hand-off config.
+
+    Parameters
+    ----------
+    cfg : a composed ``tune`` config (the training config plus ``tune``).
+
+    Returns
+    -------
+    ``study_name``, ``storage``, ``best_value``, ``best_params`` (config key -> value),
+    ``best_trial``, ``new_trials`` (numbers of the trials this call ran), ``n_complete``,
+    ``n_pruned``, ``n_failed``, ``handoff`` (path), ``train_command``, ``parent_run_id``.
+
+    Raises
+    ------
+    LboError
+        For bad settings (before any trial), or when the study has no completed trial.
+    """
+    space = check_tune(cfg)
+    t = cfg.tune
+    pruner = make_pruner(t.pruner)
+    storage = open_storage(t.storage, t.heartbeat_interval, t.grace_period)
+    shown = redact(t.storage)
+    sampler = TrialSeededTPESampler(seed=t.seed, n_startup_trials=t.n_startup_trials)
+    study = optuna.create_study(study_name=t.study_name, storage=storage, sampler=sampler,
+                                pruner=pruner, direction="minimize", load_if_exists=True)
+    for key, value in (("model", cfg.model.name), ("window", cfg.window),
+                       ("data", cfg.data.name)):
+        study.set_user_attr(key, value)
+    output = Path(cfg.output_dir)
+    tracking = cfg.get("logger") and str(cfg.logger.get("_target_", "")).endswith("MLFlowLogger")
+    run = StudyRun(cfg, study, shown) if tracking else None
+
+    finished = len(study.get_trials(deepcopy=False, states=FINISHED))
+    remaining = t.n_trials - finished
+    print(f"study {t.study_name} in {shown}: {finished} of {t.n_trials} trials finished"
+          + (f", running {remaining} more" if remaining > 0 else ""), flush=True)
+    new: list[int] = []
+
+    claim = ClaimLock(storage, t.storage, t.study_name)
+
+    def objective(trial: optuna.Trial) -> float:
+        claim.release()  # the trial is RUNNING in the storage: other workers count it now
+        trial.set_user_attr("worker", f"{socket.gethostname()}:{os.getpid()}")
+        values = {p.key: p.suggest(trial) for p in space}
+        trial_cfg = trial_config(cfg, values, trial.number, t.study_name, output)
+        trial.set_user_attr("output_dir", trial_cfg.output_dir)
+        tags = {"optuna_study": t.study_name, "optuna_trial": str(trial.number)}
+        if run is not None:
+            tags["mlflow.parentRunId"] = run.run_id
+        try:
+            return train(trial_cfg, callbacks=[Pruning(trial)], tags=tags)["val_loss"]
+        except optuna.TrialPruned:
+            raise
+        except BaseException:
+            # Optuna re-raises the error without calling the study callbacks: close the run here
+            if run is not None:
+                run.close_trial(trial.user_attrs.get(RUN_ATTR), TrialState.FAIL)
+            raise
+
+    def progress(study: optuna.Study, trial: FrozenTrial) -> None:
+        new.append(trial.number)
+        if run is not None:
+            run.mark(trial)
+        print(_describe(trial, space), flush=True)
+
+    status = "FINISHED"
+    try:
+        # one trial at a time, each claimed under the study's lock: workers sharing the
+        # study stop once it holds n_trials finished (or running) trials, and never overshoot
+        start = time.monotonic()
+        while t.timeout is None or time.monotonic() - start < t.timeout:
+            claim.acquire()
+            try:
+                if not needs_trial(study, t.n_trials):
+                    break
+                study.optimize(objective, n_trials=1, callbacks=[progress])
+            finally:
+                claim.release()
+    except KeyboardInterrupt:
+        status = "KILLED"
+        raise
+    except BaseException:
+        status = "FAILED"
+        raise
+    finally:
+        handoff = None
+        if status == "FINISHED" and _completed(study):
+            handoff = write_handoff(cfg, study, space, shown)
+        if run is not None:
+            run.close_stale(study)
+            run.summarise(study, space, handoff, status)
+
+    counts = {s: len(study.get_trials(deepcopy=False, states=(s,))) for s in TrialState}
+    if handoff is None:
+        raise LboError(f"study {t.study_name}: no trial has completed "
+                       f"({counts[TrialState.PRUNED]} pruned, {counts[TrialState.FAIL]} failed),"
+                       f" so no hand-off was written; rerun with a larger tune.n_trials")
+    best = study.best_trial
+    command = train_command(cfg.model.name, handoff)
+    params = {p.key: p.decode(best.params[p.key]) for p in space if p.key in best.params}
+    print(f"best: trial {best.number}, val_loss {best.value:.6g}: "
+          + " ".join(f"{k}={_short(v)}" for k, v in params.items()))
+    print(f"train with: {command}")
+    print(f"tuned: {handoff}", flush=True)
+    return {"study_name": t.study_name, "storage": shown, "best_value": best.value,
+            "best_params": params, "best_trial": best.number, "new_trials": new,
+            "n_complete": counts[TrialState.COMPLETE], "n_pruned": counts[TrialState.PRUNED],
+            "n_failed": counts[TrialState.FAIL], "handoff": handoff, "train_command": command,
+            "parent_run_id": run.run_id if run is not None else None}
+
+
+def _completed(study: optuna.Study) -> bool:
+    return bool(study.get_trials(deepcopy=False, states=(TrialState.COMPLETE,)))
+
+
+def write_handoff(cfg: DictConfig, study: optuna.Study, space: list[Param],
+                  storage: str) -> Path:
+    """Write the best trial's settings as a ``# @package _global_`` config (atomically)."""
+    best = study.best_trial
+    values = OmegaConf.create({})
+    for p in space:
+        if p.key in best.params:
+            OmegaConf.update(values, p.key, p.decode(best.params[p.key]), merge=True)
+    path = Path(cfg.tune.handoff)
+    header = (
+        "# @package _global_\n"
+        f"# Written by `python -m lbo.tune`: the best of study {study.study_name!r} in "
+        f"{storage}\n"
+        f"# (model {cfg.model.name}, window {cfg.window}, data {cfg.data.name}; trial "
+        f"{best.number}, val_loss {best.value:.6g}).\n"
+        f"# Use: {train_command(cfg.model.name, path)}\n")
+    return write_text(path, header + OmegaConf.to_yaml(values))
+
+
+def train_command(model: str, handoff: Path) -> str:
+    """The training line that composes ``handoff``: ``+<folder>=<name>``, with a search path
+    when the folder is not under conf/."""
+    handoff = Path(handoff).resolve()
+    command = (f"python -m lbo.train -m model={model} +{handoff.parent.name}={handoff.stem} "
+               f"window=20,40,60,80")
+    if handoff.parent.parent != CONF_DIR.resolve():
+        command += f" 'hydra.searchpath=[file://{handoff.parent.parent}]'"
+    return command
+
+
+def quiet() -> None:
+    """One line per trial from :func:`tune` instead of Optuna's and Lightning's own chatter."""
+    optuna.logging.set_verbosity(optuna.logging.WARNING)
+    logging.getLogger("lightning.pytorch").setLevel(logging.WARNING)
+
+
+def _quiet_tune(cfg: DictConfig) -> float:
+    quiet()
+    return tune(cfg)["best_value"]
+
+
+main = entry("tune", _quiet_tune)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,51 @@
+"""A non-editable install (a wheel) carries the configs and runs from any folder."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import zipfile
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def wheel(tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("wheel")
+    res = subprocess.run([sys.executable, "-m", "pip", "wheel", "-q", "--no-deps",
+                          "--no-build-isolation", str(REPO), "-w", str(out)],
+                         capture_output=True, text=True)
+    assert res.returncode == 0, res.stderr
+    return next(out.glob("lbo-*.whl"))
+
+
+def test_the_wheel_ships_every_config(wheel):
+    names = set(zipfile.ZipFile(wheel).namelist())
+    conf = {str(p.relative_to(REPO / "conf")) for p in (REPO / "conf").rglob("*.yaml")
+            if p.parent.name != "tuned"}
+    assert conf and {f"lbo/conf/{c}" for c in conf} <= names
+    assert "lbo/py.typed" in names
+
+
+@pytest.mark.slow
+def test_an_installed_wheel_composes_its_configs_outside_the_repo(wheel, tmp_path):
+    site = tmp_path / "site"
+    subprocess.run([sys.executable, "-m", "pip", "install", "-q", "--no-deps", "--target",
+                    str(site), str(wheel)], check=True, capture_output=True)
+    work = tmp_path / "project"
+    work.mkdir()
+    env = {k: v for k, v in os.environ.items() if k not in ("LBO_ROOT", "MLFLOW_TRACKING_URI")}
+    env["PYTHONPATH"] = str(site)
+    res = subprocess.run([sys.executable, "-c", "import lbo.paths as p; "
+                          "print(p.CONF_DIR); print(p.REPO_ROOT)"],
+                         cwd=work, env=env, capture_output=True, text=True)
+    assert res.returncode == 0, res.stderr
+    assert res.stdout.split() == [str(site / "lbo" / "conf"), str(work)]
+    res = subprocess.run([sys.executable, "-m", "lbo.datagen", "data=smoke"], cwd=work,
+                         env=env, capture_output=True, text=True)
+    assert res.returncode == 0, res.stderr[-2000:]
+    assert list((work / "data").glob("smoke-*/train.parquet"))
