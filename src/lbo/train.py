@@ -23,7 +23,7 @@ from omegaconf import DictConfig, OmegaConf, open_dict
 from lbo.atomic import write_text
 from lbo.cli import entry
 from lbo.config import require
-from lbo.draws import SOURCES, AlphaDraw
+from lbo.draws import SOURCES, AlphaDraw, fix_periods
 from lbo.errors import LboError
 from lbo.features import FEATURE_MODES
 from lbo.module import SCHEDULES
@@ -70,7 +70,12 @@ def build_net(cfg: DictConfig):
     from lbo.network import ObserverNet
 
     model = OmegaConf.to_container(cfg.model, resolve=True)
-    return ObserverNet(model.pop("name"), cfg.window, cfg.features, **model)
+    return ObserverNet(model.pop("name"), cfg.window, cfg.features, fixes(cfg), **model)
+
+
+def fixes(cfg: DictConfig) -> bool:
+    """Whether the observer is trained with fixes dropped (``fix_rates``), and so takes them."""
+    return bool(fix_periods(cfg.get("fix_rates"), cfg.vehicle.dt))
 
 
 def datamodule(cfg: DictConfig, folder: Path):
@@ -79,7 +84,9 @@ def datamodule(cfg: DictConfig, folder: Path):
     from lbo.data import WindowDataModule
 
     dm = WindowDataModule(folder, cfg.window, cfg.batch_size, seed=cfg.seed,
-                          device=data_device(cfg), **noise_settings(cfg))
+                          device=data_device(cfg),
+                          fix_periods=fix_periods(cfg.get("fix_rates"), cfg.vehicle.dt),
+                          **noise_settings(cfg))
     dm.setup("fit")
     return dm
 
@@ -209,7 +216,7 @@ def train(cfg: DictConfig, callbacks: list[L.Callback] | None = None,
     dm = datamodule(cfg, folder)
     module = ObserverModule(OmegaConf.to_container(cfg.model, resolve=True), cfg.window,
                             cfg.features, instantiate(cfg.optimizer), meta(cfg, data_hash),
-                            cfg.get("lr_schedule", "constant"))
+                            cfg.get("lr_schedule", "constant"), fixes(cfg))
     module.observer.set_normalisation(**dm.normalisation(cfg.features))
 
     name = f"{cfg.model.name}-N{cfg.window}"
