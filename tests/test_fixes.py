@@ -152,7 +152,8 @@ def test_training_data_with_stop_and_go_has_standstill(tmp_path):
     half = cfg.data.train.n_traj // 2
     assert (V[:half] >= cfg.vehicle.v_min).all()   # friction circle, as the paper's
     assert (V[half:] == 0).mean() > 0.1            # stop-and-go: standstill
-    with pytest.raises(LboError, match=r"^data.train.stop_and_go must be a share of the trajectories in \[0, 1\], got 2$"):
+    with pytest.raises(LboError, match=r"^data.train.stop_and_go must be a share of the "
+                                       r"trajectories in \[0, 1\], got 2$"):
         spec_from_cfg(compose_cfg("datagen", ["data=smoke", "+data.train.stop_and_go=2"]))
 
 

@@ -125,7 +125,19 @@ def _set(df, row, column, value):
 
 BAD_LOGS = {  # case: (log from the good one, what the message must say)
     "missing": (lambda d: d.drop(columns=["V", "delta"]), "missing columns V, delta"),
-    "nan": (lambda d: _set(d, 5, "y_m", np.nan), "column 'y_m' has NaN or inf"),
+    "nan": (lambda d: _set(d, 5, "V", np.nan), "column 'V' has NaN or inf"),
+    "partial_fix": (lambda d: _set(d, 5, "y_m", np.nan),
+                    r"row 5 has a partial fix \(y_m empty\)"),
+    "inf_fix": (lambda d: _set(d, 5, "x_m", np.inf), "column 'x_m' has NaN or inf"),
+    "absurd_position": (lambda d: _set(d, 3, "x_m", 1e300),
+                        r"row 3: x_m=1e\+300 m is beyond 1e\+07 m \(positions are metres"),
+    "absurd_speed": (lambda d: _set(d, 8, "V", 400.0),
+                     r"row 8: V=400 m/s is beyond 100 m/s \(no road vehicle is that fast"),
+    "absurd_steering": (lambda d: _set(d, 4, "delta", 10.0),
+                        r"row 4: delta=10 rad is beyond the vehicle's steering limit "
+                        r"delta_max=0.5 rad"),
+    "heading_outlier": (lambda d: _set(d, 6, "psi_m", 7.0),
+                        r"row 6: psi_m=7 rad is outside \[-2 pi, 2 pi\]; a heading in rad"),
     "inf": (lambda d: _set(d, 9, "V", np.inf), "column 'V' has NaN or inf"),
     "repeated_t": (lambda d: _set(d, 7, "t", d["t"].iloc[6]), "'t' is not strictly increasing"),
     "backwards_t": (lambda d: d.iloc[::-1], "'t' is not strictly increasing"),
@@ -273,6 +285,9 @@ def _edited(trained, tmp_path, edit):
      "trained with features=relative, but features=absolute was asked for"),
     (lambda c: c["state_dict"].pop("observer.in_mean"), {}, "weights do not fit"),
     (lambda c: c.pop("hyper_parameters"), {}, "not an lbo observer checkpoint"),
+    # a bad value stored in the checkpoint is the checkpoint's fault, not a setting's
+    (lambda c: c["hyper_parameters"]["meta"]["vehicle"].update(dt=-0.02), {},
+     "edited.ckpt: its stored vehicle.dt must be a period in seconds > 0, got -0.02"),
 ])
 def test_foreign_checkpoints_are_refused(trained, tmp_path, edit, kwargs, message):
     with pytest.raises(LboError, match=re.escape(message)) as err:
@@ -283,9 +298,37 @@ def test_foreign_checkpoints_are_refused(trained, tmp_path, edit, kwargs, messag
 def test_corrupt_checkpoint_is_one_line(trained, tmp_path):
     path = tmp_path / "cut.ckpt"
     path.write_bytes(open(trained["checkpoint"], "rb").read()[:5000])
-    with pytest.raises(LboError, match="cannot read it as a torch checkpoint") as err:
+    with pytest.raises(LboError, match="not a readable lbo checkpoint \\(damaged, or another "
+                                       "kind of file\\)$") as err:
         Observer.load(path)
     assert "\n" not in str(err.value)
+
+
+class Foreign:
+    """An arbitrary class: torch's safe loader refuses to unpickle it."""
+
+
+@pytest.mark.parametrize("content, reason", [
+    (b"just some bytes, not a checkpoint" * 10, "damaged, or another kind of file"),
+    (None, "it holds pickled objects beyond tensors and plain containers, which lbo never "
+           "unpickles"),
+])
+def test_a_foreign_file_named_ckpt_is_not_an_lbo_checkpoint(tmp_path, content, reason):
+    path = tmp_path / "model.ckpt"
+    if content is None:  # a real torch file, but with an arbitrary pickled object inside
+        torch.save({"state_dict": {}, "obj": Foreign()}, path)
+    else:
+        path.write_bytes(content)
+    with pytest.raises(LboError) as err:
+        Observer.load(path)
+    assert str(err.value) == f"checkpoint {path}: not a readable lbo checkpoint ({reason})"
+    assert "weights_only" not in str(err.value)
+
+
+def test_an_unknown_feature_mode_is_named_as_such(trained):
+    with pytest.raises(LboError, match=r"^features: unknown mode 'foo'; expected one of "
+                                       r"relative, frame, absolute$"):
+        Observer.load(trained["checkpoint"], features="foo")
 
 
 def test_checkpoint_carries_the_observer(trained):

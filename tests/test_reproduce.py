@@ -1,8 +1,12 @@
+import hashlib
 import json
 import os
 import signal
 import subprocess
 import sys
+import threading
+import time
+from pathlib import Path
 
 import mlflow
 import optuna
@@ -12,6 +16,10 @@ import pytest
 REPORT_FILES = ["rmse_alpha1.csv", "rmse_alpha6.csv", "nrmse.csv", "report.md",
                 "friction_circle.png", "nrmse_cnn.png", "nrmse_lstm.png", "nrmse_all.png",
                 "trajectory_alpha3.png", "nrmse_robust.png"]
+
+
+def _sha(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
 
 
 def command(tmp_path):
@@ -29,15 +37,24 @@ def test_reproduce_smoke_killed_and_resumed_without_duplicates(tmp_path):
            "PYTHONUNBUFFERED": "1"}
     proc = subprocess.Popen(command(tmp_path), env=env, stdout=subprocess.PIPE,
                             stderr=subprocess.STDOUT, text=True, start_new_session=True)
-    seen = []
-    for line in proc.stdout:
-        seen.append(line)
-        if "3/9 cnn-N60" in line:  # two observers finished, the third done: kill mid-stage
-            os.killpg(proc.pid, signal.SIGKILL)
-            break
+    # kill the fourth observer's run once it has written a checkpoint, before it finishes
+    killed_at = tmp_path / "report" / "runs" / "cnn-N80" / "checkpoints" / "best.ckpt"
+
+    def kill_after_checkpoint() -> None:
+        while proc.poll() is None:
+            if killed_at.exists():
+                os.killpg(proc.pid, signal.SIGKILL)
+                return
+            time.sleep(0.01)
+
+    watcher = threading.Thread(target=kill_after_checkpoint)
+    watcher.start()
+    seen = list(proc.stdout)
     proc.wait(timeout=60)
+    watcher.join()
     assert proc.returncode == -signal.SIGKILL, "".join(seen[-30:])
     assert not (tmp_path / "report" / "report.md").exists()
+    assert "4/9 cnn-N80" not in "".join(seen)  # killed inside the run, after its checkpoint
 
     done = subprocess.run(command(tmp_path), env=env, capture_output=True, text=True)
     assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:]
@@ -47,6 +64,7 @@ def test_reproduce_smoke_killed_and_resumed_without_duplicates(tmp_path):
     assert "<== [1/5] data: done" in out
     assert "<== [2/5] tune: reused" in out
     assert out.count("reusing finished run") == 3  # cnn-N20, N40, N60 finished before the kill
+    assert "removed 1 stale checkpoint(s) of an earlier run" in out
 
     report = tmp_path / "report"
     for name in REPORT_FILES:
@@ -77,6 +95,17 @@ def test_reproduce_smoke_killed_and_resumed_without_duplicates(tmp_path):
     trained = [r.info.run_name for r in runs if "optuna_trial" not in r.data.tags
                and r.info.run_name in expected]
     assert sorted(trained) == sorted(expected)  # each observer once: no duplicates
+    # every observer's folder holds one best.ckpt, the very file its MLflow run logged (the
+    # report reads that artifact): the resumed cnn-N80 replaced the killed run's checkpoint
+    for r in runs:
+        if r.info.run_name in expected:
+            key = "robust" if r.info.run_name.startswith("filternet") else r.info.run_name
+            folder = tmp_path / "report" / "runs" / key / "checkpoints"
+            assert [p.name for p in folder.iterdir()] == ["best.ckpt"], key
+            logged = mlflow.artifacts.download_artifacts(
+                run_id=r.info.run_id, artifact_path="checkpoints/best.ckpt",
+                dst_path=str(tmp_path / "dl" / key), tracking_uri=env["MLFLOW_TRACKING_URI"])
+            assert _sha(Path(logged)) == _sha(folder / "best.ckpt"), key
     reports = [r for r in runs if r.data.tags.get("lbo_report") == "smoke"]
     assert len(reports) == 1
     assert {a.path for a in client.list_artifacts(reports[0].info.run_id)} >= set(REPORT_FILES)

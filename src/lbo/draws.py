@@ -119,7 +119,8 @@ def noisy_measurements(z: torch.Tensor, alpha: torch.Tensor, sigma: torch.Tensor
     return torch.cat([m[..., :2], wrap_angle_torch(m[..., 2:])], dim=-1)
 
 
-def fix_periods(rates: Sequence[float] | None, dt: float, field: str = "fix_rates") -> tuple[int, ...]:
+def fix_periods(rates: Sequence[float] | None, dt: float,
+                field: str = "fix_rates") -> tuple[int, ...]:
     """Fix rates (Hz) -> periods in steps of ``dt`` (a rate of 1/dt or more is every step).
 
     Raises LboError naming ``field`` unless ``rates`` is None or a list of numbers > 0.

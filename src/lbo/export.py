@@ -75,7 +75,9 @@ def export(observer: Any, out_dir: str | Path, name: str | None = None) -> dict[
         "features": observer.features,
         "input": {"name": "window", "shape": ["batch", observer.window, 5], "dtype": "float64",
                   "columns": ["x_m", "y_m", "psi_m", "V", "delta"],
-                  "order": "oldest sample first; the last row is the current step"},
+                  "order": "oldest sample first; the last row is the current step",
+                  "missing_fix": ("x_m, y_m and psi_m NaN" if getattr(net, "fixes", False)
+                                  else "not allowed: a fix at every step")},
         "output": {"name": "state", "shape": ["batch", 3], "dtype": "float64",
                    "columns": ["x", "y", "psi"], "units": ["m", "m", "rad"]},
         "vehicle": dataclasses.asdict(observer.vehicle),

@@ -7,9 +7,10 @@ The log (CSV or Parquet) holds one row per sample with the columns ``t`` (s), ``
 ``y_m`` (m), ``psi_m`` (rad), ``V`` (m/s) and ``delta`` (rad), and optionally the true
 ``x, y, psi``. A row with ``x_m, y_m, psi_m`` all empty is a step without a position fix
 (GNSS slower than the inputs); the classical observers predict through it, and learned ones
-trained with ``fix_rates`` take it. The whole log is checked before anything is written; a failed run writes no
-output file. The output has ``t, x, y, psi, valid``: ``valid`` is false on the first N-1 rows
-of a learned observer, whose window is not full yet, and those rows hold the EKF's estimate.
+trained with ``fix_rates`` take it. The whole log is checked before anything is written; a
+failed run writes no output file. The output has ``t, x, y, psi, valid``: ``valid`` is false
+before the first fix, and on the first N-1 rows of a CNN or LSTM, whose window is not full
+yet (those rows hold the EKF's estimate).
 With the true state in the log, the RMSE per variable (over the valid rows) and the NRMSE
 (E_ref: the paper's EKF, 0.24 m, 0.23 m, 4.1 mrad) are printed.
 """
@@ -36,6 +37,17 @@ LOG_COLUMNS = ("t", "x_m", "y_m", "psi_m", "V", "delta")
 TRUTH_COLUMNS = ("x", "y", "psi")
 OUTPUT_COLUMNS = ("t", "x", "y", "psi", "valid")
 FORMATS = (".csv", ".parquet")
+DEGREES_SHARE = 0.01
+"""A heading column with more than this share of rows beyond 2 pi looks like degrees; fewer
+are outliers, named by row."""
+POSITION_LIMIT = 1e7
+SPEED_LIMIT = 100.0
+RANGES = (("x_m", POSITION_LIMIT, "m", "positions are metres in a local frame"),
+          ("y_m", POSITION_LIMIT, "m", "positions are metres in a local frame"),
+          ("x", POSITION_LIMIT, "m", "positions are metres in a local frame"),
+          ("y", POSITION_LIMIT, "m", "positions are metres in a local frame"),
+          ("V", SPEED_LIMIT, "m/s", "no road vehicle is that fast; speeds are in m/s"))
+"""(column, largest |value|, unit, why) of the physical range checks of a log."""
 DT_TOLERANCE = 0.01
 """Largest relative difference between the log's sampling period and the observer's dt."""
 
@@ -96,12 +108,35 @@ def check_log(df: pd.DataFrame, source: str = "input") -> bool:
         raise LboError(f"{source}: column 't' is not strictly increasing (row {j + 1}: "
                        f"t={t[j + 1]:g} s after t={t[j]:g} s); sort the log and drop repeats")
     for c in ("psi_m", "psi") if truth else ("psi_m",):
-        values = df[c].to_numpy(dtype=float)
-        worst = float(np.abs(values[fix] if c == "psi_m" else values).max())
-        if worst > 2 * np.pi:
+        values = np.abs(df[c].to_numpy(dtype=float))
+        beyond = (values > 2 * np.pi) & (fix if c == "psi_m" else True)
+        if beyond.mean() > DEGREES_SHARE:
             raise LboError(f"{source}: column {c!r} looks like degrees (|{c}| up to "
-                           f"{worst:g} > 2 pi); give headings in rad")
+                           f"{np.nanmax(values):g} > 2 pi); give headings in rad")
+        if beyond.any():
+            r = int(np.flatnonzero(beyond)[0])
+            raise LboError(f"{source}: row {r}: {c}={df[c].iloc[r]:g} rad is outside "
+                           "[-2 pi, 2 pi]; a heading in rad lies within it")
+    for c, limit, unit, what in RANGES:
+        if c not in df.columns or (c in TRUTH_COLUMNS and not truth):
+            continue
+        values = np.abs(df[c].to_numpy(dtype=float))
+        if (values > limit).any():
+            r = int(np.flatnonzero(values > limit)[0])
+            raise LboError(f"{source}: row {r}: {c}={df[c].iloc[r]:g} {unit} is beyond "
+                           f"{limit:g} {unit} ({what})")
     return truth
+
+
+def check_steering(df: pd.DataFrame, vehicle: Any, source: str = "input") -> None:
+    """Refuse a steering angle beyond the vehicle's limit ``delta_max``, naming the row."""
+    delta = np.abs(df["delta"].to_numpy(dtype=float))
+    over = delta > vehicle.delta_max * (1 + 1e-6)
+    if over.any():
+        r = int(np.flatnonzero(over)[0])
+        raise LboError(f"{source}: row {r}: delta={df['delta'].iloc[r]:g} rad is beyond the "
+                       f"vehicle's steering limit delta_max={vehicle.delta_max:g} rad "
+                       "(steering in rad, at the wheels; or set vehicle.delta_max)")
 
 
 def check_output_path(output: str | Path, source: str | Path | None = None) -> Path:
@@ -138,7 +173,8 @@ def resample(df: pd.DataFrame, dt: float, columns: tuple[str, ...]) -> pd.DataFr
     n = int(np.floor((t[-1] - t[0]) / dt + 1e-9)) + 1
     grid = t[0] + dt * np.arange(n)
     out = {"t": grid}
-    fix = np.isfinite(df[list(MEAS_COLUMNS)].to_numpy(dtype=float)).all(1)
+    meas = [c for c in MEAS_COLUMNS if c in columns]
+    fix = np.isfinite(df[meas].to_numpy(dtype=float)).all(1)
     # fixes are not interpolated across gaps: each lands on its nearest row of the grid
     at = np.clip(np.round((t[fix] - t[0]) / dt).astype(np.int64), 0, n - 1)
     for c in columns:
@@ -197,6 +233,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     obs = Observer.load(name, vehicle if classical else None, noise if classical else None,
                         alpha=float(alpha), features=cfg.get("features"),
                         device=str(cfg.get("device", "cpu")))
+    check_steering(df, obs.vehicle, f"input {source}")
     columns = LOG_COLUMNS[1:] + (TRUTH_COLUMNS if truth else ())
     if cfg.resample:
         df = resample(df, obs.dt, columns)

@@ -406,12 +406,19 @@ def read_checkpoint(path: str | os.PathLike, features: str | None = None,
     from lbo.network import ObserverNet
 
     path = Path(path)
+    if features is not None and features not in FEATURE_MODES:
+        raise LboError(f"features: unknown mode {features!r}; expected one of "
+                       f"{', '.join(FEATURE_MODES)}")
     try:
         ckpt = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as e:  # zip, pickle, EOF, permission: all "cannot read"
-        reason = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
-        raise LboError(f"checkpoint {path}: cannot read it as a torch checkpoint "
-                       f"({reason})") from None
+    except PermissionError as e:
+        raise LboError(f"checkpoint {path}: cannot read it ({e.strerror})") from None
+    except Exception as e:  # zip, pickle, EOF: not a file lbo wrote
+        # torch's own message suggests weights_only=False: unsafe advice for a foreign file
+        what = ("it holds pickled objects beyond tensors and plain containers, which lbo "
+                "never unpickles" if "weights_only" in str(e).lower() or
+                "weights only" in str(e).lower() else "damaged, or another kind of file")
+        raise LboError(f"checkpoint {path}: not a readable lbo checkpoint ({what})") from None
     hp = ckpt.get("hyper_parameters") if isinstance(ckpt, dict) else None
     if not isinstance(hp, dict) or "state_dict" not in ckpt:
         raise LboError(f"checkpoint {path}: not an lbo observer checkpoint "

@@ -17,6 +17,7 @@ from typing import Any
 import lightning as L
 import torch
 from hydra.utils import instantiate
+from lightning.pytorch.callbacks import ModelCheckpoint
 from lightning.pytorch.loggers import MLFlowLogger
 from omegaconf import DictConfig, OmegaConf, open_dict
 
@@ -56,6 +57,11 @@ def check(cfg: DictConfig) -> None:
     require(isinstance(cfg.seed, int) and cfg.seed >= 0, "seed", "an integer >= 0", cfg.seed)
     require(cfg.get("lr_schedule", "constant") in SCHEDULES, "lr_schedule",
             f"one of {list(SCHEDULES)}", cfg.get("lr_schedule"))
+    from lbo.evaluate import REFERENCES
+
+    reference = (cfg.get("metric") or {}).get("reference", "ekf")
+    require(reference in REFERENCES, "metric.reference", f"one of {list(REFERENCES)}",
+            reference)
     noise_settings(cfg)
     build_net(cfg)  # the model's own checks (its parameters, feature modes) before any data
     if cfg.get("logger") and cfg.logger.get("tracking_uri"):
@@ -165,6 +171,8 @@ def finished_run(cfg: DictConfig, digest: str, clean: bool = True) -> dict[str, 
     for r in found:
         if clean and r.info.status != "FINISHED":
             client.delete_run(r.info.run_id)
+            print(f"deleted the unfinished run {r.info.run_id} ({r.info.status}) of the same "
+                  "config; this run replaces it")
     if not done:
         return None
     run = max(done, key=lambda r: r.info.end_time or 0)
@@ -233,6 +241,8 @@ def train(cfg: DictConfig, callbacks: list[L.Callback] | None = None,
     for cb in callbacks:
         if isinstance(cb, Evaluation) and isinstance(logger, MLFlowLogger):
             cb.mlflow = logger
+        if isinstance(cb, ModelCheckpoint) and cb.dirpath:
+            clear_stale_checkpoints(Path(cb.dirpath))
     try:
         if isinstance(logger, MLFlowLogger):
             logger.log_hyperparams(_flat(cfg))
@@ -260,6 +270,19 @@ def train(cfg: DictConfig, callbacks: list[L.Callback] | None = None,
         if isinstance(cb, Evaluation):
             metrics.update(cb.metrics)
     return metrics
+
+
+def clear_stale_checkpoints(folder: Path) -> list[Path]:
+    """Remove the ``.ckpt`` files an earlier run left in ``folder`` (killed, or trained into
+    the same output folder), so this run's best checkpoint is ``best.ckpt`` and never a
+    ``best-v1.ckpt`` beside a stale one. Returns what it removed (and says so)."""
+    stale = sorted(folder.glob("*.ckpt")) if folder.is_dir() else []
+    for path in stale:
+        path.unlink()
+    if stale:
+        print(f"removed {len(stale)} stale checkpoint(s) of an earlier run from {folder}: "
+              f"{', '.join(p.name for p in stale)}")
+    return stale
 
 
 def _noise_tag(cfg: DictConfig) -> str:

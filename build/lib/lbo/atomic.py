@@ -24,6 +24,17 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
         Path(tmp).unlink(missing_ok=True)
 
 
+def remove_stale_temps(folder: str | Path) -> list[Path]:
+    """Delete the temp files that killed writers of :func:`atomic_path` left in ``folder``.
+
+    Call it only while no other process writes there (under the folder's lock)."""
+    folder = Path(folder)
+    stale = sorted(folder.glob(".*.tmp")) if folder.is_dir() else []
+    for p in stale:
+        p.unlink(missing_ok=True)
+    return stale
+
+
 def write_text(path: str | Path, text: str) -> Path:
     with atomic_path(path) as tmp:
         tmp.write_text(text)

@@ -64,11 +64,15 @@ def run(name: str, m: np.ndarray, u: np.ndarray, vehicle: Vehicle, noise: Noise,
     """
     check(name)
     R = measurement_cov(name, noise, alpha, np.shape(m)[0])
-    if name == "adaptive":
-        return adaptive_ekf_batch(m, u, vehicle, noise.Q, R)
-    if name == "ukf":
-        return ukf_batch(m, u, vehicle, noise.Q, R, spread=UKF_SPREAD, progress=progress)
-    return ekf_batch(m, u, vehicle, noise.Q, R)
+    try:
+        if name == "adaptive":
+            return adaptive_ekf_batch(m, u, vehicle, noise.Q, R)
+        if name == "ukf":
+            return ukf_batch(m, u, vehicle, noise.Q, R, spread=UKF_SPREAD, progress=progress)
+        return ekf_batch(m, u, vehicle, noise.Q, R)
+    except np.linalg.LinAlgError as e:  # a covariance no longer positive definite
+        raise LboError(f"{name}: the filter diverged ({e}); check the data's values and "
+                       "units") from None
 
 
 def stepper(name: str, m0: np.ndarray, vehicle: Vehicle, noise: Noise,

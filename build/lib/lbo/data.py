@@ -29,7 +29,7 @@ from torch.utils.data import (
 )
 
 from lbo import schema
-from lbo.draws import AlphaDraw, loss_weights, noisy_measurements
+from lbo.draws import AlphaDraw, fix_mask, loss_weights, noisy_measurements
 from lbo.errors import LboError
 from lbo.features import last_measurement, state_to_target, window_features, window_view
 
@@ -70,12 +70,16 @@ class WindowDataset(Dataset):
     seed : seeds the draws: the same seed gives the same stream of batches, and each call
         continues the stream, so no two epochs repeat a draw.
     weight_offset : loss weights ``1 / (alpha + offset)^2``, or ones when None.
+    fix_periods : drop position fixes: each window keeps them every one of these periods
+        (steps), see :func:`lbo.draws.fix_mask`; the dropped ones become NaN. () keeps all.
     """
 
     def __init__(self, x: torch.Tensor, y: torch.Tensor, ends: np.ndarray, window: int,
                  draw: AlphaDraw | None = None, sigma: torch.Tensor | None = None,
-                 seed: int = 0, weight_offset: float | None = None):
+                 seed: int = 0, weight_offset: float | None = None,
+                 fix_periods: tuple[int, ...] = ()):
         self.x, self.y, self.window = x, y, window
+        self.fix_periods = tuple(fix_periods)
         self.ends = torch.from_numpy(ends)
         self.windows = window_view(x, window)  # (R-N+1, N, 5), a view: no copy
         self.truth = window_view(y, window)  # (R-N+1, N, 3), a view
@@ -117,11 +121,18 @@ class WindowDataset(Dataset):
         s = e - self.window + 1
         win = self.windows[s]
         if self.draw is None:
-            return win, self.y[e], torch.ones(len(e), dtype=self.x.dtype, device=e.device)
-        alpha = self.draw.sample(len(e), generator)
-        m = noisy_measurements(self.truth[s], alpha, self.sigma, generator)
-        return (torch.cat([m, win[..., 3:]], dim=-1), self.y[e],
-                loss_weights(alpha, self.weight_offset))
+            weight = torch.ones(len(e), dtype=self.x.dtype, device=e.device)
+            m = win[..., :3]
+        else:
+            alpha = self.draw.sample(len(e), generator)
+            weight = loss_weights(alpha, self.weight_offset)
+            m = noisy_measurements(self.truth[s], alpha, self.sigma, generator)
+        if self.fix_periods:
+            fix = fix_mask(len(e), self.window, self.fix_periods, generator, e.device)
+            m = torch.where(fix[..., None], m, torch.full_like(m, float("nan")))
+        elif self.draw is None:
+            return win, self.y[e], weight
+        return torch.cat([m, win[..., 3:]], dim=-1), self.y[e], weight
 
 
 class FixedDataset(Dataset):
@@ -166,13 +177,15 @@ class WindowDataModule(L.LightningDataModule):
     val_repeats : fixed noise draws per validation window (with ``draw``).
     device : where the rows live and batches and noise draws are made (``"cuda"`` on a GPU:
         no copy from the host per batch, and no loader workers).
+    fix_periods : drop position fixes in training and validation windows (see
+        :class:`WindowDataset`); () keeps every fix.
     """
 
     def __init__(self, folder: str | Path, window: int, batch_size: int = 256,
                  eval_batch_size: int = 4096, num_workers: int = 0, seed: int = 0,
                  draw: AlphaDraw | None = None, sigma=None,
                  weight_offset: float | None = None, val_repeats: int = 1,
-                 device: str = "cpu") -> None:
+                 device: str = "cpu", fix_periods: tuple[int, ...] = ()) -> None:
         super().__init__()
         self.device = torch.device(device)
         self.folder = Path(folder)
@@ -182,6 +195,7 @@ class WindowDataModule(L.LightningDataModule):
             raise LboError("WindowDataModule: drawn noise needs the measurement sigmas")
         self.draw, self.sigma, self.weight_offset = draw, sigma, weight_offset
         self.val_repeats = int(val_repeats)
+        self.fix_periods = tuple(fix_periods)
         self.train_set: WindowDataset | None = None
         self.val_set: Dataset | None = None
 
@@ -194,13 +208,14 @@ class WindowDataModule(L.LightningDataModule):
             lengths = df.groupby("traj", sort=False).size().to_numpy()
             first = int(df.loc[df["scored"], "k"].min()) if "scored" in df else None
             _check_window(self.window, lengths, first, name)
-        noise = {"draw": self.draw, "sigma": self.sigma, "weight_offset": self.weight_offset}
+        noise = {"draw": self.draw, "sigma": self.sigma, "weight_offset": self.weight_offset,
+                 "fix_periods": self.fix_periods}
         self.train_set = WindowDataset(*rows(train), window_ends(train["k"].to_numpy(),
                                                                  self.window), self.window,
                                        seed=self.seed, **noise)
         val_set = WindowDataset(*rows(val), window_ends(
             val["k"].to_numpy(), self.window, val["scored"].to_numpy()), self.window, **noise)
-        if self.draw is None:
+        if self.draw is None and not self.fix_periods:
             self.val_set = val_set
         else:  # one fixed draw, the same in every epoch and run of this seed
             g = torch.Generator().manual_seed(self.seed + 1)
@@ -210,13 +225,16 @@ class WindowDataModule(L.LightningDataModule):
         self.val_set.to(self.device, self.seed)
 
     def normalisation(self, features: str, n: int = 20_000) -> dict[str, torch.Tensor]:
-        """Channel means and stds of ``n`` random training windows' features and targets."""
+        """Channel means and stds of ``n`` random training windows' features and targets
+        (with the ``fix`` channel when fixes are dropped)."""
         self.setup()
+        fixes = bool(self.fix_periods)
         g = torch.Generator(device=self.device).manual_seed(self.seed)
         pick = torch.randperm(len(self.train_set), generator=g, device=self.device)[:n]
         win, state, _ = self.train_set.batch(pick, g)
-        f = window_features(win, features).reshape(-1, 5).cpu()
-        t = state_to_target(state, last_measurement(win), features).cpu()
+        f = window_features(win, features, fixes)
+        f = f.reshape(-1, f.shape[-1]).cpu()
+        t = state_to_target(state, last_measurement(win, fixes), features).cpu()
         return {"in_mean": f.mean(0), "in_std": f.std(0),
                 "out_mean": t.mean(0), "out_std": t.std(0)}
 

@@ -117,3 +117,44 @@ def noisy_measurements(z: torch.Tensor, alpha: torch.Tensor, sigma: torch.Tensor
     eps = torch.randn(z.shape, generator=generator, dtype=z.dtype, device=z.device)
     m = z + alpha[:, None, None] * sigma * eps
     return torch.cat([m[..., :2], wrap_angle_torch(m[..., 2:])], dim=-1)
+
+
+def fix_periods(rates: Sequence[float] | None, dt: float,
+                field: str = "fix_rates") -> tuple[int, ...]:
+    """Fix rates (Hz) -> periods in steps of ``dt`` (a rate of 1/dt or more is every step).
+
+    Raises LboError naming ``field`` unless ``rates`` is None or a list of numbers > 0.
+    """
+    if rates is None:
+        return ()
+    try:
+        values = [float(r) for r in rates]
+    except (TypeError, ValueError):
+        values = []
+    if not values or not all(np.isfinite(r) and r > 0 for r in values):
+        raise LboError(f"{field}: expected null or a list of fix rates in Hz > 0 "
+                       f"(e.g. [50, 10, 5, 1]), got {rates!r}")
+    return tuple(max(1, int(round(1.0 / (r * dt)))) for r in values)
+
+
+def fix_mask(n: int, window: int, periods: Sequence[int], generator: torch.Generator,
+             device: torch.device | str = "cpu") -> torch.Tensor:
+    """Which steps of ``n`` windows of ``window`` steps hold a position fix: (n, window) bool.
+
+    Each window takes one of ``periods`` (steps between fixes) at random. Half the windows
+    get fixes every ``period`` steps from a random phase, the other half at random steps
+    with probability ``1 / period``, so that irregular fixes are seen too. A window left
+    without any fix gets one at a random step.
+    """
+    p = torch.as_tensor(periods, device=device)[
+        torch.randint(len(periods), (n,), generator=generator, device=device)]
+    k = torch.arange(window, device=device)
+    phase = (torch.rand(n, generator=generator, device=device) * p).long()
+    regular = (k[None, :] + phase[:, None]) % p[:, None] == 0
+    random = torch.rand((n, window), generator=generator, device=device) < 1.0 / p[:, None]
+    mask = torch.where(torch.rand(n, generator=generator, device=device)[:, None] < 0.5,
+                       regular, random)
+    empty = ~mask.any(1)
+    spot = torch.randint(window, (n,), generator=generator, device=device)
+    mask[empty, spot[empty]] = True
+    return mask

@@ -28,6 +28,16 @@ def _example(net: Any, batch: int = 1, seed: int = 0):
         [100.0, -50.0, 0.5, 10.0, 0.0], dtype=torch.float64)
 
 
+def _without_fixes(win):
+    """A copy of the windows (B, N, 5) with every other fix dropped, and, in the second half
+    of the batch, none in the first quarter of the window either (NaN measurements)."""
+
+    win = win.clone()
+    win[:, 1::2, :3] = float("nan")
+    win[len(win) // 2:, : max(1, win.shape[1] // 4), :3] = float("nan")
+    return win
+
+
 def trace(net: Any) -> Any:
     """TorchScript of an :class:`~lbo.network.ObserverNet`, traced on one float64 window
     on the net's device.
@@ -72,10 +82,13 @@ def onnx_session(model: bytes | str | Path, threads: int | None = None) -> Any:
 
 
 def check_exported(net: Any, script: Any, session: Any, batch: int = 64) -> dict[str, float]:
-    """Largest |difference| of TorchScript and ONNX Runtime to PyTorch on random windows."""
+    """Largest |difference| of TorchScript and ONNX Runtime to PyTorch on random windows
+    (and the same with fixes missing, for a net that takes them)."""
     import torch
 
     win = _example(net, batch=batch, seed=1)
+    if getattr(net, "fixes", False):
+        win = torch.cat([win, _without_fixes(win)])
     with torch.inference_mode():
         ref = net(win).numpy()
         ts = script(win).numpy()

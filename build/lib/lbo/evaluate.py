@@ -36,8 +36,9 @@ def load_test(path: str | Path) -> dict[str, np.ndarray]:
 
     Returns the dict of :func:`lbo.schema.to_arrays`: ``z, m`` (G, T, 3), ``u`` (G, T, 2),
     ``mask`` (G, T) scored steps, ``alpha`` (G,), with G = trajectories x alpha levels.
+    Steps without a position fix (``x_m, y_m, psi_m`` all empty) are NaN rows of ``m``.
     """
-    return schema.to_arrays(schema.read_set(path, schema.EVAL_COLUMNS))
+    return schema.to_arrays(schema.read_set(path, schema.EVAL_COLUMNS, missing_fixes=True))
 
 
 def classical(name: str, arr: dict[str, np.ndarray], vehicle: Vehicle, noise: Noise,

@@ -19,6 +19,11 @@ A window is N consecutive steps ending at the current step t, with the channels
 ``"absolute"``
     The paper's literal setting: windows and states as they are (target heading wrapped).
 
+A missing position fix is a step whose ``x_m, y_m, psi_m`` are NaN. A window is then read
+relative to its latest fix (its *anchor*) instead of its last step, and observers that can
+take missing fixes see a sixth channel, ``fix`` (1 at a fix, 0 elsewhere, where the
+measurement channels are 0): ``window_features(..., fixes=True)`` gives (..., N, 6).
+
 Every function takes numpy arrays or torch tensors (the result has the same type, dtype and
 device) and is vectorised over any leading batch dimensions. Torch inputs keep their autograd
 graph.
@@ -88,33 +93,66 @@ def check_mode(mode: str) -> str:
     return mode
 
 
-def last_measurement(win: Array) -> Array:
-    """The current measurement ``[x_m, y_m, psi_m]`` of each window: (..., N, 5) -> (..., 3)."""
-    return win[..., -1, :3]
+def fix_mask(win: Array) -> Array:
+    """(..., N, 5) windows -> (..., N) bool, True at the steps that hold a fix (no NaN)."""
+    if isinstance(win, torch.Tensor):
+        return torch.isfinite(win[..., :3]).all(-1)
+    return np.isfinite(win[..., :3]).all(-1)
 
 
-def window_features(win: Array, mode: str = "relative") -> Array:
+def last_measurement(win: Array, fixes: bool = False) -> Array:
+    """The anchor ``[x_m, y_m, psi_m]`` of each window: (..., N, 5) -> (..., 3).
+
+    Its last step; with ``fixes``, its latest fix (NaN for a window without any fix).
+    """
+    if not fixes:
+        return win[..., -1, :3]
+    fix = fix_mask(win)
+    n = win.shape[-2]
+    if isinstance(win, torch.Tensor):
+        last = n - 1 - torch.flip(fix, [-1]).to(win.dtype).argmax(-1)
+        idx = last[..., None, None].expand(*last.shape, 1, 3)
+        return torch.gather(win[..., :3], -2, idx).squeeze(-2)
+    last = n - 1 - np.flip(fix, -1).argmax(-1)
+    return np.take_along_axis(win[..., :3], last[..., None, None], -2)[..., 0, :]
+
+
+def window_features(win: Array, mode: str = "relative", fixes: bool = False) -> Array:
     """Turn raw windows into network inputs.
 
     Parameters
     ----------
     win : (..., N, 5) windows ``[x_m, y_m, psi_m, V, delta]``, the last step is the current one.
     mode : one of :data:`FEATURE_MODES`.
+    fixes : the windows may miss fixes (NaN measurements): read them relative to their
+        anchor (:func:`last_measurement`), put 0 in the missing measurements and append the
+        ``fix`` channel.
 
     Returns
     -------
-    (..., N, 5) features. ``"relative"``: ``[x_m - x_m[t], y_m - y_m[t],
-    wrap(psi_m - psi_m[t]), V, delta]`` (a new array). ``"frame"``: the same with the
-    position offsets rotated by ``-psi_m[t]``. ``"absolute"``: ``win`` itself (no copy, so
-    a view of a larger array stays a view).
+    (..., N, 5) features, (..., N, 6) with ``fixes``. ``"relative"``: ``[x_m - x_m[t],
+    y_m - y_m[t], wrap(psi_m - psi_m[t]), V, delta]`` (a new array). ``"frame"``: the same
+    with the position offsets rotated by ``-psi_m[t]``. ``"absolute"``: ``win`` itself (no
+    copy, so a view of a larger array stays a view).
     """
-    if check_mode(mode) == "absolute":
+    if check_mode(mode) == "absolute" and not fixes:
         return win
-    last = win[..., -1:, :3]
-    xy = win[..., :2] - last[..., :2]
-    if mode == "frame":
-        xy = _rotate(xy, last[..., 2:3], -1)
-    return _cat_last([xy, _wrap(win[..., 2:3] - last[..., 2:3]), win[..., 3:]])
+    if mode == "absolute":
+        out = win
+    else:
+        last = last_measurement(win, fixes)[..., None, :]
+        xy = win[..., :2] - last[..., :2]
+        if mode == "frame":
+            xy = _rotate(xy, last[..., 2:3], -1)
+        out = _cat_last([xy, _wrap(win[..., 2:3] - last[..., 2:3]), win[..., 3:]])
+    if not fixes:
+        return out
+    fix = fix_mask(win)[..., None]
+    if isinstance(win, torch.Tensor):
+        meas = torch.where(fix, out[..., :3], torch.zeros_like(out[..., :3]))
+        return torch.cat([meas, out[..., 3:5], fix.to(win.dtype)], -1)
+    meas = np.where(fix, out[..., :3], 0.0)
+    return np.concatenate([meas, out[..., 3:5], fix.astype(win.dtype)], -1)
 
 
 def state_to_target(state: Array, last_meas: Array, mode: str = "relative") -> Array:

@@ -8,6 +8,10 @@ step ``k`` uses ``m_0 .. m_k`` and ``u_0 .. u_{k-1}``. Every filter starts from
 directly (H = I) and wraps heading innovations to (-pi, pi]. Estimated headings stay on the
 branch of the measurements (continuous, not wrapped); metrics wrap the error.
 
+A missing position fix is a row of ``m`` that is NaN in all three channels: the batched
+filters and their steppers do a prediction-only step there (no update, R not learned). The
+first row of every trajectory must be a fix, as the filters start there.
+
 - :class:`BicycleEKF` / :func:`run_filterpy_ekf`: the paper's EKF on filterpy, one trajectory
   at a time (the reference).
 - :func:`ekf_batch`: the same EKF vectorised over trajectories; ``R`` per trajectory gives the
@@ -55,7 +59,20 @@ def _check_trajectories(m: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.nd
         raise LboError(f"measurements m must be (G, T, 3) [x_m, y_m, psi_m], got {m.shape}")
     if u.shape != m.shape[:2] + (2,):
         raise LboError(f"inputs u must be (G, T, 2) [V, delta] matching m {m.shape}, got {u.shape}")
+    if m.shape[1] and not np.isfinite(m[:, 0]).all():
+        g = int(np.flatnonzero(~np.isfinite(m[:, 0]).all(-1))[0])
+        raise LboError(f"trajectory {g} has no fix at its first step; the filters start at a fix")
     return m, u
+
+
+def fixes(m: np.ndarray) -> np.ndarray:
+    """(..., 3) measurements -> (...,) bool, True where the row is a fix (no NaN)."""
+    return np.isfinite(m).all(-1)
+
+
+def _where_fix(fix: np.ndarray, updated: np.ndarray, prior: np.ndarray) -> np.ndarray:
+    """Rows of ``updated`` where ``fix`` (G,), else the prior's: a prediction-only step."""
+    return np.where(fix.reshape(fix.shape + (1,) * (updated.ndim - 1)), updated, prior)
 
 
 def _batch_cov(cov: np.ndarray, g: int, name: str) -> np.ndarray:
@@ -169,7 +186,7 @@ class KalmanStepper:
 
     Parameters
     ----------
-    m0 : (G, 3) first measurements; the state starts there with P_0 = R.
+    m0 : (G, 3) first measurements (fixes); the state starts there with P_0 = R.
     vehicle : Vehicle
     Q : (3, 3) process covariance.
     R : (G, 3, 3) measurement covariance (the starting one when adaptive).
@@ -179,7 +196,7 @@ class KalmanStepper:
     Attributes
     ----------
     x : (G, 3) current estimate. P : (G, 3, 3) its covariance. R : (G, 3, 3) current R.
-    k : steps taken since m0.
+    n_fix : (G,) fixes taken, m0 included.
     """
 
     def __init__(self, m0: np.ndarray, vehicle: Vehicle, Q: np.ndarray, R: np.ndarray,
@@ -196,35 +213,41 @@ class KalmanStepper:
             self.R[:, diag, diag] = self.r_hat
         self.x = np.array(m0, dtype=float)
         self.P = _floor_diag(self.R)
-        self.k = 0
+        self.n_fix = np.ones(len(self.x))
 
     def update(self, m: np.ndarray, u_prev: np.ndarray) -> np.ndarray:
-        """Predict with u_{k-1} (G, 2), update with m_k (G, 3); returns x_k (G, 3)."""
-        self.k += 1
+        """Predict with u_{k-1} (G, 2), update with m_k (G, 3); returns x_k (G, 3).
+
+        Rows of m that are NaN (no fix) get the prediction only."""
+        fix = fixes(m)
         F = jacobian(self.x, u_prev, self.vehicle.dt)
         x = step(self.x, u_prev, self.vehicle.dt, self.vehicle.wheelbase)
         P = F @ self.P @ F.swapaxes(-1, -2) + self.Q
-        y = m - x
+        y = np.where(fix[:, None], m - x, 0.0)
         y[:, 2] = wrap_angle(y[:, 2])
         R = self.R
+        P_prior = P
         if self.forgetting is not None:
             diag = np.arange(3)
-            # P_0 = R0 is wrong by the unknown alpha^2; k samples m_0..m_{k-1} of noise R
-            # cannot give a prior error below R / k, so hold P there until it settles.
-            P[:, diag, diag] = np.maximum(P[:, diag, diag], self.r_hat / self.k)
+            # P_0 = R0 is wrong by the unknown alpha^2; n fixes of noise R cannot give a
+            # prior error below R / n, so hold P there until it settles.
+            P = P.copy()
+            P[:, diag, diag] = np.maximum(P[:, diag, diag], self.r_hat / self.n_fix[:, None])
             # Sage-Husa: E[y y^T] = P_prior + R, so y^2 - diag(P_prior) is one sample of R;
-            # exponentially forgotten running mean, weights 1 / (b W + 1).
-            self.weight = self.forgetting * self.weight + 1.0
-            d = (1.0 / self.weight)[:, None]
+            # exponentially forgotten running mean, weights 1 / (b W + 1); fixes only.
+            self.weight = np.where(fix, self.forgetting * self.weight + 1.0, self.weight)
+            d = np.where(fix, 1.0 / self.weight, 0.0)[:, None]
             self.r_hat = np.maximum((1.0 - d) * self.r_hat + d * (y**2 - P[:, diag, diag]),
                                     self.r_floor)
             R[:, diag, diag] = self.r_hat
         # K = P S^-1 = (S^-1 P)^T for symmetric P, S
         K = np.linalg.solve(P + R, P).swapaxes(-1, -2)
-        self.x = x + np.einsum("gij,gj->gi", K, y)
         I_K = _I3 - K
         # Joseph form, as filterpy: stays symmetric PSD and matches the reference
-        self.P = I_K @ P @ I_K.swapaxes(-1, -2) + K @ R @ K.swapaxes(-1, -2)
+        posterior = I_K @ P @ I_K.swapaxes(-1, -2) + K @ R @ K.swapaxes(-1, -2)
+        self.x = _where_fix(fix, x + np.einsum("gij,gj->gi", K, y), x)
+        self.P = _where_fix(fix, posterior, P_prior)
+        self.n_fix = self.n_fix + fix
         return self.x
 
 
@@ -465,7 +488,8 @@ class UnscentedStepper:
         self.P = self.R.copy()
 
     def update(self, m: np.ndarray, u_prev: np.ndarray) -> np.ndarray:
-        """Predict with u_{k-1} (G, 2), update with m_k (G, 3); returns x_k (G, 3)."""
+        """Predict with u_{k-1} (G, 2), update with m_k (G, 3) where it is a fix (not NaN);
+        returns x_k (G, 3)."""
         wm, wc, lam = self.wm, self.wc, self.lam
         # predict: sigma points through the bicycle step, unscented transform plus Q
         sig = _sigma_points(self.x, self.P, lam)
@@ -481,10 +505,11 @@ class UnscentedStepper:
         S = np.einsum("s,gsi,gsj->gij", wc, dz, dz) + self.R
         Pxz = np.einsum("s,gsi,gsj->gij", wc, _deviations(sig, x), dz)
         K = Pxz @ np.linalg.inv(S)
-        y = m - zp
+        fix = fixes(m)
+        y = np.where(fix[:, None], m - zp, 0.0)
         y[:, 2] = wrap_angle(y[:, 2])
-        self.x = x + np.einsum("gij,gj->gi", K, y)
-        self.P = P - K @ S @ K.swapaxes(-1, -2)
+        self.x = _where_fix(fix, x + np.einsum("gij,gj->gi", K, y), x)
+        self.P = _where_fix(fix, P - K @ S @ K.swapaxes(-1, -2), P)
         return self.x
 
 

@@ -23,7 +23,8 @@ class ObserverModule(L.LightningModule):
     ----------
     model : ``{"name": "cnn"|"lstm", **hyperparameters}``.
     window : N.
-    features : ``"relative"`` or ``"absolute"``.
+    features : ``"relative"``, ``"frame"`` or ``"absolute"``.
+    fixes : the observer takes missing fixes (a sixth, ``fix`` channel), see ObserverNet.
     optimizer : a partial optimiser (``params -> Optimizer``), e.g. from Hydra's
         ``_partial_: true``; Adam(lr=1e-3) when None.
     meta : what a checkpoint must carry to rebuild the observer elsewhere (dt, wheelbase,
@@ -34,13 +35,14 @@ class ObserverModule(L.LightningModule):
 
     def __init__(self, model: dict[str, Any], window: int, features: str = "relative",
                  optimizer: Callable[..., torch.optim.Optimizer] | None = None,
-                 meta: dict[str, Any] | None = None, lr_schedule: str = "constant") -> None:
+                 meta: dict[str, Any] | None = None, lr_schedule: str = "constant",
+                 fixes: bool = False) -> None:
         super().__init__()
         self.save_hyperparameters(ignore=["optimizer", "lr_schedule"])
         self.lr_schedule = lr_schedule
         self.hparams["format"] = CHECKPOINT_FORMAT
         kwargs = {k: v for k, v in model.items() if k != "name"}
-        self.observer = ObserverNet(model["name"], window, features, **kwargs)
+        self.observer = ObserverNet(model["name"], window, features, fixes, **kwargs)
         self.optimizer_factory = optimizer
         self._loss_sum: torch.Tensor | float = 0.0
         self._loss_count = 0

@@ -5,9 +5,12 @@
 
 The log (CSV or Parquet) holds one row per sample with the columns ``t`` (s), ``x_m``,
 ``y_m`` (m), ``psi_m`` (rad), ``V`` (m/s) and ``delta`` (rad), and optionally the true
-``x, y, psi``. The whole log is checked before anything is written; a failed run writes no
-output file. The output has ``t, x, y, psi, valid``: ``valid`` is false on the first N-1 rows
-of a learned observer, whose window is not full yet, and those rows hold the EKF's estimate.
+``x, y, psi``. A row with ``x_m, y_m, psi_m`` all empty is a step without a position fix
+(GNSS slower than the inputs); the classical observers predict through it, and learned ones
+trained with ``fix_rates`` take it. The whole log is checked before anything is written; a
+failed run writes no output file. The output has ``t, x, y, psi, valid``: ``valid`` is false
+before the first fix, and on the first N-1 rows of a CNN or LSTM, whose window is not full
+yet (those rows hold the EKF's estimate).
 With the true state in the log, the RMSE per variable (over the valid rows) and the NRMSE
 (E_ref: the paper's EKF, 0.24 m, 0.23 m, 4.1 mrad) are printed.
 """
@@ -26,13 +29,25 @@ from lbo.atomic import atomic_path
 from lbo.cli import entry
 from lbo.errors import LboError
 from lbo.metrics import PAPER_REFERENCE, nrmse, rmse
-from lbo.schema import check_values, write_set
+from lbo.schema import MEAS as MEAS_COLUMNS
+from lbo.schema import check_values, fix_rows, write_set
 from lbo.vehicle import wrap_angle
 
 LOG_COLUMNS = ("t", "x_m", "y_m", "psi_m", "V", "delta")
 TRUTH_COLUMNS = ("x", "y", "psi")
 OUTPUT_COLUMNS = ("t", "x", "y", "psi", "valid")
 FORMATS = (".csv", ".parquet")
+DEGREES_SHARE = 0.01
+"""A heading column with more than this share of rows beyond 2 pi looks like degrees; fewer
+are outliers, named by row."""
+POSITION_LIMIT = 1e7
+SPEED_LIMIT = 100.0
+RANGES = (("x_m", POSITION_LIMIT, "m", "positions are metres in a local frame"),
+          ("y_m", POSITION_LIMIT, "m", "positions are metres in a local frame"),
+          ("x", POSITION_LIMIT, "m", "positions are metres in a local frame"),
+          ("y", POSITION_LIMIT, "m", "positions are metres in a local frame"),
+          ("V", SPEED_LIMIT, "m/s", "no road vehicle is that fast; speeds are in m/s"))
+"""(column, largest |value|, unit, why) of the physical range checks of a log."""
 DT_TOLERANCE = 0.01
 """Largest relative difference between the log's sampling period and the observer's dt."""
 
@@ -67,9 +82,11 @@ def read_log(path: str | Path) -> pd.DataFrame:
 def check_log(df: pd.DataFrame, source: str = "input") -> bool:
     """Check a log's columns and values; return whether it holds the true ``x, y, psi``.
 
+    A row whose ``x_m, y_m, psi_m`` are all empty (NaN) is a step without a position fix.
     Raises :class:`LboError` naming the first problem: missing columns, a non-numeric
-    column, NaN or inf, ``t`` not strictly increasing, a heading that looks like degrees
-    (|psi| > 2 pi). The sampling period is checked by :func:`check_period`.
+    column, NaN or inf (other than a whole missing fix), a partial fix, no fix at all,
+    ``t`` not strictly increasing, a heading that looks like degrees (|psi| > 2 pi). The
+    sampling period is checked by :func:`check_period`.
     """
     if len(df) == 0:
         raise LboError(f"{source}: empty file (no rows)")
@@ -79,7 +96,11 @@ def check_log(df: pd.DataFrame, source: str = "input") -> bool:
                        f"{', '.join(missing)} (a log needs {', '.join(LOG_COLUMNS)}; "
                        "t in s, x_m and y_m in m, psi_m in rad, V in m/s, delta in rad)")
     truth = all(c in df.columns for c in TRUTH_COLUMNS)
-    check_values(df, LOG_COLUMNS + (TRUTH_COLUMNS if truth else ()), source, kinds="iuf")
+    check_values(df, ("t", "V", "delta") + (TRUTH_COLUMNS if truth else ()), source,
+                 kinds="iuf")
+    check_values(df.fillna({c: 0.0 for c in MEAS_COLUMNS}), MEAS_COLUMNS, source,
+                 kinds="iuf")  # numeric, no inf
+    fix = fix_rows(df, source)
     t = df["t"].to_numpy(dtype=float)
     steps = np.diff(t)
     if (steps <= 0).any():
@@ -87,11 +108,44 @@ def check_log(df: pd.DataFrame, source: str = "input") -> bool:
         raise LboError(f"{source}: column 't' is not strictly increasing (row {j + 1}: "
                        f"t={t[j + 1]:g} s after t={t[j]:g} s); sort the log and drop repeats")
     for c in ("psi_m", "psi") if truth else ("psi_m",):
-        worst = float(np.abs(df[c].to_numpy(dtype=float)).max())
-        if worst > 2 * np.pi:
+        values = np.abs(df[c].to_numpy(dtype=float))
+        beyond = (values > 2 * np.pi) & (fix if c == "psi_m" else True)
+        if beyond.mean() > DEGREES_SHARE:
             raise LboError(f"{source}: column {c!r} looks like degrees (|{c}| up to "
-                           f"{worst:g} > 2 pi); give headings in rad")
+                           f"{np.nanmax(values):g} > 2 pi); give headings in rad")
+        if beyond.any():
+            r = int(np.flatnonzero(beyond)[0])
+            raise LboError(f"{source}: row {r}: {c}={df[c].iloc[r]:g} rad is outside "
+                           "[-2 pi, 2 pi]; a heading in rad lies within it")
+    for c, limit, unit, what in RANGES:
+        if c not in df.columns or (c in TRUTH_COLUMNS and not truth):
+            continue
+        values = np.abs(df[c].to_numpy(dtype=float))
+        if (values > limit).any():
+            r = int(np.flatnonzero(values > limit)[0])
+            raise LboError(f"{source}: row {r}: {c}={df[c].iloc[r]:g} {unit} is beyond "
+                           f"{limit:g} {unit} ({what})")
     return truth
+
+
+def check_steering(df: pd.DataFrame, vehicle: Any, source: str = "input") -> None:
+    """Refuse a steering angle beyond the vehicle's limit ``delta_max``, naming the row."""
+    delta = np.abs(df["delta"].to_numpy(dtype=float))
+    over = delta > vehicle.delta_max * (1 + 1e-6)
+    if over.any():
+        r = int(np.flatnonzero(over)[0])
+        raise LboError(f"{source}: row {r}: delta={df['delta'].iloc[r]:g} rad is beyond the "
+                       f"vehicle's steering limit delta_max={vehicle.delta_max:g} rad "
+                       "(steering in rad, at the wheels; or set vehicle.delta_max)")
+
+
+def check_output_path(output: str | Path, source: str | Path | None = None) -> Path:
+    """The output path, checked: .csv or .parquet, and not the input log ``source``."""
+    output = Path(output)
+    _format(output, "output")
+    if source is not None and output.resolve() == Path(source).resolve():
+        raise LboError(f"output must not be the input log ({source}): it would replace it")
+    return output
 
 
 def check_period(t: np.ndarray, dt: float, source: str = "input") -> None:
@@ -112,15 +166,22 @@ def resample(df: pd.DataFrame, dt: float, columns: tuple[str, ...]) -> pd.DataFr
     """Linear interpolation of ``columns`` onto ``t0, t0 + dt, ...`` up to the last ``t``.
 
     Headings are unwrapped before and wrapped to (-pi, pi] after, so a jump from pi to -pi
-    does not pass through 0.
+    does not pass through 0. In a log with missing fixes, each fix moves to its nearest row
+    of the grid instead (the others stay empty).
     """
     t = df["t"].to_numpy(dtype=float)
     n = int(np.floor((t[-1] - t[0]) / dt + 1e-9)) + 1
     grid = t[0] + dt * np.arange(n)
     out = {"t": grid}
+    fix = np.isfinite(df[list(MEAS_COLUMNS)].to_numpy(dtype=float)).all(1)
+    # fixes are not interpolated across gaps: each lands on its nearest row of the grid
+    at = np.clip(np.round((t[fix] - t[0]) / dt).astype(np.int64), 0, n - 1)
     for c in columns:
         v = df[c].to_numpy(dtype=float)
-        if c in ("psi_m", "psi"):
+        if c in MEAS_COLUMNS and not fix.all():
+            out[c] = np.full(n, np.nan)
+            out[c][at] = v[fix]
+        elif c in ("psi_m", "psi"):
             out[c] = wrap_angle(np.interp(grid, t, np.unwrap(v)))
         else:
             out[c] = np.interp(grid, t, v)
@@ -157,11 +218,8 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     if not isinstance(cfg.observer, str):  # e.g. a run id of digits only
         raise LboError(f"observer: Hydra read {cfg.observer!r} as a number; quote it: "
                        "observer=\"'<run id>'\"")
-    output = Path(str(cfg.output))
-    _format(output, "output")
     source = str(cfg.input)
-    if output.resolve() == Path(source).resolve():
-        raise LboError(f"output must not be the input log ({source}): it would replace it")
+    output = check_output_path(str(cfg.output), source)
     df = read_log(source)
     truth = check_log(df, f"input {source}")
 
@@ -174,6 +232,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     obs = Observer.load(name, vehicle if classical else None, noise if classical else None,
                         alpha=float(alpha), features=cfg.get("features"),
                         device=str(cfg.get("device", "cpu")))
+    check_steering(df, obs.vehicle, f"input {source}")
     columns = LOG_COLUMNS[1:] + (TRUTH_COLUMNS if truth else ())
     if cfg.resample:
         df = resample(df, obs.dt, columns)
@@ -196,14 +255,19 @@ def run(cfg: DictConfig) -> dict[str, Any]:
             else f"classical, noise {obs.noise.name}, wheelbase {obs.vehicle.wheelbase:g} m")
     print(f"observer {obs.name} ({what}, dt {obs.dt:g} s) on {len(df)} rows"
           + (f" (resampled from {source})" if cfg.resample else ""))
+    fix = np.isfinite(m).all(1)
+    duration = len(df) * obs.dt
+    print(f"fixes: {int(fix.sum())} of {len(df)} rows ({fix.sum() / duration:.3g} Hz; inputs "
+          f"at {1 / obs.dt:g} Hz)")
     if obs.kind == "learned":
         asked = (vehicle, noise.process_sigma, noise.measurement_sigma)
         if asked != (obs.vehicle, obs.noise.process_sigma, obs.noise.measurement_sigma):
             print("note: a learned observer keeps its checkpoint's vehicle and noise "
                   f"(noise {obs.noise.name}, wheelbase {obs.vehicle.wheelbase:g} m); "
                   "vehicle= and noise= apply to the classical observers")
-        print(f"valid: {result['valid']} of {len(df)} rows; the first "
-              f"{len(df) - result['valid']} (window not full) hold the EKF's estimate")
+    if result["valid"] < len(df):
+        print(f"valid: {result['valid']} of {len(df)} rows; the others (before the first fix, "
+              "or a learned observer's window not yet full) are not scored")
     if truth and not valid.any():
         print(f"rmse: no valid row to score (the log is shorter than the window, "
               f"N={obs.window})")

@@ -50,7 +50,8 @@ RUN_ID = re.compile(r"[0-9a-f]{32}")
 
 class Estimate(NamedTuple):
     """One step's result: ``state`` (3,) ``[x, y, psi]`` (m, m, rad; psi in (-pi, pi]) and
-    ``valid``, False while a learned observer's window is not yet full (EKF fallback)."""
+    ``valid``, False while a learned observer's window is not yet full (EKF fallback) and
+    before the first position fix (state NaN)."""
 
     state: np.ndarray
     valid: bool
@@ -71,11 +72,25 @@ class _Stream:
         self.flt: Any = None
 
     def __call__(self, m: np.ndarray, u_prev: np.ndarray | None) -> np.ndarray:
+        """The estimate after measurement m (3,) (NaN: no fix); NaN until the first fix."""
         if self.flt is None:
+            if not np.isfinite(m).all():
+                return np.full(3, np.nan)
             self.flt = classical.stepper(self.name, m[None], self.vehicle, self.noise,
                                          self.alpha)
             return m.copy()
         return self.flt.update(m[None], np.asarray(u_prev, float)[None])[0].copy()
+
+
+def _from_first_fix(name: str, m: np.ndarray, u: np.ndarray, fix: np.ndarray,
+                    vehicle: Vehicle, noise: Noise, alpha: float) -> np.ndarray:
+    """Classical observer ``name`` over one log (T, 3), (T, 2), started at its first fix
+    (``fix`` (T,) bool): (T, 3) estimates, NaN before that fix."""
+    est = np.full((len(m), 3), np.nan)
+    if fix.any():
+        f = int(np.argmax(fix))
+        est[f:] = classical.run(name, m[None, f:], u[None, f:], vehicle, noise, alpha)[0]
+    return est
 
 
 # --------------------------------------------------------------------------- inference engines
@@ -173,6 +188,17 @@ class Observer:
             self._ring = np.zeros((2 * self.window, 5))
         self.reset()
 
+    @property
+    def takes_missing_fixes(self) -> bool:
+        """Whether steps without a position fix are allowed (classical, or trained for it)."""
+        return self.net is None or bool(getattr(self.net, "fixes", False))
+
+    @property
+    def _pads(self) -> bool:
+        # a window filter that starts at its first fix reads a window reaching back before
+        # the log as steps with no fix and no motion: estimates from the first fix on
+        return bool(getattr(self.net, "fixes", False) and getattr(self.net, "physical", False))
+
     # ----------------------------------------------------------------------- construction
 
     @classmethod
@@ -240,13 +266,18 @@ class Observer:
         self._count = 0
         self._u_prev: np.ndarray | None = None
         self._filter.reset()
+        if self.net is not None:
+            self._ring[:] = 0.0
+            if self._pads:
+                self._ring[:, :3] = np.nan
 
-    def step(self, measurement: np.ndarray, input: np.ndarray) -> Estimate:
+    def step(self, measurement: np.ndarray | None, input: np.ndarray) -> Estimate:
         """Take one sample and return the estimate at this step.
 
         Parameters
         ----------
-        measurement : (3,) ``[x_m, y_m, psi_m]`` (m, m, rad).
+        measurement : (3,) ``[x_m, y_m, psi_m]`` (m, m, rad), or None when this step has no
+            position fix (classical observers, and learned ones trained with ``fix_rates``).
         input : (2,) ``[V, delta]`` (m/s, rad) applied from this step to the next.
 
         Returns
@@ -259,24 +290,31 @@ class Observer:
         filter step), whatever the length of the log. For a control loop, run torch on one
         thread (``torch.set_num_threads(1)``) or use ``engine="onnx"`` (one thread already).
         """
-        m = np.asarray(measurement, dtype=float).reshape(3)
+        m = (np.full(3, np.nan) if measurement is None
+             else np.asarray(measurement, dtype=float).reshape(3))
         u = np.asarray(input, dtype=float).reshape(2)
-        if not (np.isfinite(m).all() and np.isfinite(u).all()):
+        if not (np.isfinite(u).all() and (measurement is None or np.isfinite(m).all())):
             raise LboError(f"step {self._count}: measurement {m.tolist()} or input "
-                           f"{u.tolist()} has NaN or inf")
+                           f"{u.tolist()} has NaN or inf (pass measurement=None for a step "
+                           "without a fix)")
+        if measurement is None and not self.takes_missing_fixes:
+            raise LboError(f"step {self._count}: no fix, but {self.name} was trained with a "
+                           "fix at every step; use an observer trained with fix_rates "
+                           "(experiment=robust) or a classical one")
         n = self.window
         if self.net is not None:
             i = self._count % n
             self._ring[i, :3] = self._ring[i + n, :3] = m
             self._ring[i, 3:] = self._ring[i + n, 3:] = u
         self._count += 1
-        if self.net is not None and self._count >= n:
+        if self.net is not None and (self._count >= n or self._pads):
             state = self._predict(self._ring[None, i + 1:i + 1 + n])[0]
-            return Estimate(state, True)
+            state[2] = wrap_angle(state[2])
+            return Estimate(state, bool(np.isfinite(state).all()))
         state = self._filter(m, self._u_prev)
         self._u_prev = u
         state[2] = wrap_angle(state[2])
-        return Estimate(state, self.net is None)
+        return Estimate(state, self.net is None and bool(np.isfinite(state).all()))
 
     # ----------------------------------------------------------------------- batch
 
@@ -286,7 +324,8 @@ class Observer:
 
         Parameters
         ----------
-        m : (T, 3) measurements ``[x_m, y_m, psi_m]``.
+        m : (T, 3) measurements ``[x_m, y_m, psi_m]``; a row of NaN is a step without a
+            position fix.
         u : (T, 2) inputs ``[V, delta]``.
         batch_size : windows per network call.
 
@@ -294,31 +333,42 @@ class Observer:
         -------
         est : (T, 3) ``[x, y, psi]``, psi in (-pi, pi]; the same numbers as T calls of
             :meth:`step` after :meth:`reset`.
-        valid : (T,) bool, False on the first N-1 rows of a learned observer (EKF fallback).
+        valid : (T,) bool, False on the first N-1 rows of a learned observer (EKF fallback),
+            and where the estimate is not finite (before the first fix).
         """
         m = np.asarray(m, dtype=float)
         u = np.asarray(u, dtype=float)
         if m.ndim != 2 or m.shape[1] != 3 or u.shape != (len(m), 2):
             raise LboError(f"run needs m (T, 3) and u (T, 2), got {m.shape} and {u.shape}")
+        fix = np.isfinite(m).all(1)
+        if not fix.all() and not self.takes_missing_fixes:
+            raise LboError(f"row {int(np.flatnonzero(~fix)[0])}: no fix, but {self.name} was "
+                           "trained with a fix at every step; use an observer trained with "
+                           "fix_rates (experiment=robust) or a classical one")
         t = len(m)
-        valid = np.arange(t) >= self.window - 1
         if self.net is None:
-            est = classical.run(self.name, m[None], u[None], self.vehicle, self.noise,
-                                self.alpha)[0]
+            est = _from_first_fix(self.name, m, u, fix, self.vehicle, self.noise, self.alpha)
         else:
             n = self.window
-            est = np.empty((t, 3))
-            head = min(n - 1, t)
+            est = np.full((t, 3), np.nan)
+            head = 0 if self._pads else min(n - 1, t)
             if head:
-                est[:head] = classical.run("ekf", m[None, :head], u[None, :head],
-                                           self.vehicle, self.noise)[0]
-            if t >= n:
-                series = np.ascontiguousarray(np.concatenate([m, u], axis=1))
-                windows = window_view(series, n)  # (T-N+1, N, 5) view
-                for s in range(0, t - n + 1, batch_size):
+                est[:head] = _from_first_fix("ekf", m[:head], u[:head], fix[:head],
+                                             self.vehicle, self.noise, 1.0)
+            series = np.concatenate([m, u], axis=1)
+            if self._pads:  # no fix and no motion before the log
+                pad = np.zeros((n - 1, 5))
+                pad[:, :3] = np.nan
+                series = np.concatenate([pad, series])
+            if len(series) >= n:
+                windows = window_view(np.ascontiguousarray(series), n)  # a view
+                for s in range(0, len(windows), batch_size):
                     chunk = np.ascontiguousarray(windows[s:s + batch_size])
-                    est[n - 1 + s:n - 1 + s + len(chunk)] = self._predict(chunk)
+                    est[head + s:head + s + len(chunk)] = self._predict(chunk)
         est[:, 2] = wrap_angle(est[:, 2])
+        valid = np.isfinite(est).all(1)
+        if self.net is not None and not self._pads:
+            valid &= np.arange(t) >= self.window - 1
         return est, valid
 
     def __repr__(self) -> str:
@@ -356,12 +406,19 @@ def read_checkpoint(path: str | os.PathLike, features: str | None = None,
     from lbo.network import ObserverNet
 
     path = Path(path)
+    if features is not None and features not in FEATURE_MODES:
+        raise LboError(f"features: unknown mode {features!r}; expected one of "
+                       f"{', '.join(FEATURE_MODES)}")
     try:
         ckpt = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as e:  # zip, pickle, EOF, permission: all "cannot read"
-        reason = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
-        raise LboError(f"checkpoint {path}: cannot read it as a torch checkpoint "
-                       f"({reason})") from None
+    except PermissionError as e:
+        raise LboError(f"checkpoint {path}: cannot read it ({e.strerror})") from None
+    except Exception as e:  # zip, pickle, EOF: not a file lbo wrote
+        # torch's own message suggests weights_only=False: unsafe advice for a foreign file
+        what = ("it holds pickled objects beyond tensors and plain containers, which lbo "
+                "never unpickles" if "weights_only" in str(e).lower() or
+                "weights only" in str(e).lower() else "damaged, or another kind of file")
+        raise LboError(f"checkpoint {path}: not a readable lbo checkpoint ({what})") from None
     hp = ckpt.get("hyper_parameters") if isinstance(ckpt, dict) else None
     if not isinstance(hp, dict) or "state_dict" not in ckpt:
         raise LboError(f"checkpoint {path}: not an lbo observer checkpoint "
@@ -379,7 +436,8 @@ def read_checkpoint(path: str | os.PathLike, features: str | None = None,
                        f"but features={features} was asked for")
     try:
         model = dict(hp["model"])
-        net = ObserverNet(model.pop("name"), hp["window"], mode, **model)
+        net = ObserverNet(model.pop("name"), hp["window"], mode, bool(hp.get("fixes", False)),
+                          **model)
         state = {k.removeprefix("observer."): v for k, v in ckpt["state_dict"].items()
                  if k.startswith("observer.")}
         net.load_state_dict(state)

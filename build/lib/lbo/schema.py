@@ -37,24 +37,54 @@ def check_values(df: pd.DataFrame, columns: tuple[str, ...], source: str = "data
             raise LboError(f"{source}: column {c!r} has NaN or inf (first at row {bad})")
 
 
-def check_frame(df: pd.DataFrame, required: tuple[str, ...], source: str = "data") -> None:
-    """Raise LboError naming the first missing column, or the first column with NaN/inf."""
+def check_frame(df: pd.DataFrame, required: tuple[str, ...], source: str = "data",
+                missing_fixes: bool = False) -> None:
+    """Raise LboError naming the first missing column, or the first column with NaN/inf.
+
+    With ``missing_fixes``, rows whose ``x_m, y_m, psi_m`` are all NaN (steps without a
+    position fix) are allowed, partial ones are not (see :func:`fix_rows`).
+    """
     missing = [c for c in required if c not in df.columns]
     if missing:
         raise LboError(f"{source}: missing column {missing[0]!r} (expected columns: "
                        f"{', '.join(required)})")
     if len(df) == 0:
         raise LboError(f"{source}: the file holds no rows")
+    if missing_fixes and all(c in required for c in MEAS):
+        fix_rows(df, source)
+        check_values(df, tuple(c for c in required if c not in MEAS), source)
+        check_values(df.fillna({c: 0.0 for c in MEAS}), MEAS, source)
+        return
     check_values(df, required, source)
 
 
-def read_set(path: str | Path, required: tuple[str, ...] = COLUMNS) -> pd.DataFrame:
-    """Read a Parquet set and check its columns. Raises LboError for missing files or columns."""
+def fix_rows(df: pd.DataFrame, source: str = "input") -> np.ndarray:
+    """(T,) bool, the rows that hold a position fix; a row with only some of ``x_m, y_m,
+    psi_m`` empty, or a log without any fix, is one :class:`LboError`."""
+    empty = df[list(MEAS)].isna().to_numpy()
+    partial = empty.any(1) & ~empty.all(1)
+    if partial.any():
+        r = int(np.flatnonzero(partial)[0])
+        gone = [c for c, e in zip(MEAS, empty[r]) if e]
+        raise LboError(f"{source}: row {r} has a partial fix ({', '.join(gone)} empty); a "
+                       "step without a fix leaves x_m, y_m and psi_m all empty")
+    fix = ~empty.all(1)
+    if not fix.any():
+        raise LboError(f"{source}: no position fix in any row (x_m, y_m and psi_m are "
+                       "empty everywhere)")
+    return fix
+
+
+
+def read_set(path: str | Path, required: tuple[str, ...] = COLUMNS,
+             missing_fixes: bool = False) -> pd.DataFrame:
+    """Read a Parquet set and check its columns (see :func:`check_frame`). Raises LboError
+    for missing files or columns."""
     path = Path(path)
     if not path.is_file():
         raise LboError(f"data set not found: {path} (run `python -m lbo.datagen data=...` first)")
     df = pd.read_parquet(path)
-    check_frame(df, required, source=str(path))
+    check_frame(df, required, source=str(path), missing_fixes=missing_fixes)
     return df
 
 

@@ -17,13 +17,14 @@ from typing import Any
 import lightning as L
 import torch
 from hydra.utils import instantiate
+from lightning.pytorch.callbacks import ModelCheckpoint
 from lightning.pytorch.loggers import MLFlowLogger
 from omegaconf import DictConfig, OmegaConf, open_dict
 
 from lbo.atomic import write_text
 from lbo.cli import entry
 from lbo.config import require
-from lbo.draws import SOURCES, AlphaDraw
+from lbo.draws import SOURCES, AlphaDraw, fix_periods
 from lbo.errors import LboError
 from lbo.features import FEATURE_MODES
 from lbo.module import SCHEDULES
@@ -56,6 +57,11 @@ def check(cfg: DictConfig) -> None:
     require(isinstance(cfg.seed, int) and cfg.seed >= 0, "seed", "an integer >= 0", cfg.seed)
     require(cfg.get("lr_schedule", "constant") in SCHEDULES, "lr_schedule",
             f"one of {list(SCHEDULES)}", cfg.get("lr_schedule"))
+    from lbo.evaluate import REFERENCES
+
+    reference = (cfg.get("metric") or {}).get("reference", "ekf")
+    require(reference in REFERENCES, "metric.reference", f"one of {list(REFERENCES)}",
+            reference)
     noise_settings(cfg)
     build_net(cfg)  # the model's own checks (its parameters, feature modes) before any data
     if cfg.get("logger") and cfg.logger.get("tracking_uri"):
@@ -70,7 +76,12 @@ def build_net(cfg: DictConfig):
     from lbo.network import ObserverNet
 
     model = OmegaConf.to_container(cfg.model, resolve=True)
-    return ObserverNet(model.pop("name"), cfg.window, cfg.features, **model)
+    return ObserverNet(model.pop("name"), cfg.window, cfg.features, fixes(cfg), **model)
+
+
+def fixes(cfg: DictConfig) -> bool:
+    """Whether the observer is trained with fixes dropped (``fix_rates``), and so takes them."""
+    return bool(fix_periods(cfg.get("fix_rates"), cfg.vehicle.dt))
 
 
 def datamodule(cfg: DictConfig, folder: Path):
@@ -79,7 +90,9 @@ def datamodule(cfg: DictConfig, folder: Path):
     from lbo.data import WindowDataModule
 
     dm = WindowDataModule(folder, cfg.window, cfg.batch_size, seed=cfg.seed,
-                          device=data_device(cfg), **noise_settings(cfg))
+                          device=data_device(cfg),
+                          fix_periods=fix_periods(cfg.get("fix_rates"), cfg.vehicle.dt),
+                          **noise_settings(cfg))
     dm.setup("fit")
     return dm
 
@@ -158,6 +171,8 @@ def finished_run(cfg: DictConfig, digest: str, clean: bool = True) -> dict[str, 
     for r in found:
         if clean and r.info.status != "FINISHED":
             client.delete_run(r.info.run_id)
+            print(f"deleted the unfinished run {r.info.run_id} ({r.info.status}) of the same "
+                  "config; this run replaces it")
     if not done:
         return None
     run = max(done, key=lambda r: r.info.end_time or 0)
@@ -209,7 +224,7 @@ def train(cfg: DictConfig, callbacks: list[L.Callback] | None = None,
     dm = datamodule(cfg, folder)
     module = ObserverModule(OmegaConf.to_container(cfg.model, resolve=True), cfg.window,
                             cfg.features, instantiate(cfg.optimizer), meta(cfg, data_hash),
-                            cfg.get("lr_schedule", "constant"))
+                            cfg.get("lr_schedule", "constant"), fixes(cfg))
     module.observer.set_normalisation(**dm.normalisation(cfg.features))
 
     name = f"{cfg.model.name}-N{cfg.window}"
@@ -226,6 +241,8 @@ def train(cfg: DictConfig, callbacks: list[L.Callback] | None = None,
     for cb in callbacks:
         if isinstance(cb, Evaluation) and isinstance(logger, MLFlowLogger):
             cb.mlflow = logger
+        if isinstance(cb, ModelCheckpoint) and cb.dirpath:
+            clear_stale_checkpoints(Path(cb.dirpath))
     try:
         if isinstance(logger, MLFlowLogger):
             logger.log_hyperparams(_flat(cfg))
@@ -253,6 +270,19 @@ def train(cfg: DictConfig, callbacks: list[L.Callback] | None = None,
         if isinstance(cb, Evaluation):
             metrics.update(cb.metrics)
     return metrics
+
+
+def clear_stale_checkpoints(folder: Path) -> list[Path]:
+    """Remove the ``.ckpt`` files an earlier run left in ``folder`` (killed, or trained into
+    the same output folder), so this run's best checkpoint is ``best.ckpt`` and never a
+    ``best-v1.ckpt`` beside a stale one. Returns what it removed (and says so)."""
+    stale = sorted(folder.glob("*.ckpt")) if folder.is_dir() else []
+    for path in stale:
+        path.unlink()
+    if stale:
+        print(f"removed {len(stale)} stale checkpoint(s) of an earlier run from {folder}: "
+              f"{', '.join(p.name for p in stale)}")
+    return stale
 
 
 def _noise_tag(cfg: DictConfig) -> str:

@@ -6,13 +6,14 @@ import hashlib
 import json
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pandas as pd
 from omegaconf import DictConfig, OmegaConf
 
 from lbo import schema
-from lbo.atomic import write_text
+from lbo.atomic import remove_stale_temps, write_text
 from lbo.config import positive, require
 from lbo.datagen import clothoid
 from lbo.datagen.friction import G, Grid, accelerations, generate_train
@@ -240,13 +241,21 @@ def build(spec: Spec, progress: bool = True) -> tuple[Path, dict[str, pd.DataFra
     Returns the folder, the frames, and whether they came from the cache. Files are written
     atomically; a set is reused only when its Parquet file is complete.
     """
+    with data_lock(spec.folder):
+        stale = remove_stale_temps(spec.folder)
+        if stale:
+            print(f"removed {len(stale)} temp file(s) a killed run left in {spec.folder}: "
+                  f"{', '.join(p.name for p in stale)}")
+        return _build(spec, spec.folder, progress)
+
+
+def data_lock(folder: Path) -> Any:
+    """The lock of a data-set folder: jobs of a parallel sweep share one data set, the first
+    generates it and the others wait; whoever writes into the folder holds it."""
     from filelock import FileLock
 
-    folder = spec.folder
     folder.parent.mkdir(parents=True, exist_ok=True)
-    # jobs of a parallel sweep share one data set: the first generates it, the others wait
-    with FileLock(folder.parent / f".{folder.name}.lock", timeout=-1):
-        return _build(spec, folder, progress)
+    return FileLock(folder.parent / f".{folder.name}.lock", timeout=-1)
 
 
 def _build(spec: Spec, folder: Path, progress: bool

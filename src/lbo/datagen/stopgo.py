@@ -18,8 +18,10 @@ MODES = ("stop", "creep", "cruise")
 
 
 def generate_stop_and_go(n_traj: int, n_steps: int, vehicle: Vehicle, noise: Noise,
-                         rng: np.random.Generator, p_mode: tuple[float, float, float] = (0.4, 0.2, 0.4),
-                         hold: tuple[float, float] = (2.0, 8.0), accel: tuple[float, float] = (0.5, 3.0),
+                         rng: np.random.Generator,
+                         p_mode: tuple[float, float, float] = (0.4, 0.2, 0.4),
+                         hold: tuple[float, float] = (2.0, 8.0),
+                         accel: tuple[float, float] = (0.5, 3.0),
                          steer_rate: float = 0.4, lat_max: float = 4.0,
                          alpha: float = 1.0) -> dict[str, np.ndarray]:
     """Simulate stop-and-go trajectories, all at once (a loop over time only).

@@ -12,13 +12,14 @@ from lbo.cli import entry
 
 def run(cfg: DictConfig) -> str:
     """Generate the sets for ``cfg``, print the summary and return the folder."""
-    from lbo.datagen.build import build, figures, spec_from_cfg, summary
+    from lbo.datagen.build import build, data_lock, figures, spec_from_cfg, summary
 
     spec = spec_from_cfg(cfg)
     start = time.perf_counter()
     folder, sets, cached = build(spec)
     if cfg.get("figures", True):
-        figures(spec, sets, folder)
+        with data_lock(folder):
+            figures(spec, sets, folder)
     s = summary(spec, sets)
     took = time.perf_counter() - start
     print(f"{'reused cached' if cached else 'generated'} data sets '{spec.name}' in {took:.1f} s")

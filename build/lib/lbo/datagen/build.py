@@ -6,18 +6,20 @@ import hashlib
 import json
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pandas as pd
 from omegaconf import DictConfig, OmegaConf
 
 from lbo import schema
-from lbo.atomic import write_text
+from lbo.atomic import remove_stale_temps, write_text
 from lbo.config import positive, require
 from lbo.datagen import clothoid
 from lbo.datagen.friction import G, Grid, accelerations, generate_train
 from lbo.datagen.manoeuvres import MANOEUVRES, validation_path
 from lbo.datagen.pursuit import drive, smooth_noise
+from lbo.datagen.stopgo import generate_stop_and_go
 from lbo.noise import Noise
 from lbo.vehicle import Vehicle, measure, wrap_angle
 
@@ -72,6 +74,10 @@ def spec_from_cfg(cfg: DictConfig) -> Spec:
     require(len(hold) == 2 and 0 < hold[0] <= hold[1], "data.train.hold",
             "[min, max] seconds with 0 < min <= max", hold)
     require(tr["alpha"] >= 0, "data.train.alpha", "a noise scale >= 0", tr["alpha"])
+    share = tr.get("stop_and_go", 0.0)
+    require(isinstance(share, (int, float)) and not isinstance(share, bool)
+            and 0 <= share <= 1, "data.train.stop_and_go",
+            "a share of the trajectories in [0, 1]", share)
     va = OmegaConf.to_container(d.val, resolve=True)
     for key in ("steps", "run_in"):
         positive(va, key, "data.val", integer=True)
@@ -108,19 +114,26 @@ def _rng(spec: Spec, *key: int) -> np.random.Generator:
 
 
 def make_train(spec: Spec) -> pd.DataFrame:
+    """Friction-circle trajectories, the last ``stop_and_go`` share of them replaced by
+    stop-and-go ones (:mod:`lbo.datagen.stopgo`) when the config asks for it."""
     tr, v = spec.train, spec.vehicle
     n_steps = int(round(tr["duration"] / v.dt))
-    out = generate_train(tr["n_traj"], n_steps, v, spec.noise, _rng(spec, 1),
+    b = tr["n_traj"]
+    n_stop = int(round(tr.get("stop_and_go", 0.0) * b))
+    out = generate_train(b - n_stop, n_steps, v, spec.noise, _rng(spec, 1),
                          radius=tr["radius_g"] * G, grid=tr["grid"], hold=tuple(tr["hold"]),
                          jerk=tr["jerk"], candidates=tr["candidates"], alpha=tr["alpha"])
-    b = tr["n_traj"]
+    if n_stop:
+        stops = generate_stop_and_go(n_stop, n_steps, v, spec.noise, _rng(spec, 6),
+                                     alpha=tr["alpha"])
+        out = {key: np.concatenate([out[key], stops[key]]) for key in ("z", "u", "m")}
     traj = np.repeat(np.arange(b), n_steps)
     k = np.tile(np.arange(n_steps), b)
     return schema.frame(traj, k, v.dt, out["z"].reshape(-1, 3), out["u"].reshape(-1, 2),
                         out["m"].reshape(-1, 3))
 
 
-def _drive(spec: Spec, segments: list, steps: np.ndarray, shapes: np.ndarray, run_in: int,
+def drive_paths(spec: Spec, segments: list, steps: np.ndarray, shapes: np.ndarray, run_in: int,
            variation: float, rng: np.random.Generator) -> dict[str, np.ndarray]:
     """Drive G clothoid chains with pure pursuit. steps, shapes: (G,), (G, 2)."""
     v = spec.vehicle
@@ -161,7 +174,7 @@ def _scored_frame(spec: Spec, z: np.ndarray, u: np.ndarray, n_real: np.ndarray, 
 def make_val(spec: Spec) -> pd.DataFrame:
     va = spec.val
     seg = validation_path(va["length"], va["amplitude"], va["period"])
-    out = _drive(spec, [seg], np.array([va["steps"]]), np.ones((1, 2)), va["run_in"],
+    out = drive_paths(spec, [seg], np.array([va["steps"]]), np.ones((1, 2)), va["run_in"],
                  va["speed_variation"], _rng(spec, 2))
     return _scored_frame(spec, out["z"], out["u"], np.array([va["run_in"] + va["steps"]]),
                          va["run_in"], np.array([va["alpha"]]), 3)
@@ -171,7 +184,7 @@ def make_test(spec: Spec) -> pd.DataFrame:
     te = spec.test
     man = [MANOEUVRES[n] for n in te["manoeuvres"]]
     steps = np.array([m.steps for m in man])
-    out = _drive(spec, [m.build() for m in man], steps, np.array([m.speed_shape for m in man]),
+    out = drive_paths(spec, [m.build() for m in man], steps, np.array([m.speed_shape for m in man]),
                  te["run_in"], te["speed_variation"], _rng(spec, 4))
     return _scored_frame(spec, out["z"], out["u"], te["run_in"] + steps, te["run_in"],
                          spec.alphas, 5)
@@ -228,13 +241,21 @@ def build(spec: Spec, progress: bool = True) -> tuple[Path, dict[str, pd.DataFra
     Returns the folder, the frames, and whether they came from the cache. Files are written
     atomically; a set is reused only when its Parquet file is complete.
     """
+    with data_lock(spec.folder):
+        stale = remove_stale_temps(spec.folder)
+        if stale:
+            print(f"removed {len(stale)} temp file(s) a killed run left in {spec.folder}: "
+                  f"{', '.join(p.name for p in stale)}")
+        return _build(spec, spec.folder, progress)
+
+
+def data_lock(folder: Path) -> Any:
+    """The lock of a data-set folder: jobs of a parallel sweep share one data set, the first
+    generates it and the others wait; whoever writes into the folder holds it."""
     from filelock import FileLock
 
-    folder = spec.folder
     folder.parent.mkdir(parents=True, exist_ok=True)
-    # jobs of a parallel sweep share one data set: the first generates it, the others wait
-    with FileLock(folder.parent / f".{folder.name}.lock", timeout=-1):
-        return _build(spec, folder, progress)
+    return FileLock(folder.parent / f".{folder.name}.lock", timeout=-1)
 
 
 def _build(spec: Spec, folder: Path, progress: bool

@@ -9,6 +9,11 @@ told alpha. What it learns:
   smooth motion hardly touches) and the mean speed, and outputs log sigma;
 - a scale on the process noise Q (initialised at the noise preset's).
 
+With a sixth input channel, ``fix`` (``in_features=6``), steps without a position fix get a
+prediction-only step, the filter starts at the window's first fix, and the noise statistic is
+the mean square of the fixes' residuals against dead reckoning from the previous fix (the
+second differences need fixes at three consecutive steps).
+
 Trained end to end through the filter on the MSE of the final estimate, over windows whose
 alpha is drawn from a wide range, it learns to be the EKF that alpha calls for.
 """
@@ -70,7 +75,7 @@ class FilterObserver(nn.Module):
     process_sigma : (3,) sigma of the process noise per step (m, m, rad), the training preset's.
     measurement_sigma : (3,) measurement sigmas at alpha=1, the scale of the noise model.
     hidden : width of the noise model's two hidden layers.
-    in_features : channels per step (5).
+    in_features : channels per step: 5, or 6 with the ``fix`` channel (missing fixes).
     """
 
     def __init__(self, window: int, dt: float = 0.02, wheelbase: float = 2.7,
@@ -82,6 +87,10 @@ class FilterObserver(nn.Module):
         self.feature_modes = ("frame",)
         self.window = check_count("window", window, 4)
         self.in_features = check_count("in_features", in_features, 5)
+        if self.in_features > 6:
+            raise LboError(f"model.in_features: expected 5, or 6 with the fix channel, "
+                           f"got {in_features!r}")
+        self.fixes = self.in_features == 6
         hidden = check_count("hidden", hidden)
         if not (isinstance(dt, (int, float)) and dt > 0):
             raise LboError(f"model.dt: expected a period in seconds > 0, got {dt!r}")
@@ -94,26 +103,68 @@ class FilterObserver(nn.Module):
         self.register_buffer("log_r0", r.log())
         self.log_q_scale = nn.Parameter(torch.zeros(3))
         # features: log mean square second difference per channel (in units of r0), log(1+V)
-        self.noise = nn.Sequential(nn.Linear(4, hidden), nn.GELU(), nn.Linear(hidden, hidden),
+        # (with fixes, also the log of the mean gap between fixes)
+        self.noise = nn.Sequential(nn.Linear(4 + self.fixes, hidden), nn.GELU(),
+                                   nn.Linear(hidden, hidden),
                                    nn.GELU(), nn.Linear(hidden, 3))
         nn.init.zeros_(self.noise[-1].weight)
         nn.init.zeros_(self.noise[-1].bias)
 
+    def _step(self, z: torch.Tensor, v: torch.Tensor, delta: torch.Tensor) -> torch.Tensor:
+        """One bicycle step of (B, 3) states with inputs (B,)."""
+        psi = z[:, 2]
+        return z + torch.stack([v * torch.cos(psi), v * torch.sin(psi),
+                                v * torch.tan(delta) / self.wheelbase], -1) * self.dt
+
+    def _fix_residuals(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Mean square residual of each fix against dead reckoning from the previous fix,
+        halved (two fixes' noise), (B, 3), and the log of the mean gap between fixes (B, 1).
+        A window with fewer than two fixes gets the alpha=1 variance."""
+        fix = x[:, :, 5] > 0.5
+        dr = x[:, 0, :3]
+        seen = fix[:, 0]
+        gap = torch.zeros_like(x[:, 0, 0])
+        total = torch.zeros_like(x[:, 0, :3])
+        count = torch.zeros_like(x[:, 0, 0])
+        gaps = torch.zeros_like(count)
+        for k in range(1, x.shape[1]):
+            dr = self._step(dr, x[:, k - 1, 3], x[:, k - 1, 4])
+            gap = gap + 1
+            f = fix[:, k]
+            r = x[:, k, :3] - dr
+            r = torch.cat([r[:, :2], _wrap(r[:, 2:])], -1)
+            use = (f & seen).to(x.dtype)
+            total = total + use[:, None] * r ** 2
+            count, gaps = count + use, gaps + use * gap
+            dr = torch.where(f[:, None], x[:, k, :3], dr)
+            gap = torch.where(f, torch.zeros_like(gap), gap)
+            seen = seen | f
+        some = count > 0
+        ms = torch.where(some[:, None], total / (2 * count.clamp_min(1))[:, None],
+                         torch.exp(2 * self.log_r0).expand_as(total))
+        mean_gap = torch.where(some, gaps / count.clamp_min(1), torch.ones_like(gaps))
+        return ms, torch.log(mean_gap)[:, None]
+
     def measurement_sigma(self, x: torch.Tensor) -> torch.Tensor:
-        """The noise model: (B, N, 5) features -> (B, 3) measurement sigmas."""
-        m = x[:, :, :3]
-        d2 = m[:, 2:] - 2 * m[:, 1:-1] + m[:, :-2]
-        d2 = torch.cat([d2[..., :2], _wrap(d2[..., 2:])], -1)
-        # second differences of i.i.d. noise of variance s^2 have variance 6 s^2
-        ms = (d2 ** 2).mean(1) / 6.0
-        log_ratio = 0.5 * torch.log(ms + 1e-12) - self.log_r0  # about log alpha
+        """The noise model: (B, N, 5|6) features -> (B, 3) measurement sigmas."""
         speed = torch.log1p(x[:, :, 3].abs().mean(1, keepdim=True))
+        if self.fixes:
+            ms, log_gap = self._fix_residuals(x)
+        else:
+            m = x[:, :, :3]
+            d2 = m[:, 2:] - 2 * m[:, 1:-1] + m[:, :-2]
+            d2 = torch.cat([d2[..., :2], _wrap(d2[..., 2:])], -1)
+            # second differences of i.i.d. noise of variance s^2 have variance 6 s^2
+            ms = (d2 ** 2).mean(1) / 6.0
+            log_gap = speed[:, :0]  # no column
+        log_ratio = 0.5 * torch.log(ms + 1e-12) - self.log_r0  # about log alpha
         # start from the plain moment estimate, exp(log_ratio) * r0 = sqrt(ms)
-        log_sigma = log_ratio + self.log_r0 + self.noise(torch.cat([log_ratio, speed], 1))
+        log_sigma = log_ratio + self.log_r0 + self.noise(torch.cat([log_ratio, speed, log_gap],
+                                                                   1))
         return torch.exp(log_sigma).clamp_min(1e-6)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        """(B, N, 5) features -> (B, 3) state in the current measurement's frame."""
+        """(B, N, 5|6) features -> (B, 3) state in the anchor's (current measurement's) frame."""
         n = x.shape[1]
         r = self.measurement_sigma(x) ** 2  # (B, 3)
         q = torch.exp(2 * (self.log_q0 + self.log_q_scale))  # (3,)
@@ -122,12 +173,13 @@ class FilterObserver(nn.Module):
         Q = q * eye
         z = x[:, 0, :3]
         P = R
-        dt, L = self.dt, self.wheelbase
+        dt = self.dt
+        started = x[:, 0, -1] > 0.5  # read only with the fix channel
         for k in range(1, n):
             v, delta = x[:, k - 1, 3], x[:, k - 1, 4]
             psi = z[:, 2]
             c, s = torch.cos(psi), torch.sin(psi)
-            z = z + torch.stack([v * c, v * s, v * torch.tan(delta) / L], -1) * dt
+            z = self._step(z, v, delta)
             # F = I + dt * [[0, 0, -v s], [0, 0, v c], [0, 0, 0]]
             f02, f12 = -v * s * dt, v * c * dt
             zero = torch.zeros_like(v)
@@ -139,7 +191,16 @@ class FilterObserver(nn.Module):
             y = x[:, k, :3] - z
             y = torch.cat([y[:, :2], _wrap(y[:, 2:])], -1)
             K = P @ _inverse_sym3(P + R)
-            z = z + (K @ y.unsqueeze(-1)).squeeze(-1)
-            P = (eye - K) @ P
-            P = 0.5 * (P + P.transpose(1, 2))
+            z_new = z + (K @ y.unsqueeze(-1)).squeeze(-1)
+            P_new = (eye - K) @ P
+            P_new = 0.5 * (P_new + P_new.transpose(1, 2))
+            if self.fixes:  # no fix: the prediction; the first fix: start there, P = R
+                f = x[:, k, 5] > 0.5
+                first = (f & ~started)[:, None]
+                z = torch.where(first, x[:, k, :3], torch.where(f[:, None], z_new, z))
+                P = torch.where(first[..., None], R,
+                                torch.where(f[:, None, None], P_new, P))
+                started = started | f
+            else:
+                z, P = z_new, P_new
         return torch.cat([z[:, :2], _wrap(z[:, 2:])], -1)
