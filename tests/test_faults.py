@@ -100,3 +100,25 @@ def test_datagen_removes_the_temp_files_of_a_killed_run(tmp_path):
     assert not any(p.exists() for p in left)
     assert not list(spec.folder.glob(".*.tmp"))
     assert (spec.folder / "test.parquet").is_file()
+
+
+@pytest.mark.parametrize("override, message", [
+    ("classical=[ekf,kalman]", "classical: unknown observer 'kalman'; expected names from"),
+    ("windows=[20,3]", "window must be an integer >= 4 (the CNN pools windows by 4), got 3"),
+    ("models=[cnn,gru]", "models must be a list of models with a search space (cnn, lstm), "
+                         "got ['cnn', 'gru']"),
+    ("train_overrides=['metric.reference=foo']",
+     "metric.reference must be one of ['ekf', 'paper'], got 'foo'"),
+])
+def test_reproduce_checks_every_field_before_its_first_stage(tmp_path, override, message):
+    res = subprocess.run([sys.executable, "-m", "lbo.reproduce", "scale=smoke", override,
+                          f"report_dir={tmp_path / 'report'}",
+                          f"optuna_storage=sqlite:///{tmp_path / 'optuna.db'}",
+                          f"overrides=['data.root={tmp_path / 'data'}']",
+                          f"hydra.run.dir={tmp_path / 'hydra'}"],
+                         env={**os.environ, "MLFLOW_TRACKING_URI":
+                              f"sqlite:///{tmp_path / 'mlflow.db'}"},
+                         capture_output=True, text=True)
+    assert res.returncode == 2, res.stdout[-2000:]
+    assert res.stderr.strip().startswith(f"error: {message}"), res.stderr
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["hydra"]  # no data, report, store

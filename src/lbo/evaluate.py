@@ -55,11 +55,11 @@ def classical(name: str, arr: dict[str, np.ndarray], vehicle: Vehicle, noise: No
                          progress=progress)
 
 
-def check_observers(names: Sequence[str]) -> None:
-    """Raise LboError naming the first name that is not a classical observer."""
+def check_observers(names: Sequence[str], field: str = "observers") -> None:
+    """Raise LboError naming ``field`` and the first name that is not a classical observer."""
     for name in names:
         if name not in CLASSICAL:
-            raise LboError(f"observers: unknown observer {name!r}; "
+            raise LboError(f"{field}: unknown observer {name!r}; "
                            f"expected names from {list(CLASSICAL)}")
 
 

@@ -85,13 +85,31 @@ def run(cfg: DictConfig) -> Path:
 
 
 def check_reproduce(cfg: DictConfig) -> None:
-    """Reject a bad scale, job count, launcher or tracking server before any stage runs."""
+    """Reject a bad scale, job count, launcher, tracking server, model, window, classical
+    observer or training setting before any stage runs, not hours later in its stage."""
+    from lbo.evaluate import check_observers
+    from lbo.paths import CONF_DIR
+    from lbo.train import check
+
     if cfg.scale not in cfg.trials:
         raise LboError(f"scale must be one of {sorted(cfg.trials)}, got {cfg.scale!r}")
+    trials = cfg.trials[cfg.scale]
+    require(isinstance(trials, int) and not isinstance(trials, bool) and trials >= 1,
+            f"trials.{cfg.scale}", "an integer >= 1", trials)
     require(isinstance(cfg.jobs, int) and not isinstance(cfg.jobs, bool) and cfg.jobs >= 1,
             "jobs", "an integer >= 1", cfg.jobs)
+    searches = sorted(p.stem for p in (CONF_DIR / "hparams_search").glob("*.yaml"))
+    for model in cfg.models:
+        require(model in searches, "models", f"a list of models with a search space "
+                f"({', '.join(searches)})", list(cfg.models))
+    check_observers(list(cfg.classical), "classical")
     check_launcher(cfg.launcher, "launcher")
     check_server(cfg.tracking_uri, "tracking_uri")
+    # every training run's own checks (window, metric, train_overrides, ...), without the
+    # tuned parameters, which do not exist yet
+    for _, overrides in train_jobs(cfg, Path(cfg.report_dir)):
+        check(compose("train", [o for o in overrides
+                                if not o.startswith(("+tuned=", "hydra.searchpath="))]))
 
 
 def stage_data(cfg: DictConfig) -> tuple[Path, str]:

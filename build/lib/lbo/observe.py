@@ -173,7 +173,8 @@ def resample(df: pd.DataFrame, dt: float, columns: tuple[str, ...]) -> pd.DataFr
     n = int(np.floor((t[-1] - t[0]) / dt + 1e-9)) + 1
     grid = t[0] + dt * np.arange(n)
     out = {"t": grid}
-    fix = np.isfinite(df[list(MEAS_COLUMNS)].to_numpy(dtype=float)).all(1)
+    meas = [c for c in MEAS_COLUMNS if c in columns]
+    fix = np.isfinite(df[meas].to_numpy(dtype=float)).all(1)
     # fixes are not interpolated across gaps: each lands on its nearest row of the grid
     at = np.clip(np.round((t[fix] - t[0]) / dt).astype(np.int64), 0, n - 1)
     for c in columns:
