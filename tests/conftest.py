@@ -74,3 +74,23 @@ def manoeuvre(smoke_data):
 
     test = pd.read_parquet(smoke_data / "test.parquet")
     return test[(test["traj"] == 0) & (test["alpha"] == 1.0)].sort_values("k")
+
+
+def kill_when_written(proc, path: Path):
+    """A started thread that SIGKILLs the process group of ``proc`` as soon as ``path``
+    exists (e.g. a run's first checkpoint); join it after ``proc`` ends."""
+    import os
+    import signal
+    import threading
+    import time
+
+    def watch() -> None:
+        while proc.poll() is None:
+            if path.exists():
+                os.killpg(proc.pid, signal.SIGKILL)
+                return
+            time.sleep(0.01)
+
+    thread = threading.Thread(target=watch)
+    thread.start()
+    return thread

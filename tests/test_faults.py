@@ -6,15 +6,13 @@ import os
 import signal
 import subprocess
 import sys
-import threading
-import time
 
 import mlflow
 import numpy as np
 import pytest
 import torch
 
-from conftest import compose_cfg
+from conftest import compose_cfg, kill_when_written
 from lbo.network import ObserverNet
 from lbo.observer import Observer
 
@@ -31,16 +29,7 @@ def test_a_run_killed_after_its_checkpoint_does_not_poison_the_rerun(tmp_path, s
     ckpt = out / "checkpoints" / "best.ckpt"
     proc = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
                             start_new_session=True)
-
-    def kill_after_checkpoint() -> None:
-        while proc.poll() is None:
-            if ckpt.exists():
-                os.killpg(proc.pid, signal.SIGKILL)
-                return
-            time.sleep(0.01)
-
-    watcher = threading.Thread(target=kill_after_checkpoint)
-    watcher.start()
+    watcher = kill_when_written(proc, ckpt)
     proc.wait(timeout=300)
     watcher.join()
     assert proc.returncode == -signal.SIGKILL and ckpt.exists()

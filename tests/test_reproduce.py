@@ -4,14 +4,14 @@ import os
 import signal
 import subprocess
 import sys
-import threading
-import time
 from pathlib import Path
 
 import mlflow
 import optuna
 import pandas as pd
 import pytest
+
+from conftest import kill_when_written
 
 REPORT_FILES = ["rmse_alpha1.csv", "rmse_alpha6.csv", "nrmse.csv", "report.md",
                 "friction_circle.png", "nrmse_cnn.png", "nrmse_lstm.png", "nrmse_all.png",
@@ -39,16 +39,7 @@ def test_reproduce_smoke_killed_and_resumed_without_duplicates(tmp_path):
                             stderr=subprocess.STDOUT, text=True, start_new_session=True)
     # kill the fourth observer's run once it has written a checkpoint, before it finishes
     killed_at = tmp_path / "report" / "runs" / "cnn-N80" / "checkpoints" / "best.ckpt"
-
-    def kill_after_checkpoint() -> None:
-        while proc.poll() is None:
-            if killed_at.exists():
-                os.killpg(proc.pid, signal.SIGKILL)
-                return
-            time.sleep(0.01)
-
-    watcher = threading.Thread(target=kill_after_checkpoint)
-    watcher.start()
+    watcher = kill_when_written(proc, killed_at)
     seen = list(proc.stdout)
     proc.wait(timeout=60)
     watcher.join()
