@@ -202,3 +202,18 @@ def test_a_smoke_robust_checkpoint_runs_on_a_thinned_log(tmp_path, smoke_data):
     e[:, 2] = wrap_angle(e[:, 2])
     # thinned to 10 Hz the raw fixes are 1 m off; the observer must not be far off that
     assert np.sqrt(np.mean(e[:, :2] ** 2)) < 1.5
+
+
+def test_a_cnn_trained_with_fix_rates_takes_a_log_with_missing_fixes(tmp_path, smoke_data):
+    cfg, out, _ = train_in_own_store(tmp_path, smoke_data, "experiment=smoke", "model=cnn",
+                                     "window=20", "fix_rates=[50,5]", "trainer.max_epochs=1",
+                                     "trainer.limit_train_batches=3")
+    obs = Observer.load(out["checkpoint"])
+    assert obs.takes_missing_fixes and obs.net.in_mean.shape == (6,)
+    df = simulate(compose_cfg("simulate", ["manoeuvre=slalom", "fix_rate=10"]))
+    m, u = df[["x_m", "y_m", "psi_m"]].to_numpy(), df[["V", "delta"]].to_numpy()
+    est, valid = obs.run(m, u)
+    assert valid[19:].all() and not valid[:19].any()  # the CNN needs a full window
+    assert np.isfinite(est[19:]).all()
+    # its estimate is anchored at the latest fix, 0 to 4 steps back, not at a missing one
+    assert np.abs(est[19:, :2] - df[["x", "y"]].to_numpy()[19:]).mean() < 5.0
