@@ -217,3 +217,24 @@ def test_a_cnn_trained_with_fix_rates_takes_a_log_with_missing_fixes(tmp_path, s
     assert np.isfinite(est[19:]).all()
     # its estimate is anchored at the latest fix, 0 to 4 steps back, not at a missing one
     assert np.abs(est[19:, :2] - df[["x", "y"]].to_numpy()[19:]).mean() < 5.0
+
+
+def test_the_export_of_an_observer_with_missing_fixes_matches_pytorch(tmp_path):
+    from lbo.engines import onnx_session
+    from lbo.export import export
+
+    torch.manual_seed(2)
+    net = ObserverNet("filternet", 40, "frame", fixes=True)  # float32 weights, as trained
+    paths = export(Observer.from_net(net), tmp_path)
+    df = simulate(compose_cfg("simulate", ["manoeuvre=slalom", "fix_rate=5"]))
+    series = df[["x_m", "y_m", "psi_m", "V", "delta"]].to_numpy()
+    win = np.stack([series[e - 40:e] for e in (40, 333, 700)])  # fixes every 10 steps
+    assert np.isnan(win[..., 0]).mean() == pytest.approx(0.9)
+    with torch.inference_mode():
+        ref = net(torch.from_numpy(win)).numpy()
+    got = onnx_session(paths["onnx"]).run(None, {"window": win})[0]
+    with torch.inference_mode():
+        scripted = torch.jit.load(str(paths["torchscript"]))(torch.from_numpy(win)).numpy()
+    assert np.isfinite(ref).all()
+    np.testing.assert_allclose(got, ref, atol=1e-5)
+    np.testing.assert_allclose(scripted, ref, atol=1e-5)
