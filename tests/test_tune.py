@@ -12,6 +12,7 @@ from omegaconf import open_dict
 from conftest import compose_cfg
 from lbo.errors import LboError
 from lbo.paths import CONF_DIR
+from lbo.study_mlflow import StudyRun
 from lbo.train import check
 from lbo.tune import (
     TrialSeededTPESampler,
@@ -121,12 +122,15 @@ def test_a_pruned_trial_is_pruned_in_optuna_and_mlflow(tmp_path, smoke_data, tra
     assert not (tmp_path / "conf" / "tuned" / "cnn.yaml").exists()
 
 
-def test_a_killed_trial_is_failed_then_retried(tmp_path, smoke_data, tracking):
+@pytest.mark.parametrize("recorded", [True, False])
+def test_a_killed_trial_is_failed_then_retried(tmp_path, smoke_data, tracking, recorded):
+    """``recorded=False``: killed after its run opened but before the trial recorded it."""
     cfg = tune_cfg(tmp_path, smoke_data, tracking, "tune.n_trials=1", "tune.study_name=killed",
                    "tune.heartbeat_interval=1", "tune.grace_period=1")
     # a process that died in trial 0, after drawing its learning rate and opening its run
     storage = open_storage(cfg.tune.storage, 1, 1)
     study = optuna.create_study(study_name="killed", storage=storage)
+    parent = StudyRun(cfg, study, "the study's storage").run_id
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # optuna would rather ask inside Study.optimize
         dead = study.ask()
@@ -135,8 +139,10 @@ def test_a_killed_trial_is_failed_then_retried(tmp_path, smoke_data, tracking):
     client = mlflow.MlflowClient(tracking)
     exp = client.get_experiment_by_name("lbo") or client.get_experiment(client.create_experiment(
         "lbo", artifact_location=cfg.logger.artifact_location))
-    run_id = client.create_run(exp.experiment_id, tags={"optuna_study": "killed"}).info.run_id
-    dead.set_user_attr("mlflow_run_id", run_id)
+    run_id = client.create_run(exp.experiment_id, tags={
+        "optuna_study": "killed", "optuna_trial": "0", "mlflow.parentRunId": parent}).info.run_id
+    if recorded:
+        dead.set_user_attr("mlflow_run_id", run_id)
     time.sleep(2.1)  # its heartbeat goes stale (SQLite keeps whole seconds)
 
     out = tune(cfg)

@@ -31,6 +31,7 @@ class StudyRun:
         log = cfg.logger
         self.client, exp_id = ensure_experiment(log.tracking_uri, log.experiment_name,
                                                 log.artifact_location)
+        self.exp_id = exp_id
         self.run_id = study.user_attrs.get(PARENT_ATTR)
         if self._status(self.run_id) is not None:
             self.client.update_run(self.run_id, status="RUNNING")
@@ -90,10 +91,24 @@ class StudyRun:
         self.client.set_terminated(run_id, MLFLOW_STATUS[state])
 
     def close_stale(self, study: optuna.Study) -> None:
-        """Trials failed for a silent heartbeat left their runs RUNNING: close them FAILED."""
-        for trial in study.get_trials(deepcopy=False, states=(TrialState.FAIL,)):
+        """Trials failed for a silent heartbeat left their runs RUNNING: close them FAILED.
+
+        A worker killed after its trial's run opened but before the trial recorded the run
+        (``RUN_ATTR``, at fit start) leaves a run only its tags name: found by those."""
+        failed = study.get_trials(deepcopy=False, states=(TrialState.FAIL,))
+        for trial in failed:
             if self._status(trial.user_attrs.get(RUN_ATTR)) == "RUNNING":
                 self.mark(trial)
+        numbers = {str(t.number) for t in failed}
+        if not numbers:
+            return
+        live = self.client.search_runs(
+            [self.exp_id], f"tags.optuna_study = '{study.study_name}' and "
+            "attributes.status = 'RUNNING'", max_results=1000)
+        for r in live:
+            if (r.data.tags.get("optuna_trial") in numbers
+                    and r.data.tags.get("mlflow.parentRunId") == self.run_id):
+                self.close_trial(r.info.run_id, TrialState.FAIL)
 
     def summarise(self, study: optuna.Study, space: list[Param], handoff: Path | None,
                   status: str) -> None:
