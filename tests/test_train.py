@@ -132,6 +132,13 @@ def test_checkpoint_carries_what_rebuilds_the_observer(tmp_path, smoke_data, tra
     ("window=150", "choose window <= 101"),
     ("features=polar", "features must be one of"),
     ("data_dir=/nonexistent/lbo", "data_dir: no train.parquet"),
+    ("trainer.max_epochs=0", "trainer.max_epochs must be an integer >= 1, got 0"),
+    ("optimizer.lr=-1", r"optimizer.lr must be a number > 0, got -1"),
+    ("optimizer.lr=abc", r"optimizer.lr must be a number > 0, got 'abc'"),
+    ("optimizer.lr=nan", r"optimizer.lr must be a number > 0, got nan"),
+    ("optimizer.weight_decay=-1", r"optimizer.weight_decay must be a number >= 0, got -1"),
+    ("batch_size=true", "batch_size must be an integer >= 1, got True"),
+    ("trainer.limit_train_batches=0", "trainer.limit_train_batches must be an integer >= 1"),
 ])
 def test_bad_training_input_is_one_clear_line(tmp_path, smoke_data, tracking, override, message):
     with pytest.raises(LboError, match=message) as err:

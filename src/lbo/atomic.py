@@ -8,18 +8,31 @@ import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 
+from lbo.errors import LboError
+
 
 @contextlib.contextmanager
 def atomic_path(path: str | Path) -> Iterator[Path]:
-    """Yield a temp path beside ``path``; on success rename it over ``path``, else delete it."""
+    """Yield a temp path beside ``path``; on success rename it over ``path``, else delete it.
+
+    A folder at ``path``, a folder that cannot be written (read-only, full disk) or a failed
+    write are one :class:`LboError` naming ``path``; nothing is left behind.
+    """
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    os.close(fd)
+    if path.is_dir():
+        raise LboError(f"{path} is a folder; give a file path to write to")
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+        os.close(fd)
+    except OSError as e:
+        raise LboError(f"cannot write {path}: {e.strerror or e}") from None
     try:
         yield Path(tmp)
         os.chmod(tmp, 0o644)  # mkstemp makes 0600; these are ordinary shared outputs
         os.replace(tmp, path)
+    except OSError as e:
+        raise LboError(f"cannot write {path}: {e.strerror or e}") from None
     finally:
         Path(tmp).unlink(missing_ok=True)
 

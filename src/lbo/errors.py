@@ -3,3 +3,7 @@
 
 class LboError(ValueError):
     """Bad input (config, data file, checkpoint); the message names the field and its form."""
+
+
+class TrainingDiverged(LboError):
+    """The loss became NaN or inf: the weights are lost, no checkpoint of them is kept."""

@@ -13,16 +13,18 @@ is kept.
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import dataclasses
 import json
 import sys
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 from omegaconf import DictConfig
 
-from lbo.atomic import atomic_path, write_text
+from lbo.atomic import atomic_path, remove_stale_temps
 from lbo.cli import entry
 from lbo.engines import OPSET, TOLERANCE, check_exported, onnx_bytes, onnx_session, trace
 from lbo.errors import LboError
@@ -53,21 +55,65 @@ def export(observer: Any, out_dir: str | Path, name: str | None = None) -> dict[
         raise LboError(f"export needs a learned observer (a checkpoint, run id or models:/ "
                        f"URI), not the classical {observer.name!r}")
     net = copy.deepcopy(observer.net).cpu().eval()  # the observer keeps its device
+    bad = [k for k, v in net.state_dict().items()
+           if v.is_floating_point() and not torch.isfinite(v).all()]
+    if bad:
+        raise LboError(f"export: {observer.name}'s weights hold NaN or inf ({bad[0]}; a "
+                       "diverged training?); nothing written")
     name = name or observer.name
     out = Path(out_dir)
     script, model = trace(net), onnx_bytes(net)
     diff = check_exported(net, script, onnx_session(model))
-    worst = max(diff, key=diff.get)
-    if diff[worst] > TOLERANCE:
+    worst = max(diff, key=lambda k: diff[k] if diff[k] == diff[k] else float("inf"))  # NaN
+    if not diff[worst] <= TOLERANCE:  # NaN fails too
         raise LboError(f"export: {worst} differs from PyTorch by {diff[worst]:.2e} "
-                       f"(> {TOLERANCE:g}); nothing written")
+                       f"(> {TOLERANCE:g}, or not finite); nothing written")
     paths = {"torchscript": out / f"{name}.pt", "onnx": out / f"{name}.onnx",
              "json": out / f"{name}.json"}
-    with atomic_path(paths["torchscript"]) as tmp:
-        torch.jit.save(script, str(tmp))
-    with atomic_path(paths["onnx"]) as tmp:
-        tmp.write_bytes(model)
-    sidecar = {
+    with _export_lock(out):
+        removed = remove_stale_temps(out)  # under the lock: any temp file here is stale
+        if removed:
+            print(f"removed {len(removed)} temp file(s) of an export killed before it finished "
+                  f"from {out}")
+        _write_set(paths, script, model, _sidecar(observer, net, name, diff, paths))
+    return paths
+
+
+def _write_set(paths: dict[str, Path], script: Any, model: bytes,
+               sidecar: dict[str, Any]) -> None:
+    """Write the three files as one set: each to a temp file first, then all renamed into
+    place, the sidecar last, and only once all three are written (a failure replaces none).
+    The sidecar records the sha256 of the other two."""
+    import hashlib
+
+    import torch
+
+    with atomic_path(paths["json"]) as tmp_json, atomic_path(paths["onnx"]) as tmp_onnx, \
+            atomic_path(paths["torchscript"]) as tmp_pt:
+        torch.jit.save(script, str(tmp_pt))
+        tmp_onnx.write_bytes(model)
+        sidecar["sha256"] = {paths[k].name: hashlib.sha256(p.read_bytes()).hexdigest()
+                             for k, p in (("torchscript", tmp_pt), ("onnx", tmp_onnx))}
+        tmp_json.write_text(json.dumps(sidecar, indent=2, allow_nan=False) + "\n")
+
+
+@contextlib.contextmanager
+def _export_lock(out: Path) -> Iterator[None]:
+    """Exports into one folder take turns (the lock file lives in the temp folder, so the
+    export folder holds nothing but exports)."""
+    import hashlib
+    import tempfile
+
+    from filelock import FileLock
+
+    key = hashlib.sha1(str(out.resolve()).encode()).hexdigest()[:16]
+    with FileLock(Path(tempfile.gettempdir()) / f"lbo-export-{key}.lock", timeout=600):
+        yield
+
+
+def _sidecar(observer: Any, net: Any, name: str, diff: dict[str, float],
+             paths: dict[str, Path]) -> dict[str, Any]:
+    return {
         "name": name,
         "model": type(net.net).__name__,
         "window": observer.window,
@@ -90,8 +136,6 @@ def export(observer: Any, out_dir: str | Path, name: str | None = None) -> dict[
         "data_hash": observer.meta.get("data_hash"),
         "files": {k: p.name for k, p in paths.items() if k != "json"},
     }
-    write_text(paths["json"], json.dumps(sidecar, indent=2) + "\n")
-    return paths
 
 
 def register(run_id: str, name: str, uri: str | None = None) -> str:

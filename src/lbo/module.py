@@ -9,6 +9,7 @@ from typing import Any
 import lightning as L
 import torch
 
+from lbo.errors import TrainingDiverged
 from lbo.network import ObserverNet
 
 # Bumped when the checkpoint layout changes; lbo refuses checkpoints it cannot read.
@@ -46,6 +47,7 @@ class ObserverModule(L.LightningModule):
         self.optimizer_factory = optimizer
         self._loss_sum: torch.Tensor | float = 0.0
         self._loss_count = 0
+        self._val_finite: torch.Tensor | bool = True
 
     def forward(self, win: torch.Tensor) -> torch.Tensor:
         return self.observer(win)
@@ -61,12 +63,34 @@ class ObserverModule(L.LightningModule):
 
     def on_train_epoch_end(self) -> None:
         if self._loss_count:
+            self._check_finite(self._loss_sum, "train_loss")
             self.log("train_loss", self._loss_sum / self._loss_count, prog_bar=True)
         self._loss_sum, self._loss_count = 0.0, 0
 
     def validation_step(self, batch, batch_idx: int) -> None:
-        self.log("val_loss", self.observer.loss(*batch), on_step=False, on_epoch=True,
-                 prog_bar=True, batch_size=len(batch[1]))
+        loss = self.observer.loss(*batch)
+        self._val_finite = torch.isfinite(loss) & self._val_finite
+        self.log("val_loss", loss, on_step=False, on_epoch=True, prog_bar=True,
+                 batch_size=len(batch[1]))
+
+    def on_validation_epoch_end(self) -> None:
+        # before ModelCheckpoint's on_validation_end: a NaN model is never saved as best.ckpt
+        finite, self._val_finite = self._val_finite, True
+        self._check_finite(finite, "val_loss")
+
+    def _check_finite(self, value: torch.Tensor | float | bool, name: str) -> None:
+        """Raise TrainingDiverged when ``value`` (a loss, or a finiteness flag) is NaN/inf."""
+        ok = bool(value) if isinstance(value, bool) or (
+            isinstance(value, torch.Tensor) and value.dtype == torch.bool) \
+            else math.isfinite(float(value))
+        if ok:
+            return
+        lr = self.trainer.optimizers[0].param_groups[0]["lr"] if self.trainer.optimizers \
+            else float("nan")
+        raise TrainingDiverged(
+            f"training diverged: {name} became NaN or inf in epoch {self.current_epoch} "
+            f"(learning rate {lr:g}); no checkpoint of the diverged weights is kept: lower "
+            "optimizer.lr")
 
     def configure_optimizers(self) -> Any:
         if self.optimizer_factory is None:

@@ -30,7 +30,7 @@ from lbo.cli import entry
 from lbo.config import require
 from lbo.errors import LboError
 from lbo.eta import Eta, duration, measure
-from lbo.tracking import check_launcher, check_server
+from lbo.tracking import check_launcher, check_store
 
 STAGES = ("data", "tune", "train", "evaluate", "report")
 
@@ -104,7 +104,7 @@ def check_reproduce(cfg: DictConfig) -> None:
                 f"({', '.join(searches)})", list(cfg.models))
     check_observers(list(cfg.classical), "classical")
     check_launcher(cfg.launcher, "launcher")
-    check_server(cfg.tracking_uri, "tracking_uri")
+    check_store(cfg.tracking_uri, "tracking_uri")
     # every training run's own checks (window, metric, train_overrides, ...), without the
     # tuned parameters, which do not exist yet
     for _, overrides in train_jobs(cfg, Path(cfg.report_dir)):
@@ -248,8 +248,10 @@ def stage_report(cfg: DictConfig, out: Path, folder: Path, tuned: dict, runs: di
 
 def _train_job(cfg: DictConfig) -> dict[str, Any]:
     """One training job of a launcher (a module-level function, so that it pickles)."""
+    from lbo.runfolder import save_hydra_files
     from lbo.train import train
 
+    save_hydra_files(cfg)  # Hydra writes none (hydra.output_subdir is null)
     return train(cfg)
 
 

@@ -15,6 +15,7 @@ from urllib.parse import urlparse
 
 from lbo.errors import LboError
 from lbo.paths import sqlite_path
+from lbo.redact import scrub
 
 #: Launchers named on the command line (``hydra/launcher=<name>``) -> (plugin module, package).
 LAUNCHERS = {
@@ -70,16 +71,90 @@ def check_server(uri: str, field: str = "logger.tracking_uri") -> None:
         return
     import requests
 
+    shown = scrub(uri)
+
     health = uri.rstrip("/") + "/health"
     try:
         reply = requests.get(health, timeout=PROBE_TIMEOUT)
     except requests.RequestException as e:
         reason = type(e).__name__
-        raise LboError(f"{field}: no MLflow tracking server answers at {uri} ({reason}); "
+        raise LboError(f"{field}: no MLflow tracking server answers at {shown} ({reason}); "
                        "start one (make mlflow-server) or unset MLFLOW_TRACKING_URI") from e
     if reply.status_code != 200:
-        raise LboError(f"{field}: {uri} is not an MLflow tracking server (GET /health gave "
+        raise LboError(f"{field}: {shown} is not an MLflow tracking server (GET /health gave "
                        f"HTTP {reply.status_code})")
+
+
+#: Tracking-store schemes MLflow reads (a database may name its driver: postgresql+psycopg).
+STORE_SCHEMES = ("sqlite", "postgresql", "mysql", "mssql", "http", "https", "databricks")
+
+
+def store_field(uri: str, field: str = "logger.tracking_uri") -> str:
+    """The name to blame for a bad store: MLFLOW_TRACKING_URI when the store came from it."""
+    import os
+
+    return "MLFLOW_TRACKING_URI" if os.environ.get("MLFLOW_TRACKING_URI") == uri else field
+
+
+def check_store(uri: str, field: str = "logger.tracking_uri") -> None:
+    """Raise one line unless the MLflow tracking store ``uri`` can be used: a scheme MLflow
+    knows, a server that answers, a SQLite file whose folder exists and can be written, a
+    database that accepts a connection. Passwords never appear in the line."""
+    from urllib.parse import urlparse
+
+    field = store_field(uri, field)
+    shown = scrub(uri)
+    scheme = urlparse(uri).scheme.split("+")[0]
+    if scheme not in STORE_SCHEMES:
+        raise LboError(f"{field}: {shown!r} is not a tracking store lbo can use (give "
+                       "sqlite:///<file>, http(s)://<host>:<port> of an MLflow server, or "
+                       "postgresql://<user>@<host>/<database>)")
+    if is_server(uri):
+        check_server(uri, field)
+        return
+    path = sqlite_path(uri)
+    if scheme == "sqlite":
+        if path is None:
+            raise LboError(f"{field}: {shown!r} names no SQLite file (give sqlite:///<file>)")
+        _check_writable(path, field)
+    elif scheme in ("postgresql", "mysql", "mssql"):
+        _check_database(uri, field)
+
+
+def _check_writable(path, field: str) -> None:
+    import os
+
+    folder = path.parent
+    if not folder.is_dir():
+        raise LboError(f"{field}: the folder of the SQLite store {path} does not exist")
+    target = path if path.exists() else folder
+    if not os.access(target, os.W_OK):
+        what = "file" if target == path else "folder"
+        raise LboError(f"{field}: cannot write the SQLite store {path} (its {what} is "
+                       "read-only); point MLFLOW_TRACKING_URI at a folder you can write")
+
+
+def _check_database(uri: str, field: str) -> None:
+    """Connect once, with a short timeout, to the database behind ``uri``."""
+    from sqlalchemy import create_engine
+    from sqlalchemy.pool import NullPool
+
+    shown = scrub(uri)
+    args = {"connect_timeout": int(PROBE_TIMEOUT)} if uri.startswith("postgresql") else {}
+    try:
+        engine = create_engine(uri, poolclass=NullPool, connect_args=args)
+        try:
+            with engine.connect():
+                pass
+        finally:
+            engine.dispose()
+    except ImportError as e:
+        raise LboError(f"{field}: cannot open {shown}: its database driver is not installed "
+                       f"({e})") from None
+    except Exception as e:  # sqlalchemy.exc.OperationalError, ArgumentError
+        reason = " ".join((str(getattr(e, "orig", None) or e).strip().splitlines() or [""])[:1])
+        raise LboError(f"{field}: cannot open the tracking store {shown} "
+                       f"({type(e).__name__}: {scrub(reason)})") from None
 
 
 @contextlib.contextmanager

@@ -23,13 +23,15 @@ from omegaconf import DictConfig, OmegaConf, open_dict
 
 from lbo.atomic import write_text
 from lbo.cli import entry
-from lbo.config import require
+from lbo.config import integer, number, require
 from lbo.draws import SOURCES, AlphaDraw, fix_periods
 from lbo.errors import LboError
 from lbo.features import FEATURE_MODES
 from lbo.module import SCHEDULES
 from lbo.paths import REPO_ROOT
-from lbo.tracking import check_server, ensure_experiment
+from lbo.redact import scrub, scrub_tree
+from lbo.runfolder import claim
+from lbo.tracking import check_store, ensure_experiment
 
 # Lightning 2.6 on torch 2.13 warns once per fit about its own use of a torch API; a sweep or a
 # study would print it once per run
@@ -52,9 +54,10 @@ def check(cfg: DictConfig) -> None:
             "an integer >= 4 (the CNN pools windows by 4)", w)
     require(cfg.features in FEATURE_MODES, "features", f"one of {list(FEATURE_MODES)}",
             cfg.features)
-    require(isinstance(cfg.batch_size, int) and cfg.batch_size >= 1, "batch_size",
-            "an integer >= 1", cfg.batch_size)
-    require(isinstance(cfg.seed, int) and cfg.seed >= 0, "seed", "an integer >= 0", cfg.seed)
+    integer(cfg.batch_size, "batch_size", 1)
+    integer(cfg.seed, "seed", 0)
+    check_trainer(cfg.trainer)
+    check_optimizer(cfg.optimizer)
     require(cfg.get("lr_schedule", "constant") in SCHEDULES, "lr_schedule",
             f"one of {list(SCHEDULES)}", cfg.get("lr_schedule"))
     from lbo.evaluate import REFERENCES
@@ -65,10 +68,36 @@ def check(cfg: DictConfig) -> None:
     noise_settings(cfg)
     build_net(cfg)  # the model's own checks (its parameters, feature modes) before any data
     if cfg.get("logger") and cfg.logger.get("tracking_uri"):
-        check_server(cfg.logger.tracking_uri)
+        check_store(cfg.logger.tracking_uri)
     if cfg.trainer.accelerator == "gpu" and not torch.cuda.is_available():
         raise LboError("trainer=gpu needs CUDA, which torch does not see here; "
                        "use trainer=cpu or trainer=auto")
+
+
+def check_trainer(trainer: DictConfig) -> None:
+    """``trainer.max_epochs`` >= 1 (0 would finish with the metrics of an untrained net, which
+    ``resume=true`` would then reuse), ``min_epochs`` and the batch limits of the right kind."""
+    integer(trainer.get("max_epochs"), "trainer.max_epochs", 1)
+    if trainer.get("min_epochs") is not None:
+        integer(trainer.min_epochs, "trainer.min_epochs", 0)
+    for key in ("limit_train_batches", "limit_val_batches"):
+        value = trainer.get(key)
+        if value is None:
+            continue
+        ok = (isinstance(value, int) and not isinstance(value, bool) and value >= 1) or (
+            isinstance(value, float) and 0 < value <= 1)
+        require(ok, f"trainer.{key}", "an integer >= 1 (batches) or a fraction in (0, 1]",
+                value)
+
+
+def check_optimizer(opt: DictConfig) -> None:
+    """``optimizer.lr`` a finite number > 0, ``weight_decay`` (and ``eps``) >= 0, before any
+    run opens: the optimiser is only built inside ``fit``."""
+    number(opt.get("lr"), "optimizer.lr", low=0.0, low_open=True)
+    if opt.get("weight_decay") is not None:
+        number(opt.weight_decay, "optimizer.weight_decay", low=0.0)
+    if opt.get("eps") is not None:
+        number(opt.eps, "optimizer.eps", low=0.0, low_open=True)
 
 
 def build_net(cfg: DictConfig):
@@ -205,10 +234,16 @@ def train(cfg: DictConfig, callbacks: list[L.Callback] | None = None,
     ``name``, ``val_loss`` (best), ``test_nrmse_alpha_{1,3,6}``, ``run_id``, ``checkpoint``,
     ``epochs``.
     """
+    check(cfg)
+    with claim(cfg.output_dir):
+        return _train(cfg, callbacks, tags)
+
+
+def _train(cfg: DictConfig, callbacks: list[L.Callback] | None,
+           tags: dict[str, str] | None) -> dict[str, Any]:
     from lbo.callbacks import Evaluation
     from lbo.module import ObserverModule
 
-    check(cfg)
     digest = config_hash(cfg)
     if cfg.get("logger") and str(cfg.logger.get("_target_", "")).endswith("MLFlowLogger"):
         # under a parallel launcher the first job creates the store and the experiment
@@ -246,7 +281,8 @@ def train(cfg: DictConfig, callbacks: list[L.Callback] | None = None,
     try:
         if isinstance(logger, MLFlowLogger):
             logger.log_hyperparams(_flat(cfg))
-            config_yaml = write_text(output / "config.yaml", OmegaConf.to_yaml(cfg, resolve=True))
+            config_yaml = write_text(output / "config.yaml",
+                                     scrub(OmegaConf.to_yaml(cfg, resolve=True)))
             logger.experiment.log_artifact(logger.run_id, str(config_yaml))
         trainer.fit(module, datamodule=dm)
     except BaseException:
@@ -298,7 +334,8 @@ def _noise_tag(cfg: DictConfig) -> str:
 
 
 def _flat(cfg: DictConfig) -> dict[str, Any]:
-    """The resolved config as flat ``a.b.c`` params (lists as strings), Hydra's own left out."""
+    """The resolved config as flat ``a.b.c`` params (lists as strings), Hydra's own left out,
+    passwords masked."""
     out: dict[str, Any] = {}
 
     def walk(node: Any, prefix: str) -> None:
@@ -308,7 +345,7 @@ def _flat(cfg: DictConfig) -> dict[str, Any]:
         else:
             out[prefix[:-1]] = node
 
-    walk(OmegaConf.to_container(cfg, resolve=True), "")
+    walk(scrub_tree(OmegaConf.to_container(cfg, resolve=True)), "")
     return out
 
 
