@@ -1,3 +1,7 @@
+import os
+import re
+import signal
+import socket
 import subprocess
 import sys
 import time
@@ -12,7 +16,7 @@ from omegaconf import open_dict
 from conftest import compose_cfg
 from lbo.errors import LboError
 from lbo.paths import CONF_DIR
-from lbo.study_mlflow import StudyRun
+from lbo.study_mlflow import StudyRun, literal
 from lbo.train import check
 from lbo.tune import (
     TrialSeededTPESampler,
@@ -45,7 +49,7 @@ def tune_cfg(tmp_path, smoke_data, tracking, *overrides, search="cnn"):
 def study_runs(tracking, study_name):
     client = mlflow.MlflowClient(tracking)
     exp = client.get_experiment_by_name("lbo")
-    found = client.search_runs([exp.experiment_id], f"tags.optuna_study = '{study_name}'")
+    found = client.search_runs([exp.experiment_id], f"tags.optuna_study = {literal(study_name)}")
     parents = [r for r in found if "mlflow.parentRunId" not in r.data.tags]
     children = [r for r in found if "mlflow.parentRunId" in r.data.tags]
     return client, parents, children
@@ -134,7 +138,7 @@ def test_a_killed_trial_is_failed_then_retried(tmp_path, smoke_data, tracking, r
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # optuna would rather ask inside Study.optimize
         dead = study.ask()
-    lr = dead.suggest_float("optimizer.lr", 1e-4, 1e-2, log=True)
+    lr = dead.suggest_float("optimizer.lr", 1e-4, 3e-3, log=True)  # the search space's range
     storage.record_heartbeat(dead._trial_id)
     client = mlflow.MlflowClient(tracking)
     exp = client.get_experiment_by_name("lbo") or client.get_experiment(client.create_experiment(
@@ -153,6 +157,207 @@ def test_a_killed_trial_is_failed_then_retried(tmp_path, smoke_data, tracking, r
     assert one.params["optimizer.lr"] == lr and one.system_attrs["failed_trial"] == 0
     dead_run = client.get_run(run_id)
     assert dead_run.info.status == "FAILED" and dead_run.data.tags["optuna_state"] == "FAIL"
+
+
+def test_a_running_trial_of_a_gone_worker_on_this_machine_does_not_count(
+        tmp_path, smoke_data, tracking):
+    """A worker killed (or interrupted) on this machine left its trial RUNNING, its heartbeat
+    not yet stale: a rerun fails the trial at once (and retries its settings), so the study
+    still ends with n_trials finished."""
+    cfg = tune_cfg(tmp_path, smoke_data, tracking, "tune.n_trials=1", "tune.study_name=gone")
+    storage = open_storage(cfg.tune.storage, 60, 180)
+    study = optuna.create_study(study_name="gone", storage=storage)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        dead = study.ask()
+    lr = dead.suggest_float("optimizer.lr", 1e-4, 3e-3, log=True)
+    storage.record_heartbeat(dead._trial_id)  # fresh: the heartbeat alone would wait 180 s
+    gone = subprocess.Popen(["true"])
+    gone.wait()
+    dead.set_user_attr("worker", f"{socket.gethostname()}:{gone.pid}")
+
+    out = tune(cfg)
+    assert out["new_trials"] == [1]
+    zero, one = optuna.load_study(study_name="gone", storage=cfg.tune.storage).trials
+    assert zero.state == optuna.trial.TrialState.FAIL
+    assert one.state == optuna.trial.TrialState.COMPLETE
+    assert one.params["optimizer.lr"] == lr and one.system_attrs["failed_trial"] == 0
+
+
+@pytest.mark.slow
+def test_ctrl_c_fails_the_trial_kills_the_study_run_and_a_rerun_finishes_n_trials(
+        tmp_path, smoke_data, tracking):
+    storage = f"sqlite:///{tmp_path / 'optuna.db'}"
+    args = [sys.executable, "-m", "lbo.tune", "hparams_search=cnn", "experiment=smoke",
+            f"data.root={smoke_data.parent}", "trainer.limit_train_batches=5",
+            "tune.n_trials=3", f"tune.storage={storage}", "tune.study_name=ctrl-c",
+            f"tune.handoff={tmp_path / 'tuned' / 'cnn.yaml'}", f"output_dir={tmp_path / 'out'}",
+            f"logger.tracking_uri={tracking}"]
+    proc = subprocess.Popen([*args, f"hydra.run.dir={tmp_path / 'a'}"], text=True,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            start_new_session=True)
+    # Ctrl-C (the terminal signals the whole process group) while a trial trains
+    reader, deadline, hit = None, time.monotonic() + 240, None
+    try:
+        while hit is None and time.monotonic() < deadline and proc.poll() is None:
+            time.sleep(0.1)
+            try:
+                reader = reader or optuna.storages.RDBStorage(
+                    storage, engine_kwargs={"connect_args": {"timeout": 60}})
+                study = optuna.load_study(study_name="ctrl-c", storage=reader)
+            except (KeyError, RuntimeError, sqlalchemy_errors()):  # not created yet
+                continue
+            for t in study.get_trials(states=(optuna.trial.TrialState.RUNNING,)):
+                if "mlflow_run_id" in t.user_attrs:  # its run is open: Lightning is fitting
+                    os.killpg(proc.pid, signal.SIGINT)
+                    hit = t.number
+        out, err = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+    assert hit is not None, "the study finished before a trial could be interrupted"
+    # the study and MLflow agree: the trial failed, its run FAILED, the study's run KILLED
+    study = optuna.load_study(study_name="ctrl-c", storage=storage)
+    assert study.trials[hit].state == optuna.trial.TrialState.FAIL, err[-3000:]
+    assert not study.get_trials(states=(optuna.trial.TrialState.RUNNING,))
+    client, parents, children = study_runs(tracking, "ctrl-c")
+    assert [p.info.status for p in parents] == ["KILLED"]
+    [child] = [c for c in children if c.data.tags["optuna_trial"] == str(hit)]
+    assert child.info.status == "FAILED" and child.data.tags["optuna_state"] == "FAIL"
+    assert child.data.tags["optuna_interrupted"] == "true"
+    # one line on how to go on, no traceback, the shell's exit status for Ctrl-C
+    assert proc.returncode == 130, err[-3000:]
+    assert "Traceback" not in err
+    assert re.fullmatch(
+        rf"interrupted: study ctrl-c in {re.escape(storage)}: {hit} of 3 trials finished, "
+        rf"trial {hit} failed; rerun the same command to finish it", err.strip().splitlines()[-1])
+
+    again = subprocess.run([*args, f"hydra.run.dir={tmp_path / 'b'}"], capture_output=True,
+                           text=True, timeout=300)
+    assert again.returncode == 0, again.stderr[-3000:]
+    assert again.stdout.startswith(f"study ctrl-c in {storage}: {hit} of 3 trials finished, "
+                                   f"running {3 - hit} more")
+    study = optuna.load_study(study_name="ctrl-c", storage=storage)
+    states = [t.state for t in study.trials]
+    assert states.count(optuna.trial.TrialState.COMPLETE) \
+        + states.count(optuna.trial.TrialState.PRUNED) == 3
+    assert optuna.trial.TrialState.RUNNING not in states
+    client, parents, children = study_runs(tracking, "ctrl-c")
+    assert [p.info.status for p in parents] == ["FINISHED"]
+    assert "RUNNING" not in [c.info.status for c in children]
+    assert len(children) == len(study.trials)
+
+
+def sqlalchemy_errors():
+    from sqlalchemy.exc import OperationalError
+
+    return OperationalError
+
+
+def test_a_study_name_with_a_quote_closes_its_runs(tmp_path, smoke_data, tracking):
+    """MLflow filters name the study: a quote in its name must not break them (here: closing
+    the run a killed worker left RUNNING), nor leave the study's run RUNNING."""
+    cfg = tune_cfg(tmp_path, smoke_data, tracking, "tune.n_trials=1",
+                   'tune.study_name="it\'s"')
+    assert cfg.tune.study_name == "it's"
+    storage = open_storage(cfg.tune.storage, 60, 180)
+    study = optuna.create_study(study_name="it's", storage=storage)
+    parent = StudyRun(cfg, study, "the study's storage").run_id
+    study.add_trial(optuna.trial.create_trial(state=optuna.trial.TrialState.FAIL))
+    client = mlflow.MlflowClient(tracking)
+    exp = client.get_experiment_by_name("lbo")
+    left = client.create_run(exp.experiment_id, tags={
+        "optuna_study": "it's", "optuna_trial": "0", "mlflow.parentRunId": parent}).info.run_id
+
+    out = tune(cfg)
+    assert out["new_trials"] == [1] and out["parent_run_id"] == parent
+    assert client.get_run(left).info.status == "FAILED"
+    assert client.get_run(parent).info.status == "FINISHED"
+    assert literal("it's") == '"it\'s"' and literal('say "x"') == """'say "x"'"""
+
+
+def test_an_error_after_the_study_run_opened_ends_it_failed(tmp_path, smoke_data, tracking,
+                                                           monkeypatch):
+    from lbo import study_mlflow
+
+    def broken(*args, **kwargs):
+        raise RuntimeError("no figures today")
+
+    monkeypatch.setattr(study_mlflow, "_figures", broken)
+    cfg = tune_cfg(tmp_path, smoke_data, tracking, "tune.n_trials=1",
+                   "tune.study_name=broken")
+    with pytest.raises(RuntimeError, match="no figures today"):
+        tune(cfg)
+    _, parents, children = study_runs(tracking, "broken")
+    assert [p.info.status for p in parents] == ["FAILED"]
+    assert [c.info.status for c in children] == ["FINISHED"]
+
+
+# --- a resumed study whose search space changed -----------------------------------------------
+
+
+def old_trial(value, lr, batch_size, lr_high=1e-2, choices=(64, 128, 256, 512)):
+    """A completed trial of an earlier search space (lr up to ``lr_high``, batch sizes
+    ``choices``)."""
+    dists = {"optimizer.lr": optuna.distributions.FloatDistribution(1e-4, lr_high, log=True),
+             "batch_size": optuna.distributions.CategoricalDistribution(choices)}
+    return optuna.trial.create_trial(params={"optimizer.lr": lr, "batch_size": batch_size},
+                                     distributions=dists, value=value)
+
+
+def test_a_changed_categorical_space_is_refused_before_any_trial(tmp_path, smoke_data,
+                                                                 tracking):
+    cfg = tune_cfg(tmp_path, smoke_data, tracking, "tune.n_trials=2", "tune.study_name=moved",
+                   "tune.search_space.batch_size.choices=[64,128]")
+    study = optuna.create_study(study_name="moved", storage=cfg.tune.storage)
+    study.add_trial(old_trial(0.9, 1e-3, 256))
+    with pytest.raises(LboError) as err:
+        tune(cfg)
+    assert str(err.value) == (
+        f"tune.search_space.batch_size: study 'moved' in {cfg.tune.storage} was run with "
+        "choices [64, 128, 256, 512], the search space now has [64, 128]; restore its "
+        "choices, or start a new study with another tune.study_name")
+    assert len(optuna.load_study(study_name="moved", storage=cfg.tune.storage).trials) == 1
+    _, parents, _ = study_runs(tracking, "moved")
+    assert parents == []  # refused before the study's run opened
+
+
+def test_the_hand_off_takes_the_best_trial_inside_a_narrowed_range(tmp_path, smoke_data,
+                                                                   tracking, capsys):
+    """The learning rate's range was narrowed after trial 0, the best, ran outside it."""
+    cfg = tune_cfg(tmp_path, smoke_data, tracking, "tune.n_trials=2",
+                   "tune.study_name=narrowed")
+    study = optuna.create_study(study_name="narrowed", storage=cfg.tune.storage)
+    study.add_trial(old_trial(0.5, 5e-3, 128))
+    study.add_trial(old_trial(0.9, 1e-3, 256))
+    out = tune(cfg)
+    assert out["new_trials"] == [] and out["best_trial"] == 1
+    assert out["best_params"] == {"optimizer.lr": 1e-3, "batch_size": 256}
+    printed = capsys.readouterr().out
+    assert ("note: trial 0 (val_loss 0.5) is better than trial 1 (val_loss 0.9) but lies "
+            "outside the current search space (optimizer.lr=0.005 not in [0.0001, 0.003]); "
+            "the hand-off takes trial 1, the best inside it\n") in printed
+    handoff = (tmp_path / "conf" / "tuned" / "cnn.yaml").read_text()
+    assert "trial 1, val_loss 0.9" in handoff and "lr: 0.001" in handoff
+    client, parents, _ = study_runs(tracking, "narrowed")
+    assert parents[0].data.tags["best_trial"] == "1"
+    assert parents[0].data.metrics["best_val_loss"] == 0.9
+
+
+def test_no_hand_off_when_every_completed_trial_lies_outside_the_space(tmp_path, smoke_data,
+                                                                       tracking):
+    cfg = tune_cfg(tmp_path, smoke_data, tracking, "tune.n_trials=1", "tune.study_name=out")
+    study = optuna.create_study(study_name="out", storage=cfg.tune.storage)
+    study.add_trial(old_trial(0.5, 5e-3, 128))
+    with pytest.raises(LboError) as err:
+        tune(cfg)
+    assert str(err.value) == (
+        "study out: none of its 1 completed trials lies in the current search space (trial 0: "
+        "optimizer.lr=0.005 not in [0.0001, 0.003]), so no hand-off was written; rerun with a "
+        "larger tune.n_trials")
+    assert not (tmp_path / "conf" / "tuned" / "cnn.yaml").exists()
+    _, parents, _ = study_runs(tracking, "out")
+    assert [p.info.status for p in parents] == ["FINISHED"]
 
 
 @pytest.mark.slow
@@ -256,6 +461,13 @@ def test_the_sampler_repeats_nothing_when_resumed_or_shared():
     (["tune.storage=postgresql://lbo:secret@127.0.0.1:9/lbo"],
      r"tune.storage: cannot open postgresql://lbo:\*\*\*@127.0.0.1:9/lbo"),
     (["tune.storage=optuna.db"], "tune.storage: 'optuna.db' is not a database URL"),
+    (["tune.storage=postgresql//lbo:secret@127.0.0.1/lbo"],
+     r"^tune.storage: 'postgresql//lbo:\*\*\*@127.0.0.1/lbo' is not a database URL"),
+    (["tune.storage='postgresql://lbo@127.0.0.1:9/lbo?password=secret'"],
+     r"^tune.storage: cannot open postgresql://lbo@127.0.0.1:9/lbo\?password=\*\*\* "),
+    (["tune.study_name='it\\'s \"x\"'"],
+     r"^tune.study_name must be a name without both quote kinds \(' and \"\), which no "
+     r"MLflow filter can hold, got 'it\\'s \"x\"'$"),
     (["model=lstm"], "tune.search_space.model.conv_channels: 'conv_channels' is not a "
                      "parameter of model 'lstm'; accepted: hidden_sizes"),
     (["+tune.search_space.optimizer.betas={type:float,low:0.5,high:0.9}"],

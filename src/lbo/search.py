@@ -51,6 +51,88 @@ class Param:
             return self.choices[self.labels.index(raw)]
         return raw
 
+    def contains(self, raw: Any) -> bool:
+        """Whether a value as Optuna stores it lies in this distribution (its range and step,
+        or its choices): a trial of an older, wider space may not."""
+        if self.kind == "categorical":
+            return raw in self.labels
+        if isinstance(raw, bool) or not isinstance(raw, (int, float)):
+            return False
+        span = (self.high - self.low) or 1
+        if not self.low - 1e-9 * span <= raw <= self.high + 1e-9 * span:
+            return False
+        step = self.step or (1 if self.kind == "int" else None)
+        if step is None:
+            return True
+        k = (raw - self.low) / step
+        return abs(k - round(k)) < 1e-6
+
+    @property
+    def bounds(self) -> str:
+        """The range or the choices, as a message names them: ``[0.0001, 0.003]``."""
+        if self.kind == "categorical":
+            return _choices_text(self.labels)
+        return f"[{self.low:g}, {self.high:g}]"
+
+    def distribution(self) -> optuna.distributions.BaseDistribution:
+        """This parameter as the Optuna distribution its trials are stored with."""
+        if self.kind == "float":
+            return optuna.distributions.FloatDistribution(self.low, self.high, log=self.log,
+                                                          step=self.step)
+        if self.kind == "int":
+            return optuna.distributions.IntDistribution(self.low, self.high, log=self.log,
+                                                        step=self.step or 1)
+        return optuna.distributions.CategoricalDistribution(self.labels)
+
+
+KINDS = {"FloatDistribution": "float", "IntDistribution": "int",
+         "CategoricalDistribution": "categorical"}
+
+
+def _choices_text(labels: Any) -> str:
+    """Choices as a message shows them: ``[64, 128]``, ``[[4, 8], [8, 16]]`` (list choices are
+    stored as their JSON text)."""
+    def one(c: Any) -> str:
+        if isinstance(c, str) and c[:1] in "[{":
+            return c
+        return json.dumps(c)
+
+    return "[" + ", ".join(one(c) for c in labels) + "]"
+
+
+def check_resumed(trials: list[optuna.trial.FrozenTrial], space: list[Param],
+                  study: str) -> None:
+    """Refuse (one line) a search space that the stored trials of a resumed study cannot share.
+
+    Optuna keeps one distribution per parameter and study: the same kind, the same log scale
+    and, for a categorical parameter, the same choices (ranges may change). A trial with a
+    changed one would fail inside Optuna, one more failed trial per run.
+    ``study`` names the study and its storage in the message.
+    """
+    stored: dict[str, optuna.distributions.BaseDistribution] = {}
+    for trial in trials:
+        for key, dist in trial.distributions.items():
+            stored.setdefault(key, dist)
+    for p in space:
+        old = stored.get(p.key)
+        if old is None:
+            continue
+        new = p.distribution()
+        kind = KINDS.get(type(old).__name__, type(old).__name__)
+        if kind != p.kind:
+            was, now, what = f"a {kind} distribution", f"a {p.kind} one", "its type"
+        elif p.kind == "categorical" and tuple(old.choices) != tuple(new.choices):
+            was, now = f"choices {_choices_text(old.choices)}", _choices_text(new.choices)
+            what = "its choices"
+        elif p.kind != "categorical" and bool(old.log) != p.log:
+            was, now = f"log: {str(old.log).lower()}", f"log: {str(p.log).lower()}"
+            what = "its log scale"
+        else:
+            continue
+        raise LboError(f"tune.search_space.{p.key}: study {study} was run with {was}, the "
+                       f"search space now has {now}; restore {what}, or start a new study "
+                       f"with another tune.study_name")
+
 
 def search_space(cfg: DictConfig) -> list[Param]:
     """``tune.search_space`` as a list of :class:`Param`, checked against the training config

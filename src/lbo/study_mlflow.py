@@ -12,6 +12,7 @@ import optuna
 from omegaconf import DictConfig, OmegaConf
 from optuna.trial import FrozenTrial, TrialState
 
+from lbo.redact import scrub
 from lbo.search import Param
 from lbo.tracking import ensure_experiment
 
@@ -20,6 +21,18 @@ MLFLOW_STATUS = {TrialState.COMPLETE: "FINISHED", TrialState.PRUNED: "KILLED",
                  TrialState.FAIL: "FAILED"}
 PARENT_ATTR = "mlflow_parent_run_id"   # study user attribute: the study's MLflow run
 RUN_ATTR = "mlflow_run_id"             # trial user attribute: the trial's MLflow run
+
+
+def literal(value: str) -> str:
+    """``value`` as a string literal of an MLflow filter: in single quotes, or in double quotes
+    when it holds a single quote (MLflow's filters have no escapes; :func:`lbo.tune.check_tune`
+    refuses a study name with both)."""
+    value = str(value)
+    if "'" not in value:
+        return f"'{value}'"
+    if '"' not in value:
+        return f'"{value}"'
+    raise ValueError(f"{value!r} holds both quote kinds: no MLflow filter can name it")
 
 
 class StudyRun:
@@ -37,21 +50,27 @@ class StudyRun:
             self.client.update_run(self.run_id, status="RUNNING")
             return
         name = study.study_name
+        storage = scrub(storage)
         own = self.client.create_run(exp_id, run_name=f"study-{name}", tags={
             "optuna_study": name, "optuna_storage": storage, "optuna_role": "study",
             "model": cfg.model.name, "window": str(cfg.window), "data": cfg.data.name}).info
-        self.run_id = self._first(exp_id, name, storage, own)
-        if self.run_id != own.run_id:  # a worker that started with this one was first
-            self.client.delete_run(own.run_id)
-            return
-        study.set_user_attr(PARENT_ATTR, self.run_id)
-        for key, value in {"study_name": name, "storage": storage, "model": cfg.model.name,
-                           "window": cfg.window, "data": cfg.data.name, "sampler": "TPE",
-                           "sampler_seed": cfg.tune.seed,
-                           "pruner": cfg.tune.pruner.get("_target_", "")}.items():
-            self.client.log_param(self.run_id, key, value)
-        self.client.log_text(self.run_id, OmegaConf.to_yaml(cfg.tune.search_space),
-                             "search_space.yaml")
+        try:
+            self.run_id = self._first(exp_id, name, storage, own)
+            if self.run_id != own.run_id:  # a worker that started with this one was first
+                self.client.delete_run(own.run_id)
+                return
+            study.set_user_attr(PARENT_ATTR, self.run_id)
+            for key, value in {"study_name": name, "storage": storage,
+                               "model": cfg.model.name, "window": cfg.window,
+                               "data": cfg.data.name, "sampler": "TPE",
+                               "sampler_seed": cfg.tune.seed,
+                               "pruner": cfg.tune.pruner.get("_target_", "")}.items():
+                self.client.log_param(self.run_id, key, value)
+            self.client.log_text(self.run_id, OmegaConf.to_yaml(cfg.tune.search_space),
+                                 "search_space.yaml")
+        except BaseException as e:  # the run opened: it must not stay RUNNING
+            self.client.set_terminated(own.run_id, _ended_by(e))
+            raise
 
     def _first(self, exp_id: str, name: str, storage: str, own: Any) -> str:
         """Workers started together each open a parent before any has saved its id in the
@@ -82,12 +101,16 @@ class StudyRun:
             self.client.log_metric(self.run_id, "trial_val_loss", trial.value, step=trial.number)
 
     def close_trial(self, run_id: str | None, state: TrialState,
-                    pruned_epoch: int | None = None) -> None:
+                    pruned_epoch: int | None = None, interrupted: bool = False) -> None:
+        """End a trial's run with its Optuna state; an interrupted trial (Ctrl-C) is FAIL in
+        Optuna and FAILED here, tagged ``optuna_interrupted``."""
         if run_id is None or state not in MLFLOW_STATUS:
             return
         self.client.set_tag(run_id, "optuna_state", state.name)
         if pruned_epoch is not None:
             self.client.set_tag(run_id, "optuna_pruned_epoch", str(pruned_epoch))
+        if interrupted:
+            self.client.set_tag(run_id, "optuna_interrupted", "true")
         self.client.set_terminated(run_id, MLFLOW_STATUS[state])
 
     def close_stale(self, study: optuna.Study) -> None:
@@ -103,22 +126,36 @@ class StudyRun:
         if not numbers:
             return
         live = self.client.search_runs(
-            [self.exp_id], f"tags.optuna_study = '{study.study_name}' and "
+            [self.exp_id], f"tags.optuna_study = {literal(study.study_name)} and "
             "attributes.status = 'RUNNING'", max_results=1000)
         for r in live:
             if (r.data.tags.get("optuna_trial") in numbers
                     and r.data.tags.get("mlflow.parentRunId") == self.run_id):
                 self.close_trial(r.info.run_id, TrialState.FAIL)
 
-    def summarise(self, study: optuna.Study, space: list[Param], handoff: Path | None,
-                  status: str) -> None:
+    def finish(self, study: optuna.Study, space: list[Param], best: FrozenTrial | None,
+               handoff: Path | None, status: str) -> None:
+        """Close the runs of stale trials, log the study's outcome, and end the parent run with
+        ``status``; it ends FAILED (KILLED on Ctrl-C) when logging the outcome fails."""
+        try:
+            self.close_stale(study)
+            self.summarise(study, space, best, handoff)
+        except BaseException as e:
+            self.client.set_terminated(self.run_id, "KILLED" if status == "KILLED"
+                                       else _ended_by(e))
+            raise
+        self.client.set_terminated(self.run_id, status)
+
+    def summarise(self, study: optuna.Study, space: list[Param], best: FrozenTrial | None,
+                  handoff: Path | None) -> None:
+        """The trial counts, the best trial (``best``: the best that fits the search space)
+        and its settings, the study's figures and the hand-off, logged to the parent run."""
         counts = {s: len(study.get_trials(deepcopy=False, states=(s,))) for s in TrialState}
         finished = counts[TrialState.COMPLETE] + counts[TrialState.PRUNED]
         for state in (TrialState.COMPLETE, TrialState.PRUNED, TrialState.FAIL):
             self.client.log_metric(self.run_id, f"n_{state.name.lower()}", counts[state],
                                    step=finished)
-        if counts[TrialState.COMPLETE]:
-            best = study.best_trial
+        if best is not None:
             self.client.log_metric(self.run_id, "best_val_loss", best.value, step=finished)
             self.client.set_tag(self.run_id, "best_trial", str(best.number))
             # tags, not params: a resumed study may find a better trial, and MLflow params
@@ -127,12 +164,17 @@ class StudyRun:
                 if p.key in best.params:
                     self.client.set_tag(self.run_id, f"best.{p.key}",
                                         str(p.decode(best.params[p.key])))
+        if counts[TrialState.COMPLETE]:
             with tempfile.TemporaryDirectory() as tmp:
                 for png in _figures(study, Path(tmp)):
                     self.client.log_artifact(self.run_id, str(png))
         if handoff is not None:
             self.client.log_artifact(self.run_id, str(handoff), artifact_path="tuned")
-        self.client.set_terminated(self.run_id, status)
+
+
+def _ended_by(error: BaseException) -> str:
+    """The MLflow status of a run ended by ``error``: KILLED for Ctrl-C, else FAILED."""
+    return "KILLED" if isinstance(error, KeyboardInterrupt) else "FAILED"
 
 
 def _figures(study: optuna.Study, folder: Path) -> list[Path]:

@@ -20,13 +20,15 @@ the MLflow runs and figures in :mod:`lbo.study_mlflow`.
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import json
 import logging
-import os
-import socket
+import signal
 import sys
+import threading
 import time
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -43,9 +45,19 @@ from lbo.cli import entry
 from lbo.config import require
 from lbo.errors import LboError
 from lbo.paths import CONF_DIR
-from lbo.search import Param, search_space
+from lbo.redact import scrub
+from lbo.search import Param, check_resumed, search_space
 from lbo.study_mlflow import RUN_ATTR, StudyRun
-from lbo.study_storage import FINISHED, ClaimLock, needs_trial, open_storage, redact
+from lbo.study_storage import (
+    FINISHED,
+    ClaimLock,
+    close_storage,
+    fail_own_trials,
+    needs_trial,
+    open_storage,
+    redact,
+    worker_id,
+)
 from lbo.train import check, train
 
 
@@ -61,6 +73,9 @@ def check_tune(cfg: DictConfig) -> list[Param]:
             "tune.seed", "an integer >= 0", t.seed)
     require(isinstance(t.study_name, str) and t.study_name != "", "tune.study_name",
             "a non-empty string", t.study_name)
+    require(not ("'" in t.study_name and '"' in t.study_name), "tune.study_name",
+            "a name without both quote kinds (' and \"), which no MLflow filter can hold",
+            t.study_name)
     require(isinstance(t.handoff, str) and t.handoff.endswith(".yaml"), "tune.handoff",
             "a path ending in .yaml", t.handoff)
     for key in ("heartbeat_interval", "grace_period", "n_startup_trials"):
@@ -203,38 +218,48 @@ def tune(cfg: DictConfig) -> dict[str, Any]:
     ``study_name``, ``storage``, ``best_value``, ``best_params`` (config key -> value),
     ``best_trial``, ``new_trials`` (numbers of the trials this call ran), ``n_complete``,
     ``n_pruned``, ``n_failed``, ``handoff`` (path), ``train_command``, ``parent_run_id``.
+    The best trial is the best completed one whose settings lie in the current search space.
 
     Raises
     ------
     LboError
-        For bad settings (before any trial), or when the study has no completed trial.
+        For bad settings (before any trial), a resumed study whose stored distributions the
+        search space no longer matches, or when the study has no completed trial.
+    KeyboardInterrupt
+        On Ctrl-C, after the running trial was failed, its run and the study's run closed.
     """
     space = check_tune(cfg)
+    pruner = make_pruner(cfg.tune.pruner)
+    storage = open_storage(cfg.tune.storage, cfg.tune.heartbeat_interval,
+                           cfg.tune.grace_period)
+    try:
+        return _run_study(cfg, space, pruner, storage)
+    finally:
+        close_storage(storage)  # a worker leaves no connection open, whatever happened
+
+
+def _run_study(cfg: DictConfig, space: list[Param], pruner: optuna.pruners.BasePruner,
+               storage: optuna.storages.RDBStorage) -> dict[str, Any]:
     t = cfg.tune
-    pruner = make_pruner(t.pruner)
-    storage = open_storage(t.storage, t.heartbeat_interval, t.grace_period)
     shown = redact(t.storage)
     sampler = TrialSeededTPESampler(seed=t.seed, n_startup_trials=t.n_startup_trials)
     study = optuna.create_study(study_name=t.study_name, storage=storage, sampler=sampler,
                                 pruner=pruner, direction="minimize", load_if_exists=True)
+    check_resumed(study.get_trials(deepcopy=False), space, f"{t.study_name!r} in {shown}")
     for key, value in (("model", cfg.model.name), ("window", cfg.window),
                        ("data", cfg.data.name)):
         study.set_user_attr(key, value)
     output = Path(cfg.output_dir)
     tracking = cfg.get("logger") and str(cfg.logger.get("_target_", "")).endswith("MLFlowLogger")
-    run = StudyRun(cfg, study, shown) if tracking else None
-
-    finished = len(study.get_trials(deepcopy=False, states=FINISHED))
-    remaining = t.n_trials - finished
-    print(f"study {t.study_name} in {shown}: {finished} of {t.n_trials} trials finished"
-          + (f", running {remaining} more" if remaining > 0 else ""), flush=True)
-    new: list[int] = []
-
     claim = ClaimLock(storage, t.storage, t.study_name)
+    new: list[int] = []
+    stopped: list[int] = []  # trials interrupted here (Ctrl-C), failed by Optuna
+    verbosity = optuna.logging.get_verbosity()
 
     def objective(trial: optuna.Trial) -> float:
         claim.release()  # the trial is RUNNING in the storage: other workers count it now
-        trial.set_user_attr("worker", f"{socket.gethostname()}:{os.getpid()}")
+        for key, value in worker_id().items():
+            trial.set_user_attr(key, value)
         values = {p.key: p.suggest(trial) for p in space}
         trial_cfg = trial_config(cfg, values, trial.number, t.study_name, output)
         trial.set_user_attr("output_dir", trial_cfg.output_dir)
@@ -245,10 +270,22 @@ def tune(cfg: DictConfig) -> dict[str, Any]:
             return train(trial_cfg, callbacks=[Pruning(trial)], tags=tags)["val_loss"]
         except optuna.TrialPruned:
             raise
-        except BaseException:
+        except BaseException as e:
             # Optuna re-raises the error without calling the study callbacks: close the run here
+            stop = isinstance(e, (KeyboardInterrupt, SystemExit))
+            if stop:
+                stopped.append(trial.number)
+                # Optuna would log the interrupt's traceback as the trial's failure: tune says
+                # what happened in one line instead (verbosity restored as tune ends)
+                optuna.logging.set_verbosity(max(verbosity, optuna.logging.ERROR))
             if run is not None:
-                run.close_trial(trial.user_attrs.get(RUN_ATTR), TrialState.FAIL)
+                run.close_trial(trial.user_attrs.get(RUN_ATTR), TrialState.FAIL,
+                                interrupted=stop)
+            if isinstance(e, SystemExit):
+                # Lightning turns Ctrl-C (and SIGTERM) during fit into sys.exit(1), which
+                # Optuna does not catch: its trial would stay RUNNING. As KeyboardInterrupt,
+                # Optuna fails the trial and raises it on.
+                raise KeyboardInterrupt from e
             raise
 
     def progress(study: optuna.Study, trial: FrozenTrial) -> None:
@@ -257,8 +294,14 @@ def tune(cfg: DictConfig) -> dict[str, Any]:
             run.mark(trial)
         print(_describe(trial, space), flush=True)
 
-    status = "FINISHED"
+    run = StudyRun(cfg, study, shown) if tracking else None
+    status, handoff, best = "FAILED", None, None
     try:
+        # from here on the study's run is open: every way out below closes it
+        finished = len(study.get_trials(deepcopy=False, states=FINISHED))
+        remaining = t.n_trials - finished
+        print(f"study {t.study_name} in {shown}: {finished} of {t.n_trials} trials finished"
+              + (f", running {remaining} more" if remaining > 0 else ""), flush=True)
         # one trial at a time, each claimed under the study's lock: workers sharing the
         # study stop once it holds n_trials finished (or running) trials, and never overshoot
         start = time.monotonic()
@@ -270,26 +313,47 @@ def tune(cfg: DictConfig) -> dict[str, Any]:
                 study.optimize(objective, n_trials=1, callbacks=[progress])
             finally:
                 claim.release()
+        best, better = best_trials(study, space)
+        if best is not None and better is not None:
+            print(_outside_note(better, best, space), flush=True)
+        if best is not None:
+            handoff = write_handoff(cfg, study, space, shown, best)
+        status = "FINISHED"
     except KeyboardInterrupt:
         status = "KILLED"
         raise
-    except BaseException:
-        status = "FAILED"
-        raise
     finally:
-        handoff = None
-        if status == "FINISHED" and _completed(study):
-            handoff = write_handoff(cfg, study, space, shown)
-        if run is not None:
-            run.close_stale(study)
-            run.summarise(study, space, handoff, status)
+        with _no_interrupts():  # a second Ctrl-C must not leave the runs open
+            optuna.logging.set_verbosity(verbosity)
+            failed: list[int] = []
+            try:
+                if status != "FINISHED":
+                    failed = fail_own_trials(study)
+            except Exception:  # best effort: the error on its way out says more
+                pass
+            finally:
+                if run is not None:
+                    run.finish(study, space, best, handoff, status)
+            if status == "KILLED":
+                done = len(study.get_trials(deepcopy=False, states=FINISHED))
+                lost = sorted({*failed, *stopped})
+                which = (f", trial{'s' if len(lost) > 1 else ''} "
+                         f"{', '.join(map(str, lost))} failed") if lost else ""
+                print(f"interrupted: study {t.study_name} in {shown}: {done} of {t.n_trials} "
+                      f"trials finished{which}; rerun the same command to finish it",
+                      file=sys.stderr, flush=True)
 
     counts = {s: len(study.get_trials(deepcopy=False, states=(s,))) for s in TrialState}
-    if handoff is None:
+    if best is None:
+        if counts[TrialState.COMPLETE]:
+            _, outside = best_trials(study, space)
+            raise LboError(f"study {t.study_name}: none of its {counts[TrialState.COMPLETE]} "
+                           f"completed trials lies in the current search space (trial "
+                           f"{outside.number}: {_outside(outside, space)}), so no hand-off "
+                           f"was written; rerun with a larger tune.n_trials")
         raise LboError(f"study {t.study_name}: no trial has completed "
                        f"({counts[TrialState.PRUNED]} pruned, {counts[TrialState.FAIL]} failed),"
                        f" so no hand-off was written; rerun with a larger tune.n_trials")
-    best = study.best_trial
     command = train_command(cfg.model.name, handoff)
     params = {p.key: p.decode(best.params[p.key]) for p in space if p.key in best.params}
     print(f"best: trial {best.number}, val_loss {best.value:.6g}: "
@@ -303,14 +367,51 @@ def tune(cfg: DictConfig) -> dict[str, Any]:
             "parent_run_id": run.run_id if run is not None else None}
 
 
-def _completed(study: optuna.Study) -> bool:
-    return bool(study.get_trials(deepcopy=False, states=(TrialState.COMPLETE,)))
+@contextlib.contextmanager
+def _no_interrupts() -> Iterator[None]:
+    """Ignore Ctrl-C (in the main thread) while the study's runs are being closed."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    before = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, before)
+
+
+def best_trials(study: optuna.Study,
+                space: list[Param]) -> tuple[FrozenTrial | None, FrozenTrial | None]:
+    """``(best, better)``: the best completed trial whose settings lie in the search space, and
+    a better completed trial outside it (a range narrowed since it ran), or None."""
+    done = sorted(study.get_trials(deepcopy=False, states=(TrialState.COMPLETE,)),
+                  key=lambda tr: (tr.value, tr.number))
+    inside = [tr for tr in done if not _outside(tr, space)]
+    best = inside[0] if inside else None
+    better = done[0] if done and (best is None or done[0].value < best.value) else None
+    return best, better
+
+
+def _outside(trial: FrozenTrial, space: list[Param]) -> str:
+    """The trial's settings that the search space no longer holds, e.g.
+    ``optimizer.lr=0.005 not in [0.0001, 0.003]``; empty when it holds them all."""
+    return ", ".join(f"{p.key}={_short(p.decode(trial.params[p.key]))} not in {p.bounds}"
+                     for p in space if p.key in trial.params
+                     and not p.contains(trial.params[p.key]))
+
+
+def _outside_note(better: FrozenTrial, best: FrozenTrial, space: list[Param]) -> str:
+    return (f"note: trial {better.number} (val_loss {better.value:.6g}) is better than trial "
+            f"{best.number} (val_loss {best.value:.6g}) but lies outside the current search "
+            f"space ({_outside(better, space)}); the hand-off takes trial {best.number}, the "
+            f"best inside it")
 
 
 def write_handoff(cfg: DictConfig, study: optuna.Study, space: list[Param],
-                  storage: str) -> Path:
-    """Write the best trial's settings as a ``# @package _global_`` config (atomically)."""
-    best = study.best_trial
+                  storage: str, best: FrozenTrial | None = None) -> Path:
+    """Write the best trial's settings (``best``, or the study's best) as a
+    ``# @package _global_`` config (atomically)."""
+    best = best if best is not None else study.best_trial
     values = OmegaConf.create({})
     for p in space:
         if p.key in best.params:
@@ -319,7 +420,7 @@ def write_handoff(cfg: DictConfig, study: optuna.Study, space: list[Param],
     header = (
         "# @package _global_\n"
         f"# Written by `python -m lbo.tune`: the best of study {study.study_name!r} in "
-        f"{storage}\n"
+        f"{scrub(storage)}\n"
         f"# (model {cfg.model.name}, window {cfg.window}, data {cfg.data.name}; trial "
         f"{best.number}, val_loss {best.value:.6g}).\n"
         f"# Use: {train_command(cfg.model.name, path)}\n")
@@ -345,7 +446,10 @@ def quiet() -> None:
 
 def _quiet_tune(cfg: DictConfig) -> float:
     quiet()
-    return tune(cfg)["best_value"]
+    try:
+        return tune(cfg)["best_value"]
+    except KeyboardInterrupt:  # tune said what it closed and how to go on: no traceback
+        raise SystemExit(130) from None
 
 
 main = entry("tune", _quiet_tune)
