@@ -125,10 +125,11 @@ def test_an_observer_trained_with_every_fix_refuses_a_missing_one():
     obs = Observer.from_net(ObserverNet("cnn", 20, "relative"))
     m = np.zeros((30, 3))
     m[7] = np.nan
+    u = np.tile([1.0, 0.1], (30, 1))  # within the steering limit, which run checks first
     with pytest.raises(LboError, match=r"^row 7: no fix, but cnn-N20 was trained with a fix"):
-        obs.run(m, np.ones((30, 2)))
+        obs.run(m, u)
     with pytest.raises(LboError, match=r"^step 0: no fix"):
-        obs.step(None, np.ones(2))
+        obs.step(None, u[0])
 
 
 def test_the_stop_and_go_log_stands_still_a_third_of_the_time():

@@ -1,16 +1,23 @@
 """`python -m lbo.observe`: run an observer on your own vehicle log, write the estimates.
 
     python -m lbo.observe observer=<checkpoint | run id | models:/name/version | ekf | oracle |
-        adaptive | ukf> input=my_log.csv output=estimates.csv [resample=true]
+        adaptive | ukf> input=my_log.csv output=estimates.csv [resample=true] [max_gap=0.5]
 
 The log (CSV or Parquet) holds one row per sample with the columns ``t`` (s), ``x_m``,
 ``y_m`` (m), ``psi_m`` (rad), ``V`` (m/s) and ``delta`` (rad), and optionally the true
 ``x, y, psi``. A row with ``x_m, y_m, psi_m`` all empty is a step without a position fix
 (GNSS slower than the inputs); the classical observers predict through it, and learned ones
-trained with ``fix_rates`` take it. The whole log is checked before anything is written; a
-failed run writes no output file. The output has ``t, x, y, psi, valid``: ``valid`` is false
-before the first fix, and on the first N-1 rows of a CNN or LSTM, whose window is not full
-yet (those rows hold the EKF's estimate).
+trained with ``fix_rates`` take it. The whole log is checked before anything is written
+(:mod:`lbo.logcheck`, the checks :class:`lbo.Observer` applies too); a failed run writes no
+output file. The output has ``t, x, y, psi, valid``: ``valid`` is false before the first
+fix, and on the first N-1 rows of a CNN or LSTM, whose window is not full yet (those rows
+hold the EKF's estimate).
+
+``resample=true`` puts a log sampled at another (or an uneven) period onto the observer's
+grid ``t0, t0 + dt, ...``: V and delta (and the true state) are interpolated linearly, but
+never across a gap in ``t`` longer than ``max_gap`` seconds (0.5 s by default; such a log is
+refused). Fixes are never interpolated: each lands on the grid row nearest to it (if within
+dt/2), and every other row is a step without a fix, so an upsampled log has sparse fixes.
 With the true state in the log, the RMSE per variable (over the valid rows) and the NRMSE
 (E_ref: the paper's EKF, 0.24 m, 0.23 m, 4.1 mrad) are printed.
 """
@@ -28,26 +35,35 @@ from omegaconf import DictConfig
 from lbo.atomic import atomic_path
 from lbo.cli import entry
 from lbo.errors import LboError
+from lbo.logcheck import (
+    DEGREES_SHARE,
+    MAX_GAP,
+    POSITION_LIMIT,
+    RANGES,
+    SPEED_LIMIT,
+    check_alpha,
+    check_device,
+    check_gaps,
+    check_max_gap,
+    check_samples,
+    check_time,
+    check_time_unit,
+)
+from lbo.logcheck import check_steering as check_delta
 from lbo.metrics import PAPER_REFERENCE, nrmse, rmse
 from lbo.schema import MEAS as MEAS_COLUMNS
-from lbo.schema import check_values, fix_rows, write_set
+from lbo.schema import check_values, write_set
 from lbo.vehicle import wrap_angle
+
+__all__ = ["DEGREES_SHARE", "DT_TOLERANCE", "FORMATS", "LOG_COLUMNS", "MAX_GAP",
+           "OUTPUT_COLUMNS", "POSITION_LIMIT", "RANGES", "SPEED_LIMIT", "TRUTH_COLUMNS",
+           "check_log", "check_output_path", "check_period", "check_steering", "main",
+           "read_log", "resample", "run", "write_table"]
 
 LOG_COLUMNS = ("t", "x_m", "y_m", "psi_m", "V", "delta")
 TRUTH_COLUMNS = ("x", "y", "psi")
 OUTPUT_COLUMNS = ("t", "x", "y", "psi", "valid")
 FORMATS = (".csv", ".parquet")
-DEGREES_SHARE = 0.01
-"""A heading column with more than this share of rows beyond 2 pi looks like degrees; fewer
-are outliers, named by row."""
-POSITION_LIMIT = 1e7
-SPEED_LIMIT = 100.0
-RANGES = (("x_m", POSITION_LIMIT, "m", "positions are metres in a local frame"),
-          ("y_m", POSITION_LIMIT, "m", "positions are metres in a local frame"),
-          ("x", POSITION_LIMIT, "m", "positions are metres in a local frame"),
-          ("y", POSITION_LIMIT, "m", "positions are metres in a local frame"),
-          ("V", SPEED_LIMIT, "m/s", "no road vehicle is that fast; speeds are in m/s"))
-"""(column, largest |value|, unit, why) of the physical range checks of a log."""
 DT_TOLERANCE = 0.01
 """Largest relative difference between the log's sampling period and the observer's dt."""
 
@@ -59,8 +75,23 @@ def _format(path: Path, field: str) -> str:
     return suffix
 
 
+def _column_names(raw: list[Any], path: Path) -> list[str]:
+    """The header's names, stripped of spaces (``t, x_m``); a name given twice is refused
+    (pandas would read the second ``x_m`` as ``x_m.1``, Arrow would refuse to pick one)."""
+    names = [str(n).strip() for n in raw]
+    names = [n if n else f"Unnamed: {i}" for i, n in enumerate(names)]
+    seen: set[str] = set()
+    for n in names:
+        if n in seen:
+            raise LboError(f"input {path}: column {n!r} appears more than once in the header; "
+                           "keep one column of each name")
+        seen.add(n)
+    return names
+
+
 def read_log(path: str | Path) -> pd.DataFrame:
-    """Read a CSV or Parquet log; an unreadable or empty file is one :class:`LboError`."""
+    """Read a CSV or Parquet log; an unreadable or empty file, or a column name given twice,
+    is one :class:`LboError`. Column names are stripped of surrounding spaces."""
     path = Path(path)
     suffix = _format(path, "input")
     if not path.is_file():
@@ -68,7 +99,18 @@ def read_log(path: str | Path) -> pd.DataFrame:
     if path.stat().st_size == 0:
         raise LboError(f"input {path}: empty file (no header, no rows)")
     try:
-        df = pd.read_csv(path) if suffix == ".csv" else pd.read_parquet(path)
+        if suffix == ".csv":
+            header = pd.read_csv(path, header=None, nrows=1, dtype=str, keep_default_na=False)
+            names = _column_names(list(header.iloc[0]), path)
+            df = pd.read_csv(path, header=0, names=names, skipinitialspace=True)
+        else:
+            import pyarrow.parquet as pq
+
+            names = _column_names(pq.read_schema(path).names, path)
+            df = pd.read_parquet(path)
+            df.columns = names
+    except LboError:
+        raise
     except pd.errors.EmptyDataError:
         raise LboError(f"input {path}: empty file (no header, no rows)") from None
     except Exception as e:  # parser, Arrow, encoding: the file is not a readable table
@@ -83,10 +125,13 @@ def check_log(df: pd.DataFrame, source: str = "input") -> bool:
     """Check a log's columns and values; return whether it holds the true ``x, y, psi``.
 
     A row whose ``x_m, y_m, psi_m`` are all empty (NaN) is a step without a position fix.
-    Raises :class:`LboError` naming the first problem: missing columns, a non-numeric
-    column, NaN or inf (other than a whole missing fix), a partial fix, no fix at all,
-    ``t`` not strictly increasing, a heading that looks like degrees (|psi| > 2 pi). The
-    sampling period is checked by :func:`check_period`.
+    Raises :class:`LboError` naming the first problem: missing columns (naming those found),
+    a non-numeric column, ``t`` with NaN or inf or not strictly increasing, and the value
+    checks of :func:`lbo.logcheck.check_samples` (those :meth:`lbo.Observer.run` applies:
+    NaN or inf other than a whole missing fix, a partial fix, no fix at all, a heading that
+    looks like degrees, positions and speeds beyond any vehicle's). The steering limit, the
+    unit of ``t`` and the sampling period need the observer: :func:`check_steering`,
+    :func:`lbo.logcheck.check_time_unit`, :func:`check_period`.
     """
     if len(df) == 0:
         raise LboError(f"{source}: empty file (no rows)")
@@ -94,49 +139,24 @@ def check_log(df: pd.DataFrame, source: str = "input") -> bool:
     if missing:
         raise LboError(f"{source}: missing column{'s' if len(missing) > 1 else ''} "
                        f"{', '.join(missing)} (a log needs {', '.join(LOG_COLUMNS)}; "
-                       "t in s, x_m and y_m in m, psi_m in rad, V in m/s, delta in rad)")
+                       "t in s, x_m and y_m in m, psi_m in rad, V in m/s, delta in rad; "
+                       f"found {', '.join(map(str, df.columns))})")
     truth = all(c in df.columns for c in TRUTH_COLUMNS)
-    check_values(df, ("t", "V", "delta") + (TRUTH_COLUMNS if truth else ()), source,
-                 kinds="iuf")
-    check_values(df.fillna({c: 0.0 for c in MEAS_COLUMNS}), MEAS_COLUMNS, source,
-                 kinds="iuf")  # numeric, no inf
-    fix = fix_rows(df, source)
-    t = df["t"].to_numpy(dtype=float)
-    steps = np.diff(t)
-    if (steps <= 0).any():
-        j = int(np.flatnonzero(steps <= 0)[0])
-        raise LboError(f"{source}: column 't' is not strictly increasing (row {j + 1}: "
-                       f"t={t[j + 1]:g} s after t={t[j]:g} s); sort the log and drop repeats")
-    for c in ("psi_m", "psi") if truth else ("psi_m",):
-        values = np.abs(df[c].to_numpy(dtype=float))
-        beyond = (values > 2 * np.pi) & (fix if c == "psi_m" else True)
-        if beyond.mean() > DEGREES_SHARE:
-            raise LboError(f"{source}: column {c!r} looks like degrees (|{c}| up to "
-                           f"{np.nanmax(values):g} > 2 pi); give headings in rad")
-        if beyond.any():
-            r = int(np.flatnonzero(beyond)[0])
-            raise LboError(f"{source}: row {r}: {c}={df[c].iloc[r]:g} rad is outside "
-                           "[-2 pi, 2 pi]; a heading in rad lies within it")
-    for c, limit, unit, what in RANGES:
-        if c not in df.columns or (c in TRUTH_COLUMNS and not truth):
-            continue
-        values = np.abs(df[c].to_numpy(dtype=float))
-        if (values > limit).any():
-            r = int(np.flatnonzero(values > limit)[0])
-            raise LboError(f"{source}: row {r}: {c}={df[c].iloc[r]:g} {unit} is beyond "
-                           f"{limit:g} {unit} ({what})")
+    check_values(df, ("t",), source, kinds="iuf")
+    for c in ("V", "delta") + MEAS_COLUMNS + (TRUTH_COLUMNS if truth else ()):
+        if df[c].dtype.kind not in "iuf":
+            raise LboError(f"{source}: column {c!r} is not numeric (dtype {df[c].dtype})")
+    check_samples(df[list(MEAS_COLUMNS)].to_numpy(dtype=float),
+                  df[["V", "delta"]].to_numpy(dtype=float),
+                  truth=df[list(TRUTH_COLUMNS)].to_numpy(dtype=float) if truth else None,
+                  source=source)
+    check_time(df["t"].to_numpy(dtype=float), source)
     return truth
 
 
 def check_steering(df: pd.DataFrame, vehicle: Any, source: str = "input") -> None:
     """Refuse a steering angle beyond the vehicle's limit ``delta_max``, naming the row."""
-    delta = np.abs(df["delta"].to_numpy(dtype=float))
-    over = delta > vehicle.delta_max * (1 + 1e-6)
-    if over.any():
-        r = int(np.flatnonzero(over)[0])
-        raise LboError(f"{source}: row {r}: delta={df['delta'].iloc[r]:g} rad is beyond the "
-                       f"vehicle's steering limit delta_max={vehicle.delta_max:g} rad "
-                       "(steering in rad, at the wheels; or set vehicle.delta_max)")
+    check_delta(df["delta"].to_numpy(dtype=float), vehicle.delta_max, source)
 
 
 def check_output_path(output: str | Path, source: str | Path | None = None) -> Path:
@@ -162,27 +182,43 @@ def check_period(t: np.ndarray, dt: float, source: str = "input") -> None:
                        f"interpolate the log to dt={dt:g} s")
 
 
-def resample(df: pd.DataFrame, dt: float, columns: tuple[str, ...]) -> pd.DataFrame:
-    """Linear interpolation of ``columns`` onto ``t0, t0 + dt, ...`` up to the last ``t``.
+def resample(df: pd.DataFrame, dt: float, columns: tuple[str, ...],
+             max_gap: float | None = MAX_GAP, source: str = "input") -> pd.DataFrame:
+    """``columns`` of a log on the grid ``t0, t0 + dt, ...`` up to its last ``t``.
 
-    Headings are unwrapped before and wrapped to (-pi, pi] after, so a jump from pi to -pi
-    does not pass through 0. In a log with missing fixes, each fix moves to its nearest row
-    of the grid instead (the others stay empty).
+    Fixes (``x_m, y_m, psi_m``) are never interpolated: each fix lands on the grid row
+    nearest to it, if within dt/2 (of several, the nearest wins); every other grid row is a
+    step without a fix, also when the log had a fix on every row. The other columns (V, delta,
+    the true state) are interpolated linearly; headings are unwrapped before and wrapped to
+    (-pi, pi] after, so a jump from pi to -pi does not pass through 0.
+
+    Raises
+    ------
+    LboError
+        Two rows more than ``max_gap`` seconds apart (:func:`lbo.logcheck.check_gaps`): the
+        inputs cannot be interpolated across a gap (None: not checked).
     """
     t = df["t"].to_numpy(dtype=float)
+    if max_gap is not None:
+        check_gaps(t, max_gap, source)
     n = int(np.floor((t[-1] - t[0]) / dt + 1e-9)) + 1
     grid = t[0] + dt * np.arange(n)
     out = {"t": grid}
     meas = [c for c in MEAS_COLUMNS if c in columns]
-    fix = np.isfinite(df[meas].to_numpy(dtype=float)).all(1)
-    # fixes are not interpolated across gaps: each lands on its nearest row of the grid
-    at = np.clip(np.round((t[fix] - t[0]) / dt).astype(np.int64), 0, n - 1)
+    if meas:
+        fix = np.isfinite(df[meas].to_numpy(dtype=float)).all(1)
+        at = np.round((t[fix] - t[0]) / dt).astype(np.int64)
+        off = np.abs(t[fix] - (t[0] + dt * at))
+        near = (at >= 0) & (at < n) & (off <= dt / 2 * (1 + 1e-9))
+        rows, off, src = at[near], off[near], np.flatnonzero(fix)[near]
+        order = np.lexsort((off, rows))  # by grid row, the nearest fix first
+        first = order[np.r_[True, rows[order][1:] != rows[order][:-1]]] if len(order) else order
     for c in columns:
         v = df[c].to_numpy(dtype=float)
-        if c in MEAS_COLUMNS and not fix.all():
+        if c in MEAS_COLUMNS:
             out[c] = np.full(n, np.nan)
-            out[c][at] = v[fix]
-        elif c in ("psi_m", "psi"):
+            out[c][rows[first]] = v[src[first]]
+        elif c == "psi":
             out[c] = wrap_angle(np.interp(grid, t, np.unwrap(v)))
         else:
             out[c] = np.interp(grid, t, v)
@@ -220,28 +256,30 @@ def run(cfg: DictConfig) -> dict[str, Any]:
         raise LboError(f"observer: Hydra read {cfg.observer!r} as a number; quote it: "
                        "observer=\"'<run id>'\"")
     source = str(cfg.input)
-    output = check_output_path(str(cfg.output), source)
-    df = read_log(source)
-    truth = check_log(df, f"input {source}")
-
-    alpha = cfg.alpha
-    if isinstance(alpha, bool) or not isinstance(alpha, (int, float)) or alpha < 0:
-        raise LboError(f"alpha must be a number >= 0, got {alpha!r}")
-    vehicle, noise = Vehicle.from_cfg(cfg.vehicle), Noise.from_cfg(cfg.noise)
     name = str(cfg.observer)
     classical = name in CLASSICAL
+    # the settings first: no log nor checkpoint is read for a run that cannot go on
+    alpha = check_alpha(cfg.alpha)
+    device = check_device(cfg.get("device", "cpu"), probe=not classical)
+    max_gap = check_max_gap(cfg.get("max_gap", MAX_GAP))
+    output = check_output_path(str(cfg.output), source)
+    where = f"input {source}"
+    df = read_log(source)
+    truth = check_log(df, where)
+
+    vehicle, noise = Vehicle.from_cfg(cfg.vehicle), Noise.from_cfg(cfg.noise)
     obs = Observer.load(name, vehicle if classical else None, noise if classical else None,
-                        alpha=float(alpha), features=cfg.get("features"),
-                        device=str(cfg.get("device", "cpu")))
-    check_steering(df, obs.vehicle, f"input {source}")
+                        alpha=alpha, features=cfg.get("features"), device=device)
+    check_steering(df, obs.vehicle, where)
+    check_time_unit(df["t"].to_numpy(dtype=float), obs.dt, where)
     columns = LOG_COLUMNS[1:] + (TRUTH_COLUMNS if truth else ())
     if cfg.resample:
-        df = resample(df, obs.dt, columns)
-    check_period(df["t"].to_numpy(dtype=float), obs.dt, f"input {source}")
+        df = resample(df, obs.dt, columns, max_gap, where)
+    check_period(df["t"].to_numpy(dtype=float), obs.dt, where)
 
     m = df[["x_m", "y_m", "psi_m"]].to_numpy(dtype=float)
     u = df[["V", "delta"]].to_numpy(dtype=float)
-    est, valid = obs.run(m, u)
+    est, valid = obs.run(m, u, source=where)
     result: dict[str, Any] = {"output": output, "observer": obs.name, "rows": len(df),
                               "valid": int(valid.sum())}
     if truth:

@@ -34,6 +34,13 @@ from lbo import classical
 from lbo.classical import OBSERVERS as CLASSICAL
 from lbo.errors import LboError
 from lbo.features import window_view
+from lbo.logcheck import (
+    check_alpha,
+    check_device,
+    check_fix_windows,
+    check_sample,
+    check_samples,
+)
 from lbo.noise import Noise
 from lbo.paths import tracking_uri
 from lbo.vehicle import Vehicle, wrap_angle
@@ -48,13 +55,31 @@ RUN_ID = re.compile(r"[0-9a-f]{32}")
 """An MLflow run id, as ``observer=<run id>`` takes it."""
 
 
-class Estimate(NamedTuple):
-    """One step's result: ``state`` (3,) ``[x, y, psi]`` (m, m, rad; psi in (-pi, pi]) and
-    ``valid``, False while a learned observer's window is not yet full (EKF fallback) and
-    before the first position fix (state NaN)."""
-
+class _Pair(NamedTuple):
     state: np.ndarray
     valid: bool
+
+
+class Estimate(_Pair):
+    """One step's result: ``state`` (3,) ``[x, y, psi]`` (m, m, rad; psi in (-pi, pi]) and
+    ``valid``; unpacks as ``state, valid``. ``reason`` (not unpacked) says why an estimate is
+    not valid, None when it is:
+
+    - ``"no position fix yet"``: before the first fix (state NaN);
+    - ``"window not yet full (k of N steps): the EKF's estimate"``: a CNN's or LSTM's first
+      N-1 steps;
+    - ``"no fix in the last N steps (... s): ..."``: a learned observer trained with
+      ``fix_rates`` whose window holds no fix has nothing to anchor its estimate to (state
+      NaN); estimates resume with the next fix;
+    - ``"the network's estimate is not finite ..."``: a net with NaN or inf weights.
+    """
+
+    reason: str | None
+
+    def __new__(cls, state: np.ndarray, valid: bool, reason: str | None = None) -> Estimate:
+        self = super().__new__(cls, state, valid)
+        self.reason = None if valid else (reason or "the estimate is not finite")
+        return self
 
 
 # --------------------------------------------------------------------------- streaming filters
@@ -112,8 +137,7 @@ def make_predictor(net: Any, engine: str = "torch", device: str = "cpu") -> Pred
 
     if engine not in ENGINES:
         raise LboError(f"engine must be one of {list(ENGINES)}, got {engine!r}")
-    if str(device).startswith("cuda") and not torch.cuda.is_available():
-        raise LboError(f"device={device} needs CUDA, which torch does not see here; use cpu")
+    device = check_device(device)
     if engine == "onnx" and str(device) != "cpu":
         raise LboError(f"engine=onnx runs on the CPU (ONNX Runtime's CPU provider), "
                        f"got device={device}")
@@ -168,9 +192,7 @@ class Observer:
         self.name = name
         self.vehicle = vehicle or Vehicle()
         self.noise = noise or Noise.preset("paper")
-        self.alpha = float(alpha)
-        if not np.isfinite(self.alpha) or self.alpha < 0:
-            raise LboError(f"alpha must be a number >= 0, got {alpha!r}")
+        self.alpha = check_alpha(alpha)
         self.meta = dict(meta or {})
         self.net = net
         self.device = device
@@ -220,10 +242,11 @@ class Observer:
         vehicle, noise : for classical observers (defaults: ``Vehicle()``, the ``paper``
             preset). For a learned one they replace its checkpoint's in the fallback EKF;
             ``vehicle.dt`` must then be the dt it was trained at.
-        alpha : measurement-noise scale told to the ``oracle``.
+        alpha : measurement-noise scale told to the ``oracle``, in [0, 100].
         features : refuse a checkpoint trained with another feature mode (None: any).
         engine : ``"torch"``, ``"torchscript"`` or ``"onnx"`` for learned observers.
-        device : torch device of a learned observer (``"cpu"``, ``"cuda"``).
+        device : torch device of a learned observer (``"cpu"``, ``"cuda"``, ``"cuda:<n>"``),
+            checked (and CUDA asked for) before any checkpoint is read.
 
         Raises
         ------
@@ -233,6 +256,8 @@ class Observer:
             checkpoint, ...
         """
         source = os.fspath(source)
+        alpha = check_alpha(alpha)
+        device = check_device(device, probe=source not in classical.NAMES)
         if source in classical.NAMES:
             classical.check(source)  # pcrb: a bound, not an observer
             return cls(source, vehicle, noise, alpha=alpha)
@@ -264,6 +289,7 @@ class Observer:
     def reset(self) -> None:
         """Forget the history: the next :meth:`step` is the first of a new log."""
         self._count = 0
+        self._last_fix: int | None = None
         self._u_prev: np.ndarray | None = None
         self._filter.reset()
         if self.net is not None:
@@ -276,50 +302,86 @@ class Observer:
 
         Parameters
         ----------
-        measurement : (3,) ``[x_m, y_m, psi_m]`` (m, m, rad), or None when this step has no
-            position fix (classical observers, and learned ones trained with ``fix_rates``).
+        measurement : (3,) ``[x_m, y_m, psi_m]`` (m, m, rad), or None (or all NaN) when this
+            step has no position fix (classical observers, and learned ones trained with
+            ``fix_rates``).
         input : (2,) ``[V, delta]`` (m/s, rad) applied from this step to the next.
 
         Returns
         -------
-        :class:`Estimate` ``(state (3,), valid)``; unpacks as ``est, valid = obs.step(m, u)``.
+        :class:`Estimate` ``(state (3,), valid)``; unpacks as ``est, valid = obs.step(m, u)``;
+        its ``reason`` says why an estimate is not valid. A learned observer trained with
+        ``fix_rates`` whose last N steps hold no fix returns NaN, valid False, and a reason
+        naming the gap (where :meth:`run` refuses such a log): in a control loop the gap is
+        not the sample's fault, and the estimates resume with the next fix.
+
+        Raises
+        ------
+        LboError
+            One line naming the step and the value, for a sample :meth:`run` would refuse in
+            a log: NaN or inf (other than a whole missing fix), a partial fix, |x_m| or
+            |y_m| beyond 1e7 m, |psi_m| beyond 2 pi, |V| beyond 100 m/s, |delta| beyond the
+            vehicle's ``delta_max``; or no fix for an observer trained with a fix at every
+            step. A refused sample changes nothing: the next :meth:`step` goes on as if it
+            had never been given.
 
         Notes
         -----
-        Cost per call: one ring-buffer write and one network call on a (1, N, 5) view (or one
-        filter step), whatever the length of the log. For a control loop, run torch on one
-        thread (``torch.set_num_threads(1)``) or use ``engine="onnx"`` (one thread already).
+        Cost per call: scalar checks of the five numbers, one ring-buffer write and one
+        network call on a (1, N, 5) view (or one filter step), whatever the length of the
+        log. For a control loop, run torch on one thread (``torch.set_num_threads(1)``) or use
+        ``engine="onnx"`` (one thread already).
         """
-        m = (np.full(3, np.nan) if measurement is None
-             else np.asarray(measurement, dtype=float).reshape(3))
-        u = np.asarray(input, dtype=float).reshape(2)
-        if not (np.isfinite(u).all() and (measurement is None or np.isfinite(m).all())):
-            raise LboError(f"step {self._count}: measurement {m.tolist()} or input "
-                           f"{u.tolist()} has NaN or inf (pass measurement=None for a step "
-                           "without a fix)")
-        if measurement is None and not self.takes_missing_fixes:
-            raise LboError(f"step {self._count}: no fix, but {self.name} was trained with a "
-                           "fix at every step; use an observer trained with fix_rates "
-                           "(experiment=robust) or a classical one")
-        n = self.window
+        k, n = self._count, self.window
+        try:
+            u = np.asarray(input, dtype=float).reshape(2)
+            m = (None if measurement is None
+                 else np.asarray(measurement, dtype=float).reshape(3))
+        except (TypeError, ValueError):
+            raise LboError(f"step {k}: expected measurement [x_m, y_m, psi_m] (3 numbers, or "
+                           f"None) and input [V, delta] (2 numbers), got {measurement!r} and "
+                           f"{input!r}") from None
+        fix = check_sample(None if m is None else tuple(m.tolist()), tuple(u.tolist()), k,
+                           self.vehicle.delta_max)
+        if not fix:
+            if not self.takes_missing_fixes:
+                raise LboError(f"step {k}: no fix, but {self.name} was trained with a fix at "
+                               "every step; use an observer trained with fix_rates "
+                               "(experiment=robust) or a classical one")
+            m = np.full(3, np.nan)
+        # checked: from here on the sample is taken
         if self.net is not None:
-            i = self._count % n
+            i = k % n
             self._ring[i, :3] = self._ring[i + n, :3] = m
             self._ring[i, 3:] = self._ring[i + n, 3:] = u
         self._count += 1
+        if fix:
+            self._last_fix = k
         if self.net is not None and (self._count >= n or self._pads):
+            if self._last_fix is None:
+                return Estimate(np.full(3, np.nan), False, "no position fix yet")
+            if k - self._last_fix >= n:
+                return Estimate(np.full(3, np.nan), False,
+                                f"no fix in the last {n} steps ({n * self.dt:g} s): {self.name} "
+                                f"needs a fix in every window of {n} steps")
             state = self._predict(self._ring[None, i + 1:i + 1 + n])[0]
             state[2] = wrap_angle(state[2])
-            return Estimate(state, bool(np.isfinite(state).all()))
+            valid = bool(np.isfinite(state).all())
+            return Estimate(state, valid, "the network's estimate is not finite (NaN or inf "
+                                          "weights?)")
         state = self._filter(m, self._u_prev)
         self._u_prev = u
         state[2] = wrap_angle(state[2])
-        return Estimate(state, self.net is None and bool(np.isfinite(state).all()))
+        finite = bool(np.isfinite(state).all())
+        if self.net is None:
+            return Estimate(state, finite, "no position fix yet")
+        return Estimate(state, False, f"window not yet full ({self._count} of {n} steps): the "
+                                      "EKF's estimate" if finite else "no position fix yet")
 
     # ----------------------------------------------------------------------- batch
 
-    def run(self, m: np.ndarray, u: np.ndarray,
-            batch_size: int = 4096) -> tuple[np.ndarray, np.ndarray]:
+    def run(self, m: np.ndarray, u: np.ndarray, batch_size: int = 4096, *,
+            source: str | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Estimates over a whole log at once (vectorised; the streaming state is untouched).
 
         Parameters
@@ -328,6 +390,7 @@ class Observer:
             position fix.
         u : (T, 2) inputs ``[V, delta]``.
         batch_size : windows per network call.
+        source : what to call the log in messages (``"input log.csv"``); None: nothing.
 
         Returns
         -------
@@ -335,16 +398,33 @@ class Observer:
             :meth:`step` after :meth:`reset`.
         valid : (T,) bool, False on the first N-1 rows of a learned observer (EKF fallback),
             and where the estimate is not finite (before the first fix).
+
+        Raises
+        ------
+        LboError
+            One line naming the row: the checks of ``python -m lbo.observe``
+            (:func:`lbo.logcheck.check_samples`: NaN or inf other than a whole missing fix,
+            a partial fix, no fix at all, headings in degrees, positions, speeds or steering
+            beyond a vehicle's); a step without a fix for an observer trained with a fix at
+            every step; for a learned observer trained with ``fix_rates``, a window of N
+            steps after the first fix without any fix (its estimate there would be NaN).
         """
-        m = np.asarray(m, dtype=float)
-        u = np.asarray(u, dtype=float)
+        try:
+            m = np.asarray(m, dtype=float)
+            u = np.asarray(u, dtype=float)
+        except (TypeError, ValueError):
+            raise LboError(f"{source + ': ' if source else ''}run needs m (T, 3) and u (T, 2) "
+                           "of numbers") from None
         if m.ndim != 2 or m.shape[1] != 3 or u.shape != (len(m), 2):
             raise LboError(f"run needs m (T, 3) and u (T, 2), got {m.shape} and {u.shape}")
-        fix = np.isfinite(m).all(1)
+        fix = check_samples(m, u, delta_max=self.vehicle.delta_max, source=source)
         if not fix.all() and not self.takes_missing_fixes:
-            raise LboError(f"row {int(np.flatnonzero(~fix)[0])}: no fix, but {self.name} was "
+            raise LboError(f"{source + ': ' if source else ''}row "
+                           f"{int(np.flatnonzero(~fix)[0])}: no fix, but {self.name} was "
                            "trained with a fix at every step; use an observer trained with "
                            "fix_rates (experiment=robust) or a classical one")
+        if self.net is not None:
+            check_fix_windows(fix, self.window, self.name, self.dt, source)
         t = len(m)
         if self.net is None:
             est = _from_first_fix(self.name, m, u, fix, self.vehicle, self.noise, self.alpha)
@@ -397,7 +477,8 @@ def read_checkpoint(path: str | os.PathLike, features: str | None = None,
     ------
     LboError
         Unreadable file, not an lbo checkpoint, another checkpoint format, an unknown
-        feature mode or not the ``features`` asked for, weights that do not fit.
+        feature mode or not the ``features`` asked for, weights that do not fit, weights
+        that hold NaN or inf (a diverged training).
     """
     import torch
 
@@ -447,6 +528,11 @@ def read_checkpoint(path: str | os.PathLike, features: str | None = None,
         reason = str(e).strip().splitlines()[0]
         raise LboError(f"checkpoint {path}: its weights do not fit the architecture it "
                        f"names ({reason})") from None
+    bad = next((k for k, v in state.items() if torch.is_tensor(v) and v.is_floating_point()
+                and not bool(torch.isfinite(v).all())), None)
+    if bad is not None:
+        raise LboError(f"checkpoint {path}: its weights hold NaN or inf ({bad}: training "
+                       "diverged?); retrain it, e.g. with a smaller optimizer.lr")
     return net.to(device).eval(), hp
 
 
@@ -463,7 +549,9 @@ def trained_conditions(hp: dict[str, Any], path: str | os.PathLike) -> tuple[Veh
     try:
         n = meta["noise"]
         noise = Noise(n["process_sigma"], n["measurement_sigma"], n.get("name", "custom"))
-    except (KeyError, TypeError) as e:
+    except (KeyError, TypeError, ValueError) as e:
+        if isinstance(e, LboError):  # a bad value stored in the checkpoint: its fault
+            raise LboError(f"checkpoint {path}: its stored {e}") from None
         raise LboError(f"checkpoint {path}: no usable meta.noise ({e})") from None
     return vehicle, noise
 
@@ -495,7 +583,11 @@ def _download(uri: str, run_id: str | None, folder: Path) -> Path:
     import mlflow
     from mlflow.exceptions import MlflowException
 
+    from lbo.tracking import check_server
+
     store = tracking_uri()
+    # a dead server: one line in seconds, not MLflow's retries for minutes
+    check_server(store, field="MLFLOW_TRACKING_URI")
     client = mlflow.MlflowClient(store, registry_uri=store)
     if run_id is not None:
         try:

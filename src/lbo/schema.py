@@ -15,6 +15,7 @@ import pyarrow.parquet as pq
 
 from lbo.atomic import atomic_path
 from lbo.errors import LboError
+from lbo.logcheck import fix_mask
 
 COLUMNS = ("traj", "k", "t", "x", "y", "psi", "V", "delta", "x_m", "y_m", "psi_m")
 EVAL_COLUMNS = COLUMNS + ("alpha", "scored")
@@ -60,20 +61,10 @@ def check_frame(df: pd.DataFrame, required: tuple[str, ...], source: str = "data
 
 def fix_rows(df: pd.DataFrame, source: str = "input") -> np.ndarray:
     """(T,) bool, the rows that hold a position fix; a row with only some of ``x_m, y_m,
-    psi_m`` empty, or a log without any fix, is one :class:`LboError`."""
-    empty = df[list(MEAS)].isna().to_numpy()
-    partial = empty.any(1) & ~empty.all(1)
-    if partial.any():
-        r = int(np.flatnonzero(partial)[0])
-        gone = [c for c, e in zip(MEAS, empty[r]) if e]
-        raise LboError(f"{source}: row {r} has a partial fix ({', '.join(gone)} empty); a "
-                       "step without a fix leaves x_m, y_m and psi_m all empty")
-    fix = ~empty.all(1)
-    if not fix.any():
-        raise LboError(f"{source}: no position fix in any row (x_m, y_m and psi_m are "
-                       "empty everywhere)")
-    return fix
-
+    psi_m`` empty, or a log without any fix, is one :class:`LboError` (the check of
+    :func:`lbo.logcheck.fix_mask`, which users' logs go through too)."""
+    empty = df[list(MEAS)].isna().to_numpy()  # whatever the dtype: only the gaps count here
+    return fix_mask(np.where(empty, np.nan, 0.0), source)
 
 
 def read_set(path: str | Path, required: tuple[str, ...] = COLUMNS,
