@@ -146,10 +146,17 @@ def test_a_column_given_twice_is_refused(tmp_path, manoeuvre, suffix):
                                  "header; keep one column of each name"), out)
 
 
-def test_spaces_after_the_commas_are_stripped(tmp_path, manoeuvre):
-    log, out = tmp_path / "log.csv", tmp_path / "est.csv"
-    text = manoeuvre[LOG].to_csv(index=False)
-    log.write_text(text.replace(",", ", "))  # `t, x_m, y_m, ...` and `0.0, 1.2, ...`
+@pytest.mark.parametrize("suffix", [".csv", ".parquet"])
+def test_spaces_after_the_commas_are_stripped(tmp_path, manoeuvre, suffix):
+    log, out = tmp_path / f"log{suffix}", tmp_path / "est.csv"
+    if suffix == ".csv":
+        text = manoeuvre[LOG].to_csv(index=False)
+        log.write_text(text.replace(",", ", "))  # `t, x_m, y_m, ...` and `0.0, 1.2, ...`
+    else:  # names with spaces, and an index that pandas keeps as a column of the file
+        df = manoeuvre[LOG].rename(columns=lambda c: f" {c}").set_axis(
+            np.arange(len(manoeuvre))[::-1] * 3)
+        df.to_parquet(log)
+        assert "__index_level_0__" in pq.read_schema(log).names
     result = run(compose_cfg("observe", ["observer=ekf", f"input={log}", f"output={out}"]))
     assert result["rows"] == len(manoeuvre) and "rmse" in result
 

@@ -106,9 +106,9 @@ def read_log(path: str | Path) -> pd.DataFrame:
         else:
             import pyarrow.parquet as pq
 
-            names = _column_names(pq.read_schema(path).names, path)
+            _column_names(pq.read_schema(path).names, path)  # (index columns among them)
             df = pd.read_parquet(path)
-            df.columns = names
+            df.columns = [str(c).strip() for c in df.columns]
     except LboError:
         raise
     except pd.errors.EmptyDataError:
