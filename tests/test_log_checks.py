@@ -121,6 +121,14 @@ def test_a_raised_max_gap_interpolates_inputs_but_never_fixes(tmp_path, manoeuvr
                                     f"output={tmp_path / 'b.csv'}", "max_gap=-1"]))
 
 
+def test_a_gap_no_longer_than_the_observer_dt_is_not_refused(tmp_path, manoeuvre):
+    log, out = tmp_path / "log.csv", tmp_path / "est.csv"
+    manoeuvre[LOG].iloc[::50].to_csv(log, index=False)  # 1 s steps, above max_gap=0.5 s
+    result = run(compose_cfg("observe", ["observer=ekf", f"input={log}", f"output={out}",
+                                         "resample=true", "vehicle.dt=1.0"]))
+    assert result["rows"] == len(manoeuvre[::50])
+
+
 def test_an_upsampled_log_has_sparse_fixes_that_an_every_fix_observer_refuses(manoeuvre):
     fine = resample(manoeuvre[LOG].reset_index(drop=True), 0.01, tuple(LOG[1:]))
     obs = Observer.from_net(ObserverNet("cnn", 20, "relative"))

@@ -196,11 +196,12 @@ def resample(df: pd.DataFrame, dt: float, columns: tuple[str, ...],
     ------
     LboError
         Two rows more than ``max_gap`` seconds apart (:func:`lbo.logcheck.check_gaps`): the
-        inputs cannot be interpolated across a gap (None: not checked).
+        inputs cannot be interpolated across a gap (None: not checked); a gap of at most
+        ``dt`` never is.
     """
     t = df["t"].to_numpy(dtype=float)
     if max_gap is not None:
-        check_gaps(t, max_gap, source)
+        check_gaps(t, max_gap, source, dt)
     n = int(np.floor((t[-1] - t[0]) / dt + 1e-9)) + 1
     grid = t[0] + dt * np.arange(n)
     out = {"t": grid}

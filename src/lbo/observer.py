@@ -74,7 +74,7 @@ class Estimate(_Pair):
     - ``"the network's estimate is not finite ..."``: a net with NaN or inf weights.
     """
 
-    reason: str | None
+    reason: str | None = None
 
     def __new__(cls, state: np.ndarray, valid: bool, reason: str | None = None) -> Estimate:
         self = super().__new__(cls, state, valid)
