@@ -7,6 +7,7 @@ import contextlib
 import glob
 import os
 import pwd
+import re
 import shutil
 import signal
 import socket
@@ -47,13 +48,47 @@ class Postgres:
     def url(self, password: str = PG_PASSWORD, database: str = "postgres") -> str:
         return f"postgresql://{PG_USER}:{password}@127.0.0.1:{self.port}/{database}"
 
+    def connections(self, settle_s: float = 10) -> dict[str, tuple[int, int]]:
+        """Per client application_name: ``(peak, open)``, the most connections it held at
+        once and how many it holds now, exactly, from the server's connection log.
+
+        A backend logs its disconnection just after its client went: while any client still
+        holds one, the log is read again, for up to ``settle_s`` seconds."""
+        deadline = time.monotonic() + settle_s
+        while True:
+            found = self._connections()
+            if time.monotonic() > deadline or not any(now for _, now in found.values()):
+                return found
+            time.sleep(0.1)
+
+    def _connections(self) -> dict[str, tuple[int, int]]:
+        app_of: dict[str, str] = {}
+        now: dict[str, int] = {}
+        peak: dict[str, int] = {}
+        log = (self.folder / "server.log").read_text(errors="replace")
+        for line in log.splitlines():
+            m = re.search(r"\[(\d+)\] LOG:  connection authorized: .*?"
+                          r"(?:application_name=(\S+))?$", line)
+            if m:
+                app = app_of[m[1]] = m[2] or ""
+                now[app] = now.get(app, 0) + 1
+                peak[app] = max(peak.get(app, 0), now[app])
+                continue
+            m = re.search(r"\[(\d+)\] LOG:  disconnection: ", line)
+            if m and m[1] in app_of:
+                now[app_of.pop(m[1])] -= 1
+        return {app: (peak[app], now[app]) for app in peak}
+
 
 @contextlib.contextmanager
-def postgres() -> Iterator[Postgres]:
-    """A PostgreSQL server with password authentication for user ``lbo``.
+def postgres(max_connections: int = 50,
+             superuser_reserved_connections: int = 3) -> Iterator[Postgres]:
+    """A PostgreSQL server with password authentication for user ``lbo``, which logs every
+    connection and disconnection (see :meth:`Postgres.connections`).
 
     The server refuses to run as root: as root it runs as the ``postgres`` system user, in a
-    folder handed to that user.
+    folder handed to that user. ``lbo`` is the server's superuser: it may use the
+    ``superuser_reserved_connections`` too, all ``max_connections`` slots.
     """
     user = None
     if os.geteuid() == 0:
@@ -80,7 +115,11 @@ def postgres() -> Iterator[Postgres]:
         out = run(pg_binary("initdb"), "-D", str(data), "-U", PG_USER, f"--pwfile={pwfile}",
                   "--auth=scram-sha-256", "-E", "UTF8", "--no-locale")
         assert out.returncode == 0, out.stderr
-        opts = f"-p {port} -c listen_addresses=127.0.0.1 -k {folder} -c max_connections=50"
+        opts = (f"-p {port} -c listen_addresses=127.0.0.1 -k {folder} "
+                f"-c max_connections={max_connections} "
+                f"-c superuser_reserved_connections={superuser_reserved_connections} "
+                "-c log_connections=on -c log_disconnections=on "
+                "-c log_line_prefix='%m [%p] '")
         out = run(pg_binary("pg_ctl"), "-D", str(data), "-o", opts, "-l",
                   str(folder / "server.log"), "-w", "-t", "60", "start")
         started = True

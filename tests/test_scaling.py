@@ -14,9 +14,11 @@ import numpy as np
 import optuna
 import pandas as pd
 import pytest
+from omegaconf import open_dict
 
-from conftest import train_cfg
+from conftest import compose_cfg, train_cfg
 from lbo.errors import LboError
+from lbo.study_storage import MAX_CONNECTIONS
 from lbo.tracking import check_launcher, launcher_from_argv
 from servers import PG_PASSWORD, free_port, mlflow_server, postgres
 
@@ -67,7 +69,7 @@ def test_an_unreachable_tracking_server_is_one_line_and_starts_nothing(tmp_path)
               env={"MLFLOW_TRACKING_URI": dead})
     assert res.returncode == 2, res.stderr[-2000:]
     assert res.stderr.strip() == (
-        f"error: logger.tracking_uri: no MLflow tracking server answers at {dead} "
+        f"error: MLFLOW_TRACKING_URI: no MLflow tracking server answers at {dead} "
         "(ConnectionError); start one (make mlflow-server) or unset MLFLOW_TRACKING_URI")
     assert not (tmp_path / "out").exists()
 
@@ -176,11 +178,28 @@ def tune_args(tmp_path, smoke_data, storage, *extra):
             f"output_dir={tmp_path / 'trials'}", *extra]
 
 
+#: Connections the test's own view of a study holds at most (Optuna's schema check takes two).
+READER_CONNECTIONS = 2
+
+
+def reader(storage: str) -> optuna.storages.RDBStorage:
+    """The test's own view of a study on PostgreSQL, with at most READER_CONNECTIONS,
+    named ``test``. (``optuna.load_study(storage=<url>)`` opens a new pool on every call:
+    polled, it held dozens of connections until garbage collection, and the server ran out.)"""
+    return optuna.storages.RDBStorage(storage, engine_kwargs={
+        "pool_size": 1, "max_overflow": READER_CONNECTIONS - 1,
+        "connect_args": {"application_name": "test"}})
+
+
 @pytest.mark.slow
 def test_workers_on_postgres_finish_exactly_n_trials_after_a_kill(tmp_path, smoke_data):
+    """Two workers and the test on a server with just the connections they need: each worker
+    holds at most MAX_CONNECTIONS at once (measured exactly, from the server's connection
+    log), and none once it ended."""
     uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
     env = {"MLFLOW_TRACKING_URI": uri}
-    with postgres() as pg:
+    with postgres(max_connections=2 * MAX_CONNECTIONS + READER_CONNECTIONS,
+                  superuser_reserved_connections=0) as pg:
         storage = pg.url()
         args = [sys.executable, "-m", "lbo.tune", *tune_args(tmp_path, smoke_data, storage)]
         workers = {w: subprocess.Popen([*args, f"hydra.run.dir={tmp_path / w}"], text=True,
@@ -188,10 +207,12 @@ def test_workers_on_postgres_finish_exactly_n_trials_after_a_kill(tmp_path, smok
                                        env={**os.environ, **env}) for w in "ab"}
         # kill worker a with SIGKILL while one of its trials runs
         victim, deadline, killed = workers["a"], time.monotonic() + 240, None
+        view = None
         while killed is None and time.monotonic() < deadline and victim.poll() is None:
             time.sleep(0.2)
             try:
-                study = optuna.load_study(study_name="pg", storage=storage)
+                view = view or reader(storage)
+                study = optuna.load_study(study_name="pg", storage=view)
             except KeyError:  # not created yet
                 continue
             for t in study.get_trials(states=(optuna.trial.TrialState.RUNNING,)):
@@ -209,20 +230,61 @@ def test_workers_on_postgres_finish_exactly_n_trials_after_a_kill(tmp_path, smok
         for text in (out_b, err_b, again.stdout, again.stderr):
             assert PG_PASSWORD not in text
 
-        study = optuna.load_study(study_name="pg", storage=storage)
+        study = optuna.load_study(study_name="pg", storage=view or reader(storage))
         states = {t.number: t.state for t in study.trials}
         finished = [t for t in study.trials if t.state in (optuna.trial.TrialState.COMPLETE,
                                                            optuna.trial.TrialState.PRUNED)]
         assert len(finished) == 4
         assert states[killed] == optuna.trial.TrialState.FAIL
         assert len({tuple(sorted(t.params.items())) for t in finished}) == 4
-        client = mlflow.MlflowClient(uri)
-        exp = client.get_experiment_by_name("lbo")
-        live = client.search_runs([exp.experiment_id], "attributes.status = 'RUNNING'")
-        assert live == []  # the killed trial's run was closed FAILED, the study's FINISHED
-        tags = [r.data.tags.get("optuna_storage", "") for r in client.search_runs(
-            [exp.experiment_id], "tags.optuna_role = 'study'")]
-        assert tags and all("***" in t and PG_PASSWORD not in t for t in tags)
+        (view or reader(storage)).engine.dispose()
+        held = pg.connections()
+        workers_held = {app: c for app, c in held.items() if app.startswith("lbo.tune-")}
+        print("connections (peak, open) per client:", held)
+        assert len(workers_held) == 3  # a, b and a again
+        assert all(peak <= MAX_CONNECTIONS and now == 0 for peak, now in workers_held.values())
+    client = mlflow.MlflowClient(uri)
+    exp = client.get_experiment_by_name("lbo")
+    live = client.search_runs([exp.experiment_id], "attributes.status = 'RUNNING'")
+    assert live == []  # the killed trial's run was closed FAILED, the study's FINISHED
+    tags = [r.data.tags.get("optuna_storage", "") for r in client.search_runs(
+        [exp.experiment_id], "tags.optuna_role = 'study'")]
+    assert tags and all("***" in t and PG_PASSWORD not in t for t in tags)
+
+
+@pytest.mark.slow
+def test_tune_on_postgres_holds_few_connections_and_closes_them(tmp_path, smoke_data):
+    """In one process (as reproduce runs its studies): at most MAX_CONNECTIONS at once, none
+    left open after tune returns or raises; the password appears in nothing it logs."""
+    from lbo.tune import tune
+
+    tracking = f"sqlite:///{tmp_path / 'mlflow.db'}"
+    with postgres() as pg:
+        def cfg(name, *extra):
+            return compose_cfg("tune", [*tune_args(tmp_path, smoke_data, pg.url(), *extra),
+                                        "tune.n_trials=2", f"tune.study_name={name}",
+                                        f"logger.tracking_uri={tracking}"])
+
+        out = tune(cfg("inproc"))
+        after_return = pg.connections()
+        pruned = cfg("pruned", "tune.n_trials=1")
+        with open_dict(pruned):  # prunes every trial at its first report: tune raises
+            pruned.tune.pruner = {"_target_": "optuna.pruners.ThresholdPruner", "upper": 0.0}
+        with pytest.raises(LboError, match="no trial has completed"):
+            tune(pruned)
+        after_error = pg.connections()
+    print("connections (peak, open) per client:", after_error)
+    assert sum(now for _, now in after_return.values()) == 0
+    assert sum(now for _, now in after_error.values()) == 0
+    assert after_error == {f"lbo.tune-{os.getpid()}": (after_error[f"lbo.tune-{os.getpid()}"][0],
+                                                       0)}
+    assert after_error[f"lbo.tune-{os.getpid()}"][0] <= MAX_CONNECTIONS
+
+    parent = mlflow.MlflowClient(tracking).get_run(out["parent_run_id"]).data
+    assert parent.params["storage"] == f"postgresql://lbo:***@127.0.0.1:{pg.port}/postgres"
+    logged = [*parent.params.values(), *parent.tags.values(), out["handoff"].read_text()]
+    assert not [v for v in logged if PG_PASSWORD in str(v)]
+    assert "postgresql://lbo:***@" in out["handoff"].read_text()
 
 
 @pytest.mark.slow
