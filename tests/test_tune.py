@@ -49,6 +49,8 @@ def tune_cfg(tmp_path, smoke_data, tracking, *overrides, search="cnn"):
 def study_runs(tracking, study_name):
     client = mlflow.MlflowClient(tracking)
     exp = client.get_experiment_by_name("lbo")
+    if exp is None:  # nothing logged yet
+        return client, [], []
     found = client.search_runs([exp.experiment_id], f"tags.optuna_study = {literal(study_name)}")
     parents = [r for r in found if "mlflow.parentRunId" not in r.data.tags]
     children = [r for r in found if "mlflow.parentRunId" in r.data.tags]
@@ -320,6 +322,31 @@ def test_a_changed_categorical_space_is_refused_before_any_trial(tmp_path, smoke
     assert len(optuna.load_study(study_name="moved", storage=cfg.tune.storage).trials) == 1
     _, parents, _ = study_runs(tracking, "moved")
     assert parents == []  # refused before the study's run opened
+
+
+@pytest.mark.parametrize("stored, message", [
+    (optuna.distributions.FloatDistribution(32, 256),
+     "was run with a float distribution, the search space now has an int one; restore its "
+     "type"),
+    (optuna.distributions.IntDistribution(32, 256),
+     "was run with log: false, the search space now has log: true; restore its log scale"),
+    (optuna.distributions.IntDistribution(16, 512, log=True), None),  # a range may change
+])
+def test_a_changed_distribution_kind_or_scale_is_refused(tmp_path, smoke_data, tracking,
+                                                          stored, message):
+    from lbo.search import check_resumed
+
+    space = search_space(tune_cfg(tmp_path, smoke_data, tracking))
+    trial = optuna.trial.create_trial(params={"model.dense_units": 64},
+                                      distributions={"model.dense_units": stored}, value=1.0)
+    if message is None:
+        check_resumed([trial], space, "'s' in sqlite:///x.db")
+        return
+    with pytest.raises(LboError) as err:
+        check_resumed([trial], space, "'s' in sqlite:///x.db")
+    assert str(err.value) == (f"tune.search_space.model.dense_units: study 's' in "
+                              f"sqlite:///x.db {message}, or start a new study with another "
+                              f"tune.study_name")
 
 
 def test_the_hand_off_takes_the_best_trial_inside_a_narrowed_range(tmp_path, smoke_data,

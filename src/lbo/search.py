@@ -89,6 +89,10 @@ KINDS = {"FloatDistribution": "float", "IntDistribution": "int",
          "CategoricalDistribution": "categorical"}
 
 
+def _a(word: str) -> str:
+    return f"an {word}" if word[0] in "aeiou" else f"a {word}"
+
+
 def _choices_text(labels: Any) -> str:
     """Choices as a message shows them: ``[64, 128]``, ``[[4, 8], [8, 16]]`` (list choices are
     stored as their JSON text)."""
@@ -120,7 +124,7 @@ def check_resumed(trials: list[optuna.trial.FrozenTrial], space: list[Param],
         new = p.distribution()
         kind = KINDS.get(type(old).__name__, type(old).__name__)
         if kind != p.kind:
-            was, now, what = f"a {kind} distribution", f"a {p.kind} one", "its type"
+            was, now, what = f"{_a(kind)} distribution", f"{_a(p.kind)} one", "its type"
         elif p.kind == "categorical" and tuple(old.choices) != tuple(new.choices):
             was, now = f"choices {_choices_text(old.choices)}", _choices_text(new.choices)
             what = "its choices"
