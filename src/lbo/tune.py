@@ -10,7 +10,12 @@ paper's own criterion; the test set is never touched. The study lives in ``tune.
 (SQLite by default, any SQLAlchemy URL for a cluster): a rerun with the same ``tune.study_name``
 adds only the missing trials, and several processes on one study share the work. The study is a
 parent MLflow run with one child run per trial. The best settings are written to
-``tune.handoff`` (``conf/tuned/<model>.yaml``), which training composes with ``+tuned=<model>``.
+``tune.handoff`` (``conf/tuned/<model>.yaml``), which training composes with ``+tuned=<model>``:
+those of the best completed trial inside the current search space (a note names a better one
+outside a since narrowed range). Ctrl-C fails the running trial, closes its run FAILED and the
+study's KILLED; the same command then finishes the study. A resumed study whose stored
+categorical choices (or a parameter's kind or log scale) the search space no longer matches is
+refused before any trial.
 
 ``tune(cfg)`` is plain Python: it takes a composed ``tune`` config and returns the study's
 outcome. ``main`` is the thin Hydra shell around it. The parts live beside it: the search
