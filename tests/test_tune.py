@@ -278,6 +278,25 @@ def test_a_study_name_with_a_quote_closes_its_runs(tmp_path, smoke_data, trackin
     assert literal("it's") == '"it\'s"' and literal('say "x"') == """'say "x"'"""
 
 
+def test_a_diverged_trial_fails_and_the_study_goes_on_until_too_many_diverge(
+        tmp_path, smoke_data, tracking, capsys):
+    """A learning rate that diverges fails its trial (FAIL, run FAILED) and the study goes on
+    with the next; a space where every trial diverges stops after n_trials in a row."""
+    cfg = tune_cfg(tmp_path, smoke_data, tracking, "tune.n_trials=2", "tune.study_name=div",
+                   "trainer.max_epochs=1", "trainer.limit_train_batches=3",
+                   "tune.search_space.optimizer.lr.low=1e299",
+                   "tune.search_space.optimizer.lr.high=1e300")
+    with pytest.raises(LboError, match=r"^study div: 2 trials diverged in a row \(trials 0, 1\); "
+                                       "lower the learning rates of tune.search_space$"):
+        tune(cfg)
+    study = optuna.load_study(study_name="div", storage=cfg.tune.storage)
+    assert [t.state.name for t in study.trials] == ["FAIL", "FAIL"]
+    _, parents, children = study_runs(tracking, "div")
+    assert [r.info.status for r in parents] == ["FAILED"]
+    assert sorted(r.info.status for r in children) == ["FAILED", "FAILED"]
+    assert not (tmp_path / "conf" / "tuned" / "cnn.yaml").exists()
+
+
 def test_an_error_after_the_study_run_opened_ends_it_failed(tmp_path, smoke_data, tracking,
                                                            monkeypatch):
     from lbo import study_mlflow

@@ -99,16 +99,21 @@ def _write_set(paths: dict[str, Path], script: Any, model: bytes,
 
 @contextlib.contextmanager
 def _export_lock(out: Path) -> Iterator[None]:
-    """Exports into one folder take turns (the lock file lives in the temp folder, so the
-    export folder holds nothing but exports)."""
-    import hashlib
-    import tempfile
+    """Exports into one folder take turns: an exclusive flock on the folder itself, so the
+    folder holds nothing but exports and no lock file is left anywhere."""
+    import fcntl
+    import os
 
-    from filelock import FileLock
-
-    key = hashlib.sha1(str(out.resolve()).encode()).hexdigest()[:16]
-    with FileLock(Path(tempfile.gettempdir()) / f"lbo-export-{key}.lock", timeout=600):
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        fd = os.open(out, os.O_RDONLY)
+    except OSError as e:
+        raise LboError(f"cannot write {out}: {e.strerror or e}") from None
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX)
         yield
+    finally:
+        os.close(fd)  # closing drops the lock
 
 
 def _sidecar(observer: Any, net: Any, name: str, diff: dict[str, float],

@@ -48,7 +48,7 @@ from optuna_integration import PyTorchLightningPruningCallback
 from lbo.atomic import write_text
 from lbo.cli import entry
 from lbo.config import require
-from lbo.errors import LboError
+from lbo.errors import LboError, TrainingDiverged
 from lbo.paths import CONF_DIR
 from lbo.redact import scrub
 from lbo.search import Param, check_resumed, search_space
@@ -259,6 +259,7 @@ def _run_study(cfg: DictConfig, space: list[Param], pruner: optuna.pruners.BaseP
     claim = ClaimLock(storage, t.storage, t.study_name)
     new: list[int] = []
     stopped: list[int] = []  # trials interrupted here (Ctrl-C), failed by Optuna
+    diverged: list[int] = []  # trials whose training diverged since the last one completed
     verbosity = optuna.logging.get_verbosity()
 
     def objective(trial: optuna.Trial) -> float:
@@ -274,6 +275,11 @@ def _run_study(cfg: DictConfig, space: list[Param], pruner: optuna.pruners.BaseP
         try:
             return train(trial_cfg, callbacks=[Pruning(trial)], tags=tags)["val_loss"]
         except optuna.TrialPruned:
+            raise
+        except TrainingDiverged:
+            diverged.append(trial.number)
+            if run is not None:
+                run.close_trial(trial.user_attrs.get(RUN_ATTR), TrialState.FAIL)
             raise
         except BaseException as e:
             # Optuna re-raises the error without calling the study callbacks: close the run here
@@ -295,6 +301,8 @@ def _run_study(cfg: DictConfig, space: list[Param], pruner: optuna.pruners.BaseP
 
     def progress(study: optuna.Study, trial: FrozenTrial) -> None:
         new.append(trial.number)
+        if trial.state != TrialState.FAIL:
+            diverged.clear()
         if run is not None:
             run.mark(trial)
         print(_describe(trial, space), flush=True)
@@ -311,11 +319,17 @@ def _run_study(cfg: DictConfig, space: list[Param], pruner: optuna.pruners.BaseP
         # study stop once it holds n_trials finished (or running) trials, and never overshoot
         start = time.monotonic()
         while t.timeout is None or time.monotonic() - start < t.timeout:
+            if len(diverged) >= t.n_trials:  # a space where every trial diverges never ends
+                raise LboError(f"study {t.study_name}: {len(diverged)} trials diverged in a row "
+                               f"(trials {', '.join(map(str, diverged))}); lower the "
+                               "learning rates of tune.search_space")
             claim.acquire()
             try:
                 if not needs_trial(study, t.n_trials):
                     break
-                study.optimize(objective, n_trials=1, callbacks=[progress])
+                # a diverged trial is FAIL (not counted); the study goes on with the next
+                study.optimize(objective, n_trials=1, callbacks=[progress],
+                               catch=(TrainingDiverged,))
             finally:
                 claim.release()
         best, better = best_trials(study, space)
