@@ -195,7 +195,10 @@ def test_ctrl_c_fails_the_trial_kills_the_study_run_and_a_rerun_finishes_n_trial
             "tune.n_trials=3", f"tune.storage={storage}", "tune.study_name=ctrl-c",
             f"tune.handoff={tmp_path / 'tuned' / 'cnn.yaml'}", f"output_dir={tmp_path / 'out'}",
             f"logger.tracking_uri={tracking}"]
-    proc = subprocess.Popen([*args, f"hydra.run.dir={tmp_path / 'a'}"], text=True,
+    # the first trial trains until it is interrupted: a short one could finish between the
+    # poll that sees it fitting and the signal (seen on a busy machine: the trial COMPLETE)
+    endless = ["trainer.max_epochs=100000", "callbacks.early_stopping.patience=100000"]
+    proc = subprocess.Popen([*args, *endless, f"hydra.run.dir={tmp_path / 'a'}"], text=True,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                             start_new_session=True)
     # Ctrl-C (the terminal signals the whole process group) while a trial trains
