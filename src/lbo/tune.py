@@ -37,6 +37,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
+import lightning as L
 import numpy as np
 import optuna
 from hydra.utils import instantiate
@@ -183,6 +184,50 @@ class Pruning(PyTorchLightningPruningCallback):
             self.optuna_trial.set_user_attr(RUN_ATTR, trainer.logger.run_id)
 
 
+class Interrupts(L.Callback):
+    """Ctrl-C during a study, taken where it is safe: between trials, and in a trial's fit at
+    the end of a batch (raised from this callback, which Lightning handles as its own Ctrl-C).
+
+    Python raises KeyboardInterrupt at whatever line runs when the signal comes; inside a
+    database call it can leave a connection holding SQLite's write lock, and the runs that
+    the study must close then wait for that lock (seen on a busy machine: tune hung for
+    minutes after one Ctrl-C). The first Ctrl-C is only recorded; a second one interrupts at
+    once, for a study stuck where no check comes.
+    """
+
+    def __init__(self) -> None:
+        self.count = 0
+        self._before: Any = None
+
+    def install(self) -> None:
+        if threading.current_thread() is threading.main_thread():
+            self._before = signal.signal(signal.SIGINT, self._on_signal)
+
+    def uninstall(self) -> None:
+        if self._before is not None:
+            signal.signal(signal.SIGINT, self._before)
+            self._before = None
+
+    def _on_signal(self, signum: int, frame: Any) -> None:
+        self.count += 1
+        if self.count > 1:
+            raise KeyboardInterrupt
+
+    def check(self) -> None:
+        """Raise KeyboardInterrupt if Ctrl-C came since the study started."""
+        if self.count:
+            raise KeyboardInterrupt
+
+    def on_train_batch_end(self, *args: Any, **kwargs: Any) -> None:
+        self.check()
+
+    def on_validation_batch_end(self, *args: Any, **kwargs: Any) -> None:
+        self.check()
+
+    def on_train_epoch_start(self, *args: Any, **kwargs: Any) -> None:
+        self.check()
+
+
 def trial_config(cfg: DictConfig, values: dict[str, Any], number: int, study_name: str,
                  output_dir: Path) -> DictConfig:
     """The training config of one trial: ``cfg`` with the sampled values, its own output folder,
@@ -273,7 +318,9 @@ def _run_study(cfg: DictConfig, space: list[Param], pruner: optuna.pruners.BaseP
         if run is not None:
             tags["mlflow.parentRunId"] = run.run_id
         try:
-            return train(trial_cfg, callbacks=[Pruning(trial)], tags=tags)["val_loss"]
+            interrupts.check()
+            return train(trial_cfg, callbacks=[Pruning(trial), interrupts],
+                         tags=tags)["val_loss"]
         except optuna.TrialPruned:
             raise
         except TrainingDiverged:
@@ -309,6 +356,8 @@ def _run_study(cfg: DictConfig, space: list[Param], pruner: optuna.pruners.BaseP
 
     run = StudyRun(cfg, study, shown) if tracking else None
     status, handoff, best = "FAILED", None, None
+    interrupts = Interrupts()
+    interrupts.install()
     try:
         # from here on the study's run is open: every way out below closes it
         finished = len(study.get_trials(deepcopy=False, states=FINISHED))
@@ -319,6 +368,7 @@ def _run_study(cfg: DictConfig, space: list[Param], pruner: optuna.pruners.BaseP
         # study stop once it holds n_trials finished (or running) trials, and never overshoot
         start = time.monotonic()
         while t.timeout is None or time.monotonic() - start < t.timeout:
+            interrupts.check()
             if len(diverged) >= t.n_trials:  # a space where every trial diverges never ends
                 raise LboError(f"study {t.study_name}: {len(diverged)} trials diverged in a row "
                                f"(trials {', '.join(map(str, diverged))}); lower the "
@@ -342,25 +392,28 @@ def _run_study(cfg: DictConfig, space: list[Param], pruner: optuna.pruners.BaseP
         status = "KILLED"
         raise
     finally:
-        with _no_interrupts():  # a second Ctrl-C must not leave the runs open
-            optuna.logging.set_verbosity(verbosity)
-            failed: list[int] = []
-            try:
-                if status != "FINISHED":
-                    failed = fail_own_trials(study)
-            except Exception:  # best effort: the error on its way out says more
-                pass
-            finally:
-                if run is not None:
-                    run.finish(study, space, best, handoff, status)
-            if status == "KILLED":
-                done = len(study.get_trials(deepcopy=False, states=FINISHED))
-                lost = sorted({*failed, *stopped})
-                which = (f", trial{'s' if len(lost) > 1 else ''} "
-                         f"{', '.join(map(str, lost))} failed") if lost else ""
-                print(f"interrupted: study {t.study_name} in {shown}: {done} of {t.n_trials} "
-                      f"trials finished{which}; rerun the same command to finish it",
-                      file=sys.stderr, flush=True)
+        try:
+            with _no_interrupts():  # a second Ctrl-C must not leave the runs open
+                optuna.logging.set_verbosity(verbosity)
+                failed: list[int] = []
+                try:
+                    if status != "FINISHED":
+                        failed = fail_own_trials(study)
+                except Exception:  # best effort: the error on its way out says more
+                    pass
+                finally:
+                    if run is not None:
+                        run.finish(study, space, best, handoff, status)
+                if status == "KILLED":
+                    done = len(study.get_trials(deepcopy=False, states=FINISHED))
+                    lost = sorted({*failed, *stopped})
+                    which = (f", trial{'s' if len(lost) > 1 else ''} "
+                             f"{', '.join(map(str, lost))} failed") if lost else ""
+                    print(f"interrupted: study {t.study_name} in {shown}: {done} of {t.n_trials} "
+                          f"trials finished{which}; rerun the same command to finish it",
+                          file=sys.stderr, flush=True)
+        finally:
+            interrupts.uninstall()
 
     counts = {s: len(study.get_trials(deepcopy=False, states=(s,))) for s in TrialState}
     if best is None:
