@@ -26,6 +26,7 @@ MLFLOW_PASSWORD = "mlflow-planted-pw-91c2"
     ("postgresql://lbo@db.example.org/optuna", "postgresql://lbo@db.example.org/optuna"),
     ("sqlite:////tmp/x/mlflow.db", "sqlite:////tmp/x/mlflow.db"),
     ("http://127.0.0.1:5000/api", "http://127.0.0.1:5000/api"),
+    ("postgresql://lbo@h:9/db?sslmode=require&password=pw", "postgresql://lbo@h:9/db?sslmode=require&password=***"),
 ])
 def test_scrub_masks_only_the_password(text, shown):
     assert scrub(text) == shown

@@ -21,9 +21,16 @@ _USERINFO = re.compile(r"(?P<head>\b[A-Za-z][A-Za-z0-9+.\-]*://[^:/@\s'\"]*:)"
                        r"(?P<secret>[^\s'\"/]*)(?P<at>@)(?=[^@\s'\"/]*(?:[/?#\s'\"]|$))")
 
 
+# ?password=...&  (libpq and SQLAlchemy also take the password as a query parameter)
+_QUERY = re.compile(r"(?P<key>[?&](?:password|passwd|sslpassword)=)[^&\s'\"#]*",
+                    re.IGNORECASE)
+
+
 def scrub(text: str) -> str:
-    """``text`` with the password of every ``scheme://user:password@host`` replaced by ***."""
-    return _USERINFO.sub(lambda m: m["head"] + MASK + m["at"], text)
+    """``text`` with the password of every ``scheme://user:password@host``, and every
+    ``?password=`` query value, replaced by ***."""
+    text = _USERINFO.sub(lambda m: m["head"] + MASK + m["at"], text)
+    return _QUERY.sub(lambda m: m["key"] + MASK, text)
 
 
 def scrub_tree(node: Any) -> Any:

@@ -28,8 +28,6 @@ DRIVERS = {"psycopg": ' (pip install "psycopg[binary]")',
 #: Connections one worker may hold on a database server: Optuna's queries (the main thread),
 #: the heartbeat thread's, and the claim lock's (see :func:`open_storage`).
 MAX_CONNECTIONS = 3
-#: Query parameters of a database URL that hold a secret.
-SECRET_QUERY = {"password", "passwd", "sslpassword"}
 
 
 def redact(url: str) -> str:
@@ -44,11 +42,7 @@ def redact(url: str) -> str:
         shown = re.sub(r":[^:@/\s]*@", f":{MASK}@", scrub(str(url)))
         raise LboError(f"tune.storage: {shown!r} is not a database URL "
                        f"(sqlite:///path/optuna.db or postgresql://user:pass@host/db)") from e
-    secret = [k for k in parsed.query if k.lower() in SECRET_QUERY]
-    if secret:
-        parsed = parsed.update_query_dict({k: "LBO-MASKED-SECRET" for k in secret})
-    shown = parsed.render_as_string(hide_password=True).replace("LBO-MASKED-SECRET", MASK)
-    return scrub(shown)
+    return scrub(parsed.render_as_string(hide_password=True))  # scrub: ?password= too
 
 
 def open_storage(url: str, heartbeat_interval: int,
