@@ -12,15 +12,17 @@ import numpy as np
 import pandas as pd
 from omegaconf import DictConfig, OmegaConf
 
-from lbo import schema
+from lbo import dynamic, schema
 from lbo.atomic import remove_stale_temps, write_text
-from lbo.config import positive, require
+from lbo.config import number, positive, require
 from lbo.datagen import clothoid
 from lbo.datagen.friction import G, Grid, accelerations, generate_train
 from lbo.datagen.manoeuvres import MANOEUVRES, validation_path
 from lbo.datagen.pursuit import drive, smooth_noise
 from lbo.datagen.stopgo import generate_stop_and_go
 from lbo.noise import Noise
+from lbo.truth import Truth
+from lbo.truth import from_cfg as truth_from_cfg
 from lbo.vehicle import Vehicle, measure, wrap_angle
 
 # Bump when a generator changes what it writes, so old caches are not reused.
@@ -42,6 +44,7 @@ class Spec:
     val: dict
     test: dict
     digest: str
+    truth: Truth = Truth()
 
     @property
     def folder(self) -> Path:
@@ -61,6 +64,7 @@ def spec_from_cfg(cfg: DictConfig) -> Spec:
     """
     vehicle = Vehicle.from_cfg(cfg.vehicle)
     noise = Noise.from_cfg(cfg.noise)
+    truth = truth_from_cfg(cfg.get("truth"), vehicle.wheelbase)
     d = cfg.data
     require(isinstance(d.seed, int) and d.seed >= 0, "data.seed", "an integer >= 0", d.seed)
     tr = OmegaConf.to_container(d.train, resolve=True)
@@ -95,6 +99,9 @@ def spec_from_cfg(cfg: DictConfig) -> Spec:
     require(te["alpha_max"] >= 0, "data.test.alpha_max", "a noise scale >= 0", te["alpha_max"])
     require(0 <= te["speed_variation"] < 1, "data.test.speed_variation", "in [0, 1)",
             te["speed_variation"])
+    for part, block in (("val", va), ("test", te)):
+        if "speed_factor" in block:
+            number(block["speed_factor"], f"data.{part}.speed_factor", low=0.0, low_open=True)
     names = te["manoeuvres"]
     require(len(names) > 0, "data.test.manoeuvres", "a non-empty list of manoeuvre names", names)
     for n in names:
@@ -105,12 +112,35 @@ def spec_from_cfg(cfg: DictConfig) -> Spec:
     hashed = {"version": DATAGEN_VERSION, "seed": d.seed, "train": tr, "val": va, "test": te,
               "vehicle": vehicle.__dict__,
               "noise": [noise.process_sigma, noise.measurement_sigma]}
+    if not truth.default:  # the paper's sets keep the folder names they always had
+        hashed["truth"] = truth.to_dict()
     digest = hashlib.sha256(json.dumps(hashed, sort_keys=True).encode()).hexdigest()[:12]
-    return Spec(str(d.name), Path(d.root), int(d.seed), vehicle, noise, tr, va, te, digest)
+    return Spec(str(d.name), Path(d.root), int(d.seed), vehicle, noise, tr, va, te, digest,
+                truth)
 
 
 def _rng(spec: Spec, *key: int) -> np.random.Generator:
     return np.random.default_rng([spec.seed, *key])
+
+
+def _sensed(spec: Spec, out: dict[str, np.ndarray], alpha: float, key: int
+            ) -> dict[str, np.ndarray]:
+    """The truth model's share of a training set: B trajectories (B, T, ...) driven by the
+    dynamic car instead of the kinematic bicycle (the same inputs, fresh process noise), and
+    the sensors' errors (GNSS drift on the measurements, logged inputs). The paper's truth
+    returns ``out`` untouched."""
+    truth, v = spec.truth, spec.vehicle
+    if truth.default:
+        return out
+    z, u, m = out["z"], out["u"], out["m"]
+    if truth.car is not None:
+        rng = _rng(spec, key)
+        z = dynamic.simulate(z[:, 0], u, v.dt, truth.car, spec.noise.process_sigma, rng)[..., :3]
+        z[..., 2] = wrap_angle(z[..., 2])
+        m = measure(z, spec.noise.meas(alpha), rng)
+    m = m + truth.sensors.drift(z.shape[:2], v.dt, alpha, _rng(spec, key, 1))
+    m[..., 2] = wrap_angle(m[..., 2])
+    return {"z": z, "u": truth.sensors.logged_inputs(u), "m": m}
 
 
 def make_train(spec: Spec) -> pd.DataFrame:
@@ -122,10 +152,13 @@ def make_train(spec: Spec) -> pd.DataFrame:
     n_stop = int(round(tr.get("stop_and_go", 0.0) * b))
     out = generate_train(b - n_stop, n_steps, v, spec.noise, _rng(spec, 1),
                          radius=tr["radius_g"] * G, grid=tr["grid"], hold=tuple(tr["hold"]),
-                         jerk=tr["jerk"], candidates=tr["candidates"], alpha=tr["alpha"])
+                         jerk=tr["jerk"], candidates=tr["candidates"], alpha=tr["alpha"],
+                         understeer=_understeer(spec))
+    out = _sensed(spec, out, tr["alpha"], 7)
     if n_stop:
         stops = generate_stop_and_go(n_stop, n_steps, v, spec.noise, _rng(spec, 6),
                                      alpha=tr["alpha"])
+        stops = _sensed(spec, stops, tr["alpha"], 8)
         out = {key: np.concatenate([out[key], stops[key]]) for key in ("z", "u", "m")}
     traj = np.repeat(np.arange(b), n_steps)
     k = np.tile(np.arange(n_steps), b)
@@ -133,8 +166,13 @@ def make_train(spec: Spec) -> pd.DataFrame:
                         out["m"].reshape(-1, 3))
 
 
+def _understeer(spec: Spec) -> float:
+    car = spec.truth.car
+    return 0.0 if car is None else car.understeer_gradient
+
+
 def drive_paths(spec: Spec, segments: list, steps: np.ndarray, shapes: np.ndarray, run_in: int,
-           variation: float, rng: np.random.Generator) -> dict[str, np.ndarray]:
+                variation: float, rng: np.random.Generator) -> dict[str, np.ndarray]:
     """Drive G clothoid chains with pure pursuit. steps, shapes: (G,), (G, 2)."""
     v = spec.vehicle
     lengths = np.array([clothoid.path_length(s) for s in segments])
@@ -149,7 +187,8 @@ def drive_paths(spec: Spec, segments: list, steps: np.ndarray, shapes: np.ndarra
     lead = run_in * v.dt * speed[:, :run_in].mean(axis=1)
     paths = [clothoid.sample(s, DS, lead_in=li, tail=0.6 * L + 60)
              for s, li, L in zip(segments, lead, lengths)]
-    return drive(paths, speed, v, np.asarray(spec.noise.process_sigma), rng, ds=DS)
+    return drive(paths, speed, v, np.asarray(spec.noise.process_sigma), rng, ds=DS,
+                 car=spec.truth.car)
 
 
 def _scored_frame(spec: Spec, z: np.ndarray, u: np.ndarray, n_real: np.ndarray, run_in: int,
@@ -161,31 +200,42 @@ def _scored_frame(spec: Spec, z: np.ndarray, u: np.ndarray, n_real: np.ndarray, 
     g, t_max = z.shape[:2]
     real = np.arange(t_max)[None, :] < n_real[:, None]
     traj, k = np.nonzero(real)
-    zs, us = z[real], u[real]
+    zs, us = z[real], spec.truth.sensors.logged_inputs(u[real])
     frames = []
     for i, a in enumerate(alphas):
         m = measure(zs, spec.noise.meas(a), _rng(spec, key, i))
+        if spec.truth.sensors.gnss_sigma > 0:  # drift of each padded trajectory, real rows
+            m += spec.truth.sensors.drift((g, t_max), spec.vehicle.dt, a,
+                                          _rng(spec, key, i, 1))[real]
         m[:, 2] = wrap_angle(m[:, 2])
         frames.append(schema.frame(traj, k, spec.vehicle.dt, zs, us, m,
                                    alpha=np.full(len(k), a), scored=k >= run_in))
     return pd.concat(frames, ignore_index=True)
 
 
+def _slower(steps: np.ndarray, block: dict) -> np.ndarray:
+    """Scored steps per path at ``speed_factor`` times the paths' speeds (the same paths,
+    driven to their ends): the paper's counts at the default 1."""
+    factor = block.get("speed_factor", 1.0)
+    return steps if factor == 1.0 else np.round(steps / factor).astype(np.int64)
+
+
 def make_val(spec: Spec) -> pd.DataFrame:
     va = spec.val
     seg = validation_path(va["length"], va["amplitude"], va["period"])
-    out = drive_paths(spec, [seg], np.array([va["steps"]]), np.ones((1, 2)), va["run_in"],
-                 va["speed_variation"], _rng(spec, 2))
-    return _scored_frame(spec, out["z"], out["u"], np.array([va["run_in"] + va["steps"]]),
+    steps = _slower(np.array([va["steps"]]), va)
+    out = drive_paths(spec, [seg], steps, np.ones((1, 2)), va["run_in"],
+                      va["speed_variation"], _rng(spec, 2))
+    return _scored_frame(spec, out["z"], out["u"], va["run_in"] + steps,
                          va["run_in"], np.array([va["alpha"]]), 3)
 
 
 def make_test(spec: Spec) -> pd.DataFrame:
     te = spec.test
     man = [MANOEUVRES[n] for n in te["manoeuvres"]]
-    steps = np.array([m.steps for m in man])
+    steps = _slower(np.array([m.steps for m in man]), te)
     out = drive_paths(spec, [m.build() for m in man], steps, np.array([m.speed_shape for m in man]),
-                 te["run_in"], te["speed_variation"], _rng(spec, 4))
+                      te["run_in"], te["speed_variation"], _rng(spec, 4))
     return _scored_frame(spec, out["z"], out["u"], te["run_in"] + steps, te["run_in"],
                          spec.alphas, 5)
 
@@ -214,7 +264,8 @@ def train_accelerations(spec: Spec, train: pd.DataFrame) -> np.ndarray:
     n = spec.train["n_traj"]
     V = train["V"].to_numpy().reshape(n, -1)
     delta = train["delta"].to_numpy().reshape(n, -1)
-    return accelerations(V, delta, spec.vehicle.dt, spec.vehicle.wheelbase).reshape(-1, 2)
+    return accelerations(V, delta, spec.vehicle.dt, spec.vehicle.wheelbase,
+                         _understeer(spec)).reshape(-1, 2)
 
 
 def figures(spec: Spec, sets: dict[str, pd.DataFrame], folder: Path) -> list[Path]:
@@ -275,6 +326,7 @@ def _build(spec: Spec, folder: Path, progress: bool
     if not manifest.is_file():
         text = json.dumps({"name": spec.name, "digest": spec.digest, "seed": spec.seed,
                            "version": DATAGEN_VERSION, "vehicle": spec.vehicle.__dict__,
+                           **({} if spec.truth.default else {"truth": spec.truth.to_dict()}),
                            "noise": {"name": spec.noise.name,
                                      "process_sigma": spec.noise.process_sigma,
                                      "measurement_sigma": spec.noise.measurement_sigma},

@@ -63,17 +63,23 @@ class Grid:
         return float(np.mean(self.counts(a)[self.inside] > 0))
 
 
-def accelerations(V: np.ndarray, delta: np.ndarray, dt: float, wheelbase: float) -> np.ndarray:
-    """Vehicle-frame accelerations of an input sequence. V, delta: (..., T) -> (..., T-1, 2)."""
+def accelerations(V: np.ndarray, delta: np.ndarray, dt: float, wheelbase: float,
+                  understeer: float = 0.0) -> np.ndarray:
+    """Vehicle-frame accelerations of an input sequence. V, delta: (..., T) -> (..., T-1, 2).
+
+    ``understeer``: K of a car that slips (the steady-state lateral acceleration of
+    :func:`generate_train`); 0 for the kinematic bicycle."""
     a_lon = np.diff(V, axis=-1) / dt
-    a_lat = V[..., 1:] * np.tan(delta[..., 1:]) * V[..., :-1] / wheelbase
+    a_lat = V[..., 1:] * np.tan(delta[..., 1:]) * V[..., :-1] / (
+        wheelbase + understeer * V[..., 1:] * V[..., :-1])
     return np.stack([a_lon, a_lat], axis=-1)
 
 
 def generate_train(n_traj: int, n_steps: int, vehicle: Vehicle, noise: Noise,
                    rng: np.random.Generator, radius: float = 0.5 * G, grid: int = 20,
                    hold: tuple[float, float] = (0.5, 3.0), jerk: float = 8.0,
-                   candidates: int = 8, alpha: float = 1.0) -> dict[str, np.ndarray]:
+                   candidates: int = 8, alpha: float = 1.0,
+                   understeer: float = 0.0) -> dict[str, np.ndarray]:
     """Simulate the friction-circle training trajectories, all at once.
 
     Parameters
@@ -84,6 +90,9 @@ def generate_train(n_traj: int, n_steps: int, vehicle: Vehicle, noise: Noise,
     hold : (min, max) seconds a target acceleration is held before a new one is drawn.
     jerk : rate limit (m/s^3) on the commanded acceleration, so inputs stay smooth.
     candidates : cells drawn per choice; the least-filled reachable one wins.
+    understeer : the car's understeer gradient K (rad per m/s^2; 0 for the kinematic bicycle):
+        the steering is chosen from the steady-state ``a_lat = V^2 tan(delta) / (L + K V^2)``,
+        so that a car that understeers still fills the circle.
 
     Returns
     -------
@@ -121,8 +130,9 @@ def generate_train(n_traj: int, n_steps: int, vehicle: Vehicle, noise: Noise,
             v_end = V[new, None] + a_c[..., 0] * horizon
             # how far a candidate is out of reach (m/s of speed, m/s^2 of lateral acceleration);
             # unreachable ones lose to any reachable one, and among them the nearest wins
+            reach = 0.95 * V[new, None] ** 2 * tan_max / (L + understeer * V[new, None] ** 2)
             miss = (np.maximum(v_end - vehicle.v_max, 0) + np.maximum(vehicle.v_min - v_end, 0)
-                    + np.maximum(np.abs(a_c[..., 1]) - 0.95 * V[new, None] ** 2 * tan_max / L, 0))
+                    + np.maximum(np.abs(a_c[..., 1]) - reach, 0))
             score = counts[cand] + (miss > 0) * (counts.sum() + 1) * (1 + miss)
             pick = np.argmin(score, axis=1)
             target[new] = a_c[np.arange(new.size), pick]
@@ -131,9 +141,10 @@ def generate_train(n_traj: int, n_steps: int, vehicle: Vehicle, noise: Noise,
 
         a_cmd += np.clip(target - a_cmd, -jerk * dt, jerk * dt)
         V_next = np.clip(V + a_cmd[:, 0] * dt, vehicle.v_min, vehicle.v_max)
-        tan_d = np.clip(a_cmd[:, 1] * L / (V_next * V), -tan_max, tan_max)
+        turn = L + understeer * (V_next * V)  # L for the kinematic bicycle
+        tan_d = np.clip(a_cmd[:, 1] * turn / (V_next * V), -tan_max, tan_max)
         delta_next = np.arctan(tan_d)
-        realised = np.stack([(V_next - V) / dt, V_next * tan_d * V / L], axis=-1)
+        realised = np.stack([(V_next - V) / dt, V_next * tan_d * V / turn], axis=-1)
         counts += g.counts(realised)
         V, delta = V_next, delta_next
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from lbo import dynamic
 from lbo.vehicle import Vehicle, f, wrap_angle
 
 
@@ -18,7 +19,8 @@ def smooth_noise(n_traj: int, n_steps: int, dt: float, rng: np.random.Generator,
 
 def drive(paths: list[np.ndarray], speed: np.ndarray, vehicle: Vehicle,
           process_sigma: np.ndarray, rng: np.random.Generator, ds: float = 0.1,
-          gain: float = 0.4, lookahead: tuple[float, float] = (3.0, 15.0)) -> dict[str, np.ndarray]:
+          gain: float = 0.4, lookahead: tuple[float, float] = (3.0, 15.0),
+          car: dynamic.SingleTrack | None = None) -> dict[str, np.ndarray]:
     """Drive every path with a pure-pursuit controller at the given speed profile.
 
     Parameters
@@ -27,6 +29,8 @@ def drive(paths: list[np.ndarray], speed: np.ndarray, vehicle: Vehicle,
         the vehicle starts at each path's first sample, on its heading.
     speed : (G, T) speed V_k (m/s) to hold at every step.
     gain : look-ahead distance = clip(gain * V, *lookahead) metres.
+    car : None drives the kinematic bicycle; else this dynamic single-track car
+        (:mod:`lbo.dynamic`), which slips, and which the controller steers all the same.
 
     Returns
     -------
@@ -45,6 +49,7 @@ def drive(paths: list[np.ndarray], speed: np.ndarray, vehicle: Vehicle,
     idx = np.zeros(g, np.int64)
     offsets = np.arange(window)
     tan_max = np.tan(vehicle.delta_max)
+    lateral = np.zeros((g, 2))  # the dynamic car's v_y and r; it starts straight
 
     for k in range(n_steps):  # sequential in time (feedback), vectorised over paths
         cand = np.minimum(idx[:, None] + offsets, p_max - 1)
@@ -58,7 +63,13 @@ def drive(paths: list[np.ndarray], speed: np.ndarray, vehicle: Vehicle,
         dist = np.maximum(np.hypot(rel[:, 0], rel[:, 1]), 1e-3)
         tan_d = np.clip(2 * vehicle.wheelbase * np.sin(alpha) / dist, -tan_max, tan_max)
         u[:, k, 0], u[:, k, 1] = v, np.arctan(tan_d)
-        if k + 1 < n_steps:
+        if k + 1 == n_steps:
+            break
+        if car is None:
             z[:, k + 1] = z[:, k] + f(z[:, k], u[:, k], vehicle.wheelbase) * vehicle.dt + w[:, k]
+        else:
+            s = dynamic.step(np.concatenate([z[:, k], lateral], axis=-1), u[:, k], vehicle.dt,
+                             car)
+            z[:, k + 1], lateral = s[:, :3] + w[:, k], s[:, 3:]
     z[..., 2] = wrap_angle(z[..., 2])
     return {"z": z, "u": u}

@@ -1,0 +1,202 @@
+"""The car that slips (lbo.dynamic), the sensors' errors (lbo.truth) and the data sets drawn
+from them: closed forms of steady-state cornering, the kinematic limit, the integrator's error,
+the Gauss-Markov drift, and the paper's sets left byte for byte as they were."""
+
+import hashlib
+
+import numpy as np
+import pandas as pd
+import pytest
+import torch
+
+from conftest import compose_cfg
+from lbo import dynamic
+from lbo.datagen.build import MAKERS, build, spec_from_cfg
+from lbo.draws import gauss_markov as gauss_markov_torch
+from lbo.dynamic import SingleTrack, derivatives, rear_slip, steady_state, step, tyre_force
+from lbo.errors import LboError
+from lbo.truth import Sensors, Truth, from_cfg, gauss_markov
+from lbo.vehicle import f as kinematic_f
+
+CAR = SingleTrack()
+DT = 0.02
+
+
+def _settle(v: float, delta: float, seconds: float = 6.0) -> np.ndarray:
+    """The car's state after ``seconds`` at constant speed and steering, from straight."""
+    s = np.zeros((1, 5))
+    u = np.array([[v, delta]])
+    for _ in range(int(seconds / DT)):
+        s = step(s, u, DT, CAR)
+    return s[0]
+
+
+def test_default_car_is_a_plausible_understeering_passenger_car():
+    assert CAR.wheelbase == pytest.approx(2.7)
+    # K = (m / L)(l_r / C_f - l_f / C_r) = (1500 / 2.7)(1.5 / 8e4 - 1.2 / 1e5)
+    assert CAR.understeer_gradient == pytest.approx(1500 / 2.7 * (1.5 / 8e4 - 1.2 / 1e5))
+    assert 1 < np.degrees(CAR.understeer_gradient * 9.81) < 4  # degrees per g of a road car
+    fzf, fzr = CAR.axle_loads
+    assert fzf + fzr == pytest.approx(1500 * 9.81) and fzf > fzr
+
+
+@pytest.mark.parametrize("v", [8.0, 15.0, 25.0])
+def test_steady_state_yaw_rate_follows_the_understeer_gradient(v):
+    a_y = 1.0  # m/s^2: small slip, where the tyres are linear
+    delta = a_y * (CAR.wheelbase + CAR.understeer_gradient * v**2) / v**2
+    s = _settle(v, delta)
+    r_closed = v * delta / (CAR.wheelbase + CAR.understeer_gradient * v**2)
+    assert s[4] == pytest.approx(r_closed, rel=5e-3)
+    assert v * s[4] == pytest.approx(a_y, rel=5e-3)
+    # understeer: the car turns less than the kinematic bicycle at the same steering
+    assert s[4] < v * np.tan(delta) / CAR.wheelbase * (1 - 0.5 * CAR.understeer_gradient
+                                                        * v**2 / CAR.wheelbase)
+
+
+@pytest.mark.parametrize("a_y", [1.0, 2.0])
+def test_rear_axle_slips_at_the_closed_form_angle(a_y):
+    v = 15.0
+    delta = a_y * (CAR.wheelbase + CAR.understeer_gradient * v**2) / v**2
+    s = _settle(v, delta)
+    closed = CAR.mass * a_y * CAR.l_f / (CAR.wheelbase * CAR.c_r)  # a_r = F_yr / C_r
+    slip = rear_slip(s, np.array([v, delta]), CAR)
+    assert -slip == pytest.approx(closed, rel=2e-2)  # the rear axle moves to the outside
+    v_y, r = steady_state(v, delta, CAR)
+    assert s[3] == pytest.approx(v_y, abs=5e-3) and s[4] == pytest.approx(r, rel=1e-2)
+
+
+def test_tyres_saturate_at_mu_times_the_load():
+    fzf, _ = CAR.axle_loads
+    assert tyre_force(np.array(1.0), CAR.c_f, CAR.mu * fzf) == pytest.approx(CAR.mu * fzf,
+                                                                             rel=1e-6)
+    assert tyre_force(np.array(1e-4), CAR.c_f, fzf) == pytest.approx(CAR.c_f * 1e-4, rel=1e-6)
+    s = _settle(15.0, 0.3)  # steering for 2.5 g on the kinematic bicycle
+    assert 15.0 * s[4] <= 1.02 * CAR.mu * dynamic.G
+
+
+def test_below_a_few_metres_per_second_it_is_the_kinematic_bicycle():
+    rng = np.random.default_rng(0)
+    s = np.column_stack([rng.normal(size=(50, 3)), rng.normal(0, 0.5, (50, 2))])
+    u = np.column_stack([rng.uniform(0, CAR.v_kinematic, 50), rng.uniform(-0.5, 0.5, 50)])
+    np.testing.assert_allclose(derivatives(s, u, CAR)[:, :3], kinematic_f(s[:, :3], u, 2.7),
+                               atol=1e-12)
+    assert np.all(rear_slip(s, u, CAR) == 0)
+    # and just above, the dynamic model's yaw rate approaches the kinematic one
+    v = 2.5
+    r = steady_state(v, 0.1, CAR)[1]
+    assert r == pytest.approx(v * 0.1 / 2.7, rel=CAR.understeer_gradient * v**2 / 2.7 + 1e-9)
+
+
+def test_rk4_sub_steps_integrate_accurately():
+    t = np.arange(100) * DT
+    u = np.stack([np.full(100, 12.0), 0.08 * np.sin(2 * np.pi * 0.5 * t)], -1)[None]
+    z0 = np.zeros((1, 3))
+
+    def run(substeps: int) -> np.ndarray:
+        car = SingleTrack(substeps=substeps)
+        return dynamic.simulate(z0, u, DT, car)[0]
+
+    ref = run(64)
+    errors = [np.abs(run(n) - ref)[:, :3].max() for n in (2, 4)]
+    assert errors[1] < 1e-6  # the default: micrometres over 2 s of slalom
+    assert errors[0] / errors[1] > 10  # fourth order: halving the step gains about 16
+
+
+def test_gauss_markov_drift_has_its_variance_and_correlation_time():
+    rng = np.random.default_rng(0)
+    tau, sigma = 1.0, 0.5
+    b = gauss_markov((400, 1500), DT, tau, sigma, rng)
+    lag = int(tau / DT)
+    assert b[:, 0].var() == pytest.approx(sigma**2, rel=0.2)  # stationary from the start
+    assert b.var() == pytest.approx(sigma**2, rel=0.05)
+    corr = (b[:, lag:] * b[:, :-lag]).mean() / b.var()
+    assert corr == pytest.approx(np.exp(-1), abs=0.03)
+    # the training draws' version: the same process, a window at a time
+    g = torch.Generator().manual_seed(0)
+    bt = gauss_markov_torch((2000, 200), tau / DT, g).numpy()
+    assert bt.var() == pytest.approx(1.0, rel=0.05)
+    assert bt[:, 0].var() == pytest.approx(1.0, rel=0.1)
+    corr_t = (bt[:, lag:] * bt[:, :-lag]).mean() / bt.var()
+    assert corr_t == pytest.approx(np.exp(-1), abs=0.03)
+
+
+@pytest.mark.parametrize("cfg, field", [
+    ({"name": "bicycle"}, "truth.name"),
+    ({"name": "dynamic", "l_f": 1.0}, "truth.l_f + truth.l_r"),
+    ({"name": "dynamic", "mass": -1.0}, "truth.mass"),
+    ({"name": "dynamic", "wheels": 4}, "truth.wheels"),
+    ({"name": "kinematic", "mass": 1500.0}, "truth.mass"),
+    ({"name": "kinematic", "gnss_sigma": -0.1}, "truth.gnss_sigma"),
+    ({"name": "kinematic", "gnss_tau": 0.0}, "truth.gnss_tau"),
+    ({"name": "dynamic", "substeps": 0}, "truth.substeps"),
+])
+def test_bad_truth_names_the_field(cfg, field):
+    with pytest.raises(LboError, match=field.replace("+", r"\+")) as e:
+        from_cfg(cfg, 2.7)
+    assert "\n" not in str(e.value)
+
+
+def _frames_digest(df: pd.DataFrame) -> str:
+    return hashlib.sha256(pd.util.hash_pandas_object(df, index=True).values.tobytes()
+                          ).hexdigest()[:16]
+
+
+def test_kinematic_truth_leaves_the_paper_sets_byte_for_byte_unchanged(tmp_path):
+    # digests of the smoke sets as lbo wrote them before truth models existed (commit e260c94)
+    spec = spec_from_cfg(compose_cfg("datagen", ["data=smoke", f"data.root={tmp_path}"]))
+    assert spec.truth == Truth() and spec.digest == "a8c688af2968"
+    expected = {"train": "a29c05fdb1579c36", "val": "31913104dfd5dad3",
+                "test": "511a8959e50822ab"}
+    assert {name: _frames_digest(make(spec)) for name, make in MAKERS.items()} == expected
+
+
+@pytest.fixture(scope="module")
+def dynamic_sets(tmp_path_factory):
+    root = tmp_path_factory.mktemp("dyn")
+
+    def sets(*overrides: str) -> dict[str, pd.DataFrame]:
+        cfg = compose_cfg("datagen", ["data=smoke", "truth=dynamic", f"data.root={root}",
+                                      "data.train.n_traj=8", *overrides])
+        return build(spec_from_cfg(cfg), progress=False)[1]
+
+    return sets
+
+
+def test_dynamic_sets_keep_the_schema_and_understeer_in_corners(dynamic_sets):
+    sets = dynamic_sets()
+    for name in ("train", "val", "test"):
+        assert list(sets[name].columns[:11]) == ["traj", "k", "t", "x", "y", "psi", "V",
+                                                 "delta", "x_m", "y_m", "psi_m"]
+    # the true heading turns about a quarter less than the logged steering says, in corners
+    # (the controller steers more to hold the path); on the kinematic bicycle it turns as said
+    t = sets["test"]
+    t = t[t["alpha"] == 0].sort_values(["traj", "k"])
+    r = np.diff(np.unwrap(t["psi"].to_numpy())) / DT
+    r_kin = (t["V"] * np.tan(t["delta"]) / 2.7).to_numpy()[:-1]
+    corner = (t["traj"].to_numpy()[1:] == t["traj"].to_numpy()[:-1]) & (np.abs(r_kin) > 0.2)
+    assert corner.sum() > 500
+    assert 0.6 < np.sum(r[corner] * np.sign(r_kin[corner])) / np.sum(np.abs(r_kin[corner])) < 0.85
+
+
+def test_sensor_errors_change_the_logs_not_the_truth(dynamic_sets):
+    clean = dynamic_sets()["test"]
+    off = dynamic_sets("truth.steering_offset=0.01", "truth.speed_scale=0.02",
+                       "truth.gnss_sigma=0.5", "truth.gnss_tau=5.0")["test"]
+    pd.testing.assert_frame_equal(clean[["x", "y", "psi"]], off[["x", "y", "psi"]])
+    np.testing.assert_allclose(off["delta"] - clean["delta"], 0.01, atol=1e-12)
+    np.testing.assert_allclose(off["V"], 1.02 * clean["V"], rtol=1e-12)
+    # the drift: per unit of alpha, the x error's variance is 1 + 0.5^2 and consecutive errors
+    # correlate by 0.25 / 1.25 (a 5 s correlation time is 250 steps); white noise: 1 and 0
+    for df, var, lag1 in ((clean, 1.0, 0.0), (off, 1.25, 0.2)):
+        t = df[df["alpha"] > 0].sort_values(["alpha", "traj", "k"])
+        e = ((t["x_m"] - t["x"]) / t["alpha"]).to_numpy()
+        same = t["traj"].to_numpy()[1:] == t["traj"].to_numpy()[:-1]
+        assert np.mean(e**2) == pytest.approx(var, abs=0.08)
+        assert np.sum(e[1:] * e[:-1] * same) / np.sum(e[1:] ** 2 * same) == pytest.approx(
+            lag1, abs=0.04)
+
+
+def test_sensors_are_off_by_default():
+    assert Sensors().off and Truth().default
+    u = np.array([[10.0, 0.1]])
+    assert Sensors().logged_inputs(u) is u
