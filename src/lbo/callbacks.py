@@ -21,6 +21,7 @@ from lbo.evaluate import (
     score,
 )
 from lbo.observer import read_checkpoint, trained_conditions
+from lbo.truth import of_folder
 
 LOGGED_ALPHAS = (1.0, 3.0, 6.0)
 
@@ -30,7 +31,9 @@ class Evaluation(L.Callback):
     beside the EKF and the oracle EKF with :func:`lbo.evaluate.score`, write
     ``evaluation.csv`` and ``nrmse.png`` to ``output_dir`` and log them, the metrics and the
     checkpoint to MLflow. ``worst_oracle_ratio`` is the largest NRMSE ratio to the oracle over
-    alpha in [0.25, 6], so that ``mlflow ui`` can sort observers by it.
+    alpha in [0.25, 6], so that ``mlflow ui`` can sort observers by it. On a test set drawn from
+    a car that slips (``truth=dynamic``) the table also holds the adaptive EKF and the oracle on
+    the true car (``oracle_dynamic``), and ``worst_dynamic_oracle_ratio`` is the ratio to it.
 
     Parameters
     ----------
@@ -53,13 +56,17 @@ class Evaluation(L.Callback):
         # the best weights through the one checkpoint reader, with its format checks
         net, hp = read_checkpoint(best) if best else (pl_module.observer, pl_module.hparams)
         vehicle, noise = trained_conditions(hp, best or "(in memory)")
-        arr = load_test(Path(trainer.datamodule.folder) / "test.parquet")
+        folder = Path(trainer.datamodule.folder)
+        arr = load_test(folder / "test.parquet")
         ref = reference(arr, vehicle, noise, self.reference)
         name = f"{hp['model']['name']}-N{hp['window']}"
         est = predict_grid(net, arr, hp["window"], self.batch_size,
                            device=str(trainer.strategy.root_device))
+        truth = of_folder(folder, vehicle.wheelbase)
+        # a car that slips: the kinematic peers, and the floor of the filter told the car
+        peers = ["ekf", "oracle"] + (["adaptive", "oracle_dynamic"] if truth.car else [])
         self.table = pd.concat([score(name, est, arr, ref),
-                                classical_table(arr, vehicle, noise, ["ekf", "oracle"], ref)],
+                                classical_table(arr, vehicle, noise, peers, ref, truth=truth)],
                                ignore_index=True)
         csv, png = self.output_dir / "evaluation.csv", self.output_dir / "nrmse.png"
         with atomic_path(csv) as tmp:
@@ -70,6 +77,9 @@ class Evaluation(L.Callback):
         ratio = oracle_ratio(self.table, name)
         if len(ratio):
             self.metrics["worst_oracle_ratio"] = float(ratio.max())
+        if truth.car is not None and len(ratio):
+            self.metrics["worst_dynamic_oracle_ratio"] = float(
+                oracle_ratio(self.table, name, oracle="oracle_dynamic").max())
         self.metrics["eval_seconds"] = time.perf_counter() - start
         logger = self.mlflow or trainer.logger
         if isinstance(logger, MLFlowLogger):

@@ -5,6 +5,9 @@
 - ``oracle``: the same EKF told the true alpha (R = alpha^2 R_1);
 - ``adaptive``: the Sage-Husa EKF that learns R from its innovations, starting from R_1;
 - ``ukf``: the unscented filter (filterpy's, vectorised), R at alpha = 1;
+- ``oracle_dynamic``: the EKF on the true dynamic car (:mod:`lbo.dynamic_ekf`), told alpha, the
+  car's parameters and the sensors' errors: the floor on a test set drawn from ``truth=dynamic``
+  (it needs that truth, so it scores simulated test sets only, not a user's log);
 - ``pcrb``: not an observer but the bound on any observer's error (needs the true states).
 
 Each runs over a batch (:func:`run`) or one step at a time (:func:`stepper`), with the same
@@ -27,12 +30,15 @@ from lbo.filters import (
     ukf_batch,
 )
 from lbo.noise import Noise
+from lbo.truth import Truth
 from lbo.vehicle import Vehicle
 
 OBSERVERS = ("ekf", "oracle", "adaptive", "ukf")
 """Causal observers that run on a log."""
+DYNAMIC = "oracle_dynamic"
+"""The oracle on the true dynamic car: told the truth model, so for simulated test sets only."""
 BOUND = "pcrb"
-NAMES = (*OBSERVERS, BOUND)
+NAMES = (*OBSERVERS, DYNAMIC, BOUND)
 """Everything ``lbo.evaluate`` scores on the test grid."""
 UKF_SPREAD = 0.1
 """Merwe's sigma-point spread of the UKF."""
@@ -43,6 +49,10 @@ def check(name: str, field: str = "observer") -> None:
     if name == BOUND:
         raise LboError(f"{field}: pcrb is a bound on the error, not an observer; "
                        f"use one of {', '.join(OBSERVERS)} or a checkpoint")
+    if name == DYNAMIC:
+        raise LboError(f"{field}: oracle_dynamic is told the simulated car's parameters and "
+                       f"scores simulated test sets only (lbo.evaluate); use one of "
+                       f"{', '.join(OBSERVERS)} or a checkpoint")
     if name not in OBSERVERS:
         raise LboError(f"{field}: unknown classical observer {name!r}; "
                        f"expected one of {', '.join(OBSERVERS)}")
@@ -56,12 +66,16 @@ def measurement_cov(name: str, noise: Noise, alpha: float | np.ndarray, g: int) 
 
 
 def run(name: str, m: np.ndarray, u: np.ndarray, vehicle: Vehicle, noise: Noise,
-        alpha: float | np.ndarray = 1.0, progress: bool = False) -> np.ndarray:
+        alpha: float | np.ndarray = 1.0, progress: bool = False,
+        truth: Truth | None = None) -> np.ndarray:
     """Estimates (G, T, 3) of observer ``name`` over G trajectories.
 
-    m : (G, T, 3) measurements; u : (G, T, 2) inputs; alpha : the noise scale the oracle is
-    told, one for all or (G,) per trajectory (the others ignore it).
+    m : (G, T, 3) measurements; u : (G, T, 2) inputs; alpha : the noise scale the oracles are
+    told, one for all or (G,) per trajectory (the others ignore it); truth : what the log was
+    drawn from, which ``oracle_dynamic`` is told (a ``truth=dynamic`` one).
     """
+    if name == DYNAMIC:
+        return _oracle_dynamic(m, u, vehicle, noise, alpha, truth)
     check(name)
     R = measurement_cov(name, noise, alpha, np.shape(m)[0])
     try:
@@ -86,3 +100,25 @@ def stepper(name: str, m0: np.ndarray, vehicle: Vehicle, noise: Noise,
     if name == "ukf":
         return UnscentedStepper(m0, vehicle, noise.Q, R, UKF_SPREAD)
     return KalmanStepper(m0, vehicle, noise.Q, R)
+
+
+def _oracle_dynamic(m: np.ndarray, u: np.ndarray, vehicle: Vehicle, noise: Noise,
+                    alpha: float | np.ndarray, truth: Truth | None) -> np.ndarray:
+    from lbo.dynamic_ekf import dynamic_ekf_batch
+
+    if truth is None or truth.car is None:
+        raise LboError("oracle_dynamic: the test set was not drawn from truth=dynamic, so there "
+                       "is no car to tell it; score it on data=dynamic (or truth=dynamic)")
+    g = np.shape(m)[0]
+    scale = np.broadcast_to(np.asarray(alpha, dtype=float), (g,))
+    R = measurement_cov("oracle", noise, scale, g)
+    sensors = truth.sensors
+    try:
+        return dynamic_ekf_batch(m, u, vehicle, truth.car, noise.Q, R,
+                                 gnss_sigma=scale * sensors.gnss_sigma,
+                                 gnss_tau=sensors.gnss_tau,
+                                 steering_offset=sensors.steering_offset,
+                                 speed_scale=sensors.speed_scale)
+    except np.linalg.LinAlgError as e:
+        raise LboError(f"oracle_dynamic: the filter diverged ({e}); check the data's values "
+                       "and units") from None

@@ -17,13 +17,14 @@ from omegaconf import DictConfig
 
 from lbo import schema
 from lbo.atomic import atomic_path
-from lbo.classical import BOUND, NAMES, measurement_cov
+from lbo.classical import BOUND, DYNAMIC, NAMES, measurement_cov
 from lbo.classical import run as run_classical
 from lbo.cli import entry
 from lbo.errors import LboError
 from lbo.filters import pcrb
 from lbo.metrics import PAPER_REFERENCE, SCORE_COLUMNS, rmse, score_table
 from lbo.noise import Noise
+from lbo.truth import Truth
 from lbo.vehicle import Vehicle
 
 CLASSICAL = NAMES
@@ -42,17 +43,18 @@ def load_test(path: str | Path) -> dict[str, np.ndarray]:
 
 
 def classical(name: str, arr: dict[str, np.ndarray], vehicle: Vehicle, noise: Noise,
-              progress: bool = False, seed: int = 0) -> np.ndarray:
+              progress: bool = False, seed: int = 0, truth: Truth | None = None) -> np.ndarray:
     """Estimates (G, T, 3) of classical observer ``name`` (:mod:`lbo.classical`) on the padded
-    test arrays; the oracle is told each trajectory's alpha. For ``pcrb`` the result is the
-    bound's standard deviation per step, not an estimate.
+    test arrays; the oracles are told each trajectory's alpha (``oracle_dynamic`` also the
+    ``truth`` the set was drawn from). For ``pcrb`` the result is the bound's standard
+    deviation per step, not an estimate.
     """
     check_observers([name])
     if name == BOUND:
         R = measurement_cov("oracle", noise, arr["alpha"], len(arr["alpha"]))
         return np.sqrt(pcrb(arr["z"], arr["u"], vehicle, noise.Q, R, rng=seed))
     return run_classical(name, arr["m"], arr["u"], vehicle, noise, alpha=arr["alpha"],
-                         progress=progress)
+                         progress=progress, truth=truth)
 
 
 def check_observers(names: Sequence[str], field: str = "observers") -> None:
@@ -104,13 +106,15 @@ def bound_table(std: np.ndarray, arr: dict[str, np.ndarray], ref: np.ndarray) ->
 
 def classical_table(arr: dict[str, np.ndarray], vehicle: Vehicle, noise: Noise,
                     observers: Sequence[str] = CLASSICAL, ref: np.ndarray | None = None,
-                    progress: bool = False, seed: int = 0) -> pd.DataFrame:
-    """Score the classical observers on the test arrays; ``ref`` defaults to our EKF's."""
+                    progress: bool = False, seed: int = 0,
+                    truth: Truth | None = None) -> pd.DataFrame:
+    """Score the classical observers on the test arrays; ``ref`` defaults to our EKF's;
+    ``truth``: what the set was drawn from, for ``oracle_dynamic``."""
     check_observers(observers)
     ref = reference(arr, vehicle, noise) if ref is None else ref
     tables = []
     for name in observers:
-        out = classical(name, arr, vehicle, noise, progress=progress, seed=seed)
+        out = classical(name, arr, vehicle, noise, progress=progress, seed=seed, truth=truth)
         tables.append(bound_table(out, arr, ref) if name == "pcrb" else score(name, out, arr, ref))
     return pd.concat(tables, ignore_index=True)[list(SCORE_COLUMNS)]
 
@@ -124,24 +128,26 @@ def nrmse_at(table: pd.DataFrame, observer: str, alpha: float) -> float:
 
 
 def oracle_ratio(table: pd.DataFrame, observer: str, low: float = 0.25,
-                 high: float = 6.0) -> pd.Series:
+                 high: float = 6.0, oracle: str = "oracle") -> pd.Series:
     """NRMSE of ``observer`` over the oracle EKF's, per alpha in [low, high] (index alpha).
 
     The oracle is told each level's alpha, so it is the practical floor of a causal observer;
-    a ratio of 1.1 means 10 % above that floor.
+    a ratio of 1.1 means 10 % above that floor. ``oracle="oracle_dynamic"``: the floor on a
+    car that slips.
     """
     piv = table.pivot_table(index="alpha", columns="observer", values="nrmse")
-    for name in (observer, "oracle"):
+    for name in (observer, oracle):
         if name not in piv:
             raise LboError(f"no rows for observer {name!r} in the score table")
     keep = (piv.index >= low - 1e-9) & (piv.index <= high + 1e-9)
-    return (piv[observer] / piv["oracle"])[keep].rename("ratio_to_oracle")
+    return (piv[observer] / piv[oracle])[keep].rename(f"ratio_to_{oracle}")
 
 
 def run(cfg: DictConfig) -> Path:
     """Score the configured classical observers; write evaluation.csv and nrmse_classical.png."""
     from lbo import plots
     from lbo.datagen.build import build, spec_from_cfg
+    from lbo.truth import from_cfg as truth_from_cfg
 
     observers = list(cfg.observers)
     check_observers(observers)
@@ -149,14 +155,18 @@ def run(cfg: DictConfig) -> Path:
         raise LboError(f"metric.reference must be one of {list(REFERENCES)}, "
                        f"got {cfg.metric.reference!r}")
     vehicle, noise = Vehicle.from_cfg(cfg.vehicle), Noise.from_cfg(cfg.noise)
+    truth = truth_from_cfg(cfg.get("truth"), vehicle.wheelbase)
     if cfg.get("test_file"):
         path = Path(cfg.test_file)
     else:
         folder, _, _ = build(spec_from_cfg(cfg))
         path = folder / "test.parquet"
+    if truth.car is not None and DYNAMIC not in observers:
+        observers.insert(observers.index(BOUND) if BOUND in observers else len(observers),
+                         DYNAMIC)  # a car that slips: its oracle is the floor to show
     arr = load_test(path)
     ref = reference(arr, vehicle, noise, cfg.metric.reference)
-    table = classical_table(arr, vehicle, noise, observers, ref, progress=True)
+    table = classical_table(arr, vehicle, noise, observers, ref, progress=True, truth=truth)
     out = Path(cfg.output_dir)
     csv = out / "evaluation.csv"
     with atomic_path(csv) as tmp:
