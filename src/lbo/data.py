@@ -72,18 +72,21 @@ class WindowDataset(Dataset):
     weight_offset : loss weights ``1 / (alpha + offset)^2``, or ones when None.
     fix_periods : drop position fixes: each window keeps them every one of these periods
         (steps), see :func:`lbo.draws.fix_mask`; the dropped ones become NaN. () keeps all.
+    drift : (sigma (m), tau (steps)) of a Gauss-Markov GNSS drift added to drawn noise, as
+        the data set's truth has it; None: white noise only.
     """
 
     def __init__(self, x: torch.Tensor, y: torch.Tensor, ends: np.ndarray, window: int,
                  draw: AlphaDraw | None = None, sigma: torch.Tensor | None = None,
                  seed: int = 0, weight_offset: float | None = None,
-                 fix_periods: tuple[int, ...] = ()):
+                 fix_periods: tuple[int, ...] = (),
+                 drift: tuple[float, float] | None = None):
         self.x, self.y, self.window = x, y, window
         self.fix_periods = tuple(fix_periods)
         self.ends = torch.from_numpy(ends)
         self.windows = window_view(x, window)  # (R-N+1, N, 5), a view: no copy
         self.truth = window_view(y, window)  # (R-N+1, N, 3), a view
-        self.draw, self.weight_offset = draw, weight_offset
+        self.draw, self.weight_offset, self.drift = draw, weight_offset, drift
         self.sigma = None if sigma is None else torch.as_tensor(sigma, dtype=x.dtype)
         self.generator = torch.Generator().manual_seed(seed)
         self._worker_seed: int | None = None
@@ -126,7 +129,7 @@ class WindowDataset(Dataset):
         else:
             alpha = self.draw.sample(len(e), generator)
             weight = loss_weights(alpha, self.weight_offset)
-            m = noisy_measurements(self.truth[s], alpha, self.sigma, generator)
+            m = noisy_measurements(self.truth[s], alpha, self.sigma, generator, self.drift)
         if self.fix_periods:
             fix = fix_mask(len(e), self.window, self.fix_periods, generator, e.device)
             m = torch.where(fix[..., None], m, torch.full_like(m, float("nan")))
@@ -179,13 +182,16 @@ class WindowDataModule(L.LightningDataModule):
         no copy from the host per batch, and no loader workers).
     fix_periods : drop position fixes in training and validation windows (see
         :class:`WindowDataset`); () keeps every fix.
+    drift : (sigma (m), tau (steps)) of the GNSS drift drawn with the noise (see
+        :class:`WindowDataset`).
     """
 
     def __init__(self, folder: str | Path, window: int, batch_size: int = 256,
                  eval_batch_size: int = 4096, num_workers: int = 0, seed: int = 0,
                  draw: AlphaDraw | None = None, sigma=None,
                  weight_offset: float | None = None, val_repeats: int = 1,
-                 device: str = "cpu", fix_periods: tuple[int, ...] = ()) -> None:
+                 device: str = "cpu", fix_periods: tuple[int, ...] = (),
+                 drift: tuple[float, float] | None = None) -> None:
         super().__init__()
         self.device = torch.device(device)
         self.folder = Path(folder)
@@ -196,6 +202,7 @@ class WindowDataModule(L.LightningDataModule):
         self.draw, self.sigma, self.weight_offset = draw, sigma, weight_offset
         self.val_repeats = int(val_repeats)
         self.fix_periods = tuple(fix_periods)
+        self.drift = drift
         self.train_set: WindowDataset | None = None
         self.val_set: Dataset | None = None
 
@@ -209,7 +216,7 @@ class WindowDataModule(L.LightningDataModule):
             first = int(df.loc[df["scored"], "k"].min()) if "scored" in df else None
             _check_window(self.window, lengths, first, name)
         noise = {"draw": self.draw, "sigma": self.sigma, "weight_offset": self.weight_offset,
-                 "fix_periods": self.fix_periods}
+                 "fix_periods": self.fix_periods, "drift": self.drift}
         self.train_set = WindowDataset(*rows(train), window_ends(train["k"].to_numpy(),
                                                                  self.window), self.window,
                                        seed=self.seed, **noise)

@@ -9,6 +9,7 @@ from a distribution, so one network learns to judge the noise from the window it
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -106,17 +107,41 @@ def loss_weights(alpha: torch.Tensor, offset: float | None) -> torch.Tensor:
 
 
 def noisy_measurements(z: torch.Tensor, alpha: torch.Tensor, sigma: torch.Tensor,
-                       generator: torch.Generator) -> torch.Tensor:
+                       generator: torch.Generator,
+                       drift: tuple[float, float] | None = None) -> torch.Tensor:
     """Measurements of the true states ``z`` (B, N, 3) at noise scales ``alpha`` (B,).
 
-    ``sigma`` (3,) are the measurement sigmas at alpha=1. Returns (B, N, 3), heading wrapped
-    to (-pi, pi] like the stored measurements.
+    ``sigma`` (3,) are the measurement sigmas at alpha=1. ``drift`` = (sigma (m), tau (steps))
+    adds a stationary Gauss-Markov GNSS drift on x and y (:func:`gauss_markov`), scaled by
+    alpha like the white noise. Returns (B, N, 3), heading wrapped to (-pi, pi] like the stored
+    measurements.
     """
     from lbo.features import wrap_angle_torch
 
     eps = torch.randn(z.shape, generator=generator, dtype=z.dtype, device=z.device)
-    m = z + alpha[:, None, None] * sigma * eps
+    noise = sigma * eps
+    if drift is not None and drift[0] > 0:
+        b = gauss_markov(z.shape[:2], drift[1], generator, z.dtype, z.device) * drift[0]
+        noise = noise + torch.cat([b, torch.zeros_like(b[..., :1])], -1)
+    m = z + alpha[:, None, None] * noise
     return torch.cat([m[..., :2], wrap_angle_torch(m[..., 2:])], dim=-1)
+
+
+def gauss_markov(shape: tuple[int, int], tau: float, generator: torch.Generator,
+                 dtype: torch.dtype = torch.float64,
+                 device: torch.device | str = "cpu") -> torch.Tensor:
+    """(B, N, 2) unit-variance stationary first-order Gauss-Markov sequences along N, time
+    constant ``tau`` steps: ``b_k = sum_j phi^(k-j) e_j`` with ``phi = exp(-1 / tau)``, computed
+    for the whole window at once as one matrix product (no loop over steps)."""
+    n = shape[1]
+    phi = math.exp(-1.0 / tau)
+    eps = torch.randn((*shape, 2), generator=generator, dtype=dtype, device=device)
+    scale = torch.full((n,), math.sqrt(1.0 - phi**2), dtype=dtype, device=device)
+    scale[0] = 1.0  # b_0 ~ N(0, 1): stationary from the first step
+    k = torch.arange(n, device=device)
+    lag = (k[:, None] - k[None, :]).to(dtype)
+    kernel = torch.where(lag >= 0, phi ** lag.clamp_min(0), torch.zeros_like(lag))
+    return torch.einsum("kj,bjc->bkc", kernel * scale, eps)
 
 
 def fix_periods(rates: Sequence[float] | None, dt: float,

@@ -152,8 +152,12 @@ def noise_settings(cfg: DictConfig) -> dict[str, Any]:
     repeats = tn.get("val_repeats", 1)
     require(isinstance(repeats, int) and not isinstance(repeats, bool) and repeats >= 1,
             "train_noise.val_repeats", "an integer >= 1", repeats)
-    return {"draw": draw, "sigma": tuple(cfg.noise.measurement_sigma),
-            "weight_offset": offset, "val_repeats": repeats}
+    out = {"draw": draw, "sigma": tuple(cfg.noise.measurement_sigma),
+           "weight_offset": offset, "val_repeats": repeats}
+    truth = cfg.get("truth") or {}
+    if truth.get("gnss_sigma", 0) > 0:  # the drawn noise drifts as the data set's does
+        out["drift"] = (float(truth.gnss_sigma), float(truth.gnss_tau) / cfg.vehicle.dt)
+    return out
 
 
 def prepare_data(cfg: DictConfig) -> tuple[Path, str]:

@@ -7,7 +7,12 @@ told alpha. What it learns:
 - the measurement-noise sigmas R (one per channel): an MLP reads the log mean squares of
   the window's second differences (a statistic dominated by measurement noise, which the
   smooth motion hardly touches) and the mean speed, and outputs log sigma;
-- a scale on the process noise Q (initialised at the noise preset's).
+- a scale on the process noise Q (initialised at the noise preset's);
+- with ``residual > 0``, the model error of the kinematic bicycle: a small net of the inputs
+  V, delta and the process model's own yaw rate of the step before corrects the yaw rate,
+  adds a side slip of the rear axle's velocity and a speed scale. A car that slips turns less
+  than its steering says (understeer) and its rear axle moves sideways; the net learns both
+  from data, and its zero-initialised output starts it as the kinematic bicycle.
 
 With a sixth input channel, ``fix`` (``in_features=6``), steps without a position fix get a
 prediction-only step, the filter starts at the window's first fix, and the noise statistic is
@@ -76,12 +81,14 @@ class FilterObserver(nn.Module):
     measurement_sigma : (3,) measurement sigmas at alpha=1, the scale of the noise model.
     hidden : width of the noise model's two hidden layers.
     in_features : channels per step: 5, or 6 with the ``fix`` channel (missing fixes).
+    residual : width of the process model's learned correction (two hidden layers); 0 keeps
+        the kinematic bicycle.
     """
 
     def __init__(self, window: int, dt: float = 0.02, wheelbase: float = 2.7,
                  process_sigma: Sequence[float] = (0.0667, 0.0667, 0.00113),
                  measurement_sigma: Sequence[float] = (1.0, 1.0, 0.0174),
-                 hidden: int = 32, in_features: int = 5) -> None:
+                 hidden: int = 32, in_features: int = 5, residual: int = 0) -> None:
         super().__init__()
         self.physical = True  # reads and writes metres and radians (see ObserverNet)
         self.feature_modes = ("frame",)
@@ -109,12 +116,37 @@ class FilterObserver(nn.Module):
                                    nn.GELU(), nn.Linear(hidden, 3))
         nn.init.zeros_(self.noise[-1].weight)
         nn.init.zeros_(self.noise[-1].bias)
+        if not (isinstance(residual, int) and not isinstance(residual, bool) and residual >= 0):
+            raise LboError(f"model.residual: expected an integer >= 0 (0: the kinematic "
+                           f"bicycle), got {residual!r}")
+        self.residual = residual
+        self.process: nn.Module = nn.Identity()  # scripted whether or not it is used
+        if residual:
+            # in: V, delta, the kinematic and the previous yaw rate, each scaled to about 1;
+            # out: yaw-rate correction (rad/s), rear side slip (rad), speed scale (_motion)
+            self.process = nn.Sequential(nn.Linear(4, residual), nn.GELU(),
+                                         nn.Linear(residual, residual), nn.GELU(),
+                                         nn.Linear(residual, 3))
+            nn.init.zeros_(self.process[-1].weight)
+            nn.init.zeros_(self.process[-1].bias)
 
     def _step(self, z: torch.Tensor, v: torch.Tensor, delta: torch.Tensor) -> torch.Tensor:
         """One bicycle step of (B, 3) states with inputs (B,)."""
         psi = z[:, 2]
         return z + torch.stack([v * torch.cos(psi), v * torch.sin(psi),
                                 v * torch.tan(delta) / self.wheelbase], -1) * self.dt
+
+    def _motion(self, v: torch.Tensor, delta: torch.Tensor, r_prev: torch.Tensor
+                ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """The process model's speed, rear side slip and yaw rate, each (B,), for inputs and
+        the previous yaw rate (B,): the kinematic bicycle's (v, 0, v tan(delta) / L) corrected
+        by the learned residual."""
+        r_kin = v * torch.tan(delta) / self.wheelbase
+        if self.residual == 0:
+            return v, torch.zeros_like(v), r_kin
+        x = torch.stack([0.1 * v, 10.0 * delta, 2.0 * r_kin, 2.0 * r_prev], -1)
+        d = self.process(x)
+        return v * (1 + 0.05 * d[:, 2]), 0.05 * d[:, 1], r_kin + 0.2 * d[:, 0]
 
     def _fix_residuals(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Mean square residual of each fix against dead reckoning from the previous fix,
@@ -175,11 +207,12 @@ class FilterObserver(nn.Module):
         P = R
         dt = self.dt
         started = x[:, 0, -1] > 0.5  # read only with the fix channel
+        r = x[:, 0, 3] * torch.tan(x[:, 0, 4]) / self.wheelbase
         for k in range(1, n):
-            v, delta = x[:, k - 1, 3], x[:, k - 1, 4]
-            psi = z[:, 2]
-            c, s = torch.cos(psi), torch.sin(psi)
-            z = self._step(z, v, delta)
+            v, beta, r = self._motion(x[:, k - 1, 3], x[:, k - 1, 4], r)
+            course = z[:, 2] + beta  # the rear axle's direction of travel
+            c, s = torch.cos(course), torch.sin(course)
+            z = z + torch.stack([v * c, v * s, r], -1) * dt
             # F = I + dt * [[0, 0, -v s], [0, 0, v c], [0, 0, 0]]
             f02, f12 = -v * s * dt, v * c * dt
             zero = torch.zeros_like(v)
