@@ -26,6 +26,7 @@ from lbo.config import require
 from lbo.datagen.clothoid import sample
 from lbo.datagen.manoeuvres import MANOEUVRES, Chain
 from lbo.datagen.pursuit import drive
+from lbo.dynamic import SingleTrack
 from lbo.errors import LboError
 from lbo.vehicle import Vehicle, measure, wrap_angle
 
@@ -56,14 +57,15 @@ def stop_and_go_speed(dt: float) -> np.ndarray:
     return np.concatenate(out)
 
 
-def drive_stop_and_go(vehicle: Vehicle, process_sigma, rng: np.random.Generator
-                      ) -> dict[str, np.ndarray]:
-    """True states z (T, 3) and inputs u (T, 2) of the stop-and-go drive through town."""
+def drive_stop_and_go(vehicle: Vehicle, process_sigma, rng: np.random.Generator,
+                      car: SingleTrack | None = None) -> dict[str, np.ndarray]:
+    """True states z (T, 3) and inputs u (T, 2) of the stop-and-go drive through town, by the
+    kinematic bicycle or by the dynamic ``car``."""
     speed = stop_and_go_speed(vehicle.dt)
     path = Chain().straight(60).turn(10, -90, 4).straight(70).turn(12, 90, 5).straight(60) \
         .turn(9, 90, 4).straight(200).segments
     out = drive([sample(path, 0.1, lead_in=0.0, tail=100.0)], speed[None], vehicle,
-                np.asarray(process_sigma), rng, ds=0.1)
+                np.asarray(process_sigma), rng, ds=0.1, car=car)
     return {"z": out["z"][0], "u": out["u"][0]}
 
 
@@ -76,7 +78,7 @@ def thin(m: np.ndarray, every: int) -> np.ndarray:
 
 def simulate(cfg: DictConfig) -> pd.DataFrame:
     """The log ``cfg`` describes, as a frame with the test-set columns."""
-    from lbo.datagen.build import drive_paths, spec_from_cfg
+    from lbo.datagen.build import drive_paths, slower_steps, spec_from_cfg
     from lbo.noise import Noise
 
     name = cfg.manoeuvre
@@ -92,17 +94,22 @@ def simulate(cfg: DictConfig) -> pd.DataFrame:
             f"null (a fix at every step) or a rate in Hz in (0, {1 / vehicle.dt:g}]", rate)
     require(isinstance(cfg.seed, int) and cfg.seed >= 0, "seed", "an integer >= 0", cfg.seed)
     rng = np.random.default_rng([cfg.seed, 7])
+    spec = spec_from_cfg(cfg)  # checks the data, noise, vehicle and truth groups
+    truth = spec.truth
     if name == STOP_AND_GO:
-        out = drive_stop_and_go(vehicle, noise.process_sigma, rng)
+        out = drive_stop_and_go(vehicle, noise.process_sigma, rng, truth.car)
         z, u, run_in = out["z"], out["u"], 0
     else:
-        spec = spec_from_cfg(cfg)
         man = MANOEUVRES[name]
         run_in = spec.test["run_in"]
-        out = drive_paths(spec, [man.build()], np.array([man.steps]),
-                          np.array([man.speed_shape]), run_in, spec.test["speed_variation"], rng)
-        z, u = out["z"][0, :run_in + man.steps], out["u"][0, :run_in + man.steps]
+        steps = slower_steps(np.array([man.steps]), spec.test)
+        out = drive_paths(spec, [man.build()], steps, np.array([man.speed_shape]), run_in,
+                          spec.test["speed_variation"], rng)
+        z, u = out["z"][0, :run_in + steps[0]], out["u"][0, :run_in + steps[0]]
     m = measure(z, noise.meas(alpha), rng)
+    if truth.sensors.gnss_sigma > 0:
+        m += truth.sensors.drift((1, len(z)), vehicle.dt, alpha, rng)[0]
+    u = truth.sensors.logged_inputs(u)
     m[:, 2] = wrap_angle(m[:, 2])
     if rate is not None:
         m = thin(m, max(1, int(round(1 / (rate * vehicle.dt)))))

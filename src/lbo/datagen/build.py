@@ -213,7 +213,7 @@ def _scored_frame(spec: Spec, z: np.ndarray, u: np.ndarray, n_real: np.ndarray, 
     return pd.concat(frames, ignore_index=True)
 
 
-def _slower(steps: np.ndarray, block: dict) -> np.ndarray:
+def slower_steps(steps: np.ndarray, block: dict) -> np.ndarray:
     """Scored steps per path at ``speed_factor`` times the paths' speeds (the same paths,
     driven to their ends): the paper's counts at the default 1."""
     factor = block.get("speed_factor", 1.0)
@@ -223,7 +223,7 @@ def _slower(steps: np.ndarray, block: dict) -> np.ndarray:
 def make_val(spec: Spec) -> pd.DataFrame:
     va = spec.val
     seg = validation_path(va["length"], va["amplitude"], va["period"])
-    steps = _slower(np.array([va["steps"]]), va)
+    steps = slower_steps(np.array([va["steps"]]), va)
     out = drive_paths(spec, [seg], steps, np.ones((1, 2)), va["run_in"],
                       va["speed_variation"], _rng(spec, 2))
     return _scored_frame(spec, out["z"], out["u"], va["run_in"] + steps,
@@ -233,7 +233,7 @@ def make_val(spec: Spec) -> pd.DataFrame:
 def make_test(spec: Spec) -> pd.DataFrame:
     te = spec.test
     man = [MANOEUVRES[n] for n in te["manoeuvres"]]
-    steps = _slower(np.array([m.steps for m in man]), te)
+    steps = slower_steps(np.array([m.steps for m in man]), te)
     out = drive_paths(spec, [m.build() for m in man], steps, np.array([m.speed_shape for m in man]),
                       te["run_in"], te["speed_variation"], _rng(spec, 4))
     return _scored_frame(spec, out["z"], out["u"], te["run_in"] + steps, te["run_in"],

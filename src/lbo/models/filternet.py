@@ -83,12 +83,15 @@ class FilterObserver(nn.Module):
     in_features : channels per step: 5, or 6 with the ``fix`` channel (missing fixes).
     residual : width of the process model's learned correction (two hidden layers); 0 keeps
         the kinematic bicycle.
+    drift : also estimate a Gauss-Markov GNSS drift on x and y (two more filter states);
+        its correlation time and its size relative to the white noise are learned.
     """
 
     def __init__(self, window: int, dt: float = 0.02, wheelbase: float = 2.7,
                  process_sigma: Sequence[float] = (0.0667, 0.0667, 0.00113),
                  measurement_sigma: Sequence[float] = (1.0, 1.0, 0.0174),
-                 hidden: int = 32, in_features: int = 5, residual: int = 0) -> None:
+                 hidden: int = 32, in_features: int = 5, residual: int = 0,
+                 drift: bool = False) -> None:
         super().__init__()
         self.physical = True  # reads and writes metres and radians (see ObserverNet)
         self.feature_modes = ("frame",)
@@ -120,6 +123,17 @@ class FilterObserver(nn.Module):
             raise LboError(f"model.residual: expected an integer >= 0 (0: the kinematic "
                            f"bicycle), got {residual!r}")
         self.residual = residual
+        if not isinstance(drift, bool):
+            raise LboError(f"model.drift: expected true or false, got {drift!r}")
+        self.drift = drift
+        # start at a 10 s correlation time and a drift of 0.3 of the white sigma; without
+        # drift, the same values ride along unsaved, so TorchScript compiles either filter
+        for name, value in (("log_drift_tau", math.log(10.0 / dt)),
+                            ("log_drift_ratio", math.log(0.3))):
+            if drift:
+                self.register_parameter(name, nn.Parameter(torch.tensor(value)))
+            else:
+                self.register_buffer(name, torch.tensor(value), persistent=False)
         self.process: nn.Module = nn.Identity()  # scripted whether or not it is used
         if residual:
             # in: V, delta, the kinematic and the previous yaw rate, each scaled to about 1;
@@ -147,6 +161,77 @@ class FilterObserver(nn.Module):
         x = torch.stack([0.1 * v, 10.0 * delta, 2.0 * r_kin, 2.0 * r_prev], -1)
         d = self.process(x)
         return v * (1 + 0.05 * d[:, 2]), 0.05 * d[:, 1], r_kin + 0.2 * d[:, 0]
+
+    def _predict_pose(self, z: torch.Tensor, step: torch.Tensor, r: torch.Tensor
+                      ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        """The process model's prediction of poses z (B, 3) over one step of features
+        ``step`` (B, C) (inputs in channels 3 and 4), r (B,) the previous yaw rate: the new
+        pose, the Jacobian's two off-diagonal entries d x / d psi and d y / d psi, each (B,),
+        and the new yaw rate."""
+        v, beta, r = self._motion(step[:, 3], step[:, 4], r)
+        course = z[:, 2] + beta  # the rear axle's direction of travel
+        c, s = torch.cos(course), torch.sin(course)
+        z = z + torch.stack([v * c, v * s, r], -1) * self.dt
+        # F = I + dt * [[0, 0, -v s], [0, 0, v c], [0, 0, 0]]
+        return z, -v * s * self.dt, v * c * self.dt, r
+
+    def _drift_filter(self, x: torch.Tensor, R: torch.Tensor, Q: torch.Tensor) -> torch.Tensor:
+        """The window filter with two more states: a Gauss-Markov GNSS drift b on x and y,
+        ``b' = phi b``, measured as ``m = pose + [b, 0]``. Its correlation time and its size
+        relative to the white position noise are learned. (B, N, C) features, (B, 3, 3) R and
+        (3, 3) Q -> (B, 3) pose.
+
+        The drift's mean is unobservable from positions alone; what the states buy is a filter
+        that knows its position fixes' errors are correlated, and averages them no further
+        than that allows."""
+        phi = torch.exp(-torch.exp(-self.log_drift_tau))  # exp(-1 / tau), tau in steps
+        white = (R[:, 0, 0] * R[:, 1, 1]) ** 0.25  # (B,) white position sigma
+        var_b = (torch.exp(self.log_drift_ratio) * white) ** 2  # (B,) stationary variance
+        e = torch.eye(5, dtype=x.dtype, device=x.device)
+        pose, drift = e[:3], e[3:]  # selectors: (3, 5) and (2, 5)
+        H = pose + torch.cat([drift, torch.zeros_like(drift[:1])])  # m = pose + [b_x, b_y, 0]
+        Qp = pose.T @ Q @ pose + (var_b * (1 - phi**2))[:, None, None] * (drift.T @ drift)
+        start = self._drift_start(R, var_b, e)
+        z = torch.cat([x[:, 0, :3], torch.zeros_like(x[:, 0, :2])], -1)
+        P = start
+        r = x[:, 0, 3] * torch.tan(x[:, 0, 4]) / self.wheelbase
+        started = x[:, 0, -1] > 0.5  # read only with the fix channel
+        zero = torch.zeros_like(r)
+        one = torch.ones_like(r)
+        for k in range(1, x.shape[1]):
+            p, f02, f12, r = self._predict_pose(z[:, :3], x[:, k - 1], r)
+            z = torch.cat([p, phi * z[:, 3:]], -1)
+            F = torch.stack([torch.stack([one, zero, f02, zero, zero], -1),
+                             torch.stack([zero, one, f12, zero, zero], -1),
+                             torch.stack([zero, zero, one, zero, zero], -1),
+                             torch.stack([zero, zero, zero, phi * one, zero], -1),
+                             torch.stack([zero, zero, zero, zero, phi * one], -1)], -2)
+            P = F @ P @ F.transpose(1, 2) + Qp
+            y = x[:, k, :3] - (H @ z.unsqueeze(-1)).squeeze(-1)
+            y = torch.cat([y[:, :2], _wrap(y[:, 2:])], -1)
+            PH = P @ H.T  # (B, 5, 3)
+            K = PH @ _inverse_sym3(H @ PH + R)
+            z_new = z + (K @ y.unsqueeze(-1)).squeeze(-1)
+            P_new = (e - K @ H) @ P
+            P_new = 0.5 * (P_new + P_new.transpose(1, 2))
+            if self.fixes:  # no fix: the prediction; the first fix: start there
+                f = x[:, k, 5] > 0.5
+                first = (f & ~started)[:, None]
+                restart = torch.cat([x[:, k, :3], torch.zeros_like(z[:, 3:])], -1)
+                z = torch.where(first, restart, torch.where(f[:, None], z_new, z))
+                P = torch.where(first[..., None], start, torch.where(f[:, None, None], P_new, P))
+                started = started | f
+            else:
+                z, P = z_new, P_new
+        return torch.cat([z[:, :2], _wrap(z[:, 2:3])], -1)
+
+    @staticmethod
+    def _drift_start(R: torch.Tensor, var_b: torch.Tensor, e: torch.Tensor) -> torch.Tensor:
+        """(B, 5, 5) covariance of starting at a fix with zero drift: the pose's error is minus
+        the fix's white noise and drift, the drift's is the drift."""
+        xy, bb = e[:2].T @ e[:2], e[3:].T @ e[3:]  # ones at (0, 0), (1, 1) / (3, 3), (4, 4)
+        cross = e[:2].T @ e[3:]  # ones at (0, 3), (1, 4)
+        return e[:3].T @ R @ e[:3] + var_b[:, None, None] * (xy - cross - cross.T + bb)
 
     def _fix_residuals(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Mean square residual of each fix against dead reckoning from the previous fix,
@@ -208,15 +293,12 @@ class FilterObserver(nn.Module):
         dt = self.dt
         started = x[:, 0, -1] > 0.5  # read only with the fix channel
         r = x[:, 0, 3] * torch.tan(x[:, 0, 4]) / self.wheelbase
+        if self.drift:
+            return self._drift_filter(x, R, Q)
         for k in range(1, n):
-            v, beta, r = self._motion(x[:, k - 1, 3], x[:, k - 1, 4], r)
-            course = z[:, 2] + beta  # the rear axle's direction of travel
-            c, s = torch.cos(course), torch.sin(course)
-            z = z + torch.stack([v * c, v * s, r], -1) * dt
-            # F = I + dt * [[0, 0, -v s], [0, 0, v c], [0, 0, 0]]
-            f02, f12 = -v * s * dt, v * c * dt
-            zero = torch.zeros_like(v)
-            one = torch.ones_like(v)
+            z, f02, f12, r = self._predict_pose(z, x[:, k - 1], r)
+            zero = torch.zeros_like(f02)
+            one = torch.ones_like(f02)
             F = torch.stack([torch.stack([one, zero, f02], -1),
                              torch.stack([zero, one, f12], -1),
                              torch.stack([zero, zero, one], -1)], -2)
