@@ -288,13 +288,12 @@ class FilterObserver(nn.Module):
         eye = torch.eye(3, dtype=x.dtype, device=x.device)
         R = r.unsqueeze(-1) * eye  # diagonal matrices, written so that ONNX exports them
         Q = q * eye
-        z = x[:, 0, :3]
-        P = R
-        dt = self.dt
-        started = x[:, 0, -1] > 0.5  # read only with the fix channel
-        r = x[:, 0, 3] * torch.tan(x[:, 0, 4]) / self.wheelbase
         if self.drift:
             return self._drift_filter(x, R, Q)
+        z = x[:, 0, :3]
+        P = R
+        started = x[:, 0, -1] > 0.5  # read only with the fix channel
+        r = x[:, 0, 3] * torch.tan(x[:, 0, 4]) / self.wheelbase
         for k in range(1, n):
             z, f02, f12, r = self._predict_pose(z, x[:, k - 1], r)
             zero = torch.zeros_like(f02)
