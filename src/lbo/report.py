@@ -25,6 +25,9 @@ PAPER_CROSSOVER = {"cnn": 2.0, "lstm": 3.0}
 ROBUST_PEERS = ("ekf", "oracle", "adaptive", "pcrb")
 """What the robust observer is shown against."""
 VARIABLES = (("x", "m", 1.0), ("y", "m", 1.0), ("psi", "mrad", 1e3))
+DYNAMIC_PEERS = ("ekf", "oracle", "adaptive", "oracle_dynamic")
+"""What an observer of a car that slips is shown against: the kinematic EKFs and the EKF told
+the car."""
 
 
 def learned_names(table: pd.DataFrame, model: str) -> list[str]:
@@ -113,6 +116,58 @@ def robust_markdown(table: pd.DataFrame, robust: str) -> list[str]:
             _md(nr.reset_index()), "", "![robust](nrmse_robust.png)", ""]
 
 
+def dynamic_summary(table: pd.DataFrame, low: float = 0.25, high: float = 6.0) -> dict:
+    """The learned observer of a car-that-slips table against its peers over alpha in
+    [low, high]: its name, and the ranges of its NRMSE over the kinematic oracle's, over the
+    dynamic oracle's and over the adaptive EKF's, and of the dynamic oracle's over the
+    kinematic one's, each ``(min, max)``."""
+    learned = [o for o in dict.fromkeys(table["observer"]) if o not in CLASSICAL]
+    if len(learned) != 1:
+        raise ValueError(f"expected one learned observer in the table, got {learned}")
+    nr = table.pivot_table(index="alpha", columns="observer", values="nrmse")
+    nr = nr[(nr.index >= low - 1e-9) & (nr.index <= high + 1e-9)]
+    name = learned[0]
+
+    def span(a: str, b: str) -> tuple[float, float]:
+        r = nr[a] / nr[b]
+        return float(r.min()), float(r.max())
+
+    return {"observer": name, "vs_oracle": span(name, "oracle"),
+            "vs_dynamic": span(name, "oracle_dynamic"), "vs_adaptive": span(name, "adaptive"),
+            "dynamic_vs_oracle": span("oracle_dynamic", "oracle")}
+
+
+def dynamic_markdown(key: str, table: pd.DataFrame) -> list[str]:
+    """The section of a car that slips (``data=<key>``): NRMSE per alpha against the kinematic
+    EKFs and the dynamic oracle, the ratios, RMSE per variable at alpha 1, 3 and 6."""
+    s = dynamic_summary(table)
+    name = s["observer"]
+    peers = _present(table, (name, *DYNAMIC_PEERS))
+    nr = table.pivot_table(index="alpha", columns="observer", values="nrmse")[peers]
+    nr = nr[nr.index.isin([0.25, 0.5, 1.0, 2.0, 3.0, 4.0, 5.0, 6.0])]
+    nr[f"{name} / oracle"] = nr[name] / nr["oracle"]
+    nr[f"{name} / oracle_dynamic"] = nr[name] / nr["oracle_dynamic"]
+    rows = []
+    for alpha in (1.0, 3.0, 6.0):
+        at = table[np.isclose(table["alpha"], alpha)].set_index("observer")
+        for obs in peers:
+            if obs in at.index:
+                rows.append({"alpha": alpha, "observer": obs,
+                             **{f"{v} ({u})": float(at.loc[obs, f"rmse_{v}"] * k)
+                                for v, u, k in VARIABLES}})
+    lo, hi = s["vs_oracle"]
+    dlo, dhi = s["dynamic_vs_oracle"]
+    return [f"## Where learning beats the model: `data={key}`", "",
+            f"`{name}` (`experiment=dynamic`) is never told alpha or the car. Over alpha in "
+            f"[0.25, 6] its NRMSE is {1 - hi:.0%} to {1 - lo:.0%} below the kinematic oracle "
+            f"EKF's (the EKF on the car, `oracle_dynamic`, is {1 - dhi:.0%} to {1 - dlo:.0%} "
+            f"below it), {s['vs_dynamic'][0]:.2f} to {s['vs_dynamic'][1]:.2f} times the "
+            f"dynamic oracle's, and {s['vs_adaptive'][0]:.2f} to {s['vs_adaptive'][1]:.2f} "
+            "times the adaptive EKF's.", "",
+            _md(nr.reset_index()), "", "RMSE per variable (psi in mrad):", "",
+            _md(pd.DataFrame(rows)), "", f"![{key}](nrmse_{key}.png)", ""]
+
+
 def crossover_markdown(table: pd.DataFrame) -> list[str]:
     """Where each learned observer crosses the EKF."""
     learned = [o for o in dict.fromkeys(table["observer"])
@@ -145,7 +200,8 @@ def _md(df: pd.DataFrame, digits: int = 3) -> str:
 
 def markdown(scale: str, tables: dict[str, pd.DataFrame], table: pd.DataFrame,
              best: dict[str, str | None], runs: dict[str, str], stages: dict[str, dict],
-             robust: str | None = None) -> str:
+             robust: str | None = None,
+             dynamic: dict[str, pd.DataFrame] | None = None) -> str:
     """report.md: the tables, crossovers, best windows, run ids and stage times."""
     out = [f"# lbo report: scale `{scale}`", "",
            "RMSE of the EKF and of the best CNN and LSTM, ours beside the paper's "
@@ -169,19 +225,23 @@ def markdown(scale: str, tables: dict[str, pd.DataFrame], table: pd.DataFrame,
     out += crossover_markdown(table)
     if robust is not None:
         out += robust_markdown(table, robust)
+    for key, t in (dynamic or {}).items():
+        out += dynamic_markdown(key, t)
     out += ["## Runs", "", "| observer | MLflow run id |", "|---|---|"]
     out += [f"| {k} | `{v}` |" for k, v in sorted(runs.items())]
     out += ["", "## Stages", "", "| stage | status | seconds |", "|---|---|---|"]
     out += [f"| {k} | {v.get('status', '')} | {v.get('seconds', float('nan')):.1f} |"
             for k, v in stages.items()]
+    extra = ([" nrmse_robust.png"] if robust else []) + [f" nrmse_{k}.png" for k in dynamic or {}]
     out += ["", "Figures: friction_circle.png, nrmse_cnn.png, nrmse_lstm.png, nrmse_all.png, "
-            "trajectory_alpha3.png" + (", nrmse_robust.png." if robust else "."), ""]
+            "trajectory_alpha3.png" + "".join("," + e for e in extra) + ".", ""]
     return "\n".join(out)
 
 
 def write(folder: str | Path, scale: str, table: pd.DataFrame, runs: dict[str, str],
           stages: dict[str, dict], trajectory: dict[str, np.ndarray] | None = None,
-          friction_png: str | Path | None = None, robust: str | None = None) -> list[Path]:
+          friction_png: str | Path | None = None, robust: str | None = None,
+          dynamic: dict[str, pd.DataFrame] | None = None) -> list[Path]:
     """Write every report file into ``folder``; returns their paths.
 
     Parameters
@@ -193,6 +253,9 @@ def write(folder: str | Path, scale: str, table: pd.DataFrame, runs: dict[str, s
     friction_png : the data set's friction_circle.png, copied beside the report.
     robust : the name of the robust observer in ``table``, which gets a section and
         ``nrmse_robust.png`` of its own.
+    dynamic : data-set name -> score table of the car-that-slips study on that set (one
+        learned observer and the peers of :data:`DYNAMIC_PEERS`): a section, ``<name>.csv``
+        and ``nrmse_<name>.png`` each.
     """
     folder = Path(folder)
     table = with_oracle_ratio(table)
@@ -218,6 +281,14 @@ def write(folder: str | Path, scale: str, table: pd.DataFrame, runs: dict[str, s
     written.append(plots.save(plots.nrmse_curves(table, "best observers, classical peers and "
                                                  "the PCRB", observers=every),
                               folder / "nrmse_all.png"))
+    for key, t in (dynamic or {}).items():
+        with atomic_path(folder / f"{key}.csv") as tmp:
+            t.to_csv(tmp, index=False)
+        name = dynamic_summary(t)["observer"]
+        written += [folder / f"{key}.csv", plots.save(plots.nrmse_curves(
+            t, f"a car that slips (data={key}): {name} against the kinematic EKFs and the EKF "
+            "told the car", observers=_present(t, (name, *DYNAMIC_PEERS))),
+            folder / f"nrmse_{key}.png")]
     if trajectory is not None:
         written.append(plots.save(plots.trajectory(**trajectory), folder / "trajectory_alpha3.png"))
     if friction_png is not None and Path(friction_png).is_file():
@@ -225,5 +296,6 @@ def write(folder: str | Path, scale: str, table: pd.DataFrame, runs: dict[str, s
             tmp.write_bytes(Path(friction_png).read_bytes())
         written.append(folder / "friction_circle.png")
     written.append(write_text(folder / "report.md",
-                              markdown(scale, tables, table, best, runs, stages, robust)))
+                              markdown(scale, tables, table, best, runs, stages, robust,
+                                       dynamic)))
     return written

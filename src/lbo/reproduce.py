@@ -3,8 +3,10 @@
     python -m lbo.reproduce scale=quick
 
 Stages: 1 data, 2 tune (CNN and LSTM at N=20), 3 train the 8 observers with the tuned
-parameters and the robust observer (``experiment=robust``, beyond the paper), 4 evaluate the
-classical observers, 5 write the report. A rerun reuses the
+parameters, the robust observer (``experiment=robust``, beyond the paper) and the observers of
+a car that slips (``experiment=dynamic`` on ``data=dynamic`` and ``dynamic_drift``, scored by
+their own runs on their own test sets), 4 evaluate the classical observers, 5 write the
+report. A rerun reuses the
 cached data sets, the Optuna studies (only missing trials run), the MLflow runs that
 finished with the same config (``resume=true``) and the classical table, and redoes only
 what is missing.
@@ -73,6 +75,8 @@ def run(cfg: DictConfig) -> Path:
     runs = stages.run(3, "train", f"{len(cfg.models) * len(cfg.windows)} observers "
                       f"({', '.join(cfg.models)} x N={list(cfg.windows)}) with the tuned "
                       "parameters" + (", and the robust observer" if cfg.robust else "")
+                      + (f", and on a car that slips ({', '.join(cfg.dynamic_study[scale])})"
+                         if cfg.dynamic_study[scale] else "")
                       + (f", through hydra/launcher={cfg.launcher}" if cfg.launcher else ""),
                       lambda: stage_train(cfg, out, jobs))
     table = stages.run(4, "evaluate", f"classical observers ({', '.join(cfg.classical)}) on "
@@ -148,6 +152,9 @@ def train_jobs(cfg: DictConfig, out: Path) -> list[tuple[str, list[str]]]:
     if cfg.robust:
         jobs.append(("robust", ["experiment=robust", f"data={cfg.scale}",
                                 *cfg.robust_overrides[cfg.scale]]))
+    for data in cfg.dynamic_study[cfg.scale]:
+        jobs.append((data, ["experiment=dynamic", f"data={data}",
+                            *cfg.dynamic_overrides[cfg.scale]]))
     return [(key, [*o, "resume=true", f"output_dir={out / 'runs' / key}", *cfg.overrides,
                    *cfg.train_overrides]) for key, o in jobs]
 
@@ -227,12 +234,17 @@ def stage_report(cfg: DictConfig, out: Path, folder: Path, tuned: dict, runs: di
     """5: the tables and figures, also logged to MLflow as a run of their own."""
     from lbo import report
 
+    study = list(cfg.dynamic_study[cfg.scale])  # scored on test sets of their own
+    dynamic = {key: pd.read_csv(_artifact(runs[key], "evaluation.csv", cfg.tracking_uri))
+               for key in study}
+    run_ids = {f"{runs[key]['name']} on data={key}": runs[key]["run_id"] for key in study}
+    runs = {k: r for k, r in runs.items() if k not in study}
     learned = pd.concat([pd.read_csv(_artifact(r, "evaluation.csv", cfg.tracking_uri))
                          for r in runs.values()], ignore_index=True)
     # each run's table also holds the EKF and oracle rows; the classical stage has them all
     table = pd.concat([learned[~learned["observer"].isin(CLASSICAL)], classical_table],
                       ignore_index=True)
-    run_ids = {r["name"]: r["run_id"] for r in runs.values()}
+    run_ids.update({r["name"]: r["run_id"] for r in runs.values()})
     for model, res in tuned.items():
         if res.get("parent_run_id"):
             run_ids[f"tune-{model}"] = res["parent_run_id"]
@@ -241,7 +253,7 @@ def stage_report(cfg: DictConfig, out: Path, folder: Path, tuned: dict, runs: di
                        cfg.tracking_uri) if best_cnn else None
     robust = runs["robust"]["name"] if "robust" in runs else None
     files = report.write(out, cfg.scale, table, run_ids, record, traj,
-                         folder / "friction_circle.png", robust=robust)
+                         folder / "friction_circle.png", robust=robust, dynamic=dynamic)
     _log_report(cfg, cfg.scale, out, files, folder.name)
     return files, "done"
 

@@ -1,0 +1,116 @@
+"""The observer that learns the model error (experiment=dynamic: filternet with a learned
+process-model residual and drift states) at smoke scale, end to end: trained, scored beside
+the kinematic EKFs and the EKF told the car, reported, streamed on a log."""
+
+import math
+
+import mlflow
+import numpy as np
+import pandas as pd
+import pytest
+import torch
+
+from conftest import compose_cfg, train_in_own_store
+from lbo import report
+from lbo.errors import LboError
+from lbo.models import build_model
+from lbo.observer import Observer
+from lbo.reproduce import train_jobs
+
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
+
+SMOKE = ["data.train.n_traj=16", "data.train.duration=10.0", "data.test.alpha_step=1.0",
+         "data.test.manoeuvres=[double_lane_change,hairpin,braking_in_bend]"]
+
+
+@pytest.fixture(scope="module")
+def dynamic(tmp_path_factory, smoke_data):
+    """experiment=dynamic trained for a few batches on a smoke-sized data=dynamic_drift."""
+    tmp = tmp_path_factory.mktemp("dynamic")
+    cfg, out, uri = train_in_own_store(tmp, smoke_data, "experiment=dynamic",
+                                       "data=dynamic_drift", *SMOKE, "window=60",
+                                       "trainer.max_epochs=1", "trainer.limit_train_batches=4",
+                                       "batch_size=32")
+    return {"cfg": cfg, "out": out, "uri": uri, "dir": tmp / "out"}
+
+
+def test_experiment_trains_on_the_car_that_slips_and_scores_against_its_oracle(dynamic):
+    cfg, out = dynamic["cfg"], dynamic["out"]
+    assert (cfg.truth.name, cfg.truth.gnss_sigma, cfg.model.residual, cfg.model.drift) == \
+        ("dynamic", 0.5, 32, True)
+    table = pd.read_csv(dynamic["dir"] / "evaluation.csv")
+    assert set(table["observer"]) == {"filternet-N60", "ekf", "oracle", "adaptive",
+                                      "oracle_dynamic"}
+    run = mlflow.MlflowClient(dynamic["uri"]).get_run(out["run_id"])
+    assert run.data.metrics["worst_dynamic_oracle_ratio"] > 0
+    psi = table.pivot_table(index="alpha", columns="observer", values="rmse_psi")
+    # the EKF told the car knows where its heading goes in a corner; the kinematic one does not
+    assert (psi.loc[1:, "oracle_dynamic"] < 0.5 * psi.loc[1:, "oracle"]).all()
+    # a few batches moved the learned process model and the drift off their starting values
+    net = Observer.load(out["checkpoint"]).net.net
+    assert net.process[-1].weight.abs().max() > 0
+    assert net.log_drift_tau.item() != pytest.approx(math.log(10.0 / 0.02), abs=1e-9)
+
+
+def test_report_section_where_learning_beats_the_model(dynamic, tmp_path):
+    table = pd.read_csv(dynamic["dir"] / "evaluation.csv")
+    classical = table[table["observer"].isin(["ekf", "oracle"])].copy()
+    files = report.write(tmp_path, "smoke", classical, {}, {}, dynamic={"dynamic_drift": table})
+    text = (tmp_path / "report.md").read_text()
+    assert "## Where learning beats the model: `data=dynamic_drift`" in text
+    assert "times the dynamic oracle's" in text and "![dynamic_drift](nrmse_dynamic_drift.png)" \
+        in text
+    assert tmp_path / "nrmse_dynamic_drift.png" in files
+    pd.testing.assert_frame_equal(pd.read_csv(tmp_path / "dynamic_drift.csv"), table)
+    s = report.dynamic_summary(table)
+    nr = table.pivot_table(index="alpha", columns="observer", values="nrmse").loc[0.25:]
+    assert s["vs_dynamic"][1] == pytest.approx((nr["filternet-N60"] / nr["oracle_dynamic"]).max())
+
+
+def test_the_observer_streams_a_log_of_the_car(dynamic, tmp_path):
+    from lbo.simulate import simulate
+
+    log = simulate(compose_cfg("simulate", ["data=dynamic_drift", "manoeuvre=hairpin",
+                                            "alpha=2"]))
+    obs = Observer.load(dynamic["out"]["checkpoint"])
+    m, u = log[["x_m", "y_m", "psi_m"]].to_numpy(), log[["V", "delta"]].to_numpy()
+    est, valid = obs.run(m, u)
+    assert valid.sum() == len(log) - 59 and np.isfinite(est).all()
+    streamed = np.array([obs.step(m[k], u[k])[0] for k in range(80)])
+    np.testing.assert_allclose(streamed[59:], est[59:80], atol=1e-6)
+    truth = log[["x", "y"]].to_numpy()
+    assert np.sqrt(np.mean((est[valid, :2] - truth[valid]) ** 2)) < 2.0  # metres, at alpha 2
+
+
+def test_residual_and_drift_start_as_the_kinematic_window_filter():
+    torch.manual_seed(0)
+    plain = build_model("filternet", 40).double()
+    rich = build_model("filternet", 40, residual=8, drift=True).double()
+    rich.load_state_dict({**plain.state_dict(), **{k: v for k, v in rich.state_dict().items()
+                                                   if k not in plain.state_dict()}})
+    x = torch.randn(6, 40, 5, dtype=torch.float64) * 0.5
+    x[..., 3], x[..., 4] = 8.0, 0.05 * torch.randn(6, 40, dtype=torch.float64)
+    with torch.no_grad():
+        rich.log_drift_ratio.fill_(-30.0)  # no drift: the two extra states never move
+    torch.testing.assert_close(rich(x), plain(x), rtol=0, atol=1e-12)
+    # without drift the extra values are not saved, so older checkpoints still load
+    assert "log_drift_tau" not in plain.state_dict() and "log_drift_tau" in rich.state_dict()
+
+
+@pytest.mark.parametrize("kwargs, field", [({"residual": -1}, "model.residual"),
+                                           ({"residual": 2.5}, "model.residual"),
+                                           ({"drift": "yes"}, "model.drift")])
+def test_bad_residual_or_drift_names_the_field(kwargs, field):
+    with pytest.raises(LboError, match=field) as e:
+        build_model("filternet", 40, **kwargs)
+    assert "\n" not in str(e.value)
+
+
+def test_reproduce_trains_the_study_beside_the_paper_at_quick_scale(tmp_path):
+    cfg = compose_cfg("reproduce", ["scale=quick", f"report_dir={tmp_path}"])
+    jobs = dict(train_jobs(cfg, tmp_path))
+    assert jobs["dynamic"][:2] == ["experiment=dynamic", "data=dynamic"]
+    assert jobs["dynamic_drift"][:2] == ["experiment=dynamic", "data=dynamic_drift"]
+    assert "resume=true" in jobs["dynamic"]
+    smoke = dict(train_jobs(compose_cfg("reproduce", ["scale=smoke"]), tmp_path))
+    assert "dynamic" not in smoke  # the smoke reproduction stays seconds long
