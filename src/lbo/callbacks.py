@@ -71,7 +71,9 @@ class Evaluation(L.Callback):
         csv, png = self.output_dir / "evaluation.csv", self.output_dir / "nrmse.png"
         with atomic_path(csv) as tmp:
             self.table.to_csv(tmp, index=False)
-        plots.save(plots.nrmse_curves(self.table, title=f"{name} against the EKF"), png)
+        title = (f"{name} on a car that slips, against the kinematic EKFs and the EKF told "
+                 "the car") if truth.car else f"{name} against the EKF"
+        plots.save(plots.nrmse_curves(self.table, title=title), png)
         self.metrics = {f"test_nrmse_alpha_{a:g}": nrmse_at(self.table, name, a)
                         for a in LOGGED_ALPHAS if (abs(self.table["alpha"] - a) < 1e-9).any()}
         ratio = oracle_ratio(self.table, name)

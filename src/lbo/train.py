@@ -220,6 +220,8 @@ def meta(cfg: DictConfig, data_hash: str) -> dict[str, Any]:
     """What a checkpoint carries besides the weights, to rebuild the observer elsewhere."""
     return {"vehicle": OmegaConf.to_container(cfg.vehicle, resolve=True),
             "noise": OmegaConf.to_container(cfg.noise, resolve=True),
+            "truth": OmegaConf.to_container(cfg.truth, resolve=True) if cfg.get("truth")
+            else None,
             "data": cfg.data.name, "data_hash": data_hash, "seed": cfg.seed}
 
 
