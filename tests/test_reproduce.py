@@ -15,7 +15,7 @@ from conftest import kill_when_written
 
 REPORT_FILES = ["rmse_alpha1.csv", "rmse_alpha6.csv", "nrmse.csv", "report.md",
                 "friction_circle.png", "nrmse_cnn.png", "nrmse_lstm.png", "nrmse_all.png",
-                "trajectory_alpha3.png", "nrmse_robust.png"]
+                "trajectory_alpha3.png", "nrmse_robust.png", "nrmse_dynamic.png", "dynamic.csv"]
 
 
 def _sha(path: Path) -> str:
@@ -28,6 +28,7 @@ def command(tmp_path):
             f"optuna_storage=sqlite:///{tmp_path / 'optuna.db'}",
             f"overrides=['data.root={tmp_path / 'data'}']",
             "train_overrides=['trainer.limit_train_batches=4','trainer.max_epochs=1']",
+            "dynamic_study.smoke=[dynamic]",  # the car-that-slips study too, at smoke size
             f"hydra.run.dir={tmp_path / 'hydra'}"]
 
 
@@ -45,7 +46,7 @@ def test_reproduce_smoke_killed_and_resumed_without_duplicates(tmp_path):
     watcher.join()
     assert proc.returncode == -signal.SIGKILL, "".join(seen[-30:])
     assert not (tmp_path / "report" / "report.md").exists()
-    assert "4/9 cnn-N80" not in "".join(seen)  # killed inside the run, after its checkpoint
+    assert "4/10 cnn-N80" not in "".join(seen)  # killed inside the run, after its checkpoint
 
     done = subprocess.run(command(tmp_path), env=env, capture_output=True, text=True)
     assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:]
@@ -77,20 +78,26 @@ def test_reproduce_smoke_killed_and_resumed_without_duplicates(tmp_path):
     md = (report / "report.md").read_text()
     assert "Table I" in md and "overtakes the EKF" in md and "cnn-N20" in md
     assert "Beyond the paper" in md and "crosses the EKF" in md and "filternet-N100" in md
+    assert "## Where learning beats the model: `data=dynamic`" in md
+    dynamic = pd.read_csv(report / "dynamic.csv")  # scored on its own test set, with its oracle
+    assert set(dynamic["observer"]) == {"filternet-N100", "ekf", "oracle", "adaptive",
+                                        "oracle_dynamic"}
     stages = json.loads((report / "stages.json").read_text())
     assert list(stages) == ["data", "tune", "train", "evaluate", "report"]
 
     client = mlflow.MlflowClient(env["MLFLOW_TRACKING_URI"])
     exp = client.get_experiment_by_name("lbo")
     runs = client.search_runs([exp.experiment_id], "attributes.status = 'FINISHED'")
-    trained = [r.info.run_name for r in runs if "optuna_trial" not in r.data.tags
-               and r.info.run_name in expected]
-    assert sorted(trained) == sorted(expected)  # each observer once: no duplicates
+    trained = [(r.info.run_name, r.data.tags["data"]) for r in runs
+               if "optuna_trial" not in r.data.tags and r.info.run_name in expected]
+    assert sorted(trained) == sorted([(n, "smoke") for n in expected]
+                                     + [("filternet-N100", "dynamic")])  # each once
     # every observer's folder holds one best.ckpt, the very file its MLflow run logged (the
     # report reads that artifact): the resumed cnn-N80 replaced the killed run's checkpoint
     for r in runs:
         if r.info.run_name in expected:
-            key = "robust" if r.info.run_name.startswith("filternet") else r.info.run_name
+            key = "dynamic" if r.data.tags["data"] == "dynamic" else "robust" \
+                if r.info.run_name.startswith("filternet") else r.info.run_name
             folder = tmp_path / "report" / "runs" / key / "checkpoints"
             assert [p.name for p in folder.iterdir()] == ["best.ckpt"], key
             logged = mlflow.artifacts.download_artifacts(

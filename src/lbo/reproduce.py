@@ -188,8 +188,11 @@ def stage_train(cfg: DictConfig, out: Path,
 
     start_stage = time.perf_counter()
 
-    def report_line(done: int, run: dict, how: str) -> None:
-        print(f"    {done}/{len(jobs)} {run['name']}: {how}, NRMSE at alpha=1/3/6 "
+    study = set(cfg.dynamic_study[cfg.scale])
+
+    def report_line(done: int, key: str, run: dict, how: str) -> None:
+        on = f" on data={key}" if key in study else ""
+        print(f"    {done}/{len(jobs)} {run['name']}{on}: {how}, NRMSE at alpha=1/3/6 "
               + "/".join(f"{run.get(f'test_nrmse_alpha_{a}', np.nan):.2f}" for a in (1, 3, 6))
               + f"  (stage {time.perf_counter() - start_stage:.0f} s)", flush=True)
 
@@ -199,7 +202,7 @@ def stage_train(cfg: DictConfig, out: Path,
         results = launch(cfg, [o for _, o in jobs], out / "runs", [k for k, _ in jobs])
         for done, ((key, _), res) in enumerate(zip(jobs, results, strict=True), 1):
             runs[key] = res
-            report_line(done, res, "reused" if res.get("reused") else "trained")
+            report_line(done, key, res, "reused" if res.get("reused") else "trained")
     for done, (key, overrides) in enumerate(jobs, 1):
         if key in runs:
             continue
@@ -208,7 +211,7 @@ def stage_train(cfg: DictConfig, out: Path,
         seconds = time.perf_counter() - start
         reused = bool(runs[key].get("reused"))
         left = eta.skipped(done - 1) if reused else eta.finished(done - 1, seconds)
-        report_line(done, runs[key], ("reused" if reused else f"trained in {seconds:.0f} s")
+        report_line(done, key, runs[key], ("reused" if reused else f"trained in {seconds:.0f} s")
                     + (f", ETA {duration(left)}" if done < len(jobs) else ""))
     return runs, "reused" if all(r.get("reused") for r in runs.values()) else "done"
 
