@@ -54,6 +54,9 @@ def test_experiment_trains_on_the_car_that_slips_and_scores_against_its_oracle(d
 
 def test_report_section_where_learning_beats_the_model(dynamic, tmp_path):
     table = pd.read_csv(dynamic["dir"] / "evaluation.csv")
+    box = table[table["observer"] == "filternet-N60"].assign(observer="cnn-N80")
+    box["nrmse"] *= 1.5  # a black-box peer's rows beside it
+    table = pd.concat([table, box], ignore_index=True)
     classical = table[table["observer"].isin(["ekf", "oracle"])].copy()
     files = report.write(tmp_path, "smoke", classical, {}, {}, dynamic={"dynamic_drift": table})
     text = (tmp_path / "report.md").read_text()
@@ -61,8 +64,10 @@ def test_report_section_where_learning_beats_the_model(dynamic, tmp_path):
     assert "times the dynamic oracle's" in text and "![dynamic_drift](nrmse_dynamic_drift.png)" \
         in text
     assert tmp_path / "nrmse_dynamic_drift.png" in files
+    assert "| alpha | filternet-N60 | cnn-N80 | ekf |" in text and "`cnn-N80`" in text
     pd.testing.assert_frame_equal(pd.read_csv(tmp_path / "dynamic_drift.csv"), table)
     s = report.dynamic_summary(table)
+    assert (s["observer"], s["black_boxes"]) == ("filternet-N60", ["cnn-N80"])
     nr = table.pivot_table(index="alpha", columns="observer", values="nrmse").loc[0.25:]
     assert s["vs_dynamic"][1] == pytest.approx((nr["filternet-N60"] / nr["oracle_dynamic"]).max())
 
@@ -112,5 +117,9 @@ def test_reproduce_trains_the_study_beside_the_paper_at_quick_scale(tmp_path):
     assert jobs["dynamic"][:2] == ["experiment=dynamic", "data=dynamic"]
     assert jobs["dynamic_drift"][:2] == ["experiment=dynamic", "data=dynamic_drift"]
     assert "resume=true" in jobs["dynamic"]
+    for model in ("cnn", "lstm"):  # the black-box peers, on the first data set only
+        assert jobs[f"dynamic-{model}"][:3] == ["experiment=dynamic_blackbox", f"model={model}",
+                                                "data=dynamic"]
+        assert f"dynamic_drift-{model}" not in jobs
     smoke = dict(train_jobs(compose_cfg("reproduce", ["scale=smoke"]), tmp_path))
     assert "dynamic" not in smoke  # the smoke reproduction stays seconds long

@@ -117,22 +117,25 @@ def robust_markdown(table: pd.DataFrame, robust: str) -> list[str]:
 
 
 def dynamic_summary(table: pd.DataFrame, low: float = 0.25, high: float = 6.0) -> dict:
-    """The learned observer of a car-that-slips table against its peers over alpha in
-    [low, high]: its name, and the ranges of its NRMSE over the kinematic oracle's, over the
+    """The observer that learns the model error (the learned one that is not a black-box CNN
+    or LSTM) in a car-that-slips table, against its peers over alpha in [low, high]: its name,
+    the black boxes' names, and the ranges of its NRMSE over the kinematic oracle's, over the
     dynamic oracle's and over the adaptive EKF's, and of the dynamic oracle's over the
     kinematic one's, each ``(min, max)``."""
     learned = [o for o in dict.fromkeys(table["observer"]) if o not in CLASSICAL]
-    if len(learned) != 1:
-        raise ValueError(f"expected one learned observer in the table, got {learned}")
+    boxes = [o for o in learned if o.startswith(("cnn", "lstm"))]
+    main = [o for o in learned if o not in boxes]
+    if len(main) != 1:
+        raise ValueError(f"expected one observer besides the black boxes, got {main}")
     nr = table.pivot_table(index="alpha", columns="observer", values="nrmse")
     nr = nr[(nr.index >= low - 1e-9) & (nr.index <= high + 1e-9)]
-    name = learned[0]
+    name = main[0]
 
     def span(a: str, b: str) -> tuple[float, float]:
         r = nr[a] / nr[b]
         return float(r.min()), float(r.max())
 
-    return {"observer": name, "vs_oracle": span(name, "oracle"),
+    return {"observer": name, "black_boxes": boxes, "vs_oracle": span(name, "oracle"),
             "vs_dynamic": span(name, "oracle_dynamic"), "vs_adaptive": span(name, "adaptive"),
             "dynamic_vs_oracle": span("oracle_dynamic", "oracle")}
 
@@ -142,7 +145,7 @@ def dynamic_markdown(key: str, table: pd.DataFrame) -> list[str]:
     EKFs and the dynamic oracle, the ratios, RMSE per variable at alpha 1, 3 and 6."""
     s = dynamic_summary(table)
     name = s["observer"]
-    peers = _present(table, (name, *DYNAMIC_PEERS))
+    peers = _present(table, (name, *s["black_boxes"], *DYNAMIC_PEERS))
     nr = table.pivot_table(index="alpha", columns="observer", values="nrmse")[peers]
     nr = nr[nr.index.isin([0.25, 0.5, 1.0, 2.0, 3.0, 4.0, 5.0, 6.0])]
     nr[f"{name} / oracle"] = nr[name] / nr["oracle"]
@@ -163,7 +166,10 @@ def dynamic_markdown(key: str, table: pd.DataFrame) -> list[str]:
             f"EKF's (the EKF on the car, `oracle_dynamic`, is {1 - dhi:.0%} to {1 - dlo:.0%} "
             f"below it), {s['vs_dynamic'][0]:.2f} to {s['vs_dynamic'][1]:.2f} times the "
             f"dynamic oracle's, and {s['vs_adaptive'][0]:.2f} to {s['vs_adaptive'][1]:.2f} "
-            "times the adaptive EKF's.", "",
+            "times the adaptive EKF's."
+            + (" Black-box peers trained on the same data (`experiment=dynamic_blackbox`): "
+               f"{', '.join(f'`{b}`' for b in s['black_boxes'])}." if s["black_boxes"] else ""),
+            "",
             _md(nr.reset_index()), "", "RMSE per variable (psi in mrad):", "",
             _md(pd.DataFrame(rows)), "", f"![{key}](nrmse_{key}.png)", ""]
 
@@ -284,10 +290,11 @@ def write(folder: str | Path, scale: str, table: pd.DataFrame, runs: dict[str, s
     for key, t in (dynamic or {}).items():
         with atomic_path(folder / f"{key}.csv") as tmp:
             t.to_csv(tmp, index=False)
-        name = dynamic_summary(t)["observer"]
+        s = dynamic_summary(t)
         written += [folder / f"{key}.csv", plots.save(plots.nrmse_curves(
-            t, f"a car that slips (data={key}): {name} against the kinematic EKFs and the EKF "
-            "told the car", observers=_present(t, (name, *DYNAMIC_PEERS))),
+            t, f"a car that slips (data={key}): {s['observer']} against the kinematic EKFs and "
+            "the EKF told the car",
+            observers=_present(t, (s["observer"], *s["black_boxes"], *DYNAMIC_PEERS))),
             folder / f"nrmse_{key}.png")]
     if trajectory is not None:
         written.append(plots.save(plots.trajectory(**trajectory), folder / "trajectory_alpha3.png"))

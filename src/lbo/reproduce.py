@@ -152,11 +152,24 @@ def train_jobs(cfg: DictConfig, out: Path) -> list[tuple[str, list[str]]]:
     if cfg.robust:
         jobs.append(("robust", ["experiment=robust", f"data={cfg.scale}",
                                 *cfg.robust_overrides[cfg.scale]]))
-    for data in cfg.dynamic_study[cfg.scale]:
-        jobs.append((data, ["experiment=dynamic", f"data={data}",
-                            *cfg.dynamic_overrides[cfg.scale]]))
+    for data, keys in dynamic_jobs(cfg).items():
+        for key in keys:
+            model = key.removeprefix(f"{data}-") if key != data else None
+            base = (["experiment=dynamic_blackbox", f"model={model}", f"data={data}"]
+                    if model else ["experiment=dynamic", f"data={data}"])
+            jobs.append((key, [*base, *cfg.dynamic_overrides[cfg.scale]]))
     return [(key, [*o, "resume=true", f"output_dir={out / 'runs' / key}", *cfg.overrides,
                    *cfg.train_overrides]) for key, o in jobs]
+
+
+def dynamic_jobs(cfg: DictConfig) -> dict[str, list[str]]:
+    """Data set of the car-that-slips study -> the keys of its training jobs: the observer
+    that learns the model error (the data set's name), and on the first data set the
+    black-box peers (``<data>-cnn``, ``<data>-lstm``)."""
+    study = list(cfg.dynamic_study[cfg.scale])
+    return {data: [data, *(f"{data}-{m}" for m in (cfg.dynamic_blackbox[cfg.scale]
+                                                   if i == 0 else []))]
+            for i, data in enumerate(study)}
 
 
 def expected(cfg: DictConfig, jobs: list[tuple[str, list[str]]]) -> Eta:
@@ -188,10 +201,10 @@ def stage_train(cfg: DictConfig, out: Path,
 
     start_stage = time.perf_counter()
 
-    study = set(cfg.dynamic_study[cfg.scale])
+    study = {k: data for data, keys in dynamic_jobs(cfg).items() for k in keys}
 
     def report_line(done: int, key: str, run: dict, how: str) -> None:
-        on = f" on data={key}" if key in study else ""
+        on = f" on data={study[key]}" if key in study else ""
         print(f"    {done}/{len(jobs)} {run['name']}{on}: {how}, NRMSE at alpha=1/3/6 "
               + "/".join(f"{run.get(f'test_nrmse_alpha_{a}', np.nan):.2f}" for a in (1, 3, 6))
               + f"  (stage {time.perf_counter() - start_stage:.0f} s)", flush=True)
@@ -237,11 +250,14 @@ def stage_report(cfg: DictConfig, out: Path, folder: Path, tuned: dict, runs: di
     """5: the tables and figures, also logged to MLflow as a run of their own."""
     from lbo import report
 
-    study = list(cfg.dynamic_study[cfg.scale])  # scored on test sets of their own
-    dynamic = {key: pd.read_csv(_artifact(runs[key], "evaluation.csv", cfg.tracking_uri))
-               for key in study}
-    run_ids = {f"{runs[key]['name']} on data={key}": runs[key]["run_id"] for key in study}
-    runs = {k: r for k, r in runs.items() if k not in study}
+    study = dynamic_jobs(cfg)  # scored on test sets of their own
+    dynamic = {data: pd.concat([pd.read_csv(_artifact(runs[k], "evaluation.csv",
+                                                      cfg.tracking_uri)) for k in keys],
+                               ignore_index=True).drop_duplicates(["observer", "alpha"])
+               for data, keys in study.items()}
+    mine = {k: data for data, keys in study.items() for k in keys}
+    run_ids = {f"{runs[k]['name']} on data={data}": runs[k]["run_id"] for k, data in mine.items()}
+    runs = {k: r for k, r in runs.items() if k not in mine}
     learned = pd.concat([pd.read_csv(_artifact(r, "evaluation.csv", cfg.tracking_uri))
                          for r in runs.values()], ignore_index=True)
     # each run's table also holds the EKF and oracle rows; the classical stage has them all
