@@ -39,7 +39,15 @@ import numpy as np
 from lbo import dynamic
 from lbo.dynamic import SingleTrack
 from lbo.errors import LboError
-from lbo.filters import COV_FLOOR, _batch_cov, _check_q, _check_trajectories, _where_fix, fixes
+from lbo.filters import (
+    COV_FLOOR,
+    _batch_cov,
+    _check_q,
+    _check_trajectories,
+    _where_fix,
+    fixes,
+    run_stepper,
+)
 from lbo.vehicle import Vehicle, wrap_angle
 
 P0_LATERAL_SIGMA = (0.5, 0.2)
@@ -293,13 +301,5 @@ def dynamic_ekf_batch(m: np.ndarray, u: np.ndarray, vehicle: Vehicle, car: Singl
         raise LboError("measurements m must have at least one step, got T = 0")
     kf = DynamicStepper(m[:, 0], vehicle, car, Q, np.array(_batch_cov(R, g, "R")), gnss_sigma,
                         gnss_tau, steering_offset, speed_scale, u0=u[:, 0])
-    est = np.empty_like(m)
-    est[:, 0] = kf.x[:, :3]
-    covs = np.empty((g, t, 3, 3)) if return_cov else None
-    if return_cov:
-        covs[:, 0] = kf.pose_cov
-    for k in range(1, t):
-        est[:, k] = kf.update(m[:, k], u[:, k - 1])
-        if return_cov:
-            covs[:, k] = kf.pose_cov
-    return (est, covs) if return_cov else est
+    return run_stepper(kf, m, u, return_cov, pose=lambda kf: kf.x[:, :3],
+                       cov=lambda kf: kf.pose_cov)

@@ -24,6 +24,9 @@ first row of every trajectory must be a fix, as the filters start there.
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from typing import Any
+
 import numpy as np
 from filterpy.kalman import ExtendedKalmanFilter, MerweScaledSigmaPoints, UnscentedKalmanFilter
 from tqdm.auto import tqdm
@@ -268,17 +271,28 @@ def _ekf_loop(m: np.ndarray, u: np.ndarray, vehicle: Vehicle, Q: np.ndarray, R: 
               return_cov: bool, **adaptive):
     """Shared time loop of :func:`ekf_batch` and :func:`adaptive_ekf_batch`."""
     m, u = _check_trajectories(m, u)
+    kf = KalmanStepper(m[:, 0], vehicle, _check_q(Q), _batch_cov(R, m.shape[0], "R"), **adaptive)
+    return run_stepper(kf, m, u, return_cov)
+
+
+def run_stepper(kf, m: np.ndarray, u: np.ndarray, return_cov: bool = False,
+                pose: Callable[[Any], np.ndarray] = lambda kf: kf.x,
+                cov: Callable[[Any], np.ndarray] = lambda kf: kf.P):
+    """The time loop of a batch filter: a stepper ``kf`` started at ``m[:, 0]``, updated with
+    every later step. ``pose(kf)`` (G, 3) and ``cov(kf)`` (G, 3, 3) read its estimate and
+    covariance. Returns (G, T, 3) estimates, and (G, T, 3, 3) covariances with
+    ``return_cov``."""
     g, t = m.shape[:2]
-    kf = KalmanStepper(m[:, 0], vehicle, _check_q(Q), _batch_cov(R, g, "R"), **adaptive)
     est = np.empty_like(m)
-    est[:, 0] = kf.x
+    est[:, 0] = pose(kf)
     covs = np.empty((g, t, 3, 3)) if return_cov else None
     if return_cov:
-        covs[:, 0] = kf.P
+        covs[:, 0] = cov(kf)
     for k in range(1, t):
-        est[:, k] = kf.update(m[:, k], u[:, k - 1])
+        kf.update(m[:, k], u[:, k - 1])
+        est[:, k] = pose(kf)
         if return_cov:
-            covs[:, k] = kf.P
+            covs[:, k] = cov(kf)
     return (est, covs) if return_cov else est
 
 
