@@ -6,6 +6,10 @@ from typing import Any
 
 from lbo.errors import LboError
 
+SCHEDULES = ("constant", "cosine")
+"""The values of ``lr_schedule`` (:class:`lbo.module.ObserverModule`), here so that the
+training config is checked without importing Lightning."""
+
 
 def require(ok: bool, field: str, form: str, value: Any) -> None:
     """Raise ``LboError("<field> must be <form>, got <value>")`` unless ok."""

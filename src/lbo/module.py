@@ -9,12 +9,13 @@ from typing import Any
 import lightning as L
 import torch
 
+from lbo.config import SCHEDULES
 from lbo.errors import TrainingDiverged
 from lbo.network import ObserverNet
 
 # Bumped when the checkpoint layout changes; lbo refuses checkpoints it cannot read.
 CHECKPOINT_FORMAT = 1
-SCHEDULES = ("constant", "cosine")
+__all__ = ["CHECKPOINT_FORMAT", "SCHEDULES", "ObserverModule"]
 
 
 class ObserverModule(L.LightningModule):

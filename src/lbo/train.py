@@ -12,26 +12,25 @@ import subprocess
 import sys
 import warnings
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-import lightning as L
 import torch
 from hydra.utils import instantiate
-from lightning.pytorch.callbacks import ModelCheckpoint
-from lightning.pytorch.loggers import MLFlowLogger
 from omegaconf import DictConfig, OmegaConf, open_dict
 
 from lbo.atomic import write_text
 from lbo.cli import entry
-from lbo.config import integer, number, require
+from lbo.config import SCHEDULES, integer, number, require
 from lbo.draws import SOURCES, AlphaDraw, fix_periods
 from lbo.errors import LboError
 from lbo.features import FEATURE_MODES
-from lbo.module import SCHEDULES
 from lbo.paths import REPO_ROOT
 from lbo.redact import scrub, scrub_tree
 from lbo.runfolder import claim
 from lbo.tracking import check_store, ensure_experiment
+
+if TYPE_CHECKING:  # Lightning takes seconds to import: only a training run needs it
+    import lightning as L
 
 # Lightning 2.6 on torch 2.13 warns once per fit about its own use of a torch API; a sweep or a
 # study would print it once per run
@@ -247,6 +246,10 @@ def train(cfg: DictConfig, callbacks: list[L.Callback] | None = None,
 
 def _train(cfg: DictConfig, callbacks: list[L.Callback] | None,
            tags: dict[str, str] | None) -> dict[str, Any]:
+    import lightning as L
+    from lightning.pytorch.callbacks import ModelCheckpoint
+    from lightning.pytorch.loggers import MLFlowLogger
+
     from lbo.callbacks import Evaluation
     from lbo.module import ObserverModule
 
