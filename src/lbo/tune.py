@@ -304,6 +304,8 @@ def _run_study(cfg: DictConfig, space: list[Param], pruner: optuna.pruners.BaseP
     status, handoff, best = "FAILED", None, None
     from lbo.tune_callbacks import Interrupts
 
+    if _QUIET["lightning"]:  # Lightning sets its logger to INFO when first imported, above
+        logging.getLogger("lightning.pytorch").setLevel(logging.WARNING)
     interrupts = Interrupts()
     interrupts.install()
     try:
@@ -458,9 +460,13 @@ def train_command(model: str, handoff: Path) -> str:
     return command
 
 
+_QUIET = {"lightning": False}
+
+
 def quiet() -> None:
     """One line per trial from :func:`tune` instead of Optuna's and Lightning's own chatter."""
     optuna.logging.set_verbosity(optuna.logging.WARNING)
+    _QUIET["lightning"] = True
     logging.getLogger("lightning.pytorch").setLevel(logging.WARNING)
 
 
