@@ -7,6 +7,7 @@ import os
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 from lbo.errors import LboError
 
@@ -52,3 +53,12 @@ def write_text(path: str | Path, text: str) -> Path:
     with atomic_path(path) as tmp:
         tmp.write_text(text)
     return Path(path)
+
+
+def data_lock(folder: Path) -> Any:
+    """The lock of a data-set folder: jobs of a parallel sweep share one data set, the first
+    generates it and the others wait; whoever writes into the folder holds it."""
+    from filelock import FileLock
+
+    folder.parent.mkdir(parents=True, exist_ok=True)
+    return FileLock(folder.parent / f".{folder.name}.lock", timeout=-1)

@@ -9,8 +9,9 @@ import lightning as L
 import pandas as pd
 from lightning.pytorch.loggers import MLFlowLogger
 
-from lbo import plots
+from lbo import logscore, plots
 from lbo.atomic import atomic_path
+from lbo.datagen.logs import is_log_folder, test_files
 from lbo.evaluate import (
     classical_table,
     load_test,
@@ -57,11 +58,44 @@ class Evaluation(L.Callback):
         net, hp = read_checkpoint(best) if best else (pl_module.observer, pl_module.hparams)
         vehicle, noise = trained_conditions(hp, best or "(in memory)")
         folder = Path(trainer.datamodule.folder)
+        name = f"{hp['model']['name']}-N{hp['window']}"
+        device = str(trainer.strategy.root_device)
+        if is_log_folder(folder):
+            self._score_logs(folder, net, hp, name, vehicle, noise, device)
+        else:
+            self._score_grid(folder, net, hp, name, vehicle, noise, device)
+        self.metrics["eval_seconds"] = time.perf_counter() - start
+        logger = self.mlflow or trainer.logger
+        if isinstance(logger, MLFlowLogger):
+            client, run = logger.experiment, logger.run_id
+            for key, value in self.metrics.items():
+                client.log_metric(run, key, value)
+            client.log_artifact(run, str(self.output_dir / "evaluation.csv"))
+            client.log_artifact(run, str(self.output_dir / "nrmse.png"))
+            if best:
+                client.log_artifact(run, best, artifact_path="checkpoints")
+
+    def _score_logs(self, folder: Path, net, hp: dict, name: str, vehicle, noise,
+                    device: str) -> None:
+        """A user's test logs: the learned observer beside the EKF, the adaptive EKF and the
+        UKF, pooled and per file (:mod:`lbo.logscore`)."""
+        arr = logscore.load(folder)
+        est = predict_grid(net, arr, hp["window"], self.batch_size, device=device)
+        estimates = {name: est, **logscore.peer_estimates(arr, vehicle, noise)}
+        self.table = logscore.table(estimates, arr, test_files(folder))
+        with atomic_path(self.output_dir / "evaluation.csv") as tmp:
+            self.table.to_csv(tmp, index=False)
+        plots.save(logscore.figure(self.table, f"{name} on the test logs"),
+                   self.output_dir / "nrmse.png")
+        self.metrics = logscore.metrics(self.table, name)
+        print(f"test logs ({logscore.NOTE}):\n{logscore.printable(self.table)}")
+
+    def _score_grid(self, folder: Path, net, hp: dict, name: str, vehicle, noise,
+                    device: str) -> None:
+        """The test grid of a generated data set, per alpha level."""
         arr = load_test(folder / "test.parquet")
         ref = reference(arr, vehicle, noise, self.reference)
-        name = f"{hp['model']['name']}-N{hp['window']}"
-        est = predict_grid(net, arr, hp["window"], self.batch_size,
-                           device=str(trainer.strategy.root_device))
+        est = predict_grid(net, arr, hp["window"], self.batch_size, device=device)
         truth = of_folder(folder, vehicle.wheelbase)
         # a car that slips: the kinematic peers, and the floor of the filter told the car
         peers = ["ekf", "oracle"] + (["adaptive", "oracle_dynamic"] if truth.car else [])
@@ -82,13 +116,3 @@ class Evaluation(L.Callback):
         if truth.car is not None and len(ratio):
             self.metrics["worst_dynamic_oracle_ratio"] = float(
                 oracle_ratio(self.table, name, oracle="oracle_dynamic").max())
-        self.metrics["eval_seconds"] = time.perf_counter() - start
-        logger = self.mlflow or trainer.logger
-        if isinstance(logger, MLFlowLogger):
-            client, run = logger.experiment, logger.run_id
-            for key, value in self.metrics.items():
-                client.log_metric(run, key, value)
-            client.log_artifact(run, str(csv))
-            client.log_artifact(run, str(png))
-            if best:
-                client.log_artifact(run, best, artifact_path="checkpoints")

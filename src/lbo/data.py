@@ -157,9 +157,11 @@ class FixedDataset(Dataset):
 
 
 def _check_window(window: int, lengths: np.ndarray, first_scored: int | None, name: str) -> None:
-    if window > lengths.min():
-        raise LboError(f"window={window} is longer than the shortest {name} trajectory "
-                       f"({int(lengths.min())} steps); choose window <= {int(lengths.min())}")
+    longest = int(lengths.max())
+    if window > longest:  # shorter trajectories (segments of a user's logs) give no window
+        what = "shortest" if lengths.min() == longest else "longest"
+        raise LboError(f"window={window} is longer than the {what} {name} trajectory "
+                       f"({longest} steps); choose window <= {longest}")
     if first_scored is not None and window - 1 > first_scored:
         raise LboError(f"window={window} needs {window - 1} steps of history, but the {name} "
                        f"set scores from step {first_scored}; choose window <= {first_scored + 1}")
@@ -215,6 +217,11 @@ class WindowDataModule(L.LightningDataModule):
             lengths = df.groupby("traj", sort=False).size().to_numpy()
             first = int(df.loc[df["scored"], "k"].min()) if "scored" in df else None
             _check_window(self.window, lengths, first, name)
+        if self.draw is None and not self.fix_periods and train[list(schema.MEAS)].isna().any(
+                axis=None):
+            raise LboError("the training set has steps without a position fix (GNSS slower than "
+                           "the inputs): train with fix_rates (e.g. fix_rates=[10]) so that the "
+                           "observer takes them, or with drawn noise (train_noise=paper)")
         noise = {"draw": self.draw, "sigma": self.sigma, "weight_offset": self.weight_offset,
                  "fix_periods": self.fix_periods, "drift": self.drift}
         self.train_set = WindowDataset(*rows(train), window_ends(train["k"].to_numpy(),

@@ -147,9 +147,13 @@ def run(cfg: DictConfig) -> Path:
     """Score the configured classical observers; write evaluation.csv and nrmse_classical.png."""
     from lbo import plots
     from lbo.datagen.build import build, spec_from_cfg
+    from lbo.datagen.logs import is_logs
     from lbo.truth import from_cfg as truth_from_cfg
 
     observers = list(cfg.observers)
+    learned = [str(s) for s in cfg.get("learned") or []]
+    if is_logs(cfg):
+        return run_logs(cfg, observers, learned)
     check_observers(observers)
     if cfg.metric.reference not in REFERENCES:
         raise LboError(f"metric.reference must be one of {list(REFERENCES)}, "
@@ -166,7 +170,12 @@ def run(cfg: DictConfig) -> Path:
                          DYNAMIC)  # a car that slips: its oracle is the floor to show
     arr = load_test(path)
     ref = reference(arr, vehicle, noise, cfg.metric.reference)
+    nets = learned_nets(learned)
     table = classical_table(arr, vehicle, noise, observers, ref, progress=True, truth=truth)
+    if nets:
+        table = pd.concat([*(score(name, predict_grid(net, arr, net.window), arr, ref)
+                             for name, net in nets.items()), table], ignore_index=True)
+        observers = [*nets, *observers]
     out = Path(cfg.output_dir)
     csv = out / "evaluation.csv"
     with atomic_path(csv) as tmp:
@@ -178,6 +187,54 @@ def run(cfg: DictConfig) -> Path:
         print(f"NRMSE (E_ref = {cfg.metric.reference}: {ref[0]:.3f} m, {ref[1]:.3f} m, "
               f"{ref[2] * 1e3:.2f} mrad)")
         print(pivot.to_string())
+    print(f"evaluation: {csv}")
+    return csv
+
+
+def learned_nets(sources: Sequence[str]) -> dict:
+    """name (``cnn-N20``, ...) -> the net of each learned observer in ``sources`` (checkpoint
+    files, MLflow run ids, runs:/ or models:/ URIs), all read before any scoring starts."""
+    from lbo.observer import load_net
+
+    nets: dict = {}
+    for source in sources:
+        net, hp = load_net(source)
+        name = base = f"{hp['model']['name']}-N{hp['window']}"
+        i = 2
+        while name in nets:  # two observers of one architecture and window
+            name, i = f"{base}-{i}", i + 1
+        nets[name] = net
+    return nets
+
+
+def run_logs(cfg: DictConfig, observers: list[str], learned: list[str]) -> Path:
+    """``data=logs``: score the classical peers that run on a log (and ``learned``
+    observers) on the test logs, pooled and per file (:mod:`lbo.logscore`); write
+    evaluation.csv and nrmse_logs.png."""
+    from lbo import logscore, plots
+    from lbo.datagen.logs import build, spec_from_cfg, test_files
+
+    spec = spec_from_cfg(cfg, need=("test",))
+    peers = [o for o in observers if o in logscore.PEERS]
+    left_out = [o for o in observers if o not in logscore.PEERS]
+    check_observers(observers)
+    if "ekf" not in peers:
+        peers.insert(0, "ekf")  # the reference of the NRMSE
+    nets = learned_nets(learned)
+    folder = build(spec)[0]
+    arr = logscore.load(folder)
+    estimates = {name: predict_grid(net, arr, net.window) for name, net in nets.items()}
+    estimates.update(logscore.peer_estimates(arr, spec.vehicle, spec.noise, peers))
+    table = logscore.table(estimates, arr, test_files(folder))
+    out = Path(cfg.output_dir)
+    csv = out / "evaluation.csv"
+    with atomic_path(csv) as tmp:
+        table.to_csv(tmp, index=False)
+    plots.save(logscore.figure(table, "observers on the test logs"), out / "nrmse_logs.png")
+    print(f"note: {logscore.NOTE}"
+          + (f" (left out: {', '.join(left_out)})" if left_out else ""))
+    print(f"pooled over {len(test_files(folder))} test log(s):")
+    print(logscore.printable(table))
     print(f"evaluation: {csv}")
     return csv
 

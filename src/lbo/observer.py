@@ -536,6 +536,14 @@ def read_checkpoint(path: str | os.PathLike, features: str | None = None,
     return net.to(device).eval(), hp
 
 
+def load_net(source: str, device: str = "cpu") -> tuple[Any, dict[str, Any]]:
+    """The :class:`~lbo.network.ObserverNet` and hyperparameters of a learned observer named
+    as :meth:`Observer.load` takes it (a checkpoint file, an MLflow run id, a ``runs:/`` or
+    ``models:/`` URI); raises LboError naming the problem."""
+    with _checkpoint_file(str(source)) as path:
+        return read_checkpoint(path, device=device)
+
+
 def trained_conditions(hp: dict[str, Any], path: str | os.PathLike) -> tuple[Vehicle, Noise]:
     """The vehicle and noise preset a checkpoint was trained with (``hp["meta"]``), for the
     reference filters and the streaming fallback; raises LboError naming the file."""

@@ -21,6 +21,7 @@ from omegaconf import DictConfig, OmegaConf, open_dict
 from lbo.atomic import write_text
 from lbo.cli import entry
 from lbo.config import SCHEDULES, integer, number, require
+from lbo.datagen.logs import is_logs
 from lbo.draws import SOURCES, AlphaDraw, fix_periods
 from lbo.errors import LboError
 from lbo.features import FEATURE_MODES
@@ -65,7 +66,11 @@ def check(cfg: DictConfig) -> None:
     require(reference in REFERENCES, "metric.reference", f"one of {list(REFERENCES)}",
             reference)
     noise_settings(cfg)
-    build_net(cfg)  # the model's own checks (its parameters, feature modes) before any data
+    net = build_net(cfg)  # the model's own checks (its parameters, feature modes) before any data
+    if cfg.get("init_from"):
+        initial_weights(cfg, net)
+    if is_logs(cfg):
+        logs_spec(cfg)  # the logs named, found and of the right kind, before any run opens
     if cfg.get("logger") and cfg.logger.get("tracking_uri"):
         check_store(cfg.logger.tracking_uri)
     if cfg.trainer.accelerator == "gpu" and not torch.cuda.is_available():
@@ -105,6 +110,46 @@ def build_net(cfg: DictConfig):
 
     model = OmegaConf.to_container(cfg.model, resolve=True)
     return ObserverNet(model.pop("name"), cfg.window, cfg.features, fixes(cfg), **model)
+
+
+def initial_weights(cfg: DictConfig, net) -> dict[str, torch.Tensor]:
+    """The weights ``init_from`` gives ``net``: every tensor of that observer whose name and
+    shape ``net`` shares (its normalisation too). Tensors only ``net`` has (e.g. a residual
+    the source was trained without) keep their fresh initialisation, and are named.
+
+    Raises LboError naming ``init_from`` for an unreadable source, another architecture or
+    feature mode, or a tensor whose shape differs (another size or window).
+    """
+    from lbo.observer import load_net
+
+    source = str(cfg.init_from)
+    try:
+        src, hp = load_net(source)
+    except LboError as e:
+        raise LboError(f"init_from: {e}") from None
+    name = hp["model"]["name"]
+    require(name == cfg.model.name, "init_from",
+            f"an observer of this run's model={cfg.model.name} ({source} is a {name})", source)
+    require(hp["features"] == cfg.features, "init_from",
+            f"an observer of features={cfg.features} ({source} has features={hp['features']})",
+            source)
+    own, theirs = net.state_dict(), src.state_dict()
+    for key, value in theirs.items():
+        if key in own and own[key].shape != value.shape:
+            raise LboError(f"init_from: {source} has {key} of shape {tuple(value.shape)}, this "
+                           f"run's {cfg.model.name}-N{cfg.window} {tuple(own[key].shape)}; give "
+                           "the window, fix_rates and model sizes it was trained with")
+    fresh = [k for k in own if k not in theirs]
+    if fresh:
+        print(f"init_from: {len(fresh)} tensor(s) that {source} lacks start fresh: "
+              f"{', '.join(fresh[:6])}{' ...' if len(fresh) > 6 else ''}")
+    return {k: v for k, v in theirs.items() if k in own}
+
+
+def logs_spec(cfg: DictConfig):
+    from lbo.datagen.logs import spec_from_cfg
+
+    return spec_from_cfg(cfg)
 
 
 def fixes(cfg: DictConfig) -> bool:
@@ -167,11 +212,9 @@ def prepare_data(cfg: DictConfig) -> tuple[Path, str]:
             raise LboError(f"data_dir: no train.parquet in {folder} "
                            "(give a folder printed by `python -m lbo.datagen`)")
         return folder, folder.name
-    from lbo.datagen.build import build, spec_from_cfg
+    from lbo.datagen.build import build_from_cfg
 
-    spec = spec_from_cfg(cfg)
-    folder, _, _ = build(spec)
-    return folder, spec.digest
+    return build_from_cfg(cfg)
 
 
 def config_hash(cfg: DictConfig) -> str:
@@ -270,6 +313,9 @@ def _train(cfg: DictConfig, callbacks: list[L.Callback] | None,
                             cfg.features, instantiate(cfg.optimizer), meta(cfg, data_hash),
                             cfg.get("lr_schedule", "constant"), fixes(cfg))
     module.observer.set_normalisation(**dm.normalisation(cfg.features))
+    if cfg.get("init_from"):  # fine-tuning: its weights and its normalisation
+        module.observer.load_state_dict(initial_weights(cfg, module.observer), strict=False)
+        print(f"init_from: starting from the weights of {cfg.init_from}")
 
     name = f"{cfg.model.name}-N{cfg.window}"
     tags = {"git_commit": git_commit(), "data_hash": data_hash, "data": cfg.data.name,

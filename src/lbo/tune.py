@@ -232,6 +232,23 @@ def tune(cfg: DictConfig) -> dict[str, Any]:
         close_storage(storage)  # a worker leaves no connection open, whatever happened
 
 
+def check_same_logs(study: optuna.Study, cfg: DictConfig) -> None:
+    """On ``data=logs``, a study holds the trials of one set of logs (the digest of their
+    bytes): resuming it on other logs would compare losses of different data. Raises one line
+    naming ``tune.study_name``; records the digest on a new study."""
+    from lbo.datagen.logs import is_logs
+    from lbo.train import logs_spec
+
+    if not is_logs(cfg):
+        return
+    digest = logs_spec(cfg).digest
+    held = study.user_attrs.get("logs_digest")
+    if held is not None and held != digest:
+        raise LboError(f"tune.study_name: study {study.study_name!r} was tuned on other logs "
+                       f"(logs-{held}, these are logs-{digest}); give another tune.study_name")
+    study.set_user_attr("logs_digest", digest)
+
+
 def _run_study(cfg: DictConfig, space: list[Param], pruner: optuna.pruners.BasePruner,
                storage: optuna.storages.RDBStorage) -> dict[str, Any]:
     t = cfg.tune
@@ -240,6 +257,7 @@ def _run_study(cfg: DictConfig, space: list[Param], pruner: optuna.pruners.BaseP
     study = optuna.create_study(study_name=t.study_name, storage=storage, sampler=sampler,
                                 pruner=pruner, direction="minimize", load_if_exists=True)
     check_resumed(study.get_trials(deepcopy=False), space, f"{t.study_name!r} in {shown}")
+    check_same_logs(study, cfg)
     for key, value in (("model", cfg.model.name), ("window", cfg.window),
                        ("data", cfg.data.name)):
         study.set_user_attr(key, value)

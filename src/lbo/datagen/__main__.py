@@ -1,4 +1,5 @@
-"""`python -m lbo.datagen data=<smoke|quick|paper>`: generate (or reuse) the three data sets."""
+"""`python -m lbo.datagen data=<smoke|quick|paper>`: generate (or reuse) the three data sets;
+`data=logs data.train=[...] ...`: check and cache a user's logs as them."""
 
 from __future__ import annotations
 
@@ -12,8 +13,11 @@ from lbo.cli import entry
 
 def run(cfg: DictConfig) -> str:
     """Generate the sets for ``cfg``, print the summary and return the folder."""
+    from lbo.datagen import logs
     from lbo.datagen.build import build, data_lock, figures, spec_from_cfg, summary
 
+    if logs.is_logs(cfg):
+        return _logs(cfg)
     spec = spec_from_cfg(cfg)
     start = time.perf_counter()
     folder, sets, cached = build(spec)
@@ -31,6 +35,20 @@ def run(cfg: DictConfig) -> str:
     for n in ("train", "val", "test"):
         v, p = s[f"V_{n}"], s[f"psi_{n}"]
         print(f"  {n:5s}  V in [{v[0]:.1f}, {v[1]:.1f}] m/s, psi in [{p[0]:.2f}, {p[1]:.2f}] rad")
+    print(f"datasets: {folder}")
+    return str(folder)
+
+
+def _logs(cfg: DictConfig) -> str:
+    """``data=logs``: check and cache a user's logs as the three sets; print what they hold."""
+    from lbo.datagen import logs
+
+    spec = logs.spec_from_cfg(cfg)
+    start = time.perf_counter()
+    folder, sets, cached = logs.build(spec)
+    took = time.perf_counter() - start
+    print(f"{'reused checked' if cached else 'checked and cached'} logs in {took:.1f} s")
+    print("\n".join(logs.summary(folder, sets, spec.vehicle.dt)))
     print(f"datasets: {folder}")
     return str(folder)
 

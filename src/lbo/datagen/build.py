@@ -6,14 +6,13 @@ import hashlib
 import json
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import pandas as pd
 from omegaconf import DictConfig, OmegaConf
 
 from lbo import dynamic, schema
-from lbo.atomic import remove_stale_temps, write_text
+from lbo.atomic import data_lock, remove_stale_temps, write_text
 from lbo.config import number, positive, require
 from lbo.datagen import clothoid
 from lbo.datagen.friction import G, Grid, accelerations, generate_train
@@ -300,13 +299,17 @@ def build(spec: Spec, progress: bool = True) -> tuple[Path, dict[str, pd.DataFra
         return _build(spec, spec.folder, progress)
 
 
-def data_lock(folder: Path) -> Any:
-    """The lock of a data-set folder: jobs of a parallel sweep share one data set, the first
-    generates it and the others wait; whoever writes into the folder holds it."""
-    from filelock import FileLock
+def build_from_cfg(cfg: DictConfig, progress: bool = True) -> tuple[Path, str]:
+    """The data-set folder a composed config names, generated (or reused) from the ``data``
+    group, or read from a user's logs with ``data=logs`` (:mod:`lbo.datagen.logs`), and its
+    digest."""
+    from lbo.datagen import logs
 
-    folder.parent.mkdir(parents=True, exist_ok=True)
-    return FileLock(folder.parent / f".{folder.name}.lock", timeout=-1)
+    if logs.is_logs(cfg):
+        log_spec = logs.spec_from_cfg(cfg)
+        return logs.build(log_spec, progress)[0], log_spec.digest
+    spec = spec_from_cfg(cfg)
+    return build(spec, progress)[0], spec.digest
 
 
 def _build(spec: Spec, folder: Path, progress: bool
