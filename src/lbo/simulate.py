@@ -1,18 +1,28 @@
 """`python -m lbo.simulate`: write a simulated vehicle log, to check an observer on the
-conditions of your own car before trusting it.
+conditions of your own car before trusting it, or a fleet of drives to train one on.
 
     python -m lbo.simulate manoeuvre=stop_and_go alpha=1 [fix_rate=10] output=log.csv
+    python -m lbo.simulate manoeuvre=free_drive duration=60 drives=20 data=dynamic \
+        fix_rate=10 output=fleet/train/drive.csv
 
 ``manoeuvre`` is ``stop_and_go`` (an urban drive that stands still more than 30% of the time,
-with starts from rest and creeping) or any test manoeuvre of the data sets. ``fix_rate``
+with starts from rest and creeping), ``free_drive`` (``duration`` seconds of one
+friction-circle trajectory, as a training trajectory of the data sets, seeded by ``seed``) or
+any test manoeuvre of the data sets. The ``truth`` group (``data=dynamic`` picks
+``truth=dynamic``) decides whether the car slips and what the sensors' errors are. ``fix_rate``
 thins the position fixes to that rate (Hz; the inputs stay at 1/dt): the rows between fixes
 have empty ``x_m, y_m, psi_m``. The log has the test-set columns (``traj, k, t``, the true
 ``x, y, psi``, ``V, delta``, ``x_m, y_m, psi_m``, ``alpha``, ``scored``), so both
 ``lbo.observe input=<log>`` and ``lbo.evaluate test_file=<log>.parquet`` score it.
+
+``drives=N`` (N > 1) writes N logs ``<stem>_000<suffix>`` ... ``<stem>_<N-1><suffix>`` beside
+``output`` (its folder is created), drive i simulated with ``seed + i``: a fleet of varied
+drives for ``data=logs``. Every file is written atomically.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import sys
 from pathlib import Path
 
@@ -22,7 +32,7 @@ from omegaconf import DictConfig
 
 from lbo import schema
 from lbo.cli import entry
-from lbo.config import require
+from lbo.config import integer, number, require
 from lbo.datagen.clothoid import sample
 from lbo.datagen.manoeuvres import MANOEUVRES, Chain
 from lbo.datagen.pursuit import drive
@@ -31,6 +41,7 @@ from lbo.errors import LboError
 from lbo.vehicle import Vehicle, measure, wrap_angle
 
 STOP_AND_GO = "stop_and_go"
+FREE_DRIVE = "free_drive"
 # (kind, value, seconds): "stand" for the seconds, "go" to the speed at |a| = 2 m/s^2 and hold it
 STOP_AND_GO_PROFILE = (
     ("stand", 0.0, 5.0), ("go", 10.0, 6.0), ("stand", 0.0, 8.0), ("go", 0.8, 6.0),
@@ -76,14 +87,37 @@ def thin(m: np.ndarray, every: int) -> np.ndarray:
     return out
 
 
-def simulate(cfg: DictConfig) -> pd.DataFrame:
-    """The log ``cfg`` describes, as a frame with the test-set columns."""
+def free_drive(spec, duration: float, alpha: float, seed: int) -> dict[str, np.ndarray]:
+    """``duration`` seconds of one friction-circle trajectory: a training trajectory of the
+    data set ``spec`` describes (:func:`lbo.datagen.build.make_train`, its truth model and
+    sensors included), drawn from ``seed`` and measured at ``alpha``. Nothing is written to
+    the data cache. Returns ``z`` (T, 3), ``u`` (T, 2), ``m`` (T, 3)."""
+    from lbo.datagen.build import make_train
+
+    train = {**spec.train, "n_traj": 1, "duration": float(duration), "stop_and_go": 0.0,
+             "alpha": float(alpha)}
+    df = make_train(dataclasses.replace(spec, seed=int(seed), train=train))
+    return {"z": df[list(schema.STATE)].to_numpy(), "u": df[list(schema.INPUT)].to_numpy(),
+            "m": df[list(schema.MEAS)].to_numpy()}
+
+
+def check_duration(cfg: DictConfig, dt: float) -> float:
+    """``cfg.duration`` (s) of a free drive: a number > 0 of at least two steps."""
+    duration = number(cfg.get("duration"), "duration", low=0.0, low_open=True)
+    require(round(duration / dt) >= 2, "duration", f"at least two steps ({2 * dt:g} s)",
+            cfg.get("duration"))
+    return duration
+
+
+def simulate(cfg: DictConfig, seed: int | None = None) -> pd.DataFrame:
+    """The log ``cfg`` describes, as a frame with the test-set columns; ``seed`` (default
+    ``cfg.seed``) draws its noise (and a free drive's trajectory)."""
     from lbo.datagen.build import drive_paths, slower_steps, spec_from_cfg
     from lbo.noise import Noise
 
     name = cfg.manoeuvre
-    require(name == STOP_AND_GO or name in MANOEUVRES, "manoeuvre",
-            f"{STOP_AND_GO} or one of {sorted(MANOEUVRES)}", name)
+    require(name in (STOP_AND_GO, FREE_DRIVE) or name in MANOEUVRES, "manoeuvre",
+            f"{STOP_AND_GO}, {FREE_DRIVE} or one of {sorted(MANOEUVRES)}", name)
     alpha = cfg.alpha
     require(isinstance(alpha, (int, float)) and not isinstance(alpha, bool) and alpha >= 0,
             "alpha", "a noise scale >= 0", alpha)
@@ -92,25 +126,32 @@ def simulate(cfg: DictConfig) -> pd.DataFrame:
     require(rate is None or (isinstance(rate, (int, float)) and not isinstance(rate, bool)
                              and 0 < rate <= 1 / vehicle.dt), "fix_rate",
             f"null (a fix at every step) or a rate in Hz in (0, {1 / vehicle.dt:g}]", rate)
-    require(isinstance(cfg.seed, int) and cfg.seed >= 0, "seed", "an integer >= 0", cfg.seed)
-    rng = np.random.default_rng([cfg.seed, 7])
+    seed = cfg.seed if seed is None else seed
+    require(isinstance(seed, int) and not isinstance(seed, bool) and seed >= 0, "seed",
+            "an integer >= 0", seed)
+    duration = check_duration(cfg, vehicle.dt) if name == FREE_DRIVE else None
+    rng = np.random.default_rng([seed, 7])
     spec = spec_from_cfg(cfg)  # checks the data, noise, vehicle and truth groups
     truth = spec.truth
-    if name == STOP_AND_GO:
-        out = drive_stop_and_go(vehicle, noise.process_sigma, rng, truth.car)
-        z, u, run_in = out["z"], out["u"], 0
+    if name == FREE_DRIVE:  # the truth model and the sensors' errors come with make_train
+        out = free_drive(spec, duration, alpha, seed)
+        z, u, m, run_in = out["z"], out["u"], out["m"], 0
     else:
-        man = MANOEUVRES[name]
-        run_in = spec.test["run_in"]
-        steps = slower_steps(np.array([man.steps]), spec.test)
-        out = drive_paths(spec, [man.build()], steps, np.array([man.speed_shape]), run_in,
-                          spec.test["speed_variation"], rng)
-        z, u = out["z"][0, :run_in + steps[0]], out["u"][0, :run_in + steps[0]]
-    m = measure(z, noise.meas(alpha), rng)
-    if truth.sensors.gnss_sigma > 0:
-        m += truth.sensors.drift((1, len(z)), vehicle.dt, alpha, rng)[0]
-    u = truth.sensors.logged_inputs(u)
-    m[:, 2] = wrap_angle(m[:, 2])
+        if name == STOP_AND_GO:
+            out = drive_stop_and_go(vehicle, noise.process_sigma, rng, truth.car)
+            z, u, run_in = out["z"], out["u"], 0
+        else:
+            man = MANOEUVRES[name]
+            run_in = spec.test["run_in"]
+            steps = slower_steps(np.array([man.steps]), spec.test)
+            out = drive_paths(spec, [man.build()], steps, np.array([man.speed_shape]), run_in,
+                              spec.test["speed_variation"], rng)
+            z, u = out["z"][0, :run_in + steps[0]], out["u"][0, :run_in + steps[0]]
+        m = measure(z, noise.meas(alpha), rng)
+        if truth.sensors.gnss_sigma > 0:
+            m += truth.sensors.drift((1, len(z)), vehicle.dt, alpha, rng)[0]
+        u = truth.sensors.logged_inputs(u)
+        m[:, 2] = wrap_angle(m[:, 2])
     if rate is not None:
         m = thin(m, max(1, int(round(1 / (rate * vehicle.dt)))))
     k = np.arange(len(z))
@@ -118,24 +159,53 @@ def simulate(cfg: DictConfig) -> pd.DataFrame:
                         alpha=np.full(len(z), float(alpha)), scored=k >= run_in)
 
 
+def fleet_paths(output: Path, drives: int) -> list[Path]:
+    """``output`` itself for one drive, else ``<stem>_000<suffix>`` ... beside it."""
+    if drives == 1:
+        return [output]
+    return [output.with_name(f"{output.stem}_{i:03d}{output.suffix}") for i in range(drives)]
+
+
+def describe(cfg: DictConfig, df: pd.DataFrame) -> tuple[str, float]:
+    """One line on what the log ``df`` holds, and its duration (s)."""
+    fix = np.isfinite(df[list(schema.MEAS)].to_numpy()).all(1)
+    still = float((df["V"] == 0).mean())
+    duration = len(df) * float(cfg.vehicle.dt)
+    return (f"{cfg.manoeuvre}: {len(df)} rows ({duration:.1f} s at {1 / cfg.vehicle.dt:g} Hz), "
+            f"{fix.sum()} fixes ({fix.sum() / duration:.3g} Hz), standing still "
+            f"{still:.0%} of the time, alpha {cfg.alpha:g}"), duration
+
+
 def run(cfg: DictConfig) -> Path:
-    """Simulate and write ``cfg.output`` (.csv or .parquet); print what it holds."""
+    """Simulate and write ``cfg.output`` (.csv or .parquet), or ``cfg.drives`` logs beside it;
+    print what they hold. Returns the path written (the first one of a fleet)."""
     from lbo.observe import check_output_path, write_table
 
     if not cfg.get("output"):
         raise LboError("output must be given: python -m lbo.simulate manoeuvre=stop_and_go "
                        "alpha=1 [fix_rate=10] output=<log.csv|.parquet>")
+    drives = integer(cfg.get("drives", 1), "drives", 1)
     output = check_output_path(str(cfg.output))
-    df = simulate(cfg)
-    write_table(df, output)
-    fix = np.isfinite(df[list(schema.MEAS)].to_numpy()).all(1)
-    still = float((df["V"] == 0).mean())
-    duration = len(df) * float(cfg.vehicle.dt)
-    print(f"{cfg.manoeuvre}: {len(df)} rows ({duration:.1f} s at {1 / cfg.vehicle.dt:g} Hz), "
-          f"{fix.sum()} fixes ({fix.sum() / duration:.3g} Hz), standing still "
-          f"{still:.0%} of the time, alpha {cfg.alpha:g}")
-    print(f"simulated: {output}")
-    return output
+    seed = cfg.seed
+    require(isinstance(seed, int) and not isinstance(seed, bool) and seed >= 0, "seed",
+            "an integer >= 0", seed)
+    paths = fleet_paths(output, drives)
+    if drives == 1:
+        df = simulate(cfg)
+        write_table(df, output)
+        print(describe(cfg, df)[0])
+        print(f"simulated: {output}")
+        return output
+    rows, seconds = 0, 0.0
+    for i, path in enumerate(paths):
+        df = simulate(cfg, seed=seed + i)
+        write_table(df, path)
+        line, duration = describe(cfg, df)
+        rows, seconds = rows + len(df), seconds + duration
+        print(f"{line}, seed {seed + i}: {path}", flush=True)
+    print(f"simulated {drives} drives ({rows} rows, {seconds:.1f} s): {paths[0]} ... "
+          f"{paths[-1].name}")
+    return paths[0]
 
 
 main = entry("simulate", run)
