@@ -12,7 +12,7 @@ MLFLOW_PORT ?= 5000
 MLFLOW_BACKEND ?= sqlite:///$(CURDIR)/mlflow-server.db
 MLFLOW_ARTIFACTS ?= $(CURDIR)/mlflow-server-artifacts
 
-.PHONY: help install test test-fast data reproduce bench lint clean mlflow-server
+.PHONY: help install test test-fast data reproduce fleet bench lint clean mlflow-server
 
 help:  ## list the targets
 	@grep -E '^[a-z-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  make %-10s %s\n", $$1, $$2}'
@@ -38,6 +38,9 @@ data: install  ## generate the data sets: make data SCALE=smoke|quick|paper
 reproduce: install  ## the paper's study, resumable: make reproduce SCALE=paper|quick [TRAINER=gpu] [LAUNCHER=joblib JOBS=4]
 	$(PY) -m lbo.reproduce scale=$(SCALE) "train_overrides=['trainer=$(TRAINER)']" \
 		launcher=$(LAUNCHER) jobs=$(JOBS)
+
+fleet: install  ## train on your own logs, worked example: a simulated fleet -> train -> score -> observe
+	PY=$(CURDIR)/$(PY) bash examples/fleet.sh
 
 mlflow-server: install  ## a shared MLflow tracking server on 127.0.0.1:$(MLFLOW_PORT) [MLFLOW_BACKEND=postgresql://...]
 	$(VENV)/bin/mlflow server --host 127.0.0.1 --port $(MLFLOW_PORT) \

@@ -251,3 +251,22 @@ def test_evaluate_scores_the_peers_on_the_test_logs(logs, tmp_path):
     assert set(table["observer"]) == {"ekf", "adaptive", "ukf"}  # no oracle, no pcrb: no alpha
     assert len(table) == 3 * 4  # pooled and per file
     assert (tmp_path / "nrmse_logs.png").is_file()
+
+
+def test_logs_with_gnss_slower_than_the_inputs_train_with_fix_rates(logs, tmp_path):
+    from lbo.train import datamodule, prepare_data
+
+    slow = tmp_path / "slow"
+    for p in sorted((logs / "train").glob("*.csv"))[:4]:
+        df = pd.read_csv(p)
+        df.loc[df.index % 5 != 0, ["x_m", "y_m", "psi_m"]] = np.nan  # 10 Hz fixes
+        write(df, slow / p.name)
+    cfg = logs_cfg(logs, tmp_path, f"data.train=[{slow}]", "train_noise=stored")
+    with pytest.raises(LboError, match="fix_rates"):
+        datamodule(cfg, prepare_data(cfg)[0])
+    # fix_rates=[50] drops nothing more: the windows hold the logs' own gaps, as they are
+    cfg = logs_cfg(logs, tmp_path, f"data.train=[{slow}]", "train_noise=stored",
+                   "fix_rates=[50]")
+    dm = datamodule(cfg, prepare_data(cfg)[0])
+    win, _, _ = dm.train_set.batch(np.arange(64), dm.train_set.generator)
+    assert win[..., 0].isnan().float().mean().item() == pytest.approx(0.8, abs=0.03)

@@ -360,3 +360,17 @@ def test_import_lbo_stays_light():
     res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert res.returncode == 0, res.stderr
     assert "Observer" in res.stdout
+
+
+def test_plot_draws_the_estimate_over_the_log(tmp_path, log_csv):
+    from matplotlib.image import imread
+
+    res = observe("observer=ekf", f"input={log_csv}", f"output={tmp_path / 'est.csv'}",
+                  f"plot={tmp_path / 'est.png'}")
+    assert "plot:" in res.stdout
+    image = imread(tmp_path / "est.png")
+    assert image.shape[0] > 200 and image.std() > 0.01  # a figure, not a blank
+    bad = observe("observer=ekf", f"input={log_csv}", f"output={tmp_path / 'b.csv'}",
+                  f"plot={tmp_path / 'b.jpg'}", check=False)
+    assert bad.returncode != 0 and "plot must be a .png file" in bad.stderr
+    assert not (tmp_path / "b.csv").exists()

@@ -211,8 +211,9 @@ class WindowDataModule(L.LightningDataModule):
     def setup(self, stage: str | None = None) -> None:
         if self.train_set is not None:
             return
-        train = schema.read_set(self.folder / "train.parquet")
-        val = schema.read_set(self.folder / "val.parquet", schema.EVAL_COLUMNS)
+        # steps without a position fix (a user's logs, GNSS slower than the inputs) are NaN rows
+        train = schema.read_set(self.folder / "train.parquet", missing_fixes=True)
+        val = schema.read_set(self.folder / "val.parquet", schema.EVAL_COLUMNS, missing_fixes=True)
         for name, df in (("training", train), ("validation", val)):
             lengths = df.groupby("traj", sort=False).size().to_numpy()
             first = int(df.loc[df["scored"], "k"].min()) if "scored" in df else None

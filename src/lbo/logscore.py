@@ -120,6 +120,9 @@ def figure(scores: pd.DataFrame, title: str = ""):
         color = (STYLES.get(name) or {}).get("color") or next(palette)
         ax.bar(x + (i - (len(names) - 1) / 2) * width, piv[name].to_numpy(), width,
                label=name, color=color)
+    values = piv.to_numpy()
+    if np.nanmax(values) > 5 * np.nanmin(values):  # a diverged peer would flatten the others
+        ax.set_yscale("log")
     ax.axhline(1.0, color="0.6", lw=0.8, ls=":")
     ax.set_xticks(x, [Path(f).name for f in files], rotation=30, ha="right", fontsize=8)
     ax.set(ylabel="NRMSE (EKF on the same files = 1)", title=title)

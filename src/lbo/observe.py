@@ -264,6 +264,9 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     device = check_device(cfg.get("device", "cpu"), probe=not classical)
     max_gap = check_max_gap(cfg.get("max_gap", MAX_GAP))
     output = check_output_path(str(cfg.output), source)
+    plot = cfg.get("plot")
+    if plot is not None and Path(str(plot)).suffix.lower() != ".png":
+        raise LboError(f"plot must be a .png file (or null), got {str(plot)!r}")
     where = f"input {source}"
     df = read_log(source)
     truth = check_log(df, where)
@@ -290,6 +293,9 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     out = pd.DataFrame({"t": df["t"].to_numpy(dtype=float), "x": est[:, 0], "y": est[:, 1],
                         "psi": est[:, 2], "valid": valid})
     write_table(out, output)
+    if plot is not None:
+        _plot(Path(str(plot)), obs.name, m, est, valid,
+              df[list(TRUTH_COLUMNS)].to_numpy(dtype=float) if truth else None)
 
     what = (f"learned, window {obs.window}, features {obs.features}" if obs.kind == "learned"
             else f"classical, noise {obs.noise.name}, wheelbase {obs.vehicle.wheelbase:g} m")
@@ -317,8 +323,19 @@ def run(cfg: DictConfig) -> dict[str, Any]:
               f"({result['valid']} valid rows)")
         print(f"nrmse {result['nrmse']:.6g} (E_ref: the paper's EKF, {PAPER_REFERENCE[0]} m, "
               f"{PAPER_REFERENCE[1]} m, {PAPER_REFERENCE[2] * 1e3:g} mrad)")
-    print(f"observed: {output}")
+    print(f"observed: {output}" + (f"; plot: {plot}" if plot is not None else ""))
     return result
+
+
+def _plot(path: Path, name: str, m: np.ndarray, est: np.ndarray, valid: np.ndarray,
+          truth: np.ndarray | None) -> Path:
+    """The estimate over the log in the (x, y) plane, beside the fixes (and the truth)."""
+    from lbo import plots
+
+    shown = np.where(valid[:, None], est[:, :2], np.nan)
+    title = f"{name} on {len(m)} rows" + (" (black: the true path)" if truth is not None else "")
+    return plots.save(plots.trajectory(None if truth is None else truth[:, :2], m[:, :2], title,
+                                       **{name: shown}), path)
 
 
 main = entry("observe", run)

@@ -94,12 +94,14 @@ def nrmse_curves(table, title: str = "", observers: list[str] | None = None,
     return fig
 
 
-def trajectory(truth: np.ndarray, meas: np.ndarray, title: str = "", **estimates: np.ndarray):
-    """The paper's Fig. 6: ground truth, measurements and estimates in the (x, y) plane.
-    Every array is (T, 2)."""
+def trajectory(truth: np.ndarray | None, meas: np.ndarray, title: str = "",
+               **estimates: np.ndarray):
+    """The paper's Fig. 6: ground truth (None: not drawn), measurements and estimates in the
+    (x, y) plane. Every array is (T, 2); NaN rows (no fix, no estimate) are gaps."""
     fig, ax = plt.subplots(figsize=(7.5, 5.0))
     ax.plot(meas[:, 0], meas[:, 1], ".", color="0.7", ms=2.5, label="measurements")
-    ax.plot(truth[:, 0], truth[:, 1], "-", color="black", lw=2.0, label="ground truth")
+    if truth is not None:
+        ax.plot(truth[:, 0], truth[:, 1], "-", color="black", lw=2.0, label="ground truth")
     for (name, est), color in zip(estimates.items(), ("tab:blue", "tab:red", "tab:green")):
         ax.plot(est[:, 0], est[:, 1], lw=1.3, color=color, label=name)
     ax.set(xlabel="x (m)", ylabel="y (m)", title=title)

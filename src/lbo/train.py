@@ -68,7 +68,7 @@ def check(cfg: DictConfig) -> None:
     noise_settings(cfg)
     net = build_net(cfg)  # the model's own checks (its parameters, feature modes) before any data
     if cfg.get("init_from"):
-        initial_weights(cfg, net)
+        initial_weights(cfg, net, say=False)
     if is_logs(cfg):
         logs_spec(cfg)  # the logs named, found and of the right kind, before any run opens
     if cfg.get("logger") and cfg.logger.get("tracking_uri"):
@@ -112,7 +112,7 @@ def build_net(cfg: DictConfig):
     return ObserverNet(model.pop("name"), cfg.window, cfg.features, fixes(cfg), **model)
 
 
-def initial_weights(cfg: DictConfig, net) -> dict[str, torch.Tensor]:
+def initial_weights(cfg: DictConfig, net, say: bool = True) -> dict[str, torch.Tensor]:
     """The weights ``init_from`` gives ``net``: every tensor of that observer whose name and
     shape ``net`` shares (its normalisation too). Tensors only ``net`` has (e.g. a residual
     the source was trained without) keep their fresh initialisation, and are named.
@@ -140,7 +140,7 @@ def initial_weights(cfg: DictConfig, net) -> dict[str, torch.Tensor]:
                            f"run's {cfg.model.name}-N{cfg.window} {tuple(own[key].shape)}; give "
                            "the window, fix_rates and model sizes it was trained with")
     fresh = [k for k in own if k not in theirs]
-    if fresh:
+    if fresh and say:
         print(f"init_from: {len(fresh)} tensor(s) that {source} lacks start fresh: "
               f"{', '.join(fresh[:6])}{' ...' if len(fresh) > 6 else ''}")
     return {k: v for k, v in theirs.items() if k in own}
@@ -360,6 +360,9 @@ def _train(cfg: DictConfig, callbacks: list[L.Callback] | None,
     for cb in callbacks:
         if isinstance(cb, Evaluation):
             metrics.update(cb.metrics)
+    if ckpt:
+        print(f"trained {name}: checkpoint {ckpt}"
+              + (f", MLflow run {metrics['run_id']}" if metrics["run_id"] else ""))
     return metrics
 
 
