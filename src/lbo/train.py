@@ -226,6 +226,8 @@ def config_hash(cfg: DictConfig) -> str:
         c.output_dir, c.data.root, c.resume, c.data_dir = "-", "-", False, None
         c.pop("logger", None)
     text = OmegaConf.to_yaml(c, resolve=True)
+    if is_logs(cfg):  # the same paths with other contents are other data
+        text += f"\nlogs: {logs_spec(cfg).digest}"
     return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 
