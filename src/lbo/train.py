@@ -362,9 +362,6 @@ def _train(cfg: DictConfig, callbacks: list[L.Callback] | None,
     for cb in callbacks:
         if isinstance(cb, Evaluation):
             metrics.update(cb.metrics)
-    if ckpt:
-        print(f"trained {name}: checkpoint {ckpt}"
-              + (f", MLflow run {metrics['run_id']}" if metrics["run_id"] else ""))
     return metrics
 
 
@@ -409,7 +406,17 @@ def _flat(cfg: DictConfig) -> dict[str, Any]:
     return out
 
 
-main = entry("train", lambda cfg: train(cfg)["val_loss"])  # the value a sweeper minimises
+def _command(cfg: DictConfig) -> float:
+    """``python -m lbo.train``: train, say where the observer is, and return the value a
+    sweeper minimises."""
+    metrics = train(cfg)
+    if metrics.get("checkpoint"):
+        print(f"trained {metrics['name']}: checkpoint {metrics['checkpoint']}"
+              + (f", MLflow run {metrics['run_id']}" if metrics.get("run_id") else ""))
+    return metrics["val_loss"]
+
+
+main = entry("train", _command)
 
 
 if __name__ == "__main__":
