@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
+import torch
 
 from conftest import compose_cfg
 from lbo.errors import LboError
@@ -278,3 +279,20 @@ def test_logs_with_gnss_slower_than_the_inputs_train_with_fix_rates(logs, tmp_pa
     dm = datamodule(cfg, prepare_data(cfg)[0])
     win, _, _ = dm.train_set.batch(np.arange(64), dm.train_set.generator)
     assert win[..., 0].isnan().float().mean().item() == pytest.approx(0.8, abs=0.03)
+
+
+def test_dropping_fixes_on_logs_with_gaps_never_leaves_a_window_without_a_fix(logs, tmp_path):
+    from lbo.train import datamodule, prepare_data
+
+    slow = tmp_path / "slow"
+    for p in sorted((logs / "train").glob("*.csv"))[:4]:
+        df = pd.read_csv(p)
+        df.loc[df.index % 5 != 0, ["x_m", "y_m", "psi_m"]] = np.nan  # 10 Hz fixes
+        write(df, slow / p.name)
+    cfg = logs_cfg(logs, tmp_path, f"data.train=[{slow}]", "train_noise=stored",
+                   "fix_rates=[1]")
+    dm = datamodule(cfg, prepare_data(cfg)[0])
+    win, _, _ = dm.train_set.batch(np.arange(len(dm.train_set)), dm.train_set.generator)
+    fixes = torch.isfinite(win[..., 0])
+    assert fixes.any(1).all()
+    assert fixes.float().mean() < 0.19  # and the dropout still thins the logs' 20% of fixes

@@ -132,7 +132,11 @@ class WindowDataset(Dataset):
             m = noisy_measurements(self.truth[s], alpha, self.sigma, generator, self.drift)
         if self.fix_periods:
             fix = fix_mask(len(e), self.window, self.fix_periods, generator, e.device)
-            m = torch.where(fix[..., None], m, torch.full_like(m, float("nan")))
+            kept = torch.where(fix[..., None], m, torch.full_like(m, float("nan")))
+            # stored measurements with gaps of their own (a user's 10 Hz logs): the mask may
+            # miss every fix of a window, which keeps its own fixes then (never on full sets)
+            lost = ~torch.isfinite(kept[..., 0]).any(1)
+            m = torch.where(lost[:, None, None], m, kept)
         elif self.draw is None:
             return win, self.y[e], weight
         return torch.cat([m, win[..., 3:]], dim=-1), self.y[e], weight
