@@ -112,7 +112,7 @@ def check_duration(cfg: DictConfig, dt: float) -> float:
 def simulate(cfg: DictConfig, seed: int | None = None) -> pd.DataFrame:
     """The log ``cfg`` describes, as a frame with the test-set columns; ``seed`` (default
     ``cfg.seed``) draws its noise (and a free drive's trajectory)."""
-    from lbo.datagen.build import drive_paths, slower_steps, spec_from_cfg
+    from lbo.datagen.build import drive_within_grip, slower_steps, spec_from_cfg
     from lbo.noise import Noise
 
     name = cfg.manoeuvre
@@ -138,14 +138,15 @@ def simulate(cfg: DictConfig, seed: int | None = None) -> pd.DataFrame:
         z, u, m, run_in = out["z"], out["u"], out["m"], 0
     else:
         if name == STOP_AND_GO:
-            out = drive_stop_and_go(vehicle, noise.process_sigma, rng, truth.car)
+            out = drive_stop_and_go(vehicle, spec.motion_noise.process_sigma, rng, truth.car)
             z, u, run_in = out["z"], out["u"], 0
         else:
             man = MANOEUVRES[name]
             run_in = spec.test["run_in"]
             steps = slower_steps(np.array([man.steps]), spec.test)
-            out = drive_paths(spec, [man.build()], steps, np.array([man.speed_shape]), run_in,
-                              spec.test["speed_variation"], rng)
+            out, steps, rng = drive_within_grip(spec, [man.build()], steps,
+                                                np.array([man.speed_shape]), run_in, spec.test,
+                                                lambda: np.random.default_rng([seed, 7]))
             z, u = out["z"][0, :run_in + steps[0]], out["u"][0, :run_in + steps[0]]
         m = measure(z, noise.meas(alpha), rng)
         if truth.sensors.gnss_sigma > 0:

@@ -12,6 +12,11 @@ Three sensor errors beside the white measurement noise, each off by default:
   white noise it is scaled by alpha;
 - a steering offset: the logged delta is the road-wheel angle plus ``steering_offset`` (rad);
 - a speed scale-factor error: the logged V is ``(1 + speed_scale)`` times the true speed.
+
+Beside the sensors, ``process_scale`` sets how much of the noise preset's process noise the
+truth itself carries: the paper's kinematic truth adds all of it (1), a car's pose moves as its
+dynamics say, up to a small unmodelled rest. The classical filters are still told the preset's
+Q, the one a filter designer would choose.
 """
 
 from __future__ import annotations
@@ -82,19 +87,33 @@ class Truth:
     name : ``kinematic`` or ``dynamic``.
     car : the single-track car's parameters (``dynamic`` only).
     sensors : the sensor errors.
+    process_scale : the truth's process noise is this times the noise preset's
+        ``process_sigma`` (1: the paper's random walk on x, y and psi).
     """
 
     name: str = "kinematic"
     car: SingleTrack | None = None
     sensors: Sensors = field(default_factory=Sensors)
+    process_scale: float = 1.0
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "process_scale", number(self.process_scale,
+                                                         "truth.process_scale", low=0.0))
 
     @property
     def default(self) -> bool:
-        """The paper's setting: kinematic bicycle, white noise, exact inputs."""
-        return self.name == "kinematic" and self.sensors.off
+        """The paper's setting: kinematic bicycle, its process noise, white measurement noise,
+        exact inputs."""
+        return self.name == "kinematic" and self.sensors.off and self.process_scale == 1.0
+
+    def process_sigma(self, noise: Any) -> np.ndarray:
+        """(3,) process sigmas (m, m, rad) of the truth's motion for a noise preset."""
+        return self.process_scale * np.asarray(noise.process_sigma, dtype=float)
 
     def to_dict(self) -> dict[str, Any]:
         out: dict[str, Any] = {"name": self.name, **asdict(self.sensors)}
+        if self.process_scale != 1.0:  # the digests of sets drawn before this field stay
+            out["process_scale"] = self.process_scale
         if self.car is not None:
             out.update(asdict(self.car))
         return out
@@ -129,11 +148,13 @@ def from_cfg(cfg: Any, wheelbase: float) -> Truth:
     require(name in MODELS, "truth.name", f"one of {list(MODELS)}", name)
     sensor_keys = [f for f in Sensors.__dataclass_fields__]
     sensors = Sensors(**{k: c.pop(k) for k in sensor_keys if k in c})
+    scale = c.pop("process_scale", 1.0)
+    sensor_keys.append("process_scale")
     if name == "kinematic":
         if c:
             raise LboError(f"truth.{next(iter(c))}: not a field of truth=kinematic; "
                            f"accepted: name, {', '.join(sensor_keys)}")
-        return Truth(name, None, sensors)
+        return Truth(name, None, sensors, scale)
     car_keys = list(SingleTrack.__dataclass_fields__)
     unknown = [k for k in c if k not in car_keys]
     if unknown:
@@ -142,7 +163,7 @@ def from_cfg(cfg: Any, wheelbase: float) -> Truth:
     car = SingleTrack(**c)
     require(abs(car.wheelbase - wheelbase) < 1e-6, "truth.l_f + truth.l_r",
             f"the vehicle's wheelbase ({wheelbase} m)", car.wheelbase)
-    return Truth(name, car, sensors)
+    return Truth(name, car, sensors, scale)
 
 
 def of_folder(folder: Any, wheelbase: float) -> Truth:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -48,6 +49,14 @@ class Spec:
     @property
     def folder(self) -> Path:
         return self.root / f"{self.name}-{self.digest}"
+
+    @property
+    def motion_noise(self) -> Noise:
+        """The noise preset with the truth's own process noise (``truth.process_scale``)."""
+        if self.truth.process_scale == 1.0:
+            return self.noise
+        return Noise(tuple(self.truth.process_sigma(self.noise)), self.noise.measurement_sigma,
+                     self.noise.name)
 
     @property
     def alphas(self) -> np.ndarray:
@@ -101,6 +110,8 @@ def spec_from_cfg(cfg: DictConfig) -> Spec:
     for part, block in (("val", va), ("test", te)):
         if "speed_factor" in block:
             number(block["speed_factor"], f"data.{part}.speed_factor", low=0.0, low_open=True)
+        if block.get("max_lateral_g") is not None:
+            number(block["max_lateral_g"], f"data.{part}.max_lateral_g", low=0.0, low_open=True)
     names = te["manoeuvres"]
     require(len(names) > 0, "data.test.manoeuvres", "a non-empty list of manoeuvre names", names)
     for n in names:
@@ -134,7 +145,8 @@ def _sensed(spec: Spec, out: dict[str, np.ndarray], alpha: float, key: int
     z, u, m = out["z"], out["u"], out["m"]
     if truth.car is not None:
         rng = _rng(spec, key)
-        z = dynamic.simulate(z[:, 0], u, v.dt, truth.car, spec.noise.process_sigma, rng)[..., :3]
+        z = dynamic.simulate(z[:, 0], u, v.dt, truth.car, spec.motion_noise.process_sigma,
+                             rng)[..., :3]
         z[..., 2] = wrap_angle(z[..., 2])
         m = measure(z, spec.noise.meas(alpha), rng)
     m = m + truth.sensors.drift(z.shape[:2], v.dt, alpha, _rng(spec, key, 1))
@@ -149,13 +161,13 @@ def make_train(spec: Spec) -> pd.DataFrame:
     n_steps = int(round(tr["duration"] / v.dt))
     b = tr["n_traj"]
     n_stop = int(round(tr.get("stop_and_go", 0.0) * b))
-    out = generate_train(b - n_stop, n_steps, v, spec.noise, _rng(spec, 1),
+    out = generate_train(b - n_stop, n_steps, v, spec.motion_noise, _rng(spec, 1),
                          radius=tr["radius_g"] * G, grid=tr["grid"], hold=tuple(tr["hold"]),
                          jerk=tr["jerk"], candidates=tr["candidates"], alpha=tr["alpha"],
                          understeer=_understeer(spec))
     out = _sensed(spec, out, tr["alpha"], 7)
     if n_stop:
-        stops = generate_stop_and_go(n_stop, n_steps, v, spec.noise, _rng(spec, 6),
+        stops = generate_stop_and_go(n_stop, n_steps, v, spec.motion_noise, _rng(spec, 6),
                                      alpha=tr["alpha"])
         stops = _sensed(spec, stops, tr["alpha"], 8)
         out = {key: np.concatenate([out[key], stops[key]]) for key in ("z", "u", "m")}
@@ -186,7 +198,7 @@ def drive_paths(spec: Spec, segments: list, steps: np.ndarray, shapes: np.ndarra
     lead = run_in * v.dt * speed[:, :run_in].mean(axis=1)
     paths = [clothoid.sample(s, DS, lead_in=li, tail=0.6 * L + 60)
              for s, li, L in zip(segments, lead, lengths)]
-    return drive(paths, speed, v, np.asarray(spec.noise.process_sigma), rng, ds=DS,
+    return drive(paths, speed, v, np.asarray(spec.motion_noise.process_sigma), rng, ds=DS,
                  car=spec.truth.car)
 
 
@@ -219,12 +231,47 @@ def slower_steps(steps: np.ndarray, block: dict) -> np.ndarray:
     return steps if factor == 1.0 else np.round(steps / factor).astype(np.int64)
 
 
+def peak_lateral_g(z: np.ndarray, u: np.ndarray, n_real: np.ndarray, dt: float) -> np.ndarray:
+    """(G,) largest lateral acceleration (in g) of each driven path: speed times yaw rate,
+    the yaw rate over 0.2 s so that the process noise's jitter does not count.
+    z, u: (G, T, 3|2) padded; n_real: (G,) real steps."""
+    lag = max(1, int(round(0.2 / dt)))
+    psi = np.unwrap(z[..., 2], axis=1)
+    rate = (psi[:, lag:] - psi[:, :-lag]) / (lag * dt)
+    a = np.abs(u[:, :-lag, 0] * rate) / G
+    real = np.arange(a.shape[1])[None, :] < (n_real - lag)[:, None]
+    return np.where(real, a, 0.0).max(axis=1)
+
+
+def drive_within_grip(spec: Spec, segments: list, steps: np.ndarray, shapes: np.ndarray,
+                      run_in: int, block: dict, new_rng: Callable[[], np.random.Generator]
+                      ) -> tuple[dict[str, np.ndarray], np.ndarray, np.random.Generator]:
+    """Drive the paths (:func:`drive_paths`); with ``block["max_lateral_g"]`` set, a path whose
+    car corners harder than that is driven again slower, by the factor that brings it there
+    (lateral acceleration goes as speed squared), so no manoeuvre asks more of the tyres than
+    the training set does. Each drive draws from a fresh ``new_rng()``. Returns the drive, the
+    scored steps per path (G,) and the generator of the last drive."""
+    cap = block.get("max_lateral_g")
+    for _ in range(4):
+        rng = new_rng()
+        out = drive_paths(spec, segments, steps, shapes, run_in, block["speed_variation"], rng)
+        if cap is None:
+            break
+        peak = peak_lateral_g(out["z"], out["u"], run_in + steps, spec.vehicle.dt)
+        over = peak > cap
+        if not over.any():
+            break
+        factor = np.where(over, 0.97 * np.sqrt(cap / np.maximum(peak, 1e-9)), 1.0)
+        steps = np.ceil(steps / factor).astype(np.int64)
+    return out, steps, rng
+
+
 def make_val(spec: Spec) -> pd.DataFrame:
     va = spec.val
     seg = validation_path(va["length"], va["amplitude"], va["period"])
     steps = slower_steps(np.array([va["steps"]]), va)
-    out = drive_paths(spec, [seg], steps, np.ones((1, 2)), va["run_in"],
-                      va["speed_variation"], _rng(spec, 2))
+    out, steps, _ = drive_within_grip(spec, [seg], steps, np.ones((1, 2)), va["run_in"], va,
+                                      lambda: _rng(spec, 2))
     return _scored_frame(spec, out["z"], out["u"], va["run_in"] + steps,
                          va["run_in"], np.array([va["alpha"]]), 3)
 
@@ -233,8 +280,9 @@ def make_test(spec: Spec) -> pd.DataFrame:
     te = spec.test
     man = [MANOEUVRES[n] for n in te["manoeuvres"]]
     steps = slower_steps(np.array([m.steps for m in man]), te)
-    out = drive_paths(spec, [m.build() for m in man], steps, np.array([m.speed_shape for m in man]),
-                      te["run_in"], te["speed_variation"], _rng(spec, 4))
+    out, steps, _ = drive_within_grip(spec, [m.build() for m in man], steps,
+                                      np.array([m.speed_shape for m in man]), te["run_in"], te,
+                                      lambda: _rng(spec, 4))
     return _scored_frame(spec, out["z"], out["u"], te["run_in"] + steps, te["run_in"],
                          spec.alphas, 5)
 
