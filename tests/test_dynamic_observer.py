@@ -40,7 +40,7 @@ def test_experiment_trains_on_the_car_that_slips_and_scores_against_its_oracle(d
         ("dynamic", 0.5, 32, True)
     table = pd.read_csv(dynamic["dir"] / "evaluation.csv")
     assert set(table["observer"]) == {"filternet-N60", "ekf", "oracle", "adaptive",
-                                      "oracle_dynamic"}
+                                      "oracle_tuned", "oracle_dynamic"}
     run = mlflow.MlflowClient(dynamic["uri"]).get_run(out["run_id"])
     assert run.data.metrics["worst_dynamic_oracle_ratio"] > 0
     psi = table.pivot_table(index="alpha", columns="observer", values="rmse_psi")

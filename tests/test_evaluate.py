@@ -8,7 +8,7 @@ import pytest
 from conftest import compose_cfg
 from lbo import schema
 from lbo.errors import LboError
-from lbo.evaluate import classical, classical_table, load_test, reference, run
+from lbo.evaluate import Q_GRID, classical, classical_table, load_test, reference, run, tuned_oracle
 from lbo.filters import ekf_batch, pcrb
 from lbo.metrics import SCORE_COLUMNS
 from lbo.noise import Noise
@@ -90,6 +90,37 @@ def test_alpha_zero_oracle_is_exact(smoke_data):
     err = (est - arr["z"])[zero][arr["mask"][zero]]
     err[:, 2] = wrap_angle(err[:, 2])
     np.testing.assert_allclose(err, 0.0, atol=1e-6)
+
+
+def test_the_tuned_oracle_is_the_best_of_its_q_grid_at_every_level(smoke_data):
+    arr = load_test(smoke_data / "test.parquet")
+    ref = reference(arr, VEHICLE, NOISE)
+    est, chosen = tuned_oracle(arr, VEHICLE, NOISE, ref)
+    tuned = classical_table(arr, VEHICLE, NOISE, ["oracle", "oracle_tuned"], ref)
+    assert list(chosen["alpha"]) == sorted(set(arr["alpha"]))
+    assert chosen["position"].isin(Q_GRID[0]).all() and chosen["heading"].isin(Q_GRID[1]).all()
+    # the oracle's own Q (factors 1, 1) is on the grid: tuning never does worse than it
+    assert (curve(tuned, "oracle_tuned") <= curve(tuned, "oracle") + 1e-12).all()
+    # each level's winner is that level's EKF with the chosen Q, scored as any observer
+    row = chosen.iloc[-1]
+    Q = np.diag(np.square(np.asarray(NOISE.process_sigma)
+                          * [row.position, row.position, row.heading]))
+    at = np.isclose(arr["alpha"], row.alpha)
+    R = np.einsum("g,ij->gij", arr["alpha"][at] ** 2, NOISE.R(1.0))
+    np.testing.assert_allclose(est[at], ekf_batch(arr["m"][at], arr["u"][at], VEHICLE, Q, R))
+
+
+def test_pcrb_bounds_the_kinematic_truth_with_its_own_process_noise(smoke_data):
+    from lbo.truth import Truth, from_cfg
+
+    arr = load_test(smoke_data / "test.parquet")
+    paper = classical("pcrb", arr, VEHICLE, NOISE, truth=Truth())
+    calm = classical("pcrb", arr, VEHICLE, NOISE, truth=Truth(process_scale=0.1))
+    noisy = arr["mask"] & (arr["alpha"] > 0)[:, None]
+    assert (calm[noisy] < paper[noisy]).all()
+    car = from_cfg({"name": "dynamic"}, 2.7)
+    with pytest.raises(LboError, match="pcrb: the bound is the kinematic bicycle's"):
+        classical("pcrb", arr, VEHICLE, NOISE, truth=car)
 
 
 def eval_cfg(tmp_path, smoke_data, *overrides):

@@ -173,6 +173,8 @@ def test_bad_log_is_refused_before_any_output(tmp_path, manoeuvre, case):
     ("observer=kalman", "not a checkpoint file, an MLflow run id"),
     ("observer=missing.ckpt", "checkpoint not found: missing.ckpt"),
     ("observer=pcrb", "pcrb is a bound"),
+    ("observer=oracle_tuned", "oracle_tuned is told the true states"),
+    ("observer=oracle_dynamic", "oracle_dynamic is told the simulated car's parameters"),
     ("output=est.txt", "output must be a .csv or .parquet file"),
     ("input=log.json", "input must be a .csv or .parquet file"),
     ("input=nowhere.csv", "file not found"),

@@ -81,7 +81,7 @@ def test_reproduce_smoke_killed_and_resumed_without_duplicates(tmp_path):
     assert "## Where learning beats the model: `data=dynamic`" in md
     dynamic = pd.read_csv(report / "dynamic.csv")  # scored on its own test set, with its oracle
     assert set(dynamic["observer"]) == {"filternet-N100", "ekf", "oracle", "adaptive",
-                                        "oracle_dynamic"}
+                                        "oracle_tuned", "oracle_dynamic"}
     stages = json.loads((report / "stages.json").read_text())
     assert list(stages) == ["data", "tune", "train", "evaluate", "report"]
 

@@ -33,8 +33,10 @@ class Evaluation(L.Callback):
     ``evaluation.csv`` and ``nrmse.png`` to ``output_dir`` and log them, the metrics and the
     checkpoint to MLflow. ``worst_oracle_ratio`` is the largest NRMSE ratio to the oracle over
     alpha in [0.25, 6], so that ``mlflow ui`` can sort observers by it. On a test set drawn from
-    a car that slips (``truth=dynamic``) the table also holds the adaptive EKF and the oracle on
-    the true car (``oracle_dynamic``), and ``worst_dynamic_oracle_ratio`` is the ratio to it.
+    a car that slips (``truth=dynamic``) the table also holds the adaptive EKF, the kinematic EKF
+    with its Q tuned on the test set (``oracle_tuned``) and the oracle on the true car
+    (``oracle_dynamic``); ``worst_dynamic_oracle_ratio`` and ``worst_tuned_oracle_ratio`` are
+    the ratios to the last two.
 
     Parameters
     ----------
@@ -98,7 +100,8 @@ class Evaluation(L.Callback):
         est = predict_grid(net, arr, hp["window"], self.batch_size, device=device)
         truth = of_folder(folder, vehicle.wheelbase)
         # a car that slips: the kinematic peers, and the floor of the filter told the car
-        peers = ["ekf", "oracle"] + (["adaptive", "oracle_dynamic"] if truth.car else [])
+        peers = ["ekf", "oracle"] + (["adaptive", "oracle_tuned", "oracle_dynamic"]
+                                     if truth.car else [])
         self.table = pd.concat([score(name, est, arr, ref),
                                 classical_table(arr, vehicle, noise, peers, ref, truth=truth)],
                                ignore_index=True)
@@ -114,5 +117,6 @@ class Evaluation(L.Callback):
         if len(ratio):
             self.metrics["worst_oracle_ratio"] = float(ratio.max())
         if truth.car is not None and len(ratio):
-            self.metrics["worst_dynamic_oracle_ratio"] = float(
-                oracle_ratio(self.table, name, oracle="oracle_dynamic").max())
+            for peer, key in (("oracle_dynamic", "worst_dynamic_oracle_ratio"),
+                              ("oracle_tuned", "worst_tuned_oracle_ratio")):
+                self.metrics[key] = float(oracle_ratio(self.table, name, oracle=peer).max())
