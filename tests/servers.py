@@ -174,3 +174,40 @@ def mlflow_server(backend: str | None = None) -> Iterator[MlflowServer]:
             proc.wait()
         log.close()
         shutil.rmtree(folder, ignore_errors=True)
+
+
+@contextlib.contextmanager
+def model_server(model_uri: str, env: dict[str, str]) -> Iterator[str]:
+    """``mlflow models serve`` of ``model_uri`` with ``--env-manager local`` on 127.0.0.1 and a
+    free port, in a folder of its own; yields its URL, and stops it when the test ends."""
+    import requests
+
+    folder = Path(tempfile.mkdtemp(prefix="lbo-serve-"))
+    port = free_port()
+    log = open(folder / "server.log", "w")
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "mlflow", "models", "serve", "-m", model_uri, "--env-manager",
+         "local", "-h", "127.0.0.1", "-p", str(port), "-w", "1"],
+        stdout=log, stderr=subprocess.STDOUT, start_new_session=True, cwd=folder, env=env)
+    url = f"http://127.0.0.1:{port}"
+    try:
+        deadline = time.monotonic() + 180
+        while True:
+            with contextlib.suppress(requests.RequestException):
+                if requests.get(f"{url}/ping", timeout=2).status_code == 200:
+                    break
+            if proc.poll() is not None or time.monotonic() > deadline:
+                pytest.fail("mlflow models serve did not start:\n"
+                            + (folder / "server.log").read_text()[-3000:])
+            time.sleep(0.5)
+        yield url
+    finally:
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(proc.pid, signal.SIGTERM)
+        try:
+            proc.wait(timeout=20)
+        except subprocess.TimeoutExpired:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+        log.close()
+        shutil.rmtree(folder, ignore_errors=True)

@@ -249,7 +249,10 @@ def test_no_test_manoeuvre_corners_harder_than_the_cap(dynamic_sets):
         n = t.groupby("traj").size().to_numpy()
         arr = {c: [g[c].to_numpy() for _, g in t.groupby("traj")] for c in ("psi", "V")}
         width = n.max()
-        pad = lambda xs: np.stack([np.pad(x, (0, width - len(x)), mode="edge") for x in xs])
+
+        def pad(xs):
+            return np.stack([np.pad(x, (0, width - len(x)), mode="edge") for x in xs])
+
         z = np.zeros((len(n), width, 3))
         z[..., 2] = pad(arr["psi"])
         u = np.zeros((len(n), width, 2))

@@ -340,10 +340,12 @@ def test_a_1hz_log_is_refused_for_a_cnn_whose_window_is_shorter(tmp_path, fix_ra
 
 def test_the_window_rule_refuses_exactly_the_logs_with_nan_estimates(fix_rates_cnn):
     """A gap of N steps between fixes is fine, N+1 gives a NaN estimate (refused); so does a
-    log ending with N steps without a fix; for the CNN and the window filter alike."""
+    log ending with N steps without a fix; for the CNN and the window filter's window form
+    alike."""
     torch.manual_seed(0)
     observers = [Observer.load(fix_rates_cnn),
-                 Observer.from_net(ObserverNet("filternet", 20, "frame", fixes=True).double())]
+                 Observer.from_net(ObserverNet("filternet", 20, "frame", fixes=True).double(),
+                                   form="window")]
     u = np.tile([8.0, 0.05], (120, 1))
     for obs in observers:
         n = obs.window
@@ -470,3 +472,17 @@ def test_a_run_id_with_the_tracking_server_down_fails_fast(tmp_path, manoeuvre, 
     assert time.monotonic() - start < 15
     assert_refused(res, re.escape(f"error: MLFLOW_TRACKING_URI: no MLflow tracking server "
                                   f"answers at http://127.0.0.1:{port} ("), out)
+
+
+def test_the_recursive_form_predicts_through_a_gap_longer_than_its_window():
+    # its filter carries from step to step: a gap of 3 N steps is prediction only, no NaN
+    torch.manual_seed(0)
+    obs = Observer.from_net(ObserverNet("filternet", 20, "frame", fixes=True))
+    assert obs.form == "recursive"
+    m = np.full((200, 3), np.nan)
+    at = np.r_[0:40:5, 100:200:5]
+    m[at] = np.stack([0.16 * at, np.zeros(len(at)), np.zeros(len(at))], 1)
+    est, valid, cov = obs.run(m, np.tile([8.0, 0.0], (200, 1)), cov=True)
+    assert valid.all() and np.isfinite(est).all()
+    # the covariance grows through the gap and shrinks at the next fix
+    assert cov[99, 0, 0] > 5 * cov[39, 0, 0] and cov[100, 0, 0] < cov[99, 0, 0]

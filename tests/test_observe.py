@@ -58,6 +58,13 @@ def observe(*overrides, check=True):
     return res
 
 
+def classical_cov(name, arr):
+    """(T, 3, 3) covariances of a classical filter on one log's arrays."""
+    from lbo.classical import run as run_classical
+
+    return run_classical(name, arr["m"], arr["u"], VEHICLE, NOISE, return_cov=True)[1][0]
+
+
 def printed_rmse(stdout):
     found = re.search(r"rmse x (\S+) m, y (\S+) m, psi (\S+) rad", stdout)
     assert found, stdout
@@ -84,8 +91,14 @@ def test_observe_prints_the_evaluation_rmse(tmp_path, trained, manoeuvre, log_cs
     np.testing.assert_allclose(printed_rmse(res.stdout), expected, rtol=1e-5)
     assert f"observed: {out}" in res.stdout
     est = pd.read_csv(out)
-    assert list(est.columns) == ["t", "x", "y", "psi", "valid"]
+    # the EKF gives its covariance's entries; the CNN has none to give
+    covariance = ["var_x", "var_y", "var_psi", "cov_xy"] if which == "ekf" else []
+    assert list(est.columns) == ["t", "x", "y", "psi", "valid", *covariance]
     assert len(est) == len(manoeuvre) and int(est["valid"].sum()) == valid
+    if which == "ekf":
+        P = classical_cov("ekf", arr)
+        np.testing.assert_allclose(est[covariance].to_numpy(),
+                                   P[:, [0, 1, 2, 0], [0, 1, 2, 1]], rtol=1e-9)
     np.testing.assert_array_equal(est["t"], manoeuvre["t"])
     assert not est["valid"].iloc[:len(est) - valid].any()
 

@@ -82,7 +82,10 @@ def test_observe_cli_runs_the_robust_checkpoint(robust, manoeuvre, tmp_path):
     assert found, res.stdout
     assert np.all(np.isfinite([float(v) for v in found.groups()]))
     est = pd.read_csv(est_path)
-    assert list(est.columns) == ["t", "x", "y", "psi", "valid"]
+    # the robust observer knows how sure it is: its covariance's entries come with it
+    assert list(est.columns) == ["t", "x", "y", "psi", "valid", "var_x", "var_y", "var_psi",
+                                 "cov_xy"]
+    assert (est[["var_x", "var_y", "var_psi"]] > 0).all(axis=None)
     # a window filter that starts at its first fix: valid from the log's first row
     assert len(est) == len(manoeuvre) and est["valid"].all()
     assert np.isfinite(est[["x", "y", "psi"]].to_numpy()).all()

@@ -17,7 +17,7 @@ from lbo.evaluate import (
     load_test,
     nrmse_at,
     oracle_ratio,
-    predict_grid,
+    predict,
     reference,
     score,
 )
@@ -76,13 +76,17 @@ class Evaluation(L.Callback):
             client.log_artifact(run, str(self.output_dir / "nrmse.png"))
             if best:
                 client.log_artifact(run, best, artifact_path="checkpoints")
+                # the same weights as an MLflow model: pyfunc load_model, mlflow models serve
+                from lbo.serving import log_model
+
+                log_model(client.tracking_uri, run, best)
 
     def _score_logs(self, folder: Path, net, hp: dict, name: str, vehicle, noise,
                     device: str) -> None:
         """A user's test logs: the learned observer beside the EKF, the adaptive EKF and the
         UKF, pooled and per file (:mod:`lbo.logscore`)."""
         arr = logscore.load(folder)
-        est = predict_grid(net, arr, hp["window"], self.batch_size, device=device)
+        est = predict(net, arr, self.batch_size, device=device)
         estimates = {name: est, **logscore.peer_estimates(arr, vehicle, noise)}
         self.table = logscore.table(estimates, arr, test_files(folder))
         with atomic_path(self.output_dir / "evaluation.csv") as tmp:
@@ -97,7 +101,7 @@ class Evaluation(L.Callback):
         """The test grid of a generated data set, per alpha level."""
         arr = load_test(folder / "test.parquet")
         ref = reference(arr, vehicle, noise, self.reference)
-        est = predict_grid(net, arr, hp["window"], self.batch_size, device=device)
+        est = predict(net, arr, self.batch_size, device=device)
         truth = of_folder(folder, vehicle.wheelbase)
         # a car that slips: the kinematic peers, and the floor of the filter told the car
         peers = ["ekf", "oracle"] + (["adaptive", "oracle_tuned", "oracle_dynamic"]

@@ -6,8 +6,9 @@
 - ``adaptive``: the Sage-Husa EKF that learns R from its innovations, starting from R_1;
 - ``ukf``: the unscented filter (filterpy's, vectorised), R at alpha = 1;
 - ``oracle_dynamic``: the EKF on the true dynamic car (:mod:`lbo.dynamic_ekf`), told alpha, the
-  car's parameters, its process noise and the sensors' errors: the floor on a test set drawn from ``truth=dynamic``
-  (it needs that truth, so it scores simulated test sets only, not a user's log);
+  car's parameters, its process noise and the sensors' errors: the floor on a test set drawn
+  from ``truth=dynamic`` (it needs that truth, so it scores simulated test sets only, not a
+  user's log);
 - ``oracle_tuned``: the kinematic EKF told alpha, with at each alpha level the process noise Q
   that serves it best on the scored set itself (:func:`lbo.evaluate.tuned_oracle`): the best a
   kinematic EKF with a constant diagonal Q can do there, in hindsight. On a truth that is not the
@@ -74,23 +75,31 @@ def measurement_cov(name: str, noise: Noise, alpha: float | np.ndarray, g: int) 
 
 def run(name: str, m: np.ndarray, u: np.ndarray, vehicle: Vehicle, noise: Noise,
         alpha: float | np.ndarray = 1.0, progress: bool = False,
-        truth: Truth | None = None) -> np.ndarray:
-    """Estimates (G, T, 3) of observer ``name`` over G trajectories.
+        truth: Truth | None = None, return_cov: bool = False, smooth: bool = False,
+        lengths: np.ndarray | None = None) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
+    """Estimates (G, T, 3) of observer ``name`` over G trajectories, and with ``return_cov``
+    their covariances (G, T, 3, 3) (the filter's P of the pose). ``smooth``: the RTS
+    smoother's estimates after the filter (:mod:`lbo.smoother`; not for ``oracle_dynamic``),
+    over the first ``lengths`` (G,) steps of each padded trajectory (None: all).
 
     m : (G, T, 3) measurements; u : (G, T, 2) inputs; alpha : the noise scale the oracles are
     told, one for all or (G,) per trajectory (the others ignore it); truth : what the log was
     drawn from, which ``oracle_dynamic`` is told (a ``truth=dynamic`` one).
     """
     if name == DYNAMIC:
-        return _oracle_dynamic(m, u, vehicle, noise, alpha, truth)
+        if smooth:
+            raise LboError("oracle_dynamic: the floor of a filter; it has no smoother")
+        return _oracle_dynamic(m, u, vehicle, noise, alpha, truth, return_cov)
     check(name)
     R = measurement_cov(name, noise, alpha, np.shape(m)[0])
+    kw = {"return_cov": return_cov, "smooth": smooth, "lengths": lengths}
     try:
         if name == "adaptive":
-            return adaptive_ekf_batch(m, u, vehicle, noise.Q, R)
+            return adaptive_ekf_batch(m, u, vehicle, noise.Q, R, **kw)
         if name == "ukf":
-            return ukf_batch(m, u, vehicle, noise.Q, R, spread=UKF_SPREAD, progress=progress)
-        return ekf_batch(m, u, vehicle, noise.Q, R)
+            return ukf_batch(m, u, vehicle, noise.Q, R, spread=UKF_SPREAD, progress=progress,
+                             **kw)
+        return ekf_batch(m, u, vehicle, noise.Q, R, **kw)
     except np.linalg.LinAlgError as e:  # a covariance no longer positive definite
         raise LboError(f"{name}: the filter diverged ({e}); check the data's values and "
                        "units") from None
@@ -110,7 +119,8 @@ def stepper(name: str, m0: np.ndarray, vehicle: Vehicle, noise: Noise,
 
 
 def _oracle_dynamic(m: np.ndarray, u: np.ndarray, vehicle: Vehicle, noise: Noise,
-                    alpha: float | np.ndarray, truth: Truth | None) -> np.ndarray:
+                    alpha: float | np.ndarray, truth: Truth | None, return_cov: bool = False
+                    ) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
     from lbo.dynamic_ekf import dynamic_ekf_batch
 
     if truth is None or truth.car is None:
@@ -125,7 +135,7 @@ def _oracle_dynamic(m: np.ndarray, u: np.ndarray, vehicle: Vehicle, noise: Noise
                                  gnss_sigma=scale * sensors.gnss_sigma,
                                  gnss_tau=sensors.gnss_tau,
                                  steering_offset=sensors.steering_offset,
-                                 speed_scale=sensors.speed_scale)
+                                 speed_scale=sensors.speed_scale, return_cov=return_cov)
     except np.linalg.LinAlgError as e:
         raise LboError(f"oracle_dynamic: the filter diverged ({e}); check the data's values "
                        "and units") from None

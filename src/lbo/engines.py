@@ -95,3 +95,47 @@ def check_exported(net: Any, script: Any, session: Any, batch: int = 64) -> dict
     ort_out = session.run(None, {"window": win.numpy()})[0]
     return {"torchscript": float(np.abs(ts - ref).max()),
             "onnx": float(np.abs(ort_out - ref).max())}
+
+
+def _recursive_example(rec: Any) -> tuple:
+    """One step's inputs of a :class:`~lbo.models.recursive.RecursiveFilter`: a fix, an input,
+    and the state of a filter that has seen nothing."""
+    import torch
+
+    f = dict(dtype=torch.float64, device=next(rec.parameters()).device)
+    return (torch.tensor([[100.0, -50.0, 0.5]], **f), torch.tensor([[10.0, 0.02]], **f),
+            *rec.initial_state(1, f["device"]))
+
+
+def trace_recursive(rec: Any) -> Any:
+    """TorchScript of a recursive filter's step ``(m, u, *state) -> (pose, cov, *state)``,
+    traced on one step (the step has no data-dependent Python branch)."""
+    import torch
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # torch 2.13 marks jit.trace deprecated
+        return torch.jit.trace(rec.eval(), _recursive_example(rec), check_trace=False)
+
+
+def recursive_onnx_bytes(rec: Any) -> bytes:
+    """ONNX model of a recursive filter's step: inputs ``m`` (B, 3), ``u`` (B, 2) and the
+    state tensors named as :data:`~lbo.models.recursive.STATE_NAMES`, outputs ``pose``
+    (B, 3), ``cov`` (B, 3, 3) and ``next_<name>`` for each state tensor, all float64. A
+    state tensor the model never reads (the yaw-rate memory of a filter without a learned
+    process model, say) is not an input."""
+    import torch
+
+    from lbo.models.recursive import STATE_NAMES
+
+    buf = io.BytesIO()
+    batch = {n: {0: "batch"} for n in ("m", "u", "pose", "cov")}
+    for name in STATE_NAMES:
+        if name != "k":
+            batch[name] = batch[f"next_{name}"] = {0: "batch"}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        torch.onnx.export(rec.cpu().eval(), _recursive_example(rec.cpu()), buf, dynamo=False,
+                          opset_version=OPSET, input_names=["m", "u", *STATE_NAMES],
+                          output_names=["pose", "cov", *(f"next_{n}" for n in STATE_NAMES)],
+                          dynamic_axes=batch)
+    return buf.getvalue()

@@ -17,7 +17,7 @@ from omegaconf import DictConfig
 
 from lbo import schema
 from lbo.atomic import atomic_path
-from lbo.classical import BOUND, DYNAMIC, NAMES, TUNED, measurement_cov
+from lbo.classical import BOUND, DYNAMIC, NAMES, OBSERVERS, TUNED, measurement_cov
 from lbo.classical import run as run_classical
 from lbo.cli import entry
 from lbo.errors import LboError
@@ -212,20 +212,51 @@ def run(cfg: DictConfig) -> Path:
             if name not in observers:
                 observers.insert(observers.index(BOUND) if BOUND in observers
                                  else len(observers), name)
+    forms, calibrate, smooth = _extras(cfg)
     arr = load_test(path)
     ref = reference(arr, vehicle, noise, cfg.metric.reference)
     nets = learned_nets(learned)
     table = classical_table(arr, vehicle, noise, observers, ref, progress=True, truth=truth)
-    if nets:
-        table = pd.concat([*(score(name, predict_grid(net, arr, net.window), arr, ref)
-                             for name, net in nets.items()), table], ignore_index=True)
-        observers = [*nets, *observers]
+    # estimates (and covariances) of everything that gives a covariance, for calibration
+    # and smoothing: the classical filters, and the window filters in their recursive form
+    covariant = {name: run_classical(name, arr["m"], arr["u"], vehicle, noise,
+                                     alpha=arr["alpha"], return_cov=True)
+                 for name in observers if name in OBSERVERS and (calibrate or smooth)}
+    rows, names = [], []
+    for name, net in nets.items():
+        from lbo.observer import default_form
+
+        chosen = [default_form(net)] if forms is None else forms
+        for form in chosen if getattr(net, "physical", False) else ["window"]:
+            label = name if form == default_form(net) else f"{name}-{form}"
+            if form == "window":
+                est = predict_grid(net, arr, net.window)
+            else:
+                est, cov = predict_recursive(net, arr)
+                covariant[label] = (est, cov)
+            rows.append(score(label, est, arr, ref))
+            names.append(label)
+            if form == "recursive" and smooth:
+                rows.append(score(f"{label}-smoothed",
+                                  predict_recursive(net, arr, smooth=True)[0], arr, ref))
+                names.append(f"{label}-smoothed")
+    if smooth:
+        for name in [o for o in observers if o in OBSERVERS]:
+            est = run_classical(name, arr["m"], arr["u"], vehicle, noise, alpha=arr["alpha"],
+                                smooth=True, lengths=arr["lengths"])
+            rows.append(score(f"{name}-smoothed", est, arr, ref))
+            observers.append(f"{name}-smoothed")
+    table = pd.concat([*rows, table], ignore_index=True)
+    observers = [*names, *observers]
     out = Path(cfg.output_dir)
     csv = out / "evaluation.csv"
     with atomic_path(csv) as tmp:
         table.to_csv(tmp, index=False)
-    plots.save(plots.nrmse_curves(table, title="classical observers"),
+    plots.save(plots.nrmse_curves(table, title="classical observers" if not nets else
+                                  "observers on the test grid"),
                out / "nrmse_classical.png")
+    if calibrate:
+        calibration(covariant, arr, out)
     with pd.option_context("display.width", 120, "display.precision", 4):
         pivot = table.pivot(index="alpha", columns="observer", values="nrmse")[observers]
         print(f"NRMSE (E_ref = {cfg.metric.reference}: {ref[0]:.3f} m, {ref[1]:.3f} m, "
@@ -233,6 +264,46 @@ def run(cfg: DictConfig) -> Path:
         print(pivot.to_string())
     print(f"evaluation: {csv}")
     return csv
+
+
+def _extras(cfg: DictConfig) -> tuple[list[str] | None, bool, bool]:
+    """The checked ``forms`` (None: each observer's default), ``calibration`` and ``smooth``
+    settings."""
+    from lbo.observer import FORMS
+
+    forms = cfg.get("forms")
+    for form in forms or []:
+        if form not in FORMS:
+            raise LboError(f"forms: expected a list of {list(FORMS)}, got {form!r}")
+    flags = []
+    for key in ("calibration", "smooth"):
+        value = cfg.get(key, False)
+        if not isinstance(value, bool):
+            raise LboError(f"{key} must be true or false, got {value!r}")
+        flags.append(value)
+    return (None if forms is None else list(forms)), flags[0], flags[1]
+
+
+def calibration(covariant: dict[str, tuple[np.ndarray, np.ndarray]], arr: dict[str, np.ndarray],
+                out: Path) -> pd.DataFrame:
+    """NEES per alpha of every observer that gives a covariance (:func:`lbo.metrics.nees_table`);
+    writes ``nees.csv`` and ``nees.png`` to ``out`` and prints the table."""
+    from lbo import plots
+    from lbo.metrics import nees_table
+
+    table = pd.concat([nees_table(name, est, cov, arr["z"], arr["mask"], arr["alpha"])
+                       for name, (est, cov) in covariant.items()], ignore_index=True)
+    with atomic_path(out / "nees.csv") as tmp:
+        table.to_csv(tmp, index=False)
+    plots.save(plots.nees_curves(table), out / "nees.png")
+    with pd.option_context("display.width", 120, "display.precision", 3):
+        print("mean NEES per alpha (3 for a consistent filter; the 95% band of a mean over "
+              "the level's trajectories in brackets):")
+        piv = table.pivot(index="alpha", columns="observer", values="nees")
+        band = table.drop_duplicates("alpha").set_index("alpha")[["low", "high"]]
+        print(piv.join(band).to_string())
+    print(f"calibration: {out / 'nees.csv'}")
+    return table
 
 
 def learned_nets(sources: Sequence[str]) -> dict:
@@ -267,7 +338,7 @@ def run_logs(cfg: DictConfig, observers: list[str], learned: list[str]) -> Path:
     nets = learned_nets(learned)
     folder = build(spec)[0]
     arr = logscore.load(folder)
-    estimates = {name: predict_grid(net, arr, net.window) for name, net in nets.items()}
+    estimates = {name: predict(net, arr) for name, net in nets.items()}
     estimates.update(logscore.peer_estimates(arr, spec.vehicle, spec.noise, peers))
     table = logscore.table(estimates, arr, test_files(folder))
     out = Path(cfg.output_dir)
@@ -284,6 +355,37 @@ def run_logs(cfg: DictConfig, observers: list[str], learned: list[str]) -> Path:
 
 
 main = entry("evaluate", run)
+
+
+def predict_recursive(net, arr: dict[str, np.ndarray], device: str = "cpu",
+                      smooth: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """A window filter (an ObserverNet of ``filternet``) in its recursive form over every
+    trajectory of the padded test arrays, all at once: (G, T, 3) estimates and (G, T, 3, 3)
+    covariances, NaN outside the scored steps (``smooth``: the RTS smoother's)."""
+    import torch
+
+    from lbo.models.recursive import RecursiveFilter
+
+    rec = RecursiveFilter(net.net).to(device)
+    with torch.inference_mode():
+        est, cov = rec.run(torch.from_numpy(arr["m"]).to(device),
+                           torch.from_numpy(arr["u"]).to(device), smooth=smooth,
+                           lengths=arr["lengths"])
+    est, cov = est.cpu().numpy(), cov.cpu().numpy()
+    est[~arr["mask"]] = np.nan
+    cov[~arr["mask"]] = np.nan
+    return est, cov
+
+
+def predict(net, arr: dict[str, np.ndarray], batch_size: int = 8192,
+            device: str = "cpu") -> np.ndarray:
+    """A learned observer's estimates (G, T, 3) on the padded test arrays, in the form
+    :class:`lbo.Observer` runs it by default (:func:`lbo.observer.default_form`)."""
+    from lbo.observer import default_form
+
+    if default_form(net) == "recursive":
+        return predict_recursive(net, arr, device)[0]
+    return predict_grid(net, arr, net.window, batch_size, device)
 
 
 def predict_grid(net, arr: dict[str, np.ndarray], window: int, batch_size: int = 8192,

@@ -144,10 +144,12 @@ def _sidecar(observer: Any, net: Any, name: str, diff: dict[str, float],
 
 
 def register(run_id: str, name: str, uri: str | None = None) -> str:
-    """Register run ``run_id``'s ``checkpoints/`` as a new version of model ``name``.
+    """Register run ``run_id``'s MLflow model (``model/``, :mod:`lbo.serving`; a run trained
+    before lbo logged one: its ``checkpoints/``) as a new version of model ``name``.
 
-    Returns the ``models:/<name>/<version>`` URI that :meth:`Observer.load` and
-    ``python -m lbo.observe observer=...`` accept.
+    Returns the ``models:/<name>/<version>`` URI that :meth:`Observer.load`, ``python -m
+    lbo.observe observer=...``, ``mlflow.pyfunc.load_model`` and ``mlflow models serve``
+    accept.
     """
     import mlflow
     from mlflow.exceptions import MlflowException
@@ -165,8 +167,9 @@ def register(run_id: str, name: str, uri: str | None = None) -> str:
             client.get_registered_model(name)
         except MlflowException:
             client.create_registered_model(name)
-        version = client.create_model_version(name, f"runs:/{run_id}/checkpoints",
-                                              run_id=run.info.run_id).version
+        model = "model" in {a.path for a in client.list_artifacts(run_id)}
+        source = f"runs:/{run_id}/{'model' if model else 'checkpoints'}"
+        version = client.create_model_version(name, source, run_id=run.info.run_id).version
     except MlflowException as e:
         raise LboError(f"register: {str(e.message).strip().splitlines()[0]}") from None
     return f"models:/{name}/{version}"

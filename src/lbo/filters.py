@@ -225,6 +225,7 @@ class KalmanStepper:
         fix = fixes(m)
         F = jacobian(self.x, u_prev, self.vehicle.dt)
         x = step(self.x, u_prev, self.vehicle.dt, self.vehicle.wheelbase)
+        self.cross = self.P @ F.swapaxes(-1, -2)  # cov(x_{k-1|k-1}, x_{k|k-1}), for smoothing
         P = F @ self.P @ F.swapaxes(-1, -2) + self.Q
         y = np.where(fix[:, None], m - x, 0.0)
         y[:, 2] = wrap_angle(y[:, 2])
@@ -250,6 +251,7 @@ class KalmanStepper:
         posterior = I_K @ P @ I_K.swapaxes(-1, -2) + K @ R @ K.swapaxes(-1, -2)
         self.x = _where_fix(fix, x + np.einsum("gij,gj->gi", K, y), x)
         self.P = _where_fix(fix, posterior, P_prior)
+        self.prior = (x, _where_fix(fix, P, P_prior))  # the prior each posterior came from
         self.n_fix = self.n_fix + fix
         return self.x
 
@@ -268,36 +270,53 @@ def adaptive_settings(R0: np.ndarray, g: int, forgetting: float = 0.99,
 
 
 def _ekf_loop(m: np.ndarray, u: np.ndarray, vehicle: Vehicle, Q: np.ndarray, R: np.ndarray,
-              return_cov: bool, **adaptive):
+              return_cov: bool, smooth: bool = False, lengths: np.ndarray | None = None,
+              **adaptive):
     """Shared time loop of :func:`ekf_batch` and :func:`adaptive_ekf_batch`."""
     m, u = _check_trajectories(m, u)
     kf = KalmanStepper(m[:, 0], vehicle, _check_q(Q), _batch_cov(R, m.shape[0], "R"), **adaptive)
-    return run_stepper(kf, m, u, return_cov)
+    return run_stepper(kf, m, u, return_cov, smooth=smooth, lengths=lengths)
 
 
 def run_stepper(kf, m: np.ndarray, u: np.ndarray, return_cov: bool = False,
                 pose: Callable[[Any], np.ndarray] = lambda kf: kf.x,
-                cov: Callable[[Any], np.ndarray] = lambda kf: kf.P):
+                cov: Callable[[Any], np.ndarray] = lambda kf: kf.P, smooth: bool = False,
+                progress: str | None = None, lengths: np.ndarray | None = None):
     """The time loop of a batch filter: a stepper ``kf`` started at ``m[:, 0]``, updated with
     every later step. ``pose(kf)`` (G, 3) and ``cov(kf)`` (G, 3, 3) read its estimate and
     covariance. Returns (G, T, 3) estimates, and (G, T, 3, 3) covariances with
-    ``return_cov``."""
+    ``return_cov``. With ``smooth`` (a stepper that records ``prior`` and ``cross``, of three
+    states), the estimates and covariances are the RTS smoother's (:mod:`lbo.smoother`).
+    ``progress``: show a tqdm bar over the time steps with this name; ``lengths`` (G,): the
+    real steps of padded trajectories, which the smoother does not smooth across."""
+    from lbo.smoother import rts
+
     g, t = m.shape[:2]
     est = np.empty_like(m)
     est[:, 0] = pose(kf)
-    covs = np.empty((g, t, 3, 3)) if return_cov else None
-    if return_cov:
+    covs = np.empty((g, t, 3, 3)) if return_cov or smooth else None
+    if covs is not None:
         covs[:, 0] = cov(kf)
-    for k in range(1, t):
+    if smooth:
+        x_p, P_p, cross = np.zeros_like(est), np.zeros_like(covs), np.zeros_like(covs)
+    steps = tqdm(range(1, t), desc=progress, unit="step", disable=progress is None,
+                 mininterval=2.0)
+    for k in steps:
         kf.update(m[:, k], u[:, k - 1])
         est[:, k] = pose(kf)
-        if return_cov:
+        if covs is not None:
             covs[:, k] = cov(kf)
+        if smooth:
+            x_p[:, k], P_p[:, k] = kf.prior
+            cross[:, k] = kf.cross
+    if smooth:
+        est, covs = rts(est, covs, x_p, P_p, cross, lengths=lengths)
     return (est, covs) if return_cov else est
 
 
 def ekf_batch(m: np.ndarray, u: np.ndarray, vehicle: Vehicle, Q: np.ndarray, R: np.ndarray,
-              return_cov: bool = False) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
+              return_cov: bool = False, smooth: bool = False,
+              lengths: np.ndarray | None = None) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
     """The EKF of :class:`BicycleEKF`, vectorised over G trajectories (loop over time only).
 
     Gives the filterpy loop's numbers to rounding (about 1e-12).
@@ -310,19 +329,23 @@ def ekf_batch(m: np.ndarray, u: np.ndarray, vehicle: Vehicle, Q: np.ndarray, R: 
     Q : (3, 3) process covariance.
     R : (3, 3) shared, or (G, 3, 3) per trajectory (e.g. ``noise.R(alpha_g)`` for the oracle).
     return_cov : also return the posterior covariances.
+    smooth : the RTS smoother's estimates and covariances instead (:mod:`lbo.smoother`).
+    lengths : (G,) real steps of padded trajectories, for the smoother (None: all).
 
     Returns
     -------
-    est : (G, T, 3) filtered estimates; ``est[:, 0] = m[:, 0]``.
-    P : (G, T, 3, 3) posterior covariances, only when ``return_cov``.
+    est : (G, T, 3) filtered estimates; ``est[:, 0] = m[:, 0]`` (smoothed with ``smooth``).
+    P : (G, T, 3, 3) their covariances, only when ``return_cov``.
     """
-    return _ekf_loop(m, u, vehicle, Q, R, return_cov)
+    return _ekf_loop(m, u, vehicle, Q, R, return_cov, smooth, lengths)
 
 
 def adaptive_ekf_batch(m: np.ndarray, u: np.ndarray, vehicle: Vehicle, Q: np.ndarray,
                        R0: np.ndarray, forgetting: float = 0.99, prior_weight: float = 1.0,
                        r_floor: float = 1e-4,
-                       return_cov: bool = False) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
+                       return_cov: bool = False, smooth: bool = False,
+                       lengths: np.ndarray | None = None
+                       ) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
     """Noise-adaptive EKF: learns a diagonal R online from its innovations (Sage-Husa).
 
     It is never told alpha. At each step the innovation ``y = wrap(m_k - x_k^-)`` gives a
@@ -361,7 +384,8 @@ def adaptive_ekf_batch(m: np.ndarray, u: np.ndarray, vehicle: Vehicle, Q: np.nda
     P : (G, T, 3, 3) posterior covariances, only when ``return_cov``.
     """
     settings = adaptive_settings(R0, np.shape(m)[0], forgetting, prior_weight, r_floor)
-    return _ekf_loop(m, u, vehicle, Q, return_cov=return_cov, **settings)
+    return _ekf_loop(m, u, vehicle, Q, return_cov=return_cov, smooth=smooth, lengths=lengths,
+                     **settings)
 
 
 # --------------------------------------------------------------------------- UKF
@@ -506,12 +530,14 @@ class UnscentedStepper:
         returns x_k (G, 3)."""
         wm, wc, lam = self.wm, self.wc, self.lam
         # predict: sigma points through the bicycle step, unscented transform plus Q
-        sig = _sigma_points(self.x, self.P, lam)
-        sig = step(sig, np.broadcast_to(u_prev[:, None], sig.shape[:2] + (2,)),
+        before = _sigma_points(self.x, self.P, lam)
+        sig = step(before, np.broadcast_to(u_prev[:, None], before.shape[:2] + (2,)),
                    self.vehicle.dt, self.vehicle.wheelbase)
         x = _batch_mean(sig, wm)
         d = _deviations(sig, x)
         P = np.einsum("s,gsi,gsj->gij", wc, d, d) + self.Q
+        # cov(x_{k-1|k-1}, x_{k|k-1}) from the sigma points, for the URTS smoother
+        self.cross = np.einsum("s,gsi,gsj->gij", wc, _deviations(before, self.x), d)
         # update (h = identity) on sigma points redrawn from the prior, as filterpy does
         sig = _sigma_points(x, P, lam)
         zp = _batch_mean(sig, wm)
@@ -524,11 +550,14 @@ class UnscentedStepper:
         y[:, 2] = wrap_angle(y[:, 2])
         self.x = _where_fix(fix, x + np.einsum("gij,gj->gi", K, y), x)
         self.P = _where_fix(fix, P - K @ S @ K.swapaxes(-1, -2), P)
+        self.prior = (x, P)
         return self.x
 
 
 def ukf_batch(m: np.ndarray, u: np.ndarray, vehicle: Vehicle, Q: np.ndarray, R: np.ndarray,
-              spread: float = 0.1, progress: bool = False) -> np.ndarray:
+              spread: float = 0.1, progress: bool = False, return_cov: bool = False,
+              smooth: bool = False, lengths: np.ndarray | None = None
+              ) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
     """:func:`ukf` vectorised over G trajectories (a loop over time only, of
     :class:`UnscentedStepper`): the numbers of :func:`ukf_filterpy_batch` to rounding.
 
@@ -541,19 +570,18 @@ def ukf_batch(m: np.ndarray, u: np.ndarray, vehicle: Vehicle, Q: np.ndarray, R: 
     R : (3, 3) shared or (G, 3, 3) per trajectory.
     spread : Merwe's alpha.
     progress : show a tqdm bar over the time steps.
+    return_cov : also return the posterior covariances.
+    smooth : the unscented RTS smoother's estimates instead (:mod:`lbo.smoother`).
 
     Returns
     -------
-    (G, T, 3) filtered estimates.
+    (G, T, 3) filtered (or smoothed) estimates, and (G, T, 3, 3) covariances with
+    ``return_cov``.
     """
     m, u = _check_trajectories(m, u)
-    g, t = m.shape[:2]
-    flt = UnscentedStepper(m[:, 0], vehicle, Q, _batch_cov(R, g, "R"), spread)
-    est = np.empty_like(m)
-    est[:, 0] = flt.x
-    for k in tqdm(range(1, t), desc="UKF", unit="step", disable=not progress, mininterval=2.0):
-        est[:, k] = flt.update(m[:, k], u[:, k - 1])
-    return est
+    flt = UnscentedStepper(m[:, 0], vehicle, Q, _batch_cov(R, m.shape[0], "R"), spread)
+    return run_stepper(flt, m, u, return_cov, smooth=smooth,
+                       progress="UKF" if progress else None, lengths=lengths)
 
 
 # --------------------------------------------------------------------------- PCRB

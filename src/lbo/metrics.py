@@ -119,3 +119,51 @@ def score_table(observer: str, est: np.ndarray, truth: np.ndarray, mask: np.ndar
         "rmse_psi": per_level[:, 2],
         "nrmse": nrmse(per_level, ref) if len(levels) else np.empty(0),
     }, columns=SCORE_COLUMNS)
+
+
+NEES_COLUMNS = ["observer", "alpha", "nees", "low", "high", "inside"]
+
+
+def nees_table(observer: str, est: np.ndarray, cov: np.ndarray, truth: np.ndarray,
+               mask: np.ndarray, alpha: np.ndarray, level: float = 0.95) -> pd.DataFrame:
+    """Calibration of an observer's covariance, one row per noise level alpha.
+
+    The normalised estimation error squared ``e^T P^-1 e`` of a consistent filter is
+    chi-square with 3 degrees of freedom: its mean is 3. Each trajectory's NEES is averaged
+    over its scored steps, and those means over the level's G trajectories, as G Monte Carlo
+    runs (Bar-Shalom, Li and Kirubarajan, ch. 5.4): the two-sided ``level`` band of that mean
+    is ``[chi2_{3G}((1 - level) / 2), chi2_{3G}((1 + level) / 2)] / G``. A trajectory's steps
+    are strongly correlated, so it counts as one run, not as many.
+
+    Parameters
+    ----------
+    est, truth : (G, T, 3); cov : (G, T, 3, 3) the observer's covariance of ``est``.
+    mask : (G, T) scored steps; alpha : (G,) noise level of each trajectory.
+
+    Returns
+    -------
+    DataFrame ``observer, alpha, nees, low, high, inside``, sorted by alpha; NaN where a level
+    has no step with a positive-definite covariance (alpha = 0 for an oracle).
+    """
+    from scipy.stats import chi2
+
+    err = np.asarray(est, float) - np.asarray(truth, float)
+    err[..., 2] = wrap_angle(err[..., 2])
+    cov = np.asarray(cov, float)
+    ok = np.asarray(mask, bool) & np.isfinite(err).all(-1) & np.isfinite(cov).all((-1, -2))
+    # a zero covariance (the oracle told alpha = 0) has no NEES: that level is left empty
+    ok &= np.linalg.det(np.where(ok[..., None, None], cov, np.eye(3))) > 0
+    safe = np.where(ok[..., None, None], cov, np.eye(3))
+    e = np.where(ok[..., None], err, 0.0)
+    nees = np.einsum("gti,gti->gt", e, np.linalg.solve(safe, e[..., None])[..., 0])
+    per_traj = np.where(ok, nees, 0.0).sum(1) / np.maximum(ok.sum(1), 1)
+    levels, group = np.unique(np.round(np.asarray(alpha, float), 9), return_inverse=True)
+    rows = []
+    for i, a in enumerate(levels):
+        runs = per_traj[(group == i) & ok.any(1)]
+        g = len(runs)
+        low, high = (chi2.ppf([(1 - level) / 2, (1 + level) / 2], 3 * g) / g if g
+                     else (np.nan, np.nan))
+        mean = float(runs.mean()) if g else np.nan
+        rows.append((observer, a, mean, low, high, bool(low <= mean <= high)))
+    return pd.DataFrame(rows, columns=NEES_COLUMNS)

@@ -11,7 +11,14 @@ trained with ``fix_rates`` take it. The whole log is checked before anything is 
 (:mod:`lbo.logcheck`, the checks :class:`lbo.Observer` applies too); a failed run writes no
 output file. The output has ``t, x, y, psi, valid``: ``valid`` is false before the first
 fix, and on the first N-1 rows of a CNN or LSTM, whose window is not full yet (those rows
-hold the EKF's estimate).
+hold the EKF's estimate). An observer that knows how sure it is (every classical one, and the
+robust observer) adds ``var_x, var_y`` (m^2), ``var_psi`` (rad^2) and ``cov_xy`` (m^2), its
+covariance's entries; the CNN and the LSTM have none.
+
+``smooth=true`` runs a Rauch-Tung-Striebel smoother after the filter (:mod:`lbo.smoother`),
+for the best estimate of an offline log from every sample before and after each row: the
+classical observers and the robust observer (in its recursive form) only. ``form=recursive``
+runs the robust observer's filter from step to step instead of over a window per estimate.
 
 ``resample=true`` puts a log sampled at another (or an uneven) period onto the observer's
 grid ``t0, t0 + dt, ...``: V and delta (and the true state) are interpolated linearly, but
@@ -63,6 +70,8 @@ __all__ = ["DEGREES_SHARE", "DT_TOLERANCE", "FORMATS", "LOG_COLUMNS", "MAX_GAP",
 LOG_COLUMNS = ("t", "x_m", "y_m", "psi_m", "V", "delta")
 TRUTH_COLUMNS = ("x", "y", "psi")
 OUTPUT_COLUMNS = ("t", "x", "y", "psi", "valid")
+COVARIANCE_COLUMNS = ("var_x", "var_y", "var_psi", "cov_xy")
+"""The covariance's entries an observer that gives one adds to the output."""
 FORMATS = (".csv", ".parquet")
 DT_TOLERANCE = 0.01
 """Largest relative difference between the log's sampling period and the observer's dt."""
@@ -267,13 +276,19 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     plot = cfg.get("plot")
     if plot is not None and Path(str(plot)).suffix.lower() != ".png":
         raise LboError(f"plot must be a .png file (or null), got {str(plot)!r}")
+    smooth = cfg.get("smooth", False)
+    if not isinstance(smooth, bool):
+        raise LboError(f"smooth must be true or false, got {smooth!r}")
+    form = cfg.get("form")
     where = f"input {source}"
     df = read_log(source)
     truth = check_log(df, where)
 
     vehicle, noise = Vehicle.from_cfg(cfg.vehicle), Noise.from_cfg(cfg.noise)
     obs = Observer.load(name, vehicle if classical else None, noise if classical else None,
-                        alpha=alpha, features=cfg.get("features"), device=device)
+                        alpha=alpha, features=cfg.get("features"), device=device,
+                        form="recursive" if smooth and not classical and form is None
+                        else form)
     check_steering(df, obs.vehicle, where)
     check_time_unit(df["t"].to_numpy(dtype=float), obs.dt, where)
     columns = LOG_COLUMNS[1:] + (TRUTH_COLUMNS if truth else ())
@@ -283,7 +298,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
 
     m = df[["x_m", "y_m", "psi_m"]].to_numpy(dtype=float)
     u = df[["V", "delta"]].to_numpy(dtype=float)
-    est, valid = obs.run(m, u, source=where)
+    est, valid, cov = obs.run(m, u, source=where, cov=True, smooth=smooth)
     result: dict[str, Any] = {"output": output, "observer": obs.name, "rows": len(df),
                               "valid": int(valid.sum())}
     if truth:
@@ -292,6 +307,9 @@ def run(cfg: DictConfig) -> dict[str, Any]:
         result["nrmse"] = nrmse(result["rmse"]) if valid.any() else float("nan")
     out = pd.DataFrame({"t": df["t"].to_numpy(dtype=float), "x": est[:, 0], "y": est[:, 1],
                         "psi": est[:, 2], "valid": valid})
+    if obs.gives_covariance:
+        for name_, (i, j) in zip(COVARIANCE_COLUMNS, ((0, 0), (1, 1), (2, 2), (0, 1))):
+            out[name_] = cov[:, i, j]
     write_table(out, output)
     if plot is not None:
         _plot(Path(str(plot)), obs.name, m, est, valid,
@@ -300,7 +318,8 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     what = (f"learned, window {obs.window}, features {obs.features}" if obs.kind == "learned"
             else f"classical, noise {obs.noise.name}, wheelbase {obs.vehicle.wheelbase:g} m")
     print(f"observer {obs.name} ({what}, dt {obs.dt:g} s) on {len(df)} rows"
-          + (f" (resampled from {source})" if cfg.resample else ""))
+          + (f" (resampled from {source})" if cfg.resample else "")
+          + (", smoothed (RTS)" if smooth else ""))
     fix = np.isfinite(m).all(1)
     duration = len(df) * obs.dt
     print(f"fixes: {int(fix.sum())} of {len(df)} rows ({fix.sum() / duration:.3g} Hz; inputs "

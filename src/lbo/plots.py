@@ -110,3 +110,23 @@ def trajectory(truth: np.ndarray | None, meas: np.ndarray, title: str = "",
     ax.legend(fontsize=8)
     fig.tight_layout()
     return fig
+
+
+def nees_curves(table, title: str = "calibration: mean NEES against alpha"):
+    """Mean NEES per alpha of each observer (log scale), the 95% band of a consistent filter
+    shaded; a table of :func:`lbo.metrics.nees_table` rows."""
+    fig, ax = plt.subplots(figsize=(7, 4.2))
+    band = table.drop_duplicates("alpha").sort_values("alpha")
+    ax.fill_between(band["alpha"], band["low"], band["high"], color="0.85",
+                    label="95% band (consistent)")
+    ax.axhline(3.0, color="0.5", lw=0.8)
+    for name, rows in table.groupby("observer", sort=False):
+        rows = rows.sort_values("alpha")
+        ax.plot(rows["alpha"], rows["nees"], marker="o", ms=3, label=name)
+    ax.set_yscale("log")
+    ax.set_xlabel("alpha (measurement noise scale)")
+    ax.set_ylabel("mean NEES (3 degrees of freedom)")
+    ax.set_title(title)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    return fig

@@ -50,6 +50,12 @@ def _wrap(a: torch.Tensor) -> torch.Tensor:
     return math.pi - torch.remainder(math.pi - a, 2 * math.pi)
 
 
+def _tan(a: torch.Tensor) -> torch.Tensor:
+    """tan as sin / cos: ONNX Runtime has no float64 Tan, and the recursive form runs in
+    float64 (equal to torch.tan to rounding)."""
+    return torch.sin(a) / torch.cos(a)
+
+
 def _inverse_sym3(s: torch.Tensor) -> torch.Tensor:
     """Inverse of symmetric positive-definite (B, 3, 3) matrices by cofactors.
 
@@ -148,14 +154,14 @@ class FilterObserver(nn.Module):
         """One bicycle step of (B, 3) states with inputs (B,)."""
         psi = z[:, 2]
         return z + torch.stack([v * torch.cos(psi), v * torch.sin(psi),
-                                v * torch.tan(delta) / self.wheelbase], -1) * self.dt
+                                v * _tan(delta) / self.wheelbase], -1) * self.dt
 
     def _motion(self, v: torch.Tensor, delta: torch.Tensor, r_prev: torch.Tensor
                 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """The process model's speed, rear side slip and yaw rate, each (B,), for inputs and
         the previous yaw rate (B,): the kinematic bicycle's (v, 0, v tan(delta) / L) corrected
         by the learned residual."""
-        r_kin = v * torch.tan(delta) / self.wheelbase
+        r_kin = v * _tan(delta) / self.wheelbase
         if self.residual == 0:
             return v, torch.zeros_like(v), r_kin
         x = torch.stack([0.1 * v, 10.0 * delta, 2.0 * r_kin, 2.0 * r_prev], -1)
@@ -194,7 +200,7 @@ class FilterObserver(nn.Module):
         start = self._drift_start(R, var_b, e)
         z = torch.cat([x[:, 0, :3], torch.zeros_like(x[:, 0, :2])], -1)
         P = start
-        r = x[:, 0, 3] * torch.tan(x[:, 0, 4]) / self.wheelbase
+        r = x[:, 0, 3] * _tan(x[:, 0, 4]) / self.wheelbase
         started = x[:, 0, -1] > 0.5  # read only with the fix channel
         zero = torch.zeros_like(r)
         one = torch.ones_like(r)
@@ -293,7 +299,7 @@ class FilterObserver(nn.Module):
         z = x[:, 0, :3]
         P = R
         started = x[:, 0, -1] > 0.5  # read only with the fix channel
-        r = x[:, 0, 3] * torch.tan(x[:, 0, 4]) / self.wheelbase
+        r = x[:, 0, 3] * _tan(x[:, 0, 4]) / self.wheelbase
         for k in range(1, n):
             z, f02, f12, r = self._predict_pose(z, x[:, k - 1], r)
             zero = torch.zeros_like(f02)

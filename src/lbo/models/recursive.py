@@ -1,0 +1,274 @@
+"""The robust observer in recursive form: one sample in, one estimate out, at a constant cost.
+
+:class:`~lbo.models.filternet.FilterObserver` runs its EKF over a whole window of N samples for
+every estimate, from a cold start at the window's first sample. :class:`RecursiveFilter` is
+the same filter, with the same learned parts, run the way a Kalman filter runs in a car:
+
+- the filter state ``(z, P)`` carries from step to step, so each estimate costs one prediction
+  and one update, whatever N is, and the estimate draws on everything seen since the start;
+- the noise statistic that the learned noise model reads (the mean square of the
+  measurements' second differences, or of the fixes' residuals against dead reckoning when
+  fixes are missing, and the mean speed) is a running sum over the last N steps: ring buffers
+  of those N steps, one slot written and one dropped per step.
+
+The window form reads its window in the frame of its latest fix, so its noise model's x and y
+are along and across that fix's heading. The recursive form keeps the sums of the entries'
+outer products in world axes and turns them into that frame at every step (exactly what the
+window form sees), and turns the noise model's sigmas back into a world-axes R. So the
+estimates move and turn with the log, as the window form's do.
+
+Everything lives in explicit state tensors (:meth:`RecursiveFilter.initial_state`), so the
+step exports to TorchScript and ONNX as a pure function ``(m, u, *state) -> (pose, cov,
+*state)``. It runs in float64: a drive's coordinates reach kilometres, and a running sum over
+hours of steps keeps its digits.
+
+Conventions as the filters of :mod:`lbo.filters`: ``u_k`` moves ``z_k`` to ``z_{k+1}``, so the
+estimate at step k uses ``m_0 .. m_k`` and ``u_0 .. u_{k-1}``; a measurement of NaN is a step
+without a position fix (for a filter trained with the ``fix`` channel): a prediction only.
+The filter starts at the first fix, with P = R.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+
+import numpy as np
+import torch
+from torch import nn
+
+from lbo.models.filternet import FilterObserver, _inverse_sym3, _tan, _wrap
+
+STATE_NAMES = ("z", "P", "yaw_rate", "u_prev", "last", "dead_reckoning", "gap", "heading",
+               "ring", "sums", "speeds", "speed_sum", "k", "started")
+ENTRY = ("xx", "yy", "xy", "psi", "counted", "gap")
+"""The channels of one entry of the statistic's ring (world axes)."""
+"""The state tensors of a batch of B filters, in order (:meth:`RecursiveFilter.initial_state`)."""
+
+
+class _Single(nn.Module):
+    """A net run in float32 inside the float64 filter, as it was trained (ONNX Runtime has
+    no float64 Erf, which GELU needs)."""
+
+    def __init__(self, net: nn.Module) -> None:
+        super().__init__()
+        self.net = net.float()
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.net(x.float()).to(x.dtype)
+
+
+class RecursiveFilter(nn.Module):
+    """A trained :class:`FilterObserver`, stepped one sample at a time (float64).
+
+    Parameters
+    ----------
+    net : the window filter whose learned parts it runs (copied, not shared).
+
+    Attributes
+    ----------
+    window : N, the steps the noise statistic runs over.
+    n : filter states, 3 ``[x, y, psi]`` or 5 with the GNSS drift ``[b_x, b_y]``.
+    fixes : whether steps without a fix are taken (the net has the ``fix`` channel).
+    """
+
+    def __init__(self, net: FilterObserver) -> None:
+        super().__init__()
+        nets = {name: _Single(copy.deepcopy(getattr(net, name))) for name in ("noise", "process")
+                if not isinstance(getattr(net, name), nn.Identity)}
+        self.net = copy.deepcopy(net).double().eval()
+        for name, wrapped in nets.items():
+            setattr(self.net, name, wrapped.eval())
+        self.window = int(net.window)
+        self.fixes = bool(net.fixes)
+        self.n = 5 if net.drift else 3
+        # slots of the statistic's ring: N-2 second differences, or N-1 fix residuals
+        self.slots = self.window - 1 if self.fixes else self.window - 2
+
+    def initial_state(self, batch: int = 1, device: torch.device | str = "cpu"
+                      ) -> tuple[torch.Tensor, ...]:
+        """The state of ``batch`` filters that have seen nothing, in the order of
+        :data:`STATE_NAMES`:
+
+        z (B, n), P (B, n, n), yaw_rate (B,) the process model's last, u_prev (B, 2) the last
+        input, last (B, 2, 3) the last two measurements, dead_reckoning (B, 3) the pose carried
+        from the last fix, gap (B,) steps since it, heading (B,) the last fix's measured
+        heading, ring (B, S, 6) the statistic's last S entries (:data:`ENTRY`: the squares and
+        cross product of the x and y parts, the square of the heading part, whether the entry
+        counts, and its gap), sums (B, 6) their sum, speeds (B, N) the last N speeds,
+        speed_sum (B,), k (1,) steps taken, started (B,) 1 once a fix was seen.
+        """
+        f = dict(dtype=torch.float64, device=device)
+        b, n = batch, self.n
+        return (torch.zeros(b, n, **f), torch.zeros(b, n, n, **f), torch.zeros(b, **f),
+                torch.zeros(b, 2, **f), torch.zeros(b, 2, 3, **f), torch.zeros(b, 3, **f),
+                torch.zeros(b, **f), torch.zeros(b, **f),
+                torch.zeros(b, self.slots, len(ENTRY), **f), torch.zeros(b, len(ENTRY), **f),
+                torch.zeros(b, self.window, **f), torch.zeros(b, **f), torch.zeros(1, **f),
+                torch.zeros(b, **f))
+
+    def _noise(self, sums: torch.Tensor, speed: torch.Tensor, heading: torch.Tensor
+               ) -> torch.Tensor:
+        """(B, 3, 3) measurement covariance R in world axes from the running sums (B, 6), the
+        mean speed (B,) and the latest fix's heading (B,): the net's noise model on the
+        statistic of the last N steps in that fix's frame (alpha = 1 before any)."""
+        fo = self.net
+        count = sums[:, 4]
+        some = count > 0
+        c, s = torch.cos(heading), torch.sin(heading)
+        n = count.clamp_min(1)
+        xx, yy, xy, pp = (sums[:, i] / n for i in range(4))
+        # the second moments in the frame turned by the heading: along and across it
+        along = c * c * xx + 2 * c * s * xy + s * s * yy
+        across = s * s * xx - 2 * c * s * xy + c * c * yy
+        ms = torch.where(some[:, None], torch.stack([along, across, pp], 1),
+                         torch.exp(2 * fo.log_r0).expand(len(sums), 3))
+        log_ratio = 0.5 * torch.log(ms + 1e-12) - fo.log_r0
+        feats = [log_ratio, torch.log1p(speed)[:, None]]
+        if self.fixes:
+            mean_gap = torch.where(some, sums[:, 5] / n, torch.ones_like(count))
+            feats.append(torch.log(mean_gap)[:, None])
+        sigma = torch.exp(log_ratio + fo.log_r0 + fo.noise(torch.cat(feats, 1))).clamp_min(1e-6)
+        va, vc, vp = sigma[:, 0] ** 2, sigma[:, 1] ** 2, sigma[:, 2] ** 2
+        # back to world axes: R_xy = rot diag(va, vc) rot^T
+        rxx, ryy, rxy = c * c * va + s * s * vc, s * s * va + c * c * vc, c * s * (va - vc)
+        zero = torch.zeros_like(va)
+        return torch.stack([torch.stack([rxx, rxy, zero], -1), torch.stack([rxy, ryy, zero], -1),
+                            torch.stack([zero, zero, vp], -1)], -2)
+
+    def forward(self, m: torch.Tensor, u: torch.Tensor, *state: torch.Tensor
+                ) -> tuple[torch.Tensor, ...]:
+        """One step: measurement m (B, 3) (a NaN row: no fix), input u (B, 2) -> pose (B, 3)
+        (psi wrapped), its covariance (B, 3, 3), and the new state (:data:`STATE_NAMES`).
+        Before the first fix the pose and its covariance are NaN."""
+        z, P, r, u_prev, last, dr, gap, heading, ring, sums, speeds, speed_sum, k, started = state
+        fo = self.net
+        fix = (m[:, 0] == m[:, 0]) & (m[:, 1] == m[:, 1]) & (m[:, 2] == m[:, 2])  # not NaN
+        if not self.fixes:
+            fix = torch.ones_like(fix)
+        m0 = torch.where(fix[:, None], m, torch.zeros_like(m))
+        first = fix & (started < 0.5)
+        going = started > 0.5
+        one = torch.ones_like(r)
+        zero = torch.zeros_like(r)
+
+        # -- the statistic: one entry in, the one of N steps ago out
+        if self.fixes:
+            dr = fo._step(dr, u_prev[:, 0], u_prev[:, 1])
+            gap = gap + 1
+            res = m0 - dr
+            res = torch.cat([res[:, :2], _wrap(res[:, 2:])], -1)
+            counted = (fix & going).to(m.dtype)
+            entry = torch.stack([res[:, 0] ** 2, res[:, 1] ** 2, res[:, 0] * res[:, 1],
+                                 res[:, 2] ** 2], 1) / 2  # two fixes' noise in a residual
+            entry = torch.cat([counted[:, None] * entry, counted[:, None],
+                               (counted * gap)[:, None]], 1)
+            dr = torch.where(fix[:, None], m0, dr)
+            gap = torch.where(fix, zero, gap)
+        else:
+            d2 = m0 - 2 * last[:, 1] + last[:, 0]
+            d2 = torch.cat([d2[:, :2], _wrap(d2[:, 2:])], -1)
+            counted = (k >= 2).to(m.dtype) * one
+            entry = torch.stack([d2[:, 0] ** 2, d2[:, 1] ** 2, d2[:, 0] * d2[:, 1],
+                                 d2[:, 2] ** 2], 1) / 6  # i.i.d. noise: variance 6 s^2
+            entry = torch.cat([counted[:, None] * entry, counted[:, None],
+                               zero[:, None]], 1)
+            last = torch.stack([last[:, 1], m0], 1)
+        slot = torch.remainder(k, self.slots).long()
+        sums = sums + entry - ring.index_select(1, slot)[:, 0]
+        ring = ring.index_copy(1, slot, entry[:, None])
+        speed_slot = torch.remainder(k, self.window).long()
+        speed_sum = speed_sum + u[:, 0].abs() - speeds.index_select(1, speed_slot)[:, 0]
+        speeds = speeds.index_copy(1, speed_slot, u[:, 0].abs()[:, None])
+        seen = torch.clamp(k + 1, max=float(self.window))
+        heading = torch.where(fix, m0[:, 2], heading)
+        R = self._noise(sums, speed_sum / seen, heading)
+        q = torch.exp(2 * (fo.log_q0 + fo.log_q_scale))
+
+        # -- the filter: predict with u_{k-1}, update with m_k
+        pose, f02, f12, r_new = fo._predict_pose(z[:, :3], torch.cat(
+            [torch.zeros_like(m), u_prev], 1), r)
+        eye = torch.eye(self.n, dtype=m.dtype, device=m.device)
+        F = eye.expand(len(m), self.n, self.n).clone()
+        F[:, 0, 2], F[:, 1, 2] = f02, f12
+        # the learned Q's x and y are along and across the frame's heading, as R's
+        c, sn = torch.cos(heading), torch.sin(heading)
+        qxx, qyy = c * c * q[0] + sn * sn * q[1], sn * sn * q[0] + c * c * q[1]
+        qxy = c * sn * (q[0] - q[1])
+        Qn = torch.zeros(len(m), self.n, self.n, dtype=m.dtype, device=m.device)
+        Qn = Qn + torch.cat([torch.zeros_like(q[:2]), q[2:], torch.zeros_like(q[:self.n - 3])]) \
+            * eye
+        Qn[:, 0, 0], Qn[:, 1, 1], Qn[:, 0, 1], Qn[:, 1, 0] = qxx, qyy, qxy, qxy
+        H = eye[:3]
+        if self.n == 5:
+            phi = torch.exp(-torch.exp(-fo.log_drift_tau))
+            F[:, 3, 3], F[:, 4, 4] = phi * one, phi * one
+            white = (R[:, 0, 0] * R[:, 1, 1] - R[:, 0, 1] ** 2) ** 0.25  # turn-free
+            var_b = (torch.exp(fo.log_drift_ratio) * white) ** 2
+            Qd = (var_b * (1 - phi ** 2))[:, None, None] * (eye[3:].T @ eye[3:])
+            Qn = Qn + Qd
+            H = H + torch.cat([eye[3:], torch.zeros_like(eye[:1])])
+            z_pred = torch.cat([pose, phi * z[:, 3:]], -1)
+        else:
+            z_pred = pose
+        P_pred = F @ P @ F.transpose(1, 2) + Qn
+        y = m0 - (H @ z_pred.unsqueeze(-1)).squeeze(-1)
+        y = torch.cat([y[:, :2], _wrap(y[:, 2:])], -1)
+        PH = P_pred @ H.T
+        K = PH @ _inverse_sym3(H @ PH + R)
+        z_upd = z_pred + (K @ y.unsqueeze(-1)).squeeze(-1)
+        I_KH = eye - K @ H  # Joseph form: over hours of steps, (I - K H) P loses symmetry
+        P_upd = I_KH @ P_pred @ I_KH.transpose(1, 2) + K @ R @ K.transpose(1, 2)
+        P_upd = 0.5 * (P_upd + P_upd.transpose(1, 2))
+
+        # -- where the filter starts (its first fix), where it has no fix, where it goes on
+        if self.n == 5:
+            start_z = torch.cat([m0, torch.zeros_like(m0[:, :2])], -1)
+            white = (R[:, 0, 0] * R[:, 1, 1] - R[:, 0, 1] ** 2) ** 0.25  # turn-free
+            start_P = fo._drift_start(R, (torch.exp(fo.log_drift_ratio) * white) ** 2, eye)
+        else:
+            start_z, start_P = m0, R
+        # what the smoother needs: this step's prior and cov(x_{k-1|k-1}, x_{k|k-1}); none
+        # where the filter starts afresh
+        self.last_prior = (z_pred, P_pred, torch.where(going[:, None, None],
+                                                       P @ F.transpose(1, 2),
+                                                       torch.zeros_like(P)))
+        z = torch.where(first[:, None], start_z,
+                        torch.where((fix & going)[:, None], z_upd, z_pred))
+        P = torch.where(first[:, None, None], start_P,
+                        torch.where((fix & going)[:, None, None], P_upd, P_pred))
+        r_start = u[:, 0] * _tan(u[:, 1]) / fo.wheelbase
+        r = torch.where(first, r_start, r_new)
+        started = torch.where(fix, one, started)
+        out = torch.cat([z[:, :2], _wrap(z[:, 2:3])], -1)
+        out = torch.where(started[:, None] > 0.5, out, torch.full_like(out, math.nan))
+        cov = torch.where(started[:, None, None] > 0.5, P[:, :3, :3],
+                          torch.full_like(P[:, :3, :3], math.nan))
+        return (out, cov, z, P, r, u, last, dr, gap, heading, ring, sums, speeds, speed_sum,
+                k + 1, started)
+
+    def run(self, m: torch.Tensor, u: torch.Tensor, smooth: bool = False,
+            lengths: np.ndarray | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """Every step of G logs: m (G, T, 3) (NaN rows: no fix), u (G, T, 2) -> poses
+        (G, T, 3) and their covariances (G, T, 3, 3), the same numbers as T calls of
+        :meth:`forward` from :meth:`initial_state`. ``smooth``: the RTS smoother's instead
+        (:func:`lbo.smoother.rts`), over the full filter state and the first ``lengths`` (G,)
+        steps of each padded log (None: all)."""
+        state = self.initial_state(m.shape[0], m.device)
+        poses, covs, record = [], [], []
+        for k in range(m.shape[1]):
+            pose, cov, *state = self(m[:, k], u[:, k], *state)
+            poses.append(pose)
+            covs.append(cov)
+            if smooth:
+                record.append((state[0], state[1], *self.last_prior))
+        if not smooth:
+            return torch.stack(poses, 1), torch.stack(covs, 1)
+        from lbo.smoother import rts
+
+        x_f, P_f, x_p, P_p, cross = (torch.stack(t, 1).cpu().numpy() for t in zip(*record))
+        x_s, P_s = rts(x_f, P_f, x_p, P_p, cross, lengths=lengths)
+        pose = torch.from_numpy(x_s[..., :3]).to(m.device)
+        pose = torch.where(torch.isfinite(torch.stack(poses, 1)), pose,
+                           torch.full_like(pose, math.nan))  # before the first fix
+        return pose, torch.from_numpy(P_s[..., :3, :3]).to(m.device)

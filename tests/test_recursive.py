@@ -1,0 +1,145 @@
+"""The robust observer in recursive form (lbo.models.recursive): one step at a time with its
+state carried, the same numbers in a batch, in TorchScript and in ONNX Runtime, and through
+lbo.Observer; covariances and the RTS smoother of every filter."""
+
+import numpy as np
+import pytest
+import torch
+
+from lbo.errors import LboError
+from lbo.models.filternet import FilterObserver
+from lbo.models.recursive import STATE_NAMES, RecursiveFilter
+from lbo.network import ObserverNet
+from lbo.observer import Observer
+
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
+
+VARIANTS = {"plain": {}, "fixes": {"in_features": 6},
+            "residual_drift": {"residual": 16, "drift": True}}
+
+
+def _observer_net(kind: str, window: int = 60, seed: int = 0) -> ObserverNet:
+    """A window filter whose learned parts are not at their zero start: every weight moved."""
+    torch.manual_seed(seed)
+    net = ObserverNet("filternet", window, features="frame", fixes=kind == "fixes",
+                      **VARIANTS[kind])
+    with torch.no_grad():
+        for p in net.net.parameters():
+            p.add_(0.05 * torch.randn_like(p))
+    return net
+
+
+def _net(kind: str, window: int = 60, seed: int = 0) -> FilterObserver:
+    return _observer_net(kind, window, seed).net
+
+
+def _logs(g: int, t: int, fixes: bool, seed: int = 1) -> tuple[np.ndarray, np.ndarray]:
+    """G noisy logs of a car turning gently, (G, T, 3) and (G, T, 2); with ``fixes``, two of
+    three rows and a stretch of 40 have no fix, and the first fix comes at row 3."""
+    rng = np.random.default_rng(seed)
+    k = np.arange(t)
+    psi = 0.002 * k[None, :] + rng.uniform(-3, 3, (g, 1))
+    x = np.cumsum(0.2 * np.cos(psi), 1) + 1000.0
+    y = np.cumsum(0.2 * np.sin(psi), 1) - 500.0
+    m = np.stack([x, y, psi], -1) + rng.normal(size=(g, t, 3)) * [1.0, 1.0, 0.0174]
+    m[..., 2] = (m[..., 2] + np.pi) % (2 * np.pi) - np.pi
+    u = np.stack([np.full((g, t), 10.0), np.full((g, t), 0.002 * 2.7 / 0.2)], -1)
+    if fixes:
+        m[:, (k % 3 != 0) | ((k > 100) & (k < 140)) | (k < 3)] = np.nan
+    return m, u
+
+
+@pytest.mark.parametrize("kind", list(VARIANTS))
+def test_a_batch_run_gives_what_stepping_one_sample_at_a_time_gives(kind):
+    net = _observer_net(kind)
+    rec = RecursiveFilter(net.net)
+    m, u = _logs(3, 300, kind == "fixes")
+    with torch.no_grad():
+        est, cov = rec.run(torch.from_numpy(m), torch.from_numpy(u))
+    obs = Observer.from_net(net, form="recursive")
+    for g in range(3):
+        obs.reset()
+        steps = [obs.step(None if np.isnan(m[g, k, 0]) else m[g, k], u[g, k])
+                 for k in range(300)]
+        stepped = np.array([s.state for s in steps])
+        np.testing.assert_allclose(stepped, est[g].numpy(), atol=1e-6, equal_nan=True)
+        np.testing.assert_allclose(np.array([s.cov for s in steps]), cov[g].numpy(),
+                                   atol=1e-6, equal_nan=True)
+    first = int(np.argmax(np.isfinite(m[0, :, 0])))
+    assert np.isnan(est[0, :first].numpy()).all() and np.isfinite(est[0, first:].numpy()).all()
+
+
+@pytest.mark.parametrize("kind", list(VARIANTS))
+def test_torchscript_and_onnx_steps_equal_pytorch(kind):
+    m, u = _logs(1, 200, kind == "fixes", seed=2)
+    net = _observer_net(kind)
+    runs = {e: Observer.from_net(net, engine=e, form="recursive").run(m[0], u[0], cov=True)
+            for e in ("torch", "torchscript", "onnx")}
+    for engine in ("torchscript", "onnx"):
+        np.testing.assert_allclose(runs[engine][0], runs["torch"][0], atol=1e-6, equal_nan=True)
+        np.testing.assert_allclose(runs[engine][2], runs["torch"][2], atol=1e-6, equal_nan=True)
+
+
+def test_its_cost_and_state_do_not_grow_with_the_log():
+    rec = RecursiveFilter(_net("residual_drift", window=400))
+    state = rec.initial_state(1)
+    sizes = [s.numel() for s in state]
+    m, u = _logs(1, 1000, False, seed=3)
+    with torch.no_grad():
+        for k in range(1000):
+            _, _, *state = rec(torch.from_numpy(m[:, k]), torch.from_numpy(u[:, k]), *state)
+    assert [s.numel() for s in state] == sizes  # a ring of N slots, whatever the log's length
+    assert len(state) == len(STATE_NAMES) and state[STATE_NAMES.index("k")].item() == 1000
+    # the running sums are the sums of what the ring holds: nothing drifts out of step
+    ring, sums = state[STATE_NAMES.index("ring")], state[STATE_NAMES.index("sums")]
+    np.testing.assert_allclose(ring.sum(1).numpy(), sums.numpy(), rtol=1e-9)
+
+
+def test_on_a_window_the_recursive_form_is_the_window_filter_told_one_noise_level():
+    # over exactly one window from the cold start, both forms are the same EKF; they differ
+    # only in the noise statistic (the window's whole against the running one) and in the
+    # frame their noise is along and across (the window's last fix's heading against each
+    # step's latest), so hold the noise model's output fixed, make Q the same along as across,
+    # and compare
+    net = _net("residual_drift", window=80)
+    with torch.no_grad():
+        net.noise[-1].weight.zero_()
+        net.noise[-1].bias.zero_()
+        net.log_q_scale[1] = net.log_q_scale[0]
+    m, u = _logs(4, 80, False, seed=4)
+    sigma = torch.tensor([1.0, 1.0, 0.0174], dtype=torch.float64)
+    net.measurement_sigma = lambda x: sigma.expand(len(x), 3).to(x.dtype)  # window form
+    rec = RecursiveFilter(net)
+    rec._noise = lambda sums, speed, heading: torch.diag(sigma**2).expand(len(sums), 3, 3)
+    with torch.no_grad():
+        est, _ = rec.run(torch.from_numpy(m), torch.from_numpy(u))
+        x = torch.from_numpy(np.concatenate([m, u], -1))
+        window = net.double()(x)  # world coordinates in, world out: the filter is equivariant
+    np.testing.assert_allclose(est[:, -1].numpy(), window.numpy(), atol=1e-6)
+
+
+def test_form_is_checked_in_one_line():
+    cnn = ObserverNet("cnn", 20)
+    with pytest.raises(LboError, match="form=recursive: a CNNObserver has no filter"):
+        Observer.from_net(cnn, form="recursive")
+    with pytest.raises(LboError, match=r"form must be one of \['window', 'recursive'\]"):
+        Observer.from_net(ObserverNet("filternet", 20, features="frame"), form="kalman")
+    with pytest.raises(LboError, match="smooth: cnn-N20 has no filter to smooth"):
+        Observer.from_net(cnn).run(*(a[0] for a in _logs(1, 50, False)), smooth=True)
+
+
+@pytest.mark.parametrize("kind", list(VARIANTS))
+def test_estimates_move_and_turn_with_the_log(kind):
+    # the noise model reads, and its R and Q act, along and across the latest fix's heading:
+    # shift and turn a whole log, and the estimates shift and turn with it
+    rec = RecursiveFilter(_net(kind))
+    m, u = _logs(2, 250, kind == "fixes", seed=5)
+    theta, shift = 0.8, np.array([500.0, -250.0])
+    rot = np.array([[np.cos(theta), -np.sin(theta)], [np.sin(theta), np.cos(theta)]])
+    moved = np.concatenate([m[..., :2] @ rot.T + shift, m[..., 2:] + theta], -1)
+    with torch.no_grad():
+        est, cov = (t.numpy() for t in rec.run(torch.from_numpy(m), torch.from_numpy(u)))
+        est_m, cov_m = (t.numpy() for t in rec.run(torch.from_numpy(moved), torch.from_numpy(u)))
+    np.testing.assert_allclose(est_m[..., :2], est[..., :2] @ rot.T + shift, atol=1e-6)
+    turned = np.einsum("ij,gtjk,lk->gtil", rot, cov[..., :2, :2], rot)
+    np.testing.assert_allclose(cov_m[..., :2, :2], turned, atol=1e-9, equal_nan=True)

@@ -1,0 +1,105 @@
+"""A trained observer as an MLflow model (lbo.serving): every training run logs one; it loads
+with mlflow.pyfunc in a fresh process and serves over HTTP with `mlflow models serve`, giving
+the estimates lbo.Observer gives."""
+
+import json
+import os
+import subprocess
+import sys
+
+import mlflow
+import numpy as np
+import pandas as pd
+import pytest
+import requests
+
+from conftest import train_in_own_store
+from lbo.errors import LboError
+from lbo.export import register
+from lbo.observer import Observer
+from lbo.serving import INPUT_COLUMNS, OUTPUT_COLUMNS, estimates
+from servers import model_server
+
+pytestmark = [pytest.mark.slow, pytest.mark.usefixtures("one_torch_thread")]
+
+
+@pytest.fixture(scope="module")
+def robust(tmp_path_factory, smoke_data):
+    """The robust observer trained at smoke scale in an MLflow store of its own."""
+    tmp = tmp_path_factory.mktemp("serving")
+    _, out, uri = train_in_own_store(tmp, smoke_data, "experiment=robust", "data=smoke",
+                                     "trainer.max_epochs=1", "trainer.limit_train_batches=3",
+                                     "window=40", "batch_size=32")
+    return {"run_id": out["run_id"], "uri": uri}
+
+
+@pytest.fixture(scope="module")
+def log(manoeuvre):
+    frame = manoeuvre[list(INPUT_COLUMNS)].reset_index(drop=True).iloc[:300].copy()
+    frame.loc[frame.index % 5 != 0, ["x_m", "y_m", "psi_m"]] = np.nan  # fixes at 10 Hz
+    return frame
+
+
+def _env(uri: str) -> dict[str, str]:
+    return {**os.environ, "MLFLOW_TRACKING_URI": uri, "OMP_NUM_THREADS": "1"}
+
+
+def _expected(robust, frame: pd.DataFrame) -> pd.DataFrame:
+    os.environ["MLFLOW_TRACKING_URI"] = robust["uri"]
+    try:
+        return estimates(Observer.load(robust["run_id"]), frame)
+    finally:
+        del os.environ["MLFLOW_TRACKING_URI"]
+
+
+def test_every_training_run_logs_a_model_that_pyfunc_loads_in_a_fresh_process(robust, log,
+                                                                              tmp_path):
+    client = mlflow.MlflowClient(robust["uri"])
+    assert {"model", "checkpoints"} <= {a.path for a in client.list_artifacts(robust["run_id"])}
+    assert client.get_run(robust["run_id"]).info.status == "FINISHED"
+    log.to_parquet(tmp_path / "log.parquet")
+    script = ("import mlflow, pandas as pd, sys\n"
+              f"model = mlflow.pyfunc.load_model('runs:/{robust['run_id']}/model')\n"
+              f"out = model.predict(pd.read_parquet(r'{tmp_path / 'log.parquet'}'))\n"
+              f"out.to_parquet(r'{tmp_path / 'out.parquet'}')\n")
+    res = subprocess.run([sys.executable, "-c", script], env=_env(robust["uri"]),
+                         capture_output=True, text=True, timeout=300, cwd=tmp_path)
+    assert res.returncode == 0, res.stderr[-3000:]
+    got = pd.read_parquet(tmp_path / "out.parquet")
+    want = _expected(robust, log)
+    assert list(got.columns) == list(OUTPUT_COLUMNS) and len(got) == len(log)
+    pd.testing.assert_frame_equal(got, want, atol=1e-9)
+    # the robust observer knows how sure it is: a covariance on every valid row
+    assert got["valid"].all() and (got[["var_x", "var_y", "var_psi"]] > 0).all(axis=None)
+
+
+def test_mlflow_models_serve_answers_a_posted_window(robust, log):
+    window = log.iloc[:40]  # one window of the observer's N, its estimate the last row's
+    want = _expected(robust, window)
+    body = {"dataframe_split": json.loads(window.to_json(orient="split", index=False))}
+    with model_server(f"runs:/{robust['run_id']}/model", _env(robust["uri"])) as url:
+        res = requests.post(f"{url}/invocations", json=body, timeout=60)
+        bad = requests.post(f"{url}/invocations", timeout=60,
+                            json={"dataframe_split": {"columns": ["x_m"], "data": [[1.0]]}})
+    assert res.status_code == 200, res.text
+    got = pd.DataFrame(res.json()["predictions"])
+    np.testing.assert_allclose(got[["x", "y", "psi"]].to_numpy(),
+                               want[["x", "y", "psi"]].to_numpy(), atol=1e-9)
+    assert got["valid"].tolist() == want["valid"].tolist()
+    # the model's signature: MLflow refuses a frame without the log's columns, naming them
+    assert bad.status_code == 400 and "missing inputs" in bad.text.lower() and "delta" in bad.text
+
+
+def test_the_registry_registers_the_model(robust, monkeypatch):
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", robust["uri"])
+    uri = register(robust["run_id"], "lbo-robust", robust["uri"])
+    assert uri == "models:/lbo-robust/1"
+    assert Observer.load(uri).name == "filternet-N40"
+    model = mlflow.pyfunc.load_model(uri)  # the pyfunc model, not a folder of checkpoints
+    assert list(model.metadata.get_input_schema().input_names()) == [*INPUT_COLUMNS, "log"]
+
+
+def test_a_log_without_its_columns_is_one_line():
+    with pytest.raises(LboError, match="model input: missing columns V, delta"):
+        estimates(Observer.load("ekf"), pd.DataFrame({"x_m": [0.0], "y_m": [0.0],
+                                                      "psi_m": [0.0]}))
