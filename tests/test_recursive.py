@@ -143,3 +143,39 @@ def test_estimates_move_and_turn_with_the_log(kind):
     np.testing.assert_allclose(est_m[..., :2], est[..., :2] @ rot.T + shift, atol=1e-6)
     turned = np.einsum("ij,gtjk,lk->gtil", rot, cov[..., :2, :2], rot)
     np.testing.assert_allclose(cov_m[..., :2, :2], turned, atol=1e-9, equal_nan=True)
+
+
+def test_export_writes_the_step_function_a_control_loop_calls(tmp_path):
+    # the files of the recursive form, called as the JSON says, give Observer.step's numbers
+    import json
+
+    import onnxruntime as ort
+
+    from lbo.export import export
+
+    net = _observer_net("fixes", window=60)
+    obs = Observer.from_net(net)
+    paths = export(obs, tmp_path, "robust")
+    spec = json.loads(paths["json"].read_text())
+    assert spec["form"] == "recursive" and spec["max_abs_diff_to_pytorch"]["onnx"] < 1e-6
+    session = ort.InferenceSession(str(paths["onnx"]), providers=["CPUExecutionProvider"])
+    script = torch.jit.load(str(paths["torchscript"]))
+    state = {s["name"]: np.zeros([1 if d == "batch" else d for d in s["shape"]])
+             for s in spec["state"]}
+    ts_state = [torch.from_numpy(v.copy()) for v in state.values()]
+    inputs = {s["name"] for s in spec["state"] if s["onnx_input"]}
+    m, u = _logs(1, 120, True, seed=6)
+    for k in range(120):
+        want = obs.step(None if np.isnan(m[0, k, 0]) else m[0, k], u[0, k])
+        out = session.run(None, {"m": m[:, k], "u": u[:, k],
+                                 **{n: v for n, v in state.items() if n in inputs}})
+        state = dict(zip(state, out[2:]))
+        with torch.no_grad():
+            ts = script(torch.from_numpy(m[:, k]), torch.from_numpy(u[:, k]), *ts_state)
+        ts_state = list(ts[2:])
+        for pose, cov in ((out[0][0], out[1][0]), (ts[0][0].numpy(), ts[1][0].numpy())):
+            if want.valid:
+                np.testing.assert_allclose(pose[:2], want.state[:2], atol=1e-6)
+                np.testing.assert_allclose(cov, want.cov, atol=1e-9)
+            else:
+                assert np.isnan(pose).all()

@@ -4,11 +4,15 @@
     python -m lbo.export observer=<run id> register=lbo-cnn     # also: models:/lbo-cnn/<version>
 
 Writes ``<name>.pt`` (TorchScript, traced), ``<name>.onnx`` (opset 17, dynamic batch axis) and
-``<name>.json`` (window, dt, features, channel order, vehicle, noise). Both files take the raw
-window (B, N, 5) float64 ``[x_m, y_m, psi_m, V, delta]``, oldest sample first, and return
-(B, 3) float64 ``[x, y, psi]`` at the window's last step: the feature transform and the
-normalisation are inside. Each file is checked against PyTorch on random windows before it
-is kept.
+``<name>.json`` (window, dt, features, channel order, vehicle, noise). A CNN's or LSTM's files
+(and a window filter's with ``form=window``) take the raw window (B, N, 5) float64 ``[x_m,
+y_m, psi_m, V, delta]``, oldest sample first, and return (B, 3) float64 ``[x, y, psi]`` at the
+window's last step: the feature transform and the normalisation are inside. The robust
+observer's files are its recursive form's step (:mod:`lbo.models.recursive`): one sample
+``m`` (B, 3) and ``u`` (B, 2) and the filter's state in, the pose (B, 3), its covariance
+(B, 3, 3) and the next state out; the JSON lists the state tensors, their shapes and their
+start (all zeros). Each file is checked against PyTorch (random windows; 300 steps of a drive
+with missing fixes) before it is kept.
 """
 
 from __future__ import annotations
@@ -26,12 +30,23 @@ from omegaconf import DictConfig
 
 from lbo.atomic import atomic_path, remove_stale_temps
 from lbo.cli import entry
-from lbo.engines import OPSET, TOLERANCE, check_exported, onnx_bytes, onnx_session, trace
+from lbo.engines import (
+    OPSET,
+    TOLERANCE,
+    check_exported,
+    check_recursive,
+    onnx_bytes,
+    onnx_session,
+    recursive_onnx_bytes,
+    trace,
+    trace_recursive,
+)
 from lbo.errors import LboError
 
 
 def export(observer: Any, out_dir: str | Path, name: str | None = None) -> dict[str, Path]:
-    """Write ``<name>.pt``, ``<name>.onnx`` and ``<name>.json`` of a learned observer.
+    """Write ``<name>.pt``, ``<name>.onnx`` and ``<name>.json`` of a learned observer, in the
+    form it runs in (``observer.form``: a window function, or the recursive form's step).
 
     Parameters
     ----------
@@ -62,8 +77,15 @@ def export(observer: Any, out_dir: str | Path, name: str | None = None) -> dict[
                        "diverged training?); nothing written")
     name = name or observer.name
     out = Path(out_dir)
-    script, model = trace(net), onnx_bytes(net)
-    diff = check_exported(net, script, onnx_session(model))
+    if observer.form == "recursive":
+        from lbo.models.recursive import RecursiveFilter
+
+        rec = RecursiveFilter(net.net)
+        script, model = trace_recursive(rec), recursive_onnx_bytes(rec)
+        diff = check_recursive(rec, script, onnx_session(model, threads=1))
+    else:
+        script, model = trace(net), onnx_bytes(net)
+        diff = check_exported(net, script, onnx_session(model))
     worst = max(diff, key=lambda k: diff[k] if diff[k] == diff[k] else float("inf"))  # NaN
     if not diff[worst] <= TOLERANCE:  # NaN fails too
         raise LboError(f"export: {worst} differs from PyTorch by {diff[worst]:.2e} "
@@ -75,7 +97,10 @@ def export(observer: Any, out_dir: str | Path, name: str | None = None) -> dict[
         if removed:
             print(f"removed {len(removed)} temp file(s) of an export killed before it finished "
                   f"from {out}")
-        _write_set(paths, script, model, _sidecar(observer, net, name, diff, paths))
+        sidecar = _sidecar(observer, net, name, diff, paths)
+        if observer.form == "recursive":
+            sidecar.update(_step_sidecar(rec, model))
+        _write_set(paths, script, model, sidecar)
     return paths
 
 
@@ -114,6 +139,35 @@ def _export_lock(out: Path) -> Iterator[None]:
         yield
     finally:
         os.close(fd)  # closing drops the lock
+
+
+def _step_sidecar(rec: Any, model: bytes) -> dict[str, Any]:
+    """What a control loop needs to call the recursive form's step: its inputs and outputs,
+    and the state it starts from."""
+    from lbo.engines import onnx_session
+    from lbo.models.recursive import STATE_NAMES
+
+    state = rec.initial_state(1)
+    used = {i.name for i in onnx_session(model).get_inputs()}
+    return {
+        "form": "recursive",
+        "input": {"m": {"shape": ["batch", 3], "columns": ["x_m", "y_m", "psi_m"],
+                        "missing_fix": "x_m, y_m and psi_m NaN" if rec.fixes else
+                        "not allowed: a fix at every step"},
+                  "u": {"shape": ["batch", 2], "columns": ["V", "delta"]},
+                  "dtype": "float64",
+                  "state": "the state tensors below, as the last call returned them"},
+        "output": {"pose": {"shape": ["batch", 3], "columns": ["x", "y", "psi"],
+                            "units": ["m", "m", "rad"], "before_first_fix": "NaN"},
+                   "cov": {"shape": ["batch", 3, 3], "units": "m^2, m rad, rad^2"},
+                   "next state": "next_<name> for each state tensor"},
+        "state": [{"name": n, "shape": ["batch", *list(t.shape[1:])] if n != "k" else [1],
+                   "start": 0.0, "onnx_input": n in used}
+                  for n, t in zip(STATE_NAMES, state)],
+        "call": "start with every state tensor zero; each step: feed m, u and the state, keep "
+                "pose and cov, pass next_<name> back as <name> (ONNX: only the tensors with "
+                "onnx_input true are inputs)",
+    }
 
 
 def _sidecar(observer: Any, net: Any, name: str, diff: dict[str, float],
@@ -188,10 +242,11 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     source = cfg.observer
     if cfg.get("register") and not RUN_ID.fullmatch(source):
         raise LboError(f"register needs observer=<MLflow run id> (32 hex digits), got {source!r}")
-    obs = Observer.load(source, features=cfg.get("features"))
+    obs = Observer.load(source, features=cfg.get("features"), form=cfg.get("form"))
     paths = export(obs, cfg.out_dir, cfg.get("name"))
     diff = json.loads(paths["json"].read_text())["max_abs_diff_to_pytorch"]
-    print(f"exported {obs.name} (window {obs.window}, dt {obs.dt:g} s, features {obs.features}); "
+    print(f"exported {obs.name} (window {obs.window}, dt {obs.dt:g} s, features {obs.features}, "
+          f"{'recursive: one step' if obs.form == 'recursive' else 'window form'}); "
           f"max |diff| to PyTorch: TorchScript {diff['torchscript']:.1e}, "
           f"ONNX Runtime {diff['onnx']:.1e}")
     for kind, path in paths.items():
