@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 import torch
 
+from lbo.engines import TOLERANCE
 from lbo.errors import LboError
 from lbo.models.filternet import FilterObserver
 from lbo.models.recursive import STATE_NAMES, RecursiveFilter
@@ -95,12 +96,14 @@ def test_its_cost_and_state_do_not_grow_with_the_log():
     np.testing.assert_allclose(ring.sum(1).numpy(), sums.numpy(), rtol=1e-9)
 
 
-def test_on_a_window_the_recursive_form_is_the_window_filter_told_one_noise_level():
+def test_on_a_window_the_recursive_form_is_the_window_filter_told_one_noise_level(monkeypatch):
     # over exactly one window from the cold start, both forms are the same EKF; they differ
     # only in the noise statistic (the window's whole against the running one) and in the
     # frame their noise is along and across (the window's last fix's heading against each
     # step's latest), so hold the noise model's output fixed, make Q the same along as across,
-    # and compare
+    # and compare; and start both at P = R (the recursive form starts wider, START_SCALE R,
+    # as it cannot know the noise level at its first fix)
+    monkeypatch.setattr("lbo.models.recursive.START_SCALE", 1.0)
     net = _net("residual_drift", window=80)
     with torch.no_grad():
         net.noise[-1].weight.zero_()
@@ -157,7 +160,9 @@ def test_export_writes_the_step_function_a_control_loop_calls(tmp_path):
     obs = Observer.from_net(net)
     paths = export(obs, tmp_path, "robust")
     spec = json.loads(paths["json"].read_text())
-    assert spec["form"] == "recursive" and spec["max_abs_diff_to_pytorch"]["onnx"] < 1e-6
+    # the nets run in float32 inside the float64 filter; ONNX Runtime's float32 kernels round
+    # apart from torch's by an ulp, which the filter carries: within the export's tolerance
+    assert spec["form"] == "recursive" and spec["max_abs_diff_to_pytorch"]["onnx"] < TOLERANCE
     session = ort.InferenceSession(str(paths["onnx"]), providers=["CPUExecutionProvider"])
     script = torch.jit.load(str(paths["torchscript"]))
     state = {s["name"]: np.zeros([1 if d == "batch" else d for d in s["shape"]])
@@ -175,7 +180,7 @@ def test_export_writes_the_step_function_a_control_loop_calls(tmp_path):
         ts_state = list(ts[2:])
         for pose, cov in ((out[0][0], out[1][0]), (ts[0][0].numpy(), ts[1][0].numpy())):
             if want.valid:
-                np.testing.assert_allclose(pose[:2], want.state[:2], atol=1e-6)
-                np.testing.assert_allclose(cov, want.cov, atol=1e-9)
+                np.testing.assert_allclose(pose[:2], want.state[:2], atol=TOLERANCE)
+                np.testing.assert_allclose(cov, want.cov, rtol=1e-5, atol=1e-12)
             else:
                 assert np.isnan(pose).all()

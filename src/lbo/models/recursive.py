@@ -41,6 +41,9 @@ from lbo.models.filternet import FilterObserver, _inverse_sym3, _tan, _wrap
 
 STATE_NAMES = ("z", "P", "yaw_rate", "u_prev", "last", "dead_reckoning", "gap", "heading",
                "ring", "sums", "speeds", "speed_sum", "k", "started")
+START_SCALE = 6.5**2
+"""P at the first fix, in units of the R the noise model gives then: its statistic holds nothing
+yet, so R is alpha = 1's, and the start must be as unsure as the noisiest level trained on."""
 ENTRY = ("xx", "yy", "xy", "psi", "counted", "gap")
 """The channels of one entry of the statistic's ring (world axes)."""
 """The state tensors of a batch of B filters, in order (:meth:`RecursiveFilter.initial_state`)."""
@@ -225,9 +228,10 @@ class RecursiveFilter(nn.Module):
         if self.n == 5:
             start_z = torch.cat([m0, torch.zeros_like(m0[:, :2])], -1)
             white = (R[:, 0, 0] * R[:, 1, 1] - R[:, 0, 1] ** 2) ** 0.25  # turn-free
-            start_P = fo._drift_start(R, (torch.exp(fo.log_drift_ratio) * white) ** 2, eye)
+            start_P = fo._drift_start(START_SCALE * R, (torch.exp(fo.log_drift_ratio) * white) ** 2,
+                                      eye)
         else:
-            start_z, start_P = m0, R
+            start_z, start_P = m0, START_SCALE * R
         # what the smoother needs: this step's prior and cov(x_{k-1|k-1}, x_{k|k-1}); none
         # where the filter starts afresh
         self.last_prior = (z_pred, P_pred, torch.where(going[:, None, None],
