@@ -185,6 +185,10 @@ def model_server(model_uri: str, env: dict[str, str]) -> Iterator[str]:
     folder = Path(tempfile.mkdtemp(prefix="lbo-serve-"))
     port = free_port()
     log = open(folder / "server.log", "w")
+    # mlflow starts its scoring server as `uvicorn` through a shell, so this interpreter's
+    # scripts folder goes first on PATH even when no virtual environment is activated
+    scripts = str(Path(sys.executable).parent)
+    env = {**env, "PATH": os.pathsep.join([scripts, env.get("PATH", "")])}
     proc = subprocess.Popen(
         [sys.executable, "-m", "mlflow", "models", "serve", "-m", model_uri, "--env-manager",
          "local", "-h", "127.0.0.1", "-p", str(port), "-w", "1"],

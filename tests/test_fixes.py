@@ -226,7 +226,8 @@ def test_the_export_of_an_observer_with_missing_fixes_matches_pytorch(tmp_path):
 
     torch.manual_seed(2)
     net = ObserverNet("filternet", 40, "frame", fixes=True)  # float32 weights, as trained
-    paths = export(Observer.from_net(net), tmp_path)
+    # the window form; the recursive form's step export is tested in test_recursive.py
+    paths = export(Observer.from_net(net, form="window"), tmp_path)
     df = simulate(compose_cfg("simulate", ["manoeuvre=slalom", "fix_rate=5"]))
     series = df[["x_m", "y_m", "psi_m", "V", "delta"]].to_numpy()
     win = np.stack([series[e - 40:e] for e in (40, 333, 700)])  # fixes every 10 steps

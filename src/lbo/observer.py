@@ -277,8 +277,8 @@ def make_stepper(net: Any, engine: str = "torch", device: str = "cpu") -> tuple[
 
     def torch_step(m: np.ndarray, u: np.ndarray, st: list) -> tuple:
         with torch.inference_mode():
-            out = module(torch.from_numpy(m).to(device), torch.from_numpy(u).to(device),
-                         *(torch.from_numpy(x).to(device) for x in st))
+            out = module(*(torch.from_numpy(np.require(x, requirements="W")).to(device)
+                           for x in (m, u, *st)))  # a read-only frame's rows are copied
         out = [o.cpu().numpy() for o in out]
         return out[0], out[1], out[2:]
 
