@@ -119,6 +119,27 @@ def test_ekf_output_matches_filterpys_ekf(tmp_path, manoeuvre, log_csv):
     np.testing.assert_allclose(result["rmse"], rmse(ref, z), rtol=1e-12)
 
 
+def test_smooth_true_writes_the_rts_smoothers_estimates(tmp_path, manoeuvre, log_csv, trained):
+    from lbo.classical import run as run_classical
+
+    out = tmp_path / "est.csv"
+    result = run(compose_cfg("observe", ["observer=oracle", "alpha=1", f"input={log_csv}",
+                                         f"output={out}", "smooth=true"]))
+    m, u = manoeuvre[["x_m", "y_m", "psi_m"]].to_numpy(), manoeuvre[["V", "delta"]].to_numpy()
+    want, P = run_classical("oracle", m[None], u[None], VEHICLE, NOISE, return_cov=True,
+                            smooth=True)
+    est = pd.read_csv(out)
+    np.testing.assert_allclose(est[["x", "y"]], want[0, :, :2], rtol=0, atol=1e-9)
+    np.testing.assert_allclose(est["var_x"], P[0, :, 0, 0], rtol=1e-9)
+    filtered = run(compose_cfg("observe", ["observer=oracle", "alpha=1", f"input={log_csv}",
+                                           f"output={tmp_path / 'f.csv'}"]))
+    assert (result["rmse"][:2] < 0.9 * filtered["rmse"][:2]).all()
+    with pytest.raises(LboError, match="has no filter to smooth"):
+        run(compose_cfg("observe", [f"observer={trained['checkpoint']}", f"input={log_csv}",
+                                    f"output={tmp_path / 'cnn.csv'}", "smooth=true"]))
+    assert not (tmp_path / "cnn.csv").exists()
+
+
 def test_observe_writes_only_its_output(tmp_path, log_csv):
     res = subprocess.run([sys.executable, "-m", "lbo.observe", "observer=ekf",
                           f"input={log_csv}", "output=est.csv"], cwd=tmp_path,
@@ -192,6 +213,7 @@ def test_bad_log_is_refused_before_any_output(tmp_path, manoeuvre, case):
     ("input=log.json", "input must be a .csv or .parquet file"),
     ("input=nowhere.csv", "file not found"),
     ("output=LOG", "output must not be the input log"),
+    ("smooth=maybe", "smooth must be true or false"),
 ])
 def test_bad_arguments_are_refused(tmp_path, log_csv, override, message):
     overrides = {"observer": "ekf", "input": str(log_csv), "output": str(tmp_path / "est.csv")}

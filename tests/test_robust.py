@@ -97,6 +97,23 @@ def test_observe_cli_runs_the_robust_checkpoint(robust, manoeuvre, tmp_path):
     np.testing.assert_allclose(wrap_angle(est["psi"].to_numpy() - ref[:, 2]), 0, atol=1e-9)
 
 
+def test_observe_smooths_the_robust_observer(robust, manoeuvre, tmp_path):
+    from lbo.observe import run
+
+    log = tmp_path / "log.csv"
+    manoeuvre[LOG].to_csv(log, index=False)
+    ckpt = robust["out"]["checkpoint"]
+    res = {s: run(compose_cfg("observe", [f"observer={ckpt}", f"input={log}", f"smooth={s}",
+                                          f"output={tmp_path / f'{s}.csv'}"]))
+           for s in ("false", "true")}
+    assert (res["true"]["rmse"][:2] < 0.95 * res["false"]["rmse"][:2]).all(), res
+    m, u = manoeuvre[["x_m", "y_m", "psi_m"]].to_numpy(), manoeuvre[["V", "delta"]].to_numpy()
+    ref, _, cov = Observer.load(ckpt, form="recursive").run(m, u, cov=True, smooth=True)
+    est = pd.read_csv(tmp_path / "true.csv")
+    np.testing.assert_allclose(est[["x", "y"]].to_numpy(), ref[:, :2], rtol=0, atol=1e-9)
+    np.testing.assert_allclose(est["var_y"].to_numpy(), cov[:, 1, 1], rtol=1e-9)
+
+
 def test_observer_load_runs_and_streams_the_robust_checkpoint(robust, manoeuvre):
     obs = Observer.load(robust["out"]["checkpoint"])
     assert (obs.name, obs.kind, obs.window, obs.features) == ("filternet-N40", "learned", 40,

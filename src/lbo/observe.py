@@ -285,10 +285,11 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     truth = check_log(df, where)
 
     vehicle, noise = Vehicle.from_cfg(cfg.vehicle), Noise.from_cfg(cfg.noise)
+    kw = {"alpha": alpha, "features": cfg.get("features"), "device": device}
     obs = Observer.load(name, vehicle if classical else None, noise if classical else None,
-                        alpha=alpha, features=cfg.get("features"), device=device,
-                        form="recursive" if smooth and not classical and form is None
-                        else form)
+                        form=form, **kw)
+    if smooth and form is None and obs.form == "window" and getattr(obs.net, "physical", False):
+        obs = Observer.load(name, form="recursive", **kw)  # the form that has a filter to smooth
     check_steering(df, obs.vehicle, where)
     check_time_unit(df["t"].to_numpy(dtype=float), obs.dt, where)
     columns = LOG_COLUMNS[1:] + (TRUTH_COLUMNS if truth else ())
