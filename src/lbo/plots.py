@@ -120,9 +120,11 @@ def nees_curves(table, title: str = "calibration: mean NEES against alpha"):
     ax.fill_between(band["alpha"], band["low"], band["high"], color="0.85",
                     label="95% band (consistent)")
     ax.axhline(3.0, color="0.5", lw=0.8)
-    for name, rows in table.groupby("observer", sort=False):
+    styles = ["-", "--", ":", "-."]  # curves that coincide (the EKF and the UKF) stay visible
+    for i, (name, rows) in enumerate(table.groupby("observer", sort=False)):
         rows = rows.sort_values("alpha")
-        ax.plot(rows["alpha"], rows["nees"], marker="o", ms=3, label=name)
+        ax.plot(rows["alpha"], rows["nees"], ls=styles[i % 4], marker="os^dv"[i % 5], ms=3,
+                lw=1.2, label=name)
     ax.set_yscale("log")
     ax.set_xlabel("alpha (measurement noise scale)")
     ax.set_ylabel("mean NEES (3 degrees of freedom)")
