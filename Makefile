@@ -12,7 +12,7 @@ MLFLOW_PORT ?= 5000
 MLFLOW_BACKEND ?= sqlite:///$(CURDIR)/mlflow-server.db
 MLFLOW_ARTIFACTS ?= $(CURDIR)/mlflow-server-artifacts
 
-.PHONY: help install test test-fast data reproduce fleet bench lint clean mlflow-server
+.PHONY: help install test test-fast data reproduce fleet bench lint clean mlflow-server ui
 
 help:  ## list the targets
 	@grep -E '^[a-z-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  make %-10s %s\n", $$1, $$2}'
@@ -41,6 +41,10 @@ reproduce: install  ## the paper's study, resumable: make reproduce SCALE=paper|
 
 fleet: install  ## train on your own logs, worked example: a simulated fleet -> train -> score -> observe
 	PY=$(CURDIR)/$(PY) bash examples/fleet.sh
+
+ui: install  ## mlflow ui at http://127.0.0.1:5000 (MLFLOW_PORT=...): every run in the repo's mlflow.db
+	$(VENV)/bin/mlflow ui --host 127.0.0.1 --port $(MLFLOW_PORT) \
+		--backend-store-uri sqlite:///$(CURDIR)/mlflow.db
 
 mlflow-server: install  ## a shared MLflow tracking server on 127.0.0.1:$(MLFLOW_PORT) [MLFLOW_BACKEND=postgresql://...]
 	$(VENV)/bin/mlflow server --host 127.0.0.1 --port $(MLFLOW_PORT) \
