@@ -225,7 +225,8 @@ API_CASES = {  # case: (log from the good one, what the line says after `input <
     "absurd_steering": (lambda d: _with(d, 4, "delta", 10.0),
                         "row 4: delta=10 rad is beyond the vehicle's steering limit "
                         "delta_max=0.5 rad (steering in rad, at the wheels; or set "
-                        "vehicle.delta_max)"),
+                        "vehicle.delta_max; a steering-wheel angle needs steering_ratio=, one "
+                        "in degrees units.delta=deg)"),
     "heading_outlier": (lambda d: _with(d, 6, "psi_m", 7.0),
                         "row 6: psi_m=7 rad is outside [-2 pi, 2 pi]; a heading in rad lies "
                         "within it"),

@@ -9,6 +9,7 @@ import torch
 
 from conftest import compose_cfg, train_in_own_store
 from lbo import schema
+from lbo.classical import run as run_classical
 from lbo.errors import LboError
 from lbo.evaluate import classical, predict_grid
 from lbo.export import register
@@ -403,11 +404,47 @@ def test_plot_draws_the_estimate_over_the_log(tmp_path, log_csv):
     from matplotlib.image import imread
 
     res = observe("observer=ekf", f"input={log_csv}", f"output={tmp_path / 'est.csv'}",
-                  f"plot={tmp_path / 'est.png'}")
+                  f"plot={tmp_path / 'fig.png'}")
     assert "plot:" in res.stdout
-    image = imread(tmp_path / "est.png")
+    image = imread(tmp_path / "fig.png")
     assert image.shape[0] > 200 and image.std() > 0.01  # a figure, not a blank
     bad = observe("observer=ekf", f"input={log_csv}", f"output={tmp_path / 'b.csv'}",
                   f"plot={tmp_path / 'b.jpg'}", check=False)
-    assert bad.returncode != 0 and "plot must be a .png file" in bad.stderr
+    assert bad.returncode != 0
+    assert "plot must be true, false or a .png file" in bad.stderr.strip().splitlines()[-1]
     assert not (tmp_path / "b.csv").exists()
+
+
+def test_plot_true_writes_a_png_beside_the_output(tmp_path, log_csv):
+    from matplotlib.image import imread
+
+    res = observe("observer=ekf", f"input={log_csv}", f"output={tmp_path / 'est.parquet'}",
+                  "plot=true")
+    assert f"plot: {tmp_path / 'est.png'}" in res.stdout
+    assert imread(tmp_path / "est.png").std() > 0.01
+
+
+def test_the_plot_shows_errors_against_the_truth_or_the_uncertainty(manoeuvre):
+    from lbo import plots
+
+    t = manoeuvre["t"].to_numpy()
+    m = manoeuvre[["x_m", "y_m", "psi_m"]].to_numpy()
+    z = manoeuvre[["x", "y", "psi"]].to_numpy()
+    est, cov = run_classical("ekf", m[None], manoeuvre[["V", "delta"]].to_numpy()[None], VEHICLE,
+                             NOISE, return_cov=True)
+    est, cov = est[0], cov[0]
+
+    def panels(fig):
+        labels = [[t.get_text() for t in ax.get_legend().get_texts()] for ax in fig.axes]
+        plots.plt.close(fig)
+        return labels
+
+    both = panels(plots.observed_log(t, m, est, "ekf", z, cov))
+    assert len(both) == 3 and both[0] == ["fixes", "truth", "ekf"]
+    assert both[1] == ["+-2 sigma of x", "error of x", "+-2 sigma of y", "error of y"]
+    assert both[2] == ["+-2 sigma of psi", "error of psi"]
+    assert panels(plots.observed_log(t, m, est, "ekf", None, cov))[1] == \
+        ["+-2 sigma of x", "+-2 sigma of y"]
+    assert panels(plots.observed_log(t, m, est, "cnn", z, None))[2] == ["error of psi"]
+    assert len(panels(plots.observed_log(t, m, est, "cnn", None, np.full((len(t), 3, 3),
+                                                                          np.nan)))) == 1

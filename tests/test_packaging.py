@@ -18,9 +18,9 @@ REPO = Path(__file__).resolve().parents[1]
 def wheel(tmp_path_factory) -> Path:
     # built from a copy: setuptools writes build/ and *.egg-info into the source folder
     source = tmp_path_factory.mktemp("source")
-    for name in ("pyproject.toml", "README.md"):
+    for name in ("pyproject.toml", "README.md", "LICENSE"):
         shutil.copy(REPO / name, source / name)
-    for name in ("src", "conf"):
+    for name in ("src", "conf", "examples"):
         shutil.copytree(REPO / name, source / name,
                         ignore=shutil.ignore_patterns("__pycache__", "*.egg-info", "tuned"))
     out = tmp_path_factory.mktemp("wheel")
@@ -37,6 +37,8 @@ def test_the_wheel_ships_every_config(wheel):
             if p.parent.name != "tuned"}
     assert conf and {f"lbo/conf/{c}" for c in conf} <= names
     assert "lbo/py.typed" in names
+    assert "lbo/examples/stop_and_go_10hz.csv" in names  # the quickstart's log
+    assert not [n for n in names if n.endswith(".sh")]
 
 
 @pytest.mark.slow
@@ -49,10 +51,12 @@ def test_an_installed_wheel_composes_its_configs_outside_the_repo(wheel, tmp_pat
     env = {k: v for k, v in os.environ.items() if k not in ("LBO_ROOT", "MLFLOW_TRACKING_URI")}
     env["PYTHONPATH"] = str(site)
     res = subprocess.run([sys.executable, "-c", "import lbo.paths as p; "
-                          "print(p.CONF_DIR); print(p.REPO_ROOT)"],
+                          "print(p.CONF_DIR); print(p.REPO_ROOT); print(p.EXAMPLE_LOG)"],
                          cwd=work, env=env, capture_output=True, text=True)
     assert res.returncode == 0, res.stderr
-    assert res.stdout.split() == [str(site / "lbo" / "conf"), str(work)]
+    assert res.stdout.split() == [str(site / "lbo" / "conf"), str(work),
+                                  str(site / "lbo" / "examples" / "stop_and_go_10hz.csv")]
+    assert (site / "lbo" / "examples" / "stop_and_go_10hz.csv").is_file()
     res = subprocess.run([sys.executable, "-m", "lbo.datagen", "data=smoke"], cwd=work,
                          env=env, capture_output=True, text=True)
     assert res.returncode == 0, res.stderr[-2000:]

@@ -17,6 +17,7 @@ _EXPORTS = {
     "Vehicle": "lbo.vehicle",
     "Noise": "lbo.noise",
     "LboError": "lbo.errors",
+    "LogFormat": "lbo.logformat",
 }
 
 __all__ = sorted(_EXPORTS)

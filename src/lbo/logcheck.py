@@ -141,7 +141,8 @@ def _heading(where: str, column: str, value: float) -> LboError:
 def _steering(where: str, value: float, delta_max: float) -> LboError:
     return LboError(f"{where}: delta={value:g} rad is beyond the vehicle's steering limit "
                     f"delta_max={delta_max:g} rad (steering in rad, at the wheels; or set "
-                    "vehicle.delta_max)")
+                    "vehicle.delta_max; a steering-wheel angle needs steering_ratio=, one "
+                    "in degrees units.delta=deg)")
 
 
 def check_steering(delta: np.ndarray, delta_max: float, source: str | None = None) -> None:
@@ -253,6 +254,69 @@ def check_time_unit(t: np.ndarray, dt: float, source: str | None = None) -> None
         if 0.1 <= median / (factor * dt) <= 10:
             raise LboError(_at(source, f"column 't' looks like {unit} (median step {median:g} "
                                        f"for dt={dt:g} s); give t in seconds"))
+
+
+CONVENTION_SPAN = 5.0
+"""s between the two fixes of a pair that :func:`check_conventions` compares."""
+CONVENTION_MIN_M = 25.0
+"""Shortest displacement (m) of a pair :func:`check_conventions` uses: well above GNSS noise
+(6 m at alpha = 6), so that its direction and length are the car's."""
+CONVENTION_MIN_PAIRS = 10
+SPEED_SUSPECTS = (("km/h", "kmh", 2.9, 4.5), ("mph", "mph", 1.9, 2.6))
+"""(unit, units.V, lowest, highest) ratio of the distance V integrates to over the distance
+the fixes moved at which V looks like it is in that unit (3.6 for km/h, 2.24 for mph; a
+winding road lengthens the path over its chord by 1.3 at most for 5 s above 25 m)."""
+
+
+def _pairs(t: np.ndarray, m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Fix rows (i, j), j the first fix ``CONVENTION_SPAN`` s after i, at least
+    ``CONVENTION_MIN_M`` apart."""
+    fix = np.flatnonzero(np.isfinite(m).all(1))
+    if len(fix) < 2:
+        return fix[:0], fix[:0]
+    tf = t[fix]
+    k = np.searchsorted(tf, tf + CONVENTION_SPAN)
+    ok = k < len(fix)
+    i, j = fix[ok], fix[k[ok]]
+    far = np.hypot(*(m[j, :2] - m[i, :2]).T) >= CONVENTION_MIN_M
+    return i[far], j[far]
+
+
+def check_conventions(t: np.ndarray, m: np.ndarray, u: np.ndarray,
+                      source: str | None = None, heading: str = "enu") -> None:
+    """Refuse a log whose speed or heading contradicts its own fixes.
+
+    Over pairs of fixes 5 s apart that moved at least 25 m: the distance ``V`` integrates to
+    over the distance the fixes moved is about 1 for a speed in m/s (the path's length over
+    its chord) and 3.6 for one in km/h; the heading at the pair's middle points along the
+    chord in lbo's convention (counter-clockwise from east), and along its mirror image
+    about the diagonal for a compass bearing. Too few such pairs (a short or slow log):
+    nothing is checked. t (T,), m (T, 3), u (T, 2); ``heading``: the convention the log was
+    read in (named in the hint)."""
+    i, j = _pairs(np.asarray(t, float), np.asarray(m, float))
+    if len(i) < CONVENTION_MIN_PAIRS:
+        return
+    travelled = np.concatenate([[0.0], np.cumsum(0.5 * (u[1:, 0] + u[:-1, 0]) * np.diff(t))])
+    chord = m[j, :2] - m[i, :2]
+    ratio = float(np.median(np.abs(travelled[j] - travelled[i]) / np.hypot(*chord.T)))
+    for unit, key, low, high in SPEED_SUSPECTS:
+        if low <= ratio <= high:
+            raise LboError(_at(source, f"column 'V' looks like {unit}: it travels {ratio:.2f} "
+                                       "times the distance the fixes moved; give V in m/s, or "
+                                       f"pass units.V={key}"))
+    mid = m[(i + j) // 2, 2]
+    has = np.isfinite(mid)
+    if has.sum() < CONVENTION_MIN_PAIRS:
+        return
+    course = np.arctan2(chord[has, 1], chord[has, 0])
+    along = float(np.median(np.cos(mid[has] - course)))
+    mirrored = float(np.median(np.cos(np.pi / 2 - mid[has] - course)))
+    if along < 0.3 and mirrored > 0.8:
+        other = "compass" if heading == "enu" else "enu"
+        raise LboError(_at(source, "column 'psi_m' does not point where the fixes move "
+                                   f"(read as heading={heading}), but its mirror image does: "
+                                   f"pass heading={other} (enu: counter-clockwise from east; "
+                                   "compass: clockwise from north)"))
 
 
 def check_gaps(t: np.ndarray, max_gap: float, source: str | None = None,

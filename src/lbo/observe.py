@@ -49,6 +49,7 @@ from lbo.logcheck import (
     RANGES,
     SPEED_LIMIT,
     check_alpha,
+    check_conventions,
     check_device,
     check_gaps,
     check_max_gap,
@@ -57,6 +58,7 @@ from lbo.logcheck import (
     check_time_unit,
 )
 from lbo.logcheck import check_steering as check_delta
+from lbo.logformat import LogFormat
 from lbo.metrics import PAPER_REFERENCE, nrmse, rmse
 from lbo.schema import MEAS as MEAS_COLUMNS
 from lbo.schema import check_values, write_set
@@ -130,7 +132,7 @@ def read_log(path: str | Path) -> pd.DataFrame:
     return df
 
 
-def check_log(df: pd.DataFrame, source: str = "input") -> bool:
+def check_log(df: pd.DataFrame, source: str = "input", heading: str = "enu") -> bool:
     """Check a log's columns and values; return whether it holds the true ``x, y, psi``.
 
     A row whose ``x_m, y_m, psi_m`` are all empty (NaN) is a step without a position fix.
@@ -138,7 +140,9 @@ def check_log(df: pd.DataFrame, source: str = "input") -> bool:
     a non-numeric column, ``t`` with NaN or inf or not strictly increasing, and the value
     checks of :func:`lbo.logcheck.check_samples` (those :meth:`lbo.Observer.run` applies:
     NaN or inf other than a whole missing fix, a partial fix, no fix at all, a heading that
-    looks like degrees, positions and speeds beyond any vehicle's). The steering limit, the
+    looks like degrees, positions and speeds beyond any vehicle's), and a speed or heading
+    that contradicts the fixes (:func:`lbo.logcheck.check_conventions`: km/h, a compass
+    bearing; ``heading`` is the convention it was read in). The steering limit, the
     unit of ``t`` and the sampling period need the observer: :func:`check_steering`,
     :func:`lbo.logcheck.check_time_unit`, :func:`check_period`.
     """
@@ -160,6 +164,8 @@ def check_log(df: pd.DataFrame, source: str = "input") -> bool:
                   truth=df[list(TRUTH_COLUMNS)].to_numpy(dtype=float) if truth else None,
                   source=source)
     check_time(df["t"].to_numpy(dtype=float), source)
+    check_conventions(df["t"].to_numpy(dtype=float), df[list(MEAS_COLUMNS)].to_numpy(dtype=float),
+                      df[["V", "delta"]].to_numpy(dtype=float), source, heading)
     return truth
 
 
@@ -235,6 +241,18 @@ def resample(df: pd.DataFrame, dt: float, columns: tuple[str, ...],
     return pd.DataFrame(out)
 
 
+def plot_path(plot: Any, output: Path) -> Path | None:
+    """Where ``plot=`` puts the figure: true, beside ``output`` (``est.csv`` -> ``est.png``);
+    a path to a .png; false or null, nowhere."""
+    if plot is None or plot is False:
+        return None
+    if plot is True:
+        return output.with_suffix(".png")
+    if isinstance(plot, str) and Path(plot).suffix.lower() == ".png":
+        return Path(plot)
+    raise LboError(f"plot must be true, false or a .png file, got {plot!r}")
+
+
 def write_table(df: pd.DataFrame, path: Path) -> Path:
     """Write CSV or Parquet by extension, atomically: a failed write leaves no file."""
     if path.suffix.lower() == ".parquet":
@@ -273,16 +291,15 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     device = check_device(cfg.get("device", "cpu"), probe=not classical)
     max_gap = check_max_gap(cfg.get("max_gap", MAX_GAP))
     output = check_output_path(str(cfg.output), source)
-    plot = cfg.get("plot")
-    if plot is not None and Path(str(plot)).suffix.lower() != ".png":
-        raise LboError(f"plot must be a .png file (or null), got {str(plot)!r}")
+    plot = plot_path(cfg.get("plot"), output)
     smooth = cfg.get("smooth", False)
     if not isinstance(smooth, bool):
         raise LboError(f"smooth must be true or false, got {smooth!r}")
     form = cfg.get("form")
+    fmt = LogFormat.from_cfg(cfg)
     where = f"input {source}"
-    df = read_log(source)
-    truth = check_log(df, where)
+    df, origin = fmt.apply(read_log(source), where)
+    truth = check_log(df, where, fmt.heading)
 
     vehicle, noise = Vehicle.from_cfg(cfg.vehicle), Noise.from_cfg(cfg.noise)
     kw = {"alpha": alpha, "features": cfg.get("features"), "device": device}
@@ -311,16 +328,25 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     if obs.gives_covariance:
         for name_, (i, j) in zip(COVARIANCE_COLUMNS, ((0, 0), (1, 1), (2, 2), (0, 1))):
             out[name_] = cov[:, i, j]
+    if origin is not None:  # the estimate where the log's positions were: degrees
+        out["lat"], out["lon"] = origin.to_geodetic(est[:, 0], est[:, 1])
     write_table(out, output)
     if plot is not None:
-        _plot(Path(str(plot)), obs.name, m, est, valid,
-              df[list(TRUTH_COLUMNS)].to_numpy(dtype=float) if truth else None)
+        from lbo import plots
+
+        plots.save(plots.observed_log(out["t"].to_numpy(), m, np.where(valid[:, None], est, np.nan),
+                                      obs.name, df[list(TRUTH_COLUMNS)].to_numpy(dtype=float)
+                                      if truth else None, cov if obs.gives_covariance else None),
+                   plot)
 
     what = (f"learned, window {obs.window}, features {obs.features}" if obs.kind == "learned"
             else f"classical, noise {obs.noise.name}, wheelbase {obs.vehicle.wheelbase:g} m")
     print(f"observer {obs.name} ({what}, dt {obs.dt:g} s) on {len(df)} rows"
           + (f" (resampled from {source})" if cfg.resample else "")
           + (", smoothed (RTS)" if smooth else ""))
+    if not fmt.is_plain or origin is not None:
+        print("read as: " + ", ".join(filter(None, [fmt.describe(), origin and (
+            f"lat/lon -> metres east/north of {origin.lat:.7f}, {origin.lon:.7f}")])))
     fix = np.isfinite(m).all(1)
     duration = len(df) * obs.dt
     print(f"fixes: {int(fix.sum())} of {len(df)} rows ({fix.sum() / duration:.3g} Hz; inputs "
@@ -345,17 +371,6 @@ def run(cfg: DictConfig) -> dict[str, Any]:
               f"{PAPER_REFERENCE[1]} m, {PAPER_REFERENCE[2] * 1e3:g} mrad)")
     print(f"observed: {output}" + (f"; plot: {plot}" if plot is not None else ""))
     return result
-
-
-def _plot(path: Path, name: str, m: np.ndarray, est: np.ndarray, valid: np.ndarray,
-          truth: np.ndarray | None) -> Path:
-    """The estimate over the log in the (x, y) plane, beside the fixes (and the truth)."""
-    from lbo import plots
-
-    shown = np.where(valid[:, None], est[:, :2], np.nan)
-    title = f"{name} on {len(m)} rows" + (" (black: the true path)" if truth is not None else "")
-    return plots.save(plots.trajectory(None if truth is None else truth[:, :2], m[:, :2], title,
-                                       **{name: shown}), path)
 
 
 main = entry("observe", run)

@@ -26,6 +26,10 @@ def _find_conf(root: Path) -> Path:
 
 REPO_ROOT: Path = _find_root()
 CONF_DIR: Path = _find_conf(REPO_ROOT)
+EXAMPLE_LOG: Path = CONF_DIR.parent / "examples" / "stop_and_go_10hz.csv"
+"""The example log of the README's quickstart (``examples/`` of the repository, or the copy in
+the package): ``python -m lbo.simulate manoeuvre=stop_and_go fix_rate=10 output=...`` writes it
+again, byte for byte."""
 
 # `${lbo.root:}` in any config resolves to the repo root, whatever the working directory.
 if not OmegaConf.has_resolver("lbo.root"):

@@ -112,6 +112,58 @@ def trajectory(truth: np.ndarray | None, meas: np.ndarray, title: str = "",
     return fig
 
 
+def observed_log(t: np.ndarray, meas: np.ndarray, est: np.ndarray, name: str,
+                 truth: np.ndarray | None = None, cov: np.ndarray | None = None):
+    """One observed log: the path in the (x, y) plane (fixes, estimate, truth), and below it,
+    over time, the errors of x, y (m) and psi (mrad) against the truth with the estimate's
+    +-2 sigma band (either alone when the log has no truth or the observer no covariance).
+
+    t (T,) s; meas, est, truth (T, 3) ``[x, y, psi]`` (NaN rows: no fix, no estimate);
+    cov (T, 3, 3) or None."""
+    sigma = None
+    if cov is not None and np.isfinite(cov).any():
+        sigma = 2 * np.sqrt(np.clip(np.diagonal(cov, axis1=1, axis2=2), 0, None))
+    rows = 1 if truth is None and sigma is None else 3
+    fig = plt.figure(figsize=(8.0, 4.8 + 2.3 * (rows - 1)))
+    grid = fig.add_gridspec(rows, 1, height_ratios=[2.2] + [1] * (rows - 1))
+    ax = fig.add_subplot(grid[0])
+    ax.plot(meas[:, 0], meas[:, 1], ".", color="0.65", ms=2.5, label="fixes")
+    if truth is not None:
+        ax.plot(truth[:, 0], truth[:, 1], "-", color="black", lw=2.0, label="truth")
+    ax.plot(est[:, 0], est[:, 1], lw=1.3, color="tab:blue", label=name)
+    ax.set(xlabel="x, east (m)", ylabel="y, north (m)", title=f"{name} on {len(t)} rows")
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    if rows == 1:
+        fig.tight_layout()
+        return fig
+    err = None
+    if truth is not None:
+        err = est - truth
+        err[:, 2] = (err[:, 2] + np.pi) % (2 * np.pi) - np.pi
+    pos = fig.add_subplot(grid[1])
+    head = fig.add_subplot(grid[2], sharex=pos)
+    for ax, cols, scale, unit in ((pos, (0, 1), 1.0, "m"), (head, (2,), 1e3, "mrad")):
+        for c, color in zip(cols, ("tab:blue", "tab:orange")):
+            label = ("x", "y", "psi")[c]
+            if sigma is not None:
+                ax.fill_between(t, -scale * sigma[:, c], scale * sigma[:, c], color=color,
+                                alpha=0.18, lw=0, label=f"+-2 sigma of {label}")
+            if err is not None:
+                ax.plot(t, scale * err[:, c], lw=0.9, color=color, label=f"error of {label}")
+        ax.axhline(0.0, color="0.4", lw=0.6)
+        ax.set_ylabel(unit)
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7, ncol=2, loc="upper right")
+    head.set_xlabel("t (s)")
+    pos.set_title("error against the truth" if sigma is None else
+                  "the estimate's uncertainty" if err is None else
+                  "error against the truth, and the observer's own +-2 sigma", fontsize=10)
+    fig.tight_layout()
+    return fig
+
+
 def nees_curves(table, title: str = "calibration: mean NEES against alpha"):
     """Mean NEES per alpha of each observer (log scale), the 95% band of a consistent filter
     shaded; a table of :func:`lbo.metrics.nees_table` rows."""

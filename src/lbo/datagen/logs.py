@@ -34,6 +34,7 @@ from lbo.atomic import data_lock, remove_stale_temps, write_text
 from lbo.config import require
 from lbo.errors import LboError
 from lbo.logcheck import TRUTH, check_max_gap, check_time_unit
+from lbo.logformat import LogFormat
 from lbo.noise import Noise
 from lbo.vehicle import Vehicle, wrap_angle
 
@@ -56,6 +57,7 @@ class LogSpec:
     vehicle: Vehicle
     noise: Noise
     digest: str
+    log_format: LogFormat = LogFormat()
 
     @property
     def folder(self) -> Path:
@@ -150,11 +152,18 @@ def spec_from_cfg(cfg: DictConfig, need: tuple[str, ...] = SETS) -> LogSpec:
                 raise LboError(f"data.{part}: {path} is also in data.{seen[key]}; the sets are "
                                "split by file, so a log belongs to one of them")
             seen[key] = part
+    try:
+        fmt = LogFormat.from_cfg(d)
+    except LboError as e:
+        raise LboError(f"data.{e}") from None
     settings = {"version": LOGS_VERSION, "resample": d.resample, "max_gap": max_gap,
                 "run_in": run_in, "vehicle": vehicle.__dict__,
                 "noise": [noise.process_sigma, noise.measurement_sigma]}
+    if not fmt.is_plain:  # (logs in lbo's form keep the folders they were cached in)
+        settings["format"] = [dict(fmt.columns), dict(fmt.units), fmt.steering_ratio,
+                              fmt.heading]
     return LogSpec(str(d.name), Path(d.root), files, bool(d.resample), max_gap, run_in,
-                   vehicle, noise, _digest(settings, files))
+                   vehicle, noise, _digest(settings, files), fmt)
 
 
 # --------------------------------------------------------------------------- reading
@@ -182,13 +191,13 @@ def segments(path: Path, spec: LogSpec) -> list[pd.DataFrame]:
     )
 
     source = f"log {path}"
-    df = read_log(path)
+    df, _ = spec.log_format.apply(read_log(path), source)
     missing = [c for c in TRUTH if c not in df.columns]
     if missing and all(c in df.columns for c in LOG_COLUMNS):
         raise LboError(f"{source}: missing true-state column{'s' if len(missing) > 1 else ''} "
                        f"{', '.join(missing)} (data=logs trains and scores against the "
                        "reference system's x, y in m and psi in rad)")
-    check_log(df, source)
+    check_log(df, source, spec.log_format.heading)
     check_steering(df, spec.vehicle, source)
     dt = spec.vehicle.dt
     t = df["t"].to_numpy(dtype=float)
