@@ -6,6 +6,9 @@ import os
 import signal
 import subprocess
 import sys
+import threading
+import time
+from pathlib import Path
 
 import mlflow
 import numpy as np
@@ -17,41 +20,106 @@ from lbo.network import ObserverNet
 from lbo.observer import Observer
 
 
+def _train_cmd(tmp_path, smoke_data, out, *more):
+    return [sys.executable, "-m", "lbo.train", "experiment=smoke", "resume=true",
+            f"data.root={smoke_data.parent}", f"output_dir={out}", "trainer.max_epochs=6",
+            "trainer.limit_train_batches=30", f"hydra.run.dir={tmp_path / 'hydra'}", *more]
+
+
+def _kill_after_epochs(proc, last: Path, epochs: int) -> threading.Thread:
+    """SIGKILL the process group of ``proc`` once ``last`` has been rewritten ``epochs``
+    times (one per finished epoch): mid-way through the next epoch."""
+
+    def watch() -> None:
+        seen, stamp = 0, None
+        while proc.poll() is None:
+            if last.exists() and last.stat().st_mtime_ns != stamp:
+                stamp, seen = last.stat().st_mtime_ns, seen + 1
+                if seen >= epochs:
+                    time.sleep(0.3)  # into the next epoch's training
+                    os.killpg(proc.pid, signal.SIGKILL)
+                    return
+            time.sleep(0.005)
+
+    thread = threading.Thread(target=watch)
+    thread.start()
+    return thread
+
+
 @pytest.mark.slow
-def test_a_run_killed_after_its_checkpoint_does_not_poison_the_rerun(tmp_path, smoke_data,
-                                                                     monkeypatch):
+def test_a_killed_run_resumes_from_its_last_checkpoint_as_if_never_killed(tmp_path, smoke_data,
+                                                                        monkeypatch):
+    env = {**os.environ, "PYTHONUNBUFFERED": "1", "OMP_NUM_THREADS": "1"}
+    # the unbroken run, in a store of its own
+    ref_env = {**env, "MLFLOW_TRACKING_URI": f"sqlite:///{tmp_path / 'ref.db'}"}
+    ref = subprocess.run(_train_cmd(tmp_path, smoke_data, tmp_path / "ref"), env=ref_env,
+                         capture_output=True, text=True)
+    assert ref.returncode == 0, ref.stderr[-3000:]
+
+    uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
+    env["MLFLOW_TRACKING_URI"] = uri
+    out = tmp_path / "out"
+    last = out / "checkpoints" / "last.ckpt"
+    proc = subprocess.Popen(_train_cmd(tmp_path, smoke_data, out), env=env,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                            start_new_session=True)
+    watcher = _kill_after_epochs(proc, last, 2)
+    proc.wait(timeout=300)
+    watcher.join()
+    assert proc.returncode == -signal.SIGKILL and last.exists()
+    client = mlflow.MlflowClient(uri)
+    exp = client.get_experiment_by_name("lbo")
+    (killed,) = client.search_runs([exp.experiment_id])
+    assert killed.info.status == "RUNNING"
+    assert len(client.get_metric_history(killed.info.run_id, "val_loss")) in (2, 3)
+
+    # the rerun, from another folder, continues the killed run in its own folder
+    rerun = subprocess.run(_train_cmd(tmp_path, smoke_data, tmp_path / "elsewhere"), env=env,
+                           capture_output=True, text=True)
+    assert rerun.returncode == 0, rerun.stderr[-3000:]
+    assert f"resuming the killed run {killed.info.run_id} (same config) from {last}" in \
+        rerun.stdout
+    (run,) = client.search_runs([exp.experiment_id], run_view_type=3)
+    assert run.info.run_id == killed.info.run_id and run.info.status == "FINISHED"
+    assert sorted(p.name for p in last.parent.glob("*.ckpt")) == ["best.ckpt", "last.ckpt"]
+    # the same final metrics, to the last bit on the CPU, as the run that was never killed
+    ref_client = mlflow.MlflowClient(ref_env["MLFLOW_TRACKING_URI"])
+    (unbroken,) = ref_client.search_runs([ref_client.get_experiment_by_name("lbo").experiment_id])
+    tests = {k: v for k, v in run.data.metrics.items() if k.startswith("test_")}
+    assert tests and tests == {k: v for k, v in unbroken.data.metrics.items()
+                               if k.startswith("test_")}
+    history = [m.value for m in client.get_metric_history(run.info.run_id, "val_loss")]
+    assert history == [m.value for m in ref_client.get_metric_history(unbroken.info.run_id,
+                                                                       "val_loss")]
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", uri)
+    assert Observer.load(run.info.run_id).window == 20
+
+
+@pytest.mark.slow
+def test_a_run_killed_before_its_first_checkpoint_is_replaced(tmp_path, smoke_data):
     uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
     env = {**os.environ, "MLFLOW_TRACKING_URI": uri, "PYTHONUNBUFFERED": "1"}
     out = tmp_path / "out"
-    cmd = [sys.executable, "-m", "lbo.train", "experiment=smoke", "resume=true",
-           f"data.root={smoke_data.parent}", f"output_dir={out}", "trainer.max_epochs=6",
-           f"hydra.run.dir={tmp_path / 'hydra'}"]
-    ckpt = out / "checkpoints" / "best.ckpt"
+    cmd = _train_cmd(tmp_path, smoke_data, out)
     proc = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
                             start_new_session=True)
-    watcher = kill_when_written(proc, ckpt)
+    watcher = kill_when_written(proc, out / "config.yaml")  # logged, no epoch done
     proc.wait(timeout=300)
     watcher.join()
-    assert proc.returncode == -signal.SIGKILL and ckpt.exists()
-
+    assert proc.returncode == -signal.SIGKILL and not (out / "checkpoints" / "last.ckpt").exists()
     rerun = subprocess.run(cmd, env=env, capture_output=True, text=True)
     assert rerun.returncode == 0, rerun.stderr[-3000:]
-    assert "removed 1 stale checkpoint(s) of an earlier run" in rerun.stdout
-    assert sorted(p.name for p in ckpt.parent.iterdir()) == ["best.ckpt"]
     client = mlflow.MlflowClient(uri)
     exp = client.get_experiment_by_name("lbo")
     finished = client.search_runs([exp.experiment_id], "attributes.status = 'FINISHED'")
-    assert len(finished) == 1
-    run_id = finished[0].info.run_id
-    assert [a.path for a in client.list_artifacts(run_id, "checkpoints")] == \
-        ["checkpoints/best.ckpt"]
     killed = [r for r in client.search_runs([exp.experiment_id], run_view_type=3)
-              if r.info.run_id != run_id]
-    assert len(killed) == 1 and killed[0].info.lifecycle_stage == "deleted"
+              if r.info.run_id != finished[0].info.run_id]
+    assert len(finished) == 1 and len(killed) == 1
+    assert killed[0].info.lifecycle_stage == "deleted"
     assert (f"deleted the unfinished run {killed[0].info.run_id} (RUNNING) of the same "
             "config") in rerun.stdout
-    monkeypatch.setenv("MLFLOW_TRACKING_URI", uri)
-    assert Observer.load(run_id).window == 20
+    assert [a.path for a in client.list_artifacts(finished[0].info.run_id, "checkpoints")] == \
+        ["checkpoints/best.ckpt"]
 
 
 def test_a_non_finite_estimate_is_never_valid():

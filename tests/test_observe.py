@@ -448,3 +448,34 @@ def test_the_plot_shows_errors_against_the_truth_or_the_uncertainty(manoeuvre):
     assert panels(plots.observed_log(t, m, est, "cnn", z, None))[2] == ["error of psi"]
     assert len(panels(plots.observed_log(t, m, est, "cnn", None, np.full((len(t), 3, 3),
                                                                           np.nan)))) == 1
+
+
+def test_evaluate_scores_an_existing_observer_and_logs_to_its_run(trained, smoke_data, tmp_path,
+                                                                   monkeypatch, capsys):
+    import mlflow
+
+    from lbo.evaluate import run as evaluate
+
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", trained["uri"])
+    csv = evaluate(compose_cfg("evaluate", ["data=smoke", f"data.root={smoke_data.parent}",
+                                            f"output_dir={tmp_path / 'ev'}", "observers=[ekf]",
+                                            f"observer={trained['run_id']}"]))
+    assert f"logged to MLflow run {trained['run_id']}" in capsys.readouterr().out
+    table = pd.read_csv(csv)
+    mine = table[table["observer"] == "cnn-N20"].set_index("alpha")["nrmse"]
+    assert len(mine) == 7
+    client = mlflow.MlflowClient(trained["uri"])
+    logged = client.get_run(trained["run_id"]).data.metrics
+    assert {a: logged[f"eval_smoke_nrmse_alpha_{a:g}"] for a in mine.index} == mine.to_dict()
+    files = [a.path for a in client.list_artifacts(trained["run_id"], "evaluations/smoke")]
+    assert "evaluations/smoke/evaluation.csv" in files
+    # a checkpoint file has no run to log to: scored, and said so
+    evaluate(compose_cfg("evaluate", ["data=smoke", f"data.root={smoke_data.parent}",
+                                      f"output_dir={tmp_path / 'ck'}", "observers=[ekf]",
+                                      f"observer={trained['checkpoint']}"]))
+    assert "is a checkpoint file, not an MLflow run" in capsys.readouterr().out
+    with pytest.raises(LboError, match=f"observer: MLflow run {'0' * 31}1 not found"):
+        evaluate(compose_cfg("evaluate", ["data=smoke", f"data.root={smoke_data.parent}",
+                                          f"output_dir={tmp_path / 'no'}", "observers=[ekf]",
+                                          "observer=" + "0" * 31 + "1"]))
+    assert not (tmp_path / "no" / "evaluation.csv").exists()

@@ -215,11 +215,20 @@ def test_resume_reuses_a_finished_run_and_replaces_a_killed_one(tmp_path, smoke_
     assert again["test_nrmse_alpha_1"] == first["test_nrmse_alpha_1"]
     other = train(train_cfg(tmp_path / "c", smoke_data, "resume=true", "seed=3"))
     assert not other["reused"] and other["run_id"] != first["run_id"]
-    # a run killed mid-way stays RUNNING; the rerun deletes it and trains once more
+    # a run killed mid-way stays RUNNING; the rerun continues it from its last checkpoint
+    # (here its final epoch's: nothing left to fit, so it is scored and finished)
     client, _ = runs(tracking)
     client.set_terminated(other["run_id"], "RUNNING")
     rerun = train(train_cfg(tmp_path / "d", smoke_data, "resume=true", "seed=3"))
-    assert not rerun["reused"]
+    assert not rerun["reused"] and rerun["run_id"] == other["run_id"]
+    assert rerun["test_nrmse_alpha_1"] == other["test_nrmse_alpha_1"]
+    _, found = runs(tracking)
+    assert sorted(r.info.status for r in found) == ["FINISHED", "FINISHED"]
+    # without its last checkpoint, a killed run is deleted and trained once more
+    client.set_terminated(other["run_id"], "RUNNING")
+    (tmp_path / "c" / "out" / "checkpoints" / "last.ckpt").unlink()
+    again = train(train_cfg(tmp_path / "e", smoke_data, "resume=true", "seed=3"))
+    assert not again["reused"] and again["run_id"] != other["run_id"]
     _, found = runs(tracking)
     assert sorted(r.info.status for r in found) == ["FINISHED", "FINISHED"]
 

@@ -14,6 +14,7 @@ same alpha distribution, so that early stopping measures what is being trained.
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import lightning as L
 import numpy as np
@@ -211,6 +212,7 @@ class WindowDataModule(L.LightningDataModule):
         self.drift = drift
         self.train_set: WindowDataset | None = None
         self.val_set: Dataset | None = None
+        self.shuffle = torch.Generator().manual_seed(seed)  # the training order, epoch by epoch
 
     def setup(self, stage: str | None = None) -> None:
         if self.train_set is not None:
@@ -259,14 +261,29 @@ class WindowDataModule(L.LightningDataModule):
 
     def _loader(self, ds: Dataset, batch: int, shuffle: bool) -> DataLoader:
         # one __getitem__ per batch: the gather is vectorised, never a loop over samples
-        base = (RandomSampler(ds, generator=torch.Generator().manual_seed(self.seed))
-                if shuffle else SequentialSampler(ds))
+        base = RandomSampler(ds, generator=self.shuffle) if shuffle else SequentialSampler(ds)
         # tensors on a GPU cannot go to worker processes: the main process gathers there
         workers = self.num_workers if self.device.type == "cpu" else 0
         # the loader's generator seeds the workers' per-epoch noise draws from `seed` alone
         return DataLoader(ds, sampler=BatchSampler(base, batch, drop_last=False),
                           batch_size=None, num_workers=workers,
                           generator=torch.Generator().manual_seed(self.seed))
+
+    def state_dict(self) -> dict[str, Any]:
+        """Where the random streams stand (the training order, the noise draws, torch's global
+        generator): saved in every checkpoint, so a run resumed from its last checkpoint
+        draws the batches the unbroken run would have drawn."""
+        state = {"shuffle": self.shuffle.get_state(), "torch": torch.get_rng_state()}
+        if self.train_set is not None:
+            state["draws"] = self.train_set.generator.get_state()
+        return state
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self.setup()
+        self.shuffle.set_state(state["shuffle"])
+        torch.set_rng_state(state["torch"])
+        if "draws" in state:
+            self.train_set.generator.set_state(state["draws"])
 
     def train_dataloader(self) -> DataLoader:
         return self._loader(self.train_set, self.batch_size, shuffle=True)

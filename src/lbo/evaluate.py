@@ -8,6 +8,7 @@ manoeuvre's run-in), pooled per alpha level. The learned observers' evaluation c
 from __future__ import annotations
 
 import sys
+import time
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -182,22 +183,97 @@ def oracle_ratio(table: pd.DataFrame, observer: str, low: float = 0.25,
 
 
 def run(cfg: DictConfig) -> Path:
-    """Score the configured classical observers; write evaluation.csv and nrmse_classical.png."""
-    from lbo import plots
-    from lbo.datagen.build import build, spec_from_cfg
+    """Score the configured classical observers (and learned ones: ``learned``, and
+    ``observer``, whose MLflow run is told the result); write evaluation.csv and its figure."""
     from lbo.datagen.logs import is_logs
-    from lbo.truth import from_cfg as truth_from_cfg
 
     observers = list(cfg.observers)
     learned = [str(s) for s in cfg.get("learned") or []]
+    one = cfg.get("observer")
+    if one is not None:  # an existing observer, scored first and its run told the result
+        if not isinstance(one, str) or not one:
+            raise LboError(f"observer must be a run id, a checkpoint or a models:/ URI, got "
+                           f"{one!r} (a run id of digits only: quote it, observer=\"'<id>'\")")
+        learned = [one, *learned]
+        run_id = run_of(one)
     if is_logs(cfg):
-        return run_logs(cfg, observers, learned)
+        csv = run_logs(cfg, observers, learned)
+    else:
+        csv = _run_grid(cfg, observers, learned)
+    if one is not None:
+        log_to_run(run_id, one, csv, str(cfg.data.name))
+    return csv
+
+
+def run_of(source: str) -> str | None:
+    """The MLflow run an observer source belongs to: a run id, ``runs:/<id>/...``, or the
+    run of a ``models:/<name>/<version>``; None for a checkpoint file."""
+    import re
+
+    if re.fullmatch(r"[0-9a-f]{32}", source):
+        return source
+    if source.startswith("runs:/"):
+        return source[len("runs:/"):].split("/")[0]
+    if source.startswith("models:/"):
+        import mlflow
+
+        from lbo.paths import tracking_uri
+
+        name, _, version = source[len("models:/"):].partition("/")
+        try:
+            return mlflow.MlflowClient(tracking_uri()).get_model_version(name, version).run_id
+        except Exception:  # load_net names a missing model in one line before scoring
+            return None
+    return None
+
+
+def log_to_run(run_id: str | None, source: str, csv: Path, data: str) -> None:
+    """Log the scores of the observer ``source`` (the first learned one of ``csv``) to its
+    MLflow run: metrics ``eval_<data>_nrmse_alpha_<a>`` per noise level (``eval_<data>_nrmse``
+    pooled over a user's test logs) and the evaluation files under ``evaluations/<data>/``."""
+    import mlflow
+    from mlflow.entities import Metric
+
+    from lbo.paths import tracking_uri
+
+    if run_id is None:
+        print(f"note: {source} is a checkpoint file, not an MLflow run: the scores are in "
+              f"{csv} only (give its run id to log them to the run)")
+        return
+    name = next(iter(learned_nets([source])))
+    table = pd.read_csv(csv)
+    rows = table[table["observer"] == name]
+    stamp = int(time.time() * 1000)
+    if "file" in rows:  # a user's test logs: the pooled row
+        from lbo.logscore import ALL
+
+        pooled = rows[rows["file"] == ALL].iloc[0]
+        metrics = {f"eval_{data}_nrmse": float(pooled["nrmse"])}
+    else:
+        metrics = {f"eval_{data}_nrmse_alpha_{a:g}": float(v)
+                   for a, v in zip(rows["alpha"], rows["nrmse"])}
+    client = mlflow.MlflowClient(tracking_uri())
+    client.log_batch(run_id, metrics=[Metric(k.replace(".", "_"), v, stamp, 0)
+                                      for k, v in metrics.items()])
+    for path in sorted(csv.parent.glob("*.csv")) + sorted(csv.parent.glob("*.png")):
+        client.log_artifact(run_id, str(path), artifact_path=f"evaluations/{data}")
+    print(f"logged to MLflow run {run_id}: {len(metrics)} metrics eval_{data}_*, and "
+          f"evaluations/{data}/")
+
+
+def _run_grid(cfg: DictConfig, observers: list[str], learned: list[str]) -> Path:
+    """The simulated test grid of ``cfg.data`` (or ``test_file``)."""
+    from lbo import plots
+    from lbo.datagen.build import build, spec_from_cfg
+    from lbo.truth import from_cfg as truth_from_cfg
+
     check_observers(observers)
     if cfg.metric.reference not in REFERENCES:
         raise LboError(f"metric.reference must be one of {list(REFERENCES)}, "
                        f"got {cfg.metric.reference!r}")
     vehicle, noise = Vehicle.from_cfg(cfg.vehicle), Noise.from_cfg(cfg.noise)
     truth = truth_from_cfg(cfg.get("truth"), vehicle.wheelbase)
+    nets = learned_nets(learned)  # every checkpoint read before any data is made
     if cfg.get("test_file"):
         path = Path(cfg.test_file)
     else:
@@ -215,7 +291,6 @@ def run(cfg: DictConfig) -> Path:
     forms, calibrate, smooth = _extras(cfg)
     arr = load_test(path)
     ref = reference(arr, vehicle, noise, cfg.metric.reference)
-    nets = learned_nets(learned)
     table = classical_table(arr, vehicle, noise, observers, ref, progress=True, truth=truth)
     # estimates (and covariances) of everything that gives a covariance, for calibration
     # and smoothing: the classical filters, and the window filters in their recursive form

@@ -231,11 +231,18 @@ def config_hash(cfg: DictConfig) -> str:
     return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 
+LAST = "last.ckpt"
+"""The checkpoint written at the end of every epoch (``save_last``), from which ``resume=true``
+continues a killed run."""
+
+
 def finished_run(cfg: DictConfig, digest: str, clean: bool = True) -> dict[str, Any] | None:
     """With ``resume=true``: the metrics of a FINISHED MLflow run of the same config, if any.
 
     Runs of the same config that never finished (killed, crashed) are deleted (unless
-    ``clean`` is False), so a rerun replaces them instead of adding a duplicate.
+    ``clean`` is False), so a rerun replaces them instead of adding a duplicate; but the latest
+    of them with a last checkpoint is kept when ``clean`` is ``"keep_resumable"``
+    (:func:`resumable_run` continues it).
     """
     import mlflow
 
@@ -245,8 +252,9 @@ def finished_run(cfg: DictConfig, digest: str, clean: bool = True) -> dict[str, 
         return None
     found = client.search_runs([exp.experiment_id], f"tags.config_hash = '{digest}'")
     done = [r for r in found if r.info.status == "FINISHED"]
+    keep = _resumable(found)[0] if clean == "keep_resumable" and not done else None
     for r in found:
-        if clean and r.info.status != "FINISHED":
+        if clean and r.info.status != "FINISHED" and (keep is None or r.info.run_id != keep):
             client.delete_run(r.info.run_id)
             print(f"deleted the unfinished run {r.info.run_id} ({r.info.status}) of the same "
                   "config; this run replaces it")
@@ -258,6 +266,30 @@ def finished_run(cfg: DictConfig, digest: str, clean: bool = True) -> dict[str, 
             "val_loss": min((m.value for m in history), default=float("nan")),
             "checkpoint": f"{run.info.artifact_uri}/checkpoints/best.ckpt",
             **{k: v for k, v in run.data.metrics.items() if k.startswith("test_")}}
+
+
+def _resumable(found: list) -> tuple[str | None, Path | None]:
+    """The latest unfinished run among ``found`` whose output folder still holds its last
+    checkpoint: (run id, output folder), or (None, None)."""
+    for r in sorted(found, key=lambda r: r.info.start_time or 0, reverse=True):
+        folder = r.data.params.get("output_dir")
+        if r.info.status != "FINISHED" and folder and (Path(folder) / "checkpoints" /
+                                                       LAST).is_file():
+            return r.info.run_id, Path(folder)
+    return None, None
+
+
+def resumable_run(cfg: DictConfig, digest: str) -> tuple[str | None, Path | None]:
+    """With ``resume=true`` and no FINISHED run of the same config: the killed run to continue
+    (run id, its output folder holding ``checkpoints/last.ckpt``), or (None, None)."""
+    import mlflow
+
+    client = mlflow.MlflowClient(cfg.logger.tracking_uri)
+    exp = client.get_experiment_by_name(cfg.logger.experiment_name)
+    if exp is None:
+        return None, None
+    return _resumable(client.search_runs([exp.experiment_id],
+                                         f"tags.config_hash = '{digest}'"))
 
 
 def meta(cfg: DictConfig, data_hash: str) -> dict[str, Any]:
@@ -291,23 +323,40 @@ def train(cfg: DictConfig, callbacks: list[L.Callback] | None = None,
 
 def _train(cfg: DictConfig, callbacks: list[L.Callback] | None,
            tags: dict[str, str] | None) -> dict[str, Any]:
-    import lightning as L
-    from lightning.pytorch.callbacks import ModelCheckpoint
-    from lightning.pytorch.loggers import MLFlowLogger
-
-    from lbo.callbacks import Evaluation
-    from lbo.module import ObserverModule
-
+    """Reuse a finished run of the same config, continue a killed one, or fit afresh."""
     digest = config_hash(cfg)
     if cfg.get("logger") and str(cfg.logger.get("_target_", "")).endswith("MLFlowLogger"):
         # under a parallel launcher the first job creates the store and the experiment
         ensure_experiment(cfg.logger.tracking_uri, cfg.logger.experiment_name,
                           cfg.logger.get("artifact_location"))
+    resume_id, resume_ckpt = None, None
     if cfg.get("resume") and cfg.get("logger"):
-        reused = finished_run(cfg, digest)
+        reused = finished_run(cfg, digest, clean="keep_resumable")
         if reused is not None:
             print(f"reusing finished run {reused['run_id']} ({reused['name']}, same config)")
             return reused
+        resume_id, folder = resumable_run(cfg, digest)
+        if resume_id is not None:
+            # the killed run's own folder, so its checkpoints and files carry on where they are
+            cfg = cfg.copy()
+            with open_dict(cfg):
+                cfg.output_dir = str(folder)
+            resume_ckpt = folder / "checkpoints" / LAST
+            print(f"resuming the killed run {resume_id} (same config) from {resume_ckpt}")
+    with claim(cfg.output_dir):
+        return _fit(cfg, callbacks, tags, digest, resume_id, resume_ckpt)
+
+
+def _fit(cfg: DictConfig, callbacks: list[L.Callback] | None, tags: dict[str, str] | None,
+         digest: str, resume_id: str | None, resume_ckpt: Path | None) -> dict[str, Any]:
+    import lightning as L
+    from lightning.pytorch.callbacks import ModelCheckpoint
+    from lightning.pytorch.loggers import MLFlowLogger
+
+    from lbo.callbacks import Evaluation
+    from lbo.checkpoint_io import AtomicCheckpointIO
+    from lbo.module import ObserverModule
+
     L.seed_everything(cfg.seed, workers=True, verbose=False)
     folder, data_hash = prepare_data(cfg)
     dm = datamodule(cfg, folder)
@@ -324,24 +373,28 @@ def _train(cfg: DictConfig, callbacks: list[L.Callback] | None,
             "model": cfg.model.name, "window": str(cfg.window), "features": cfg.features,
             "train_noise": _noise_tag(cfg),
             "config_hash": digest, **(tags or {})}
-    logger = instantiate(cfg.logger, tags=tags) if cfg.get("logger") else None
+    logger = (instantiate(cfg.logger, tags=tags, **({"run_id": resume_id} if resume_id else {}))
+              if cfg.get("logger") else None)
     callbacks = [*(instantiate(c) for c in (cfg.get("callbacks") or {}).values()),
                  *(callbacks or [])]
     trainer = instantiate(cfg.trainer, logger=logger if logger is not None else False,
-                          callbacks=callbacks)
+                          callbacks=callbacks, plugins=[AtomicCheckpointIO()])
     output = Path(cfg.output_dir)
     for cb in callbacks:
         if isinstance(cb, Evaluation) and isinstance(logger, MLFlowLogger):
             cb.mlflow = logger
-        if isinstance(cb, ModelCheckpoint) and cb.dirpath:
+        if isinstance(cb, ModelCheckpoint) and cb.dirpath and resume_ckpt is None:
             clear_stale_checkpoints(Path(cb.dirpath))
     try:
-        if isinstance(logger, MLFlowLogger):
+        if isinstance(logger, MLFlowLogger) and resume_id is None:  # logged before the kill
             logger.log_hyperparams(_flat(cfg))
             config_yaml = write_text(output / "config.yaml",
                                      scrub(OmegaConf.to_yaml(cfg, resolve=True)))
             logger.experiment.log_artifact(logger.run_id, str(config_yaml))
-        trainer.fit(module, datamodule=dm)
+        elif isinstance(logger, MLFlowLogger):
+            logger.experiment.set_terminated(resume_id, "RUNNING")
+        trainer.fit(module, datamodule=dm,
+                    ckpt_path=str(resume_ckpt) if resume_ckpt is not None else None)
     except BaseException:
         if isinstance(logger, MLFlowLogger):
             logger.finalize("failed")  # also when the crash is outside Lightning's own hooks
