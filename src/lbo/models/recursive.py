@@ -25,7 +25,7 @@ hours of steps keeps its digits.
 Conventions as the filters of :mod:`lbo.filters`: ``u_k`` moves ``z_k`` to ``z_{k+1}``, so the
 estimate at step k uses ``m_0 .. m_k`` and ``u_0 .. u_{k-1}``; a measurement of NaN is a step
 without a position fix (for a filter trained with the ``fix`` channel): a prediction only.
-The filter starts at the first fix, with P = R.
+The filter starts at the first fix, with P = 6.5^2 R (:data:`START_SCALE`).
 """
 
 from __future__ import annotations
@@ -41,12 +41,12 @@ from lbo.models.filternet import FilterObserver, _inverse_sym3, _tan, _wrap
 
 STATE_NAMES = ("z", "P", "yaw_rate", "u_prev", "last", "dead_reckoning", "gap", "heading",
                "ring", "sums", "speeds", "speed_sum", "k", "started")
+"""The state tensors of a batch of B filters, in order (:meth:`RecursiveFilter.initial_state`)."""
 START_SCALE = 6.5**2
 """P at the first fix, in units of the R the noise model gives then: its statistic holds nothing
 yet, so R is alpha = 1's, and the start must be as unsure as the noisiest level trained on."""
 ENTRY = ("xx", "yy", "xy", "psi", "counted", "gap")
 """The channels of one entry of the statistic's ring (world axes)."""
-"""The state tensors of a batch of B filters, in order (:meth:`RecursiveFilter.initial_state`)."""
 
 
 class _Single(nn.Module):
