@@ -138,70 +138,27 @@ class MlflowServer:
 
 
 @contextlib.contextmanager
-def mlflow_server(backend: str | None = None) -> Iterator[MlflowServer]:
-    """``mlflow server`` with a SQLite backend store (or ``backend``) and an artifact root of
-    its own, serving the artifacts itself (clients upload and download through it)."""
+def _http_server(args: list[str], folder: Path, probe: str, what: str, timeout: float,
+                 env: dict[str, str] | None = None) -> Iterator[str]:
+    """Start ``python -m <args>`` (listening on 127.0.0.1:<port> as ``args`` say) in
+    ``folder``; yield its URL once ``probe`` answers 200, and stop it (and remove ``folder``)
+    when the block ends, pass or fail."""
     import requests
 
-    folder = Path(tempfile.mkdtemp(prefix="lbo-mlflow-"))
-    port = free_port()
-    backend = backend or f"sqlite:///{folder / 'mlflow.db'}"
-    log = open(folder / "server.log", "w")
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "mlflow", "server", "--host", "127.0.0.1", "--port", str(port),
-         "--backend-store-uri", backend, "--artifacts-destination", str(folder / "artifacts"),
-         "--workers", "1"],
-        stdout=log, stderr=subprocess.STDOUT, start_new_session=True, cwd=folder)
-    url = f"http://127.0.0.1:{port}"
-    try:
-        deadline = time.monotonic() + 120
-        while True:
-            with contextlib.suppress(requests.RequestException):
-                if requests.get(f"{url}/health", timeout=2).status_code == 200:
-                    break
-            if proc.poll() is not None or time.monotonic() > deadline:
-                pytest.fail("mlflow server did not start:\n"
-                            + (folder / "server.log").read_text()[-3000:])
-            time.sleep(0.5)
-        yield MlflowServer(url, folder)
-    finally:
-        with contextlib.suppress(ProcessLookupError):
-            os.killpg(proc.pid, signal.SIGTERM)
-        try:
-            proc.wait(timeout=20)
-        except subprocess.TimeoutExpired:
-            os.killpg(proc.pid, signal.SIGKILL)
-            proc.wait()
-        log.close()
-        shutil.rmtree(folder, ignore_errors=True)
-
-
-@contextlib.contextmanager
-def model_server(model_uri: str, env: dict[str, str]) -> Iterator[str]:
-    """``mlflow models serve`` of ``model_uri`` with ``--env-manager local`` on 127.0.0.1 and a
-    free port, in a folder of its own; yields its URL, and stops it when the test ends."""
-    import requests
-
-    folder = Path(tempfile.mkdtemp(prefix="lbo-serve-"))
     port = free_port()
     log = open(folder / "server.log", "w")
-    # mlflow starts its scoring server as `uvicorn` through a shell, so this interpreter's
-    # scripts folder goes first on PATH even when no virtual environment is activated
-    scripts = str(Path(sys.executable).parent)
-    env = {**env, "PATH": os.pathsep.join([scripts, env.get("PATH", "")])}
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "mlflow", "models", "serve", "-m", model_uri, "--env-manager",
-         "local", "-h", "127.0.0.1", "-p", str(port), "-w", "1"],
-        stdout=log, stderr=subprocess.STDOUT, start_new_session=True, cwd=folder, env=env)
+    proc = subprocess.Popen([sys.executable, "-m", *(a.replace("{port}", str(port)) for a in args)],
+                            stdout=log, stderr=subprocess.STDOUT, start_new_session=True,
+                            cwd=folder, env=env)
     url = f"http://127.0.0.1:{port}"
     try:
-        deadline = time.monotonic() + 180
+        deadline = time.monotonic() + timeout
         while True:
             with contextlib.suppress(requests.RequestException):
-                if requests.get(f"{url}/ping", timeout=2).status_code == 200:
+                if requests.get(f"{url}/{probe}", timeout=2).status_code == 200:
                     break
             if proc.poll() is not None or time.monotonic() > deadline:
-                pytest.fail("mlflow models serve did not start:\n"
+                pytest.fail(f"{what} did not start:\n"
                             + (folder / "server.log").read_text()[-3000:])
             time.sleep(0.5)
         yield url
@@ -215,3 +172,31 @@ def model_server(model_uri: str, env: dict[str, str]) -> Iterator[str]:
             proc.wait()
         log.close()
         shutil.rmtree(folder, ignore_errors=True)
+
+
+@contextlib.contextmanager
+def mlflow_server(backend: str | None = None) -> Iterator[MlflowServer]:
+    """``mlflow server`` with a SQLite backend store (or ``backend``) and an artifact root of
+    its own, serving the artifacts itself (clients upload and download through it)."""
+    folder = Path(tempfile.mkdtemp(prefix="lbo-mlflow-"))
+    backend = backend or f"sqlite:///{folder / 'mlflow.db'}"
+    args = ["mlflow", "server", "--host", "127.0.0.1", "--port", "{port}",
+            "--backend-store-uri", backend, "--artifacts-destination", str(folder / "artifacts"),
+            "--workers", "1"]
+    with _http_server(args, folder, "health", "mlflow server", 120) as url:
+        yield MlflowServer(url, folder)
+
+
+@contextlib.contextmanager
+def model_server(model_uri: str, env: dict[str, str]) -> Iterator[str]:
+    """``mlflow models serve`` of ``model_uri`` with ``--env-manager local`` on 127.0.0.1 and a
+    free port, in a folder of its own; yields its URL, and stops it when the test ends."""
+    folder = Path(tempfile.mkdtemp(prefix="lbo-serve-"))
+    # mlflow starts its scoring server as `uvicorn` through a shell, so this interpreter's
+    # scripts folder goes first on PATH even when no virtual environment is activated
+    scripts = str(Path(sys.executable).parent)
+    env = {**env, "PATH": os.pathsep.join([scripts, env.get("PATH", "")])}
+    args = ["mlflow", "models", "serve", "-m", model_uri, "--env-manager", "local", "-h",
+            "127.0.0.1", "-p", "{port}", "-w", "1"]
+    with _http_server(args, folder, "ping", "mlflow models serve", 180, env) as url:
+        yield url

@@ -87,6 +87,17 @@ class _Pair(NamedTuple):
     valid: bool
 
 
+def _engine_device(engine: str, device: Any) -> Any:
+    """The checked device of ``engine``: one of :data:`ENGINES`, and ONNX on the CPU only."""
+    if engine not in ENGINES:
+        raise LboError(f"engine must be one of {list(ENGINES)}, got {engine!r}")
+    device = check_device(device)
+    if engine == "onnx" and str(device) != "cpu":
+        raise LboError(f"engine=onnx runs on the CPU (ONNX Runtime's CPU provider), "
+                       f"got device={device}")
+    return device
+
+
 class Estimate(_Pair):
     """One step's result: ``state`` (3,) ``[x, y, psi]`` (m, m, rad; psi in (-pi, pi]) and
     ``valid``; unpacks as ``state, valid``. ``reason`` (not unpacked) says why an estimate is
@@ -193,12 +204,7 @@ def make_predictor(net: Any, engine: str = "torch", device: str = "cpu") -> Pred
     """
     import torch
 
-    if engine not in ENGINES:
-        raise LboError(f"engine must be one of {list(ENGINES)}, got {engine!r}")
-    device = check_device(device)
-    if engine == "onnx" and str(device) != "cpu":
-        raise LboError(f"engine=onnx runs on the CPU (ONNX Runtime's CPU provider), "
-                       f"got device={device}")
+    device = _engine_device(engine, device)
     net = net.to(device).eval()
     if engine == "onnx":
         from lbo.engines import onnx_bytes, onnx_session
@@ -250,12 +256,7 @@ def make_stepper(net: Any, engine: str = "torch", device: str = "cpu") -> tuple[
 
     from lbo.models.recursive import STATE_NAMES, RecursiveFilter
 
-    if engine not in ENGINES:
-        raise LboError(f"engine must be one of {list(ENGINES)}, got {engine!r}")
-    device = check_device(device)
-    if engine == "onnx" and str(device) != "cpu":
-        raise LboError(f"engine=onnx runs on the CPU (ONNX Runtime's CPU provider), "
-                       f"got device={device}")
+    device = _engine_device(engine, device)
     rec = RecursiveFilter(net.net.cpu() if engine == "onnx" else net.net).to(device)
     state = [s.cpu().numpy() for s in rec.initial_state(1)]
     if engine == "onnx":

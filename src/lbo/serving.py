@@ -97,11 +97,14 @@ def log_model(tracking_uri: str, run_id: str, checkpoint: str | Path) -> str:
     ``run_id`` in ``tracking_uri``; returns its ``runs:/<run id>/model`` URI. Only the client
     API: no run is started or ended, and MLflow's global tracking URI is left alone."""
     import tempfile
+    import warnings
     from importlib.metadata import version
 
     import mlflow
 
-    with tempfile.TemporaryDirectory(prefix="lbo-model-") as tmp:
+    with tempfile.TemporaryDirectory(prefix="lbo-model-") as tmp, warnings.catch_warnings():
+        # the signature names every column; an example would cost a model load per run
+        warnings.filterwarnings("ignore", message=".*input example was not provided")
         folder = Path(tmp) / ARTIFACT
         mlflow.pyfunc.save_model(
             str(folder), python_model=str(Path(__file__).with_name("serving_model.py")),
