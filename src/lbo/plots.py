@@ -153,6 +153,11 @@ def observed_log(t: np.ndarray, meas: np.ndarray, est: np.ndarray, name: str,
             if err is not None:
                 ax.plot(t, scale * err[:, c], lw=0.9, color=color, label=f"error of {label}")
         ax.axhline(0.0, color="0.4", lw=0.6)
+        # the first fix's wide start would flatten the rest: scale to the 99th percentile
+        spread = [np.abs(a[:, list(cols)]) for a in (err, sigma) if a is not None]
+        top = np.nanpercentile(np.concatenate(spread), 99) if spread else np.nan
+        if np.isfinite(top) and top > 0:
+            ax.set_ylim(-1.5 * scale * top, 1.5 * scale * top)
         ax.set_ylabel(unit)
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7, ncol=2, loc="upper right")
