@@ -38,8 +38,8 @@ def test_reproduce_smoke_killed_and_resumed_without_duplicates(tmp_path):
            "PYTHONUNBUFFERED": "1"}
     proc = subprocess.Popen(command(tmp_path), env=env, stdout=subprocess.PIPE,
                             stderr=subprocess.STDOUT, text=True, start_new_session=True)
-    # kill the fourth observer's run once it has written a checkpoint, before it finishes
-    killed_at = tmp_path / "report" / "runs" / "cnn-N80" / "checkpoints" / "best.ckpt"
+    # kill the fourth observer's run once it has finished an epoch, before it finishes
+    killed_at = tmp_path / "report" / "runs" / "cnn-N80" / "checkpoints" / "last.ckpt"
     watcher = kill_when_written(proc, killed_at)
     seen = list(proc.stdout)
     proc.wait(timeout=60)
@@ -56,7 +56,7 @@ def test_reproduce_smoke_killed_and_resumed_without_duplicates(tmp_path):
     assert "<== [1/5] data: done" in out
     assert "<== [2/5] tune: reused" in out
     assert out.count("reusing finished run") == 3  # cnn-N20, N40, N60 finished before the kill
-    assert "removed 1 stale checkpoint(s) of an earlier run" in out
+    assert out.count("resuming the killed run") == 1  # cnn-N80, from its last checkpoint
 
     report = tmp_path / "report"
     for name in REPORT_FILES:
@@ -93,13 +93,14 @@ def test_reproduce_smoke_killed_and_resumed_without_duplicates(tmp_path):
     assert sorted(trained) == sorted([(n, "smoke") for n in expected]
                                      + [("filternet-N100", "dynamic")])  # each once
     # every observer's folder holds one best.ckpt, the very file its MLflow run logged (the
-    # report reads that artifact): the resumed cnn-N80 replaced the killed run's checkpoint
+    # report reads that artifact), beside the last epoch's: the resumed cnn-N80 finished its
+    # own run in its own folder
     for r in runs:
         if r.info.run_name in expected:
             key = "dynamic" if r.data.tags["data"] == "dynamic" else "robust" \
                 if r.info.run_name.startswith("filternet") else r.info.run_name
             folder = tmp_path / "report" / "runs" / key / "checkpoints"
-            assert [p.name for p in folder.iterdir()] == ["best.ckpt"], key
+            assert sorted(p.name for p in folder.iterdir()) == ["best.ckpt", "last.ckpt"], key
             logged = mlflow.artifacts.download_artifacts(
                 run_id=r.info.run_id, artifact_path="checkpoints/best.ckpt",
                 dst_path=str(tmp_path / "dl" / key), tracking_uri=env["MLFLOW_TRACKING_URI"])

@@ -213,6 +213,7 @@ class WindowDataModule(L.LightningDataModule):
         self.train_set: WindowDataset | None = None
         self.val_set: Dataset | None = None
         self.shuffle = torch.Generator().manual_seed(seed)  # the training order, epoch by epoch
+        self._resumed_shuffle: torch.Tensor | None = None
 
     def setup(self, stage: str | None = None) -> None:
         if self.train_set is not None:
@@ -261,6 +262,11 @@ class WindowDataModule(L.LightningDataModule):
 
     def _loader(self, ds: Dataset, batch: int, shuffle: bool) -> DataLoader:
         # one __getitem__ per batch: the gather is vectorised, never a loop over samples
+        if shuffle:  # a new loader starts the order afresh, or where a checkpoint left it
+            self.shuffle = torch.Generator().manual_seed(self.seed)
+            if self._resumed_shuffle is not None:
+                self.shuffle.set_state(self._resumed_shuffle)
+                self._resumed_shuffle = None
         base = RandomSampler(ds, generator=self.shuffle) if shuffle else SequentialSampler(ds)
         # tensors on a GPU cannot go to worker processes: the main process gathers there
         workers = self.num_workers if self.device.type == "cpu" else 0
@@ -280,7 +286,7 @@ class WindowDataModule(L.LightningDataModule):
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         self.setup()
-        self.shuffle.set_state(state["shuffle"])
+        self._resumed_shuffle = state["shuffle"]  # for the loader Lightning makes next
         torch.set_rng_state(state["torch"])
         if "draws" in state:
             self.train_set.generator.set_state(state["draws"])
