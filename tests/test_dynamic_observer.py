@@ -70,6 +70,9 @@ def test_report_section_where_learning_beats_the_model(dynamic, tmp_path):
     assert (s["observer"], s["black_boxes"]) == ("filternet-N60", ["cnn-N80"])
     nr = table.pivot_table(index="alpha", columns="observer", values="nrmse").loc[0.25:]
     assert s["vs_dynamic"][1] == pytest.approx((nr["filternet-N60"] / nr["oracle_dynamic"]).max())
+    assert s["vs_tuned"][0] == pytest.approx((nr["filternet-N60"] / nr["oracle_tuned"]).min())
+    assert "times the kinematic EKF's with Q tuned in hindsight" in text
+    assert "filternet-N60 / oracle_tuned" in text
 
 
 def test_the_observer_streams_a_log_of_the_car(dynamic, tmp_path):
