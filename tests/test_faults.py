@@ -88,9 +88,16 @@ def test_a_killed_run_resumes_from_its_last_checkpoint_as_if_never_killed(tmp_pa
     tests = {k: v for k, v in run.data.metrics.items() if k.startswith("test_")}
     assert tests and tests == {k: v for k, v in unbroken.data.metrics.items()
                                if k.startswith("test_")}
-    history = [m.value for m in client.get_metric_history(run.info.run_id, "val_loss")]
-    assert history == [m.value for m in ref_client.get_metric_history(unbroken.info.run_id,
-                                                                       "val_loss")]
+    # an epoch validated just before the kill, whose checkpoint was not yet written, runs
+    # again after it and logs its val_loss at the same step once more: the same value
+    history: dict[int, list[float]] = {}
+    for m in client.get_metric_history(run.info.run_id, "val_loss"):
+        history.setdefault(m.step, []).append(m.value)
+    assert all(len(set(v)) == 1 for v in history.values()), history
+    assert sum(len(v) > 1 for v in history.values()) <= 1, history  # not trained from scratch
+    want = {m.step: m.value for m in ref_client.get_metric_history(unbroken.info.run_id,
+                                                                    "val_loss")}
+    assert {k: v[0] for k, v in history.items()} == want
     monkeypatch.setenv("MLFLOW_TRACKING_URI", uri)
     assert Observer.load(run.info.run_id).window == 20
 
