@@ -52,6 +52,11 @@ def train_cfg(tmp_path, smoke_data, *overrides):
                                  f"output_dir={tmp_path / 'out'}", *overrides])
 
 
+ROBUST_SMOKE = ("experiment=robust", "data=smoke", "trainer.max_epochs=1")
+"""The robust experiment cut to one short epoch on the smoke sets (add the batches, the
+window and the batch size)."""
+
+
 def train_in_own_store(tmp: Path, smoke_data: Path, *overrides: str):
     """Train at smoke size into ``tmp / 'out'``, logged to an MLflow store of its own.
 
@@ -76,20 +81,25 @@ def manoeuvre(smoke_data):
     return test[(test["traj"] == 0) & (test["alpha"] == 1.0)].sort_values("k")
 
 
-def kill_when_written(proc, path: Path):
-    """A started thread that SIGKILLs the process group of ``proc`` as soon as ``path``
-    exists (e.g. a run's first checkpoint); join it after ``proc`` ends."""
+def kill_when_written(proc, path: Path, times: int = 1, delay: float = 0.0):
+    """A started thread that SIGKILLs the process group of ``proc`` once ``path`` has been
+    written ``times`` times (e.g. a run's first checkpoint; ``last.ckpt`` once per epoch), and
+    ``delay`` seconds more; join it after ``proc`` ends."""
     import os
     import signal
     import threading
     import time
 
     def watch() -> None:
+        seen, stamp = 0, None
         while proc.poll() is None:
-            if path.exists():
-                os.killpg(proc.pid, signal.SIGKILL)
-                return
-            time.sleep(0.01)
+            if path.exists() and path.stat().st_mtime_ns != stamp:
+                stamp, seen = path.stat().st_mtime_ns, seen + 1
+                if seen >= times:
+                    time.sleep(delay)
+                    os.killpg(proc.pid, signal.SIGKILL)
+                    return
+            time.sleep(0.005)
 
     thread = threading.Thread(target=watch)
     thread.start()

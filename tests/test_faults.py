@@ -6,9 +6,6 @@ import os
 import signal
 import subprocess
 import sys
-import threading
-import time
-from pathlib import Path
 
 import mlflow
 import numpy as np
@@ -24,26 +21,6 @@ def _train_cmd(tmp_path, smoke_data, out, *more):
     return [sys.executable, "-m", "lbo.train", "experiment=smoke", "resume=true",
             f"data.root={smoke_data.parent}", f"output_dir={out}", "trainer.max_epochs=6",
             "trainer.limit_train_batches=30", f"hydra.run.dir={tmp_path / 'hydra'}", *more]
-
-
-def _kill_after_epochs(proc, last: Path, epochs: int) -> threading.Thread:
-    """SIGKILL the process group of ``proc`` once ``last`` has been rewritten ``epochs``
-    times (one per finished epoch): mid-way through the next epoch."""
-
-    def watch() -> None:
-        seen, stamp = 0, None
-        while proc.poll() is None:
-            if last.exists() and last.stat().st_mtime_ns != stamp:
-                stamp, seen = last.stat().st_mtime_ns, seen + 1
-                if seen >= epochs:
-                    time.sleep(0.3)  # into the next epoch's training
-                    os.killpg(proc.pid, signal.SIGKILL)
-                    return
-            time.sleep(0.005)
-
-    thread = threading.Thread(target=watch)
-    thread.start()
-    return thread
 
 
 @pytest.mark.slow
@@ -63,7 +40,7 @@ def test_a_killed_run_resumes_from_its_last_checkpoint_as_if_never_killed(tmp_pa
     proc = subprocess.Popen(_train_cmd(tmp_path, smoke_data, out), env=env,
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
                             start_new_session=True)
-    watcher = _kill_after_epochs(proc, last, 2)
+    watcher = kill_when_written(proc, last, times=2, delay=0.3)  # into the third epoch
     proc.wait(timeout=300)
     watcher.join()
     assert proc.returncode == -signal.SIGKILL and last.exists()

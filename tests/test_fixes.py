@@ -10,7 +10,7 @@ import pandas as pd
 import pytest
 import torch
 
-from conftest import compose_cfg, train_in_own_store
+from conftest import ROBUST_SMOKE, compose_cfg, train_in_own_store
 from lbo import classical
 from lbo.draws import fix_mask, fix_periods
 from lbo.errors import LboError
@@ -186,9 +186,8 @@ def test_a_partial_fix_or_no_fix_is_one_line_and_no_output(tmp_path, blank, mess
 
 @pytest.mark.slow
 def test_a_smoke_robust_checkpoint_runs_on_a_thinned_log(tmp_path, smoke_data):
-    cfg, out, _ = train_in_own_store(tmp_path, smoke_data, "experiment=robust", "data=smoke",
-                                     "window=60", "fix_rates=[50,10,1]",
-                                     "trainer.max_epochs=1", "trainer.limit_train_batches=5",
+    cfg, out, _ = train_in_own_store(tmp_path, smoke_data, *ROBUST_SMOKE, "window=60",
+                                     "fix_rates=[50,10,1]", "trainer.limit_train_batches=5",
                                      "batch_size=64")
     df = simulate(compose_cfg("simulate", ["manoeuvre=slalom", "fix_rate=10", "alpha=1"]))
     log = tmp_path / "log.csv"

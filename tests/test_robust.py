@@ -10,7 +10,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from conftest import compose_cfg, train_in_own_store
+from conftest import ROBUST_SMOKE, compose_cfg, train_in_own_store
 from lbo.errors import LboError
 from lbo.module import ObserverModule
 from lbo.observer import Observer
@@ -26,9 +26,9 @@ pytestmark = pytest.mark.usefixtures("one_torch_thread")
 def robust(tmp_path_factory, smoke_data):
     """One robust observer trained at smoke scale, logged to its own MLflow store."""
     tmp = tmp_path_factory.mktemp("robust")
-    cfg, out, uri = train_in_own_store(tmp, smoke_data, "experiment=robust", "data=smoke",
-                                       "trainer.max_epochs=1", "trainer.limit_train_batches=5",
-                                       "window=40", "batch_size=64")
+    cfg, out, uri = train_in_own_store(tmp, smoke_data, *ROBUST_SMOKE,
+                                       "trainer.limit_train_batches=5", "window=40",
+                                       "batch_size=64")
     return {"cfg": cfg, "out": out, "uri": uri, "dir": tmp / "out"}
 
 

@@ -13,7 +13,7 @@ import pandas as pd
 import pytest
 import requests
 
-from conftest import train_in_own_store
+from conftest import ROBUST_SMOKE, train_in_own_store
 from lbo.errors import LboError
 from lbo.export import register
 from lbo.observer import Observer
@@ -27,9 +27,8 @@ pytestmark = [pytest.mark.slow, pytest.mark.usefixtures("one_torch_thread")]
 def robust(tmp_path_factory, smoke_data):
     """The robust observer trained at smoke scale in an MLflow store of its own."""
     tmp = tmp_path_factory.mktemp("serving")
-    _, out, uri = train_in_own_store(tmp, smoke_data, "experiment=robust", "data=smoke",
-                                     "trainer.max_epochs=1", "trainer.limit_train_batches=3",
-                                     "window=40", "batch_size=32")
+    _, out, uri = train_in_own_store(tmp, smoke_data, *ROBUST_SMOKE,
+                                     "trainer.limit_train_batches=3", "window=40", "batch_size=32")
     return {"run_id": out["run_id"], "uri": uri}
 
 

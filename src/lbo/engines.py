@@ -141,14 +141,29 @@ def recursive_onnx_bytes(rec: Any) -> bytes:
     return buf.getvalue()
 
 
+def onnx_step(session: Any) -> Any:
+    """The step ``(m, u, state) -> (pose, cov, next state)`` of a recursive filter's ONNX
+    session (:func:`recursive_onnx_bytes`), on numpy arrays; ``state`` is every tensor of
+    :data:`~lbo.models.recursive.STATE_NAMES`, of which it feeds those the model reads."""
+    from lbo.models.recursive import STATE_NAMES
+
+    names = [i.name for i in session.get_inputs()]
+    keys = ["m", "u", *STATE_NAMES]
+
+    def step(m: np.ndarray, u: np.ndarray, state: list) -> tuple:
+        feed = dict(zip(keys, [m, u, *state]))
+        out = session.run(None, {k: feed[k] for k in names})
+        return out[0], out[1], out[2:]
+
+    return step
+
+
 def check_recursive(rec: Any, script: Any, session: Any, steps: int = 300,
                     seed: int = 1) -> dict[str, float]:
     """Largest |difference| of a recursive filter's TorchScript and ONNX step to PyTorch's, in
     pose and covariance, over ``steps`` steps of a noisy drive near (100 m, -50 m) (every
     other fix missing, for a filter that takes missing fixes)."""
     import torch
-
-    from lbo.models.recursive import STATE_NAMES
 
     rng = np.random.default_rng(seed)
     k = np.arange(steps)
@@ -157,7 +172,7 @@ def check_recursive(rec: Any, script: Any, session: Any, steps: int = 300,
     if rec.fixes:
         m[1::2] = np.nan
     u = np.tile([10.0, 0.01], (steps, 1))
-    names = [i.name for i in session.get_inputs()]
+    step = onnx_step(session)
     worst = {"torchscript": 0.0, "onnx": 0.0}
     states = {e: list(rec.initial_state(1)) for e in ("torch", "torchscript")}
     onnx_state = [s.numpy() for s in rec.initial_state(1)]
@@ -167,10 +182,8 @@ def check_recursive(rec: Any, script: Any, session: Any, steps: int = 300,
             ref = rec(mk, uk, *states["torch"])
             ts = script(mk, uk, *states["torchscript"])
             states["torch"], states["torchscript"] = list(ref[2:]), list(ts[2:])
-            feed = dict(zip(["m", "u", *STATE_NAMES], [m[i:i + 1], u[i:i + 1], *onnx_state]))
-            ox = session.run(None, {n: feed[n] for n in names})
-            onnx_state = ox[2:]
-            for engine, out in (("torchscript", [t.numpy() for t in ts[:2]]), ("onnx", ox[:2])):
+            *ox, onnx_state = step(m[i:i + 1], u[i:i + 1], onnx_state)
+            for engine, out in (("torchscript", [t.numpy() for t in ts[:2]]), ("onnx", ox)):
                 for a, b in zip(out, (ref[0].numpy(), ref[1].numpy())):
                     d = np.abs(a - b)
                     nan_same = np.isnan(a) == np.isnan(b)

@@ -115,9 +115,11 @@ def bound_table(std: np.ndarray, arr: dict[str, np.ndarray], ref: np.ndarray) ->
 def classical_table(arr: dict[str, np.ndarray], vehicle: Vehicle, noise: Noise,
                     observers: Sequence[str] = CLASSICAL, ref: np.ndarray | None = None,
                     progress: bool = False, seed: int = 0,
-                    truth: Truth | None = None) -> pd.DataFrame:
+                    truth: Truth | None = None,
+                    given: dict[str, np.ndarray] | None = None) -> pd.DataFrame:
     """Score the classical observers on the test arrays; ``ref`` defaults to our EKF's;
-    ``truth``: what the set was drawn from, for ``oracle_dynamic``."""
+    ``truth``: what the set was drawn from, for ``oracle_dynamic``; ``given``: estimates
+    (G, T, 3) already made, by name, which are scored instead of running that filter again."""
     check_observers(observers)
     ref = reference(arr, vehicle, noise) if ref is None else ref
     tables = []
@@ -125,7 +127,9 @@ def classical_table(arr: dict[str, np.ndarray], vehicle: Vehicle, noise: Noise,
         if name == TUNED:
             tables.append(score(name, tuned_oracle(arr, vehicle, noise, ref)[0], arr, ref))
             continue
-        out = classical(name, arr, vehicle, noise, progress=progress, seed=seed, truth=truth)
+        out = (given or {}).get(name)
+        if out is None:
+            out = classical(name, arr, vehicle, noise, progress=progress, seed=seed, truth=truth)
         tables.append(bound_table(out, arr, ref) if name == "pcrb" else score(name, out, arr, ref))
     return pd.concat(tables, ignore_index=True)[list(SCORE_COLUMNS)]
 
@@ -197,11 +201,11 @@ def run(cfg: DictConfig) -> Path:
         learned = [one, *learned]
         run_id = run_of(one)
     if is_logs(cfg):
-        csv = run_logs(cfg, observers, learned)
+        csv, names = run_logs(cfg, observers, learned)
     else:
-        csv = _run_grid(cfg, observers, learned)
+        csv, names = _run_grid(cfg, observers, learned)
     if one is not None:
-        log_to_run(run_id, one, csv, str(cfg.data.name))
+        log_to_run(run_id, one, names[0], csv, str(cfg.data.name))
     return csv
 
 
@@ -227,9 +231,9 @@ def run_of(source: str) -> str | None:
     return None
 
 
-def log_to_run(run_id: str | None, source: str, csv: Path, data: str) -> None:
-    """Log the scores of the observer ``source`` (the first learned one of ``csv``) to its
-    MLflow run: metrics ``eval_<data>_nrmse_alpha_<a>`` per noise level (``eval_<data>_nrmse``
+def log_to_run(run_id: str | None, source: str, name: str, csv: Path, data: str) -> None:
+    """Log the scores of the observer ``source``, called ``name`` in ``csv``, to its MLflow run
+    ``run_id``: metrics ``eval_<data>_nrmse_alpha_<a>`` per noise level (``eval_<data>_nrmse``
     pooled over a user's test logs) and the evaluation files under ``evaluations/<data>/``."""
     import mlflow
     from mlflow.entities import Metric
@@ -240,7 +244,6 @@ def log_to_run(run_id: str | None, source: str, csv: Path, data: str) -> None:
         print(f"note: {source} is a checkpoint file, not an MLflow run: the scores are in "
               f"{csv} only (give its run id to log them to the run)")
         return
-    name = next(iter(learned_nets([source])))
     table = pd.read_csv(csv)
     rows = table[table["observer"] == name]
     stamp = int(time.time() * 1000)
@@ -261,8 +264,10 @@ def log_to_run(run_id: str | None, source: str, csv: Path, data: str) -> None:
           f"evaluations/{data}/")
 
 
-def _run_grid(cfg: DictConfig, observers: list[str], learned: list[str]) -> Path:
-    """The simulated test grid of ``cfg.data`` (or ``test_file``)."""
+def _run_grid(cfg: DictConfig, observers: list[str], learned: list[str]
+              ) -> tuple[Path, list[str]]:
+    """The simulated test grid of ``cfg.data`` (or ``test_file``): evaluation.csv, and the
+    names the ``learned`` observers have in it, in order."""
     from lbo import plots
     from lbo.datagen.build import build, spec_from_cfg
     from lbo.truth import from_cfg as truth_from_cfg
@@ -291,12 +296,13 @@ def _run_grid(cfg: DictConfig, observers: list[str], learned: list[str]) -> Path
     forms, calibrate, smooth = _extras(cfg)
     arr = load_test(path)
     ref = reference(arr, vehicle, noise, cfg.metric.reference)
-    table = classical_table(arr, vehicle, noise, observers, ref, progress=True, truth=truth)
     # estimates (and covariances) of everything that gives a covariance, for calibration
     # and smoothing: the classical filters, and the window filters in their recursive form
     covariant = {name: run_classical(name, arr["m"], arr["u"], vehicle, noise,
                                      alpha=arr["alpha"], return_cov=True)
                  for name in observers if name in OBSERVERS and (calibrate or smooth)}
+    table = classical_table(arr, vehicle, noise, observers, ref, progress=True, truth=truth,
+                            given={name: est for name, (est, _) in covariant.items()})
     rows, names = [], []
     for name, net in nets.items():
         from lbo.observer import default_form
@@ -338,7 +344,7 @@ def _run_grid(cfg: DictConfig, observers: list[str], learned: list[str]) -> Path
               f"{ref[2] * 1e3:.2f} mrad)")
         print(pivot.to_string())
     print(f"evaluation: {csv}")
-    return csv
+    return csv, list(nets)
 
 
 def _extras(cfg: DictConfig) -> tuple[list[str] | None, bool, bool]:
@@ -397,10 +403,11 @@ def learned_nets(sources: Sequence[str]) -> dict:
     return nets
 
 
-def run_logs(cfg: DictConfig, observers: list[str], learned: list[str]) -> Path:
+def run_logs(cfg: DictConfig, observers: list[str], learned: list[str]
+             ) -> tuple[Path, list[str]]:
     """``data=logs``: score the classical peers that run on a log (and ``learned``
     observers) on the test logs, pooled and per file (:mod:`lbo.logscore`); write
-    evaluation.csv and nrmse_logs.png."""
+    evaluation.csv and nrmse_logs.png. Returns its path and the learned observers' names."""
     from lbo import logscore, plots
     from lbo.datagen.logs import build, spec_from_cfg, test_files
 
@@ -426,7 +433,7 @@ def run_logs(cfg: DictConfig, observers: list[str], learned: list[str]) -> Path:
     print(f"pooled over {len(test_files(folder))} test log(s):")
     print(logscore.printable(table))
     print(f"evaluation: {csv}")
-    return csv
+    return csv, list(nets)
 
 
 main = entry("evaluate", run)
@@ -437,16 +444,9 @@ def predict_recursive(net, arr: dict[str, np.ndarray], device: str = "cpu",
     """A window filter (an ObserverNet of ``filternet``) in its recursive form over every
     trajectory of the padded test arrays, all at once: (G, T, 3) estimates and (G, T, 3, 3)
     covariances, NaN outside the scored steps (``smooth``: the RTS smoother's)."""
-    import torch
+    from lbo.models.recursive import run_arrays
 
-    from lbo.models.recursive import RecursiveFilter
-
-    rec = RecursiveFilter(net.net).to(device)
-    with torch.inference_mode():
-        est, cov = rec.run(torch.from_numpy(arr["m"]).to(device),
-                           torch.from_numpy(arr["u"]).to(device), smooth=smooth,
-                           lengths=arr["lengths"])
-    est, cov = est.cpu().numpy(), cov.cpu().numpy()
+    est, cov = run_arrays(net.net, arr["m"], arr["u"], smooth, arr["lengths"], device)
     est[~arr["mask"]] = np.nan
     cov[~arr["mask"]] = np.nan
     return est, cov

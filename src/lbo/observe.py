@@ -306,7 +306,9 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     obs = Observer.load(name, vehicle if classical else None, noise if classical else None,
                         form=form, **kw)
     if smooth and form is None and obs.form == "window" and getattr(obs.net, "physical", False):
-        obs = Observer.load(name, form="recursive", **kw)  # the form that has a filter to smooth
+        # the form that has a filter to smooth, from the net already read
+        obs = Observer(obs.name, obs.vehicle, obs.noise, net=obs.net, alpha=alpha,
+                       engine=obs.engine, device=device, meta=obs.meta, form="recursive")
     check_steering(df, obs.vehicle, where)
     check_time_unit(df["t"].to_numpy(dtype=float), obs.dt, where)
     columns = LOG_COLUMNS[1:] + (TRUTH_COLUMNS if truth else ())

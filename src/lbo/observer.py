@@ -171,22 +171,6 @@ def _from_first_fix(name: str, m: np.ndarray, u: np.ndarray, fix: np.ndarray,
     return est, cov
 
 
-def _smoothed(net: Any, m: np.ndarray, u: np.ndarray, fix: np.ndarray, device: str
-              ) -> tuple[np.ndarray, np.ndarray]:
-    """The window filter ``net``'s recursive form over one log, then the RTS smoother: (T, 3)
-    estimates and (T, 3, 3) covariances, NaN before the first fix."""
-    import torch
-
-    from lbo.models.recursive import RecursiveFilter
-
-    rec = RecursiveFilter(net.net).to(device)
-    mm = torch.from_numpy(np.where(fix[:, None], m, np.nan)[None]).to(device)
-    with torch.inference_mode():
-        est, cov = rec.run(mm, torch.from_numpy(np.require(u[None], requirements="W")).to(device),
-                       smooth=True)
-    return est[0].cpu().numpy(), cov[0].cpu().numpy()
-
-
 # --------------------------------------------------------------------------- inference engines
 
 
@@ -254,24 +238,15 @@ def make_stepper(net: Any, engine: str = "torch", device: str = "cpu") -> tuple[
     ``engine``, and its initial state. ``onnx`` runs on one thread, as in a control loop."""
     import torch
 
-    from lbo.models.recursive import STATE_NAMES, RecursiveFilter
+    from lbo.models.recursive import RecursiveFilter
 
     device = _engine_device(engine, device)
     rec = RecursiveFilter(net.net.cpu() if engine == "onnx" else net.net).to(device)
     state = [s.cpu().numpy() for s in rec.initial_state(1)]
     if engine == "onnx":
-        from lbo.engines import onnx_session, recursive_onnx_bytes
+        from lbo.engines import onnx_session, onnx_step, recursive_onnx_bytes
 
-        session = onnx_session(recursive_onnx_bytes(rec), threads=1)
-        names = [i.name for i in session.get_inputs()]
-        keys = ["m", "u", *STATE_NAMES]
-
-        def onnx_step(m: np.ndarray, u: np.ndarray, st: list) -> tuple:
-            feed = dict(zip(keys, [m, u, *st]))
-            out = session.run(None, {k: feed[k] for k in names})
-            return out[0], out[1], out[2:]
-
-        return onnx_step, state
+        return onnx_step(onnx_session(recursive_onnx_bytes(rec), threads=1)), state
     module = rec
     if engine == "torchscript":
         from lbo.engines import trace_recursive
@@ -600,8 +575,13 @@ class Observer:
             est, covs = _from_first_fix(self.name, m, u, fix, self.vehicle, self.noise,
                                         self.alpha, smooth)
         elif self.form == "recursive" and smooth:
-            est, covs = _smoothed(self.net, m, u, fix, self.device)
-        elif self.form == "recursive":
+            from lbo.models.recursive import run_arrays
+
+            mm = np.where(fix[:, None], m, np.nan)
+            est, covs = run_arrays(self.net.net, mm[None], u[None], smooth=True,
+                                   device=self.device)
+            est, covs = est[0], covs[0]
+        elif self.form == "recursive":  # through the engine's step, as step() runs it
             est = np.full((t, 3), np.nan)
             state = [x.copy() for x in self._state0]
             mm = np.where(fix[:, None], m, np.nan)

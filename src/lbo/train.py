@@ -240,32 +240,39 @@ def finished_run(cfg: DictConfig, digest: str, clean: bool = True) -> dict[str, 
     """With ``resume=true``: the metrics of a FINISHED MLflow run of the same config, if any.
 
     Runs of the same config that never finished (killed, crashed) are deleted (unless
-    ``clean`` is False), so a rerun replaces them instead of adding a duplicate; but the latest
-    of them with a last checkpoint is kept when ``clean`` is ``"keep_resumable"``
-    (:func:`resumable_run` continues it).
+    ``clean`` is False), so a rerun replaces them instead of adding a duplicate.
     """
+    return prior_runs(cfg, digest, clean)[0]
+
+
+def prior_runs(cfg: DictConfig, digest: str, clean: bool = True, keep_resumable: bool = False
+               ) -> tuple[dict[str, Any] | None, tuple[str | None, Path | None]]:
+    """The MLflow runs of the same config, in one search: the metrics of the latest FINISHED
+    one (or None), and, when none finished and ``keep_resumable``, the killed run to continue
+    (run id, its output folder holding ``checkpoints/last.ckpt``) or (None, None). With
+    ``clean``, every other unfinished run is deleted (and said so)."""
     import mlflow
 
     client = mlflow.MlflowClient(cfg.logger.tracking_uri)
     exp = client.get_experiment_by_name(cfg.logger.experiment_name)
     if exp is None:
-        return None
+        return None, (None, None)
     found = client.search_runs([exp.experiment_id], f"tags.config_hash = '{digest}'")
     done = [r for r in found if r.info.status == "FINISHED"]
-    keep = _resumable(found)[0] if clean == "keep_resumable" and not done else None
+    resumable = _resumable(found) if keep_resumable and not done else (None, None)
     for r in found:
-        if clean and r.info.status != "FINISHED" and (keep is None or r.info.run_id != keep):
+        if clean and r.info.status != "FINISHED" and r.info.run_id != resumable[0]:
             client.delete_run(r.info.run_id)
             print(f"deleted the unfinished run {r.info.run_id} ({r.info.status}) of the same "
                   "config; this run replaces it")
     if not done:
-        return None
+        return None, resumable
     run = max(done, key=lambda r: r.info.end_time or 0)
     history = client.get_metric_history(run.info.run_id, "val_loss")
     return {"name": run.info.run_name, "run_id": run.info.run_id, "reused": True,
             "val_loss": min((m.value for m in history), default=float("nan")),
             "checkpoint": f"{run.info.artifact_uri}/checkpoints/best.ckpt",
-            **{k: v for k, v in run.data.metrics.items() if k.startswith("test_")}}
+            **{k: v for k, v in run.data.metrics.items() if k.startswith("test_")}}, resumable
 
 
 def _resumable(found: list) -> tuple[str | None, Path | None]:
@@ -277,19 +284,6 @@ def _resumable(found: list) -> tuple[str | None, Path | None]:
                                                        LAST).is_file():
             return r.info.run_id, Path(folder)
     return None, None
-
-
-def resumable_run(cfg: DictConfig, digest: str) -> tuple[str | None, Path | None]:
-    """With ``resume=true`` and no FINISHED run of the same config: the killed run to continue
-    (run id, its output folder holding ``checkpoints/last.ckpt``), or (None, None)."""
-    import mlflow
-
-    client = mlflow.MlflowClient(cfg.logger.tracking_uri)
-    exp = client.get_experiment_by_name(cfg.logger.experiment_name)
-    if exp is None:
-        return None, None
-    return _resumable(client.search_runs([exp.experiment_id],
-                                         f"tags.config_hash = '{digest}'"))
 
 
 def meta(cfg: DictConfig, data_hash: str) -> dict[str, Any]:
@@ -331,11 +325,10 @@ def _train(cfg: DictConfig, callbacks: list[L.Callback] | None,
                           cfg.logger.get("artifact_location"))
     resume_id, resume_ckpt = None, None
     if cfg.get("resume") and cfg.get("logger"):
-        reused = finished_run(cfg, digest, clean="keep_resumable")
+        reused, (resume_id, folder) = prior_runs(cfg, digest, keep_resumable=True)
         if reused is not None:
             print(f"reusing finished run {reused['run_id']} ({reused['name']}, same config)")
             return reused
-        resume_id, folder = resumable_run(cfg, digest)
         if resume_id is not None:
             # the killed run's own folder, so its checkpoints and files carry on where they are
             cfg = cfg.copy()

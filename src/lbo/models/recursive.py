@@ -276,3 +276,16 @@ class RecursiveFilter(nn.Module):
         pose = torch.where(torch.isfinite(torch.stack(poses, 1)), pose,
                            torch.full_like(pose, math.nan))  # before the first fix
         return pose, torch.from_numpy(P_s[..., :3, :3]).to(m.device)
+
+
+def run_arrays(net: FilterObserver, m: np.ndarray, u: np.ndarray, smooth: bool = False,
+               lengths: np.ndarray | None = None, device: str = "cpu"
+               ) -> tuple[np.ndarray, np.ndarray]:
+    """:meth:`RecursiveFilter.run` of the window filter ``net`` on numpy arrays: m (G, T, 3)
+    (NaN rows: no fix), u (G, T, 2) -> estimates (G, T, 3) and covariances (G, T, 3, 3)."""
+    rec = RecursiveFilter(net).to(device)
+    with torch.inference_mode():
+        est, cov = rec.run(torch.from_numpy(np.require(m, np.float64, "W")).to(device),
+                           torch.from_numpy(np.require(u, np.float64, "W")).to(device),
+                           smooth=smooth, lengths=lengths)
+    return est.cpu().numpy(), cov.cpu().numpy()
