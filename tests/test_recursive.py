@@ -16,7 +16,8 @@ from lbo.observer import Observer
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 VARIANTS = {"plain": {}, "fixes": {"in_features": 6},
-            "residual_drift": {"residual": 16, "drift": True}}
+            "residual": {"residual": 16}, "single_track_drift": {"body": "single_track",
+                                                                  "drift": True}}
 
 
 def _observer_net(kind: str, window: int = 60, seed: int = 0) -> ObserverNet:
@@ -82,7 +83,7 @@ def test_torchscript_and_onnx_steps_equal_pytorch(kind):
 
 
 def test_its_cost_and_state_do_not_grow_with_the_log():
-    rec = RecursiveFilter(_net("residual_drift", window=400))
+    rec = RecursiveFilter(_net("single_track_drift", window=400))
     state = rec.initial_state(1)
     sizes = [s.numel() for s in state]
     m, u = _logs(1, 1000, False, seed=3)
@@ -96,7 +97,9 @@ def test_its_cost_and_state_do_not_grow_with_the_log():
     np.testing.assert_allclose(ring.sum(1).numpy(), sums.numpy(), rtol=1e-9)
 
 
-def test_on_a_window_the_recursive_form_is_the_window_filter_told_one_noise_level(monkeypatch):
+@pytest.mark.parametrize("kind", ["residual", "single_track_drift"])
+def test_on_a_window_the_recursive_form_is_the_window_filter_told_one_noise_level(kind,
+                                                                                   monkeypatch):
     # over exactly one window from the cold start, both forms are the same EKF; they differ
     # only in the noise statistic (the window's whole against the running one) and in the
     # frame their noise is along and across (the window's last fix's heading against each
@@ -104,7 +107,7 @@ def test_on_a_window_the_recursive_form_is_the_window_filter_told_one_noise_leve
     # and compare; and start both at P = R (the recursive form starts wider, START_SCALE R,
     # as it cannot know the noise level at its first fix)
     monkeypatch.setattr("lbo.models.recursive.START_SCALE", 1.0)
-    net = _net("residual_drift", window=80)
+    net = _net(kind, window=80)
     with torch.no_grad():
         net.noise[-1].weight.zero_()
         net.noise[-1].bias.zero_()

@@ -13,6 +13,13 @@ told alpha. What it learns:
   adds a side slip of the rear axle's velocity and a speed scale. A car that slips turns less
   than its steering says (understeer) and its rear axle moves sideways; the net learns both
   from data, and its zero-initialised output starts it as the kinematic bicycle.
+- with ``body="single_track"``, a single-track body in place of the kinematic bicycle: two more
+  carried states, the lateral speed v_y and the yaw rate r, move by Newton's laws under the two
+  axles' lateral forces, each a saturating curve ``p tanh(k a / p)`` of its slip angle a. What
+  it learns: both axles' cornering stiffness k and peak force p (per unit mass), where the
+  centre of gravity sits between them, the yaw inertia per unit mass, and the speed below which
+  the car rolls as the kinematic bicycle (there the slip angles are singular). It starts at a
+  generic car (equal axles, 0.5 g each, the centre of gravity mid-way), not at the truth's.
 
 With a sixth input channel, ``fix`` (``in_features=6``), steps without a position fix get a
 prediction-only step, the filter starts at the window's first fix, and the noise statistic is
@@ -33,6 +40,14 @@ from torch import nn
 
 from lbo.errors import LboError
 from lbo.models.cnn import check_count
+
+
+
+
+SUBSTEPS = 4
+"""Euler sub-steps per sampling period of the single-track body's lateral states."""
+BODIES = ("kinematic", "single_track")
+"""The process model's bodies (``model.body``)."""
 
 
 def _check_sigmas(name: str, values: Sequence[float]) -> tuple[float, float, float]:
@@ -91,13 +106,16 @@ class FilterObserver(nn.Module):
         the kinematic bicycle.
     drift : also estimate a Gauss-Markov GNSS drift on x and y (two more filter states);
         its correlation time and its size relative to the white noise are learned.
+    body : the process model's body, ``"kinematic"`` (the bicycle, with the ``residual``
+        correction if any) or ``"single_track"`` (lateral speed and yaw rate under learned
+        tyre forces).
     """
 
     def __init__(self, window: int, dt: float = 0.02, wheelbase: float = 2.7,
                  process_sigma: Sequence[float] = (0.0667, 0.0667, 0.00113),
                  measurement_sigma: Sequence[float] = (1.0, 1.0, 0.0174),
                  hidden: int = 32, in_features: int = 5, residual: int = 0,
-                 drift: bool = False) -> None:
+                 drift: bool = False, body: str = "kinematic") -> None:
         super().__init__()
         self.physical = True  # reads and writes metres and radians (see ObserverNet)
         self.feature_modes = ("frame",)
@@ -140,6 +158,26 @@ class FilterObserver(nn.Module):
                 self.register_parameter(name, nn.Parameter(torch.tensor(value)))
             else:
                 self.register_buffer(name, torch.tensor(value), persistent=False)
+        if body not in BODIES:
+            raise LboError(f"model.body: expected one of {', '.join(BODIES)}, got {body!r}")
+        if body == "single_track" and residual:
+            raise LboError(f"model.residual: expected 0 with model.body=single_track (the "
+                           f"single-track body is the learned process model), got {residual!r}")
+        self.single_track = body == "single_track"
+        self.substeps = SUBSTEPS
+        # (front, rear) cornering stiffness and peak force per unit mass (m/s^2 per rad, m/s^2),
+        # the front axle's share of the wheelbase behind the centre of gravity (l_f / L, as a
+        # logit), the yaw inertia per unit mass in units of l_f l_r, and the speed (m/s) below
+        # which the body is the kinematic bicycle; unsaved buffers for the kinematic body
+        for name, value in (("log_stiffness", torch.full((2,), math.log(50.0))),
+                            ("log_peak", torch.full((2,), math.log(0.5 * 9.81))),
+                            ("front_logit", torch.tensor(0.0)),
+                            ("log_gyration", torch.tensor(0.0)),
+                            ("log_v_kinematic", torch.tensor(math.log(3.0)))):
+            if self.single_track:
+                self.register_parameter(name, nn.Parameter(value))
+            else:
+                self.register_buffer(name, value, persistent=False)
         self.process: nn.Module = nn.Identity()  # scripted whether or not it is used
         if residual:
             # in: V, delta, the kinematic and the previous yaw rate, each scaled to about 1;
@@ -156,30 +194,91 @@ class FilterObserver(nn.Module):
         return z + torch.stack([v * torch.cos(psi), v * torch.sin(psi),
                                 v * _tan(delta) / self.wheelbase], -1) * self.dt
 
-    def _motion(self, v: torch.Tensor, delta: torch.Tensor, r_prev: torch.Tensor
-                ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """The process model's speed, rear side slip and yaw rate, each (B,), for inputs and
-        the previous yaw rate (B,): the kinematic bicycle's (v, 0, v tan(delta) / L) corrected
-        by the learned residual."""
-        r_kin = v * _tan(delta) / self.wheelbase
-        if self.residual == 0:
-            return v, torch.zeros_like(v), r_kin
-        x = torch.stack([0.1 * v, 10.0 * delta, 2.0 * r_kin, 2.0 * r_prev], -1)
-        d = self.process(x)
-        return v * (1 + 0.05 * d[:, 2]), 0.05 * d[:, 1], r_kin + 0.2 * d[:, 0]
+    def body_start(self, v: torch.Tensor, delta: torch.Tensor) -> torch.Tensor:
+        """(B, 2) carried body state ``[v_y, r]`` at the first step, inputs (B,): the kinematic
+        bicycle's (no slip at the rear axle: v_y = l_r r)."""
+        r = v * _tan(delta) / self.wheelbase
+        l_r = self.wheelbase * (1 - torch.sigmoid(self.front_logit))
+        v_y = l_r * r if self.single_track else torch.zeros_like(r)
+        return torch.stack([v_y, r], -1)
 
-    def _predict_pose(self, z: torch.Tensor, step: torch.Tensor, r: torch.Tensor
+    def body_parameters(self) -> dict[str, float]:
+        """The single-track body's learned parameters in physical units: cornering stiffness
+        per unit mass ``k_f, k_r`` (m/s^2 per rad, i.e. C / m), peak lateral force per unit
+        mass ``peak_f, peak_r`` (m/s^2, i.e. mu F_z / m), ``l_f, l_r`` (m), the yaw inertia per
+        unit mass ``inertia`` (m^2, I_z / m) and ``v_kinematic`` (m/s)."""
+        k, p = torch.exp(self.log_stiffness), torch.exp(self.log_peak)
+        l_f = self.wheelbase * torch.sigmoid(self.front_logit)
+        l_r = self.wheelbase - l_f
+        values = {"k_f": k[0], "k_r": k[1], "peak_f": p[0], "peak_r": p[1], "l_f": l_f,
+                  "l_r": l_r, "inertia": torch.exp(self.log_gyration) * l_f * l_r,
+                  "v_kinematic": torch.exp(self.log_v_kinematic)}
+        return {name: float(v.detach()) for name, v in values.items()}
+
+    def _lateral_rates(self, body: torch.Tensor, vx: torch.Tensor, delta: torch.Tensor
+                       ) -> tuple[torch.Tensor, torch.Tensor]:
+        """(dv_y/dt, dr/dt), each (B,), of the learned single-track body (B, 2) at speed vx."""
+        k, p = torch.exp(self.log_stiffness), torch.exp(self.log_peak)
+        l_f = self.wheelbase * torch.sigmoid(self.front_logit)
+        l_r = self.wheelbase - l_f
+        v_y, r = body[:, 0], body[:, 1]
+        a_f = delta - (v_y + l_f * r) / vx
+        a_r = -(v_y - l_r * r) / vx
+        f_f = p[0] * torch.tanh(k[0] * a_f / p[0]) * torch.cos(delta)
+        f_r = p[1] * torch.tanh(k[1] * a_r / p[1])
+        inertia = torch.exp(self.log_gyration) * l_f * l_r
+        return f_f + f_r - vx * r, (l_f * f_f - l_r * f_r) / inertia
+
+    def _motion(self, v: torch.Tensor, delta: torch.Tensor, body: torch.Tensor
+                ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        """The process model over one step, for inputs (B,) and the carried body state
+        ``[v_y, r]`` (B, 2): the rear axle's velocity along and across the heading, the heading
+        rate, each (B,), and the next body state (B, 2).
+
+        The kinematic bicycle: ``(v, 0, v tan(delta) / L)``, corrected by the learned residual
+        (which reads the yaw rate of the step before, carried as ``r``). The single-track body:
+        two Euler half-steps of its lateral states, blended (smoothstep) into the kinematic
+        bicycle below the learned speed."""
+        r_kin = v * _tan(delta) / self.wheelbase
+        if self.single_track:
+            v0 = torch.exp(self.log_v_kinematic)
+            vx = torch.maximum(v, v0)
+            n = self.substeps
+            h = self.dt / n
+            mean = 0.5 * body / n  # the trapezoid rule's mean of [v_y, r] over the step
+            for i in range(n):
+                dv_y, dr = self._lateral_rates(body, vx, delta)
+                body = body + h * torch.stack([dv_y, dr], -1)
+                mean = mean + (0.5 if i == n - 1 else 1.0) * body / n
+            s = torch.clamp(v / v0 - 1, 0.0, 1.0)
+            w = s * s * (3 - 2 * s)
+            l_r = self.wheelbase * (1 - torch.sigmoid(self.front_logit))
+            lateral = w * (mean[:, 0] - l_r * mean[:, 1])
+            rate = w * mean[:, 1] + (1 - w) * r_kin
+            return v, lateral, rate, body
+        if self.residual == 0:
+            return v, torch.zeros_like(v), r_kin, torch.stack([body[:, 0], r_kin], -1)
+        x = torch.stack([0.1 * v, 10.0 * delta, 2.0 * r_kin, 2.0 * body[:, 1]], -1)
+        d = self.process(x)
+        speed, beta, rate = v * (1 + 0.05 * d[:, 2]), 0.05 * d[:, 1], r_kin + 0.2 * d[:, 0]
+        return (speed * torch.cos(beta), speed * torch.sin(beta), rate,
+                torch.stack([body[:, 0], rate], -1))
+
+    def _predict_pose(self, z: torch.Tensor, step: torch.Tensor, body: torch.Tensor
                       ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
         """The process model's prediction of poses z (B, 3) over one step of features
-        ``step`` (B, C) (inputs in channels 3 and 4), r (B,) the previous yaw rate: the new
-        pose, the Jacobian's two off-diagonal entries d x / d psi and d y / d psi, each (B,),
-        and the new yaw rate."""
-        v, beta, r = self._motion(step[:, 3], step[:, 4], r)
-        course = z[:, 2] + beta  # the rear axle's direction of travel
-        c, s = torch.cos(course), torch.sin(course)
-        z = z + torch.stack([v * c, v * s, r], -1) * self.dt
-        # F = I + dt * [[0, 0, -v s], [0, 0, v c], [0, 0, 0]]
-        return z, -v * s * self.dt, v * c * self.dt, r
+        ``step`` (B, C) (inputs in channels 3 and 4), body (B, 2) the carried body state
+        (:meth:`_motion`): the new pose, the Jacobian's two off-diagonal entries d x / d psi
+        and d y / d psi, each (B,), and the next body state."""
+        along, across, rate, body = self._motion(step[:, 3], step[:, 4], body)
+        # the kinematic bicycle moves along its heading at the step's start, as the classical
+        # filters' model does; the single-track body along its mid-step heading (second order)
+        heading = z[:, 2] + 0.5 * self.dt * rate if self.single_track else z[:, 2]
+        c, s = torch.cos(heading), torch.sin(heading)
+        dx, dy = along * c - across * s, along * s + across * c
+        z = z + torch.stack([dx, dy, rate], -1) * self.dt
+        # F = I + dt * [[0, 0, -dy], [0, 0, dx], [0, 0, 0]]
+        return z, -dy * self.dt, dx * self.dt, body
 
     def _drift_filter(self, x: torch.Tensor, R: torch.Tensor, Q: torch.Tensor) -> torch.Tensor:
         """The window filter with two more states: a Gauss-Markov GNSS drift b on x and y,
@@ -200,12 +299,12 @@ class FilterObserver(nn.Module):
         start = self._drift_start(R, var_b, e)
         z = torch.cat([x[:, 0, :3], torch.zeros_like(x[:, 0, :2])], -1)
         P = start
-        r = x[:, 0, 3] * _tan(x[:, 0, 4]) / self.wheelbase
+        body = self.body_start(x[:, 0, 3], x[:, 0, 4])
         started = x[:, 0, -1] > 0.5  # read only with the fix channel
-        zero = torch.zeros_like(r)
-        one = torch.ones_like(r)
+        zero = torch.zeros_like(x[:, 0, 0])
+        one = torch.ones_like(zero)
         for k in range(1, x.shape[1]):
-            p, f02, f12, r = self._predict_pose(z[:, :3], x[:, k - 1], r)
+            p, f02, f12, body = self._predict_pose(z[:, :3], x[:, k - 1], body)
             z = torch.cat([p, phi * z[:, 3:]], -1)
             F = torch.stack([torch.stack([one, zero, f02, zero, zero], -1),
                              torch.stack([zero, one, f12, zero, zero], -1),
@@ -299,9 +398,9 @@ class FilterObserver(nn.Module):
         z = x[:, 0, :3]
         P = R
         started = x[:, 0, -1] > 0.5  # read only with the fix channel
-        r = x[:, 0, 3] * _tan(x[:, 0, 4]) / self.wheelbase
+        body = self.body_start(x[:, 0, 3], x[:, 0, 4])
         for k in range(1, n):
-            z, f02, f12, r = self._predict_pose(z, x[:, k - 1], r)
+            z, f02, f12, body = self._predict_pose(z, x[:, k - 1], body)
             zero = torch.zeros_like(f02)
             one = torch.ones_like(f02)
             F = torch.stack([torch.stack([one, zero, f02], -1),

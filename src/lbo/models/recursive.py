@@ -37,9 +37,9 @@ import numpy as np
 import torch
 from torch import nn
 
-from lbo.models.filternet import FilterObserver, _inverse_sym3, _tan, _wrap
+from lbo.models.filternet import FilterObserver, _inverse_sym3, _wrap
 
-STATE_NAMES = ("z", "P", "yaw_rate", "u_prev", "last", "dead_reckoning", "gap", "heading",
+STATE_NAMES = ("z", "P", "body", "u_prev", "last", "dead_reckoning", "gap", "heading",
                "ring", "sums", "speeds", "speed_sum", "k", "started")
 """The state tensors of a batch of B filters, in order (:meth:`RecursiveFilter.initial_state`)."""
 START_SCALE = 6.5**2
@@ -93,7 +93,8 @@ class RecursiveFilter(nn.Module):
         """The state of ``batch`` filters that have seen nothing, in the order of
         :data:`STATE_NAMES`:
 
-        z (B, n), P (B, n, n), yaw_rate (B,) the process model's last, u_prev (B, 2) the last
+        z (B, n), P (B, n, n), body (B, 2) the process model's carried ``[v_y, r]``
+        (:meth:`FilterObserver._motion`), u_prev (B, 2) the last
         input, last (B, 2, 3) the last two measurements, dead_reckoning (B, 3) the pose carried
         from the last fix, gap (B,) steps since it, heading (B,) the last fix's measured
         heading, ring (B, S, 6) the statistic's last S entries (:data:`ENTRY`: the squares and
@@ -103,7 +104,7 @@ class RecursiveFilter(nn.Module):
         """
         f = dict(dtype=torch.float64, device=device)
         b, n = batch, self.n
-        return (torch.zeros(b, n, **f), torch.zeros(b, n, n, **f), torch.zeros(b, **f),
+        return (torch.zeros(b, n, **f), torch.zeros(b, n, n, **f), torch.zeros(b, 2, **f),
                 torch.zeros(b, 2, **f), torch.zeros(b, 2, 3, **f), torch.zeros(b, 3, **f),
                 torch.zeros(b, **f), torch.zeros(b, **f),
                 torch.zeros(b, self.slots, len(ENTRY), **f), torch.zeros(b, len(ENTRY), **f),
@@ -144,7 +145,7 @@ class RecursiveFilter(nn.Module):
         """One step: measurement m (B, 3) (a NaN row: no fix), input u (B, 2) -> pose (B, 3)
         (psi wrapped), its covariance (B, 3, 3), and the new state (:data:`STATE_NAMES`).
         Before the first fix the pose and its covariance are NaN."""
-        z, P, r, u_prev, last, dr, gap, heading, ring, sums, speeds, speed_sum, k, started = state
+        z, P, body, u_prev, last, dr, gap, heading, ring, sums, speeds, speed_sum, k, started = state
         fo = self.net
         fix = (m[:, 0] == m[:, 0]) & (m[:, 1] == m[:, 1]) & (m[:, 2] == m[:, 2])  # not NaN
         if not self.fixes:
@@ -152,8 +153,8 @@ class RecursiveFilter(nn.Module):
         m0 = torch.where(fix[:, None], m, torch.zeros_like(m))
         first = fix & (started < 0.5)
         going = started > 0.5
-        one = torch.ones_like(r)
-        zero = torch.zeros_like(r)
+        one = torch.ones_like(m[:, 0])
+        zero = torch.zeros_like(one)
 
         # -- the statistic: one entry in, the one of N steps ago out
         if self.fixes:
@@ -189,8 +190,8 @@ class RecursiveFilter(nn.Module):
         q = torch.exp(2 * (fo.log_q0 + fo.log_q_scale))
 
         # -- the filter: predict with u_{k-1}, update with m_k
-        pose, f02, f12, r_new = fo._predict_pose(z[:, :3], torch.cat(
-            [torch.zeros_like(m), u_prev], 1), r)
+        pose, f02, f12, body_new = fo._predict_pose(z[:, :3], torch.cat(
+            [torch.zeros_like(m), u_prev], 1), body)
         eye = torch.eye(self.n, dtype=m.dtype, device=m.device)
         F = eye.expand(len(m), self.n, self.n).clone()
         F[:, 0, 2], F[:, 1, 2] = f02, f12
@@ -241,14 +242,13 @@ class RecursiveFilter(nn.Module):
                         torch.where((fix & going)[:, None], z_upd, z_pred))
         P = torch.where(first[:, None, None], start_P,
                         torch.where((fix & going)[:, None, None], P_upd, P_pred))
-        r_start = u[:, 0] * _tan(u[:, 1]) / fo.wheelbase
-        r = torch.where(first, r_start, r_new)
+        body = torch.where(first[:, None], fo.body_start(u[:, 0], u[:, 1]), body_new)
         started = torch.where(fix, one, started)
         out = torch.cat([z[:, :2], _wrap(z[:, 2:3])], -1)
         out = torch.where(started[:, None] > 0.5, out, torch.full_like(out, math.nan))
         cov = torch.where(started[:, None, None] > 0.5, P[:, :3, :3],
                           torch.full_like(P[:, :3, :3], math.nan))
-        return (out, cov, z, P, r, u, last, dr, gap, heading, ring, sums, speeds, speed_sum,
+        return (out, cov, z, P, body, u, last, dr, gap, heading, ring, sums, speeds, speed_sum,
                 k + 1, started)
 
     def run(self, m: torch.Tensor, u: torch.Tensor, smooth: bool = False,
