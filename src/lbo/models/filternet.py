@@ -41,9 +41,6 @@ from torch import nn
 from lbo.errors import LboError
 from lbo.models.cnn import check_count
 
-
-
-
 SUBSTEPS = 4
 """Euler sub-steps per sampling period of the single-track body's lateral states."""
 BODIES = ("kinematic", "single_track")

@@ -145,7 +145,8 @@ class RecursiveFilter(nn.Module):
         """One step: measurement m (B, 3) (a NaN row: no fix), input u (B, 2) -> pose (B, 3)
         (psi wrapped), its covariance (B, 3, 3), and the new state (:data:`STATE_NAMES`).
         Before the first fix the pose and its covariance are NaN."""
-        z, P, body, u_prev, last, dr, gap, heading, ring, sums, speeds, speed_sum, k, started = state
+        (z, P, body, u_prev, last, dr, gap, heading, ring, sums, speeds, speed_sum, k,
+         started) = state
         fo = self.net
         fix = (m[:, 0] == m[:, 0]) & (m[:, 1] == m[:, 1]) & (m[:, 2] == m[:, 2])  # not NaN
         if not self.fixes:
