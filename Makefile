@@ -8,6 +8,7 @@ SCALE ?= paper
 TRAINER ?= cpu
 LAUNCHER ?= null
 JOBS ?= 2
+TEST_JOBS ?= 2
 MLFLOW_PORT ?= 5000
 MLFLOW_BACKEND ?= sqlite:///$(CURDIR)/mlflow-server.db
 MLFLOW_ARTIFACTS ?= $(CURDIR)/mlflow-server-artifacts
@@ -26,11 +27,11 @@ $(STAMP): pyproject.toml
 	$(PY) -m pip install -q -e ".[dev,launchers,cluster]"
 	touch $@
 
-test: install  ## run every test, the slow ones included
-	$(PY) -m pytest -q
+test: install  ## run every test, the slow ones included, in TEST_JOBS processes (pytest-xdist)
+	$(PY) -m pytest -q -n $(TEST_JOBS) --dist loadfile
 
 test-fast: install  ## run the tests without the slow marker
-	$(PY) -m pytest -q -m "not slow"
+	$(PY) -m pytest -q -n $(TEST_JOBS) --dist loadfile -m "not slow"
 
 data: install  ## generate the data sets: make data SCALE=smoke|quick|paper
 	$(PY) -m lbo.datagen data=$(SCALE)
