@@ -161,7 +161,7 @@ class FilterObserver(nn.Module):
             raise LboError(f"model.residual: expected 0 with model.body=single_track (the "
                            f"single-track body is the learned process model), got {residual!r}")
         self.single_track = body == "single_track"
-        self.substeps = SUBSTEPS
+        self.substeps = SUBSTEPS  # an attribute: TorchScript reads no module-level int
         # (front, rear) cornering stiffness and peak force per unit mass (m/s^2 per rad, m/s^2),
         # the front axle's share of the wheelbase behind the centre of gravity (l_f / L, as a
         # logit), the yaw inertia per unit mass in units of l_f l_r, and the speed (m/s) below
@@ -191,12 +191,26 @@ class FilterObserver(nn.Module):
         return z + torch.stack([v * torch.cos(psi), v * torch.sin(psi),
                                 v * _tan(delta) / self.wheelbase], -1) * self.dt
 
+    def _axles(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """The learned distances (l_f, l_r) from the centre of gravity to the front and rear
+        axles (m); they sum to the wheelbase."""
+        l_f = self.wheelbase * torch.sigmoid(self.front_logit)
+        return l_f, self.wheelbase - l_f
+
+    def _body_constants(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor,
+                                       torch.Tensor, torch.Tensor]:
+        """The single-track body's learned constants in physical units: cornering stiffness
+        and peak force per unit mass, each (2,) for (front, rear), l_f, l_r, the yaw inertia
+        per unit mass and the speed below which it is the kinematic bicycle."""
+        l_f, l_r = self._axles()
+        return (torch.exp(self.log_stiffness), torch.exp(self.log_peak), l_f, l_r,
+                torch.exp(self.log_gyration) * l_f * l_r, torch.exp(self.log_v_kinematic))
+
     def body_start(self, v: torch.Tensor, delta: torch.Tensor) -> torch.Tensor:
         """(B, 2) carried body state ``[v_y, r]`` at the first step, inputs (B,): the kinematic
         bicycle's (no slip at the rear axle: v_y = l_r r)."""
         r = v * _tan(delta) / self.wheelbase
-        l_r = self.wheelbase * (1 - torch.sigmoid(self.front_logit))
-        v_y = l_r * r if self.single_track else torch.zeros_like(r)
+        v_y = self._axles()[1] * r if self.single_track else torch.zeros_like(r)
         return torch.stack([v_y, r], -1)
 
     def body_parameters(self) -> dict[str, float]:
@@ -204,26 +218,22 @@ class FilterObserver(nn.Module):
         per unit mass ``k_f, k_r`` (m/s^2 per rad, i.e. C / m), peak lateral force per unit
         mass ``peak_f, peak_r`` (m/s^2, i.e. mu F_z / m), ``l_f, l_r`` (m), the yaw inertia per
         unit mass ``inertia`` (m^2, I_z / m) and ``v_kinematic`` (m/s)."""
-        k, p = torch.exp(self.log_stiffness), torch.exp(self.log_peak)
-        l_f = self.wheelbase * torch.sigmoid(self.front_logit)
-        l_r = self.wheelbase - l_f
+        k, p, l_f, l_r, inertia, v0 = self._body_constants()
         values = {"k_f": k[0], "k_r": k[1], "peak_f": p[0], "peak_r": p[1], "l_f": l_f,
-                  "l_r": l_r, "inertia": torch.exp(self.log_gyration) * l_f * l_r,
-                  "v_kinematic": torch.exp(self.log_v_kinematic)}
+                  "l_r": l_r, "inertia": inertia, "v_kinematic": v0}
         return {name: float(v.detach()) for name, v in values.items()}
 
-    def _lateral_rates(self, body: torch.Tensor, vx: torch.Tensor, delta: torch.Tensor
-                       ) -> tuple[torch.Tensor, torch.Tensor]:
-        """(dv_y/dt, dr/dt), each (B,), of the learned single-track body (B, 2) at speed vx."""
-        k, p = torch.exp(self.log_stiffness), torch.exp(self.log_peak)
-        l_f = self.wheelbase * torch.sigmoid(self.front_logit)
-        l_r = self.wheelbase - l_f
+    @staticmethod
+    def _lateral_rates(body: torch.Tensor, vx: torch.Tensor, delta: torch.Tensor,
+                       k: torch.Tensor, p: torch.Tensor, l_f: torch.Tensor, l_r: torch.Tensor,
+                       inertia: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(dv_y/dt, dr/dt), each (B,), of the single-track body (B, 2) at speed vx (B,) with
+        the constants of :meth:`_body_constants`."""
         v_y, r = body[:, 0], body[:, 1]
         a_f = delta - (v_y + l_f * r) / vx
         a_r = -(v_y - l_r * r) / vx
         f_f = p[0] * torch.tanh(k[0] * a_f / p[0]) * torch.cos(delta)
         f_r = p[1] * torch.tanh(k[1] * a_r / p[1])
-        inertia = torch.exp(self.log_gyration) * l_f * l_r
         return f_f + f_r - vx * r, (l_f * f_f - l_r * f_r) / inertia
 
     def _motion(self, v: torch.Tensor, delta: torch.Tensor, body: torch.Tensor
@@ -234,22 +244,22 @@ class FilterObserver(nn.Module):
 
         The kinematic bicycle: ``(v, 0, v tan(delta) / L)``, corrected by the learned residual
         (which reads the yaw rate of the step before, carried as ``r``). The single-track body:
-        two Euler half-steps of its lateral states, blended (smoothstep) into the kinematic
-        bicycle below the learned speed."""
+        :data:`SUBSTEPS` Euler sub-steps of its lateral states, whose trapezoid-rule mean over
+        the step moves the pose, blended (smoothstep) into the kinematic bicycle below the
+        learned speed."""
         r_kin = v * _tan(delta) / self.wheelbase
         if self.single_track:
-            v0 = torch.exp(self.log_v_kinematic)
+            k, p, l_f, l_r, inertia, v0 = self._body_constants()
             vx = torch.maximum(v, v0)
             n = self.substeps
             h = self.dt / n
             mean = 0.5 * body / n  # the trapezoid rule's mean of [v_y, r] over the step
             for i in range(n):
-                dv_y, dr = self._lateral_rates(body, vx, delta)
+                dv_y, dr = self._lateral_rates(body, vx, delta, k, p, l_f, l_r, inertia)
                 body = body + h * torch.stack([dv_y, dr], -1)
                 mean = mean + (0.5 if i == n - 1 else 1.0) * body / n
             s = torch.clamp(v / v0 - 1, 0.0, 1.0)
             w = s * s * (3 - 2 * s)
-            l_r = self.wheelbase * (1 - torch.sigmoid(self.front_logit))
             lateral = w * (mean[:, 0] - l_r * mean[:, 1])
             rate = w * mean[:, 1] + (1 - w) * r_kin
             return v, lateral, rate, body
