@@ -2,6 +2,7 @@
 single-track body and drift states) at smoke scale, end to end: trained, scored beside
 the kinematic EKFs and the EKF told the car, reported, streamed on a log."""
 
+import functools
 import math
 
 import mlflow
@@ -16,6 +17,8 @@ from lbo.dynamic import SingleTrack
 from lbo.dynamic import simulate as simulate_car
 from lbo.errors import LboError
 from lbo.models import FilterObserver, build_model
+from lbo.models.filternet import BODY_PARAMETERS
+from lbo.module import ObserverModule
 from lbo.observer import Observer
 from lbo.reproduce import train_jobs
 
@@ -158,11 +161,38 @@ def test_the_single_track_body_told_the_cars_parameters_follows_the_car():
                                            ({"drift": "yes"}, "model.drift"),
                                            ({"body": "dynamic"}, "model.body"),
                                            ({"body": "single_track", "residual": 8},
-                                            "model.residual")])
+                                            "model.residual"),
+                                           ({"body_lr": 0}, "model.body_lr"),
+                                           ({"body_lr": -2.0}, "model.body_lr"),
+                                           ({"body_lr": True}, "model.body_lr"),
+                                           ({"body_lr": "fast"}, "model.body_lr")])
 def test_bad_residual_drift_or_body_names_the_field(kwargs, field):
     with pytest.raises(LboError, match=field) as e:
         build_model("filternet", 40, **kwargs)
     assert "\n" not in str(e.value)
+
+
+@pytest.mark.parametrize("body_lr", [1.0, 3.0])
+def test_the_body_learns_at_body_lr_times_the_optimisers_rate(body_lr):
+    module = ObserverModule({"name": "filternet", "body": "single_track", "body_lr": body_lr},
+                            40, features="frame",
+                            optimizer=functools.partial(torch.optim.Adam, lr=1e-3))
+    net = module.observer.net
+    before = {name: p.detach().clone() for name, p in net.named_parameters()}
+    opt = module.configure_optimizers()
+    torch.manual_seed(0)
+    x = torch.randn(8, 40, 5) * 0.3
+    x[..., 3], x[..., 4] = 10.0, 0.1  # a corner at speed: every body constant has a gradient
+    net(x).pow(2).sum().backward()
+    opt.step()
+    # Adam's first step moves every parameter with a gradient by its group's rate
+    for name, p in net.named_parameters():
+        moved = (p.detach() - before[name]).abs()
+        rate = 1e-3 * (body_lr if name in BODY_PARAMETERS else 1.0)
+        moving = p.grad.abs() > 1e-12
+        assert torch.allclose(moved[moving], torch.full_like(moved[moving], rate), rtol=1e-3), name
+    assert sum(p.numel() for g in opt.param_groups for p in g["params"]) == \
+        sum(p.numel() for p in net.parameters())
 
 
 def test_reproduce_trains_the_study_beside_the_paper_at_quick_scale(tmp_path):

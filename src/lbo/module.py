@@ -94,10 +94,16 @@ class ObserverModule(L.LightningModule):
             "optimizer.lr")
 
     def configure_optimizers(self) -> Any:
+        # a net may ask for groups with their own rate, a multiple ``lr_scale`` of the
+        # optimiser's (the window filter's single-track body)
+        groups = getattr(self.observer.net, "param_groups", None)
+        params = groups() if callable(groups) else self.parameters()
         if self.optimizer_factory is None:
-            opt = torch.optim.Adam(self.parameters(), lr=1e-3, fused=True)
+            opt = torch.optim.Adam(params, lr=1e-3, fused=True)
         else:
-            opt = self.optimizer_factory(params=self.parameters())
+            opt = self.optimizer_factory(params=params)
+        for group in opt.param_groups:
+            group["lr"] = group["lr"] * group.get("lr_scale", 1.0)
         if self.lr_schedule == "constant":
             return opt
         total = max(int(self.trainer.estimated_stepping_batches), 1)

@@ -45,6 +45,8 @@ SUBSTEPS = 4
 """Euler sub-steps per sampling period of the single-track body's lateral states."""
 BODIES = ("kinematic", "single_track")
 """The process model's bodies (``model.body``)."""
+BODY_PARAMETERS = ("log_stiffness", "log_peak", "front_logit", "log_gyration", "log_v_kinematic")
+"""The single-track body's learned constants (:meth:`FilterObserver.body_parameters`)."""
 
 
 def _check_sigmas(name: str, values: Sequence[float]) -> tuple[float, float, float]:
@@ -106,13 +108,16 @@ class FilterObserver(nn.Module):
     body : the process model's body, ``"kinematic"`` (the bicycle, with the ``residual``
         correction if any) or ``"single_track"`` (lateral speed and yaw rate under learned
         tyre forces).
+    body_lr : the single-track body's learning rate as a multiple of the optimiser's
+        (:meth:`param_groups`): its seven constants each get a consistent gradient from every
+        corner, and travel from the generic car to the one in the data in fewer steps.
     """
 
     def __init__(self, window: int, dt: float = 0.02, wheelbase: float = 2.7,
                  process_sigma: Sequence[float] = (0.0667, 0.0667, 0.00113),
                  measurement_sigma: Sequence[float] = (1.0, 1.0, 0.0174),
                  hidden: int = 32, in_features: int = 5, residual: int = 0,
-                 drift: bool = False, body: str = "kinematic") -> None:
+                 drift: bool = False, body: str = "kinematic", body_lr: float = 1.0) -> None:
         super().__init__()
         self.physical = True  # reads and writes metres and radians (see ObserverNet)
         self.feature_modes = ("frame",)
@@ -161,6 +166,11 @@ class FilterObserver(nn.Module):
             raise LboError(f"model.residual: expected 0 with model.body=single_track (the "
                            f"single-track body is the learned process model), got {residual!r}")
         self.single_track = body == "single_track"
+        if not (isinstance(body_lr, (int, float)) and not isinstance(body_lr, bool)
+                and math.isfinite(body_lr) and body_lr > 0):
+            raise LboError(f"model.body_lr: expected a multiple of the learning rate > 0, "
+                           f"got {body_lr!r}")
+        self.body_lr = float(body_lr)
         self.substeps = SUBSTEPS  # an attribute: TorchScript reads no module-level int
         # (front, rear) cornering stiffness and peak force per unit mass (m/s^2 per rad, m/s^2),
         # the front axle's share of the wheelbase behind the centre of gravity (l_f / L, as a
@@ -212,6 +222,14 @@ class FilterObserver(nn.Module):
         r = v * _tan(delta) / self.wheelbase
         v_y = self._axles()[1] * r if self.single_track else torch.zeros_like(r)
         return torch.stack([v_y, r], -1)
+
+    def param_groups(self) -> list[dict]:
+        """The optimiser's parameter groups: the single-track body's constants with
+        ``lr_scale`` = ``body_lr``, and every other parameter with 1 (the optimiser's rate)."""
+        body = [p for name, p in self.named_parameters() if name in BODY_PARAMETERS]
+        rest = [p for name, p in self.named_parameters() if name not in BODY_PARAMETERS]
+        return [g for g in ({"params": rest, "lr_scale": 1.0},
+                            {"params": body, "lr_scale": self.body_lr}) if g["params"]]
 
     def body_parameters(self) -> dict[str, float]:
         """The single-track body's learned parameters in physical units: cornering stiffness
