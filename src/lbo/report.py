@@ -37,11 +37,14 @@ def learned_names(table: pd.DataFrame, model: str) -> list[str]:
 
 
 def best_window(table: pd.DataFrame, model: str) -> str | None:
-    """The architecture's observer with the lowest NRMSE averaged over every alpha."""
+    """The architecture's observer with the lowest NRMSE averaged over every alpha; one with
+    no score (NaN, or no row) at an alpha that another has is ranked last."""
     names = learned_names(table, model)
     if not names:
         return None
-    mean = table[table["observer"].isin(names)].groupby("observer")["nrmse"].mean()
+    grid = table[table["observer"].isin(names)].pivot_table(
+        index="observer", columns="alpha", values="nrmse", dropna=False)
+    mean = grid.reindex(names).mean(axis=1, skipna=False).fillna(np.inf)
     return str(mean.idxmin())
 
 
@@ -51,6 +54,8 @@ def crossover(table: pd.DataFrame, observer: str, baseline: str = "ekf") -> floa
     a = table[table["observer"] == observer].set_index("alpha")["nrmse"]
     b = table[table["observer"] == baseline].set_index("alpha")["nrmse"]
     diff = (a - b).dropna().sort_index()
+    if diff.empty:  # nothing to compare: never shown below
+        return None
     below = (diff < 0).to_numpy()
     if below.all():
         return 0.0
