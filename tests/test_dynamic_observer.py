@@ -19,6 +19,7 @@ from lbo.errors import LboError
 from lbo.models import FilterObserver, build_model
 from lbo.models.filternet import BODY_PARAMETERS
 from lbo.module import ObserverModule
+from lbo.network import ObserverNet
 from lbo.observer import Observer
 from lbo.reproduce import train_jobs
 
@@ -207,3 +208,12 @@ def test_reproduce_trains_the_study_beside_the_paper_at_quick_scale(tmp_path):
         assert f"dynamic_drift-{model}" not in jobs
     smoke = dict(train_jobs(compose_cfg("reproduce", ["scale=smoke"]), tmp_path))
     assert "dynamic" not in smoke  # the smoke reproduction stays seconds long
+
+
+@pytest.mark.parametrize("kwargs, form", [({}, "recursive"),
+                                          ({"body": "single_track"}, "window"),
+                                          ({"drift": True}, "window"),
+                                          ({"residual": 8}, "window")])
+def test_a_window_filter_with_a_learned_process_model_runs_in_its_window_form(kwargs, form):
+    net = ObserverNet("filternet", 40, features="frame", **kwargs)
+    assert Observer.from_net(net).form == form
