@@ -16,6 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from lbo.config import number
 from lbo.errors import LboError
 
 DISTRIBUTIONS = ("fixed", "uniform", "loguniform", "levels")
@@ -89,10 +90,7 @@ class AlphaDraw:
 
 
 def _check_alpha(field: str, value) -> None:
-    ok = isinstance(value, (int, float)) and not isinstance(value, bool) and \
-        np.isfinite(value) and value >= 0
-    if not ok:
-        raise LboError(f"{field}: expected a noise scale alpha >= 0, got {value!r}")
+    number(value, field, low=0.0, form="a noise scale alpha >= 0")
 
 
 def loss_weights(alpha: torch.Tensor, offset: float | None) -> torch.Tensor:

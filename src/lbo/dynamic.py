@@ -29,7 +29,7 @@ from dataclasses import dataclass, fields
 
 import numpy as np
 
-from lbo.config import number, require
+from lbo.config import integer, number
 
 G = 9.81  # m/s^2
 STATE = ("x", "y", "psi", "v_y", "r")
@@ -70,9 +70,7 @@ class SingleTrack:
     def __post_init__(self) -> None:
         for f in fields(self):
             if f.name == "substeps":
-                v = self.substeps
-                require(isinstance(v, int) and not isinstance(v, bool) and v >= 1,
-                        "truth.substeps", "an integer >= 1", v)
+                object.__setattr__(self, f.name, integer(self.substeps, "truth.substeps", 1))
             else:
                 object.__setattr__(self, f.name, number(getattr(self, f.name), f"truth.{f.name}",
                                                         low=0.0, low_open=True))

@@ -37,6 +37,7 @@ from __future__ import annotations
 import numpy as np
 
 from lbo import dynamic
+from lbo.config import number
 from lbo.dynamic import SingleTrack
 from lbo.errors import LboError
 from lbo.filters import (
@@ -76,16 +77,6 @@ def _sigma_vector(value, g: int, name: str) -> np.ndarray:
     if not np.all(np.isfinite(arr)) or np.any(arr < 0):
         raise LboError(f"{name} must be finite and >= 0 (m), got {value!r}")
     return np.broadcast_to(arr, (g,)).copy()
-
-
-def _scalar(value, name: str, form: str, ok) -> float:
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        raise LboError(f"{name} must be {form}, got {value!r}") from None
-    if isinstance(value, bool) or not np.isfinite(v) or not ok(v):
-        raise LboError(f"{name} must be {form}, got {value!r}")
-    return v
 
 
 def _check_inputs(u: np.ndarray, g: int, name: str) -> np.ndarray:
@@ -164,11 +155,11 @@ class DynamicStepper:
         if R.shape != (g, 3, 3):
             raise LboError(f"R must be ({g}, 3, 3), got {R.shape}")
         sigma = _sigma_vector(gnss_sigma, g, "gnss_sigma")
-        self.gnss_tau = _scalar(gnss_tau, "gnss_tau", "a time in s > 0", lambda v: v > 0)
-        self.steering_offset = _scalar(steering_offset, "steering_offset",
-                                       "a finite angle in rad", lambda v: True)
-        self.speed_scale = _scalar(speed_scale, "speed_scale", "a number > -1",
-                                   lambda v: v > -1)
+        self.gnss_tau = number(gnss_tau, "gnss_tau", low=0.0, low_open=True,
+                               form="a time in s > 0")
+        self.steering_offset = number(steering_offset, "steering_offset",
+                                      form="a finite angle in rad")
+        self.speed_scale = number(speed_scale, "speed_scale", low=-1.0, low_open=True)
         self.vehicle, self.car = vehicle, car
         self.gnss_sigma = sigma
         drift = bool(np.any(sigma > 0))

@@ -19,6 +19,7 @@ from typing import Any
 
 import numpy as np
 
+from lbo.config import number
 from lbo.errors import LboError
 
 MEAS = ("x_m", "y_m", "psi_m")
@@ -63,13 +64,7 @@ def _at(source: str | None, text: str) -> str:
 
 def check_alpha(alpha: Any, field: str = "alpha") -> float:
     """alpha as a float, checked: a number in [0, ALPHA_MAX]."""
-    ok = (isinstance(alpha, (int, float, np.integer, np.floating))
-          and not isinstance(alpha, (bool, np.bool_)) and 0 <= alpha <= ALPHA_MAX)
-    if not ok:
-        shown = (f"{alpha:g}" if isinstance(alpha, (int, float, np.integer, np.floating))
-                 and not isinstance(alpha, (bool, np.bool_)) else repr(alpha))
-        raise LboError(f"{field} must be a number in [0, {ALPHA_MAX:g}], got {shown}")
-    return float(alpha)
+    return number(alpha, field, low=0.0, high=ALPHA_MAX)
 
 
 def check_device(device: Any, probe: bool = True) -> str:
@@ -91,13 +86,9 @@ def check_device(device: Any, probe: bool = True) -> str:
     return name
 
 
-def check_max_gap(max_gap: Any) -> float:
+def check_max_gap(max_gap: Any, field: str = "max_gap") -> float:
     """max_gap as a float, checked: a time in seconds > 0."""
-    ok = (isinstance(max_gap, (int, float)) and not isinstance(max_gap, bool)
-          and math.isfinite(max_gap) and max_gap > 0)
-    if not ok:
-        raise LboError(f"max_gap must be a time in seconds > 0, got {max_gap!r}")
-    return float(max_gap)
+    return number(max_gap, field, low=0.0, low_open=True, form="a time in seconds > 0")
 
 
 # --------------------------------------------------------------------------- whole logs

@@ -29,6 +29,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from lbo.config import number
 from lbo.errors import LboError
 from lbo.vehicle import wrap_angle
 
@@ -92,11 +93,9 @@ class LogFormat:
             if unit not in kinds[key]:
                 raise LboError(f"units.{key} must be one of {', '.join(kinds[key])}, "
                                f"got {unit!r}")
-        ratio = self.steering_ratio
-        if isinstance(ratio, bool) or not isinstance(ratio, (int, float)) or \
-                not math.isfinite(ratio) or ratio <= 0:
-            raise LboError("steering_ratio must be a number > 0 (the steering wheel's angle "
-                           f"over the road wheels'; 1: delta is the road wheels'), got {ratio!r}")
+        number(self.steering_ratio, "steering_ratio", low=0.0, low_open=True,
+               form="a number > 0 (the steering wheel's angle over the road wheels'; 1: delta "
+               "is the road wheels')")
         if self.heading not in HEADINGS:
             raise LboError(f"heading must be enu (counter-clockwise from east) or compass "
                            f"(clockwise from north), got {self.heading!r}")

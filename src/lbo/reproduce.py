@@ -29,7 +29,7 @@ from omegaconf import DictConfig
 from lbo.atomic import write_text
 from lbo.classical import NAMES as CLASSICAL
 from lbo.cli import entry
-from lbo.config import require
+from lbo.config import integer, require
 from lbo.errors import LboError
 from lbo.eta import Eta, duration, measure
 from lbo.tracking import check_launcher, check_store
@@ -97,11 +97,8 @@ def check_reproduce(cfg: DictConfig) -> None:
 
     if cfg.scale not in cfg.trials:
         raise LboError(f"scale must be one of {sorted(cfg.trials)}, got {cfg.scale!r}")
-    trials = cfg.trials[cfg.scale]
-    require(isinstance(trials, int) and not isinstance(trials, bool) and trials >= 1,
-            f"trials.{cfg.scale}", "an integer >= 1", trials)
-    require(isinstance(cfg.jobs, int) and not isinstance(cfg.jobs, bool) and cfg.jobs >= 1,
-            "jobs", "an integer >= 1", cfg.jobs)
+    integer(cfg.trials[cfg.scale], f"trials.{cfg.scale}", 1)
+    integer(cfg.jobs, "jobs", 1)
     searches = sorted(p.stem for p in (CONF_DIR / "hparams_search").glob("*.yaml"))
     for model in cfg.models:
         require(model in searches, "models", f"a list of models with a search space "

@@ -9,7 +9,7 @@ from typing import Any
 import optuna
 from omegaconf import DictConfig, OmegaConf
 
-from lbo.config import require
+from lbo.config import integer, number, require
 from lbo.errors import LboError
 from lbo.models import model_parameters
 
@@ -180,16 +180,19 @@ def _param(cfg: DictConfig, key: str, spec: Any) -> Param:
         return Param(key, kind, choices=tuple(choices))
     low, high, log, step = spec.get("low"), spec.get("high"), spec.get("log", False), \
         spec.get("step")
-    number = int if kind == "int" else (int, float)
+    bound = integer if kind == "int" else number
     for name, value in (("low", low), ("high", high)):
-        require(isinstance(value, number) and not isinstance(value, bool), f"{field}.{name}",
-                f"an {kind}" if kind == "int" else "a number", value)
+        bound(value, f"{field}.{name}")
     require(low <= high, f"{field}.high", f">= low ({low})", high)
     require(isinstance(log, bool), f"{field}.log", "true or false", log)
     require(not log or low > 0, f"{field}.low", "> 0 on a log scale", low)
-    require(step is None or (isinstance(step, number) and not isinstance(step, bool)
-                             and step > 0 and not log),
-            f"{field}.step", "a positive number, and not with log: true", step)
+    if step is not None:
+        form = "a positive number, and not with log: true"
+        if kind == "int":
+            integer(step, f"{field}.step", 1, form=form)
+        else:
+            number(step, f"{field}.step", low=0.0, low_open=True, form=form)
+        require(not log, f"{field}.step", form, step)
     return Param(key, kind, low, high, log, step)
 
 

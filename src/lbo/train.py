@@ -49,9 +49,7 @@ def git_commit() -> str:
 
 def check(cfg: DictConfig) -> None:
     """Reject bad training settings with one line naming the field, before any work."""
-    w = cfg.window
-    require(isinstance(w, int) and not isinstance(w, bool) and w >= 4, "window",
-            "an integer >= 4 (the CNN pools windows by 4)", w)
+    integer(cfg.window, "window", 4, form="an integer >= 4 (the CNN pools windows by 4)")
     require(cfg.features in FEATURE_MODES, "features", f"one of {list(FEATURE_MODES)}",
             cfg.features)
     integer(cfg.batch_size, "batch_size", 1)
@@ -88,10 +86,11 @@ def check_trainer(trainer: DictConfig) -> None:
         value = trainer.get(key)
         if value is None:
             continue
-        ok = (isinstance(value, int) and not isinstance(value, bool) and value >= 1) or (
-            isinstance(value, float) and 0 < value <= 1)
-        require(ok, f"trainer.{key}", "an integer >= 1 (batches) or a fraction in (0, 1]",
-                value)
+        form = "an integer >= 1 (batches) or a fraction in (0, 1]"
+        if isinstance(value, float):  # Lightning reads a float as a fraction of the batches
+            number(value, f"trainer.{key}", low=0.0, high=1.0, low_open=True, form=form)
+        else:
+            integer(value, f"trainer.{key}", 1, form=form)
 
 
 def check_optimizer(opt: DictConfig) -> None:
@@ -190,12 +189,10 @@ def noise_settings(cfg: DictConfig) -> dict[str, Any]:
     require(tn.source in SOURCES, "train_noise.source", f"one of {list(SOURCES)}", tn.source)
     draw = AlphaDraw.from_cfg(tn)
     offset = tn.get("loss_weight_offset")
-    require(offset is None or (isinstance(offset, (int, float)) and not isinstance(offset, bool)
-                               and offset > 0), "train_noise.loss_weight_offset",
-            "null or a number > 0", offset)
-    repeats = tn.get("val_repeats", 1)
-    require(isinstance(repeats, int) and not isinstance(repeats, bool) and repeats >= 1,
-            "train_noise.val_repeats", "an integer >= 1", repeats)
+    if offset is not None:
+        number(offset, "train_noise.loss_weight_offset", low=0.0, low_open=True,
+               form="null or a number > 0")
+    repeats = integer(tn.get("val_repeats", 1), "train_noise.val_repeats", 1)
     out = {"draw": draw, "sigma": tuple(cfg.noise.measurement_sigma),
            "weight_offset": offset, "val_repeats": repeats}
     truth = cfg.get("truth") or {}

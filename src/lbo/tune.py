@@ -45,7 +45,7 @@ from optuna.trial import FrozenTrial, TrialState
 
 from lbo.atomic import write_text
 from lbo.cli import entry
-from lbo.config import require
+from lbo.config import integer, number, require
 from lbo.errors import LboError, TrainingDiverged
 from lbo.paths import CONF_DIR
 from lbo.redact import scrub
@@ -67,13 +67,11 @@ from lbo.train import check, train
 def check_tune(cfg: DictConfig) -> list[Param]:
     """Reject bad study settings with one line naming the field, before any work starts."""
     t = cfg.tune
-    require(isinstance(t.n_trials, int) and not isinstance(t.n_trials, bool) and t.n_trials >= 1,
-            "tune.n_trials", "an integer >= 1", t.n_trials)
-    require(t.timeout is None or (isinstance(t.timeout, (int, float))
-                                  and not isinstance(t.timeout, bool) and t.timeout > 0),
-            "tune.timeout", "a number of seconds > 0, or null", t.timeout)
-    require(isinstance(t.seed, int) and not isinstance(t.seed, bool) and t.seed >= 0,
-            "tune.seed", "an integer >= 0", t.seed)
+    integer(t.n_trials, "tune.n_trials", 1)
+    if t.timeout is not None:
+        number(t.timeout, "tune.timeout", low=0.0, low_open=True,
+               form="a number of seconds > 0, or null")
+    integer(t.seed, "tune.seed", 0)
     require(isinstance(t.study_name, str) and t.study_name != "", "tune.study_name",
             "a non-empty string", t.study_name)
     require(not ("'" in t.study_name and '"' in t.study_name), "tune.study_name",
@@ -82,8 +80,7 @@ def check_tune(cfg: DictConfig) -> list[Param]:
     require(isinstance(t.handoff, str) and t.handoff.endswith(".yaml"), "tune.handoff",
             "a path ending in .yaml", t.handoff)
     for key in ("heartbeat_interval", "grace_period", "n_startup_trials"):
-        require(isinstance(t[key], int) and not isinstance(t[key], bool) and t[key] >= 1,
-                f"tune.{key}", "an integer >= 1", t[key])
+        integer(t[key], f"tune.{key}", 1)
     check(cfg)
     return search_space(cfg)
 

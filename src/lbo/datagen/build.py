@@ -14,7 +14,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from lbo import dynamic, schema
 from lbo.atomic import data_lock, remove_stale_temps, write_text
-from lbo.config import number, positive, require
+from lbo.config import integer, number, positive, require
 from lbo.datagen import clothoid
 from lbo.datagen.friction import G, Grid, accelerations, generate_train
 from lbo.datagen.manoeuvres import MANOEUVRES, validation_path
@@ -74,7 +74,7 @@ def spec_from_cfg(cfg: DictConfig) -> Spec:
     noise = Noise.from_cfg(cfg.noise)
     truth = truth_from_cfg(cfg.get("truth"), vehicle.wheelbase)
     d = cfg.data
-    require(isinstance(d.seed, int) and d.seed >= 0, "data.seed", "an integer >= 0", d.seed)
+    integer(d.seed, "data.seed", 0)
     tr = OmegaConf.to_container(d.train, resolve=True)
     for key in ("n_traj", "candidates", "grid"):
         positive(tr, key, "data.train", integer=True)
@@ -85,11 +85,10 @@ def spec_from_cfg(cfg: DictConfig) -> Spec:
     hold = tr["hold"]
     require(len(hold) == 2 and 0 < hold[0] <= hold[1], "data.train.hold",
             "[min, max] seconds with 0 < min <= max", hold)
-    require(tr["alpha"] >= 0, "data.train.alpha", "a noise scale >= 0", tr["alpha"])
+    number(tr["alpha"], "data.train.alpha", low=0.0, form="a noise scale >= 0")
     share = tr.get("stop_and_go", 0.0)
-    require(isinstance(share, (int, float)) and not isinstance(share, bool)
-            and 0 <= share <= 1, "data.train.stop_and_go",
-            "a share of the trajectories in [0, 1]", share)
+    number(share, "data.train.stop_and_go", low=0.0, high=1.0,
+           form="a share of the trajectories in [0, 1]")
     va = OmegaConf.to_container(d.val, resolve=True)
     for key in ("steps", "run_in"):
         positive(va, key, "data.val", integer=True)
@@ -97,14 +96,14 @@ def spec_from_cfg(cfg: DictConfig) -> Spec:
         positive(va, key, "data.val")
     require(0 <= va["speed_variation"] < 1, "data.val.speed_variation", "in [0, 1)",
             va["speed_variation"])
-    require(va["alpha"] >= 0, "data.val.alpha", "a noise scale >= 0", va["alpha"])
+    number(va["alpha"], "data.val.alpha", low=0.0, form="a noise scale >= 0")
     te = OmegaConf.to_container(d.test, resolve=True)
     positive(te, "run_in", "data.test", integer=True)
     require(te["run_in"] >= 80 and va["run_in"] >= 80, "data.test.run_in and data.val.run_in",
             "at least 80 steps, so every window N <= 80 is scored on the same points",
             (te["run_in"], va["run_in"]))
     positive(te, "alpha_step", "data.test")
-    require(te["alpha_max"] >= 0, "data.test.alpha_max", "a noise scale >= 0", te["alpha_max"])
+    number(te["alpha_max"], "data.test.alpha_max", low=0.0, form="a noise scale >= 0")
     require(0 <= te["speed_variation"] < 1, "data.test.speed_variation", "in [0, 1)",
             te["speed_variation"])
     for part, block in (("val", va), ("test", te)):

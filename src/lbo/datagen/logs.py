@@ -31,7 +31,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from lbo import schema
 from lbo.atomic import data_lock, remove_stale_temps, write_text
-from lbo.config import require
+from lbo.config import integer, require
 from lbo.errors import LboError
 from lbo.logcheck import TRUTH, check_max_gap, check_time_unit
 from lbo.logformat import LogFormat
@@ -133,15 +133,9 @@ def spec_from_cfg(cfg: DictConfig, need: tuple[str, ...] = SETS) -> LogSpec:
     d = cfg.data
     require(isinstance(d.get("resample"), bool), "data.resample", "true or false",
             d.get("resample"))
-    try:
-        max_gap = check_max_gap(d.get("max_gap"))
-    except LboError:
-        raise LboError(f"data.max_gap must be a time in seconds > 0, got {d.get('max_gap')!r}"
-                       ) from None
-    run_in = d.get("run_in")
-    require(isinstance(run_in, int) and not isinstance(run_in, bool) and run_in >= 1,
-            "data.run_in", "an integer >= 1 (steps of each validation and test segment before "
-            "it is scored)", run_in)
+    max_gap = check_max_gap(d.get("max_gap"), "data.max_gap")
+    run_in = integer(d.get("run_in"), "data.run_in", 1, form="an integer >= 1 (steps of each "
+                     "validation and test segment before it is scored)")
     files = {part: expand(_listed(d.get(part)), f"data.{part}")
              if part in need or d.get(part) else [] for part in SETS}
     seen: dict[Path, str] = {}

@@ -2,11 +2,10 @@
 
 from __future__ import annotations
 
-from numbers import Integral
-
 import torch
 from torch import nn
 
+from lbo.config import integer
 from lbo.errors import LboError
 
 #: Channels 0..2 of a window are the measurements [x_m, y_m, psi_m]; the rest are inputs.
@@ -15,13 +14,6 @@ N_MEAS = 3
 TIME_KERNEL = 5
 POOL = 4
 FEATURE_KERNEL = 3
-
-
-def check_count(name: str, value: int, minimum: int = 1) -> int:
-    """``value`` as an int if it is an integer >= ``minimum``, else raise :class:`LboError`."""
-    if isinstance(value, bool) or not isinstance(value, Integral) or value < minimum:
-        raise LboError(f"{name}: expected an integer >= {minimum}, got {value!r}")
-    return int(value)
 
 
 #: Activations: the paper's sigmoid, or the same curve shifted to (-0.5, 0.5).
@@ -115,11 +107,11 @@ class CNNObserver(nn.Module):
                  dense_units: int = 64, in_features: int = 5,
                  activation: str = "sigmoid") -> None:
         super().__init__()
-        self.window = check_count("window", window, POOL)
-        conv_channels = check_count("conv_channels", conv_channels)
-        feature_channels = check_count("feature_channels", feature_channels)
-        dense_units = check_count("dense_units", dense_units)
-        self.in_features = check_count("in_features", in_features, N_MEAS + 1)
+        self.window = integer(window, "window", POOL)
+        conv_channels = integer(conv_channels, "conv_channels", 1)
+        feature_channels = integer(feature_channels, "feature_channels", 1)
+        dense_units = integer(dense_units, "dense_units", 1)
+        self.in_features = integer(in_features, "in_features", N_MEAS + 1)
         self.n_meas = N_MEAS  # an attribute, because TorchScript cannot read module globals
         make_activation(activation)  # one line naming the field for an unknown name
         self.measurements = _Branch(conv_channels, feature_channels, activation)

@@ -38,8 +38,8 @@ from collections.abc import Sequence
 import torch
 from torch import nn
 
+from lbo.config import integer, number
 from lbo.errors import LboError
-from lbo.models.cnn import check_count
 
 SUBSTEPS = 4
 """Euler sub-steps per sampling period of the single-track body's lateral states."""
@@ -121,18 +121,16 @@ class FilterObserver(nn.Module):
         super().__init__()
         self.physical = True  # reads and writes metres and radians (see ObserverNet)
         self.feature_modes = ("frame",)
-        self.window = check_count("window", window, 4)
-        self.in_features = check_count("in_features", in_features, 5)
+        self.window = integer(window, "window", 4)
+        self.in_features = integer(in_features, "in_features", 5)
         if self.in_features > 6:
             raise LboError(f"model.in_features: expected 5, or 6 with the fix channel, "
                            f"got {in_features!r}")
         self.fixes = self.in_features == 6
-        hidden = check_count("hidden", hidden)
-        if not (isinstance(dt, (int, float)) and dt > 0):
-            raise LboError(f"model.dt: expected a period in seconds > 0, got {dt!r}")
-        if not (isinstance(wheelbase, (int, float)) and wheelbase > 0):
-            raise LboError(f"model.wheelbase: expected a length in metres > 0, got {wheelbase!r}")
-        self.dt, self.wheelbase = float(dt), float(wheelbase)
+        hidden = integer(hidden, "hidden", 1)
+        self.dt = number(dt, "model.dt", low=0.0, low_open=True, form="a period in seconds > 0")
+        self.wheelbase = number(wheelbase, "model.wheelbase", low=0.0, low_open=True,
+                                form="a length in metres > 0")
         q = torch.tensor(_check_sigmas("process_sigma", process_sigma))
         r = torch.tensor(_check_sigmas("measurement_sigma", measurement_sigma))
         self.register_buffer("log_q0", q.log())
@@ -145,10 +143,8 @@ class FilterObserver(nn.Module):
                                    nn.GELU(), nn.Linear(hidden, 3))
         nn.init.zeros_(self.noise[-1].weight)
         nn.init.zeros_(self.noise[-1].bias)
-        if not (isinstance(residual, int) and not isinstance(residual, bool) and residual >= 0):
-            raise LboError(f"model.residual: expected an integer >= 0 (0: the kinematic "
-                           f"bicycle), got {residual!r}")
-        self.residual = residual
+        self.residual = integer(residual, "model.residual", 0,
+                                form="an integer >= 0 (0: the kinematic bicycle)")
         if not isinstance(drift, bool):
             raise LboError(f"model.drift: expected true or false, got {drift!r}")
         self.drift = drift
@@ -166,11 +162,8 @@ class FilterObserver(nn.Module):
             raise LboError(f"model.residual: expected 0 with model.body=single_track (the "
                            f"single-track body is the learned process model), got {residual!r}")
         self.single_track = body == "single_track"
-        if not (isinstance(body_lr, (int, float)) and not isinstance(body_lr, bool)
-                and math.isfinite(body_lr) and body_lr > 0):
-            raise LboError(f"model.body_lr: expected a multiple of the learning rate > 0, "
-                           f"got {body_lr!r}")
-        self.body_lr = float(body_lr)
+        self.body_lr = number(body_lr, "model.body_lr", low=0.0, low_open=True,
+                              form="a multiple of the learning rate > 0")
         self.substeps = SUBSTEPS  # an attribute: TorchScript reads no module-level int
         # (front, rear) cornering stiffness and peak force per unit mass (m/s^2 per rad, m/s^2),
         # the front axle's share of the wheelbase behind the centre of gravity (l_f / L, as a

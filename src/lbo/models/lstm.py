@@ -7,8 +7,9 @@ from collections.abc import Sequence
 import torch
 from torch import nn
 
+from lbo.config import integer
 from lbo.errors import LboError
-from lbo.models.cnn import POOL, check_count, xavier_init
+from lbo.models.cnn import POOL, xavier_init
 
 #: PyTorch stacks the four gate matrices as (input, forget, cell, output).
 _N_GATES = 4
@@ -52,14 +53,14 @@ class LSTMObserver(nn.Module):
     def __init__(self, window: int, hidden_sizes: Sequence[int] = (8, 16, 32, 32),
                  dense_units: int = 64, in_features: int = 5) -> None:
         super().__init__()
-        self.window = check_count("window", window, POOL)
+        self.window = integer(window, "window", POOL)
         if isinstance(hidden_sizes, (str, bytes)) or not isinstance(hidden_sizes, Sequence) \
                 or len(hidden_sizes) == 0:
             raise LboError(f"hidden_sizes: expected a non-empty list of integers >= 1, "
                            f"got {hidden_sizes!r}")
-        sizes = [check_count("hidden_sizes", h) for h in hidden_sizes]
-        dense_units = check_count("dense_units", dense_units)
-        self.in_features = check_count("in_features", in_features)
+        sizes = [integer(h, "hidden_sizes", 1) for h in hidden_sizes]
+        dense_units = integer(dense_units, "dense_units", 1)
+        self.in_features = integer(in_features, "in_features", 1)
         self.hidden_sizes = tuple(sizes)
         self.lstms = nn.ModuleList(
             nn.LSTM(n_in, n_out, batch_first=True)
