@@ -109,29 +109,38 @@ def check_duration(cfg: DictConfig, dt: float) -> float:
     return duration
 
 
+def check(cfg: DictConfig):
+    """The data set's spec (:func:`lbo.datagen.build.spec_from_cfg`), its data, noise, vehicle
+    and truth groups checked; one line for a user's logs, which have nothing to simulate."""
+    from lbo.datagen.build import spec_from_cfg
+    from lbo.datagen.logs import is_logs
+
+    if is_logs(cfg):
+        raise LboError("data=logs: lbo.simulate drives a simulated data set's manoeuvres, not "
+                       "a user's logs; pick another data= (e.g. data=paper)")
+    return spec_from_cfg(cfg)
+
+
 def simulate(cfg: DictConfig, seed: int | None = None) -> pd.DataFrame:
     """The log ``cfg`` describes, as a frame with the test-set columns; ``seed`` (default
     ``cfg.seed``) draws its noise (and a free drive's trajectory)."""
-    from lbo.datagen.build import drive_within_grip, slower_steps, spec_from_cfg
+    from lbo.datagen.build import drive_within_grip, slower_steps
     from lbo.noise import Noise
 
     name = cfg.manoeuvre
     require(name in (STOP_AND_GO, FREE_DRIVE) or name in MANOEUVRES, "manoeuvre",
             f"{STOP_AND_GO}, {FREE_DRIVE} or one of {sorted(MANOEUVRES)}", name)
     alpha = cfg.alpha
-    require(isinstance(alpha, (int, float)) and not isinstance(alpha, bool) and alpha >= 0,
-            "alpha", "a noise scale >= 0", alpha)
+    number(alpha, "alpha", low=0.0, form="a noise scale >= 0")
     vehicle, noise = Vehicle.from_cfg(cfg.vehicle), Noise.from_cfg(cfg.noise)
     rate = cfg.get("fix_rate")
-    require(rate is None or (isinstance(rate, (int, float)) and not isinstance(rate, bool)
-                             and 0 < rate <= 1 / vehicle.dt), "fix_rate",
-            f"null (a fix at every step) or a rate in Hz in (0, {1 / vehicle.dt:g}]", rate)
-    seed = cfg.seed if seed is None else seed
-    require(isinstance(seed, int) and not isinstance(seed, bool) and seed >= 0, "seed",
-            "an integer >= 0", seed)
+    if rate is not None:
+        number(rate, "fix_rate", low=0.0, high=1 / vehicle.dt, low_open=True,
+               form=f"null (a fix at every step) or a rate in Hz in (0, {1 / vehicle.dt:g}]")
+    seed = integer(cfg.seed if seed is None else seed, "seed", 0)
     duration = check_duration(cfg, vehicle.dt) if name == FREE_DRIVE else None
     rng = np.random.default_rng([seed, 7])
-    spec = spec_from_cfg(cfg)  # checks the data, noise, vehicle and truth groups
+    spec = check(cfg)
     truth = spec.truth
     if name == FREE_DRIVE:  # the truth model and the sensors' errors come with make_train
         out = free_drive(spec, duration, alpha, seed)
@@ -187,9 +196,7 @@ def run(cfg: DictConfig) -> Path:
                        "alpha=1 [fix_rate=10] output=<log.csv|.parquet>")
     drives = integer(cfg.get("drives", 1), "drives", 1)
     output = check_output_path(str(cfg.output))
-    seed = cfg.seed
-    require(isinstance(seed, int) and not isinstance(seed, bool) and seed >= 0, "seed",
-            "an integer >= 0", seed)
+    seed = integer(cfg.seed, "seed", 0)
     paths = fleet_paths(output, drives)
     if drives == 1:
         df = simulate(cfg)
