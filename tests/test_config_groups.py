@@ -24,7 +24,7 @@ import pytest
 from hydra import initialize_config_dir
 from omegaconf import OmegaConf
 
-from conftest import compose_cfg
+from helpers import compose_cfg
 from lbo.errors import LboError
 from lbo.paths import CONF_DIR
 

@@ -6,7 +6,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from conftest import compose_cfg
+from helpers import compose_cfg
 from lbo import schema
 from lbo.datagen import MANOEUVRES, Grid, accelerations, generate_train
 from lbo.datagen.__main__ import run

@@ -6,7 +6,7 @@ import pytest
 import torch
 from scipy import stats
 
-from conftest import train_cfg
+from helpers import train_cfg
 from lbo.data import FixedDataset, WindowDataModule, WindowDataset, rows, window_ends
 from lbo.draws import AlphaDraw, loss_weights
 from lbo.errors import LboError

@@ -9,7 +9,7 @@ import pandas as pd
 import pytest
 import torch
 
-from conftest import compose_cfg
+from helpers import compose_cfg
 from lbo import dynamic
 from lbo.datagen.build import MAKERS, build, spec_from_cfg
 from lbo.draws import gauss_markov as gauss_markov_torch

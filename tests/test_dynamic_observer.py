@@ -11,7 +11,7 @@ import pandas as pd
 import pytest
 import torch
 
-from conftest import compose_cfg, train_in_own_store
+from helpers import compose_cfg, train_in_own_store
 from lbo import report
 from lbo.dynamic import SingleTrack
 from lbo.dynamic import simulate as simulate_car

@@ -5,7 +5,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from conftest import compose_cfg
+from helpers import compose_cfg
 from lbo import schema
 from lbo.errors import LboError
 from lbo.evaluate import Q_GRID, classical, classical_table, load_test, reference, run, tuned_oracle

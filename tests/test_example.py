@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
-from conftest import compose_cfg
+from helpers import compose_cfg
 from lbo.paths import EXAMPLE_LOG
 
 

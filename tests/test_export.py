@@ -8,14 +8,14 @@ import pandas as pd
 import pytest
 import torch
 
-from conftest import compose_cfg
+from helpers import compose_cfg
 from lbo.errors import LboError
 from lbo.export import export, run
 from lbo.network import ObserverNet
 from lbo.observer import Observer
 from lbo.train import train
 
-# one torch thread, here and in the CLIs: see conftest.one_torch_thread
+# one torch thread, here and in the CLIs: see the one_torch_thread fixture in conftest.py
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 import torch
 
-from conftest import compose_cfg, kill_when_written
+from helpers import compose_cfg, kill_when_written
 from lbo.network import ObserverNet
 from lbo.observer import Observer
 

@@ -10,7 +10,7 @@ import pandas as pd
 import pytest
 import torch
 
-from conftest import ROBUST_SMOKE, compose_cfg, train_in_own_store
+from helpers import ROBUST_SMOKE, compose_cfg, train_in_own_store
 from lbo import classical
 from lbo.draws import fix_mask, fix_periods
 from lbo.errors import LboError

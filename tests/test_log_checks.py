@@ -16,7 +16,7 @@ import pyarrow.parquet as pq
 import pytest
 import torch
 
-from conftest import compose_cfg, train_in_own_store
+from helpers import compose_cfg, train_in_own_store
 from lbo.errors import LboError
 from lbo.features import window_view
 from lbo.network import ObserverNet

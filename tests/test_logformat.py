@@ -11,7 +11,7 @@ import pandas as pd
 import pymap3d
 import pytest
 
-from conftest import compose_cfg
+from helpers import compose_cfg
 from lbo.errors import LboError
 from lbo.logcheck import check_conventions
 from lbo.logformat import LogFormat, Origin, to_local

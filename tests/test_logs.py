@@ -10,7 +10,7 @@ import pandas as pd
 import pytest
 import torch
 
-from conftest import compose_cfg
+from helpers import compose_cfg
 from lbo.errors import LboError
 
 COLUMNS = ["t", "x_m", "y_m", "psi_m", "V", "delta", "x", "y", "psi"]

@@ -14,12 +14,19 @@ WINDOWS = [4, 20, 40, 60, 80]
 @pytest.mark.parametrize("name", sorted(MODELS))
 @pytest.mark.parametrize("window", WINDOWS)
 def test_output_shape(name, window):
+    from lbo.network import ObserverNet
+
     torch.manual_seed(0)
     model = build_model(name, window)
     out = model(torch.randn(6, window, 5))
     assert out.shape == (6, 3)
     assert out.dtype == torch.float32
     assert torch.isfinite(out).all()
+    # wrapped as the observer that trains and runs: float64 windows in, float64 states out
+    net = ObserverNet(name, window, features="frame" if name == "filternet" else "relative")
+    state = net(torch.randn(7, window, 5, dtype=torch.float64))
+    assert state.shape == (7, 3) and state.dtype == torch.float64
+    assert torch.isfinite(state).all()
 
 
 @pytest.mark.parametrize("name", sorted(MODELS))

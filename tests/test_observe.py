@@ -7,7 +7,7 @@ import pandas as pd
 import pytest
 import torch
 
-from conftest import compose_cfg, train_in_own_store
+from helpers import compose_cfg, train_in_own_store
 from lbo import schema
 from lbo.classical import run as run_classical
 from lbo.errors import LboError
@@ -24,7 +24,7 @@ VEHICLE, NOISE = Vehicle(), Noise.preset("paper")
 LOG = ["t", "x_m", "y_m", "psi_m", "V", "delta", "x", "y", "psi"]
 
 
-# one torch thread, here and in the CLIs: see conftest.one_torch_thread
+# one torch thread, here and in the CLIs: see the one_torch_thread fixture in conftest.py
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 

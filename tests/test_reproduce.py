@@ -11,7 +11,7 @@ import optuna
 import pandas as pd
 import pytest
 
-from conftest import kill_when_written
+from helpers import kill_when_written
 
 REPORT_FILES = ["rmse_alpha1.csv", "rmse_alpha6.csv", "nrmse.csv", "report.md",
                 "friction_circle.png", "nrmse_cnn.png", "nrmse_lstm.png", "nrmse_all.png",
@@ -134,7 +134,7 @@ def test_expected_steps_and_eta_arithmetic():
 
 
 def test_a_measured_step_gives_the_runs_expected_time(tmp_path, smoke_data):
-    from conftest import train_cfg
+    from helpers import train_cfg
     from lbo.eta import measure
 
     m = measure(train_cfg(tmp_path, smoke_data, "trainer.max_epochs=2",

@@ -10,7 +10,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from conftest import ROBUST_SMOKE, compose_cfg, train_in_own_store
+from helpers import ROBUST_SMOKE, compose_cfg, train_in_own_store
 from lbo.errors import LboError
 from lbo.module import ObserverModule
 from lbo.observer import Observer
@@ -36,14 +36,6 @@ def robust(tmp_path_factory, smoke_data):
 def manoeuvre(smoke_data):
     test = pd.read_parquet(smoke_data / "test.parquet")
     return test[(test["traj"] == 0) & (test["alpha"] == 3.0)].sort_values("k")
-
-
-def test_robust_experiment_composes_at_smoke_scale(robust):
-    cfg = robust["cfg"]
-    assert (cfg.data.name, cfg.model.name, cfg.features, cfg.window) == \
-        ("smoke", "filternet", "frame", 40)
-    assert (cfg.train_noise.source, cfg.train_noise.distribution) == ("drawn", "uniform")
-    assert cfg.trainer.max_epochs == 1 and cfg.trainer.limit_train_batches == 5
 
 
 def test_robust_experiment_trains_and_scores(robust):

@@ -16,14 +16,14 @@ import pandas as pd
 import pytest
 import torch
 
-from conftest import train_cfg
+from helpers import train_cfg
+from helpers.servers import free_port
 from lbo.errors import LboError, TrainingDiverged
 from lbo.export import export
 from lbo.network import ObserverNet
 from lbo.observer import Observer
 from lbo.runfolder import claim
 from lbo.train import train
-from servers import free_port
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 

@@ -1,5 +1,5 @@
 """Scaling out, against the real engines: Hydra's joblib launcher, an MLflow tracking server and
-Optuna on PostgreSQL. Every server is started by the test itself (tests/servers.py)."""
+Optuna on PostgreSQL. Every server is started by the test itself (tests/helpers/servers.py)."""
 
 from __future__ import annotations
 
@@ -16,11 +16,11 @@ import pandas as pd
 import pytest
 from omegaconf import open_dict
 
-from conftest import compose_cfg, train_cfg
+from helpers import compose_cfg, train_cfg
+from helpers.servers import PG_PASSWORD, free_port, mlflow_server, postgres
 from lbo.errors import LboError
 from lbo.study_storage import MAX_CONNECTIONS
 from lbo.tracking import check_launcher, launcher_from_argv
-from servers import PG_PASSWORD, free_port, mlflow_server, postgres
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 optuna.logging.set_verbosity(optuna.logging.WARNING)
@@ -47,9 +47,35 @@ def finished_runs(uri: str) -> pd.DataFrame:
 
 def test_the_launcher_named_on_the_command_line_is_found():
     assert launcher_from_argv(["-m", "model=cnn", "hydra/launcher=joblib"]) == "joblib"
+    assert launcher_from_argv(["+hydra/launcher=basic", "window=20"]) == "basic"
     assert launcher_from_argv(["model=cnn"]) is None
-    check_launcher("joblib")  # installed by make install (lbo[launchers])
-    check_launcher("basic")   # Hydra's own
+
+
+@pytest.mark.parametrize(("launcher", "target", "says"), [
+    ("basic", "hydra._internal.core_plugins.basic_launcher.BasicLauncher",  # Hydra's own
+     "Launching 2 jobs locally"),
+    ("joblib", "hydra_plugins.hydra_joblib_launcher.joblib_launcher.JoblibLauncher",
+     "is launching 2 jobs")])  # installed by make install (lbo[launchers])
+def test_an_installed_launcher_passes_the_check_and_launches_the_sweep(launcher, target, says,
+                                                                       tmp_path):
+    """The launcher check lets Hydra's own launcher and an installed plugin through: the sweep's
+    jobs are launched by that launcher. Each job then stops at training's own check
+    (max_epochs=0), in one line, so nothing trains."""
+    from omegaconf import OmegaConf
+
+    sweep = tmp_path / "sweep"
+    res = cli("lbo.train", "-m", f"hydra/launcher={launcher}", "seed=0,1",
+              "trainer.max_epochs=0", f"hydra.sweep.dir={sweep}",
+              env={"MLFLOW_TRACKING_URI": f"sqlite:///{tmp_path / 'mlflow.db'}"}, timeout=300)
+    assert says in res.stdout, res.stdout[-2000:] + res.stderr[-2000:]
+    assert "not installed" not in res.stderr
+    assert res.returncode == 2
+    assert res.stderr.strip().splitlines()[-1] == \
+        "error: trainer.max_epochs must be an integer >= 1, got 0"
+    # a job refused first may end the sweep before another job has written its files
+    jobs = sorted(sweep.glob("*/.hydra/hydra.yaml"))
+    assert jobs and all(OmegaConf.load(j).hydra.launcher._target_ == target for j in jobs)
+    assert not (tmp_path / "mlflow.db").exists()  # refused before any run opened
 
 
 def test_a_missing_launcher_plugin_is_one_line_with_its_install_command(tmp_path):

@@ -13,12 +13,12 @@ import pandas as pd
 import pytest
 import requests
 
-from conftest import ROBUST_SMOKE, train_in_own_store
+from helpers import ROBUST_SMOKE, train_in_own_store
+from helpers.servers import model_server
 from lbo.errors import LboError
 from lbo.export import register
 from lbo.observer import Observer
 from lbo.serving import INPUT_COLUMNS, OUTPUT_COLUMNS, estimates
-from servers import model_server
 
 pytestmark = [pytest.mark.slow, pytest.mark.usefixtures("one_torch_thread")]
 

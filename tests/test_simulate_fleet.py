@@ -9,7 +9,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from conftest import compose_cfg
+from helpers import compose_cfg
 from lbo import schema
 from lbo.errors import LboError
 from lbo.simulate import run, simulate

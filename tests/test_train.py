@@ -7,7 +7,7 @@ import pandas as pd
 import pytest
 import torch
 
-from conftest import train_cfg
+from helpers import train_cfg
 from lbo.data import WindowDataModule, rows, window_ends
 from lbo.errors import LboError
 from lbo.metrics import SCORE_COLUMNS
@@ -82,13 +82,6 @@ def test_relative_observer_ignores_where_the_vehicle_is(smoke_data):
     with torch.no_grad():
         moved = absolute(win + shift) - (state + shift[:3]) - (absolute(win) - state)
     assert moved.abs().max() > 1e-3  # the paper-literal observer does care
-
-
-@pytest.mark.parametrize("model", ["cnn", "lstm"])
-@pytest.mark.parametrize("window", [20, 40, 60, 80])
-def test_observer_shapes(model, window):
-    net = ObserverNet(model, window)
-    assert net(torch.randn(7, window, 5, dtype=torch.float64)).shape == (7, 3)
 
 
 # --- training ------------------------------------------------------------------------------
@@ -233,15 +226,35 @@ def test_resume_reuses_a_finished_run_and_replaces_a_killed_one(tmp_path, smoke_
     assert sorted(r.info.status for r in found) == ["FINISHED", "FINISHED"]
 
 
-@pytest.mark.parametrize("accelerator, cuda, device", [
-    ("cpu", True, "cpu"), ("gpu", False, "cuda"), ("auto", False, "cpu"), ("auto", True, "cuda")])
-def test_batches_are_made_on_the_trainers_device(accelerator, cuda, device, monkeypatch):
-    from omegaconf import OmegaConf
+@pytest.mark.parametrize("trainer", ["cpu", "auto"])
+def test_batches_are_drawn_on_the_device_the_observer_trains_on(trainer, tmp_path, smoke_data,
+                                                                 tracking, monkeypatch):
+    """In a real training step, every batch the data module yields is already on the device of
+    the observer's parameters before Lightning would copy it there: the CPU for trainer=cpu
+    (also where CUDA is present) and for trainer=auto without CUDA, the GPU for trainer=auto
+    with it (trainer=gpu: test_training_on_cuda_draws_batches_on_the_gpu)."""
+    import lightning as L
 
-    from lbo.train import data_device
+    drawn, held = [], []
 
-    monkeypatch.setattr(torch.cuda, "is_available", lambda: cuda)
-    assert data_device(OmegaConf.create({"trainer": {"accelerator": accelerator}})) == device
+    def on_before_batch_transfer(self, batch, dataloader_idx):  # as the data module yields it
+        drawn.append({t.device.type for t in batch})
+        return batch
+
+    monkeypatch.setattr(WindowDataModule, "on_before_batch_transfer", on_before_batch_transfer,
+                        raising=False)
+
+    class Where(L.Callback):
+        def on_train_batch_start(self, trainer, pl_module, batch, batch_idx):
+            held.append({p.device.type for p in pl_module.parameters()})
+
+    out = train(train_cfg(tmp_path, smoke_data, f"trainer={trainer}", "trainer.max_epochs=1",
+                          "trainer.limit_train_batches=2"), callbacks=[Where()])
+    assert np.isfinite(out["val_loss"])  # the steps ran on those batches
+    expected = "cuda" if trainer == "auto" and torch.cuda.is_available() else "cpu"
+    assert len(held) == 2 and all(h == {expected} for h in held)
+    assert len(drawn) > 2  # two training batches and the validation ones
+    assert all(d == {expected} for d in drawn), drawn
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(),

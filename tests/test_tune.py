@@ -13,7 +13,7 @@ import pytest
 from hydra.errors import MissingConfigException
 from omegaconf import open_dict
 
-from conftest import compose_cfg
+from helpers import compose_cfg
 from lbo.errors import LboError
 from lbo.paths import CONF_DIR
 from lbo.study_mlflow import StudyRun, literal
@@ -22,7 +22,6 @@ from lbo.tune import (
     TrialSeededTPESampler,
     open_storage,
     search_space,
-    train_command,
     trial_config,
     tune,
 )
@@ -474,11 +473,66 @@ def test_list_choices_are_stored_as_text_and_decoded(tmp_path, smoke_data, track
         == [8, 16, 32, 32]
 
 
-def test_the_default_hand_off_needs_no_search_path(tmp_path):
-    assert train_command("cnn", CONF_DIR / "tuned" / "cnn.yaml") == \
-        "python -m lbo.train -m model=cnn +tuned=cnn window=20,40,60,80"
-    assert train_command("lstm", tmp_path / "tuned" / "lstm.yaml").endswith(
-        f"+tuned=lstm window=20,40,60,80 'hydra.searchpath=[file://{tmp_path}]'")
+TUNED = {  # inside each search space, and none of them training's default
+    "cnn": {"optimizer.lr": 0.00237, "optimizer.weight_decay": 1e-5, "batch_size": 512,
+            "model.conv_channels": 24, "model.feature_channels": 8, "model.dense_units": 181},
+    "lstm": {"optimizer.lr": 0.0042, "optimizer.weight_decay": 1e-6, "batch_size": 64,
+             "model.hidden_sizes": "[32, 64, 128, 128]", "model.dense_units": 45}}
+
+
+@pytest.mark.parametrize(("search", "where"), [("cnn", "conf"), ("lstm", "elsewhere")])
+def test_the_training_line_of_a_hand_off_composes_its_tuned_values(search, where, tmp_path):
+    """The training line a hand-off carries (as tune prints it) composes, as written, into a
+    training config for each window that holds the tuned settings and passes training's check:
+    from conf/tuned/ (the default) with no search path, from any other folder with the one the
+    line names."""
+    import contextlib
+    import shlex
+    import uuid
+
+    from omegaconf import OmegaConf
+
+    from lbo.tune import write_handoff
+
+    folder = CONF_DIR / "tuned" if where == "conf" else tmp_path / "tuned"
+    made = not folder.exists()
+    path = folder / f"test_{uuid.uuid4().hex[:12]}.yaml"  # never a user's own <model>.yaml
+    cfg = compose_cfg("tune", [f"hparams_search={search}", f"tune.handoff={path}"])
+    space = search_space(cfg)
+    stored = TUNED[search]
+    assert {p.key for p in space} == set(stored)
+    study = optuna.create_study(study_name="handoff")
+    study.add_trial(optuna.trial.create_trial(
+        params=stored, distributions={p.key: p.distribution() for p in space}, value=0.25))
+    wanted = {p.key: p.decode(stored[p.key]) for p in space}
+    untuned = compose_cfg("train", [f"model={search}"])
+    assert all(OmegaConf.select(untuned, k) != v for k, v in wanted.items())
+    try:
+        write_handoff(cfg, study, space, "sqlite:///optuna.db")
+        use = [line for line in path.read_text().splitlines() if line.startswith("# Use: ")]
+        assert len(use) == 1
+        words = shlex.split(use[0].removeprefix("# Use: "))
+        assert words[:4] == ["python", "-m", "lbo.train", "-m"]
+        overrides = [w for w in words[4:] if not w.startswith("window=")]
+        sweep = [w for w in words[4:] if w.startswith("window=")]
+        assert sweep == ["window=20,40,60,80"]  # the paper's windows, all from the one study
+        assert any(w.startswith("hydra.searchpath=") for w in overrides) == (where != "conf")
+        for window in (20, 40, 60, 80):
+            trained = compose_cfg("train", [*overrides, f"window={window}"])
+            assert trained.window == window and trained.model.name == search
+            assert {k: OmegaConf.select(trained, k) for k in wanted} == wanted
+            check(trained)
+        if where != "conf":  # without its search path, Hydra would read +tuned=<name> as a
+            # plain value and silently train with the defaults
+            bare = [w for w in overrides if not w.startswith("hydra.searchpath=")]
+            lost = compose_cfg("train", bare)
+            assert {k: OmegaConf.select(lost, k) for k in wanted} == \
+                {k: OmegaConf.select(untuned, k) for k in wanted}
+    finally:
+        path.unlink(missing_ok=True)
+        if made:
+            with contextlib.suppress(OSError):  # another test's hand-off may be there too
+                folder.rmdir()
 
 
 def test_the_sampler_repeats_nothing_when_resumed_or_shared():

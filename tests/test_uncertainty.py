@@ -4,7 +4,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from conftest import compose_cfg
+from helpers import compose_cfg
 from lbo.classical import run as run_classical
 from lbo.evaluate import load_test, run
 from lbo.metrics import nees_table

@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from conftest import compose_cfg
+from helpers import compose_cfg
 from lbo.errors import LboError
 from lbo.noise import PRESETS, Noise
 from lbo.vehicle import Vehicle, f, jacobian, measure, simulate, step, wrap_angle
@@ -43,9 +43,17 @@ def test_jacobian_matches_finite_differences():
 
 
 def test_f_is_vectorised_over_batches():
-    z = np.zeros((4, 5, 3))
-    u = np.ones((4, 5, 2))
-    assert f(z, u, 2.7).shape == (4, 5, 3)
+    """f on a (4, 5) batch of states and inputs is f of each row on its own: no row takes
+    another's state, input or heading."""
+    rng = np.random.default_rng(3)
+    z = np.column_stack([rng.normal(0, 50, 20), rng.normal(0, 50, 20),
+                         rng.uniform(-np.pi, np.pi, 20)]).reshape(4, 5, 3)
+    u = np.column_stack([rng.uniform(1, 20, 20), rng.uniform(-0.4, 0.4, 20)]).reshape(4, 5, 2)
+    batch = f(z, u, 2.7)
+    assert batch.shape == (4, 5, 3)
+    rows = np.array([[f(z[i, j], u[i, j], 2.7) for j in range(5)] for i in range(4)])
+    np.testing.assert_allclose(batch, rows, rtol=0, atol=1e-12)
+    assert len(np.unique(rows.reshape(-1, 3).round(6), axis=0)) == 20  # 20 distinct rows
 
 
 def test_noise_statistics_of_a_large_sample():

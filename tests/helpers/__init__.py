@@ -1,0 +1,17 @@
+"""Plain helpers the tests import (``from helpers import compose_cfg``); pytest's fixtures and
+hooks stay in ``tests/conftest.py``.
+
+- :mod:`helpers.config`: composing configs from conf/ (``compose_cfg``, ``train_cfg``,
+  ``ROBUST_SMOKE``)
+- :mod:`helpers.training`: training runs at smoke size (``train_in_own_store``)
+- :mod:`helpers.processes`: faults injected into running processes (``kill_when_written``)
+- :mod:`helpers.servers`: real PostgreSQL, MLflow and model servers (import it by name:
+  ``from helpers.servers import postgres``)
+"""
+
+from helpers.config import ROBUST_SMOKE, compose_cfg, train_cfg
+from helpers.processes import kill_when_written
+from helpers.training import train_in_own_store
+
+__all__ = ["ROBUST_SMOKE", "compose_cfg", "kill_when_written", "train_cfg",
+           "train_in_own_store"]

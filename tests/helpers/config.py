@@ -1,0 +1,24 @@
+"""Configs for the tests, composed from conf/ the way the entry points compose them."""
+
+from __future__ import annotations
+
+from hydra import compose, initialize_config_dir
+
+from lbo.paths import CONF_DIR
+
+
+def compose_cfg(name: str, overrides: list[str] | None = None):
+    """Compose a config from conf/ the way the entry points do, without running Hydra."""
+    with initialize_config_dir(str(CONF_DIR), version_base="1.3"):
+        return compose(config_name=name, overrides=overrides or [])
+
+
+def train_cfg(tmp_path, smoke_data, *overrides):
+    """The training config at smoke scale, writing under ``tmp_path / 'out'``."""
+    return compose_cfg("train", ["experiment=smoke", f"data.root={smoke_data.parent}",
+                                 f"output_dir={tmp_path / 'out'}", *overrides])
+
+
+ROBUST_SMOKE = ("experiment=robust", "data=smoke", "trainer.max_epochs=1")
+"""The robust experiment cut to one short epoch on the smoke sets (add the batches, the
+window and the batch size)."""

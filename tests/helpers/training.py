@@ -1,0 +1,24 @@
+"""Training runs at smoke size for the tests."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from helpers.config import compose_cfg
+
+
+def train_in_own_store(tmp: Path, smoke_data: Path, *overrides: str):
+    """Train at smoke size into ``tmp / 'out'``, logged to an MLflow store of its own.
+
+    Returns ``(cfg, metrics, tracking_uri)``; ``overrides`` choose the experiment and sizes.
+    """
+    from lbo.train import train
+
+    uri = f"sqlite:///{tmp / 'mlflow.db'}"
+    cfg = compose_cfg("train", [*overrides, f"data.root={smoke_data.parent}",
+                                f"output_dir={tmp / 'out'}"])
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("MLFLOW_TRACKING_URI", uri)
+        return cfg, train(cfg), uri
