@@ -17,10 +17,10 @@ import tempfile
 
 CHILD = r"""
 import json, resource, sys, time
-from lbo.datagen.build import make_train, make_val, make_test, spec_from_cfg
+from lbo.sim.datasets import make_train, make_val, make_test, spec_from_cfg
 from lbo import schema
 from hydra import compose, initialize_config_dir
-from lbo.paths import CONF_DIR
+from lbo.core.paths import CONF_DIR
 with initialize_config_dir(str(CONF_DIR), version_base="1.3"):
     cfg = compose("datagen", [f"data={sys.argv[1]}", f"data.root={sys.argv[2]}"])
 spec = spec_from_cfg(cfg)

@@ -16,10 +16,10 @@ import time
 
 import numpy as np
 
-from lbo.evaluate import CLASSICAL, classical
-from lbo.filters import ekf_batch, run_filterpy_ekf, ukf, ukf_batch
-from lbo.noise import Noise
-from lbo.vehicle import Vehicle
+from lbo.filters.kalman import ekf_batch, run_filterpy_ekf, ukf, ukf_batch
+from lbo.scoring.grid import CLASSICAL, classical
+from lbo.sim.noise import Noise
+from lbo.sim.vehicle import Vehicle
 
 
 def _median_time(fn, repeats: int) -> float:
@@ -78,9 +78,9 @@ def paper_test_grid():
     """The real paper-scale test set (generated on first use, then cached under data/)."""
     from hydra import compose, initialize_config_dir
 
-    from lbo.datagen.build import build, spec_from_cfg
-    from lbo.evaluate import load_test
-    from lbo.paths import CONF_DIR
+    from lbo.core.paths import CONF_DIR
+    from lbo.scoring.grid import load_test
+    from lbo.sim.datasets import build, spec_from_cfg
 
     with initialize_config_dir(str(CONF_DIR), version_base="1.3"):
         cfg = compose("datagen", ["data=paper"])

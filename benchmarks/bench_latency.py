@@ -28,10 +28,10 @@ import numpy as np
 import onnxruntime
 import torch
 
-from lbo.network import ObserverNet
-from lbo.noise import Noise
-from lbo.observer import Observer
-from lbo.vehicle import Vehicle, measure, simulate
+from lbo.models.net import ObserverNet
+from lbo.serve.observer import Observer
+from lbo.sim.noise import Noise
+from lbo.sim.vehicle import Vehicle, measure, simulate
 
 WARM_UP = 200
 TARGET_MS = 1.0

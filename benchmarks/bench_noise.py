@@ -18,9 +18,9 @@ import statistics
 import torch
 from bench_train import BATCH, SEED, STEPS, bare, compose_cfg
 
-from lbo.data import WindowDataModule
-from lbo.datagen.build import build, spec_from_cfg
-from lbo.draws import AlphaDraw
+from lbo.learn.datamodule import WindowDataModule
+from lbo.learn.draws import AlphaDraw
+from lbo.sim.datasets import build, spec_from_cfg
 
 TARGET = 0.90
 

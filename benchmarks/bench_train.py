@@ -48,11 +48,11 @@ from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
-import lbo.paths
-from lbo.data import WindowDataModule
-from lbo.datagen.build import build, spec_from_cfg
-from lbo.module import ObserverModule
-from lbo.network import ObserverNet
+import lbo.core.paths
+from lbo.learn.datamodule import WindowDataModule
+from lbo.learn.lightning_module import ObserverModule
+from lbo.models.net import ObserverNet
+from lbo.sim.datasets import build, spec_from_cfg
 
 BATCH = 256
 SEED = 0
@@ -86,7 +86,7 @@ class Run:
 
 
 def compose_cfg(model: str, window: int, overrides: list[str] | None = None) -> DictConfig:
-    with initialize_config_dir(str(lbo.paths.CONF_DIR), version_base="1.3"):
+    with initialize_config_dir(str(lbo.core.paths.CONF_DIR), version_base="1.3"):
         return compose("train", [f"model={model}", f"window={window}", "data=quick",
                                  *(overrides or [])])
 

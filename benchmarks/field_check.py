@@ -18,11 +18,11 @@ import argparse
 import numpy as np
 from hydra import compose, initialize_config_dir
 
-from lbo.datagen.manoeuvres import MANOEUVRES
-from lbo.observer import Observer
-from lbo.paths import CONF_DIR
+from lbo.core.paths import CONF_DIR
+from lbo.serve.observer import Observer
+from lbo.sim.manoeuvres import MANOEUVRES
+from lbo.sim.vehicle import wrap_angle
 from lbo.simulate import STOP_AND_GO, simulate
-from lbo.vehicle import wrap_angle
 
 RATES = (None, 10.0, 1.0)
 ALPHAS = (1.0, 3.0, 0.5, 5.0)

@@ -34,11 +34,11 @@ from bench_train import BATCH, SEED, bare, compose_cfg, lightning
 from hydra.utils import instantiate
 from omegaconf import OmegaConf
 
-from lbo.data import WindowDataModule
-from lbo.datagen.build import build, spec_from_cfg
-from lbo.draws import AlphaDraw
-from lbo.features import window_features
-from lbo.network import ObserverNet
+from lbo.learn.datamodule import WindowDataModule
+from lbo.learn.draws import AlphaDraw
+from lbo.models.features import window_features
+from lbo.models.net import ObserverNet
+from lbo.sim.datasets import build, spec_from_cfg
 
 PARTS = ("gather", "features", "forward + loss", "backward", "optimiser")
 

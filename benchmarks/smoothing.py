@@ -17,7 +17,7 @@ import argparse
 
 import numpy as np
 
-from lbo.observer import Observer
+from lbo.serve.observer import Observer
 from lbo.simulate import simulate
 
 ALPHAS = (1.0, 3.0, 6.0)
@@ -27,7 +27,7 @@ def drives(alpha: float, seeds: int) -> list[tuple[np.ndarray, np.ndarray, np.nd
     """``seeds`` stop-and-go logs at ``alpha``: (m (T, 3), u (T, 2), z (T, 3)) each."""
     from hydra import compose, initialize_config_dir
 
-    from lbo.paths import CONF_DIR
+    from lbo.core.paths import CONF_DIR
 
     with initialize_config_dir(str(CONF_DIR), version_base="1.3"):
         cfg = compose("simulate", ["manoeuvre=stop_and_go", f"alpha={alpha}"])

@@ -25,8 +25,8 @@ from hydra import initialize_config_dir
 from omegaconf import OmegaConf
 
 from helpers import compose_cfg
-from lbo.errors import LboError
-from lbo.paths import CONF_DIR
+from lbo.core.errors import LboError
+from lbo.core.paths import CONF_DIR
 
 # --- what conf/ holds, read when the tests are collected ---------------------------------------
 
@@ -225,8 +225,8 @@ def train_checks(cfg) -> None:
     """What ``lbo.train`` checks before it makes data or opens a run: :func:`lbo.train.check`,
     the data set's settings (``prepare_data``), the run's fingerprint, and every interpolation
     of the config resolved (its config.yaml and MLflow params)."""
-    from lbo.datagen.build import spec_from_cfg
-    from lbo.datagen.logs import is_logs
+    from lbo.sim.datasets import spec_from_cfg
+    from lbo.sim.log_sets import is_logs
     from lbo.train import check, config_hash
 
     check(cfg)
@@ -238,8 +238,8 @@ def train_checks(cfg) -> None:
 
 def data_checks(cfg) -> None:
     """``lbo.datagen``: the data set's settings (or the logs named)."""
-    from lbo.datagen import logs
-    from lbo.datagen.build import spec_from_cfg
+    from lbo.sim import log_sets as logs
+    from lbo.sim.datasets import spec_from_cfg
 
     if logs.is_logs(cfg):
         logs.spec_from_cfg(cfg)
@@ -251,13 +251,14 @@ def evaluate_checks(cfg) -> None:
     """``lbo.evaluate``: the observers, the reference, the forms and flags, the vehicle, noise
     and truth, and the test grid's settings (or the test logs named)."""
     from lbo import evaluate
-    from lbo.datagen import logs
-    from lbo.datagen.build import spec_from_cfg
-    from lbo.truth import from_cfg as truth_from_cfg
-    from lbo.vehicle import Vehicle
+    from lbo.scoring import grid
+    from lbo.sim import log_sets as logs
+    from lbo.sim.datasets import spec_from_cfg
+    from lbo.sim.truth import from_cfg as truth_from_cfg
+    from lbo.sim.vehicle import Vehicle
 
-    evaluate.check_observers(list(cfg.observers))
-    assert cfg.metric.reference in evaluate.REFERENCES
+    grid.check_observers(list(cfg.observers))
+    assert cfg.metric.reference in grid.REFERENCES
     evaluate._extras(cfg)
     if logs.is_logs(cfg):
         logs.spec_from_cfg(cfg, need=("test",))
@@ -276,9 +277,9 @@ def simulate_checks(cfg) -> None:
 
 def observe_checks(cfg) -> None:
     """``lbo.observe``: the settings it checks before it reads a log or a checkpoint."""
-    from lbo.logcheck import check_alpha, check_max_gap
-    from lbo.noise import Noise
-    from lbo.vehicle import Vehicle
+    from lbo.sim.logcheck import check_alpha, check_max_gap
+    from lbo.sim.noise import Noise
+    from lbo.sim.vehicle import Vehicle
 
     Noise.from_cfg(cfg.noise)
     Vehicle.from_cfg(cfg.vehicle)
@@ -370,7 +371,7 @@ def test_experiment_quick_and_paper_train_on_their_own_data_and_their_studies_pa
 
 @pytest.mark.parametrize("data", ["quick", "robust"])
 def test_data_quick_and_robust_compose_for_every_command_that_makes_data(data, store):
-    from lbo.datagen.build import spec_from_cfg
+    from lbo.sim.datasets import spec_from_cfg
 
     for primary in ("datagen", "evaluate", "simulate", "train"):
         cfg = compose_cfg(primary, [f"data={data}"])

@@ -7,13 +7,14 @@ import pandas as pd
 import pytest
 
 from helpers import compose_cfg
-from lbo import schema
-from lbo.datagen import MANOEUVRES, Grid, accelerations, generate_train
-from lbo.datagen.__main__ import run
-from lbo.datagen.build import G, build, make_test, spec_from_cfg
-from lbo.errors import LboError
-from lbo.noise import Noise
-from lbo.vehicle import Vehicle
+from lbo.core.errors import LboError
+from lbo.datagen import run
+from lbo.sim import schema
+from lbo.sim.datasets import G, build, make_test, spec_from_cfg
+from lbo.sim.friction import Grid, accelerations, generate_train
+from lbo.sim.manoeuvres import MANOEUVRES
+from lbo.sim.noise import Noise
+from lbo.sim.vehicle import Vehicle
 
 
 def smoke_spec(root, *overrides):

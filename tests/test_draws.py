@@ -1,4 +1,5 @@
-"""Training noise drawn on the fly (lbo.draws, the ``draw=`` of lbo.data, ``train_noise``)."""
+"""Training noise drawn on the fly (lbo.learn.draws, the ``draw=`` of lbo.learn.datamodule,
+``train_noise``)."""
 
 import numpy as np
 import pandas as pd
@@ -7,11 +8,12 @@ import torch
 from scipy import stats
 
 from helpers import train_cfg
-from lbo.data import FixedDataset, WindowDataModule, WindowDataset, rows, window_ends
-from lbo.draws import AlphaDraw, loss_weights
-from lbo.errors import LboError
-from lbo.features import wrap_angle_torch
-from lbo.train import check, noise_settings, train
+from lbo.core.errors import LboError
+from lbo.learn.builders import noise_settings
+from lbo.learn.datamodule import FixedDataset, WindowDataModule, WindowDataset, rows, window_ends
+from lbo.learn.draws import AlphaDraw, loss_weights
+from lbo.models.features import wrap_angle_torch
+from lbo.train import check, train
 
 SIGMA = torch.tensor([1.0, 1.0, 0.0174], dtype=torch.float64)  # the paper preset at alpha=1
 N = 80  # long windows, so that one window's noise std is a usable estimate of its alpha

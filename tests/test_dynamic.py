@@ -1,4 +1,4 @@
-"""The car that slips (lbo.dynamic), the sensors' errors (lbo.truth) and the data sets drawn
+"""The car that slips (lbo.sim.dynamic), the sensors' errors (lbo.sim.truth) and the data sets drawn
 from them: closed forms of steady-state cornering, the kinematic limit, the integrator's error,
 the Gauss-Markov drift, and the paper's sets left byte for byte as they were."""
 
@@ -10,13 +10,13 @@ import pytest
 import torch
 
 from helpers import compose_cfg
-from lbo import dynamic
-from lbo.datagen.build import MAKERS, build, spec_from_cfg
-from lbo.draws import gauss_markov as gauss_markov_torch
-from lbo.dynamic import SingleTrack, derivatives, rear_slip, steady_state, step, tyre_force
-from lbo.errors import LboError
-from lbo.truth import Sensors, Truth, from_cfg, gauss_markov
-from lbo.vehicle import f as kinematic_f
+from lbo.core.errors import LboError
+from lbo.learn.draws import gauss_markov as gauss_markov_torch
+from lbo.sim import dynamic
+from lbo.sim.datasets import MAKERS, build, spec_from_cfg
+from lbo.sim.dynamic import SingleTrack, derivatives, rear_slip, steady_state, step, tyre_force
+from lbo.sim.truth import Sensors, Truth, from_cfg, gauss_markov
+from lbo.sim.vehicle import f as kinematic_f
 
 CAR = SingleTrack()
 DT = 0.02
@@ -242,7 +242,7 @@ def test_process_scale_1_keeps_the_dynamic_sets_of_the_papers_random_walk(tmp_pa
 
 
 def test_no_test_manoeuvre_corners_harder_than_the_cap(dynamic_sets):
-    from lbo.datagen.build import peak_lateral_g
+    from lbo.sim.datasets import peak_lateral_g
 
     def peaks(df):
         t = df[df["alpha"] == df["alpha"].min()].sort_values(["traj", "k"])

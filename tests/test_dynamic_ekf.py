@@ -7,14 +7,15 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from lbo import dynamic, filters
-from lbo.dynamic import SingleTrack
-from lbo.dynamic_ekf import DynamicStepper, dynamic_ekf_batch
-from lbo.errors import LboError
-from lbo.metrics import rmse
-from lbo.noise import Noise
-from lbo.truth import gauss_markov
-from lbo.vehicle import Vehicle, wrap_angle
+from lbo.core.errors import LboError
+from lbo.filters import kalman as filters
+from lbo.filters.dynamic_ekf import DynamicStepper, dynamic_ekf_batch
+from lbo.scoring.metrics import rmse
+from lbo.sim import dynamic
+from lbo.sim.dynamic import SingleTrack
+from lbo.sim.noise import Noise
+from lbo.sim.truth import gauss_markov
+from lbo.sim.vehicle import Vehicle, wrap_angle
 
 VEHICLE = Vehicle()
 CAR = SingleTrack()

@@ -12,16 +12,16 @@ import pytest
 import torch
 
 from helpers import compose_cfg, train_in_own_store
-from lbo import report
-from lbo.dynamic import SingleTrack
-from lbo.dynamic import simulate as simulate_car
-from lbo.errors import LboError
+from lbo.core.errors import LboError
+from lbo.learn.lightning_module import ObserverModule
 from lbo.models import FilterObserver, build_model
 from lbo.models.filternet import BODY_PARAMETERS
-from lbo.module import ObserverModule
-from lbo.network import ObserverNet
-from lbo.observer import Observer
+from lbo.models.net import ObserverNet
 from lbo.reproduce import train_jobs
+from lbo.scoring import report
+from lbo.serve.observer import Observer
+from lbo.sim.dynamic import SingleTrack
+from lbo.sim.dynamic import simulate as simulate_car
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 

@@ -6,13 +6,14 @@ import pandas as pd
 import pytest
 
 from helpers import compose_cfg
-from lbo import schema
-from lbo.errors import LboError
-from lbo.evaluate import Q_GRID, classical, classical_table, load_test, reference, run, tuned_oracle
-from lbo.filters import ekf_batch, pcrb
-from lbo.metrics import SCORE_COLUMNS
-from lbo.noise import Noise
-from lbo.vehicle import Vehicle, measure, simulate, wrap_angle
+from lbo.core.errors import LboError
+from lbo.evaluate import run
+from lbo.filters.kalman import ekf_batch, pcrb
+from lbo.scoring.grid import Q_GRID, classical, classical_table, load_test, reference, tuned_oracle
+from lbo.scoring.metrics import SCORE_COLUMNS
+from lbo.sim import schema
+from lbo.sim.noise import Noise
+from lbo.sim.vehicle import Vehicle, measure, simulate, wrap_angle
 
 VEHICLE, NOISE = Vehicle(), Noise.preset("paper")
 
@@ -62,7 +63,7 @@ def test_pcrb_is_a_floor_in_expectation(smoke_data):
 def test_the_ekf_reference_is_filterpys_rmse_at_alpha_1(smoke_data, smoke_table):
     """E_ref re-derived independently: filterpy's EKF on every alpha=1 trajectory, and the
     pooled RMSE written out in numpy; and the paper's constants as printed in its Table I."""
-    from lbo.filters import run_filterpy_ekf
+    from lbo.filters.kalman import run_filterpy_ekf
 
     arr = load_test(smoke_data / "test.parquet")
     at1 = np.flatnonzero(np.isclose(arr["alpha"], 1.0))
@@ -111,7 +112,7 @@ def test_the_tuned_oracle_is_the_best_of_its_q_grid_at_every_level(smoke_data):
 
 
 def test_pcrb_bounds_the_kinematic_truth_with_its_own_process_noise(smoke_data):
-    from lbo.truth import Truth, from_cfg
+    from lbo.sim.truth import Truth, from_cfg
 
     arr = load_test(smoke_data / "test.parquet")
     paper = classical("pcrb", arr, VEHICLE, NOISE, truth=Truth())

@@ -6,7 +6,7 @@ import numpy as np
 import pandas as pd
 
 from helpers import compose_cfg
-from lbo.paths import EXAMPLE_LOG
+from lbo.core.paths import EXAMPLE_LOG
 
 
 def test_the_example_log_is_what_lbo_simulate_writes_byte_for_byte(tmp_path):

@@ -9,10 +9,10 @@ import pytest
 import torch
 
 from helpers import compose_cfg
-from lbo.errors import LboError
+from lbo.core.errors import LboError
 from lbo.export import export, run
-from lbo.network import ObserverNet
-from lbo.observer import Observer
+from lbo.models.net import ObserverNet
+from lbo.serve.observer import Observer
 from lbo.train import train
 
 # one torch thread, here and in the CLIs: see the one_torch_thread fixture in conftest.py

@@ -13,8 +13,8 @@ import pytest
 import torch
 
 from helpers import compose_cfg, kill_when_written
-from lbo.network import ObserverNet
-from lbo.observer import Observer
+from lbo.models.net import ObserverNet
+from lbo.serve.observer import Observer
 
 
 def _train_cmd(tmp_path, smoke_data, out, *more):
@@ -130,7 +130,7 @@ def test_a_bad_metric_reference_stops_training_before_anything_is_written(tmp_pa
 
 
 def test_datagen_removes_the_temp_files_of_a_killed_run(tmp_path):
-    from lbo.datagen.build import build, spec_from_cfg
+    from lbo.sim.datasets import build, spec_from_cfg
 
     spec = spec_from_cfg(compose_cfg("datagen", ["data=smoke", f"data.root={tmp_path}"]))
     spec.folder.mkdir(parents=True)

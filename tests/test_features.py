@@ -6,8 +6,9 @@ import numpy as np
 import pytest
 import torch
 
-from lbo.errors import LboError
-from lbo.features import (
+from lbo.core.errors import LboError
+from lbo.models import CNNObserver
+from lbo.models.features import (
     FEATURE_MODES,
     last_measurement,
     state_to_target,
@@ -15,8 +16,7 @@ from lbo.features import (
     window_features,
     wrap_angle_torch,
 )
-from lbo.models import CNNObserver
-from lbo.vehicle import wrap_angle
+from lbo.sim.vehicle import wrap_angle
 
 
 def _windows(rng: np.random.Generator, batch: int = 6, window: int = 20) -> np.ndarray:
@@ -226,7 +226,7 @@ def test_frame_round_trip_across_pi(as_torch):
 
 
 def _frame_net(model: str, dtype: torch.dtype):
-    from lbo.network import ObserverNet
+    from lbo.models.net import ObserverNet
 
     torch.manual_seed(0)
     net = ObserverNet(model, 20, features="frame")
@@ -264,7 +264,7 @@ def test_frame_observer_moves_with_the_vehicle(model, theta, dtype, atol):
 
 def test_relative_observer_does_not_move_with_a_rotation():
     """The contrast: with "relative" features a rotation changes what the network sees."""
-    from lbo.network import ObserverNet
+    from lbo.models.net import ObserverNet
 
     torch.manual_seed(0)
     net = ObserverNet("cnn", 20, features="relative").double().eval()
@@ -276,7 +276,7 @@ def test_relative_observer_does_not_move_with_a_rotation():
 
 
 def test_filternet_needs_frame_features():
-    from lbo.network import ObserverNet
+    from lbo.models.net import ObserverNet
 
     for mode in ("relative", "absolute"):
         with pytest.raises(LboError, match=r"^features: model 'filternet' needs features in "
@@ -288,7 +288,7 @@ def test_window_view_is_one_extractor_for_torch_and_numpy():
     import numpy as np
     import torch
 
-    from lbo.features import window_view
+    from lbo.models.features import window_view
 
     series = np.arange(2 * 9 * 5, dtype=float).reshape(2, 9, 5)  # (G, T, C)
     for arr in (series, torch.from_numpy(series)):

@@ -5,11 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from lbo import filters
-from lbo.errors import LboError
-from lbo.metrics import nrmse, rmse
-from lbo.noise import Noise
-from lbo.vehicle import Vehicle, measure, simulate, wrap_angle
+from lbo.core.errors import LboError
+from lbo.filters import kalman as filters
+from lbo.scoring.metrics import nrmse, rmse
+from lbo.sim.noise import Noise
+from lbo.sim.vehicle import Vehicle, measure, simulate, wrap_angle
 
 VEHICLE = Vehicle()
 NOISE = Noise.preset("paper")
@@ -193,8 +193,8 @@ def test_alpha0_is_exact_and_finite():
 def test_batched_ukf_gives_filterpy_numbers_on_the_smoke_grid(smoke_data):
     """The vectorised UKF against filterpy's loop on every trajectory and alpha level of the
     smoke test grid (R at alpha=1, and R at each level's own alpha)."""
-    from lbo.classical import measurement_cov
-    from lbo.evaluate import load_test
+    from lbo.filters.classical import measurement_cov
+    from lbo.scoring.grid import load_test
 
     arr = load_test(smoke_data / "test.parquet")
     for R in (NOISE.R(1.0), measurement_cov("oracle", NOISE, arr["alpha"], len(arr["alpha"]))):

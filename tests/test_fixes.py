@@ -11,15 +11,15 @@ import pytest
 import torch
 
 from helpers import ROBUST_SMOKE, compose_cfg, train_in_own_store
-from lbo import classical
-from lbo.draws import fix_mask, fix_periods
-from lbo.errors import LboError
-from lbo.filters import KalmanStepper
-from lbo.network import ObserverNet
-from lbo.noise import Noise
-from lbo.observer import Observer
+from lbo.core.errors import LboError
+from lbo.filters import classical
+from lbo.filters.kalman import KalmanStepper
+from lbo.learn.draws import fix_mask, fix_periods
+from lbo.models.net import ObserverNet
+from lbo.serve.observer import Observer
+from lbo.sim.noise import Noise
+from lbo.sim.vehicle import Vehicle, wrap_angle
 from lbo.simulate import simulate, stop_and_go_speed, thin
-from lbo.vehicle import Vehicle, wrap_angle
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 LOG = ["t", "x_m", "y_m", "psi_m", "V", "delta", "x", "y", "psi"]
@@ -64,7 +64,7 @@ def test_a_missing_fix_skips_the_update_and_keeps_the_prior_covariance():
     full = b.update(np.where(np.isnan(m1), 0.0, m1), u)
     np.testing.assert_allclose(a.x[[0, 2]], full[[0, 2]])  # fixes: the usual update
     P0 = noise.R(1.0)
-    from lbo.vehicle import jacobian, step
+    from lbo.sim.vehicle import jacobian, step
     F = jacobian(m0[[1, 3]], u[[1, 3]], vehicle.dt)
     np.testing.assert_allclose(a.x[[1, 3]], step(m0[[1, 3]], u[[1, 3]], vehicle.dt,
                                                  vehicle.wheelbase))
@@ -144,7 +144,7 @@ def test_the_stop_and_go_log_stands_still_a_third_of_the_time():
 
 
 def test_training_data_with_stop_and_go_has_standstill(tmp_path):
-    from lbo.datagen.build import make_train, spec_from_cfg
+    from lbo.sim.datasets import make_train, spec_from_cfg
 
     cfg = compose_cfg("datagen", ["data=smoke", f"data.root={tmp_path}",
                                   "+data.train.stop_and_go=0.5"])
@@ -220,8 +220,8 @@ def test_a_cnn_trained_with_fix_rates_takes_a_log_with_missing_fixes(tmp_path, s
 
 
 def test_the_export_of_an_observer_with_missing_fixes_matches_pytorch(tmp_path):
-    from lbo.engines import onnx_session
     from lbo.export import export
+    from lbo.serve.engines import onnx_session
 
     torch.manual_seed(2)
     net = ObserverNet("filternet", 40, "frame", fixes=True)  # float32 weights, as trained

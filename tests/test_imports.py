@@ -1,6 +1,8 @@
-"""The package's import graph has no cycles, counting imports inside functions too."""
+"""The package's import graph has no cycles, and no library imports a command, counting imports
+inside functions too."""
 
 import ast
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -51,8 +53,69 @@ def cycle(graph: dict[str, set[str]]) -> list[str] | None:
 
 def test_no_import_cycles():
     graph = import_graph()
-    assert "lbo.engines" in graph["lbo.export"] and "lbo.engines" in graph["lbo.observer"]
+    assert "lbo.serve.engines" in graph["lbo.export"]
+    assert "lbo.serve.engines" in graph["lbo.serve.observer"]
     assert cycle(graph) is None, " -> ".join(cycle(graph))
+
+
+def commands() -> set[str]:
+    """The modules behind ``python -m lbo.<command>``: those that build their entry point with
+    :func:`lbo.core.cli.entry`."""
+    out = set()
+    for f in SRC.rglob("*.py"):
+        for node in ast.walk(ast.parse(f.read_text())):
+            if isinstance(node, ast.ImportFrom) and node.module == "lbo.core.cli" and \
+                    any(a.name == "entry" for a in node.names):
+                name = ".".join(("lbo", *f.relative_to(SRC).with_suffix("").parts))
+                out.add(name.removesuffix(".__init__"))
+    return out
+
+
+def test_no_library_imports_a_command():
+    graph, cmds = import_graph(), commands()
+    assert {"lbo.train", "lbo.evaluate", "lbo.observe", "lbo.simulate", "lbo.tune",
+            "lbo.reproduce", "lbo.export", "lbo.datagen"} <= cmds
+    wrong = sorted(f"{mod} imports {cmd}" for mod in set(graph) - cmds
+                   for cmd in graph[mod] & cmds)
+    assert not wrong, "; ".join(wrong)
+
+
+from lbo import LAYERS  # noqa: E402  (the layers, bottom up)
+
+
+def layer(module: str) -> int:
+    """The rank of ``module``'s layer (``lbo.<layer>`` or a module in it); len(LAYERS) for a
+    command or the package itself."""
+    parts = module.split(".")
+    return LAYERS.index(parts[1]) if len(parts) > 1 and parts[1] in LAYERS else len(LAYERS)
+
+
+def test_every_module_sits_in_a_layer_or_is_a_command():
+    graph, cmds = import_graph(), commands()
+    stray = sorted(m for m in graph if layer(m) == len(LAYERS) and m not in cmds | {"lbo"})
+    assert not stray, f"neither in a layer {LAYERS} nor a command: {stray}"
+    assert {p.name for p in SRC.iterdir() if p.is_dir() and p.name != "__pycache__"} == \
+        set(LAYERS)
+
+
+def upward(graph: dict[str, set[str]]) -> list[str]:
+    """Every import of a module from a layer above its own."""
+    return sorted(f"{mod} imports {dep}" for mod in graph for dep in graph[mod]
+                  if layer(dep) > layer(mod))
+
+
+def test_no_module_imports_from_a_layer_above_its_own():
+    up = upward(import_graph())
+    assert not up, "; ".join(up)
+
+
+def test_the_layer_rule_catches_an_import_upward():
+    assert upward({"lbo.sim.vehicle": {"lbo.core.errors", "lbo.sim.noise"},
+                   "lbo.train": {"lbo.learn.draws"}}) == []
+    assert upward({"lbo.core.atomic": {"lbo.sim.schema"},
+                   "lbo.serve.observer": {"lbo.learn", "lbo.train"}}) == [
+        "lbo.core.atomic imports lbo.sim.schema", "lbo.serve.observer imports lbo.learn",
+        "lbo.serve.observer imports lbo.train"]
 
 
 def test_the_cycle_finder_finds_a_cycle():
@@ -61,7 +124,7 @@ def test_the_cycle_finder_finds_a_cycle():
 
 
 def test_export_and_observer_import_in_a_fresh_interpreter():
-    res = subprocess.run([sys.executable, "-c", "import lbo.export, lbo.observer"],
+    res = subprocess.run([sys.executable, "-c", "import lbo.export, lbo.serve.observer"],
                          capture_output=True, text=True)
     assert res.returncode == 0, res.stderr
 
@@ -73,3 +136,14 @@ def test_a_missing_conf_folder_is_one_line(tmp_path):
     assert res.stderr.strip() == (f"error: lbo's configs are neither in {tmp_path / 'conf'} "
                                   "nor in the installed package: reinstall lbo (pip install "
                                   "<repo>), or set LBO_ROOT=<repo>")
+
+
+def test_the_readmes_layout_names_every_layer_in_order_and_every_command():
+    readme = (SRC.parents[1] / "README.md").read_text()
+    section = readme.split("## Layout\n", 1)[1].split("\n## ", 1)[0]
+    rows = [line.split("|")[1].strip().strip("`/") for line in section.splitlines()
+            if line.startswith("| `")]
+    assert tuple(rows) == LAYERS
+    listed = set(re.findall(r"`(\w+)`", section.split("On top sit the commands", 1)[1]))
+    assert {c.removeprefix("lbo.").removesuffix(".__main__") for c in commands()} == \
+        listed - {"python"}

@@ -1,4 +1,4 @@
-"""One validation path for logs (lbo.logcheck): the CLI `lbo.observe` and the library API
+"""One validation path for logs (lbo.sim.logcheck): the CLI `lbo.observe` and the library API
 (`Observer.run`, `Observer.step`) refuse the same bad input with the same one line."""
 
 from __future__ import annotations
@@ -17,11 +17,12 @@ import pytest
 import torch
 
 from helpers import compose_cfg, train_in_own_store
-from lbo.errors import LboError
-from lbo.features import window_view
-from lbo.network import ObserverNet
-from lbo.observe import resample, run
-from lbo.observer import Observer
+from lbo.core.errors import LboError
+from lbo.models.features import window_view
+from lbo.models.net import ObserverNet
+from lbo.observe import run
+from lbo.serve.observer import Observer
+from lbo.sim.logio import resample
 from lbo.simulate import simulate
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
@@ -298,7 +299,7 @@ def test_step_takes_an_all_nan_measurement_as_no_fix():
 
 
 def test_alpha_must_be_in_0_to_100(tmp_path, manoeuvre):
-    from lbo.logcheck import check_alpha
+    from lbo.sim.logcheck import check_alpha
 
     log, out = tmp_path / "log.csv", tmp_path / "est.csv"
     manoeuvre[LOG].to_csv(log, index=False)

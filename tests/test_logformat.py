@@ -12,10 +12,10 @@ import pymap3d
 import pytest
 
 from helpers import compose_cfg
-from lbo.errors import LboError
-from lbo.logcheck import check_conventions
-from lbo.logformat import LogFormat, Origin, to_local
+from lbo.core.errors import LboError
 from lbo.observe import run
+from lbo.sim.logcheck import check_conventions
+from lbo.sim.logformat import LogFormat, Origin, to_local
 
 COLUMNS = ["t", "x_m", "y_m", "psi_m", "V", "delta", "x", "y", "psi"]
 ORIGIN = Origin(48.7758, 2.2886)  # near Paris
@@ -163,7 +163,7 @@ def test_a_compass_log_read_as_enu_the_other_way_round(tmp_path, plain):
 def test_no_simulated_log_looks_suspicious(test_set, smoke_data):
     """Every test manoeuvre at every alpha (0 to 6: fixes up to 6 m off) and the example log
     pass the convention checks."""
-    from lbo.paths import EXAMPLE_LOG
+    from lbo.core.paths import EXAMPLE_LOG
 
     for _, g in test_set.groupby(["traj", "alpha"]):
         g = g.sort_values("k")
@@ -215,7 +215,7 @@ def test_bad_geodetic_logs_are_one_line(tmp_path, plain, edit, message):
 
 
 def test_data_logs_reads_a_loggers_logs_as_their_plain_twins(test_set, tmp_path):
-    from lbo.datagen import logs
+    from lbo.sim import log_sets as logs
 
     for kind in ("plain", "logged"):
         for part in ("train", "val", "test"):

@@ -11,7 +11,7 @@ import pytest
 import torch
 
 from helpers import compose_cfg
-from lbo.errors import LboError
+from lbo.core.errors import LboError
 
 COLUMNS = ["t", "x_m", "y_m", "psi_m", "V", "delta", "x", "y", "psi"]
 DT = 0.02
@@ -43,7 +43,7 @@ def logs_cfg(root: Path, tmp: Path, *overrides: str, name: str = "train"):
 
 
 def built(cfg):
-    from lbo.datagen import logs
+    from lbo.sim import log_sets as logs
 
     spec = logs.spec_from_cfg(cfg)
     folder, sets, _ = logs.build(spec, progress=False)
@@ -144,7 +144,7 @@ def test_resample_puts_a_10_hz_log_on_the_vehicles_grid(logs, tmp_path):
 
 
 def test_windows_never_cross_a_file_and_training_reads_stored_noise(logs, tmp_path):
-    from lbo.train import datamodule, prepare_data
+    from lbo.learn.builders import datamodule, prepare_data
 
     cfg = logs_cfg(logs, tmp_path, "train_noise=stored", "window=40")
     dm = datamodule(cfg, prepare_data(cfg)[0])
@@ -185,8 +185,8 @@ def test_train_on_logs_scores_the_test_files_against_their_peers(logs, tmp_path,
         run.data.metrics)
     assert (tmp_path / "out" / "nrmse.png").stat().st_size > 0
     # fine-tuning from that run: it starts from its weights
-    from lbo.observer import load_net
-    from lbo.train import build_net, initial_weights
+    from lbo.learn.builders import build_net, initial_weights
+    from lbo.serve.observer import load_net
 
     cfg2 = logs_cfg(logs, tmp_path / "ft", "train_noise=paper", f"init_from={metrics['run_id']}")
     net = build_net(cfg2)
@@ -222,8 +222,9 @@ def _save_checkpoint(path: Path, smoke_data: Path) -> None:
     """An untrained smoke CNN (N=20), saved the way lbo.train saves its best checkpoint."""
     import torch
 
-    from lbo.module import CHECKPOINT_FORMAT
-    from lbo.train import build_net, meta
+    from lbo.learn.builders import build_net
+    from lbo.models.net import CHECKPOINT_FORMAT
+    from lbo.train import meta
 
     cfg = compose_cfg("train", ["experiment=smoke", f"data.root={smoke_data.parent}"])
     net = build_net(cfg)
@@ -263,7 +264,7 @@ def test_evaluate_scores_the_peers_on_the_test_logs(logs, tmp_path):
 
 
 def test_logs_with_gnss_slower_than_the_inputs_train_with_fix_rates(logs, tmp_path):
-    from lbo.train import datamodule, prepare_data
+    from lbo.learn.builders import datamodule, prepare_data
 
     slow = tmp_path / "slow"
     for p in sorted((logs / "train").glob("*.csv"))[:4]:
@@ -282,7 +283,7 @@ def test_logs_with_gnss_slower_than_the_inputs_train_with_fix_rates(logs, tmp_pa
 
 
 def test_dropping_fixes_on_logs_with_gaps_never_leaves_a_window_without_a_fix(logs, tmp_path):
-    from lbo.train import datamodule, prepare_data
+    from lbo.learn.builders import datamodule, prepare_data
 
     slow = tmp_path / "slow"
     for p in sorted((logs / "train").glob("*.csv"))[:4]:

@@ -12,7 +12,7 @@ import pandas as pd
 import pytest
 
 from helpers import compose_cfg
-from lbo.errors import LboError
+from lbo.core.errors import LboError
 
 COLUMNS = ["t", "x_m", "y_m", "psi_m", "V", "delta", "x", "y", "psi"]
 

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from lbo.errors import LboError
-from lbo.metrics import PAPER_REFERENCE, SCORE_COLUMNS, nrmse, rmse, score_table
+from lbo.core.errors import LboError
+from lbo.scoring.metrics import PAPER_REFERENCE, SCORE_COLUMNS, nrmse, rmse, score_table
 
 
 def test_rmse_of_known_errors():

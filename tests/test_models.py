@@ -5,7 +5,7 @@ import math
 import pytest
 import torch
 
-from lbo.errors import LboError
+from lbo.core.errors import LboError
 from lbo.models import MODELS, CNNObserver, LSTMObserver, build_model
 
 WINDOWS = [4, 20, 40, 60, 80]
@@ -14,7 +14,7 @@ WINDOWS = [4, 20, 40, 60, 80]
 @pytest.mark.parametrize("name", sorted(MODELS))
 @pytest.mark.parametrize("window", WINDOWS)
 def test_output_shape(name, window):
-    from lbo.network import ObserverNet
+    from lbo.models.net import ObserverNet
 
     torch.manual_seed(0)
     model = build_model(name, window)

@@ -8,17 +8,18 @@ import pytest
 import torch
 
 from helpers import compose_cfg, train_in_own_store
-from lbo import schema
-from lbo.classical import run as run_classical
-from lbo.errors import LboError
-from lbo.evaluate import classical, predict_grid
+from lbo.core.errors import LboError
 from lbo.export import register
-from lbo.filters import ekf_batch, run_filterpy_ekf
-from lbo.metrics import rmse
-from lbo.noise import Noise
-from lbo.observe import resample, run
-from lbo.observer import Observer
-from lbo.vehicle import Vehicle, wrap_angle
+from lbo.filters.classical import run as run_classical
+from lbo.filters.kalman import ekf_batch, run_filterpy_ekf
+from lbo.observe import run
+from lbo.scoring.grid import classical, predict_grid
+from lbo.scoring.metrics import rmse
+from lbo.serve.observer import Observer
+from lbo.sim import schema
+from lbo.sim.logio import resample
+from lbo.sim.noise import Noise
+from lbo.sim.vehicle import Vehicle, wrap_angle
 
 VEHICLE, NOISE = Vehicle(), Noise.preset("paper")
 LOG = ["t", "x_m", "y_m", "psi_m", "V", "delta", "x", "y", "psi"]
@@ -61,7 +62,7 @@ def observe(*overrides, check=True):
 
 def classical_cov(name, arr):
     """(T, 3, 3) covariances of a classical filter on one log's arrays."""
-    from lbo.classical import run as run_classical
+    from lbo.filters.classical import run as run_classical
 
     return run_classical(name, arr["m"], arr["u"], VEHICLE, NOISE, return_cov=True)[1][0]
 
@@ -121,7 +122,7 @@ def test_ekf_output_matches_filterpys_ekf(tmp_path, manoeuvre, log_csv):
 
 
 def test_smooth_true_writes_the_rts_smoothers_estimates(tmp_path, manoeuvre, log_csv, trained):
-    from lbo.classical import run as run_classical
+    from lbo.filters.classical import run as run_classical
 
     out = tmp_path / "est.csv"
     result = run(compose_cfg("observe", ["observer=oracle", "alpha=1", f"input={log_csv}",
@@ -425,7 +426,7 @@ def test_plot_true_writes_a_png_beside_the_output(tmp_path, log_csv):
 
 
 def test_the_plot_shows_errors_against_the_truth_or_the_uncertainty(manoeuvre):
-    from lbo import plots
+    from lbo.core import plots
 
     t = manoeuvre["t"].to_numpy()
     m = manoeuvre[["x_m", "y_m", "psi_m"]].to_numpy()

@@ -50,7 +50,7 @@ def test_an_installed_wheel_composes_its_configs_outside_the_repo(wheel, tmp_pat
     work.mkdir()
     env = {k: v for k, v in os.environ.items() if k not in ("LBO_ROOT", "MLFLOW_TRACKING_URI")}
     env["PYTHONPATH"] = str(site)
-    res = subprocess.run([sys.executable, "-c", "import lbo.paths as p; "
+    res = subprocess.run([sys.executable, "-c", "import lbo.core.paths as p; "
                           "print(p.CONF_DIR); print(p.REPO_ROOT); print(p.EXAMPLE_LOG)"],
                          cwd=work, env=env, capture_output=True, text=True)
     assert res.returncode == 0, res.stderr

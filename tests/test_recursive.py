@@ -6,12 +6,12 @@ import numpy as np
 import pytest
 import torch
 
-from lbo.engines import TOLERANCE
-from lbo.errors import LboError
+from lbo.core.errors import LboError
 from lbo.models.filternet import FilterObserver
+from lbo.models.net import ObserverNet
 from lbo.models.recursive import STATE_NAMES, RecursiveFilter
-from lbo.network import ObserverNet
-from lbo.observer import Observer
+from lbo.serve.engines import TOLERANCE
+from lbo.serve.observer import Observer
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 

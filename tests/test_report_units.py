@@ -1,7 +1,7 @@
 """The report's small judgements on hand-made score tables: where an observer overtakes the
-EKF (:func:`lbo.report.crossover`), which window of an architecture is best
-(:func:`lbo.report.best_window`) and each row's NRMSE over the oracle EKF's
-(:func:`lbo.report.with_oracle_ratio`). Every expected number is worked out by hand in a
+EKF (:func:`lbo.scoring.report.crossover`), which window of an architecture is best
+(:func:`lbo.scoring.report.best_window`) and each row's NRMSE over the oracle EKF's
+(:func:`lbo.scoring.report.with_oracle_ratio`). Every expected number is worked out by hand in a
 comment beside it."""
 
 from __future__ import annotations
@@ -12,8 +12,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from lbo.metrics import SCORE_COLUMNS
-from lbo.report import best_window, crossover, with_oracle_ratio
+from lbo.scoring.metrics import SCORE_COLUMNS
+from lbo.scoring.report import best_window, crossover, with_oracle_ratio
 
 GRID = (0.0, 1.0, 2.0, 3.0, 4.0, 5.0, 6.0)
 """The smoke data's alpha grid."""

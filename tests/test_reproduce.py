@@ -117,7 +117,7 @@ def test_reproduce_smoke_killed_and_resumed_without_duplicates(tmp_path):
 def test_expected_steps_and_eta_arithmetic():
     from omegaconf import OmegaConf
 
-    from lbo.eta import Eta, duration, steps_per_run
+    from lbo.learn.eta import Eta, duration, steps_per_run
 
     def cfg(limit):
         return OmegaConf.create({"trainer": {"max_epochs": 6, "limit_train_batches": limit}})
@@ -135,7 +135,7 @@ def test_expected_steps_and_eta_arithmetic():
 
 def test_a_measured_step_gives_the_runs_expected_time(tmp_path, smoke_data):
     from helpers import train_cfg
-    from lbo.eta import measure
+    from lbo.learn.eta import measure
 
     m = measure(train_cfg(tmp_path, smoke_data, "trainer.max_epochs=2",
                           "trainer.limit_train_batches=5"), steps=4)

@@ -11,11 +11,11 @@ import pandas as pd
 import pytest
 
 from helpers import ROBUST_SMOKE, compose_cfg, train_in_own_store
-from lbo.errors import LboError
-from lbo.module import ObserverModule
-from lbo.observer import Observer
+from lbo.core.errors import LboError
+from lbo.learn.lightning_module import ObserverModule
+from lbo.serve.observer import Observer
+from lbo.sim.vehicle import wrap_angle
 from lbo.train import train
-from lbo.vehicle import wrap_angle
 
 LOG = ["t", "x_m", "y_m", "psi_m", "V", "delta", "x", "y", "psi"]
 

@@ -18,11 +18,11 @@ import torch
 
 from helpers import train_cfg
 from helpers.servers import free_port
-from lbo.errors import LboError, TrainingDiverged
+from lbo.core.errors import LboError, TrainingDiverged
+from lbo.core.runfolder import claim
 from lbo.export import export
-from lbo.network import ObserverNet
-from lbo.observer import Observer
-from lbo.runfolder import claim
+from lbo.models.net import ObserverNet
+from lbo.serve.observer import Observer
 from lbo.train import train
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
@@ -88,7 +88,7 @@ def test_a_second_training_into_a_busy_folder_is_refused_and_writes_nothing(tmp_
 
 def test_train_holds_its_output_dir(tmp_path, smoke_data, tracking):
     cfg = train_cfg(tmp_path, smoke_data)
-    code = ("import sys, time; from lbo.runfolder import claim\n"
+    code = ("import sys, time; from lbo.core.runfolder import claim\n"
             f"with claim({str(tmp_path / 'out')!r}):\n"
             "    print('held', flush=True); time.sleep(60)\n")
     holder = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True)

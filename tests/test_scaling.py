@@ -18,9 +18,9 @@ from omegaconf import open_dict
 
 from helpers import compose_cfg, train_cfg
 from helpers.servers import PG_PASSWORD, free_port, mlflow_server, postgres
-from lbo.errors import LboError
-from lbo.study_storage import MAX_CONNECTIONS
-from lbo.tracking import check_launcher, launcher_from_argv
+from lbo.core.cli import check_launcher, launcher_from_argv
+from lbo.core.errors import LboError
+from lbo.tracking.study_storage import MAX_CONNECTIONS
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 optuna.logging.set_verbosity(optuna.logging.WARNING)
@@ -101,9 +101,9 @@ def test_an_unreachable_tracking_server_is_one_line_and_starts_nothing(tmp_path)
 
 
 def test_check_launcher_names_the_package_when_its_module_is_missing(monkeypatch):
-    from lbo import tracking
+    from lbo.core import cli
 
-    monkeypatch.setitem(tracking.LAUNCHERS, "joblib", ("hydra_plugins.not_here",
+    monkeypatch.setitem(cli.LAUNCHERS, "joblib", ("hydra_plugins.not_here",
                                                        "hydra-joblib-launcher"))
     with pytest.raises(LboError, match=r"^hydra/launcher=joblib: the Hydra plugin "
                                        r"hydra-joblib-launcher is not installed \(pip install"):
@@ -141,7 +141,7 @@ def test_joblib_sweep_matches_the_serial_sweep(tmp_path, smoke_data):
 @pytest.mark.slow
 def test_train_observe_export_and_tune_through_a_tracking_server(tmp_path, smoke_data, monkeypatch,
                                                         manoeuvre_csv):
-    from lbo.observer import Observer
+    from lbo.serve.observer import Observer
     from lbo.train import train
 
     with mlflow_server() as server:
@@ -340,7 +340,7 @@ def test_reproduce_trains_through_the_launcher_and_resumes_without_duplicates(
     every finished run and adds none."""
     from hydra import compose, initialize_config_dir
 
-    from lbo.paths import CONF_DIR
+    from lbo.core.paths import CONF_DIR
     from lbo.reproduce import launch
 
     uri = f"sqlite:///{tmp_path / 'mlflow.db'}"

@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 
 from helpers.servers import PG_PASSWORD, PG_USER, free_port, mlflow_server, postgres
-from lbo.redact import scrub, scrub_tree
+from lbo.core.redact import scrub, scrub_tree
 
 # the tracking server has no authentication: the password only travels in the URI, so that
 # every place lbo could copy the URI to is searched for it

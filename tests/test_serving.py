@@ -1,4 +1,4 @@
-"""A trained observer as an MLflow model (lbo.serving): every training run logs one; it loads
+"""A trained observer as an MLflow model (lbo.serve.serving): every training run logs one; it loads
 with mlflow.pyfunc in a fresh process and serves over HTTP with `mlflow models serve`, giving
 the estimates lbo.Observer gives."""
 
@@ -15,10 +15,10 @@ import requests
 
 from helpers import ROBUST_SMOKE, train_in_own_store
 from helpers.servers import model_server
-from lbo.errors import LboError
+from lbo.core.errors import LboError
 from lbo.export import register
-from lbo.observer import Observer
-from lbo.serving import INPUT_COLUMNS, OUTPUT_COLUMNS, estimates
+from lbo.serve.observer import Observer
+from lbo.serve.serving import INPUT_COLUMNS, OUTPUT_COLUMNS, estimates
 
 pytestmark = [pytest.mark.slow, pytest.mark.usefixtures("one_torch_thread")]
 

@@ -10,10 +10,10 @@ import pandas as pd
 import pytest
 
 from helpers import compose_cfg
-from lbo import schema
-from lbo.errors import LboError
+from lbo.core.errors import LboError
+from lbo.sim import schema
+from lbo.sim.vehicle import wrap_angle
 from lbo.simulate import run, simulate
-from lbo.vehicle import wrap_angle
 
 FREE = ["manoeuvre=free_drive", "duration=10"]
 

@@ -8,11 +8,11 @@ import pytest
 import torch
 
 from helpers import train_cfg
-from lbo.data import WindowDataModule, rows, window_ends
-from lbo.errors import LboError
-from lbo.metrics import SCORE_COLUMNS
-from lbo.module import ObserverModule
-from lbo.network import ObserverNet
+from lbo.core.errors import LboError
+from lbo.learn.datamodule import WindowDataModule, rows, window_ends
+from lbo.learn.lightning_module import ObserverModule
+from lbo.models.net import ObserverNet
+from lbo.scoring.metrics import SCORE_COLUMNS
 from lbo.train import train
 
 
@@ -260,7 +260,7 @@ def test_batches_are_drawn_on_the_device_the_observer_trains_on(trainer, tmp_pat
 @pytest.mark.skipif(not torch.cuda.is_available(),
                     reason="needs CUDA, which this machine lacks: run it where a GPU is present")
 def test_training_on_cuda_draws_batches_on_the_gpu(tmp_path, smoke_data, tracking):
-    from lbo.draws import AlphaDraw
+    from lbo.learn.draws import AlphaDraw
 
     dm = WindowDataModule(smoke_data, 20, 64, draw=AlphaDraw(), sigma=(0.25, 0.25, 0.004),
                           device="cuda")

@@ -14,9 +14,9 @@ from hydra.errors import MissingConfigException
 from omegaconf import open_dict
 
 from helpers import compose_cfg
-from lbo.errors import LboError
-from lbo.paths import CONF_DIR
-from lbo.study_mlflow import StudyRun, literal
+from lbo.core.errors import LboError
+from lbo.core.paths import CONF_DIR
+from lbo.tracking.study_mlflow import StudyRun, literal
 from lbo.train import check
 from lbo.tune import (
     TrialSeededTPESampler,
@@ -301,7 +301,7 @@ def test_a_diverged_trial_fails_and_the_study_goes_on_until_too_many_diverge(
 
 def test_an_error_after_the_study_run_opened_ends_it_failed(tmp_path, smoke_data, tracking,
                                                            monkeypatch):
-    from lbo import study_mlflow
+    from lbo.tracking import study_mlflow
 
     def broken(*args, **kwargs):
         raise RuntimeError("no figures today")
@@ -355,7 +355,7 @@ def test_a_changed_categorical_space_is_refused_before_any_trial(tmp_path, smoke
 ])
 def test_a_changed_distribution_kind_or_scale_is_refused(tmp_path, smoke_data, tracking,
                                                           stored, message):
-    from lbo.search import check_resumed
+    from lbo.tracking.search import check_resumed
 
     space = search_space(tune_cfg(tmp_path, smoke_data, tracking))
     trial = optuna.trial.create_trial(params={"model.dense_units": 64},
@@ -457,8 +457,8 @@ def test_trials_never_see_the_test_set(tmp_path, smoke_data, tracking):
     trial = trial_config(cfg, {"optimizer.lr": 0.5, "model.hidden_sizes": [4, 8, 16, 16]}, 7,
                          "s", tmp_path / "out")
     targets = [c["_target_"] for c in trial.callbacks.values()]
-    assert "lbo.callbacks.Evaluation" not in targets
-    assert "lbo.callbacks.Evaluation" in [c["_target_"] for c in cfg.callbacks.values()]
+    assert "lbo.learn.callbacks.Evaluation" not in targets
+    assert "lbo.learn.callbacks.Evaluation" in [c["_target_"] for c in cfg.callbacks.values()]
     assert trial.optimizer.lr == 0.5 and list(trial.model.hidden_sizes) == [4, 8, 16, 16]
     assert trial.output_dir == str(tmp_path / "out" / "trial_007")
     assert "tune" not in trial and cfg.optimizer.lr == 0.001  # the study's config is untouched

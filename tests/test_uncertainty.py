@@ -5,12 +5,13 @@ import pandas as pd
 import pytest
 
 from helpers import compose_cfg
-from lbo.classical import run as run_classical
-from lbo.evaluate import load_test, run
-from lbo.metrics import nees_table
-from lbo.noise import Noise
-from lbo.smoother import rts
-from lbo.vehicle import Vehicle, wrap_angle
+from lbo.evaluate import run
+from lbo.filters.classical import run as run_classical
+from lbo.filters.smoother import rts
+from lbo.scoring.grid import load_test
+from lbo.scoring.metrics import nees_table
+from lbo.sim.noise import Noise
+from lbo.sim.vehicle import Vehicle, wrap_angle
 
 VEHICLE, NOISE = Vehicle(), Noise.preset("paper")
 

@@ -2,9 +2,9 @@ import numpy as np
 import pytest
 
 from helpers import compose_cfg
-from lbo.errors import LboError
-from lbo.noise import PRESETS, Noise
-from lbo.vehicle import Vehicle, f, jacobian, measure, simulate, step, wrap_angle
+from lbo.core.errors import LboError
+from lbo.sim.noise import PRESETS, Noise
+from lbo.sim.vehicle import Vehicle, f, jacobian, measure, simulate, step, wrap_angle
 
 
 def test_straight_line():

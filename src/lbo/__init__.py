@@ -3,7 +3,7 @@
 The names below are loaded on first use, so ``import lbo`` stays light (no torch)::
 
     import lbo
-    obs = lbo.Observer.load("ekf")          # imports lbo.observer (and its dependencies) now
+    obs = lbo.Observer.load("ekf")          # imports lbo.serve.observer (and its dependencies) now
 """
 
 from __future__ import annotations
@@ -11,13 +11,17 @@ from __future__ import annotations
 from importlib import import_module
 from typing import Any
 
+LAYERS = ("core", "sim", "filters", "models", "tracking", "serve", "scoring", "learn")
+"""lbo's subpackages from the bottom up: a module imports from its own layer and those below
+it only; the commands (``python -m lbo.<command>``, ``lbo/<command>.py``) sit on top."""
+
 _EXPORTS = {
-    "Observer": "lbo.observer",
-    "Estimate": "lbo.observer",
-    "Vehicle": "lbo.vehicle",
-    "Noise": "lbo.noise",
-    "LboError": "lbo.errors",
-    "LogFormat": "lbo.logformat",
+    "Observer": "lbo.serve.observer",
+    "Estimate": "lbo.serve.observer",
+    "Vehicle": "lbo.sim.vehicle",
+    "Noise": "lbo.sim.noise",
+    "LboError": "lbo.core.errors",
+    "LogFormat": "lbo.sim.logformat",
 }
 
 __all__ = sorted(_EXPORTS)

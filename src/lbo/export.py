@@ -28,9 +28,10 @@ from typing import Any
 
 from omegaconf import DictConfig
 
-from lbo.atomic import atomic_path, remove_stale_temps
-from lbo.cli import entry
-from lbo.engines import (
+from lbo.core.atomic import atomic_path, remove_stale_temps
+from lbo.core.cli import entry
+from lbo.core.errors import LboError
+from lbo.serve.engines import (
     OPSET,
     TOLERANCE,
     check_exported,
@@ -41,7 +42,6 @@ from lbo.engines import (
     trace,
     trace_recursive,
 )
-from lbo.errors import LboError
 
 
 def export(observer: Any, out_dir: str | Path, name: str | None = None) -> dict[str, Path]:
@@ -50,7 +50,7 @@ def export(observer: Any, out_dir: str | Path, name: str | None = None) -> dict[
 
     Parameters
     ----------
-    observer : a learned :class:`~lbo.observer.Observer`.
+    observer : a learned :class:`~lbo.serve.observer.Observer`.
     out_dir : folder to write to (created).
     name : file stem; default the observer's name (``cnn-N60``).
 
@@ -144,8 +144,8 @@ def _export_lock(out: Path) -> Iterator[None]:
 def _step_sidecar(rec: Any, model: bytes) -> dict[str, Any]:
     """What a control loop needs to call the recursive form's step: its inputs and outputs,
     and the state it starts from."""
-    from lbo.engines import onnx_session
     from lbo.models.recursive import STATE_NAMES
+    from lbo.serve.engines import onnx_session
 
     state = rec.initial_state(1)
     used = {i.name for i in onnx_session(model).get_inputs()}
@@ -198,7 +198,7 @@ def _sidecar(observer: Any, net: Any, name: str, diff: dict[str, float],
 
 
 def register(run_id: str, name: str, uri: str | None = None) -> str:
-    """Register run ``run_id``'s MLflow model (``model/``, :mod:`lbo.serving`; a run trained
+    """Register run ``run_id``'s MLflow model (``model/``, :mod:`lbo.serve.serving`; a run trained
     before lbo logged one: its ``checkpoints/``) as a new version of model ``name``.
 
     Returns the ``models:/<name>/<version>`` URI that :meth:`Observer.load`, ``python -m
@@ -208,7 +208,7 @@ def register(run_id: str, name: str, uri: str | None = None) -> str:
     import mlflow
     from mlflow.exceptions import MlflowException
 
-    from lbo.paths import tracking_uri
+    from lbo.core.paths import tracking_uri
 
     uri = uri or tracking_uri()
     client = mlflow.MlflowClient(uri, registry_uri=uri)
@@ -231,7 +231,7 @@ def register(run_id: str, name: str, uri: str | None = None) -> str:
 
 def run(cfg: DictConfig) -> dict[str, Any]:
     """Export the configured observer; print the files and, with ``register``, the model URI."""
-    from lbo.observer import RUN_ID, Observer
+    from lbo.serve.observer import RUN_ID, Observer
 
     if not cfg.get("observer"):
         raise LboError("observer: give a checkpoint path, an MLflow run id or a "

@@ -8,14 +8,14 @@ The log (CSV or Parquet) holds one row per sample with the columns ``t`` (s), ``
 ``x, y, psi``. A row with ``x_m, y_m, psi_m`` all empty is a step without a position fix
 (GNSS slower than the inputs); the classical observers predict through it, and learned ones
 trained with ``fix_rates`` take it. The whole log is checked before anything is written
-(:mod:`lbo.logcheck`, the checks :class:`lbo.Observer` applies too); a failed run writes no
+(:mod:`lbo.sim.logcheck`, the checks :class:`lbo.Observer` applies too); a failed run writes no
 output file. The output has ``t, x, y, psi, valid``: ``valid`` is false before the first
 fix, and on the first N-1 rows of a CNN or LSTM, whose window is not full yet (those rows
 hold the EKF's estimate). An observer that knows how sure it is (every classical one, and the
 robust observer) adds ``var_x, var_y`` (m^2), ``var_psi`` (rad^2) and ``cov_xy`` (m^2), its
 covariance's entries; the CNN and the LSTM have none.
 
-``smooth=true`` runs a Rauch-Tung-Striebel smoother after the filter (:mod:`lbo.smoother`),
+``smooth=true`` runs a Rauch-Tung-Striebel smoother after the filter (:mod:`lbo.filters.smoother`),
 for the best estimate of an offline log from every sample before and after each row: the
 classical observers and the robust observer (in its recursive form) only. ``form=recursive``
 runs the robust observer's filter from step to step instead of over a window per estimate.
@@ -32,234 +32,38 @@ With the true state in the log, the RMSE per variable (over the valid rows) and 
 from __future__ import annotations
 
 import sys
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pandas as pd
 from omegaconf import DictConfig
 
-from lbo.atomic import atomic_path
-from lbo.cli import entry
-from lbo.errors import LboError
-from lbo.logcheck import (
-    DEGREES_SHARE,
+from lbo.core.cli import entry
+from lbo.core.errors import LboError
+from lbo.scoring.metrics import PAPER_REFERENCE, nrmse, rmse
+from lbo.sim.logcheck import (
     MAX_GAP,
-    POSITION_LIMIT,
-    RANGES,
-    SPEED_LIMIT,
     check_alpha,
-    check_conventions,
     check_device,
-    check_gaps,
     check_max_gap,
-    check_samples,
-    check_time,
     check_time_unit,
 )
-from lbo.logcheck import check_steering as check_delta
-from lbo.logformat import LogFormat
-from lbo.metrics import PAPER_REFERENCE, nrmse, rmse
-from lbo.schema import MEAS as MEAS_COLUMNS
-from lbo.schema import check_values, write_set
-from lbo.vehicle import wrap_angle
+from lbo.sim.logformat import LogFormat
+from lbo.sim.logio import (
+    COVARIANCE_COLUMNS,
+    LOG_COLUMNS,
+    TRUTH_COLUMNS,
+    check_log,
+    check_output_path,
+    check_period,
+    check_steering,
+    plot_path,
+    read_log,
+    resample,
+    write_table,
+)
 
-__all__ = ["DEGREES_SHARE", "DT_TOLERANCE", "FORMATS", "LOG_COLUMNS", "MAX_GAP",
-           "OUTPUT_COLUMNS", "POSITION_LIMIT", "RANGES", "SPEED_LIMIT", "TRUTH_COLUMNS",
-           "check_log", "check_output_path", "check_period", "check_steering", "main",
-           "read_log", "resample", "run", "write_table"]
-
-LOG_COLUMNS = ("t", "x_m", "y_m", "psi_m", "V", "delta")
-TRUTH_COLUMNS = ("x", "y", "psi")
-OUTPUT_COLUMNS = ("t", "x", "y", "psi", "valid")
-COVARIANCE_COLUMNS = ("var_x", "var_y", "var_psi", "cov_xy")
-"""The covariance's entries an observer that gives one adds to the output."""
-FORMATS = (".csv", ".parquet")
-DT_TOLERANCE = 0.01
-"""Largest relative difference between the log's sampling period and the observer's dt."""
-
-
-def _format(path: Path, field: str) -> str:
-    suffix = path.suffix.lower()
-    if suffix not in FORMATS:
-        raise LboError(f"{field} must be a .csv or .parquet file, got {str(path)!r}")
-    return suffix
-
-
-def _column_names(raw: list[Any], path: Path) -> list[str]:
-    """The header's names, stripped of spaces (``t, x_m``); a name given twice is refused
-    (pandas would read the second ``x_m`` as ``x_m.1``, Arrow would refuse to pick one)."""
-    names = [str(n).strip() for n in raw]
-    names = [n if n else f"Unnamed: {i}" for i, n in enumerate(names)]
-    seen: set[str] = set()
-    for n in names:
-        if n in seen:
-            raise LboError(f"input {path}: column {n!r} appears more than once in the header; "
-                           "keep one column of each name")
-        seen.add(n)
-    return names
-
-
-def read_log(path: str | Path) -> pd.DataFrame:
-    """Read a CSV or Parquet log; an unreadable or empty file, or a column name given twice,
-    is one :class:`LboError`. Column names are stripped of surrounding spaces."""
-    path = Path(path)
-    suffix = _format(path, "input")
-    if not path.is_file():
-        raise LboError(f"input {path}: file not found")
-    if path.stat().st_size == 0:
-        raise LboError(f"input {path}: empty file (no header, no rows)")
-    try:
-        if suffix == ".csv":
-            header = pd.read_csv(path, header=None, nrows=1, dtype=str, keep_default_na=False)
-            names = _column_names(list(header.iloc[0]), path)
-            df = pd.read_csv(path, header=0, names=names, skipinitialspace=True)
-        else:
-            import pyarrow.parquet as pq
-
-            _column_names(pq.read_schema(path).names, path)  # (index columns among them)
-            df = pd.read_parquet(path)
-            df.columns = [str(c).strip() for c in df.columns]
-    except LboError:
-        raise
-    except pd.errors.EmptyDataError:
-        raise LboError(f"input {path}: empty file (no header, no rows)") from None
-    except Exception as e:  # parser, Arrow, encoding: the file is not a readable table
-        reason = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
-        raise LboError(f"input {path}: cannot read it as {suffix[1:]} ({reason})") from None
-    if len(df) == 0:
-        raise LboError(f"input {path}: empty file (a header, no rows)")
-    return df
-
-
-def check_log(df: pd.DataFrame, source: str = "input", heading: str = "enu") -> bool:
-    """Check a log's columns and values; return whether it holds the true ``x, y, psi``.
-
-    A row whose ``x_m, y_m, psi_m`` are all empty (NaN) is a step without a position fix.
-    Raises :class:`LboError` naming the first problem: missing columns (naming those found),
-    a non-numeric column, ``t`` with NaN or inf or not strictly increasing, and the value
-    checks of :func:`lbo.logcheck.check_samples` (those :meth:`lbo.Observer.run` applies:
-    NaN or inf other than a whole missing fix, a partial fix, no fix at all, a heading that
-    looks like degrees, positions and speeds beyond any vehicle's), and a speed or heading
-    that contradicts the fixes (:func:`lbo.logcheck.check_conventions`: km/h, a compass
-    bearing; ``heading`` is the convention it was read in). The steering limit, the
-    unit of ``t`` and the sampling period need the observer: :func:`check_steering`,
-    :func:`lbo.logcheck.check_time_unit`, :func:`check_period`.
-    """
-    if len(df) == 0:
-        raise LboError(f"{source}: empty file (no rows)")
-    missing = [c for c in LOG_COLUMNS if c not in df.columns]
-    if missing:
-        raise LboError(f"{source}: missing column{'s' if len(missing) > 1 else ''} "
-                       f"{', '.join(missing)} (a log needs {', '.join(LOG_COLUMNS)}; "
-                       "t in s, x_m and y_m in m, psi_m in rad, V in m/s, delta in rad; "
-                       f"found {', '.join(map(str, df.columns))})")
-    truth = all(c in df.columns for c in TRUTH_COLUMNS)
-    check_values(df, ("t",), source, kinds="iuf")
-    for c in ("V", "delta") + MEAS_COLUMNS + (TRUTH_COLUMNS if truth else ()):
-        if df[c].dtype.kind not in "iuf":
-            raise LboError(f"{source}: column {c!r} is not numeric (dtype {df[c].dtype})")
-    check_samples(df[list(MEAS_COLUMNS)].to_numpy(dtype=float),
-                  df[["V", "delta"]].to_numpy(dtype=float),
-                  truth=df[list(TRUTH_COLUMNS)].to_numpy(dtype=float) if truth else None,
-                  source=source)
-    check_time(df["t"].to_numpy(dtype=float), source)
-    check_conventions(df["t"].to_numpy(dtype=float), df[list(MEAS_COLUMNS)].to_numpy(dtype=float),
-                      df[["V", "delta"]].to_numpy(dtype=float), source, heading)
-    return truth
-
-
-def check_steering(df: pd.DataFrame, vehicle: Any, source: str = "input") -> None:
-    """Refuse a steering angle beyond the vehicle's limit ``delta_max``, naming the row."""
-    check_delta(df["delta"].to_numpy(dtype=float), vehicle.delta_max, source)
-
-
-def check_output_path(output: str | Path, source: str | Path | None = None) -> Path:
-    """The output path, checked: .csv or .parquet, and not the input log ``source``."""
-    output = Path(output)
-    _format(output, "output")
-    if source is not None and output.resolve() == Path(source).resolve():
-        raise LboError(f"output must not be the input log ({source}): it would replace it")
-    return output
-
-
-def check_period(t: np.ndarray, dt: float, source: str = "input") -> None:
-    """Refuse a log whose sampling period differs from ``dt`` by more than 1% anywhere."""
-    if len(t) < 2:
-        return
-    steps = np.diff(t)
-    off = np.abs(steps - dt) / dt
-    if off.max() > DT_TOLERANCE:
-        j = int(np.argmax(off))
-        raise LboError(f"{source}: the sampling period ({np.median(steps):.6g} s median, "
-                       f"{steps[j]:.6g} s between rows {j} and {j + 1}) differs from the "
-                       f"observer's dt={dt:g} s by more than 1%; pass resample=true to "
-                       f"interpolate the log to dt={dt:g} s")
-
-
-def resample(df: pd.DataFrame, dt: float, columns: tuple[str, ...],
-             max_gap: float | None = MAX_GAP, source: str = "input") -> pd.DataFrame:
-    """``columns`` of a log on the grid ``t0, t0 + dt, ...`` up to its last ``t``.
-
-    Fixes (``x_m, y_m, psi_m``) are never interpolated: each fix lands on the grid row
-    nearest to it, if within dt/2 (of several, the nearest wins); every other grid row is a
-    step without a fix, also when the log had a fix on every row. The other columns (V, delta,
-    the true state) are interpolated linearly; headings are unwrapped before and wrapped to
-    (-pi, pi] after, so a jump from pi to -pi does not pass through 0.
-
-    Raises
-    ------
-    LboError
-        Two rows more than ``max_gap`` seconds apart (:func:`lbo.logcheck.check_gaps`): the
-        inputs cannot be interpolated across a gap (None: not checked); a gap of at most
-        ``dt`` never is.
-    """
-    t = df["t"].to_numpy(dtype=float)
-    if max_gap is not None:
-        check_gaps(t, max_gap, source, dt)
-    n = int(np.floor((t[-1] - t[0]) / dt + 1e-9)) + 1
-    grid = t[0] + dt * np.arange(n)
-    out = {"t": grid}
-    meas = [c for c in MEAS_COLUMNS if c in columns]
-    if meas:
-        fix = np.isfinite(df[meas].to_numpy(dtype=float)).all(1)
-        at = np.round((t[fix] - t[0]) / dt).astype(np.int64)
-        off = np.abs(t[fix] - (t[0] + dt * at))
-        near = (at >= 0) & (at < n) & (off <= dt / 2 * (1 + 1e-9))
-        rows, off, src = at[near], off[near], np.flatnonzero(fix)[near]
-        order = np.lexsort((off, rows))  # by grid row, the nearest fix first
-        first = order[np.r_[True, rows[order][1:] != rows[order][:-1]]] if len(order) else order
-    for c in columns:
-        v = df[c].to_numpy(dtype=float)
-        if c in MEAS_COLUMNS:
-            out[c] = np.full(n, np.nan)
-            out[c][rows[first]] = v[src[first]]
-        elif c == "psi":
-            out[c] = wrap_angle(np.interp(grid, t, np.unwrap(v)))
-        else:
-            out[c] = np.interp(grid, t, v)
-    return pd.DataFrame(out)
-
-
-def plot_path(plot: Any, output: Path) -> Path | None:
-    """Where ``plot=`` puts the figure: true, beside ``output`` (``est.csv`` -> ``est.png``);
-    a path to a .png; false or null, nowhere."""
-    if plot is None or plot is False:
-        return None
-    if plot is True:
-        return output.with_suffix(".png")
-    if isinstance(plot, str) and Path(plot).suffix.lower() == ".png":
-        return Path(plot)
-    raise LboError(f"plot must be true, false or a .png file, got {plot!r}")
-
-
-def write_table(df: pd.DataFrame, path: Path) -> Path:
-    """Write CSV or Parquet by extension, atomically: a failed write leaves no file."""
-    if path.suffix.lower() == ".parquet":
-        return write_set(df, path)
-    with atomic_path(path) as tmp:
-        df.to_csv(tmp, index=False)
-    return path
+__all__ = ["main", "run"]
 
 
 def run(cfg: DictConfig) -> dict[str, Any]:
@@ -270,10 +74,10 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     ``output`` (Path), ``observer`` (name), ``rows``, ``valid`` (rows with a full window),
     and, when the log holds the true state, ``rmse`` (3,) (m, m, rad) and ``nrmse``.
     """
-    from lbo.classical import OBSERVERS as CLASSICAL
-    from lbo.noise import Noise
-    from lbo.observer import Observer
-    from lbo.vehicle import Vehicle
+    from lbo.filters.classical import OBSERVERS as CLASSICAL
+    from lbo.serve.observer import Observer
+    from lbo.sim.noise import Noise
+    from lbo.sim.vehicle import Vehicle
 
     for field in ("observer", "input", "output"):
         if cfg.get(field) is None or str(cfg.get(field)) == "":
@@ -334,7 +138,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
         out["lat"], out["lon"] = origin.to_geodetic(est[:, 0], est[:, 1])
     write_table(out, output)
     if plot is not None:
-        from lbo import plots
+        from lbo.core import plots
 
         plots.save(plots.observed_log(out["t"].to_numpy(), m, np.where(valid[:, None], est, np.nan),
                                       obs.name, df[list(TRUTH_COLUMNS)].to_numpy(dtype=float)

@@ -26,13 +26,13 @@ import pandas as pd
 from hydra import compose
 from omegaconf import DictConfig
 
-from lbo.atomic import write_text
-from lbo.classical import NAMES as CLASSICAL
-from lbo.cli import entry
-from lbo.config import integer, require
-from lbo.errors import LboError
-from lbo.eta import Eta, duration, measure
-from lbo.tracking import check_launcher, check_store
+from lbo.core.atomic import write_text
+from lbo.core.checks import integer, require
+from lbo.core.cli import check_launcher, entry
+from lbo.core.errors import LboError
+from lbo.filters.classical import NAMES as CLASSICAL
+from lbo.learn.eta import Eta, duration, measure
+from lbo.tracking.runs import check_store
 
 STAGES = ("data", "tune", "train", "evaluate", "report")
 
@@ -91,8 +91,8 @@ def run(cfg: DictConfig) -> Path:
 def check_reproduce(cfg: DictConfig) -> None:
     """Reject a bad scale, job count, launcher, tracking server, model, window, classical
     observer or training setting before any stage runs, not hours later in its stage."""
-    from lbo.evaluate import check_observers
-    from lbo.paths import CONF_DIR
+    from lbo.core.paths import CONF_DIR
+    from lbo.scoring.grid import check_observers
     from lbo.train import check
 
     if cfg.scale not in cfg.trials:
@@ -115,7 +115,7 @@ def check_reproduce(cfg: DictConfig) -> None:
 
 def stage_data(cfg: DictConfig) -> tuple[Path, str]:
     """1: the scale's data sets, generated or reused; returns their folder."""
-    from lbo.datagen.__main__ import run as datagen
+    from lbo.datagen import run as datagen
 
     return Path(datagen(compose("datagen", [f"data={cfg.scale}", *cfg.overrides]))), "done"
 
@@ -171,7 +171,8 @@ def dynamic_jobs(cfg: DictConfig) -> dict[str, list[str]]:
 
 def expected(cfg: DictConfig, jobs: list[tuple[str, list[str]]]) -> Eta:
     """Measure a few steps of every run still to train; print the stage's expected time."""
-    from lbo.train import config_hash, data_device, finished_run
+    from lbo.learn.builders import data_device
+    from lbo.train import config_hash, finished_run
 
     estimates = []
     for key, overrides in jobs:
@@ -245,7 +246,7 @@ def stage_classical(cfg: DictConfig, out: Path, folder: Path) -> tuple[pd.DataFr
 def stage_report(cfg: DictConfig, out: Path, folder: Path, tuned: dict, runs: dict,
                  classical_table: pd.DataFrame, record: dict) -> tuple[list[Path], str]:
     """5: the tables and figures, also logged to MLflow as a run of their own."""
-    from lbo import report
+    from lbo.scoring import report
 
     study = dynamic_jobs(cfg)  # scored on test sets of their own
     dynamic = {data: pd.concat([pd.read_csv(_artifact(runs[k], "evaluation.csv",
@@ -276,7 +277,7 @@ def stage_report(cfg: DictConfig, out: Path, folder: Path, tuned: dict, runs: di
 
 def _train_job(cfg: DictConfig) -> dict[str, Any]:
     """One training job of a launcher (a module-level function, so that it pickles)."""
-    from lbo.runfolder import save_hydra_files
+    from lbo.core.runfolder import save_hydra_files
     from lbo.train import train
 
     save_hydra_files(cfg)  # Hydra writes none (hydra.output_subdir is null)
@@ -327,8 +328,8 @@ def _artifact(run: dict[str, Any], path: str, tracking_uri: str) -> Path:
 def _trajectory(folder: Path, run: dict[str, Any] | None, manoeuvre: str,
                 tracking_uri: str) -> dict[str, np.ndarray] | None:
     """Fig. 6 arrays: one manoeuvre at alpha=3 with the best CNN and the EKF."""
-    from lbo.evaluate import classical, load_test, predict_grid
-    from lbo.observer import read_checkpoint, trained_conditions
+    from lbo.scoring.grid import classical, load_test, predict_grid
+    from lbo.serve.observer import read_checkpoint, trained_conditions
 
     if run is None:
         return None
@@ -354,8 +355,8 @@ def _trajectory(folder: Path, run: dict[str, Any] | None, manoeuvre: str,
 
 def _log_report(cfg: DictConfig, scale: str, out: Path, files: list[Path], data: str) -> None:
     """Log the report as an MLflow run of its own; a rerun updates the same run."""
-    from lbo.paths import artifact_location
-    from lbo.tracking import ensure_experiment
+    from lbo.core.paths import artifact_location
+    from lbo.tracking.runs import ensure_experiment
 
     client, exp_id = ensure_experiment(cfg.tracking_uri, cfg.experiment_name,
                                        artifact_location(cfg.tracking_uri))

@@ -30,15 +30,15 @@ import numpy as np
 import pandas as pd
 from omegaconf import DictConfig
 
-from lbo import schema
-from lbo.cli import entry
-from lbo.config import integer, number, require
-from lbo.datagen.clothoid import sample
-from lbo.datagen.manoeuvres import MANOEUVRES, Chain
-from lbo.datagen.pursuit import drive
-from lbo.dynamic import SingleTrack
-from lbo.errors import LboError
-from lbo.vehicle import Vehicle, measure, wrap_angle
+from lbo.core.checks import integer, number, require
+from lbo.core.cli import entry
+from lbo.core.errors import LboError
+from lbo.sim import schema
+from lbo.sim.clothoid import sample
+from lbo.sim.dynamic import SingleTrack
+from lbo.sim.manoeuvres import MANOEUVRES, Chain
+from lbo.sim.pursuit import drive
+from lbo.sim.vehicle import Vehicle, measure, wrap_angle
 
 STOP_AND_GO = "stop_and_go"
 FREE_DRIVE = "free_drive"
@@ -89,10 +89,10 @@ def thin(m: np.ndarray, every: int) -> np.ndarray:
 
 def free_drive(spec, duration: float, alpha: float, seed: int) -> dict[str, np.ndarray]:
     """``duration`` seconds of one friction-circle trajectory: a training trajectory of the
-    data set ``spec`` describes (:func:`lbo.datagen.build.make_train`, its truth model and
+    data set ``spec`` describes (:func:`lbo.sim.datasets.make_train`, its truth model and
     sensors included), drawn from ``seed`` and measured at ``alpha``. Nothing is written to
     the data cache. Returns ``z`` (T, 3), ``u`` (T, 2), ``m`` (T, 3)."""
-    from lbo.datagen.build import make_train
+    from lbo.sim.datasets import make_train
 
     train = {**spec.train, "n_traj": 1, "duration": float(duration), "stop_and_go": 0.0,
              "alpha": float(alpha)}
@@ -110,10 +110,10 @@ def check_duration(cfg: DictConfig, dt: float) -> float:
 
 
 def check(cfg: DictConfig):
-    """The data set's spec (:func:`lbo.datagen.build.spec_from_cfg`), its data, noise, vehicle
+    """The data set's spec (:func:`lbo.sim.datasets.spec_from_cfg`), its data, noise, vehicle
     and truth groups checked; one line for a user's logs, which have nothing to simulate."""
-    from lbo.datagen.build import spec_from_cfg
-    from lbo.datagen.logs import is_logs
+    from lbo.sim.datasets import spec_from_cfg
+    from lbo.sim.log_sets import is_logs
 
     if is_logs(cfg):
         raise LboError("data=logs: lbo.simulate drives a simulated data set's manoeuvres, not "
@@ -124,8 +124,8 @@ def check(cfg: DictConfig):
 def simulate(cfg: DictConfig, seed: int | None = None) -> pd.DataFrame:
     """The log ``cfg`` describes, as a frame with the test-set columns; ``seed`` (default
     ``cfg.seed``) draws its noise (and a free drive's trajectory)."""
-    from lbo.datagen.build import drive_within_grip, slower_steps
-    from lbo.noise import Noise
+    from lbo.sim.datasets import drive_within_grip, slower_steps
+    from lbo.sim.noise import Noise
 
     name = cfg.manoeuvre
     require(name in (STOP_AND_GO, FREE_DRIVE) or name in MANOEUVRES, "manoeuvre",
@@ -189,7 +189,7 @@ def describe(cfg: DictConfig, df: pd.DataFrame) -> tuple[str, float]:
 def run(cfg: DictConfig) -> Path:
     """Simulate and write ``cfg.output`` (.csv or .parquet), or ``cfg.drives`` logs beside it;
     print what they hold. Returns the path written (the first one of a fleet)."""
-    from lbo.observe import check_output_path, write_table
+    from lbo.sim.logio import check_output_path, write_table
 
     if not cfg.get("output"):
         raise LboError("output must be given: python -m lbo.simulate manoeuvre=stop_and_go "

@@ -18,17 +18,26 @@ import torch
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf, open_dict
 
-from lbo.atomic import write_text
-from lbo.cli import entry
-from lbo.config import SCHEDULES, integer, number, require
-from lbo.datagen.logs import is_logs
-from lbo.draws import SOURCES, AlphaDraw, fix_periods
-from lbo.errors import LboError
-from lbo.features import FEATURE_MODES
-from lbo.paths import REPO_ROOT
-from lbo.redact import scrub, scrub_tree
-from lbo.runfolder import claim
-from lbo.tracking import check_store, ensure_experiment
+from lbo import LAYERS
+from lbo.core.atomic import write_text
+from lbo.core.checks import SCHEDULES, integer, number, require
+from lbo.core.cli import entry
+from lbo.core.errors import LboError
+from lbo.core.paths import REPO_ROOT
+from lbo.core.redact import scrub, scrub_tree
+from lbo.core.runfolder import claim
+from lbo.learn.builders import (
+    build_net,
+    datamodule,
+    fixes,
+    initial_weights,
+    logs_spec,
+    noise_settings,
+    prepare_data,
+)
+from lbo.models.features import FEATURE_MODES
+from lbo.sim.log_sets import is_logs
+from lbo.tracking.runs import check_store, ensure_experiment
 
 if TYPE_CHECKING:  # Lightning takes seconds to import: only a training run needs it
     import lightning as L
@@ -58,7 +67,7 @@ def check(cfg: DictConfig) -> None:
     check_optimizer(cfg.optimizer)
     require(cfg.get("lr_schedule", "constant") in SCHEDULES, "lr_schedule",
             f"one of {list(SCHEDULES)}", cfg.get("lr_schedule"))
-    from lbo.evaluate import REFERENCES
+    from lbo.scoring.grid import REFERENCES
 
     reference = (cfg.get("metric") or {}).get("reference", "ekf")
     require(reference in REFERENCES, "metric.reference", f"one of {list(REFERENCES)}",
@@ -103,117 +112,6 @@ def check_optimizer(opt: DictConfig) -> None:
         number(opt.eps, "optimizer.eps", low=0.0, low_open=True)
 
 
-def build_net(cfg: DictConfig):
-    """The :class:`~lbo.network.ObserverNet` that ``cfg.model`` describes, untrained."""
-    from lbo.network import ObserverNet
-
-    model = OmegaConf.to_container(cfg.model, resolve=True)
-    return ObserverNet(model.pop("name"), cfg.window, cfg.features, fixes(cfg), **model)
-
-
-def initial_weights(cfg: DictConfig, net, say: bool = True) -> dict[str, torch.Tensor]:
-    """The weights ``init_from`` gives ``net``: every tensor of that observer whose name and
-    shape ``net`` shares (its normalisation too). Tensors only ``net`` has (e.g. a residual
-    the source was trained without) keep their fresh initialisation, and are named.
-
-    Raises LboError naming ``init_from`` for an unreadable source, another architecture or
-    feature mode, or a tensor whose shape differs (another size or window).
-    """
-    from lbo.observer import load_net
-
-    source = str(cfg.init_from)
-    try:
-        src, hp = load_net(source)
-    except LboError as e:
-        raise LboError(f"init_from: {e}") from None
-    name = hp["model"]["name"]
-    require(name == cfg.model.name, "init_from",
-            f"an observer of this run's model={cfg.model.name} ({source} is a {name})", source)
-    require(hp["features"] == cfg.features, "init_from",
-            f"an observer of features={cfg.features} ({source} has features={hp['features']})",
-            source)
-    own, theirs = net.state_dict(), src.state_dict()
-    for key, value in theirs.items():
-        if key in own and own[key].shape != value.shape:
-            raise LboError(f"init_from: {source} has {key} of shape {tuple(value.shape)}, this "
-                           f"run's {cfg.model.name}-N{cfg.window} {tuple(own[key].shape)}; give "
-                           "the window, fix_rates and model sizes it was trained with")
-    fresh = [k for k in own if k not in theirs]
-    if fresh and say:
-        print(f"init_from: {len(fresh)} tensor(s) that {source} lacks start fresh: "
-              f"{', '.join(fresh[:6])}{' ...' if len(fresh) > 6 else ''}")
-    return {k: v for k, v in theirs.items() if k in own}
-
-
-def logs_spec(cfg: DictConfig):
-    from lbo.datagen.logs import spec_from_cfg
-
-    return spec_from_cfg(cfg)
-
-
-def fixes(cfg: DictConfig) -> bool:
-    """Whether the observer is trained with fixes dropped (``fix_rates``), and so takes them."""
-    return bool(fix_periods(cfg.get("fix_rates"), cfg.vehicle.dt))
-
-
-def datamodule(cfg: DictConfig, folder: Path):
-    """The training and validation windows of ``folder`` as ``cfg`` asks for them (batch size,
-    seed, training noise, device), set up."""
-    from lbo.data import WindowDataModule
-
-    dm = WindowDataModule(folder, cfg.window, cfg.batch_size, seed=cfg.seed,
-                          device=data_device(cfg),
-                          fix_periods=fix_periods(cfg.get("fix_rates"), cfg.vehicle.dt),
-                          **noise_settings(cfg))
-    dm.setup("fit")
-    return dm
-
-
-def data_device(cfg: DictConfig) -> str:
-    """Where the training rows live and batches are drawn: the trainer's CUDA device, so a
-    GPU run never copies a batch from the host, else the CPU."""
-    acc = str(cfg.trainer.get("accelerator", "cpu"))
-    if acc in ("gpu", "cuda") or (acc == "auto" and torch.cuda.is_available()):
-        return "cuda"
-    return "cpu"
-
-
-def noise_settings(cfg: DictConfig) -> dict[str, Any]:
-    """Keyword arguments of :class:`~lbo.data.WindowDataModule` for the ``train_noise`` group.
-
-    Raises LboError naming the field for a bad source, distribution, alpha or range.
-    """
-    tn = cfg.get("train_noise")
-    if tn is None or tn.get("source", "stored") == "stored":
-        return {}
-    require(tn.source in SOURCES, "train_noise.source", f"one of {list(SOURCES)}", tn.source)
-    draw = AlphaDraw.from_cfg(tn)
-    offset = tn.get("loss_weight_offset")
-    if offset is not None:
-        number(offset, "train_noise.loss_weight_offset", low=0.0, low_open=True,
-               form="null or a number > 0")
-    repeats = integer(tn.get("val_repeats", 1), "train_noise.val_repeats", 1)
-    out = {"draw": draw, "sigma": tuple(cfg.noise.measurement_sigma),
-           "weight_offset": offset, "val_repeats": repeats}
-    truth = cfg.get("truth") or {}
-    if truth.get("gnss_sigma", 0) > 0:  # the drawn noise drifts as the data set's does
-        out["drift"] = (float(truth.gnss_sigma), float(truth.gnss_tau) / cfg.vehicle.dt)
-    return out
-
-
-def prepare_data(cfg: DictConfig) -> tuple[Path, str]:
-    """The data-set folder (generated if missing, or ``data_dir`` as given) and its hash."""
-    if cfg.get("data_dir"):
-        folder = Path(cfg.data_dir)
-        if not (folder / "train.parquet").is_file():
-            raise LboError(f"data_dir: no train.parquet in {folder} "
-                           "(give a folder printed by `python -m lbo.datagen`)")
-        return folder, folder.name
-    from lbo.datagen.build import build_from_cfg
-
-    return build_from_cfg(cfg)
-
-
 def config_hash(cfg: DictConfig) -> str:
     """Fingerprint of what a run computes: the resolved config without where it writes."""
     import hashlib
@@ -222,10 +120,28 @@ def config_hash(cfg: DictConfig) -> str:
     with open_dict(c):
         c.output_dir, c.data.root, c.resume, c.data_dir = "-", "-", False, None
         c.pop("logger", None)
-    text = OmegaConf.to_yaml(c, resolve=True)
+    text = OmegaConf.to_yaml(OmegaConf.create(_unlayered(OmegaConf.to_container(c, resolve=True))))
     if is_logs(cfg):  # the same paths with other contents are other data
         text += f"\nlogs: {logs_spec(cfg).digest}"
     return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+def _unlayered(node: Any) -> Any:
+    """``node`` with every lbo ``_target_`` written without its layer (``lbo.learn.callbacks.X``
+    -> ``lbo.callbacks.X``), as it was before lbo's modules moved into layers: a run's hash
+    does not depend on which layer a class lives in, and the runs of a store made before the
+    move are still found by ``resume=true``."""
+    if isinstance(node, dict):
+        out = {k: _unlayered(v) for k, v in node.items()}
+        target = out.get("_target_")
+        if isinstance(target, str) and target.startswith("lbo."):
+            parts = target.split(".")
+            if len(parts) > 3 and parts[1] in LAYERS:
+                out["_target_"] = ".".join([parts[0], *parts[2:]])
+        return out
+    if isinstance(node, list):
+        return [_unlayered(v) for v in node]
+    return node
 
 
 LAST = "last.ckpt"
@@ -343,9 +259,9 @@ def _fit(cfg: DictConfig, callbacks: list[L.Callback] | None, tags: dict[str, st
     from lightning.pytorch.callbacks import ModelCheckpoint
     from lightning.pytorch.loggers import MLFlowLogger
 
-    from lbo.callbacks import Evaluation
-    from lbo.checkpoint_io import AtomicCheckpointIO
-    from lbo.module import ObserverModule
+    from lbo.learn.callbacks import Evaluation
+    from lbo.learn.checkpoint_io import AtomicCheckpointIO
+    from lbo.learn.lightning_module import ObserverModule
 
     L.seed_everything(cfg.seed, workers=True, verbose=False)
     folder, data_hash = prepare_data(cfg)

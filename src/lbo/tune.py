@@ -19,8 +19,9 @@ refused before any trial.
 
 ``tune(cfg)`` is plain Python: it takes a composed ``tune`` config and returns the study's
 outcome. ``main`` is the thin Hydra shell around it. The parts live beside it: the search
-space in :mod:`lbo.search`, the database and the claim lock in :mod:`lbo.study_storage`,
-the MLflow runs and figures in :mod:`lbo.study_mlflow`.
+space in :mod:`lbo.tracking.search`, the database and the claim lock in
+:mod:`lbo.tracking.study_storage`,
+the MLflow runs and figures in :mod:`lbo.tracking.study_mlflow`.
 """
 
 from __future__ import annotations
@@ -43,15 +44,15 @@ from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf, open_dict
 from optuna.trial import FrozenTrial, TrialState
 
-from lbo.atomic import write_text
-from lbo.cli import entry
-from lbo.config import integer, number, require
-from lbo.errors import LboError, TrainingDiverged
-from lbo.paths import CONF_DIR
-from lbo.redact import scrub
-from lbo.search import Param, check_resumed, search_space
-from lbo.study_mlflow import RUN_ATTR, StudyRun
-from lbo.study_storage import (
+from lbo.core.atomic import write_text
+from lbo.core.checks import integer, number, require
+from lbo.core.cli import entry
+from lbo.core.errors import LboError, TrainingDiverged
+from lbo.core.paths import CONF_DIR
+from lbo.core.redact import scrub
+from lbo.tracking.search import Param, check_resumed, search_space
+from lbo.tracking.study_mlflow import RUN_ATTR, StudyRun
+from lbo.tracking.study_storage import (
     FINISHED,
     ClaimLock,
     close_storage,
@@ -185,7 +186,7 @@ def trial_config(cfg: DictConfig, values: dict[str, Any], number: int, study_nam
             # Tuning must never see the test set: the evaluation callback scores the test grid
             # at the end of fit, so it is left out of every trial. Progress bars would bury the
             # one line per trial.
-            if target == "lbo.callbacks.Evaluation" or target.endswith("ProgressBar"):
+            if target == "lbo.learn.callbacks.Evaluation" or target.endswith("ProgressBar"):
                 del callbacks[name]
         out.trainer.enable_progress_bar = False
         out.trainer.enable_model_summary = False
@@ -233,8 +234,8 @@ def check_same_logs(study: optuna.Study, cfg: DictConfig) -> None:
     """On ``data=logs``, a study holds the trials of one set of logs (the digest of their
     bytes): resuming it on other logs would compare losses of different data. Raises one line
     naming ``tune.study_name``; records the digest on a new study."""
-    from lbo.datagen.logs import is_logs
-    from lbo.train import logs_spec
+    from lbo.learn.builders import logs_spec
+    from lbo.sim.log_sets import is_logs
 
     if not is_logs(cfg):
         return
@@ -278,7 +279,7 @@ def _run_study(cfg: DictConfig, space: list[Param], pruner: optuna.pruners.BaseP
             tags["mlflow.parentRunId"] = run.run_id
         try:
             interrupts.check()
-            from lbo.tune_callbacks import Pruning
+            from lbo.learn.tune_callbacks import Pruning
 
             return train(trial_cfg, callbacks=[Pruning(trial), interrupts],
                          tags=tags)["val_loss"]
@@ -317,7 +318,7 @@ def _run_study(cfg: DictConfig, space: list[Param], pruner: optuna.pruners.BaseP
 
     run = StudyRun(cfg, study, shown) if tracking else None
     status, handoff, best = "FAILED", None, None
-    from lbo.tune_callbacks import Interrupts
+    from lbo.learn.tune_callbacks import Interrupts
 
     if _QUIET["lightning"]:  # Lightning sets its logger to INFO when first imported, above
         logging.getLogger("lightning.pytorch").setLevel(logging.WARNING)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from hydra import compose, initialize_config_dir
 
-from lbo.paths import CONF_DIR
+from lbo.core.paths import CONF_DIR
 
 
 def compose_cfg(name: str, overrides: list[str] | None = None):

@@ -2,7 +2,7 @@
 
 ``build_model`` is the one place that turns a model name and hyperparameters (from a config or
 a search space) into a module, and rejects unknown names and parameters with a one-line
-:class:`~lbo.errors.LboError` before anything trains.
+:class:`~lbo.core.errors.LboError` before anything trains.
 """
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ from typing import Any
 
 from torch import nn
 
-from lbo.errors import LboError
+from lbo.core.errors import LboError
 from lbo.models.cnn import CNNObserver
 from lbo.models.filternet import FilterObserver
 from lbo.models.lstm import LSTMObserver

@@ -5,8 +5,8 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from lbo.config import integer
-from lbo.errors import LboError
+from lbo.core.checks import integer
+from lbo.core.errors import LboError
 
 #: Channels 0..2 of a window are the measurements [x_m, y_m, psi_m]; the rest are inputs.
 N_MEAS = 3

@@ -38,8 +38,8 @@ from collections.abc import Sequence
 import torch
 from torch import nn
 
-from lbo.config import integer, number
-from lbo.errors import LboError
+from lbo.core.checks import integer, number
+from lbo.core.errors import LboError
 
 SUBSTEPS = 4
 """Euler sub-steps per sampling period of the single-track body's lateral states."""
@@ -88,7 +88,7 @@ def _inverse_sym3(s: torch.Tensor) -> torch.Tensor:
 class FilterObserver(nn.Module):
     """Window EKF on the kinematic bicycle with a learned noise model.
 
-    Reads ``"frame"`` features in physical units (:mod:`lbo.features`): the window's
+    Reads ``"frame"`` features in physical units (:mod:`lbo.models.features`): the window's
     measurements relative to the current one, rotated into its measured heading, and the
     inputs V (m/s) and delta (rad). Returns the estimate of the current state in the same
     frame (the ``"frame"`` target).

@@ -7,8 +7,8 @@ from collections.abc import Sequence
 import torch
 from torch import nn
 
-from lbo.config import integer
-from lbo.errors import LboError
+from lbo.core.checks import integer
+from lbo.core.errors import LboError
 from lbo.models.cnn import POOL, xavier_init
 
 #: PyTorch stacks the four gate matrices as (input, forget, cell, output).

@@ -1,0 +1,156 @@
+"""The Hydra shell every entry point shares: bad input is one line on stderr, exit code 2.
+
+Every line it prints, and every log record, has its passwords masked (:mod:`lbo.core.redact`),
+Hydra's own lines included; the run folder is locked for the job (:mod:`lbo.core.runfolder`).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import importlib.util
+import logging
+import sys
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any, NoReturn, TextIO
+
+import hydra
+from omegaconf import DictConfig
+
+from lbo.core.errors import LboError
+from lbo.core.paths import CONF_DIR, REPO_ROOT
+from lbo.core.redact import scrub
+
+
+def fail(err: Exception) -> NoReturn:
+    print(f"error: {scrub(str(err))}", file=sys.stderr, flush=True)
+    sys.exit(2)
+
+
+def os_error(e: OSError) -> LboError:
+    """An OSError (read-only folder, full disk, a folder where a file should be) as one line."""
+    where = e.filename if e.filename is not None else ""
+    text = str(e).strip()
+    reason = e.strerror or (text.splitlines()[0] if text else type(e).__name__)
+    return LboError(f"{where}: {reason}" if where else reason)
+
+
+class _Scrubbed:
+    """A text stream that masks passwords in what is written to it (stdout, stderr)."""
+
+    def __init__(self, stream: TextIO) -> None:
+        self._stream = stream
+
+    def write(self, text: str) -> int:
+        self._stream.write(scrub(text))
+        return len(text)
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._stream, name)
+
+
+class _ScrubRecords(logging.Filter):
+    def filter(self, record: logging.LogRecord) -> bool:
+        message = record.getMessage()
+        clean = scrub(message)
+        if clean != message:
+            record.msg, record.args = clean, None
+        return True
+
+
+@contextlib.contextmanager
+def scrubbed_output() -> Iterator[None]:
+    """Mask passwords in everything printed (stdout, stderr) for the ``with`` block."""
+    out, err = sys.stdout, sys.stderr
+    sys.stdout, sys.stderr = _Scrubbed(out), _Scrubbed(err)
+    try:
+        yield
+    finally:
+        sys.stdout, sys.stderr = out, err
+
+
+def scrub_logs() -> None:
+    """Mask passwords in every record of the root logger's handlers (Hydra's log file too)."""
+    for handler in logging.getLogger().handlers:
+        if not any(isinstance(f, _ScrubRecords) for f in handler.filters):
+            handler.addFilter(_ScrubRecords())
+
+
+def entry(config_name: str, run: Callable[[DictConfig], Any]) -> Callable[[], Any]:
+    """A ``@hydra.main`` around ``run(cfg)`` composing ``conf/<config_name>.yaml``.
+
+    ``run``'s return value goes back to Hydra (a sweeper's objective); an LboError or an
+    OSError becomes ``error: <message>`` on stderr and exit code 2. A launcher plugin named on
+    the command line that is not installed is reported the same way, before Hydra composes
+    anything. The job holds its run folder's lock and writes its ``.hydra`` files, without
+    passwords, before ``run`` starts.
+    """
+
+    @hydra.main(version_base="1.3", config_path=str(CONF_DIR), config_name=config_name)
+    def main(cfg: DictConfig) -> Any:
+        from hydra.core.hydra_config import HydraConfig
+
+        from lbo.core.runfolder import claim, save_hydra_files
+
+        scrub_logs()
+        folder = Path(HydraConfig.get().runtime.output_dir)
+        try:
+            if folder.resolve() == Path.cwd().resolve():
+                return run(cfg)  # observe, export: they write their outputs and nothing else
+            with claim(folder, "run folder"):
+                save_hydra_files(cfg)
+                return run(cfg)
+        except LboError as e:
+            fail(e)
+        except OSError as e:
+            fail(os_error(e))
+
+    def checked() -> Any:
+        with scrubbed_output():
+            try:
+                if not (CONF_DIR / f"{config_name}.yaml").is_file():
+                    raise LboError(f"lbo's configs are neither in {REPO_ROOT / 'conf'} nor in "
+                                   "the installed package: reinstall lbo (pip install <repo>), "
+                                   "or set LBO_ROOT=<repo>")
+                check_launcher(launcher_from_argv(sys.argv[1:]))
+            except LboError as e:
+                fail(e)
+            return main()
+
+    return checked
+
+
+#: Launchers named on the command line (``hydra/launcher=<name>``) -> (plugin module, package).
+LAUNCHERS = {
+    "joblib": ("hydra_plugins.hydra_joblib_launcher", "hydra-joblib-launcher"),
+    "submitit_local": ("hydra_plugins.hydra_submitit_launcher", "hydra-submitit-launcher"),
+    "submitit_slurm": ("hydra_plugins.hydra_submitit_launcher", "hydra-submitit-launcher"),
+    "ray": ("hydra_plugins.hydra_ray_launcher", "hydra-ray-launcher"),
+    "rq": ("hydra_plugins.hydra_rq_launcher", "hydra-rq-launcher"),
+}
+
+
+def check_launcher(name: str | None, field: str = "hydra/launcher") -> None:
+    """Raise one line, with the install command, if launcher ``name``'s plugin is missing.
+
+    ``basic`` (Hydra's own, serial) and launchers not listed in :data:`LAUNCHERS` pass.
+    """
+    if not name or name not in LAUNCHERS:
+        return
+    module, package = LAUNCHERS[name]
+    try:
+        found = importlib.util.find_spec(module) is not None
+    except ModuleNotFoundError:
+        found = False
+    if not found:
+        raise LboError(f"{field}={name}: the Hydra plugin {package} is not installed "
+                       f"(pip install {package}, or make install, which installs lbo[launchers])")
+
+
+def launcher_from_argv(argv: list[str]) -> str | None:
+    """The launcher a Hydra command line picks (``hydra/launcher=joblib``), if any."""
+    for arg in argv:
+        key, _, value = arg.lstrip("+~").partition("=")
+        if key == "hydra/launcher" and value:
+            return value
+    return None

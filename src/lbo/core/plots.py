@@ -1,0 +1,191 @@
+"""Figures: arrays in, matplotlib figures out. Nothing here knows about Hydra or MLflow."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt
+import numpy as np
+
+from lbo.core.atomic import atomic_path
+
+
+def save(fig, path: str | Path, dpi: int = 110) -> Path:
+    """Save a figure atomically (temp file, then rename) and close it."""
+    try:
+        with atomic_path(path) as tmp:
+            fig.savefig(tmp, dpi=dpi, bbox_inches="tight", format=Path(path).suffix[1:])
+    finally:
+        plt.close(fig)
+    return Path(path)
+
+
+def friction_circle(acc: np.ndarray, radius: float, edges: np.ndarray, speed: np.ndarray,
+                    heading: np.ndarray, coverage: float):
+    """The paper's Fig. 2: density of (a_lat, a_lon) over the friction circle, with speed and
+    heading histograms. acc: (S, 2) as (a_lon, a_lat) in m/s^2; speed, heading: (S,)."""
+    fig, axes = plt.subplots(1, 3, figsize=(13, 4.2), gridspec_kw={"width_ratios": [1.2, 1, 1]})
+    ax = axes[0]
+    h = ax.hist2d(acc[:, 1], acc[:, 0], bins=[edges, edges], cmap="viridis", cmin=1)
+    fig.colorbar(h[3], ax=ax, label="samples per cell")
+    th = np.linspace(0, 2 * np.pi, 200)
+    ax.plot(radius * np.cos(th), radius * np.sin(th), "r-", lw=1.2)
+    ax.set(xlabel="lateral acceleration (m/s$^2$)", ylabel="longitudinal acceleration (m/s$^2$)",
+           title=f"friction circle, {coverage:.0%} of cells filled", aspect="equal")
+    axes[1].hist(speed, bins=50, color="tab:blue")
+    axes[1].set(xlabel="V (m/s)", ylabel="samples", title="speed")
+    axes[2].hist(np.degrees(heading), bins=72, color="tab:green")
+    axes[2].set(xlabel="psi (deg)", title="heading")
+    fig.tight_layout()
+    return fig
+
+
+def paths(xy: dict[str, np.ndarray], scored_from: int = 0):
+    """Small multiples of driven paths. xy: name -> (T, 2); the run-in is drawn grey."""
+    n = len(xy)
+    cols = min(5, n)
+    rows = int(np.ceil(n / cols))
+    fig, axes = plt.subplots(rows, cols, figsize=(3.2 * cols, 3.0 * rows), squeeze=False)
+    for ax, (name, p) in zip(axes.ravel(), xy.items()):
+        ax.plot(p[: scored_from + 1, 0], p[: scored_from + 1, 1], color="0.7", lw=1)
+        ax.plot(p[scored_from:, 0], p[scored_from:, 1], color="tab:blue", lw=1.2)
+        ax.plot(*p[scored_from], "o", color="tab:red", ms=3)
+        ax.set_title(name.replace("_", " "), fontsize=9)
+        ax.set_aspect("equal", adjustable="datalim")
+        ax.tick_params(labelsize=7)
+    for ax in axes.ravel()[n:]:
+        ax.axis("off")
+    fig.tight_layout()
+    return fig
+
+
+# Classical observers keep one look in every figure; curves that coincide stay visible.
+STYLES: dict[str, dict] = {
+    "ekf": {"color": "black", "lw": 2.2},
+    "ukf": {"color": "tab:orange", "ls": "--", "lw": 1.2},
+    "oracle": {"color": "tab:green", "lw": 2.0},
+    "adaptive": {"color": "tab:olive", "ls": "--", "lw": 1.2},
+    "pcrb": {"color": "tab:gray", "ls": ":", "lw": 1.6, "marker": ""},
+}
+
+
+def nrmse_curves(table, title: str = "", observers: list[str] | None = None,
+                 styles: dict[str, dict] | None = None):
+    """NRMSE against alpha, one curve per observer, from a score table
+    (columns ``observer, alpha, nrmse``)."""
+    fig, ax = plt.subplots(figsize=(6.4, 4.2))
+    names = observers or list(dict.fromkeys(table["observer"]))
+    # learned observers take colours the classical ones do not use
+    palette = iter(["tab:blue", "tab:red", "tab:purple", "tab:brown", "tab:pink", "tab:cyan",
+                    "navy", "darkred", "indigo", "sienna"])
+    for name in names:
+        rows = table[table["observer"] == name].sort_values("alpha")
+        style = {"marker": ".", "lw": 1.4, **(STYLES.get(name) or {"color": next(palette)}),
+                 **(styles or {}).get(name, {})}
+        ax.plot(rows["alpha"], rows["nrmse"], label=name, **style)
+    ax.axhline(1.0, color="0.6", lw=0.8, ls=":")
+    ax.set(xlabel=r"noise scale $\alpha$", ylabel="NRMSE", title=title)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    return fig
+
+
+def trajectory(truth: np.ndarray | None, meas: np.ndarray, title: str = "",
+               **estimates: np.ndarray):
+    """The paper's Fig. 6: ground truth (None: not drawn), measurements and estimates in the
+    (x, y) plane. Every array is (T, 2); NaN rows (no fix, no estimate) are gaps."""
+    fig, ax = plt.subplots(figsize=(7.5, 5.0))
+    ax.plot(meas[:, 0], meas[:, 1], ".", color="0.7", ms=2.5, label="measurements")
+    if truth is not None:
+        ax.plot(truth[:, 0], truth[:, 1], "-", color="black", lw=2.0, label="ground truth")
+    for (name, est), color in zip(estimates.items(), ("tab:blue", "tab:red", "tab:green")):
+        ax.plot(est[:, 0], est[:, 1], lw=1.3, color=color, label=name)
+    ax.set(xlabel="x (m)", ylabel="y (m)", title=title)
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    return fig
+
+
+def observed_log(t: np.ndarray, meas: np.ndarray, est: np.ndarray, name: str,
+                 truth: np.ndarray | None = None, cov: np.ndarray | None = None):
+    """One observed log: the path in the (x, y) plane (fixes, estimate, truth), and below it,
+    over time, the errors of x, y (m) and psi (mrad) against the truth with the estimate's
+    +-2 sigma band (either alone when the log has no truth or the observer no covariance).
+
+    t (T,) s; meas, est, truth (T, 3) ``[x, y, psi]`` (NaN rows: no fix, no estimate);
+    cov (T, 3, 3) or None."""
+    sigma = None
+    if cov is not None and np.isfinite(cov).any():
+        sigma = 2 * np.sqrt(np.clip(np.diagonal(cov, axis1=1, axis2=2), 0, None))
+    rows = 1 if truth is None and sigma is None else 3
+    fig = plt.figure(figsize=(8.0, 4.8 + 2.3 * (rows - 1)))
+    grid = fig.add_gridspec(rows, 1, height_ratios=[2.2] + [1] * (rows - 1))
+    ax = fig.add_subplot(grid[0])
+    ax.plot(meas[:, 0], meas[:, 1], ".", color="0.65", ms=2.5, label="fixes")
+    if truth is not None:
+        ax.plot(truth[:, 0], truth[:, 1], "-", color="black", lw=2.0, label="truth")
+    ax.plot(est[:, 0], est[:, 1], lw=1.3, color="tab:blue", label=name)
+    ax.set(xlabel="x, east (m)", ylabel="y, north (m)", title=f"{name} on {len(t)} rows")
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    if rows == 1:
+        fig.tight_layout()
+        return fig
+    err = None
+    if truth is not None:
+        err = est - truth
+        err[:, 2] = (err[:, 2] + np.pi) % (2 * np.pi) - np.pi
+    pos = fig.add_subplot(grid[1])
+    head = fig.add_subplot(grid[2], sharex=pos)
+    for ax, cols, scale, unit in ((pos, (0, 1), 1.0, "m"), (head, (2,), 1e3, "mrad")):
+        for c, color in zip(cols, ("tab:blue", "tab:orange")):
+            label = ("x", "y", "psi")[c]
+            if sigma is not None:
+                ax.fill_between(t, -scale * sigma[:, c], scale * sigma[:, c], color=color,
+                                alpha=0.18, lw=0, label=f"+-2 sigma of {label}")
+            if err is not None:
+                ax.plot(t, scale * err[:, c], lw=0.9, color=color, label=f"error of {label}")
+        ax.axhline(0.0, color="0.4", lw=0.6)
+        # the first fix's wide start would flatten the rest: scale to the 99th percentile
+        spread = [np.abs(a[:, list(cols)]) for a in (err, sigma) if a is not None]
+        top = np.nanpercentile(np.concatenate(spread), 99) if spread else np.nan
+        if np.isfinite(top) and top > 0:
+            ax.set_ylim(-1.5 * scale * top, 1.5 * scale * top)
+        ax.set_ylabel(unit)
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7, ncol=2, loc="upper right")
+    head.set_xlabel("t (s)")
+    pos.set_title("error against the truth" if sigma is None else
+                  "the estimate's uncertainty" if err is None else
+                  "error against the truth, and the observer's own +-2 sigma", fontsize=10)
+    fig.tight_layout()
+    return fig
+
+
+def nees_curves(table, title: str = "calibration: mean NEES against alpha"):
+    """Mean NEES per alpha of each observer (log scale), the 95% band of a consistent filter
+    shaded; a table of :func:`lbo.scoring.metrics.nees_table` rows."""
+    fig, ax = plt.subplots(figsize=(7, 4.2))
+    band = table.drop_duplicates("alpha").sort_values("alpha")
+    ax.fill_between(band["alpha"], band["low"], band["high"], color="0.85",
+                    label="95% band (consistent)")
+    ax.axhline(3.0, color="0.5", lw=0.8)
+    styles = ["-", "--", ":", "-."]  # curves that coincide (the EKF and the UKF) stay visible
+    for i, (name, rows) in enumerate(table.groupby("observer", sort=False)):
+        rows = rows.sort_values("alpha")
+        ax.plot(rows["alpha"], rows["nees"], ls=styles[i % 4], marker="os^dv"[i % 5], ms=3,
+                lw=1.2, label=name)
+    ax.set_yscale("log")
+    ax.set_xlabel("alpha (measurement noise scale)")
+    ax.set_ylabel("mean NEES (3 degrees of freedom)")
+    ax.set_title(title)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    return fig

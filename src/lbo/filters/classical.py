@@ -1,0 +1,142 @@
+"""The classical observers by name: the one registry that ``lbo.evaluate``, ``lbo.observe``,
+:class:`lbo.Observer` and ``make reproduce`` use.
+
+- ``ekf``: the paper's EKF, R at alpha = 1 whatever the noise;
+- ``oracle``: the same EKF told the true alpha (R = alpha^2 R_1);
+- ``adaptive``: the Sage-Husa EKF that learns R from its innovations, starting from R_1;
+- ``ukf``: the unscented filter (filterpy's, vectorised), R at alpha = 1;
+- ``oracle_dynamic``: the EKF on the true dynamic car (:mod:`lbo.filters.dynamic_ekf`), told
+alpha, the
+  car's parameters, its process noise and the sensors' errors: the floor on a test set drawn
+  from ``truth=dynamic`` (it needs that truth, so it scores simulated test sets only, not a
+  user's log);
+- ``oracle_tuned``: the kinematic EKF told alpha, with at each alpha level the process noise Q
+  that serves it best on the scored set itself (:func:`lbo.scoring.grid.tuned_oracle`): the best a
+  kinematic EKF with a constant diagonal Q can do there, in hindsight. On a truth that is not the
+  kinematic bicycle a larger Q absorbs some of the model's error, so this is the fair
+  kinematic peer; it needs the true states, so it scores simulated test sets only;
+- ``pcrb``: not an observer but the bound on any observer's error (needs the true states).
+
+Each runs over a batch (:func:`run`) or one step at a time (:func:`stepper`), with the same
+numbers either way.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from lbo.core.errors import LboError
+from lbo.filters.kalman import (
+    KalmanStepper,
+    UnscentedStepper,
+    adaptive_ekf_batch,
+    adaptive_settings,
+    ekf_batch,
+    ukf_batch,
+)
+from lbo.sim.noise import Noise
+from lbo.sim.truth import Truth
+from lbo.sim.vehicle import Vehicle
+
+OBSERVERS = ("ekf", "oracle", "adaptive", "ukf")
+"""Causal observers that run on a log."""
+DYNAMIC = "oracle_dynamic"
+"""The oracle on the true dynamic car: told the truth model, so for simulated test sets only."""
+TUNED = "oracle_tuned"
+"""The kinematic EKF with its Q tuned on the scored set: for simulated test sets only."""
+BOUND = "pcrb"
+NAMES = (*OBSERVERS, DYNAMIC, TUNED, BOUND)
+"""Everything ``lbo.evaluate`` scores on the test grid."""
+UKF_SPREAD = 0.1
+"""Merwe's sigma-point spread of the UKF."""
+
+
+def check(name: str, field: str = "observer") -> None:
+    """Raise one line naming ``field`` unless ``name`` is a classical observer."""
+    if name == BOUND:
+        raise LboError(f"{field}: pcrb is a bound on the error, not an observer; "
+                       f"use one of {', '.join(OBSERVERS)} or a checkpoint")
+    if name in (DYNAMIC, TUNED):
+        told = "the simulated car's parameters" if name == DYNAMIC else "the true states"
+        raise LboError(f"{field}: {name} is told {told} and scores simulated test sets only "
+                       f"(lbo.evaluate); use one of {', '.join(OBSERVERS)} or a checkpoint")
+    if name not in OBSERVERS:
+        raise LboError(f"{field}: unknown classical observer {name!r}; "
+                       f"expected one of {', '.join(OBSERVERS)}")
+
+
+def measurement_cov(name: str, noise: Noise, alpha: float | np.ndarray, g: int) -> np.ndarray:
+    """(G, 3, 3) R of each trajectory: R at its own alpha for the oracle, else R at 1."""
+    scale = np.broadcast_to(np.asarray(alpha, dtype=float), (g,)) if name == "oracle" \
+        else np.ones(g)
+    return np.einsum("gi,ij->gij", np.square(noise.meas(scale)), np.eye(3))
+
+
+def run(name: str, m: np.ndarray, u: np.ndarray, vehicle: Vehicle, noise: Noise,
+        alpha: float | np.ndarray = 1.0, progress: bool = False,
+        truth: Truth | None = None, return_cov: bool = False, smooth: bool = False,
+        lengths: np.ndarray | None = None) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
+    """Estimates (G, T, 3) of observer ``name`` over G trajectories, and with ``return_cov``
+    their covariances (G, T, 3, 3) (the filter's P of the pose). ``smooth``: the RTS
+    smoother's estimates after the filter (:mod:`lbo.filters.smoother`; not for ``oracle_dynamic``),
+    over the first ``lengths`` (G,) steps of each padded trajectory (None: all).
+
+    m : (G, T, 3) measurements; u : (G, T, 2) inputs; alpha : the noise scale the oracles are
+    told, one for all or (G,) per trajectory (the others ignore it); truth : what the log was
+    drawn from, which ``oracle_dynamic`` is told (a ``truth=dynamic`` one).
+    """
+    if name == DYNAMIC:
+        if smooth:
+            raise LboError("oracle_dynamic: the floor of a filter; it has no smoother")
+        return _oracle_dynamic(m, u, vehicle, noise, alpha, truth, return_cov)
+    check(name)
+    R = measurement_cov(name, noise, alpha, np.shape(m)[0])
+    kw = {"return_cov": return_cov, "smooth": smooth, "lengths": lengths}
+    try:
+        if name == "adaptive":
+            return adaptive_ekf_batch(m, u, vehicle, noise.Q, R, **kw)
+        if name == "ukf":
+            return ukf_batch(m, u, vehicle, noise.Q, R, spread=UKF_SPREAD, progress=progress,
+                             **kw)
+        return ekf_batch(m, u, vehicle, noise.Q, R, **kw)
+    except np.linalg.LinAlgError as e:  # a covariance no longer positive definite
+        raise LboError(f"{name}: the filter diverged ({e}); check the data's values and "
+                       "units") from None
+
+
+def stepper(name: str, m0: np.ndarray, vehicle: Vehicle, noise: Noise,
+            alpha: float | np.ndarray = 1.0) -> Any:
+    """Observer ``name`` started at the first measurements m0 (G, 3); its ``update(m (G, 3),
+    u_prev (G, 2))`` returns the next estimates (G, 3), as :func:`run` would."""
+    check(name)
+    R = measurement_cov(name, noise, alpha, len(m0))
+    if name == "adaptive":
+        return KalmanStepper(m0, vehicle, noise.Q, **adaptive_settings(R, len(m0)))
+    if name == "ukf":
+        return UnscentedStepper(m0, vehicle, noise.Q, R, UKF_SPREAD)
+    return KalmanStepper(m0, vehicle, noise.Q, R)
+
+
+def _oracle_dynamic(m: np.ndarray, u: np.ndarray, vehicle: Vehicle, noise: Noise,
+                    alpha: float | np.ndarray, truth: Truth | None, return_cov: bool = False
+                    ) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
+    from lbo.filters.dynamic_ekf import dynamic_ekf_batch
+
+    if truth is None or truth.car is None:
+        raise LboError("oracle_dynamic: the test set was not drawn from truth=dynamic, so there "
+                       "is no car to tell it; score it on data=dynamic (or truth=dynamic)")
+    g = np.shape(m)[0]
+    scale = np.broadcast_to(np.asarray(alpha, dtype=float), (g,))
+    R = measurement_cov("oracle", noise, scale, g)
+    sensors = truth.sensors
+    try:
+        return dynamic_ekf_batch(m, u, vehicle, truth.car, truth.process_scale**2 * noise.Q, R,
+                                 gnss_sigma=scale * sensors.gnss_sigma,
+                                 gnss_tau=sensors.gnss_tau,
+                                 steering_offset=sensors.steering_offset,
+                                 speed_scale=sensors.speed_scale, return_cov=return_cov)
+    except np.linalg.LinAlgError as e:
+        raise LboError(f"oracle_dynamic: the filter diverged ({e}); check the data's values "
+                       "and units") from None

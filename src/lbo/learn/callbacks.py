@@ -1,0 +1,127 @@
+"""Lightning callbacks: score the best checkpoint on the whole test grid at the end of fit."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import lightning as L
+import pandas as pd
+from lightning.pytorch.loggers import MLFlowLogger
+
+from lbo.core import plots
+from lbo.core.atomic import atomic_path
+from lbo.scoring import logscore
+from lbo.scoring.grid import (
+    classical_table,
+    load_test,
+    nrmse_at,
+    oracle_ratio,
+    predict,
+    reference,
+    score,
+)
+from lbo.serve.observer import read_checkpoint, trained_conditions
+from lbo.sim.log_sets import is_log_folder, test_files
+from lbo.sim.truth import of_folder
+
+LOGGED_ALPHAS = (1.0, 3.0, 6.0)
+
+
+class Evaluation(L.Callback):
+    """At the end of fit: load the best checkpoint, run it on every test level, score it
+    beside the EKF and the oracle EKF with :func:`lbo.scoring.grid.score`, write
+    ``evaluation.csv`` and ``nrmse.png`` to ``output_dir`` and log them, the metrics and the
+    checkpoint to MLflow. ``worst_oracle_ratio`` is the largest NRMSE ratio to the oracle over
+    alpha in [0.25, 6], so that ``mlflow ui`` can sort observers by it. On a test set drawn from
+    a car that slips (``truth=dynamic``) the table also holds the adaptive EKF, the kinematic EKF
+    with its Q tuned on the test set (``oracle_tuned``) and the oracle on the true car
+    (``oracle_dynamic``); ``worst_dynamic_oracle_ratio`` and ``worst_tuned_oracle_ratio`` are
+    the ratios to the last two.
+
+    Parameters
+    ----------
+    output_dir : where the table and the figure are written.
+    reference : ``"ekf"`` (our EKF's RMSE at alpha=1) or ``"paper"``.
+    """
+
+    def __init__(self, output_dir: str, reference: str = "ekf", batch_size: int = 8192) -> None:
+        self.output_dir = Path(output_dir)
+        self.reference = reference
+        self.batch_size = batch_size
+        self.table: pd.DataFrame | None = None
+        self.metrics: dict[str, float] = {}
+        # set by lbo.train: Lightning hides the run's logger behind a dummy in fast_dev_run
+        self.mlflow: MLFlowLogger | None = None
+
+    def on_fit_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        start = time.perf_counter()
+        best = getattr(trainer.checkpoint_callback, "best_model_path", "") or ""
+        # the best weights through the one checkpoint reader, with its format checks
+        net, hp = read_checkpoint(best) if best else (pl_module.observer, pl_module.hparams)
+        vehicle, noise = trained_conditions(hp, best or "(in memory)")
+        folder = Path(trainer.datamodule.folder)
+        name = f"{hp['model']['name']}-N{hp['window']}"
+        device = str(trainer.strategy.root_device)
+        if is_log_folder(folder):
+            self._score_logs(folder, net, hp, name, vehicle, noise, device)
+        else:
+            self._score_grid(folder, net, hp, name, vehicle, noise, device)
+        self.metrics["eval_seconds"] = time.perf_counter() - start
+        logger = self.mlflow or trainer.logger
+        if isinstance(logger, MLFlowLogger):
+            client, run = logger.experiment, logger.run_id
+            for key, value in self.metrics.items():
+                client.log_metric(run, key, value)
+            client.log_artifact(run, str(self.output_dir / "evaluation.csv"))
+            client.log_artifact(run, str(self.output_dir / "nrmse.png"))
+            if best:
+                client.log_artifact(run, best, artifact_path="checkpoints")
+                # the same weights as an MLflow model: pyfunc load_model, mlflow models serve
+                from lbo.serve.serving import log_model
+
+                log_model(client.tracking_uri, run, best)
+
+    def _score_logs(self, folder: Path, net, hp: dict, name: str, vehicle, noise,
+                    device: str) -> None:
+        """A user's test logs: the learned observer beside the EKF, the adaptive EKF and the
+        UKF, pooled and per file (:mod:`lbo.scoring.logscore`)."""
+        arr = logscore.load(folder)
+        est = predict(net, arr, self.batch_size, device=device)
+        estimates = {name: est, **logscore.peer_estimates(arr, vehicle, noise)}
+        self.table = logscore.table(estimates, arr, test_files(folder))
+        with atomic_path(self.output_dir / "evaluation.csv") as tmp:
+            self.table.to_csv(tmp, index=False)
+        plots.save(logscore.figure(self.table, f"{name} on the test logs"),
+                   self.output_dir / "nrmse.png")
+        self.metrics = logscore.metrics(self.table, name)
+        print(f"test logs ({logscore.NOTE}):\n{logscore.printable(self.table)}")
+
+    def _score_grid(self, folder: Path, net, hp: dict, name: str, vehicle, noise,
+                    device: str) -> None:
+        """The test grid of a generated data set, per alpha level."""
+        arr = load_test(folder / "test.parquet")
+        ref = reference(arr, vehicle, noise, self.reference)
+        est = predict(net, arr, self.batch_size, device=device)
+        truth = of_folder(folder, vehicle.wheelbase)
+        # a car that slips: the kinematic peers, and the floor of the filter told the car
+        peers = ["ekf", "oracle"] + (["adaptive", "oracle_tuned", "oracle_dynamic"]
+                                     if truth.car else [])
+        self.table = pd.concat([score(name, est, arr, ref),
+                                classical_table(arr, vehicle, noise, peers, ref, truth=truth)],
+                               ignore_index=True)
+        csv, png = self.output_dir / "evaluation.csv", self.output_dir / "nrmse.png"
+        with atomic_path(csv) as tmp:
+            self.table.to_csv(tmp, index=False)
+        title = (f"{name} on a car that slips, against the kinematic EKFs and the EKF told "
+                 "the car") if truth.car else f"{name} against the EKF"
+        plots.save(plots.nrmse_curves(self.table, title=title), png)
+        self.metrics = {f"test_nrmse_alpha_{a:g}": nrmse_at(self.table, name, a)
+                        for a in LOGGED_ALPHAS if (abs(self.table["alpha"] - a) < 1e-9).any()}
+        ratio = oracle_ratio(self.table, name)
+        if len(ratio):
+            self.metrics["worst_oracle_ratio"] = float(ratio.max())
+        if truth.car is not None and len(ratio):
+            for peer, key in (("oracle_dynamic", "worst_dynamic_oracle_ratio"),
+                              ("oracle_tuned", "worst_tuned_oracle_ratio")):
+                self.metrics[key] = float(oracle_ratio(self.table, name, oracle=peer).max())

@@ -1,0 +1,298 @@
+"""Data sets on disk -> zero-copy windows -> a LightningDataModule.
+
+Rows of a set are stored once as a (R, 5) tensor ``[x_m, y_m, psi_m, V, delta]`` and a (R, 3)
+tensor of true states. ``window_view`` gives every window as a view into the rows; a batch gathers
+only the windows it needs. A window ends at row e and covers rows e-N+1..e; it is valid when
+k >= N-1 at e, which keeps it inside one trajectory because k restarts at 0 in each.
+
+A batch is ``(windows (B, N, 5), states (B, 3), loss weights (B,))``. With drawn noise
+(:mod:`lbo.learn.draws`) the measurement channels of each training window are drawn afresh from
+its true states; validation uses one fixed draw (``val_repeats`` of them per window) over the
+same alpha distribution, so that early stopping measures what is being trained.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import lightning as L
+import numpy as np
+import pandas as pd
+import torch
+from torch.utils.data import (
+    BatchSampler,
+    DataLoader,
+    Dataset,
+    RandomSampler,
+    SequentialSampler,
+    get_worker_info,
+)
+
+from lbo.core.errors import LboError
+from lbo.learn.draws import AlphaDraw, fix_mask, loss_weights, noisy_measurements
+from lbo.models.features import last_measurement, state_to_target, window_features, window_view
+from lbo.sim import schema
+
+INPUT_COLUMNS = [*schema.MEAS, *schema.INPUT]
+
+
+def rows(df: pd.DataFrame) -> tuple[torch.Tensor, torch.Tensor]:
+    """(R, 5) inputs and (R, 3) states of a frame sorted by trajectory and step, float64."""
+    x = torch.from_numpy(np.ascontiguousarray(df[INPUT_COLUMNS].to_numpy(np.float64)))
+    y = torch.from_numpy(np.ascontiguousarray(df[list(schema.STATE)].to_numpy(np.float64)))
+    return x, y
+
+
+def window_ends(k: np.ndarray, window: int, keep: np.ndarray | None = None) -> np.ndarray:
+    """Rows where a full window of N steps ends inside one trajectory (and ``keep`` holds)."""
+    ok = k >= window - 1
+    if keep is not None:
+        ok &= keep
+    return np.flatnonzero(ok)
+
+
+Batch = tuple[torch.Tensor, torch.Tensor, torch.Tensor]
+
+
+class WindowDataset(Dataset):
+    """Windows ending at ``ends``, as views into ``x``.
+
+    Indexing with a list of indices returns one batch: windows (B, N, 5), states (B, 3) and
+    loss weights (B,).
+
+    Parameters
+    ----------
+    x : (R, 5) rows ``[x_m, y_m, psi_m, V, delta]``; y : (R, 3) true states.
+    ends : rows where the windows end.
+    window : N.
+    draw : None: the stored measurements. Else the measurement channels are drawn afresh
+        for every window, at an alpha from ``draw``, with ``sigma`` (3,) at alpha=1.
+    seed : seeds the draws: the same seed gives the same stream of batches, and each call
+        continues the stream, so no two epochs repeat a draw.
+    weight_offset : loss weights ``1 / (alpha + offset)^2``, or ones when None.
+    fix_periods : drop position fixes: each window keeps them every one of these periods
+        (steps), see :func:`lbo.learn.draws.fix_mask`; the dropped ones become NaN. () keeps all.
+    drift : (sigma (m), tau (steps)) of a Gauss-Markov GNSS drift added to drawn noise, as
+        the data set's truth has it; None: white noise only.
+    """
+
+    def __init__(self, x: torch.Tensor, y: torch.Tensor, ends: np.ndarray, window: int,
+                 draw: AlphaDraw | None = None, sigma: torch.Tensor | None = None,
+                 seed: int = 0, weight_offset: float | None = None,
+                 fix_periods: tuple[int, ...] = (),
+                 drift: tuple[float, float] | None = None):
+        self.x, self.y, self.window = x, y, window
+        self.fix_periods = tuple(fix_periods)
+        self.ends = torch.from_numpy(ends)
+        self.windows = window_view(x, window)  # (R-N+1, N, 5), a view: no copy
+        self.truth = window_view(y, window)  # (R-N+1, N, 3), a view
+        self.draw, self.weight_offset, self.drift = draw, weight_offset, drift
+        self.sigma = None if sigma is None else torch.as_tensor(sigma, dtype=x.dtype)
+        self.generator = torch.Generator().manual_seed(seed)
+        self._worker_seed: int | None = None
+
+    def __len__(self) -> int:
+        return len(self.ends)
+
+    def to(self, device: str | torch.device, seed: int = 0) -> WindowDataset:
+        """Move the rows to ``device`` (in place), so that batches and their noise are made
+        there, with a generator of that device seeded with ``seed`` (CUDA's stream differs
+        from the CPU's: a run on the GPU is repeatable, not equal to one on the CPU)."""
+        device = torch.device(device)
+        if device == self.x.device:
+            return self
+        self.x, self.y, self.ends = self.x.to(device), self.y.to(device), self.ends.to(device)
+        self.windows = window_view(self.x, self.window)
+        self.truth = window_view(self.y, self.window)
+        if self.sigma is not None:
+            self.sigma = self.sigma.to(device)
+        self.generator = torch.Generator(device=device).manual_seed(seed)
+        return self
+
+    def __getitem__(self, idx) -> Batch:
+        info = get_worker_info()
+        if info is not None and info.seed != self._worker_seed:
+            # a worker holds a copy of this dataset, made anew every epoch: reseed it from the
+            # loader's per-epoch, per-worker seed, or each epoch would repeat the first's draws
+            self.generator.manual_seed(info.seed)
+            self._worker_seed = info.seed
+        return self.batch(idx, self.generator)
+
+    def batch(self, idx, generator: torch.Generator) -> Batch:
+        """The windows ``idx``, any noise drawn with ``generator``."""
+        e = self.ends[torch.as_tensor(idx, device=self.ends.device)]
+        s = e - self.window + 1
+        win = self.windows[s]
+        if self.draw is None:
+            weight = torch.ones(len(e), dtype=self.x.dtype, device=e.device)
+            m = win[..., :3]
+        else:
+            alpha = self.draw.sample(len(e), generator)
+            weight = loss_weights(alpha, self.weight_offset)
+            m = noisy_measurements(self.truth[s], alpha, self.sigma, generator, self.drift)
+        if self.fix_periods:
+            fix = fix_mask(len(e), self.window, self.fix_periods, generator, e.device)
+            kept = torch.where(fix[..., None], m, torch.full_like(m, float("nan")))
+            # stored measurements with gaps of their own (a user's 10 Hz logs): the mask may
+            # miss every fix of a window, which keeps its own fixes then (never on full sets)
+            lost = ~torch.isfinite(kept[..., 0]).any(1)
+            m = torch.where(lost[:, None, None], m, kept)
+        elif self.draw is None:
+            return win, self.y[e], weight
+        return torch.cat([m, win[..., 3:]], dim=-1), self.y[e], weight
+
+
+class FixedDataset(Dataset):
+    """Materialised batches ``(windows, states, weights)``; indexing takes a batch of rows."""
+
+    def __init__(self, *tensors: torch.Tensor) -> None:
+        self.tensors = tensors
+
+    def __len__(self) -> int:
+        return len(self.tensors[0])
+
+    def to(self, device: str | torch.device, seed: int = 0) -> FixedDataset:
+        self.tensors = tuple(t.to(device) for t in self.tensors)
+        return self
+
+    def __getitem__(self, idx) -> Batch:
+        idx = torch.as_tensor(idx, device=self.tensors[0].device)
+        return tuple(t[idx] for t in self.tensors)  # type: ignore[return-value]
+
+
+def _check_window(window: int, lengths: np.ndarray, first_scored: int | None, name: str) -> None:
+    longest = int(lengths.max())
+    if window > longest:  # shorter trajectories (segments of a user's logs) give no window
+        what = "shortest" if lengths.min() == longest else "longest"
+        raise LboError(f"window={window} is longer than the {what} {name} trajectory "
+                       f"({longest} steps); choose window <= {longest}")
+    if first_scored is not None and window - 1 > first_scored:
+        raise LboError(f"window={window} needs {window - 1} steps of history, but the {name} "
+                       f"set scores from step {first_scored}; choose window <= {first_scored + 1}")
+
+
+class WindowDataModule(L.LightningDataModule):
+    """Training and validation windows from a data-set folder (train/val/test.parquet).
+
+    Parameters
+    ----------
+    folder : the folder printed by ``python -m lbo.datagen``.
+    window : N.
+    batch_size, eval_batch_size : training and validation batch sizes.
+    seed : seeds the shuffling and the noise draws, so a run is repeatable.
+    draw : None for the stored measurements, else how alpha is drawn per window.
+    sigma : (3,) measurement sigmas at alpha=1 (needed with ``draw``).
+    weight_offset : loss weights ``1 / (alpha + offset)^2``; None: equal weights.
+    val_repeats : fixed noise draws per validation window (with ``draw``).
+    device : where the rows live and batches and noise draws are made (``"cuda"`` on a GPU:
+        no copy from the host per batch, and no loader workers).
+    fix_periods : drop position fixes in training and validation windows (see
+        :class:`WindowDataset`); () keeps every fix.
+    drift : (sigma (m), tau (steps)) of the GNSS drift drawn with the noise (see
+        :class:`WindowDataset`).
+    """
+
+    def __init__(self, folder: str | Path, window: int, batch_size: int = 256,
+                 eval_batch_size: int = 4096, num_workers: int = 0, seed: int = 0,
+                 draw: AlphaDraw | None = None, sigma=None,
+                 weight_offset: float | None = None, val_repeats: int = 1,
+                 device: str = "cpu", fix_periods: tuple[int, ...] = (),
+                 drift: tuple[float, float] | None = None) -> None:
+        super().__init__()
+        self.device = torch.device(device)
+        self.folder = Path(folder)
+        self.window, self.batch_size = int(window), int(batch_size)
+        self.eval_batch_size, self.num_workers, self.seed = eval_batch_size, num_workers, seed
+        if draw is not None and sigma is None:
+            raise LboError("WindowDataModule: drawn noise needs the measurement sigmas")
+        self.draw, self.sigma, self.weight_offset = draw, sigma, weight_offset
+        self.val_repeats = int(val_repeats)
+        self.fix_periods = tuple(fix_periods)
+        self.drift = drift
+        self.train_set: WindowDataset | None = None
+        self.val_set: Dataset | None = None
+        self.shuffle = torch.Generator().manual_seed(seed)  # the training order, epoch by epoch
+        self._resumed_shuffle: torch.Tensor | None = None
+
+    def setup(self, stage: str | None = None) -> None:
+        if self.train_set is not None:
+            return
+        # steps without a position fix (a user's logs, GNSS slower than the inputs) are NaN rows
+        train = schema.read_set(self.folder / "train.parquet", missing_fixes=True)
+        val = schema.read_set(self.folder / "val.parquet", schema.EVAL_COLUMNS, missing_fixes=True)
+        for name, df in (("training", train), ("validation", val)):
+            lengths = df.groupby("traj", sort=False).size().to_numpy()
+            first = int(df.loc[df["scored"], "k"].min()) if "scored" in df else None
+            _check_window(self.window, lengths, first, name)
+        if self.draw is None and not self.fix_periods and train[list(schema.MEAS)].isna().any(
+                axis=None):
+            raise LboError("the training set has steps without a position fix (GNSS slower than "
+                           "the inputs): train with fix_rates (e.g. fix_rates=[10]) so that the "
+                           "observer takes them, or with drawn noise (train_noise=paper)")
+        noise = {"draw": self.draw, "sigma": self.sigma, "weight_offset": self.weight_offset,
+                 "fix_periods": self.fix_periods, "drift": self.drift}
+        self.train_set = WindowDataset(*rows(train), window_ends(train["k"].to_numpy(),
+                                                                 self.window), self.window,
+                                       seed=self.seed, **noise)
+        val_set = WindowDataset(*rows(val), window_ends(
+            val["k"].to_numpy(), self.window, val["scored"].to_numpy()), self.window, **noise)
+        if self.draw is None and not self.fix_periods:
+            self.val_set = val_set
+        else:  # one fixed draw, the same in every epoch and run of this seed
+            g = torch.Generator().manual_seed(self.seed + 1)
+            idx = torch.arange(len(val_set)).repeat(self.val_repeats)
+            self.val_set = FixedDataset(*val_set.batch(idx, g))
+        self.train_set.to(self.device, self.seed)
+        self.val_set.to(self.device, self.seed)
+
+    def normalisation(self, features: str, n: int = 20_000) -> dict[str, torch.Tensor]:
+        """Channel means and stds of ``n`` random training windows' features and targets
+        (with the ``fix`` channel when fixes are dropped)."""
+        self.setup()
+        fixes = bool(self.fix_periods)
+        g = torch.Generator(device=self.device).manual_seed(self.seed)
+        pick = torch.randperm(len(self.train_set), generator=g, device=self.device)[:n]
+        win, state, _ = self.train_set.batch(pick, g)
+        f = window_features(win, features, fixes)
+        f = f.reshape(-1, f.shape[-1]).cpu()
+        t = state_to_target(state, last_measurement(win, fixes), features).cpu()
+        return {"in_mean": f.mean(0), "in_std": f.std(0),
+                "out_mean": t.mean(0), "out_std": t.std(0)}
+
+    def _loader(self, ds: Dataset, batch: int, shuffle: bool) -> DataLoader:
+        # one __getitem__ per batch: the gather is vectorised, never a loop over samples
+        if shuffle:  # a new loader starts the order afresh, or where a checkpoint left it
+            self.shuffle = torch.Generator().manual_seed(self.seed)
+            if self._resumed_shuffle is not None:
+                self.shuffle.set_state(self._resumed_shuffle)
+                self._resumed_shuffle = None
+        base = RandomSampler(ds, generator=self.shuffle) if shuffle else SequentialSampler(ds)
+        # tensors on a GPU cannot go to worker processes: the main process gathers there
+        workers = self.num_workers if self.device.type == "cpu" else 0
+        # the loader's generator seeds the workers' per-epoch noise draws from `seed` alone
+        return DataLoader(ds, sampler=BatchSampler(base, batch, drop_last=False),
+                          batch_size=None, num_workers=workers,
+                          generator=torch.Generator().manual_seed(self.seed))
+
+    def state_dict(self) -> dict[str, Any]:
+        """Where the random streams stand (the training order, the noise draws, torch's global
+        generator): saved in every checkpoint, so a run resumed from its last checkpoint
+        draws the batches the unbroken run would have drawn."""
+        state = {"shuffle": self.shuffle.get_state(), "torch": torch.get_rng_state()}
+        if self.train_set is not None:
+            state["draws"] = self.train_set.generator.get_state()
+        return state
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self.setup()
+        self._resumed_shuffle = state["shuffle"]  # for the loader Lightning makes next
+        torch.set_rng_state(state["torch"])
+        if "draws" in state:
+            self.train_set.generator.set_state(state["draws"])
+
+    def train_dataloader(self) -> DataLoader:
+        return self._loader(self.train_set, self.batch_size, shuffle=True)
+
+    def val_dataloader(self) -> DataLoader:
+        return self._loader(self.val_set, self.eval_batch_size, shuffle=False)

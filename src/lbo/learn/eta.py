@@ -1,0 +1,100 @@
+"""How long training will take: a few measured steps of each run, times its step count.
+
+``make reproduce`` prints the expected time of its train stage before it starts, for the
+chosen scale and device, and an ETA after every run.
+"""
+
+from __future__ import annotations
+
+import math
+import statistics
+import time
+from typing import Any
+
+import torch
+from hydra.utils import instantiate
+from omegaconf import DictConfig
+
+
+def steps_per_run(cfg: DictConfig, batches_per_epoch: int) -> int:
+    """Training steps of a run that does not stop early: max_epochs x the batches it takes
+    per epoch (``trainer.limit_train_batches``: a fraction, or a count)."""
+    limit = cfg.trainer.get("limit_train_batches")
+    if limit is None:
+        per_epoch = batches_per_epoch
+    elif isinstance(limit, float) and limit <= 1.0:
+        per_epoch = max(int(limit * batches_per_epoch), 1)
+    else:
+        per_epoch = min(int(limit), batches_per_epoch)
+    return int(cfg.trainer.max_epochs) * per_epoch
+
+
+def measure(cfg: DictConfig, steps: int = 8, warmup: int = 3) -> dict[str, Any]:
+    """Time ``steps`` training steps (after ``warmup``) of the run ``cfg`` on its device.
+
+    Returns ``step_s`` (median seconds per step), ``steps`` (the run's step count),
+    ``setup_s`` (reading the data set and building the model, once per run) and ``seconds``
+    (setup plus steps x step time: the expected training time, early stopping aside).
+    """
+    from lbo.learn.builders import build_net, data_device, datamodule, prepare_data
+
+    begin = time.perf_counter()
+    device = data_device(cfg)
+    dm = datamodule(cfg, prepare_data(cfg)[0])
+    net = build_net(cfg).to(device)
+    net.set_normalisation(**dm.normalisation(cfg.features))
+    opt = instantiate(cfg.optimizer)(params=net.parameters())
+    loader = dm.train_dataloader()
+    setup_s = time.perf_counter() - begin
+    periods = []
+    for i, batch in enumerate(loader):
+        start = time.perf_counter()
+        loss = net.loss(*batch)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        if device == "cuda":
+            torch.cuda.synchronize()
+        if i >= warmup:
+            periods.append(time.perf_counter() - start)
+        if len(periods) == steps:
+            break
+    step_s = statistics.median(periods)
+    n = steps_per_run(cfg, len(loader))
+    return {"step_s": step_s, "steps": n, "setup_s": setup_s, "seconds": setup_s + step_s * n}
+
+
+def duration(seconds: float) -> str:
+    """``95`` -> ``1 min 35 s``; ``7300`` -> ``2 h 2 min``."""
+    seconds = max(float(seconds), 0.0)
+    if seconds < 60:
+        return f"{seconds:.0f} s"
+    if seconds < 3600:
+        return f"{int(seconds // 60)} min {int(seconds % 60)} s"
+    return f"{int(seconds // 3600)} h {math.ceil(seconds % 3600 / 60)} min"
+
+
+class Eta:
+    """Remaining time of a list of runs, from their estimates scaled by how the finished ones
+    compared with theirs."""
+
+    def __init__(self, estimates: list[float]) -> None:
+        self.estimates = list(estimates)
+        self.done_estimated = 0.0
+        self.done_actual = 0.0
+
+    def skipped(self, i: int) -> float:
+        """Run ``i`` was reused, not trained; returns the seconds expected for the runs left."""
+        self.estimates[i] = 0.0
+        return self.left()
+
+    def left(self) -> float:
+        scale = self.done_actual / self.done_estimated if self.done_estimated > 0 else 1.0
+        return sum(self.estimates) * scale
+
+    def finished(self, i: int, seconds: float) -> float:
+        """Run ``i`` took ``seconds``; returns the seconds expected for the runs left."""
+        self.done_estimated += self.estimates[i]
+        self.done_actual += seconds
+        self.estimates[i] = 0.0
+        return self.left()

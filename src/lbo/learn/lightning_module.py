@@ -1,0 +1,110 @@
+"""The LightningModule: loss, optimiser and logging around an :class:`ObserverNet`."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from typing import Any
+
+import lightning as L
+import torch
+
+from lbo.core.checks import SCHEDULES
+from lbo.core.errors import TrainingDiverged
+from lbo.models.net import CHECKPOINT_FORMAT, ObserverNet
+
+__all__ = ["CHECKPOINT_FORMAT", "SCHEDULES", "ObserverModule"]
+
+
+class ObserverModule(L.LightningModule):
+    """Trains an observer with MSE on its (normalised, heading-wrapped) targets.
+
+    Parameters
+    ----------
+    model : ``{"name": "cnn"|"lstm", **hyperparameters}``.
+    window : N.
+    features : ``"relative"``, ``"frame"`` or ``"absolute"``.
+    fixes : the observer takes missing fixes (a sixth, ``fix`` channel), see ObserverNet.
+    optimizer : a partial optimiser (``params -> Optimizer``), e.g. from Hydra's
+        ``_partial_: true``; Adam(lr=1e-3) when None.
+    meta : what a checkpoint must carry to rebuild the observer elsewhere (dt, wheelbase,
+        noise preset, data hash, ...); stored in the hyperparameters.
+    lr_schedule : ``"constant"``, or ``"cosine"``: the learning rate falls along a half
+        cosine to zero over every step the trainer will take (``max_epochs`` of them).
+    """
+
+    def __init__(self, model: dict[str, Any], window: int, features: str = "relative",
+                 optimizer: Callable[..., torch.optim.Optimizer] | None = None,
+                 meta: dict[str, Any] | None = None, lr_schedule: str = "constant",
+                 fixes: bool = False) -> None:
+        super().__init__()
+        self.save_hyperparameters(ignore=["optimizer", "lr_schedule"])
+        self.lr_schedule = lr_schedule
+        self.hparams["format"] = CHECKPOINT_FORMAT
+        kwargs = {k: v for k, v in model.items() if k != "name"}
+        self.observer = ObserverNet(model["name"], window, features, fixes, **kwargs)
+        self.optimizer_factory = optimizer
+        self._loss_sum: torch.Tensor | float = 0.0
+        self._loss_count = 0
+        self._val_finite: torch.Tensor | bool = True
+
+    def forward(self, win: torch.Tensor) -> torch.Tensor:
+        return self.observer(win)
+
+    def training_step(self, batch, batch_idx: int) -> torch.Tensor:
+        loss = self.observer.loss(*batch)
+        # summed here and logged once per epoch: self.log on every step costs about 1 ms,
+        # 10 % of a small CNN step on the CPU (benchmarks/bench_train.py)
+        n = len(batch[1])
+        self._loss_sum = self._loss_sum + loss.detach() * n
+        self._loss_count += n
+        return loss
+
+    def on_train_epoch_end(self) -> None:
+        if self._loss_count:
+            self._check_finite(self._loss_sum, "train_loss")
+            self.log("train_loss", self._loss_sum / self._loss_count, prog_bar=True)
+        self._loss_sum, self._loss_count = 0.0, 0
+
+    def validation_step(self, batch, batch_idx: int) -> None:
+        loss = self.observer.loss(*batch)
+        self._val_finite = torch.isfinite(loss) & self._val_finite
+        self.log("val_loss", loss, on_step=False, on_epoch=True, prog_bar=True,
+                 batch_size=len(batch[1]))
+
+    def on_validation_epoch_end(self) -> None:
+        # before ModelCheckpoint's on_validation_end: a NaN model is never saved as best.ckpt
+        finite, self._val_finite = self._val_finite, True
+        self._check_finite(finite, "val_loss")
+
+    def _check_finite(self, value: torch.Tensor | float | bool, name: str) -> None:
+        """Raise TrainingDiverged when ``value`` (a loss, or a finiteness flag) is NaN/inf."""
+        ok = bool(value) if isinstance(value, bool) or (
+            isinstance(value, torch.Tensor) and value.dtype == torch.bool) \
+            else math.isfinite(float(value))
+        if ok:
+            return
+        lr = self.trainer.optimizers[0].param_groups[0]["lr"] if self.trainer.optimizers \
+            else float("nan")
+        raise TrainingDiverged(
+            f"training diverged: {name} became NaN or inf in epoch {self.current_epoch} "
+            f"(learning rate {lr:g}); no checkpoint of the diverged weights is kept: lower "
+            "optimizer.lr")
+
+    def configure_optimizers(self) -> Any:
+        # a net may ask for groups with their own rate, a multiple ``lr_scale`` of the
+        # optimiser's (the window filter's single-track body)
+        groups = getattr(self.observer.net, "param_groups", None)
+        params = groups() if callable(groups) else self.parameters()
+        if self.optimizer_factory is None:
+            opt = torch.optim.Adam(params, lr=1e-3, fused=True)
+        else:
+            opt = self.optimizer_factory(params=params)
+        for group in opt.param_groups:
+            group["lr"] = group["lr"] * group.get("lr_scale", 1.0)
+        if self.lr_schedule == "constant":
+            return opt
+        total = max(int(self.trainer.estimated_stepping_batches), 1)
+        cosine = torch.optim.lr_scheduler.LambdaLR(
+            opt, lambda step: 0.5 * (1.0 + math.cos(math.pi * min(step, total) / total)))
+        return {"optimizer": opt, "lr_scheduler": {"scheduler": cosine, "interval": "step"}}

@@ -1,0 +1,104 @@
+"""A learned observer as one module: raw windows in, absolute states out.
+
+It holds the feature transform, the normalisation statistics of the training set (as
+buffers, so they travel in every checkpoint) and the network itself.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import torch
+from torch import nn
+
+from lbo.core.errors import LboError
+from lbo.models import build_model
+from lbo.models.features import (
+    check_mode,
+    last_measurement,
+    state_to_target,
+    target_to_state,
+    window_features,
+    wrap_angle_torch,
+)
+
+CHECKPOINT_FORMAT = 1
+"""The layout of a saved observer (a checkpoint's ``format``), bumped when it changes; lbo
+refuses checkpoints it cannot read."""
+
+_STD_FLOOR = 1e-6
+
+
+class ObserverNet(nn.Module):
+    """Features -> normalisation -> CNN/LSTM -> de-normalisation -> absolute state.
+
+    Parameters
+    ----------
+    model : ``"cnn"`` or ``"lstm"``.
+    window : N, steps per window.
+    features : ``"relative"`` (default), ``"frame"`` or ``"absolute"``, see
+    :mod:`lbo.models.features`.
+    fixes : the observer takes windows with missing fixes (NaN measurements) and its model
+        reads the sixth channel ``fix``; trained with fixes dropped (``fix_rates``).
+    **model_kwargs : passed to :func:`lbo.models.build_model`.
+    """
+
+    def __init__(self, model: str, window: int, features: str = "relative",
+                 fixes: bool = False, **model_kwargs: Any) -> None:
+        super().__init__()
+        self.features = check_mode(features)
+        self.window = int(window)
+        self.fixes = bool(fixes)
+        channels = 6 if self.fixes else 5
+        if self.fixes:
+            model_kwargs["in_features"] = channels
+        self.net = build_model(model, window, **model_kwargs)
+        # a model with ``physical = True`` reads features and writes targets in metres and
+        # radians; the statistics below then only scale its loss
+        self.physical = bool(getattr(self.net, "physical", False))
+        needs = getattr(self.net, "feature_modes", None)
+        if needs is not None and self.features not in needs:
+            raise LboError(f"features: model {model!r} needs features in {list(needs)}, "
+                           f"got {self.features!r}")
+        self.register_buffer("in_mean", torch.zeros(channels, dtype=torch.float64))
+        self.register_buffer("in_std", torch.ones(channels, dtype=torch.float64))
+        self.register_buffer("out_mean", torch.zeros(3, dtype=torch.float64))
+        self.register_buffer("out_std", torch.ones(3, dtype=torch.float64))
+
+    def set_normalisation(self, in_mean, in_std, out_mean, out_std) -> None:
+        """Channel statistics of the training windows' features (5,) or (6,) and targets (3,)."""
+        for name, value in (("in_mean", in_mean), ("in_std", in_std),
+                            ("out_mean", out_mean), ("out_std", out_std)):
+            t = torch.as_tensor(value, dtype=torch.float64)
+            if name.endswith("std"):
+                t = t.clamp_min(_STD_FLOOR)
+            getattr(self, name).copy_(t)
+
+    def target_units(self, win: torch.Tensor) -> torch.Tensor:
+        """Network output in target units (relative or absolute state). (B, N, 5) -> (B, 3)."""
+        x = window_features(win, self.features, self.fixes)
+        net_dtype = next(self.net.parameters()).dtype
+        if self.physical:  # the model works in metres and radians itself
+            return self.net(x.to(net_dtype)).to(win.dtype)
+        out = self.net(((x - self.in_mean) / self.in_std).to(net_dtype)).to(win.dtype)
+        return out * self.out_std + self.out_mean
+
+    def forward(self, win: torch.Tensor) -> torch.Tensor:
+        """Estimated state ``[x, y, psi]`` at each window's last step. (B, N, 5) -> (B, 3)."""
+        return target_to_state(self.target_units(win), last_measurement(win, self.fixes),
+                               self.features)
+
+    def loss(self, win: torch.Tensor, state: torch.Tensor,
+             weight: torch.Tensor | None = None) -> torch.Tensor:
+        """MSE in normalised target units, the heading residual wrapped.
+
+        state : (B, 3) true states; weight : (B,) per-window weights (None: equal), the loss
+        is their weighted mean.
+        """
+        target = state_to_target(state, last_measurement(win, self.fixes), self.features)
+        r = self.target_units(win) - target
+        r = torch.cat([r[:, :2], wrap_angle_torch(r[:, 2:])], dim=1)
+        se = ((r / self.out_std) ** 2).mean(1)
+        if weight is None:
+            return se.mean().float()
+        return ((se * weight).sum() / weight.sum()).float()

@@ -1,0 +1,144 @@
+"""Scores on a user's test logs (``data=logs``): the test files play the role of the test
+grid.
+
+Every observer is scored on the same rows (each test segment from step ``data.run_in`` on):
+the RMSE per variable pooled over every test file (``file = all``) and per file, the NRMSE
+normalised by the EKF on the same files (so the EKF's pooled NRMSE is 1), and each observer's
+NRMSE over every classical peer's on the same rows (``ratio_to_<peer>``). A log has no known
+noise level, so the peers are the EKF at the noise preset's R (alpha=1), the adaptive EKF that
+learns R, and the UKF; the oracle EKF (told alpha) cannot be run. The ``alpha`` column is the
+noise level the reference measures in each file, which no observer is told.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from lbo.core.errors import LboError
+from lbo.scoring.metrics import nrmse, rmse
+from lbo.sim import schema
+from lbo.sim.noise import Noise
+from lbo.sim.vehicle import Vehicle
+
+PEERS = ("ekf", "adaptive", "ukf")
+"""The classical observers that run on a log: no oracle, since a log's alpha is unknown."""
+ALL = "all"
+NOTE = ("on logs the noise level is unknown, so there is no oracle EKF: the peers are the EKF "
+        "at the noise preset's R (alpha=1), the adaptive EKF (learns R) and the UKF; NRMSE is "
+        "normalised by the EKF on the same test files")
+
+
+def load(folder: str | Path) -> dict[str, np.ndarray]:
+    """The test logs of a ``data=logs`` folder as padded arrays (:func:`lbo.sim.schema.to_arrays`)
+    plus ``file`` (G,), the index of each segment's log; segments too short to be scored
+    (shorter than ``data.run_in``) are left out."""
+    df = schema.read_set(Path(folder) / "test.parquet", schema.EVAL_COLUMNS, missing_fixes=True)
+    arr = schema.to_arrays(df)
+    arr["file"] = df.groupby("traj")["file"].first().loc[arr["traj"]].to_numpy()
+    keep = arr["mask"].any(axis=1)
+    return {k: v[keep] if isinstance(v, np.ndarray) and len(v) == len(keep) else v
+            for k, v in arr.items()}
+
+
+def peer_estimates(arr: Mapping[str, np.ndarray], vehicle: Vehicle, noise: Noise,
+                   peers: Sequence[str] = PEERS) -> dict[str, np.ndarray]:
+    """Estimates (G, T, 3) of each classical peer on the test arrays, never told alpha."""
+    from lbo.filters.classical import run
+
+    for name in peers:
+        if name not in PEERS:
+            raise LboError(f"observers: {name!r} cannot score logs ({NOTE}); expected names "
+                           f"from {list(PEERS)}")
+    return {name: run(name, arr["m"], arr["u"], vehicle, noise) for name in peers}
+
+
+def _pooled(est: np.ndarray, z: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    return rmse(est.reshape(1, -1, 3), z.reshape(1, -1, 3), mask.reshape(1, -1))[0]
+
+
+def table(estimates: Mapping[str, np.ndarray], arr: Mapping[str, np.ndarray],
+          files: Sequence[str]) -> pd.DataFrame:
+    """Rows ``observer, file, alpha, rmse_x, rmse_y, rmse_psi, nrmse, ratio_to_<peer>...``.
+
+    Parameters
+    ----------
+    estimates : observer name -> (G, T, 3) estimates; must hold ``ekf``, the reference.
+    arr : the test arrays of :func:`load`.
+    files : the test logs' names, indexed by ``arr["file"]``.
+    """
+    if "ekf" not in estimates:
+        raise LboError("scoring logs needs the EKF's estimates: the NRMSE is normalised by it")
+    z, mask = arr["z"], arr["mask"]
+    groups = [(ALL, np.ones(len(z), bool))] + [
+        (str(f), arr["file"] == i) for i, f in enumerate(files) if (arr["file"] == i).any()]
+    levels = {str(f): float(arr["alpha"][arr["file"] == i][0])
+              for i, f in enumerate(files) if (arr["file"] == i).any()}
+    ref = _pooled(estimates["ekf"], z, mask)
+    rows = []
+    for name, est in estimates.items():
+        for label, sel in groups:
+            e = _pooled(est[sel], z[sel], mask[sel])
+            level = levels.get(label, float(np.mean(list(levels.values()))))
+            rows.append({"observer": name, "file": label, "alpha": level, "rmse_x": e[0],
+                         "rmse_y": e[1], "rmse_psi": e[2], "nrmse": nrmse(e, ref)})
+    out = pd.DataFrame(rows)
+    piv = out.pivot(index="file", columns="observer", values="nrmse")
+    for peer in (p for p in PEERS if p in estimates):
+        out[f"ratio_to_{peer}"] = out["nrmse"].to_numpy() / piv.loc[out["file"], peer].to_numpy()
+    return out
+
+
+def metrics(scores: pd.DataFrame, observer: str) -> dict[str, float]:
+    """The pooled scores of ``observer`` as MLflow metrics: ``test_nrmse``,
+    ``test_rmse_{x,y,psi}`` and ``ratio_to_<peer>``."""
+    row = scores[(scores["observer"] == observer) & (scores["file"] == ALL)].iloc[0]
+    out = {"test_nrmse": float(row["nrmse"])}
+    out.update({f"test_rmse_{v}": float(row[f"rmse_{v}"]) for v in ("x", "y", "psi")})
+    out.update({c: float(row[c]) for c in scores.columns if c.startswith("ratio_to_")})
+    return out
+
+
+def figure(scores: pd.DataFrame, title: str = ""):
+    """NRMSE per test file (and pooled) for every observer, as grouped bars."""
+    import matplotlib.pyplot as plt
+
+    from lbo.core.plots import STYLES
+
+    piv = scores.pivot(index="file", columns="observer", values="nrmse")
+    files = [ALL] + [f for f in dict.fromkeys(scores["file"]) if f != ALL]
+    names = list(dict.fromkeys(scores["observer"]))
+    piv = piv.loc[files, names]
+    fig, ax = plt.subplots(figsize=(max(6.4, 0.9 * len(files) + 2), 4.2))
+    width = 0.8 / len(names)
+    palette = iter(["tab:blue", "tab:red", "tab:purple", "tab:brown", "tab:pink", "tab:cyan"])
+    x = np.arange(len(files))
+    for i, name in enumerate(names):
+        color = (STYLES.get(name) or {}).get("color") or next(palette)
+        ax.bar(x + (i - (len(names) - 1) / 2) * width, piv[name].to_numpy(), width,
+               label=name, color=color)
+    values = piv.to_numpy()
+    if np.nanmax(values) > 5 * np.nanmin(values):  # a diverged peer would flatten the others
+        ax.set_yscale("log")
+    ax.axhline(1.0, color="0.6", lw=0.8, ls=":")
+    ax.set_xticks(x, [Path(f).name for f in files], rotation=30, ha="right", fontsize=8)
+    ax.set(ylabel="NRMSE (EKF on the same files = 1)", title=title)
+    ax.grid(alpha=0.3, axis="y")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    return fig
+
+
+def printable(scores: pd.DataFrame) -> str:
+    """The pooled rows as a text table: RMSE per variable (m, m, mrad), NRMSE and ratios."""
+    pooled = scores[scores["file"] == ALL].set_index("observer")
+    cols = ["rmse_x", "rmse_y", "rmse_psi", "nrmse",
+            *[c for c in scores.columns if c.startswith("ratio_to_")]]
+    shown = pooled[cols].copy()
+    shown["rmse_psi"] *= 1e3
+    shown = shown.rename(columns={"rmse_x": "x (m)", "rmse_y": "y (m)", "rmse_psi": "psi (mrad)"})
+    with pd.option_context("display.width", 140, "display.precision", 4):
+        return shown.to_string()

@@ -1,0 +1,320 @@
+"""The paper's tables and figures from score tables: arrays and frames in, files out.
+
+Nothing here trains or talks to MLflow; :mod:`lbo.reproduce` gathers the tables and calls
+:func:`write`.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from lbo.core import plots
+from lbo.core.atomic import atomic_path, write_text
+from lbo.filters.classical import NAMES as CLASSICAL
+
+# The paper's Tables I and II (RMSE; psi in rad) and its reading of Fig. 5.
+PAPER_RMSE = {
+    1.0: {"ekf": (0.24, 0.23, 4.1e-3), "cnn": (0.28, 0.23, 11e-3), "lstm": (0.65, 0.90, 13e-3)},
+    6.0: {"ekf": (1.56, 1.88, 26e-3), "cnn": (0.91, 0.89, 20e-3), "lstm": (0.98, 1.10, 19e-3)},
+}
+PAPER_BEST_WINDOW = {"cnn": 60, "lstm": 80}
+PAPER_CROSSOVER = {"cnn": 2.0, "lstm": 3.0}
+ROBUST_PEERS = ("ekf", "oracle", "adaptive", "pcrb")
+"""What the robust observer is shown against."""
+VARIABLES = (("x", "m", 1.0), ("y", "m", 1.0), ("psi", "mrad", 1e3))
+DYNAMIC_PEERS = ("ekf", "oracle", "adaptive", "oracle_tuned", "oracle_dynamic")
+"""What an observer of a car that slips is shown against: the kinematic EKFs and the EKF told
+the car."""
+
+
+def learned_names(table: pd.DataFrame, model: str) -> list[str]:
+    """Observer names of one architecture (``cnn-N20``, ...), sorted by window."""
+    names = {o for o in table["observer"] if o.startswith(f"{model}-N")}
+    return sorted(names, key=lambda o: int(o.split("-N")[1]))
+
+
+def best_window(table: pd.DataFrame, model: str) -> str | None:
+    """The architecture's observer with the lowest NRMSE averaged over every alpha; one with
+    no score (NaN, or no row) at an alpha that another has is ranked last."""
+    names = learned_names(table, model)
+    if not names:
+        return None
+    grid = table[table["observer"].isin(names)].pivot_table(
+        index="observer", columns="alpha", values="nrmse", dropna=False)
+    mean = grid.reindex(names).mean(axis=1, skipna=False).fillna(np.inf)
+    return str(mean.idxmin())
+
+
+def crossover(table: pd.DataFrame, observer: str, baseline: str = "ekf") -> float | None:
+    """Smallest alpha from which ``observer``'s NRMSE is below ``baseline``'s, interpolated
+    linearly between grid levels; None if it never is, 0 if it always is."""
+    a = table[table["observer"] == observer].set_index("alpha")["nrmse"]
+    b = table[table["observer"] == baseline].set_index("alpha")["nrmse"]
+    diff = (a - b).dropna().sort_index()
+    if diff.empty:  # nothing to compare: never shown below
+        return None
+    below = (diff < 0).to_numpy()
+    if below.all():
+        return 0.0
+    last_above = np.flatnonzero(~below)[-1]
+    if last_above == len(diff) - 1:
+        return None
+    x0, x1 = diff.index[last_above], diff.index[last_above + 1]
+    y0, y1 = diff.iloc[last_above], diff.iloc[last_above + 1]
+    return float(x0 + (x1 - x0) * y0 / (y0 - y1))
+
+
+def rmse_table(table: pd.DataFrame, alpha: float, cnn: str | None,
+               lstm: str | None) -> pd.DataFrame:
+    """Table I (alpha=1) or II (alpha=6): rows x, y, psi; ours beside the paper's.
+
+    Columns: ``variable, unit, ekf, ekf_paper, cnn, cnn_paper, lstm, lstm_paper`` (psi in
+    mrad, as in the paper), plus ``cnn_observer`` and ``lstm_observer`` naming the windows.
+    """
+    rows = []
+    at = table[np.isclose(table["alpha"], alpha)].set_index("observer")
+    for i, (var, unit, scale) in enumerate(VARIABLES):
+        row = {"variable": var, "unit": unit}
+        for key, name in (("ekf", "ekf"), ("cnn", cnn), ("lstm", lstm)):
+            ours = at.loc[name, f"rmse_{var}"] * scale if name in at.index else np.nan
+            row[key] = float(ours)
+            paper = PAPER_RMSE.get(alpha, {}).get(key, (np.nan,) * 3)[i]
+            row[f"{key}_paper"] = round(paper * scale, 6)
+        rows.append(row)
+    out = pd.DataFrame(rows)
+    out["cnn_observer"], out["lstm_observer"] = cnn, lstm
+    return out
+
+
+def with_oracle_ratio(table: pd.DataFrame) -> pd.DataFrame:
+    """``table`` plus ``ratio_to_oracle``: each row's NRMSE over the oracle EKF's at its alpha.
+
+    NaN where there is no oracle row, or where the oracle's NRMSE is 0 (alpha = 0).
+    """
+    out = table.copy()
+    if "oracle" not in set(table["observer"]):
+        out["ratio_to_oracle"] = np.nan
+        return out
+    oracle = table[table["observer"] == "oracle"].groupby("alpha")["nrmse"].first()
+    floor = out["alpha"].map(oracle)
+    out["ratio_to_oracle"] = (out["nrmse"] / floor.where(floor > 1e-9)).astype(float)
+    return out
+
+
+def robust_markdown(table: pd.DataFrame, robust: str) -> list[str]:
+    """The robust observer against the classical peers, per alpha, with its oracle ratio."""
+    peers = _present(table, (robust, *ROBUST_PEERS))
+    nr = table.pivot(index="alpha", columns="observer", values="nrmse")[peers]
+    ratio = table[table["observer"] == robust].set_index("alpha")["ratio_to_oracle"]
+    nr[f"{robust} / oracle"] = ratio
+    worst = ratio[(ratio.index >= 0.25 - 1e-9)].max()
+    cross = crossover(table, robust)
+    where = "never on 0..6" if cross is None else f"from alpha = {cross:.2f}"
+    return ["## Beyond the paper: one observer for every noise level", "",
+            f"`{robust}` (`experiment=robust`) is never told alpha. NRMSE per alpha beside the "
+            "EKF (R at alpha=1), the oracle EKF (told alpha), the adaptive EKF and the PCRB, "
+            f"and its ratio to the oracle. Worst ratio over alpha in [0.25, 6]: {worst:.3f}. "
+            f"It is below the EKF {where}.", "",
+            _md(nr.reset_index()), "", "![robust](nrmse_robust.png)", ""]
+
+
+def dynamic_summary(table: pd.DataFrame, low: float = 0.25, high: float = 6.0) -> dict:
+    """The observer that learns the model error (the learned one that is not a black-box CNN
+    or LSTM) in a car-that-slips table, against its peers over alpha in [low, high]: its name,
+    the black boxes' names, and the ranges of its NRMSE over the kinematic oracle's, over the
+    dynamic oracle's, over the adaptive EKF's and over the kinematic EKF tuned in hindsight
+    (``oracle_tuned``; None without it), and of the dynamic oracle's over the kinematic one's,
+    each ``(min, max)``."""
+    learned = [o for o in dict.fromkeys(table["observer"]) if o not in CLASSICAL]
+    boxes = [o for o in learned if o.startswith(("cnn", "lstm"))]
+    main = [o for o in learned if o not in boxes]
+    if len(main) != 1:
+        raise ValueError(f"expected one observer besides the black boxes, got {main}")
+    nr = table.pivot_table(index="alpha", columns="observer", values="nrmse")
+    nr = nr[(nr.index >= low - 1e-9) & (nr.index <= high + 1e-9)]
+    name = main[0]
+
+    def span(a: str, b: str) -> tuple[float, float]:
+        r = nr[a] / nr[b]
+        return float(r.min()), float(r.max())
+
+    return {"observer": name, "black_boxes": boxes, "vs_oracle": span(name, "oracle"),
+            "vs_dynamic": span(name, "oracle_dynamic"), "vs_adaptive": span(name, "adaptive"),
+            "vs_tuned": span(name, "oracle_tuned") if "oracle_tuned" in nr else None,
+            "dynamic_vs_oracle": span("oracle_dynamic", "oracle")}
+
+
+def dynamic_markdown(key: str, table: pd.DataFrame) -> list[str]:
+    """The section of a car that slips (``data=<key>``): NRMSE per alpha against the kinematic
+    EKFs and the dynamic oracle, the ratios, RMSE per variable at alpha 1, 3 and 6."""
+    s = dynamic_summary(table)
+    name = s["observer"]
+    peers = _present(table, (name, *s["black_boxes"], *DYNAMIC_PEERS))
+    nr = table.pivot_table(index="alpha", columns="observer", values="nrmse")[peers]
+    nr = nr[nr.index.isin([0.25, 0.5, 1.0, 2.0, 3.0, 4.0, 5.0, 6.0])]
+    nr[f"{name} / oracle"] = nr[name] / nr["oracle"]
+    nr[f"{name} / oracle_dynamic"] = nr[name] / nr["oracle_dynamic"]
+    if s["vs_tuned"] is not None:
+        nr[f"{name} / oracle_tuned"] = nr[name] / nr["oracle_tuned"]
+    rows = []
+    for alpha in (1.0, 3.0, 6.0):
+        at = table[np.isclose(table["alpha"], alpha)].set_index("observer")
+        for obs in peers:
+            if obs in at.index:
+                rows.append({"alpha": alpha, "observer": obs,
+                             **{f"{v} ({u})": float(at.loc[obs, f"rmse_{v}"] * k)
+                                for v, u, k in VARIABLES}})
+    lo, hi = s["vs_oracle"]
+    dlo, dhi = s["dynamic_vs_oracle"]
+    return [f"## Where learning beats the model: `data={key}`", "",
+            f"`{name}` (`experiment=dynamic`) is never told alpha or the car. Over alpha in "
+            f"[0.25, 6] its NRMSE is {1 - hi:.0%} to {1 - lo:.0%} below the kinematic oracle "
+            f"EKF's (the EKF on the car, `oracle_dynamic`, is {1 - dhi:.0%} to {1 - dlo:.0%} "
+            f"below it), {s['vs_dynamic'][0]:.2f} to {s['vs_dynamic'][1]:.2f} times the "
+            f"dynamic oracle's, and {s['vs_adaptive'][0]:.2f} to {s['vs_adaptive'][1]:.2f} "
+            "times the adaptive EKF's"
+            + (f", and {s['vs_tuned'][0]:.2f} to {s['vs_tuned'][1]:.2f} times the kinematic "
+               "EKF's with Q tuned in hindsight per alpha (`oracle_tuned`), the fair kinematic "
+               "peer." if s["vs_tuned"] is not None else ".")
+            + (" Black-box peers trained on the same data (`experiment=dynamic_blackbox`): "
+               f"{', '.join(f'`{b}`' for b in s['black_boxes'])}." if s["black_boxes"] else ""),
+            "",
+            _md(nr.reset_index()), "", "RMSE per variable (psi in mrad):", "",
+            _md(pd.DataFrame(rows)), "", f"![{key}](nrmse_{key}.png)", ""]
+
+
+def crossover_markdown(table: pd.DataFrame) -> list[str]:
+    """Where each learned observer crosses the EKF."""
+    learned = [o for o in dict.fromkeys(table["observer"])
+               if o not in CLASSICAL]
+    out = ["## Where each learned observer crosses the EKF", "",
+           "| observer | training noise | below the EKF from alpha |", "|---|---|---|"]
+    for name in learned:
+        cross = crossover(table, name)
+        noise = "alpha ~ U[0, 6.5], never told" if not name.startswith(("cnn", "lstm")) \
+            else "alpha = 1 (the paper's protocol)"
+        out.append(f"| {name} | {noise} | "
+                   f"{'never on 0..6' if cross is None else f'{cross:.2f}'} |")
+    return [*out, ""]
+
+
+def _present(table: pd.DataFrame, names) -> list[str]:
+    """The observers of ``names`` that ``table`` has rows for, in that order."""
+    have = set(table["observer"])
+    return [n for n in names if n in have]
+
+
+def _md(df: pd.DataFrame, digits: int = 3) -> str:
+    cols = list(df.columns)
+    lines = ["| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
+    for _, r in df.iterrows():
+        cells = [f"{v:.{digits}g}" if isinstance(v, float) else str(v) for v in r]
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def markdown(scale: str, tables: dict[str, pd.DataFrame], table: pd.DataFrame,
+             best: dict[str, str | None], runs: dict[str, str], stages: dict[str, dict],
+             robust: str | None = None,
+             dynamic: dict[str, pd.DataFrame] | None = None) -> str:
+    """report.md: the tables, crossovers, best windows, run ids and stage times."""
+    out = [f"# lbo report: scale `{scale}`", "",
+           "RMSE of the EKF and of the best CNN and LSTM, ours beside the paper's "
+           "(psi in mrad).", ""]
+    for alpha, key in ((1.0, "rmse_alpha1"), (6.0, "rmse_alpha6")):
+        t = tables[key].drop(columns=["cnn_observer", "lstm_observer"])
+        out += [f"## RMSE at alpha = {alpha:g} (paper Table {'I' if alpha == 1 else 'II'})", "",
+                _md(t), ""]
+    out += ["## Best windows and crossovers", "",
+            "| architecture | best window (ours) | best window (paper) | overtakes the EKF from "
+            "alpha (ours) | (paper) |", "|---|---|---|---|---|"]
+    for model in ("cnn", "lstm"):
+        name = best.get(model)
+        cross = crossover(table, name) if name else None
+        ours = "never on 0..6" if cross is None else f"{cross:.2f}"
+        out.append(f"| {model.upper()} | {name or '-'} | N={PAPER_BEST_WINDOW[model]} | {ours} "
+                   f"| about {PAPER_CROSSOVER[model]:g} |")
+    nr = table.pivot(index="alpha", columns="observer", values="nrmse")
+    out += ["", "## NRMSE at alpha = 1, 3, 6", "",
+            _md(nr.loc[nr.index.isin([1.0, 3.0, 6.0])].reset_index()), ""]
+    out += crossover_markdown(table)
+    if robust is not None:
+        out += robust_markdown(table, robust)
+    for key, t in (dynamic or {}).items():
+        out += dynamic_markdown(key, t)
+    out += ["## Runs", "", "| observer | MLflow run id |", "|---|---|"]
+    out += [f"| {k} | `{v}` |" for k, v in sorted(runs.items())]
+    out += ["", "## Stages", "", "| stage | status | seconds |", "|---|---|---|"]
+    out += [f"| {k} | {v.get('status', '')} | {v.get('seconds', float('nan')):.1f} |"
+            for k, v in stages.items()]
+    extra = ([" nrmse_robust.png"] if robust else []) + [f" nrmse_{k}.png" for k in dynamic or {}]
+    out += ["", "Figures: friction_circle.png, nrmse_cnn.png, nrmse_lstm.png, nrmse_all.png, "
+            "trajectory_alpha3.png" + "".join("," + e for e in extra) + ".", ""]
+    return "\n".join(out)
+
+
+def write(folder: str | Path, scale: str, table: pd.DataFrame, runs: dict[str, str],
+          stages: dict[str, dict], trajectory: dict[str, np.ndarray] | None = None,
+          friction_png: str | Path | None = None, robust: str | None = None,
+          dynamic: dict[str, pd.DataFrame] | None = None) -> list[Path]:
+    """Write every report file into ``folder``; returns their paths.
+
+    Parameters
+    ----------
+    table : score table with every observer (learned and classical) at every alpha;
+        ``nrmse.csv`` is this table with a ``ratio_to_oracle`` column.
+    runs : observer name -> MLflow run id.
+    trajectory : arrays for Fig. 6: ``truth``, ``meas`` and one (T, 2) array per estimate.
+    friction_png : the data set's friction_circle.png, copied beside the report.
+    robust : the name of the robust observer in ``table``, which gets a section and
+        ``nrmse_robust.png`` of its own.
+    dynamic : data-set name -> score table of the car-that-slips study on that set (one
+        learned observer and the peers of :data:`DYNAMIC_PEERS`): a section, ``<name>.csv``
+        and ``nrmse_<name>.png`` each.
+    """
+    folder = Path(folder)
+    table = with_oracle_ratio(table)
+    best = {m: best_window(table, m) for m in ("cnn", "lstm")}
+    tables = {"rmse_alpha1": rmse_table(table, 1.0, best["cnn"], best["lstm"]),
+              "rmse_alpha6": rmse_table(table, 6.0, best["cnn"], best["lstm"])}
+    written = []
+    for key, t in {**tables, "nrmse": table}.items():
+        with atomic_path(folder / f"{key}.csv") as tmp:
+            t.to_csv(tmp, index=False)
+        written.append(folder / f"{key}.csv")
+    for model in ("cnn", "lstm"):
+        names = learned_names(table, model)
+        fig = plots.nrmse_curves(table, title=f"{model.upper()} observers against the EKF",
+                                 observers=[*names, "ekf"])
+        written.append(plots.save(fig, folder / f"nrmse_{model}.png"))
+    if robust is not None:
+        peers = [robust, *_present(table, ROBUST_PEERS)]
+        written.append(plots.save(plots.nrmse_curves(
+            table, f"{robust}, never told alpha, against the classical peers", observers=peers),
+            folder / "nrmse_robust.png"))
+    every = [n for n in (best["cnn"], best["lstm"], robust) if n] + _present(table, CLASSICAL)
+    written.append(plots.save(plots.nrmse_curves(table, "best observers, classical peers and "
+                                                 "the PCRB", observers=every),
+                              folder / "nrmse_all.png"))
+    for key, t in (dynamic or {}).items():
+        with atomic_path(folder / f"{key}.csv") as tmp:
+            t.to_csv(tmp, index=False)
+        s = dynamic_summary(t)
+        written += [folder / f"{key}.csv", plots.save(plots.nrmse_curves(
+            t, f"a car that slips (data={key}): {s['observer']} against the kinematic EKFs and "
+            "the EKF told the car",
+            observers=_present(t, (s["observer"], *s["black_boxes"], *DYNAMIC_PEERS))),
+            folder / f"nrmse_{key}.png")]
+    if trajectory is not None:
+        written.append(plots.save(plots.trajectory(**trajectory), folder / "trajectory_alpha3.png"))
+    if friction_png is not None and Path(friction_png).is_file():
+        with atomic_path(folder / "friction_circle.png") as tmp:
+            tmp.write_bytes(Path(friction_png).read_bytes())
+        written.append(folder / "friction_circle.png")
+    written.append(write_text(folder / "report.md",
+                              markdown(scale, tables, table, best, runs, stages, robust,
+                                       dynamic)))
+    return written

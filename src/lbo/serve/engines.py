@@ -1,0 +1,192 @@
+"""Inference engines of a learned observer: TorchScript and ONNX Runtime next to PyTorch.
+
+Both :mod:`lbo.serve.observer` (``engine=``) and :mod:`lbo.export` (the files) build on these, so
+neither imports the other's internals.
+"""
+
+from __future__ import annotations
+
+import io
+import warnings
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+OPSET = 17
+TOLERANCE = 1e-5
+"""Largest difference to PyTorch that an exported file may show (tested)."""
+
+
+def _example(net: Any, batch: int = 1, seed: int = 0):
+    """Plausible raw windows (B, N, 5) float64: a vehicle near (100 m, -50 m), noisy."""
+    import torch
+
+    g = torch.Generator().manual_seed(seed)
+    win = torch.randn(batch, net.window, 5, generator=g, dtype=torch.float64)
+    return win * torch.tensor([1.0, 1.0, 0.02, 2.0, 0.05], dtype=torch.float64) + torch.tensor(
+        [100.0, -50.0, 0.5, 10.0, 0.0], dtype=torch.float64)
+
+
+def _without_fixes(win):
+    """A copy of the windows (B, N, 5) with every other fix dropped, and, in the second half
+    of the batch, none in the first quarter of the window either (NaN measurements)."""
+
+    win = win.clone()
+    win[:, 1::2, :3] = float("nan")
+    win[len(win) // 2:, : max(1, win.shape[1] // 4), :3] = float("nan")
+    return win
+
+
+def trace(net: Any) -> Any:
+    """TorchScript of an :class:`~lbo.models.net.ObserverNet`, traced on one float64 window
+    on the net's device.
+
+    Traced rather than scripted: the feature functions branch on Python types. The trace
+    holds for any batch size (checked in the tests).
+    """
+    import torch
+
+    net = net.eval()
+    example = _example(net).to(net.in_mean.device)
+    with warnings.catch_warnings():
+        # torch 2.13 marks jit.trace deprecated; nn.LSTM's shape checks warn while traced
+        warnings.simplefilter("ignore")
+        return torch.jit.trace(net, example, check_trace=False)
+
+
+def onnx_bytes(net: Any) -> bytes:
+    """ONNX model of an :class:`~lbo.models.net.ObserverNet`: input ``window`` (batch, N, 5),
+    output ``state`` (batch, 3), both float64. Legacy (TorchScript-based) exporter."""
+    import torch
+
+    buf = io.BytesIO()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the legacy exporter's deprecation and LSTM notes
+        torch.onnx.export(net.eval(), (_example(net),), buf, dynamo=False, opset_version=OPSET,
+                          input_names=["window"], output_names=["state"],
+                          dynamic_axes={"window": {0: "batch"}, "state": {0: "batch"}})
+    return buf.getvalue()
+
+
+def onnx_session(model: bytes | str | Path, threads: int | None = None) -> Any:
+    """An ONNX Runtime CPU session; ``threads`` intra-op threads (None: its default)."""
+    import onnxruntime as ort
+
+    opts = ort.SessionOptions()
+    if threads is not None:
+        opts.intra_op_num_threads = int(threads)
+        opts.inter_op_num_threads = 1
+    source = model if isinstance(model, bytes) else str(model)
+    return ort.InferenceSession(source, opts, providers=["CPUExecutionProvider"])
+
+
+def check_exported(net: Any, script: Any, session: Any, batch: int = 64) -> dict[str, float]:
+    """Largest |difference| of TorchScript and ONNX Runtime to PyTorch on random windows
+    (and the same with fixes missing, for a net that takes them)."""
+    import torch
+
+    win = _example(net, batch=batch, seed=1)
+    if getattr(net, "fixes", False):
+        win = torch.cat([win, _without_fixes(win)])
+    with torch.inference_mode():
+        ref = net(win).numpy()
+        ts = script(win).numpy()
+    ort_out = session.run(None, {"window": win.numpy()})[0]
+    return {"torchscript": float(np.abs(ts - ref).max()),
+            "onnx": float(np.abs(ort_out - ref).max())}
+
+
+def _recursive_example(rec: Any) -> tuple:
+    """One step's inputs of a :class:`~lbo.models.recursive.RecursiveFilter`: a fix, an input,
+    and the state of a filter that has seen nothing."""
+    import torch
+
+    f = dict(dtype=torch.float64, device=next(rec.parameters()).device)
+    return (torch.tensor([[100.0, -50.0, 0.5]], **f), torch.tensor([[10.0, 0.02]], **f),
+            *rec.initial_state(1, f["device"]))
+
+
+def trace_recursive(rec: Any) -> Any:
+    """TorchScript of a recursive filter's step ``(m, u, *state) -> (pose, cov, *state)``,
+    traced on one step (the step has no data-dependent Python branch)."""
+    import torch
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # torch 2.13 marks jit.trace deprecated
+        return torch.jit.trace(rec.eval(), _recursive_example(rec), check_trace=False)
+
+
+def recursive_onnx_bytes(rec: Any) -> bytes:
+    """ONNX model of a recursive filter's step: inputs ``m`` (B, 3), ``u`` (B, 2) and the
+    state tensors named as :data:`~lbo.models.recursive.STATE_NAMES`, outputs ``pose``
+    (B, 3), ``cov`` (B, 3, 3) and ``next_<name>`` for each state tensor, all float64. A
+    state tensor the model never reads (the yaw-rate memory of a filter without a learned
+    process model, say) is not an input."""
+    import torch
+
+    from lbo.models.recursive import STATE_NAMES
+
+    buf = io.BytesIO()
+    batch = {n: {0: "batch"} for n in ("m", "u", "pose", "cov")}
+    for name in STATE_NAMES:
+        if name != "k":
+            batch[name] = batch[f"next_{name}"] = {0: "batch"}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        torch.onnx.export(rec.cpu().eval(), _recursive_example(rec.cpu()), buf, dynamo=False,
+                          opset_version=OPSET, input_names=["m", "u", *STATE_NAMES],
+                          output_names=["pose", "cov", *(f"next_{n}" for n in STATE_NAMES)],
+                          dynamic_axes=batch)
+    return buf.getvalue()
+
+
+def onnx_step(session: Any) -> Any:
+    """The step ``(m, u, state) -> (pose, cov, next state)`` of a recursive filter's ONNX
+    session (:func:`recursive_onnx_bytes`), on numpy arrays; ``state`` is every tensor of
+    :data:`~lbo.models.recursive.STATE_NAMES`, of which it feeds those the model reads."""
+    from lbo.models.recursive import STATE_NAMES
+
+    names = [i.name for i in session.get_inputs()]
+    keys = ["m", "u", *STATE_NAMES]
+
+    def step(m: np.ndarray, u: np.ndarray, state: list) -> tuple:
+        feed = dict(zip(keys, [m, u, *state]))
+        out = session.run(None, {k: feed[k] for k in names})
+        return out[0], out[1], out[2:]
+
+    return step
+
+
+def check_recursive(rec: Any, script: Any, session: Any, steps: int = 300,
+                    seed: int = 1) -> dict[str, float]:
+    """Largest |difference| of a recursive filter's TorchScript and ONNX step to PyTorch's, in
+    pose and covariance, over ``steps`` steps of a noisy drive near (100 m, -50 m) (every
+    other fix missing, for a filter that takes missing fixes)."""
+    import torch
+
+    rng = np.random.default_rng(seed)
+    k = np.arange(steps)
+    m = np.stack([100 + 0.2 * k, -50 + 0.01 * k, np.full(steps, 0.05)], 1)
+    m = m + rng.normal(size=(steps, 3)) * [1.0, 1.0, 0.02]
+    if rec.fixes:
+        m[1::2] = np.nan
+    u = np.tile([10.0, 0.01], (steps, 1))
+    step = onnx_step(session)
+    worst = {"torchscript": 0.0, "onnx": 0.0}
+    states = {e: list(rec.initial_state(1)) for e in ("torch", "torchscript")}
+    onnx_state = [s.numpy() for s in rec.initial_state(1)]
+    with torch.inference_mode():
+        for i in range(steps):
+            mk, uk = torch.from_numpy(m[i:i + 1]), torch.from_numpy(u[i:i + 1])
+            ref = rec(mk, uk, *states["torch"])
+            ts = script(mk, uk, *states["torchscript"])
+            states["torch"], states["torchscript"] = list(ref[2:]), list(ts[2:])
+            *ox, onnx_state = step(m[i:i + 1], u[i:i + 1], onnx_state)
+            for engine, out in (("torchscript", [t.numpy() for t in ts[:2]]), ("onnx", ox)):
+                for a, b in zip(out, (ref[0].numpy(), ref[1].numpy())):
+                    d = np.abs(a - b)
+                    nan_same = np.isnan(a) == np.isnan(b)
+                    gap = float(np.nanmax(d)) if np.isfinite(d).any() else 0.0
+                    worst[engine] = max(worst[engine], gap if nan_same.all() else float("nan"))
+    return worst

@@ -1,0 +1,799 @@
+"""Run an observer, learned or classical, on a log: step by step in a control loop, or over a
+whole log at once, with the same numbers either way.
+
+    from lbo import Observer
+
+    obs = Observer.load("outputs/.../checkpoints/best.ckpt")   # or a run id, models:/..., "ekf"
+    for m_k, u_k in log:                   # m_k = [x_m, y_m, psi_m], u_k = [V, delta]
+        est, valid = obs.step(m_k, u_k)    # est = [x, y, psi] at step k
+
+A CNN or LSTM needs N samples before its window is full. Until then (the first N-1 steps) it
+returns the estimate of the paper's EKF (noise preset of the checkpoint, R at alpha=1), which
+runs beside the window, and flags it ``valid=False``. Classical observers are valid from the
+first fix, and so is the robust observer (``filternet``) in its recursive form
+(``form="recursive"``, :mod:`lbo.models.recursive`), which carries its filter from step to
+step at a constant cost; its window form re-runs the filter over the last N samples for every
+estimate, as it was trained.
+
+Every classical observer and the robust observer also give the covariance of their estimate
+(``Estimate.cov``, ``run(..., cov=True)``); the CNN and the LSTM have none (NaN).
+
+Conventions as in :mod:`lbo.filters.kalman`: ``u_k`` moves ``z_k`` to ``z_{k+1}``, so the
+estimate at
+step k uses ``m_0 .. m_k`` and ``u_0 .. u_{k-1}`` (the filters) or the window of
+``[m_j, u_j]``, j = k-N+1 .. k (the networks). Estimated headings are wrapped to (-pi, pi].
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import re
+import tempfile
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any, NamedTuple
+from urllib.parse import unquote, urlparse
+
+import numpy as np
+
+from lbo.core.errors import LboError
+from lbo.core.paths import tracking_uri
+from lbo.filters import classical
+from lbo.filters.classical import OBSERVERS as CLASSICAL
+from lbo.models.features import window_view
+from lbo.sim.logcheck import (
+    check_alpha,
+    check_device,
+    check_fix_windows,
+    check_sample,
+    check_samples,
+)
+from lbo.sim.noise import Noise
+from lbo.sim.vehicle import Vehicle, wrap_angle
+
+ENGINES = ("torch", "torchscript", "onnx")
+"""Inference engines for learned observers."""
+
+FORMS = ("window", "recursive")
+"""How a window filter (``filternet``) runs: over the last N samples for every estimate, as it
+was trained, or recursively, its filter carried from step to step."""
+
+def default_form(net: Any) -> str:
+    """The form a learned observer runs in unless asked for another: ``recursive`` for the
+    robust observer's window filter, ``window`` for every other net.
+
+    Measured on the robust test grid (``docs/serving.md``), the recursive form of the robust
+    observer is within 0.5 % of its window form at every alpha (0.996 to 1.004 times its NRMSE;
+    a tie on average), at a constant cost per step and
+    with a covariance. A window filter with a learned process model (``residual``, a
+    single-track body) or drift states (the car that slips, ``experiment=dynamic``) stays in
+    its window form: its noise model learned to inflate R at high noise as the window's
+    memory, which a filter carried from step to step does not forget, so its heading drifts
+    (on ``data=dynamic``: 1.01 to 1.06 times the window form's NRMSE up to alpha 1.5, 8.3 times
+    at alpha 6, measured)."""
+    inner = getattr(net, "net", None)
+    if not getattr(net, "physical", False) or getattr(inner, "residual", 0) or \
+            getattr(inner, "drift", False) or getattr(inner, "single_track", False):
+        return "window"
+    return "recursive"
+
+INPUT_COLUMNS = ("x_m", "y_m", "psi_m", "V", "delta")
+"""Channel order of a window (N, 5)."""
+
+RUN_ID = re.compile(r"[0-9a-f]{32}")
+"""An MLflow run id, as ``observer=<run id>`` takes it."""
+
+
+class _Pair(NamedTuple):
+    state: np.ndarray
+    valid: bool
+
+
+def _engine_device(engine: str, device: Any) -> Any:
+    """The checked device of ``engine``: one of :data:`ENGINES`, and ONNX on the CPU only."""
+    if engine not in ENGINES:
+        raise LboError(f"engine must be one of {list(ENGINES)}, got {engine!r}")
+    device = check_device(device)
+    if engine == "onnx" and str(device) != "cpu":
+        raise LboError(f"engine=onnx runs on the CPU (ONNX Runtime's CPU provider), "
+                       f"got device={device}")
+    return device
+
+
+class Estimate(_Pair):
+    """One step's result: ``state`` (3,) ``[x, y, psi]`` (m, m, rad; psi in (-pi, pi]) and
+    ``valid``; unpacks as ``state, valid``. ``reason`` (not unpacked) says why an estimate is
+    not valid, None when it is:
+
+    - ``"no position fix yet"``: before the first fix (state NaN);
+    - ``"window not yet full (k of N steps): the EKF's estimate"``: a CNN's or LSTM's first
+      N-1 steps;
+    - ``"no fix in the last N steps (... s): ..."``: a learned observer trained with
+      ``fix_rates`` whose window holds no fix has nothing to anchor its estimate to (state
+      NaN); estimates resume with the next fix;
+    - ``"the network's estimate is not finite ..."``: a net with NaN or inf weights.
+    """
+
+    reason: str | None = None
+    cov: np.ndarray
+    """(3, 3) covariance of ``state`` (m^2, m rad, rad^2): the filter's own P; NaN for an
+    observer that gives none (the CNN and the LSTM)."""
+
+    def __new__(cls, state: np.ndarray, valid: bool, reason: str | None = None,
+                cov: np.ndarray | None = None) -> Estimate:
+        self = super().__new__(cls, state, valid)
+        self.reason = None if valid else (reason or "the estimate is not finite")
+        self.cov = np.full((3, 3), np.nan) if cov is None else cov
+        return self
+
+
+# --------------------------------------------------------------------------- streaming filters
+
+
+class _Stream:
+    """Classical observer ``name`` of :mod:`lbo.filters.classical`, one sample per call: its batch
+    filter's stepper, so stepping and :meth:`Observer.run` give the same numbers."""
+
+    def __init__(self, name: str, vehicle: Vehicle, noise: Noise, alpha: float) -> None:
+        self.name, self.vehicle, self.noise, self.alpha = name, vehicle, noise, alpha
+        self.reset()
+
+    def reset(self) -> None:
+        self.flt: Any = None
+
+    def __call__(self, m: np.ndarray, u_prev: np.ndarray | None) -> np.ndarray:
+        """The estimate after measurement m (3,) (NaN: no fix); NaN until the first fix."""
+        if self.flt is None:
+            if not np.isfinite(m).all():
+                return np.full(3, np.nan)
+            self.flt = classical.stepper(self.name, m[None], self.vehicle, self.noise,
+                                         self.alpha)
+            return m.copy()
+        return self.flt.update(m[None], np.asarray(u_prev, float)[None])[0].copy()
+
+    @property
+    def cov(self) -> np.ndarray:
+        """(3, 3) covariance of the last estimate (NaN before the first fix)."""
+        return np.full((3, 3), np.nan) if self.flt is None else self.flt.P[0, :3, :3].copy()
+
+
+def _from_first_fix(name: str, m: np.ndarray, u: np.ndarray, fix: np.ndarray,
+                    vehicle: Vehicle, noise: Noise, alpha: float, smooth: bool = False
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """Classical observer ``name`` over one log (T, 3), (T, 2), started at its first fix
+    (``fix`` (T,) bool): (T, 3) estimates and (T, 3, 3) covariances, NaN before that fix
+    (``smooth``: the RTS smoother's)."""
+    est = np.full((len(m), 3), np.nan)
+    cov = np.full((len(m), 3, 3), np.nan)
+    if fix.any():
+        f = int(np.argmax(fix))
+        e, c = classical.run(name, m[None, f:], u[None, f:], vehicle, noise, alpha,
+                             return_cov=True, smooth=smooth)
+        est[f:], cov[f:] = e[0], c[0]
+    return est, cov
+
+
+# --------------------------------------------------------------------------- inference engines
+
+
+Predictor = Callable[[np.ndarray], np.ndarray]
+"""Windows (B, N, 5) float64 ``[x_m, y_m, psi_m, V, delta]`` -> states (B, 3) float64."""
+
+
+def make_predictor(net: Any, engine: str = "torch", device: str = "cpu") -> Predictor:
+    """Wrap an :class:`~lbo.models.net.ObserverNet` as a numpy-in, numpy-out predictor.
+
+    ``torchscript`` traces the net; ``onnx`` exports it in memory and runs it in ONNX Runtime
+    on one thread (one window per step gains nothing from more). The torch engines use
+    torch's threads: in a control loop call ``torch.set_num_threads(1)``, as intra-op threads
+    slow a single window down, by 10x on a busy 2-core machine (measured).
+    """
+    import torch
+
+    device = _engine_device(engine, device)
+    net = net.to(device).eval()
+    if engine == "onnx":
+        from lbo.serve.engines import onnx_bytes, onnx_session
+
+        session = onnx_session(onnx_bytes(net.cpu()), threads=1)
+        return lambda win: session.run(None, {"window": win})[0]
+    if engine == "torchscript":
+        from lbo.serve.engines import trace
+
+        net = trace(net)
+
+    def predict(win: np.ndarray) -> np.ndarray:
+        with torch.inference_mode():
+            return net(torch.from_numpy(win).to(device)).cpu().numpy()
+
+    return predict
+
+
+def check_form(form: str | None, net: Any) -> str | None:
+    """The form an observer runs in (None for a classical one), or one line: ``recursive``
+    needs a window filter (``filternet``), whose filter can carry from step to step."""
+    if net is None:
+        if form not in (None, "window"):
+            raise LboError(f"form={form}: a classical observer is recursive already; "
+                           "leave form unset")
+        return None
+    filt = bool(getattr(net, "physical", False))
+    if form is None:
+        return default_form(net)
+    if form not in FORMS:
+        raise LboError(f"form must be one of {list(FORMS)} or null, got {form!r}")
+    if form == "recursive" and not filt:
+        raise LboError(f"form=recursive: a {type(net.net).__name__} has no filter to carry "
+                       "from step to step; only the window filter (filternet) has a recursive "
+                       "form")
+    return form
+
+
+Stepper = Callable[[np.ndarray, np.ndarray, list], tuple[np.ndarray, np.ndarray, list]]
+"""The recursive form's step: measurement (1, 3), input (1, 2), state -> pose (1, 3),
+covariance (1, 3, 3), new state (float64 numpy arrays in, out)."""
+
+
+def make_stepper(net: Any, engine: str = "torch", device: str = "cpu") -> tuple[Stepper, list]:
+    """The recursive form (:class:`~lbo.models.recursive.RecursiveFilter`) of a window filter
+    ``net`` (an :class:`~lbo.models.net.ObserverNet` of ``filternet``) as a numpy step function on
+    ``engine``, and its initial state. ``onnx`` runs on one thread, as in a control loop."""
+    import torch
+
+    from lbo.models.recursive import RecursiveFilter
+
+    device = _engine_device(engine, device)
+    rec = RecursiveFilter(net.net.cpu() if engine == "onnx" else net.net).to(device)
+    state = [s.cpu().numpy() for s in rec.initial_state(1)]
+    if engine == "onnx":
+        from lbo.serve.engines import onnx_session, onnx_step, recursive_onnx_bytes
+
+        return onnx_step(onnx_session(recursive_onnx_bytes(rec), threads=1)), state
+    module = rec
+    if engine == "torchscript":
+        from lbo.serve.engines import trace_recursive
+
+        module = trace_recursive(rec)
+
+    def torch_step(m: np.ndarray, u: np.ndarray, st: list) -> tuple:
+        with torch.inference_mode():
+            out = module(*(torch.from_numpy(np.require(x, requirements="W")).to(device)
+                           for x in (m, u, *st)))  # a read-only frame's rows are copied
+        out = [o.cpu().numpy() for o in out]
+        return out[0], out[1], out[2:]
+
+    return torch_step, state
+
+
+# --------------------------------------------------------------------------- the observer
+
+
+class Observer:
+    """A state observer for the kinematic bicycle, learned or classical, for logs and loops.
+
+    Build one with :meth:`load` (checkpoint, MLflow run, registered model or classical name)
+    or :meth:`from_net`. Then either :meth:`step` through a log sample by sample (O(1) per
+    step: a ring buffer of the last N samples, no history kept) or :meth:`run` it over a
+    whole log at once; both give the same numbers (to 1e-6, tested).
+
+    Attributes
+    ----------
+    name : ``"cnn-N60"``, ``"ekf"``, ...
+    kind : ``"learned"`` or ``"classical"``.
+    window : N, samples per window (1 for the classical observers).
+    dt : the sampling period (s) the observer expects.
+    features : feature mode of a learned observer (``"relative"``, ``"frame"``,
+        ``"absolute"``), else None.
+    vehicle, noise : the model the filters use (for a learned observer: its checkpoint's,
+        used by the fallback EKF).
+    alpha : measurement-noise scale the ``oracle`` is told (R = noise.R(alpha)).
+    engine : ``"torch"``, ``"torchscript"`` or ``"onnx"`` (learned observers).
+    form : ``"window"`` or ``"recursive"`` for a window filter (``filternet``), see
+        :data:`FORMS`; ``"window"`` for the CNN and the LSTM; None for classical observers.
+    meta : the checkpoint's metadata (data set, data hash, seed, ...), {} for classical.
+    net : the :class:`~lbo.models.net.ObserverNet`, or None.
+    """
+
+    def __init__(self, name: str, vehicle: Vehicle | None = None, noise: Noise | None = None,
+                 *, net: Any = None, alpha: float = 1.0, engine: str = "torch",
+                 device: str = "cpu", meta: dict[str, Any] | None = None,
+                 form: str | None = None) -> None:
+        self.name = name
+        self.vehicle = vehicle or Vehicle()
+        self.noise = noise or Noise.preset("paper")
+        self.alpha = check_alpha(alpha)
+        self.meta = dict(meta or {})
+        self.net = net
+        self.device = device
+        self.form = check_form(form, net)
+        if net is None:
+            classical.check(name)
+            self.kind, self.window, self.features, self.engine = "classical", 1, None, None
+            self._filter = _Stream(name, self.vehicle, self.noise, self.alpha)
+        else:
+            self.kind, self.window, self.features = "learned", int(net.window), net.features
+            self.engine = engine
+            self._filter = _Stream("ekf", self.vehicle, self.noise, 1.0)  # the fallback
+            if self.form == "recursive":
+                self._step_fn, self._state0 = make_stepper(net, engine, device)
+            else:
+                self._predict = make_predictor(net, engine, device)
+            # Ring buffer written twice (rows i and i+N): the last N samples are always the
+            # contiguous rows i+1 .. i+N, so a window is a view, never a copy or a roll.
+            self._ring = np.zeros((2 * self.window, 5))
+        self.reset()
+
+    @property
+    def takes_missing_fixes(self) -> bool:
+        """Whether steps without a position fix are allowed (classical, or trained for it)."""
+        return self.net is None or bool(getattr(self.net, "fixes", False))
+
+    @property
+    def gives_covariance(self) -> bool:
+        """Whether the estimates come with a covariance: the classical observers' and the
+        window filter's (its recursive form's P; the window form's is NaN), not a CNN's or
+        an LSTM's."""
+        return self.net is None or self.form == "recursive"
+
+    @property
+    def _pads(self) -> bool:
+        # a window filter that starts at its first fix reads a window reaching back before
+        # the log as steps with no fix and no motion: estimates from the first fix on
+        return bool(getattr(self.net, "fixes", False) and getattr(self.net, "physical", False))
+
+    # ----------------------------------------------------------------------- construction
+
+    @classmethod
+    def load(cls, source: str | os.PathLike, vehicle: Vehicle | None = None,
+             noise: Noise | None = None, *, alpha: float = 1.0, features: str | None = None,
+             engine: str = "torch", device: str = "cpu", form: str | None = None) -> Observer:
+        """Load an observer.
+
+        Parameters
+        ----------
+        source : one of
+            - a checkpoint file (``.ckpt``, as ``lbo.train`` writes) or a ``file://`` URI;
+            - an MLflow run id (32 hex digits): its ``checkpoints/best.ckpt``;
+            - ``runs:/<run id>/<path>``, ``models:/<name>/<version>`` or
+              ``models:/<name>@<alias>``: the checkpoint there, in the store that
+              :func:`tracking_uri` names;
+            - ``"ekf"`` (R at alpha=1, the paper's), ``"oracle"`` (R at ``alpha``),
+              ``"adaptive"`` (learns R, starts at alpha=1) or ``"ukf"``.
+        vehicle, noise : for classical observers (defaults: ``Vehicle()``, the ``paper``
+            preset). For a learned one they replace its checkpoint's in the fallback EKF;
+            ``vehicle.dt`` must then be the dt it was trained at.
+        alpha : measurement-noise scale told to the ``oracle``, in [0, 100].
+        features : refuse a checkpoint trained with another feature mode (None: any).
+        engine : ``"torch"``, ``"torchscript"`` or ``"onnx"`` for learned observers.
+        device : torch device of a learned observer (``"cpu"``, ``"cuda"``, ``"cuda:<n>"``),
+            checked (and CUDA asked for) before any checkpoint is read.
+        form : how a window filter runs (:data:`FORMS`); None: :func:`default_form`.
+
+        Raises
+        ------
+        LboError
+            One line naming the problem: unknown source, unreadable or foreign checkpoint,
+            checkpoint format or feature mode this lbo does not read, MLflow run without a
+            checkpoint, ...
+        """
+        source = os.fspath(source)
+        alpha = check_alpha(alpha)
+        if form is not None and form not in FORMS:
+            raise LboError(f"form must be one of {list(FORMS)} or null, got {form!r}")
+        device = check_device(device, probe=source not in classical.NAMES)
+        if source in classical.NAMES:
+            classical.check(source)  # pcrb: a bound, not an observer
+            return cls(source, vehicle, noise, alpha=alpha)
+        with _checkpoint_file(source) as path:
+            net, hp = read_checkpoint(path, features=features, device=device)
+        meta = dict(hp.get("meta") or {})
+        trained, trained_noise = trained_conditions(hp, path)
+        if vehicle is not None and not np.isclose(vehicle.dt, trained.dt, rtol=1e-9):
+            raise LboError(f"vehicle.dt={vehicle.dt:g} s, but the observer was trained at "
+                           f"dt={trained.dt:g} s; resample the data to {trained.dt:g} s")
+        return cls(f"{hp['model']['name']}-N{hp['window']}", vehicle or trained,
+                   noise or trained_noise, net=net, alpha=alpha,
+                   engine=engine, device=device, meta={**meta, "source": source}, form=form)
+
+    @classmethod
+    def from_net(cls, net: Any, vehicle: Vehicle | None = None, noise: Noise | None = None,
+                 *, name: str | None = None, engine: str = "torch",
+                 device: str = "cpu", form: str | None = None) -> Observer:
+        """Wrap an :class:`~lbo.models.net.ObserverNet` (trained or not) as an observer."""
+        name = name or f"{type(net.net).__name__.removesuffix('Observer').lower()}-N{net.window}"
+        return cls(name, vehicle, noise, net=net, engine=engine, device=device, form=form)
+
+    # ----------------------------------------------------------------------- streaming
+
+    @property
+    def dt(self) -> float:
+        return self.vehicle.dt
+
+    def reset(self) -> None:
+        """Forget the history: the next :meth:`step` is the first of a new log."""
+        self._count = 0
+        self._last_fix: int | None = None
+        self._u_prev: np.ndarray | None = None
+        self._filter.reset()
+        if self.net is not None:
+            self._ring[:] = 0.0
+            if self._pads:
+                self._ring[:, :3] = np.nan
+        if self.form == "recursive":
+            self._state = [x.copy() for x in self._state0]
+
+    def step(self, measurement: np.ndarray | None, input: np.ndarray) -> Estimate:
+        """Take one sample and return the estimate at this step.
+
+        Parameters
+        ----------
+        measurement : (3,) ``[x_m, y_m, psi_m]`` (m, m, rad), or None (or all NaN) when this
+            step has no position fix (classical observers, and learned ones trained with
+            ``fix_rates``).
+        input : (2,) ``[V, delta]`` (m/s, rad) applied from this step to the next.
+
+        Returns
+        -------
+        :class:`Estimate` ``(state (3,), valid)``; unpacks as ``est, valid = obs.step(m, u)``;
+        its ``reason`` says why an estimate is not valid. A learned observer trained with
+        ``fix_rates`` whose last N steps hold no fix returns NaN, valid False, and a reason
+        naming the gap (where :meth:`run` refuses such a log): in a control loop the gap is
+        not the sample's fault, and the estimates resume with the next fix.
+
+        Raises
+        ------
+        LboError
+            One line naming the step and the value, for a sample :meth:`run` would refuse in
+            a log: NaN or inf (other than a whole missing fix), a partial fix, |x_m| or
+            |y_m| beyond 1e7 m, |psi_m| beyond 2 pi, |V| beyond 100 m/s, |delta| beyond the
+            vehicle's ``delta_max``; or no fix for an observer trained with a fix at every
+            step. A refused sample changes nothing: the next :meth:`step` goes on as if it
+            had never been given.
+
+        Notes
+        -----
+        Cost per call: scalar checks of the five numbers, one ring-buffer write and one
+        network call on a (1, N, 5) view (or one filter step), whatever the length of the
+        log; in the recursive form, one step of the filter, whatever N is. For a control
+        loop, run torch on one thread (``torch.set_num_threads(1)``) or use ``engine="onnx"``
+        (one thread already).
+        """
+        k, n = self._count, self.window
+        try:
+            u = np.asarray(input, dtype=float).reshape(2)
+            m = (None if measurement is None
+                 else np.asarray(measurement, dtype=float).reshape(3))
+        except (TypeError, ValueError):
+            raise LboError(f"step {k}: expected measurement [x_m, y_m, psi_m] (3 numbers, or "
+                           f"None) and input [V, delta] (2 numbers), got {measurement!r} and "
+                           f"{input!r}") from None
+        fix = check_sample(None if m is None else tuple(m.tolist()), tuple(u.tolist()), k,
+                           self.vehicle.delta_max)
+        if not fix:
+            if not self.takes_missing_fixes:
+                raise LboError(f"step {k}: no fix, but {self.name} was trained with a fix at "
+                               "every step; use an observer trained with fix_rates "
+                               "(experiment=robust) or a classical one")
+            m = np.full(3, np.nan)
+        # checked: from here on the sample is taken
+        if self.form == "recursive":
+            self._count += 1
+            pose, cov, self._state = self._step_fn(m[None], u[None], self._state)
+            state, cov = pose[0], cov[0]
+            state[2] = wrap_angle(state[2])
+            valid = bool(np.isfinite(state).all())
+            return Estimate(state, valid, "no position fix yet", cov if valid else None)
+        if self.net is not None:
+            i = k % n
+            self._ring[i, :3] = self._ring[i + n, :3] = m
+            self._ring[i, 3:] = self._ring[i + n, 3:] = u
+        self._count += 1
+        if fix:
+            self._last_fix = k
+        if self.net is not None and (self._count >= n or self._pads):
+            if self._last_fix is None:
+                return Estimate(np.full(3, np.nan), False, "no position fix yet")
+            if k - self._last_fix >= n:
+                return Estimate(np.full(3, np.nan), False,
+                                f"no fix in the last {n} steps ({n * self.dt:g} s): {self.name} "
+                                f"needs a fix in every window of {n} steps")
+            state = self._predict(self._ring[None, i + 1:i + 1 + n])[0]
+            state[2] = wrap_angle(state[2])
+            valid = bool(np.isfinite(state).all())
+            return Estimate(state, valid, "the network's estimate is not finite (NaN or inf "
+                                          "weights?)")
+        state = self._filter(m, self._u_prev)
+        self._u_prev = u
+        state[2] = wrap_angle(state[2])
+        finite = bool(np.isfinite(state).all())
+        if self.net is None:
+            return Estimate(state, finite, "no position fix yet", self._filter.cov)
+        return Estimate(state, False, f"window not yet full ({self._count} of {n} steps): the "
+                                      "EKF's estimate" if finite else "no position fix yet")
+
+    # ----------------------------------------------------------------------- batch
+
+    def run(self, m: np.ndarray, u: np.ndarray, batch_size: int = 4096, *,
+            source: str | None = None, cov: bool = False, smooth: bool = False
+            ) -> tuple[np.ndarray, np.ndarray] | tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Estimates over a whole log at once (vectorised; the streaming state is untouched).
+
+        Parameters
+        ----------
+        m : (T, 3) measurements ``[x_m, y_m, psi_m]``; a row of NaN is a step without a
+            position fix.
+        u : (T, 2) inputs ``[V, delta]``.
+        batch_size : windows per network call.
+        source : what to call the log in messages (``"input log.csv"``); None: nothing.
+        cov : also return the covariances.
+        smooth : the Rauch-Tung-Striebel smoother's estimates (and covariances) after the
+            filter (:mod:`lbo.filters.smoother`): every row drawn on the whole log, for offline
+            logs.
+            Classical observers and a window filter in its recursive form only.
+
+        Returns
+        -------
+        est : (T, 3) ``[x, y, psi]``, psi in (-pi, pi]; the same numbers as T calls of
+            :meth:`step` after :meth:`reset`.
+        valid : (T,) bool, False on the first N-1 rows of a CNN or LSTM (EKF fallback), and
+            where the estimate is not finite (before the first fix).
+        covariance : (T, 3, 3), only with ``cov=True``: each estimate's covariance (the
+            filter's P), NaN where the observer gives none (a CNN's or LSTM's windows).
+
+        Raises
+        ------
+        LboError
+            One line naming the row: the checks of ``python -m lbo.observe``
+            (:func:`lbo.sim.logcheck.check_samples`: NaN or inf other than a whole missing fix,
+            a partial fix, no fix at all, headings in degrees, positions, speeds or steering
+            beyond a vehicle's); a step without a fix for an observer trained with a fix at
+            every step; for a learned observer trained with ``fix_rates`` in its window form, a
+            window of N steps after the first fix without any fix (its estimate there would be
+            NaN).
+        """
+        try:
+            m = np.asarray(m, dtype=float)
+            u = np.asarray(u, dtype=float)
+        except (TypeError, ValueError):
+            raise LboError(f"{source + ': ' if source else ''}run needs m (T, 3) and u (T, 2) "
+                           "of numbers") from None
+        if m.ndim != 2 or m.shape[1] != 3 or u.shape != (len(m), 2):
+            raise LboError(f"run needs m (T, 3) and u (T, 2), got {m.shape} and {u.shape}")
+        if smooth and not self.gives_covariance:
+            raise LboError(f"smooth: {self.name} has no filter to smooth"
+                           + (" in its window form; use form=recursive" if self.form == "window"
+                              and getattr(self.net, "physical", False) else
+                              "; smoothing takes a classical observer or the robust one"))
+        fix = check_samples(m, u, delta_max=self.vehicle.delta_max, source=source)
+        if not fix.all() and not self.takes_missing_fixes:
+            raise LboError(f"{source + ': ' if source else ''}row "
+                           f"{int(np.flatnonzero(~fix)[0])}: no fix, but {self.name} was "
+                           "trained with a fix at every step; use an observer trained with "
+                           "fix_rates (experiment=robust) or a classical one")
+        if self.net is not None and self.form == "window":
+            check_fix_windows(fix, self.window, self.name, self.dt, source)
+        t = len(m)
+        covs = np.full((t, 3, 3), np.nan)
+        if self.net is None:
+            est, covs = _from_first_fix(self.name, m, u, fix, self.vehicle, self.noise,
+                                        self.alpha, smooth)
+        elif self.form == "recursive" and smooth:
+            from lbo.models.recursive import run_arrays
+
+            mm = np.where(fix[:, None], m, np.nan)
+            est, covs = run_arrays(self.net.net, mm[None], u[None], smooth=True,
+                                   device=self.device)
+            est, covs = est[0], covs[0]
+        elif self.form == "recursive":  # through the engine's step, as step() runs it
+            est = np.full((t, 3), np.nan)
+            state = [x.copy() for x in self._state0]
+            mm = np.where(fix[:, None], m, np.nan)
+            for k in range(t):
+                pose, c, state = self._step_fn(mm[k:k + 1], u[k:k + 1], state)
+                est[k], covs[k] = pose[0], c[0]
+        else:
+            n = self.window
+            est = np.full((t, 3), np.nan)
+            head = 0 if self._pads else min(n - 1, t)
+            if head:
+                est[:head] = _from_first_fix("ekf", m[:head], u[:head], fix[:head],
+                                             self.vehicle, self.noise, 1.0)[0]
+            series = np.concatenate([m, u], axis=1)
+            if self._pads:  # no fix and no motion before the log
+                pad = np.zeros((n - 1, 5))
+                pad[:, :3] = np.nan
+                series = np.concatenate([pad, series])
+            if len(series) >= n:
+                windows = window_view(np.ascontiguousarray(series), n)  # a view
+                for s in range(0, len(windows), batch_size):
+                    chunk = np.ascontiguousarray(windows[s:s + batch_size])
+                    est[head + s:head + s + len(chunk)] = self._predict(chunk)
+        est[:, 2] = wrap_angle(est[:, 2])
+        valid = np.isfinite(est).all(1)
+        if self.form == "window" and not self._pads:
+            valid &= np.arange(t) >= self.window - 1
+        covs[~valid] = np.nan
+        return (est, valid, covs) if cov else (est, valid)
+
+    def __repr__(self) -> str:
+        extra = (f", window={self.window}, features={self.features!r}, engine={self.engine!r}"
+                 f", form={self.form!r}" if self.kind == "learned" else
+                 (f", alpha={self.alpha:g}" if self.name == "oracle" else ""))
+        return f"Observer({self.name!r}, dt={self.dt:g}{extra})"
+
+
+# --------------------------------------------------------------------------- checkpoints
+
+
+def read_checkpoint(path: str | os.PathLike, features: str | None = None,
+                    device: str = "cpu") -> tuple[Any, dict[str, Any]]:
+    """Rebuild the :class:`~lbo.models.net.ObserverNet` of an ``lbo.train`` checkpoint.
+
+    The checkpoint's hyperparameters name the architecture, window and feature mode, its
+    buffers hold the normalisation statistics and ``meta`` the vehicle (dt) and noise preset.
+    Only tensors and plain containers are unpickled (``weights_only``).
+
+    Returns
+    -------
+    (net in eval mode, hyperparameters dict).
+
+    Raises
+    ------
+    LboError
+        Unreadable file, not an lbo checkpoint, another checkpoint format, an unknown
+        feature mode or not the ``features`` asked for, weights that do not fit, weights
+        that hold NaN or inf (a diverged training).
+    """
+    import torch
+
+    from lbo.models.features import FEATURE_MODES
+    from lbo.models.net import CHECKPOINT_FORMAT, ObserverNet
+
+    path = Path(path)
+    if features is not None and features not in FEATURE_MODES:
+        raise LboError(f"features: unknown mode {features!r}; expected one of "
+                       f"{', '.join(FEATURE_MODES)}")
+    try:
+        ckpt = torch.load(path, map_location="cpu", weights_only=True)
+    except PermissionError as e:
+        raise LboError(f"checkpoint {path}: cannot read it ({e.strerror})") from None
+    except Exception as e:  # zip, pickle, EOF: not a file lbo wrote
+        # torch's own message suggests weights_only=False: unsafe advice for a foreign file
+        what = ("it holds pickled objects beyond tensors and plain containers, which lbo "
+                "never unpickles" if "weights_only" in str(e).lower() or
+                "weights only" in str(e).lower() else "damaged, or another kind of file")
+        raise LboError(f"checkpoint {path}: not a readable lbo checkpoint ({what})") from None
+    hp = ckpt.get("hyper_parameters") if isinstance(ckpt, dict) else None
+    if not isinstance(hp, dict) or "state_dict" not in ckpt:
+        raise LboError(f"checkpoint {path}: not an lbo observer checkpoint "
+                       "(no hyper_parameters and state_dict)")
+    fmt = hp.get("format")
+    if fmt != CHECKPOINT_FORMAT:
+        raise LboError(f"checkpoint {path}: checkpoint format {fmt}, this lbo reads format "
+                       f"{CHECKPOINT_FORMAT}; retrain it, or use the lbo version that wrote it")
+    mode = hp.get("features")
+    if mode not in FEATURE_MODES:
+        raise LboError(f"checkpoint {path}: feature mode {mode!r} is unknown to this lbo "
+                       f"(it knows {', '.join(FEATURE_MODES)})")
+    if features is not None and features != mode:
+        raise LboError(f"checkpoint {path}: trained with features={mode}, "
+                       f"but features={features} was asked for")
+    try:
+        model = dict(hp["model"])
+        net = ObserverNet(model.pop("name"), hp["window"], mode, bool(hp.get("fixes", False)),
+                          **model)
+        state = {k.removeprefix("observer."): v for k, v in ckpt["state_dict"].items()
+                 if k.startswith("observer.")}
+        net.load_state_dict(state)
+    except LboError as e:
+        raise LboError(f"checkpoint {path}: {e}") from None
+    except (KeyError, TypeError, RuntimeError) as e:
+        reason = str(e).strip().splitlines()[0]
+        raise LboError(f"checkpoint {path}: its weights do not fit the architecture it "
+                       f"names ({reason})") from None
+    bad = next((k for k, v in state.items() if torch.is_tensor(v) and v.is_floating_point()
+                and not bool(torch.isfinite(v).all())), None)
+    if bad is not None:
+        raise LboError(f"checkpoint {path}: its weights hold NaN or inf ({bad}: training "
+                       "diverged?); retrain it, e.g. with a smaller optimizer.lr")
+    return net.to(device).eval(), hp
+
+
+def load_net(source: str, device: str = "cpu") -> tuple[Any, dict[str, Any]]:
+    """The :class:`~lbo.models.net.ObserverNet` and hyperparameters of a learned observer named
+    as :meth:`Observer.load` takes it (a checkpoint file, an MLflow run id, a ``runs:/`` or
+    ``models:/`` URI); raises LboError naming the problem."""
+    with _checkpoint_file(str(source)) as path:
+        return read_checkpoint(path, device=device)
+
+
+def trained_conditions(hp: dict[str, Any], path: str | os.PathLike) -> tuple[Vehicle, Noise]:
+    """The vehicle and noise preset a checkpoint was trained with (``hp["meta"]``), for the
+    reference filters and the streaming fallback; raises LboError naming the file."""
+    meta = hp.get("meta") or {}
+    try:
+        vehicle = Vehicle(**meta["vehicle"])
+    except (KeyError, TypeError) as e:
+        raise LboError(f"checkpoint {path}: no usable meta.vehicle ({e})") from None
+    except LboError as e:
+        raise LboError(f"checkpoint {path}: its stored {e}") from None
+    try:
+        n = meta["noise"]
+        noise = Noise(n["process_sigma"], n["measurement_sigma"], n.get("name", "custom"))
+    except (KeyError, TypeError, ValueError) as e:
+        if isinstance(e, LboError):  # a bad value stored in the checkpoint: its fault
+            raise LboError(f"checkpoint {path}: its stored {e}") from None
+        raise LboError(f"checkpoint {path}: no usable meta.noise ({e})") from None
+    return vehicle, noise
+
+
+@contextlib.contextmanager
+def _checkpoint_file(source: str) -> Iterator[Path]:
+    """The local checkpoint file for a source; one downloaded from MLflow lives in a
+    temporary folder that is removed on exit."""
+    src = unquote(urlparse(source).path) if source.startswith("file://") else source
+    if Path(src).is_file():
+        yield Path(src)
+        return
+    if RUN_ID.fullmatch(src):
+        uri, run_id = f"runs:/{src}/checkpoints/best.ckpt", src
+    elif src.startswith(("runs:/", "models:/")):
+        uri, run_id = src, None
+    elif Path(src).suffix or "/" in src or os.sep in src:
+        raise LboError(f"observer: checkpoint not found: {src}")
+    else:
+        raise LboError(f"observer: {src!r} is not a checkpoint file, an MLflow run id "
+                       "(32 hex digits), a runs:/ or models:/ URI, nor one of "
+                       f"{', '.join(CLASSICAL)}")
+    with tempfile.TemporaryDirectory(prefix="lbo-ckpt-") as tmp:
+        yield _download(uri, run_id, Path(tmp))
+
+
+def _download(uri: str, run_id: str | None, folder: Path) -> Path:
+    """Download ``uri`` (runs:/ or models:/) into ``folder``; return the .ckpt in it."""
+    import mlflow
+    from mlflow.exceptions import MlflowException
+
+    from lbo.tracking.runs import check_server
+
+    store = tracking_uri()
+    # a dead server: one line in seconds, not MLflow's retries for minutes
+    check_server(store, field="MLFLOW_TRACKING_URI")
+    client = mlflow.MlflowClient(store, registry_uri=store)
+    if run_id is not None:
+        try:
+            client.get_run(run_id)
+        except MlflowException:
+            raise LboError(f"observer: MLflow run {run_id} not found in {store}") from None
+    try:
+        where = _model_version_uri(client, uri) if uri.startswith("models:/") else uri
+        local = Path(mlflow.artifacts.download_artifacts(artifact_uri=where, dst_path=str(folder),
+                                                         tracking_uri=store))
+    except MlflowException as e:
+        reason = str(e.message).strip().splitlines()[0]
+        if run_id is not None:
+            raise LboError(f"observer: MLflow run {run_id} has no checkpoints/best.ckpt "
+                           f"(did it finish training?): {reason}") from None
+        raise LboError(f"observer: {uri} not found in {store}: {reason}") from None
+    if local.is_file():
+        return local
+    found = sorted(local.rglob("*.ckpt"))
+    best = [p for p in found if p.name == "best.ckpt"]
+    if len(best) == 1 or len(found) == 1:
+        return (best or found)[0]
+    raise LboError(f"observer: {uri} holds {len(found)} .ckpt files, "
+                   "expected one (or one best.ckpt)")
+
+
+def _model_version_uri(client: Any, uri: str) -> str:
+    """``models:/name/version`` or ``models:/name@alias`` -> where that version's files are."""
+    ref = uri[len("models:/"):].strip("/")
+    if "@" in ref:
+        name, alias = ref.split("@", 1)
+        version = client.get_model_version_by_alias(name, alias).version
+    elif "/" in ref:
+        name, version = ref.rsplit("/", 1)
+    else:
+        raise LboError(f"observer: {uri}: give models:/<name>/<version> or models:/<name>@<alias>")
+    return client.get_model_version_download_uri(name, version)

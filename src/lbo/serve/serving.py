@@ -1,0 +1,115 @@
+"""A trained observer as an MLflow model: ``mlflow.pyfunc.load_model`` and ``mlflow models
+serve`` take it like any other model.
+
+Every finished training run logs one, as ``runs:/<run id>/model`` (and ``python -m lbo.export
+observer=<run id> register=<name>`` registers it). Its input is a log as a DataFrame with the
+columns ``x_m, y_m, psi_m`` (m, m, rad; all three NaN or null where a step has no fix), ``V``
+(m/s) and ``delta`` (rad), one row per sample at the observer's dt, oldest first; a window of N
+rows is such a log, whose last row's estimate is the window's. An optional integer column
+``log`` runs several logs independently in one call. The output has one row per input row:
+``x, y, psi`` (m, m, rad), ``valid``, and ``var_x, var_y, var_psi, cov_xy`` where the
+observer knows its covariance (NaN for the CNN and the LSTM). The numbers are those of
+``lbo.Observer.load(<the run>).run(...)``.
+
+    import mlflow
+    model = mlflow.pyfunc.load_model("runs:/<run id>/model")
+    estimates = model.predict(log_frame)
+
+    mlflow models serve -m runs:/<run id>/model --env-manager local -h 127.0.0.1 -p 5001
+    curl -X POST 127.0.0.1:5001/invocations -H 'Content-Type: application/json' \\
+         -d '{"dataframe_split": {"columns": ["x_m", "y_m", "psi_m", "V", "delta"], "data": [...]}}'
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import mlflow.pyfunc
+import numpy as np
+import pandas as pd
+
+from lbo.core.errors import LboError
+
+INPUT_COLUMNS = ("x_m", "y_m", "psi_m", "V", "delta")
+OUTPUT_COLUMNS = ("x", "y", "psi", "valid", "var_x", "var_y", "var_psi", "cov_xy")
+ARTIFACT = "model"
+"""Where a training run logs its model: ``runs:/<run id>/model``."""
+
+
+def estimates(observer: Any, frame: pd.DataFrame) -> pd.DataFrame:
+    """An observer's estimates over a log frame (:data:`INPUT_COLUMNS`, optionally ``log``),
+    one output row per input row (:data:`OUTPUT_COLUMNS`); raises LboError naming a missing
+    column or a bad value."""
+    missing = [c for c in INPUT_COLUMNS if c not in frame.columns]
+    if missing:
+        raise LboError(f"model input: missing column{'s' if len(missing) > 1 else ''} "
+                       f"{', '.join(missing)} (a log needs {', '.join(INPUT_COLUMNS)}, one "
+                       "row per sample)")
+    groups = frame.groupby("log", sort=False).indices.values() if "log" in frame.columns \
+        else [np.arange(len(frame))]
+    out = np.full((len(frame), 7), np.nan)
+    valid = np.zeros(len(frame), bool)
+    for rows in groups:
+        part = frame.iloc[rows]
+        m = part[list(INPUT_COLUMNS[:3])].to_numpy(dtype=float)
+        u = part[list(INPUT_COLUMNS[3:])].to_numpy(dtype=float)
+        est, ok, cov = observer.run(m, u, cov=True, source="model input")
+        out[rows, :3] = est
+        out[rows, 3:] = cov[:, [0, 1, 2, 0], [0, 1, 2, 1]]
+        valid[rows] = ok
+    result = pd.DataFrame(out, columns=["x", "y", "psi", "var_x", "var_y", "var_psi", "cov_xy"])
+    result.insert(3, "valid", valid)
+    return result
+
+
+class ObserverModel(mlflow.pyfunc.PythonModel):
+    """A learned observer's checkpoint behind MLflow's pyfunc interface (:func:`estimates`).
+
+    MLflow loads it as model code (``lbo/serve/serving_model.py``), not as a pickle, so a model
+    logged by one lbo loads in another as long as lbo and the checkpoint format agree."""
+
+    def load_context(self, context: Any) -> None:
+        from lbo.serve.observer import Observer
+
+        self.observer = Observer.load(context.artifacts["checkpoint"])
+
+    def predict(self, context: Any, model_input: pd.DataFrame,
+                params: dict[str, Any] | None = None) -> pd.DataFrame:
+        self.observer.reset()
+        return estimates(self.observer, pd.DataFrame(model_input))
+
+
+def signature() -> Any:
+    """The model's input and output schema (columns and types)."""
+    from mlflow.models import ModelSignature
+    from mlflow.types import ColSpec, Schema
+
+    inputs = Schema([ColSpec("double", c) for c in INPUT_COLUMNS]
+                    + [ColSpec("long", "log", required=False)])
+    outputs = Schema([ColSpec("boolean" if c == "valid" else "double", c)
+                      for c in OUTPUT_COLUMNS])
+    return ModelSignature(inputs=inputs, outputs=outputs)
+
+
+def log_model(tracking_uri: str, run_id: str, checkpoint: str | Path) -> str:
+    """Save ``checkpoint`` as a pyfunc model and log it under ``model/`` of MLflow run
+    ``run_id`` in ``tracking_uri``; returns its ``runs:/<run id>/model`` URI. Only the client
+    API: no run is started or ended, and MLflow's global tracking URI is left alone."""
+    import tempfile
+    import warnings
+    from importlib.metadata import version
+
+    import mlflow
+
+    with tempfile.TemporaryDirectory(prefix="lbo-model-") as tmp, warnings.catch_warnings():
+        # the signature names every column; an example would cost a model load per run
+        warnings.filterwarnings("ignore", message=".*input example was not provided")
+        folder = Path(tmp) / ARTIFACT
+        mlflow.pyfunc.save_model(
+            str(folder), python_model=str(Path(__file__).with_name("serving_model.py")),
+            artifacts={"checkpoint": str(checkpoint)}, signature=signature(),
+            # lbo and its pinned torch: --env-manager local serves from this environment
+            pip_requirements=[f"lbo=={version('lbo')}", "torch==2.13.0"])
+        mlflow.MlflowClient(tracking_uri).log_artifacts(run_id, str(folder), ARTIFACT)
+    return f"runs:/{run_id}/{ARTIFACT}"

@@ -1,0 +1,8 @@
+"""The model code MLflow runs to load a learned observer (``lbo.serve.serving``); not imported by
+lbo itself."""
+
+from mlflow.models import set_model
+
+from lbo.serve.serving import ObserverModel
+
+set_model(ObserverModel())

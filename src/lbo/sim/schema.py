@@ -1,0 +1,132 @@
+"""The one data schema shared by simulated sets and users' own logs, and its Parquet I/O.
+
+One row per time step: ``traj, k, t, x, y, psi, V, delta, x_m, y_m, psi_m`` (m, rad, m/s),
+plus ``alpha`` and ``scored`` for the validation and test sets.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pyarrow as pa
+import pyarrow.parquet as pq
+
+from lbo.core.atomic import atomic_path
+from lbo.core.errors import LboError
+from lbo.sim.logcheck import fix_mask
+
+COLUMNS = ("traj", "k", "t", "x", "y", "psi", "V", "delta", "x_m", "y_m", "psi_m")
+EVAL_COLUMNS = COLUMNS + ("alpha", "scored")
+STATE = ("x", "y", "psi")
+MEAS = ("x_m", "y_m", "psi_m")
+INPUT = ("V", "delta")
+_INT = ("traj", "k")
+
+
+def check_values(df: pd.DataFrame, columns: tuple[str, ...], source: str = "data",
+                 kinds: str = "iufb") -> None:
+    """Raise LboError naming the first of ``columns`` that is not numeric (dtype kind outside
+    ``kinds``) or holds NaN or inf."""
+    for c in columns:
+        values = df[c].to_numpy()
+        if values.dtype.kind not in kinds:
+            raise LboError(f"{source}: column {c!r} is not numeric (dtype {df[c].dtype})")
+        if values.dtype.kind == "f" and not np.isfinite(values).all():
+            bad = int(np.flatnonzero(~np.isfinite(values))[0])
+            raise LboError(f"{source}: column {c!r} has NaN or inf (first at row {bad})")
+
+
+def check_frame(df: pd.DataFrame, required: tuple[str, ...], source: str = "data",
+                missing_fixes: bool = False) -> None:
+    """Raise LboError naming the first missing column, or the first column with NaN/inf.
+
+    With ``missing_fixes``, rows whose ``x_m, y_m, psi_m`` are all NaN (steps without a
+    position fix) are allowed, partial ones are not (see :func:`fix_rows`).
+    """
+    missing = [c for c in required if c not in df.columns]
+    if missing:
+        raise LboError(f"{source}: missing column {missing[0]!r} (expected columns: "
+                       f"{', '.join(required)})")
+    if len(df) == 0:
+        raise LboError(f"{source}: the file holds no rows")
+    if missing_fixes and all(c in required for c in MEAS):
+        fix_rows(df, source)
+        check_values(df, tuple(c for c in required if c not in MEAS), source)
+        check_values(df.fillna({c: 0.0 for c in MEAS}), MEAS, source)
+        return
+    check_values(df, required, source)
+
+
+def fix_rows(df: pd.DataFrame, source: str = "input") -> np.ndarray:
+    """(T,) bool, the rows that hold a position fix; a row with only some of ``x_m, y_m,
+    psi_m`` empty, or a log without any fix, is one :class:`LboError` (the check of
+    :func:`lbo.sim.logcheck.fix_mask`, which users' logs go through too)."""
+    empty = df[list(MEAS)].isna().to_numpy()  # whatever the dtype: only the gaps count here
+    return fix_mask(np.where(empty, np.nan, 0.0), source)
+
+
+def read_set(path: str | Path, required: tuple[str, ...] = COLUMNS,
+             missing_fixes: bool = False) -> pd.DataFrame:
+    """Read a Parquet set and check its columns (see :func:`check_frame`). Raises LboError
+    for missing files or columns."""
+    path = Path(path)
+    if not path.is_file():
+        raise LboError(f"data set not found: {path} (run `python -m lbo.datagen data=...` first)")
+    df = pd.read_parquet(path)
+    check_frame(df, required, source=str(path), missing_fixes=missing_fixes)
+    return df
+
+
+def write_set(df: pd.DataFrame, path: str | Path) -> Path:
+    """Write a frame to Parquet atomically: a temp file in the same folder, then rename.
+
+    A killed writer leaves at most a ``.tmp`` file, never a half-written ``path``.
+    """
+    with atomic_path(path) as tmp:
+        pq.write_table(pa.Table.from_pandas(df, preserve_index=False), tmp, compression="zstd")
+    return Path(path)
+
+
+def frame(traj: np.ndarray, k: np.ndarray, dt: float, z: np.ndarray, u: np.ndarray,
+          m: np.ndarray, **extra: np.ndarray) -> pd.DataFrame:
+    """Build a schema frame from flat arrays. traj, k: (R,); z, m: (R, 3); u: (R, 2)."""
+    cols = {"traj": traj.astype(np.int32), "k": k.astype(np.int32), "t": k * dt}
+    cols.update({name: z[:, i] for i, name in enumerate(STATE)})
+    cols.update({name: u[:, i] for i, name in enumerate(INPUT)})
+    cols.update({name: m[:, i] for i, name in enumerate(MEAS)})
+    cols.update(extra)
+    return pd.DataFrame(cols)
+
+
+def to_arrays(df: pd.DataFrame) -> dict[str, np.ndarray]:
+    """Split a schema frame (sorted by traj, k) into padded per-trajectory arrays.
+
+    Returns ``z`` (G, T, 3), ``u`` (G, T, 2), ``m`` (G, T, 3), ``mask`` (G, T) marking real
+    rows (and scored ones where the frame has ``scored``), ``lengths`` (G,), ``traj`` (G,)
+    and ``alpha`` (G,) where the frame has it. Shorter trajectories are padded by repeating
+    their last row, so filters can run over the padding harmlessly.
+    """
+    keys = ["traj", "alpha"] if "alpha" in df.columns else ["traj"]
+    df = df.sort_values(keys + ["k"], kind="stable")
+    group = df.groupby(keys, sort=False).ngroup().to_numpy()
+    starts = np.flatnonzero(np.r_[True, group[1:] != group[:-1]])
+    lengths = np.diff(np.r_[starts, len(df)])
+    g, t_max = len(starts), int(lengths.max())
+    pos = np.arange(len(df)) - np.repeat(starts, lengths)
+    # index of the source row for every padded cell: real rows, then the last row repeated
+    idx = np.minimum(np.arange(t_max)[None, :], (lengths - 1)[:, None]) + starts[:, None]
+    real = np.zeros((g, t_max), bool)
+    real[group, pos] = True
+    out = {
+        "z": df[list(STATE)].to_numpy()[idx],
+        "u": df[list(INPUT)].to_numpy()[idx],
+        "m": df[list(MEAS)].to_numpy()[idx],
+        "lengths": lengths,
+        "traj": df["traj"].to_numpy()[starts],
+        "mask": real & (df["scored"].to_numpy()[idx] if "scored" in df.columns else True),
+    }
+    if "alpha" in df.columns:
+        out["alpha"] = df["alpha"].to_numpy()[starts]
+    return out

@@ -1,0 +1,183 @@
+"""The stores that runs share: an MLflow tracking server or SQLite file, and Hydra launchers.
+
+Every entry point checks these before any work starts, so that a wrong address, a missing
+plugin or a store that concurrent jobs would lock stops with one line, and no run is left
+RUNNING.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import sqlite3
+from collections.abc import Iterator
+from urllib.parse import urlparse
+
+from lbo.core.errors import LboError
+from lbo.core.paths import sqlite_path
+from lbo.core.redact import scrub
+
+#: Seconds a probe of a tracking server waits before saying it does not answer.
+PROBE_TIMEOUT = 5.0
+#: Seconds a SQLite writer waits for another process's write before failing.
+SQLITE_BUSY_S = 120
+
+
+def is_server(uri: str) -> bool:
+    return urlparse(uri).scheme in ("http", "https")
+
+
+def check_server(uri: str, field: str = "logger.tracking_uri") -> None:
+    """Raise one line unless the MLflow tracking server at ``uri`` answers its health check.
+
+    Without this, MLflow's client retries a dead address with backoff for minutes and then
+    prints a page of urllib3 errors.
+    """
+    if not is_server(uri):
+        return
+    import requests
+
+    shown = scrub(uri)
+
+    health = uri.rstrip("/") + "/health"
+    try:
+        reply = requests.get(health, timeout=PROBE_TIMEOUT)
+    except requests.RequestException as e:
+        reason = type(e).__name__
+        raise LboError(f"{field}: no MLflow tracking server answers at {shown} ({reason}); "
+                       "start one (make mlflow-server) or unset MLFLOW_TRACKING_URI") from e
+    if reply.status_code != 200:
+        raise LboError(f"{field}: {shown} is not an MLflow tracking server (GET /health gave "
+                       f"HTTP {reply.status_code})")
+
+
+#: Tracking-store schemes MLflow reads (a database may name its driver: postgresql+psycopg).
+STORE_SCHEMES = ("sqlite", "postgresql", "mysql", "mssql", "http", "https", "databricks")
+
+
+def store_field(uri: str, field: str = "logger.tracking_uri") -> str:
+    """The name to blame for a bad store: MLFLOW_TRACKING_URI when the store came from it."""
+    import os
+
+    return "MLFLOW_TRACKING_URI" if os.environ.get("MLFLOW_TRACKING_URI") == uri else field
+
+
+def check_store(uri: str, field: str = "logger.tracking_uri") -> None:
+    """Raise one line unless the MLflow tracking store ``uri`` can be used: a scheme MLflow
+    knows, a server that answers, a SQLite file whose folder exists and can be written, a
+    database that accepts a connection. Passwords never appear in the line."""
+    from urllib.parse import urlparse
+
+    field = store_field(uri, field)
+    shown = scrub(uri)
+    scheme = urlparse(uri).scheme.split("+")[0]
+    if scheme not in STORE_SCHEMES:
+        raise LboError(f"{field}: {shown!r} is not a tracking store lbo can use (give "
+                       "sqlite:///<file>, http(s)://<host>:<port> of an MLflow server, or "
+                       "postgresql://<user>@<host>/<database>)")
+    if is_server(uri):
+        check_server(uri, field)
+        return
+    path = sqlite_path(uri)
+    if scheme == "sqlite":
+        if path is None:
+            raise LboError(f"{field}: {shown!r} names no SQLite file (give sqlite:///<file>)")
+        _check_writable(path, field)
+    elif scheme in ("postgresql", "mysql", "mssql"):
+        _check_database(uri, field)
+
+
+def _check_writable(path, field: str) -> None:
+    import os
+
+    folder = path.parent
+    if not folder.is_dir():
+        raise LboError(f"{field}: the folder of the SQLite store {path} does not exist")
+    target = path if path.exists() else folder
+    if not os.access(target, os.W_OK):
+        what = "file" if target == path else "folder"
+        raise LboError(f"{field}: cannot write the SQLite store {path} (its {what} is "
+                       "read-only); point MLFLOW_TRACKING_URI at a folder you can write")
+
+
+def _check_database(uri: str, field: str) -> None:
+    """Connect once, with a short timeout, to the database behind ``uri``."""
+    from sqlalchemy import create_engine
+    from sqlalchemy.pool import NullPool
+
+    shown = scrub(uri)
+    args = {"connect_timeout": int(PROBE_TIMEOUT)} if uri.startswith("postgresql") else {}
+    try:
+        engine = create_engine(uri, poolclass=NullPool, connect_args=args)
+        try:
+            with engine.connect():
+                pass
+        finally:
+            engine.dispose()
+    except ImportError as e:
+        raise LboError(f"{field}: cannot open {shown}: its database driver is not installed "
+                       f"({e})") from None
+    except Exception as e:  # sqlalchemy.exc.OperationalError, ArgumentError
+        reason = " ".join((str(getattr(e, "orig", None) or e).strip().splitlines() or [""])[:1])
+        raise LboError(f"{field}: cannot open the tracking store {shown} "
+                       f"({type(e).__name__}: {scrub(reason)})") from None
+
+
+@contextlib.contextmanager
+def creation_lock(uri: str) -> Iterator[None]:
+    """Hold a lock, per machine, on the SQLite database behind ``uri`` (no-op for a server).
+
+    Neither optuna nor MLflow survives two processes creating the same new SQLite file at once
+    (both migrate its tables), and jobs started together would do just that. The lock file
+    sits beside the database (``<name>.lock``), so it goes where the database goes.
+    """
+    from filelock import FileLock
+
+    path = sqlite_path(uri)
+    if path is None or not path.parent.is_dir():  # no folder: opening the store will say so
+        yield
+        return
+    with FileLock(path.with_name(path.name + ".lock"), timeout=600):
+        yield
+
+
+def use_wal(uri: str) -> None:
+    """Switch the SQLite file behind ``uri`` (if any, and if it exists) to write-ahead logging.
+
+    In WAL mode readers never block the writer, so parallel jobs (``hydra/launcher=joblib``)
+    that log metrics while others read do not fail with "database is locked"; writers still
+    take turns, and MLflow's connections wait for each other (SQLite's busy timeout). The
+    mode is stored in the file, so one call covers every later process.
+    """
+    path = sqlite_path(uri)
+    if path is None or not path.is_file():
+        return
+    with contextlib.closing(sqlite3.connect(path, timeout=SQLITE_BUSY_S)) as db:
+        if db.execute("PRAGMA journal_mode").fetchone()[0].lower() != "wal":
+            db.execute("PRAGMA journal_mode=WAL")
+
+
+def ensure_experiment(uri: str, name: str, artifact_location: str | None):
+    """An MLflow client on the store at ``uri`` and the id of experiment ``name``, created if
+    missing, the store in WAL mode if it is SQLite. Returns ``(client, experiment_id)``.
+    Callers have checked a server with :func:`check_server` first.
+
+    Jobs started together would each create the store's tables, or the experiment, and all but
+    one would fail: the first one does it under :func:`creation_lock`, and an experiment that
+    another machine created a moment ago is looked up again.
+    """
+    from mlflow import MlflowClient
+    from mlflow.exceptions import MlflowException
+
+    with creation_lock(uri):
+        client = MlflowClient(uri)  # creates the tables of a new SQLite file
+        use_wal(uri)
+        exp = client.get_experiment_by_name(name)
+        if exp is not None:
+            return client, exp.experiment_id
+        try:
+            return client, client.create_experiment(name, artifact_location=artifact_location)
+        except MlflowException:
+            exp = client.get_experiment_by_name(name)
+            if exp is None:
+                raise
+            return client, exp.experiment_id

@@ -1,0 +1,221 @@
+"""The search space of ``lbo.tune``: training config keys and their Optuna distributions."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from typing import Any
+
+import optuna
+from omegaconf import DictConfig, OmegaConf
+
+from lbo.core.checks import integer, number, require
+from lbo.core.errors import LboError
+from lbo.models import model_parameters
+
+DISTRIBUTIONS = {"float": {"low", "high", "log", "step"}, "int": {"low", "high", "log", "step"},
+                 "categorical": {"choices"}}
+
+
+@dataclass(frozen=True)
+class Param:
+    """One searched training setting: a dotted config key and its distribution.
+
+    Categorical choices that Optuna cannot store (lists, such as LSTM widths) are offered to it
+    as their JSON text and turned back into values by :meth:`decode`.
+    """
+
+    key: str
+    kind: str
+    low: float | int | None = None
+    high: float | int | None = None
+    log: bool = False
+    step: float | int | None = None
+    choices: tuple[Any, ...] = ()
+
+    @property
+    def labels(self) -> tuple[Any, ...]:
+        return tuple(json.dumps(c) if isinstance(c, (list, dict)) else c for c in self.choices)
+
+    def suggest(self, trial: optuna.Trial) -> Any:
+        if self.kind == "float":
+            return trial.suggest_float(self.key, self.low, self.high, log=self.log, step=self.step)
+        if self.kind == "int":
+            return trial.suggest_int(self.key, self.low, self.high, log=self.log,
+                                     step=self.step or 1)
+        return self.decode(trial.suggest_categorical(self.key, self.labels))
+
+    def decode(self, raw: Any) -> Any:
+        """A value as Optuna stores it -> the config value."""
+        if self.kind == "categorical" and raw in self.labels:
+            return self.choices[self.labels.index(raw)]
+        return raw
+
+    def contains(self, raw: Any) -> bool:
+        """Whether a value as Optuna stores it lies in this distribution (its range and step,
+        or its choices): a trial of an older, wider space may not."""
+        if self.kind == "categorical":
+            return raw in self.labels
+        if isinstance(raw, bool) or not isinstance(raw, (int, float)):
+            return False
+        span = (self.high - self.low) or 1
+        if not self.low - 1e-9 * span <= raw <= self.high + 1e-9 * span:
+            return False
+        step = self.step or (1 if self.kind == "int" else None)
+        if step is None:
+            return True
+        k = (raw - self.low) / step
+        return abs(k - round(k)) < 1e-6
+
+    @property
+    def bounds(self) -> str:
+        """The range or the choices, as a message names them: ``[0.0001, 0.003]``."""
+        if self.kind == "categorical":
+            return _choices_text(self.labels)
+        return f"[{self.low:g}, {self.high:g}]"
+
+    def distribution(self) -> optuna.distributions.BaseDistribution:
+        """This parameter as the Optuna distribution its trials are stored with."""
+        if self.kind == "float":
+            return optuna.distributions.FloatDistribution(self.low, self.high, log=self.log,
+                                                          step=self.step)
+        if self.kind == "int":
+            return optuna.distributions.IntDistribution(self.low, self.high, log=self.log,
+                                                        step=self.step or 1)
+        return optuna.distributions.CategoricalDistribution(self.labels)
+
+
+KINDS = {"FloatDistribution": "float", "IntDistribution": "int",
+         "CategoricalDistribution": "categorical"}
+
+
+def _a(word: str) -> str:
+    return f"an {word}" if word[0] in "aeiou" else f"a {word}"
+
+
+def _choices_text(labels: Any) -> str:
+    """Choices as a message shows them: ``[64, 128]``, ``[[4, 8], [8, 16]]`` (list choices are
+    stored as their JSON text)."""
+    def one(c: Any) -> str:
+        if isinstance(c, str) and c[:1] in "[{":
+            return c
+        return json.dumps(c)
+
+    return "[" + ", ".join(one(c) for c in labels) + "]"
+
+
+def check_resumed(trials: list[optuna.trial.FrozenTrial], space: list[Param],
+                  study: str) -> None:
+    """Refuse (one line) a search space that the stored trials of a resumed study cannot share.
+
+    Optuna keeps one distribution per parameter and study: the same kind, the same log scale
+    and, for a categorical parameter, the same choices (ranges may change). A trial with a
+    changed one would fail inside Optuna, one more failed trial per run.
+    ``study`` names the study and its storage in the message.
+    """
+    stored: dict[str, optuna.distributions.BaseDistribution] = {}
+    for trial in trials:
+        for key, dist in trial.distributions.items():
+            stored.setdefault(key, dist)
+    for p in space:
+        old = stored.get(p.key)
+        if old is None:
+            continue
+        new = p.distribution()
+        kind = KINDS.get(type(old).__name__, type(old).__name__)
+        if kind != p.kind:
+            was, now, what = f"{_a(kind)} distribution", f"{_a(p.kind)} one", "its type"
+        elif p.kind == "categorical" and tuple(old.choices) != tuple(new.choices):
+            was, now = f"choices {_choices_text(old.choices)}", _choices_text(new.choices)
+            what = "its choices"
+        elif p.kind != "categorical" and bool(old.log) != p.log:
+            was, now = f"log: {str(old.log).lower()}", f"log: {str(p.log).lower()}"
+            what = "its log scale"
+        else:
+            continue
+        raise LboError(f"tune.search_space.{p.key}: study {study} was run with {was}, the "
+                       f"search space now has {now}; restore {what}, or start a new study "
+                       f"with another tune.study_name")
+
+
+def search_space(cfg: DictConfig) -> list[Param]:
+    """``tune.search_space`` as a list of :class:`Param`, checked against the training config
+    and the model's parameters; raise :class:`LboError` (one line) for anything wrong."""
+    node = cfg.tune.get("search_space")
+    raw = OmegaConf.to_container(node, resolve=True) if node is not None else {}
+    if not isinstance(raw, dict):
+        raise LboError(f"tune.search_space must be a mapping of config keys to distributions, "
+                       f"got {raw!r}")
+    params: list[Param] = []
+
+    def walk(tree: dict[str, Any], prefix: str) -> None:
+        for name, value in tree.items():
+            key = f"{prefix}{name}"
+            if isinstance(value, dict) and "type" not in value:
+                walk(value, f"{key}.")
+            else:
+                params.append(_param(cfg, key, value))
+
+    walk(raw, "")
+    if not params:
+        raise LboError("tune.search_space is empty: choose a search with hparams_search=cnn "
+                       "or hparams_search=lstm, or declare one under tune.search_space")
+    return params
+
+
+def _param(cfg: DictConfig, key: str, spec: Any) -> Param:
+    field = f"tune.search_space.{key}"
+    if not isinstance(spec, dict) or spec.get("type") not in DISTRIBUTIONS:
+        raise LboError(f"{field} must be {{type: float|int|categorical, ...}}, got {spec!r}")
+    kind = spec["type"]
+    extra = set(spec) - DISTRIBUTIONS[kind] - {"type"}
+    if extra:
+        raise LboError(f"{field}: unknown field {sorted(extra)[0]!r} for a {kind} distribution; "
+                       f"expected {', '.join(sorted(DISTRIBUTIONS[kind]))}")
+    _check_key(cfg, key, field)
+    if kind == "categorical":
+        choices = spec.get("choices")
+        require(isinstance(choices, list) and len(choices) > 0, f"{field}.choices",
+                "a non-empty list", choices)
+        return Param(key, kind, choices=tuple(choices))
+    low, high, log, step = spec.get("low"), spec.get("high"), spec.get("log", False), \
+        spec.get("step")
+    bound = integer if kind == "int" else number
+    for name, value in (("low", low), ("high", high)):
+        bound(value, f"{field}.{name}")
+    require(low <= high, f"{field}.high", f">= low ({low})", high)
+    require(isinstance(log, bool), f"{field}.log", "true or false", log)
+    require(not log or low > 0, f"{field}.low", "> 0 on a log scale", low)
+    if step is not None:
+        form = "a positive number, and not with log: true"
+        if kind == "int":
+            integer(step, f"{field}.step", 1, form=form)
+        else:
+            number(step, f"{field}.step", low=0.0, low_open=True, form=form)
+        require(not log, f"{field}.step", form, step)
+    return Param(key, kind, low, high, log, step)
+
+
+_MISSING = object()
+
+
+def _check_key(cfg: DictConfig, key: str, field: str) -> None:
+    """The key must name a setting that training reads: a parameter the model accepts, or a
+    value already in the training config."""
+    if key.startswith("model."):
+        name = key[len("model."):]
+        accepted = model_parameters(cfg.model.name)
+        if name not in accepted:
+            raise LboError(f"{field}: {name!r} is not a parameter of model {cfg.model.name!r}; "
+                           f"accepted: {', '.join(accepted)}")
+        return
+    if key.split(".")[0] in ("tune", "hydra", "window", "seed", "data", "data_dir", "output_dir"):
+        raise LboError(f"{field}: {key.split('.')[0]!r} is not a hyperparameter; the study "
+                       f"searches training settings at a fixed window, seed and data set")
+    value = OmegaConf.select(cfg, key, default=_MISSING, throw_on_missing=False)
+    if value is _MISSING:
+        raise LboError(f"{field}: no key {key!r} in the training config")
+    if OmegaConf.is_config(value):
+        raise LboError(f"{field}: {key!r} is a group of settings; search its values one by one")
+
+

@@ -1,0 +1,68 @@
+"""A run's identity (``config_hash``) does not depend on where lbo's modules live, so that
+``resume=true`` and ``make reproduce`` find the runs of a store made before the modules moved
+into layers, instead of training everything again."""
+
+import mlflow
+import pytest
+from conftest import compose_cfg
+from omegaconf import open_dict
+
+from lbo.train import _unlayered, config_hash, finished_run
+
+PRE_MOVE = {
+    (): "e018b36dfba2bd07",
+    ("experiment=robust",): "3967c9a49a629476",
+    ("experiment=dynamic",): "d4eec27d40f3f414",
+    ("experiment=dynamic_blackbox", "model=lstm"): "c01f2dc39014800d",
+}
+"""The hashes these configs had before the move (lbo.callbacks.Evaluation was then the
+evaluation callback's path), as the runs of an existing store carry them in their
+``config_hash`` tag. A change here means every such run would be trained again."""
+
+
+@pytest.fixture(scope="module")
+def old_store(tmp_path_factory):
+    """An MLflow store with one FINISHED run per config above, tagged as before the move."""
+    uri = f"sqlite:///{tmp_path_factory.mktemp('store')}/mlflow.db"
+    name = compose_cfg("train").logger.experiment_name
+    client = mlflow.MlflowClient(uri)
+    exp = client.create_experiment(name)
+    ids = {}
+    for overrides, digest in PRE_MOVE.items():
+        run = client.create_run(exp, tags={"config_hash": digest}, run_name="-".join(overrides))
+        client.log_metric(run.info.run_id, "val_loss", 0.5, step=0)
+        client.set_terminated(run.info.run_id, "FINISHED")
+        ids[overrides] = run.info.run_id
+    return uri, ids
+
+
+@pytest.mark.parametrize("overrides", list(PRE_MOVE), ids=lambda o: " ".join(o) or "default")
+def test_resume_finds_the_run_of_a_store_made_before_the_move(overrides, old_store):
+    uri, ids = old_store
+    cfg = compose_cfg("train", [*overrides, f"logger.tracking_uri={uri}"])
+    assert config_hash(cfg) == PRE_MOVE[overrides]
+    found = finished_run(cfg, config_hash(cfg), clean=False)
+    assert found is not None and found["run_id"] == ids[overrides] and found["reused"]
+
+
+def test_a_target_hashes_the_same_whichever_layer_its_module_is_in():
+    cfg = compose_cfg("train")
+    assert cfg.callbacks.evaluation._target_ == "lbo.learn.callbacks.Evaluation"
+    before = config_hash(cfg)
+    with open_dict(cfg):
+        cfg.callbacks.evaluation._target_ = "lbo.callbacks.Evaluation"  # the path before
+    assert config_hash(cfg) == before
+    with open_dict(cfg):
+        cfg.callbacks.evaluation._target_ = "lbo.learn.callbacks.Other"  # another class
+    assert config_hash(cfg) != before
+
+
+def test_only_lbo_targets_in_a_layer_lose_the_layer():
+    tree = {"a": {"_target_": "lbo.learn.callbacks.Evaluation", "k": [1, {"_target_":
+                                                                         "lbo.core.x.Y"}]},
+            "b": {"_target_": "lightning.pytorch.callbacks.EarlyStopping"},
+            "c": {"_target_": "lbo.train.Thing"}, "d": "lbo.learn.callbacks.Evaluation"}
+    assert _unlayered(tree) == {
+        "a": {"_target_": "lbo.callbacks.Evaluation", "k": [1, {"_target_": "lbo.x.Y"}]},
+        "b": {"_target_": "lightning.pytorch.callbacks.EarlyStopping"},
+        "c": {"_target_": "lbo.train.Thing"}, "d": "lbo.learn.callbacks.Evaluation"}
