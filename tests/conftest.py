@@ -12,10 +12,10 @@ from helpers import compose_cfg
 @pytest.fixture(scope="session")
 def smoke_data(tmp_path_factory) -> Path:
     """The smoke data sets, generated once per test session."""
-    from lbo.datagen import run
+    from lbo.datagen import generate
 
     root = tmp_path_factory.mktemp("data")
-    return Path(run(compose_cfg("datagen", ["data=smoke", f"data.root={root}"])))
+    return Path(generate(compose_cfg("datagen", ["data=smoke", f"data.root={root}"])))
 
 
 @pytest.fixture(scope="module")

@@ -8,7 +8,7 @@ import pytest
 
 from helpers import compose_cfg
 from lbo.core.errors import LboError
-from lbo.datagen import run
+from lbo.datagen import generate
 from lbo.sim import schema
 from lbo.sim.datasets import G, build, make_test, spec_from_cfg
 from lbo.sim.friction import Grid, accelerations, generate_train
@@ -144,7 +144,7 @@ def test_a_missing_set_is_regenerated_alone(tmp_path):
 def test_bad_config_names_the_field_and_writes_nothing(tmp_path, override, field):
     cfg = compose_cfg("datagen", ["data=smoke", f"data.root={tmp_path / 'data'}", override])
     with pytest.raises(LboError, match=field.replace(".", r"\.")) as err:
-        run(cfg)
+        generate(cfg)
     assert "\n" not in str(err.value)
     assert not (tmp_path / "data").exists()
 

@@ -7,7 +7,7 @@ import pytest
 
 from helpers import compose_cfg
 from lbo.core.errors import LboError
-from lbo.evaluate import run
+from lbo.evaluate import evaluate
 from lbo.filters.kalman import ekf_batch, pcrb
 from lbo.scoring.grid import Q_GRID, classical, classical_table, load_test, reference, tuned_oracle
 from lbo.scoring.metrics import SCORE_COLUMNS
@@ -131,7 +131,7 @@ def eval_cfg(tmp_path, smoke_data, *overrides):
 
 
 def test_evaluate_writes_the_table_and_the_figure(tmp_path, smoke_data, capsys):
-    csv = run(eval_cfg(tmp_path, smoke_data))
+    csv = evaluate(eval_cfg(tmp_path, smoke_data))
     table = pd.read_csv(csv)
     assert list(table.columns) == list(SCORE_COLUMNS)
     assert set(table["observer"]) == {"ekf", "oracle", "adaptive", "pcrb"}
@@ -154,12 +154,12 @@ def broken_copies(smoke_data, tmp_path):
 def test_bad_data_files_name_the_column_and_write_nothing(tmp_path, smoke_data):
     no_col, with_nan = broken_copies(smoke_data, tmp_path)
     with pytest.raises(LboError, match="missing column 'psi_m'"):
-        run(eval_cfg(tmp_path, smoke_data, f"test_file={no_col}"))
+        evaluate(eval_cfg(tmp_path, smoke_data, f"test_file={no_col}"))
     # one NaN among x_m, y_m, psi_m is a partial fix (all three empty: no fix, allowed)
     with pytest.raises(LboError, match=r"row 5 has a partial fix \(y_m empty\)"):
-        run(eval_cfg(tmp_path, smoke_data, f"test_file={with_nan}"))
+        evaluate(eval_cfg(tmp_path, smoke_data, f"test_file={with_nan}"))
     with pytest.raises(LboError, match="unknown observer 'kalman'"):
-        run(eval_cfg(tmp_path, smoke_data, "observers=[ekf,kalman]"))
+        evaluate(eval_cfg(tmp_path, smoke_data, "observers=[ekf,kalman]"))
     assert not (tmp_path / "out").exists()
 
 

@@ -10,11 +10,11 @@ from lbo.core.paths import EXAMPLE_LOG
 
 
 def test_the_example_log_is_what_lbo_simulate_writes_byte_for_byte(tmp_path):
-    from lbo.simulate import run
+    from lbo.simulate import write_logs
 
     out = tmp_path / "again.csv"
     # python -m lbo.simulate manoeuvre=stop_and_go fix_rate=10 alpha=1 seed=0 output=...
-    run(compose_cfg("simulate", ["manoeuvre=stop_and_go", "fix_rate=10", "alpha=1", "seed=0",
+    write_logs(compose_cfg("simulate", ["manoeuvre=stop_and_go", "fix_rate=10", "alpha=1", "seed=0",
                                  f"output={out}"]))
     assert out.read_bytes() == EXAMPLE_LOG.read_bytes()
 
@@ -29,9 +29,9 @@ def test_the_example_log_is_a_stop_and_go_drive_with_10_hz_fixes():
 
 
 def test_the_quickstart_observes_it_with_a_plot(tmp_path):
-    from lbo.observe import run
+    from lbo.observe import observe
 
-    result = run(compose_cfg("observe", ["observer=ekf", f"input={EXAMPLE_LOG}",
+    result = observe(compose_cfg("observe", ["observer=ekf", f"input={EXAMPLE_LOG}",
                                          f"output={tmp_path / 'estimates.csv'}", "plot=true"]))
     assert (tmp_path / "estimates.png").stat().st_size > 20_000
     assert np.all(result["rmse"][:2] < 0.6) and result["valid"] == result["rows"]

@@ -10,7 +10,7 @@ import torch
 
 from helpers import compose_cfg
 from lbo.core.errors import LboError
-from lbo.export import export, run
+from lbo.export import export, export_observer
 from lbo.models.net import ObserverNet
 from lbo.serve.observer import Observer
 from lbo.train import train
@@ -109,5 +109,5 @@ def test_engines_step_like_pytorch(checkpoint, smoke_data, engine):
 def test_export_refusals(tmp_path, checkpoint, overrides, message):
     overrides = [o.replace("CKPT", str(checkpoint)) for o in overrides]
     with pytest.raises(LboError, match=message):
-        run(compose_cfg("export", [*overrides, f"out_dir={tmp_path / 'x'}"]))
+        export_observer(compose_cfg("export", [*overrides, f"out_dir={tmp_path / 'x'}"]))
     assert not (tmp_path / "x").exists()

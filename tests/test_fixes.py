@@ -14,7 +14,7 @@ from helpers import ROBUST_SMOKE, compose_cfg, train_in_own_store
 from lbo.core.errors import LboError
 from lbo.filters import classical
 from lbo.filters.kalman import KalmanStepper
-from lbo.learn.draws import fix_mask, fix_periods
+from lbo.learn.draws import draw_fixes, fix_periods
 from lbo.models.net import ObserverNet
 from lbo.serve.observer import Observer
 from lbo.sim.noise import Noise
@@ -32,7 +32,7 @@ def test_prediction_only_steps_follow_the_straight_line_closed_form(name):
     m = np.full((1, t, 3), np.nan)
     m[0, 0] = [3.0, -2.0, psi0]
     u = np.tile([v, 0.0], (1, t, 1))
-    est = classical.run(name, m, u, vehicle, noise, alpha=2.0)[0]
+    est = classical.estimate(name, m, u, vehicle, noise, alpha=2.0)[0]
     k = np.arange(t)
     expected = np.stack([3.0 + k * v * vehicle.dt * np.cos(psi0),
                          -2.0 + k * v * vehicle.dt * np.sin(psi0), np.full(t, psi0)], -1)
@@ -98,7 +98,7 @@ def test_fix_dropout_keeps_the_drawn_periods_and_at_least_one_fix():
     with pytest.raises(LboError, match=r"^fix_rates: expected null or a list"):
         fix_periods([10, -1], 0.02)
     g = torch.Generator().manual_seed(0)
-    mask = fix_mask(4000, 20, (1, 50), g)
+    mask = draw_fixes(4000, 20, (1, 50), g)
     assert mask.any(1).all()
     share = mask.float().mean(1)
     # every step (period 1), or about 1 in 50 (0.05 at most in 20 steps, besides the forced one)

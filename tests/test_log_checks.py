@@ -20,7 +20,7 @@ from helpers import compose_cfg, train_in_own_store
 from lbo.core.errors import LboError
 from lbo.models.features import window_view
 from lbo.models.net import ObserverNet
-from lbo.observe import run
+from lbo.observe import observe as observe_cfg
 from lbo.serve.observer import Observer
 from lbo.sim.logio import resample
 from lbo.simulate import simulate
@@ -56,7 +56,7 @@ def assert_refused(res, message, out):
 
 def refused_in_process(overrides, message, out):
     with pytest.raises(LboError) as err:
-        run(compose_cfg("observe", overrides))
+        observe_cfg(compose_cfg("observe", overrides))
     assert "\n" not in str(err.value)
     assert re.search(message, str(err.value)), str(err.value)
     assert not out.exists()
@@ -110,7 +110,7 @@ def test_resample_refuses_a_gap_longer_than_max_gap(tmp_path, manoeuvre, every):
 def test_a_raised_max_gap_interpolates_inputs_but_never_fixes(tmp_path, manoeuvre, capsys):
     log, out = tmp_path / "log.csv", tmp_path / "est.csv"
     _gap_log(manoeuvre).to_csv(log, index=False)
-    result = run(compose_cfg("observe", ["observer=ekf", f"input={log}", f"output={out}",
+    result = observe_cfg(compose_cfg("observe", ["observer=ekf", f"input={log}", f"output={out}",
                                          "resample=true", "max_gap=20"]))
     rows = len(manoeuvre) + 499  # the 10 s gap is 499 more rows of 0.02 s
     assert result["rows"] == rows
@@ -118,14 +118,14 @@ def test_a_raised_max_gap_interpolates_inputs_but_never_fixes(tmp_path, manoeuvr
     est = pd.read_csv(out)
     assert est["valid"].all()  # the EKF predicts through the gap (from interpolated inputs)
     with pytest.raises(LboError, match=r"^max_gap must be a time in seconds > 0, got -1$"):
-        run(compose_cfg("observe", ["observer=ekf", f"input={log}",
+        observe_cfg(compose_cfg("observe", ["observer=ekf", f"input={log}",
                                     f"output={tmp_path / 'b.csv'}", "max_gap=-1"]))
 
 
 def test_a_gap_no_longer_than_the_observer_dt_is_not_refused(tmp_path, manoeuvre):
     log, out = tmp_path / "log.csv", tmp_path / "est.csv"
     manoeuvre[LOG].iloc[::50].to_csv(log, index=False)  # 1 s steps, above max_gap=0.5 s
-    result = run(compose_cfg("observe", ["observer=ekf", f"input={log}", f"output={out}",
+    result = observe_cfg(compose_cfg("observe", ["observer=ekf", f"input={log}", f"output={out}",
                                          "resample=true", "vehicle.dt=1.0"]))
     assert result["rows"] == len(manoeuvre[::50])
 
@@ -166,7 +166,7 @@ def test_spaces_after_the_commas_are_stripped(tmp_path, manoeuvre, suffix):
             np.arange(len(manoeuvre))[::-1] * 3)
         df.to_parquet(log)
         assert "__index_level_0__" in pq.read_schema(log).names
-    result = run(compose_cfg("observe", ["observer=ekf", f"input={log}", f"output={out}"]))
+    result = observe_cfg(compose_cfg("observe", ["observer=ekf", f"input={log}", f"output={out}"]))
     assert result["rows"] == len(manoeuvre) and "rmse" in result
 
 
@@ -196,7 +196,7 @@ def test_t_in_milliseconds_is_refused(tmp_path, manoeuvre, unit, factor, median,
 def test_a_log_in_seconds_at_10hz_is_not_taken_for_milliseconds(tmp_path, manoeuvre):
     log, out = tmp_path / "log.csv", tmp_path / "est.csv"
     manoeuvre[LOG].iloc[::5].to_csv(log, index=False)  # 0.1 s steps
-    result = run(compose_cfg("observe", ["observer=ekf", f"input={log}", f"output={out}",
+    result = observe_cfg(compose_cfg("observe", ["observer=ekf", f"input={log}", f"output={out}",
                                          "resample=true"]))
     assert result["rows"] == len(manoeuvre) - 4  # up to the log's last t
 
@@ -335,7 +335,7 @@ def test_a_1hz_log_is_refused_for_a_cnn_whose_window_is_shorter(tmp_path, fix_ra
         "longer window, the robust one (experiment=robust), or a classical one"), out)
     # at 5 Hz (a fix every 10 steps) every window holds a fix: every estimate from row 19 on
     _thinned(10).to_csv(log, index=False)
-    result = run(compose_cfg("observe", [f"observer={fix_rates_cnn}", f"input={log}",
+    result = observe_cfg(compose_cfg("observe", [f"observer={fix_rates_cnn}", f"input={log}",
                                          f"output={out}"]))
     assert result["valid"] == result["rows"] - 19
 

@@ -13,7 +13,7 @@ import pytest
 
 from helpers import compose_cfg
 from lbo.core.errors import LboError
-from lbo.observe import run
+from lbo.observe import observe as observe_cfg
 from lbo.sim.logcheck import check_conventions
 from lbo.sim.logformat import LogFormat, Origin, to_local
 
@@ -57,7 +57,7 @@ LOGGED = ["columns.t=time_s", "columns.lat=gnss_lat", "columns.lon=gnss_lon",
 
 
 def observe(tmp_path: Path, log: Path, *overrides: str, out: str = "est.csv") -> dict:
-    return run(compose_cfg("observe", ["observer=ekf", f"input={log}",
+    return observe_cfg(compose_cfg("observe", ["observer=ekf", f"input={log}",
                                        f"output={tmp_path / out}", *overrides]))
 
 

@@ -252,11 +252,11 @@ def test_tune_on_logs_and_a_study_keeps_to_its_logs(logs, tmp_path, tracking, on
 
 
 def test_evaluate_scores_the_peers_on_the_test_logs(logs, tmp_path):
-    from lbo.evaluate import run
+    from lbo.evaluate import evaluate
 
     cfg = compose_cfg("evaluate", ["data=logs", f"data.test=[{logs}/test]", "data.run_in=100",
                                    f"data.root={tmp_path}/data", f"output_dir={tmp_path}"])
-    csv = run(cfg)
+    csv = evaluate(cfg)
     table = pd.read_csv(csv)
     assert set(table["observer"]) == {"ekf", "adaptive", "ukf"}  # no oracle, no pcrb: no alpha
     assert len(table) == 3 * 4  # pooled and per file

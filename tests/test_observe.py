@@ -10,9 +10,9 @@ import torch
 from helpers import compose_cfg, train_in_own_store
 from lbo.core.errors import LboError
 from lbo.export import register
-from lbo.filters.classical import run as run_classical
+from lbo.filters.classical import estimate as run_classical
 from lbo.filters.kalman import ekf_batch, run_filterpy_ekf
-from lbo.observe import run
+from lbo.observe import observe as observe_cfg
 from lbo.scoring.grid import classical, predict_grid
 from lbo.scoring.metrics import rmse
 from lbo.serve.observer import Observer
@@ -62,7 +62,7 @@ def observe(*overrides, check=True):
 
 def classical_cov(name, arr):
     """(T, 3, 3) covariances of a classical filter on one log's arrays."""
-    from lbo.filters.classical import run as run_classical
+    from lbo.filters.classical import estimate as run_classical
 
     return run_classical(name, arr["m"], arr["u"], VEHICLE, NOISE, return_cov=True)[1][0]
 
@@ -109,7 +109,7 @@ def test_ekf_output_matches_filterpys_ekf(tmp_path, manoeuvre, log_csv):
     out = tmp_path / "est.parquet"  # Parquet by extension
     cfg = compose_cfg("observe", ["observer=ekf", f"input={log_csv}", f"output={out}",
                                   "vehicle.wheelbase=3.1", "noise=literal"])
-    result = run(cfg)
+    result = observe_cfg(cfg)
     m, u = manoeuvre[["x_m", "y_m", "psi_m"]].to_numpy(), manoeuvre[["V", "delta"]].to_numpy()
     noise = Noise.from_cfg(cfg.noise)
     # the expected values come from filterpy's EKF, an implementation independent of lbo's
@@ -122,10 +122,10 @@ def test_ekf_output_matches_filterpys_ekf(tmp_path, manoeuvre, log_csv):
 
 
 def test_smooth_true_writes_the_rts_smoothers_estimates(tmp_path, manoeuvre, log_csv, trained):
-    from lbo.filters.classical import run as run_classical
+    from lbo.filters.classical import estimate as run_classical
 
     out = tmp_path / "est.csv"
-    result = run(compose_cfg("observe", ["observer=oracle", "alpha=1", f"input={log_csv}",
+    result = observe_cfg(compose_cfg("observe", ["observer=oracle", "alpha=1", f"input={log_csv}",
                                          f"output={out}", "smooth=true"]))
     m, u = manoeuvre[["x_m", "y_m", "psi_m"]].to_numpy(), manoeuvre[["V", "delta"]].to_numpy()
     want, P = run_classical("oracle", m[None], u[None], VEHICLE, NOISE, return_cov=True,
@@ -133,11 +133,11 @@ def test_smooth_true_writes_the_rts_smoothers_estimates(tmp_path, manoeuvre, log
     est = pd.read_csv(out)
     np.testing.assert_allclose(est[["x", "y"]], want[0, :, :2], rtol=0, atol=1e-9)
     np.testing.assert_allclose(est["var_x"], P[0, :, 0, 0], rtol=1e-9)
-    filtered = run(compose_cfg("observe", ["observer=oracle", "alpha=1", f"input={log_csv}",
+    filtered = observe_cfg(compose_cfg("observe", ["observer=oracle", "alpha=1", f"input={log_csv}",
                                            f"output={tmp_path / 'f.csv'}"]))
     assert (result["rmse"][:2] < 0.9 * filtered["rmse"][:2]).all()
     with pytest.raises(LboError, match="has no filter to smooth"):
-        run(compose_cfg("observe", [f"observer={trained['checkpoint']}", f"input={log_csv}",
+        observe_cfg(compose_cfg("observe", [f"observer={trained['checkpoint']}", f"input={log_csv}",
                                     f"output={tmp_path / 'cnn.csv'}", "smooth=true"]))
     assert not (tmp_path / "cnn.csv").exists()
 
@@ -223,7 +223,7 @@ def test_bad_arguments_are_refused(tmp_path, log_csv, override, message):
     overrides[key] = value
     before = log_csv.read_bytes()
     with pytest.raises(LboError, match=re.escape(message)):
-        run(compose_cfg("observe", [f"{k}={v}" for k, v in overrides.items()]))
+        observe_cfg(compose_cfg("observe", [f"{k}={v}" for k, v in overrides.items()]))
     assert not (tmp_path / "est.csv").exists()
     assert log_csv.read_bytes() == before
 
@@ -231,7 +231,7 @@ def test_bad_arguments_are_refused(tmp_path, log_csv, override, message):
 def test_a_log_shorter_than_the_window_is_all_fallback(tmp_path, trained, manoeuvre, capsys):
     path, out = tmp_path / "short.parquet", tmp_path / "est.csv"
     manoeuvre[LOG].iloc[:12].to_parquet(path)
-    result = run(compose_cfg("observe", [f"observer={trained['checkpoint']}",
+    result = observe_cfg(compose_cfg("observe", [f"observer={trained['checkpoint']}",
                                          f"input={path}", f"output={out}"]))
     assert result["valid"] == 0 and not pd.read_csv(out)["valid"].any()
     assert "no valid row to score" in capsys.readouterr().out
@@ -246,15 +246,15 @@ def test_resample_interpolates_to_the_observer_dt(tmp_path, manoeuvre):
     fine.to_csv(path, index=False)
     base = [f"input={path}", f"output={out}", "observer=ekf"]
     with pytest.raises(LboError, match="resample=true"):
-        run(compose_cfg("observe", base))
-    result = run(compose_cfg("observe", [*base, "resample=true"]))
+        observe_cfg(compose_cfg("observe", base))
+    result = observe_cfg(compose_cfg("observe", [*base, "resample=true"]))
     m, u = manoeuvre[["x_m", "y_m", "psi_m"]].to_numpy(), manoeuvre[["V", "delta"]].to_numpy()
     ref = ekf_batch(m[None], u[None], VEHICLE, NOISE.Q, NOISE.R(1.0))[0]
     est = pd.read_csv(out)
     assert result["rows"] == len(manoeuvre)
     np.testing.assert_allclose(est[["x", "y"]], ref[:, :2], atol=1e-6)
     # a vehicle.dt override changes what the classical observers accept: the 0.01 s log as is
-    fine_out = run(compose_cfg("observe", [*base, "vehicle.dt=0.01"]))
+    fine_out = observe_cfg(compose_cfg("observe", [*base, "vehicle.dt=0.01"]))
     assert fine_out["rows"] == len(fine)
     np.testing.assert_allclose(pd.read_csv(out)["t"], fine_t, atol=1e-12)
 
@@ -455,7 +455,7 @@ def test_evaluate_scores_an_existing_observer_and_logs_to_its_run(trained, smoke
                                                                    monkeypatch, capsys):
     import mlflow
 
-    from lbo.evaluate import run as evaluate
+    from lbo.evaluate import evaluate
 
     monkeypatch.setenv("MLFLOW_TRACKING_URI", trained["uri"])
     csv = evaluate(compose_cfg("evaluate", ["data=smoke", f"data.root={smoke_data.parent}",

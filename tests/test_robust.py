@@ -90,12 +90,12 @@ def test_observe_cli_runs_the_robust_checkpoint(robust, manoeuvre, tmp_path):
 
 
 def test_observe_smooths_the_robust_observer(robust, manoeuvre, tmp_path):
-    from lbo.observe import run
+    from lbo.observe import observe
 
     log = tmp_path / "log.csv"
     manoeuvre[LOG].to_csv(log, index=False)
     ckpt = robust["out"]["checkpoint"]
-    res = {s: run(compose_cfg("observe", [f"observer={ckpt}", f"input={log}", f"smooth={s}",
+    res = {s: observe(compose_cfg("observe", [f"observer={ckpt}", f"input={log}", f"smooth={s}",
                                           f"output={tmp_path / f'{s}.csv'}"]))
            for s in ("false", "true")}
     assert (res["true"]["rmse"][:2] < 0.95 * res["false"]["rmse"][:2]).all(), res

@@ -13,7 +13,7 @@ from helpers import compose_cfg
 from lbo.core.errors import LboError
 from lbo.sim import schema
 from lbo.sim.vehicle import wrap_angle
-from lbo.simulate import run, simulate
+from lbo.simulate import simulate, write_logs
 
 FREE = ["manoeuvre=free_drive", "duration=10"]
 
@@ -86,13 +86,13 @@ def test_drives_write_a_fleet_of_seeded_logs(tmp_path):
     logs = [pd.read_csv(out.parent / n) for n in names]
     assert all(len(d) == 200 for d in logs)
     single = tmp_path / "single.csv"
-    run(compose_cfg("simulate", [*FREE, "duration=4", "seed=6", f"output={single}"]))
+    write_logs(compose_cfg("simulate", [*FREE, "duration=4", "seed=6", f"output={single}"]))
     assert single.read_bytes() == texts[1]
 
 
 def test_one_drive_writes_output_itself(tmp_path, capsys):
     out = tmp_path / "log.parquet"
-    assert run(compose_cfg("simulate", [*FREE, "duration=2", f"output={out}"])) == out
+    assert write_logs(compose_cfg("simulate", [*FREE, "duration=2", f"output={out}"])) == out
     assert [p.name for p in tmp_path.iterdir()] == ["log.parquet"]
     assert capsys.readouterr().out.strip().splitlines()[-1] == f"simulated: {out}"
     assert len(pd.read_parquet(out)) == 100
@@ -107,7 +107,7 @@ def test_bad_duration_or_drives_is_one_line_and_writes_nothing(tmp_path, overrid
     cfg = compose_cfg("simulate", [*FREE, "drives=3", override,
                                    f"output={tmp_path / 'fleet' / 'drive.csv'}"])
     with pytest.raises(LboError) as err:
-        run(cfg)
+        write_logs(cfg)
     message = str(err.value)
     assert message.startswith(f"{field} must be ") and "\n" not in message
     assert list(tmp_path.iterdir()) == []

@@ -5,8 +5,8 @@ import pandas as pd
 import pytest
 
 from helpers import compose_cfg
-from lbo.evaluate import run
-from lbo.filters.classical import run as run_classical
+from lbo.evaluate import evaluate
+from lbo.filters.classical import estimate as run_classical
 from lbo.filters.smoother import rts
 from lbo.scoring.grid import load_test
 from lbo.scoring.metrics import nees_table
@@ -145,7 +145,7 @@ def test_evaluate_writes_calibration_and_smoothed_scores(tmp_path, smoke_data):
     cfg = compose_cfg("evaluate", ["data=smoke", f"data.root={smoke_data.parent}",
                                    f"output_dir={tmp_path}", "observers=[ekf,oracle]",
                                    "calibration=true", "smooth=true"])
-    table = pd.read_csv(run(cfg))
+    table = pd.read_csv(evaluate(cfg))
     assert {"ekf-smoothed", "oracle-smoothed"} <= set(table["observer"])
     both = table[table["alpha"] == 6.0].set_index("observer")["nrmse"]
     assert both["oracle-smoothed"] < 0.9 * both["oracle"]

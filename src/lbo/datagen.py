@@ -11,7 +11,7 @@ from omegaconf import DictConfig
 from lbo.core.cli import entry
 
 
-def run(cfg: DictConfig) -> str:
+def generate(cfg: DictConfig) -> str:
     """Generate the sets for ``cfg``, print the summary and return the folder."""
     from lbo.sim import log_sets as logs
     from lbo.sim.datasets import build, data_lock, figures, spec_from_cfg, summary
@@ -53,7 +53,7 @@ def _logs(cfg: DictConfig) -> str:
     return str(folder)
 
 
-main = entry("datagen", run)
+main = entry("datagen", generate)
 
 
 if __name__ == "__main__":

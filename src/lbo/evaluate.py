@@ -18,7 +18,7 @@ from lbo.core.atomic import atomic_path
 from lbo.core.cli import entry
 from lbo.core.errors import LboError
 from lbo.filters.classical import BOUND, DYNAMIC, OBSERVERS, TUNED
-from lbo.filters.classical import run as run_classical
+from lbo.filters.classical import estimate as run_classical
 from lbo.scoring.grid import (
     REFERENCES,
     calibration,
@@ -36,7 +36,7 @@ from lbo.sim.noise import Noise
 from lbo.sim.vehicle import Vehicle
 
 
-def run(cfg: DictConfig) -> Path:
+def evaluate(cfg: DictConfig) -> Path:
     """Score the configured classical observers (and learned ones: ``learned``, and
     ``observer``, whose MLflow run is told the result); write evaluation.csv and its figure."""
     from lbo.sim.log_sets import is_logs
@@ -249,7 +249,7 @@ def run_logs(cfg: DictConfig, observers: list[str], learned: list[str]
     return csv, list(nets)
 
 
-main = entry("evaluate", run)
+main = entry("evaluate", evaluate)
 
 
 if __name__ == "__main__":

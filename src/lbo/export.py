@@ -229,7 +229,7 @@ def register(run_id: str, name: str, uri: str | None = None) -> str:
     return f"models:/{name}/{version}"
 
 
-def run(cfg: DictConfig) -> dict[str, Any]:
+def export_observer(cfg: DictConfig) -> dict[str, Any]:
     """Export the configured observer; print the files and, with ``register``, the model URI."""
     from lbo.serve.observer import RUN_ID, Observer
 
@@ -259,7 +259,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     return result
 
 
-main = entry("export", run)
+main = entry("export", export_observer)
 
 
 if __name__ == "__main__":

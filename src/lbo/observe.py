@@ -63,10 +63,10 @@ from lbo.sim.logio import (
     write_table,
 )
 
-__all__ = ["main", "run"]
+__all__ = ["main", "observe"]
 
 
-def run(cfg: DictConfig) -> dict[str, Any]:
+def observe(cfg: DictConfig) -> dict[str, Any]:
     """Observe the log ``cfg.input`` with ``cfg.observer`` and write ``cfg.output``.
 
     Returns
@@ -179,7 +179,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     return result
 
 
-main = entry("observe", run)
+main = entry("observe", observe)
 
 
 if __name__ == "__main__":

@@ -61,7 +61,7 @@ class Stages:
         return result
 
 
-def run(cfg: DictConfig) -> Path:
+def reproduce(cfg: DictConfig) -> Path:
     """Run the five stages for ``cfg.scale``; return the report folder."""
     check_reproduce(cfg)
     scale, out = cfg.scale, Path(cfg.report_dir)
@@ -115,7 +115,7 @@ def check_reproduce(cfg: DictConfig) -> None:
 
 def stage_data(cfg: DictConfig) -> tuple[Path, str]:
     """1: the scale's data sets, generated or reused; returns their folder."""
-    from lbo.datagen import run as datagen
+    from lbo.datagen import generate as datagen
 
     return Path(datagen(compose("datagen", [f"data={cfg.scale}", *cfg.overrides]))), "done"
 
@@ -229,7 +229,7 @@ def stage_train(cfg: DictConfig, out: Path,
 
 def stage_classical(cfg: DictConfig, out: Path, folder: Path) -> tuple[pd.DataFrame, str]:
     """4: the classical observers on the test grid, reused while the data are the same."""
-    from lbo.evaluate import run as evaluate
+    from lbo.evaluate import evaluate
 
     csv = out / "classical" / "evaluation.csv"
     stamp = out / "classical" / "stamp.json"
@@ -369,7 +369,7 @@ def _log_report(cfg: DictConfig, scale: str, out: Path, files: list[Path], data:
     print(f"    report logged to MLflow run {run_id}")
 
 
-main = entry("reproduce", run)
+main = entry("reproduce", reproduce)
 
 
 if __name__ == "__main__":

@@ -186,7 +186,7 @@ def describe(cfg: DictConfig, df: pd.DataFrame) -> tuple[str, float]:
             f"{still:.0%} of the time, alpha {cfg.alpha:g}"), duration
 
 
-def run(cfg: DictConfig) -> Path:
+def write_logs(cfg: DictConfig) -> Path:
     """Simulate and write ``cfg.output`` (.csv or .parquet), or ``cfg.drives`` logs beside it;
     print what they hold. Returns the path written (the first one of a fleet)."""
     from lbo.sim.logio import check_output_path, write_table
@@ -216,7 +216,7 @@ def run(cfg: DictConfig) -> Path:
     return paths[0]
 
 
-main = entry("simulate", run)
+main = entry("simulate", write_logs)
 
 
 if __name__ == "__main__":

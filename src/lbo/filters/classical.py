@@ -17,7 +17,7 @@ alpha, the
   kinematic peer; it needs the true states, so it scores simulated test sets only;
 - ``pcrb``: not an observer but the bound on any observer's error (needs the true states).
 
-Each runs over a batch (:func:`run`) or one step at a time (:func:`stepper`), with the same
+Each runs over a batch (:func:`estimate`) or one step at a time (:func:`stepper`), with the same
 numbers either way.
 """
 
@@ -74,7 +74,7 @@ def measurement_cov(name: str, noise: Noise, alpha: float | np.ndarray, g: int) 
     return np.einsum("gi,ij->gij", np.square(noise.meas(scale)), np.eye(3))
 
 
-def run(name: str, m: np.ndarray, u: np.ndarray, vehicle: Vehicle, noise: Noise,
+def estimate(name: str, m: np.ndarray, u: np.ndarray, vehicle: Vehicle, noise: Noise,
         alpha: float | np.ndarray = 1.0, progress: bool = False,
         truth: Truth | None = None, return_cov: bool = False, smooth: bool = False,
         lengths: np.ndarray | None = None) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
@@ -109,7 +109,7 @@ def run(name: str, m: np.ndarray, u: np.ndarray, vehicle: Vehicle, noise: Noise,
 def stepper(name: str, m0: np.ndarray, vehicle: Vehicle, noise: Noise,
             alpha: float | np.ndarray = 1.0) -> Any:
     """Observer ``name`` started at the first measurements m0 (G, 3); its ``update(m (G, 3),
-    u_prev (G, 2))`` returns the next estimates (G, 3), as :func:`run` would."""
+    u_prev (G, 2))`` returns the next estimates (G, 3), as :func:`estimate` would."""
     check(name)
     R = measurement_cov(name, noise, alpha, len(m0))
     if name == "adaptive":

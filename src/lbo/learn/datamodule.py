@@ -30,7 +30,7 @@ from torch.utils.data import (
 )
 
 from lbo.core.errors import LboError
-from lbo.learn.draws import AlphaDraw, fix_mask, loss_weights, noisy_measurements
+from lbo.learn.draws import AlphaDraw, draw_fixes, loss_weights, noisy_measurements
 from lbo.models.features import last_measurement, state_to_target, window_features, window_view
 from lbo.sim import schema
 
@@ -72,7 +72,7 @@ class WindowDataset(Dataset):
         continues the stream, so no two epochs repeat a draw.
     weight_offset : loss weights ``1 / (alpha + offset)^2``, or ones when None.
     fix_periods : drop position fixes: each window keeps them every one of these periods
-        (steps), see :func:`lbo.learn.draws.fix_mask`; the dropped ones become NaN. () keeps all.
+        (steps), see :func:`lbo.learn.draws.draw_fixes`; the dropped ones become NaN. () keeps all.
     drift : (sigma (m), tau (steps)) of a Gauss-Markov GNSS drift added to drawn noise, as
         the data set's truth has it; None: white noise only.
     """
@@ -132,7 +132,7 @@ class WindowDataset(Dataset):
             weight = loss_weights(alpha, self.weight_offset)
             m = noisy_measurements(self.truth[s], alpha, self.sigma, generator, self.drift)
         if self.fix_periods:
-            fix = fix_mask(len(e), self.window, self.fix_periods, generator, e.device)
+            fix = draw_fixes(len(e), self.window, self.fix_periods, generator, e.device)
             kept = torch.where(fix[..., None], m, torch.full_like(m, float("nan")))
             # stored measurements with gaps of their own (a user's 10 Hz logs): the mask may
             # miss every fix of a window, which keeps its own fixes then (never on full sets)

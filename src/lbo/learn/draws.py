@@ -160,7 +160,7 @@ def fix_periods(rates: Sequence[float] | None, dt: float,
     return tuple(max(1, int(round(1.0 / (r * dt)))) for r in values)
 
 
-def fix_mask(n: int, window: int, periods: Sequence[int], generator: torch.Generator,
+def draw_fixes(n: int, window: int, periods: Sequence[int], generator: torch.Generator,
              device: torch.device | str = "cpu") -> torch.Tensor:
     """Which steps of ``n`` windows of ``window`` steps hold a position fix: (n, window) bool.
 

@@ -38,6 +38,7 @@ import numpy as np
 import torch
 
 from lbo.core.errors import LboError
+from lbo.sim.logcheck import fix_mask
 
 FEATURE_MODES = ("relative", "frame", "absolute")
 
@@ -91,13 +92,6 @@ def check_mode(mode: str) -> str:
         raise LboError(f"features: unknown mode {mode!r}; "
                        f"expected one of {', '.join(FEATURE_MODES)}")
     return mode
-
-
-def fix_mask(win: Array) -> Array:
-    """(..., N, 5) windows -> (..., N) bool, True at the steps that hold a fix (no NaN)."""
-    if isinstance(win, torch.Tensor):
-        return torch.isfinite(win[..., :3]).all(-1)
-    return np.isfinite(win[..., :3]).all(-1)
 
 
 def last_measurement(win: Array, fixes: bool = False) -> Array:

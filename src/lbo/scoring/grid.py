@@ -17,7 +17,7 @@ import pandas as pd
 from lbo.core.atomic import atomic_path
 from lbo.core.errors import LboError
 from lbo.filters.classical import BOUND, NAMES, TUNED, measurement_cov
-from lbo.filters.classical import run as run_classical
+from lbo.filters.classical import estimate as run_classical
 from lbo.filters.kalman import ekf_batch, pcrb
 from lbo.scoring.metrics import PAPER_REFERENCE, SCORE_COLUMNS, rmse, score_table
 from lbo.sim import schema

@@ -47,13 +47,13 @@ def load(folder: str | Path) -> dict[str, np.ndarray]:
 def peer_estimates(arr: Mapping[str, np.ndarray], vehicle: Vehicle, noise: Noise,
                    peers: Sequence[str] = PEERS) -> dict[str, np.ndarray]:
     """Estimates (G, T, 3) of each classical peer on the test arrays, never told alpha."""
-    from lbo.filters.classical import run
+    from lbo.filters.classical import estimate
 
     for name in peers:
         if name not in PEERS:
             raise LboError(f"observers: {name!r} cannot score logs ({NOTE}); expected names "
                            f"from {list(PEERS)}")
-    return {name: run(name, arr["m"], arr["u"], vehicle, noise) for name in peers}
+    return {name: estimate(name, arr["m"], arr["u"], vehicle, noise) for name in peers}
 
 
 def _pooled(est: np.ndarray, z: np.ndarray, mask: np.ndarray) -> np.ndarray:

@@ -168,7 +168,7 @@ def _from_first_fix(name: str, m: np.ndarray, u: np.ndarray, fix: np.ndarray,
     cov = np.full((len(m), 3, 3), np.nan)
     if fix.any():
         f = int(np.argmax(fix))
-        e, c = classical.run(name, m[None, f:], u[None, f:], vehicle, noise, alpha,
+        e, c = classical.estimate(name, m[None, f:], u[None, f:], vehicle, noise, alpha,
                              return_cov=True, smooth=smooth)
         est[f:], cov[f:] = e[0], c[0]
     return est, cov

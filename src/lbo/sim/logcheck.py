@@ -102,8 +102,18 @@ def _finite(values: np.ndarray, names: tuple[str, ...], source: str | None) -> N
             raise LboError(_at(source, f"column {name!r} has NaN or inf (first at row {first})"))
 
 
-def fix_mask(m: np.ndarray, source: str | None = None) -> np.ndarray:
-    """(T,) bool, the rows of m (T, 3) that hold a position fix; a row with only some of
+def fix_mask(m: Any) -> Any:
+    """Which rows hold a position fix: (..., C) measurements whose first three channels are
+    ``x_m, y_m, psi_m`` (C >= 3, a NumPy array or a torch tensor) -> (...) bool, True where
+    all three hold a finite value. A step without a fix leaves them NaN."""
+    head = m[..., :3]
+    if isinstance(head, np.ndarray):
+        return np.isfinite(head).all(-1)
+    return head.isfinite().all(-1)  # a torch tensor, without importing torch here
+
+
+def check_fixes(m: np.ndarray, source: str | None = None) -> np.ndarray:
+    """:func:`fix_mask` of a log's measurements m (T, 3), checked: a row with only some of
     ``x_m, y_m, psi_m`` NaN, or a log without any fix, is one :class:`LboError`."""
     empty = np.isnan(m)
     partial = empty.any(1) & ~empty.all(1)
@@ -112,7 +122,7 @@ def fix_mask(m: np.ndarray, source: str | None = None) -> np.ndarray:
         gone = [c for c, e in zip(MEAS, empty[r]) if e]
         raise LboError(_at(source, f"row {r} has a partial fix ({', '.join(gone)} empty); a "
                                    "step without a fix leaves x_m, y_m and psi_m all empty"))
-    fix = ~empty.all(1)
+    fix = fix_mask(np.where(empty, np.nan, 0.0))
     if not fix.any():
         raise LboError(_at(source, "no position fix in any row (x_m, y_m and psi_m are "
                                    "empty everywhere)"))
@@ -168,7 +178,7 @@ def check_samples(m: np.ndarray, u: np.ndarray, *, delta_max: float | None = Non
     if truth is not None:
         _finite(truth, TRUTH, source)
     _finite(np.where(np.isnan(m), 0.0, m), MEAS, source)  # inf; NaN is a missing fix
-    fix = fix_mask(m, source)
+    fix = check_fixes(m, source)
     headings = [("psi_m", m[:, 2], fix)] + ([("psi", truth[:, 2], True)]
                                             if truth is not None else [])
     for c, psi, rows in headings:

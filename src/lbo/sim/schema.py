@@ -15,7 +15,7 @@ import pyarrow.parquet as pq
 
 from lbo.core.atomic import atomic_path
 from lbo.core.errors import LboError
-from lbo.sim.logcheck import fix_mask
+from lbo.sim.logcheck import check_fixes
 
 COLUMNS = ("traj", "k", "t", "x", "y", "psi", "V", "delta", "x_m", "y_m", "psi_m")
 EVAL_COLUMNS = COLUMNS + ("alpha", "scored")
@@ -62,9 +62,9 @@ def check_frame(df: pd.DataFrame, required: tuple[str, ...], source: str = "data
 def fix_rows(df: pd.DataFrame, source: str = "input") -> np.ndarray:
     """(T,) bool, the rows that hold a position fix; a row with only some of ``x_m, y_m,
     psi_m`` empty, or a log without any fix, is one :class:`LboError` (the check of
-    :func:`lbo.sim.logcheck.fix_mask`, which users' logs go through too)."""
+    :func:`lbo.sim.logcheck.check_fixes`, which users' logs go through too)."""
     empty = df[list(MEAS)].isna().to_numpy()  # whatever the dtype: only the gaps count here
-    return fix_mask(np.where(empty, np.nan, 0.0), source)
+    return check_fixes(np.where(empty, np.nan, 0.0), source)
 
 
 def read_set(path: str | Path, required: tuple[str, ...] = COLUMNS,
