@@ -28,7 +28,7 @@ import numpy as np
 import onnxruntime
 import torch
 
-from lbo.models.net import ObserverNet
+from lbo.models.net import WindowNet
 from lbo.serve.observer import Observer
 from lbo.sim.noise import Noise
 from lbo.sim.vehicle import Vehicle, measure, simulate
@@ -71,11 +71,11 @@ def observers():
     """(label, engine, observer) for every row of the table."""
     torch.manual_seed(0)
     for model, window in (("cnn", 60), ("lstm", 80)):
-        net = ObserverNet(model, window).eval()
+        net = WindowNet(model, window).eval()
         for engine in ("torch", "torchscript", "onnx"):
             yield f"{model.upper()} N={window}", engine, Observer.from_net(net, engine=engine)
     # the robust observer: fix channel, as experiment=robust trains it
-    robust = ObserverNet("filternet", ROBUST_WINDOW, features="frame", fixes=True).eval()
+    robust = WindowNet("filternet", ROBUST_WINDOW, features="frame", fixes=True).eval()
     yield f"robust N={ROBUST_WINDOW}, window form", "torch", \
         Observer.from_net(robust, form="window")
     for engine in ("torch", "torchscript", "onnx"):

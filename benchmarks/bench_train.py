@@ -6,10 +6,10 @@
 For each model (its default config from conf/model/) and window N, on the quick data set,
 batch size 256, on the CPU:
 
-- bare: ``ObserverNet`` + ``WindowDataModule.train_dataloader()`` + the training config's
+- bare: ``WindowNet`` + ``WindowDataModule.train_dataloader()`` + the training config's
   optimizer (``conf/train.yaml``: Adam, lr 1e-3, fused); loss = net.loss(*batch); zero_grad;
   backward; step.
-- lightning: ``ObserverModule`` with the same model, fitted by a minimal ``lightning.Trainer``
+- lightning: ``TrainingModule`` with the same model, fitted by a minimal ``lightning.Trainer``
   (no logger, checkpoint, progress bar, model summary or validation) on the same datamodule.
 
 Both run ``warm-up + measured`` steps from the same seed (same weights, same batches: the
@@ -50,8 +50,8 @@ from omegaconf import DictConfig, OmegaConf
 
 import lbo.core.paths
 from lbo.learn.datamodule import WindowDataModule
-from lbo.learn.lightning_module import ObserverModule
-from lbo.models.net import ObserverNet
+from lbo.learn.lightning_module import TrainingModule
+from lbo.models.net import WindowNet
 from lbo.sim.datasets import build, spec_from_cfg
 
 BATCH = 256
@@ -106,7 +106,7 @@ def bare(cfg: DictConfig, dm: WindowDataModule, norm: dict, warmup: int, measure
     torch.manual_seed(SEED)
     model = OmegaConf.to_container(cfg.model, resolve=True)
     kwargs = {k: v for k, v in model.items() if k != "name"}
-    net = ObserverNet(model["name"], cfg.window, cfg.features, **kwargs).to(dm.device)
+    net = WindowNet(model["name"], cfg.window, cfg.features, **kwargs).to(dm.device)
     net.set_normalisation(**norm)
     net.train()
     opt = instantiate(cfg.optimizer)(params=net.parameters())
@@ -149,7 +149,7 @@ def lightning(cfg: DictConfig, dm: WindowDataModule, norm: dict, warmup: int,
               measured: int) -> Run:
     """``Trainer.fit`` for ``warmup + measured`` steps."""
     torch.manual_seed(SEED)
-    module = ObserverModule(OmegaConf.to_container(cfg.model, resolve=True), cfg.window,
+    module = TrainingModule(OmegaConf.to_container(cfg.model, resolve=True), cfg.window,
                             cfg.features, instantiate(cfg.optimizer))
     module.observer.set_normalisation(**norm)
     clock = StepClock(warmup)

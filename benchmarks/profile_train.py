@@ -37,7 +37,7 @@ from omegaconf import OmegaConf
 from lbo.learn.datamodule import WindowDataModule
 from lbo.learn.draws import AlphaDraw
 from lbo.models.features import window_features
-from lbo.models.net import ObserverNet
+from lbo.models.net import WindowNet
 from lbo.sim.datasets import build, spec_from_cfg
 
 PARTS = ("gather", "features", "forward + loss", "backward", "optimiser")
@@ -57,7 +57,7 @@ def profile(model: str, window: int, steps: int, device: torch.device) -> dict[s
     dm.setup("fit")
     norm = dm.normalisation("frame")
     spec = OmegaConf.to_container(cfg.model, resolve=True)
-    net = ObserverNet(spec.pop("name"), window, "frame", **spec).to(device)
+    net = WindowNet(spec.pop("name"), window, "frame", **spec).to(device)
     net.set_normalisation(**norm)
     opt = instantiate(cfg.optimizer)(params=net.parameters())
     ds, gen = dm.train_set, torch.Generator(device=device).manual_seed(SEED)

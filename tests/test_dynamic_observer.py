@@ -13,10 +13,10 @@ import torch
 
 from helpers import compose_cfg, train_in_own_store
 from lbo.core.errors import LboError
-from lbo.learn.lightning_module import ObserverModule
-from lbo.models import FilterObserver, build_model
+from lbo.learn.lightning_module import TrainingModule
+from lbo.models import WindowFilter, build_model
 from lbo.models.filternet import BODY_PARAMETERS
-from lbo.models.net import ObserverNet
+from lbo.models.net import WindowNet
 from lbo.reproduce import train_jobs
 from lbo.scoring import report
 from lbo.serve.observer import Observer
@@ -112,7 +112,7 @@ def test_residual_and_drift_start_as_the_kinematic_window_filter():
     assert "log_drift_tau" not in plain.state_dict() and "log_drift_tau" in rich.state_dict()
 
 
-def _told_the_car(p: SingleTrack) -> FilterObserver:
+def _told_the_car(p: SingleTrack) -> WindowFilter:
     """A single-track window filter whose body has the car's own parameters."""
     net = build_model("filternet", 40, body="single_track").double()
     fzf, fzr = p.axle_loads
@@ -125,7 +125,7 @@ def _told_the_car(p: SingleTrack) -> FilterObserver:
     return net
 
 
-def _open_loop(net: FilterObserver, s0: np.ndarray, u: np.ndarray) -> np.ndarray:
+def _open_loop(net: WindowFilter, s0: np.ndarray, u: np.ndarray) -> np.ndarray:
     """The net's process model alone from the true states s0 (B, 5) over inputs u (B, T, 2):
     poses (B, T-1, 3) at steps 1 .. T-1."""
     z, body = torch.from_numpy(s0[:, :3]), torch.from_numpy(s0[:, 3:])
@@ -175,7 +175,7 @@ def test_bad_residual_drift_or_body_names_the_field(kwargs, field):
 
 @pytest.mark.parametrize("body_lr", [1.0, 3.0])
 def test_the_body_learns_at_body_lr_times_the_optimisers_rate(body_lr):
-    module = ObserverModule({"name": "filternet", "body": "single_track", "body_lr": body_lr},
+    module = TrainingModule({"name": "filternet", "body": "single_track", "body_lr": body_lr},
                             40, features="frame",
                             optimizer=functools.partial(torch.optim.Adam, lr=1e-3))
     net = module.observer.net
@@ -215,5 +215,5 @@ def test_reproduce_trains_the_study_beside_the_paper_at_quick_scale(tmp_path):
                                           ({"drift": True}, "window"),
                                           ({"residual": 8}, "window")])
 def test_a_window_filter_with_a_learned_process_model_runs_in_its_window_form(kwargs, form):
-    net = ObserverNet("filternet", 40, features="frame", **kwargs)
+    net = WindowNet("filternet", 40, features="frame", **kwargs)
     assert Observer.from_net(net).form == form

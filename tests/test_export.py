@@ -11,7 +11,7 @@ import torch
 from helpers import compose_cfg
 from lbo.core.errors import LboError
 from lbo.export import export, export_observer
-from lbo.models.net import ObserverNet
+from lbo.models.net import WindowNet
 from lbo.serve.observer import Observer
 from lbo.train import train
 
@@ -70,12 +70,12 @@ def test_export_cli_files_match_pytorch(tmp_path, checkpoint, windows):
         ts_diff, onnx_diff = compare(net, script, session, batch)
         assert ts_diff < 1e-5 and onnx_diff < 1e-5
     # the trained observer, not a fresh one: these would differ
-    assert not torch.allclose(net(win[:4]), ObserverNet("cnn", 20)(win[:4]))
+    assert not torch.allclose(net(win[:4]), WindowNet("cnn", 20)(win[:4]))
 
 
 def test_lstm_exports_for_any_batch(tmp_path, windows):
     torch.manual_seed(0)
-    net = ObserverNet("lstm", 80)
+    net = WindowNet("lstm", 80)
     net.set_normalisation([0.0, 0.0, 0.0, 10.0, 0.0], [1.0, 1.0, 0.02, 5.0, 0.1],
                           [0.0, 0.0, 0.0], [0.5, 0.5, 0.01])
     paths = export(Observer.from_net(net), tmp_path)

@@ -13,7 +13,7 @@ import pytest
 import torch
 
 from helpers import compose_cfg, kill_when_written
-from lbo.models.net import ObserverNet
+from lbo.models.net import WindowNet
 from lbo.serve.observer import Observer
 
 
@@ -107,7 +107,7 @@ def test_a_run_killed_before_its_first_checkpoint_is_replaced(tmp_path, smoke_da
 
 
 def test_a_non_finite_estimate_is_never_valid():
-    net = ObserverNet("cnn", 20, "relative")
+    net = WindowNet("cnn", 20, "relative")
     with torch.no_grad():
         next(net.net.parameters())[0].fill_(float("nan"))
     m = np.cumsum(np.full((60, 3), 0.1), axis=0)

@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from lbo.core.errors import LboError
-from lbo.models import CNNObserver
+from lbo.models import WindowCNN
 from lbo.models.features import (
     FEATURE_MODES,
     last_measurement,
@@ -111,7 +111,7 @@ def test_torch_features_keep_gradients():
 
 def test_relative_cnn_observer_is_translation_equivariant():
     torch.manual_seed(0)
-    model = CNNObserver(20).eval()
+    model = WindowCNN(20).eval()
     win = _windows(np.random.default_rng(4))
     offset = np.array([1000.0, -2500.0])
     shifted = win.copy()
@@ -226,10 +226,10 @@ def test_frame_round_trip_across_pi(as_torch):
 
 
 def _frame_net(model: str, dtype: torch.dtype):
-    from lbo.models.net import ObserverNet
+    from lbo.models.net import WindowNet
 
     torch.manual_seed(0)
-    net = ObserverNet(model, 20, features="frame")
+    net = WindowNet(model, 20, features="frame")
     gen = torch.Generator().manual_seed(1)
     if net.physical:  # filternet: make its learned noise model and Q scale do something
         torch.nn.init.normal_(net.net.noise[-1].weight, std=0.3, generator=gen)
@@ -264,10 +264,10 @@ def test_frame_observer_moves_with_the_vehicle(model, theta, dtype, atol):
 
 def test_relative_observer_does_not_move_with_a_rotation():
     """The contrast: with "relative" features a rotation changes what the network sees."""
-    from lbo.models.net import ObserverNet
+    from lbo.models.net import WindowNet
 
     torch.manual_seed(0)
-    net = ObserverNet("cnn", 20, features="relative").double().eval()
+    net = WindowNet("cnn", 20, features="relative").double().eval()
     win, _ = _drives(np.random.default_rng(6))
     win, moved = torch.from_numpy(win), torch.from_numpy(_move(win, 1.1))
     with torch.no_grad():
@@ -276,12 +276,12 @@ def test_relative_observer_does_not_move_with_a_rotation():
 
 
 def test_filternet_needs_frame_features():
-    from lbo.models.net import ObserverNet
+    from lbo.models.net import WindowNet
 
     for mode in ("relative", "absolute"):
         with pytest.raises(LboError, match=r"^features: model 'filternet' needs features in "
                                            r"\['frame'\], got '" + mode + "'$"):
-            ObserverNet("filternet", 20, features=mode)
+            WindowNet("filternet", 20, features=mode)
 
 
 def test_window_view_is_one_extractor_for_torch_and_numpy():

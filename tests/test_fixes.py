@@ -15,7 +15,7 @@ from lbo.core.errors import LboError
 from lbo.filters import classical
 from lbo.filters.kalman import KalmanStepper
 from lbo.learn.draws import draw_fixes, fix_periods
-from lbo.models.net import ObserverNet
+from lbo.models.net import WindowNet
 from lbo.serve.observer import Observer
 from lbo.sim.noise import Noise
 from lbo.sim.vehicle import Vehicle, wrap_angle
@@ -73,7 +73,7 @@ def test_a_missing_fix_skips_the_update_and_keeps_the_prior_covariance():
 
 def test_the_window_filter_with_missing_fixes_is_the_kalman_stepper():
     torch.manual_seed(0)
-    net = ObserverNet("filternet", 30, "frame", fixes=True).net.double()
+    net = WindowNet("filternet", 30, "frame", fixes=True).net.double()
     sigma = torch.rand(8, 3, dtype=torch.float64) + 0.5
     net.measurement_sigma = lambda x: sigma
     x = torch.randn(8, 30, 6, dtype=torch.float64) * 0.1
@@ -108,7 +108,7 @@ def test_fix_dropout_keeps_the_drawn_periods_and_at_least_one_fix():
 
 def test_streaming_with_none_equals_batch_inference():
     torch.manual_seed(1)
-    net = ObserverNet("filternet", 40, "frame", fixes=True).double()
+    net = WindowNet("filternet", 40, "frame", fixes=True).double()
     df = simulate(compose_cfg("simulate", ["manoeuvre=slalom", "fix_rate=5", "alpha=2"]))
     m = df[["x_m", "y_m", "psi_m"]].to_numpy()
     u = df[["V", "delta"]].to_numpy()
@@ -122,7 +122,7 @@ def test_streaming_with_none_equals_batch_inference():
 
 
 def test_an_observer_trained_with_every_fix_refuses_a_missing_one():
-    obs = Observer.from_net(ObserverNet("cnn", 20, "relative"))
+    obs = Observer.from_net(WindowNet("cnn", 20, "relative"))
     m = np.zeros((30, 3))
     m[7] = np.nan
     u = np.tile([1.0, 0.1], (30, 1))  # within the steering limit, which run checks first
@@ -224,7 +224,7 @@ def test_the_export_of_an_observer_with_missing_fixes_matches_pytorch(tmp_path):
     from lbo.serve.engines import onnx_session
 
     torch.manual_seed(2)
-    net = ObserverNet("filternet", 40, "frame", fixes=True)  # float32 weights, as trained
+    net = WindowNet("filternet", 40, "frame", fixes=True)  # float32 weights, as trained
     # the window form; the recursive form's step export is tested in test_recursive.py
     paths = export(Observer.from_net(net, form="window"), tmp_path)
     df = simulate(compose_cfg("simulate", ["manoeuvre=slalom", "fix_rate=5"]))

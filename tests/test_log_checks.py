@@ -19,7 +19,7 @@ import torch
 from helpers import compose_cfg, train_in_own_store
 from lbo.core.errors import LboError
 from lbo.models.features import window_view
-from lbo.models.net import ObserverNet
+from lbo.models.net import WindowNet
 from lbo.observe import observe as observe_cfg
 from lbo.serve.observer import Observer
 from lbo.sim.logio import resample
@@ -132,7 +132,7 @@ def test_a_gap_no_longer_than_the_observer_dt_is_not_refused(tmp_path, manoeuvre
 
 def test_an_upsampled_log_has_sparse_fixes_that_an_every_fix_observer_refuses(manoeuvre):
     fine = resample(manoeuvre[LOG].reset_index(drop=True), 0.01, tuple(LOG[1:]))
-    obs = Observer.from_net(ObserverNet("cnn", 20, "relative"))
+    obs = Observer.from_net(WindowNet("cnn", 20, "relative"))
     with pytest.raises(LboError, match=r"^row 1: no fix, but cnn-N20 was trained with a fix"):
         obs.run(*arrays(fine))
 
@@ -258,7 +258,7 @@ def test_step_refuses_a_bad_sample_and_the_next_good_one_goes_on(manoeuvre, sour
     m, u = arrays(manoeuvre)
     if source == "learned":
         torch.manual_seed(0)
-        obs = Observer.from_net(ObserverNet("cnn", 20, "relative").double())
+        obs = Observer.from_net(WindowNet("cnn", 20, "relative").double())
     else:
         obs = Observer.load("ekf")
     ref, ref_valid = obs.run(m, u)
@@ -346,7 +346,7 @@ def test_the_window_rule_refuses_exactly_the_logs_with_nan_estimates(fix_rates_c
     alike."""
     torch.manual_seed(0)
     observers = [Observer.load(fix_rates_cnn),
-                 Observer.from_net(ObserverNet("filternet", 20, "frame", fixes=True).double(),
+                 Observer.from_net(WindowNet("filternet", 20, "frame", fixes=True).double(),
                                    form="window")]
     u = np.tile([8.0, 0.05], (120, 1))
     for obs in observers:
@@ -377,7 +377,7 @@ def test_the_window_rule_refuses_exactly_the_logs_with_nan_estimates(fix_rates_c
 
 def test_a_log_starting_without_a_fix_is_not_refused():
     torch.manual_seed(0)
-    obs = Observer.from_net(ObserverNet("filternet", 20, "frame", fixes=True).double())
+    obs = Observer.from_net(WindowNet("filternet", 20, "frame", fixes=True).double())
     m = np.full((100, 3), np.nan)
     m[30::10] = [[1.0, 2.0, 0.3]]
     est, valid = obs.run(m, np.tile([8.0, 0.05], (100, 1)))
@@ -386,7 +386,7 @@ def test_a_log_starting_without_a_fix_is_not_refused():
 
 def test_step_returns_nan_with_a_reason_when_the_window_holds_no_fix():
     torch.manual_seed(0)
-    obs = Observer.from_net(ObserverNet("cnn", 20, "relative", fixes=True).double())
+    obs = Observer.from_net(WindowNet("cnn", 20, "relative", fixes=True).double())
     u = [8.0, 0.05]
     first = obs.step([0.0, 0.0, 0.0], u)
     assert not first.valid and first.reason.startswith("window not yet full (1 of 20 steps)")
@@ -456,7 +456,7 @@ def test_cuda_without_cuda_is_refused_before_the_checkpoint_is_read(tmp_path, ma
     with pytest.raises(LboError, match=f"^{re.escape(message)}$"):
         Observer.load(ckpt, device="cuda")
     with pytest.raises(LboError, match=r"^device=cuda:1 needs CUDA"):
-        Observer.from_net(ObserverNet("cnn", 20, "relative"), device="cuda:1")
+        Observer.from_net(WindowNet("cnn", 20, "relative"), device="cuda:1")
 
 
 # --- 9. a tracking server that is down --------------------------------------------------------
@@ -479,7 +479,7 @@ def test_a_run_id_with_the_tracking_server_down_fails_fast(tmp_path, manoeuvre, 
 def test_the_recursive_form_predicts_through_a_gap_longer_than_its_window():
     # its filter carries from step to step: a gap of 3 N steps is prediction only, no NaN
     torch.manual_seed(0)
-    obs = Observer.from_net(ObserverNet("filternet", 20, "frame", fixes=True))
+    obs = Observer.from_net(WindowNet("filternet", 20, "frame", fixes=True))
     assert obs.form == "recursive"
     m = np.full((200, 3), np.nan)
     at = np.r_[0:40:5, 100:200:5]

@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from lbo.core.errors import LboError
-from lbo.models import MODELS, CNNObserver, LSTMObserver, build_model
+from lbo.models import MODELS, WindowCNN, WindowLSTM, build_model
 
 WINDOWS = [4, 20, 40, 60, 80]
 
@@ -14,7 +14,7 @@ WINDOWS = [4, 20, 40, 60, 80]
 @pytest.mark.parametrize("name", sorted(MODELS))
 @pytest.mark.parametrize("window", WINDOWS)
 def test_output_shape(name, window):
-    from lbo.models.net import ObserverNet
+    from lbo.models.net import WindowNet
 
     torch.manual_seed(0)
     model = build_model(name, window)
@@ -23,7 +23,7 @@ def test_output_shape(name, window):
     assert out.dtype == torch.float32
     assert torch.isfinite(out).all()
     # wrapped as the observer that trains and runs: float64 windows in, float64 states out
-    net = ObserverNet(name, window, features="frame" if name == "filternet" else "relative")
+    net = WindowNet(name, window, features="frame" if name == "filternet" else "relative")
     state = net(torch.randn(7, window, 5, dtype=torch.float64))
     assert state.shape == (7, 3) and state.dtype == torch.float64
     assert torch.isfinite(state).all()
@@ -80,7 +80,7 @@ def _xavier_std(fan_in: int, fan_out: int) -> float:
 
 def test_cnn_xavier_init():
     torch.manual_seed(0)
-    model = CNNObserver(80, conv_channels=32, feature_channels=32, dense_units=64)
+    model = WindowCNN(80, conv_channels=32, feature_channels=32, dense_units=64)
     for m in model.modules():
         if isinstance(m, (torch.nn.Conv2d, torch.nn.Linear)):
             w = m.weight
@@ -93,7 +93,7 @@ def test_cnn_xavier_init():
 
 def test_lstm_xavier_init_and_forget_bias():
     torch.manual_seed(0)
-    model = LSTMObserver(20, hidden_sizes=(32, 32))
+    model = WindowLSTM(20, hidden_sizes=(32, 32))
     for lstm in model.lstms:
         h = lstm.hidden_size
         for name, p in lstm.named_parameters():
@@ -122,7 +122,7 @@ def test_torchscript_matches_eager(name):
 
 def test_gradients_reach_both_cnn_branches():
     torch.manual_seed(0)
-    model = CNNObserver(20)
+    model = WindowCNN(20)
     loss = torch.nn.functional.mse_loss(model(torch.randn(8, 20, 5)), torch.randn(8, 3))
     loss.backward()
     for branch in (model.measurements, model.inputs):
@@ -133,7 +133,7 @@ def test_gradients_reach_both_cnn_branches():
 @pytest.mark.parametrize("channels", [slice(0, 3), slice(3, 5)])
 def test_cnn_output_depends_on_each_branch(channels):
     torch.manual_seed(0)
-    model = CNNObserver(20)
+    model = WindowCNN(20)
     x = torch.randn(2, 20, 5)
     y = x.clone()
     y[:, :, channels] += 1.0

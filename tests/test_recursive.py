@@ -7,8 +7,8 @@ import pytest
 import torch
 
 from lbo.core.errors import LboError
-from lbo.models.filternet import FilterObserver
-from lbo.models.net import ObserverNet
+from lbo.models.filternet import WindowFilter
+from lbo.models.net import WindowNet
 from lbo.models.recursive import STATE_NAMES, RecursiveFilter
 from lbo.serve.engines import TOLERANCE
 from lbo.serve.observer import Observer
@@ -20,10 +20,10 @@ VARIANTS = {"plain": {}, "fixes": {"in_features": 6},
                                                                   "drift": True}}
 
 
-def _observer_net(kind: str, window: int = 60, seed: int = 0) -> ObserverNet:
+def _observer_net(kind: str, window: int = 60, seed: int = 0) -> WindowNet:
     """A window filter whose learned parts are not at their zero start: every weight moved."""
     torch.manual_seed(seed)
-    net = ObserverNet("filternet", window, features="frame", fixes=kind == "fixes",
+    net = WindowNet("filternet", window, features="frame", fixes=kind == "fixes",
                       **VARIANTS[kind])
     with torch.no_grad():
         for p in net.net.parameters():
@@ -31,7 +31,7 @@ def _observer_net(kind: str, window: int = 60, seed: int = 0) -> ObserverNet:
     return net
 
 
-def _net(kind: str, window: int = 60, seed: int = 0) -> FilterObserver:
+def _net(kind: str, window: int = 60, seed: int = 0) -> WindowFilter:
     return _observer_net(kind, window, seed).net
 
 
@@ -125,11 +125,11 @@ def test_on_a_window_the_recursive_form_is_the_window_filter_told_one_noise_leve
 
 
 def test_form_is_checked_in_one_line():
-    cnn = ObserverNet("cnn", 20)
-    with pytest.raises(LboError, match="form=recursive: a CNNObserver has no filter"):
+    cnn = WindowNet("cnn", 20)
+    with pytest.raises(LboError, match="form=recursive: a WindowCNN has no filter"):
         Observer.from_net(cnn, form="recursive")
     with pytest.raises(LboError, match=r"form must be one of \['window', 'recursive'\]"):
-        Observer.from_net(ObserverNet("filternet", 20, features="frame"), form="kalman")
+        Observer.from_net(WindowNet("filternet", 20, features="frame"), form="kalman")
     with pytest.raises(LboError, match="smooth: cnn-N20 has no filter to smooth"):
         Observer.from_net(cnn).run(*(a[0] for a in _logs(1, 50, False)), smooth=True)
 

@@ -12,7 +12,7 @@ import pytest
 
 from helpers import ROBUST_SMOKE, compose_cfg, train_in_own_store
 from lbo.core.errors import LboError
-from lbo.learn.lightning_module import ObserverModule
+from lbo.learn.lightning_module import TrainingModule
 from lbo.serve.observer import Observer
 from lbo.sim.vehicle import wrap_angle
 from lbo.train import train
@@ -51,7 +51,7 @@ def test_robust_experiment_trains_and_scores(robust):
     assert run.info.status == "FINISHED"
     assert run.data.tags["train_noise"] == "uniform [0, 6.5]"
     assert run.data.tags["features"] == "frame" and run.data.tags["model"] == "filternet"
-    module = ObserverModule.load_from_checkpoint(out["checkpoint"], map_location="cpu")
+    module = TrainingModule.load_from_checkpoint(out["checkpoint"], map_location="cpu")
     hp = module.hparams
     assert hp["features"] == "frame" and hp["window"] == 40 and hp["model"]["name"] == "filternet"
     # the filter's model comes from the run's vehicle and noise preset, resolved

@@ -21,7 +21,7 @@ from helpers.servers import free_port
 from lbo.core.errors import LboError, TrainingDiverged
 from lbo.core.runfolder import claim
 from lbo.export import export
-from lbo.models.net import ObserverNet
+from lbo.models.net import WindowNet
 from lbo.serve.observer import Observer
 from lbo.train import train
 
@@ -122,9 +122,9 @@ def test_a_diverged_training_says_so_and_keeps_no_nan_checkpoint(tmp_path, smoke
 # --- export ---------------------------------------------------------------------------------
 
 
-def _cnn() -> ObserverNet:
+def _cnn() -> WindowNet:
     torch.manual_seed(0)
-    return ObserverNet("cnn", 20, "relative")
+    return WindowNet("cnn", 20, "relative")
 
 
 def test_export_refuses_nan_weights_and_writes_nothing(tmp_path):
@@ -158,7 +158,7 @@ def test_a_failed_export_replaces_none_of_the_three_files(tmp_path, monkeypatch)
     first = export(Observer.from_net(_cnn()), out)
     before = {k: p.read_bytes() for k, p in first.items()}
     torch.manual_seed(1)
-    other = ObserverNet("cnn", 20, "relative")
+    other = WindowNet("cnn", 20, "relative")
 
     def fail(self, data):  # the disk fills while the ONNX file is written
         raise OSError(28, "No space left on device")

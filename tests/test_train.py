@@ -10,8 +10,8 @@ import torch
 from helpers import train_cfg
 from lbo.core.errors import LboError
 from lbo.learn.datamodule import WindowDataModule, rows, window_ends
-from lbo.learn.lightning_module import ObserverModule
-from lbo.models.net import ObserverNet
+from lbo.learn.lightning_module import TrainingModule
+from lbo.models.net import WindowNet
 from lbo.scoring.metrics import SCORE_COLUMNS
 from lbo.train import train
 
@@ -68,7 +68,7 @@ def test_validation_windows_end_on_scored_points(smoke_data):
 
 def test_relative_observer_ignores_where_the_vehicle_is(smoke_data):
     torch.manual_seed(0)
-    net = ObserverNet("cnn", 20)
+    net = WindowNet("cnn", 20)
     test = pd.read_parquet(smoke_data / "test.parquet")
     x, y = rows(test[test["alpha"] == 3.0])
     win = x.unfold(0, 20, 1)[:300].transpose(-1, -2)
@@ -78,7 +78,7 @@ def test_relative_observer_ignores_where_the_vehicle_is(smoke_data):
         err = net(win) - state
         err_shifted = net(win + shift) - (state + shift[:3])
     torch.testing.assert_close(err_shifted, err, atol=1e-6, rtol=0)
-    absolute = ObserverNet("cnn", 20, features="absolute")
+    absolute = WindowNet("cnn", 20, features="absolute")
     with torch.no_grad():
         moved = absolute(win + shift) - (state + shift[:3]) - (absolute(win) - state)
     assert moved.abs().max() > 1e-3  # the paper-literal observer does care
@@ -111,7 +111,7 @@ def test_same_seed_same_metrics(tmp_path, smoke_data, tracking):
 
 def test_checkpoint_carries_what_rebuilds_the_observer(tmp_path, smoke_data, tracking):
     out = train(train_cfg(tmp_path, smoke_data))
-    module = ObserverModule.load_from_checkpoint(out["checkpoint"], map_location="cpu")
+    module = TrainingModule.load_from_checkpoint(out["checkpoint"], map_location="cpu")
     hp = module.hparams
     assert hp["window"] == 20 and hp["features"] == "relative" and hp["model"]["name"] == "cnn"
     assert hp["meta"]["vehicle"]["dt"] == 0.02 and hp["meta"]["noise"]["name"] == "paper"
@@ -161,7 +161,7 @@ def test_a_crash_is_marked_failed_and_leaves_no_half_artifact(tmp_path, smoke_da
             raise RuntimeError("simulated crash")
         return self.observer.loss(*batch)
 
-    monkeypatch.setattr(ObserverModule, "training_step", boom)
+    monkeypatch.setattr(TrainingModule, "training_step", boom)
     with pytest.raises(RuntimeError, match="simulated crash"):
         train(train_cfg(tmp_path, smoke_data))
     client, found = runs(tracking)

@@ -261,12 +261,12 @@ def _fit(cfg: DictConfig, callbacks: list[L.Callback] | None, tags: dict[str, st
 
     from lbo.learn.callbacks import Evaluation
     from lbo.learn.checkpoint_io import AtomicCheckpointIO
-    from lbo.learn.lightning_module import ObserverModule
+    from lbo.learn.lightning_module import TrainingModule
 
     L.seed_everything(cfg.seed, workers=True, verbose=False)
     folder, data_hash = prepare_data(cfg)
     dm = datamodule(cfg, folder)
-    module = ObserverModule(OmegaConf.to_container(cfg.model, resolve=True), cfg.window,
+    module = TrainingModule(OmegaConf.to_container(cfg.model, resolve=True), cfg.window,
                             cfg.features, instantiate(cfg.optimizer), meta(cfg, data_hash),
                             cfg.get("lr_schedule", "constant"), fixes(cfg))
     module.observer.set_normalisation(**dm.normalisation(cfg.features))

@@ -8,7 +8,7 @@ from typing import Any
 from lbo.core.errors import LboError
 
 SCHEDULES = ("constant", "cosine")
-"""The values of ``lr_schedule`` (:class:`lbo.learn.lightning_module.ObserverModule`), here so
+"""The values of ``lr_schedule`` (:class:`lbo.learn.lightning_module.TrainingModule`), here so
 that the
 training config is checked without importing Lightning."""
 

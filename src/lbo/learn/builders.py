@@ -19,11 +19,11 @@ from lbo.learn.draws import SOURCES, AlphaDraw, fix_periods
 
 
 def build_net(cfg: DictConfig):
-    """The :class:`~lbo.models.net.ObserverNet` that ``cfg.model`` describes, untrained."""
-    from lbo.models.net import ObserverNet
+    """The :class:`~lbo.models.net.WindowNet` that ``cfg.model`` describes, untrained."""
+    from lbo.models.net import WindowNet
 
     model = OmegaConf.to_container(cfg.model, resolve=True)
-    return ObserverNet(model.pop("name"), cfg.window, cfg.features, fixes(cfg), **model)
+    return WindowNet(model.pop("name"), cfg.window, cfg.features, fixes(cfg), **model)
 
 
 def initial_weights(cfg: DictConfig, net, say: bool = True) -> dict[str, torch.Tensor]:

@@ -1,4 +1,4 @@
-"""The LightningModule: loss, optimiser and logging around an :class:`ObserverNet`."""
+"""The LightningModule: loss, optimiser and logging around an :class:`WindowNet`."""
 
 from __future__ import annotations
 
@@ -11,12 +11,12 @@ import torch
 
 from lbo.core.checks import SCHEDULES
 from lbo.core.errors import TrainingDiverged
-from lbo.models.net import CHECKPOINT_FORMAT, ObserverNet
+from lbo.models.net import CHECKPOINT_FORMAT, WindowNet
 
-__all__ = ["CHECKPOINT_FORMAT", "SCHEDULES", "ObserverModule"]
+__all__ = ["CHECKPOINT_FORMAT", "SCHEDULES", "TrainingModule"]
 
 
-class ObserverModule(L.LightningModule):
+class TrainingModule(L.LightningModule):
     """Trains an observer with MSE on its (normalised, heading-wrapped) targets.
 
     Parameters
@@ -24,7 +24,7 @@ class ObserverModule(L.LightningModule):
     model : ``{"name": "cnn"|"lstm", **hyperparameters}``.
     window : N.
     features : ``"relative"``, ``"frame"`` or ``"absolute"``.
-    fixes : the observer takes missing fixes (a sixth, ``fix`` channel), see ObserverNet.
+    fixes : the observer takes missing fixes (a sixth, ``fix`` channel), see WindowNet.
     optimizer : a partial optimiser (``params -> Optimizer``), e.g. from Hydra's
         ``_partial_: true``; Adam(lr=1e-3) when None.
     meta : what a checkpoint must carry to rebuild the observer elsewhere (dt, wheelbase,
@@ -42,7 +42,7 @@ class ObserverModule(L.LightningModule):
         self.lr_schedule = lr_schedule
         self.hparams["format"] = CHECKPOINT_FORMAT
         kwargs = {k: v for k, v in model.items() if k != "name"}
-        self.observer = ObserverNet(model["name"], window, features, fixes, **kwargs)
+        self.observer = WindowNet(model["name"], window, features, fixes, **kwargs)
         self.optimizer_factory = optimizer
         self._loss_sum: torch.Tensor | float = 0.0
         self._loss_count = 0

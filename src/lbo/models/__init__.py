@@ -13,12 +13,12 @@ from typing import Any
 from torch import nn
 
 from lbo.core.errors import LboError
-from lbo.models.cnn import CNNObserver
-from lbo.models.filternet import FilterObserver
-from lbo.models.lstm import LSTMObserver
+from lbo.models.cnn import WindowCNN
+from lbo.models.filternet import WindowFilter
+from lbo.models.lstm import WindowLSTM
 
-MODELS: dict[str, type[nn.Module]] = {"cnn": CNNObserver, "lstm": LSTMObserver,
-                                      "filternet": FilterObserver}
+MODELS: dict[str, type[nn.Module]] = {"cnn": WindowCNN, "lstm": WindowLSTM,
+                                      "filternet": WindowFilter}
 
 
 def model_parameters(name: str) -> tuple[str, ...]:
@@ -40,7 +40,7 @@ def build_model(name: str, window: int, **kwargs: Any) -> nn.Module:
     ----------
     name : a key of :data:`MODELS` (``"cnn"`` or ``"lstm"``).
     window : N, time steps per window.
-    **kwargs : the model's hyperparameters (see :class:`CNNObserver`, :class:`LSTMObserver`).
+    **kwargs : the model's hyperparameters (see :class:`WindowCNN`, :class:`WindowLSTM`).
 
     Raises
     ------
@@ -55,5 +55,5 @@ def build_model(name: str, window: int, **kwargs: Any) -> nn.Module:
     return MODELS[name](window, **kwargs)
 
 
-__all__ = ["MODELS", "CNNObserver", "FilterObserver", "LSTMObserver", "build_model",
+__all__ = ["MODELS", "WindowCNN", "WindowFilter", "WindowLSTM", "build_model",
            "model_parameters"]

@@ -82,7 +82,7 @@ class _Branch(nn.Module):
         return torch.flatten(self.layers(x.unsqueeze(1)), 1)
 
 
-class CNNObserver(nn.Module):
+class WindowCNN(nn.Module):
     """CNN observer: a window of measurements and inputs -> the state at its last step.
 
     Measurements (channels 0..2) and inputs (channels 3..) each pass through their own branch

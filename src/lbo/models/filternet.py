@@ -46,7 +46,7 @@ SUBSTEPS = 4
 BODIES = ("kinematic", "single_track")
 """The process model's bodies (``model.body``)."""
 BODY_PARAMETERS = ("log_stiffness", "log_peak", "front_logit", "log_gyration", "log_v_kinematic")
-"""The single-track body's learned constants (:meth:`FilterObserver.body_parameters`)."""
+"""The single-track body's learned constants (:meth:`WindowFilter.body_parameters`)."""
 
 
 def _check_sigmas(name: str, values: Sequence[float]) -> tuple[float, float, float]:
@@ -85,7 +85,7 @@ def _inverse_sym3(s: torch.Tensor) -> torch.Tensor:
     return torch.stack(rows, -2) / det[:, None, None]
 
 
-class FilterObserver(nn.Module):
+class WindowFilter(nn.Module):
     """Window EKF on the kinematic bicycle with a learned noise model.
 
     Reads ``"frame"`` features in physical units (:mod:`lbo.models.features`): the window's
@@ -119,7 +119,7 @@ class FilterObserver(nn.Module):
                  hidden: int = 32, in_features: int = 5, residual: int = 0,
                  drift: bool = False, body: str = "kinematic", body_lr: float = 1.0) -> None:
         super().__init__()
-        self.physical = True  # reads and writes metres and radians (see ObserverNet)
+        self.physical = True  # reads and writes metres and radians (see WindowNet)
         self.feature_modes = ("frame",)
         self.window = integer(window, "window", 4)
         self.in_features = integer(in_features, "in_features", 5)

@@ -35,7 +35,7 @@ def _init_lstm(lstm: nn.LSTM) -> None:
                 nn.init.ones_(p.data[_FORGET * hidden:(_FORGET + 1) * hidden])
 
 
-class LSTMObserver(nn.Module):
+class WindowLSTM(nn.Module):
     """LSTM observer: a window of measurements and inputs -> the state at its last step.
 
     One single-layer ``nn.LSTM`` per entry of ``hidden_sizes`` (the paper: 8, 16, 32, 32 units),

@@ -29,7 +29,7 @@ refuses checkpoints it cannot read."""
 _STD_FLOOR = 1e-6
 
 
-class ObserverNet(nn.Module):
+class WindowNet(nn.Module):
     """Features -> normalisation -> CNN/LSTM -> de-normalisation -> absolute state.
 
     Parameters

@@ -1,6 +1,6 @@
 """The robust observer in recursive form: one sample in, one estimate out, at a constant cost.
 
-:class:`~lbo.models.filternet.FilterObserver` runs its EKF over a whole window of N samples for
+:class:`~lbo.models.filternet.WindowFilter` runs its EKF over a whole window of N samples for
 every estimate, from a cold start at the window's first sample. :class:`RecursiveFilter` is
 the same filter, with the same learned parts, run the way a Kalman filter runs in a car:
 
@@ -38,7 +38,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from lbo.models.filternet import FilterObserver, _inverse_sym3, _wrap
+from lbo.models.filternet import WindowFilter, _inverse_sym3, _wrap
 
 STATE_NAMES = ("z", "P", "body", "u_prev", "last", "dead_reckoning", "gap", "heading",
                "ring", "sums", "speeds", "speed_sum", "k", "started")
@@ -63,7 +63,7 @@ class _Single(nn.Module):
 
 
 class RecursiveFilter(nn.Module):
-    """A trained :class:`FilterObserver`, stepped one sample at a time (float64).
+    """A trained :class:`WindowFilter`, stepped one sample at a time (float64).
 
     Parameters
     ----------
@@ -76,7 +76,7 @@ class RecursiveFilter(nn.Module):
     fixes : whether steps without a fix are taken (the net has the ``fix`` channel).
     """
 
-    def __init__(self, net: FilterObserver) -> None:
+    def __init__(self, net: WindowFilter) -> None:
         super().__init__()
         nets = {name: _Single(copy.deepcopy(getattr(net, name))) for name in ("noise", "process")
                 if not isinstance(getattr(net, name), nn.Identity)}
@@ -95,7 +95,7 @@ class RecursiveFilter(nn.Module):
         :data:`STATE_NAMES`:
 
         z (B, n), P (B, n, n), body (B, 2) the process model's carried ``[v_y, r]``
-        (:meth:`FilterObserver._motion`), u_prev (B, 2) the last
+        (:meth:`WindowFilter._motion`), u_prev (B, 2) the last
         input, last (B, 2, 3) the last two measurements, dead_reckoning (B, 3) the pose carried
         from the last fix, gap (B,) steps since it, heading (B,) the last fix's measured
         heading, ring (B, S, 6) the statistic's last S entries (:data:`ENTRY`: the squares and
@@ -281,7 +281,7 @@ class RecursiveFilter(nn.Module):
         return pose, torch.from_numpy(P_s[..., :3, :3]).to(m.device)
 
 
-def run_arrays(net: FilterObserver, m: np.ndarray, u: np.ndarray, smooth: bool = False,
+def run_arrays(net: WindowFilter, m: np.ndarray, u: np.ndarray, smooth: bool = False,
                lengths: np.ndarray | None = None, device: str = "cpu"
                ) -> tuple[np.ndarray, np.ndarray]:
     """:meth:`RecursiveFilter.run` of the window filter ``net`` on numpy arrays: m (G, T, 3)

@@ -229,7 +229,7 @@ def learned_nets(sources: Sequence[str]) -> dict:
 
 def predict_recursive(net, arr: dict[str, np.ndarray], device: str = "cpu",
                       smooth: bool = False) -> tuple[np.ndarray, np.ndarray]:
-    """A window filter (an ObserverNet of ``filternet``) in its recursive form over every
+    """A window filter (an WindowNet of ``filternet``) in its recursive form over every
     trajectory of the padded test arrays, all at once: (G, T, 3) estimates and (G, T, 3, 3)
     covariances, NaN outside the scored steps (``smooth``: the RTS smoother's)."""
     from lbo.models.recursive import run_arrays
@@ -257,7 +257,7 @@ def predict_grid(net, arr: dict[str, np.ndarray], window: int, batch_size: int =
 
     Parameters
     ----------
-    net : a module mapping windows (B, N, 5) to states (B, 3), e.g. an ObserverNet.
+    net : a module mapping windows (B, N, 5) to states (B, 3), e.g. an WindowNet.
     arr : padded test arrays from :func:`load_test`.
 
     Returns

@@ -39,7 +39,7 @@ def _without_fixes(win):
 
 
 def trace(net: Any) -> Any:
-    """TorchScript of an :class:`~lbo.models.net.ObserverNet`, traced on one float64 window
+    """TorchScript of an :class:`~lbo.models.net.WindowNet`, traced on one float64 window
     on the net's device.
 
     Traced rather than scripted: the feature functions branch on Python types. The trace
@@ -56,7 +56,7 @@ def trace(net: Any) -> Any:
 
 
 def onnx_bytes(net: Any) -> bytes:
-    """ONNX model of an :class:`~lbo.models.net.ObserverNet`: input ``window`` (batch, N, 5),
+    """ONNX model of an :class:`~lbo.models.net.WindowNet`: input ``window`` (batch, N, 5),
     output ``state`` (batch, 3), both float64. Legacy (TorchScript-based) exporter."""
     import torch
 

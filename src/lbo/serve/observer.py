@@ -78,6 +78,9 @@ def default_form(net: Any) -> str:
         return "window"
     return "recursive"
 
+NET_KINDS = {"WindowCNN": "cnn", "WindowLSTM": "lstm", "WindowFilter": "filter"}
+"""The name an untrained or unnamed net goes by (``<kind>-N<window>``), per net class."""
+
 INPUT_COLUMNS = ("x_m", "y_m", "psi_m", "V", "delta")
 """Channel order of a window (N, 5)."""
 
@@ -182,7 +185,7 @@ Predictor = Callable[[np.ndarray], np.ndarray]
 
 
 def make_predictor(net: Any, engine: str = "torch", device: str = "cpu") -> Predictor:
-    """Wrap an :class:`~lbo.models.net.ObserverNet` as a numpy-in, numpy-out predictor.
+    """Wrap an :class:`~lbo.models.net.WindowNet` as a numpy-in, numpy-out predictor.
 
     ``torchscript`` traces the net; ``onnx`` exports it in memory and runs it in ONNX Runtime
     on one thread (one window per step gains nothing from more). The torch engines use
@@ -237,7 +240,7 @@ covariance (1, 3, 3), new state (float64 numpy arrays in, out)."""
 
 def make_stepper(net: Any, engine: str = "torch", device: str = "cpu") -> tuple[Stepper, list]:
     """The recursive form (:class:`~lbo.models.recursive.RecursiveFilter`) of a window filter
-    ``net`` (an :class:`~lbo.models.net.ObserverNet` of ``filternet``) as a numpy step function on
+    ``net`` (an :class:`~lbo.models.net.WindowNet` of ``filternet``) as a numpy step function on
     ``engine``, and its initial state. ``onnx`` runs on one thread, as in a control loop."""
     import torch
 
@@ -292,7 +295,7 @@ class Observer:
     form : ``"window"`` or ``"recursive"`` for a window filter (``filternet``), see
         :data:`FORMS`; ``"window"`` for the CNN and the LSTM; None for classical observers.
     meta : the checkpoint's metadata (data set, data hash, seed, ...), {} for classical.
-    net : the :class:`~lbo.models.net.ObserverNet`, or None.
+    net : the :class:`~lbo.models.net.WindowNet`, or None.
     """
 
     def __init__(self, name: str, vehicle: Vehicle | None = None, noise: Noise | None = None,
@@ -400,8 +403,8 @@ class Observer:
     def from_net(cls, net: Any, vehicle: Vehicle | None = None, noise: Noise | None = None,
                  *, name: str | None = None, engine: str = "torch",
                  device: str = "cpu", form: str | None = None) -> Observer:
-        """Wrap an :class:`~lbo.models.net.ObserverNet` (trained or not) as an observer."""
-        name = name or f"{type(net.net).__name__.removesuffix('Observer').lower()}-N{net.window}"
+        """Wrap an :class:`~lbo.models.net.WindowNet` (trained or not) as an observer."""
+        name = name or f"{NET_KINDS.get(type(net.net).__name__, 'net')}-N{net.window}"
         return cls(name, vehicle, noise, net=net, engine=engine, device=device, form=form)
 
     # ----------------------------------------------------------------------- streaming
@@ -628,7 +631,7 @@ class Observer:
 
 def read_checkpoint(path: str | os.PathLike, features: str | None = None,
                     device: str = "cpu") -> tuple[Any, dict[str, Any]]:
-    """Rebuild the :class:`~lbo.models.net.ObserverNet` of an ``lbo.train`` checkpoint.
+    """Rebuild the :class:`~lbo.models.net.WindowNet` of an ``lbo.train`` checkpoint.
 
     The checkpoint's hyperparameters name the architecture, window and feature mode, its
     buffers hold the normalisation statistics and ``meta`` the vehicle (dt) and noise preset.
@@ -648,7 +651,7 @@ def read_checkpoint(path: str | os.PathLike, features: str | None = None,
     import torch
 
     from lbo.models.features import FEATURE_MODES
-    from lbo.models.net import CHECKPOINT_FORMAT, ObserverNet
+    from lbo.models.net import CHECKPOINT_FORMAT, WindowNet
 
     path = Path(path)
     if features is not None and features not in FEATURE_MODES:
@@ -681,7 +684,7 @@ def read_checkpoint(path: str | os.PathLike, features: str | None = None,
                        f"but features={features} was asked for")
     try:
         model = dict(hp["model"])
-        net = ObserverNet(model.pop("name"), hp["window"], mode, bool(hp.get("fixes", False)),
+        net = WindowNet(model.pop("name"), hp["window"], mode, bool(hp.get("fixes", False)),
                           **model)
         state = {k.removeprefix("observer."): v for k, v in ckpt["state_dict"].items()
                  if k.startswith("observer.")}
@@ -701,7 +704,7 @@ def read_checkpoint(path: str | os.PathLike, features: str | None = None,
 
 
 def load_net(source: str, device: str = "cpu") -> tuple[Any, dict[str, Any]]:
-    """The :class:`~lbo.models.net.ObserverNet` and hyperparameters of a learned observer named
+    """The :class:`~lbo.models.net.WindowNet` and hyperparameters of a learned observer named
     as :meth:`Observer.load` takes it (a checkpoint file, an MLflow run id, a ``runs:/`` or
     ``models:/`` URI); raises LboError naming the problem."""
     with _checkpoint_file(str(source)) as path:

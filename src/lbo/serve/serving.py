@@ -63,7 +63,7 @@ def estimates(observer: Any, frame: pd.DataFrame) -> pd.DataFrame:
     return result
 
 
-class ObserverModel(mlflow.pyfunc.PythonModel):
+class ServedModel(mlflow.pyfunc.PythonModel):
     """A learned observer's checkpoint behind MLflow's pyfunc interface (:func:`estimates`).
 
     MLflow loads it as model code (``lbo/serve/serving_model.py``), not as a pickle, so a model

@@ -3,6 +3,6 @@ lbo itself."""
 
 from mlflow.models import set_model
 
-from lbo.serve.serving import ObserverModel
+from lbo.serve.serving import ServedModel
 
-set_model(ObserverModel())
+set_model(ServedModel())
