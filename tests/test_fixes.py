@@ -18,8 +18,9 @@ from lbo.learn.draws import draw_fixes, fix_periods
 from lbo.models.net import WindowNet
 from lbo.serve.observer import Observer
 from lbo.sim.noise import Noise
+from lbo.sim.stopgo import stop_and_go_speed
 from lbo.sim.vehicle import Vehicle, wrap_angle
-from lbo.simulate import simulate, stop_and_go_speed, thin
+from lbo.simulate import simulate, thin
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 LOG = ["t", "x_m", "y_m", "psi_m", "V", "delta", "x", "y", "psi"]

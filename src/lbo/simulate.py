@@ -34,50 +34,12 @@ from lbo.core.checks import integer, number, require
 from lbo.core.cli import entry
 from lbo.core.errors import LboError
 from lbo.sim import schema
-from lbo.sim.clothoid import sample
-from lbo.sim.dynamic import SingleTrack
-from lbo.sim.manoeuvres import MANOEUVRES, Chain
-from lbo.sim.pursuit import drive
+from lbo.sim.manoeuvres import MANOEUVRES
+from lbo.sim.stopgo import drive_stop_and_go
 from lbo.sim.vehicle import Vehicle, measure, wrap_angle
 
 STOP_AND_GO = "stop_and_go"
 FREE_DRIVE = "free_drive"
-# (kind, value, seconds): "stand" for the seconds, "go" to the speed at |a| = 2 m/s^2 and hold it
-STOP_AND_GO_PROFILE = (
-    ("stand", 0.0, 5.0), ("go", 10.0, 6.0), ("stand", 0.0, 8.0), ("go", 0.8, 6.0),
-    ("stand", 0.0, 4.0), ("go", 13.0, 5.0), ("go", 5.0, 3.0), ("stand", 0.0, 7.0),
-    ("go", 2.0, 4.0), ("go", 9.0, 6.0), ("stand", 0.0, 6.0),
-)
-ACCEL = 2.0  # m/s^2
-
-
-def stop_and_go_speed(dt: float) -> np.ndarray:
-    """(T,) speed profile of the stop-and-go drive, sampled every ``dt``."""
-    v, out = 0.0, []
-    for kind, target, seconds in STOP_AND_GO_PROFILE:
-        if kind == "go":
-            n = int(np.ceil(abs(target - v) / (ACCEL * dt)))
-            out.append(v + np.sign(target - v) * np.minimum(np.arange(1, n + 1) * ACCEL * dt,
-                                                            abs(target - v)))
-            v = target
-        else:
-            n = int(np.ceil(v / (ACCEL * dt)))  # brake to a stop first
-            out.append(np.maximum(v - np.arange(1, n + 1) * ACCEL * dt, 0.0))
-            v = 0.0
-        out.append(np.full(int(round(seconds / dt)), v))
-    return np.concatenate(out)
-
-
-def drive_stop_and_go(vehicle: Vehicle, process_sigma, rng: np.random.Generator,
-                      car: SingleTrack | None = None) -> dict[str, np.ndarray]:
-    """True states z (T, 3) and inputs u (T, 2) of the stop-and-go drive through town, by the
-    kinematic bicycle or by the dynamic ``car``."""
-    speed = stop_and_go_speed(vehicle.dt)
-    path = Chain().straight(60).turn(10, -90, 4).straight(70).turn(12, 90, 5).straight(60) \
-        .turn(9, 90, 4).straight(200).segments
-    out = drive([sample(path, 0.1, lead_in=0.0, tail=100.0)], speed[None], vehicle,
-                np.asarray(process_sigma), rng, ds=0.1, car=car)
-    return {"z": out["z"][0], "u": out["u"][0]}
 
 
 def thin(m: np.ndarray, every: int) -> np.ndarray:

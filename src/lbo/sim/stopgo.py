@@ -1,4 +1,6 @@
-"""Training trajectories that stop: standstill, starts from rest, creeping and cruising.
+"""Drives that stop: the training trajectories with standstill, starts from rest, creeping and
+cruising (:func:`generate_stop_and_go`), and the stop-and-go drive through town that
+``python -m lbo.simulate manoeuvre=stop_and_go`` writes (:func:`drive_stop_and_go`).
 
 The friction-circle set (paper III-A-1) never drops below ``vehicle.v_min``, so an observer
 trained on it has never seen a car stand still. These trajectories hold a sequence of speed
@@ -11,7 +13,11 @@ from __future__ import annotations
 
 import numpy as np
 
+from lbo.sim.clothoid import sample
+from lbo.sim.dynamic import SingleTrack
+from lbo.sim.manoeuvres import Chain
 from lbo.sim.noise import Noise
+from lbo.sim.pursuit import drive
 from lbo.sim.vehicle import Vehicle, f, measure, wrap_angle
 
 MODES = ("stop", "creep", "cruise")
@@ -81,3 +87,43 @@ def generate_stop_and_go(n_traj: int, n_steps: int, vehicle: Vehicle, noise: Noi
     m = measure(z, noise.meas(alpha), rng)
     m[..., 2] = wrap_angle(m[..., 2])
     return {"z": z, "u": u, "m": m}
+
+
+# (kind, value, seconds): "stand" for the seconds, "go" to the speed at |a| = 2 m/s^2 and hold it
+STOP_AND_GO_PROFILE = (
+    ("stand", 0.0, 5.0), ("go", 10.0, 6.0), ("stand", 0.0, 8.0), ("go", 0.8, 6.0),
+    ("stand", 0.0, 4.0), ("go", 13.0, 5.0), ("go", 5.0, 3.0), ("stand", 0.0, 7.0),
+    ("go", 2.0, 4.0), ("go", 9.0, 6.0), ("stand", 0.0, 6.0),
+)
+
+
+ACCEL = 2.0  # m/s^2, the stop-and-go drive's acceleration and braking
+
+
+def stop_and_go_speed(dt: float) -> np.ndarray:
+    """(T,) speed profile of the stop-and-go drive, sampled every ``dt``."""
+    v, out = 0.0, []
+    for kind, target, seconds in STOP_AND_GO_PROFILE:
+        if kind == "go":
+            n = int(np.ceil(abs(target - v) / (ACCEL * dt)))
+            out.append(v + np.sign(target - v) * np.minimum(np.arange(1, n + 1) * ACCEL * dt,
+                                                            abs(target - v)))
+            v = target
+        else:
+            n = int(np.ceil(v / (ACCEL * dt)))  # brake to a stop first
+            out.append(np.maximum(v - np.arange(1, n + 1) * ACCEL * dt, 0.0))
+            v = 0.0
+        out.append(np.full(int(round(seconds / dt)), v))
+    return np.concatenate(out)
+
+
+def drive_stop_and_go(vehicle: Vehicle, process_sigma, rng: np.random.Generator,
+                      car: SingleTrack | None = None) -> dict[str, np.ndarray]:
+    """True states z (T, 3) and inputs u (T, 2) of the stop-and-go drive through town, by the
+    kinematic bicycle or by the dynamic ``car``."""
+    speed = stop_and_go_speed(vehicle.dt)
+    path = Chain().straight(60).turn(10, -90, 4).straight(70).turn(12, 90, 5).straight(60) \
+        .turn(9, 90, 4).straight(200).segments
+    out = drive([sample(path, 0.1, lead_in=0.0, tail=100.0)], speed[None], vehicle,
+                np.asarray(process_sigma), rng, ds=0.1, car=car)
+    return {"z": out["z"][0], "u": out["u"][0]}
