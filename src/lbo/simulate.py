@@ -34,6 +34,7 @@ from lbo.core.checks import integer, number, require
 from lbo.core.cli import entry
 from lbo.core.errors import LboError
 from lbo.sim import schema
+from lbo.sim.logcheck import fix_period
 from lbo.sim.manoeuvres import MANOEUVRES
 from lbo.sim.stopgo import drive_stop_and_go
 from lbo.sim.vehicle import Vehicle, measure, wrap_angle
@@ -125,7 +126,7 @@ def simulate(cfg: DictConfig, seed: int | None = None) -> pd.DataFrame:
         u = truth.sensors.logged_inputs(u)
         m[:, 2] = wrap_angle(m[:, 2])
     if rate is not None:
-        m = thin(m, max(1, int(round(1 / (rate * vehicle.dt)))))
+        m = thin(m, fix_period(rate, vehicle.dt))
     k = np.arange(len(z))
     return schema.frame(np.zeros(len(z)), k, vehicle.dt, z, u, m,
                         alpha=np.full(len(z), float(alpha)), scored=k >= run_in)

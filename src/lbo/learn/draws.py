@@ -18,6 +18,7 @@ import torch
 
 from lbo.core.checks import number
 from lbo.core.errors import LboError
+from lbo.sim.logcheck import fix_period
 
 DISTRIBUTIONS = ("fixed", "uniform", "loguniform", "levels")
 SOURCES = ("stored", "drawn")
@@ -157,7 +158,7 @@ def fix_periods(rates: Sequence[float] | None, dt: float,
     if not values or not all(np.isfinite(r) and r > 0 for r in values):
         raise LboError(f"{field}: expected null or a list of fix rates in Hz > 0 "
                        f"(e.g. [50, 10, 5, 1]), got {rates!r}")
-    return tuple(max(1, int(round(1.0 / (r * dt)))) for r in values)
+    return tuple(fix_period(r, dt) for r in values)
 
 
 def draw_fixes(n: int, window: int, periods: Sequence[int], generator: torch.Generator,

@@ -112,6 +112,12 @@ def fix_mask(m: Any) -> Any:
     return head.isfinite().all(-1)  # a torch tensor, without importing torch here
 
 
+def fix_period(rate: float, dt: float) -> int:
+    """Steps of ``dt`` between position fixes at ``rate`` Hz (>= 1: a rate of 1/dt or more is
+    a fix at every step)."""
+    return max(1, int(round(1.0 / (rate * dt))))
+
+
 def check_fixes(m: np.ndarray, source: str | None = None) -> np.ndarray:
     """:func:`fix_mask` of a log's measurements m (T, 3), checked: a row with only some of
     ``x_m, y_m, psi_m`` NaN, or a log without any fix, is one :class:`LboError`."""
