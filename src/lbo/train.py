@@ -27,13 +27,12 @@ from lbo.core.paths import REPO_ROOT
 from lbo.core.redact import scrub, scrub_tree
 from lbo.core.runfolder import claim
 from lbo.learn.builders import (
-    build_net,
+    Built,
+    build,
     datamodule,
-    fixes,
-    initial_weights,
     logs_spec,
-    noise_settings,
     prepare_data,
+    say_fresh,
 )
 from lbo.models.features import FEATURE_MODES
 from lbo.sim.log_sets import is_logs
@@ -56,8 +55,9 @@ def git_commit() -> str:
         return "unknown"
 
 
-def check(cfg: DictConfig) -> None:
-    """Reject bad training settings with one line naming the field, before any work."""
+def check(cfg: DictConfig) -> Built:
+    """Reject bad training settings with one line naming the field, before any work; return
+    the run's objects built on the way (:func:`lbo.learn.builders.build`)."""
     integer(cfg.window, "window", 4, form="an integer >= 4 (the CNN pools windows by 4)")
     require(cfg.features in FEATURE_MODES, "features", f"one of {list(FEATURE_MODES)}",
             cfg.features)
@@ -72,10 +72,7 @@ def check(cfg: DictConfig) -> None:
     reference = (cfg.get("metric") or {}).get("reference", "ekf")
     require(reference in REFERENCES, "metric.reference", f"one of {list(REFERENCES)}",
             reference)
-    noise_settings(cfg)
-    net = build_net(cfg)  # the model's own checks (its parameters, feature modes) before any data
-    if cfg.get("init_from"):
-        initial_weights(cfg, net, say=False)
+    built = build(cfg)  # the model's own checks (its parameters, feature modes) before any data
     if is_logs(cfg):
         logs_spec(cfg)  # the logs named, found and of the right kind, before any run opens
     if cfg.get("logger") and cfg.logger.get("tracking_uri"):
@@ -83,6 +80,7 @@ def check(cfg: DictConfig) -> None:
     if cfg.trainer.accelerator == "gpu" and not torch.cuda.is_available():
         raise LboError("trainer=gpu needs CUDA, which torch does not see here; "
                        "use trainer=cpu or trainer=auto")
+    return built
 
 
 def check_trainer(trainer: DictConfig) -> None:
@@ -223,12 +221,12 @@ def train(cfg: DictConfig, callbacks: list[L.Callback] | None = None,
     ``name``, ``val_loss`` (best), ``test_nrmse_alpha_{1,3,6}``, ``run_id``, ``checkpoint``,
     ``epochs``.
     """
-    check(cfg)
+    built = check(cfg)
     with claim(cfg.output_dir):
-        return _train(cfg, callbacks, tags)
+        return _train(cfg, built, callbacks, tags)
 
 
-def _train(cfg: DictConfig, callbacks: list[L.Callback] | None,
+def _train(cfg: DictConfig, built: Built, callbacks: list[L.Callback] | None,
            tags: dict[str, str] | None) -> dict[str, Any]:
     """Reuse a finished run of the same config, continue a killed one, or fit afresh."""
     digest = config_hash(cfg)
@@ -250,11 +248,12 @@ def _train(cfg: DictConfig, callbacks: list[L.Callback] | None,
             resume_ckpt = folder / "checkpoints" / LAST
             print(f"resuming the killed run {resume_id} (same config) from {resume_ckpt}")
     with claim(cfg.output_dir):
-        return _fit(cfg, callbacks, tags, digest, resume_id, resume_ckpt)
+        return _fit(cfg, built, callbacks, tags, digest, resume_id, resume_ckpt)
 
 
-def _fit(cfg: DictConfig, callbacks: list[L.Callback] | None, tags: dict[str, str] | None,
-         digest: str, resume_id: str | None, resume_ckpt: Path | None) -> dict[str, Any]:
+def _fit(cfg: DictConfig, built: Built, callbacks: list[L.Callback] | None,
+         tags: dict[str, str] | None, digest: str, resume_id: str | None,
+         resume_ckpt: Path | None) -> dict[str, Any]:
     import lightning as L
     from lightning.pytorch.callbacks import ModelCheckpoint
     from lightning.pytorch.loggers import MLFlowLogger
@@ -265,13 +264,15 @@ def _fit(cfg: DictConfig, callbacks: list[L.Callback] | None, tags: dict[str, st
 
     L.seed_everything(cfg.seed, workers=True, verbose=False)
     folder, data_hash = prepare_data(cfg)
-    dm = datamodule(cfg, folder)
+    dm = datamodule(cfg, folder, built)
     module = TrainingModule(OmegaConf.to_container(cfg.model, resolve=True), cfg.window,
                             cfg.features, instantiate(cfg.optimizer), meta(cfg, data_hash),
-                            cfg.get("lr_schedule", "constant"), fixes(cfg))
+                            cfg.get("lr_schedule", "constant"), bool(built.fix_periods),
+                            net=built.net)
     module.observer.set_normalisation(**dm.normalisation(cfg.features))
-    if cfg.get("init_from"):  # fine-tuning: its weights and its normalisation
-        module.observer.load_state_dict(initial_weights(cfg, module.observer), strict=False)
+    if built.init is not None:  # fine-tuning: its weights and its normalisation
+        say_fresh(cfg, module.observer, built.init)
+        module.observer.load_state_dict(built.init, strict=False)
         print(f"init_from: starting from the weights of {cfg.init_from}")
 
     name = f"{cfg.model.name}-N{cfg.window}"

@@ -7,6 +7,7 @@ of the same run.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -18,12 +19,44 @@ from lbo.core.errors import LboError
 from lbo.learn.draws import SOURCES, AlphaDraw, fix_periods
 
 
-def build_net(cfg: DictConfig):
-    """The :class:`~lbo.models.net.WindowNet` that ``cfg.model`` describes, untrained."""
+@dataclass(frozen=True)
+class Built:
+    """A training run's objects, built once from its config before any data is made or any
+    run opens (building them is also how their settings are checked)."""
+
+    net: Any
+    """The untrained :class:`~lbo.models.net.WindowNet`, its weights drawn from ``cfg.seed``."""
+    fix_periods: tuple[int, ...]
+    """Steps between fixes the training drops to (``fix_rates``); () keeps every fix."""
+    noise: dict[str, Any]
+    """The data module's training-noise arguments (:func:`noise_settings`)."""
+    init: dict[str, torch.Tensor] | None
+    """``init_from``'s weights for ``net`` (:func:`initial_weights`), or None."""
+
+
+def build(cfg: DictConfig) -> Built:
+    """Every object of the run ``cfg`` describes that needs no data: the net (and the weights
+    ``init_from`` gives it), the fix periods and the training noise. One line naming the field
+    for a bad one."""
+    periods = fix_periods(cfg.get("fix_rates"), cfg.vehicle.dt)
+    noise = noise_settings(cfg)
+    net = build_net(cfg, periods)
+    init = initial_weights(cfg, net, say=False) if cfg.get("init_from") else None
+    return Built(net, periods, noise, init)
+
+
+def build_net(cfg: DictConfig, periods: tuple[int, ...] | None = None):
+    """The :class:`~lbo.models.net.WindowNet` that ``cfg.model`` describes, untrained, its
+    weights drawn from ``cfg.seed`` (the global random state is left as it was). ``periods``:
+    the fix periods, if already known."""
     from lbo.models.net import WindowNet
 
+    if periods is None:
+        periods = fix_periods(cfg.get("fix_rates"), cfg.vehicle.dt)
     model = OmegaConf.to_container(cfg.model, resolve=True)
-    return WindowNet(model.pop("name"), cfg.window, cfg.features, fixes(cfg), **model)
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(cfg.seed)
+        return WindowNet(model.pop("name"), cfg.window, cfg.features, bool(periods), **model)
 
 
 def initial_weights(cfg: DictConfig, net, say: bool = True) -> dict[str, torch.Tensor]:
@@ -53,11 +86,19 @@ def initial_weights(cfg: DictConfig, net, say: bool = True) -> dict[str, torch.T
             raise LboError(f"init_from: {source} has {key} of shape {tuple(value.shape)}, this "
                            f"run's {cfg.model.name}-N{cfg.window} {tuple(own[key].shape)}; give "
                            "the window, fix_rates and model sizes it was trained with")
-    fresh = [k for k in own if k not in theirs]
-    if fresh and say:
-        print(f"init_from: {len(fresh)} tensor(s) that {source} lacks start fresh: "
+    init = {k: v for k, v in theirs.items() if k in own}
+    if say:
+        say_fresh(cfg, net, init)
+    return init
+
+
+def say_fresh(cfg: DictConfig, net, init: dict[str, torch.Tensor]) -> None:
+    """Name the tensors of ``net`` that ``init_from``'s weights ``init`` lack (they start
+    fresh), if any."""
+    fresh = [k for k in net.state_dict() if k not in init]
+    if fresh:
+        print(f"init_from: {len(fresh)} tensor(s) that {cfg.init_from} lacks start fresh: "
               f"{', '.join(fresh[:6])}{' ...' if len(fresh) > 6 else ''}")
-    return {k: v for k, v in theirs.items() if k in own}
 
 
 def logs_spec(cfg: DictConfig):
@@ -66,20 +107,16 @@ def logs_spec(cfg: DictConfig):
     return spec_from_cfg(cfg)
 
 
-def fixes(cfg: DictConfig) -> bool:
-    """Whether the observer is trained with fixes dropped (``fix_rates``), and so takes them."""
-    return bool(fix_periods(cfg.get("fix_rates"), cfg.vehicle.dt))
-
-
-def datamodule(cfg: DictConfig, folder: Path):
+def datamodule(cfg: DictConfig, folder: Path, built: Built | None = None):
     """The training and validation windows of ``folder`` as ``cfg`` asks for them (batch size,
-    seed, training noise, device), set up."""
+    seed, training noise, device), set up; with the fix periods and training noise of
+    ``built`` (worked out from ``cfg`` when None)."""
     from lbo.learn.datamodule import WindowDataModule
 
+    periods = built.fix_periods if built else fix_periods(cfg.get("fix_rates"), cfg.vehicle.dt)
+    noise = built.noise if built else noise_settings(cfg)
     dm = WindowDataModule(folder, cfg.window, cfg.batch_size, seed=cfg.seed,
-                          device=data_device(cfg),
-                          fix_periods=fix_periods(cfg.get("fix_rates"), cfg.vehicle.dt),
-                          **noise_settings(cfg))
+                          device=data_device(cfg), fix_periods=periods, **noise)
     dm.setup("fit")
     return dm
 

@@ -31,18 +31,21 @@ class TrainingModule(L.LightningModule):
         noise preset, data hash, ...); stored in the hyperparameters.
     lr_schedule : ``"constant"``, or ``"cosine"``: the learning rate falls along a half
         cosine to zero over every step the trainer will take (``max_epochs`` of them).
+    net : the :class:`WindowNet` to train, already built from the arguments above
+        (:func:`lbo.learn.builders.build`); built here when None.
     """
 
     def __init__(self, model: dict[str, Any], window: int, features: str = "relative",
                  optimizer: Callable[..., torch.optim.Optimizer] | None = None,
                  meta: dict[str, Any] | None = None, lr_schedule: str = "constant",
-                 fixes: bool = False) -> None:
+                 fixes: bool = False, net: WindowNet | None = None) -> None:
         super().__init__()
-        self.save_hyperparameters(ignore=["optimizer", "lr_schedule"])
+        self.save_hyperparameters(ignore=["optimizer", "lr_schedule", "net"])
         self.lr_schedule = lr_schedule
         self.hparams["format"] = CHECKPOINT_FORMAT
         kwargs = {k: v for k, v in model.items() if k != "name"}
-        self.observer = WindowNet(model["name"], window, features, fixes, **kwargs)
+        self.observer = net if net is not None else WindowNet(model["name"], window, features,
+                                                              fixes, **kwargs)
         self.optimizer_factory = optimizer
         self._loss_sum: torch.Tensor | float = 0.0
         self._loss_count = 0
