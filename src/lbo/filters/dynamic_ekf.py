@@ -45,11 +45,11 @@ from lbo.filters.kalman import (
     _check_q,
     _check_trajectories,
     _where_fix,
-    fixes,
     run_stepper,
 )
 from lbo.sim import dynamic
 from lbo.sim.dynamic import SingleTrack
+from lbo.sim.logcheck import fix_mask
 from lbo.sim.vehicle import Vehicle, wrap_angle
 
 P0_LATERAL_SIGMA = (0.5, 0.2)
@@ -242,7 +242,7 @@ class DynamicStepper:
         m = np.asarray(m, dtype=float)
         if m.shape != (g, 3):
             raise LboError(f"m must be ({g}, 3) [x_m, y_m, psi_m], got {m.shape}")
-        fix = fixes(m)
+        fix = fix_mask(m)
         x, P = self.predict(u_prev)
         H = self.H
         y = np.where(fix[:, None], m - x @ H.T, 0.0)

@@ -32,6 +32,7 @@ from filterpy.kalman import ExtendedKalmanFilter, MerweScaledSigmaPoints, Unscen
 from tqdm.auto import tqdm
 
 from lbo.core.errors import LboError
+from lbo.sim.logcheck import fix_mask
 from lbo.sim.vehicle import Vehicle, jacobian, step, wrap_angle
 
 COV_FLOOR = 1e-9
@@ -66,11 +67,6 @@ def _check_trajectories(m: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.nd
         g = int(np.flatnonzero(~np.isfinite(m[:, 0]).all(-1))[0])
         raise LboError(f"trajectory {g} has no fix at its first step; the filters start at a fix")
     return m, u
-
-
-def fixes(m: np.ndarray) -> np.ndarray:
-    """(..., 3) measurements -> (...,) bool, True where the row is a fix (no NaN)."""
-    return np.isfinite(m).all(-1)
 
 
 def _where_fix(fix: np.ndarray, updated: np.ndarray, prior: np.ndarray) -> np.ndarray:
@@ -222,7 +218,7 @@ class KalmanStepper:
         """Predict with u_{k-1} (G, 2), update with m_k (G, 3); returns x_k (G, 3).
 
         Rows of m that are NaN (no fix) get the prediction only."""
-        fix = fixes(m)
+        fix = fix_mask(m)
         F = jacobian(self.x, u_prev, self.vehicle.dt)
         x = step(self.x, u_prev, self.vehicle.dt, self.vehicle.wheelbase)
         self.cross = self.P @ F.swapaxes(-1, -2)  # cov(x_{k-1|k-1}, x_{k|k-1}), for smoothing
@@ -545,7 +541,7 @@ class UnscentedStepper:
         S = np.einsum("s,gsi,gsj->gij", wc, dz, dz) + self.R
         Pxz = np.einsum("s,gsi,gsj->gij", wc, _deviations(sig, x), dz)
         K = Pxz @ np.linalg.inv(S)
-        fix = fixes(m)
+        fix = fix_mask(m)
         y = np.where(fix[:, None], m - zp, 0.0)
         y[:, 2] = wrap_angle(y[:, 2])
         self.x = _where_fix(fix, x + np.einsum("gij,gj->gi", K, y), x)
