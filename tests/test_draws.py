@@ -1,4 +1,4 @@
-"""Training noise drawn on the fly (lbo.learn.draws, the ``draw=`` of lbo.learn.datamodule,
+"""Training noise drawn on the fly (lbo.learn.draws, the ``draw=`` of lbo.learn.datamodule and
 ``train_noise``)."""
 
 import numpy as np

@@ -1,8 +1,8 @@
 """Score any observer, classical or learned, on the test grid; `python -m lbo.evaluate`.
 
 The command: it reads the config, scores through :mod:`lbo.scoring.grid` (or
-:mod:`lbo.scoring.logscore` on a
-user's logs), writes evaluation.csv and its figure, and tells an observer's MLflow run.
+:mod:`lbo.scoring.logscore` on a user's logs), writes evaluation.csv and its figure, and tells
+an observer's MLflow run.
 """
 
 from __future__ import annotations

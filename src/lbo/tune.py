@@ -20,8 +20,7 @@ refused before any trial.
 ``tune(cfg)`` is plain Python: it takes a composed ``tune`` config and returns the study's
 outcome. ``main`` is the thin Hydra shell around it. The parts live beside it: the search
 space in :mod:`lbo.tracking.search`, the database and the claim lock in
-:mod:`lbo.tracking.study_storage`,
-the MLflow runs and figures in :mod:`lbo.tracking.study_mlflow`.
+:mod:`lbo.tracking.study_storage`, the MLflow runs and figures in :mod:`lbo.tracking.study_mlflow`.
 """
 
 from __future__ import annotations

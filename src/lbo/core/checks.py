@@ -9,8 +9,7 @@ from lbo.core.errors import LboError
 
 SCHEDULES = ("constant", "cosine")
 """The values of ``lr_schedule`` (:class:`lbo.learn.lightning_module.TrainingModule`), here so
-that the
-training config is checked without importing Lightning."""
+that the training config is checked without importing Lightning."""
 
 
 def require(ok: bool, field: str, form: str, value: Any) -> None:

@@ -6,10 +6,9 @@
 - ``adaptive``: the Sage-Husa EKF that learns R from its innovations, starting from R_1;
 - ``ukf``: the unscented filter (filterpy's, vectorised), R at alpha = 1;
 - ``oracle_dynamic``: the EKF on the true dynamic car (:mod:`lbo.filters.dynamic_ekf`), told
-alpha, the
-  car's parameters, its process noise and the sensors' errors: the floor on a test set drawn
-  from ``truth=dynamic`` (it needs that truth, so it scores simulated test sets only, not a
-  user's log);
+  alpha, the car's parameters, its process noise and the sensors' errors: the floor on a test
+  set drawn from ``truth=dynamic`` (it needs that truth, so it scores simulated test sets
+  only, not a user's log);
 - ``oracle_tuned``: the kinematic EKF told alpha, with at each alpha level the process noise Q
   that serves it best on the scored set itself (:func:`lbo.scoring.grid.tuned_oracle`): the best a
   kinematic EKF with a constant diagonal Q can do there, in hindsight. On a truth that is not the

@@ -1,9 +1,8 @@
 """Extended Kalman filter on the true dynamic single-track car: the "dynamic oracle".
 
 The classical filters of :mod:`lbo.filters.kalman` assume the kinematic bicycle; a log drawn from
-the
-car that slips (:mod:`lbo.sim.dynamic`) breaks that model, and a learned observer may beat them for
-that reason alone. This filter knows everything the data generator does: the car's parameters,
+the car that slips (:mod:`lbo.sim.dynamic`) breaks that model, and a learned observer may beat them
+for that reason alone. This filter knows everything the data generator does: the car's parameters,
 the sensor errors of :class:`lbo.sim.truth.Sensors` and the noise levels. Its error is the floor
 that a learned observer is compared against.
 

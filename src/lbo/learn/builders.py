@@ -1,8 +1,8 @@
 """A training run's objects built from its config: the net (with its initial weights), the data
 set's folder and the data module with the training noise, and the device batches are made on.
 
-`python -m lbo.train` builds through here, and so does :mod:`lbo.learn.eta`, which times a few steps
-of the same run.
+`python -m lbo.train` builds through here, and so does :mod:`lbo.learn.eta`, which times a few
+steps of the same run.
 """
 
 from __future__ import annotations

@@ -37,7 +37,7 @@ class WindowNet(nn.Module):
     model : ``"cnn"`` or ``"lstm"``.
     window : N, steps per window.
     features : ``"relative"`` (default), ``"frame"`` or ``"absolute"``, see
-    :mod:`lbo.models.features`.
+        :mod:`lbo.models.features`.
     fixes : the observer takes windows with missing fixes (NaN measurements) and its model
         reads the sixth channel ``fix``; trained with fixes dropped (``fix_rates``).
     **model_kwargs : passed to :func:`lbo.models.build_model`.

@@ -23,10 +23,9 @@ step exports to TorchScript and ONNX as a pure function ``(m, u, *state) -> (pos
 hours of steps keeps its digits.
 
 Conventions as the filters of :mod:`lbo.filters.kalman`: ``u_k`` moves ``z_k`` to ``z_{k+1}``, so
-the
-estimate at step k uses ``m_0 .. m_k`` and ``u_0 .. u_{k-1}``; a measurement of NaN is a step
-without a position fix (for a filter trained with the ``fix`` channel): a prediction only.
-The filter starts at the first fix, with P = 6.5^2 R (:data:`START_SCALE`).
+the estimate at step k uses ``m_0 .. m_k`` and ``u_0 .. u_{k-1}``; a measurement of NaN is a step
+without a position fix (for a filter trained with the ``fix`` channel): a prediction only. The
+filter starts at the first fix, with P = 6.5^2 R (:data:`START_SCALE`).
 """
 
 from __future__ import annotations
@@ -258,9 +257,8 @@ class RecursiveFilter(nn.Module):
         """Every step of G logs: m (G, T, 3) (NaN rows: no fix), u (G, T, 2) -> poses
         (G, T, 3) and their covariances (G, T, 3, 3), the same numbers as T calls of
         :meth:`forward` from :meth:`initial_state`. ``smooth``: the RTS smoother's instead
-        (:func:`lbo.filters.smoother.rts`), over the full filter state and the first ``lengths``
-        (G,)
-        steps of each padded log (None: all)."""
+        (:func:`lbo.filters.smoother.rts`), over the full filter state and the first
+        ``lengths`` (G,) steps of each padded log (None: all)."""
         state = self.initial_state(m.shape[0], m.device)
         poses, covs, record = [], [], []
         for k in range(m.shape[1]):

@@ -49,8 +49,7 @@ def load_test(path: str | Path) -> dict[str, np.ndarray]:
 def classical(name: str, arr: dict[str, np.ndarray], vehicle: Vehicle, noise: Noise,
               progress: bool = False, seed: int = 0, truth: Truth | None = None) -> np.ndarray:
     """Estimates (G, T, 3) of classical observer ``name`` (:mod:`lbo.filters.classical`) on the
-    padded
-    test arrays; the oracles are told each trajectory's alpha (``oracle_dynamic`` also the
+    padded test arrays; the oracles are told each trajectory's alpha (``oracle_dynamic`` also the
     ``truth`` the set was drawn from). For ``pcrb`` the result is the bound's standard
     deviation per step, not an estimate: the kinematic bicycle's, with the truth's own process
     noise, so it bounds nothing on a car that slips (refused there).
@@ -191,8 +190,8 @@ def oracle_ratio(table: pd.DataFrame, observer: str, low: float = 0.25,
 def calibration(covariant: dict[str, tuple[np.ndarray, np.ndarray]], arr: dict[str, np.ndarray],
                 out: Path) -> pd.DataFrame:
     """NEES per alpha of every observer that gives a covariance
-    (:func:`lbo.scoring.metrics.nees_table`);
-    writes ``nees.csv`` and ``nees.png`` to ``out`` and prints the table."""
+    (:func:`lbo.scoring.metrics.nees_table`); writes ``nees.csv`` and ``nees.png`` to ``out``
+    and prints the table."""
     from lbo.core import plots
     from lbo.scoring.metrics import nees_table
 

@@ -19,8 +19,7 @@ Every classical observer and the robust observer also give the covariance of the
 (``Estimate.cov``, ``run(..., cov=True)``); the CNN and the LSTM have none (NaN).
 
 Conventions as in :mod:`lbo.filters.kalman`: ``u_k`` moves ``z_k`` to ``z_{k+1}``, so the
-estimate at
-step k uses ``m_0 .. m_k`` and ``u_0 .. u_{k-1}`` (the filters) or the window of
+estimate at step k uses ``m_0 .. m_k`` and ``u_0 .. u_{k-1}`` (the filters) or the window of
 ``[m_j, u_j]``, j = k-N+1 .. k (the networks). Estimated headings are wrapped to (-pi, pi].
 """
 
@@ -532,8 +531,7 @@ class Observer:
         cov : also return the covariances.
         smooth : the Rauch-Tung-Striebel smoother's estimates (and covariances) after the
             filter (:mod:`lbo.filters.smoother`): every row drawn on the whole log, for offline
-            logs.
-            Classical observers and a window filter in its recursive form only.
+            logs. Classical observers and a window filter in its recursive form only.
 
         Returns
         -------

@@ -128,7 +128,7 @@ def check_fixes(m: np.ndarray, source: str | None = None) -> np.ndarray:
         gone = [c for c, e in zip(MEAS, empty[r]) if e]
         raise LboError(_at(source, f"row {r} has a partial fix ({', '.join(gone)} empty); a "
                                    "step without a fix leaves x_m, y_m and psi_m all empty"))
-    fix = fix_mask(np.where(empty, np.nan, 0.0))
+    fix = ~empty.all(1)
     if not fix.any():
         raise LboError(_at(source, "no position fix in any row (x_m, y_m and psi_m are "
                                    "empty everywhere)"))
