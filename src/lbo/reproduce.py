@@ -32,7 +32,7 @@ from lbo.core.cli import check_launcher, entry
 from lbo.core.errors import LboError
 from lbo.filters.classical import NAMES as CLASSICAL
 from lbo.learn.eta import Eta, duration, measure
-from lbo.tracking.runs import check_store
+from lbo.tracking.runs import check_store, run_artifact
 
 STAGES = ("data", "tune", "train", "evaluate", "report")
 
@@ -249,14 +249,14 @@ def stage_report(cfg: DictConfig, out: Path, folder: Path, tuned: dict, runs: di
     from lbo.scoring import report
 
     study = dynamic_jobs(cfg)  # scored on test sets of their own
-    dynamic = {data: pd.concat([pd.read_csv(_artifact(runs[k], "evaluation.csv",
+    dynamic = {data: pd.concat([pd.read_csv(run_artifact(runs[k], "evaluation.csv",
                                                       cfg.tracking_uri)) for k in keys],
                                ignore_index=True).drop_duplicates(["observer", "alpha"])
                for data, keys in study.items()}
     mine = {k: data for data, keys in study.items() for k in keys}
     run_ids = {f"{runs[k]['name']} on data={data}": runs[k]["run_id"] for k, data in mine.items()}
     runs = {k: r for k, r in runs.items() if k not in mine}
-    learned = pd.concat([pd.read_csv(_artifact(r, "evaluation.csv", cfg.tracking_uri))
+    learned = pd.concat([pd.read_csv(run_artifact(r, "evaluation.csv", cfg.tracking_uri))
                          for r in runs.values()], ignore_index=True)
     # each run's table also holds the EKF and oracle rows; the classical stage has them all
     table = pd.concat([learned[~learned["observer"].isin(CLASSICAL)], classical_table],
@@ -317,14 +317,6 @@ def launch(cfg: DictConfig, job_overrides: list[list[str]], sweep_dir: Path,
     return [r.return_value for r in returns]  # raises the first failed job's error
 
 
-def _artifact(run: dict[str, Any], path: str, tracking_uri: str) -> Path:
-    """A file logged by a training run, fetched from its MLflow artifacts."""
-    import mlflow
-
-    return Path(mlflow.artifacts.download_artifacts(run_id=run["run_id"], artifact_path=path,
-                                                    tracking_uri=tracking_uri))
-
-
 def _trajectory(folder: Path, run: dict[str, Any] | None, manoeuvre: str,
                 tracking_uri: str) -> dict[str, np.ndarray] | None:
     """Fig. 6 arrays: one manoeuvre at alpha=3 with the best CNN and the EKF."""
@@ -342,7 +334,7 @@ def _trajectory(folder: Path, run: dict[str, Any] | None, manoeuvre: str,
         return None
     sub = {k: v[pick] for k, v in arr.items() if isinstance(v, np.ndarray)
            and v.shape[:1] == arr["alpha"].shape}
-    ckpt = _artifact(run, "checkpoints/best.ckpt", tracking_uri)
+    ckpt = run_artifact(run, "checkpoints/best.ckpt", tracking_uri)
     net, hp = read_checkpoint(ckpt)
     vehicle, noise = trained_conditions(hp, ckpt)
     learned = predict_grid(net, sub, hp["window"])[0]
@@ -364,7 +356,7 @@ def _log_report(cfg: DictConfig, scale: str, out: Path, files: list[Path], data:
     run_id = found[0].info.run_id if found else client.create_run(
         exp_id, run_name=f"report-{scale}", tags={"lbo_report": scale, "data": data}).info.run_id
     for f in files:
-        client.log_artifact(run_id, str(f))
+        client.logrun_artifact(run_id, str(f))
     client.set_terminated(run_id, "FINISHED")
     print(f"    report logged to MLflow run {run_id}")
 

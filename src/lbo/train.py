@@ -35,6 +35,7 @@ from lbo.learn.builders import (
     say_fresh,
 )
 from lbo.models.features import FEATURE_MODES
+from lbo.models.net import check_scaling
 from lbo.sim.log_sets import is_logs
 from lbo.tracking.runs import check_store, ensure_experiment
 
@@ -63,6 +64,7 @@ def check(cfg: DictConfig) -> Built:
             cfg.features)
     integer(cfg.batch_size, "batch_size", 1)
     integer(cfg.seed, "seed", 0)
+    check_scaling(_scaling(cfg))
     check_trainer(cfg.trainer)
     check_optimizer(cfg.optimizer)
     require(cfg.get("lr_schedule", "constant") in SCHEDULES, "lr_schedule",
@@ -110,6 +112,15 @@ def check_optimizer(opt: DictConfig) -> None:
         number(opt.eps, "optimizer.eps", low=0.0, low_open=True)
 
 
+LATER_DEFAULTS = {"normalisation": "standard"}
+"""Settings added after runs were stored, with the value those runs had: a config holding
+that value hashes as if it did not have the key, so resume=true still finds the old runs."""
+
+
+def _scaling(cfg: DictConfig) -> str:
+    return cfg.get("normalisation", LATER_DEFAULTS["normalisation"])
+
+
 def config_hash(cfg: DictConfig) -> str:
     """Fingerprint of what a run computes: the resolved config without where it writes."""
     import hashlib
@@ -118,6 +129,9 @@ def config_hash(cfg: DictConfig) -> str:
     with open_dict(c):
         c.output_dir, c.data.root, c.resume, c.data_dir = "-", "-", False, None
         c.pop("logger", None)
+        for key, default in LATER_DEFAULTS.items():
+            if c.get(key) == default:
+                c.pop(key)
     text = OmegaConf.to_yaml(OmegaConf.create(_unlayered(OmegaConf.to_container(c, resolve=True))))
     if is_logs(cfg):  # the same paths with other contents are other data
         text += f"\nlogs: {logs_spec(cfg).digest}"
@@ -269,7 +283,7 @@ def _fit(cfg: DictConfig, built: Built, callbacks: list[L.Callback] | None,
                             cfg.features, instantiate(cfg.optimizer), meta(cfg, data_hash),
                             cfg.get("lr_schedule", "constant"), bool(built.fix_periods),
                             net=built.net)
-    module.observer.set_normalisation(**dm.normalisation(cfg.features))
+    module.observer.set_normalisation(**dm.normalisation(cfg.features, _scaling(cfg)))
     if built.init is not None:  # fine-tuning: its weights and its normalisation
         say_fresh(cfg, module.observer, built.init)
         module.observer.load_state_dict(built.init, strict=False)

@@ -189,3 +189,31 @@ def nees_curves(table, title: str = "calibration: mean NEES against alpha"):
     ax.legend(fontsize=8)
     fig.tight_layout()
     return fig
+
+
+def nrmse_panels(table, panels: dict[str, list[str]], title: str = "",
+                 points: dict[str, list[str]] | None = None, styles: dict[str, dict] | None = None):
+    """NRMSE against alpha > 0 on a log axis, one panel per entry of ``panels`` (panel title ->
+    observers drawn as curves), from a score table (columns ``observer, alpha, nrmse``).
+    ``points``: panel title -> observers drawn as markers only (e.g. published numbers)."""
+    fig, axes = plt.subplots(1, len(panels), figsize=(6.2 * len(panels), 4.6), squeeze=False,
+                             sharey=True)
+    for ax, (name, observers) in zip(axes[0], panels.items()):
+        palette = iter(plt.cm.tab20(np.linspace(0, 1, 20)))
+        for obs in observers:
+            rows = table[(table["observer"] == obs) & (table["alpha"] > 0)].sort_values("alpha")
+            style = {"lw": 1.3, **(STYLES.get(obs) or (styles or {}).get(obs)
+                                   or {"color": next(palette)})}
+            ax.plot(rows["alpha"], rows["nrmse"], label=obs, **style)
+        for marker, obs in zip("sDv^", (points or {}).get(name, [])):
+            rows = table[table["observer"] == obs].sort_values("alpha")
+            ax.plot(rows["alpha"], rows["nrmse"], marker, ms=8, color="black", mfc="none",
+                    label=obs)
+        ax.set(xlabel=r"noise scale $\alpha$", title=name, yscale="log")
+        ax.grid(alpha=0.3, which="both")
+        ax.legend(fontsize=6.5, ncol=1)
+    axes[0][0].set_ylabel("NRMSE (our EKF at alpha = 1 is 1)")
+    if title:
+        fig.suptitle(title)
+    fig.tight_layout()
+    return fig

@@ -32,9 +32,11 @@ from torch.utils.data import (
 from lbo.core.errors import LboError
 from lbo.learn.draws import AlphaDraw, draw_fixes, loss_weights, noisy_measurements
 from lbo.models.features import last_measurement, state_to_target, window_features, window_view
+from lbo.models.net import check_scaling
 from lbo.sim import schema
 
 INPUT_COLUMNS = [*schema.MEAS, *schema.INPUT]
+
 
 
 def rows(df: pd.DataFrame) -> tuple[torch.Tensor, torch.Tensor]:
@@ -246,9 +248,17 @@ class WindowDataModule(L.LightningDataModule):
         self.train_set.to(self.device, self.seed)
         self.val_set.to(self.device, self.seed)
 
-    def normalisation(self, features: str, n: int = 20_000) -> dict[str, torch.Tensor]:
-        """Channel means and stds of ``n`` random training windows' features and targets
-        (with the ``fix`` channel when fixes are dropped)."""
+    def normalisation(self, features: str, scaling: str = "standard",
+                      n: int = 20_000) -> dict[str, torch.Tensor]:
+        """Per-channel offsets and scales of ``n`` random training windows' features and
+        targets (with the ``fix`` channel when fixes are dropped), as the ``in_mean, in_std,
+        out_mean, out_std`` of :meth:`WindowNet.set_normalisation`.
+
+        ``scaling``: ``"standard"``, the mean and standard deviation; ``"minmax"``, the minimum
+        and the range, so the training set's inputs and targets lie in [0, 1] (the usual
+        scaling of a sigmoid network, and the paper's likely one).
+        """
+        check_scaling(scaling)
         self.setup()
         fixes = bool(self.fix_periods)
         g = torch.Generator(device=self.device).manual_seed(self.seed)
@@ -257,6 +267,10 @@ class WindowDataModule(L.LightningDataModule):
         f = window_features(win, features, fixes)
         f = f.reshape(-1, f.shape[-1]).cpu()
         t = state_to_target(state, last_measurement(win, fixes), features).cpu()
+        if scaling == "minmax":
+            lo_f, lo_t = f.amin(0), t.amin(0)
+            return {"in_mean": lo_f, "in_std": f.amax(0) - lo_f,
+                    "out_mean": lo_t, "out_std": t.amax(0) - lo_t}
         return {"in_mean": f.mean(0), "in_std": f.std(0),
                 "out_mean": t.mean(0), "out_std": t.std(0)}
 

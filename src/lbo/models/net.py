@@ -29,6 +29,17 @@ refuses checkpoints it cannot read."""
 _STD_FLOOR = 1e-6
 
 
+SCALINGS = ("standard", "minmax")
+"""How a net's inputs and targets are scaled (the ``normalisation`` setting)."""
+
+
+def check_scaling(scaling: str) -> str:
+    """Return ``scaling`` if it is one of :data:`SCALINGS`, else raise one line naming it."""
+    if scaling not in SCALINGS:
+        raise LboError(f"normalisation: expected one of {list(SCALINGS)}, got {scaling!r}")
+    return scaling
+
+
 class WindowNet(nn.Module):
     """Features -> normalisation -> CNN/LSTM -> de-normalisation -> absolute state.
 

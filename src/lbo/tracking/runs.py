@@ -10,6 +10,8 @@ from __future__ import annotations
 import contextlib
 import sqlite3
 from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
 from urllib.parse import urlparse
 
 from lbo.core.errors import LboError
@@ -181,3 +183,12 @@ def ensure_experiment(uri: str, name: str, artifact_location: str | None):
             if exp is None:
                 raise
             return client, exp.experiment_id
+
+
+def run_artifact(run: dict[str, Any], path: str, tracking_uri: str) -> Path:
+    """A file logged by a training run (``run["run_id"]``), fetched from its MLflow
+    artifacts."""
+    import mlflow
+
+    return Path(mlflow.artifacts.download_artifacts(run_id=run["run_id"], artifact_path=path,
+                                                    tracking_uri=tracking_uri))
