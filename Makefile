@@ -13,7 +13,7 @@ MLFLOW_PORT ?= 5000
 MLFLOW_BACKEND ?= sqlite:///$(CURDIR)/mlflow-server.db
 MLFLOW_ARTIFACTS ?= $(CURDIR)/mlflow-server-artifacts
 
-.PHONY: help install test test-fast data reproduce fleet bench lint clean mlflow-server ui
+.PHONY: help install test test-fast data reproduce ablation fleet bench lint clean mlflow-server ui
 
 help:  ## list the targets
 	@grep -E '^[a-z-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  make %-10s %s\n", $$1, $$2}'
@@ -39,6 +39,9 @@ data: install  ## generate the data sets: make data SCALE=smoke|quick|paper
 reproduce: install  ## the paper's study, resumable: make reproduce SCALE=paper|quick [TRAINER=gpu] [LAUNCHER=joblib JOBS=4]
 	$(PY) -m lbo.reproduce scale=$(SCALE) "train_overrides=['trainer=$(TRAINER)']" \
 		launcher=$(LAUNCHER) jobs=$(JOBS)
+
+ablation: install  ## the paper's protocol variant by variant at quick scale, resumable -> reports/ablation/
+	$(PY) -m lbo.ablation "overrides=['trainer=$(TRAINER)']"
 
 fleet: install  ## train on your own logs, worked example: a simulated fleet -> train -> score -> observe
 	PY=$(CURDIR)/$(PY) bash examples/fleet.sh

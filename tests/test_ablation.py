@@ -23,7 +23,8 @@ def test_expand_crosses_values_and_keeps_lists_whole():
 
 
 def test_jobs_once_each_with_scale_and_resume():
-    cfg = compose_cfg("ablation", ["scale=smoke", "sweeps=['model=cnn seed=0,1','model=cnn seed=1']"])
+    cfg = compose_cfg("ablation", ["scale=smoke",
+                                   "sweeps=['model=cnn seed=0,1','model=cnn seed=1']"])
     got = jobs(cfg)
     assert len(got) == 2  # seed=1 is in both sweeps
     assert all(j[0] == "experiment=smoke" and "resume=true" in j for j in got)
@@ -37,6 +38,16 @@ def test_variant_names_tell_the_factors_apart_but_not_the_seed():
     assert label(f) == "cnn-N60 frame stored sigmoid standard"
     lstm = compose_cfg("train", ["model=lstm", "window=80", "normalisation=minmax"])
     assert label(factors(lstm)) == "lstm-N80 relative fresh minmax"  # no activation to vary
+
+
+def test_training_length_in_passes_over_the_windows():
+    from lbo.ablation import epochs
+
+    assert epochs(compose_cfg("train", ["experiment=quick"])) == 3.0   # 6 x half an epoch
+    assert epochs(compose_cfg("train", ["experiment=smoke"])) == 2.0   # 2 x 20 batches
+    f = factors(compose_cfg("train", ["experiment=quick", "trainer.max_epochs=12",
+                                      "trainer.limit_train_batches=1.0"]))
+    assert label(f, 3.0).endswith("standard 12 epochs") and label(f, 12.0).endswith("standard")
 
 
 def test_minmax_puts_the_training_windows_in_the_unit_box(tmp_path, smoke_data):

@@ -15,7 +15,8 @@ from helpers import kill_when_written
 
 REPORT_FILES = ["rmse_alpha1.csv", "rmse_alpha6.csv", "nrmse.csv", "report.md",
                 "friction_circle.png", "nrmse_cnn.png", "nrmse_lstm.png", "nrmse_all.png",
-                "trajectory_alpha3.png", "nrmse_robust.png", "nrmse_dynamic.png", "dynamic.csv"]
+                "trajectory_alpha3.png", "nrmse_robust.png", "nrmse_dynamic.png", "dynamic.csv",
+                "nrmse_protocols.png", "literal.csv"]
 
 
 def _sha(path: Path) -> str:
@@ -46,7 +47,7 @@ def test_reproduce_smoke_killed_and_resumed_without_duplicates(tmp_path):
     watcher.join()
     assert proc.returncode == -signal.SIGKILL, "".join(seen[-30:])
     assert not (tmp_path / "report" / "report.md").exists()
-    assert "4/10 cnn-N80" not in "".join(seen)  # killed inside the run, after its checkpoint
+    assert "4/11 cnn-N80" not in "".join(seen)  # killed inside the run, after its checkpoint
 
     done = subprocess.run(command(tmp_path), env=env, capture_output=True, text=True)
     assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:]
@@ -79,6 +80,10 @@ def test_reproduce_smoke_killed_and_resumed_without_duplicates(tmp_path):
     assert "Table I" in md and "overtakes the EKF" in md and "cnn-N20" in md
     assert "Beyond the paper" in md and "crosses the EKF" in md and "filternet-N100" in md
     assert "## Where learning beats the model: `data=dynamic`" in md
+    # the paper's protocol as lbo trains it (the stored noise draw), beside ours
+    assert "## The paper's protocol beside ours" in md and "| literal-cnn-N20 |" in md
+    literal = pd.read_csv(report / "literal.csv")
+    assert set(literal["observer"]) == {"literal-cnn-N20"} and len(literal) == 7
     dynamic = pd.read_csv(report / "dynamic.csv")  # scored on its own test set, with its oracle
     assert set(dynamic["observer"]) == {"filternet-N100", "ekf", "oracle", "adaptive",
                                         "oracle_tuned", "oracle_dynamic"}
@@ -88,10 +93,14 @@ def test_reproduce_smoke_killed_and_resumed_without_duplicates(tmp_path):
     client = mlflow.MlflowClient(env["MLFLOW_TRACKING_URI"])
     exp = client.get_experiment_by_name("lbo")
     runs = client.search_runs([exp.experiment_id], "attributes.status = 'FINISHED'")
-    trained = [(r.info.run_name, r.data.tags["data"]) for r in runs
+    def literal(r) -> bool:  # the paper's protocol: trained on the stored noise draw
+        return r.data.tags["train_noise"] == "stored"
+
+    trained = [(r.info.run_name, r.data.tags["data"], literal(r)) for r in runs
                if "optuna_trial" not in r.data.tags and r.info.run_name in expected]
-    assert sorted(trained) == sorted([(n, "smoke") for n in expected]
-                                     + [("filternet-N100", "dynamic")])  # each once
+    assert sorted(trained) == sorted([(n, "smoke", False) for n in expected]
+                                     + [("filternet-N100", "dynamic", False),
+                                        ("cnn-N20", "smoke", True)])  # each once
     # every observer's folder holds one best.ckpt, the very file its MLflow run logged (the
     # report reads that artifact), beside the last epoch's: the resumed cnn-N80 finished its
     # own run in its own folder
@@ -99,6 +108,7 @@ def test_reproduce_smoke_killed_and_resumed_without_duplicates(tmp_path):
         if r.info.run_name in expected:
             key = "dynamic" if r.data.tags["data"] == "dynamic" else "robust" \
                 if r.info.run_name.startswith("filternet") else r.info.run_name
+            key = f"literal-{key}" if literal(r) else key
             folder = tmp_path / "report" / "runs" / key / "checkpoints"
             assert sorted(p.name for p in folder.iterdir()) == ["best.ckpt", "last.ckpt"], key
             logged = mlflow.artifacts.download_artifacts(

@@ -33,7 +33,7 @@ from lbo.core.cli import entry
 from lbo.core.errors import LboError
 from lbo.tracking.runs import check_store, run_artifact
 
-FACTORS = ("features", "train_noise", "activation", "normalisation")
+FACTORS = ("features", "train_noise", "activation", "normalisation", "epochs")
 """What tells the variants apart (the seed does not: seeds of a variant are averaged)."""
 
 
@@ -57,15 +57,28 @@ def factors(cfg: DictConfig) -> dict[str, Any]:
     return {"model": cfg.model.name, "window": int(cfg.window), "features": cfg.features,
             "train_noise": "stored" if source == "stored" else "fresh",
             "activation": cfg.model.get("activation", "-"),
-            "normalisation": cfg.get("normalisation", "standard"), "seed": int(cfg.seed)}
+            "normalisation": cfg.get("normalisation", "standard"), "epochs": epochs(cfg),
+            "seed": int(cfg.seed)}
 
 
-def label(f: dict[str, Any]) -> str:
-    """``cnn-N60 frame fresh centred_sigmoid standard``: a variant's name in the tables."""
+def epochs(cfg: DictConfig) -> float:
+    """The training length in passes over the training windows: max_epochs times the share of
+    each epoch trained (``limit_train_batches`` as a fraction; a batch count reads as 1)."""
+    limit = cfg.trainer.get("limit_train_batches")
+    share = float(limit) if isinstance(limit, float) and limit <= 1.0 else 1.0
+    return float(cfg.trainer.max_epochs) * share
+
+
+def label(f: dict[str, Any], base_epochs: float | None = None) -> str:
+    """``cnn-N60 frame fresh centred_sigmoid standard``: a variant's name in the tables; its
+    training length is named when it is not ``base_epochs``, the scale's own."""
     parts = [f"{f['model']}-N{f['window']}", f["features"], f["train_noise"]]
     if f["activation"] != "-":
         parts.append(f["activation"])
-    return " ".join([*parts, f["normalisation"]])
+    parts.append(f["normalisation"])
+    if base_epochs is not None and f["epochs"] != base_epochs:
+        parts.append(f"{f['epochs']:g} epochs")
+    return " ".join(parts)
 
 
 def jobs(cfg: DictConfig) -> list[list[str]]:
@@ -89,11 +102,13 @@ def ablation(cfg: DictConfig) -> Path:
 
     check_store(cfg.tracking_uri, "tracking_uri")
     out = Path(cfg.report_dir)
+    base = epochs(compose("train", [f"experiment={cfg.scale}"]))
     configs = []
     for overrides in jobs(cfg):
         c = compose("train", overrides)
         f = factors(c)
-        c.output_dir = str(out / "runs" / f"{label(f).replace(' ', '_')}_seed{f['seed']}")
+        name = label(f, base).replace(" ", "_")
+        c.output_dir = str(out / "runs" / f"{name}_seed{f['seed']}")
         check(c)  # every run's settings before the first one trains
         configs.append(c)
     per_variant: dict[str, list[pd.DataFrame]] = {}
@@ -101,7 +116,7 @@ def ablation(cfg: DictConfig) -> Path:
     classical = None
     for i, c in enumerate(configs, 1):
         f = factors(c)
-        key = label(f)
+        key = label(f, base)
         print(f"==> [{i}/{len(configs)}] {key}, seed {f['seed']}", flush=True)
         run = train(c)
         print(f"    {'reused' if run.get('reused') else 'trained'}: MLflow run {run['run_id']}",

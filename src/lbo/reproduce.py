@@ -75,6 +75,8 @@ def reproduce(cfg: DictConfig) -> Path:
     runs = stages.run(3, "train", f"{len(cfg.models) * len(cfg.windows)} observers "
                       f"({', '.join(cfg.models)} x N={list(cfg.windows)}) with the tuned "
                       "parameters" + (", and the robust observer" if cfg.robust else "")
+                      + (f", the paper's protocol ({', '.join(cfg.literal[scale])})"
+                         if cfg.literal[scale] else "")
                       + (f", and on a car that slips ({', '.join(cfg.dynamic_study[scale])})"
                          if cfg.dynamic_study[scale] else "")
                       + (f", through hydra/launcher={cfg.launcher}" if cfg.launcher else ""),
@@ -149,6 +151,10 @@ def train_jobs(cfg: DictConfig, out: Path) -> list[tuple[str, list[str]]]:
     if cfg.robust:
         jobs.append(("robust", ["experiment=robust", f"data={cfg.scale}",
                                 *cfg.robust_overrides[cfg.scale]]))
+    for name in cfg.literal[cfg.scale]:
+        model, _, window = name.partition("-N")
+        jobs.append((f"literal-{name}", [*cfg.literal_overrides[cfg.scale], f"model={model}",
+                                         f"window={window}"]))
     for data, keys in dynamic_jobs(cfg).items():
         for key in keys:
             model = key.removeprefix(f"{data}-") if key != data else None
@@ -255,7 +261,12 @@ def stage_report(cfg: DictConfig, out: Path, folder: Path, tuned: dict, runs: di
                for data, keys in study.items()}
     mine = {k: data for data, keys in study.items() for k in keys}
     run_ids = {f"{runs[k]['name']} on data={data}": runs[k]["run_id"] for k, data in mine.items()}
-    runs = {k: r for k, r in runs.items() if k not in mine}
+    literal = [k for k in runs if k.startswith("literal-")]  # the paper's protocol, a section
+    literal_table = pd.concat([_renamed(run_artifact(runs[k], "evaluation.csv", cfg.tracking_uri),
+                                        runs[k]["name"], k) for k in literal],
+                              ignore_index=True) if literal else None
+    run_ids.update({k: runs[k]["run_id"] for k in literal})
+    runs = {k: r for k, r in runs.items() if k not in mine and k not in literal}
     learned = pd.concat([pd.read_csv(run_artifact(r, "evaluation.csv", cfg.tracking_uri))
                          for r in runs.values()], ignore_index=True)
     # each run's table also holds the EKF and oracle rows; the classical stage has them all
@@ -270,9 +281,16 @@ def stage_report(cfg: DictConfig, out: Path, folder: Path, tuned: dict, runs: di
                        cfg.tracking_uri) if best_cnn else None
     robust = runs["robust"]["name"] if "robust" in runs else None
     files = report.write(out, cfg.scale, table, run_ids, record, traj,
-                         folder / "friction_circle.png", robust=robust, dynamic=dynamic)
+                         folder / "friction_circle.png", robust=robust, dynamic=dynamic,
+                         literal=literal_table)
     _log_report(cfg, cfg.scale, out, files, folder.name)
     return files, "done"
+
+
+def _renamed(csv: Path, name: str, key: str) -> pd.DataFrame:
+    """A run's learned rows, its observer ``name`` renamed ``key`` (``literal-cnn-N60``)."""
+    t = pd.read_csv(csv)
+    return t[t["observer"] == name].assign(observer=key)
 
 
 def _train_job(cfg: DictConfig) -> dict[str, Any]:
@@ -356,7 +374,7 @@ def _log_report(cfg: DictConfig, scale: str, out: Path, files: list[Path], data:
     run_id = found[0].info.run_id if found else client.create_run(
         exp_id, run_name=f"report-{scale}", tags={"lbo_report": scale, "data": data}).info.run_id
     for f in files:
-        client.logrun_artifact(run_id, str(f))
+        client.log_artifact(run_id, str(f))
     client.set_terminated(run_id, "FINISHED")
     print(f"    report logged to MLflow run {run_id}")
 

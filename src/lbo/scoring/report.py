@@ -14,6 +14,7 @@ import pandas as pd
 from lbo.core import plots
 from lbo.core.atomic import atomic_path, write_text
 from lbo.filters.classical import NAMES as CLASSICAL
+from lbo.scoring.metrics import PAPER_REFERENCE, nrmse
 
 # The paper's Tables I and II (RMSE; psi in rad) and its reading of Fig. 5.
 PAPER_RMSE = {
@@ -197,8 +198,59 @@ def crossover_markdown(table: pd.DataFrame) -> list[str]:
         noise = "alpha ~ U[0, 6.5], never told" if not name.startswith(("cnn", "lstm")) \
             else "alpha = 1 (the paper's protocol)"
         out.append(f"| {name} | {noise} | "
-                   f"{'never on 0..6' if cross is None else f'{cross:.2f}'} |")
+                   f"{_crossing(cross)} |")
     return [*out, ""]
+
+
+def _xyz(r) -> str:
+    """``x, y, psi`` of an RMSE triple (psi in rad) as ``0.28, 0.23, 11.0`` (psi in mrad)."""
+    x, y, psi = (float(v) for v in r)
+    return f"{x:.2f}, {y:.2f}, {psi * 1e3:.1f}"
+
+
+def _crossing(cross: float | None) -> str:
+    return "never on 0..6" if cross is None else f"{cross:.2f}"
+
+
+def protocols_markdown(table: pd.DataFrame, literal: pd.DataFrame) -> list[str]:
+    """The paper's numbers, its protocol as lbo trains it (``literal``: rows of observers named
+    ``literal-<model>-N<window>``) and ours (the best window of ``table``), side by side: the
+    RMSE at alpha 1 and 6 (psi in mrad), the NRMSE growth from 1 to 6 and the crossover with
+    our EKF."""
+    ekf = table[table["observer"] == "ekf"]
+    both = pd.concat([table, literal, ekf], ignore_index=True).drop_duplicates(
+        ["observer", "alpha"])
+    out = ["## The paper's protocol beside ours", "",
+           "Trained at alpha = 1 in both. *literal*: the paper's protocol as close as lbo "
+           "trains it (experiment=<scale>_literal: the stored noise draw, inputs and targets "
+           "scaled by the training set's min and range); *ours*: the best window of our "
+           "protocol (fresh noise per window, scaled by the mean and standard deviation). "
+           "RMSE x, y (m), psi (mrad).", "",
+           "| model | protocol | observer | alpha 1 | alpha 6 | NRMSE growth 1 to 6 "
+           "| overtakes the EKF from alpha |", "|---|---|---|---|---|---|---|"]
+
+    def cells(name: str) -> tuple[str, str, str]:
+        at = both[both["observer"] == name].set_index("alpha")
+        rmse = [_xyz(at.loc[a, ["rmse_x", "rmse_y", "rmse_psi"]]) if a in at.index else "-"
+                for a in (1.0, 6.0)]
+        growth = (f"{at.loc[6.0, 'nrmse'] / at.loc[1.0, 'nrmse']:.1f}"
+                  if {1.0, 6.0} <= set(at.index) else "-")
+        return rmse[0], rmse[1], growth
+
+    for model in ("cnn", "lstm"):
+        p1, p6 = (np.array(PAPER_RMSE[a][model]) for a in (1.0, 6.0))
+        growth = nrmse(p6, PAPER_REFERENCE) / nrmse(p1, PAPER_REFERENCE)
+        out.append(f"| {model.upper()} | paper | N={PAPER_BEST_WINDOW[model]} | {_xyz(p1)} | "
+                   f"{_xyz(p6)} | {growth:.1f} | about {PAPER_CROSSOVER[model]:g} |")
+        names = [("literal", o) for o in sorted(set(literal["observer"]))
+                 if o.startswith(f"literal-{model}-")]
+        best = best_window(table, model)
+        names += [("ours", best)] if best else []
+        for protocol, name in names:
+            a1, a6, growth = cells(name)
+            out.append(f"| {model.upper()} | {protocol} | {name} | {a1} | {a6} | {growth} | "
+                       f"{_crossing(crossover(both, name))} |")
+    return [*out, "", "![protocols](nrmse_protocols.png)", ""]
 
 
 def _present(table: pd.DataFrame, names) -> list[str]:
@@ -219,7 +271,8 @@ def _md(df: pd.DataFrame, digits: int = 3) -> str:
 def markdown(scale: str, tables: dict[str, pd.DataFrame], table: pd.DataFrame,
              best: dict[str, str | None], runs: dict[str, str], stages: dict[str, dict],
              robust: str | None = None,
-             dynamic: dict[str, pd.DataFrame] | None = None) -> str:
+             dynamic: dict[str, pd.DataFrame] | None = None,
+             literal: pd.DataFrame | None = None) -> str:
     """report.md: the tables, crossovers, best windows, run ids and stage times."""
     out = [f"# lbo report: scale `{scale}`", "",
            "RMSE of the EKF and of the best CNN and LSTM, ours beside the paper's "
@@ -234,13 +287,15 @@ def markdown(scale: str, tables: dict[str, pd.DataFrame], table: pd.DataFrame,
     for model in ("cnn", "lstm"):
         name = best.get(model)
         cross = crossover(table, name) if name else None
-        ours = "never on 0..6" if cross is None else f"{cross:.2f}"
+        ours = _crossing(cross)
         out.append(f"| {model.upper()} | {name or '-'} | N={PAPER_BEST_WINDOW[model]} | {ours} "
                    f"| about {PAPER_CROSSOVER[model]:g} |")
     nr = table.pivot(index="alpha", columns="observer", values="nrmse")
     out += ["", "## NRMSE at alpha = 1, 3, 6", "",
             _md(nr.loc[nr.index.isin([1.0, 3.0, 6.0])].reset_index()), ""]
     out += crossover_markdown(table)
+    if literal is not None:
+        out += protocols_markdown(table, literal)
     if robust is not None:
         out += robust_markdown(table, robust)
     for key, t in (dynamic or {}).items():
@@ -250,7 +305,8 @@ def markdown(scale: str, tables: dict[str, pd.DataFrame], table: pd.DataFrame,
     out += ["", "## Stages", "", "| stage | status | seconds |", "|---|---|---|"]
     out += [f"| {k} | {v.get('status', '')} | {v.get('seconds', float('nan')):.1f} |"
             for k, v in stages.items()]
-    extra = ([" nrmse_robust.png"] if robust else []) + [f" nrmse_{k}.png" for k in dynamic or {}]
+    extra = ([" nrmse_protocols.png"] if literal is not None else []) + \
+        ([" nrmse_robust.png"] if robust else []) + [f" nrmse_{k}.png" for k in dynamic or {}]
     out += ["", "Figures: friction_circle.png, nrmse_cnn.png, nrmse_lstm.png, nrmse_all.png, "
             "trajectory_alpha3.png" + "".join("," + e for e in extra) + ".", ""]
     return "\n".join(out)
@@ -259,7 +315,8 @@ def markdown(scale: str, tables: dict[str, pd.DataFrame], table: pd.DataFrame,
 def write(folder: str | Path, scale: str, table: pd.DataFrame, runs: dict[str, str],
           stages: dict[str, dict], trajectory: dict[str, np.ndarray] | None = None,
           friction_png: str | Path | None = None, robust: str | None = None,
-          dynamic: dict[str, pd.DataFrame] | None = None) -> list[Path]:
+          dynamic: dict[str, pd.DataFrame] | None = None,
+          literal: pd.DataFrame | None = None) -> list[Path]:
     """Write every report file into ``folder``; returns their paths.
 
     Parameters
@@ -274,6 +331,9 @@ def write(folder: str | Path, scale: str, table: pd.DataFrame, runs: dict[str, s
     dynamic : data-set name -> score table of the car-that-slips study on that set (one
         learned observer and the peers of :data:`DYNAMIC_PEERS`): a section, ``<name>.csv``
         and ``nrmse_<name>.png`` each.
+    literal : score rows of the paper's protocol as lbo trains it (observers named
+        ``literal-<model>-N<window>``): a section beside ours, ``literal.csv`` and
+        ``nrmse_protocols.png``.
     """
     folder = Path(folder)
     table = with_oracle_ratio(table)
@@ -308,6 +368,15 @@ def write(folder: str | Path, scale: str, table: pd.DataFrame, runs: dict[str, s
             "the EKF told the car",
             observers=_present(t, (s["observer"], *s["black_boxes"], *DYNAMIC_PEERS))),
             folder / f"nrmse_{key}.png")]
+    if literal is not None:
+        with atomic_path(folder / "literal.csv") as tmp:
+            literal.to_csv(tmp, index=False)
+        both = pd.concat([table, literal], ignore_index=True)
+        curves = [*dict.fromkeys(literal["observer"]), *(n for n in best.values() if n),
+                  *_present(table, ("ekf", "oracle"))]
+        written += [folder / "literal.csv", plots.save(plots.nrmse_curves(
+            both, "trained at alpha = 1: the paper's protocol (literal-*) and ours",
+            observers=curves), folder / "nrmse_protocols.png")]
     if trajectory is not None:
         written.append(plots.save(plots.trajectory(**trajectory), folder / "trajectory_alpha3.png"))
     if friction_png is not None and Path(friction_png).is_file():
@@ -316,5 +385,5 @@ def write(folder: str | Path, scale: str, table: pd.DataFrame, runs: dict[str, s
         written.append(folder / "friction_circle.png")
     written.append(write_text(folder / "report.md",
                               markdown(scale, tables, table, best, runs, stages, robust,
-                                       dynamic)))
+                                       dynamic, literal)))
     return written
