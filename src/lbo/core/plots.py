@@ -196,8 +196,9 @@ def nrmse_panels(table, panels: dict[str, list[str]], title: str = "",
     """NRMSE against alpha > 0 on a log axis, one panel per entry of ``panels`` (panel title ->
     observers drawn as curves), from a score table (columns ``observer, alpha, nrmse``).
     ``points``: panel title -> observers drawn as markers only (e.g. published numbers)."""
-    fig, axes = plt.subplots(1, len(panels), figsize=(6.2 * len(panels), 4.6), squeeze=False,
-                             sharey=True)
+    longest = max(len(o) for o in panels.values())
+    fig, axes = plt.subplots(1, len(panels), figsize=(7.0 * len(panels), 4.6 + 0.14 * longest),
+                             squeeze=False, sharey=True)
     for ax, (name, observers) in zip(axes[0], panels.items()):
         palette = iter(plt.cm.tab20(np.linspace(0, 1, 20)))
         for obs in observers:
@@ -211,7 +212,7 @@ def nrmse_panels(table, panels: dict[str, list[str]], title: str = "",
                     label=obs)
         ax.set(xlabel=r"noise scale $\alpha$", title=name, yscale="log")
         ax.grid(alpha=0.3, which="both")
-        ax.legend(fontsize=6.5, ncol=1)
+        ax.legend(fontsize=6.5, ncol=2, loc="upper center", bbox_to_anchor=(0.5, -0.13))
     axes[0][0].set_ylabel("NRMSE (our EKF at alpha = 1 is 1)")
     if title:
         fig.suptitle(title)
