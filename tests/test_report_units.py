@@ -244,3 +244,25 @@ def test_with_oracle_ratio_adds_one_column_and_leaves_the_input_alone():
     pd.testing.assert_frame_equal(out[SCORE_COLUMNS], before)  # same rows, same order
     pd.testing.assert_frame_equal(t, before)  # the caller's table is not changed
     assert out["ratio_to_oracle"].dtype == float
+
+
+# the paper's protocol beside ours ----------------------------------------------------------
+
+def test_protocols_section_sets_the_literal_run_beside_ours_and_the_paper():
+    from lbo.scoring.report import protocols_markdown
+
+    ours = table({"ekf": EKF, "cnn-N20": [0.5, 0.6, 0.8, 1.0, 1.3, 1.6, 2.0],
+                  "cnn-N40": [0.5, 0.6, 0.7, 0.8, 0.9, 1.0, 1.1]})  # N40: below from 4.5
+    # literal: below the EKF from 2 on (0.6 = 0.6 at alpha 2 is a tie: not below)
+    literal = table({"literal-cnn-N60": [0.5, 0.5, 0.6, 0.7, 0.8, 0.9, 1.0]})
+    md = "\n".join(protocols_markdown(ours, literal))
+    assert "| CNN | paper | N=60 | 0.28, 0.23, 11.0 | 0.91, 0.89, 20.0 | 2.4 | about 2 |" in md
+    # growth: 1.0 / 0.5 at alpha 6 over 1; the filler RMSE is 0.10 m, 1.0 mrad
+    assert ("| CNN | literal | literal-cnn-N60 | 0.10, 0.10, 1.0 | 0.10, 0.10, 1.0 | 2.0 | 2.00 |"
+            in md)
+    # ours is the best window (lowest mean NRMSE): cnn-N40, 0.1 above the EKF at 2 and 0.1
+    # below at 3, so from 2.5; its growth 1.1 / 0.6
+    assert ("| CNN | ours | cnn-N40 | 0.10, 0.10, 1.0 | 0.10, 0.10, 1.0 | 1.8 | 2.50 |"
+            in md)
+    assert md.count("| LSTM |") == 1  # neither protocol trained an LSTM here: the paper's row
+    assert "literal: literal-cnn-N60 2.00; ours: cnn-N40 2.50." in md

@@ -237,6 +237,7 @@ def protocols_markdown(table: pd.DataFrame, literal: pd.DataFrame) -> list[str]:
                   if {1.0, 6.0} <= set(at.index) else "-")
         return rmse[0], rmse[1], growth
 
+    said: dict[str, list[str]] = {}
     for model in ("cnn", "lstm"):
         p1, p6 = (np.array(PAPER_RMSE[a][model]) for a in (1.0, 6.0))
         growth = nrmse(p6, PAPER_REFERENCE) / nrmse(p1, PAPER_REFERENCE)
@@ -248,8 +249,13 @@ def protocols_markdown(table: pd.DataFrame, literal: pd.DataFrame) -> list[str]:
         names += [("ours", best)] if best else []
         for protocol, name in names:
             a1, a6, growth = cells(name)
+            cross = _crossing(crossover(both, name))
+            said.setdefault(protocol, []).append(f"{name} {cross}")
             out.append(f"| {model.upper()} | {protocol} | {name} | {a1} | {a6} | {growth} | "
-                       f"{_crossing(crossover(both, name))} |")
+                       f"{cross} |")
+    out += ["", "Where each overtakes the EKF: the paper's CNN from alpha of about "
+            f"{PAPER_CROSSOVER['cnn']:g} and its LSTM from about {PAPER_CROSSOVER['lstm']:g}; "
+            + "; ".join(f"{p}: {', '.join(v)}" for p, v in said.items()) + "."]
     return [*out, "", "![protocols](nrmse_protocols.png)", ""]
 
 
