@@ -173,8 +173,9 @@ def test_ablation_command_at_smoke_size(tmp_path, smoke_data, tracking, one_torc
     for name in ("ekf_fit.csv", "scores.csv", "ablation.csv", "ablation.md", "ablation.png"):
         assert (out / name).stat().st_size > 100, name
     summary = pd.read_csv(out / "ablation.csv")
-    assert list(summary["label"]) == ["cnn-N20 relative fresh centred_sigmoid standard",
-                                      "cnn-N20 frame fresh centred_sigmoid standard"]
+    # one epoch against the smoke experiment's two: the label says so
+    assert list(summary["label"]) == ["cnn-N20 relative fresh centred_sigmoid standard 1 epoch",
+                                      "cnn-N20 frame fresh centred_sigmoid standard 1 epoch"]
     assert summary[["x_1", "psi_6", "growth", "paper_alpha6"]].notna().all().all()
     scores = pd.read_csv(out / "scores.csv")
     assert {"ekf", "oracle", pp.PAPER_FIT, "paper_cnn"} <= set(scores["observer"])

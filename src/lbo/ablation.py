@@ -77,7 +77,7 @@ def label(f: dict[str, Any], base_epochs: float | None = None) -> str:
         parts.append(f["activation"])
     parts.append(f["normalisation"])
     if base_epochs is not None and f["epochs"] != base_epochs:
-        parts.append(f"{f['epochs']:g} epochs")
+        parts.append(f"{f['epochs']:g} epoch{'' if f['epochs'] == 1 else 's'}")
     return " ".join(parts)
 
 
