@@ -57,7 +57,7 @@ def factors(cfg: DictConfig) -> dict[str, Any]:
     return {"model": cfg.model.name, "window": int(cfg.window), "features": cfg.features,
             "train_noise": "stored" if source == "stored" else "fresh",
             "activation": cfg.model.get("activation", "-"),
-            "normalisation": cfg.get("normalisation", "standard"), "epochs": epochs(cfg),
+            "normalisation": cfg.normalisation, "epochs": epochs(cfg),
             "seed": int(cfg.seed)}
 
 
@@ -95,7 +95,7 @@ def ablation(cfg: DictConfig) -> Path:
     """Train or reuse the variants, fit the paper's EKF, write the tables and the figure."""
     from lbo.learn.builders import prepare_data
     from lbo.scoring import paper_protocol as pp
-    from lbo.scoring.grid import load_test, score
+    from lbo.scoring.grid import load_test, reference, score
     from lbo.sim.noise import Noise
     from lbo.sim.vehicle import Vehicle
     from lbo.train import check, train
@@ -107,16 +107,13 @@ def ablation(cfg: DictConfig) -> Path:
     for overrides in jobs(cfg):
         c = compose("train", overrides)
         f = factors(c)
-        name = label(f, base).replace(" ", "_")
-        c.output_dir = str(out / "runs" / f"{name}_seed{f['seed']}")
+        key = label(f, base)
+        c.output_dir = str(out / "runs" / f"{key.replace(' ', '_')}_seed{f['seed']}")
         check(c)  # every run's settings before the first one trains
-        configs.append(c)
+        configs.append((c, f, key))
     per_variant: dict[str, list[pd.DataFrame]] = {}
     variants: dict[str, dict[str, Any]] = {}
-    classical = None
-    for i, c in enumerate(configs, 1):
-        f = factors(c)
-        key = label(f, base)
+    for i, (c, f, key) in enumerate(configs, 1):
         print(f"==> [{i}/{len(configs)}] {key}, seed {f['seed']}", flush=True)
         run = train(c)
         print(f"    {'reused' if run.get('reused') else 'trained'}: MLflow run {run['run_id']}",
@@ -125,8 +122,7 @@ def ablation(cfg: DictConfig) -> Path:
         per_variant.setdefault(key, []).append(t.assign(observer=t["observer"].replace(
             run["name"], key)))
         variants[key] = {"label": key, **{k: v for k, v in f.items() if k != "seed"}}
-        classical = t[t["observer"].isin(["ekf", "oracle"])] if classical is None else classical
-    first = configs[0]
+    first = configs[0][0]
     folder, _ = prepare_data(first)
     arr = load_test(Path(folder) / "test.parquet")
     vehicle, noise = Vehicle.from_cfg(first.vehicle), Noise.from_cfg(first.noise)
@@ -134,7 +130,9 @@ def ablation(cfg: DictConfig) -> Path:
           flush=True)
     fit = pp.fit_paper_ekf(arr, vehicle, noise)
     best = fit.iloc[0]
-    ref = _reference(classical)
+    ref = reference(arr, vehicle, noise)  # the E_ref every run's table was scored with
+    firsts = next(iter(per_variant.values()))[0]
+    classical = firsts[firsts["observer"].isin(["ekf", "oracle"])]
     fitted = score(pp.PAPER_FIT, pp.run_scaled_ekf(arr, vehicle, noise, best["q_position"],
                                                    best["q_heading"]), arr, ref)
     table = pd.concat([*(pp.mean_over_seeds(ts, k, k) for k, ts in per_variant.items()),
@@ -161,14 +159,6 @@ def ablation(cfg: DictConfig) -> Path:
     return out
 
 
-def _reference(classical: pd.DataFrame) -> np.ndarray:
-    """E_ref (3,): our EKF's RMSE at alpha = 1, as every run's table was scored with."""
-    row = classical[(classical["observer"] == "ekf") & np.isclose(classical["alpha"], 1.0)]
-    if row.empty:
-        raise LboError("ablation: the runs' tables have no EKF row at alpha = 1")
-    return row[["rmse_x", "rmse_y", "rmse_psi"]].to_numpy()[0]
-
-
 def _cell(v: Any, digits: int = 2) -> str:
     if isinstance(v, float):
         return "never" if np.isnan(v) else f"{v:.{digits}f}"
@@ -177,7 +167,7 @@ def _cell(v: Any, digits: int = 2) -> str:
 
 def markdown(summary: pd.DataFrame, fit: pd.DataFrame) -> str:
     """ablation.md: the variants' table and the EKF fit."""
-    from lbo.scoring.paper_protocol import FIT_TOLERANCE, PAPER_FIT, SHAPE_TOLERANCE
+    from lbo.scoring.paper_protocol import FIT_TOLERANCE, PAPER_FIT, SHAPE_TOLERANCE, paper_rmse
 
     cols = ["label", "seeds", "x_1", "y_1", "psi_1", "x_3", "y_3", "psi_3", "x_6", "y_6",
             "psi_6", "growth", "crossover_ekf", f"crossover_{PAPER_FIT}", "paper_alpha1",
@@ -204,8 +194,10 @@ def markdown(summary: pd.DataFrame, fit: pd.DataFrame) -> str:
         lines.append("| " + " | ".join(_cell(r[c]) for c in (
             "q_position", "q_heading", "x_1", "y_1", "psi_1", "x_6", "y_6", "psi_6",
             "growth_x", "growth_y", "growth_psi", "deviation")) + " |")
-    lines += ["", "The paper's EKF: 0.24 m, 0.23 m, 4.1 mrad at alpha 1; 1.56 m, 1.88 m, 26 "
-              "mrad at alpha 6 (growth 6.5, 8.2, 6.3).", ""]
+    (x1, y1, p1), (x6, y6, p6) = paper_rmse("ekf")
+    lines += ["", f"The paper's EKF: {x1:g} m, {y1:g} m, {p1 * 1e3:g} mrad at alpha 1; {x6:g} m, "
+              f"{y6:g} m, {p6 * 1e3:g} mrad at alpha 6 (growth {x6 / x1:.1f}, {y6 / y1:.1f}, "
+              f"{p6 / p1:.1f}).", ""]
     return "\n".join(lines)
 
 

@@ -338,7 +338,7 @@ def launch(cfg: DictConfig, job_overrides: list[list[str]], sweep_dir: Path,
 def _trajectory(folder: Path, run: dict[str, Any] | None, manoeuvre: str,
                 tracking_uri: str) -> dict[str, np.ndarray] | None:
     """Fig. 6 arrays: one manoeuvre at alpha=3 with the best CNN and the EKF."""
-    from lbo.scoring.grid import classical, load_test, predict_grid
+    from lbo.scoring.grid import classical, load_test, predict_grid, rows_of
     from lbo.serve.observer import read_checkpoint, trained_conditions
 
     if run is None:
@@ -350,8 +350,7 @@ def _trajectory(folder: Path, run: dict[str, Any] | None, manoeuvre: str,
     pick = np.flatnonzero(np.isclose(arr["alpha"], 3.0) & (arr["traj"] == names.index(manoeuvre)))
     if pick.size == 0:
         return None
-    sub = {k: v[pick] for k, v in arr.items() if isinstance(v, np.ndarray)
-           and v.shape[:1] == arr["alpha"].shape}
+    sub = rows_of(arr, pick)
     ckpt = run_artifact(run, "checkpoints/best.ckpt", tracking_uri)
     net, hp = read_checkpoint(ckpt)
     vehicle, noise = trained_conditions(hp, ckpt)

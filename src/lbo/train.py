@@ -64,7 +64,7 @@ def check(cfg: DictConfig) -> Built:
             cfg.features)
     integer(cfg.batch_size, "batch_size", 1)
     integer(cfg.seed, "seed", 0)
-    check_scaling(_scaling(cfg))
+    check_scaling(cfg.normalisation)
     check_trainer(cfg.trainer)
     check_optimizer(cfg.optimizer)
     require(cfg.get("lr_schedule", "constant") in SCHEDULES, "lr_schedule",
@@ -115,10 +115,6 @@ def check_optimizer(opt: DictConfig) -> None:
 LATER_DEFAULTS = {"normalisation": "standard"}
 """Settings added after runs were stored, with the value those runs had: a config holding
 that value hashes as if it did not have the key, so resume=true still finds the old runs."""
-
-
-def _scaling(cfg: DictConfig) -> str:
-    return cfg.get("normalisation", LATER_DEFAULTS["normalisation"])
 
 
 def config_hash(cfg: DictConfig) -> str:
@@ -283,7 +279,7 @@ def _fit(cfg: DictConfig, built: Built, callbacks: list[L.Callback] | None,
                             cfg.features, instantiate(cfg.optimizer), meta(cfg, data_hash),
                             cfg.get("lr_schedule", "constant"), bool(built.fix_periods),
                             net=built.net)
-    module.observer.set_normalisation(**dm.normalisation(cfg.features, _scaling(cfg)))
+    module.observer.set_normalisation(**dm.normalisation(cfg.features, cfg.normalisation))
     if built.init is not None:  # fine-tuning: its weights and its normalisation
         say_fresh(cfg, module.observer, built.init)
         module.observer.load_state_dict(built.init, strict=False)

@@ -38,7 +38,6 @@ from lbo.sim import schema
 INPUT_COLUMNS = [*schema.MEAS, *schema.INPUT]
 
 
-
 def rows(df: pd.DataFrame) -> tuple[torch.Tensor, torch.Tensor]:
     """(R, 5) inputs and (R, 3) states of a frame sorted by trajectory and step, float64."""
     x = torch.from_numpy(np.ascontiguousarray(df[INPUT_COLUMNS].to_numpy(np.float64)))

@@ -46,6 +46,14 @@ def load_test(path: str | Path) -> dict[str, np.ndarray]:
     return schema.to_arrays(schema.read_set(path, schema.EVAL_COLUMNS, missing_fixes=True))
 
 
+def rows_of(arr: dict[str, np.ndarray], pick: np.ndarray) -> dict[str, np.ndarray]:
+    """The trajectories ``pick`` (a (G,) mask or indices) of the padded arrays: every per-
+    trajectory array cut to them, anything else kept as it is."""
+    g = len(arr["alpha"])
+    return {k: v[pick] if isinstance(v, np.ndarray) and v.shape[:1] == (g,) else v
+            for k, v in arr.items()}
+
+
 def classical(name: str, arr: dict[str, np.ndarray], vehicle: Vehicle, noise: Noise,
               progress: bool = False, seed: int = 0, truth: Truth | None = None) -> np.ndarray:
     """Estimates (G, T, 3) of classical observer ``name`` (:mod:`lbo.filters.classical`) on the
@@ -85,12 +93,12 @@ def reference(arr: dict[str, np.ndarray], vehicle: Vehicle, noise: Noise,
     if not at1.any():
         raise LboError("metric.reference=ekf needs alpha=1 in the test grid; "
                        "use metric.reference=paper")
-    sub = {k: v[at1] for k, v in arr.items() if isinstance(v, np.ndarray) and len(v) == len(at1)}
+    sub = rows_of(arr, at1)
     est = run_classical("ekf", sub["m"], sub["u"], vehicle, noise)
-    return _pooled_rmse(est, sub["z"], sub["mask"])
+    return pooled_rmse(est, sub["z"], sub["mask"])
 
 
-def _pooled_rmse(est: np.ndarray, truth: np.ndarray, mask: np.ndarray) -> np.ndarray:
+def pooled_rmse(est: np.ndarray, truth: np.ndarray, mask: np.ndarray) -> np.ndarray:
     """(3,) RMSE over every masked step of every trajectory together."""
     return rmse(est.reshape(1, -1, 3), truth.reshape(1, -1, 3), mask.reshape(1, -1))[0]
 

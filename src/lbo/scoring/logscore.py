@@ -19,6 +19,7 @@ import numpy as np
 import pandas as pd
 
 from lbo.core.errors import LboError
+from lbo.scoring.grid import rows_of
 from lbo.scoring.metrics import nrmse, rmse
 from lbo.sim import schema
 from lbo.sim.noise import Noise
@@ -40,8 +41,7 @@ def load(folder: str | Path) -> dict[str, np.ndarray]:
     arr = schema.to_arrays(df)
     arr["file"] = df.groupby("traj")["file"].first().loc[arr["traj"]].to_numpy()
     keep = arr["mask"].any(axis=1)
-    return {k: v[keep] if isinstance(v, np.ndarray) and len(v) == len(keep) else v
-            for k, v in arr.items()}
+    return rows_of(arr, keep)
 
 
 def peer_estimates(arr: Mapping[str, np.ndarray], vehicle: Vehicle, noise: Noise,

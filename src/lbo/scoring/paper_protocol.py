@@ -14,7 +14,8 @@ import pandas as pd
 
 from lbo.core.errors import LboError
 from lbo.filters.kalman import ekf_batch
-from lbo.scoring.metrics import nrmse, score_table
+from lbo.scoring.grid import pooled_rmse, rows_of
+from lbo.scoring.metrics import nrmse
 from lbo.scoring.report import PAPER_RMSE, VARIABLES, crossover
 from lbo.sim.noise import Noise
 from lbo.sim.vehicle import Vehicle
@@ -31,7 +32,7 @@ PAPER_FIT = "ekf_paper_fit"
 ALPHAS = (1.0, 6.0)
 
 
-def _paper(key: str) -> np.ndarray:
+def paper_rmse(key: str) -> np.ndarray:
     """(2, 3) the paper's RMSE of ``key`` (ekf, cnn, lstm) at alpha 1 and 6, psi in rad."""
     return np.array([PAPER_RMSE[a][key] for a in ALPHAS])
 
@@ -50,12 +51,6 @@ def run_scaled_ekf(arr: dict[str, np.ndarray], vehicle: Vehicle, noise: Noise,
     return ekf_batch(arr["m"], arr["u"], vehicle, scaled_q(noise, position, heading), R)
 
 
-def _at(arr: dict[str, np.ndarray], alpha: float) -> dict[str, np.ndarray]:
-    pick = np.isclose(arr["alpha"], alpha)
-    return {k: v[pick] for k, v in arr.items()
-            if isinstance(v, np.ndarray) and v.shape[:1] == arr["alpha"].shape}
-
-
 def fit_paper_ekf(arr: dict[str, np.ndarray], vehicle: Vehicle, noise: Noise,
                   grid: Sequence[Sequence[float]] = EKF_FIT_GRID,
                   target: np.ndarray | None = None) -> pd.DataFrame:
@@ -72,18 +67,16 @@ def fit_paper_ekf(arr: dict[str, np.ndarray], vehicle: Vehicle, noise: Noise,
     ``{x,y,psi}_{1,6}`` (psi in mrad), the growth ``growth_{x,y,psi}`` (RMSE at 6 over 1) and
     ``deviation``, the largest ``|ours / paper - 1|`` over the six numbers.
     """
-    sets = {a: _at(arr, a) for a in ALPHAS}
+    sets = {a: rows_of(arr, np.isclose(arr["alpha"], a)) for a in ALPHAS}
     for a, s in sets.items():
         if not len(s["alpha"]):
             raise LboError(f"the paper's EKF is fitted at alpha 1 and 6; the test set has no "
                            f"trajectory at alpha = {a:g}")
-    paper = _paper("ekf") if target is None else np.asarray(target, dtype=float)
+    paper = paper_rmse("ekf") if target is None else np.asarray(target, dtype=float)
     rows = []
     for position, heading in itertools.product(*grid):
-        got = np.array([score_table("f", run_scaled_ekf(s, vehicle, noise, position, heading),
-                                    s["z"], s["mask"], np.full(len(s["alpha"]), a),
-                                    np.ones(3))[["rmse_x", "rmse_y", "rmse_psi"]].to_numpy()[0]
-                        for a, s in sets.items()])
+        got = np.array([pooled_rmse(run_scaled_ekf(s, vehicle, noise, position, heading),
+                                    s["z"], s["mask"]) for s in sets.values()])
         row = {"q_position": position, "q_heading": heading}
         for i, a in enumerate(ALPHAS):
             for j, (var, _, scale) in enumerate(VARIABLES):
@@ -99,7 +92,7 @@ def paper_distance(table: pd.DataFrame, observer: str, model: str) -> dict[str, 
     """How far ``observer``'s RMSE is from the paper's ``model`` (cnn or lstm): the largest
     factor either way over x, y and psi, at alpha 1 (``alpha1``) and at alpha 6 (``alpha6``).
     1 is exact; :data:`SHAPE_TOLERANCE` is the bar. NaN where ``table`` lacks that alpha."""
-    paper = _paper(model)
+    paper = paper_rmse(model)
     out = {}
     for i, a in enumerate(ALPHAS):
         row = table[(table["observer"] == observer) & np.isclose(table["alpha"], a)]

@@ -217,9 +217,7 @@ def protocols_markdown(table: pd.DataFrame, literal: pd.DataFrame) -> list[str]:
     ``literal-<model>-N<window>``) and ours (the best window of ``table``), side by side: the
     RMSE at alpha 1 and 6 (psi in mrad), the NRMSE growth from 1 to 6 and the crossover with
     our EKF."""
-    ekf = table[table["observer"] == "ekf"]
-    both = pd.concat([table, literal, ekf], ignore_index=True).drop_duplicates(
-        ["observer", "alpha"])
+    both = pd.concat([table, literal], ignore_index=True)
     out = ["## The paper's protocol beside ours", "",
            "Trained at alpha = 1 in both. *literal*: the paper's protocol as close as lbo "
            "trains it (experiment=<scale>_literal: the stored noise draw, inputs and targets "
