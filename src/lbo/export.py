@@ -21,6 +21,7 @@ import contextlib
 import copy
 import dataclasses
 import json
+import re
 import sys
 from collections.abc import Iterator
 from pathlib import Path
@@ -52,7 +53,7 @@ def export(observer: Any, out_dir: str | Path, name: str | None = None) -> dict[
     ----------
     observer : a learned :class:`~lbo.serve.observer.Observer`.
     out_dir : folder to write to (created).
-    name : file stem; default the observer's name (``cnn-N60``).
+    name : file stem (:func:`check_name`: no folder); default the observer's name (``cnn-N60``).
 
     Returns
     -------
@@ -66,6 +67,7 @@ def export(observer: Any, out_dir: str | Path, name: str | None = None) -> dict[
     """
     import torch
 
+    name = check_name(name)
     if observer.net is None:
         raise LboError(f"export needs a learned observer (a checkpoint, run id or models:/ "
                        f"URI), not the classical {observer.name!r}")
@@ -93,7 +95,9 @@ def export(observer: Any, out_dir: str | Path, name: str | None = None) -> dict[
     paths = {"torchscript": out / f"{name}.pt", "onnx": out / f"{name}.onnx",
              "json": out / f"{name}.json"}
     with _export_lock(out):
-        removed = remove_stale_temps(out)  # under the lock: any temp file here is stale
+        # under the lock, the temps of these three files are a killed export's; any other
+        # hidden file in the folder may be another program's, and stays
+        removed = remove_stale_temps(out, [p.name for p in paths.values()])
         if removed:
             print(f"removed {len(removed)} temp file(s) of an export killed before it finished "
                   f"from {out}")
@@ -102,6 +106,18 @@ def export(observer: Any, out_dir: str | Path, name: str | None = None) -> dict[
             sidecar.update(_step_sidecar(rec, model))
         _write_set(paths, script, model, sidecar)
     return paths
+
+
+def check_name(name: Any) -> str | None:
+    """``name``, checked: a plain file stem (letters, digits, ``_``, ``.``, ``+``, ``-``; no
+    folder), so that the files land in ``out_dir`` and nowhere else. None stays None."""
+    if name is None:
+        return None
+    stem = str(name)
+    if not re.fullmatch(r"\w[\w.+-]*", stem):
+        raise LboError(f"name must be a plain file stem (letters, digits, _ . + -, starting "
+                       f"with a letter or digit; no folder: give that as out_dir=), got {stem!r}")
+    return stem
 
 
 def _write_set(paths: dict[str, Path], script: Any, model: bytes,
@@ -240,6 +256,7 @@ def export_observer(cfg: DictConfig) -> dict[str, Any]:
         raise LboError(f"observer: Hydra read {cfg.observer!r} as a number; quote it: "
                        "observer=\"'<run id>'\"")
     source = cfg.observer
+    check_name(cfg.get("name"))  # before any checkpoint is read
     if cfg.get("register") and not RUN_ID.fullmatch(source):
         raise LboError(f"register needs observer=<MLflow run id> (32 hex digits), got {source!r}")
     obs = Observer.load(source, features=cfg.get("features"), form=cfg.get("form"))
