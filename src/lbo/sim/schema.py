@@ -6,6 +6,8 @@ plus ``alpha`` and ``scored`` for the validation and test sets.
 
 from __future__ import annotations
 
+import json
+import re
 from pathlib import Path
 
 import numpy as np
@@ -23,6 +25,8 @@ STATE = ("x", "y", "psi")
 MEAS = ("x_m", "y_m", "psi_m")
 INPUT = ("V", "delta")
 _INT = ("traj", "k")
+MANIFEST = "manifest.json"
+"""The file a data-set folder (generated, or a user's logs) records itself in."""
 
 
 def check_values(df: pd.DataFrame, columns: tuple[str, ...], source: str = "data",
@@ -70,11 +74,19 @@ def fix_rows(df: pd.DataFrame, source: str = "input") -> np.ndarray:
 def read_set(path: str | Path, required: tuple[str, ...] = COLUMNS,
              missing_fixes: bool = False) -> pd.DataFrame:
     """Read a Parquet set and check its columns (see :func:`check_frame`). Raises LboError
-    for missing files or columns."""
+    for missing or unreadable files (cut short, not Parquet) or missing columns."""
     path = Path(path)
     if not path.is_file():
         raise LboError(f"data set not found: {path} (run `python -m lbo.datagen data=...` first)")
-    df = pd.read_parquet(path)
+    try:
+        df = pd.read_parquet(path)
+    except Exception as e:  # noqa: BLE001 - pyarrow's errors are many; each means unreadable
+        text = str(e).strip()
+        advice = (f"; delete {path.parent} and run the command again to rebuild the data set"
+                  if is_data_set_folder(path.parent) else "")
+        raise LboError(f"{path}: not a readable Parquet file (cut short, or not Parquet: "
+                       f"{text.splitlines()[0] if text else type(e).__name__}){advice}") \
+            from None
     check_frame(df, required, source=str(path), missing_fixes=missing_fixes)
     return df
 
@@ -130,3 +142,36 @@ def to_arrays(df: pd.DataFrame) -> dict[str, np.ndarray]:
     if "alpha" in df.columns:
         out["alpha"] = df["alpha"].to_numpy()[starts]
     return out
+
+
+_CACHE_NAME = re.compile(r".+-[0-9a-f]{12}")
+
+
+def is_data_set_folder(folder: Path) -> bool:
+    """Whether ``folder`` is a data-set cache, whose files lbo reuses as they are: it holds
+    the ``manifest.json`` of a generated data set or of a user's logs (``data=logs``), or it is
+    named ``<name>-<12 hex digits>`` and holds a set (a generation stopped before its
+    manifest)."""
+    manifest = folder / MANIFEST
+    try:
+        record = json.loads(manifest.read_text()) if manifest.is_file() else None
+    except (OSError, ValueError):
+        record = None
+    if isinstance(record, dict) and "digest" in record and "version" in record:
+        return True
+    return bool(_CACHE_NAME.fullmatch(folder.name)) and (
+        manifest.is_file() or any((folder / f"{n}.parquet").is_file()
+                                  for n in ("train", "val", "test")))
+
+
+def check_outside_data_sets(**paths: Path | str | None) -> None:
+    """Refuse an output path (given by its field name, ``output=path``) that lies in a
+    data-set cache (:func:`is_data_set_folder`): a file written there would replace a set that
+    training and evaluation then reuse. None is skipped."""
+    for field, path in paths.items():
+        if path is None:
+            continue
+        folder = Path(path).resolve().parent
+        if is_data_set_folder(folder):
+            raise LboError(f"{field}: {path} is in the data-set cache {folder}, whose files lbo "
+                           "reuses as they are; give a path outside that folder")
