@@ -51,11 +51,11 @@ def evaluate(cfg: DictConfig) -> Path:
         learned = [one, *learned]
         run_id = run_of(one)
     if is_logs(cfg):
-        csv, names = run_logs(cfg, observers, learned)
+        csv, names, written = run_logs(cfg, observers, learned)
     else:
-        csv, names = _run_grid(cfg, observers, learned)
+        csv, names, written = _run_grid(cfg, observers, learned)
     if one is not None:
-        log_to_run(run_id, one, names[0], csv, str(cfg.data.name))
+        log_to_run(run_id, one, names[0], csv, str(cfg.data.name), written)
     return csv
 
 
@@ -81,10 +81,13 @@ def run_of(source: str) -> str | None:
     return None
 
 
-def log_to_run(run_id: str | None, source: str, name: str, csv: Path, data: str) -> None:
+def log_to_run(run_id: str | None, source: str, name: str, csv: Path, data: str,
+               files: list[Path] | None = None) -> None:
     """Log the scores of the observer ``source``, called ``name`` in ``csv``, to its MLflow run
     ``run_id``: metrics ``eval_<data>_nrmse_alpha_<a>`` per noise level (``eval_<data>_nrmse``
-    pooled over a user's test logs) and the evaluation files under ``evaluations/<data>/``."""
+    pooled over a user's test logs) and ``files``, the files this evaluation wrote (default:
+    ``csv`` alone), under ``evaluations/<data>/``. Nothing else in their folder is uploaded: it
+    may hold anything of the user's, and the tracking server may be shared."""
     import mlflow
     from mlflow.entities import Metric
 
@@ -108,16 +111,16 @@ def log_to_run(run_id: str | None, source: str, name: str, csv: Path, data: str)
     client = mlflow.MlflowClient(tracking_uri())
     client.log_batch(run_id, metrics=[Metric(k.replace(".", "_"), v, stamp, 0)
                                       for k, v in metrics.items()])
-    for path in sorted(csv.parent.glob("*.csv")) + sorted(csv.parent.glob("*.png")):
+    for path in files or [csv]:
         client.log_artifact(run_id, str(path), artifact_path=f"evaluations/{data}")
     print(f"logged to MLflow run {run_id}: {len(metrics)} metrics eval_{data}_*, and "
           f"evaluations/{data}/")
 
 
 def _run_grid(cfg: DictConfig, observers: list[str], learned: list[str]
-              ) -> tuple[Path, list[str]]:
-    """The simulated test grid of ``cfg.data`` (or ``test_file``): evaluation.csv, and the
-    names the ``learned`` observers have in it, in order."""
+              ) -> tuple[Path, list[str], list[Path]]:
+    """The simulated test grid of ``cfg.data`` (or ``test_file``): evaluation.csv, the
+    names the ``learned`` observers have in it, in order, and every file written."""
     from lbo.core import plots
     from lbo.sim.datasets import build, spec_from_cfg
     from lbo.sim.truth import from_cfg as truth_from_cfg
@@ -183,18 +186,19 @@ def _run_grid(cfg: DictConfig, observers: list[str], learned: list[str]
     csv = out / "evaluation.csv"
     with atomic_path(csv) as tmp:
         table.to_csv(tmp, index=False)
-    plots.save(plots.nrmse_curves(table, title="classical observers" if not nets else
-                                  "observers on the test grid"),
-               out / "nrmse_classical.png")
+    written = [csv, plots.save(plots.nrmse_curves(table, title="classical observers" if not nets
+                                                  else "observers on the test grid"),
+                               out / "nrmse_classical.png")]
     if calibrate:
         calibration(covariant, arr, out)
+        written += [out / "nees.csv", out / "nees.png"]
     with pd.option_context("display.width", 120, "display.precision", 4):
         pivot = table.pivot(index="alpha", columns="observer", values="nrmse")[observers]
         print(f"NRMSE (E_ref = {cfg.metric.reference}: {ref[0]:.3f} m, {ref[1]:.3f} m, "
               f"{ref[2] * 1e3:.2f} mrad)")
         print(pivot.to_string())
     print(f"evaluation: {csv}")
-    return csv, list(nets)
+    return csv, list(nets), written
 
 
 def _extras(cfg: DictConfig) -> tuple[list[str] | None, bool, bool]:
@@ -216,10 +220,11 @@ def _extras(cfg: DictConfig) -> tuple[list[str] | None, bool, bool]:
 
 
 def run_logs(cfg: DictConfig, observers: list[str], learned: list[str]
-             ) -> tuple[Path, list[str]]:
+             ) -> tuple[Path, list[str], list[Path]]:
     """``data=logs``: score the classical peers that run on a log (and ``learned``
     observers) on the test logs, pooled and per file (:mod:`lbo.scoring.logscore`); write
-    evaluation.csv and nrmse_logs.png. Returns its path and the learned observers' names."""
+    evaluation.csv and nrmse_logs.png. Returns its path, the learned observers' names and the
+    files written."""
     from lbo.core import plots
     from lbo.scoring import logscore
     from lbo.sim.log_sets import build, spec_from_cfg, test_files
@@ -240,13 +245,14 @@ def run_logs(cfg: DictConfig, observers: list[str], learned: list[str]
     csv = out / "evaluation.csv"
     with atomic_path(csv) as tmp:
         table.to_csv(tmp, index=False)
-    plots.save(logscore.figure(table, "observers on the test logs"), out / "nrmse_logs.png")
+    figure = plots.save(logscore.figure(table, "observers on the test logs"),
+                        out / "nrmse_logs.png")
     print(f"note: {logscore.NOTE}"
           + (f" (left out: {', '.join(left_out)})" if left_out else ""))
     print(f"pooled over {len(test_files(folder))} test log(s):")
     print(logscore.printable(table))
     print(f"evaluation: {csv}")
-    return csv, list(nets)
+    return csv, list(nets), [csv, figure]
 
 
 main = entry("evaluate", evaluate)
