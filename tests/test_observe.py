@@ -93,9 +93,13 @@ def test_observe_prints_the_evaluation_rmse(tmp_path, trained, manoeuvre, log_cs
     np.testing.assert_allclose(printed_rmse(res.stdout), expected, rtol=1e-5)
     assert f"observed: {out}" in res.stdout
     est = pd.read_csv(out)
-    # the EKF gives its covariance's entries; the CNN has none to give
+    # the EKF gives its covariance's entries; the CNN has none to give, but names the rows
+    # outside its training envelope (none in this manoeuvre)
     covariance = ["var_x", "var_y", "var_psi", "cov_xy"] if which == "ekf" else []
-    assert list(est.columns) == ["t", "x", "y", "psi", "valid", *covariance]
+    envelope = ["outside"] if which == "learned" else []
+    assert list(est.columns) == ["t", "x", "y", "psi", "valid", *covariance, *envelope]
+    if which == "learned":
+        assert est["outside"].isna().all()  # empty strings: inside everywhere
     assert len(est) == len(manoeuvre) and int(est["valid"].sum()) == valid
     if which == "ekf":
         P = classical_cov("ekf", arr)

@@ -9,6 +9,7 @@ import mlflow
 import numpy as np
 import pandas as pd
 import pytest
+import torch
 
 from helpers import ROBUST_SMOKE, compose_cfg, train_in_own_store
 from lbo.core.errors import LboError
@@ -74,9 +75,10 @@ def test_observe_cli_runs_the_robust_checkpoint(robust, manoeuvre, tmp_path):
     assert found, res.stdout
     assert np.all(np.isfinite([float(v) for v in found.groups()]))
     est = pd.read_csv(est_path)
-    # the robust observer knows how sure it is: its covariance's entries come with it
+    # the robust observer knows how sure it is: its covariance's entries come with it, and
+    # which rows lie outside what it was trained on
     assert list(est.columns) == ["t", "x", "y", "psi", "valid", "var_x", "var_y", "var_psi",
-                                 "cov_xy"]
+                                 "cov_xy", "outside"]
     assert (est[["var_x", "var_y", "var_psi"]] > 0).all(axis=None)
     # a window filter that starts at its first fix: valid from the log's first row
     assert len(est) == len(manoeuvre) and est["valid"].all()
@@ -177,3 +179,27 @@ def test_filternet_with_relative_features_is_refused_before_the_data_is_generate
         train(_filternet_relative(tmp_path, root))
     assert not root.exists() or not any(root.iterdir()), "a data set was generated first"
     assert not (tmp_path / "out").exists()
+
+
+# --- the checkpoint's stored window and envelope ------------------------------------------------
+
+
+def test_a_checkpoint_naming_a_huge_window_is_one_line(robust, tmp_path):
+    """A window of 10**10 steps (tensors only, so weights_only loads it) sized the recursive
+    form's state and the ring buffer: hundreds of GB, a RuntimeError traceback. Refused in one
+    line before anything is allocated."""
+    ckpt = torch.load(robust["out"]["checkpoint"], map_location="cpu", weights_only=True)
+    ckpt["hyper_parameters"]["window"] = 10 ** 10
+    path = tmp_path / "huge.ckpt"
+    torch.save(ckpt, path)
+    with pytest.raises(LboError, match=re.escape(
+            f"checkpoint {path}: window: expected an integer number of steps in [1, 10000], "
+            "got 10000000000")) as err:
+        Observer.load(path)
+    assert "\n" not in str(err.value)
+
+
+def test_the_robust_envelope_spans_its_drawn_noise_and_fix_rates(robust):
+    env = Observer.load(robust["out"]["checkpoint"]).envelope
+    assert env.alpha == (0.0, 6.5)  # train_noise=diverse
+    assert env.fix_period == (1.0, 50.0)  # fix_rates [50, 10, 5, 1] at 50 Hz

@@ -27,11 +27,18 @@ refused). Fixes are never interpolated: each lands on the grid row nearest to it
 dt/2), and every other row is a step without a fix, so an upsampled log has sparse fixes.
 With the true state in the log, the RMSE per variable (over the valid rows) and the NRMSE
 (E_ref: the paper's EKF, 0.24 m, 0.23 m, 4.1 mrad) are printed.
+
+A learned observer's checkpoint stores the envelope of its training inputs (speed, steering,
+noise scale alpha, steps between fixes; :mod:`lbo.models.envelope`). Rows outside it are
+named in a warning line per field and in the output's ``outside`` column; ``envelope=mark``
+also sets their ``valid`` to false, ``envelope=off`` skips the check.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import sys
+import warnings
 from typing import Any
 
 import numpy as np
@@ -40,6 +47,7 @@ from omegaconf import DictConfig
 
 from lbo.core.cli import entry
 from lbo.core.errors import LboError
+from lbo.models.envelope import check_mode
 from lbo.scoring.metrics import PAPER_REFERENCE, nrmse, rmse
 from lbo.sim.logcheck import (
     MAX_GAP,
@@ -76,7 +84,7 @@ def observe(cfg: DictConfig) -> dict[str, Any]:
     and, when the log holds the true state, ``rmse`` (3,) (m, m, rad) and ``nrmse``.
     """
     from lbo.filters.classical import OBSERVERS as CLASSICAL
-    from lbo.serve.observer import Observer
+    from lbo.serve.observer import EnvelopeWarning, Observer
     from lbo.sim.noise import Noise
     from lbo.sim.vehicle import Vehicle
 
@@ -108,13 +116,21 @@ def observe(cfg: DictConfig) -> dict[str, Any]:
     truth = check_log(df, where, fmt.heading)
 
     vehicle, noise = Vehicle.from_cfg(cfg.vehicle), Noise.from_cfg(cfg.noise)
-    kw = {"alpha": alpha, "features": cfg.get("features"), "device": device}
+    mode = check_mode(cfg.get("envelope", "warn"))
+    kw = {"alpha": alpha, "features": cfg.get("features"), "device": device,
+          "envelope_mode": mode}
     obs = Observer.load(name, vehicle if classical else None, noise if classical else None,
                         form=form, **kw)
+    if obs.kind == "learned" and vehicle.delta_max > obs.vehicle.delta_max:
+        # the steering limit the log is checked against (a car whose lock is past the
+        # checkpoint's): the model stays the checkpoint's, and rows beyond the steering it was
+        # trained on are flagged by its envelope
+        obs.vehicle = dataclasses.replace(obs.vehicle, delta_max=vehicle.delta_max)
     if smooth and form is None and obs.form == "window" and getattr(obs.net, "physical", False):
         # the form that has a filter to smooth, from the net already read
         obs = Observer(obs.name, obs.vehicle, obs.noise, net=obs.net, alpha=alpha,
-                       engine=obs.engine, device=device, meta=obs.meta, form="recursive")
+                       engine=obs.engine, device=device, meta=obs.meta, form="recursive",
+                       envelope_mode=mode)
     check_steering(df, obs.vehicle, where)
     check_time_unit(df["t"].to_numpy(dtype=float), obs.dt, where)
     columns = LOG_COLUMNS[1:] + (TRUTH_COLUMNS if truth else ())
@@ -124,7 +140,10 @@ def observe(cfg: DictConfig) -> dict[str, Any]:
 
     m = df[["x_m", "y_m", "psi_m"]].to_numpy(dtype=float)
     u = df[["V", "delta"]].to_numpy(dtype=float)
-    est, valid, cov = obs.run(m, u, source=where, cov=True, smooth=smooth)
+    with warnings.catch_warnings():  # said below, one line per field
+        warnings.simplefilter("ignore", EnvelopeWarning)
+        est, valid, cov = obs.run(m, u, source=where, cov=True, smooth=smooth)
+    envelope = obs.check_envelope(m, u) if mode != "off" else None
     result: dict[str, Any] = {"output": output, "observer": obs.name, "rows": len(df),
                               "valid": int(valid.sum())}
     if truth:
@@ -136,6 +155,8 @@ def observe(cfg: DictConfig) -> dict[str, Any]:
     if obs.gives_covariance:
         for name_, (i, j) in zip(COVARIANCE_COLUMNS, ((0, 0), (1, 1), (2, 2), (0, 1))):
             out[name_] = cov[:, i, j]
+    if envelope is not None:  # the fields of the training envelope each row is outside of
+        out["outside"] = envelope.reasons()
     if origin is not None:  # the estimate where the log's positions were: degrees
         out["lat"], out["lon"] = origin.to_geodetic(est[:, 0], est[:, 1])
     write_table(out, output)
@@ -164,10 +185,22 @@ def observe(cfg: DictConfig) -> dict[str, Any]:
         if asked != (obs.vehicle, obs.noise.process_sigma, obs.noise.measurement_sigma):
             print("note: a learned observer keeps its checkpoint's vehicle and noise "
                   f"(noise {obs.noise.name}, wheelbase {obs.vehicle.wheelbase:g} m); "
-                  "vehicle= and noise= apply to the classical observers")
+                  "vehicle= and noise= apply to the classical observers (a larger "
+                  "vehicle.delta_max widens the steering check)")
+        if obs.envelope is None:
+            print(f"envelope: not checked ({obs.name}'s checkpoint predates lbo storing the "
+                  "range of its training inputs)")
+        elif envelope is not None and envelope.outside.any():
+            flag = ("marked valid=false" if mode == "mark" else
+                    "still valid: envelope=mark marks them invalid")
+            for line in envelope.summary(obs.envelope, u):
+                print(f"warning: {line}")
+            print(f"envelope: {int(envelope.outside.sum())} rows outside what {obs.name} was "
+                  f"trained on ({flag}; column outside names the fields)")
     if result["valid"] < len(df):
         print(f"valid: {result['valid']} of {len(df)} rows; the others (before the first fix, "
-              "or a learned observer's window not yet full) are not scored")
+              "a learned observer's window not yet full, or outside its envelope with "
+              "envelope=mark) are not scored")
     if truth and not valid.any():
         print(f"rmse: no valid row to score (the log is shorter than the window, "
               f"N={obs.window})")

@@ -11,6 +11,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
 
@@ -119,6 +120,28 @@ def datamodule(cfg: DictConfig, folder: Path, built: Built | None = None):
                           device=data_device(cfg), fix_periods=periods, **noise)
     dm.setup("fit")
     return dm
+
+
+def training_envelope(cfg: DictConfig, dm) -> dict[str, Any]:
+    """The envelope of the training inputs of data module ``dm`` (set up), as a checkpoint
+    stores it (:class:`~lbo.models.envelope.Envelope`): the rows' speed and steering, the
+    noise scale the windows were drawn at (the data set's for stored noise; unknown for real
+    logs) and the steps between fixes."""
+    from lbo.models.envelope import Envelope
+
+    x = dm.train_set.x.cpu().numpy()  # (R, 5) [x_m, y_m, psi_m, V, delta]
+    if dm.draw is not None:
+        alpha = dm.draw.bounds
+    else:
+        a = (cfg.data.get("train") or {}).get("alpha") if cfg.data.get("kind") != "logs" \
+            else None
+        alpha = None if a is None else (float(a), float(a))
+    if dm.fix_periods:
+        period = (float(min(dm.fix_periods)), float(max(dm.fix_periods)))
+    else:  # as stored: every step, or a user's logs with GNSS slower than the inputs
+        fixes = max(int(np.isfinite(x[:, :2]).all(1).sum()), 1)
+        period = (len(x) / fixes,) * 2
+    return Envelope.from_training(x[:, 3:5], alpha, period).to_dict()
 
 
 def data_device(cfg: DictConfig) -> str:

@@ -79,6 +79,15 @@ class AlphaDraw:
         levels = torch.tensor(self.levels, dtype=torch.float64, device=dev)
         return levels[(r * len(levels)).long().clamp_max(len(levels) - 1)]
 
+    @property
+    def bounds(self) -> tuple[float, float]:
+        """The smallest and largest alpha this draw gives."""
+        if self.distribution == "fixed":
+            return float(self.alpha), float(self.alpha)
+        if self.distribution == "levels":
+            return float(min(self.levels)), float(max(self.levels))
+        return float(self.low), float(self.high)
+
     @classmethod
     def from_cfg(cls, cfg) -> AlphaDraw:
         """From the Hydra group ``train_noise``."""

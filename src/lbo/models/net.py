@@ -6,6 +6,7 @@ buffers, so they travel in every checkpoint) and the network itself.
 
 from __future__ import annotations
 
+import numbers
 from typing import Any
 
 import torch
@@ -27,6 +28,11 @@ CHECKPOINT_FORMAT = 1
 refuses checkpoints it cannot read."""
 
 _STD_FLOOR = 1e-6
+
+MAX_WINDOW = 10_000
+"""The longest window a net is built for (200 s at 50 Hz; lbo's longest is 400 steps). The
+window sizes the streaming state and ring buffers, so a checkpoint that names a larger one is
+refused before anything is allocated."""
 
 
 SCALINGS = ("standard", "minmax")
@@ -58,6 +64,10 @@ class WindowNet(nn.Module):
                  fixes: bool = False, **model_kwargs: Any) -> None:
         super().__init__()
         self.features = check_mode(features)
+        if not (isinstance(window, numbers.Integral) and not isinstance(window, bool)
+                and 1 <= window <= MAX_WINDOW):
+            raise LboError(f"window: expected an integer number of steps in [1, {MAX_WINDOW}], "
+                           f"got {window!r}")
         self.window = int(window)
         self.fixes = bool(fixes)
         channels = 6 if self.fixes else 5

@@ -29,6 +29,7 @@ import contextlib
 import os
 import re
 import tempfile
+import warnings
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -40,6 +41,7 @@ from lbo.core.errors import LboError
 from lbo.core.paths import tracking_uri
 from lbo.filters import classical
 from lbo.filters.classical import OBSERVERS as CLASSICAL
+from lbo.models.envelope import Envelope, EnvelopeCheck, check_mode
 from lbo.models.features import window_view
 from lbo.sim.logcheck import (
     check_alpha,
@@ -114,20 +116,30 @@ class Estimate(_Pair):
     - ``"no fix in the last N steps (... s): ..."``: a learned observer trained with
       ``fix_rates`` whose window holds no fix has nothing to anchor its estimate to (state
       NaN); estimates resume with the next fix;
-    - ``"the network's estimate is not finite ..."``: a net with NaN or inf weights.
+    - ``"the network's estimate is not finite ..."``: a net with NaN or inf weights;
+    - ``"outside the training envelope: ..."``: with ``envelope_mode="mark"``, a sample beyond
+      what a learned observer was trained on (:mod:`lbo.models.envelope`).
     """
 
     reason: str | None = None
     cov: np.ndarray
     """(3, 3) covariance of ``state`` (m^2, m rad, rad^2): the filter's own P; NaN for an
     observer that gives none (the CNN and the LSTM)."""
+    outside: tuple[str, ...] = ()
+    """The fields of the training envelope this sample lies outside (``("speed",)``), in
+    every envelope mode but ``"off"``; () inside, or without an envelope."""
 
     def __new__(cls, state: np.ndarray, valid: bool, reason: str | None = None,
-                cov: np.ndarray | None = None) -> Estimate:
+                cov: np.ndarray | None = None, outside: tuple[str, ...] = ()) -> Estimate:
         self = super().__new__(cls, state, valid)
         self.reason = None if valid else (reason or "the estimate is not finite")
         self.cov = np.full((3, 3), np.nan) if cov is None else cov
+        self.outside = outside
         return self
+
+
+class EnvelopeWarning(UserWarning):
+    """A learned observer was given samples outside the envelope of its training inputs."""
 
 
 # --------------------------------------------------------------------------- streaming filters
@@ -295,12 +307,18 @@ class Observer:
         :data:`FORMS`; ``"window"`` for the CNN and the LSTM; None for classical observers.
     meta : the checkpoint's metadata (data set, data hash, seed, ...), {} for classical.
     net : the :class:`~lbo.models.net.WindowNet`, or None.
+    envelope : the :class:`~lbo.models.envelope.Envelope` of the inputs a learned observer was
+        trained on (its checkpoint's), or None (classical, or a checkpoint from before lbo
+        stored it).
+    envelope_mode : what :meth:`step` and :meth:`run` do with samples outside ``envelope``
+        (:data:`lbo.models.envelope.MODES`): ``"warn"`` (an :class:`EnvelopeWarning`),
+        ``"mark"`` (also ``valid=False`` there) or ``"off"``.
     """
 
     def __init__(self, name: str, vehicle: Vehicle | None = None, noise: Noise | None = None,
                  *, net: Any = None, alpha: float = 1.0, engine: str = "torch",
                  device: str = "cpu", meta: dict[str, Any] | None = None,
-                 form: str | None = None) -> None:
+                 form: str | None = None, envelope_mode: str = "warn") -> None:
         self.name = name
         self.vehicle = vehicle or Vehicle()
         self.noise = noise or Noise.preset("paper")
@@ -324,7 +342,24 @@ class Observer:
             # Ring buffer written twice (rows i and i+N): the last N samples are always the
             # contiguous rows i+1 .. i+N, so a window is a view, never a copy or a roll.
             self._ring = np.zeros((2 * self.window, 5))
+        self.envelope = _stored_envelope(name, self.meta) if net is not None else None
+        self.envelope_mode = check_mode(envelope_mode)
+        self._envelope = (self.envelope.stream(**self._envelope_terms())
+                          if self.envelope is not None and self.envelope_mode != "off" else None)
         self.reset()
+
+    def _envelope_terms(self) -> dict[str, float]:
+        sx, sy = self.noise.measurement_sigma[:2]
+        return {"dt": self.vehicle.dt, "wheelbase": self.vehicle.wheelbase,
+                "sigma": float(np.sqrt((sx ** 2 + sy ** 2) / 2)), "window": self.window}
+
+    def check_envelope(self, m: np.ndarray, u: np.ndarray) -> EnvelopeCheck | None:
+        """Which rows of a log (``m`` (T, 3), ``u`` (T, 2)) lie outside the envelope of the
+        observer's training inputs; None where there is no envelope to check."""
+        if self.envelope is None:
+            return None
+        return self.envelope.check(np.asarray(m, dtype=float), np.asarray(u, dtype=float),
+                                   **self._envelope_terms())
 
     @property
     def takes_missing_fixes(self) -> bool:
@@ -349,7 +384,8 @@ class Observer:
     @classmethod
     def load(cls, source: str | os.PathLike, vehicle: Vehicle | None = None,
              noise: Noise | None = None, *, alpha: float = 1.0, features: str | None = None,
-             engine: str = "torch", device: str = "cpu", form: str | None = None) -> Observer:
+             engine: str = "torch", device: str = "cpu", form: str | None = None,
+             envelope_mode: str = "warn") -> Observer:
         """Load an observer.
 
         Parameters
@@ -371,6 +407,8 @@ class Observer:
         device : torch device of a learned observer (``"cpu"``, ``"cuda"``, ``"cuda:<n>"``),
             checked (and CUDA asked for) before any checkpoint is read.
         form : how a window filter runs (:data:`FORMS`); None: :func:`default_form`.
+        envelope_mode : ``"warn"``, ``"mark"`` or ``"off"``: what to do with samples outside
+            the envelope of a learned observer's training inputs (see :class:`Observer`).
 
         Raises
         ------
@@ -383,6 +421,7 @@ class Observer:
         alpha = check_alpha(alpha)
         if form is not None and form not in FORMS:
             raise LboError(f"form must be one of {list(FORMS)} or null, got {form!r}")
+        check_mode(envelope_mode)
         device = check_device(device, probe=source not in classical.NAMES)
         if source in classical.NAMES:
             classical.check(source)  # pcrb: a bound, not an observer
@@ -396,7 +435,8 @@ class Observer:
                            f"dt={trained.dt:g} s; resample the data to {trained.dt:g} s")
         return cls(f"{hp['model']['name']}-N{hp['window']}", vehicle or trained,
                    noise or trained_noise, net=net, alpha=alpha,
-                   engine=engine, device=device, meta={**meta, "source": source}, form=form)
+                   engine=engine, device=device, meta={**meta, "source": source}, form=form,
+                   envelope_mode=envelope_mode)
 
     @classmethod
     def from_net(cls, net: Any, vehicle: Vehicle | None = None, noise: Noise | None = None,
@@ -418,6 +458,9 @@ class Observer:
         self._last_fix: int | None = None
         self._u_prev: np.ndarray | None = None
         self._filter.reset()
+        self._warned: set[str] = set()
+        if self._envelope is not None:
+            self._envelope.reset()
         if self.net is not None:
             self._ring[:] = 0.0
             if self._pads:
@@ -461,7 +504,7 @@ class Observer:
         loop, run torch on one thread (``torch.set_num_threads(1)``) or use ``engine="onnx"``
         (one thread already).
         """
-        k, n = self._count, self.window
+        k = self._count
         try:
             u = np.asarray(input, dtype=float).reshape(2)
             m = (None if measurement is None
@@ -479,6 +522,23 @@ class Observer:
                                "(experiment=robust) or a classical one")
             m = np.full(3, np.nan)
         # checked: from here on the sample is taken
+        outside = self._envelope(m, u) if self._envelope is not None else ()
+        est = self._take(k, m, u, fix)
+        if not outside:
+            return est
+        why = "outside the training envelope: " + ", ".join(
+            self.envelope.describe(f) for f in outside)
+        if self.envelope_mode == "mark":
+            return Estimate(est.state, False, why if est.valid else est.reason, est.cov, outside)
+        new = [f for f in outside if f not in self._warned]
+        if new:  # once per field until reset: a control loop is not flooded
+            self._warned.update(new)
+            warnings.warn(f"{self.name}: step {k}: {why}", EnvelopeWarning, stacklevel=2)
+        return Estimate(est.state, est.valid, est.reason, est.cov, outside)
+
+    def _take(self, k: int, m: np.ndarray, u: np.ndarray, fix: bool) -> Estimate:
+        """The estimate at step ``k`` of a checked sample (``m`` (3,), NaN without a fix)."""
+        n = self.window
         if self.form == "recursive":
             self._count += 1
             pose, cov, self._state = self._step_fn(m[None], u[None], self._state)
@@ -537,8 +597,10 @@ class Observer:
         -------
         est : (T, 3) ``[x, y, psi]``, psi in (-pi, pi]; the same numbers as T calls of
             :meth:`step` after :meth:`reset`.
-        valid : (T,) bool, False on the first N-1 rows of a CNN or LSTM (EKF fallback), and
-            where the estimate is not finite (before the first fix).
+        valid : (T,) bool, False on the first N-1 rows of a CNN or LSTM (EKF fallback),
+            where the estimate is not finite (before the first fix), and with
+            ``envelope_mode="mark"`` on the rows outside the training envelope (see
+            :meth:`check_envelope`; ``"warn"`` gives one :class:`EnvelopeWarning` instead).
         covariance : (T, 3, 3), only with ``cov=True``: each estimate's covariance (the
             filter's P), NaN where the observer gives none (a CNN's or LSTM's windows).
 
@@ -614,6 +676,14 @@ class Observer:
         valid = np.isfinite(est).all(1)
         if self.form == "window" and not self._pads:
             valid &= np.arange(t) >= self.window - 1
+        if self._envelope is not None:  # an envelope, and a mode other than off
+            check = self.check_envelope(m, u)
+            if self.envelope_mode == "mark":
+                valid &= ~check.outside
+            elif check.outside.any():
+                warnings.warn(f"{self.name}{' on ' + source if source else ''}: "
+                              + "; ".join(check.summary(self.envelope, u)), EnvelopeWarning,
+                              stacklevel=2)
         covs[~valid] = np.nan
         return (est, valid, covs) if cov else (est, valid)
 
@@ -727,6 +797,18 @@ def trained_conditions(hp: dict[str, Any], path: str | os.PathLike) -> tuple[Veh
             raise LboError(f"checkpoint {path}: its stored {e}") from None
         raise LboError(f"checkpoint {path}: no usable meta.noise ({e})") from None
     return vehicle, noise
+
+
+def _stored_envelope(name: str, meta: dict[str, Any]) -> Envelope | None:
+    """The training envelope in a checkpoint's metadata, None for one written before lbo
+    stored it; one line naming the observer for a damaged one."""
+    stored = meta.get("envelope")
+    if stored is None:
+        return None
+    try:
+        return Envelope.from_dict(stored)
+    except LboError as e:
+        raise LboError(f"observer {name}: its stored {e}") from None
 
 
 @contextlib.contextmanager
