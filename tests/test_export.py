@@ -60,6 +60,9 @@ def test_export_cli_files_match_pytorch(tmp_path, checkpoint, windows):
     assert (meta["window"], meta["dt"], meta["features"]) == (20, 0.02, "relative")
     assert meta["input"]["columns"] == ["x_m", "y_m", "psi_m", "V", "delta"]
     assert meta["noise"]["name"] == "paper"
+    # the control loop can check its inputs against what the observer was trained on
+    assert meta["envelope"] == Observer.load(checkpoint).envelope.to_dict()
+    assert meta["envelope"]["alpha"] == [1.0, 1.0]
 
     net = Observer.load(checkpoint).net
     script = torch.jit.load(str(folder / "cnn-N20.pt"))

@@ -209,6 +209,8 @@ def _sidecar(observer: Any, net: Any, name: str, diff: dict[str, float],
         "max_abs_diff_to_pytorch": diff,
         "source": observer.meta.get("source"),
         "data_hash": observer.meta.get("data_hash"),
+        # the range of inputs it was trained on (lbo.models.envelope), for the loop to check
+        "envelope": observer.envelope.to_dict() if observer.envelope is not None else None,
         "files": {k: p.name for k, p in paths.items() if k != "json"},
     }
 
