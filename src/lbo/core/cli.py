@@ -9,6 +9,8 @@ from __future__ import annotations
 import contextlib
 import importlib.util
 import logging
+import os
+import sqlite3
 import sys
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -33,6 +35,78 @@ def os_error(e: OSError) -> LboError:
     text = str(e).strip()
     reason = e.strerror or (text.splitlines()[0] if text else type(e).__name__)
     return LboError(f"{where}: {reason}" if where else reason)
+
+
+def sqlite_damage(path: Path) -> str | None:
+    """Why the SQLite file ``path`` is not a database that can be read (``file is not a
+    database``, ``database disk image is malformed``), or None: it reads, or is missing or
+    empty (MLflow and Optuna create an empty one). Reads the schema only, so it costs
+    milliseconds whatever the store's size; a lock or a busy writer is not damage."""
+    try:
+        if not path.is_file() or path.stat().st_size == 0:
+            return None
+        with contextlib.closing(sqlite3.connect(path, timeout=10)) as db:
+            db.execute("SELECT count(*) FROM sqlite_master").fetchone()
+    except sqlite3.OperationalError:  # locked, or cannot be opened: not the file's contents
+        return None
+    except sqlite3.DatabaseError as e:  # SQLITE_NOTADB, SQLITE_CORRUPT
+        return str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+    except OSError:
+        return None
+    return None
+
+
+def damaged_store_message(field: str, path: Path, reason: str) -> str:
+    """The one line for a damaged SQLite tracking store, with advice that works when
+    followed: restore the file, or move it aside so that lbo starts a new store there."""
+    return (f"{field}: the SQLite tracking store {path} is damaged ({reason}); restore it "
+            f"from a backup, or move it aside (mv {path} {path}.damaged) and the next lbo "
+            "command starts a new, empty store there (the runs it held are then not found)")
+
+
+def _database_errors(err: BaseException) -> list[BaseException]:
+    """The SQLite / SQLAlchemy database errors in ``err``'s chain (its causes and contexts),
+    outermost first; SQLAlchemy's wrapper is followed to the driver's own error (``orig``)."""
+    found, seen = [], set()
+    stack: list[BaseException | None] = [err]
+    while stack:
+        e = stack.pop()
+        if e is None or id(e) in seen:
+            continue
+        seen.add(id(e))
+        if isinstance(e, sqlite3.DatabaseError) or type(e).__module__.startswith("sqlalchemy"):
+            found.append(e)
+        stack += [getattr(e, "orig", None), e.__cause__, e.__context__]
+    return found
+
+
+def store_error(err: BaseException, cfg: DictConfig | None) -> LboError | None:
+    """An error from a damaged SQLite tracking store as one line naming the store and how to
+    fix it; None for any other error (it stays a traceback: a bug, not bad input).
+
+    The store is the one ``cfg`` logs to (``logger.tracking_uri``) or the one lbo reads runs
+    from (``MLFLOW_TRACKING_URI``, else the repo's ``mlflow.db``); the one whose schema no
+    longer reads is named. An Optuna ``optuna.db`` is opened, and its damage reported, by
+    :func:`lbo.tracking.study_storage.open_storage`."""
+    from lbo.core.paths import sqlite_path, tracking_uri
+
+    errors = _database_errors(err)
+    if not errors:
+        return None
+    logger = cfg.get("logger") if cfg is not None else None
+    candidates = []
+    if logger and logger.get("tracking_uri"):
+        candidates.append((str(logger.tracking_uri), "logger.tracking_uri"))
+    candidates.append((tracking_uri(), "MLFLOW_TRACKING_URI"
+                       if os.environ.get("MLFLOW_TRACKING_URI") else "tracking store"))
+    for uri, field in candidates:
+        path = sqlite_path(uri)
+        reason = sqlite_damage(path) if path is not None else None
+        if reason is not None:
+            if os.environ.get("MLFLOW_TRACKING_URI") == uri:
+                field = "MLFLOW_TRACKING_URI"
+            return LboError(damaged_store_message(field, path, reason))
+    return None
 
 
 class _Scrubbed:
@@ -76,14 +150,16 @@ def scrub_logs() -> None:
             handler.addFilter(_ScrubRecords())
 
 
-def entry(config_name: str, run: Callable[[DictConfig], Any]) -> Callable[[], Any]:
+def entry(config_name: str, run: Callable[[DictConfig], Any],
+          guard: Callable[[DictConfig], None] | None = None) -> Callable[[], Any]:
     """A ``@hydra.main`` around ``run(cfg)`` composing ``conf/<config_name>.yaml``.
 
     ``run``'s return value goes back to Hydra (a sweeper's objective); an LboError or an
     OSError becomes ``error: <message>`` on stderr and exit code 2. A launcher plugin named on
     the command line that is not installed is reported the same way, before Hydra composes
     anything. The job holds its run folder's lock and writes its ``.hydra`` files, without
-    passwords, before ``run`` starts.
+    passwords, before ``run`` starts; ``guard(cfg)``, if given, runs before those files are
+    written, to refuse a run folder that holds another run's (raise an LboError).
     """
 
     @hydra.main(version_base="1.3", config_path=str(CONF_DIR), config_name=config_name)
@@ -98,12 +174,21 @@ def entry(config_name: str, run: Callable[[DictConfig], Any]) -> Callable[[], An
             if folder.resolve() == Path.cwd().resolve():
                 return run(cfg)  # observe, export: they write their outputs and nothing else
             with claim(folder, "run folder"):
+                if guard is not None:
+                    guard(cfg)
                 save_hydra_files(cfg)
                 return run(cfg)
         except LboError as e:
             fail(e)
         except OSError as e:
             fail(os_error(e))
+        except Exception as e:
+            # a damaged tracking store fails deep inside MLflow's SQLAlchemy store (opening
+            # it, looking a run up): one line naming the store, not pages of SQL
+            known = store_error(e, cfg)
+            if known is None:
+                raise
+            fail(known)
 
     def checked() -> Any:
         with scrubbed_output():

@@ -15,10 +15,13 @@ from typing import Any
 
 MASK = "***"
 
-# scheme://user:password@  (the password runs to the last @ before the host; URIs percent-encode
-# an @ inside it, but a raw one is masked whole as well)
+# scheme://user:password@host. The password runs to the LAST @ of the URI before the host: a
+# generated password may hold / : and even a raw @, which SQLAlchemy, psycopg and requests
+# accept unencoded, so the secret is everything from the user's ':' to that @ (a URI is one
+# token: it ends at white space or a quote). A URI whose path holds an @ (rare) is masked
+# from its port on: more than needed, never less.
 _USERINFO = re.compile(r"(?P<head>\b[A-Za-z][A-Za-z0-9+.\-]*://[^:/@\s'\"]*:)"
-                       r"(?P<secret>[^\s'\"/]*)(?P<at>@)(?=[^@\s'\"/]*(?:[/?#\s'\"]|$))")
+                       r"(?P<secret>[^\s'\"]*)(?P<at>@)(?=[^@\s'\"]*(?:[\s'\"]|$))")
 
 
 # ?password=...&  (libpq and SQLAlchemy also take the password as a query parameter)

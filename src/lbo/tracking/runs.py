@@ -65,8 +65,9 @@ def store_field(uri: str, field: str = "logger.tracking_uri") -> str:
 
 def check_store(uri: str, field: str = "logger.tracking_uri") -> None:
     """Raise one line unless the MLflow tracking store ``uri`` can be used: a scheme MLflow
-    knows, a server that answers, a SQLite file whose folder exists and can be written, a
-    database that accepts a connection. Passwords never appear in the line."""
+    knows, a server that answers, a SQLite file whose folder exists and can be written and
+    that reads as a database, a database that accepts a connection. Passwords never appear
+    in the line."""
     from urllib.parse import urlparse
 
     field = store_field(uri, field)
@@ -84,6 +85,7 @@ def check_store(uri: str, field: str = "logger.tracking_uri") -> None:
         if path is None:
             raise LboError(f"{field}: {shown!r} names no SQLite file (give sqlite:///<file>)")
         _check_writable(path, field)
+        _check_intact(path, field)
     elif scheme in ("postgresql", "mysql", "mssql"):
         _check_database(uri, field)
 
@@ -99,6 +101,16 @@ def _check_writable(path, field: str) -> None:
         what = "file" if target == path else "folder"
         raise LboError(f"{field}: cannot write the SQLite store {path} (its {what} is "
                        "read-only); point MLFLOW_TRACKING_URI at a folder you can write")
+
+
+def _check_intact(path: Path, field: str) -> None:
+    """Refuse a SQLite store whose file is not a database (overwritten, truncated): MLflow's
+    SQLAlchemy store would fail on it with pages of SQL, after the run had started."""
+    from lbo.core.cli import damaged_store_message, sqlite_damage
+
+    reason = sqlite_damage(path)
+    if reason is not None:
+        raise LboError(damaged_store_message(field, path, reason))
 
 
 def _check_database(uri: str, field: str) -> None:
