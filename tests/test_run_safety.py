@@ -142,7 +142,8 @@ def test_a_run_planted_in_the_store_cannot_steer_resume(tmp_path, smoke_data, tr
     torch.save(ckpt, last)
     # the planted run in the victim's store: this config's hash, that folder, RUNNING
     client = mlflow.MlflowClient(tracking)
-    exp = client.create_experiment(victim.logger.experiment_name)
+    exp = client.create_experiment(victim.logger.experiment_name,
+                                   artifact_location=(tmp_path / "artifacts").as_uri())
     run = client.create_run(exp, tags={"config_hash": digest}, run_name="cnn-N20")
     client.log_param(run.info.run_id, "output_dir", str(planted))
     before = snapshot(tmp_path / "planted")
