@@ -36,6 +36,7 @@ from lbo.learn.builders import (
     logs_spec,
     prepare_data,
     say_fresh,
+    training_envelope,
 )
 from lbo.models.features import FEATURE_MODES
 from lbo.models.net import check_scaling
@@ -437,7 +438,8 @@ def _fit(cfg: DictConfig, built: Built, callbacks: list[L.Callback] | None,
     folder, data_hash = prepare_data(cfg)
     dm = datamodule(cfg, folder, built)
     module = TrainingModule(OmegaConf.to_container(cfg.model, resolve=True), cfg.window,
-                            cfg.features, instantiate(cfg.optimizer), meta(cfg, data_hash),
+                            cfg.features, instantiate(cfg.optimizer),
+                            {**meta(cfg, data_hash), "envelope": training_envelope(cfg, dm)},
                             cfg.get("lr_schedule", "constant"), bool(built.fix_periods),
                             net=built.net)
     module.observer.set_normalisation(**dm.normalisation(cfg.features, cfg.normalisation))
