@@ -59,6 +59,38 @@ class Origin:
                                            0.0, self.lat, self.lon, 0.0)
         return np.asarray(lat), np.asarray(lon)
 
+    def heading_from(self, psi: np.ndarray, lat: np.ndarray, lon: np.ndarray) -> np.ndarray:
+        """Headings in this origin's frame (T,) rad, of headings ``psi`` (T,) rad counter-
+        clockwise from the local east at each point (lat, lon) (T,) degrees.
+
+        The local east and north turn with the point: near a pole, a few hundred metres
+        east of the origin, the local north leans by tens of degrees from the frame's y axis
+        (the meridians converge). The heading's direction is projected onto the origin's
+        tangent plane (pymap3d, WGS84), exactly; the result stays on ``psi``'s branch (the
+        turn is added to it), and NaN stays NaN."""
+        return _turn(psi, lat, lon, self, to_origin=True)
+
+    def heading_at(self, psi: np.ndarray, lat: np.ndarray, lon: np.ndarray) -> np.ndarray:
+        """The reverse of :meth:`heading_from`: headings ``psi`` (T,) rad in this origin's frame
+        -> counter-clockwise from the local east at each point (lat, lon) (T,) degrees (for a
+        compass bearing there: ``pi/2 -`` the result)."""
+        return _turn(psi, lat, lon, self, to_origin=False)
+
+
+def _turn(psi: np.ndarray, lat: np.ndarray, lon: np.ndarray, origin: Origin,
+          to_origin: bool) -> np.ndarray:
+    """``psi`` (T,) turned between the local ENU frame at each (lat, lon) (T,) and the
+    origin's: the direction vector taken to ECEF and back (pymap3d), its angle in the target
+    frame's horizontal plane; the difference to ``psi``, wrapped, added to ``psi``."""
+    import pymap3d
+
+    psi, lat, lon = (np.asarray(a, float) for a in (psi, lat, lon))
+    frames = ((lat, lon), (origin.lat, origin.lon))
+    (lat_a, lon_a), (lat_b, lon_b) = frames if to_origin else frames[::-1]
+    x, y, z = pymap3d.enu2ecefv(np.cos(psi), np.sin(psi), 0.0, lat_a, lon_a)
+    east, north, _ = pymap3d.ecef2enuv(x, y, z, lat_b, lon_b)
+    return psi + wrap_angle(np.arctan2(north, east) - psi)
+
 
 def to_local(lat: np.ndarray, lon: np.ndarray, origin: Origin) -> tuple[np.ndarray, np.ndarray]:
     """Local (east, north) metres (T,) of geodetic (lat, lon) degrees (T,) around ``origin``,
@@ -159,25 +191,38 @@ class LogFormat:
             out = df[keep].rename(columns={v: k for k, v in self.columns.items()})
         else:
             out = df.copy()
-        origin = self._geodetic(out, source)
+        origin, places = self._geodetic(out, source)
         for col, kind in (("V", "V"), ("psi_m", "psi"), ("psi", "psi"), ("delta", "delta")):
             unit = self.units.get(kind)
             factor = (SPEED_UNITS if kind == "V" else ANGLE_UNITS).get(unit, 1.0) \
                 if unit else 1.0
             if col == "delta":
                 factor /= self.steering_ratio
-            convert = factor != 1.0 or (kind == "psi" and self.heading == "compass")
+            convert = factor != 1.0 or (kind == "psi" and (self.heading == "compass"
+                                                           or col in places))
             if col not in out.columns or not convert:
                 continue
             values = _numeric(out, col, source) * factor
             if kind == "psi" and self.heading == "compass":  # clockwise from north -> ENU
                 values = wrap_angle(math.pi / 2 - values)
+            if col in places:  # from the local east at each fix to the first fix's east
+                lat, lon = places[col]
+                known = np.isfinite(lat) & np.isfinite(lon)
+                # a heading without a place is a partial fix, refused by the checks as such
+                values = np.where(known, origin.heading_from(values, np.where(known, lat, 0.0),
+                                                             np.where(known, lon, 0.0)), values)
             out[col] = values
         return out, origin
 
-    def _geodetic(self, out: pd.DataFrame, source: str) -> Origin | None:
-        """Replace ``lat, lon`` (and ``lat_true, lon_true``) in ``out`` by local metres."""
+    def _geodetic(self, out: pd.DataFrame, source: str) -> tuple[Origin | None, dict]:
+        """Replace ``lat, lon`` (and ``lat_true, lon_true``) in ``out`` by local metres.
+
+        Returns the origin (None: no geodetic positions) and, for each heading column
+        (``psi_m``, ``psi``), the (lat, lon) (T,) degrees whose local east it was measured
+        from: the fixes' for ``psi_m``, the true positions' for ``psi`` (the fixes', filled
+        in between them, when the log has no true lat/lon)."""
         origin = None
+        places: dict[str, tuple[np.ndarray, np.ndarray]] = {}
         for lat_c, lon_c, east_c, north_c in GEODETIC:
             has = [c in out.columns for c in (lat_c, lon_c)]
             if not any(has):
@@ -206,7 +251,17 @@ class LogFormat:
             out.drop(columns=[lat_c, lon_c], inplace=True)
             out.insert(at, east_c, e)
             out.insert(at + 1, north_c, n)
-        return origin
+            places["psi_m" if lat_c == "lat" else "psi"] = (lat, lon)
+        if "psi_m" in places and "psi" not in places:
+            lat, lon = places["psi_m"]
+            rows = np.arange(len(lat))
+            fixed = np.isfinite(lat) & np.isfinite(lon)
+            # the meridians' turn varies smoothly along the path: interpolate it by row (lon
+            # unwrapped so that a path across the antimeridian interpolates the short way)
+            lon_u = np.degrees(np.unwrap(np.radians(lon[fixed])))
+            places["psi"] = (np.interp(rows, rows[fixed], lat[fixed]),
+                             np.interp(rows, rows[fixed], lon_u))
+        return origin, places
 
 
 def _numeric(df: pd.DataFrame, col: str, source: str) -> np.ndarray:
