@@ -31,9 +31,24 @@ POSITION_LIMIT = 1e7
 """Largest |x|, |y| (m): positions are metres in a local frame, not degrees nor UTM in mm."""
 SPEED_LIMIT = 100.0
 """Largest |V| (m/s)."""
+HEADING_LIMIT = 1e6
+"""Largest |heading| (rad) of a log: a heading may sit on any branch (a logger that
+accumulates it passes 2 pi after one lap), but beyond this float64 no longer resolves it."""
+YAW_RATE_LIMIT = 2.0
+"""Fastest heading change (rad/s) of a car between two headings a :data:`RATE_SPAN` apart:
+full lock at walking pace turns a 2.7 m car at about 1 rad/s, and 2 rad/s at 10 m/s would be
+20 m/s^2 of lateral acceleration. Heading noise (17.4 mrad at alpha = 1, 0.1 rad at alpha = 6)
+adds less than 0.3 rad/s over half a second."""
+RATE_SPAN = 0.5
+"""s between the two headings of a pair that :func:`check_heading_unit` compares; pairs are
+at most twice that apart (a change of at most pi over a longer span could never exceed the
+limit)."""
 DEGREES_SHARE = 0.01
-"""A heading column with more than this share of rows beyond 2 pi looks like degrees; fewer
-are outliers, named by row."""
+"""A heading column that turns faster than :data:`YAW_RATE_LIMIT` over more than this share
+of its pairs, read as rad, looks like degrees (in degrees, a turn of 20 deg/s reads as 20
+rad/s); fewer are noise or glitches."""
+DT = 0.02
+"""Period (s) of a log's rows where no ``t`` is given (lbo's dt)."""
 STEERING_SLACK = 1e-6
 """Relative slack on the steering limit (a delta_max written with rounding)."""
 RANGES = (("x_m", POSITION_LIMIT, "m", "positions are metres in a local frame"),
@@ -145,6 +160,59 @@ def _heading(where: str, column: str, value: float) -> LboError:
                      "rad lies within it")
 
 
+def _wrap(a: np.ndarray) -> np.ndarray:
+    """Angles (any shape) wrapped to (-pi, pi] (as :func:`lbo.sim.vehicle.wrap_angle`)."""
+    return np.pi - np.mod(np.pi - a, 2 * np.pi)
+
+
+def _turn_rates(psi: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """|heading change| / time (rad/s) over pairs of the finite headings ``psi`` (T,) at times
+    ``t`` (T,), strictly increasing: each with the first one at least :data:`RATE_SPAN` later,
+    if that one is at most twice as far. The change is taken the short way round (wrapped),
+    so a heading's branch, and a jump of 2 pi where a logger wraps it, change nothing."""
+    at = np.flatnonzero(np.isfinite(psi))
+    ta = t[at]
+    k = np.searchsorted(ta, ta + RATE_SPAN)
+    ok = k < len(at)
+    i, j = at[ok], at[k[ok]]
+    span = t[j] - t[i]
+    near = span <= 2 * RATE_SPAN
+    return np.abs(_wrap(psi[j[near]] - psi[i[near]])) / span[near]
+
+
+def check_heading_unit(psi: np.ndarray, t: np.ndarray, column: str = "psi_m",
+                       source: str | None = None) -> None:
+    """Refuse a heading column in degrees, told from radians by how fast it turns, not by its
+    range (a heading in rad that a logger accumulates reaches 110 rad after 17 laps).
+
+    psi (T,) rad, NaN where there is none; t (T,) s. Read as rad, a heading in degrees turns
+    57 times too fast: a 20 deg/s turn reads as 20 rad/s, and its changes over half a second
+    (wrapped) spread over the whole circle. A column that turns faster than
+    :data:`YAW_RATE_LIMIT` over more than :data:`DEGREES_SHARE` of its pairs of headings
+    :data:`RATE_SPAN` apart looks like degrees, when in degrees it does not. A ``t`` that is
+    not strictly increasing (refused by :func:`check_time`) is not checked."""
+    t = np.asarray(t, float)
+    if len(t) < 2 or not (np.diff(t) > 0).all():
+        return
+    rates = _turn_rates(psi, t)
+    if len(rates) < 1 / DEGREES_SHARE:  # too few pairs to tell
+        return
+    fast = float(np.mean(rates > YAW_RATE_LIMIT))
+    if fast <= DEGREES_SHARE:
+        return
+    degrees = _turn_rates(np.radians(psi), t)
+    if np.mean(degrees > YAW_RATE_LIMIT) <= DEGREES_SHARE:
+        raise LboError(_at(source, f"column {column!r} looks like degrees: read as rad it "
+                                   f"turns faster than {YAW_RATE_LIMIT:g} rad/s (no car can) in "
+                                   f"{fast:.0%} of its {RATE_SPAN:g} s spans, in degrees at "
+                                   f"most {float(np.max(degrees)):.2g} rad/s; give headings in "
+                                   "rad, or pass units.psi=deg"))
+    raise LboError(_at(source, f"column {column!r} turns faster than {YAW_RATE_LIMIT:g} rad/s "
+                               f"in {fast:.0%} of its {RATE_SPAN:g} s spans, read as rad and "
+                               "as degrees alike: it is not a vehicle's heading (give the "
+                               "heading of the vehicle's axis, in rad)"))
+
+
 def _steering(where: str, value: float, delta_max: float) -> LboError:
     return LboError(f"{where}: delta={value:g} rad is beyond the vehicle's steering limit "
                     f"delta_max={delta_max:g} rad (steering in rad, at the wheels; or set "
@@ -161,7 +229,8 @@ def check_steering(delta: np.ndarray, delta_max: float, source: str | None = Non
 
 
 def check_samples(m: np.ndarray, u: np.ndarray, *, delta_max: float | None = None,
-                  truth: np.ndarray | None = None, source: str | None = None) -> np.ndarray:
+                  truth: np.ndarray | None = None, source: str | None = None,
+                  t: np.ndarray | None = None, dt: float = DT) -> np.ndarray:
     """Check a log's values; return its fix rows (T,) bool.
 
     Parameters
@@ -171,14 +240,17 @@ def check_samples(m: np.ndarray, u: np.ndarray, *, delta_max: float | None = Non
     delta_max : the vehicle's steering limit (rad); None: not checked (yet).
     truth : (T, 3) ``[x, y, psi]`` or None.
     source : prefix of the messages (``"input log.csv"``), None: none.
+    t : (T,) times (s) of the rows, or None: rows ``dt`` apart.
+
+    Headings are rad on any branch (wrapped, or accumulated past 2 pi by a logger).
 
     Raises
     ------
     LboError
         The first of: NaN or inf in V, delta or the truth; inf in a fix; a partial fix; no fix
-        at all; a heading column that looks like degrees (more than 1% of its rows beyond
-        2 pi) or one heading beyond 2 pi; |x_m|, |y_m| (and |x|, |y|) beyond 1e7 m; |V| beyond
-        100 m/s; |delta| beyond ``delta_max``.
+        at all; a heading beyond 1e6 rad; a heading column that looks like degrees by how fast
+        it turns (:func:`check_heading_unit`); |x_m|, |y_m| (and |x|, |y|) beyond 1e7 m; |V|
+        beyond 100 m/s; |delta| beyond ``delta_max``.
     """
     _finite(u, INPUTS, source)
     if truth is not None:
@@ -187,15 +259,14 @@ def check_samples(m: np.ndarray, u: np.ndarray, *, delta_max: float | None = Non
     fix = check_fixes(m, source)
     headings = [("psi_m", m[:, 2], fix)] + ([("psi", truth[:, 2], True)]
                                             if truth is not None else [])
+    times = np.arange(len(m)) * dt if t is None else np.asarray(t, float)
     for c, psi, rows in headings:
-        values = np.abs(psi)
-        beyond = (values > 2 * np.pi) & rows
-        if beyond.mean() > DEGREES_SHARE:
-            raise LboError(_at(source, f"column {c!r} looks like degrees (|{c}| up to "
-                                       f"{np.nanmax(values):g} > 2 pi); give headings in rad"))
+        beyond = (np.abs(psi) > HEADING_LIMIT) & rows
         if beyond.any():
             r = int(np.flatnonzero(beyond)[0])
-            raise _heading(_at(source, f"row {r}"), c, float(psi[r]))
+            raise LboError(_at(source, f"row {r}: {c}={psi[r]:g} rad is beyond "
+                                       f"{HEADING_LIMIT:g} rad (a heading in rad, on any branch)"))
+        check_heading_unit(np.where(rows, psi, np.nan), times, c, source)
     columns = {"x_m": m[:, 0], "y_m": m[:, 1], "V": u[:, 0]}
     if truth is not None:
         columns.update(x=truth[:, 0], y=truth[:, 1])
@@ -295,10 +366,15 @@ def check_conventions(t: np.ndarray, m: np.ndarray, u: np.ndarray,
 
     Over pairs of fixes 5 s apart that moved at least 25 m: the distance ``V`` integrates to
     over the distance the fixes moved is about 1 for a speed in m/s (the path's length over
-    its chord) and 3.6 for one in km/h; the heading at the pair's middle points along the
-    chord in lbo's convention (counter-clockwise from east), and along its mirror image
-    about the diagonal for a compass bearing. Too few such pairs (a short or slow log):
-    nothing is checked. t (T,), m (T, 3), u (T, 2); ``heading``: the convention the log was
+    its chord) and 3.6 for one in km/h. The heading at the pair's middle points along the
+    chord, or against it where ``V`` is negative over the pair (a car reversing); a heading
+    that points along the chord's line either way passes (reversing with an unsigned speed).
+    Otherwise, it is refused with the reading in which it does point where the car moves
+    (signed by ``V``), and only then: the heading read as degrees (on a straight road,
+    where :func:`check_heading_unit` cannot tell them: about 6 headings in 10, those whose
+    degrees read as rad point neither along nor against the road), or its mirror image
+    about the diagonal (the other heading convention). Too few such pairs (a short or slow
+    log): nothing is checked. t (T,), m (T, 3), u (T, 2); ``heading``: the convention the log was
     read in (named in the hint)."""
     i, j = _pairs(np.asarray(t, float), np.asarray(m, float))
     if len(i) < CONVENTION_MIN_PAIRS:
@@ -316,9 +392,28 @@ def check_conventions(t: np.ndarray, m: np.ndarray, u: np.ndarray,
     if has.sum() < CONVENTION_MIN_PAIRS:
         return
     course = np.arctan2(chord[has, 1], chord[has, 0])
-    along = float(np.median(np.cos(mid[has] - course)))
-    mirrored = float(np.median(np.cos(np.pi / 2 - mid[has] - course)))
-    if along < 0.3 and mirrored > 0.8:
+    # where V integrates backwards over the pair, the car moves against its heading
+    back = np.where(travelled[j[has]] < travelled[i[has]], np.pi, 0.0)
+
+    def agreement(psi: np.ndarray) -> float:
+        """Median cosine between the motion a heading reading implies and the fixes'."""
+        return float(np.median(np.cos(psi + back - course)))
+
+    along = agreement(mid[has])
+    # a heading along the chord's line but against V's sign: a car reversing with an
+    # unsigned speed (or a forward one with a negative V); neither convention is at fault
+    if along >= 0.8 or agreement(mid[has] + np.pi) > 0.8:
+        return
+    # degrees are tried only where most headings lie beyond 2 pi, as most in degrees do: any
+    # heading in rad, read as degrees, points within 3 degrees of east, so a road running
+    # east or west would agree with it (a compass heading was wrapped when turned to ENU:
+    # its degrees are lost, not tried)
+    if heading == "enu" and np.median(np.abs(mid[has])) > 2 * np.pi \
+            and agreement(np.radians(mid[has])) > 0.8:
+        raise LboError(_at(source, "column 'psi_m' looks like degrees: it does not point where "
+                                   "the fixes move, but read as degrees it does; give headings "
+                                   "in rad, or pass units.psi=deg"))
+    if along < 0.3 and agreement(np.pi / 2 - mid[has]) > 0.8:
         other = "compass" if heading == "enu" else "enu"
         raise LboError(_at(source, "column 'psi_m' does not point where the fixes move "
                                    f"(read as heading={heading}), but its mirror image does: "

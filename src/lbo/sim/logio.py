@@ -129,7 +129,7 @@ def check_log(df: pd.DataFrame, source: str = "input", heading: str = "enu") -> 
     check_samples(df[list(MEAS_COLUMNS)].to_numpy(dtype=float),
                   df[["V", "delta"]].to_numpy(dtype=float),
                   truth=df[list(TRUTH_COLUMNS)].to_numpy(dtype=float) if truth else None,
-                  source=source)
+                  source=source, t=df["t"].to_numpy(dtype=float))
     check_time(df["t"].to_numpy(dtype=float), source)
     check_conventions(df["t"].to_numpy(dtype=float), df[list(MEAS_COLUMNS)].to_numpy(dtype=float),
                       df[["V", "delta"]].to_numpy(dtype=float), source, heading)
