@@ -278,3 +278,13 @@ def test_no_simulated_heading_turns_too_fast_for_rad(smoke_data):
         truth = g[["x", "y", "psi"]].to_numpy() if "psi" in g else None
         check_samples(g[["x_m", "y_m", "psi_m"]].to_numpy(), g[["V", "delta"]].to_numpy(),
                       truth=truth, t=g["t"].to_numpy())
+
+
+def test_a_heading_that_turns_too_fast_in_rad_and_degrees_alike_is_no_heading(laps):
+    """No reading helps a column of noise: the line says so, and advises no unit."""
+    _, unwrapped = laps
+    m = unwrapped[["x_m", "y_m", "psi_m"]].to_numpy()
+    m[:, 2] = np.random.default_rng(2).uniform(-1e4, 1e4, len(m))
+    with pytest.raises(LboError, match=r"^column 'psi_m' turns faster than 2 rad/s in \d+% of "
+                                       r"its 0.5 s spans, read as rad and as degrees alike"):
+        check_samples(m, unwrapped[["V", "delta"]].to_numpy())

@@ -156,8 +156,9 @@ def _beyond(where: str, column: str, value: float) -> LboError:
 
 
 def _heading(where: str, column: str, value: float) -> LboError:
-    return LboError(f"{where}: {column}={value:g} rad is outside [-2 pi, 2 pi]; a heading in "
-                     "rad lies within it")
+    # one sample has no rate of turn to tell degrees from an accumulated heading in rad by
+    return LboError(f"{where}: {column}={value:g} rad is outside [-2 pi, 2 pi]; step takes "
+                    "a heading in rad wrapped within it (a whole log, on any branch)")
 
 
 def _wrap(a: np.ndarray) -> np.ndarray:
