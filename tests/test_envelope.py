@@ -256,3 +256,21 @@ def test_the_steering_advice_works_for_a_learned_observer(cnn, tmp_path):
     # the library takes the same advice: a vehicle with the larger lock
     with pytest.warns(EnvelopeWarning, match="steering"):
         Observer.load(cnn, Vehicle(delta_max=0.7)).run(*arrays(pd.read_csv(log)))
+
+
+def test_headings_on_another_branch_give_the_same_estimates(cnn):
+    """A logger's accumulated heading (rad, any branch) is taken as the wrapped one, by run and
+    by step alike, and the caller's arrays are left as they were."""
+    m, u = arrays(drive(15.0, steps=60))
+    laps = m.copy()
+    laps[:, 2] += 4 * np.pi
+    obs = Observer.load(cnn)
+    est, valid = obs.run(m, u)
+    est_laps, _ = obs.run(laps, u)
+    np.testing.assert_allclose(est_laps, est, atol=1e-9)
+    shifted = m.copy()
+    shifted[:, 2] += 2 * np.pi * (m[:, 2] < 0)  # within [-2 pi, 2 pi], as step takes them
+    before = shifted.copy()
+    stepped = np.array([obs.step(shifted[k], u[k]).state for k in range(len(m))])
+    np.testing.assert_allclose(stepped[valid], est[valid], atol=1e-6)
+    np.testing.assert_array_equal(shifted, before)

@@ -169,11 +169,49 @@ def test_a_run_planted_in_the_store_cannot_steer_resume(tmp_path, smoke_data, tr
     assert Path(rerun["checkpoint"]) == Path(got["checkpoint"])
 
 
+def test_a_shared_store_cannot_hand_over_a_finished_run_nor_lose_another_users_run(
+        tmp_path, smoke_data, tracking, capsys):
+    """In a store that others can write, ``resume=true`` reuses a FINISHED run of the same
+    config only where its folder shows it is this user's (a planted one would hand over its
+    metrics and checkpoint as this user's observer), and deletes only this user's own
+    unfinished runs, never a colleague's training of the same config."""
+    from lbo.learn.resume import own_store
+
+    victim = train_cfg(tmp_path / "victim", smoke_data, *SHORT, "seed=6", "resume=true")
+    digest = config_hash(victim)
+    client = mlflow.MlflowClient(tracking)
+    exp = client.create_experiment(victim.logger.experiment_name,
+                                   artifact_location=(tmp_path / "artifacts").as_uri())
+    foreign = tmp_path / "foreign"
+    foreign.mkdir()
+    planted = client.create_run(exp, tags={"config_hash": digest}, run_name="cnn-N20")
+    client.log_param(planted.info.run_id, "output_dir", str(foreign))
+    client.log_metric(planted.info.run_id, "val_loss", 1e-9)
+    client.set_terminated(planted.info.run_id, "FINISHED")
+    colleague = client.create_run(exp, tags={"config_hash": digest}, run_name="cnn-N20")
+    client.log_param(colleague.info.run_id, "output_dir", str(foreign))
+    store = Path(tracking.removeprefix("sqlite:///"))
+    assert own_store(tracking)  # this user's file: every run in it is this user's
+    store.chmod(0o666)  # now anyone on the machine can write runs into it
+    assert not own_store(tracking) and not own_store("http://127.0.0.1:1")
+
+    capsys.readouterr()
+    got = train(victim)
+    out = capsys.readouterr().out
+    assert not got["reused"] and got["run_id"] not in (planted.info.run_id,
+                                                       colleague.info.run_id)
+    assert f"not reusing the finished run {planted.info.run_id}" in out
+    assert client.get_run(colleague.info.run_id).info.lifecycle_stage == "active"
+    # this user's own finished run, shown by its folder, is reused as before
+    again = train(train_cfg(tmp_path / "again", smoke_data, *SHORT, "seed=6", "resume=true"))
+    assert again["reused"] and again["run_id"] == got["run_id"]
+
+
 def test_resume_checks_the_marker_the_checkpoint_and_its_best_path(tmp_path):
     """Each check of a folder that a store's run names, on a hand-made folder: this user's
     run-identity file for that run and config, a last.ckpt carrying the same identity, and a
     best checkpoint inside that folder."""
-    from lbo.train import IDENTITY_KEY, resumable_folder, write_marker
+    from lbo.learn.resume import IDENTITY_KEY, resumable_folder, write_marker
 
     folder = tmp_path / "run"
     (folder / "checkpoints").mkdir(parents=True)

@@ -178,7 +178,8 @@ def dynamic_jobs(cfg: DictConfig) -> dict[str, list[str]]:
 def expected(cfg: DictConfig, jobs: list[tuple[str, list[str]]]) -> Eta:
     """Measure a few steps of every run still to train; print the stage's expected time."""
     from lbo.learn.builders import data_device
-    from lbo.train import config_hash, finished_run
+    from lbo.learn.resume import finished_run
+    from lbo.train import config_hash
 
     estimates = []
     for key, overrides in jobs:

@@ -8,9 +8,6 @@ is the thin Hydra shell around it.
 
 from __future__ import annotations
 
-import json
-import os
-import stat
 import subprocess
 import sys
 import warnings
@@ -28,7 +25,7 @@ from lbo.core.cli import entry
 from lbo.core.errors import LboError
 from lbo.core.paths import REPO_ROOT
 from lbo.core.redact import scrub, scrub_tree
-from lbo.core.runfolder import LOCK_NAME, claim
+from lbo.core.runfolder import claim
 from lbo.learn.builders import (
     Built,
     build,
@@ -37,6 +34,14 @@ from lbo.learn.builders import (
     prepare_data,
     say_fresh,
     training_envelope,
+)
+from lbo.learn.resume import (
+    LAST,
+    check_folder,
+    clear_stale_checkpoints,
+    folder_refusal,
+    prior_runs,
+    write_marker,
 )
 from lbo.models.features import FEATURE_MODES
 from lbo.models.net import check_scaling
@@ -156,208 +161,6 @@ def _unlayered(node: Any) -> Any:
     return node
 
 
-LAST = "last.ckpt"
-"""The checkpoint written at the end of every epoch (``save_last``), from which ``resume=true``
-continues a killed run."""
-
-
-def finished_run(cfg: DictConfig, digest: str, clean: bool = True) -> dict[str, Any] | None:
-    """With ``resume=true``: the metrics of a FINISHED MLflow run of the same config, if any.
-
-    Runs of the same config that never finished (killed, crashed) are deleted (unless
-    ``clean`` is False), so a rerun replaces them instead of adding a duplicate.
-    """
-    return prior_runs(cfg, digest, clean)[0]
-
-
-def prior_runs(cfg: DictConfig, digest: str, clean: bool = True, keep_resumable: bool = False
-               ) -> tuple[dict[str, Any] | None, tuple[str | None, Path | None]]:
-    """The MLflow runs of the same config, in one search: the metrics of the latest FINISHED
-    one (or None), and, when none finished and ``keep_resumable``, the killed run to continue
-    (run id, its output folder holding ``checkpoints/last.ckpt``) or (None, None). With
-    ``clean``, every other unfinished run is deleted (and said so).
-
-    A run found in the store is continued only from a folder that this user created for that
-    very run (:func:`resumable_folder`): a store without authentication lets anyone add a run
-    with this config hash and any ``output_dir``."""
-    import mlflow
-
-    client = mlflow.MlflowClient(cfg.logger.tracking_uri)
-    exp = client.get_experiment_by_name(cfg.logger.experiment_name)
-    if exp is None:
-        return None, (None, None)
-    found = client.search_runs([exp.experiment_id], f"tags.config_hash = '{digest}'")
-    done = [r for r in found if r.info.status == "FINISHED"]
-    resumable = _resumable(found, digest) if keep_resumable and not done else (None, None)
-    for r in found:
-        if clean and r.info.status != "FINISHED" and r.info.run_id != resumable[0]:
-            client.delete_run(r.info.run_id)
-            print(f"deleted the unfinished run {r.info.run_id} ({r.info.status}) of the same "
-                  "config; this run replaces it")
-    if not done:
-        return None, resumable
-    run = max(done, key=lambda r: r.info.end_time or 0)
-    history = client.get_metric_history(run.info.run_id, "val_loss")
-    return {"name": run.info.run_name, "run_id": run.info.run_id, "reused": True,
-            "val_loss": min((m.value for m in history), default=float("nan")),
-            "checkpoint": f"{run.info.artifact_uri}/checkpoints/best.ckpt",
-            **{k: v for k, v in run.data.metrics.items() if k.startswith("test_")}}, resumable
-
-
-def _resumable(found: list, digest: str) -> tuple[str | None, Path | None]:
-    """The latest unfinished run among ``found`` whose output folder still holds its last
-    checkpoint and is that run's own (:func:`resumable_folder`): (run id, output folder), or
-    (None, None). A run whose folder fails the checks is not continued, with a line why."""
-    for r in sorted(found, key=lambda r: r.info.start_time or 0, reverse=True):
-        folder = r.data.params.get("output_dir")
-        if r.info.status == "FINISHED" or not folder or \
-                not (Path(folder) / "checkpoints" / LAST).is_file():
-            continue
-        why = resumable_folder(Path(folder), r.info.run_id, digest)
-        if why is None:
-            return r.info.run_id, Path(folder)
-        print(f"not resuming the unfinished run {r.info.run_id} of the same config: {why}; "
-              "this run starts afresh")
-    return None, None
-
-
-MARKER = ".lbo-run.json"
-"""The run-identity file a training writes into its output folder when it creates its run:
-the MLflow run id, the config hash, the folder itself and whether the run finished. Owned
-by the user who trained, it is what ``resume=true`` trusts, not the tracking store."""
-
-
-def write_marker(folder: Path, run_id: str | None, digest: str, finished: bool = False) -> Path:
-    """Write (atomically) ``folder``'s run-identity file (:data:`MARKER`)."""
-    return write_text(folder / MARKER, json.dumps(
-        {"run_id": run_id, "config_hash": digest, "folder": str(folder.resolve()),
-         "uid": os.getuid(), "finished": finished}, indent=1) + "\n")
-
-
-def _owned(path: Path, what: str) -> str | None:
-    """Why ``path`` cannot be trusted as this user's own (a link, another user's), or None."""
-    try:
-        st = path.lstat()
-    except OSError:
-        return f"it has no {what}"
-    if stat.S_ISLNK(st.st_mode):
-        return f"its {what} {path} is a symbolic link"
-    if st.st_uid != os.getuid():
-        return f"its {what} {path} belongs to another user (uid {st.st_uid})"
-    return None
-
-
-def read_marker(folder: Path) -> tuple[dict[str, Any] | None, str]:
-    """``folder``'s run-identity file, if this user wrote it for this folder: (its fields, "")
-    or (None, why not)."""
-    folder = folder.resolve()
-    why = _owned(folder, "folder") or _owned(folder / MARKER, f"run-identity file {MARKER}")
-    if why is not None:
-        return None, why
-    try:
-        marker = json.loads((folder / MARKER).read_text())
-    except (OSError, UnicodeDecodeError, ValueError) as e:
-        return None, f"its {MARKER} cannot be read ({type(e).__name__})"
-    if not isinstance(marker, dict) or marker.get("folder") != str(folder):
-        return None, f"its {MARKER} was written for another folder"
-    return marker, ""
-
-
-def resumable_folder(folder: Path, run_id: str, digest: str) -> str | None:
-    """Why run ``run_id`` of config ``digest`` may not be continued in ``folder`` (the folder
-    its MLflow run names), or None when it may: the folder and its run-identity file are this
-    user's, written for that run and config; ``checkpoints/last.ckpt`` is this user's, carries
-    the same identity (``RunIdentity``), and the best checkpoint it names lies in that
-    folder's ``checkpoints``."""
-    import torch
-
-    marker, why = read_marker(folder)
-    if marker is None:
-        return f"its output folder {folder} was not created for it here ({why})"
-    if marker.get("run_id") != run_id or marker.get("config_hash") != digest:
-        return (f"its output folder {folder} belongs to run {marker.get('run_id')} of config "
-                f"{marker.get('config_hash')}")
-    ckpts = folder.resolve() / "checkpoints"
-    last = ckpts / LAST
-    why = _owned(ckpts, "checkpoint folder") or _owned(last, f"checkpoint {LAST}")
-    if why is not None:
-        return why
-    try:  # tensors and plain containers only: a checkpoint is never code to run
-        ckpt = torch.load(last, map_location="cpu", weights_only=True)
-    except Exception as e:
-        return f"its checkpoint {last} cannot be read ({type(e).__name__})"
-    if not isinstance(ckpt, dict) or ckpt.get(IDENTITY_KEY) != {"run_id": run_id,
-                                                                   "config_hash": digest}:
-        return f"its checkpoint {last} was not written by that run"
-    for key, state in (ckpt.get("callbacks") or {}).items():
-        if str(key).startswith("ModelCheckpoint") and isinstance(state, dict):
-            best = state.get("best_model_path") or ""
-            if best and Path(best).resolve().parent != ckpts:
-                return f"its checkpoint {last} names a best checkpoint outside {ckpts}: {best}"
-    return None
-
-
-HYDRA_RECORD = (LOCK_NAME, ".hydra")
-"""What a folder may hold and still be a new run's: its lock, Hydra's record of the job
-(``.hydra/``, rewritten by each job) and the job's log (``train.log``)."""
-
-
-def folder_refusal(folder: Path, digest: str | None, resume: bool,
-                   field: str = "output_dir", finished_ok: bool = False) -> str | None:
-    """Why a training may not start afresh in ``folder``, or None when it may.
-
-    It may when the folder is missing or holds nothing but :data:`HYDRA_RECORD`, or (with
-    ``resume=true``) when it is an unfinished run of the same config (``digest``; None: any)
-    that this user created there: that run is replaced, as ``resume=true`` replaces a killed
-    run. ``finished_ok``: a finished run of that config there passes too (``resume=true``
-    reuses it rather than train). Anything else is another run's or another program's files,
-    which a typo or a copied command would otherwise delete or overwrite (``best.ckpt``,
-    ``evaluation.csv``)."""
-    from hydra.core.hydra_config import HydraConfig
-
-    job = HydraConfig.get().job.name if HydraConfig.initialized() else "train"
-    try:
-        held = sorted(p.name for p in folder.iterdir()
-                      if p.name not in HYDRA_RECORD and p.name != f"{job}.log")
-    except FileNotFoundError:
-        return None
-    except NotADirectoryError:
-        return f"{field}: {folder} is a file, not a folder; give a folder"
-    if not held:
-        return None
-    marker, _ = read_marker(folder)
-    same = marker is not None and (digest is None or marker.get("config_hash") == digest)
-    if same and resume and (finished_ok or not marker.get("finished")):
-        return None
-    if marker is not None and marker.get("finished"):
-        what = f"the files of the finished run {marker.get('run_id')}"
-    elif same:
-        what = (f"the files of the unfinished run {marker.get('run_id')} of this config "
-                "(add resume=true to continue or replace it)")
-    elif marker is not None:
-        what = f"the files of run {marker.get('run_id')} of another config"
-    else:
-        shown = ", ".join(held[:4]) + (", ..." if len(held) > 4 else "")
-        what = f"files that are not this run's ({shown})"
-    return (f"{field}: {folder} already holds {what}; nothing there was changed: give "
-            f"{field}=<a new or empty folder> (or remove that folder)")
-
-
-def check_folder(cfg: DictConfig) -> None:
-    """Refuse (one line) a run folder that holds another run's files, before lbo's shell
-    writes its ``.hydra`` record there (``hydra.run.dir=<a finished run's folder>``)."""
-    from hydra.core.hydra_config import HydraConfig
-
-    if not HydraConfig.initialized():
-        return
-    folder = Path(HydraConfig.get().runtime.output_dir).resolve()
-    if Path(cfg.output_dir).resolve() == folder:
-        resume = bool(cfg.get("resume"))
-        refusal = folder_refusal(folder, None, resume, "hydra.run.dir", finished_ok=resume)
-        if refusal is not None:
-            raise LboError(refusal)
-
-
 def meta(cfg: DictConfig, data_hash: str) -> dict[str, Any]:
     """What a checkpoint carries besides the weights, to rebuild the observer elsewhere."""
     return {"vehicle": OmegaConf.to_container(cfg.vehicle, resolve=True),
@@ -430,7 +233,7 @@ def _fit(cfg: DictConfig, built: Built, callbacks: list[L.Callback] | None,
     from lightning.pytorch.callbacks import ModelCheckpoint
     from lightning.pytorch.loggers import MLFlowLogger
 
-    from lbo.learn.callbacks import Evaluation
+    from lbo.learn.callbacks import Evaluation, RunIdentity
     from lbo.learn.checkpoint_io import AtomicCheckpointIO
     from lbo.learn.lightning_module import TrainingModule
 
@@ -455,7 +258,7 @@ def _fit(cfg: DictConfig, built: Built, callbacks: list[L.Callback] | None,
             "config_hash": digest, **(tags or {})}
     logger = (instantiate(cfg.logger, tags=tags, **({"run_id": resume_id} if resume_id else {}))
               if cfg.get("logger") else None)
-    identity = _run_identity_class()(resume_id, digest)
+    identity = RunIdentity(resume_id, digest)
     callbacks = [*(instantiate(c) for c in (cfg.get("callbacks") or {}).values()),
                  *(callbacks or []), identity]
     trainer = instantiate(cfg.trainer, logger=logger if logger is not None else False,
@@ -501,52 +304,6 @@ def _fit(cfg: DictConfig, built: Built, callbacks: list[L.Callback] | None,
         if isinstance(cb, Evaluation):
             metrics.update(cb.metrics)
     return metrics
-
-
-IDENTITY_KEY = "lbo_run"
-"""Where a checkpoint carries the identity of the run that wrote it (:class:`RunIdentity`)."""
-
-
-def _run_identity_class() -> type:
-    """:class:`RunIdentity`, a Lightning callback, made on first use: Lightning takes seconds
-    to import, and only a training run needs it."""
-    if "RunIdentity" in globals():
-        return globals()["RunIdentity"]
-    import lightning as L
-
-    class RunIdentity(L.Callback):
-        """Writes the run's identity (MLflow run id, config hash) into every checkpoint,
-        under :data:`IDENTITY_KEY`: ``resume=true`` continues a run only from a ``last.ckpt``
-        that carries that run's own (:func:`resumable_folder`)."""
-
-        def __init__(self, run_id: str | None, digest: str) -> None:
-            self.run_id, self.digest = run_id, digest
-
-        def on_save_checkpoint(self, trainer: Any, pl_module: Any, checkpoint: dict) -> None:
-            checkpoint[IDENTITY_KEY] = {"run_id": self.run_id, "config_hash": self.digest}
-
-    RunIdentity.__module__, RunIdentity.__qualname__ = __name__, "RunIdentity"
-    globals()["RunIdentity"] = RunIdentity  # pickles by name, like a module-level class
-    return RunIdentity
-
-
-def __getattr__(name: str) -> Any:
-    if name == "RunIdentity":
-        return _run_identity_class()
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-
-
-def clear_stale_checkpoints(folder: Path) -> list[Path]:
-    """Remove the ``.ckpt`` files an earlier run left in ``folder`` (killed, or trained into
-    the same output folder), so this run's best checkpoint is ``best.ckpt`` and never a
-    ``best-v1.ckpt`` beside a stale one. Returns what it removed (and says so)."""
-    stale = sorted(folder.glob("*.ckpt")) if folder.is_dir() else []
-    for path in stale:
-        path.unlink()
-    if stale:
-        print(f"removed {len(stale)} stale checkpoint(s) of an earlier run from {folder}: "
-              f"{', '.join(p.name for p in stale)}")
-    return stale
 
 
 def _noise_tag(cfg: DictConfig) -> str:

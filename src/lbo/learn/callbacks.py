@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import time
 from pathlib import Path
+from typing import Any
 
 import lightning as L
 import pandas as pd
@@ -11,6 +12,7 @@ from lightning.pytorch.loggers import MLFlowLogger
 
 from lbo.core import plots
 from lbo.core.atomic import atomic_path
+from lbo.learn.resume import IDENTITY_KEY
 from lbo.scoring import logscore
 from lbo.scoring.grid import (
     classical_table,
@@ -125,3 +127,15 @@ class Evaluation(L.Callback):
             for peer, key in (("oracle_dynamic", "worst_dynamic_oracle_ratio"),
                               ("oracle_tuned", "worst_tuned_oracle_ratio")):
                 self.metrics[key] = float(oracle_ratio(self.table, name, oracle=peer).max())
+
+
+class RunIdentity(L.Callback):
+    """Writes the run's identity (MLflow run id, config hash) into every checkpoint, under
+    :data:`~lbo.learn.resume.IDENTITY_KEY`: ``resume=true`` continues a run only from a
+    ``last.ckpt`` that carries that run's own (:func:`lbo.learn.resume.resumable_folder`)."""
+
+    def __init__(self, run_id: str | None, digest: str) -> None:
+        self.run_id, self.digest = run_id, digest
+
+    def on_save_checkpoint(self, trainer: Any, pl_module: Any, checkpoint: dict) -> None:
+        checkpoint[IDENTITY_KEY] = {"run_id": self.run_id, "config_hash": self.digest}

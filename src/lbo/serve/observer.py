@@ -521,6 +521,9 @@ class Observer:
                                "every step; use an observer trained with fix_rates "
                                "(experiment=robust) or a classical one")
             m = np.full(3, np.nan)
+        else:  # one branch for every observer (absolute features read the angle itself)
+            m = m.copy()  # never the caller's array
+            m[2] = wrap_angle(m[2])
         # checked: from here on the sample is taken
         outside = self._envelope(m, u) if self._envelope is not None else ()
         est = self._take(k, m, u, fix)
@@ -636,6 +639,10 @@ class Observer:
                            "fix_rates (experiment=robust) or a classical one")
         if self.net is not None and self.form == "window":
             check_fix_windows(fix, self.window, self.name, self.dt, source)
+        # a log may hold its headings on any branch (accumulated rad): one branch for every
+        # observer, as step() takes them (absolute features read the angle itself)
+        m = m.copy()
+        m[:, 2] = wrap_angle(m[:, 2])
         t = len(m)
         covs = np.full((t, 3, 3), np.nan)
         if self.net is None:
