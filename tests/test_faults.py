@@ -134,12 +134,16 @@ def test_datagen_removes_the_temp_files_of_a_killed_run(tmp_path):
 
     spec = spec_from_cfg(compose_cfg("datagen", ["data=smoke", f"data.root={tmp_path}"]))
     spec.folder.mkdir(parents=True)
-    left = [spec.folder / ".test.parquet.abc123.tmp", spec.folder / ".test_manoeuvres.png.x.tmp"]
-    for p in left:
+    # this lbo's temps, and an older lbo's (.tmp) of the same files
+    left = [spec.folder / ".train.parquet.q1w2.lbo-tmp", spec.folder / ".test.parquet.abc123.tmp",
+            spec.folder / ".test_manoeuvres.png.x.tmp"]
+    foreign = spec.folder / ".notes.txt.swp.tmp"  # another program's, being written there
+    for p in (*left, foreign):
         p.write_bytes(b"half written")
     build(spec, progress=False)
     assert not any(p.exists() for p in left)
-    assert not list(spec.folder.glob(".*.tmp"))
+    assert not list(spec.folder.glob(".*.lbo-tmp"))
+    assert sorted(spec.folder.glob(".*.tmp")) == [foreign]
     assert (spec.folder / "test.parquet").is_file()
 
 

@@ -91,6 +91,27 @@ def test_the_sets_are_the_logs_split_by_file(logs, tmp_path):
     assert (folder / "train.parquet").read_bytes() == first
 
 
+@pytest.mark.parametrize("damage", ["cut", "replaced"])
+def test_a_logs_cache_cut_short_or_replaced_is_said_and_read_again(logs, tmp_path, capsys,
+                                                                  damage):
+    """A set of a logs cache cut short under its final name (a disk error, an interrupted copy
+    of data/), or written over by another program, is named in one line and rebuilt from the
+    logs, byte for byte, instead of ending the command in a pyarrow traceback."""
+    _, folder, _ = built(logs_cfg(logs, tmp_path))
+    test = folder / "test.parquet"
+    before = test.read_bytes()
+    if damage == "cut":
+        test.write_bytes(before[:len(before) // 2])
+    else:
+        pd.DataFrame({"t": [0.0], "x": [1.0]}).to_parquet(test)
+    capsys.readouterr()
+    _, again, sets = built(logs_cfg(logs, tmp_path))
+    out = capsys.readouterr().out
+    assert again == folder and f"{test}: " in out and "reading the logs again" in out
+    assert test.read_bytes() == before
+    assert len(sets["test"]) > 0
+
+
 def write(df: pd.DataFrame, path: Path) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     df.to_csv(path, index=False)

@@ -70,7 +70,6 @@ from lbo.sim.logio import (
     resample,
     write_table,
 )
-from lbo.sim.schema import check_outside_data_sets
 
 __all__ = ["main", "observe"]
 
@@ -105,7 +104,6 @@ def observe(cfg: DictConfig) -> dict[str, Any]:
     max_gap = check_max_gap(cfg.get("max_gap", MAX_GAP))
     output = check_output_path(str(cfg.output), source)
     plot = plot_path(cfg.get("plot"), output)
-    check_outside_data_sets(output=output, plot=plot)  # never over a set lbo reuses
     smooth = cfg.get("smooth", False)
     if not isinstance(smooth, bool):
         raise LboError(f"smooth must be true or false, got {smooth!r}")

@@ -153,14 +153,12 @@ def write_logs(cfg: DictConfig) -> Path:
     """Simulate and write ``cfg.output`` (.csv or .parquet), or ``cfg.drives`` logs beside it;
     print what they hold. Returns the path written (the first one of a fleet)."""
     from lbo.sim.logio import check_output_path, write_table
-    from lbo.sim.schema import check_outside_data_sets
 
     if not cfg.get("output"):
         raise LboError("output must be given: python -m lbo.simulate manoeuvre=stop_and_go "
                        "alpha=1 [fix_rate=10] output=<log.csv|.parquet>")
     drives = integer(cfg.get("drives", 1), "drives", 1)
     output = check_output_path(str(cfg.output))
-    check_outside_data_sets(output=output)  # a drive is no data set: never over a cached one
     seed = integer(cfg.seed, "seed", 0)
     paths = fleet_paths(output, drives)
     if drives == 1:

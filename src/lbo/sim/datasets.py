@@ -339,8 +339,8 @@ def build(spec: Spec, progress: bool = True) -> tuple[Path, dict[str, pd.DataFra
 
     Returns the folder, the frames, and whether they came from the cache. Files are written
     atomically; a set is reused only when its Parquet file is the one this cache wrote
-    (:func:`_reuse`): one cut short or replaced is said in one line and generated again (the
-    generators are seeded: the same file comes back).
+    (:func:`lbo.sim.schema.cached_set`): one cut short or replaced is said in one line and
+    generated again (the generators are seeded: the same file comes back).
     """
     with data_lock(spec.folder):
         stale = remove_stale_temps(spec.folder, FILES)
@@ -373,11 +373,11 @@ def _build(spec: Spec, folder: Path, progress: bool
     for name in SETS:
         path = paths[name]
         if path.is_file():
-            df, problem = _reuse(path, recorded.get(path.name), name)
+            df, problem = schema.cached_set(path, recorded.get(path.name), name)
             if problem is None:
                 sets[name] = df
                 # checked against the record above; an older cache's file is read now
-                files[path.name] = recorded.get(path.name) or _fingerprint(path)
+                files[path.name] = recorded.get(path.name) or schema.fingerprint(path)
                 continue
             print(f"{path}: {problem}; generating it again", flush=True)
         elif progress:
@@ -385,7 +385,7 @@ def _build(spec: Spec, folder: Path, progress: bool
         cached = False
         sets[name] = MAKERS[name](spec)
         schema.write_set(sets[name], path)
-        files[path.name] = _fingerprint(path)
+        files[path.name] = schema.fingerprint(path)
     if files != recorded:  # a new cache, one written before lbo recorded its files, or a repair
         text = json.dumps({"name": spec.name, "digest": spec.digest, "seed": spec.seed,
                            "version": DATAGEN_VERSION, "vehicle": spec.vehicle.__dict__,
@@ -401,15 +401,6 @@ def _build(spec: Spec, folder: Path, progress: bool
     return folder, sets, cached
 
 
-def _fingerprint(path: Path) -> dict[str, int | str]:
-    """``{"bytes": size, "sha256": hex digest}`` of a file, read in 1 MiB blocks."""
-    digest = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            digest.update(block)
-    return {"bytes": path.stat().st_size, "sha256": digest.hexdigest()}
-
-
 def _recorded_files(manifest: Path) -> dict[str, dict]:
     """The fingerprints of the sets a data-set folder's manifest records; none where it
     records none (a cache written before lbo did) or cannot be read (it is written again)."""
@@ -418,34 +409,3 @@ def _recorded_files(manifest: Path) -> dict[str, dict]:
     except (OSError, ValueError, AttributeError):
         return {}
     return files if isinstance(files, dict) else {}
-
-
-def _reuse(path: Path, recorded: dict | None, name: str
-           ) -> tuple[pd.DataFrame | None, str | None]:
-    """The cached set ``name`` at ``path`` and None, or None and what is wrong with it: a
-    size or sha256 other than the manifest records (``recorded``; a cache written before lbo
-    recorded them has none), a file that does not read as Parquet, or a set's column missing
-    (an observer's estimates written over it)."""
-    if recorded:
-        size = path.stat().st_size
-        if size != recorded.get("bytes"):
-            return None, (f"{size} bytes where this data set's {MANIFEST} records "
-                          f"{recorded.get('bytes')} (cut short, or replaced by another file)")
-        if _fingerprint(path)["sha256"] != recorded.get("sha256"):
-            return None, (f"its sha256 differs from the one this data set's {MANIFEST} "
-                          "records (the file was replaced or damaged)")
-    try:
-        df = pd.read_parquet(path)
-    except Exception as e:  # noqa: BLE001 - pyarrow's errors are many; each means unreadable
-        return None, f"not a readable Parquet file ({_first_line(e)})"
-    required = schema.COLUMNS if name == "train" else schema.EVAL_COLUMNS
-    missing = [c for c in required if c not in df.columns]
-    if missing:
-        return None, (f"not a {name} set: it lacks column {missing[0]!r} (another program's "
-                      "file written over it?)")
-    return df, None
-
-
-def _first_line(e: BaseException) -> str:
-    text = str(e).strip()
-    return text.splitlines()[0] if text else type(e).__name__

@@ -275,8 +275,9 @@ def build(spec: LogSpec, progress: bool = True) -> tuple[Path, dict[str, pd.Data
     parts = [p for p in SETS if spec.files[p]]
     paths = {p: folder / f"{p}.parquet" for p in parts}
     with data_lock(folder):
-        if (folder / "manifest.json").is_file() and all(p.is_file() for p in paths.values()):
-            return folder, {p: pd.read_parquet(paths[p]) for p in parts}, True
+        cached = _cached(folder, paths)
+        if cached is not None:
+            return folder, cached, True
         sets, facts = {}, {}
         for part in parts:
             if progress:
@@ -294,9 +295,31 @@ def build(spec: LogSpec, progress: bool = True) -> tuple[Path, dict[str, pd.Data
                               "process_sigma": spec.noise.process_sigma,
                               "measurement_sigma": spec.noise.measurement_sigma},
                     "resample": spec.resample, "max_gap": spec.max_gap,
-                    "run_in": spec.run_in, "files": facts}
+                    "run_in": spec.run_in, "files": facts,
+                    "sets": {p.name: schema.fingerprint(p) for p in paths.values()}}
         write_text(folder / "manifest.json", json.dumps(manifest, indent=1))
     return folder, sets, False
+
+
+def _cached(folder: Path, paths: dict[str, Path]) -> dict[str, pd.DataFrame] | None:
+    """The sets of a logs cache, each checked as the simulated sets are
+    (:func:`lbo.sim.schema.cached_set`: against the sizes and sha256 its manifest records,
+    then as Parquet); None when there is none to reuse, or one is damaged (said in one line:
+    the caller reads the logs again)."""
+    manifest = folder / "manifest.json"
+    if not manifest.is_file() or not all(p.is_file() for p in paths.values()):
+        return None
+    try:
+        recorded = json.loads(manifest.read_text()).get("sets") or {}
+    except (OSError, ValueError, AttributeError):
+        recorded = {}
+    sets = {}
+    for part, path in paths.items():
+        sets[part], problem = schema.cached_set(path, recorded.get(path.name), part)
+        if problem is not None:
+            print(f"{path}: {problem}; reading the logs again", flush=True)
+            return None
+    return sets
 
 
 def test_files(folder: str | Path) -> list[str]:

@@ -23,7 +23,7 @@ from lbo.sim.logcheck import (
 )
 from lbo.sim.logcheck import check_steering as check_delta
 from lbo.sim.schema import MEAS as MEAS_COLUMNS
-from lbo.sim.schema import check_values, write_set
+from lbo.sim.schema import check_outside_data_sets, check_values, write_set
 from lbo.sim.vehicle import wrap_angle
 
 LOG_COLUMNS = ("t", "x_m", "y_m", "psi_m", "V", "delta")
@@ -142,11 +142,13 @@ def check_steering(df: pd.DataFrame, vehicle: Any, source: str = "input") -> Non
 
 
 def check_output_path(output: str | Path, source: str | Path | None = None) -> Path:
-    """The output path, checked: .csv or .parquet, and not the input log ``source``."""
+    """The output path, checked: .csv or .parquet, not the input log ``source``, and not in a
+    data-set cache (whose sets training and evaluation reuse as they are)."""
     output = Path(output)
     _format(output, "output")
     if source is not None and output.resolve() == Path(source).resolve():
         raise LboError(f"output must not be the input log ({source}): it would replace it")
+    check_outside_data_sets(output=output)
     return output
 
 
@@ -214,10 +216,13 @@ def plot_path(plot: Any, output: Path) -> Path | None:
     if plot is None or plot is False:
         return None
     if plot is True:
-        return output.with_suffix(".png")
-    if isinstance(plot, str) and Path(plot).suffix.lower() == ".png":
-        return Path(plot)
-    raise LboError(f"plot must be true, false or a .png file, got {plot!r}")
+        path = output.with_suffix(".png")
+    elif isinstance(plot, str) and Path(plot).suffix.lower() == ".png":
+        path = Path(plot)
+    else:
+        raise LboError(f"plot must be true, false or a .png file, got {plot!r}")
+    check_outside_data_sets(plot=path)  # a figure there would sit among the cache's files
+    return path
 
 
 def write_table(df: pd.DataFrame, path: Path) -> Path:

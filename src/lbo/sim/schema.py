@@ -6,6 +6,7 @@ plus ``alpha`` and ``scored`` for the validation and test sets.
 
 from __future__ import annotations
 
+import hashlib
 import json
 import re
 from pathlib import Path
@@ -81,12 +82,10 @@ def read_set(path: str | Path, required: tuple[str, ...] = COLUMNS,
     try:
         df = pd.read_parquet(path)
     except Exception as e:  # noqa: BLE001 - pyarrow's errors are many; each means unreadable
-        text = str(e).strip()
         advice = (f"; delete {path.parent} and run the command again to rebuild the data set"
                   if is_data_set_folder(path.parent) else "")
         raise LboError(f"{path}: not a readable Parquet file (cut short, or not Parquet: "
-                       f"{text.splitlines()[0] if text else type(e).__name__}){advice}") \
-            from None
+                       f"{first_line(e)}){advice}") from None
     check_frame(df, required, source=str(path), missing_fixes=missing_fixes)
     return df
 
@@ -175,3 +174,45 @@ def check_outside_data_sets(**paths: Path | str | None) -> None:
         if is_data_set_folder(folder):
             raise LboError(f"{field}: {path} is in the data-set cache {folder}, whose files lbo "
                            "reuses as they are; give a path outside that folder")
+
+
+def fingerprint(path: Path) -> dict[str, int | str]:
+    """``{"bytes": size, "sha256": hex digest}`` of a file, read in 1 MiB blocks: what a
+    data-set cache's manifest records of each set, to tell a set cut short or replaced."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            digest.update(block)
+    return {"bytes": path.stat().st_size, "sha256": digest.hexdigest()}
+
+
+def cached_set(path: Path, recorded: dict | None, name: str
+               ) -> tuple[pd.DataFrame | None, str | None]:
+    """The cached set ``name`` (``train``, ``val``, ``test``) at ``path`` and None, or None and
+    what is wrong with it: a size or sha256 other than the manifest records (``recorded``, a
+    :func:`fingerprint`; a cache written before lbo recorded them has none), a file that does
+    not read as Parquet, or a set's column missing (an observer's estimates written over it)."""
+    if recorded:
+        size = path.stat().st_size
+        if size != recorded.get("bytes"):
+            return None, (f"{size} bytes where this data set's {MANIFEST} records "
+                          f"{recorded.get('bytes')} (cut short, or replaced by another file)")
+        if fingerprint(path)["sha256"] != recorded.get("sha256"):
+            return None, (f"its sha256 differs from the one this data set's {MANIFEST} "
+                          "records (the file was replaced or damaged)")
+    try:
+        df = pd.read_parquet(path)
+    except Exception as e:  # noqa: BLE001 - pyarrow's errors are many; each means unreadable
+        return None, f"not a readable Parquet file ({first_line(e)})"
+    required = COLUMNS if name == "train" else EVAL_COLUMNS
+    missing = [c for c in required if c not in df.columns]
+    if missing:
+        return None, (f"not a {name} set: it lacks column {missing[0]!r} (another program's "
+                      "file written over it?)")
+    return df, None
+
+
+def first_line(e: BaseException) -> str:
+    """The first line of an exception's message (pyarrow's run to pages), or its type."""
+    text = str(e).strip()
+    return text.splitlines()[0] if text else type(e).__name__
