@@ -460,7 +460,9 @@ def test_trials_never_see_the_test_set(tmp_path, smoke_data, tracking):
     assert "lbo.learn.callbacks.Evaluation" not in targets
     assert "lbo.learn.callbacks.Evaluation" in [c["_target_"] for c in cfg.callbacks.values()]
     assert trial.optimizer.lr == 0.5 and list(trial.model.hidden_sizes) == [4, 8, 16, 16]
-    assert trial.output_dir == str(tmp_path / "out" / "trial_007")
+    assert trial.output_dir == str(tmp_path / "out" / "s" / "trial_007")
+    other = trial_config(cfg, {}, 7, "../cnn/x y", tmp_path / "out")  # one folder, never above
+    assert other.output_dir == str(tmp_path / "out" / "_cnn_x_y" / "trial_007")
     assert "tune" not in trial and cfg.optimizer.lr == 0.001  # the study's config is untouched
 
 

@@ -29,6 +29,7 @@ import contextlib
 import copy
 import json
 import logging
+import re
 import signal
 import sys
 import threading
@@ -169,6 +170,11 @@ def _short(value: Any) -> str:
         self.check()
 
 
+def _slug(name: str) -> str:
+    """A study name as one folder name: anything but letters, digits and ``._+-`` becomes _."""
+    return re.sub(r"[^A-Za-z0-9._+-]", "_", name).lstrip(".") or "study"
+
+
 def trial_config(cfg: DictConfig, values: dict[str, Any], number: int, study_name: str,
                  output_dir: Path) -> DictConfig:
     """The training config of one trial: ``cfg`` with the sampled values, its own output folder,
@@ -177,7 +183,10 @@ def trial_config(cfg: DictConfig, values: dict[str, Any], number: int, study_nam
     with open_dict(out):
         for key, value in values.items():
             OmegaConf.update(out, key, value, merge=False)
-        out.output_dir = str(output_dir / f"trial_{number:03d}")
+        # the study's name in the path: two studies run from one folder (or two workers of
+        # two studies) number their trials from 0 alike, and a trial never trains into another
+        # study's trial folder (a finished run's, which training refuses)
+        out.output_dir = str(output_dir / _slug(study_name) / f"trial_{number:03d}")
         del out.tune
         callbacks = out.get("callbacks") or {}
         for name in list(callbacks):
