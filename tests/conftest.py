@@ -2,11 +2,26 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import pytest
 
 from helpers import compose_cfg
+
+
+def pytest_configure(config) -> None:
+    """Split the cores between xdist's workers (``make test`` runs two): each worker, and every
+    command it starts (through OMP_NUM_THREADS), takes its share of intra-op threads. Two torch
+    processes that each take every core spin against each other, many times slower a step."""
+    workers = os.environ.get("PYTEST_XDIST_WORKER_COUNT")
+    if not workers:
+        return
+    share = max(1, (os.cpu_count() or 1) // int(workers))
+    os.environ.setdefault("OMP_NUM_THREADS", str(share))
+    import torch
+
+    torch.set_num_threads(int(os.environ["OMP_NUM_THREADS"]))
 
 
 @pytest.fixture(scope="session")
