@@ -230,16 +230,22 @@ def test_an_unwrapped_heading_in_rad_runs_as_the_wrapped_one(tmp_path, laps):
     assert errors(est, z)[2] < 0.01
 
 
+def refused_then_run_in_degrees(tmp_path, degrees, z, message: str, name: str) -> None:
+    """A log with headings in degrees is refused with ``message``, and the advice it gives
+    (units.psi=deg) runs it with the heading as good as in rad."""
+    with pytest.raises(LboError, match=message):
+        observe(tmp_path, degrees, name=name)
+    _, est = observe(tmp_path, degrees, "units.psi=deg", name=f"{name}_deg")
+    assert errors(est, z)[2] < 0.01
+
+
 def test_the_same_heading_in_degrees_is_refused_and_units_deg_runs_it(tmp_path, laps):
     z, unwrapped = laps
     degrees = unwrapped.assign(psi_m=np.degrees(unwrapped["psi_m"]),
                                psi=np.degrees(unwrapped["psi"]))
-    with pytest.raises(LboError, match=r"column 'psi_m' looks like degrees: read as rad it "
-                                       r"turns faster than 2 rad/s .*; give headings in rad, "
-                                       r"or pass units\.psi=deg$"):
-        observe(tmp_path, degrees, name="degrees")
-    _, est = observe(tmp_path, degrees, "units.psi=deg", name="deg")
-    assert errors(est, z)[2] < 0.01
+    refused_then_run_in_degrees(tmp_path, degrees, z, r"column 'psi_m' looks like degrees: "
+                                r"read as rad it turns faster than 2 rad/s .*; give headings "
+                                r"in rad, or pass units\.psi=deg$", "degrees")
 
 
 def test_degrees_on_a_straight_road_are_told_by_where_the_car_moves(tmp_path):
@@ -248,12 +254,10 @@ def test_degrees_on_a_straight_road_are_told_by_where_the_car_moves(tmp_path):
     z, m, u = drive(-0.7, np.full(2000, 10.0), np.zeros(2000))
     m[:, 2] = z[:, 2] + np.random.default_rng(1).standard_normal(len(z)) * 1.7e-3
     degrees = frame(z, m, u).assign(psi_m=np.degrees(m[:, 2]), psi=np.degrees(z[:, 2]))
-    with pytest.raises(LboError, match=r"column 'psi_m' looks like degrees: it does not "
-                                       r"point where the fixes move, but read as degrees it "
-                                       r"does; give headings in rad, or pass units\.psi=deg"):
-        observe(tmp_path, degrees, name="straight")
-    _, est = observe(tmp_path, degrees, "units.psi=deg", name="straight_deg")
-    assert errors(est, z)[2] < 0.01
+    refused_then_run_in_degrees(tmp_path, degrees, z, r"column 'psi_m' looks like degrees: "
+                                r"it does not point where the fixes move, but read as degrees "
+                                r"it does; give headings in rad, or pass units\.psi=deg",
+                                "straight")
 
 
 def test_observer_run_takes_unwrapped_rad_and_refuses_degrees(laps):
