@@ -21,10 +21,11 @@ The truth it is built for (``dt`` the vehicle's sampling period, ``car`` a
 
 The state is ``[x, y, psi, v_y, r]``, plus ``[b_x, b_y]`` when any trajectory has drift (7
 states; 5 without, which is cheaper). Conventions as :mod:`lbo.filters.kalman`: the estimate at step
-``k`` uses ``m_0 .. m_k`` and ``u_0 .. u_{k-1}``; a NaN row of ``m`` (no fix) is a
-prediction-only step; heading innovations are wrapped to (-pi, pi] while the estimated heading
-stays continuous; Joseph-form update; NumPy, vectorised over G trajectories with a Python loop
-over time only.
+``k`` uses ``m_0 .. m_k`` and ``u_0 .. u_{k-1}``; a row updates with the channels it holds
+(a position without a heading: x and y only; a NaN row: a prediction-only step) through the
+shared Joseph-form :func:`lbo.filters.update.joseph_update`; heading innovations are wrapped to
+(-pi, pi] while the estimated heading stays continuous; NumPy, vectorised over G trajectories
+with a Python loop over time only. It starts at a full fix (a heading included).
 
 The Jacobian of the RK4 step is taken by central differences in psi, v_y and r, all
 perturbations stacked into one call of :func:`lbo.sim.dynamic.step` on (G, 7, 5) states. The step
@@ -43,12 +44,11 @@ from lbo.filters.kalman import (
     _batch_cov,
     _check_q,
     _check_trajectories,
-    _where_fix,
     run_stepper,
 )
+from lbo.filters.update import held_channels, joseph_update
 from lbo.sim import dynamic
 from lbo.sim.dynamic import SingleTrack
-from lbo.sim.logcheck import fix_mask
 from lbo.sim.vehicle import Vehicle, wrap_angle
 
 P0_LATERAL_SIGMA = (0.5, 0.2)
@@ -149,8 +149,8 @@ class DynamicStepper:
         if m0.ndim != 2 or m0.shape[1] != 3:
             raise LboError(f"m0 must be (G, 3) [x_m, y_m, psi_m], got {m0.shape}")
         if not np.isfinite(m0).all():
-            raise LboError("m0 must be a fix (finite) for every trajectory; the filter starts "
-                           "there")
+            raise LboError("m0 must be a full fix (x_m, y_m and psi_m finite) for every "
+                           "trajectory; the dynamic oracle starts there, heading included")
         g = len(m0)
         Q3 = _check_q(Q)
         R = np.asarray(R, dtype=float)
@@ -235,25 +235,18 @@ class DynamicStepper:
         return x, 0.5 * (P + P.swapaxes(-1, -2))
 
     def update(self, m: np.ndarray, u_prev: np.ndarray) -> np.ndarray:
-        """Predict with the logged u_{k-1} (G, 2), update with m_k (G, 3) where it is a fix
-        (rows with a NaN get the prediction only); returns the pose estimate x_k (G, 3)."""
+        """Predict with the logged u_{k-1} (G, 2), update with the channels m_k (G, 3) holds
+        (NaN: not measured; a row of NaN gets the prediction only); returns the pose estimate
+        x_k (G, 3)."""
         g = len(self.x)
         m = np.asarray(m, dtype=float)
         if m.shape != (g, 3):
             raise LboError(f"m must be ({g}, 3) [x_m, y_m, psi_m], got {m.shape}")
-        fix = fix_mask(m)
+        held = held_channels(m)
         x, P = self.predict(u_prev)
-        H = self.H
-        y = np.where(fix[:, None], m - x @ H.T, 0.0)
+        y = np.where(held, m - x @ self.H.T, 0.0)
         y[:, 2] = wrap_angle(y[:, 2])
-        PHt = P @ H.T                                        # (G, n, 3)
-        S = H @ PHt + self.R                                 # (G, 3, 3)
-        K = np.linalg.solve(S, PHt.swapaxes(-1, -2)).swapaxes(-1, -2)  # P H^T S^-1
-        I_KH = np.eye(self.dim_x) - K @ H
-        # Joseph form: symmetric and PSD whatever the rounding
-        post = I_KH @ P @ I_KH.swapaxes(-1, -2) + K @ self.R @ K.swapaxes(-1, -2)
-        self.x = _where_fix(fix, x + np.einsum("gij,gj->gi", K, y), x)
-        self.P = _where_fix(fix, 0.5 * (post + post.swapaxes(-1, -2)), P)
+        self.x, self.P = joseph_update(x, P, y, self.H, self.R, held)
         return self.x[:, :3]
 
     @property

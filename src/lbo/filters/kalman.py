@@ -8,9 +8,13 @@ step ``k`` uses ``m_0 .. m_k`` and ``u_0 .. u_{k-1}``. Every filter starts from
 directly (H = I) and wraps heading innovations to (-pi, pi]. Estimated headings stay on the
 branch of the measurements (continuous, not wrapped); metrics wrap the error.
 
-A missing position fix is a row of ``m`` that is NaN in all three channels: the batched
-filters and their steppers do a prediction-only step there (no update, R not learned). The
-first row of every trajectory must be a fix, as the filters start there.
+A row of ``m`` holds any allowed subset of its channels, NaN in the others: a full fix, a
+position fix without a heading (``psi_m`` NaN), or nothing (a prediction-only step). Every
+stepper builds H and R per step from what the row holds and updates through the one
+Joseph-form :func:`lbo.filters.update.joseph_update`; a channel not held teaches the adaptive
+R nothing. The first row of every trajectory must hold a position, as the filters start
+there. A trajectory that starts without a heading takes it from the course over ground
+(:class:`CourseStart`): until then its heading is 0 rad with variance :data:`HEADING_VAR0`.
 
 - :class:`BicycleEKF` / :func:`run_filterpy_ekf`: the paper's EKF on filterpy, one trajectory
   at a time (the reference).
@@ -32,13 +36,30 @@ from filterpy.kalman import ExtendedKalmanFilter, MerweScaledSigmaPoints, Unscen
 from tqdm.auto import tqdm
 
 from lbo.core.errors import LboError
-from lbo.sim.logcheck import fix_mask
+from lbo.filters.update import held_channels, joseph_update
 from lbo.sim.vehicle import Vehicle, jacobian, step, wrap_angle
 
 COV_FLOOR = 1e-9
 """Smallest variance put on the diagonal of P_0 (and of the UKF's R), so alpha=0 runs."""
 
 _I3 = np.eye(3)
+
+HEADING_VAR0 = 1.0
+"""Variance (rad^2) of the starting heading (0 rad, as good as any) of a trajectory whose
+first fix has none. Not that of a heading uniform on the circle (pi^2 / 3): the UKF's circular
+mean of its sigma points, whose resultant is about ``1 - var / 2`` with Merwe's negative
+central weight, flips to the opposite heading beyond a variance of 2. It only sets how far the
+filter trusts its own motion until the course over ground gives the heading on a flat prior
+(:class:`CourseStart`), which forgets it."""
+COURSE_SIGMAS = 10.0
+"""Distance the car must have moved from its first fix, in position-noise sigmas, before the
+course over ground sets its heading: the chord's direction is then known to about
+sqrt(2) / 10 = 0.14 rad at worst, and the filter refines it from the motion that follows."""
+COURSE_MIN_M = 1.0
+"""Floor (m) on that distance, for a noise-free (alpha = 0) log."""
+FLAT_VAR = 1e6
+"""Heading variance (rad^2) of the flat prior that the first heading (measured, or from the
+course over ground) is taken on: whatever the filter guessed before is forgotten."""
 
 
 def _residual(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -63,15 +84,109 @@ def _check_trajectories(m: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.nd
         raise LboError(f"measurements m must be (G, T, 3) [x_m, y_m, psi_m], got {m.shape}")
     if u.shape != m.shape[:2] + (2,):
         raise LboError(f"inputs u must be (G, T, 2) [V, delta] matching m {m.shape}, got {u.shape}")
-    if m.shape[1] and not np.isfinite(m[:, 0]).all():
-        g = int(np.flatnonzero(~np.isfinite(m[:, 0]).all(-1))[0])
-        raise LboError(f"trajectory {g} has no fix at its first step; the filters start at a fix")
+    if m.shape[1] and not np.isfinite(m[:, 0, :2]).all():
+        g = int(np.flatnonzero(~np.isfinite(m[:, 0, :2]).all(-1))[0])
+        raise LboError(f"trajectory {g} has no position fix at its first step; the filters "
+                       "start at one")
     return m, u
 
 
-def _where_fix(fix: np.ndarray, updated: np.ndarray, prior: np.ndarray) -> np.ndarray:
-    """Rows of ``updated`` where ``fix`` (G,), else the prior's: a prediction-only step."""
-    return np.where(fix.reshape(fix.shape + (1,) * (updated.ndim - 1)), updated, prior)
+def _start(m0: np.ndarray, R: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Starting state (G, 3) and covariance (G, 3, 3) at the first fixes m0 (G, 3): ``m0`` and
+    R (diagonal floored); where m0 has no heading, 0 rad with variance :data:`HEADING_VAR0`."""
+    x = np.array(m0, dtype=float)
+    P = _floor_diag(R)
+    blind = ~np.isfinite(x[:, 2])
+    x[blind, 2] = 0.0
+    P[blind, 2, :] = P[blind, :, 2] = 0.0
+    P[blind, 2, 2] = HEADING_VAR0
+    return x, P
+
+
+class CourseStart:
+    """The heading of trajectories whose fixes came without one, from the course over ground.
+
+    The kinematic bicycle turns at ``V tan(delta) / L`` whatever its heading, so from the
+    inputs alone the path since the first fix is known in the frame of the unknown starting
+    heading psi_0: ``c_k`` (dead reckoning with the filter's own Euler step, turn ``a_k``).
+    The fixes see the same path rotated by psi_0, so at a position fix ``p_k`` once the car
+    has moved ``|c_k| >= max(COURSE_SIGMAS sigma, COURSE_MIN_M)`` (sigma: the position
+    noise), ``psi_0 = angle(p_k - p_0) - angle(c_k)`` and the heading now is ``psi_0 + a_k``,
+    reversing (V < 0) and curves included. Its variance: the two fixes' noise across the chord,
+    ``2 sigma^2 / |c_k|^2``, plus the process noise over the k steps, ``k Q_xx / |c_k|^2 +
+    k Q_psipsi``. The stepper takes it as a measurement of the heading on a flat prior
+    (:data:`FLAT_VAR`), as it takes a first measured heading. Vectorised over G trajectories.
+
+    Parameters
+    ----------
+    m0 : (G, 3) first fixes; a NaN heading starts the course.
+    vehicle : Vehicle
+    Q : (3, 3) process covariance.
+
+    Attributes
+    ----------
+    blind : (G,) bool, trajectories whose heading is not known yet.
+    """
+
+    def __init__(self, m0: np.ndarray, vehicle: Vehicle, Q: np.ndarray) -> None:
+        self.vehicle, self.Q = vehicle, Q
+        self.blind = ~np.isfinite(np.asarray(m0, dtype=float)[:, 2])
+        self.p0 = np.array(m0, dtype=float)[:, :2]
+        self.c = np.zeros_like(self.p0)
+        self.turn = np.zeros(len(self.p0))
+        self.steps = np.zeros(len(self.p0))
+
+    def advance(self, u_prev: np.ndarray) -> None:
+        """Dead-reckon one step with inputs u_prev (G, 2), as :func:`lbo.sim.vehicle.step`."""
+        if not self.blind.any():
+            return
+        path = step(np.concatenate([self.c, self.turn[:, None]], axis=1), u_prev,
+                    self.vehicle.dt, self.vehicle.wheelbase)
+        self.c = np.where(self.blind[:, None], path[:, :2], self.c)
+        self.turn = np.where(self.blind, path[:, 2], self.turn)
+        self.steps = self.steps + self.blind
+
+    def take(self, m: np.ndarray, pos_var: np.ndarray, P: np.ndarray, R: np.ndarray
+             ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """This step's heading channel: measurements m (G, 3), position noise variance
+        pos_var (G,), prior covariance P (G, n, n) and R (G, 3, 3).
+
+        Returns ``(m, R, P, start)``: m with the course's heading where it sets one, R with
+        its variance there, P with a flat prior heading (uncorrelated, :data:`FLAT_VAR`)
+        where the first heading comes now (measured or from the course), and ``start`` (G,)
+        where it does. Copies where anything changes; the inputs are not modified."""
+        start = self.blind & np.isfinite(m[:, 0]) & np.isfinite(m[:, 1])
+        if not start.any():
+            return m, R, P, start
+        measured = np.isfinite(m[:, 2])
+        dist = np.hypot(*self.c.T)
+        moved = dist >= np.maximum(COURSE_SIGMAS * np.sqrt(pos_var), COURSE_MIN_M)
+        course = start & ~measured & moved
+        start = start & (measured | moved)
+        if not start.any():
+            return m, R, P, start
+        d = m[:, :2] - self.p0
+        safe = np.where(course, dist, 1.0)
+        psi = np.arctan2(d[:, 1], d[:, 0]) - np.arctan2(self.c[:, 1], self.c[:, 0]) + self.turn
+        var = ((2.0 * pos_var + self.steps * self.Q[0, 0]) / safe**2
+               + self.steps * self.Q[2, 2])
+        m = m.copy()
+        m[course, 2] = psi[course]
+        R = np.array(R, dtype=float)
+        R[course, 2, :] = R[course, :, 2] = 0.0
+        R[course, 2, 2] = var[course]
+        P = np.array(P, dtype=float)
+        P[start, 2, :] = P[start, :, 2] = 0.0
+        P[start, 2, 2] = FLAT_VAR
+        self.blind = self.blind & ~start
+        return m, R, P, start
+
+
+def _innovation(m: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """``m - x`` (G, 3), heading wrapped; 0 in the channels m does not hold."""
+    y = np.where(np.isfinite(m), m - x, 0.0)
+    y[:, 2] = wrap_angle(y[:, 2])
+    return y
 
 
 def _batch_cov(cov: np.ndarray, g: int, name: str) -> np.ndarray:
@@ -185,7 +300,8 @@ class KalmanStepper:
 
     Parameters
     ----------
-    m0 : (G, 3) first measurements (fixes); the state starts there with P_0 = R.
+    m0 : (G, 3) first measurements (position fixes); the state starts there with P_0 = R
+        (a NaN heading: see :func:`_start` and :class:`CourseStart`).
     vehicle : Vehicle
     Q : (3, 3) process covariance.
     R : (G, 3, 3) measurement covariance (the starting one when adaptive).
@@ -195,7 +311,10 @@ class KalmanStepper:
     Attributes
     ----------
     x : (G, 3) current estimate. P : (G, 3, 3) its covariance. R : (G, 3, 3) current R.
-    n_fix : (G,) fixes taken, m0 included.
+    n_fix : (G, 3) measurements taken per channel, m0's included.
+    prior : ``(x, P)`` (G, 3), (G, 3, 3), the prior the last posterior came from.
+    cross : (G, 3, 3) ``cov(x_{k-1|k-1}, x_{k|k-1})`` of the last step, for smoothing.
+    course : :class:`CourseStart`, the heading of trajectories that started without one.
     """
 
     def __init__(self, m0: np.ndarray, vehicle: Vehicle, Q: np.ndarray, R: np.ndarray,
@@ -204,51 +323,59 @@ class KalmanStepper:
         self.vehicle, self.Q = vehicle, Q
         self.forgetting, self.r_floor = forgetting, r_floor
         self.R = np.array(R, dtype=float)
+        held = held_channels(np.asarray(m0, dtype=float))
         if forgetting is not None:
             diag = np.arange(3)
-            self.r_hat = self.R[:, diag, diag].copy()          # (G, 3) diagonal of the learned R
-            self.weight = np.full(len(m0), float(prior_weight))  # innovations r_hat is worth
+            self.r_hat = self.R[:, diag, diag].copy()           # (G, 3) diagonal of the learned R
+            # innovations r_hat is worth, per channel (a position fix teaches psi nothing)
+            self.weight = np.full(self.r_hat.shape, float(prior_weight))
             self.R = np.zeros_like(self.R)
             self.R[:, diag, diag] = self.r_hat
-        self.x = np.array(m0, dtype=float)
-        self.P = _floor_diag(self.R)
-        self.n_fix = np.ones(len(self.x))
+        self.x, self.P = _start(m0, self.R)
+        self.n_fix = held.astype(float)
+        self.course = CourseStart(m0, vehicle, Q)
 
     def update(self, m: np.ndarray, u_prev: np.ndarray) -> np.ndarray:
-        """Predict with u_{k-1} (G, 2), update with m_k (G, 3); returns x_k (G, 3).
+        """Predict with u_{k-1} (G, 2), update with what m_k (G, 3) holds; returns x_k (G, 3).
 
-        Rows of m that are NaN (no fix) get the prediction only."""
-        fix = fix_mask(m)
+        A row's NaN channels are not measured (all three: a prediction-only step)."""
+        held = held_channels(m)
         F = jacobian(self.x, u_prev, self.vehicle.dt)
         x = step(self.x, u_prev, self.vehicle.dt, self.vehicle.wheelbase)
-        self.cross = self.P @ F.swapaxes(-1, -2)  # cov(x_{k-1|k-1}, x_{k|k-1}), for smoothing
+        self.course.advance(u_prev)
+        cross = self.P @ F.swapaxes(-1, -2)  # cov(x_{k-1|k-1}, x_{k|k-1}), for smoothing
         P = F @ self.P @ F.swapaxes(-1, -2) + self.Q
-        y = np.where(fix[:, None], m - x, 0.0)
-        y[:, 2] = wrap_angle(y[:, 2])
+        y = _innovation(m, x)
         R = self.R
-        P_prior = P
         if self.forgetting is not None:
             diag = np.arange(3)
-            # P_0 = R0 is wrong by the unknown alpha^2; n fixes of noise R cannot give a
-            # prior error below R / n, so hold P there until it settles.
+            # P_0 = R0 is wrong by the unknown alpha^2; n measurements of noise R cannot give
+            # a prior error below R / n, so hold P there until it settles (channels measured
+            # now and before: a heading never measured has no such bound)
+            hold = held & (self.n_fix > 0)
+            floor = self.r_hat / np.where(hold, self.n_fix, 1.0)
             P = P.copy()
-            P[:, diag, diag] = np.maximum(P[:, diag, diag], self.r_hat / self.n_fix[:, None])
+            P[:, diag, diag] = np.where(hold, np.maximum(P[:, diag, diag], floor),
+                                        P[:, diag, diag])
             # Sage-Husa: E[y y^T] = P_prior + R, so y^2 - diag(P_prior) is one sample of R;
-            # exponentially forgotten running mean, weights 1 / (b W + 1); fixes only.
-            self.weight = np.where(fix, self.forgetting * self.weight + 1.0, self.weight)
-            d = np.where(fix, 1.0 / self.weight, 0.0)[:, None]
+            # exponentially forgotten running mean, weights 1 / (b W + 1); held channels only
+            self.weight = np.where(held, self.forgetting * self.weight + 1.0, self.weight)
+            d = np.where(held, 1.0 / self.weight, 0.0)
             self.r_hat = np.maximum((1.0 - d) * self.r_hat + d * (y**2 - P[:, diag, diag]),
                                     self.r_floor)
+            R = R.copy()
             R[:, diag, diag] = self.r_hat
-        # K = P S^-1 = (S^-1 P)^T for symmetric P, S
-        K = np.linalg.solve(P + R, P).swapaxes(-1, -2)
-        I_K = _I3 - K
-        # Joseph form, as filterpy: stays symmetric PSD and matches the reference
-        posterior = I_K @ P @ I_K.swapaxes(-1, -2) + K @ R @ K.swapaxes(-1, -2)
-        self.x = _where_fix(fix, x + np.einsum("gij,gj->gi", K, y), x)
-        self.P = _where_fix(fix, posterior, P_prior)
-        self.prior = (x, _where_fix(fix, P, P_prior))  # the prior each posterior came from
-        self.n_fix = self.n_fix + fix
+            self.R = R
+        pos_var = 0.5 * (R[:, 0, 0] + R[:, 1, 1])
+        m, R, P, start = self.course.take(m, pos_var, P, R)
+        if start.any():
+            y = _innovation(m, x)
+            cross = np.array(cross)
+            cross[start, :, 2] = 0.0  # the flat heading prior owes nothing to the past state
+        self.cross = cross
+        self.prior = (x, P)  # the prior each posterior came from
+        self.x, self.P = joseph_update(x, P, y, _I3, R, held_channels(m))
+        self.n_fix = self.n_fix + held
         return self.x
 
 
@@ -496,13 +623,18 @@ class UnscentedStepper:
     """The UKF of :func:`ukf_batch` one time step per call, over G trajectories.
 
     The same sigma points (Merwe, beta=2, kappa=0, upper Cholesky factor, wrapped headings),
-    weights, circular means, redrawn prior sigma points and covariance update as filterpy's
-    :class:`~filterpy.kalman.UnscentedKalmanFilter`. :func:`ukf_batch` loops over it and
+    weights and circular means as filterpy's :class:`~filterpy.kalman.UnscentedKalmanFilter`
+    for the prediction. The measurement is linear (the channels a row holds, of the state
+    itself), and the unscented transform of a linear map is exact: its update is the Kalman
+    update, :func:`lbo.filters.update.joseph_update` as every stepper's (filterpy's
+    ``P - K S K^T`` on sigma points redrawn from the prior is the same to rounding: 1e-9 over
+    the test trajectories, tested). :func:`ukf_batch` loops over it and
     :class:`lbo.Observer` steps it one sample at a time, so streaming and batch agree.
 
     Parameters
     ----------
-    m0 : (G, 3) first measurements; the state starts there with P_0 = R.
+    m0 : (G, 3) first measurements (position fixes); the state starts there with P_0 = R
+        (a NaN heading: as :class:`KalmanStepper`).
     vehicle : Vehicle
     Q : (3, 3) process covariance.
     R : (G, 3, 3) measurement covariance (diagonal floored at :data:`COV_FLOOR`).
@@ -511,6 +643,7 @@ class UnscentedStepper:
     Attributes
     ----------
     x : (G, 3) current estimate. P : (G, 3, 3) its covariance.
+    prior, cross, course : as :class:`KalmanStepper`'s.
     """
 
     def __init__(self, m0: np.ndarray, vehicle: Vehicle, Q: np.ndarray, R: np.ndarray,
@@ -518,12 +651,12 @@ class UnscentedStepper:
         self.vehicle, self.Q = vehicle, _check_q(Q)
         self.R = _floor_diag(R)
         self.wm, self.wc, self.lam = merwe_weights(3, spread)
-        self.x = np.array(m0, dtype=float)
-        self.P = self.R.copy()
+        self.x, self.P = _start(m0, self.R)
+        self.course = CourseStart(m0, vehicle, self.Q)
 
     def update(self, m: np.ndarray, u_prev: np.ndarray) -> np.ndarray:
-        """Predict with u_{k-1} (G, 2), update with m_k (G, 3) where it is a fix (not NaN);
-        returns x_k (G, 3)."""
+        """Predict with u_{k-1} (G, 2), update with what m_k (G, 3) holds (NaN channels are
+        not measured); returns x_k (G, 3)."""
         wm, wc, lam = self.wm, self.wc, self.lam
         # predict: sigma points through the bicycle step, unscented transform plus Q
         before = _sigma_points(self.x, self.P, lam)
@@ -533,20 +666,14 @@ class UnscentedStepper:
         d = _deviations(sig, x)
         P = np.einsum("s,gsi,gsj->gij", wc, d, d) + self.Q
         # cov(x_{k-1|k-1}, x_{k|k-1}) from the sigma points, for the URTS smoother
-        self.cross = np.einsum("s,gsi,gsj->gij", wc, _deviations(before, self.x), d)
-        # update (h = identity) on sigma points redrawn from the prior, as filterpy does
-        sig = _sigma_points(x, P, lam)
-        zp = _batch_mean(sig, wm)
-        dz = _deviations(sig, zp)
-        S = np.einsum("s,gsi,gsj->gij", wc, dz, dz) + self.R
-        Pxz = np.einsum("s,gsi,gsj->gij", wc, _deviations(sig, x), dz)
-        K = Pxz @ np.linalg.inv(S)
-        fix = fix_mask(m)
-        y = np.where(fix[:, None], m - zp, 0.0)
-        y[:, 2] = wrap_angle(y[:, 2])
-        self.x = _where_fix(fix, x + np.einsum("gij,gj->gi", K, y), x)
-        self.P = _where_fix(fix, P - K @ S @ K.swapaxes(-1, -2), P)
+        cross = np.einsum("s,gsi,gsj->gij", wc, _deviations(before, self.x), d)
+        self.course.advance(u_prev)
+        R = self.R
+        m, R, P, start = self.course.take(m, 0.5 * (R[:, 0, 0] + R[:, 1, 1]), P, R)
+        cross[start, :, 2] = 0.0  # the flat heading prior owes nothing to the past state
+        self.cross = cross
         self.prior = (x, P)
+        self.x, self.P = joseph_update(x, P, _innovation(m, x), _I3, R, held_channels(m))
         return self.x
 
 
