@@ -155,8 +155,8 @@ def test_bad_data_files_name_the_column_and_write_nothing(tmp_path, smoke_data):
     no_col, with_nan = broken_copies(smoke_data, tmp_path)
     with pytest.raises(LboError, match="missing column 'psi_m'"):
         evaluate(eval_cfg(tmp_path, smoke_data, f"test_file={no_col}"))
-    # one NaN among x_m, y_m, psi_m is a partial fix (all three empty: no fix, allowed)
-    with pytest.raises(LboError, match=r"row 5 has a partial fix \(y_m empty\)"):
+    # x_m without y_m is refused (all three empty: no fix, allowed)
+    with pytest.raises(LboError, match=r"row 5 has x_m without y_m"):
         evaluate(eval_cfg(tmp_path, smoke_data, f"test_file={with_nan}"))
     with pytest.raises(LboError, match="unknown observer 'kalman'"):
         evaluate(eval_cfg(tmp_path, smoke_data, "observers=[ekf,kalman]"))

@@ -165,12 +165,13 @@ def _observe(*args, cwd):
 
 
 @pytest.mark.parametrize("blank, message", [
-    ({"psi_m": [4]}, r"row 4 has a partial fix \(psi_m empty\); a step without a fix leaves "
-                     "x_m, y_m and psi_m all empty"),
+    ({"x_m": [4], "y_m": [4]}, r"row 4 has a heading without a position \(psi_m without x_m, "
+                               r"y_m\); a row holds x_m and y_m \(a position fix\), with or "
+                               r"without psi_m, or none of them"),
     ({"x_m": "all", "y_m": "all", "psi_m": "all"},
-     r"no position fix in any row \(x_m, y_m and psi_m are empty everywhere\)"),
+     r"no position fix in any row \(x_m and y_m are empty everywhere\)"),
 ])
-def test_a_partial_fix_or_no_fix_is_one_line_and_no_output(tmp_path, blank, message):
+def test_a_heading_without_a_position_or_no_fix_is_one_line_and_no_output(tmp_path, blank, message):
     df = simulate(compose_cfg("simulate", ["manoeuvre=slalom"]))[LOG].head(50)
     for col, rows in blank.items():
         df.loc[df.index if rows == "all" else df.index[rows], col] = np.nan

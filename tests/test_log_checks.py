@@ -213,9 +213,13 @@ def _with(df, row, column, value):
 API_CASES = {  # case: (log from the good one, what the line says after `input <path>: `)
     "inf_fix": (lambda d: _with(d, 5, "x_m", np.inf),
                 "column 'x_m' has NaN or inf (first at row 5)"),
-    "partial_fix": (lambda d: _with(d, 5, "y_m", np.nan),
-                    "row 5 has a partial fix (y_m empty); a step without a fix leaves x_m, y_m "
-                    "and psi_m all empty"),
+    "x_without_y": (lambda d: _with(d, 5, "y_m", np.nan),
+                    "row 5 has x_m without y_m; a row holds x_m and y_m (a position fix), with "
+                    "or without psi_m, or none of them (a step without a fix)"),
+    "heading_without_position": (lambda d: _with(_with(d, 5, "y_m", np.nan), 5, "x_m", np.nan),
+                                 "row 5 has a heading without a position (psi_m without x_m, "
+                                 "y_m); a row holds x_m and y_m (a position fix), with or "
+                                 "without psi_m, or none of them (a step without a fix)"),
     "nan_speed": (lambda d: _with(d, 9, "V", np.nan), "column 'V' has NaN or inf (first at row 9)"),
     "absurd_position": (lambda d: _with(d, 3, "y_m", 1e12),
                         "row 3: y_m=1e+12 m is beyond 1e+07 m (positions are metres in a "
@@ -235,7 +239,7 @@ API_CASES = {  # case: (log from the good one, what the line says after `input <
     "degrees": (lambda d: d.assign(psi_m=np.degrees(d["psi_m"]) + 90.0),
                 "column 'psi_m' looks like degrees"),
     "no_fix": (lambda d: d.assign(x_m=np.nan, y_m=np.nan, psi_m=np.nan),
-               "no position fix in any row (x_m, y_m and psi_m are empty everywhere)"),
+               "no position fix in any row (x_m and y_m are empty everywhere)"),
 }
 
 
@@ -267,8 +271,11 @@ def test_step_refuses_a_bad_sample_and_the_next_good_one_goes_on(manoeuvre, sour
         ((m[40], [1e300, u[40, 1]]), r"^step 40: V=1e\+300 m/s is beyond 100 m/s"),
         (([1e12, m[40, 1], m[40, 2]], u[40]), r"^step 40: x_m=1e\+12 m is beyond 1e\+07 m"),
         (([m[40, 0], np.nan, m[40, 2]], u[40]),
-         r"^step 40: measurement \[.*\] has NaN or inf \(y_m\); pass measurement=None"),
-        (([np.inf, m[40, 1], m[40, 2]], u[40]), r"^step 40: measurement .* has NaN or inf"),
+         r"^step 40: measurement \[.*\] has x_m without y_m; a sample holds x_m and y_m"),
+        (([np.nan, np.nan, m[40, 2]], u[40]),
+         r"^step 40: measurement \[nan, nan, .*\] has a heading without a position"),
+        (([np.inf, m[40, 1], m[40, 2]], u[40]),
+         r"^step 40: measurement .* has inf \(x_m\); pass measurement=None"),
         ((m[40], [np.nan, 0.0]), r"^step 40: input \[V, delta\] = \[nan, 0\] has NaN or inf"),
         ((m[40], [u[40, 0], 0.9]), r"^step 40: delta=0.9 rad is beyond the vehicle's steering"),
         (([m[40, 0], m[40, 1], 400.0], u[40]), r"^step 40: psi_m=400 rad is outside"),

@@ -53,7 +53,9 @@ BAD_LOGS = {  # case: (the bad train/a.csv from the good one, what the message m
     "unsorted": (_swap, "column 't' is not strictly increasing (row 11"),
     "milliseconds": (lambda d: d.assign(t=d["t"] * 1000), "column 't' looks like milliseconds"),
     "period": (lambda d: d.iloc[::2], "pass data.resample=true"),
-    "partial_fix": (lambda d: _set(d, 4, "psi_m", np.nan), "row 4 has a partial fix (psi_m empty)"),
+    # the learned observers train on full fixes: a position without a heading is refused
+    "no_heading": (lambda d: _set(d, 4, "psi_m", np.nan),
+                   "row 4 has a position without a heading (psi_m empty)"),
     "steering": (lambda d: _set(d, 6, "delta", 1.5), "row 6: delta=1.5 rad is beyond"),
 }
 

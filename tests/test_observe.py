@@ -166,8 +166,7 @@ def _set(df, row, column, value):
 BAD_LOGS = {  # case: (log from the good one, what the message must say)
     "missing": (lambda d: d.drop(columns=["V", "delta"]), "missing columns V, delta"),
     "nan": (lambda d: _set(d, 5, "V", np.nan), "column 'V' has NaN or inf"),
-    "partial_fix": (lambda d: _set(d, 5, "y_m", np.nan),
-                    r"row 5 has a partial fix \(y_m empty\)"),
+    "x_without_y": (lambda d: _set(d, 5, "y_m", np.nan), r"row 5 has x_m without y_m"),
     "inf_fix": (lambda d: _set(d, 5, "x_m", np.inf), "column 'x_m' has NaN or inf"),
     "absurd_position": (lambda d: _set(d, 3, "x_m", 1e300),
                         r"row 3: x_m=1e\+300 m is beyond 1e\+07 m \(positions are metres"),
@@ -303,10 +302,12 @@ def test_streaming_equals_batch(trained, smoke_data, source):
         assert obs._ring.shape == (2 * n, 5)  # the history is never kept
 
 
-def test_step_refuses_nan():
+def test_step_refuses_x_without_y_and_inf():
     obs = Observer.load("ekf")
-    with pytest.raises(LboError, match="NaN or inf"):
+    with pytest.raises(LboError, match=r"^step 0: measurement \[0, nan, 0\] has x_m without y_m"):
         obs.step([0.0, np.nan, 0.0], [1.0, 0.0])
+    with pytest.raises(LboError, match=r"^step 0: measurement \[0, inf, 0\] has inf \(y_m\)"):
+        obs.step([0.0, np.inf, 0.0], [1.0, 0.0])
 
 
 # --- checkpoints and where they come from -----------------------------------------------------

@@ -174,7 +174,7 @@ def observe(cfg: DictConfig) -> dict[str, Any]:
     if not fmt.is_plain or origin is not None:
         print("read as: " + ", ".join(filter(None, [fmt.describe(), origin and (
             f"lat/lon -> metres east/north of {origin.lat:.7f}, {origin.lon:.7f}")])))
-    fix = np.isfinite(m).all(1)
+    fix = np.isfinite(m[:, :2]).all(1)  # a position, with or without a heading
     duration = len(df) * obs.dt
     print(f"fixes: {int(fix.sum())} of {len(df)} rows ({fix.sum() / duration:.3g} Hz; inputs "
           f"at {1 / obs.dt:g} Hz)")

@@ -157,19 +157,27 @@ class _Stream:
         self.flt: Any = None
 
     def __call__(self, m: np.ndarray, u_prev: np.ndarray | None) -> np.ndarray:
-        """The estimate after measurement m (3,) (NaN: no fix); NaN until the first fix."""
+        """The estimate after measurement m (3,) (NaN: not held); NaN until the first
+        position fix (one without a heading starts the filter too)."""
         if self.flt is None:
-            if not np.isfinite(m).all():
+            if not np.isfinite(m[:2]).all():
                 return np.full(3, np.nan)
             self.flt = classical.stepper(self.name, m[None], self.vehicle, self.noise,
                                          self.alpha)
-            return m.copy()
+            return self.flt.x[0].copy()
         return self.flt.update(m[None], np.asarray(u_prev, float)[None])[0].copy()
 
     @property
     def cov(self) -> np.ndarray:
         """(3, 3) covariance of the last estimate (NaN before the first fix)."""
         return np.full((3, 3), np.nan) if self.flt is None else self.flt.P[0, :3, :3].copy()
+
+
+def _no_heading(name: str) -> str:
+    """Why a learned observer refuses a position fix without a heading."""
+    return (f"a position fix without a heading (psi_m empty), but {name} takes full fixes "
+            f"only (x_m, y_m and psi_m); the classical observers ({', '.join(CLASSICAL)}) "
+            "take it")
 
 
 def _from_first_fix(name: str, m: np.ndarray, u: np.ndarray, fix: np.ndarray,
@@ -475,7 +483,8 @@ class Observer:
         ----------
         measurement : (3,) ``[x_m, y_m, psi_m]`` (m, m, rad), or None (or all NaN) when this
             step has no position fix (classical observers, and learned ones trained with
-            ``fix_rates``).
+            ``fix_rates``); ``psi_m`` NaN alone: a position fix without a heading (classical
+            observers only).
         input : (2,) ``[V, delta]`` (m/s, rad) applied from this step to the next.
 
         Returns
@@ -490,7 +499,8 @@ class Observer:
         ------
         LboError
             One line naming the step and the value, for a sample :meth:`run` would refuse in
-            a log: NaN or inf (other than a whole missing fix), a partial fix, |x_m| or
+            a log: inf, a heading without a position, x_m without y_m (or the reverse), a
+            position fix without a heading for a learned observer, |x_m| or
             |y_m| beyond 1e7 m, |psi_m| beyond 2 pi, |V| beyond 100 m/s, |delta| beyond the
             vehicle's ``delta_max``; or no fix for an observer trained with a fix at every
             step. A refused sample changes nothing: the next :meth:`step` goes on as if it
@@ -515,6 +525,8 @@ class Observer:
                            f"{input!r}") from None
         fix = check_sample(None if m is None else tuple(m.tolist()), tuple(u.tolist()), k,
                            self.vehicle.delta_max)
+        if fix and self.net is not None and np.isnan(m[2]):
+            raise LboError(f"step {k}: {_no_heading(self.name)}")
         if not fix:
             if not self.takes_missing_fixes:
                 raise LboError(f"step {k}: no fix, but {self.name} was trained with a fix at "
@@ -587,7 +599,8 @@ class Observer:
         Parameters
         ----------
         m : (T, 3) measurements ``[x_m, y_m, psi_m]``; a row of NaN is a step without a
-            position fix.
+            position fix, a NaN psi_m alone a position fix without a heading (classical
+            observers only: a learned one refuses it in one line).
         u : (T, 2) inputs ``[V, delta]``.
         batch_size : windows per network call.
         source : what to call the log in messages (``"input log.csv"``); None: nothing.
@@ -611,12 +624,13 @@ class Observer:
         ------
         LboError
             One line naming the row: the checks of ``python -m lbo.observe``
-            (:func:`lbo.sim.logcheck.check_samples`: NaN or inf other than a whole missing fix,
-            a partial fix, no fix at all, headings in degrees, positions, speeds or steering
-            beyond a vehicle's); a step without a fix for an observer trained with a fix at
-            every step; for a learned observer trained with ``fix_rates`` in its window form, a
-            window of N steps after the first fix without any fix (its estimate there would be
-            NaN).
+            (:func:`lbo.sim.logcheck.check_samples`: NaN or inf other than a missing fix or
+            heading, a heading without a position, x_m without y_m, no fix at all, headings
+            in degrees, positions, speeds or steering beyond a vehicle's); a position fix
+            without a heading for a learned observer; a step without a fix for an observer
+            trained with a fix at every step; for a learned observer trained with ``fix_rates``
+            in its window form, a window of N steps after the first fix without any fix (its
+            estimate there would be NaN).
         """
         try:
             m = np.asarray(m, dtype=float)
@@ -632,6 +646,10 @@ class Observer:
                               and getattr(self.net, "physical", False) else
                               "; smoothing takes a classical observer or the robust one"))
         fix = check_samples(m, u, delta_max=self.vehicle.delta_max, source=source)
+        if self.net is not None and (fix & np.isnan(m[:, 2])).any():
+            raise LboError(f"{source + ': ' if source else ''}row "
+                           f"{int(np.argmax(fix & np.isnan(m[:, 2])))}: "
+                           + _no_heading(self.name))
         if not fix.all() and not self.takes_missing_fixes:
             raise LboError(f"{source + ': ' if source else ''}row "
                            f"{int(np.flatnonzero(~fix)[0])}: no fix, but {self.name} was "

@@ -191,7 +191,8 @@ def segments(path: Path, spec: LogSpec) -> list[pd.DataFrame]:
         raise LboError(f"{source}: missing true-state column{'s' if len(missing) > 1 else ''} "
                        f"{', '.join(missing)} (data=logs trains and scores against the "
                        "reference system's x, y in m and psi in rad)")
-    check_log(df, source, spec.log_format.heading)
+    # the learned observers train on full fixes (x_m, y_m and psi_m) only
+    check_log(df, source, spec.log_format.heading, position_only=False)
     check_steering(df, spec.vehicle, source)
     dt = spec.vehicle.dt
     t = df["t"].to_numpy(dtype=float)

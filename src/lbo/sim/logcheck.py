@@ -23,7 +23,11 @@ from lbo.core.checks import number
 from lbo.core.errors import LboError
 
 MEAS = ("x_m", "y_m", "psi_m")
-"""Columns of a position fix; all three NaN: a step without a fix."""
+"""Columns of a position fix: x_m and y_m, with or without psi_m (the classical observers take
+a position without a heading); all three NaN: a step without a fix."""
+FIX_RULE = ("a row holds x_m and y_m (a position fix), with or without psi_m, or none of "
+            "them (a step without a fix)")
+"""What a row of a log may hold, as the checks say it."""
 INPUTS = ("V", "delta")
 TRUTH = ("x", "y", "psi")
 
@@ -118,9 +122,10 @@ def _finite(values: np.ndarray, names: tuple[str, ...], source: str | None) -> N
 
 
 def fix_mask(m: Any) -> Any:
-    """Which rows hold a position fix: (..., C) measurements whose first three channels are
-    ``x_m, y_m, psi_m`` (C >= 3, a NumPy array or a torch tensor) -> (...) bool, True where
-    all three hold a finite value. A step without a fix leaves them NaN."""
+    """Which rows hold a full fix, the learned observers' (a position fix without a heading is
+    for the classical ones, :func:`position_mask`): (..., C) measurements whose first three
+    channels are ``x_m, y_m, psi_m`` (C >= 3, a NumPy array or a torch tensor) -> (...) bool,
+    True where all three hold a finite value. A step without a fix leaves them NaN."""
     head = m[..., :3]
     if isinstance(head, np.ndarray):
         return np.isfinite(head).all(-1)
@@ -133,21 +138,43 @@ def fix_period(rate: float, dt: float) -> int:
     return max(1, int(round(1.0 / (rate * dt))))
 
 
-def check_fixes(m: np.ndarray, source: str | None = None) -> np.ndarray:
-    """:func:`fix_mask` of a log's measurements m (T, 3), checked: a row with only some of
-    ``x_m, y_m, psi_m`` NaN, or a log without any fix, is one :class:`LboError`."""
+def position_mask(m: np.ndarray) -> np.ndarray:
+    """Which rows hold a position (x_m and y_m finite): (..., C) -> (...) bool."""
+    return np.isfinite(m[..., 0]) & np.isfinite(m[..., 1])
+
+
+def check_fixes(m: np.ndarray, source: str | None = None,
+                position_only: bool = False) -> np.ndarray:
+    """The rows of a log's measurements m (T, 3) that hold a position fix, (T,) bool, checked.
+
+    Each row holds x_m and y_m (a fix) with psi_m, or none of the three; with
+    ``position_only`` (a log for the classical observers) a fix may also lack psi_m. A heading
+    without a position, x_m without y_m (or the reverse), a fix without a heading where one is
+    needed, or a log without any fix, is one :class:`LboError` naming the first such row."""
     empty = np.isnan(m)
-    partial = empty.any(1) & ~empty.all(1)
-    if partial.any():
-        r = int(np.flatnonzero(partial)[0])
-        gone = [c for c, e in zip(MEAS, empty[r]) if e]
-        raise LboError(_at(source, f"row {r} has a partial fix ({', '.join(gone)} empty); a "
-                                   "step without a fix leaves x_m, y_m and psi_m all empty"))
-    fix = ~empty.all(1)
-    if not fix.any():
-        raise LboError(_at(source, "no position fix in any row (x_m, y_m and psi_m are "
-                                   "empty everywhere)"))
-    return fix
+    pos = ~empty[:, 0] & ~empty[:, 1]
+    rules = [
+        (empty[:, 0] & empty[:, 1] & ~empty[:, 2], "has a heading without a position "
+                                                    "(psi_m without x_m, y_m)"),
+        (empty[:, 0] ^ empty[:, 1], None),
+    ]
+    if not position_only:
+        rules.append((pos & empty[:, 2], "has a position without a heading (psi_m empty)"))
+    firsts = [(int(np.argmax(bad)), i) for i, (bad, _) in enumerate(rules) if bad.any()]
+    if firsts:
+        r, i = min(firsts)
+        what = rules[i][1]
+        if what is None:
+            have, lack = ("x_m", "y_m") if empty[r, 1] else ("y_m", "x_m")
+            what = f"has {have} without {lack}"
+        allowed = FIX_RULE if position_only else (
+            "here a row holds x_m, y_m and psi_m (a fix) or none of them (a step without a "
+            "fix)")
+        raise LboError(_at(source, f"row {r} {what}; {allowed}"))
+    if not pos.any():
+        raise LboError(_at(source, "no position fix in any row (x_m and y_m are empty "
+                                   "everywhere)"))
+    return pos
 
 
 def _beyond(where: str, column: str, value: float) -> LboError:
@@ -231,34 +258,39 @@ def check_steering(delta: np.ndarray, delta_max: float, source: str | None = Non
 
 def check_samples(m: np.ndarray, u: np.ndarray, *, delta_max: float | None = None,
                   truth: np.ndarray | None = None, source: str | None = None,
-                  t: np.ndarray | None = None, dt: float = DT) -> np.ndarray:
-    """Check a log's values; return its fix rows (T,) bool.
+                  t: np.ndarray | None = None, dt: float = DT,
+                  position_only: bool = True) -> np.ndarray:
+    """Check a log's values; return its fix rows (T,) bool: those holding a position.
 
     Parameters
     ----------
-    m : (T, 3) ``[x_m, y_m, psi_m]``; a row all NaN is a step without a fix.
+    m : (T, 3) ``[x_m, y_m, psi_m]``; a row all NaN is a step without a fix, one with only
+        psi_m NaN a position fix without a heading (refused unless ``position_only``).
     u : (T, 2) ``[V, delta]``.
     delta_max : the vehicle's steering limit (rad); None: not checked (yet).
     truth : (T, 3) ``[x, y, psi]`` or None.
     source : prefix of the messages (``"input log.csv"``), None: none.
     t : (T,) times (s) of the rows, or None: rows ``dt`` apart.
+    position_only : whether a fix may lack its heading (the classical observers take it;
+        a training set for a learned observer does not).
 
     Headings are rad on any branch (wrapped, or accumulated past 2 pi by a logger).
 
     Raises
     ------
     LboError
-        The first of: NaN or inf in V, delta or the truth; inf in a fix; a partial fix; no fix
-        at all; a heading beyond 1e6 rad; a heading column that looks like degrees by how fast
-        it turns (:func:`check_heading_unit`); |x_m|, |y_m| (and |x|, |y|) beyond 1e7 m; |V|
-        beyond 100 m/s; |delta| beyond ``delta_max``.
+        The first of: NaN or inf in V, delta or the truth; inf in a fix; a heading without a
+        position, x_m without y_m (or a position without a heading, unless
+        ``position_only``); no fix at all; a heading beyond 1e6 rad; a heading column that
+        looks like degrees by how fast it turns (:func:`check_heading_unit`); |x_m|, |y_m|
+        (and |x|, |y|) beyond 1e7 m; |V| beyond 100 m/s; |delta| beyond ``delta_max``.
     """
     _finite(u, INPUTS, source)
     if truth is not None:
         _finite(truth, TRUTH, source)
     _finite(np.where(np.isnan(m), 0.0, m), MEAS, source)  # inf; NaN is a missing fix
-    fix = check_fixes(m, source)
-    headings = [("psi_m", m[:, 2], fix)] + ([("psi", truth[:, 2], True)]
+    fix = check_fixes(m, source, position_only)
+    headings = [("psi_m", m[:, 2], np.isfinite(m[:, 2]))] + ([("psi", truth[:, 2], True)]
                                             if truth is not None else [])
     times = np.arange(len(m)) * dt if t is None else np.asarray(t, float)
     for c, psi, rows in headings:
@@ -285,21 +317,30 @@ def check_samples(m: np.ndarray, u: np.ndarray, *, delta_max: float | None = Non
 def check_sample(m: tuple[float, float, float] | None, u: tuple[float, float], step: int,
                  delta_max: float) -> bool:
     """The checks of :func:`check_samples` on one sample (plain floats, no numpy): whether it
-    holds a fix. ``m`` None, or all NaN, is a step without a fix."""
+    holds a position fix. ``m`` None, or all NaN, is a step without a fix; NaN in psi_m alone
+    a position fix without a heading."""
     where = f"step {step}"
     v, delta = u
     if not (math.isfinite(v) and math.isfinite(delta)):
         raise LboError(f"{where}: input [V, delta] = [{v:g}, {delta:g}] has NaN or inf")
     fix = m is not None and not all(math.isnan(c) for c in m)
     if fix:
-        if not all(math.isfinite(c) for c in m):
-            bad = ", ".join(n for n, c in zip(MEAS, m) if not math.isfinite(c))
-            raise LboError(f"{where}: measurement [{m[0]:g}, {m[1]:g}, {m[2]:g}] has NaN or "
-                           f"inf ({bad}); pass measurement=None for a step without a fix")
+        if any(math.isinf(c) for c in m):
+            bad = ", ".join(n for n, c in zip(MEAS, m) if math.isinf(c))
+            raise LboError(f"{where}: measurement [{m[0]:g}, {m[1]:g}, {m[2]:g}] has inf "
+                           f"({bad}); pass measurement=None for a step without a fix")
+        x, y, psi = (not math.isnan(c) for c in m)
+        if x != y:
+            have, lack = ("x_m", "y_m") if x else ("y_m", "x_m")
+            raise LboError(f"{where}: measurement [{m[0]:g}, {m[1]:g}, {m[2]:g}] has {have} "
+                           f"without {lack}; {FIX_RULE.replace('a row', 'a sample')}")
+        if not x:
+            raise LboError(f"{where}: measurement [{m[0]:g}, {m[1]:g}, {m[2]:g}] has a heading "
+                           f"without a position; {FIX_RULE.replace('a row', 'a sample')}")
         for c, value in (("x_m", m[0]), ("y_m", m[1])):
             if abs(value) > POSITION_LIMIT:
                 raise _beyond(where, c, value)
-        if abs(m[2]) > 2 * math.pi:
+        if psi and abs(m[2]) > 2 * math.pi:
             raise _heading(where, "psi_m", m[2])
     if abs(v) > SPEED_LIMIT:
         raise _beyond(where, "V", v)
@@ -350,7 +391,7 @@ winding road lengthens the path over its chord by 1.3 at most for 5 s above 25 m
 def _pairs(t: np.ndarray, m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Fix rows (i, j), j the first fix ``CONVENTION_SPAN`` s after i, at least
     ``CONVENTION_MIN_M`` apart."""
-    fix = np.flatnonzero(np.isfinite(m).all(1))
+    fix = np.flatnonzero(position_mask(m))  # a heading is not needed for the course
     if len(fix) < 2:
         return fix[:0], fix[:0]
     tf = t[fix]

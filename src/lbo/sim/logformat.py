@@ -211,7 +211,7 @@ class LogFormat:
             if col in places:  # from the local east at each fix to the first fix's east
                 lat, lon = places[col]
                 known = np.isfinite(lat) & np.isfinite(lon)
-                # a heading without a place is a partial fix, refused by the checks as such
+                # a heading without a place is refused by the checks as such
                 values = np.where(known, origin.heading_from(values, np.where(known, lat, 0.0),
                                                              np.where(known, lon, 0.0)), values)
             out[col] = values

@@ -99,14 +99,18 @@ def read_log(path: str | Path) -> pd.DataFrame:
     return df
 
 
-def check_log(df: pd.DataFrame, source: str = "input", heading: str = "enu") -> bool:
+def check_log(df: pd.DataFrame, source: str = "input", heading: str = "enu",
+              position_only: bool = True) -> bool:
     """Check a log's columns and values; return whether it holds the true ``x, y, psi``.
 
-    A row whose ``x_m, y_m, psi_m`` are all empty (NaN) is a step without a position fix.
+    A row whose ``x_m, y_m, psi_m`` are all empty (NaN) is a step without a position fix;
+    one with ``psi_m`` alone empty a position fix without a heading, which the classical
+    observers take (``position_only=False``: refused, as for a learned observer's training).
     Raises :class:`LboError` naming the first problem: missing columns (naming those found),
     a non-numeric column, ``t`` with NaN or inf or not strictly increasing, and the value
     checks of :func:`lbo.sim.logcheck.check_samples` (those :meth:`lbo.Observer.run` applies:
-    NaN or inf other than a whole missing fix, a partial fix, no fix at all, a heading that
+    NaN or inf other than a missing fix or heading, a heading without a position, x_m without
+    y_m, no fix at all, a heading that
     looks like degrees, positions and speeds beyond any vehicle's), and a speed or heading
     that contradicts the fixes (:func:`lbo.sim.logcheck.check_conventions`: km/h, a compass
     bearing; ``heading`` is the convention it was read in). The steering limit, the
@@ -129,7 +133,7 @@ def check_log(df: pd.DataFrame, source: str = "input", heading: str = "enu") -> 
     check_samples(df[list(MEAS_COLUMNS)].to_numpy(dtype=float),
                   df[["V", "delta"]].to_numpy(dtype=float),
                   truth=df[list(TRUTH_COLUMNS)].to_numpy(dtype=float) if truth else None,
-                  source=source, t=df["t"].to_numpy(dtype=float))
+                  source=source, t=df["t"].to_numpy(dtype=float), position_only=position_only)
     check_time(df["t"].to_numpy(dtype=float), source)
     check_conventions(df["t"].to_numpy(dtype=float), df[list(MEAS_COLUMNS)].to_numpy(dtype=float),
                       df[["V", "delta"]].to_numpy(dtype=float), source, heading)
@@ -191,7 +195,8 @@ def resample(df: pd.DataFrame, dt: float, columns: tuple[str, ...],
     out = {"t": grid}
     meas = [c for c in MEAS_COLUMNS if c in columns]
     if meas:
-        fix = np.isfinite(df[meas].to_numpy(dtype=float)).all(1)
+        # a fix is its position; its heading, if any, comes with it
+        fix = np.isfinite(df[[c for c in meas if c != "psi_m"]].to_numpy(dtype=float)).all(1)
         at = np.round((t[fix] - t[0]) / dt).astype(np.int64)
         off = np.abs(t[fix] - (t[0] + dt * at))
         near = (at >= 0) & (at < n) & (off <= dt / 2 * (1 + 1e-9))
