@@ -45,6 +45,7 @@ import numpy as np
 import pandas as pd
 from omegaconf import DictConfig
 
+from lbo.core.checks import integer
 from lbo.core.cli import entry
 from lbo.core.errors import LboError
 from lbo.models.envelope import check_mode
@@ -100,6 +101,7 @@ def observe(cfg: DictConfig) -> dict[str, Any]:
     classical = name in CLASSICAL
     # the settings first: no log nor checkpoint is read for a run that cannot go on
     alpha = check_alpha(cfg.alpha)
+    threads = integer(cfg.get("threads", 1), "threads", 1)
     device = check_device(cfg.get("device", "cpu"), probe=not classical)
     max_gap = check_max_gap(cfg.get("max_gap", MAX_GAP))
     output = check_output_path(str(cfg.output), source)
@@ -117,6 +119,10 @@ def observe(cfg: DictConfig) -> dict[str, Any]:
     mode = check_mode(cfg.get("envelope", "warn"))
     kw = {"alpha": alpha, "features": cfg.get("features"), "device": device,
           "envelope_mode": mode}
+    if not classical:  # a learned observer's small batches and steps gain nothing from more
+        import torch
+
+        torch.set_num_threads(threads)
     obs = Observer.load(name, vehicle if classical else None, noise if classical else None,
                         form=form, **kw)
     if obs.kind == "learned" and vehicle.delta_max > obs.vehicle.delta_max:
