@@ -611,3 +611,17 @@ def test_locks_live_beside_the_database_not_in_the_temp_folder(tmp_path, smoke_d
     tune(tune_cfg(tmp_path, smoke_data, tracking, "tune.n_trials=1", "tune.study_name=locks"))
     assert set(glob.glob(f"{tempfile.gettempdir()}/lbo-*.lock")) == before
     assert list(tmp_path.glob("optuna.db*.lock"))  # the study's and the store's, with the db
+
+
+@pytest.mark.parametrize("hook", ["on_train_epoch_start", "on_train_batch_end",
+                                  "on_validation_batch_end"])
+def test_a_recorded_ctrl_c_stops_the_trial_at_each_safe_point(hook):
+    """The first Ctrl-C is only recorded; the trial stops at the next epoch start or batch end
+    (the epoch-start hook was once left behind, dead, in tune.py)."""
+    from lbo.learn.tune_callbacks import Interrupts
+
+    interrupts = Interrupts()
+    getattr(interrupts, hook)(None, None)  # nothing recorded: goes on
+    interrupts._on_signal(2, None)
+    with pytest.raises(KeyboardInterrupt):
+        getattr(interrupts, hook)(None, None)

@@ -165,11 +165,6 @@ def _short(value: Any) -> str:
 # --- trials ---------------------------------------------------------------------------------
 
 
-
-    def on_train_epoch_start(self, *args: Any, **kwargs: Any) -> None:
-        self.check()
-
-
 def _slug(name: str) -> str:
     """A study name as one folder name: anything but letters, digits and ``._+-`` becomes _."""
     return re.sub(r"[^A-Za-z0-9._+-]", "_", name).lstrip(".") or "study"

@@ -63,6 +63,9 @@ class Interrupts(L.Callback):
         if self.count:
             raise KeyboardInterrupt
 
+    def on_train_epoch_start(self, *args: Any, **kwargs: Any) -> None:
+        self.check()
+
     def on_train_batch_end(self, *args: Any, **kwargs: Any) -> None:
         self.check()
 
