@@ -7,7 +7,10 @@ The log (CSV or Parquet) holds one row per sample with the columns ``t`` (s), ``
 ``y_m`` (m), ``psi_m`` (rad), ``V`` (m/s) and ``delta`` (rad), and optionally the true
 ``x, y, psi``. A row with ``x_m, y_m, psi_m`` all empty is a step without a position fix
 (GNSS slower than the inputs); the classical observers predict through it, and learned ones
-trained with ``fix_rates`` take it. The whole log is checked before anything is written
+trained with ``fix_rates`` take it. A receiver's log may add, row by row, the accuracy it
+reports for each fix (``sx_m, sy_m`` m, ``spsi_m`` rad: the classical filters' R of that
+step) and a GNSS velocity (``ve_m, vn_m`` m/s, ``sv_m``: the course over ground, while the car
+moves; :mod:`lbo.filters.measure`). The whole log is checked before anything is written
 (:mod:`lbo.sim.logcheck`, the checks :class:`lbo.Observer` applies too); a failed run writes no
 output file. The output has ``t, x, y, psi, valid``: ``valid`` is false before the first
 fix, and on the first N-1 rows of a CNN or LSTM, whose window is not full yet (those rows
@@ -52,6 +55,7 @@ from lbo.models.envelope import check_mode
 from lbo.scoring.metrics import PAPER_REFERENCE, nrmse, rmse
 from lbo.sim.logcheck import (
     MAX_GAP,
+    RECEIVER,
     check_alpha,
     check_device,
     check_max_gap,
@@ -68,6 +72,7 @@ from lbo.sim.logio import (
     check_steering,
     plot_path,
     read_log,
+    receiver,
     resample,
     write_table,
 )
@@ -137,16 +142,19 @@ def observe(cfg: DictConfig) -> dict[str, Any]:
                        envelope_mode=mode)
     check_steering(df, obs.vehicle, where)
     check_time_unit(df["t"].to_numpy(dtype=float), obs.dt, where)
-    columns = LOG_COLUMNS[1:] + (TRUTH_COLUMNS if truth else ())
+    columns = (LOG_COLUMNS[1:] + (TRUTH_COLUMNS if truth else ())
+               + tuple(c for c in RECEIVER if c in df.columns))
     if cfg.resample:
         df = resample(df, obs.dt, columns, max_gap, where)
     check_period(df["t"].to_numpy(dtype=float), obs.dt, where)
 
     m = df[["x_m", "y_m", "psi_m"]].to_numpy(dtype=float)
     u = df[["V", "delta"]].to_numpy(dtype=float)
+    channels = receiver(df)
     with warnings.catch_warnings():  # said below, one line per field
         warnings.simplefilter("ignore", EnvelopeWarning)
-        est, valid, cov = obs.run(m, u, source=where, cov=True, smooth=smooth)
+        est, valid, cov = obs.run(m, u, source=where, cov=True, smooth=smooth,
+                                  receiver=channels if classical else None)
     envelope = obs.check_envelope(m, u) if mode != "off" else None
     result: dict[str, Any] = {"output": output, "observer": obs.name, "rows": len(df),
                               "valid": int(valid.sum())}
@@ -184,6 +192,12 @@ def observe(cfg: DictConfig) -> dict[str, Any]:
     duration = len(df) * obs.dt
     print(f"fixes: {int(fix.sum())} of {len(df)} rows ({fix.sum() / duration:.3g} Hz; inputs "
           f"at {1 / obs.dt:g} Hz)")
+    if channels is not None:
+        told = [c for c, held in zip(RECEIVER, np.isfinite(channels).any(0)) if held]
+        print(f"receiver: {', '.join(told) or 'no value'} "
+              + ("taken (reported accuracy as R, velocity as course over ground)" if classical
+                 else f"not read: {obs.name} does not take a receiver's channels yet; the "
+                      "classical observers do"))
     if obs.kind == "learned":
         asked = (vehicle, noise.process_sigma, noise.measurement_sigma)
         if asked != (obs.vehicle, obs.noise.process_sigma, obs.noise.measurement_sigma):

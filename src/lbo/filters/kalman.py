@@ -36,6 +36,7 @@ from filterpy.kalman import ExtendedKalmanFilter, MerweScaledSigmaPoints, Unscen
 from tqdm.auto import tqdm
 
 from lbo.core.errors import LboError
+from lbo.filters import measure
 from lbo.filters.update import held_channels, joseph_update
 from lbo.sim.vehicle import Vehicle, jacobian, step, wrap_angle
 
@@ -77,11 +78,17 @@ def _floor_diag(cov: np.ndarray, floor: float = COV_FLOOR) -> np.ndarray:
     return out
 
 
-def _check_trajectories(m: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _check_trajectories(m: np.ndarray, u: np.ndarray, receiver: bool = True
+                        ) -> tuple[np.ndarray, np.ndarray]:
+    """m (G, T, 3), or (G, T, 8) with a receiver's channels where ``receiver``, and u
+    (G, T, 2), checked; the first row of each trajectory must hold a position."""
     m = np.asarray(m, dtype=float)
     u = np.asarray(u, dtype=float)
-    if m.ndim != 3 or m.shape[-1] != 3:
-        raise LboError(f"measurements m must be (G, T, 3) [x_m, y_m, psi_m], got {m.shape}")
+    widths = (3, measure.WIDTH) if receiver else (3,)
+    if m.ndim != 3 or m.shape[-1] not in widths:
+        raise LboError(f"measurements m must be (G, T, 3) [x_m, y_m, psi_m] or (G, T, "
+                       f"{measure.WIDTH}) with a receiver's channels "
+                       f"({', '.join(measure.CHANNELS)}), got {m.shape}")
     if u.shape != m.shape[:2] + (2,):
         raise LboError(f"inputs u must be (G, T, 2) [V, delta] matching m {m.shape}, got {u.shape}")
     if m.shape[1] and not np.isfinite(m[:, 0, :2]).all():
@@ -92,14 +99,20 @@ def _check_trajectories(m: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.nd
 
 
 def _start(m0: np.ndarray, R: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Starting state (G, 3) and covariance (G, 3, 3) at the first fixes m0 (G, 3): ``m0`` and
-    R (diagonal floored); where m0 has no heading, 0 rad with variance :data:`HEADING_VAR0`."""
-    x = np.array(m0, dtype=float)
-    P = _floor_diag(R)
-    blind = ~np.isfinite(x[:, 2])
+    """Starting state (G, 3) and covariance (G, 3, 3) at the first rows m0 (G, 3) or (G, 8):
+    the fix and the step's R (the accuracies it reports, :func:`lbo.filters.measure.step_cov`;
+    diagonal floored). Its heading is ``psi_m``, else the course over ground (its variance
+    ``s_course^2``), else 0 rad with variance :data:`HEADING_VAR0`."""
+    m0 = measure.widen(m0)
+    x = np.array(m0[:, :3], dtype=float)
+    P = _floor_diag(measure.step_cov(m0, R))
+    by_course = ~np.isfinite(x[:, 2]) & np.isfinite(m0[:, 6])
+    blind = ~measure.heading_held(m0)
+    x[by_course, 2] = m0[by_course, 6]
     x[blind, 2] = 0.0
-    P[blind, 2, :] = P[blind, :, 2] = 0.0
-    P[blind, 2, 2] = HEADING_VAR0
+    for rows, var in ((by_course, np.square(m0[:, 7])), (blind, HEADING_VAR0)):
+        P[rows, 2, :] = P[rows, :, 2] = 0.0
+        P[rows, 2, 2] = var[rows] if np.ndim(var) else var
     return x, P
 
 
@@ -119,7 +132,8 @@ class CourseStart:
 
     Parameters
     ----------
-    m0 : (G, 3) first fixes; a NaN heading starts the course.
+    m0 : (G, 3) or (G, 8) first rows (:data:`lbo.filters.measure.CHANNELS`); a fix without a
+        heading starts the course.
     vehicle : Vehicle
     Q : (3, 3) process covariance.
 
@@ -130,7 +144,7 @@ class CourseStart:
 
     def __init__(self, m0: np.ndarray, vehicle: Vehicle, Q: np.ndarray) -> None:
         self.vehicle, self.Q = vehicle, Q
-        self.blind = ~np.isfinite(np.asarray(m0, dtype=float)[:, 2])
+        self.blind = ~measure.heading_held(measure.widen(m0))
         self.p0 = np.array(m0, dtype=float)[:, :2]
         self.c = np.zeros_like(self.p0)
         self.turn = np.zeros(len(self.p0))
@@ -148,7 +162,7 @@ class CourseStart:
 
     def take(self, m: np.ndarray, pos_var: np.ndarray, P: np.ndarray, R: np.ndarray
              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """This step's heading channel: measurements m (G, 3), position noise variance
+        """This step's heading channel: rows m (G, 8), position noise variance
         pos_var (G,), prior covariance P (G, n, n) and R (G, 3, 3).
 
         Returns ``(m, R, P, start)``: m with the course's heading where it sets one, R with
@@ -158,7 +172,7 @@ class CourseStart:
         start = self.blind & np.isfinite(m[:, 0]) & np.isfinite(m[:, 1])
         if not start.any():
             return m, R, P, start
-        measured = np.isfinite(m[:, 2])
+        measured = measure.heading_held(m)
         dist = np.hypot(*self.c.T)
         moved = dist >= np.maximum(COURSE_SIGMAS * np.sqrt(pos_var), COURSE_MIN_M)
         course = start & ~measured & moved
@@ -274,7 +288,7 @@ def run_filterpy_ekf(m: np.ndarray, u: np.ndarray, vehicle: Vehicle,
     -------
     (T, 3) filtered estimates; row 0 is ``m_0``.
     """
-    m, u = _check_trajectories(np.asarray(m)[None], np.asarray(u)[None])
+    m, u = _check_trajectories(np.asarray(m)[None], np.asarray(u)[None], receiver=False)
     m, u = m[0], u[0]
     ekf = BicycleEKF(vehicle, Q, R)
     ekf.x = m[0][:, None].copy()
@@ -323,8 +337,11 @@ class KalmanStepper:
         self.vehicle, self.Q = vehicle, Q
         self.forgetting, self.r_floor = forgetting, r_floor
         self.R = np.array(R, dtype=float)
-        held = held_channels(np.asarray(m0, dtype=float))
+        m0 = measure.widen(m0)
+        held = held_channels(m0[:, :3])
         if forgetting is not None:
+            m0 = m0.copy()
+            m0[:, 3:6] = np.nan  # it learns R: reported accuracies are not its to take
             diag = np.arange(3)
             self.r_hat = self.R[:, diag, diag].copy()           # (G, 3) diagonal of the learned R
             # innovations r_hat is worth, per channel (a position fix teaches psi nothing)
@@ -336,18 +353,21 @@ class KalmanStepper:
         self.course = CourseStart(m0, vehicle, Q)
 
     def update(self, m: np.ndarray, u_prev: np.ndarray) -> np.ndarray:
-        """Predict with u_{k-1} (G, 2), update with what m_k (G, 3) holds; returns x_k (G, 3).
+        """Predict with u_{k-1} (G, 2), update with what row m_k (G, 3) or (G, 8) holds
+        (:mod:`lbo.filters.measure`); returns x_k (G, 3).
 
-        A row's NaN channels are not measured (all three: a prediction-only step)."""
-        held = held_channels(m)
+        A row's NaN channels are not measured (all of them: a prediction-only step). The
+        adaptive filter learns its own R and takes no reported accuracy."""
+        m = measure.widen(m)
+        held = held_channels(m[:, :3])
         F = jacobian(self.x, u_prev, self.vehicle.dt)
         x = step(self.x, u_prev, self.vehicle.dt, self.vehicle.wheelbase)
         self.course.advance(u_prev)
         cross = self.P @ F.swapaxes(-1, -2)  # cov(x_{k-1|k-1}, x_{k|k-1}), for smoothing
         P = F @ self.P @ F.swapaxes(-1, -2) + self.Q
-        y = _innovation(m, x)
         R = self.R
         if self.forgetting is not None:
+            y = _innovation(m[:, :3], x)
             diag = np.arange(3)
             # P_0 = R0 is wrong by the unknown alpha^2; n measurements of noise R cannot give
             # a prior error below R / n, so hold P there until it settles (channels measured
@@ -366,15 +386,16 @@ class KalmanStepper:
             R = R.copy()
             R[:, diag, diag] = self.r_hat
             self.R = R
+        else:
+            R = measure.step_cov(m, R)
         pos_var = 0.5 * (R[:, 0, 0] + R[:, 1, 1])
         m, R, P, start = self.course.take(m, pos_var, P, R)
         if start.any():
-            y = _innovation(m, x)
             cross = np.array(cross)
             cross[start, :, 2] = 0.0  # the flat heading prior owes nothing to the past state
         self.cross = cross
         self.prior = (x, P)  # the prior each posterior came from
-        self.x, self.P = joseph_update(x, P, y, _I3, R, held_channels(m))
+        self.x, self.P = joseph_update(x, P, *measure.model(m, x, R))
         self.n_fix = self.n_fix + held
         return self.x
 
@@ -415,7 +436,7 @@ def run_stepper(kf, m: np.ndarray, u: np.ndarray, return_cov: bool = False,
     from lbo.filters.smoother import rts
 
     g, t = m.shape[:2]
-    est = np.empty_like(m)
+    est = np.empty((g, t, 3))
     est[:, 0] = pose(kf)
     covs = np.empty((g, t, 3, 3)) if return_cov or smooth else None
     if covs is not None:
@@ -543,7 +564,7 @@ def ukf(m: np.ndarray, u: np.ndarray, vehicle: Vehicle, Q: np.ndarray, R: np.nda
     -------
     (T, 3) filtered estimates.
     """
-    m, u = _check_trajectories(np.asarray(m)[None], np.asarray(u)[None])
+    m, u = _check_trajectories(np.asarray(m)[None], np.asarray(u)[None], receiver=False)
     m, u = m[0], u[0]
     dt, wheelbase = vehicle.dt, vehicle.wheelbase
     points = MerweScaledSigmaPoints(3, alpha=spread, beta=2.0, kappa=0.0, subtract=_residual)
@@ -573,7 +594,7 @@ def ukf_filterpy_batch(m: np.ndarray, u: np.ndarray, vehicle: Vehicle, Q: np.nda
 
     Shapes as :func:`ukf_batch`; ``progress`` shows a tqdm bar.
     """
-    m, u = _check_trajectories(m, u)
+    m, u = _check_trajectories(m, u, receiver=False)
     R = _batch_cov(R, m.shape[0], "R")
     est = np.empty_like(m)
     for i in tqdm(range(m.shape[0]), desc="UKF (filterpy)", unit="traj", disable=not progress,
@@ -655,8 +676,9 @@ class UnscentedStepper:
         self.course = CourseStart(m0, vehicle, self.Q)
 
     def update(self, m: np.ndarray, u_prev: np.ndarray) -> np.ndarray:
-        """Predict with u_{k-1} (G, 2), update with what m_k (G, 3) holds (NaN channels are
-        not measured); returns x_k (G, 3)."""
+        """Predict with u_{k-1} (G, 2), update with what row m_k (G, 3) or (G, 8) holds (NaN
+        channels are not measured, :mod:`lbo.filters.measure`); returns x_k (G, 3)."""
+        m = measure.widen(m)
         wm, wc, lam = self.wm, self.wc, self.lam
         # predict: sigma points through the bicycle step, unscented transform plus Q
         before = _sigma_points(self.x, self.P, lam)
@@ -668,12 +690,12 @@ class UnscentedStepper:
         # cov(x_{k-1|k-1}, x_{k|k-1}) from the sigma points, for the URTS smoother
         cross = np.einsum("s,gsi,gsj->gij", wc, _deviations(before, self.x), d)
         self.course.advance(u_prev)
-        R = self.R
+        R = measure.step_cov(m, self.R)
         m, R, P, start = self.course.take(m, 0.5 * (R[:, 0, 0] + R[:, 1, 1]), P, R)
         cross[start, :, 2] = 0.0  # the flat heading prior owes nothing to the past state
         self.cross = cross
         self.prior = (x, P)
-        self.x, self.P = joseph_update(x, P, _innovation(m, x), _I3, R, held_channels(m))
+        self.x, self.P = joseph_update(x, P, *measure.model(m, x, R))
         return self.x
 
 

@@ -39,14 +39,16 @@ import numpy as np
 
 from lbo.core.errors import LboError
 from lbo.core.paths import tracking_uri
-from lbo.filters import classical
+from lbo.filters import classical, measure
 from lbo.filters.classical import OBSERVERS as CLASSICAL
 from lbo.models.envelope import Envelope, EnvelopeCheck, check_mode
 from lbo.models.features import window_view
 from lbo.sim.logcheck import (
+    RECEIVER,
     check_alpha,
     check_device,
     check_fix_windows,
+    check_receiver,
     check_sample,
     check_samples,
 )
@@ -183,7 +185,8 @@ def _no_heading(name: str) -> str:
 def _from_first_fix(name: str, m: np.ndarray, u: np.ndarray, fix: np.ndarray,
                     vehicle: Vehicle, noise: Noise, alpha: float, smooth: bool = False
                     ) -> tuple[np.ndarray, np.ndarray]:
-    """Classical observer ``name`` over one log (T, 3), (T, 2), started at its first fix
+    """Classical observer ``name`` over one log (T, 3) or (T, 8) (a receiver's rows,
+    :mod:`lbo.filters.measure`), (T, 2), started at its first fix
     (``fix`` (T,) bool): (T, 3) estimates and (T, 3, 3) covariances, NaN before that fix
     (``smooth``: the RTS smoother's)."""
     est = np.full((len(m), 3), np.nan)
@@ -592,7 +595,8 @@ class Observer:
     # ----------------------------------------------------------------------- batch
 
     def run(self, m: np.ndarray, u: np.ndarray, batch_size: int = 4096, *,
-            source: str | None = None, cov: bool = False, smooth: bool = False
+            source: str | None = None, cov: bool = False, smooth: bool = False,
+            receiver: np.ndarray | None = None
             ) -> tuple[np.ndarray, np.ndarray] | tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Estimates over a whole log at once (vectorised; the streaming state is untouched).
 
@@ -608,6 +612,11 @@ class Observer:
         smooth : the Rauch-Tung-Striebel smoother's estimates (and covariances) after the
             filter (:mod:`lbo.filters.smoother`): every row drawn on the whole log, for offline
             logs. Classical observers and a window filter in its recursive form only.
+        receiver : (T, 6) a receiver's channels, :data:`lbo.sim.logcheck.RECEIVER`
+            ``[sx_m, sy_m, spsi_m, ve_m, vn_m, sv_m]``, NaN where a row holds none: the accuracy
+            it reports per fix (the R of that step) and a GNSS velocity (its course over
+            ground, :mod:`lbo.filters.measure`). Classical observers only; the adaptive one
+            learns its own R and takes the velocity alone.
 
         Returns
         -------
@@ -646,6 +655,16 @@ class Observer:
                               and getattr(self.net, "physical", False) else
                               "; smoothing takes a classical observer or the robust one"))
         fix = check_samples(m, u, delta_max=self.vehicle.delta_max, source=source)
+        if receiver is not None:
+            receiver = np.asarray(receiver, dtype=float)
+            if receiver.shape != (len(m), len(RECEIVER)):
+                raise LboError(f"run needs receiver ({len(m)}, {len(RECEIVER)}) "
+                               f"[{', '.join(RECEIVER)}], got {receiver.shape}")
+            if self.net is not None:
+                raise LboError(f"receiver: {self.name} does not take a receiver's channels "
+                               f"({', '.join(RECEIVER)}) yet; the classical observers "
+                               f"({', '.join(CLASSICAL)}) do")
+            check_receiver(m, receiver, source)
         if self.net is not None and (fix & np.isnan(m[:, 2])).any():
             raise LboError(f"{source + ': ' if source else ''}row "
                            f"{int(np.argmax(fix & np.isnan(m[:, 2])))}: "
@@ -664,6 +683,8 @@ class Observer:
         t = len(m)
         covs = np.full((t, 3, 3), np.nan)
         if self.net is None:
+            if receiver is not None:
+                m = measure.rows(m, receiver[:, :3], receiver[:, 3:5], receiver[:, 5], u[:, 0])
             est, covs = _from_first_fix(self.name, m, u, fix, self.vehicle, self.noise,
                                         self.alpha, smooth)
         elif self.form == "recursive" and smooth:

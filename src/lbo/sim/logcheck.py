@@ -30,6 +30,14 @@ FIX_RULE = ("a row holds x_m and y_m (a position fix), with or without psi_m, or
 """What a row of a log may hold, as the checks say it."""
 INPUTS = ("V", "delta")
 TRUTH = ("x", "y", "psi")
+RECEIVER = ("sx_m", "sy_m", "spsi_m", "ve_m", "vn_m", "sv_m")
+"""Optional columns of a receiver's log, each held or NaN row by row: the 1-sigma accuracy
+it reports for its fix (sx_m, sy_m in m; spsi_m in rad, of psi_m), and a GNSS velocity
+ve_m, vn_m (m/s east, north) with its 1-sigma sv_m (m/s). The classical observers take them
+(:mod:`lbo.filters.measure`)."""
+RECEIVER_RULE = ("an accuracy comes with what it is the accuracy of (sx_m and sy_m > 0 m with "
+                 "x_m, y_m; spsi_m > 0 rad with psi_m), a velocity as ve_m and vn_m (m/s) "
+                 "with an optional sv_m > 0 m/s")
 
 POSITION_LIMIT = 1e7
 """Largest |x|, |y| (m): positions are metres in a local frame, not degrees nor UTM in mm."""
@@ -312,6 +320,45 @@ def check_samples(m: np.ndarray, u: np.ndarray, *, delta_max: float | None = Non
     if delta_max is not None:
         check_steering(u[:, 1], delta_max, source)
     return fix
+
+
+def check_receiver(m: np.ndarray, r: np.ndarray, source: str | None = None) -> None:
+    """Refuse a receiver's channels that break :data:`RECEIVER_RULE`, naming the first row.
+
+    m : (T, 3) ``[x_m, y_m, psi_m]``, NaN where not held.
+    r : (T, 6) :data:`RECEIVER`, NaN where not held.
+
+    One :class:`LboError` line for the first of: inf anywhere; sx_m without sy_m (or the
+    reverse); an accuracy without the fix (or heading) it is of; vn_m without ve_m (or the
+    reverse); sv_m without a velocity; a sigma not > 0; a velocity beyond 100 m/s."""
+    m = np.asarray(m, dtype=float)
+    r = np.asarray(r, dtype=float)
+    _finite(np.where(np.isnan(r), 0.0, r), RECEIVER, source)
+    has = np.isfinite(r)
+    sx, sy, spsi, ve, vn, sv = has.T
+    pos = np.isfinite(m[:, 0]) & np.isfinite(m[:, 1])
+    rules = [
+        (sx & ~sy, "has sx_m without sy_m"), (sy & ~sx, "has sy_m without sx_m"),
+        ((sx | sy) & ~pos, "has an accuracy (sx_m, sy_m) without a position fix (x_m, y_m)"),
+        (spsi & ~np.isfinite(m[:, 2]), "has spsi_m without a heading psi_m"),
+        (ve & ~vn, "has ve_m without vn_m"), (vn & ~ve, "has vn_m without ve_m"),
+        (sv & ~(ve & vn), "has sv_m without a velocity (ve_m, vn_m)"),
+    ]
+    for c in (0, 1, 2, 5):
+        rules.append((has[:, c] & ~(np.where(has[:, c], r[:, c], 1.0) > 0), RECEIVER[c]))
+    for c in (3, 4):
+        rules.append((np.abs(np.where(has[:, c], r[:, c], 0.0)) > SPEED_LIMIT, RECEIVER[c]))
+    firsts = [(int(np.argmax(bad)), i) for i, (bad, _) in enumerate(rules) if bad.any()]
+    if not firsts:
+        return
+    row, i = min(firsts)
+    what = rules[i][1]
+    if what in RECEIVER:
+        c = RECEIVER.index(what)
+        value = float(r[row, c])
+        what = (f"has {what}={value:g}, not a 1-sigma > 0" if c not in (3, 4) else
+                f"has {what}={value:g} m/s, beyond {SPEED_LIMIT:g} m/s")
+    raise LboError(_at(source, f"row {row} {what}; {RECEIVER_RULE}"))
 
 
 def check_sample(m: tuple[float, float, float] | None, u: tuple[float, float], step: int,

@@ -16,8 +16,10 @@ from lbo.core.atomic import atomic_path
 from lbo.core.errors import LboError
 from lbo.sim.logcheck import (
     MAX_GAP,
+    RECEIVER,
     check_conventions,
     check_gaps,
+    check_receiver,
     check_samples,
     check_time,
 )
@@ -40,6 +42,12 @@ COVARIANCE_COLUMNS = ("var_x", "var_y", "var_psi", "cov_xy")
 
 
 FORMATS = (".csv", ".parquet")
+
+
+LANDING = ((("x_m", "y_m"), (*MEAS_COLUMNS, "sx_m", "sy_m", "spsi_m")),
+           (("ve_m", "vn_m"), ("ve_m", "vn_m", "sv_m")))
+"""(key, columns) of the samples :func:`resample` never interpolates: a fix (its position, the
+heading and accuracies that come with it) and a GNSS velocity (with its sigma)."""
 
 
 DT_TOLERANCE = 0.01
@@ -127,17 +135,29 @@ def check_log(df: pd.DataFrame, source: str = "input", heading: str = "enu",
                        f"found {', '.join(map(str, df.columns))})")
     truth = all(c in df.columns for c in TRUTH_COLUMNS)
     check_values(df, ("t",), source, kinds="iuf")
-    for c in ("V", "delta") + MEAS_COLUMNS + (TRUTH_COLUMNS if truth else ()):
+    present = tuple(c for c in RECEIVER if c in df.columns)
+    for c in ("V", "delta") + MEAS_COLUMNS + (TRUTH_COLUMNS if truth else ()) + present:
         if df[c].dtype.kind not in "iuf":
             raise LboError(f"{source}: column {c!r} is not numeric (dtype {df[c].dtype})")
     check_samples(df[list(MEAS_COLUMNS)].to_numpy(dtype=float),
                   df[["V", "delta"]].to_numpy(dtype=float),
                   truth=df[list(TRUTH_COLUMNS)].to_numpy(dtype=float) if truth else None,
                   source=source, t=df["t"].to_numpy(dtype=float), position_only=position_only)
+    if present:
+        check_receiver(df[list(MEAS_COLUMNS)].to_numpy(dtype=float), receiver(df), source)
     check_time(df["t"].to_numpy(dtype=float), source)
     check_conventions(df["t"].to_numpy(dtype=float), df[list(MEAS_COLUMNS)].to_numpy(dtype=float),
                       df[["V", "delta"]].to_numpy(dtype=float), source, heading)
     return truth
+
+
+def receiver(df: pd.DataFrame) -> np.ndarray | None:
+    """A log's receiver channels (T, 6) in :data:`RECEIVER` order, NaN where a row (or
+    the log) has none; None when the log has none of these columns."""
+    if not any(c in df.columns for c in RECEIVER):
+        return None
+    return np.stack([df[c].to_numpy(dtype=float) if c in df.columns else np.full(len(df), np.nan)
+                     for c in RECEIVER], axis=1)
 
 
 def check_steering(df: pd.DataFrame, vehicle: Any, source: str = "input") -> None:
@@ -174,9 +194,10 @@ def resample(df: pd.DataFrame, dt: float, columns: tuple[str, ...],
              max_gap: float | None = MAX_GAP, source: str = "input") -> pd.DataFrame:
     """``columns`` of a log on the grid ``t0, t0 + dt, ...`` up to its last ``t``.
 
-    Fixes (``x_m, y_m, psi_m``) are never interpolated: each fix lands on the grid row
-    nearest to it, if within dt/2 (of several, the nearest wins); every other grid row is a
-    step without a fix, also when the log had a fix on every row. The other columns (V, delta,
+    Fixes (``x_m, y_m, psi_m``, and the accuracies a receiver reports with them) and GNSS
+    velocities are never interpolated (:data:`LANDING`): each lands on the grid row nearest to
+    it, if within dt/2 (of several, the nearest wins); every other grid row is a step without
+    one, also when the log had one on every row. The other columns (V, delta,
     the true state) are interpolated linearly; headings are unwrapped before and wrapped to
     (-pi, pi] after, so a jump from pi to -pi does not pass through 0.
 
@@ -193,21 +214,27 @@ def resample(df: pd.DataFrame, dt: float, columns: tuple[str, ...],
     n = int(np.floor((t[-1] - t[0]) / dt + 1e-9)) + 1
     grid = t[0] + dt * np.arange(n)
     out = {"t": grid}
-    meas = [c for c in MEAS_COLUMNS if c in columns]
-    if meas:
-        # a fix is its position; its heading, if any, comes with it
-        fix = np.isfinite(df[[c for c in meas if c != "psi_m"]].to_numpy(dtype=float)).all(1)
-        at = np.round((t[fix] - t[0]) / dt).astype(np.int64)
-        off = np.abs(t[fix] - (t[0] + dt * at))
+    landed = {}
+    for key, group in LANDING:
+        names = [c for c in group if c in columns]
+        if not names:
+            continue
+        # a sample lands on the grid row nearest to it, with what it carries (a fix's heading
+        # and accuracies); it is held where its key columns are
+        held = np.isfinite(df[[c for c in key if c in df.columns]].to_numpy(dtype=float)).all(1)
+        at = np.round((t[held] - t[0]) / dt).astype(np.int64)
+        off = np.abs(t[held] - (t[0] + dt * at))
         near = (at >= 0) & (at < n) & (off <= dt / 2 * (1 + 1e-9))
-        rows, off, src = at[near], off[near], np.flatnonzero(fix)[near]
-        order = np.lexsort((off, rows))  # by grid row, the nearest fix first
+        rows, off, src = at[near], off[near], np.flatnonzero(held)[near]
+        order = np.lexsort((off, rows))  # by grid row, the nearest sample first
         first = order[np.r_[True, rows[order][1:] != rows[order][:-1]]] if len(order) else order
+        for c in names:
+            landed[c] = (rows[first], src[first])
     for c in columns:
         v = df[c].to_numpy(dtype=float)
-        if c in MEAS_COLUMNS:
+        if c in landed:
             out[c] = np.full(n, np.nan)
-            out[c][rows[first]] = v[src[first]]
+            out[c][landed[c][0]] = v[landed[c][1]]
         elif c == "psi":
             out[c] = wrap_angle(np.interp(grid, t, np.unwrap(v)))
         else:

@@ -1,0 +1,143 @@
+"""What one log row tells the classical filters: the measurement model of each step.
+
+A row of a receiver's log holds any subset of these, each independently of the others:
+
+- a position fix ``x_m, y_m`` (m), with or without a heading ``psi_m`` (rad);
+- the receiver's reported 1-sigma accuracy of that fix, ``sx_m, sy_m`` (m), and of its
+  heading, ``spsi_m`` (rad): the R of that step, in place of the filter's own;
+- a GNSS velocity ``ve_m, vn_m`` (m/s east and north) with its 1-sigma ``sv_m`` (m/s).
+
+The kinematic bicycle takes its speed ``V`` as an input, so a velocity tells the filter the
+direction of travel only: the course over ground ``atan2(vn_m, ve_m)``, which is the
+heading when the car moves forward and the heading plus pi when it reverses (V < 0). Its
+variance is ``sv^2 / |v|^2`` (the velocity's noise across its direction). Below
+:data:`COURSE_MIN_SPEED`, or where ``|v| < COURSE_MIN_SNR sv``, the direction of a velocity
+is noise, and the channel is not held: a velocity informs the heading while the car moves and
+nothing at standstill, as in INS/GNSS filters.
+
+The filters read each step as one row of :data:`CHANNELS` (``(G, 8)``; a 3-wide row
+``[x_m, y_m, psi_m]`` is the paper's and is widened with NaN): :func:`rows` builds them from
+a log's columns, :func:`step_cov` gives the R of the step and :func:`model` the innovation,
+Jacobian, covariance and held mask of its four measured channels ``[x_m, y_m, psi_m,
+course]`` that :func:`lbo.filters.update.joseph_update` takes.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from lbo.core.errors import LboError
+from lbo.sim.vehicle import wrap_angle
+
+CHANNELS = ("x_m", "y_m", "psi_m", "sx_m", "sy_m", "spsi_m", "course", "s_course")
+"""The filters' row: the fix, its reported 1-sigma accuracies (NaN: the filter's R), and the
+course over ground with its 1-sigma (NaN: not held)."""
+WIDTH = len(CHANNELS)
+MEASURED = 4
+"""Channels a row measures: x_m, y_m, psi_m and the course."""
+H = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [0.0, 0.0, 1.0]])
+"""(4, 3) Jacobian of the measured channels on the state [x, y, psi]: each is linear."""
+
+SV_DEFAULT = 0.1
+"""1-sigma (m/s) of a GNSS velocity whose log gives no ``sv_m``: a single-frequency
+receiver's Doppler velocity, as receivers report it for a car in the open."""
+COURSE_MIN_SPEED = 1.0
+"""Slowest ground speed (m/s) whose direction is taken as the course."""
+COURSE_MIN_SNR = 5.0
+"""... and at least this many velocity sigmas: the course is then known to 0.2 rad or better,
+where the linearised model (a Gaussian error on the angle) holds."""
+
+
+def widen(m: np.ndarray) -> np.ndarray:
+    """Rows (..., 3) ``[x_m, y_m, psi_m]`` or (..., 8) :data:`CHANNELS` -> (..., 8), the
+    missing channels NaN (a 3-wide row reports no accuracy and no velocity)."""
+    m = np.asarray(m, dtype=float)
+    if m.shape[-1] == WIDTH:
+        return m
+    if m.shape[-1] != 3:
+        raise LboError(f"measurement rows must have 3 [x_m, y_m, psi_m] or {WIDTH} "
+                       f"{list(CHANNELS)} channels, got {m.shape[-1]}")
+    pad = np.full(m.shape[:-1] + (WIDTH - 3,), np.nan)
+    return np.concatenate([m, pad], axis=-1)
+
+
+def course_over_ground(ve: np.ndarray, vn: np.ndarray, sv: np.ndarray, V: np.ndarray
+                       ) -> tuple[np.ndarray, np.ndarray]:
+    """The course channel of GNSS velocities: ``(course, s_course)`` (T,) rad, NaN where not held.
+
+    ve, vn : (T,) m/s east and north, NaN where the row has no velocity.
+    sv : (T,) their 1-sigma (m/s), NaN: :data:`SV_DEFAULT`.
+    V : (T,) the speed input (m/s); where it is negative the car reverses and its heading is
+        the course plus pi.
+    """
+    ve, vn, sv, V = (np.asarray(a, dtype=float) for a in (ve, vn, sv, V))
+    sv = np.where(np.isfinite(sv), sv, SV_DEFAULT)
+    speed = np.hypot(ve, vn)
+    held = np.isfinite(speed) & (speed >= COURSE_MIN_SPEED) & (speed >= COURSE_MIN_SNR * sv)
+    safe = np.where(held, speed, 1.0)
+    course = np.arctan2(vn, ve) + np.where(V < 0, np.pi, 0.0)
+    return (np.where(held, wrap_angle(course), np.nan), np.where(held, sv / safe, np.nan))
+
+
+def rows(m: np.ndarray, sigma: np.ndarray | None = None, velocity: np.ndarray | None = None,
+         sv: np.ndarray | None = None, V: np.ndarray | None = None) -> np.ndarray:
+    """The filters' rows (T, 8) of a log's columns.
+
+    m : (T, 3) ``[x_m, y_m, psi_m]``.
+    sigma : (T, 3) reported ``[sx_m, sy_m, spsi_m]`` (NaN: none), or None.
+    velocity : (T, 2) ``[ve_m, vn_m]`` (NaN: none), or None; needs ``V`` (T,).
+    sv : (T,) ``sv_m`` or None (:data:`SV_DEFAULT`).
+    """
+    out = widen(m).copy()
+    if sigma is not None:
+        out[:, 3:6] = sigma
+    if velocity is not None:
+        velocity = np.asarray(velocity, dtype=float)
+        spread = np.full(len(out), np.nan) if sv is None else sv
+        out[:, 6], out[:, 7] = course_over_ground(velocity[:, 0], velocity[:, 1], spread, V)
+    return out
+
+
+def heading_held(m: np.ndarray) -> np.ndarray:
+    """Rows (G, 8) that measure the heading, by ``psi_m`` or the course: (G,) bool."""
+    return np.isfinite(m[:, 2]) | np.isfinite(m[:, 6])
+
+
+def step_cov(m: np.ndarray, R: np.ndarray) -> np.ndarray:
+    """The R (G, 3, 3) of x_m, y_m, psi_m at this step: the filter's ``R`` (G, 3, 3), with a
+    channel's variance replaced by the square of the accuracy the row reports for it (and
+    that channel's correlations dropped: a receiver reports sigmas, not correlations).
+    ``R`` itself is returned where no row reports any."""
+    sigma = m[:, 3:6]
+    told = np.isfinite(sigma)
+    if not told.any():
+        return R
+    either = told[:, :, None] | told[:, None, :]
+    R = np.where(either, 0.0, R)  # a told channel: its variance and correlations, dropped
+    idx = np.arange(3)
+    R[:, idx, idx] = np.where(told, np.square(sigma), R[:, idx, idx])
+    return R
+
+
+def model(m: np.ndarray, x: np.ndarray, R: np.ndarray
+          ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The measurement model of one step for :func:`lbo.filters.update.joseph_update`.
+
+    m : (G, 8) this step's rows (:data:`CHANNELS`).
+    x : (G, 3) the prior state ``[x, y, psi]``.
+    R : (G, 3, 3) the step's covariance of x_m, y_m, psi_m (:func:`step_cov`).
+
+    Returns ``(y, H, R4, held)``: the innovation (G, 4), headings wrapped, 0 where not held;
+    the Jacobian (4, 3); the covariance (G, 4, 4), the course's variance ``s_course^2`` apart;
+    the channels held (G, 4) bool.
+    """
+    meas = np.concatenate([m[:, :3], m[:, 6:7]], axis=1)
+    held = np.isfinite(meas)
+    pred = np.concatenate([x, x[:, 2:3]], axis=1)
+    y = np.where(held, meas - pred, 0.0)
+    y[:, 2:] = wrap_angle(y[:, 2:])
+    g = len(m)
+    R4 = np.zeros((g, MEASURED, MEASURED))
+    R4[:, :3, :3] = R
+    R4[:, 3, 3] = np.where(held[:, 3], np.square(np.where(held[:, 3], m[:, 7], 0.0)), 1.0)
+    return y, H, R4, held

@@ -1,0 +1,247 @@
+"""A receiver's channels (issue 36): the accuracy it reports per fix as the R of that step,
+a GNSS velocity as the course over ground, their one-line errors, and their way through
+``lbo.observe``."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from helpers import compose_cfg
+from lbo.core.errors import LboError
+from lbo.filters import classical, measure
+from lbo.serve.observer import Observer
+from lbo.sim.logcheck import RECEIVER, check_receiver
+from lbo.sim.logio import resample
+from lbo.sim.noise import Noise
+from lbo.sim.vehicle import Vehicle, wrap_angle
+from lbo.simulate import simulate
+
+LOG = ["t", "x_m", "y_m", "psi_m", "V", "delta", "x", "y", "psi"]
+
+
+# --------------------------------------------------------------------------- the model
+
+
+@pytest.mark.parametrize("name", ["ekf", "ukf"])
+def test_per_step_h_and_r_match_a_filter_written_out_by_hand(name):
+    """At standstill (V = 0) the bicycle does not move: x_{k+1} = x_k, P grows by Q, and the
+    filters are linear. Rows hold random subsets of the fix, the heading, their reported
+    accuracies and the course; a textbook Kalman filter, its H and R built by hand from what
+    each row holds, must give the same estimates and covariances."""
+    rng = np.random.default_rng(11)
+    g, t = 3, 80
+    vehicle, noise = Vehicle(), Noise.preset("paper")
+    R1 = classical.measurement_cov(name, noise, 1.0, g)[0]
+    m = np.full((g, t, measure.WIDTH), np.nan)
+    m[..., :3] = rng.normal(scale=[1.0, 1.0, 0.05], size=(g, t, 3))
+    m[..., 3:6] = rng.uniform(0.2, 2.0, size=(g, t, 3)) * [1.0, 1.0, 0.02]
+    m[..., 6] = rng.normal(scale=0.05, size=(g, t))
+    m[..., 7] = rng.uniform(0.01, 0.1, size=(g, t))
+    pos, head, told, told_psi, course = (rng.random((5, g, t)) < 0.5)
+    m[..., 0:2][~pos] = np.nan
+    m[..., 2][~(pos & head)] = np.nan
+    m[..., 3:5][~(pos & told)] = np.nan
+    m[..., 5][~(pos & head & told_psi)] = np.nan
+    m[..., 6:8][~course] = np.nan
+    m[:, 0, :6] = [0.1, -0.2, 0.01, 0.5, 0.7, 0.01]  # a full fix to start from
+    u = np.zeros((g, t, 2))
+    est, cov = classical.estimate(name, m, u, vehicle, noise, return_cov=True)
+    for i in range(g):
+        x = m[i, 0, :3].copy()
+        P = np.diag(m[i, 0, 3:6] ** 2)
+        for k in range(1, t):
+            P = P + noise.Q
+            row = m[i, k]
+            zs, hs, rs = [], [], []
+            for c in range(3):
+                if np.isfinite(row[c]):
+                    zs.append(row[c])
+                    hs.append(np.eye(3)[c])
+                    rs.append(row[3 + c] ** 2 if np.isfinite(row[3 + c]) else R1[c, c])
+            if np.isfinite(row[6]):
+                zs.append(row[6])
+                hs.append([0.0, 0.0, 1.0])
+                rs.append(row[7] ** 2)
+            if zs:
+                h, r = np.array(hs), np.diag(rs)
+                K = P @ h.T @ np.linalg.inv(h @ P @ h.T + r)
+                x = x + K @ (np.array(zs) - h @ x)
+                P = (np.eye(3) - K @ h) @ P
+            np.testing.assert_allclose(est[i, k], x, rtol=0, atol=1e-9)
+            np.testing.assert_allclose(cov[i, k], P, rtol=0, atol=1e-9)
+
+
+def test_the_course_is_the_direction_of_travel_and_nothing_at_standstill():
+    ve = np.array([10.0, 0.0, 0.05, np.nan, -3.0, 0.3])
+    vn = np.array([0.0, 5.0, 0.0, np.nan, 0.0, 0.0])
+    sv = np.array([0.1, np.nan, 0.1, 0.1, 0.1, 0.1])
+    V = np.array([10.0, 5.0, 0.05, 0.0, -3.0, 0.3])
+    course, s = measure.course_over_ground(ve, vn, sv, V)
+    np.testing.assert_allclose(course[[0, 1]], [0.0, np.pi / 2])
+    np.testing.assert_allclose(s[[0, 1]], [0.1 / 10, measure.SV_DEFAULT / 5])
+    assert np.isnan(course[[2, 3, 5]]).all() and np.isnan(s[[2, 3, 5]]).all()
+    assert wrap_angle(course[4]) == pytest.approx(0.0)  # reversing west: heading east
+
+
+def test_a_reported_accuracy_replaces_r_and_its_correlations():
+    R = np.array([[[4.0, 1.0, 0.1], [1.0, 4.0, 0.1], [0.1, 0.1, 0.01]]])
+    m = measure.widen(np.zeros((1, 3)))
+    assert measure.step_cov(m, R) is R
+    m[0, 3:5] = [0.5, 3.0]
+    out = measure.step_cov(m, R)
+    np.testing.assert_allclose(out[0], [[0.25, 0.0, 0.0], [0.0, 9.0, 0.0], [0.0, 0.0, 0.01]])
+
+
+# --------------------------------------------------------------------------- on a drive
+
+
+@pytest.fixture(scope="module")
+def drive():
+    """Four simulated slaloms at 50 Hz: single-antenna fixes (no heading) at 1 Hz, and GNSS
+    velocities (truth plus 0.1 m/s noise) with them."""
+    frames = [simulate(compose_cfg("simulate", ["manoeuvre=slalom"]), seed=s)[LOG]
+              for s in range(4)]
+    t = min(len(f) for f in frames)
+    arr = np.stack([f.to_numpy(float)[:t] for f in frames])
+    rng = np.random.default_rng(5)
+    z, u = arr[..., 6:9], arr[..., 4:6]
+    m = np.full((4, t, 3), np.nan)
+    m[:, ::50, :2] = arr[:, ::50, 1:3]
+    vel = np.full((4, t, 2), np.nan)
+    heading = z[:, ::50, 2]
+    vel[:, ::50] = (u[:, ::50, :1] * np.stack([np.cos(heading), np.sin(heading)], -1)
+                    + rng.normal(scale=0.1, size=(4, heading.shape[1], 2)))
+    return {"m": m, "vel": vel, "u": u, "z": z}
+
+
+def _psi_rmse(est: np.ndarray, z: np.ndarray) -> float:
+    return float(np.sqrt(np.mean(wrap_angle(est[..., 2] - z[..., 2]) ** 2)))
+
+
+@pytest.mark.parametrize("name", classical.OBSERVERS)
+def test_a_gnss_velocity_gives_the_heading_that_a_single_antenna_lacks(drive, name):
+    """Measured (seeds 0-3): 1 Hz position fixes alone leave the heading to the motion
+    (0.040 rad for the EKF, oracle and UKF, 0.044 adaptive); their GNSS velocities bring it
+    to 0.0085 rad."""
+    vehicle, noise = Vehicle(), Noise.preset("paper")
+    rows = np.stack([measure.rows(drive["m"][i], None, drive["vel"][i], None, drive["u"][i, :, 0])
+                     for i in range(4)])
+    blind = classical.estimate(name, drive["m"], drive["u"], vehicle, noise)
+    seen = classical.estimate(name, rows, drive["u"], vehicle, noise)
+    print(name, _psi_rmse(blind, drive["z"]), _psi_rmse(seen, drive["z"]))
+    assert _psi_rmse(seen, drive["z"]) < 0.6 * _psi_rmse(blind, drive["z"])
+
+
+# --------------------------------------------------------------------------- the channel rules
+
+
+def _log(t: int = 6) -> tuple[np.ndarray, np.ndarray]:
+    m = np.column_stack([np.arange(t) * 0.2, np.zeros(t), np.zeros(t)])
+    m[1] = np.nan
+    m[2, 2] = np.nan
+    return m, np.full((t, len(RECEIVER)), np.nan)
+
+
+@pytest.mark.parametrize("row, column, value, message", [
+    (0, "sx_m", 1.0, "row 0 has sx_m without sy_m"),
+    (0, "sy_m", 1.0, "row 0 has sy_m without sx_m"),
+    (1, "sx_m sy_m", 1.0, r"row 1 has an accuracy \(sx_m, sy_m\) without a position fix"),
+    (2, "spsi_m", 0.01, "row 2 has spsi_m without a heading psi_m"),
+    (3, "ve_m", 1.0, "row 3 has ve_m without vn_m"),
+    (3, "vn_m", 1.0, "row 3 has vn_m without ve_m"),
+    (4, "sv_m", 0.1, r"row 4 has sv_m without a velocity \(ve_m, vn_m\)"),
+    (0, "sx_m sy_m", -1.0, "row 0 has sx_m=-1, not a 1-sigma > 0"),
+    (0, "spsi_m", 0.0, "row 0 has spsi_m=0, not a 1-sigma > 0"),
+    (5, "ve_m vn_m", 400.0, "row 5 has ve_m=400 m/s, beyond 100 m/s"),
+])
+def test_each_channel_rule_is_one_line_naming_the_row(row, column, value, message):
+    m, r = _log()
+    for c in column.split():
+        r[row, RECEIVER.index(c)] = value
+    with pytest.raises(LboError, match=message) as e:
+        check_receiver(m, r, "input log.csv")
+    assert "\n" not in str(e.value) and str(e.value).startswith("input log.csv: ")
+    assert "an accuracy comes with what it is the accuracy of" in str(e.value)
+
+
+def test_a_full_receiver_row_and_an_inf_one():
+    m, r = _log()
+    r[0] = [1.0, 1.0, 0.01, 3.0, 4.0, 0.1]
+    r[1, 3:5] = [3.0, 4.0]  # a velocity between fixes
+    check_receiver(m, r)
+    r[4, 5] = np.inf
+    with pytest.raises(LboError, match="column 'sv_m' has NaN or inf"):
+        check_receiver(m, r)
+
+
+def test_a_learned_observer_refuses_a_receivers_channels_in_one_line():
+    from lbo.models.net import WindowNet
+
+    obs = Observer.from_net(WindowNet("cnn", 20, "relative"))
+    m = np.column_stack([np.arange(30) * 0.2, np.zeros(30), np.zeros(30)])
+    r = np.full((30, len(RECEIVER)), np.nan)
+    r[0, :2] = 1.0
+    with pytest.raises(LboError, match=r"^receiver: cnn-N20 does not take a receiver's "
+                                       r"channels \(sx_m, .*\) yet; the classical observers"):
+        obs.run(m, np.tile([10.0, 0.0], (30, 1)), receiver=r)
+
+
+# --------------------------------------------------------------------------- through the CLI
+
+
+def test_resample_lands_velocities_and_accuracies_never_interpolated():
+    df = pd.DataFrame({"t": [0.0, 0.011, 0.055, 0.1], "x_m": [0.0, np.nan, 1.0, np.nan],
+                       "y_m": [0.0, np.nan, 0.0, np.nan], "psi_m": np.nan, "V": 10.0,
+                       "delta": 0.0, "sx_m": [0.5, np.nan, 0.7, np.nan],
+                       "sy_m": [0.6, np.nan, 0.8, np.nan], "ve_m": [np.nan, 9.0, np.nan, 8.0],
+                       "vn_m": [np.nan, 1.0, np.nan, 2.0]})
+    out = resample(df, 0.02, ("x_m", "y_m", "psi_m", "V", "delta", "sx_m", "sy_m", "ve_m",
+                              "vn_m"), None)
+    np.testing.assert_array_equal(out["sx_m"].to_numpy(), [0.5, np.nan, np.nan, 0.7, np.nan,
+                                                           np.nan])
+    np.testing.assert_array_equal(out["ve_m"].to_numpy(), [np.nan, 9.0, np.nan, np.nan, np.nan,
+                                                           8.0])
+    np.testing.assert_array_equal(out["x_m"].to_numpy(), [0.0, np.nan, np.nan, 1.0, np.nan,
+                                                          np.nan])
+    np.testing.assert_allclose(out["V"].to_numpy(), 10.0)
+
+
+def test_lbo_observe_takes_reported_accuracies_and_velocities(tmp_path):
+    """A single-antenna log through the CLI: the accuracy is taken as R (a fix reported ten
+    times worse moves the estimate less) and the velocity as the heading."""
+    df = simulate(compose_cfg("simulate", ["manoeuvre=slalom"]))[LOG].head(600).copy()
+    fix = df.index % 50 == 0
+    df.loc[:, "psi_m"] = np.nan
+    df.loc[~fix, ["x_m", "y_m"]] = np.nan
+    df["sx_m"] = np.where(fix, 0.2, np.nan)
+    df["sy_m"] = np.where(fix, 0.2, np.nan)
+    df["ve_m"] = np.where(fix, df["V"] * np.cos(df["psi"]), np.nan)
+    df["vn_m"] = np.where(fix, df["V"] * np.sin(df["psi"]), np.nan)
+    outs = {}
+    for label, scale in (("tight", 1.0), ("loose", 10.0)):
+        log = df.assign(sx_m=df["sx_m"] * scale, sy_m=df["sy_m"] * scale)
+        log.to_csv(tmp_path / f"{label}.csv", index=False)
+        res = subprocess.run([sys.executable, "-m", "lbo.observe", "observer=ekf",
+                              f"input={tmp_path / label}.csv", f"output={tmp_path / label}.out.csv"],
+                             capture_output=True, text=True, cwd=tmp_path)
+        assert res.returncode == 0, res.stderr
+        assert "receiver: sx_m, sy_m, ve_m, vn_m taken" in res.stdout
+        outs[label] = pd.read_csv(tmp_path / f"{label}.out.csv")
+    at = np.flatnonzero(fix)[1:]
+    pull = {k: np.abs(o["x"].to_numpy()[at] - df["x_m"].to_numpy()[at]).mean()
+            for k, o in outs.items()}
+    assert pull["tight"] < 0.5 * pull["loose"]
+    err = wrap_angle(outs["tight"]["psi"].to_numpy() - df["psi"].to_numpy())[100:]
+    assert np.sqrt(np.mean(err**2)) < 0.02
+    bad = df.assign(sx_m=np.where(fix, -1.0, np.nan))
+    bad.to_csv(tmp_path / "bad.csv", index=False)
+    res = subprocess.run([sys.executable, "-m", "lbo.observe", "observer=ekf",
+                          f"input={tmp_path / 'bad.csv'}", f"output={tmp_path / 'bad.out.csv'}"],
+                         capture_output=True, text=True, cwd=tmp_path)
+    assert res.returncode != 0 and not (tmp_path / "bad.out.csv").exists()
+    assert "row 0 has sx_m=-1, not a 1-sigma > 0" in res.stderr
