@@ -13,7 +13,7 @@ MLFLOW_PORT ?= 5000
 MLFLOW_BACKEND ?= sqlite:///$(CURDIR)/mlflow-server.db
 MLFLOW_ARTIFACTS ?= $(CURDIR)/mlflow-server-artifacts
 
-.PHONY: help install test test-fast data reproduce ablation fleet bench lint clean mlflow-server ui
+.PHONY: help install test test-fast data reproduce ablation fleet real-drive bench lint clean mlflow-server ui
 
 help:  ## list the targets
 	@grep -E '^[a-z-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  make %-10s %s\n", $$1, $$2}'
@@ -24,7 +24,7 @@ $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	# torch is pinned in its own step: an unpinned torch pulls gigabytes of CUDA packages
 	$(PY) -m pip install -q torch==2.13.0
-	$(PY) -m pip install -q -e ".[dev,launchers,cluster]"
+	$(PY) -m pip install -q -e ".[dev,launchers,cluster,real]"
 	touch $@
 
 test: install  ## run every test, the slow ones included, in TEST_JOBS processes (pytest-xdist)
@@ -53,6 +53,9 @@ ui: install  ## mlflow ui at http://127.0.0.1:5000 (MLFLOW_PORT=...): every run 
 mlflow-server: install  ## a shared MLflow tracking server on 127.0.0.1:$(MLFLOW_PORT) [MLFLOW_BACKEND=postgresql://...]
 	$(VENV)/bin/mlflow server --host 127.0.0.1 --port $(MLFLOW_PORT) \
 		--backend-store-uri "$(MLFLOW_BACKEND)" --artifacts-destination "$(MLFLOW_ARTIFACTS)"
+
+real-drive: install  ## the onavdata hill drive as lbo logs, every classical observer on its test span -> reports/realdrive/
+	$(PY) -m lbo.realdrive
 
 bench: install  ## benchmarks: data generation, filters, training throughput, latency (medians)
 	$(PY) benchmarks/bench_datagen.py

@@ -126,7 +126,7 @@ def _psi_rmse(est: np.ndarray, z: np.ndarray) -> float:
 @pytest.mark.parametrize("name", classical.OBSERVERS)
 def test_a_gnss_velocity_gives_the_heading_that_a_single_antenna_lacks(drive, name):
     """Measured (seeds 0-3): 1 Hz position fixes alone leave the heading to the motion
-    (0.040 rad for the EKF, oracle and UKF, 0.044 adaptive); their GNSS velocities bring it
+    (0.040 rad for the EKF, oracle and UKF, 0.065 adaptive); their GNSS velocities bring it
     to 0.0085 rad."""
     vehicle, noise = Vehicle(), Noise.preset("paper")
     rows = np.stack([measure.rows(drive["m"][i], None, drive["vel"][i], None, drive["u"][i, :, 0])
@@ -227,7 +227,8 @@ def test_lbo_observe_takes_reported_accuracies_and_velocities(tmp_path):
         log = df.assign(sx_m=df["sx_m"] * scale, sy_m=df["sy_m"] * scale)
         log.to_csv(tmp_path / f"{label}.csv", index=False)
         res = subprocess.run([sys.executable, "-m", "lbo.observe", "observer=ekf",
-                              f"input={tmp_path / label}.csv", f"output={tmp_path / label}.out.csv"],
+                              f"input={tmp_path / label}.csv",
+                              f"output={tmp_path / label}.out.csv"],
                              capture_output=True, text=True, cwd=tmp_path)
         assert res.returncode == 0, res.stderr
         assert "receiver: sx_m, sy_m, ve_m, vn_m taken" in res.stdout

@@ -684,7 +684,9 @@ class Observer:
         covs = np.full((t, 3, 3), np.nan)
         if self.net is None:
             if receiver is not None:
-                m = measure.rows(m, receiver[:, :3], receiver[:, 3:5], receiver[:, 5], u[:, 0])
+                turn = u[:, 0] * np.tan(u[:, 1]) / self.vehicle.wheelbase
+                m = measure.rows(m, receiver[:, :3], receiver[:, 3:5], receiver[:, 5], u[:, 0],
+                                 turn)
             est, covs = _from_first_fix(self.name, m, u, fix, self.vehicle, self.noise,
                                         self.alpha, smooth)
         elif self.form == "recursive" and smooth:

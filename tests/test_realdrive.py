@@ -1,0 +1,102 @@
+"""The onavdata hill drive as lbo logs (issue 36): the importer on a slice of it, the lever
+arm and latency fit, the one-line refusals, and ``python -m lbo.realdrive`` end to end.
+Needs the optional extra ``lbo[real]`` (installed by ``make install``)."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from lbo.core.errors import LboError
+from lbo.sim import hguide
+from lbo.sim.logio import check_log
+from lbo.sim.vehicle import Vehicle, wrap_angle
+
+pytest.importorskip("onavdata", reason="the optional extra lbo[real] is not installed")
+
+
+@pytest.fixture(scope="module")
+def drive() -> pd.DataFrame:
+    return hguide.read()
+
+
+def test_only_the_hill_drive_is_read():
+    line = (r"^drive 'another drive': lbo reads only the onavdata hill drive "
+            r"\('2021-04-27 HGuide n380 Car Hill Driving'\)$")
+    with pytest.raises(LboError, match=line):
+        hguide.read("another drive")
+
+
+def test_the_lever_arm_and_latency_bring_the_fixes_onto_the_truth(drive):
+    al = hguide.fit_alignment(drive)
+    # the antenna sits about 1.3 m behind the INS, on the car's axis; fixes are logged
+    # within a few tens of ms of their instant
+    assert -2.0 < al.lever[0] < -0.5 and abs(al.lever[1]) < 0.3
+    assert abs(al.latency) <= 0.1
+    assert al.rms_after < 0.5 * al.rms_before and al.fixes > 100
+
+
+def test_a_slice_becomes_a_log_that_lbo_reads(drive):
+    """The first drive (100 s to 230 s in): fixes at 1 Hz without a heading, accuracies and
+    velocities at the fix rows, inputs and truth at 50 Hz; the log passes lbo's checks."""
+    t = drive.index.to_numpy()
+    part = drive[(t >= t[0] + 100) & (t < t[0] + 230)]
+    vehicle = Vehicle()
+    log = hguide.to_log(part, vehicle, hguide.fit_alignment(drive))
+    assert np.allclose(np.diff(log["t"]), vehicle.dt)
+    fix = log["x_m"].notna()
+    assert 125 <= fix.sum() <= 131 and log["psi_m"].isna().all()
+    for c in ("sx_m", "sy_m", "ve_m", "vn_m", "sv_m"):
+        assert (log[c].notna() == fix).all()
+    assert (log.loc[fix, ["sx_m", "sy_m"]] > 0).all().all()
+    assert check_log(log, "slice") is True
+    # the speed input agrees with the receiver's own speed at the fixes, the heading with
+    # its course where the car moves
+    speed = np.hypot(log.loc[fix, "ve_m"], log.loc[fix, "vn_m"])
+    assert np.median(np.abs(speed - log.loc[fix, "V"].abs())) < 0.1
+    moving = fix & (log["V"] > 5)
+    course = np.arctan2(log.loc[moving, "vn_m"], log.loc[moving, "ve_m"])
+    assert np.median(np.abs(wrap_angle(course - log.loc[moving, "psi"]))) < 0.05
+    # the gyro's yaw rate is the truth's heading rate
+    rate = np.gradient(np.unwrap(log["psi"]), vehicle.dt)
+    assert np.corrcoef(rate, log["r_m"])[0, 1] > 0.95
+
+
+def test_the_spans_cut_in_the_stops_and_keep_one_drive_each(drive):
+    log = hguide.to_log(drive)
+    parts = hguide.spans(log)
+    assert sum(len(p) for p in parts.values()) == len(log)
+    for name, part in parts.items():
+        assert part["t"].iloc[0] == 0.0
+        assert part["V"].abs().iloc[[0, -1]].max() < 0.5, name  # cut where the car stands
+        assert (part["V"].abs() > 5).any(), name
+
+
+@pytest.mark.slow
+def test_realdrive_writes_the_spans_and_scores_every_classical_observer(tmp_path):
+    res = subprocess.run([sys.executable, "-m", "lbo.realdrive", f"output_dir={tmp_path}"],
+                         capture_output=True, text=True, cwd=tmp_path)
+    assert res.returncode == 0, res.stderr
+    table = pd.read_csv(tmp_path / "results.csv")
+    assert len(table) == 6 and np.isfinite(table[["x_m", "y_m", "psi_mrad"]]).all().all()
+    raw = table.iloc[0]
+    ekf = table.set_index("estimator").loc["ekf, receiver's accuracy and velocity"]
+    blind = table.set_index("estimator").loc["ekf, lbo's R, no velocity"]
+    # the receiver's channels are what bring the EKF to the raw fixes' level
+    assert ekf["x_m"] < 0.8 * blind["x_m"] and ekf["psi_mrad"] < 0.8 * blind["psi_mrad"]
+    assert ekf["x_m"] < 1.2 * raw["x_m"] and ekf["y_m"] < 1.2 * raw["y_m"]
+    for k in ("train", "val", "test"):
+        assert (tmp_path / f"hill_{k}.parquet").is_file()
+    assert (tmp_path / "test.png").stat().st_size > 10_000
+    assert "lever arm" in res.stdout and "| ekf, receiver's accuracy and velocity |" in res.stdout
+    # a span log goes through lbo.observe as it is
+    obs = subprocess.run([sys.executable, "-m", "lbo.observe", "observer=ukf",
+                          f"input={tmp_path / 'hill_val.parquet'}",
+                          f"output={tmp_path / 'val_est.csv'}"],
+                         capture_output=True, text=True, cwd=tmp_path)
+    assert obs.returncode == 0, obs.stderr
+    assert "receiver: sx_m, sy_m, ve_m, vn_m, sv_m taken" in obs.stdout
