@@ -128,8 +128,29 @@ def simulate(cfg: DictConfig, seed: int | None = None) -> pd.DataFrame:
     if rate is not None:
         m = thin(m, fix_period(rate, vehicle.dt))
     k = np.arange(len(z))
-    return schema.frame(np.zeros(len(z)), k, vehicle.dt, z, u, m,
-                        alpha=np.full(len(z), float(alpha)), scored=k >= run_in)
+    df = schema.frame(np.zeros(len(z)), k, vehicle.dt, z, u, m,
+                      alpha=np.full(len(z), float(alpha)), scored=k >= run_in)
+    if cfg.get("receiver") is not None:
+        df = with_receiver(df, z, u, cfg, vehicle.dt, alpha, seed)
+    return df
+
+
+def with_receiver(df: pd.DataFrame, z: np.ndarray, u: np.ndarray, cfg: DictConfig, dt: float,
+                  alpha: float, seed: int) -> pd.DataFrame:
+    """The log ``df`` with its fixes replaced by the channels of ``cfg.receiver``
+    (:mod:`lbo.sim.receiver`) of the truth z (T, 3) and inputs u (T, 2), drawn from their own
+    generator (``[seed, 11]``: the log's other columns are those drawn without a receiver)."""
+    from lbo.sim.receiver import COLUMNS, ReceiverSpec, sense
+
+    if cfg.get("fix_rate") is not None:
+        raise LboError("fix_rate: a receiver sets its own rate (receiver.position.rate); "
+                       "leave fix_rate null")
+    spec = ReceiverSpec.from_cfg(cfg.receiver, dt)
+    out = sense(z[None], u[None], dt, spec, alpha, np.random.default_rng([seed, 11]))
+    df = df.copy()
+    for c in COLUMNS:
+        df[c] = out[c][0]
+    return df
 
 
 def fleet_paths(output: Path, drives: int) -> list[Path]:
@@ -141,7 +162,7 @@ def fleet_paths(output: Path, drives: int) -> list[Path]:
 
 def describe(cfg: DictConfig, df: pd.DataFrame) -> tuple[str, float]:
     """One line on what the log ``df`` holds, and its duration (s)."""
-    fix = np.isfinite(df[list(schema.MEAS)].to_numpy()).all(1)
+    fix = np.isfinite(df[["x_m", "y_m"]].to_numpy()).all(1)  # a position, with or without psi_m
     still = float((df["V"] == 0).mean())
     duration = len(df) * float(cfg.vehicle.dt)
     return (f"{cfg.manoeuvre}: {len(df)} rows ({duration:.1f} s at {1 / cfg.vehicle.dt:g} Hz), "

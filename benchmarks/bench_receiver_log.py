@@ -1,0 +1,91 @@
+"""A one-hour receiver log through ``python -m lbo.observe``: the wall time of each classical
+observer, end to end (read, check, filter, write).
+
+    python benchmarks/bench_receiver_log.py [--hours 1] [--repeats 3] [--fix-rate 5]
+
+The log: 180,000 rows at 50 Hz (one hour) of a simulated drive, single-antenna fixes (no
+heading) at ``--fix-rate`` Hz with the accuracy the receiver reports (``sx_m, sy_m``) and its
+velocity (``ve_m, vn_m, sv_m``), the truth columns included. Each observer runs as a user
+runs it, in its own process; the table gives the median over ``repeats`` and the time
+per row. Target (issue 36): the EKF under 10 s on a 2-core CPU.
+"""
+
+from __future__ import annotations
+
+import argparse
+import platform
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from lbo.sim.noise import Noise
+from lbo.sim.vehicle import Vehicle, simulate
+
+TARGET_S = {"ekf": 10.0}
+
+
+def receiver_log(rows: int, fix_rate: float, seed: int = 0) -> pd.DataFrame:
+    """A simulated drive of ``rows`` 50 Hz rows as a receiver logs it (see the docstring)."""
+    vehicle, noise = Vehicle(), Noise.preset("paper")
+    rng = np.random.default_rng(seed)
+    k = np.arange(rows)
+    u = np.stack([12.0 + 3.0 * np.sin(2 * np.pi * k / 9000), 0.1 * np.sin(2 * np.pi * k / 4000)],
+                 axis=1)
+    z = simulate(np.zeros((1, 3)), u[None], vehicle.dt, vehicle.wheelbase,
+                 noise.process_sigma, rng)[0]
+    fix = k % int(round(1 / (fix_rate * vehicle.dt))) == 0
+    sigma = rng.uniform(0.3, 1.5, size=rows)
+    vel = u[:, :1] * np.column_stack([np.cos(z[:, 2]), np.sin(z[:, 2])])
+    df = pd.DataFrame({"t": k * vehicle.dt, "x_m": z[:, 0] + sigma * rng.standard_normal(rows),
+                       "y_m": z[:, 1] + sigma * rng.standard_normal(rows), "psi_m": np.nan,
+                       "sx_m": sigma, "sy_m": sigma,
+                       "ve_m": vel[:, 0] + 0.05 * rng.standard_normal(rows),
+                       "vn_m": vel[:, 1] + 0.05 * rng.standard_normal(rows), "sv_m": 0.05,
+                       "V": u[:, 0], "delta": u[:, 1], "x": z[:, 0], "y": z[:, 1],
+                       "psi": z[:, 2]})
+    cols = ["x_m", "y_m", "sx_m", "sy_m", "ve_m", "vn_m", "sv_m"]
+    df.loc[~fix, cols] = np.nan
+    return df
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--hours", type=float, default=1.0)
+    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--fix-rate", type=float, default=5.0)
+    ap.add_argument("--observers", default="ekf,ukf,adaptive")
+    args = ap.parse_args()
+    rows = int(round(args.hours * 3600 / Vehicle().dt))
+    with tempfile.TemporaryDirectory() as tmp:
+        log = Path(tmp) / "hour.parquet"
+        receiver_log(rows, args.fix_rate).to_parquet(log)
+        print(f"{rows} rows ({args.hours:g} h at 50 Hz), fixes at {args.fix_rate:g} Hz with "
+              f"sx_m, sy_m, ve_m, vn_m, sv_m; {platform.processor() or platform.machine()}, "
+              f"median of {args.repeats}")
+        print("| observer | wall (s) | per row (us) | target |")
+        print("|---|---:|---:|---|")
+        for name in args.observers.split(","):
+            times = []
+            for _ in range(args.repeats):
+                start = time.perf_counter()
+                res = subprocess.run([sys.executable, "-m", "lbo.observe", f"observer={name}",
+                                      f"input={log}", f"output={Path(tmp) / 'est.parquet'}"],
+                                     capture_output=True, text=True)
+                times.append(time.perf_counter() - start)
+                if res.returncode:
+                    raise SystemExit(res.stderr)
+            wall = statistics.median(times)
+            target = TARGET_S.get(name)
+            verdict = "" if target is None else (f"< {target:g} s: "
+                                                 + ("met" if wall < target else "missed"))
+            print(f"| {name} | {wall:.1f} | {1e6 * wall / rows:.0f} | {verdict} |")
+
+
+if __name__ == "__main__":
+    main()
