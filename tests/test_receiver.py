@@ -171,7 +171,7 @@ def test_each_channel_rule_is_one_line_naming_the_row(row, column, value, messag
 
 def test_a_full_receiver_row_and_an_inf_one():
     m, r = _log()
-    r[0] = [1.0, 1.0, 0.01, 3.0, 4.0, 0.1]
+    r[0] = [1.0, 1.0, 0.01, 3.0, 4.0, 0.1, 0.2]
     r[1, 3:5] = [3.0, 4.0]  # a velocity between fixes
     check_receiver(m, r)
     r[4, 5] = np.inf

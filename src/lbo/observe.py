@@ -1,22 +1,24 @@
 """`python -m lbo.observe`: run an observer on your own vehicle log, write the estimates.
 
     python -m lbo.observe observer=<checkpoint | run id | models:/name/version | ekf | oracle |
-        adaptive | ukf> input=my_log.csv output=estimates.csv [resample=true] [max_gap=0.5]
+        adaptive | ukf | gyro> input=my_log.csv output=estimates.csv [resample=true] [max_gap=0.5]
 
 The log (CSV or Parquet) holds one row per sample with the columns ``t`` (s), ``x_m``,
-``y_m`` (m), ``psi_m`` (rad), ``V`` (m/s) and ``delta`` (rad), and optionally the true
-``x, y, psi``. A row with ``x_m, y_m, psi_m`` all empty is a step without a position fix
-(GNSS slower than the inputs); the classical observers predict through it, and learned ones
+``y_m`` (m), ``psi_m`` (rad), ``V`` (m/s) and ``delta`` (rad), and optionally the true ``x,
+y, psi``. A row with ``x_m, y_m, psi_m`` all empty is a step without a position fix (GNSS
+slower than the inputs); the classical observers predict through it, and learned ones
 trained with ``fix_rates`` take it. A receiver's log may add, row by row, the accuracy it
 reports for each fix (``sx_m, sy_m`` m, ``spsi_m`` rad: the classical filters' R of that
-step) and a GNSS velocity (``ve_m, vn_m`` m/s, ``sv_m``: the course over ground, while the car
-moves; :mod:`lbo.filters.measure`). The whole log is checked before anything is written
-(:mod:`lbo.sim.logcheck`, the checks :class:`lbo.Observer` applies too); a failed run writes no
-output file. The output has ``t, x, y, psi, valid``: ``valid`` is false before the first
-fix, and on the first N-1 rows of a CNN or LSTM, whose window is not full yet (those rows
-hold the EKF's estimate). An observer that knows how sure it is (every classical one, and the
-robust observer) adds ``var_x, var_y`` (m^2), ``var_psi`` (rad^2) and ``cov_xy`` (m^2), its
-covariance's entries; the CNN and the LSTM have none.
+step), a GNSS velocity (``ve_m, vn_m`` m/s, ``sv_m``: the course over ground, while the car
+moves; :mod:`lbo.filters.measure`) and a gyro's yaw rate ``r_m`` (rad/s), which
+``observer=gyro`` turns the heading with in place of the steering (:mod:`lbo.filters.gyro`).
+The whole log is checked before anything is written (:mod:`lbo.sim.logcheck`, the checks
+:class:`lbo.Observer` applies too); a failed run writes no output file. The output has ``t,
+x, y, psi, valid``: ``valid`` is false before the first fix, and on the first N-1 rows of a
+CNN or LSTM, whose window is not full yet (those rows hold the EKF's estimate). An observer
+that knows how sure it is (every classical one, and the robust observer) adds ``var_x,
+var_y`` (m^2), ``var_psi`` (rad^2) and ``cov_xy`` (m^2), its covariance's entries; the CNN
+and the LSTM have none.
 
 ``smooth=true`` runs a Rauch-Tung-Striebel smoother after the filter (:mod:`lbo.filters.smoother`),
 for the best estimate of an offline log from every sample before and after each row: the
@@ -88,7 +90,7 @@ def observe(cfg: DictConfig) -> dict[str, Any]:
     ``output`` (Path), ``observer`` (name), ``rows``, ``valid`` (rows with a full window),
     and, when the log holds the true state, ``rmse`` (3,) (m, m, rad) and ``nrmse``.
     """
-    from lbo.filters.classical import OBSERVERS as CLASSICAL
+    from lbo.filters.classical import ON_LOGS as CLASSICAL
     from lbo.serve.observer import EnvelopeWarning, Observer
     from lbo.sim.noise import Noise
     from lbo.sim.vehicle import Vehicle

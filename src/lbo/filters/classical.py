@@ -14,7 +14,10 @@
   kinematic EKF with a constant diagonal Q can do there, in hindsight. On a truth that is not the
   kinematic bicycle a larger Q absorbs some of the model's error, so this is the fair
   kinematic peer; it needs the true states, so it scores simulated test sets only;
-- ``pcrb``: not an observer but the bound on any observer's error (needs the true states).
+- ``pcrb``: not an observer but the bound on any observer's error (needs the true states);
+- ``gyro``: the EKF of the gyro-driven model (:mod:`lbo.filters.gyro`), its heading turned by a
+  gyro's yaw rate ``r_m`` with the bias as a state, its inputs ``[V, r_m]``: for a log that
+  holds a gyro (``lbo.observe``, :meth:`lbo.Observer.run` with a receiver's channels).
 
 Each runs over a batch (:func:`estimate`) or one step at a time (:func:`stepper`), with the same
 numbers either way.
@@ -27,6 +30,7 @@ from typing import Any
 import numpy as np
 
 from lbo.core.errors import LboError
+from lbo.filters.gyro import GyroStepper, gyro_ekf_batch
 from lbo.filters.kalman import (
     KalmanStepper,
     UnscentedStepper,
@@ -48,6 +52,10 @@ TUNED = "oracle_tuned"
 BOUND = "pcrb"
 NAMES = (*OBSERVERS, DYNAMIC, TUNED, BOUND)
 """Everything ``lbo.evaluate`` scores on the test grid."""
+GYRO = "gyro"
+"""The EKF of the gyro-driven model: for logs with a gyro (r_m), not the test grid's."""
+ON_LOGS = (*OBSERVERS, GYRO)
+"""The classical observers ``lbo.observe`` and :class:`lbo.Observer` run on a log."""
 UKF_SPREAD = 0.1
 """Merwe's sigma-point spread of the UKF."""
 
@@ -61,9 +69,9 @@ def check(name: str, field: str = "observer") -> None:
         told = "the simulated car's parameters" if name == DYNAMIC else "the true states"
         raise LboError(f"{field}: {name} is told {told} and scores simulated test sets only "
                        f"(lbo.evaluate); use one of {', '.join(OBSERVERS)} or a checkpoint")
-    if name not in OBSERVERS:
+    if name not in ON_LOGS:
         raise LboError(f"{field}: unknown classical observer {name!r}; "
-                       f"expected one of {', '.join(OBSERVERS)}")
+                       f"expected one of {', '.join(ON_LOGS)}")
 
 
 def measurement_cov(name: str, noise: Noise, alpha: float | np.ndarray, g: int) -> np.ndarray:
@@ -82,7 +90,8 @@ def estimate(name: str, m: np.ndarray, u: np.ndarray, vehicle: Vehicle, noise: N
     smoother's estimates after the filter (:mod:`lbo.filters.smoother`; not for ``oracle_dynamic``),
     over the first ``lengths`` (G,) steps of each padded trajectory (None: all).
 
-    m : (G, T, 3) measurements; u : (G, T, 2) inputs; alpha : the noise scale the oracles are
+    m : (G, T, 3) or (G, T, 8) rows (:mod:`lbo.filters.measure`); u : (G, T, 2) inputs
+    (``[V, r_m]`` for ``gyro``, else ``[V, delta]``); alpha : the noise scale the oracles are
     told, one for all or (G,) per trajectory (the others ignore it); truth : what the log was
     drawn from, which ``oracle_dynamic`` is told (a ``truth=dynamic`` one).
     """
@@ -94,6 +103,10 @@ def estimate(name: str, m: np.ndarray, u: np.ndarray, vehicle: Vehicle, noise: N
     R = measurement_cov(name, noise, alpha, np.shape(m)[0])
     kw = {"return_cov": return_cov, "smooth": smooth, "lengths": lengths}
     try:
+        if name == GYRO:
+            if smooth:
+                raise LboError("gyro: the gyro-driven EKF has no smoother yet; use ekf or ukf")
+            return gyro_ekf_batch(m, u, vehicle, noise.Q, R, return_cov=return_cov)
         if name == "adaptive":
             return adaptive_ekf_batch(m, u, vehicle, noise.Q, R, **kw)
         if name == "ukf":
@@ -115,6 +128,8 @@ def stepper(name: str, m0: np.ndarray, vehicle: Vehicle, noise: Noise,
         return KalmanStepper(m0, vehicle, noise.Q, **adaptive_settings(R, len(m0)))
     if name == "ukf":
         return UnscentedStepper(m0, vehicle, noise.Q, R, UKF_SPREAD)
+    if name == GYRO:
+        return GyroStepper(m0, vehicle, noise.Q, R)
     return KalmanStepper(m0, vehicle, noise.Q, R)
 
 

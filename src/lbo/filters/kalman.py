@@ -150,12 +150,18 @@ class CourseStart:
         self.turn = np.zeros(len(self.p0))
         self.steps = np.zeros(len(self.p0))
 
-    def advance(self, u_prev: np.ndarray) -> None:
-        """Dead-reckon one step with inputs u_prev (G, 2), as :func:`lbo.sim.vehicle.step`."""
+    def advance(self, u_prev: np.ndarray, turn: np.ndarray | None = None) -> None:
+        """Dead-reckon one step with inputs u_prev (G, 2), as :func:`lbo.sim.vehicle.step`;
+        ``turn`` (G,) rad/s: the heading turns at this rate instead (a gyro-driven model)."""
         if not self.blind.any():
             return
-        path = step(np.concatenate([self.c, self.turn[:, None]], axis=1), u_prev,
-                    self.vehicle.dt, self.vehicle.wheelbase)
+        state = np.concatenate([self.c, self.turn[:, None]], axis=1)
+        if turn is None:
+            path = step(state, u_prev, self.vehicle.dt, self.vehicle.wheelbase)
+        else:
+            dt, v = self.vehicle.dt, u_prev[:, 0]
+            path = state + dt * np.stack([v * np.cos(state[:, 2]), v * np.sin(state[:, 2]),
+                                          turn], axis=1)
         self.c = np.where(self.blind[:, None], path[:, :2], self.c)
         self.turn = np.where(self.blind, path[:, 2], self.turn)
         self.steps = self.steps + self.blind

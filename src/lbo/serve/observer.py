@@ -182,6 +182,21 @@ def _no_heading(name: str) -> str:
             "take it")
 
 
+def _gyro_inputs(u: np.ndarray, receiver: np.ndarray | None, source: str | None
+                 ) -> np.ndarray:
+    """The ``gyro`` observer's inputs (T, 2) ``[V, r_m]``: the gyro's yaw rate held from each
+    reading to the next (the first reading back to the log's start); one line where the log
+    has no gyro."""
+    rate = None if receiver is None else receiver[:, RECEIVER.index("r_m")]
+    if rate is None or not np.isfinite(rate).any():
+        raise LboError(f"{source + ': ' if source else ''}gyro needs a gyro's yaw rate: a "
+                       "column r_m (rad/s, counter-clockwise); use ekf or ukf for a log "
+                       "without one")
+    held = np.isfinite(rate)
+    last = np.maximum.accumulate(np.where(held, np.arange(len(rate)), -1))
+    return np.column_stack([u[:, 0], rate[np.where(last < 0, np.argmax(held), last)]])
+
+
 def _from_first_fix(name: str, m: np.ndarray, u: np.ndarray, fix: np.ndarray,
                     vehicle: Vehicle, noise: Noise, alpha: float, smooth: bool = False
                     ) -> tuple[np.ndarray, np.ndarray]:
@@ -434,7 +449,7 @@ class Observer:
             raise LboError(f"form must be one of {list(FORMS)} or null, got {form!r}")
         check_mode(envelope_mode)
         device = check_device(device, probe=source not in classical.NAMES)
-        if source in classical.NAMES:
+        if source in classical.NAMES + (classical.GYRO,):
             classical.check(source)  # pcrb: a bound, not an observer
             return cls(source, vehicle, noise, alpha=alpha)
         with _checkpoint_file(source) as path:
@@ -517,6 +532,9 @@ class Observer:
         loop, run torch on one thread (``torch.set_num_threads(1)``) or use ``engine="onnx"``
         (one thread already).
         """
+        if self.name == classical.GYRO:
+            raise LboError("gyro: step takes [V, delta], not a gyro's yaw rate, yet; run a "
+                           "whole log with run(m, u, receiver=...) (a column r_m)")
         k = self._count
         try:
             u = np.asarray(input, dtype=float).reshape(2)
@@ -612,11 +630,12 @@ class Observer:
         smooth : the Rauch-Tung-Striebel smoother's estimates (and covariances) after the
             filter (:mod:`lbo.filters.smoother`): every row drawn on the whole log, for offline
             logs. Classical observers and a window filter in its recursive form only.
-        receiver : (T, 6) a receiver's channels, :data:`lbo.sim.logcheck.RECEIVER`
-            ``[sx_m, sy_m, spsi_m, ve_m, vn_m, sv_m]``, NaN where a row holds none: the accuracy
-            it reports per fix (the R of that step) and a GNSS velocity (its course over
-            ground, :mod:`lbo.filters.measure`). Classical observers only; the adaptive one
-            learns its own R and takes the velocity alone.
+        receiver : (T, 7) a receiver's channels, :data:`lbo.sim.logcheck.RECEIVER`
+            ``[sx_m, sy_m, spsi_m, ve_m, vn_m, sv_m, r_m]``, NaN where a row holds none: the
+            accuracy it reports per fix (the R of that step), a GNSS velocity (its course
+            over ground, :mod:`lbo.filters.measure`) and a gyro's yaw rate (the ``gyro``
+            observer's input, held from one reading to the next). Classical observers only;
+            the adaptive one learns its own R and takes the velocity alone.
 
         Returns
         -------
@@ -683,8 +702,11 @@ class Observer:
         t = len(m)
         covs = np.full((t, 3, 3), np.nan)
         if self.net is None:
+            if self.name == classical.GYRO:
+                u = _gyro_inputs(u, receiver, source)
             if receiver is not None:
-                turn = u[:, 0] * np.tan(u[:, 1]) / self.vehicle.wheelbase
+                turn = (u[:, 1] if self.name == classical.GYRO else
+                        u[:, 0] * np.tan(u[:, 1]) / self.vehicle.wheelbase)
                 m = measure.rows(m, receiver[:, :3], receiver[:, 3:5], receiver[:, 5], u[:, 0],
                                  turn)
             est, covs = _from_first_fix(self.name, m, u, fix, self.vehicle, self.noise,

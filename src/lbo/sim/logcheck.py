@@ -30,11 +30,15 @@ FIX_RULE = ("a row holds x_m and y_m (a position fix), with or without psi_m, or
 """What a row of a log may hold, as the checks say it."""
 INPUTS = ("V", "delta")
 TRUTH = ("x", "y", "psi")
-RECEIVER = ("sx_m", "sy_m", "spsi_m", "ve_m", "vn_m", "sv_m")
+RECEIVER = ("sx_m", "sy_m", "spsi_m", "ve_m", "vn_m", "sv_m", "r_m")
 """Optional columns of a receiver's log, each held or NaN row by row: the 1-sigma accuracy
-it reports for its fix (sx_m, sy_m in m; spsi_m in rad, of psi_m), and a GNSS velocity
-ve_m, vn_m (m/s east, north) with its 1-sigma sv_m (m/s). The classical observers take them
-(:mod:`lbo.filters.measure`)."""
+it reports for its fix (sx_m, sy_m in m; spsi_m in rad, of psi_m), a GNSS velocity ve_m,
+vn_m (m/s east, north) with its 1-sigma sv_m (m/s), and a gyro's yaw rate r_m (rad/s,
+counter-clockwise, at any rate). The classical observers take them (:mod:`lbo.filters.measure`;
+r_m: the ``gyro`` observer, :mod:`lbo.filters.gyro`)."""
+GYRO_LIMIT = 10.0
+"""Largest |r_m| (rad/s): a car's yaw rate stays within 2 rad/s; beyond 10, the gyro is in
+deg/s or the column is not a yaw rate."""
 RECEIVER_RULE = ("an accuracy comes with what it is the accuracy of (sx_m and sy_m > 0 m with "
                  "x_m, y_m; spsi_m > 0 rad with psi_m), a velocity as ve_m and vn_m (m/s) "
                  "with an optional sv_m > 0 m/s")
@@ -326,16 +330,17 @@ def check_receiver(m: np.ndarray, r: np.ndarray, source: str | None = None) -> N
     """Refuse a receiver's channels that break :data:`RECEIVER_RULE`, naming the first row.
 
     m : (T, 3) ``[x_m, y_m, psi_m]``, NaN where not held.
-    r : (T, 6) :data:`RECEIVER`, NaN where not held.
+    r : (T, 7) :data:`RECEIVER`, NaN where not held.
 
     One :class:`LboError` line for the first of: inf anywhere; sx_m without sy_m (or the
     reverse); an accuracy without the fix (or heading) it is of; vn_m without ve_m (or the
-    reverse); sv_m without a velocity; a sigma not > 0; a velocity beyond 100 m/s."""
+    reverse); sv_m without a velocity; a sigma not > 0; a velocity beyond 100 m/s; a yaw
+    rate beyond 10 rad/s."""
     m = np.asarray(m, dtype=float)
     r = np.asarray(r, dtype=float)
     _finite(np.where(np.isnan(r), 0.0, r), RECEIVER, source)
     has = np.isfinite(r)
-    sx, sy, spsi, ve, vn, sv = has.T
+    sx, sy, spsi, ve, vn, sv, _ = has.T
     pos = np.isfinite(m[:, 0]) & np.isfinite(m[:, 1])
     rules = [
         (sx & ~sy, "has sx_m without sy_m"), (sy & ~sx, "has sy_m without sx_m"),
@@ -346,8 +351,9 @@ def check_receiver(m: np.ndarray, r: np.ndarray, source: str | None = None) -> N
     ]
     for c in (0, 1, 2, 5):
         rules.append((has[:, c] & ~(np.where(has[:, c], r[:, c], 1.0) > 0), RECEIVER[c]))
-    for c in (3, 4):
-        rules.append((np.abs(np.where(has[:, c], r[:, c], 0.0)) > SPEED_LIMIT, RECEIVER[c]))
+    for c in (3, 4, 6):
+        limit = GYRO_LIMIT if c == 6 else SPEED_LIMIT
+        rules.append((np.abs(np.where(has[:, c], r[:, c], 0.0)) > limit, RECEIVER[c]))
     firsts = [(int(np.argmax(bad)), i) for i, (bad, _) in enumerate(rules) if bad.any()]
     if not firsts:
         return
@@ -356,8 +362,9 @@ def check_receiver(m: np.ndarray, r: np.ndarray, source: str | None = None) -> N
     if what in RECEIVER:
         c = RECEIVER.index(what)
         value = float(r[row, c])
-        what = (f"has {what}={value:g}, not a 1-sigma > 0" if c not in (3, 4) else
-                f"has {what}={value:g} m/s, beyond {SPEED_LIMIT:g} m/s")
+        what = (f"has {what}={value:g}, not a 1-sigma > 0" if c not in (3, 4, 6) else
+                f"has {what}={value:g} m/s, beyond {SPEED_LIMIT:g} m/s" if c != 6 else
+                f"has r_m={value:g} rad/s, beyond {GYRO_LIMIT:g} rad/s (a yaw rate in rad/s)")
     raise LboError(_at(source, f"row {row} {what}; {RECEIVER_RULE}"))
 
 

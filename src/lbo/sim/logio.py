@@ -45,9 +45,10 @@ FORMATS = (".csv", ".parquet")
 
 
 LANDING = ((("x_m", "y_m"), (*MEAS_COLUMNS, "sx_m", "sy_m", "spsi_m")),
-           (("ve_m", "vn_m"), ("ve_m", "vn_m", "sv_m")))
+           (("ve_m", "vn_m"), ("ve_m", "vn_m", "sv_m")), (("r_m",), ("r_m",)))
 """(key, columns) of the samples :func:`resample` never interpolates: a fix (its position, the
-heading and accuracies that come with it) and a GNSS velocity (with its sigma)."""
+heading and accuracies that come with it), a GNSS velocity (with its sigma) and a gyro's
+reading (the ``gyro`` observer holds each to the next)."""
 
 
 DT_TOLERANCE = 0.01
@@ -152,7 +153,7 @@ def check_log(df: pd.DataFrame, source: str = "input", heading: str = "enu",
 
 
 def receiver(df: pd.DataFrame) -> np.ndarray | None:
-    """A log's receiver channels (T, 6) in :data:`RECEIVER` order, NaN where a row (or
+    """A log's receiver channels (T, 7) in :data:`RECEIVER` order, NaN where a row (or
     the log) has none; None when the log has none of these columns."""
     if not any(c in df.columns for c in RECEIVER):
         return None

@@ -1,0 +1,135 @@
+"""The gyro-driven kinematic model and its EKF: heading from a yaw-rate gyro with a bias.
+
+Production filters turn the heading with the gyro, not with the steering: a log without a
+steering angle needs it, and a gyro measures the turn the tyres made, slip included. The
+model, with the gyro's unknown bias ``b`` as a fourth state:
+
+    x' = V cos psi,   y' = V sin psi,   psi' = r_m - b,   b' = 0 (+ a random walk),
+
+stepped with Euler's rule at dt, as the bicycle is. The inputs are ``[V, r_m]`` in place of
+``[V, delta]``. A row's measurements are those of every classical filter
+(:mod:`lbo.filters.measure`: a fix, with or without heading, its reported accuracy, the
+course over ground), whose Jacobian on ``b`` is 0; the bias is learned from how the heading
+the gyro integrates drifts from the fixes' course, and, while the car stands
+(:data:`STILL_SPEED`), from the gyro itself: a car at rest does not turn, so its heading is
+held and the gyro reads its bias. The process noise adds the gyro's white noise to the
+heading (``(gyro_sigma dt)^2`` a step) and the bias's walk to ``b`` (``bias_walk^2 dt``).
+The heading of a log that starts without one comes from the course over ground
+(:class:`lbo.filters.kalman.CourseStart`, its path dead-reckoned with the gyro).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from lbo.core.errors import LboError
+from lbo.filters import measure
+from lbo.filters.kalman import CourseStart, _start, run_stepper
+from lbo.filters.update import joseph_update
+from lbo.sim.vehicle import Vehicle
+
+GYRO_SIGMA = 0.01
+"""1-sigma (rad/s) of the gyro's white noise a step, by default: an automotive ESC gyro's."""
+BIAS_SIGMA = 0.02
+"""1-sigma (rad/s) of the bias before any fix, by default (about 1 deg/s: an uncalibrated
+MEMS gyro's turn-on bias)."""
+BIAS_WALK = 1e-3
+"""Random walk (rad/s/sqrt(s)) of the bias, by default: it drifts with temperature."""
+
+STILL_SPEED = 0.05
+"""Speed (m/s) below which the car stands: it does not turn, so its heading is held and the
+gyro's reading is its bias (a zero-rate update, as INS filters make at standstill)."""
+
+_H = np.zeros((measure.MEASURED + 1, 4))
+_H[:measure.MEASURED, :3] = measure.H
+_H[measure.MEASURED, 3] = 1.0
+"""(5, 4) Jacobian of the measured channels and, at standstill, the gyro's reading of b."""
+
+
+class GyroStepper:
+    """The EKF of the gyro-driven model (see the module's docstring), one step per call over
+    G trajectories.
+
+    Parameters
+    ----------
+    m0 : (G, 3) or (G, 8) first rows (a position fix).
+    vehicle : Vehicle (its dt).
+    Q : (3, 3) process covariance of ``[x, y, psi]``.
+    R : (G, 3, 3) measurement covariance where a row reports no accuracy.
+    gyro_sigma, bias_sigma, bias_walk : the gyro's errors (module constants by default).
+
+    Attributes
+    ----------
+    x : (G, 4) ``[x, y, psi, b]``. P : (G, 4, 4). prior, cross : as the other steppers'.
+    """
+
+    def __init__(self, m0: np.ndarray, vehicle: Vehicle, Q: np.ndarray, R: np.ndarray,
+                 gyro_sigma: float = GYRO_SIGMA, bias_sigma: float = BIAS_SIGMA,
+                 bias_walk: float = BIAS_WALK) -> None:
+        self.dt, self.R = vehicle.dt, np.asarray(R, dtype=float)
+        x3, P3 = _start(m0, self.R)
+        g = len(x3)
+        self.x = np.concatenate([x3, np.zeros((g, 1))], axis=1)
+        self.P = np.zeros((g, 4, 4))
+        self.P[:, :3, :3] = P3
+        self.P[:, 3, 3] = bias_sigma**2
+        self.Q = np.zeros((4, 4))
+        self.Q[:3, :3] = Q
+        self.Q[2, 2] += (gyro_sigma * self.dt) ** 2
+        self.gyro_var = gyro_sigma**2
+        self.Q[3, 3] = bias_walk**2 * self.dt
+        self.course = CourseStart(m0, vehicle, np.asarray(Q, dtype=float))
+
+    def update(self, m: np.ndarray, u_prev: np.ndarray) -> np.ndarray:
+        """Predict with ``u_prev`` (G, 2) ``[V, r_m]`` of the last step, update with what row
+        m (G, 3) or (G, 8) holds; returns the pose (G, 3)."""
+        m = measure.widen(m)
+        dt = self.dt
+        v, rate = u_prev[:, 0], u_prev[:, 1]
+        psi, bias = self.x[:, 2], self.x[:, 3]
+        x = self.x.copy()
+        x[:, 0] += v * np.cos(psi) * dt
+        x[:, 1] += v * np.sin(psi) * dt
+        still = np.abs(v) < STILL_SPEED
+        x[:, 2] += np.where(still, 0.0, rate - bias) * dt
+        F = np.broadcast_to(np.eye(4), (len(x), 4, 4)).copy()
+        F[:, 0, 2] = -v * np.sin(psi) * dt
+        F[:, 1, 2] = v * np.cos(psi) * dt
+        F[:, 2, 3] = np.where(still, 0.0, -dt)
+        cross = self.P @ F.swapaxes(-1, -2)
+        P = F @ self.P @ F.swapaxes(-1, -2) + self.Q
+        self.course.advance(u_prev, turn=np.where(still, 0.0, rate - bias))
+        R = measure.step_cov(m, self.R)
+        m, R, P, start = self.course.take(m, 0.5 * (R[:, 0, 0] + R[:, 1, 1]), P, R)
+        cross[start, :, 2] = 0.0
+        self.cross, self.prior = cross, (x, P)
+        y, _, R4, held = measure.model(m, x[:, :3], R)
+        g = len(x)
+        R5 = np.zeros((g, measure.MEASURED + 1, measure.MEASURED + 1))
+        R5[:, :-1, :-1] = R4
+        R5[:, -1, -1] = self.gyro_var
+        y5 = np.concatenate([y, (rate - x[:, 3])[:, None]], axis=1)
+        held5 = np.concatenate([held, still[:, None]], axis=1)
+        self.x, self.P = joseph_update(x, P, y5, _H, R5, held5)
+        return self.x[:, :3]
+
+
+def gyro_ekf_batch(m: np.ndarray, u: np.ndarray, vehicle: Vehicle, Q: np.ndarray,
+                   R: np.ndarray, return_cov: bool = False, return_bias: bool = False,
+                   **gyro) -> np.ndarray | tuple[np.ndarray, ...]:
+    """:class:`GyroStepper` over G trajectories (a loop over time only).
+
+    m : (G, T, 3) or (G, T, 8) rows; u : (G, T, 2) ``[V, r_m]``; Q (3, 3); R (3, 3) or
+    (G, 3, 3). Returns the poses (G, T, 3), with ``return_cov`` their covariances
+    (G, T, 3, 3), with ``return_bias`` the bias estimated at the last step (G,) last.
+    """
+    from lbo.filters.kalman import _batch_cov, _check_trajectories
+
+    m, u = _check_trajectories(m, u)
+    if not np.isfinite(u).all():
+        raise LboError("the gyro EKF needs V and r_m at every step (NaN or inf found)")
+    flt = GyroStepper(m[:, 0], vehicle, Q, _batch_cov(R, m.shape[0], "R"), **gyro)
+    est, cov = run_stepper(flt, m, u, True, pose=lambda kf: kf.x[:, :3],
+                           cov=lambda kf: kf.P[:, :3, :3])
+    out: tuple = (est,) + ((cov,) if return_cov else ()) + ((flt.x[:, 3],) if return_bias else ())
+    return out[0] if len(out) == 1 else out
