@@ -5,7 +5,7 @@ observer, end to end (read, check, filter, write).
 
 The log: 180,000 rows at 50 Hz (one hour) of a simulated drive, single-antenna fixes (no
 heading) at ``--fix-rate`` Hz with the accuracy the receiver reports (``sx_m, sy_m``) and its
-velocity (``ve_m, vn_m, sv_m``), the truth columns included. Each observer runs as a user
+velocity (``ve_m, vn_m, sv_m``), a gyro (``r_m``) at every row, the truth columns included. Each observer runs as a user
 runs it, in its own process; the table gives the median over ``repeats`` and the time
 per row. Target (issue 36): the EKF under 10 s on a 2-core CPU.
 """
@@ -47,6 +47,8 @@ def receiver_log(rows: int, fix_rate: float, seed: int = 0) -> pd.DataFrame:
                        "sx_m": sigma, "sy_m": sigma,
                        "ve_m": vel[:, 0] + 0.05 * rng.standard_normal(rows),
                        "vn_m": vel[:, 1] + 0.05 * rng.standard_normal(rows), "sv_m": 0.05,
+                       "r_m": u[:, 0] * np.tan(u[:, 1]) / vehicle.wheelbase
+                       + 0.01 * rng.standard_normal(rows),
                        "V": u[:, 0], "delta": u[:, 1], "x": z[:, 0], "y": z[:, 1],
                        "psi": z[:, 2]})
     cols = ["x_m", "y_m", "sx_m", "sy_m", "ve_m", "vn_m", "sv_m"]
@@ -59,7 +61,7 @@ def main() -> None:
     ap.add_argument("--hours", type=float, default=1.0)
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--fix-rate", type=float, default=5.0)
-    ap.add_argument("--observers", default="ekf,ukf,adaptive")
+    ap.add_argument("--observers", default="ekf,ukf,adaptive,gyro")
     args = ap.parse_args()
     rows = int(round(args.hours * 3600 / Vehicle().dt))
     with tempfile.TemporaryDirectory() as tmp:

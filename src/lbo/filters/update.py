@@ -29,9 +29,19 @@ reference) for a full fix.
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 
 from lbo.core.errors import LboError
+
+
+@functools.cache
+def _eye(n: int) -> np.ndarray:
+    """The (n, n) identity, made once (this runs at every step of every filter)."""
+    eye = np.eye(n)
+    eye.flags.writeable = False
+    return eye
 
 
 def held_channels(m: np.ndarray) -> np.ndarray:
@@ -65,17 +75,19 @@ def joseph_update(x: np.ndarray, P: np.ndarray, y: np.ndarray, H: np.ndarray, R:
     if held.shape != (g, p) or np.shape(y) != (g, p) or P.shape != (g, n, n):
         raise LboError(f"joseph_update needs x (G, n), P (G, n, n), y and held (G, p); got "
                        f"{x.shape}, {P.shape}, {np.shape(y)}, {held.shape}")
-    H = np.broadcast_to(np.asarray(H, dtype=float), (g, p, n))
-    R = np.broadcast_to(np.asarray(R, dtype=float), (g, p, p))
+    if np.shape(H) not in ((p, n), (g, p, n)) or np.shape(R) not in ((p, p), (g, p, p)):
+        raise LboError(f"joseph_update needs H (p, n) or (G, p, n) and R (p, p) or (G, p, p) "
+                       f"with p={p}, n={n}; got {np.shape(H)}, {np.shape(R)}")
     # a channel not held: no row of H, no innovation, uncorrelated with a unit variance, so
-    # S is block diagonal and that channel's column of K is exactly zero
+    # S is block diagonal and that channel's column of K is exactly zero (np.where broadcasts
+    # a shared H and R over the G rows)
     y = np.where(held, y, 0.0)
     H = np.where(held[..., None], H, 0.0)
     both = held[:, :, None] & held[:, None, :]
-    R = np.where(both, R, np.eye(p))
+    R = np.where(both, R, _eye(p))
     PHt = P @ H.swapaxes(-1, -2)                                    # (G, n, p)
     S = H @ PHt + R                                                 # (G, p, p)
     K = np.linalg.solve(S, PHt.swapaxes(-1, -2)).swapaxes(-1, -2)   # P H^T S^-1, S symmetric
-    I_KH = np.eye(n) - K @ H
+    I_KH = _eye(n) - K @ H
     post = I_KH @ P @ I_KH.swapaxes(-1, -2) + K @ R @ K.swapaxes(-1, -2)
     return x + np.einsum("gij,gj->gi", K, y), 0.5 * (post + post.swapaxes(-1, -2))
