@@ -246,3 +246,44 @@ def test_lbo_observe_takes_reported_accuracies_and_velocities(tmp_path):
                          capture_output=True, text=True, cwd=tmp_path)
     assert res.returncode != 0 and not (tmp_path / "bad.out.csv").exists()
     assert "row 0 has sx_m=-1, not a 1-sigma > 0" in res.stderr
+
+
+# --------------------------------------------------------------------------- starting between fixes
+
+
+@pytest.mark.parametrize("name", [*classical.OBSERVERS, "gyro"])
+def test_a_log_that_starts_between_fixes_is_filtered_from_its_first_fix(name):
+    """Three trajectories in one batch: one starting on a fix, one 13 rows before its first,
+    one without any. Each gives what it gives alone from its first fix, NaN before."""
+    vehicle, noise = Vehicle(), Noise.preset("paper")
+    df = simulate(compose_cfg("simulate", ["manoeuvre=slalom", "fix_rate=5"]))[LOG].head(300)
+    m = df[["x_m", "y_m", "psi_m"]].to_numpy(float)
+    u = df[["V", "delta"]].to_numpy(float)
+    if name == "gyro":
+        u = np.column_stack([u[:, 0], u[:, 0] * np.tan(u[:, 1]) / vehicle.wheelbase])
+    ms = np.stack([m, np.roll(m, 3, axis=0), np.full_like(m, np.nan)])
+    ms[1, :13] = np.nan  # fixes every 10 rows from row 3: the first one left is row 13
+    us = np.stack([u, np.roll(u, 3, axis=0), u])
+    est, cov = classical.estimate(name, ms, us, vehicle, noise, return_cov=True)
+    alone = classical.estimate(name, ms[1:2, 13:], us[1:2, 13:], vehicle, noise)
+    # (batched against alone: rounding differs by 1e-12)
+    np.testing.assert_allclose(est[1, 13:], alone[0], rtol=0, atol=1e-9)
+    assert np.isnan(est[1, :13]).all() and np.isnan(est[2]).all() and np.isnan(cov[2]).all()
+    np.testing.assert_allclose(est[0], classical.estimate(name, ms[:1], us[:1], vehicle,
+                                                          noise)[0], rtol=0, atol=1e-9)
+
+
+def test_logs_scored_from_each_segments_first_fix():
+    from lbo.scoring import logscore
+
+    vehicle, noise = Vehicle(), Noise.preset("paper")
+    df = simulate(compose_cfg("simulate", ["manoeuvre=slalom", "fix_rate=5"]))[LOG].head(300)
+    m = df[["x_m", "y_m", "psi_m"]].to_numpy(float)[None].repeat(2, 0)
+    m[1, :25] = np.nan
+    arr = {"m": m, "u": df[["V", "delta"]].to_numpy(float)[None].repeat(2, 0),
+           "z": df[["x", "y", "psi"]].to_numpy(float)[None].repeat(2, 0),
+           "mask": np.ones((2, 300), bool), "file": np.array([0, 1]), "alpha": np.ones(2)}
+    arr["mask"] &= np.arange(300) >= classical.first_fixes(arr["m"])[:, None]
+    est = logscore.peer_estimates(arr, vehicle, noise)
+    scores = logscore.table(est, arr, ["a.csv", "b.csv"])
+    assert np.isfinite(scores[["rmse_x", "rmse_y", "rmse_psi", "nrmse"]].to_numpy()).all()

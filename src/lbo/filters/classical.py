@@ -90,6 +90,9 @@ def estimate(name: str, m: np.ndarray, u: np.ndarray, vehicle: Vehicle, noise: N
     smoother's estimates after the filter (:mod:`lbo.filters.smoother`; not for ``oracle_dynamic``),
     over the first ``lengths`` (G,) steps of each padded trajectory (None: all).
 
+    A trajectory whose first row holds no position starts at its first fix (NaN before it,
+    and throughout where it has none).
+
     m : (G, T, 3) or (G, T, 8) rows (:mod:`lbo.filters.measure`); u : (G, T, 2) inputs
     (``[V, r_m]`` for ``gyro``, else ``[V, delta]``); alpha : the noise scale the oracles are
     told, one for all or (G,) per trajectory (the others ignore it); truth : what the log was
@@ -100,6 +103,10 @@ def estimate(name: str, m: np.ndarray, u: np.ndarray, vehicle: Vehicle, noise: N
             raise LboError("oracle_dynamic: the floor of a filter; it has no smoother")
         return _oracle_dynamic(m, u, vehicle, noise, alpha, truth, return_cov)
     check(name)
+    m, u = np.asarray(m, dtype=float), np.asarray(u, dtype=float)
+    if m.ndim == 3 and m.shape[1] and not np.isfinite(m[:, 0, :2]).all():
+        return _from_first_fixes(name, m, u, vehicle, noise, alpha, progress, return_cov,
+                                 smooth, lengths)
     R = measurement_cov(name, noise, alpha, np.shape(m)[0])
     kw = {"return_cov": return_cov, "smooth": smooth, "lengths": lengths}
     try:
@@ -116,6 +123,41 @@ def estimate(name: str, m: np.ndarray, u: np.ndarray, vehicle: Vehicle, noise: N
     except np.linalg.LinAlgError as e:  # a covariance no longer positive definite
         raise LboError(f"{name}: the filter diverged ({e}); check the data's values and "
                        "units") from None
+
+
+def first_fixes(m: np.ndarray) -> np.ndarray:
+    """(G,) the first row of each trajectory m (G, T, C) that holds a position (T: none)."""
+    pos = np.isfinite(m[..., 0]) & np.isfinite(m[..., 1])
+    return np.where(pos.any(axis=1), np.argmax(pos, axis=1), m.shape[1])
+
+
+def _from_first_fixes(name: str, m: np.ndarray, u: np.ndarray, vehicle: Vehicle,
+                      noise: Noise, alpha: float | np.ndarray, progress: bool,
+                      return_cov: bool, smooth: bool, lengths: np.ndarray | None
+                      ) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
+    """:func:`estimate` of trajectories that start between fixes (a log cut anywhere): each
+    is shifted to start at its first fix, filtered with the others in one batch, and shifted
+    back; the rows before it (and a trajectory without any fix) are NaN."""
+    g, t = m.shape[:2]
+    first = first_fixes(m)
+    src = np.arange(t) + np.minimum(first, t - 1)[:, None]      # (G, T) rows read
+    inside = src < t
+    rows = np.arange(g)[:, None]
+    m2 = np.where(inside[..., None], m[rows, np.minimum(src, t - 1)], np.nan)
+    u2 = np.where(inside[..., None], u[rows, np.minimum(src, t - 1)], 0.0)
+    none = first == t
+    m2[none, 0, :2] = 0.0  # a placeholder start; its estimates are dropped below
+    real = t - np.minimum(first, t) if lengths is None else np.maximum(lengths - first, 1)
+    out = estimate(name, m2, u2, vehicle, noise, alpha, progress, return_cov=True,
+                   smooth=smooth, lengths=np.maximum(real, 1))
+    est = np.full(m.shape[:2] + (3,), np.nan)
+    cov = np.full(m.shape[:2] + (3, 3), np.nan)
+    back = np.arange(t) - first[:, None]                          # (G, T) row of the shift
+    ok = (back >= 0) & ~none[:, None]
+    gi, ki = np.nonzero(ok)
+    est[gi, ki] = out[0][gi, back[gi, ki]]
+    cov[gi, ki] = out[1][gi, back[gi, ki]]
+    return (est, cov) if return_cov else est
 
 
 def stepper(name: str, m0: np.ndarray, vehicle: Vehicle, noise: Noise,

@@ -19,6 +19,7 @@ import numpy as np
 import pandas as pd
 
 from lbo.core.errors import LboError
+from lbo.filters.classical import first_fixes
 from lbo.scoring.grid import rows_of
 from lbo.scoring.metrics import nrmse, rmse
 from lbo.sim import schema
@@ -35,11 +36,14 @@ NOTE = ("on logs the noise level is unknown, so there is no oracle EKF: the peer
 
 def load(folder: str | Path) -> dict[str, np.ndarray]:
     """The test logs of a ``data=logs`` folder as padded arrays (:func:`lbo.sim.schema.to_arrays`)
-    plus ``file`` (G,), the index of each segment's log; segments too short to be scored
-    (shorter than ``data.run_in``) are left out."""
+    plus ``file`` (G,), the index of each segment's log; each is scored from its first fix on
+    (a log may start between fixes), and segments with nothing to score (shorter than
+    ``data.run_in``) are left out."""
     df = schema.read_set(Path(folder) / "test.parquet", schema.EVAL_COLUMNS, missing_fixes=True)
     arr = schema.to_arrays(df)
     arr["file"] = df.groupby("traj")["file"].first().loc[arr["traj"]].to_numpy()
+    # a segment may start between fixes: every observer is scored from its first fix on
+    arr["mask"] = arr["mask"] & (np.arange(arr["m"].shape[1]) >= first_fixes(arr["m"])[:, None])
     keep = arr["mask"].any(axis=1)
     return rows_of(arr, keep)
 

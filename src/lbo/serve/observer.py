@@ -197,21 +197,14 @@ def _gyro_inputs(u: np.ndarray, receiver: np.ndarray | None, source: str | None
     return np.column_stack([u[:, 0], rate[np.where(last < 0, np.argmax(held), last)]])
 
 
-def _from_first_fix(name: str, m: np.ndarray, u: np.ndarray, fix: np.ndarray,
-                    vehicle: Vehicle, noise: Noise, alpha: float, smooth: bool = False
-                    ) -> tuple[np.ndarray, np.ndarray]:
+def _from_first_fix(name: str, m: np.ndarray, u: np.ndarray, vehicle: Vehicle, noise: Noise,
+                    alpha: float, smooth: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """Classical observer ``name`` over one log (T, 3) or (T, 8) (a receiver's rows,
-    :mod:`lbo.filters.measure`), (T, 2), started at its first fix
-    (``fix`` (T,) bool): (T, 3) estimates and (T, 3, 3) covariances, NaN before that fix
-    (``smooth``: the RTS smoother's)."""
-    est = np.full((len(m), 3), np.nan)
-    cov = np.full((len(m), 3, 3), np.nan)
-    if fix.any():
-        f = int(np.argmax(fix))
-        e, c = classical.estimate(name, m[None, f:], u[None, f:], vehicle, noise, alpha,
-                             return_cov=True, smooth=smooth)
-        est[f:], cov[f:] = e[0], c[0]
-    return est, cov
+    :mod:`lbo.filters.measure`), (T, 2), started at its first fix: (T, 3) estimates and
+    (T, 3, 3) covariances, NaN before that fix (``smooth``: the RTS smoother's)."""
+    est, cov = classical.estimate(name, m[None], u[None], vehicle, noise, alpha,
+                                  return_cov=True, smooth=smooth)
+    return est[0], cov[0]
 
 
 # --------------------------------------------------------------------------- inference engines
@@ -709,7 +702,7 @@ class Observer:
                         u[:, 0] * np.tan(u[:, 1]) / self.vehicle.wheelbase)
                 m = measure.rows(m, receiver[:, :3], receiver[:, 3:5], receiver[:, 5], u[:, 0],
                                  turn)
-            est, covs = _from_first_fix(self.name, m, u, fix, self.vehicle, self.noise,
+            est, covs = _from_first_fix(self.name, m, u, self.vehicle, self.noise,
                                         self.alpha, smooth)
         elif self.form == "recursive" and smooth:
             from lbo.models.recursive import run_arrays
@@ -730,8 +723,8 @@ class Observer:
             est = np.full((t, 3), np.nan)
             head = 0 if self._pads else min(n - 1, t)
             if head:
-                est[:head] = _from_first_fix("ekf", m[:head], u[:head], fix[:head],
-                                             self.vehicle, self.noise, 1.0)[0]
+                est[:head] = _from_first_fix("ekf", m[:head], u[:head], self.vehicle,
+                                             self.noise, 1.0)[0]
             series = np.concatenate([m, u], axis=1)
             if self._pads:  # no fix and no motion before the log
                 pad = np.zeros((n - 1, 5))
