@@ -5,9 +5,9 @@ observer, end to end (read, check, filter, write).
 
 The log: 180,000 rows at 50 Hz (one hour) of a simulated drive, single-antenna fixes (no
 heading) at ``--fix-rate`` Hz with the accuracy the receiver reports (``sx_m, sy_m``) and its
-velocity (``ve_m, vn_m, sv_m``), a gyro (``r_m``) at every row, the truth columns included. Each observer runs as a user
-runs it, in its own process; the table gives the median over ``repeats`` and the time
-per row. Target (issue 36): the EKF under 10 s on a 2-core CPU.
+velocity (``ve_m, vn_m, sv_m``), a gyro (``r_m``) at every row, the truth columns included.
+Each observer runs as a user runs it, in its own process; the table gives the median over
+``repeats`` and the time per row. Target: the EKF under 10 s on a 2-core CPU.
 """
 
 from __future__ import annotations

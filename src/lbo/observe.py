@@ -196,10 +196,13 @@ def observe(cfg: DictConfig) -> dict[str, Any]:
           f"at {1 / obs.dt:g} Hz)")
     if channels is not None:
         told = [c for c, held in zip(RECEIVER, np.isfinite(channels).any(0)) if held]
-        print(f"receiver: {', '.join(told) or 'no value'} "
+        idle = "r_m" in told and classical and name != "gyro"  # only the gyro EKF reads it
+        taken = [c for c in told if not (idle and c == "r_m")]
+        print(f"receiver: {', '.join(taken) or 'no value'} "
               + ("taken (reported accuracy as R, velocity as course over ground)" if classical
                  else f"not read: {obs.name} does not take a receiver's channels yet; the "
-                      "classical observers do"))
+                      "classical observers do")
+              + (f"; r_m not read by {name} (observer=gyro reads it)" if idle else ""))
     if obs.kind == "learned":
         asked = (vehicle, noise.process_sigma, noise.measurement_sigma)
         if asked != (obs.vehicle, obs.noise.process_sigma, obs.noise.measurement_sigma):
