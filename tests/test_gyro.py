@@ -81,7 +81,7 @@ def test_observer_run_takes_the_gyro_from_a_receivers_channels(drive):
     assert np.sqrt(np.mean(wrap_angle(est[1500:, 2] - z[1500:, 2]) ** 2)) < 0.02
     with pytest.raises(LboError, match=r"^gyro needs a gyro's yaw rate: a column r_m"):
         obs.run(m, u, receiver=np.where(np.arange(len(RECEIVER)) == 6, np.nan, r))
-    with pytest.raises(LboError, match=r"^gyro: step takes \[V, delta\], not a gyro's yaw rate"):
+    with pytest.raises(LboError, match=r"^step 0: gyro needs a gyro's yaw rate r_m"):
         obs.step(m[0], u[0])
     bad = r.copy()
     bad[5, 6] = 30.0  # deg/s read as rad/s

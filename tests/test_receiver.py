@@ -287,3 +287,41 @@ def test_logs_scored_from_each_segments_first_fix():
     est = logscore.peer_estimates(arr, vehicle, noise)
     scores = logscore.table(est, arr, ["a.csv", "b.csv"])
     assert np.isfinite(scores[["rmse_x", "rmse_y", "rmse_psi", "nrmse"]].to_numpy()).all()
+
+
+# --------------------------------------------------------------------------- streaming
+
+
+@pytest.mark.parametrize("name", [*classical.OBSERVERS, "gyro"])
+def test_step_with_a_receivers_channels_gives_what_run_gives(name):
+    df = simulate(compose_cfg("simulate", ["manoeuvre=slalom", "receiver=single_antenna",
+                                           "receiver.position.rate=5"])).head(400)
+    m = df[["x_m", "y_m", "psi_m"]].to_numpy(float)
+    u = df[["V", "delta"]].to_numpy(float)
+    r = df.reindex(columns=list(RECEIVER)).to_numpy(float)
+    r[1::2, RECEIVER.index("r_m")] = np.nan  # a 25 Hz gyro
+    obs = Observer.load(name)
+    est, valid = obs.run(m, u, receiver=r)
+    assert valid.all()
+    stepped = np.array([obs.step(mk, uk, receiver=rk).state for mk, uk, rk in zip(m, u, r)])
+    np.testing.assert_allclose(stepped[:, :2], est[:, :2], rtol=0, atol=1e-9)
+    np.testing.assert_allclose(wrap_angle(stepped[:, 2] - est[:, 2]), 0, atol=1e-9)
+    obs.reset()
+    bad = r[0].copy()
+    bad[0] = -1.0
+    with pytest.raises(LboError, match=r"^step 0: row 0 has sx_m=-1, not a 1-sigma > 0"):
+        obs.step(m[0], u[0], receiver=bad)
+
+
+def test_step_refuses_what_it_cannot_take_in_one_line():
+    gyro = Observer.load("gyro")
+    with pytest.raises(LboError, match=r"^step 0: gyro needs a gyro's yaw rate r_m at its "
+                                       r"first step \(receiver\[6\]\)$"):
+        gyro.step([0.0, 0.0, np.nan], [10.0, 0.0])
+    with pytest.raises(LboError, match=r"^step 0: receiver must be 7 numbers"):
+        Observer.load("ekf").step([0.0, 0.0, 0.0], [10.0, 0.0], receiver=[1.0, 1.0])
+    from lbo.models.net import WindowNet
+
+    learned = Observer.from_net(WindowNet("cnn", 20, "relative"))
+    with pytest.raises(LboError, match=r"^step 0: cnn-N20 does not take a receiver's channels"):
+        learned.step([0.0, 0.0, 0.0], [10.0, 0.0], receiver=np.full(7, np.nan))

@@ -166,7 +166,7 @@ class _Stream:
                 return np.full(3, np.nan)
             self.flt = classical.stepper(self.name, m[None], self.vehicle, self.noise,
                                          self.alpha)
-            return self.flt.x[0].copy()
+            return self.flt.x[0, :3].copy()
         return self.flt.update(m[None], np.asarray(u_prev, float)[None])[0].copy()
 
     @property
@@ -476,6 +476,7 @@ class Observer:
         self._count = 0
         self._last_fix: int | None = None
         self._u_prev: np.ndarray | None = None
+        self._gyro: float | None = None  # the gyro's last reading (observer gyro)
         self._filter.reset()
         self._warned: set[str] = set()
         if self._envelope is not None:
@@ -487,7 +488,8 @@ class Observer:
         if self.form == "recursive":
             self._state = [x.copy() for x in self._state0]
 
-    def step(self, measurement: np.ndarray | None, input: np.ndarray) -> Estimate:
+    def step(self, measurement: np.ndarray | None, input: np.ndarray,
+             receiver: np.ndarray | None = None) -> Estimate:
         """Take one sample and return the estimate at this step.
 
         Parameters
@@ -497,6 +499,9 @@ class Observer:
             ``fix_rates``); ``psi_m`` NaN alone: a position fix without a heading (classical
             observers only).
         input : (2,) ``[V, delta]`` (m/s, rad) applied from this step to the next.
+        receiver : (7,) this sample's receiver channels, as a row of :meth:`run`'s
+            ``receiver`` (NaN where not held), or None; classical observers only. ``gyro``
+            needs it, with ``r_m`` at its first step (each reading is held to the next).
 
         Returns
         -------
@@ -525,9 +530,6 @@ class Observer:
         loop, run torch on one thread (``torch.set_num_threads(1)``) or use ``engine="onnx"``
         (one thread already).
         """
-        if self.name == classical.GYRO:
-            raise LboError("gyro: step takes [V, delta], not a gyro's yaw rate, yet; run a "
-                           "whole log with run(m, u, receiver=...) (a column r_m)")
         k = self._count
         try:
             u = np.asarray(input, dtype=float).reshape(2)
@@ -550,6 +552,8 @@ class Observer:
         else:  # one branch for every observer (absolute features read the angle itself)
             m = m.copy()  # never the caller's array
             m[2] = wrap_angle(m[2])
+        if receiver is not None or self.name == classical.GYRO:
+            m, u = self._receiver_sample(k, m, u, receiver)
         # checked: from here on the sample is taken
         outside = self._envelope(m, u) if self._envelope is not None else ()
         est = self._take(k, m, u, fix)
@@ -564,6 +568,39 @@ class Observer:
             self._warned.update(new)
             warnings.warn(f"{self.name}: step {k}: {why}", EnvelopeWarning, stacklevel=2)
         return Estimate(est.state, est.valid, est.reason, est.cov, outside)
+
+    def _receiver_sample(self, k: int, m: np.ndarray, u: np.ndarray,
+                         receiver: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+        """Sample ``k``'s filter row (8,) and inputs (2,) with its receiver channels (7,),
+        checked as :meth:`run` checks a row; for ``gyro``, ``[V, r_m]`` with the last
+        reading held. Nothing is kept unless the sample passes."""
+        if receiver is not None:
+            try:
+                r = np.asarray(receiver, dtype=float).reshape(len(RECEIVER))
+            except (TypeError, ValueError):
+                raise LboError(f"step {k}: receiver must be {len(RECEIVER)} numbers "
+                               f"[{', '.join(RECEIVER)}] (NaN where not held), got "
+                               f"{receiver!r}") from None
+            if self.net is not None:
+                raise LboError(f"step {k}: {self.name} does not take a receiver's channels "
+                               f"yet; the classical observers ({', '.join(CLASSICAL)}) do")
+            check_receiver(m[None], r[None], f"step {k}")
+        else:
+            r = np.full(len(RECEIVER), np.nan)
+        if self.name == classical.GYRO:
+            rate = r[RECEIVER.index("r_m")]
+            gyro = float(rate) if np.isfinite(rate) else self._gyro
+            if gyro is None:
+                raise LboError(f"step {k}: gyro needs a gyro's yaw rate r_m at its first step "
+                               f"(receiver[{RECEIVER.index('r_m')}])")
+            self._gyro = gyro
+            u = np.array([u[0], gyro])
+            turn = gyro
+        else:
+            turn = u[0] * np.tan(u[1]) / self.vehicle.wheelbase
+        row = measure.rows(m[None], r[None, :3], r[None, 3:5], r[None, 5:6], u[:1],
+                           np.array([turn]))[0]
+        return row, u
 
     def _take(self, k: int, m: np.ndarray, u: np.ndarray, fix: bool) -> Estimate:
         """The estimate at step ``k`` of a checked sample (``m`` (3,), NaN without a fix)."""
