@@ -105,3 +105,15 @@ def test_realdrive_writes_the_spans_and_scores_every_classical_observer(tmp_path
     assert obs.returncode == 0, obs.stderr
     assert ("receiver: sx_m, sy_m, ve_m, vn_m, sv_m taken (reported accuracy as R, velocity "
             "as course over ground); r_m not read by ukf (observer=gyro reads it)") in obs.stdout
+
+
+def test_without_the_extra_and_with_a_bad_observer_it_is_one_line(monkeypatch, tmp_path):
+    monkeypatch.setitem(sys.modules, "onavdata", None)  # import onavdata -> ImportError
+    with pytest.raises(LboError, match=r"^the onavdata package is not installed: "
+                                       r"pip install 'lbo\[real\]'$"):
+        hguide.read()
+    monkeypatch.delitem(sys.modules, "onavdata")
+    res = subprocess.run([sys.executable, "-m", "lbo.realdrive", f"output_dir={tmp_path}",
+                          "observers=[ekf,pcrb]"], capture_output=True, text=True, cwd=tmp_path)
+    assert res.returncode == 2 and res.stderr.startswith("error: observers: pcrb is a bound")
+    assert not any(tmp_path.iterdir())
