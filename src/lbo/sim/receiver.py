@@ -11,8 +11,9 @@ wander, and reports how accurate it thinks each fix is; and an ESC gyro whose bi
 - its reported accuracy ``sx_m, sy_m``: alpha times the error's 1-sigma
   ``sqrt(white^2 + drift^2)``, times a log-normal factor of spread ``reported_spread`` (a
   receiver's estimate of its own accuracy tracks the true error's scale, not each error);
-- velocity ``ve_m, vn_m`` (m/s) with ``sv_m``: the true velocity ``V [cos psi, sin psi]``
-  at the same latency, noise and rate (a receiver gives both from one solution);
+- velocity ``ve_m, vn_m`` (m/s) with ``sv_m``: the velocity ``V [cos psi, sin psi]``
+  at the same latency, noise and rate (a receiver gives both from one solution); along the
+  heading, also for the car that slips, whose true velocity leans by its sideslip angle;
 - gyro ``r_m`` (rad/s, counter-clockwise): the true yaw rate, plus a bias that starts at
   N(0, ``gyro_bias^2``) and random-walks at ``gyro_walk`` rad/s/sqrt(s), plus white noise
   and drift; at every step unless its rate is set. alpha scales the receiver's errors, not
