@@ -40,16 +40,24 @@ BUDGET_MS = 20.0
 ROBUST_WINDOW = 400
 
 
-def drive(steps: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
-    """A simulated drive: (T, 3) measurements at alpha=1 and (T, 2) smooth inputs."""
+def truth(steps: int, rng: np.random.Generator, slow: float = 1.0
+          ) -> tuple[np.ndarray, np.ndarray]:
+    """A simulated drive's true states (T, 3) and smooth inputs (T, 2): speed 12 +- 3 m/s and
+    steering +-0.1 rad, sines of 900 and 400 steps, ``slow`` times longer."""
     vehicle, noise = Vehicle(), Noise.preset("paper")
-    rng = np.random.default_rng(seed)
-    k = np.arange(steps)
+    k = np.arange(steps) / slow
     u = np.stack([12.0 + 3.0 * np.sin(2 * np.pi * k / 900), 0.1 * np.sin(2 * np.pi * k / 400)],
                  axis=1)
     z = simulate(np.zeros((1, 3)), u[None], vehicle.dt, vehicle.wheelbase,
                  noise.process_sigma, rng)[0]
-    return measure(z, noise.meas(1.0), rng), u
+    return z, u
+
+
+def drive(steps: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """A simulated drive: (T, 3) measurements at alpha=1 and (T, 2) smooth inputs."""
+    rng = np.random.default_rng(seed)
+    z, u = truth(steps, rng)
+    return measure(z, Noise.preset("paper").meas(1.0), rng), u
 
 
 def latency(obs: Observer, m: np.ndarray, u: np.ndarray, steps: int) -> np.ndarray:

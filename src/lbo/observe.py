@@ -90,6 +90,7 @@ def observe(cfg: DictConfig) -> dict[str, Any]:
     ``output`` (Path), ``observer`` (name), ``rows``, ``valid`` (rows with a full window),
     and, when the log holds the true state, ``rmse`` (3,) (m, m, rad) and ``nrmse``.
     """
+    from lbo.filters.classical import GYRO
     from lbo.filters.classical import ON_LOGS as CLASSICAL
     from lbo.serve.observer import EnvelopeWarning, Observer
     from lbo.sim.noise import Noise
@@ -196,7 +197,7 @@ def observe(cfg: DictConfig) -> dict[str, Any]:
           f"at {1 / obs.dt:g} Hz)")
     if channels is not None:
         told = [c for c, held in zip(RECEIVER, np.isfinite(channels).any(0)) if held]
-        idle = "r_m" in told and classical and name != "gyro"  # only the gyro EKF reads it
+        idle = "r_m" in told and classical and name != GYRO  # only the gyro EKF reads it
         taken = [c for c in told if not (idle and c == "r_m")]
         print(f"receiver: {', '.join(taken) or 'no value'} "
               + ("taken (reported accuracy as R, velocity as course over ground)" if classical

@@ -147,7 +147,7 @@ def _from_first_fixes(name: str, m: np.ndarray, u: np.ndarray, vehicle: Vehicle,
     u2 = np.where(inside[..., None], u[rows, np.minimum(src, t - 1)], 0.0)
     none = first == t
     m2[none, 0, :2] = 0.0  # a placeholder start; its estimates are dropped below
-    real = t - np.minimum(first, t) if lengths is None else np.maximum(lengths - first, 1)
+    real = (t if lengths is None else np.asarray(lengths)) - np.minimum(first, t)
     out = estimate(name, m2, u2, vehicle, noise, alpha, progress, return_cov=True,
                    smooth=smooth, lengths=np.maximum(real, 1))
     est = np.full(m.shape[:2] + (3,), np.nan)

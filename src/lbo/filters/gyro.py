@@ -24,7 +24,13 @@ import numpy as np
 
 from lbo.core.errors import LboError
 from lbo.filters import measure
-from lbo.filters.kalman import CourseStart, _start, run_stepper
+from lbo.filters.kalman import (
+    CourseStart,
+    _batch_cov,
+    _check_trajectories,
+    _start,
+    run_stepper,
+)
 from lbo.filters.update import joseph_update
 from lbo.sim.vehicle import Vehicle
 
@@ -92,7 +98,7 @@ class GyroStepper:
         x[:, 1] += v * np.sin(psi) * dt
         still = np.abs(v) < STILL_SPEED
         x[:, 2] += np.where(still, 0.0, rate - bias) * dt
-        F = np.broadcast_to(np.eye(4), (len(x), 4, 4)).copy()
+        F = np.tile(np.eye(4), (len(x), 1, 1))
         F[:, 0, 2] = -v * np.sin(psi) * dt
         F[:, 1, 2] = v * np.cos(psi) * dt
         F[:, 2, 3] = np.where(still, 0.0, -dt)
@@ -123,13 +129,12 @@ def gyro_ekf_batch(m: np.ndarray, u: np.ndarray, vehicle: Vehicle, Q: np.ndarray
     (G, 3, 3). Returns the poses (G, T, 3), with ``return_cov`` their covariances
     (G, T, 3, 3), with ``return_bias`` the bias estimated at the last step (G,) last.
     """
-    from lbo.filters.kalman import _batch_cov, _check_trajectories
-
     m, u = _check_trajectories(m, u)
     if not np.isfinite(u).all():
         raise LboError("the gyro EKF needs V and r_m at every step (NaN or inf found)")
     flt = GyroStepper(m[:, 0], vehicle, Q, _batch_cov(R, m.shape[0], "R"), **gyro)
-    est, cov = run_stepper(flt, m, u, True, pose=lambda kf: kf.x[:, :3],
-                           cov=lambda kf: kf.P[:, :3, :3])
-    out: tuple = (est,) + ((cov,) if return_cov else ()) + ((flt.x[:, 3],) if return_bias else ())
-    return out[0] if len(out) == 1 else out
+    out = run_stepper(flt, m, u, return_cov, pose=lambda kf: kf.x[:, :3],
+                      cov=lambda kf: kf.P[:, :3, :3])
+    if not return_bias:
+        return out
+    return (*out, flt.x[:, 3]) if return_cov else (out, flt.x[:, 3])

@@ -595,12 +595,15 @@ class Observer:
                                f"(receiver[{RECEIVER.index('r_m')}])")
             self._gyro = gyro
             u = np.array([u[0], gyro])
-            turn = gyro
-        else:
-            turn = u[0] * np.tan(u[1]) / self.vehicle.wheelbase
-        row = measure.rows(m[None], r[None, :3], r[None, 3:5], r[None, 5:6], u[:1],
-                           np.array([turn]))[0]
-        return row, u
+        return self._receiver_rows(m[None], u[None], r[None])[0], u
+
+    def _receiver_rows(self, m: np.ndarray, u: np.ndarray, receiver: np.ndarray) -> np.ndarray:
+        """The filters' rows (T, 8) of measurements m (T, 3) and a receiver's channels (T, 7)
+        at inputs u (T, 2) (``[V, r_m]`` for ``gyro``): the turn rate the course's variance
+        allows for is the gyro's, or the bicycle's ``V tan(delta) / L``."""
+        turn = (u[:, 1] if self.name == classical.GYRO else
+                u[:, 0] * np.tan(u[:, 1]) / self.vehicle.wheelbase)
+        return measure.rows(m, receiver[:, :3], receiver[:, 3:5], receiver[:, 5], u[:, 0], turn)
 
     def _take(self, k: int, m: np.ndarray, u: np.ndarray, fix: bool) -> Estimate:
         """The estimate at step ``k`` of a checked sample (``m`` (3,), NaN without a fix)."""
@@ -735,10 +738,7 @@ class Observer:
             if self.name == classical.GYRO:
                 u = _gyro_inputs(u, receiver, source)
             if receiver is not None:
-                turn = (u[:, 1] if self.name == classical.GYRO else
-                        u[:, 0] * np.tan(u[:, 1]) / self.vehicle.wheelbase)
-                m = measure.rows(m, receiver[:, :3], receiver[:, 3:5], receiver[:, 5], u[:, 0],
-                                 turn)
+                m = self._receiver_rows(m, u, receiver)
             est, covs = _from_first_fix(self.name, m, u, self.vehicle, self.noise,
                                         self.alpha, smooth)
         elif self.form == "recursive" and smooth:

@@ -187,8 +187,7 @@ def sense(z: np.ndarray, u: np.ndarray, dt: float, spec: ReceiverSpec,
         "psi_m": nan.copy(),
         "sx_m": np.where(fix, np.maximum(a * spec.position.sigma * spread, SIGMA_FLOOR), nan),
         "ve_m": np.where(fast, vel[..., 0], nan), "vn_m": np.where(fast, vel[..., 1], nan),
-        "sv_m": np.where(fast, np.maximum(a * spec.velocity.sigma, SIGMA_FLOOR)
-                         * np.ones((g, t)), nan),
+        "sv_m": np.where(fast, np.maximum(a * spec.velocity.sigma, SIGMA_FLOOR), nan),
         "r_m": np.where(every, gyro, nan), "gyro_bias": bias,
     }
     out["sy_m"] = out["sx_m"].copy()
