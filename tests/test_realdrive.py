@@ -33,6 +33,9 @@ def test_only_the_hill_drive_is_read():
 
 def test_the_lever_arm_and_latency_bring_the_fixes_onto_the_truth(drive):
     al = hguide.fit_alignment(drive)
+    # the INS case is turned about 2 degrees against the car: its velocity, driving
+    # straight, points that far off its heading
+    assert 0.02 < al.boresight < 0.05
     # the antenna sits about 1.3 m behind the INS, on the car's axis; fixes are logged
     # within a few tens of ms of their instant
     assert -2.0 < al.lever[0] < -0.5 and abs(al.lever[1]) < 0.3
@@ -60,7 +63,10 @@ def test_a_slice_becomes_a_log_that_lbo_reads(drive):
     assert np.median(np.abs(speed - log.loc[fix, "V"].abs())) < 0.1
     moving = fix & (log["V"] > 5)
     course = np.arctan2(log.loc[moving, "vn_m"], log.loc[moving, "ve_m"])
-    assert np.median(np.abs(wrap_angle(course - log.loc[moving, "psi"]))) < 0.05
+    off = wrap_angle(course - log.loc[moving, "psi"])
+    # the truth's heading is the car's (the boresight turns the INS's by 35 mrad): the
+    # receiver's course is centred on it (27 mrad off without the boresight)
+    assert np.median(np.abs(off)) < 0.03 and abs(np.median(off)) < 0.015
     # the gyro's yaw rate is the truth's heading rate
     rate = np.gradient(np.unwrap(log["psi"]), vehicle.dt)
     assert np.corrcoef(rate, log["r_m"])[0, 1] > 0.95

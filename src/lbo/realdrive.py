@@ -107,7 +107,8 @@ def realdrive(cfg: DictConfig) -> dict[str, Any]:
     with atomic_path(out / "results.md") as tmp:
         Path(tmp).write_text(_markdown(table))
     with atomic_path(out / "alignment.json") as tmp:
-        Path(tmp).write_text(json.dumps({"lever_forward_m": float(alignment.lever[0]),
+        Path(tmp).write_text(json.dumps({"boresight_mrad": 1e3 * alignment.boresight,
+                                         "lever_forward_m": float(alignment.lever[0]),
                                          "lever_left_m": float(alignment.lever[1]),
                                          "latency_s": alignment.latency,
                                          "rms_before_m": alignment.rms_before,
@@ -121,8 +122,8 @@ def realdrive(cfg: DictConfig) -> dict[str, Any]:
                                   estimates[best], best, test[list(TRUTH_COLUMNS)].to_numpy()),
                out / "test.png")
     print(f"hill drive: {len(log)} rows at {vehicle.dt:g} s, {int(log['x_m'].notna().sum())} "
-          f"fixes; lever arm {alignment.lever[0]:+.2f} m forward, {alignment.lever[1]:+.2f} m "
-          f"left, latency {alignment.latency:.2f} s (fit on {alignment.fixes} fixes above "
+          f"fixes; boresight {1e3 * alignment.boresight:+.1f} mrad, lever arm "
+          f"{alignment.lever[0]:+.2f} m forward, {alignment.lever[1]:+.2f} m left, latency {alignment.latency:.2f} s (fit on {alignment.fixes} fixes above "
           f"{hguide.FIT_SPEED:g} m/s: RMS offset {alignment.rms_before:.2f} m -> "
           f"{alignment.rms_after:.2f} m)")
     print("spans: " + ", ".join(f"{k} {len(p) * vehicle.dt:.0f} s -> {paths[k]}"

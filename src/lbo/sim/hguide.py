@@ -21,16 +21,23 @@ velocities and the 1-sigma accuracies it reports for them.
 - ``r_m``: the gyro's yaw rate (rad/s, counter-clockwise), the IMU's z rate negated (its z
   points down);
 - the truth ``x, y, psi``: the INS/GNSS solution moved to the antenna by the lever arm
-  (below); ``psi`` is its heading turned to lbo's (counter-clockwise from east).
+  (below); ``psi`` is the car's heading (the INS's, turned by the boresight below), as lbo
+  measures it (counter-clockwise from east).
 
-*Lever arm and time.* The INS reports the position of its case, the receiver that of its
-antenna, which sits elsewhere on the car; and each fix is logged some time after the instant
-it is valid at. :func:`fit_alignment` fits both on the fixes taken above :data:`FIT_SPEED`:
+*Boresight, lever arm and time.* The INS reports the heading of its case, which is turned
+against the car; the position of its case, while the receiver reports that of its antenna,
+elsewhere on the car; and each fix is logged some time after the instant it is valid at.
+:func:`fit_alignment` fits all three. The boresight first, on the INS's own rows (not the
+receiver's): driving straight (yaw rate under :data:`STRAIGHT_RATE`) faster than
+:data:`FIT_SPEED`, a car moves along its heading, so the mean angle from the INS heading to
+the direction of the INS velocity (plus pi reversing) is the angle by which the case is turned;
+the car's heading is the INS heading turned by it. Then, on the fixes taken above
+:data:`FIT_SPEED`:
 for each latency on a 10 ms grid over :data:`LATENCIES`, the lever arm (forward, left, m) is
 the mean of the fixes' offsets from the INS position at that latency, in the car's frame (the
 least-squares fit, the car's rotations being orthonormal); the latency kept is the one that
 leaves the smallest RMS offset. The log's fixes are put at their logged time minus that
-latency, and the truth at the antenna.
+latency, and the truth at the antenna, with the car's heading.
 
 *What no filter removes.* The INS/GNSS solution is aided by the same receiver: its slow
 errors (multipath, atmosphere, a few decimetres over minutes) are the truth's too, so an
@@ -59,6 +66,9 @@ speed: at a standstill no steering turns the kinematic bicycle."""
 FIT_SPEED = 2.0
 """Slowest speed (m/s) of the fixes that fit the lever arm and the latency: standing still,
 a latency changes nothing."""
+STRAIGHT_RATE = 0.03
+"""Largest yaw rate (rad/s) of the INS rows that fit the boresight: in a turn the INS's
+velocity points off the heading by its own side slip."""
 LATENCIES = (-0.5, 0.5)
 """Range (s) of latencies tried, on a 10 ms grid."""
 SPANS = {"train": (0.0, 0.39), "val": (0.39, 0.6), "test": (0.6, 1.0)}
@@ -76,15 +86,17 @@ _GNSS = {"lat": "GNSSPosLat (rad)", "lon": "GNSSPosLon (rad)", "sx": "STD GNSSPo
 
 @dataclass(frozen=True)
 class Alignment:
-    """The fixes' lever arm and latency (:func:`fit_alignment`).
+    """The INS's boresight and the fixes' lever arm and latency (:func:`fit_alignment`).
 
-    lever : (2,) the antenna's offset from the INS (m: forward, left).
+    boresight : rad from the INS heading to the car's (counter-clockwise).
+    lever : (2,) the antenna's offset from the INS (m: forward and left in the car's frame).
     latency : s from the instant a fix is valid to its logged time.
     rms_before, rms_after : (m) RMS offset of the fits' fixes from the INS position at their
         logged time, and from the truth at the antenna at the fitted time.
     fixes : how many fixes the fit used.
     """
 
+    boresight: float
     lever: np.ndarray
     latency: float
     rms_before: float
@@ -139,10 +151,25 @@ def _fixes(df: pd.DataFrame, origin: Origin) -> dict[str, np.ndarray]:
                if k not in ("lat", "lon")}}
 
 
+def _boresight(track: dict[str, np.ndarray]) -> float:
+    """The angle (rad) from the INS heading to the direction it moves in, driving straight."""
+    speed = np.hypot(track["vn"], track["ve"])
+    along = track["vn"] * np.sin(track["psi"]) + track["ve"] * np.cos(track["psi"])
+    straight = (speed > FIT_SPEED) & (np.abs(track["r"]) < STRAIGHT_RATE)
+    if straight.sum() < 100:
+        raise LboError(f"the drive has {int(straight.sum())} INS rows driving straight above "
+                       f"{FIT_SPEED:g} m/s; the boresight needs at least 100")
+    course = np.arctan2(track["vn"], track["ve"]) + np.where(along < 0, np.pi, 0.0)
+    off = course[straight] - track["psi"][straight]
+    return float(np.arctan2(np.sin(off).mean(), np.cos(off).mean()))
+
+
 def fit_alignment(df: pd.DataFrame) -> Alignment:
-    """The lever arm and latency of the drive's fixes (see the module's docstring)."""
+    """The boresight, lever arm and latency of the drive (see the module's docstring)."""
     origin = _origin(df)
     track, fix = _ins_track(df, origin), _fixes(df, origin)
+    boresight = _boresight(track)
+    track["psi"] = track["psi"] + boresight
     inside = (fix["t"] > track["t"][0] + LATENCIES[1]) & (fix["t"] < track["t"][-1] - 0.5)
     at_fix = _at(track, fix["t"])
     moving = inside & (np.hypot(at_fix["vn"], at_fix["ve"]) > FIT_SPEED)
@@ -163,8 +190,8 @@ def fit_alignment(df: pd.DataFrame) -> Alignment:
         if best is None or rms < best[0]:
             best = (rms, float(round(latency, 2)), lever)
     rms, latency, lever = best
-    return Alignment(lever=lever, latency=latency, rms_before=before, rms_after=rms,
-                     fixes=int(moving.sum()))
+    return Alignment(boresight=boresight, lever=lever, latency=latency, rms_before=before,
+                     rms_after=rms, fixes=int(moving.sum()))
 
 
 def _origin(df: pd.DataFrame) -> Origin:
@@ -178,7 +205,8 @@ def to_log(df: pd.DataFrame, vehicle: Vehicle | None = None,
 
     df : the drive as :func:`read` gives it (or a time slice of it).
     vehicle : gives ``dt``, the wheelbase and ``delta_max`` of the steering from the gyro.
-    alignment : the lever arm and latency (None: fitted on ``df``, :func:`fit_alignment`).
+    alignment : the boresight, lever arm and latency (None: fitted on ``df``,
+        :func:`fit_alignment`).
 
     Returns a frame with ``t`` (s from the first INS row), ``x_m, y_m, psi_m`` (psi_m empty:
     one antenna), ``sx_m, sy_m, ve_m, vn_m, sv_m`` (at fix rows), ``V, delta, r_m`` and the
@@ -188,6 +216,7 @@ def to_log(df: pd.DataFrame, vehicle: Vehicle | None = None,
     alignment = alignment or fit_alignment(df)
     origin = _origin(df)
     track, fix = _ins_track(df, origin), _fixes(df, origin)
+    track["psi"] = track["psi"] + alignment.boresight
     t0 = track["t"][0]
     n = int(np.floor((track["t"][-1] - t0) / vehicle.dt + 1e-9)) + 1
     grid = t0 + vehicle.dt * np.arange(n)
