@@ -84,21 +84,29 @@ def test_the_spans_cut_in_the_stops_and_keep_one_drive_each(drive):
 
 @pytest.mark.slow
 def test_realdrive_writes_the_spans_and_scores_every_classical_observer(tmp_path):
-    res = subprocess.run([sys.executable, "-m", "lbo.realdrive", f"output_dir={tmp_path}"],
-                         capture_output=True, text=True, cwd=tmp_path)
+    # two epochs of the noise fit keep it lean (make real-drive runs 12)
+    res = subprocess.run([sys.executable, "-m", "lbo.realdrive", f"output_dir={tmp_path}",
+                          "learn.epochs=2"], capture_output=True, text=True, cwd=tmp_path)
     assert res.returncode == 0, res.stderr
     table = pd.read_csv(tmp_path / "results.csv")
-    assert len(table) == 7 and np.isfinite(table[["x_m", "y_m", "psi_mrad"]]).all().all()
+    assert len(table) == 8 and np.isfinite(table[["x_m", "y_m", "psi_mrad"]]).all().all()
+    assert table.set_index("estimator").loc["ekf, receiver's accuracy and velocity",
+                                            "vs_ekf"] == 1.0
     rows = table.set_index("estimator")[["x_m", "y_m", "psi_mrad"]]
     raw = rows.iloc[0]
     ekf = rows.loc["ekf, receiver's accuracy and velocity"]
     blind = rows.loc["ekf, lbo's R, no velocity"]
     gyro = rows.loc["gyro, receiver's accuracy and velocity"]
+    learned = rows.loc["gyro, noise learned on the train span"]
     # the receiver's channels are what bring the EKF to the raw fixes' level; the gyro EKF
     # goes below them on every variable (docs/logs.md)
     assert ekf["x_m"] < 0.8 * blind["x_m"] and ekf["psi_mrad"] < 0.8 * blind["psi_mrad"]
     assert ekf["x_m"] < 1.2 * raw["x_m"] and ekf["y_m"] < 1.2 * raw["y_m"]
     assert (gyro < raw).all() and (gyro < ekf).all()
+    # two epochs already move the noise the way the validation span gains (docs/logs.md)
+    history = pd.read_csv(tmp_path / "gyro_noise_history.csv")
+    assert len(history) == 3 and history["val"].iloc[-1] < 1.0
+    assert (learned < raw).all()
     for k in ("train", "val", "test"):
         assert (tmp_path / f"hill_{k}.parquet").is_file()
     assert (tmp_path / "test.png").stat().st_size > 10_000
@@ -109,6 +117,12 @@ def test_realdrive_writes_the_spans_and_scores_every_classical_observer(tmp_path
                           f"output={tmp_path / 'val_est.csv'}"],
                          capture_output=True, text=True, cwd=tmp_path)
     assert obs.returncode == 0, obs.stderr
+    learned_run = subprocess.run([sys.executable, "-m", "lbo.observe", "observer=gyro",
+                                  f"gyro_noise={tmp_path / 'gyro_noise.json'}",
+                                  f"input={tmp_path / 'hill_test.parquet'}",
+                                  f"output={tmp_path / 'test_est.csv'}"],
+                                 capture_output=True, text=True, cwd=tmp_path)
+    assert learned_run.returncode == 0, learned_run.stderr
     assert ("receiver: sx_m, sy_m, ve_m, vn_m, sv_m taken (reported accuracy as R, velocity "
             "as course over ground); r_m not read by ukf (observer=gyro reads it)") in obs.stdout
 
@@ -122,4 +136,8 @@ def test_without_the_extra_and_with_a_bad_observer_it_is_one_line(monkeypatch, t
     res = subprocess.run([sys.executable, "-m", "lbo.realdrive", f"output_dir={tmp_path}",
                           "observers=[ekf,pcrb]"], capture_output=True, text=True, cwd=tmp_path)
     assert res.returncode == 2 and res.stderr.startswith("error: observers: pcrb is a bound")
+    res = subprocess.run([sys.executable, "-m", "lbo.realdrive", f"output_dir={tmp_path}",
+                          "learn.epochs=-1"], capture_output=True, text=True, cwd=tmp_path)
+    assert res.returncode == 2 and res.stderr.strip() == (
+        "error: learn.epochs must be an integer >= 0, got -1")
     assert not any(tmp_path.iterdir())

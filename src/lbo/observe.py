@@ -11,7 +11,8 @@ trained with ``fix_rates`` take it. A receiver's log may add, row by row, the ac
 reports for each fix (``sx_m, sy_m`` m, ``spsi_m`` rad: the classical filters' R of that
 step), a GNSS velocity (``ve_m, vn_m`` m/s, ``sv_m``: the course over ground, while the car
 moves; :mod:`lbo.filters.measure`) and a gyro's yaw rate ``r_m`` (rad/s), which
-``observer=gyro`` turns the heading with in place of the steering (:mod:`lbo.filters.gyro`).
+``observer=gyro`` turns the heading with in place of the steering (:mod:`lbo.filters.gyro`);
+``gyro_noise=<file.json>`` gives it a noise learned on a drive (:mod:`lbo.learn.gyro_fit`).
 The whole log is checked before anything is written (:mod:`lbo.sim.logcheck`, the checks
 :class:`lbo.Observer` applies too); a failed run writes no output file. The output has ``t,
 x, y, psi, valid``: ``valid`` is false before the first fix, and on the first N-1 rows of a
@@ -92,6 +93,7 @@ def observe(cfg: DictConfig) -> dict[str, Any]:
     """
     from lbo.filters.classical import GYRO
     from lbo.filters.classical import ON_LOGS as CLASSICAL
+    from lbo.filters.gyro import GyroNoise
     from lbo.serve.observer import EnvelopeWarning, Observer
     from lbo.sim.noise import Noise
     from lbo.sim.vehicle import Vehicle
@@ -118,6 +120,12 @@ def observe(cfg: DictConfig) -> dict[str, Any]:
     if not isinstance(smooth, bool):
         raise LboError(f"smooth must be true or false, got {smooth!r}")
     form = cfg.get("form")
+    gyro_noise = cfg.get("gyro_noise")
+    if gyro_noise is not None:
+        if name != GYRO:
+            raise LboError(f"gyro_noise is the noise of the gyro EKF (observer=gyro), not of "
+                           f"{name}")
+        gyro_noise = GyroNoise.load(str(gyro_noise))
     fmt = LogFormat.from_cfg(cfg)
     where = f"input {source}"
     df, origin = fmt.apply(read_log(source), where)
@@ -132,7 +140,7 @@ def observe(cfg: DictConfig) -> dict[str, Any]:
 
         torch.set_num_threads(threads)
     obs = Observer.load(name, vehicle if classical else None, noise if classical else None,
-                        form=form, **kw)
+                        form=form, gyro_noise=gyro_noise, **kw)
     if obs.kind == "learned" and vehicle.delta_max > obs.vehicle.delta_max:
         # the steering limit the log is checked against (a car whose lock is past the
         # checkpoint's): the model stays the checkpoint's, and rows beyond the steering it was

@@ -1,22 +1,28 @@
 """`python -m lbo.realdrive`: a real car drive end to end, every classical observer on it.
 
-    python -m lbo.realdrive [output_dir=reports/realdrive] [observers=[ekf,adaptive,ukf]]
+    python -m lbo.realdrive [output_dir=reports/realdrive] [observers=[ekf,adaptive,ukf,gyro]]
+                            [learn.epochs=12]
 
 Reads the onavdata hill drive (``pip install 'lbo[real]'``; :mod:`lbo.sim.hguide`), fits the
-antenna's lever arm and the fixes' latency, and writes it as three lbo logs, one per time span:
-``hill_train.parquet`` (the first 60%), ``hill_val.parquet`` and ``hill_test.parquet`` (20%
-each). Each takes ``python -m lbo.observe`` as it is. On the test span it scores, against the
-INS/GNSS truth at the antenna:
+INS's boresight, the antenna's lever arm and the fixes' latency, and writes it as three lbo
+logs, one per time span (:data:`lbo.sim.hguide.SPANS`): ``hill_train.parquet``,
+``hill_val.parquet`` and ``hill_test.parquet``. Each takes ``python -m lbo.observe`` as it is.
+It learns the gyro EKF's noise on the train span, keeping the best on the validation span
+(:mod:`lbo.learn.gyro_fit`; ``gyro_noise.json``, which ``lbo.observe observer=gyro
+gyro_noise=...`` reads). On the test span it scores, against the INS/GNSS truth at the
+antenna:
 
 - the raw fixes (position at the fix rows; heading: the course over ground of the receiver's
   velocity, where the car moves fast enough for it to be one);
 - each classical observer with the receiver's channels (its reported accuracy as R, its
-  velocity as the course), and the EKF without them (lbo's R, no velocity) and smoothed (RTS,
-  offline), as :meth:`lbo.Observer.run` gives them.
+  velocity as the course), the gyro EKF with the learned noise, and the EKF without the
+  channels (lbo's R, no velocity) and smoothed (RTS, offline), as :meth:`lbo.Observer.run`
+  gives them.
 
 It writes ``results.csv`` and ``results.md`` (RMSE of x, y in m and psi in mrad, over the rows
-each estimates), ``alignment.json`` and ``test.png`` (the EKF's path and errors), and prints
-the table.
+each estimates, and the quadratic mean of the three RMSE ratios to the EKF's),
+``alignment.json`` and ``test.png`` (the learned gyro EKF's path and errors; without
+learning, the first observer's), and prints the table.
 """
 
 from __future__ import annotations
@@ -31,24 +37,35 @@ import pandas as pd
 from omegaconf import DictConfig
 
 from lbo.core.atomic import atomic_path
+from lbo.core.checks import integer, number
 from lbo.core.cli import entry
 from lbo.core.errors import LboError
 from lbo.filters import classical, measure
+from lbo.filters.gyro import GyroNoise
 from lbo.scoring.metrics import rmse
 from lbo.sim import hguide
 from lbo.sim.logio import TRUTH_COLUMNS, check_log, check_output_path, receiver, write_table
 
-__all__ = ["main", "realdrive", "score"]
+__all__ = ["EKF", "LEARNED", "main", "realdrive", "score"]
+
+EKF = "ekf, receiver's accuracy and velocity"
+"""The row every estimator is measured against (``vs_ekf``): lbo's kinematic EKF."""
+LEARNED = "gyro, noise learned on the train span"
+"""The row of the gyro EKF whose noise :mod:`lbo.learn.gyro_fit` learned."""
 
 
-def score(log: pd.DataFrame, observers: list[str], vehicle: Any, noise: Any
-          ) -> tuple[pd.DataFrame, dict[str, np.ndarray]]:
+def score(log: pd.DataFrame, observers: list[str], vehicle: Any, noise: Any,
+          gyro_noise: GyroNoise | None = None) -> tuple[pd.DataFrame, dict[str, np.ndarray]]:
     """RMSE (x m, y m, psi mrad) of the raw fixes and each observer on ``log``, every one
     scored from the log's first course over ground on (before it, a car standing since the
     log began, no single-antenna observer can know its heading).
 
-    Returns the table (one row each: ``estimator, x_m, y_m, psi_mrad, rows``) and the
-    estimates (T, 3) by name (NaN where an observer has none yet)."""
+    ``gyro_noise``: also the gyro EKF with this (learned) noise.
+
+    Returns the table (one row each: ``estimator, x_m, y_m, psi_mrad, rows, vs_ekf``;
+    ``vs_ekf`` is the quadratic mean over x, y and psi of the RMSE ratios to the EKF with the
+    receiver's channels) and the estimates (T, 3) by name (NaN where an observer has none
+    yet, and on the rows not scored)."""
     from lbo.serve.observer import Observer
 
     m = log[["x_m", "y_m", "psi_m"]].to_numpy(dtype=float)
@@ -68,18 +85,26 @@ def score(log: pd.DataFrame, observers: list[str], vehicle: Any, noise: Any
     table = [{"estimator": "raw fixes (heading: course over ground)", "x_m": float(position[0]),
               "y_m": float(position[1]), "psi_mrad": 1e3 * float(heading[2]),
               "rows": int(fix.sum())}]
-    runs = [(f"{name}, receiver's accuracy and velocity", name, r, False) for name in observers]
-    runs += [("ekf, lbo's R, no velocity", "ekf", None, False),
-             ("ekf, receiver's channels, smoothed (RTS, offline)", "ekf", r, True)]
+    runs = [(f"{name}, receiver's accuracy and velocity", name, r, False, None)
+            for name in observers]
+    if gyro_noise is not None:
+        runs.append((LEARNED, classical.GYRO, r, False, gyro_noise))
+    runs += [("ekf, lbo's R, no velocity", "ekf", None, False, None),
+             ("ekf, receiver's channels, smoothed (RTS, offline)", "ekf", r, True, None)]
     estimates = {}
-    for label, name, channels, smooth in runs:
-        obs = Observer.load(name, vehicle, noise)
+    for label, name, channels, smooth, learned in runs:
+        obs = Observer.load(name, vehicle, noise, gyro_noise=learned)
         est, valid = obs.run(m, u, receiver=channels, smooth=smooth)
         e = rmse(est, z, valid & scored)
         table.append({"estimator": label, "x_m": float(e[0]), "y_m": float(e[1]),
                       "psi_mrad": 1e3 * float(e[2]), "rows": int((valid & scored).sum())})
-        estimates[label] = np.where(valid[:, None], est, np.nan)
-    return pd.DataFrame(table), estimates
+        estimates[label] = np.where((valid & scored)[:, None], est, np.nan)  # as scored
+    table = pd.DataFrame(table)
+    rmses = table[["x_m", "y_m", "psi_mrad"]].to_numpy()
+    ekf = table["estimator"].to_list().index(EKF) if EKF in set(table["estimator"]) else None
+    table["vs_ekf"] = (np.nan if ekf is None else
+                       np.sqrt(np.mean(np.square(rmses / rmses[ekf]), axis=1)))
+    return table, estimates
 
 
 def realdrive(cfg: DictConfig) -> dict[str, Any]:
@@ -90,6 +115,9 @@ def realdrive(cfg: DictConfig) -> dict[str, Any]:
     observers = list(cfg.observers)
     for name in observers:
         classical.check(str(name), "observers")
+    learn = {"epochs": integer(cfg.learn.epochs, "learn.epochs", 0),
+             "segment_s": number(cfg.learn.segment_s, "learn.segment_s", 0.0, low_open=True),
+             "lr": number(cfg.learn.lr, "learn.lr", 0.0, low_open=True)}
     out = Path(str(cfg.output_dir))
     paths = {k: check_output_path(out / f"hill_{k}.parquet") for k in hguide.SPANS}
     check_output_path(out / "results.csv")
@@ -102,7 +130,16 @@ def realdrive(cfg: DictConfig) -> dict[str, Any]:
     for k, part in parts.items():
         check_log(part, f"hill drive, {k} span")
         write_table(part, paths[k])
-    table, estimates = score(parts["test"], observers, vehicle, noise)
+    print(f"hill drive: {len(log)} rows at {vehicle.dt:g} s, {int(log['x_m'].notna().sum())} "
+          f"fixes; boresight {1e3 * alignment.boresight:+.1f} mrad, lever arm "
+          f"{alignment.lever[0]:+.2f} m forward, {alignment.lever[1]:+.2f} m left, latency "
+          f"{alignment.latency:.2f} s (fit on {alignment.fixes} fixes above "
+          f"{hguide.FIT_SPEED:g} m/s: RMS offset {alignment.rms_before:.2f} m -> "
+          f"{alignment.rms_after:.2f} m)")
+    print("spans: " + ", ".join(f"{k} {len(p) * vehicle.dt:.0f} s -> {paths[k]}"
+                                for k, p in parts.items()))
+    learned = _learn(learn, parts, vehicle, noise, out) if learn["epochs"] else None
+    table, estimates = score(parts["test"], observers, vehicle, noise, learned)
     write_table(table, out / "results.csv")
     with atomic_path(out / "results.md") as tmp:
         Path(tmp).write_text(_markdown(table))
@@ -117,17 +154,11 @@ def realdrive(cfg: DictConfig) -> dict[str, Any]:
     test = parts["test"]
     from lbo.core import plots
 
-    best = f"{observers[0]}, receiver's accuracy and velocity"
+    best = (LEARNED if learned is not None
+            else f"{observers[0]}, receiver's accuracy and velocity")
     plots.save(plots.observed_log(test["t"].to_numpy(), test[["x_m", "y_m", "psi_m"]].to_numpy(),
                                   estimates[best], best, test[list(TRUTH_COLUMNS)].to_numpy()),
                out / "test.png")
-    print(f"hill drive: {len(log)} rows at {vehicle.dt:g} s, {int(log['x_m'].notna().sum())} "
-          f"fixes; boresight {1e3 * alignment.boresight:+.1f} mrad, lever arm "
-          f"{alignment.lever[0]:+.2f} m forward, {alignment.lever[1]:+.2f} m left, latency {alignment.latency:.2f} s (fit on {alignment.fixes} fixes above "
-          f"{hguide.FIT_SPEED:g} m/s: RMS offset {alignment.rms_before:.2f} m -> "
-          f"{alignment.rms_after:.2f} m)")
-    print("spans: " + ", ".join(f"{k} {len(p) * vehicle.dt:.0f} s -> {paths[k]}"
-                                for k, p in parts.items()))
     print(f"test span ({len(test) * vehicle.dt:.0f} s), RMSE against the INS/GNSS truth "
           "at the antenna:")
     print(_markdown(table), end="")
@@ -135,10 +166,29 @@ def realdrive(cfg: DictConfig) -> dict[str, Any]:
     return {"table": table, "alignment": alignment, "paths": paths}
 
 
+def _learn(cfg: dict[str, Any], parts: dict[str, pd.DataFrame], vehicle: Any, noise: Any,
+           out: Path) -> GyroNoise:
+    """The gyro EKF's noise learned on the train span (kept by the validation span), written
+    to ``gyro_noise.json`` and ``gyro_noise_history.csv``."""
+    from lbo.learn import gyro_fit
+
+    R = classical.measurement_cov("ekf", noise, 1.0, 1)[0]
+    epochs = cfg["epochs"]
+    print(f"learning the gyro EKF's noise on the train span ({epochs} epochs; keeps the best "
+          "on the validation span)")
+    fitted = gyro_fit.fit(parts["train"], parts["val"], vehicle, R, GyroNoise.from_q(noise.Q),
+                          epochs=epochs, segment=max(2, round(cfg["segment_s"] / vehicle.dt)),
+                          lr=cfg["lr"], progress=lambda line: print("  " + line))
+    fitted.noise.save(out / "gyro_noise.json")
+    write_table(fitted.history, out / "gyro_noise_history.csv")
+    print(f"  kept epoch {fitted.best_epoch}: {fitted.noise}")
+    return fitted.noise
+
+
 def _markdown(table: pd.DataFrame) -> str:
-    lines = ["| estimator | x (m) | y (m) | psi (mrad) |", "|---|---:|---:|---:|"]
-    lines += [f"| {r.estimator} | {r.x_m:.2f} | {r.y_m:.2f} | {r.psi_mrad:.1f} |"
-              for r in table.itertuples()]
+    lines = ["| estimator | x (m) | y (m) | psi (mrad) | vs ekf |", "|---|---:|---:|---:|---:|"]
+    lines += [f"| {r.estimator} | {r.x_m:.2f} | {r.y_m:.2f} | {r.psi_mrad:.1f} | "
+              f"{r.vs_ekf:.2f} |" for r in table.itertuples()]
     return "\n".join(lines) + "\n"
 
 

@@ -30,7 +30,7 @@ from typing import Any
 import numpy as np
 
 from lbo.core.errors import LboError
-from lbo.filters.gyro import GyroStepper, gyro_ekf_batch
+from lbo.filters.gyro import GyroNoise, GyroStepper, gyro_ekf_batch
 from lbo.filters.kalman import (
     KalmanStepper,
     UnscentedStepper,
@@ -84,7 +84,8 @@ def measurement_cov(name: str, noise: Noise, alpha: float | np.ndarray, g: int) 
 def estimate(name: str, m: np.ndarray, u: np.ndarray, vehicle: Vehicle, noise: Noise,
         alpha: float | np.ndarray = 1.0, progress: bool = False,
         truth: Truth | None = None, return_cov: bool = False, smooth: bool = False,
-        lengths: np.ndarray | None = None) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
+        lengths: np.ndarray | None = None, gyro: GyroNoise | None = None
+        ) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
     """Estimates (G, T, 3) of observer ``name`` over G trajectories, and with ``return_cov``
     their covariances (G, T, 3, 3) (the filter's P of the pose). ``smooth``: the RTS
     smoother's estimates after the filter (:mod:`lbo.filters.smoother`; not for ``oracle_dynamic``),
@@ -96,7 +97,8 @@ def estimate(name: str, m: np.ndarray, u: np.ndarray, vehicle: Vehicle, noise: N
     m : (G, T, 3) or (G, T, 8) rows (:mod:`lbo.filters.measure`); u : (G, T, 2) inputs
     (``[V, r_m]`` for ``gyro``, else ``[V, delta]``); alpha : the noise scale the oracles are
     told, one for all or (G,) per trajectory (the others ignore it); truth : what the log was
-    drawn from, which ``oracle_dynamic`` is told (a ``truth=dynamic`` one).
+    drawn from, which ``oracle_dynamic`` is told (a ``truth=dynamic`` one); gyro : the gyro
+    EKF's noise (its Q in place of ``noise``'s, and its gyro's; None: the defaults).
     """
     if name == DYNAMIC:
         if smooth:
@@ -106,14 +108,17 @@ def estimate(name: str, m: np.ndarray, u: np.ndarray, vehicle: Vehicle, noise: N
     m, u = np.asarray(m, dtype=float), np.asarray(u, dtype=float)
     if m.ndim == 3 and m.shape[1] and not np.isfinite(m[:, 0, :2]).all():
         return _from_first_fixes(name, m, u, vehicle, noise, alpha, progress, return_cov,
-                                 smooth, lengths)
+                                 smooth, lengths, gyro)
     R = measurement_cov(name, noise, alpha, np.shape(m)[0])
     kw = {"return_cov": return_cov, "smooth": smooth, "lengths": lengths}
     try:
         if name == GYRO:
             if smooth:
                 raise LboError("gyro: the gyro-driven EKF has no smoother yet; use ekf or ukf")
-            return gyro_ekf_batch(m, u, vehicle, noise.Q, R, return_cov=return_cov)
+            if gyro is None:
+                return gyro_ekf_batch(m, u, vehicle, noise.Q, R, return_cov=return_cov)
+            return gyro_ekf_batch(m, u, vehicle, gyro.Q, R, return_cov=return_cov,
+                                  **gyro.stepper())
         if name == "adaptive":
             return adaptive_ekf_batch(m, u, vehicle, noise.Q, R, **kw)
         if name == "ukf":
@@ -133,8 +138,8 @@ def first_fixes(m: np.ndarray) -> np.ndarray:
 
 def _from_first_fixes(name: str, m: np.ndarray, u: np.ndarray, vehicle: Vehicle,
                       noise: Noise, alpha: float | np.ndarray, progress: bool,
-                      return_cov: bool, smooth: bool, lengths: np.ndarray | None
-                      ) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
+                      return_cov: bool, smooth: bool, lengths: np.ndarray | None,
+                      gyro: GyroNoise | None) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
     """:func:`estimate` of trajectories that start between fixes (a log cut anywhere): each
     is shifted to start at its first fix, filtered with the others in one batch, and shifted
     back; the rows before it (and a trajectory without any fix) are NaN."""
@@ -149,7 +154,7 @@ def _from_first_fixes(name: str, m: np.ndarray, u: np.ndarray, vehicle: Vehicle,
     m2[none, 0, :2] = 0.0  # a placeholder start; its estimates are dropped below
     real = (t if lengths is None else np.asarray(lengths)) - np.minimum(first, t)
     out = estimate(name, m2, u2, vehicle, noise, alpha, progress, return_cov=True,
-                   smooth=smooth, lengths=np.maximum(real, 1))
+                   smooth=smooth, lengths=np.maximum(real, 1), gyro=gyro)
     est = np.full(m.shape[:2] + (3,), np.nan)
     cov = np.full(m.shape[:2] + (3, 3), np.nan)
     back = np.arange(t) - first[:, None]                          # (G, T) row of the shift
@@ -161,9 +166,10 @@ def _from_first_fixes(name: str, m: np.ndarray, u: np.ndarray, vehicle: Vehicle,
 
 
 def stepper(name: str, m0: np.ndarray, vehicle: Vehicle, noise: Noise,
-            alpha: float | np.ndarray = 1.0) -> Any:
+            alpha: float | np.ndarray = 1.0, gyro: GyroNoise | None = None) -> Any:
     """Observer ``name`` started at the first measurements m0 (G, 3); its ``update(m (G, 3),
-    u_prev (G, 2))`` returns the next estimates (G, 3), as :func:`estimate` would."""
+    u_prev (G, 2))`` returns the next estimates (G, 3), as :func:`estimate` would (``gyro``
+    as there)."""
     check(name)
     R = measurement_cov(name, noise, alpha, len(m0))
     if name == "adaptive":
@@ -171,7 +177,9 @@ def stepper(name: str, m0: np.ndarray, vehicle: Vehicle, noise: Noise,
     if name == "ukf":
         return UnscentedStepper(m0, vehicle, noise.Q, R, UKF_SPREAD)
     if name == GYRO:
-        return GyroStepper(m0, vehicle, noise.Q, R)
+        if gyro is None:
+            return GyroStepper(m0, vehicle, noise.Q, R)
+        return GyroStepper(m0, vehicle, gyro.Q, R, **gyro.stepper())
     return KalmanStepper(m0, vehicle, noise.Q, R)
 
 

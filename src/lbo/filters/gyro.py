@@ -20,6 +20,13 @@ The heading of a log that starts without one comes from the course over ground
 
 from __future__ import annotations
 
+import dataclasses
+import json
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
 import numpy as np
 
 from lbo.core.errors import LboError
@@ -45,6 +52,82 @@ BIAS_WALK = 1e-3
 STILL_SPEED = 0.05
 """Speed (m/s) below which the car stands: it does not turn, so its heading is held and the
 gyro's reading is its bias (a zero-rate update, as INS filters make at standstill)."""
+
+
+
+@dataclass(frozen=True)
+class GyroNoise:
+    """Every noise the gyro EKF assumes, as a set that :mod:`lbo.learn.gyro_fit` learns from a
+    log with truth (all > 0).
+
+    q_position : 1-sigma (m) of x and y per step of the process noise.
+    q_heading : 1-sigma (rad) of psi per step (the gyro's white noise adds to it).
+    gyro_sigma, bias_walk : the gyro's white noise (rad/s) and bias walk (rad/s/sqrt(s)).
+    accuracy_scale : factor on the receiver's reported ``sx_m, sy_m`` (a receiver's reported
+        accuracy is a scale of its error, not its size).
+    velocity_scale : factor on its ``sv_m`` (or :data:`lbo.filters.measure.SV_DEFAULT`).
+    course_lever : the antenna's distance (m) from the rear axle that the course's variance
+        allows for (:data:`lbo.filters.measure.COURSE_LEVER`).
+    """
+
+    q_position: float
+    q_heading: float
+    gyro_sigma: float = GYRO_SIGMA
+    bias_walk: float = BIAS_WALK
+    accuracy_scale: float = 1.0
+    velocity_scale: float = 1.0
+    course_lever: float = measure.COURSE_LEVER
+
+    def __post_init__(self) -> None:
+        for f in dataclasses.fields(self):
+            v = getattr(self, f.name)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
+                raise LboError(f"gyro noise {f.name}: expected a number > 0, got {v!r}")
+
+    @classmethod
+    def from_q(cls, Q: np.ndarray) -> GyroNoise:
+        """The defaults, with the process sigmas of a diagonal (3, 3) ``Q``."""
+        q = np.sqrt(np.diag(np.asarray(Q, dtype=float)))
+        return cls(q_position=float(np.sqrt(q[0] * q[1])), q_heading=float(q[2]))
+
+    @property
+    def Q(self) -> np.ndarray:
+        """(3, 3) process covariance of ``[x, y, psi]``."""
+        return np.diag([self.q_position**2, self.q_position**2, self.q_heading**2])
+
+    def rows(self, m: np.ndarray, receiver: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """The filter's rows (T, 8) of fixes m (T, 3), a receiver's channels (T, 7)
+        (:data:`lbo.sim.logcheck.RECEIVER`) and inputs u (T, 2) ``[V, r_m]``: the reported
+        accuracies and the velocity's sigma scaled, the course's allowance at the lever."""
+        sigma = receiver[:, :3] * np.array([self.accuracy_scale, self.accuracy_scale, 1.0])
+        sv = np.where(np.isfinite(receiver[:, 5]), receiver[:, 5], measure.SV_DEFAULT)
+        return measure.rows(m, sigma, receiver[:, 3:5], self.velocity_scale * sv, u[:, 0],
+                            u[:, 1], self.course_lever)
+
+    def stepper(self) -> dict[str, float]:
+        """The keyword arguments of :class:`GyroStepper` and :func:`gyro_ekf_batch`."""
+        return {"gyro_sigma": self.gyro_sigma, "bias_walk": self.bias_walk}
+
+    def save(self, path: str | Path) -> None:
+        """Write it as JSON (atomically)."""
+        from lbo.core.atomic import atomic_path
+
+        with atomic_path(Path(path)) as tmp:
+            Path(tmp).write_text(json.dumps(dataclasses.asdict(self), indent=1) + "\n")
+
+    @classmethod
+    def load(cls, path: str | Path) -> GyroNoise:
+        """Read what :meth:`save` wrote; anything else is a one-line error."""
+        try:
+            data: Any = json.loads(Path(path).read_text())
+        except (OSError, ValueError) as e:
+            raise LboError(f"gyro noise {path}: not a readable JSON file ({e})") from None
+        names = {f.name for f in dataclasses.fields(cls)}
+        if not isinstance(data, dict) or set(data) != names:
+            raise LboError(f"gyro noise {path}: expected a JSON object with exactly "
+                           f"{', '.join(sorted(names))}")
+        return cls(**data)
+
 
 _H = np.zeros((measure.MEASURED + 1, 4))
 _H[:measure.MEASURED, :3] = measure.H

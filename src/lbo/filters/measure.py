@@ -49,8 +49,8 @@ COURSE_MIN_SPEED = 1.0
 COURSE_LEVER = 1.0
 """Distance (m) of the antenna from the rear axle's centre that the course's variance allows
 for, its turn-induced error taken as noise (the antenna's place is rarely known to the filter):
-on the onavdata hill drive's test span, 1 m took the EKF's heading RMSE from 96 to 64 mrad
-(0, 1, 2, 3 m: 96, 64, 66, 66 mrad; ``python -m lbo.realdrive``)."""
+on the onavdata hill drive's test span, 1 m took the EKF's heading RMSE from 68 to 50 mrad
+(0, 1, 2, 3 m: 67.6, 49.6, 52.8, 53.7 mrad; ``python -m lbo.realdrive``)."""
 COURSE_MIN_SNR = 5.0
 """... and at least this many velocity sigmas: the course is then known to 0.2 rad or better,
 where the linearised model (a Gaussian error on the angle) holds."""
@@ -70,7 +70,8 @@ def widen(m: np.ndarray) -> np.ndarray:
 
 
 def course_over_ground(ve: np.ndarray, vn: np.ndarray, sv: np.ndarray, V: np.ndarray,
-                       turn: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+                       turn: np.ndarray | None = None, lever: float = COURSE_LEVER
+                       ) -> tuple[np.ndarray, np.ndarray]:
     """The course channel of GNSS velocities: ``(course, s_course)`` (T,) rad, NaN where not held.
 
     ve, vn : (T,) m/s east and north, NaN where the row has no velocity.
@@ -78,6 +79,7 @@ def course_over_ground(ve: np.ndarray, vn: np.ndarray, sv: np.ndarray, V: np.nda
     V : (T,) the speed input (m/s); where it is negative the car reverses and its heading is
         the course plus pi.
     turn : (T,) the turn rate (rad/s), e.g. ``V tan(delta) / L``, or None (not allowed for).
+    lever : the antenna's distance (m) from the rear axle that the variance allows for.
     """
     ve, vn, sv, V = (np.asarray(a, dtype=float) for a in (ve, vn, sv, V))
     turn = np.zeros_like(V) if turn is None else np.asarray(turn, dtype=float)
@@ -86,20 +88,20 @@ def course_over_ground(ve: np.ndarray, vn: np.ndarray, sv: np.ndarray, V: np.nda
     held = np.isfinite(speed) & (speed >= COURSE_MIN_SPEED) & (speed >= COURSE_MIN_SNR * sv)
     safe = np.where(held, speed, 1.0)
     course = np.arctan2(vn, ve) + np.where(V < 0, np.pi, 0.0)
-    sigma = np.hypot(sv, COURSE_LEVER * turn) / safe
+    sigma = np.hypot(sv, lever * turn) / safe
     return np.where(held, wrap_angle(course), np.nan), np.where(held, sigma, np.nan)
 
 
 def rows(m: np.ndarray, sigma: np.ndarray | None = None, velocity: np.ndarray | None = None,
          sv: np.ndarray | None = None, V: np.ndarray | None = None,
-         turn: np.ndarray | None = None) -> np.ndarray:
+         turn: np.ndarray | None = None, lever: float = COURSE_LEVER) -> np.ndarray:
     """The filters' rows (T, 8) of a log's columns.
 
     m : (T, 3) ``[x_m, y_m, psi_m]``.
     sigma : (T, 3) reported ``[sx_m, sy_m, spsi_m]`` (NaN: none), or None.
     velocity : (T, 2) ``[ve_m, vn_m]`` (NaN: none), or None; needs ``V`` (T,).
     sv : (T,) ``sv_m`` or None (:data:`SV_DEFAULT`).
-    turn : (T,) turn rate (rad/s) or None: see :func:`course_over_ground`.
+    turn : (T,) turn rate (rad/s) or None, and lever (m): see :func:`course_over_ground`.
     """
     out = widen(m).copy()
     if sigma is not None:
@@ -108,7 +110,7 @@ def rows(m: np.ndarray, sigma: np.ndarray | None = None, velocity: np.ndarray | 
         velocity = np.asarray(velocity, dtype=float)
         spread = np.full(len(out), np.nan) if sv is None else sv
         out[:, 6], out[:, 7] = course_over_ground(velocity[:, 0], velocity[:, 1], spread, V,
-                                                  turn)
+                                                  turn, lever)
     return out
 
 

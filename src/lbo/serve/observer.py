@@ -41,6 +41,7 @@ from lbo.core.errors import LboError
 from lbo.core.paths import tracking_uri
 from lbo.filters import classical, measure
 from lbo.filters.classical import OBSERVERS as CLASSICAL
+from lbo.filters.gyro import GyroNoise
 from lbo.models.envelope import Envelope, EnvelopeCheck, check_mode
 from lbo.models.features import window_view
 from lbo.sim.logcheck import (
@@ -151,8 +152,10 @@ class _Stream:
     """Classical observer ``name`` of :mod:`lbo.filters.classical`, one sample per call: its batch
     filter's stepper, so stepping and :meth:`Observer.run` give the same numbers."""
 
-    def __init__(self, name: str, vehicle: Vehicle, noise: Noise, alpha: float) -> None:
+    def __init__(self, name: str, vehicle: Vehicle, noise: Noise, alpha: float,
+                 gyro: GyroNoise | None = None) -> None:
         self.name, self.vehicle, self.noise, self.alpha = name, vehicle, noise, alpha
+        self.gyro = gyro
         self.reset()
 
     def reset(self) -> None:
@@ -165,7 +168,7 @@ class _Stream:
             if not np.isfinite(m[:2]).all():
                 return np.full(3, np.nan)
             self.flt = classical.stepper(self.name, m[None], self.vehicle, self.noise,
-                                         self.alpha)
+                                         self.alpha, gyro=self.gyro)
             return self.flt.x[0, :3].copy()
         return self.flt.update(m[None], np.asarray(u_prev, float)[None])[0].copy()
 
@@ -198,12 +201,14 @@ def _gyro_inputs(u: np.ndarray, receiver: np.ndarray | None, source: str | None
 
 
 def _from_first_fix(name: str, m: np.ndarray, u: np.ndarray, vehicle: Vehicle, noise: Noise,
-                    alpha: float, smooth: bool = False) -> tuple[np.ndarray, np.ndarray]:
+                    alpha: float, smooth: bool = False, gyro: GyroNoise | None = None
+                    ) -> tuple[np.ndarray, np.ndarray]:
     """Classical observer ``name`` over one log (T, 3) or (T, 8) (a receiver's rows,
     :mod:`lbo.filters.measure`), (T, 2), started at its first fix: (T, 3) estimates and
-    (T, 3, 3) covariances, NaN before that fix (``smooth``: the RTS smoother's)."""
+    (T, 3, 3) covariances, NaN before that fix (``smooth``: the RTS smoother's; ``gyro``:
+    the gyro EKF's noise)."""
     est, cov = classical.estimate(name, m[None], u[None], vehicle, noise, alpha,
-                                  return_cov=True, smooth=smooth)
+                                  return_cov=True, smooth=smooth, gyro=gyro)
     return est[0], cov[0]
 
 
@@ -337,7 +342,8 @@ class Observer:
     def __init__(self, name: str, vehicle: Vehicle | None = None, noise: Noise | None = None,
                  *, net: Any = None, alpha: float = 1.0, engine: str = "torch",
                  device: str = "cpu", meta: dict[str, Any] | None = None,
-                 form: str | None = None, envelope_mode: str = "warn") -> None:
+                 form: str | None = None, envelope_mode: str = "warn",
+                 gyro_noise: GyroNoise | None = None) -> None:
         self.name = name
         self.vehicle = vehicle or Vehicle()
         self.noise = noise or Noise.preset("paper")
@@ -346,10 +352,14 @@ class Observer:
         self.net = net
         self.device = device
         self.form = check_form(form, net)
+        if gyro_noise is not None and name != classical.GYRO:
+            raise LboError(f"gyro_noise is the noise of the gyro EKF (observer=gyro), not of "
+                           f"{name}")
+        self.gyro_noise = gyro_noise
         if net is None:
             classical.check(name)
             self.kind, self.window, self.features, self.engine = "classical", 1, None, None
-            self._filter = _Stream(name, self.vehicle, self.noise, self.alpha)
+            self._filter = _Stream(name, self.vehicle, self.noise, self.alpha, gyro_noise)
         else:
             self.kind, self.window, self.features = "learned", int(net.window), net.features
             self.engine = engine
@@ -404,7 +414,7 @@ class Observer:
     def load(cls, source: str | os.PathLike, vehicle: Vehicle | None = None,
              noise: Noise | None = None, *, alpha: float = 1.0, features: str | None = None,
              engine: str = "torch", device: str = "cpu", form: str | None = None,
-             envelope_mode: str = "warn") -> Observer:
+             envelope_mode: str = "warn", gyro_noise: GyroNoise | None = None) -> Observer:
         """Load an observer.
 
         Parameters
@@ -428,6 +438,8 @@ class Observer:
         form : how a window filter runs (:data:`FORMS`); None: :func:`default_form`.
         envelope_mode : ``"warn"``, ``"mark"`` or ``"off"``: what to do with samples outside
             the envelope of a learned observer's training inputs (see :class:`Observer`).
+        gyro_noise : the noise of ``"gyro"`` (:class:`lbo.filters.gyro.GyroNoise`, e.g. as
+            :mod:`lbo.learn.gyro_fit` learns it from a drive); None: its defaults.
 
         Raises
         ------
@@ -441,10 +453,13 @@ class Observer:
         if form is not None and form not in FORMS:
             raise LboError(f"form must be one of {list(FORMS)} or null, got {form!r}")
         check_mode(envelope_mode)
+        if gyro_noise is not None and source != classical.GYRO:
+            raise LboError(f"gyro_noise is the noise of the gyro EKF (observer=gyro), not of "
+                           f"{source}")
         device = check_device(device, probe=source not in classical.NAMES)
         if source in classical.NAMES + (classical.GYRO,):
             classical.check(source)  # pcrb: a bound, not an observer
-            return cls(source, vehicle, noise, alpha=alpha)
+            return cls(source, vehicle, noise, alpha=alpha, gyro_noise=gyro_noise)
         with _checkpoint_file(source) as path:
             net, hp = read_checkpoint(path, features=features, device=device)
         meta = dict(hp.get("meta") or {})
@@ -601,6 +616,8 @@ class Observer:
         """The filters' rows (T, 8) of measurements m (T, 3) and a receiver's channels (T, 7)
         at inputs u (T, 2) (``[V, r_m]`` for ``gyro``): the turn rate the course's variance
         allows for is the gyro's, or the bicycle's ``V tan(delta) / L``."""
+        if self.gyro_noise is not None:
+            return self.gyro_noise.rows(m, receiver, u)
         turn = (u[:, 1] if self.name == classical.GYRO else
                 u[:, 0] * np.tan(u[:, 1]) / self.vehicle.wheelbase)
         return measure.rows(m, receiver[:, :3], receiver[:, 3:5], receiver[:, 5], u[:, 0], turn)
@@ -740,7 +757,7 @@ class Observer:
             if receiver is not None:
                 m = self._receiver_rows(m, u, receiver)
             est, covs = _from_first_fix(self.name, m, u, self.vehicle, self.noise,
-                                        self.alpha, smooth)
+                                        self.alpha, smooth, self.gyro_noise)
         elif self.form == "recursive" and smooth:
             from lbo.models.recursive import run_arrays
 

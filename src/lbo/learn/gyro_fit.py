@@ -1,0 +1,186 @@
+"""Learning the gyro EKF's noise from a log with truth: a real drive's train span.
+
+The gyro EKF (:mod:`lbo.filters.gyro`) assumes seven noises (:class:`GyroNoise`): the process
+noise of position and heading, the gyro's white noise and bias walk, how far to trust the
+receiver's reported accuracy and velocity sigma, and the antenna's lever the course allows
+for. Set by hand they are guesses. :func:`fit` learns them as the robust observer learns its
+EKF's noise: through the filter (its torch twin, :class:`lbo.models.gyro_filter.GyroFilter`),
+by gradient descent on the estimates' error against the truth.
+
+- The train log is cut into segments of ``segment`` steps from its first course over ground
+  on (before it a car standing since the log began has no heading to learn from); each starts
+  from the NumPy filter's state there under the current noise (recomputed every epoch), and
+  all run as one batch.
+- The loss is the mean over x, y and psi of each one's mean square error, divided by the
+  starting noise's: the square of the measure the real drive is scored by (the quadratic mean
+  of RMSE ratios), against the filter the fit starts from.
+- After each epoch the NumPy filter runs the validation log from its first fix; the noise
+  kept is the one with the lowest measure there (its ratio to the starting noise's).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+import pandas as pd
+import torch
+
+from lbo.core.errors import LboError
+from lbo.filters import classical, measure
+from lbo.filters.gyro import GyroNoise
+from lbo.models.gyro_filter import GyroFilter, Segments
+from lbo.sim.logio import TRUTH_COLUMNS, receiver
+from lbo.sim.noise import Noise
+from lbo.sim.vehicle import Vehicle, wrap_angle
+
+__all__ = ["GyroFit", "estimate", "fit", "measure_ratio", "scored_rows", "segments"]
+
+
+@dataclass(frozen=True)
+class GyroFit:
+    """What :func:`fit` learned.
+
+    noise : the noise with the lowest measure on the validation log.
+    start : the noise it started from.
+    history : one row per epoch: ``epoch, loss`` (train, against the start: 1 at epoch 0)
+        and ``val`` (the validation measure against the start).
+    best_epoch : the epoch of ``noise`` (0: the start itself).
+    """
+
+    noise: GyroNoise
+    start: GyroNoise
+    history: pd.DataFrame
+    best_epoch: int
+
+
+def _columns(log: pd.DataFrame) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Fixes m (T, 3), inputs u (T, 2) ``[V, r_m]`` and the receiver's channels (T, 7)."""
+    if "r_m" not in log:
+        raise LboError("the gyro EKF's noise is learned from a log with a gyro: no r_m column")
+    m = log[["x_m", "y_m", "psi_m"]].to_numpy(dtype=float)
+    if np.isfinite(m[:, 2]).any():
+        raise LboError("the gyro EKF's noise is learned from single-antenna logs: psi_m must "
+                       "be empty")
+    return m, log[["V", "r_m"]].to_numpy(dtype=float), receiver(log)
+
+
+def scored_rows(log: pd.DataFrame) -> np.ndarray:
+    """(T,) bool: the rows from the log's first course over ground on, where a single-antenna
+    observer can know the heading (a car standing since the log began cannot)."""
+    r = receiver(log)
+    course, _ = measure.course_over_ground(r[:, 3], r[:, 4], r[:, 5], log["V"].to_numpy(float))
+    if not np.isfinite(course).any():
+        raise LboError("the log never moves fast enough for a course over ground: a single "
+                       "antenna tells no heading there")
+    return np.arange(len(log)) >= int(np.argmax(np.isfinite(course)))
+
+
+def estimate(log: pd.DataFrame, noise: GyroNoise, vehicle: Vehicle, R: np.ndarray
+             ) -> np.ndarray:
+    """The gyro EKF's estimates (T, 3) of a log under ``noise`` (NaN before its first fix);
+    R (3, 3): the fixes' covariance where one reports no accuracy."""
+    m, u, rec = _columns(log)
+    rows = noise.rows(m, rec, u)
+    preset = Noise(process_sigma=tuple(np.sqrt(np.diag(noise.Q))),
+                   measurement_sigma=tuple(np.sqrt(np.diag(R))))
+    return classical.estimate(classical.GYRO, rows[None], u[None], vehicle, preset,
+                              gyro=noise)[0]
+
+
+def measure_ratio(est: np.ndarray, reference: np.ndarray, truth: np.ndarray,
+                  rows: np.ndarray) -> float:
+    """The quadratic mean over x, y and psi of the ratios of the RMSE of ``est`` to that of
+    ``reference`` (each (T, 3)) against ``truth`` over ``rows`` (T,) bool."""
+    def rmse(e: np.ndarray) -> np.ndarray:
+        d = e[rows] - truth[rows]
+        d[:, 2] = wrap_angle(d[:, 2])
+        return np.sqrt(np.mean(d**2, axis=0))
+
+    return float(np.sqrt(np.mean((rmse(est) / rmse(reference)) ** 2)))
+
+
+def segments(log: pd.DataFrame, noise: GyroNoise, vehicle: Vehicle, R: np.ndarray,
+             length: int) -> Segments:
+    """The log's scored rows cut into segments of ``length`` steps (the last, shorter one
+    dropped), each started from the NumPy gyro EKF's state under ``noise`` at its first step."""
+    m, u, rec = _columns(log)
+    rows = noise.rows(m, rec, u)
+    first = int(np.argmax(scored_rows(log)))
+    starts = np.arange(first, len(log) - length + 1, length)
+    if not len(starts):
+        raise LboError(f"the log has {len(log) - first} steps from its first course over "
+                       f"ground, fewer than one segment of {length}")
+    begin = int(np.argmax(np.isfinite(rows[:, 0]) & np.isfinite(rows[:, 1])))
+    preset = Noise(process_sigma=tuple(np.sqrt(np.diag(noise.Q))),
+                   measurement_sigma=tuple(np.sqrt(np.diag(R))))
+    flt = classical.stepper(classical.GYRO, rows[begin][None], vehicle, preset, gyro=noise)
+    x0, P0 = {}, {}
+    wanted = set(starts.tolist())
+    for k in range(begin, starts[-1] + 1):
+        if k > begin:
+            flt.update(rows[k][None], u[k - 1][None])
+        if k in wanted:
+            x0[k], P0[k] = flt.x[0].copy(), flt.P[0].copy()
+    idx = starts[:, None] + np.arange(length)
+    sv = np.where(np.isfinite(rec[:, 5]), rec[:, 5], measure.SV_DEFAULT)
+    course = np.arctan2(rec[:, 4], rec[:, 3]) + np.where(u[:, 0] < 0, np.pi, 0.0)
+    as_t = lambda a: torch.as_tensor(np.ascontiguousarray(a), dtype=torch.float64)  # noqa: E731
+    return Segments(x0=as_t(np.stack([x0[k] for k in starts])),
+                    P0=as_t(np.stack([P0[k] for k in starts])),
+                    fix=as_t(m[idx][..., :2]), accuracy=as_t(rec[idx][..., :2]),
+                    course=as_t(wrap_angle(course)[idx]),
+                    speed=as_t(np.hypot(rec[:, 3], rec[:, 4])[idx]), sv=as_t(sv[idx]),
+                    u=as_t(u[idx]), truth=as_t(log[list(TRUTH_COLUMNS)].to_numpy(float)[idx]))
+
+
+def _mse(est: torch.Tensor, truth: torch.Tensor) -> torch.Tensor:
+    d = est - truth
+    d = torch.cat([d[..., :2], torch.remainder(d[..., 2:] + np.pi, 2 * np.pi) - np.pi], -1)
+    return (d**2).mean(dim=(0, 1))
+
+
+def fit(train: pd.DataFrame, val: pd.DataFrame, vehicle: Vehicle, R: np.ndarray,
+        start: GyroNoise, epochs: int = 12, segment: int = 500, lr: float = 0.1,
+        progress: Callable[[str], None] | None = print) -> GyroFit:
+    """Learn the gyro EKF's noise on ``train`` (a log with truth), keep the best on ``val``.
+
+    vehicle : its dt; R (3, 3) : the fixes' covariance where one reports no accuracy;
+    start : the noise to start from; epochs : full-batch Adam steps (lr on the noises' logs);
+    segment : steps per segment; progress : called with one line per epoch (None: silent).
+    """
+    if epochs < 0 or segment < 2:
+        raise LboError(f"fit needs epochs >= 0 and segment >= 2, got {epochs} and {segment}")
+    model = GyroFilter(start, vehicle.dt, torch.as_tensor(R))
+    opt = torch.optim.Adam(model.parameters(), lr=lr)
+    val_truth = val[list(TRUTH_COLUMNS)].to_numpy(float)
+    val_rows = scored_rows(val)
+    reference = estimate(val, start, vehicle, R)
+    scale: torch.Tensor | None = None
+    best = (1.0, 0, start)
+    history = []
+    for epoch in range(epochs + 1):
+        noise = model.noise()
+        seg = segments(train, noise, vehicle, R, segment)
+        mse = _mse(model(seg), seg.truth)
+        if scale is None:
+            scale = mse.detach()
+        loss = (mse / scale).mean()
+        if not torch.isfinite(loss):
+            raise LboError(f"gyro noise fit: the loss is not finite at epoch {epoch} (noise "
+                           f"{noise}); lower lr (now {lr:g})")
+        score = (1.0 if epoch == 0 else
+                 measure_ratio(estimate(val, noise, vehicle, R), reference, val_truth, val_rows))
+        if score < best[0]:
+            best = (score, epoch, noise)
+        history.append({"epoch": epoch, "loss": loss.item(), "val": score})
+        if progress is not None:
+            progress(f"epoch {epoch}/{epochs}: train {loss.item():.3f}, validation {score:.3f} "
+                     "(against the starting noise)")
+        if epoch < epochs:
+            opt.zero_grad()
+            loss.backward()
+            opt.step()
+    return GyroFit(noise=best[2], start=start, history=pd.DataFrame(history),
+                   best_epoch=best[1])

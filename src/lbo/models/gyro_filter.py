@@ -1,0 +1,150 @@
+"""The gyro EKF with learned noise: a differentiable twin of :class:`lbo.filters.gyro.GyroStepper`.
+
+:class:`GyroFilter` steps the same model and the same update as the NumPy stepper (a fix's
+reported accuracy as R, the course over ground, the zero-rate update at standstill; the
+Joseph form with the channels each row holds) in torch, so that a loss on its estimates
+reaches the seven numbers of :class:`lbo.filters.gyro.GyroNoise`, held here as their logs.
+It runs from a state the NumPy stepper gives (after the heading is known: the course start is
+the stepper's), over G segments at once; the noise it learns goes back into the NumPy
+stepper, which is what observes (tested equal to 1e-9).
+
+It reads single-antenna logs: fixes without a heading.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import torch
+from torch import nn
+
+from lbo.filters import gyro as gyro_np
+from lbo.filters import measure
+from lbo.filters.gyro import GyroNoise
+
+_NAMES = ("q_position", "q_heading", "gyro_sigma", "bias_walk", "accuracy_scale",
+          "velocity_scale", "course_lever")
+
+
+class Segments(NamedTuple):
+    """G stretches of a log, each started from the NumPy stepper's state (float64 tensors).
+
+    x0 : (G, 4) ``[x, y, psi, b]`` and P0 : (G, 4, 4) at each segment's first step.
+    fix : (G, T, 2) ``x_m, y_m`` (NaN: no fix).
+    accuracy : (G, T, 2) reported ``sx_m, sy_m`` (NaN: the filter's R).
+    course : (G, T) direction of the GNSS velocity (plus pi reversing; NaN: no velocity).
+    speed : (G, T) its magnitude (m/s); sv : (G, T) its sigma (m/s, the default filled in).
+    u : (G, T, 2) ``[V, r_m]``.
+    truth : (G, T, 3) ``[x, y, psi]``.
+    """
+
+    x0: torch.Tensor
+    P0: torch.Tensor
+    fix: torch.Tensor
+    accuracy: torch.Tensor
+    course: torch.Tensor
+    speed: torch.Tensor
+    sv: torch.Tensor
+    u: torch.Tensor
+    truth: torch.Tensor
+
+
+def _wrap(a: torch.Tensor) -> torch.Tensor:
+    return math.pi - torch.remainder(math.pi - a, 2 * math.pi)
+
+
+class GyroFilter(nn.Module):
+    """The gyro EKF over :class:`Segments`, its noise learned.
+
+    noise : the starting noise; dt : the sampling period (s); R : (3, 3) the filter's R
+    where a fix reports no accuracy (its x, y block is used).
+    """
+
+    def __init__(self, noise: GyroNoise, dt: float, R: torch.Tensor) -> None:
+        super().__init__()
+        self.dt = float(dt)
+        self.log = nn.ParameterDict({k: nn.Parameter(torch.tensor(math.log(getattr(noise, k)),
+                                                                  dtype=torch.float64))
+                                     for k in _NAMES})
+        self.register_buffer("R2", torch.as_tensor(R, dtype=torch.float64)[:2, :2].clone())
+
+    def noise(self) -> GyroNoise:
+        """The current noise."""
+        return GyroNoise(**{k: float(torch.exp(v.detach())) for k, v in self.log.items()})
+
+    def forward(self, seg: Segments) -> torch.Tensor:
+        """Estimates (G, T, 3) ``[x, y, psi]``: step 0 is ``x0``, step k predicted with
+        ``u[:, k - 1]`` and updated with row k, as :func:`lbo.filters.kalman.run_stepper`."""
+        p = {k: torch.exp(v) for k, v in self.log.items()}
+        dt = self.dt
+        g, t = seg.fix.shape[:2]
+        dtype = seg.x0.dtype
+        eye4 = torch.eye(4, dtype=dtype)
+        zero = torch.zeros((), dtype=dtype)
+        q = torch.stack([p["q_position"] ** 2, p["q_position"] ** 2,
+                         p["q_heading"] ** 2 + (p["gyro_sigma"] * dt) ** 2,
+                         p["bias_walk"] ** 2 * dt])
+        Q = torch.diag(q)
+        H = eye4  # channels x_m, y_m, course (on psi) and the standstill gyro (on b)
+        # the velocity's course, as lbo.filters.measure.course_over_ground holds it
+        sv = p["velocity_scale"] * seg.sv
+        speed = torch.nan_to_num(seg.speed, nan=0.0)
+        course_held = ((speed >= measure.COURSE_MIN_SPEED)
+                       & (speed >= measure.COURSE_MIN_SNR * sv) & torch.isfinite(seg.course))
+        safe = torch.where(course_held, speed, torch.ones_like(speed))
+        course_var = (sv**2 + (p["course_lever"] * seg.u[..., 1]) ** 2) / safe**2
+        # the fixes' R: a reported accuracy replaces the filter's variance and drops its
+        # correlation (lbo.filters.measure.step_cov)
+        told = torch.isfinite(seg.accuracy)
+        acc = torch.nan_to_num(seg.accuracy, nan=1.0) * p["accuracy_scale"]
+        fix_held = torch.isfinite(seg.fix)
+        fix = torch.nan_to_num(seg.fix, nan=0.0)  # NaN kept out of the graph, not held there
+        course = torch.nan_to_num(seg.course, nan=0.0)
+        x, P = seg.x0, seg.P0
+        out = [x[:, :3]]
+        for k in range(1, t):
+            v, rate = seg.u[:, k - 1, 0], seg.u[:, k - 1, 1]
+            psi, bias = x[:, 2], x[:, 3]
+            still = v.abs() < gyro_np.STILL_SPEED
+            turn = torch.where(still, zero, rate - bias)
+            x = torch.stack([x[:, 0] + v * torch.cos(psi) * dt, x[:, 1] + v * torch.sin(psi) * dt,
+                             psi + turn * dt, bias], -1)
+            F = eye4.expand(g, 4, 4).clone()
+            F[:, 0, 2] = -v * torch.sin(psi) * dt
+            F[:, 1, 2] = v * torch.cos(psi) * dt
+            F[:, 2, 3] = torch.where(still, zero, torch.full_like(v, -dt))
+            P = F @ P @ F.transpose(-1, -2) + Q
+            tk = told[:, k]
+            either = tk[:, :, None] | tk[:, None, :]
+            R2 = torch.where(either, zero, self.R2)
+            R2 = R2 + torch.diag_embed(torch.where(tk, acc[:, k] ** 2, zero))
+            R = torch.zeros((g, 4, 4), dtype=dtype)
+            R[:, :2, :2] = R2
+            R[:, 2, 2] = torch.where(course_held[:, k], course_var[:, k], torch.ones_like(v))
+            R[:, 3, 3] = p["gyro_sigma"] ** 2
+            held = torch.stack([fix_held[:, k, 0], fix_held[:, k, 1], course_held[:, k], still],
+                               -1)
+            y = torch.stack([fix[:, k, 0] - x[:, 0], fix[:, k, 1] - x[:, 1],
+                             _wrap(course[:, k] - x[:, 2]), rate - x[:, 3]], -1)
+            x, P = joseph_update(x, P, y, H, R, held)
+            out.append(x[:, :3])
+        return torch.stack(out, 1)
+
+
+def joseph_update(x: torch.Tensor, P: torch.Tensor, y: torch.Tensor, H: torch.Tensor,
+                  R: torch.Tensor, held: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`lbo.filters.update.joseph_update` in torch (differentiable): x (G, n),
+    P (G, n, n), y (G, p), H (p, n), R (G, p, p), held (G, p) bool."""
+    p = held.shape[-1]
+    eye_p = torch.eye(p, dtype=x.dtype)
+    y = torch.where(held, y, torch.zeros_like(y))
+    Hm = H * held[..., None].to(x.dtype)
+    both = held[:, :, None] & held[:, None, :]
+    Rm = torch.where(both, R, eye_p)
+    PHt = P @ Hm.transpose(-1, -2)
+    S = Hm @ PHt + Rm
+    K = torch.linalg.solve(S, PHt.transpose(-1, -2)).transpose(-1, -2)
+    I_KH = torch.eye(x.shape[-1], dtype=x.dtype) - K @ Hm
+    post = I_KH @ P @ I_KH.transpose(-1, -2) + K @ Rm @ K.transpose(-1, -2)
+    return x + (K @ y[..., None])[..., 0], 0.5 * (post + post.transpose(-1, -2))

@@ -1,0 +1,139 @@
+"""The gyro EKF's noise, learned (issue 36): its torch twin steps as the NumPy filter does, the
+fit learns a noise that a log calls for, and the learned noise goes through lbo.Observer and
+lbo.observe; bad noise files are one line."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pandas as pd
+import pytest
+import torch
+
+from lbo.core.errors import LboError
+from lbo.filters.gyro import GyroNoise
+from lbo.learn import gyro_fit
+from lbo.models.gyro_filter import GyroFilter
+from lbo.serve.observer import Observer
+from lbo.sim.logcheck import RECEIVER
+from lbo.sim.receiver import ReceiverSpec, sense
+from lbo.sim.vehicle import Vehicle, simulate
+
+VEHICLE = Vehicle()
+R = np.diag([1.0, 1.0, 0.0174**2])
+START = GyroNoise.from_q(np.diag([0.0667**2, 0.0667**2, 0.00113**2]))
+OTHER = GyroNoise(q_position=0.03, q_heading=0.002, gyro_sigma=0.02, bias_walk=0.003,
+                  accuracy_scale=0.7, velocity_scale=1.5, course_lever=0.5)
+
+
+def _log(seed: int, seconds: float = 60.0, reported: float = 1.0) -> pd.DataFrame:
+    """A simulated single-antenna drive with a biased gyro: it moves, turns, stops 4 s
+    (a zero-rate update) and drives on. ``reported``: factor on the accuracy the receiver
+    reports (1: it tracks the true error's scale)."""
+    t = int(round(seconds / VEHICLE.dt))
+    k = np.arange(t)
+    speed = 8.0 + 3.0 * np.sin(2 * np.pi * k / 1500)
+    speed[(k > t // 3) & (k < t // 3 + 200)] = 0.0
+    u = np.stack([speed, 0.08 * np.sin(2 * np.pi * k / 700)], axis=1)[None]
+    rng = np.random.default_rng(seed)
+    z = simulate(np.zeros((1, 3)), u, VEHICLE.dt, VEHICLE.wheelbase, np.zeros(3), rng)
+    out = sense(z, u, VEHICLE.dt, ReceiverSpec(), 1.0, rng)
+    cols = {c: out[c][0] if c in out else np.full(t, np.nan)  # spsi_m: one antenna
+            for c in ("x_m", "y_m", "psi_m", *RECEIVER)}
+    cols["sx_m"], cols["sy_m"] = reported * cols["sx_m"], reported * cols["sy_m"]
+    return pd.DataFrame({"t": k * VEHICLE.dt, **cols, "V": u[0, :, 0], "delta": u[0, :, 1],
+                         "x": z[0, :, 0], "y": z[0, :, 1], "psi": z[0, :, 2]})
+
+
+@pytest.fixture(scope="module")
+def log() -> pd.DataFrame:
+    return _log(0)
+
+
+def test_the_torch_twin_steps_as_the_numpy_gyro_ekf(log):
+    seg = gyro_fit.segments(log, OTHER, VEHICLE, R, 400)
+    est = GyroFilter(OTHER, VEHICLE.dt, torch.as_tensor(R))(seg).detach().numpy()
+    full = gyro_fit.estimate(log, OTHER, VEHICLE, R)
+    first = int(np.argmax(gyro_fit.scored_rows(log)))
+    rows = first + 400 * np.arange(len(est))[:, None] + np.arange(400)
+    assert len(est) >= 5 and np.abs(est - full[rows]).max() < 1e-9
+    # ... the same stretches under another noise differ: the comparison can fail
+    other = GyroFilter(START, VEHICLE.dt, torch.as_tensor(R))(seg).detach().numpy()
+    assert np.abs(other - full[rows]).max() > 1e-3
+
+
+def test_every_noise_gets_a_gradient_through_the_filter(log):
+    seg = gyro_fit.segments(log, START, VEHICLE, R, 400)
+    model = GyroFilter(START, VEHICLE.dt, torch.as_tensor(R))
+    ((model(seg) - seg.truth) ** 2).mean().backward()
+    grads = {k: float(p.grad) for k, p in model.log.items()}
+    assert all(np.isfinite(g) and g != 0.0 for g in grads.values()), grads
+
+
+def test_the_fit_learns_how_far_to_trust_a_receiver_that_understates_its_error():
+    """The receiver reports a third of its true error: the fit learns to scale it up, and
+    the validation log (drawn apart) gains."""
+    train, val = _log(1, reported=1 / 3), _log(2, reported=1 / 3)
+    fitted = gyro_fit.fit(train, val, VEHICLE, R, START, epochs=6, segment=250, lr=0.15,
+                          progress=None)
+    assert fitted.noise.accuracy_scale > 1.8  # 2.5 after 6 steps (the truth: 3)
+    assert fitted.best_epoch > 0 and fitted.history["val"].min() < 0.95  # 0.90
+    assert list(fitted.history.columns) == ["epoch", "loss", "val"] and len(fitted.history) == 7
+    assert fitted.history["loss"].iloc[0] == pytest.approx(1.0)
+
+
+def test_the_learned_noise_steps_as_it_runs_in_an_observer(log):
+    obs = Observer.load("gyro", VEHICLE, gyro_noise=OTHER)
+    m = log[["x_m", "y_m", "psi_m"]].to_numpy()
+    u = log[["V", "delta"]].to_numpy()
+    rec = log[list(RECEIVER)].to_numpy()
+    est, valid = obs.run(m, u, receiver=rec)
+    assert np.allclose(est[valid], gyro_fit.estimate(log, OTHER, VEHICLE, R)[valid], atol=1e-9)
+    obs.reset()
+    stepped = np.array([obs.step(m[k], u[k], receiver=rec[k]).state for k in range(400)])
+    assert np.allclose(stepped[valid[:400]], est[:400][valid[:400]], atol=1e-9)
+    default = Observer.load("gyro", VEHICLE).run(m, u, receiver=rec)[0]
+    assert np.nanmax(np.abs(default - est)) > 1e-3  # the noise is used
+
+
+def test_gyro_noise_is_checked_saved_and_read_back(tmp_path):
+    with pytest.raises(LboError, match=r"^gyro noise course_lever: expected a number > 0, "
+                                       r"got -1\.0$"):
+        dataclasses.replace(START, course_lever=-1.0)
+    OTHER.save(tmp_path / "noise.json")
+    assert GyroNoise.load(tmp_path / "noise.json") == OTHER
+    (tmp_path / "bad.json").write_text(json.dumps({"q_position": 0.1}))
+    with pytest.raises(LboError, match=r"^gyro noise .*bad\.json: expected a JSON object with "
+                                       r"exactly accuracy_scale, bias_walk, "):
+        GyroNoise.load(tmp_path / "bad.json")
+    (tmp_path / "broken.json").write_text("{")
+    with pytest.raises(LboError, match=r"^gyro noise .*broken\.json: not a readable JSON file"):
+        GyroNoise.load(tmp_path / "broken.json")
+    with pytest.raises(LboError, match=r"^gyro_noise is the noise of the gyro EKF "
+                                       r"\(observer=gyro\), not of ekf$"):
+        Observer.load("ekf", gyro_noise=OTHER)
+    with pytest.raises(LboError, match="single-antenna logs: psi_m must be empty"):
+        gyro_fit.segments(_log(3, 10.0).assign(psi_m=0.0), START, VEHICLE, R, 100)
+
+
+def test_observe_reads_a_learned_noise_for_the_gyro_ekf_only(log, tmp_path):
+    log.to_csv(tmp_path / "log.csv", index=False)
+    OTHER.save(tmp_path / "noise.json")
+    args = [sys.executable, "-m", "lbo.observe", f"input={tmp_path / 'log.csv'}",
+            f"gyro_noise={tmp_path / 'noise.json'}"]
+    ok = subprocess.run([*args, "observer=gyro", f"output={tmp_path / 'est.csv'}"],
+                        capture_output=True, text=True, cwd=tmp_path)
+    assert ok.returncode == 0, ok.stderr
+    out = pd.read_csv(tmp_path / "est.csv")
+    full = gyro_fit.estimate(log, OTHER, VEHICLE, R)
+    valid = out["valid"].to_numpy()
+    assert np.allclose(out.loc[valid, ["x", "y"]], full[valid, :2], atol=1e-6)
+    bad = subprocess.run([*args, "observer=ekf", f"output={tmp_path / 'ekf.csv'}"],
+                         capture_output=True, text=True, cwd=tmp_path)
+    assert bad.returncode == 2 and not (tmp_path / "ekf.csv").exists()
+    assert bad.stderr.strip().splitlines()[-1].endswith(
+        "gyro_noise is the noise of the gyro EKF (observer=gyro), not of ekf")
