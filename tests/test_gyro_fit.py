@@ -76,8 +76,9 @@ def test_every_noise_gets_a_gradient_through_the_filter(log):
 
 def test_the_fit_learns_how_far_to_trust_a_receiver_that_understates_its_error():
     """The receiver reports a third of its true error: the fit learns to scale it up, and
-    the validation log (drawn apart) gains."""
-    train, val = _log(1, reported=1 / 3), _log(2, reported=1 / 3)
+    the validation logs (drawn apart, their rows pooled) gain."""
+    train = _log(1, reported=1 / 3)
+    val = [_log(2, 30.0, reported=1 / 3), _log(4, 30.0, reported=1 / 3)]
     fitted = gyro_fit.fit(train, val, VEHICLE, R, START, epochs=6, segment=250, lr=0.15,
                           progress=None)
     assert fitted.noise.accuracy_scale > 1.8  # 2.5 after 6 steps (the truth: 3)

@@ -12,6 +12,7 @@ import pandas as pd
 import pytest
 
 from lbo.core.errors import LboError
+from lbo.filters.gyro import GyroNoise
 from lbo.sim import hguide
 from lbo.sim.logio import check_log
 from lbo.sim.vehicle import Vehicle, wrap_angle
@@ -84,12 +85,14 @@ def test_the_spans_cut_in_the_stops_and_keep_one_drive_each(drive):
 
 @pytest.mark.slow
 def test_realdrive_writes_the_spans_and_scores_every_classical_observer(tmp_path):
-    # two epochs of the noise fit keep it lean (make real-drive runs 12)
+    # an epoch of each noise fit, on two simulated drives, keeps it lean (make real-drive
+    # runs 12 epochs each, on four)
     res = subprocess.run([sys.executable, "-m", "lbo.realdrive", f"output_dir={tmp_path}",
-                          "learn.epochs=2"], capture_output=True, text=True, cwd=tmp_path)
+                          "learn.epochs=1", "learn.simulated=1", "simulated.drives=2"],
+                         capture_output=True, text=True, cwd=tmp_path)
     assert res.returncode == 0, res.stderr
     table = pd.read_csv(tmp_path / "results.csv")
-    assert len(table) == 8 and np.isfinite(table[["x_m", "y_m", "psi_mrad"]]).all().all()
+    assert len(table) == 10 and np.isfinite(table[["x_m", "y_m", "psi_mrad"]]).all().all()
     assert table.set_index("estimator").loc["ekf, receiver's accuracy and velocity",
                                             "vs_ekf"] == 1.0
     rows = table.set_index("estimator")[["x_m", "y_m", "psi_mrad"]]
@@ -103,10 +106,14 @@ def test_realdrive_writes_the_spans_and_scores_every_classical_observer(tmp_path
     assert ekf["x_m"] < 0.8 * blind["x_m"] and ekf["psi_mrad"] < 0.8 * blind["psi_mrad"]
     assert ekf["x_m"] < 1.2 * raw["x_m"] and ekf["y_m"] < 1.2 * raw["y_m"]
     assert (gyro < raw).all() and (gyro < ekf).all()
-    # two epochs already move the noise the way the validation span gains (docs/logs.md)
+    # one epoch already moves the noise the way the validation span gains (docs/logs.md)
     history = pd.read_csv(tmp_path / "gyro_noise_history.csv")
-    assert len(history) == 3 and history["val"].iloc[-1] < 1.0
+    assert len(history) == 2 and history["val"].iloc[-1] < 1.0
     assert (learned < raw).all()
+    for name in ("gyro_noise_simulated", "gyro_noise_finetuned"):
+        GyroNoise.load(tmp_path / f"{name}.json")
+        assert len(pd.read_csv(tmp_path / f"{name}_history.csv")) == 2
+    assert "on 2 simulated drives (stop_and_go, receiver single_antenna)" in res.stdout
     for k in ("train", "val", "test"):
         assert (tmp_path / f"hill_{k}.parquet").is_file()
     assert (tmp_path / "test.png").stat().st_size > 10_000

@@ -46,21 +46,26 @@ from lbo.scoring.metrics import rmse
 from lbo.sim import hguide
 from lbo.sim.logio import TRUTH_COLUMNS, check_log, check_output_path, receiver, write_table
 
-__all__ = ["EKF", "LEARNED", "main", "realdrive", "score"]
+__all__ = ["EKF", "FINE_TUNED", "LEARNED", "SIMULATED", "main", "realdrive", "score"]
 
 EKF = "ekf, receiver's accuracy and velocity"
 """The row every estimator is measured against (``vs_ekf``): lbo's kinematic EKF."""
 LEARNED = "gyro, noise learned on the train span"
-"""The row of the gyro EKF whose noise :mod:`lbo.learn.gyro_fit` learned."""
+"""The row of the gyro EKF whose noise :mod:`lbo.learn.gyro_fit` learned from the defaults."""
+SIMULATED = "gyro, noise learned on simulated drives only"
+"""... learned on simulated single-antenna drives, not on the real one."""
+FINE_TUNED = "gyro, noise learned on simulated drives, fine-tuned on the train span"
+"""... learned on simulated drives, then on the train span."""
 
 
 def score(log: pd.DataFrame, observers: list[str], vehicle: Any, noise: Any,
-          gyro_noise: GyroNoise | None = None) -> tuple[pd.DataFrame, dict[str, np.ndarray]]:
+          learned: dict[str, GyroNoise] | None = None
+          ) -> tuple[pd.DataFrame, dict[str, np.ndarray]]:
     """RMSE (x m, y m, psi mrad) of the raw fixes and each observer on ``log``, every one
     scored from the log's first course over ground on (before it, a car standing since the
     log began, no single-antenna observer can know its heading).
 
-    ``gyro_noise``: also the gyro EKF with this (learned) noise.
+    ``learned``: also the gyro EKF with each of these (learned) noises, by row label.
 
     Returns the table (one row each: ``estimator, x_m, y_m, psi_mrad, rows, vs_ekf``;
     ``vs_ekf`` is the quadratic mean over x, y and psi of the RMSE ratios to the EKF with the
@@ -87,13 +92,13 @@ def score(log: pd.DataFrame, observers: list[str], vehicle: Any, noise: Any,
               "rows": int(fix.sum())}]
     runs = [(f"{name}, receiver's accuracy and velocity", name, r, False, None)
             for name in observers]
-    if gyro_noise is not None:
-        runs.append((LEARNED, classical.GYRO, r, False, gyro_noise))
+    runs += [(label, classical.GYRO, r, False, gyro)
+             for label, gyro in (learned or {}).items()]
     runs += [("ekf, lbo's R, no velocity", "ekf", None, False, None),
              ("ekf, receiver's channels, smoothed (RTS, offline)", "ekf", r, True, None)]
     estimates = {}
-    for label, name, channels, smooth, learned in runs:
-        obs = Observer.load(name, vehicle, noise, gyro_noise=learned)
+    for label, name, channels, smooth, gyro in runs:
+        obs = Observer.load(name, vehicle, noise, gyro_noise=gyro)
         est, valid = obs.run(m, u, receiver=channels, smooth=smooth)
         e = rmse(est, z, valid & scored)
         table.append({"estimator": label, "x_m": float(e[0]), "y_m": float(e[1]),
@@ -116,6 +121,7 @@ def realdrive(cfg: DictConfig) -> dict[str, Any]:
     for name in observers:
         classical.check(str(name), "observers")
     learn = {"epochs": integer(cfg.learn.epochs, "learn.epochs", 0),
+             "simulated": integer(cfg.learn.simulated, "learn.simulated", 0),
              "segment_s": number(cfg.learn.segment_s, "learn.segment_s", 0.0, low_open=True),
              "lr": number(cfg.learn.lr, "learn.lr", 0.0, low_open=True)}
     out = Path(str(cfg.output_dir))
@@ -138,7 +144,7 @@ def realdrive(cfg: DictConfig) -> dict[str, Any]:
           f"{alignment.rms_after:.2f} m)")
     print("spans: " + ", ".join(f"{k} {len(p) * vehicle.dt:.0f} s -> {paths[k]}"
                                 for k, p in parts.items()))
-    learned = _learn(learn, parts, vehicle, noise, out) if learn["epochs"] else None
+    learned = _learn(learn, cfg.simulated, parts, vehicle, noise, out) if learn["epochs"] else {}
     table, estimates = score(parts["test"], observers, vehicle, noise, learned)
     write_table(table, out / "results.csv")
     with atomic_path(out / "results.md") as tmp:
@@ -154,7 +160,7 @@ def realdrive(cfg: DictConfig) -> dict[str, Any]:
     test = parts["test"]
     from lbo.core import plots
 
-    best = (LEARNED if learned is not None
+    best = (LEARNED if learned
             else f"{observers[0]}, receiver's accuracy and velocity")
     plots.save(plots.observed_log(test["t"].to_numpy(), test[["x_m", "y_m", "psi_m"]].to_numpy(),
                                   estimates[best], best, test[list(TRUTH_COLUMNS)].to_numpy()),
@@ -166,23 +172,49 @@ def realdrive(cfg: DictConfig) -> dict[str, Any]:
     return {"table": table, "alignment": alignment, "paths": paths}
 
 
-def _learn(cfg: dict[str, Any], parts: dict[str, pd.DataFrame], vehicle: Any, noise: Any,
-           out: Path) -> GyroNoise:
-    """The gyro EKF's noise learned on the train span (kept by the validation span), written
-    to ``gyro_noise.json`` and ``gyro_noise_history.csv``."""
+def _learn(cfg: dict[str, Any], simulated: DictConfig, parts: dict[str, pd.DataFrame],
+           vehicle: Any, noise: Any, out: Path) -> dict[str, GyroNoise]:
+    """The gyro EKF's noise learned on the train span from the defaults, and, with
+    ``cfg["simulated"]`` epochs, first on simulated drives (:func:`lbo.simulate.simulate` of
+    ``simulated``: ``simulated.drives`` to train on from its seed on, half as many after them
+    to validate on) and then fine-tuned on the train span; each kept by its validation
+    drives. Written as ``gyro_noise.json`` (from the defaults), ``gyro_noise_simulated.json``,
+    ``gyro_noise_finetuned.json`` and their ``*_history.csv``. Returns the noises by row
+    label."""
     from lbo.learn import gyro_fit
 
     R = classical.measurement_cov("ekf", noise, 1.0, 1)[0]
-    epochs = cfg["epochs"]
-    print(f"learning the gyro EKF's noise on the train span ({epochs} epochs; keeps the best "
-          "on the validation span)")
-    fitted = gyro_fit.fit(parts["train"], parts["val"], vehicle, R, GyroNoise.from_q(noise.Q),
-                          epochs=epochs, segment=max(2, round(cfg["segment_s"] / vehicle.dt)),
-                          lr=cfg["lr"], progress=lambda line: print("  " + line))
-    fitted.noise.save(out / "gyro_noise.json")
-    write_table(fitted.history, out / "gyro_noise_history.csv")
-    print(f"  kept epoch {fitted.best_epoch}: {fitted.noise}")
-    return fitted.noise
+    segment = max(2, round(cfg["segment_s"] / vehicle.dt))
+
+    def learn(name: str, train: pd.DataFrame | list[pd.DataFrame],
+              val: pd.DataFrame | list[pd.DataFrame], start: GyroNoise, epochs: int,
+              where: str) -> GyroNoise:
+        print(f"learning the gyro EKF's noise {where} ({epochs} epochs; keeps the best on "
+              "its validation drive)")
+        fitted = gyro_fit.fit(train, val, vehicle, R, start, epochs=epochs, segment=segment,
+                              lr=cfg["lr"], progress=lambda line: print("  " + line))
+        fitted.noise.save(out / f"{name}.json")
+        write_table(fitted.history, out / f"{name}_history.csv")
+        print(f"  kept epoch {fitted.best_epoch}: {fitted.noise}")
+        return fitted.noise
+
+    defaults = GyroNoise.from_q(noise.Q)
+    out_noise = {LEARNED: learn("gyro_noise", parts["train"], parts["val"], defaults,
+                                cfg["epochs"], "on the train span, from the defaults")}
+    if cfg["simulated"]:
+        from lbo.simulate import simulate
+
+        seed = integer(simulated.seed, "simulated.seed", 0)
+        drives = integer(simulated.drives, "simulated.drives", 2)
+        logs = [simulate(simulated, seed + i) for i in range(drives + drives // 2)]
+        sim = learn("gyro_noise_simulated", logs[:drives], logs[drives:], defaults,
+                    cfg["simulated"], f"on {drives} simulated drives ({simulated.manoeuvre}, "
+                    f"receiver {simulated.receiver.name})")
+        out_noise[SIMULATED] = sim
+        out_noise[FINE_TUNED] = learn("gyro_noise_finetuned", parts["train"], parts["val"], sim,
+                                      cfg["epochs"], "on the train span, from the simulated "
+                                      "drives'")
+    return out_noise
 
 
 def _markdown(table: pd.DataFrame) -> str:

@@ -20,7 +20,7 @@ by gradient descent on the estimates' error against the truth.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -141,10 +141,33 @@ def _mse(est: torch.Tensor, truth: torch.Tensor) -> torch.Tensor:
     return (d**2).mean(dim=(0, 1))
 
 
-def fit(train: pd.DataFrame, val: pd.DataFrame, vehicle: Vehicle, R: np.ndarray,
+def _logs(logs: pd.DataFrame | Sequence[pd.DataFrame]) -> list[pd.DataFrame]:
+    return [logs] if isinstance(logs, pd.DataFrame) else list(logs)
+
+
+def _batch(logs: list[pd.DataFrame], noise: GyroNoise, vehicle: Vehicle, R: np.ndarray,
+           length: int) -> Segments:
+    """The segments of every log, in one batch."""
+    parts = [segments(log, noise, vehicle, R, length) for log in logs]
+    return Segments(*(torch.cat(f) for f in zip(*parts)))
+
+
+def _pooled(logs: list[pd.DataFrame], noise: GyroNoise, reference: list[np.ndarray],
+            vehicle: Vehicle, R: np.ndarray) -> float:
+    """:func:`measure_ratio` of ``noise`` against the reference estimates, over the scored
+    rows of every log pooled."""
+    est = np.concatenate([estimate(log, noise, vehicle, R) for log in logs])
+    truth = np.concatenate([log[list(TRUTH_COLUMNS)].to_numpy(float) for log in logs])
+    rows = np.concatenate([scored_rows(log) for log in logs])
+    return measure_ratio(est, np.concatenate(reference), truth, rows)
+
+
+def fit(train: pd.DataFrame | Sequence[pd.DataFrame],
+        val: pd.DataFrame | Sequence[pd.DataFrame], vehicle: Vehicle, R: np.ndarray,
         start: GyroNoise, epochs: int = 12, segment: int = 500, lr: float = 0.1,
         progress: Callable[[str], None] | None = print) -> GyroFit:
-    """Learn the gyro EKF's noise on ``train`` (a log with truth), keep the best on ``val``.
+    """Learn the gyro EKF's noise on ``train`` (a log with truth, or several), keep the best
+    on ``val`` (one or several, their scored rows pooled).
 
     vehicle : its dt; R (3, 3) : the fixes' covariance where one reports no accuracy;
     start : the noise to start from; epochs : full-batch Adam steps (lr on the noises' logs);
@@ -152,17 +175,16 @@ def fit(train: pd.DataFrame, val: pd.DataFrame, vehicle: Vehicle, R: np.ndarray,
     """
     if epochs < 0 or segment < 2:
         raise LboError(f"fit needs epochs >= 0 and segment >= 2, got {epochs} and {segment}")
+    train, val = _logs(train), _logs(val)
     model = GyroFilter(start, vehicle.dt, torch.as_tensor(R))
     opt = torch.optim.Adam(model.parameters(), lr=lr)
-    val_truth = val[list(TRUTH_COLUMNS)].to_numpy(float)
-    val_rows = scored_rows(val)
-    reference = estimate(val, start, vehicle, R)
+    reference = [estimate(log, start, vehicle, R) for log in val]
     scale: torch.Tensor | None = None
     best = (1.0, 0, start)
     history = []
     for epoch in range(epochs + 1):
         noise = model.noise()
-        seg = segments(train, noise, vehicle, R, segment)
+        seg = _batch(train, noise, vehicle, R, segment)
         mse = _mse(model(seg), seg.truth)
         if scale is None:
             scale = mse.detach()
@@ -170,8 +192,7 @@ def fit(train: pd.DataFrame, val: pd.DataFrame, vehicle: Vehicle, R: np.ndarray,
         if not torch.isfinite(loss):
             raise LboError(f"gyro noise fit: the loss is not finite at epoch {epoch} (noise "
                            f"{noise}); lower lr (now {lr:g})")
-        score = (1.0 if epoch == 0 else
-                 measure_ratio(estimate(val, noise, vehicle, R), reference, val_truth, val_rows))
+        score = 1.0 if epoch == 0 else _pooled(val, noise, reference, vehicle, R)
         if score < best[0]:
             best = (score, epoch, noise)
         history.append({"epoch": epoch, "loss": loss.item(), "val": score})
