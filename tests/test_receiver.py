@@ -325,3 +325,49 @@ def test_step_refuses_what_it_cannot_take_in_one_line():
     learned = Observer.from_net(WindowNet("cnn", 20, "relative"))
     with pytest.raises(LboError, match=r"^step 0: cnn-N20 does not take a receiver's channels"):
         learned.step([0.0, 0.0, 0.0], [10.0, 0.0], receiver=np.full(7, np.nan))
+
+
+def _stepped(kf, m: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The stepper's poses and covariances, one update() per row (no coasting)."""
+    est, cov = [kf.x.copy()], [kf.P.copy()]
+    for k in range(1, m.shape[1]):
+        kf.update(m[:, k], u[:, k - 1])
+        est.append(kf.x.copy())
+        cov.append(kf.P.copy())
+    return np.stack(est, 1), np.stack(cov, 1)
+
+
+def test_runs_without_a_measurement_coast_in_one_call_as_the_steps_would_go():
+    """Between 2 Hz fixes (position only, some with an accuracy, courses) at 50 Hz, the EKF
+    takes each run of rows that hold nothing in closed form (kalman.KalmanStepper.coast):
+    the numbers of one update per row, to rounding; the adaptive EKF and a trajectory that
+    has no heading yet step row by row."""
+    from lbo.filters.kalman import KalmanStepper, run_stepper
+    from lbo.sim.vehicle import simulate as roll
+
+    vehicle, rng = Vehicle(), np.random.default_rng(0)
+    g, t = 3, 1500
+    k = np.arange(t)
+    u = np.broadcast_to(np.stack([10 + 3 * np.sin(k / 300), 0.1 * np.sin(k / 200)], 1),
+                        (g, t, 2)).copy()
+    u[1, :, 0] *= -0.5  # one reverses
+    z = roll(np.zeros((g, 3)), u, vehicle.dt, vehicle.wheelbase, np.zeros(3), rng)
+    m = measure.widen(z + rng.standard_normal(z.shape) * [0.5, 0.5, 0.02]).copy()
+    m[:, k % 25 != 0] = np.nan
+    m[:, :, 2] = np.nan
+    m[0, k % 50 == 0, 3:5] = 0.4
+    m[:, k % 25 == 0, 6] = wrap_angle(z[:, k % 25 == 0, 2] + np.where(u[:, :1, 0] < 0, np.pi, 0))
+    m[:, k % 25 == 0, 7] = 0.02
+    Q = np.diag([0.0667**2, 0.0667**2, 0.00113**2])
+    R = np.broadcast_to(np.diag([1.0, 1.0, 0.0174**2]), (g, 3, 3))
+    kf = KalmanStepper(m[:, 0], vehicle, Q, R)
+    calls = []
+    update = kf.update
+    kf.update = lambda *a: calls.append(1) or update(*a)
+    est, cov = run_stepper(kf, m, u, return_cov=True)
+    assert len(calls) == len(range(25, t, 25))  # only the fix rows step one by one
+    ref, ref_cov = _stepped(KalmanStepper(m[:, 0], vehicle, Q, R), m, u)
+    assert np.abs(est - ref).max() < 1e-9 and np.abs(cov - ref_cov).max() < 1e-12
+    adaptive = KalmanStepper(m[:, 0], vehicle, Q, R, forgetting=0.99, r_floor=np.full((g, 3), 1e-6))
+    blind = KalmanStepper(measure.widen(np.array([[0.0, 0.0, np.nan]])), vehicle, Q, R[:1])
+    assert not adaptive.coasts and not blind.coasts

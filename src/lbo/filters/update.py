@@ -78,6 +78,10 @@ def joseph_update(x: np.ndarray, P: np.ndarray, y: np.ndarray, H: np.ndarray, R:
     if np.shape(H) not in ((p, n), (g, p, n)) or np.shape(R) not in ((p, p), (g, p, p)):
         raise LboError(f"joseph_update needs H (p, n) or (G, p, n) and R (p, p) or (G, p, p) "
                        f"with p={p}, n={n}; got {np.shape(H)}, {np.shape(R)}")
+    if not held.any():
+        # a prediction step in every trajectory (most rows of a log between its fixes): K = 0,
+        # and the full update below gives exactly this; skipped for its cost
+        return x, 0.5 * (P + P.swapaxes(-1, -2))
     # a channel not held: no row of H, no innovation, uncorrelated with a unit variance, so
     # S is block diagonal and that channel's column of K is exactly zero (np.where broadcasts
     # a shared H and R over the G rows)
