@@ -77,16 +77,20 @@ def scored_rows(log: pd.DataFrame) -> np.ndarray:
     return np.arange(len(log)) >= int(np.argmax(np.isfinite(course)))
 
 
+def _preset(noise: GyroNoise, R: np.ndarray) -> Noise:
+    """The classical observers' noise preset that carries R (3, 3), the fixes' covariance
+    where one reports no accuracy (the gyro EKF takes its Q from ``noise``)."""
+    return Noise(process_sigma=tuple(np.sqrt(np.diag(noise.Q))),
+                 measurement_sigma=tuple(np.sqrt(np.diag(R))))
+
+
 def estimate(log: pd.DataFrame, noise: GyroNoise, vehicle: Vehicle, R: np.ndarray
              ) -> np.ndarray:
     """The gyro EKF's estimates (T, 3) of a log under ``noise`` (NaN before its first fix);
     R (3, 3): the fixes' covariance where one reports no accuracy."""
     m, u, rec = _columns(log)
-    rows = noise.rows(m, rec, u)
-    preset = Noise(process_sigma=tuple(np.sqrt(np.diag(noise.Q))),
-                   measurement_sigma=tuple(np.sqrt(np.diag(R))))
-    return classical.estimate(classical.GYRO, rows[None], u[None], vehicle, preset,
-                              gyro=noise)[0]
+    return classical.estimate(classical.GYRO, noise.rows(m, rec, u)[None], u[None], vehicle,
+                              _preset(noise, R), gyro=noise)[0]
 
 
 def measure_ratio(est: np.ndarray, reference: np.ndarray, truth: np.ndarray,
@@ -113,9 +117,8 @@ def segments(log: pd.DataFrame, noise: GyroNoise, vehicle: Vehicle, R: np.ndarra
         raise LboError(f"the log has {len(log) - first} steps from its first course over "
                        f"ground, fewer than one segment of {length}")
     begin = int(np.argmax(np.isfinite(rows[:, 0]) & np.isfinite(rows[:, 1])))
-    preset = Noise(process_sigma=tuple(np.sqrt(np.diag(noise.Q))),
-                   measurement_sigma=tuple(np.sqrt(np.diag(R))))
-    flt = classical.stepper(classical.GYRO, rows[begin][None], vehicle, preset, gyro=noise)
+    flt = classical.stepper(classical.GYRO, rows[begin][None], vehicle, _preset(noise, R),
+                            gyro=noise)
     x0, P0 = {}, {}
     wanted = set(starts.tolist())
     for k in range(begin, starts[-1] + 1):

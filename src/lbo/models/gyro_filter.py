@@ -13,6 +13,7 @@ It reads single-antenna logs: fixes without a heading.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from typing import NamedTuple
 
@@ -23,8 +24,7 @@ from lbo.filters import gyro as gyro_np
 from lbo.filters import measure
 from lbo.filters.gyro import GyroNoise
 
-_NAMES = ("q_position", "q_heading", "gyro_sigma", "bias_walk", "accuracy_scale",
-          "velocity_scale", "course_lever")
+_NAMES = tuple(f.name for f in dataclasses.fields(GyroNoise))
 
 
 class Segments(NamedTuple):
