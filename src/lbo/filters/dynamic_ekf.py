@@ -22,8 +22,10 @@ The truth it is built for (``dt`` the vehicle's sampling period, ``car`` a
 The state is ``[x, y, psi, v_y, r]``, plus ``[b_x, b_y]`` when any trajectory has drift (7
 states; 5 without, which is cheaper). Conventions as :mod:`lbo.filters.kalman`: the estimate at step
 ``k`` uses ``m_0 .. m_k`` and ``u_0 .. u_{k-1}``; a row updates with the channels it holds
-(a position without a heading: x and y only; a NaN row: a prediction-only step) through the
-shared Joseph-form :func:`lbo.filters.update.joseph_update`; heading innovations are wrapped to
+(a position without a heading: x and y only; a NaN row: a prediction-only step; a receiver's
+row, :mod:`lbo.filters.measure`: its reported accuracy as that step's R, and its course over
+ground as the heading plus the rear side slip, which this model knows) through the shared
+Joseph-form :func:`lbo.filters.update.joseph_update`; heading innovations are wrapped to
 (-pi, pi] while the estimated heading stays continuous; NumPy, vectorised over G trajectories
 with a Python loop over time only. It starts at a full fix (a heading included).
 
@@ -39,6 +41,7 @@ import numpy as np
 
 from lbo.core.checks import number
 from lbo.core.errors import LboError
+from lbo.filters import measure
 from lbo.filters.kalman import (
     COV_FLOOR,
     _batch_cov,
@@ -94,7 +97,9 @@ class DynamicStepper:
 
     Parameters
     ----------
-    m0 : (G, 3) first measurements (fixes) ``[x_m, y_m, psi_m]``; the pose starts there.
+    m0 : (G, 3) first measurements (fixes) ``[x_m, y_m, psi_m]``, or (G, 8) rows with a
+        receiver's channels (:mod:`lbo.filters.measure`); the pose starts there (P at the
+        accuracy the row reports, if any).
     vehicle : Vehicle
         Supplies ``dt``; its wheelbase must be the car's ``l_f + l_r``.
     car : SingleTrack
@@ -146,9 +151,11 @@ class DynamicStepper:
             raise LboError(f"car.l_f + car.l_r must be the vehicle's wheelbase "
                            f"({vehicle.wheelbase} m), got {car.wheelbase!r}")
         m0 = np.array(m0, dtype=float)
-        if m0.ndim != 2 or m0.shape[1] != 3:
-            raise LboError(f"m0 must be (G, 3) [x_m, y_m, psi_m], got {m0.shape}")
-        if not np.isfinite(m0).all():
+        if m0.ndim != 2 or m0.shape[1] not in (3, measure.WIDTH):
+            raise LboError(f"m0 must be (G, 3) [x_m, y_m, psi_m] or (G, {measure.WIDTH}) "
+                           f"rows ({', '.join(measure.CHANNELS)}), got {m0.shape}")
+        m0 = measure.widen(m0)
+        if not np.isfinite(m0[:, :3]).all():
             raise LboError("m0 must be a full fix (x_m, y_m and psi_m finite) for every "
                            "trajectory; the dynamic oracle starts there, heading included")
         g = len(m0)
@@ -183,12 +190,12 @@ class DynamicStepper:
             self.Q[:, 5, 5] = self.Q[:, 6, 6] = (1.0 - self.phi**2) * var_b
 
         self.x = np.zeros((g, n))
-        self.x[:, :3] = m0
+        self.x[:, :3] = m0[:, :3]
         if u0 is not None:
             ut = self.true_inputs(_check_inputs(u0, g, "u0"))
             self.x[:, 3], self.x[:, 4] = dynamic.steady_state(ut[:, 0], ut[:, 1], car)
         P = np.zeros((g, n, n))
-        P[:, :3, :3] = R
+        P[:, :3, :3] = measure.step_cov(m0, R)
         P[:, 3, 3], P[:, 4, 4] = np.square(P0_LATERAL_SIGMA)
         if drift:
             for i in (0, 1):
@@ -235,19 +242,58 @@ class DynamicStepper:
         return x, 0.5 * (P + P.swapaxes(-1, -2))
 
     def update(self, m: np.ndarray, u_prev: np.ndarray) -> np.ndarray:
-        """Predict with the logged u_{k-1} (G, 2), update with the channels m_k (G, 3) holds
-        (NaN: not measured; a row of NaN gets the prediction only); returns the pose estimate
-        x_k (G, 3)."""
+        """Predict with the logged u_{k-1} (G, 2), update with the channels row m_k holds
+        ((G, 3), or (G, 8) with a receiver's channels, :mod:`lbo.filters.measure`; NaN: not
+        measured; a row of NaN gets the prediction only); returns the pose estimate x_k (G, 3).
+
+        A reported accuracy is the step's R of its channel. The course over ground is the
+        direction the rear axle moves in: the heading plus the rear side slip
+        (:func:`lbo.sim.dynamic.rear_slip` of the state's v_y and r, at the true speed of
+        u_{k-1}), which this model knows and the kinematic filters take as noise."""
         g = len(self.x)
         m = np.asarray(m, dtype=float)
-        if m.shape != (g, 3):
-            raise LboError(f"m must be ({g}, 3) [x_m, y_m, psi_m], got {m.shape}")
-        held = held_channels(m)
+        if m.shape not in ((g, 3), (g, measure.WIDTH)):
+            raise LboError(f"m must be ({g}, 3) [x_m, y_m, psi_m] or ({g}, {measure.WIDTH}) "
+                           f"rows ({', '.join(measure.CHANNELS)}), got {m.shape}")
+        m = measure.widen(m)
         x, P = self.predict(u_prev)
-        y = np.where(held, m - x @ self.H.T, 0.0)
-        y[:, 2] = wrap_angle(y[:, 2])
-        self.x, self.P = joseph_update(x, P, y, self.H, self.R, held)
+        R = measure.step_cov(m, self.R)
+        if not np.isfinite(m[:, 6]).any():  # no course: the pose's channels alone
+            held = held_channels(m[:, :3])
+            y = np.where(held, m[:, :3] - x @ self.H.T, 0.0)
+            y[:, 2] = wrap_angle(y[:, 2])
+            self.x, self.P = joseph_update(x, P, y, self.H, R, held)
+            return self.x[:, :3]
+        n = x.shape[1]
+        slip, jac = self._course(x, self.true_inputs(_check_inputs(u_prev, g, "u_prev")))
+        meas = np.concatenate([m[:, :3], m[:, 6:7]], axis=1)
+        held = held_channels(meas)
+        pred = np.concatenate([x @ self.H.T, (x[:, 2] + slip)[:, None]], axis=1)
+        y = np.where(held, meas - pred, 0.0)
+        y[:, 2:] = wrap_angle(y[:, 2:])
+        H = np.zeros((g, 4, n))
+        H[:, :3] = self.H
+        H[:, 3, 2:5] = jac
+        R4 = np.zeros((g, 4, 4))
+        R4[:, :3, :3] = R
+        R4[:, 3, 3] = np.where(held[:, 3], np.square(np.where(held[:, 3], m[:, 7], 0.0)), 1.0)
+        self.x, self.P = joseph_update(x, P, y, H, R4, held)
         return self.x[:, :3]
+
+    def _course(self, x: np.ndarray, ut: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The rear side slip (G,) at states x (G, n) and true inputs ut (G, 2), and the
+        course's Jacobian (G, 3) on psi, v_y and r (the slip's by central differences)."""
+        g = len(x)
+        s = np.repeat(x[:, None, :5], 5, axis=1)  # nominal, +-h in v_y, +-h in r
+        s[:, 1, 3] += FD_STEP
+        s[:, 2, 3] -= FD_STEP
+        s[:, 3, 4] += FD_STEP
+        s[:, 4, 4] -= FD_STEP
+        slip = dynamic.rear_slip(s, np.broadcast_to(ut[:, None], (g, 5, 2)), self.car)
+        jac = np.ones((g, 3))
+        jac[:, 1] = (slip[:, 1] - slip[:, 2]) / (2.0 * FD_STEP)
+        jac[:, 2] = (slip[:, 3] - slip[:, 4]) / (2.0 * FD_STEP)
+        return slip[:, 0], jac
 
     @property
     def pose_cov(self) -> np.ndarray:
