@@ -54,7 +54,7 @@ mlflow-server: install  ## a shared MLflow tracking server on 127.0.0.1:$(MLFLOW
 	$(VENV)/bin/mlflow server --host 127.0.0.1 --port $(MLFLOW_PORT) \
 		--backend-store-uri "$(MLFLOW_BACKEND)" --artifacts-destination "$(MLFLOW_ARTIFACTS)"
 
-real-drive: install  ## the onavdata hill drive as lbo logs, every classical observer on its test span -> reports/realdrive/
+real-drive: install  ## the onavdata hill drive as lbo logs, the gyro EKF's noise learned on it, every classical observer on its test span -> reports/realdrive/
 	$(PY) -m lbo.realdrive
 
 bench: install  ## benchmarks: data generation, filters, training throughput, latency (medians)
