@@ -30,6 +30,7 @@ import torch
 from lbo.core.errors import LboError
 from lbo.filters import classical, measure
 from lbo.filters.gyro import GyroNoise
+from lbo.models.features import wrap_angle_torch
 from lbo.models.gyro_filter import GyroFilter, Segments
 from lbo.sim.logio import TRUTH_COLUMNS, receiver
 from lbo.sim.noise import Noise
@@ -140,7 +141,7 @@ def segments(log: pd.DataFrame, noise: GyroNoise, vehicle: Vehicle, R: np.ndarra
 
 def _mse(est: torch.Tensor, truth: torch.Tensor) -> torch.Tensor:
     d = est - truth
-    d = torch.cat([d[..., :2], torch.remainder(d[..., 2:] + np.pi, 2 * np.pi) - np.pi], -1)
+    d = torch.cat([d[..., :2], wrap_angle_torch(d[..., 2:])], -1)
     return (d**2).mean(dim=(0, 1))
 
 

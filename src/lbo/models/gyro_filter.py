@@ -23,6 +23,7 @@ from torch import nn
 from lbo.filters import gyro as gyro_np
 from lbo.filters import measure
 from lbo.filters.gyro import GyroNoise
+from lbo.models.features import wrap_angle_torch
 
 _NAMES = tuple(f.name for f in dataclasses.fields(GyroNoise))
 
@@ -48,10 +49,6 @@ class Segments(NamedTuple):
     sv: torch.Tensor
     u: torch.Tensor
     truth: torch.Tensor
-
-
-def _wrap(a: torch.Tensor) -> torch.Tensor:
-    return math.pi - torch.remainder(math.pi - a, 2 * math.pi)
 
 
 class GyroFilter(nn.Module):
@@ -126,7 +123,7 @@ class GyroFilter(nn.Module):
             held = torch.stack([fix_held[:, k, 0], fix_held[:, k, 1], course_held[:, k], still],
                                -1)
             y = torch.stack([fix[:, k, 0] - x[:, 0], fix[:, k, 1] - x[:, 1],
-                             _wrap(course[:, k] - x[:, 2]), rate - x[:, 3]], -1)
+                             wrap_angle_torch(course[:, k] - x[:, 2]), rate - x[:, 3]], -1)
             x, P = joseph_update(x, P, y, H, R, held)
             out.append(x[:, :3])
         return torch.stack(out, 1)
