@@ -20,11 +20,11 @@ help:  ## list the targets
 
 install: $(STAMP)  ## create .venv and install lbo with everything it needs (CPU torch)
 
-$(STAMP): pyproject.toml
+$(STAMP): pyproject.toml constraints.txt
 	$(PYTHON) -m venv $(VENV)
-	# torch is pinned in its own step: an unpinned torch pulls gigabytes of CUDA packages
-	$(PY) -m pip install -q torch==2.13.0
-	$(PY) -m pip install -q -e ".[dev,launchers,cluster,real]"
+	# torch first, at constraints.txt's version: an unpinned torch pulls gigabytes of CUDA packages
+	$(PY) -m pip install -q -c constraints.txt torch
+	$(PY) -m pip install -q -c constraints.txt -e ".[dev,launchers,cluster,real]"
 	touch $@
 
 test: install  ## run every test, the slow ones included, in TEST_JOBS processes (pytest-xdist)

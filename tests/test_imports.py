@@ -92,10 +92,18 @@ def layer(module: str) -> int:
 
 def test_every_module_sits_in_a_layer_or_is_a_command():
     graph, cmds = import_graph(), commands()
-    stray = sorted(m for m in graph if layer(m) == len(LAYERS) and m not in cmds | {"lbo"})
+    # lbo.__main__: the console script, on top with the commands it dispatches to
+    stray = sorted(m for m in graph if layer(m) == len(LAYERS)
+                   and m not in cmds | {"lbo", "lbo.__main__"})
     assert not stray, f"neither in a layer {LAYERS} nor a command: {stray}"
     assert {p.name for p in SRC.iterdir() if p.is_dir() and p.name != "__pycache__"} == \
         set(LAYERS)
+
+
+def test_the_console_script_runs_every_command():
+    from lbo.__main__ import COMMANDS
+
+    assert {f"lbo.{name}" for name in COMMANDS} == commands()
 
 
 def upward(graph: dict[str, set[str]]) -> list[str]:

@@ -61,3 +61,48 @@ def test_an_installed_wheel_composes_its_configs_outside_the_repo(wheel, tmp_pat
                          env=env, capture_output=True, text=True)
     assert res.returncode == 0, res.stderr[-2000:]
     assert list((work / "data").glob("smoke-*/train.parquet"))
+
+
+def test_the_version_citation_and_changelog_agree():
+    """One version: pyproject.toml's, which lbo.__version__ reads; CITATION.cff, the
+    README's BibTeX and the changelog's newest entry carry it."""
+    import re
+    import tomllib
+
+    import yaml
+
+    import lbo
+
+    version = tomllib.loads((REPO / "pyproject.toml").read_text())["project"]["version"]
+    assert lbo.__version__ == version
+    citation = yaml.safe_load((REPO / "CITATION.cff").read_text())
+    assert citation["version"] == version and citation["cff-version"] == "1.2.0"
+    assert citation["references"][0]["title"] == ("Learning-based Observer Evaluated on the "
+                                                  "Kinematic Bicycle Model")
+    newest = re.search(r"^## \[(.+?)\]", (REPO / "CHANGELOG.md").read_text(), re.M)
+    assert newest and newest.group(1) == version
+    assert f"version = {{{version}}}" in (REPO / "README.md").read_text()
+
+
+def test_the_lbo_console_script_runs_each_command_as_python_m_does(tmp_path):
+    """``lbo <command> ...`` is ``python -m lbo.<command> ...``: the same log, byte for byte;
+    ``lbo --help`` lists the commands, an unknown one is one line and exit 2."""
+    script = Path(sys.executable).parent / "lbo"
+    assert script.is_file()  # installed by pyproject's [project.scripts]
+    res = subprocess.run([str(script), "--help"], capture_output=True, text=True)
+    assert res.returncode == 0 and "usage: lbo <command>" in res.stdout
+    assert all(f"  {name} " in res.stdout for name in ("train", "observe", "realdrive"))
+    res = subprocess.run([str(script), "trian"], capture_output=True, text=True)
+    assert res.returncode == 2 and res.stderr.strip().splitlines() == [
+        "error: unknown command 'trian'; expected one of datagen, simulate, train, tune, "
+        "evaluate, observe, export, reproduce, ablation, realdrive (lbo --help)"]
+    args = ["manoeuvre=slalom", "alpha=2", "fix_rate=10"]
+    for name, cmd in (("a", [str(script), "simulate"]),
+                      ("b", [sys.executable, "-m", "lbo.simulate"])):
+        res = subprocess.run([*cmd, *args, f"output={tmp_path / name}.csv"], cwd=tmp_path,
+                             capture_output=True, text=True)
+        assert res.returncode == 0, res.stderr
+    assert (tmp_path / "a.csv").read_bytes() == (tmp_path / "b.csv").read_bytes()
+    bad = subprocess.run([str(script), "simulate", "alpha=-1", f"output={tmp_path / 'c.csv'}"],
+                         cwd=tmp_path, capture_output=True, text=True)
+    assert bad.returncode == 2 and bad.stderr.startswith("error: alpha")

@@ -28,6 +28,10 @@ __all__ = sorted(_EXPORTS)
 
 
 def __getattr__(name: str) -> Any:
+    if name == "__version__":  # one home: pyproject.toml, as the installed package records it
+        from importlib.metadata import version
+
+        return version("lbo")
     if name in _EXPORTS:
         value = getattr(import_module(_EXPORTS[name]), name)
         globals()[name] = value  # later look-ups skip this function
