@@ -108,6 +108,11 @@ def test_engines_step_like_pytorch(checkpoint, smoke_data, engine):
     ([], "observer: give a checkpoint path"),
     (["observer=CKPT", "register=lbo"], "register needs observer=<MLflow run id>"),
     (["observer=CKPT", "features=absolute"], "trained with features=relative"),
+    ([f"observer={'a' * 32}", "alias=champion"],
+     "^alias names a registered model's version: give register=<model name> beside it$"),
+    ([f"observer={'a' * 32}", "register=lbo", "alias=latest"],
+     r"^alias: expected letters, digits, _ and - \(not 'latest' nor v<digits>, which name "
+     r"versions\), got 'latest'$"),
 ])
 def test_export_refusals(tmp_path, checkpoint, overrides, message):
     overrides = [o.replace("CKPT", str(checkpoint)) for o in overrides]

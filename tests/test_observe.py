@@ -394,6 +394,13 @@ def test_run_id_and_registered_model_load_the_same_observer(trained, manoeuvre, 
     uri = register(trained["run_id"], "lbo-test")
     assert uri == "models:/lbo-test/1"
     np.testing.assert_array_equal(Observer.load(uri).run(m, u)[0], ref)
+    # a second version, promoted: the alias follows it
+    assert register(trained["run_id"], "lbo-test", alias="champion") == "models:/lbo-test/2"
+    np.testing.assert_array_equal(Observer.load("models:/lbo-test@champion").run(m, u)[0], ref)
+    import mlflow
+
+    client = mlflow.MlflowClient(trained["uri"], registry_uri=trained["uri"])
+    assert str(client.get_model_version_by_alias("lbo-test", "champion").version) == "2"
     with pytest.raises(LboError, match=f"MLflow run {'0' * 31}1 not found"):
         Observer.load("0" * 31 + "1")
     with pytest.raises(LboError, match="models:/lbo-test/7 not found"):

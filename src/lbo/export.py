@@ -2,6 +2,7 @@
 
     python -m lbo.export observer=<checkpoint | run id | models:/name/version> out_dir=exports
     python -m lbo.export observer=<run id> register=lbo-cnn     # also: models:/lbo-cnn/<version>
+    python -m lbo.export observer=<run id> register=lbo-cnn alias=champion  # and @champion
 
 Writes ``<name>.pt`` (TorchScript, traced), ``<name>.onnx`` (opset 17, dynamic batch axis) and
 ``<name>.json`` (window, dt, features, channel order, vehicle, noise). A CNN's or LSTM's files
@@ -215,9 +216,27 @@ def _sidecar(observer: Any, net: Any, name: str, diff: dict[str, float],
     }
 
 
-def register(run_id: str, name: str, uri: str | None = None) -> str:
+ALIAS = re.compile(r"[A-Za-z0-9_-]{1,255}")
+"""A registered model's alias, as MLflow takes it (and not ``latest`` nor ``v<digits>``, which
+name versions)."""
+
+
+def check_alias(alias: str | None) -> str | None:
+    """``alias`` if MLflow can set it (or None), else a one-line LboError."""
+    if alias is None:
+        return None
+    alias = str(alias)
+    if not ALIAS.fullmatch(alias) or alias.lower() == "latest" or re.fullmatch(r"v\d+", alias):
+        raise LboError(f"alias: expected letters, digits, _ and - (not 'latest' nor "
+                       f"v<digits>, which name versions), got {alias!r}")
+    return alias
+
+
+def register(run_id: str, name: str, uri: str | None = None, alias: str | None = None) -> str:
     """Register run ``run_id``'s MLflow model (``model/``, :mod:`lbo.serve.serving`; a run trained
-    before lbo logged one: its ``checkpoints/``) as a new version of model ``name``.
+    before lbo logged one: its ``checkpoints/``) as a new version of model ``name``; with
+    ``alias`` (e.g. ``champion``), point that alias of the model at the new version, so that
+    ``models:/<name>@<alias>`` follows promotions.
 
     Returns the ``models:/<name>/<version>`` URI that :meth:`Observer.load`, ``python -m
     lbo.observe observer=...``, ``mlflow.pyfunc.load_model`` and ``mlflow models serve``
@@ -227,6 +246,8 @@ def register(run_id: str, name: str, uri: str | None = None) -> str:
     from mlflow.exceptions import MlflowException
 
     from lbo.core.paths import tracking_uri
+
+    alias = check_alias(alias)  # before anything is registered
 
     uri = uri or tracking_uri()
     client = mlflow.MlflowClient(uri, registry_uri=uri)
@@ -242,6 +263,8 @@ def register(run_id: str, name: str, uri: str | None = None) -> str:
         model = "model" in {a.path for a in client.list_artifacts(run_id)}
         source = f"runs:/{run_id}/{'model' if model else 'checkpoints'}"
         version = client.create_model_version(name, source, run_id=run.info.run_id).version
+        if alias is not None:
+            client.set_registered_model_alias(name, alias, version)
     except MlflowException as e:
         raise LboError(f"register: {str(e.message).strip().splitlines()[0]}") from None
     return f"models:/{name}/{version}"
@@ -261,6 +284,10 @@ def export_observer(cfg: DictConfig) -> dict[str, Any]:
     check_name(cfg.get("name"))  # before any checkpoint is read
     if cfg.get("register") and not RUN_ID.fullmatch(source):
         raise LboError(f"register needs observer=<MLflow run id> (32 hex digits), got {source!r}")
+    alias = check_alias(cfg.get("alias"))
+    if alias is not None and not cfg.get("register"):
+        raise LboError("alias names a registered model's version: give register=<model name> "
+                       "beside it")
     obs = Observer.load(source, features=cfg.get("features"), form=cfg.get("form"))
     paths = export(obs, cfg.out_dir, cfg.get("name"))
     diff = json.loads(paths["json"].read_text())["max_abs_diff_to_pytorch"]
@@ -272,8 +299,9 @@ def export_observer(cfg: DictConfig) -> dict[str, Any]:
         print(f"  {kind:11s} {path}")
     result: dict[str, Any] = {"paths": paths, "diff": diff}
     if cfg.get("register"):
-        result["model_uri"] = register(source, str(cfg.register))
-        print(f"registered: {result['model_uri']}")
+        result["model_uri"] = register(source, str(cfg.register), alias=alias)
+        print(f"registered: {result['model_uri']}"
+              + (f" (models:/{cfg.register}@{alias})" if alias is not None else ""))
     print(f"exported: {paths['onnx'].parent}")
     return result
 
