@@ -464,6 +464,16 @@ def test_trials_never_see_the_test_set(tmp_path, smoke_data, tracking):
     other = trial_config(cfg, {}, 7, "../cnn/x y", tmp_path / "out")  # one folder, never above
     assert other.output_dir == str(tmp_path / "out" / "_cnn_x_y" / "trial_007")
     assert "tune" not in trial and cfg.optimizer.lr == 0.001  # the study's config is untouched
+    # by type, not by name: a subclass of the evaluation callback under another name is
+    # dropped too; a target that cannot be imported is one line
+    with open_dict(cfg):
+        cfg.callbacks.mine = {"_target_": "helpers.training.RenamedEvaluation"}
+    assert "mine" not in trial_config(cfg, {}, 8, "s", tmp_path / "out").callbacks
+    with open_dict(cfg):
+        cfg.callbacks.mine = {"_target_": "no_such_package.Callback"}
+    with pytest.raises(LboError, match=r"^_target_ 'no_such_package.Callback' cannot be "
+                                       r"imported \(\w+\)$"):
+        trial_config(cfg, {}, 8, "s", tmp_path / "out")
 
 
 def test_list_choices_are_stored_as_text_and_decoded(tmp_path, smoke_data, tracking):

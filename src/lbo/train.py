@@ -33,6 +33,7 @@ from lbo.learn.builders import (
     logs_spec,
     prepare_data,
     say_fresh,
+    targets,
     training_envelope,
 )
 from lbo.learn.resume import (
@@ -201,7 +202,9 @@ def _train(cfg: DictConfig, built: Built, callbacks: list[L.Callback] | None,
            tags: dict[str, str] | None) -> dict[str, Any]:
     """Reuse a finished run of the same config, continue a killed one, or fit afresh."""
     digest = config_hash(cfg)
-    if cfg.get("logger") and str(cfg.logger.get("_target_", "")).endswith("MLFlowLogger"):
+    from lightning.pytorch.loggers import MLFlowLogger
+
+    if targets(cfg.get("logger"), MLFlowLogger):
         # under a parallel launcher the first job creates the store and the experiment
         ensure_experiment(cfg.logger.tracking_uri, cfg.logger.experiment_name,
                           cfg.logger.get("artifact_location"))

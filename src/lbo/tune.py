@@ -174,6 +174,11 @@ def trial_config(cfg: DictConfig, values: dict[str, Any], number: int, study_nam
                  output_dir: Path) -> DictConfig:
     """The training config of one trial: ``cfg`` with the sampled values, its own output folder,
     and nothing that reads the test set."""
+    from lightning.pytorch.callbacks import ProgressBar
+
+    from lbo.learn.builders import targets
+    from lbo.learn.callbacks import Evaluation
+
     out = copy.deepcopy(cfg)
     with open_dict(out):
         for key, value in values.items():
@@ -185,11 +190,10 @@ def trial_config(cfg: DictConfig, values: dict[str, Any], number: int, study_nam
         del out.tune
         callbacks = out.get("callbacks") or {}
         for name in list(callbacks):
-            target = str(callbacks[name].get("_target_", ""))
             # Tuning must never see the test set: the evaluation callback scores the test grid
             # at the end of fit, so it is left out of every trial. Progress bars would bury the
             # one line per trial.
-            if target == "lbo.learn.callbacks.Evaluation" or target.endswith("ProgressBar"):
+            if targets(callbacks[name], Evaluation) or targets(callbacks[name], ProgressBar):
                 del callbacks[name]
         out.trainer.enable_progress_bar = False
         out.trainer.enable_model_summary = False
@@ -263,7 +267,11 @@ def _run_study(cfg: DictConfig, space: list[Param], pruner: optuna.pruners.BaseP
                        ("data", cfg.data.name)):
         study.set_user_attr(key, value)
     output = Path(cfg.output_dir)
-    tracking = cfg.get("logger") and str(cfg.logger.get("_target_", "")).endswith("MLFlowLogger")
+    from lightning.pytorch.loggers import MLFlowLogger
+
+    from lbo.learn.builders import targets
+
+    tracking = targets(cfg.get("logger"), MLFlowLogger)
     claim = ClaimLock(storage, t.storage, t.study_name)
     new: list[int] = []
     stopped: list[int] = []  # trials interrupted here (Ctrl-C), failed by Optuna

@@ -22,3 +22,19 @@ def train_in_own_store(tmp: Path, smoke_data: Path, *overrides: str):
     with pytest.MonkeyPatch.context() as mp:
         mp.setenv("MLFLOW_TRACKING_URI", uri)
         return cfg, train(cfg), uri
+
+
+def _evaluation_subclass():
+    from lbo.learn.callbacks import Evaluation
+
+    class RenamedEvaluation(Evaluation):
+        """A user's evaluation callback under a name of its own: tuning must drop it too."""
+
+    return RenamedEvaluation
+
+
+def __getattr__(name: str):
+    # built on first use: importing this module must not import Lightning
+    if name == "RenamedEvaluation":
+        return _evaluation_subclass()
+    raise AttributeError(name)

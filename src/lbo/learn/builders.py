@@ -188,3 +188,19 @@ def prepare_data(cfg: DictConfig) -> tuple[Path, str]:
     from lbo.sim.datasets import build_from_cfg
 
     return build_from_cfg(cfg)
+
+
+def targets(node: Any, kind: type) -> bool:
+    """Whether config ``node`` (a ``_target_`` map, or None) builds a ``kind``: its target class
+    is ``kind`` or a subclass, by type, not by name. A target that cannot be imported is one
+    line naming it."""
+    from hydra.utils import get_class
+
+    target = node.get("_target_") if node else None
+    if not target:
+        return False
+    try:
+        cls = get_class(str(target))
+    except Exception as e:  # Hydra wraps the import's error in its own
+        raise LboError(f"_target_ {target!r} cannot be imported ({type(e).__name__})") from None
+    return isinstance(cls, type) and issubclass(cls, kind)
