@@ -91,7 +91,7 @@ def observe(cfg: DictConfig) -> dict[str, Any]:
     ``output`` (Path), ``observer`` (name), ``rows``, ``valid`` (rows with a full window),
     and, when the log holds the true state, ``rmse`` (3,) (m, m, rad) and ``nrmse``.
     """
-    from lbo.filters.classical import GYRO
+    from lbo.filters.classical import GYRO, check_gyro_noise
     from lbo.filters.classical import ON_LOGS as CLASSICAL
     from lbo.filters.gyro import GyroNoise
     from lbo.serve.observer import EnvelopeWarning, Observer
@@ -122,9 +122,7 @@ def observe(cfg: DictConfig) -> dict[str, Any]:
     form = cfg.get("form")
     gyro_noise = cfg.get("gyro_noise")
     if gyro_noise is not None:
-        if name != GYRO:
-            raise LboError(f"gyro_noise is the noise of the gyro EKF (observer=gyro), not of "
-                           f"{name}")
+        check_gyro_noise(name, gyro_noise)  # before the file is read
         gyro_noise = GyroNoise.load(str(gyro_noise))
     fmt = LogFormat.from_cfg(cfg)
     where = f"input {source}"

@@ -39,7 +39,6 @@ from omegaconf import DictConfig
 from lbo.core.atomic import atomic_path
 from lbo.core.checks import integer, number
 from lbo.core.cli import entry
-from lbo.core.errors import LboError
 from lbo.filters import classical, measure
 from lbo.filters.gyro import GyroNoise
 from lbo.scoring.metrics import rmse
@@ -76,14 +75,11 @@ def score(log: pd.DataFrame, observers: list[str], vehicle: Any, noise: Any,
     m = log[["x_m", "y_m", "psi_m"]].to_numpy(dtype=float)
     u = log[["V", "delta"]].to_numpy(dtype=float)
     z = log[list(TRUTH_COLUMNS)].to_numpy(dtype=float)
+    from lbo.learn.gyro_fit import scored_rows
+
     r = receiver(log)
     course, _ = measure.course_over_ground(r[:, 3], r[:, 4], r[:, 5], u[:, 0])
-    if not np.isfinite(course).any():
-        raise LboError("the span never moves fast enough for a course over ground: a single "
-                       "antenna tells no heading there, and nothing is scored")
-    # scored from the first course over ground: before it no one-antenna observer can know
-    # the heading (a car standing since the log began), and every estimator is scored alike
-    scored = np.arange(len(log)) >= int(np.argmax(np.isfinite(course)))
+    scored = scored_rows(log)  # every estimator alike, from the first course over ground
     fix = np.isfinite(m[:, :2]).all(1) & scored
     position = rmse(np.column_stack([m[:, :2], z[:, 2]]), z, fix)  # its psi error is 0
     heading = rmse(np.column_stack([z[:, :2], course]), z, np.isfinite(course))

@@ -130,6 +130,13 @@ def estimate(name: str, m: np.ndarray, u: np.ndarray, vehicle: Vehicle, noise: N
                        "units") from None
 
 
+def check_gyro_noise(name: str, gyro: GyroNoise | None) -> None:
+    """A gyro noise is the gyro EKF's: one line for any other observer ``name``."""
+    if gyro is not None and name != GYRO:
+        raise LboError(f"gyro_noise is the noise of the gyro EKF (observer={GYRO}), not of "
+                       f"{name}")
+
+
 def first_fixes(m: np.ndarray) -> np.ndarray:
     """(G,) the first row of each trajectory m (G, T, C) that holds a position (T: none)."""
     pos = np.isfinite(m[..., 0]) & np.isfinite(m[..., 1])

@@ -32,6 +32,7 @@ from lbo.filters import classical, measure
 from lbo.filters.gyro import GyroNoise
 from lbo.models.features import wrap_angle_torch
 from lbo.models.gyro_filter import GyroFilter, Segments
+from lbo.scoring.metrics import rmse
 from lbo.sim.logio import TRUTH_COLUMNS, receiver
 from lbo.sim.noise import Noise
 from lbo.sim.vehicle import Vehicle, wrap_angle
@@ -98,12 +99,8 @@ def measure_ratio(est: np.ndarray, reference: np.ndarray, truth: np.ndarray,
                   rows: np.ndarray) -> float:
     """The quadratic mean over x, y and psi of the ratios of the RMSE of ``est`` to that of
     ``reference`` (each (T, 3)) against ``truth`` over ``rows`` (T,) bool."""
-    def rmse(e: np.ndarray) -> np.ndarray:
-        d = e[rows] - truth[rows]
-        d[:, 2] = wrap_angle(d[:, 2])
-        return np.sqrt(np.mean(d**2, axis=0))
-
-    return float(np.sqrt(np.mean((rmse(est) / rmse(reference)) ** 2)))
+    ratios = rmse(est, truth, rows) / rmse(reference, truth, rows)
+    return float(np.sqrt(np.mean(ratios**2)))
 
 
 def segments(log: pd.DataFrame, noise: GyroNoise, vehicle: Vehicle, R: np.ndarray,

@@ -352,9 +352,7 @@ class Observer:
         self.net = net
         self.device = device
         self.form = check_form(form, net)
-        if gyro_noise is not None and name != classical.GYRO:
-            raise LboError(f"gyro_noise is the noise of the gyro EKF (observer=gyro), not of "
-                           f"{name}")
+        classical.check_gyro_noise(name, gyro_noise)
         self.gyro_noise = gyro_noise
         if net is None:
             classical.check(name)
@@ -453,9 +451,7 @@ class Observer:
         if form is not None and form not in FORMS:
             raise LboError(f"form must be one of {list(FORMS)} or null, got {form!r}")
         check_mode(envelope_mode)
-        if gyro_noise is not None and source != classical.GYRO:
-            raise LboError(f"gyro_noise is the noise of the gyro EKF (observer=gyro), not of "
-                           f"{source}")
+        classical.check_gyro_noise(source, gyro_noise)
         device = check_device(device, probe=source not in classical.NAMES)
         if source in classical.NAMES + (classical.GYRO,):
             classical.check(source)  # pcrb: a bound, not an observer
