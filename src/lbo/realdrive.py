@@ -32,80 +32,26 @@ import sys
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import pandas as pd
 from omegaconf import DictConfig
 
 from lbo.core.atomic import atomic_path
 from lbo.core.checks import integer, number
 from lbo.core.cli import entry
-from lbo.filters import classical, measure
+from lbo.filters import classical
 from lbo.filters.gyro import GyroNoise
-from lbo.scoring.metrics import rmse
+from lbo.scoring.receiver import EKF, markdown, ratio_to, score
 from lbo.sim import hguide
-from lbo.sim.logio import TRUTH_COLUMNS, check_log, check_output_path, receiver, write_table
+from lbo.sim.logio import TRUTH_COLUMNS, check_log, check_output_path, write_table
 
-__all__ = ["EKF", "FINE_TUNED", "LEARNED", "SIMULATED", "main", "realdrive", "score"]
+__all__ = ["FINE_TUNED", "LEARNED", "SIMULATED", "main", "realdrive"]
 
-EKF = "ekf, receiver's accuracy and velocity"
-"""The row every estimator is measured against (``vs_ekf``): lbo's kinematic EKF."""
 LEARNED = "gyro, noise learned on the train span"
 """The row of the gyro EKF whose noise :mod:`lbo.learn.gyro_fit` learned from the defaults."""
 SIMULATED = "gyro, noise learned on simulated drives only"
 """... learned on simulated single-antenna drives, not on the real one."""
 FINE_TUNED = "gyro, noise learned on simulated drives, fine-tuned on the train span"
 """... learned on simulated drives, then on the train span."""
-
-
-def score(log: pd.DataFrame, observers: list[str], vehicle: Any, noise: Any,
-          learned: dict[str, GyroNoise] | None = None
-          ) -> tuple[pd.DataFrame, dict[str, np.ndarray]]:
-    """RMSE (x m, y m, psi mrad) of the raw fixes and each observer on ``log``, every one
-    scored from the log's first course over ground on (before it, a car standing since the
-    log began, no single-antenna observer can know its heading).
-
-    ``learned``: also the gyro EKF with each of these (learned) noises, by row label.
-
-    Returns the table (one row each: ``estimator, x_m, y_m, psi_mrad, rows, vs_ekf``;
-    ``vs_ekf`` is the quadratic mean over x, y and psi of the RMSE ratios to the EKF with the
-    receiver's channels) and the estimates (T, 3) by name (NaN where an observer has none
-    yet, and on the rows not scored)."""
-    from lbo.serve.observer import Observer
-
-    m = log[["x_m", "y_m", "psi_m"]].to_numpy(dtype=float)
-    u = log[["V", "delta"]].to_numpy(dtype=float)
-    z = log[list(TRUTH_COLUMNS)].to_numpy(dtype=float)
-    from lbo.learn.gyro_fit import scored_rows
-
-    r = receiver(log)
-    course, _ = measure.course_over_ground(r[:, 3], r[:, 4], r[:, 5], u[:, 0])
-    scored = scored_rows(log)  # every estimator alike, from the first course over ground
-    fix = np.isfinite(m[:, :2]).all(1) & scored
-    position = rmse(np.column_stack([m[:, :2], z[:, 2]]), z, fix)  # its psi error is 0
-    heading = rmse(np.column_stack([z[:, :2], course]), z, np.isfinite(course))
-    table = [{"estimator": "raw fixes (heading: course over ground)", "x_m": float(position[0]),
-              "y_m": float(position[1]), "psi_mrad": 1e3 * float(heading[2]),
-              "rows": int(fix.sum())}]
-    runs = [(f"{name}, receiver's accuracy and velocity", name, r, False, None)
-            for name in observers]
-    runs += [(label, classical.GYRO, r, False, gyro)
-             for label, gyro in (learned or {}).items()]
-    runs += [("ekf, lbo's R, no velocity", "ekf", None, False, None),
-             ("ekf, receiver's channels, smoothed (RTS, offline)", "ekf", r, True, None)]
-    estimates = {}
-    for label, name, channels, smooth, gyro in runs:
-        obs = Observer.load(name, vehicle, noise, gyro_noise=gyro)
-        est, valid = obs.run(m, u, receiver=channels, smooth=smooth)
-        e = rmse(est, z, valid & scored)
-        table.append({"estimator": label, "x_m": float(e[0]), "y_m": float(e[1]),
-                      "psi_mrad": 1e3 * float(e[2]), "rows": int((valid & scored).sum())})
-        estimates[label] = np.where((valid & scored)[:, None], est, np.nan)  # as scored
-    table = pd.DataFrame(table)
-    rmses = table[["x_m", "y_m", "psi_mrad"]].to_numpy()
-    ekf = table["estimator"].to_list().index(EKF) if EKF in set(table["estimator"]) else None
-    table["vs_ekf"] = (np.nan if ekf is None else
-                       np.sqrt(np.mean(np.square(rmses / rmses[ekf]), axis=1)))
-    return table, estimates
 
 
 def realdrive(cfg: DictConfig) -> dict[str, Any]:
@@ -142,9 +88,10 @@ def realdrive(cfg: DictConfig) -> dict[str, Any]:
                                 for k, p in parts.items()))
     learned = _learn(learn, cfg.simulated, parts, vehicle, noise, out) if learn["epochs"] else {}
     table, estimates = score(parts["test"], observers, vehicle, noise, learned)
+    table["vs_ekf"] = ratio_to(table, EKF)
     write_table(table, out / "results.csv")
     with atomic_path(out / "results.md") as tmp:
-        Path(tmp).write_text(_markdown(table))
+        Path(tmp).write_text(markdown(table, "vs_ekf"))
     with atomic_path(out / "alignment.json") as tmp:
         Path(tmp).write_text(json.dumps({"boresight_mrad": 1e3 * alignment.boresight,
                                          "lever_forward_m": float(alignment.lever[0]),
@@ -163,7 +110,7 @@ def realdrive(cfg: DictConfig) -> dict[str, Any]:
                out / "test.png")
     print(f"test span ({len(test) * vehicle.dt:.0f} s), RMSE against the INS/GNSS truth "
           "at the antenna:")
-    print(_markdown(table), end="")
+    print(markdown(table, "vs_ekf"), end="")
     print(f"written: {out / 'results.md'}, {out / 'test.png'}")
     return {"table": table, "alignment": alignment, "paths": paths}
 
@@ -185,14 +132,8 @@ def _learn(cfg: dict[str, Any], simulated: DictConfig, parts: dict[str, pd.DataF
     def learn(name: str, train: pd.DataFrame | list[pd.DataFrame],
               val: pd.DataFrame | list[pd.DataFrame], start: GyroNoise, epochs: int,
               where: str) -> GyroNoise:
-        print(f"learning the gyro EKF's noise {where} ({epochs} epochs; keeps the best on "
-              "its validation drive)")
-        fitted = gyro_fit.fit(train, val, vehicle, R, start, epochs=epochs, segment=segment,
-                              lr=cfg["lr"], progress=lambda line: print("  " + line))
-        fitted.noise.save(out / f"{name}.json")
-        write_table(fitted.history, out / f"{name}_history.csv")
-        print(f"  kept epoch {fitted.best_epoch}: {fitted.noise}")
-        return fitted.noise
+        return gyro_fit.fit_and_write(out, name, train, val, vehicle, R, start, where, epochs,
+                                      segment, cfg["lr"])
 
     defaults = GyroNoise.from_q(noise.Q)
     out_noise = {LEARNED: learn("gyro_noise", parts["train"], parts["val"], defaults,
@@ -211,13 +152,6 @@ def _learn(cfg: dict[str, Any], simulated: DictConfig, parts: dict[str, pd.DataF
                                       cfg["epochs"], "on the train span, from the simulated "
                                       "drives'")
     return out_noise
-
-
-def _markdown(table: pd.DataFrame) -> str:
-    lines = ["| estimator | x (m) | y (m) | psi (mrad) | vs ekf |", "|---|---:|---:|---:|---:|"]
-    lines += [f"| {r.estimator} | {r.x_m:.2f} | {r.y_m:.2f} | {r.psi_mrad:.1f} | "
-              f"{r.vs_ekf:.2f} |" for r in table.itertuples()]
-    return "\n".join(lines) + "\n"
 
 
 main = entry("realdrive", realdrive)

@@ -139,7 +139,8 @@ def with_receiver(df: pd.DataFrame, z: np.ndarray, u: np.ndarray, cfg: DictConfi
                   alpha: float, seed: int) -> pd.DataFrame:
     """The log ``df`` with its fixes replaced by the channels of ``cfg.receiver``
     (:mod:`lbo.sim.receiver`) of the truth z (T, 3) and inputs u (T, 2), drawn from their own
-    generator (``[seed, 11]``: the log's other columns are those drawn without a receiver)."""
+    generator (``[seed, 11]``: the log's other columns are those drawn without a receiver),
+    and the gyro's true bias as a truth column ``b`` (rad/s), which an oracle is told."""
     from lbo.sim.receiver import COLUMNS, ReceiverSpec, sense
 
     if cfg.get("fix_rate") is not None:
@@ -150,6 +151,7 @@ def with_receiver(df: pd.DataFrame, z: np.ndarray, u: np.ndarray, cfg: DictConfi
     df = df.copy()
     for c in COLUMNS:
         df[c] = out[c][0]
+    df["b"] = out["gyro_bias"][0]
     return df
 
 

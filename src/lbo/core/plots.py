@@ -73,9 +73,9 @@ STYLES: dict[str, dict] = {
 
 
 def nrmse_curves(table, title: str = "", observers: list[str] | None = None,
-                 styles: dict[str, dict] | None = None):
-    """NRMSE against alpha, one curve per observer, from a score table
-    (columns ``observer, alpha, nrmse``)."""
+                 styles: dict[str, dict] | None = None, ylabel: str = "NRMSE"):
+    """NRMSE (or another ratio, named by ``ylabel``) against alpha, one curve per observer,
+    from a score table (columns ``observer, alpha, nrmse``)."""
     fig, ax = plt.subplots(figsize=(6.4, 4.2))
     names = observers or list(dict.fromkeys(table["observer"]))
     # learned observers take colours the classical ones do not use
@@ -87,7 +87,7 @@ def nrmse_curves(table, title: str = "", observers: list[str] | None = None,
                  **(styles or {}).get(name, {})}
         ax.plot(rows["alpha"], rows["nrmse"], label=name, **style)
     ax.axhline(1.0, color="0.6", lw=0.8, ls=":")
-    ax.set(xlabel=r"noise scale $\alpha$", ylabel="NRMSE", title=title)
+    ax.set(xlabel=r"noise scale $\alpha$", ylabel=ylabel, title=title)
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8)
     fig.tight_layout()

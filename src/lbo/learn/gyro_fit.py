@@ -22,6 +22,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
@@ -37,7 +38,8 @@ from lbo.sim.logio import TRUTH_COLUMNS, receiver
 from lbo.sim.noise import Noise
 from lbo.sim.vehicle import Vehicle, wrap_angle
 
-__all__ = ["GyroFit", "estimate", "fit", "measure_ratio", "scored_rows", "segments"]
+__all__ = ["GyroFit", "estimate", "fit", "fit_and_write", "measure_ratio", "scored_rows",
+           "segments"]
 
 
 @dataclass(frozen=True)
@@ -206,3 +208,22 @@ def fit(train: pd.DataFrame | Sequence[pd.DataFrame],
             opt.step()
     return GyroFit(noise=best[2], start=start, history=pd.DataFrame(history),
                    best_epoch=best[1])
+
+
+def fit_and_write(out: Path, name: str, train: pd.DataFrame | Sequence[pd.DataFrame],
+                  val: pd.DataFrame | Sequence[pd.DataFrame], vehicle: Vehicle, R: np.ndarray,
+                  start: GyroNoise, where: str, epochs: int, segment: int, lr: float
+                  ) -> GyroNoise:
+    """:func:`fit`, one printed line per epoch, written into the folder ``out`` as
+    ``<name>.json`` (the noise kept, :meth:`GyroNoise.save`) and ``<name>_history.csv``;
+    ``where`` says in the first line what it learns on. Returns the noise kept."""
+    from lbo.sim.logio import write_table
+
+    print(f"learning the gyro EKF's noise {where} ({epochs} epochs; keeps the best on its "
+          "validation drives)")
+    fitted = fit(train, val, vehicle, R, start, epochs=epochs, segment=segment, lr=lr,
+                 progress=lambda line: print("  " + line))
+    fitted.noise.save(Path(out) / f"{name}.json")
+    write_table(fitted.history, Path(out) / f"{name}_history.csv")
+    print(f"  kept epoch {fitted.best_epoch}: {fitted.noise}")
+    return fitted.noise

@@ -1,0 +1,139 @@
+"""`python -m lbo.receiver_study`: the observers on simulated single-antenna logs, beside an oracle.
+
+    python -m lbo.receiver_study [alphas=[1,3,6]] [drives=3] [learn.epochs=12]
+                                 [output_dir=reports/receiver_study]
+
+Simulates ``drives`` logs at each alpha (``python -m lbo.simulate receiver=single_antenna``:
+fixes without heading at 1 Hz, their reported accuracy, a GNSS velocity and a gyro with a
+bias that walks; alpha scales the receiver's errors) and scores on each, from its first
+course over ground on (:func:`lbo.scoring.receiver.score`):
+
+- the raw fixes; every classical observer with the receiver's channels; the EKF without them
+  and smoothed;
+- the gyro EKF with its noise learned once on simulated drives spread over
+  ``learn.alpha_range`` (:mod:`lbo.learn.gyro_fit`; one noise for every alpha, never told
+  it: the receiver's reported accuracy carries the scale);
+- the oracle gyro EKF, told the true noise and the gyro's true bias
+  (:func:`lbo.scoring.receiver.oracle_gyro`), which every row is measured against
+  (``vs_oracle``: the quadratic mean over x, y and psi of the RMSE ratios).
+
+Writes ``results.csv`` (one row per alpha and estimator, RMSE pooled over the drives),
+``results.md``, ``ratios.png`` (``vs_oracle`` against alpha) and ``gyro_noise.json`` (with
+its ``_history.csv``), and prints the table.
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+from omegaconf import DictConfig, OmegaConf
+
+from lbo.core.atomic import atomic_path
+from lbo.core.checks import integer, number, require
+from lbo.core.cli import entry
+from lbo.core.errors import LboError
+from lbo.filters import classical
+from lbo.filters.gyro import GyroNoise
+from lbo.scoring import receiver as scoring
+from lbo.sim.logio import check_output_path, write_table
+
+__all__ = ["LEARNED", "main", "receiver_study"]
+
+LEARNED = "gyro, noise learned on simulated drives over alpha"
+"""The row of the gyro EKF whose noise was learned once for every alpha."""
+
+
+def _drive(cfg: DictConfig, alpha: float, seed: int) -> pd.DataFrame:
+    """One simulated single-antenna log at ``alpha`` (with truth and the gyro's bias)."""
+    from lbo.simulate import simulate
+
+    one = OmegaConf.create(OmegaConf.to_container(cfg, resolve=True))  # not in struct mode
+    one.alpha, one.seed = float(alpha), int(seed)
+    return simulate(one)
+
+
+def _settings(cfg: DictConfig) -> dict[str, Any]:
+    """The study's numbers, each checked in one line."""
+    alphas = [number(a, "alphas", low=0.0, form="noise scales >= 0") for a in cfg.alphas]
+    require(len(alphas) > 0, "alphas", "a list of noise scales >= 0", list(cfg.alphas))
+    low, high = (number(a, "learn.alpha_range", low=0.0, form="[low, high], each >= 0")
+                 for a in cfg.learn.alpha_range)
+    require(high >= low, "learn.alpha_range", "[low, high] with high >= low",
+            list(cfg.learn.alpha_range))
+    for name in cfg.observers:
+        classical.check(str(name), "observers")
+    return {"alphas": alphas, "drives": integer(cfg.drives, "drives", 1),
+            "seed": integer(cfg.seed, "seed", 0),
+            "epochs": integer(cfg.learn.epochs, "learn.epochs", 0),
+            "learn_drives": integer(cfg.learn.drives, "learn.drives", 2),
+            "range": (low, high),
+            "segment_s": number(cfg.learn.segment_s, "learn.segment_s", 0.0, low_open=True),
+            "lr": number(cfg.learn.lr, "learn.lr", 0.0, low_open=True)}
+
+
+def receiver_study(cfg: DictConfig) -> dict[str, Any]:
+    """Score every observer on simulated single-antenna logs at each alpha (see the module)."""
+    from lbo.learn import gyro_fit
+    from lbo.sim.noise import Noise
+    from lbo.sim.receiver import SIGMA_FLOOR, ReceiverSpec
+    from lbo.sim.vehicle import Vehicle
+
+    s = _settings(cfg)
+    if cfg.get("receiver") is None:
+        raise LboError("receiver: expected a receiver to simulate (receiver=single_antenna)")
+    vehicle, noise = Vehicle.from_cfg(cfg.vehicle), Noise.from_cfg(cfg.noise)
+    spec = ReceiverSpec.from_cfg(cfg.receiver, vehicle.dt)
+    out = Path(str(cfg.output_dir))
+    check_output_path(out / "results.csv")
+    out.mkdir(parents=True, exist_ok=True)
+    learned: dict[str, GyroNoise] = {}
+    if s["epochs"]:
+        n = s["learn_drives"]
+        levels = np.linspace(*s["range"], n + n // 2)  # each drive its own alpha
+        logs = [_drive(cfg, a, s["seed"] + j) for j, a in enumerate(levels)]
+        R = classical.measurement_cov("ekf", noise, 1.0, 1)[0]
+        learned[LEARNED] = gyro_fit.fit_and_write(
+            out, "gyro_noise", logs[:n], logs[n:], vehicle, R, GyroNoise.from_q(noise.Q),
+            f"on {n} simulated drives at alpha {s['range'][0]:g} to {s['range'][1]:g}",
+            s["epochs"], max(2, round(s["segment_s"] / vehicle.dt)), s["lr"])
+    tables = []
+    for i, alpha in enumerate(s["alphas"]):
+        per_drive = []
+        for j in range(s["drives"]):
+            log = _drive(cfg, alpha, s["seed"] + 100 * (i + 1) + j)
+            oracle = scoring.oracle_gyro(
+                log, vehicle, max(alpha * spec.position.sigma, SIGMA_FLOOR),
+                float(np.sqrt(np.prod(noise.process_sigma[:2]))), spec.gyro.sigma)
+            table, _ = scoring.score(log, list(cfg.observers), vehicle, noise, learned,
+                                     {scoring.ORACLE: oracle})
+            per_drive.append(table)
+        table = scoring.pool(per_drive)
+        table.insert(0, "alpha", float(alpha))
+        table["vs_oracle"] = scoring.ratio_to(table, scoring.ORACLE)
+        tables.append(table)
+        print(f"alpha {alpha:g} ({s['drives']} drives): RMSE pooled over the drives")
+        print(scoring.markdown(table, "vs_oracle"), end="")
+    results = pd.concat(tables, ignore_index=True)
+    write_table(results, out / "results.csv")
+    with atomic_path(out / "results.md") as tmp:
+        Path(tmp).write_text("".join(f"\n## alpha = {t['alpha'].iloc[0]:g}\n\n"
+                                     + scoring.markdown(t, "vs_oracle") for t in tables))
+    from lbo.core import plots
+
+    curves = results.rename(columns={"estimator": "observer", "vs_oracle": "nrmse"})
+    plots.save(plots.nrmse_curves(curves, "simulated single-antenna logs",
+                                  ylabel="RMSE ratio to the oracle gyro EKF"),
+               out / "ratios.png")
+    print(f"written: {out / 'results.md'}, {out / 'ratios.png'}")
+    return {"table": results, "learned": learned}
+
+
+main = entry("receiver_study", receiver_study)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

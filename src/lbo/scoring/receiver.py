@@ -1,0 +1,156 @@
+"""Scores on a receiver's log with truth: the raw fixes and every observer that reads one.
+
+A single-antenna log (fixes without a heading, their reported accuracy, a GNSS velocity, a
+gyro) is scored from its first course over ground on: before it, a car standing since the log
+began, no single-antenna observer can know its heading. Each estimator's RMSE of x, y (m) and
+psi (mrad) over the rows it estimates there; :func:`ratio_to` compares them, as the quadratic
+mean over x, y and psi of the RMSE ratios to one row (the measure the real-drive and the
+simulated-receiver targets are stated in). Used by ``python -m lbo.realdrive`` (the hill
+drive) and ``python -m lbo.receiver_study`` (simulated logs, where an oracle can be run).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from lbo.core.errors import LboError
+from lbo.filters import classical, measure
+from lbo.filters.gyro import GyroNoise, gyro_ekf_batch
+from lbo.scoring.metrics import rmse
+from lbo.sim.logio import TRUTH_COLUMNS, receiver
+from lbo.sim.vehicle import Vehicle
+
+__all__ = ["EKF", "ORACLE", "RAW", "markdown", "oracle_gyro", "pool", "ratio_to", "score"]
+
+RAW = "raw fixes (heading: course over ground)"
+"""The raw fixes' row: position at the fix rows; heading: the course of the receiver's
+velocity, where the car moves fast enough for it to be one."""
+EKF = "ekf, receiver's accuracy and velocity"
+"""lbo's kinematic EKF with the receiver's channels: the real drive's reference row."""
+ORACLE = "oracle gyro EKF, told the true noise and bias"
+""":func:`oracle_gyro`'s row: the simulated logs' reference."""
+RMSE = ("x_m", "y_m", "psi_mrad")
+"""A score table's RMSE columns."""
+
+
+def score(log: pd.DataFrame, observers: Sequence[str], vehicle: Vehicle, noise: Any,
+          learned: Mapping[str, GyroNoise] | None = None,
+          extra: Mapping[str, np.ndarray] | None = None
+          ) -> tuple[pd.DataFrame, dict[str, np.ndarray]]:
+    """RMSE (x m, y m, psi mrad) of the raw fixes and each observer on ``log`` (with truth),
+    every one scored from the log's first course over ground on.
+
+    observers : classical observers run with the receiver's channels (:meth:`lbo.Observer.run`);
+    then the EKF without them (lbo's R, no velocity) and smoothed (RTS, offline).
+    learned : also the gyro EKF with each of these (learned) noises, by row label.
+    extra : estimates (T, 3) made elsewhere (NaN: none yet), by row label.
+
+    Returns the table (one row each: ``estimator, x_m, y_m, psi_mrad, rows``) and the
+    estimates (T, 3) by row label (NaN where an observer has none yet, and on the rows not
+    scored)."""
+    from lbo.learn.gyro_fit import scored_rows
+    from lbo.serve.observer import Observer
+
+    m = log[["x_m", "y_m", "psi_m"]].to_numpy(dtype=float)
+    u = log[["V", "delta"]].to_numpy(dtype=float)
+    z = log[list(TRUTH_COLUMNS)].to_numpy(dtype=float)
+    r = receiver(log)
+    course, _ = measure.course_over_ground(r[:, 3], r[:, 4], r[:, 5], u[:, 0])
+    scored = scored_rows(log)  # every estimator alike, from the first course over ground
+    fix = np.isfinite(m[:, :2]).all(1) & scored
+    position = rmse(np.column_stack([m[:, :2], z[:, 2]]), z, fix)  # its psi error is 0
+    heading = rmse(np.column_stack([z[:, :2], course]), z, np.isfinite(course))
+    table = [{"estimator": RAW, "x_m": float(position[0]), "y_m": float(position[1]),
+              "psi_mrad": 1e3 * float(heading[2]), "rows": int(fix.sum())}]
+    runs = [(f"{name}, receiver's accuracy and velocity", name, r, False, None)
+            for name in observers]
+    runs += [(label, classical.GYRO, r, False, gyro)
+             for label, gyro in (learned or {}).items()]
+    runs += [("ekf, lbo's R, no velocity", "ekf", None, False, None),
+             ("ekf, receiver's channels, smoothed (RTS, offline)", "ekf", r, True, None)]
+    found = {}
+    for label, name, channels, smooth, gyro in runs:
+        obs = Observer.load(name, vehicle, noise, gyro_noise=gyro)
+        found[label] = obs.run(m, u, receiver=channels, smooth=smooth)
+    for label, est in (extra or {}).items():
+        found[label] = (est, np.isfinite(est).all(1))
+    estimates = {}
+    for label, (est, valid) in found.items():
+        e = rmse(est, z, valid & scored)
+        table.append({"estimator": label, "x_m": float(e[0]), "y_m": float(e[1]),
+                      "psi_mrad": 1e3 * float(e[2]), "rows": int((valid & scored).sum())})
+        estimates[label] = np.where((valid & scored)[:, None], est, np.nan)  # as scored
+    return pd.DataFrame(table), estimates
+
+
+def ratio_to(table: pd.DataFrame, label: str) -> np.ndarray:
+    """(rows,) the quadratic mean over x, y and psi of each row's RMSE ratios to the row
+    ``label`` (NaN throughout where the table has no such row)."""
+    rmses = table[list(RMSE)].to_numpy(dtype=float)
+    names = table["estimator"].to_list()
+    if label not in names:
+        return np.full(len(table), np.nan)
+    return np.sqrt(np.mean(np.square(rmses / rmses[names.index(label)]), axis=1))
+
+
+def pool(tables: Sequence[pd.DataFrame]) -> pd.DataFrame:
+    """One table of several logs' (same estimators, same order): each RMSE the root of the
+    row-weighted mean of the squares, as if their scored rows were one log's."""
+    if not tables or any(list(t["estimator"]) != list(tables[0]["estimator"]) for t in tables):
+        raise LboError("pool: expected score tables of the same estimators, in one order")
+    rows = np.stack([t["rows"].to_numpy(dtype=float) for t in tables])
+    out = tables[0][["estimator"]].copy()
+    weight = rows / np.maximum(rows.sum(0), 1.0)
+    for c in RMSE:
+        mse = np.stack([t[c].to_numpy(dtype=float) ** 2 for t in tables])
+        out[c] = np.sqrt((weight * mse).sum(0))
+    out["rows"] = rows.sum(0).astype(int)
+    return out
+
+
+def oracle_gyro(log: pd.DataFrame, vehicle: Vehicle, position_sigma: float,
+                process_sigma: float, gyro_sigma: float) -> np.ndarray:
+    """The gyro EKF told what drew a simulated single-antenna log (``python -m lbo.simulate
+    receiver=...``): estimates (T, 3).
+
+    - The gyro less its true bias (the log's ``b`` column), so its bias state starts and stays
+      at 0 (sigma 1e-6 rad/s, no walk).
+    - Each fix's R is its true 1-sigma ``position_sigma`` (m: alpha times the receiver's white
+      and drift combined) in place of the reported accuracy.
+    - The process noise is the truth's on x and y (``process_sigma``, m a step) and none on the
+      heading beyond the gyro's white noise ``gyro_sigma`` (rad/s): the gyro reads the true
+      turn, process noise included.
+    - The course's variance is the velocity's sigma over the speed, with no lever (the
+      truth's point is the one the velocity is of).
+
+    Not told: the drift's correlation in time (an EKF's R is white) and the channels' latency
+    (neither is noise; no observer here is told them)."""
+    if "b" not in log:
+        raise LboError("oracle_gyro: the log has no 'b' column (the gyro's true bias): "
+                       "simulate it with a receiver (python -m lbo.simulate receiver=...)")
+    m = log[["x_m", "y_m", "psi_m"]].to_numpy(dtype=float)
+    if not np.isfinite(m[0, :2]).all():
+        raise LboError("oracle_gyro: the log's first row holds no fix")
+    r = receiver(log)
+    fix = np.isfinite(m[:, 0])
+    r[:, :2] = np.where(fix[:, None], position_sigma, np.nan)
+    v = log["V"].to_numpy(dtype=float)
+    rate = log["r_m"].to_numpy(float) - log["b"].to_numpy(float)
+    rows = measure.rows(m, r[:, :3], r[:, 3:5], r[:, 5], v, np.zeros(len(v)), 0.0)
+    Q = np.diag([process_sigma**2, process_sigma**2, 0.0])
+    R = np.diag([position_sigma**2, position_sigma**2, 1.0])  # every fix reports its own
+    return gyro_ekf_batch(rows[None], np.column_stack([v, rate])[None], vehicle, Q, R,
+                          gyro_sigma=gyro_sigma, bias_sigma=1e-6, bias_walk=1e-12)[0]
+
+
+def markdown(table: pd.DataFrame, versus: str) -> str:
+    """The table as markdown, with its ratio column ``versus`` (e.g. ``vs_ekf``)."""
+    head = versus.replace("_", " ")
+    lines = [f"| estimator | x (m) | y (m) | psi (mrad) | {head} |", "|---|---:|---:|---:|---:|"]
+    lines += [f"| {r['estimator']} | {r['x_m']:.2f} | {r['y_m']:.2f} | {r['psi_mrad']:.1f} | "
+              f"{r[versus]:.2f} |" for _, r in table.iterrows()]
+    return "\n".join(lines) + "\n"
