@@ -13,7 +13,7 @@ MLFLOW_PORT ?= 5000
 MLFLOW_BACKEND ?= sqlite:///$(CURDIR)/mlflow-server.db
 MLFLOW_ARTIFACTS ?= $(CURDIR)/mlflow-server-artifacts
 
-.PHONY: help install test test-fast data reproduce ablation fleet real-drive bench lint clean mlflow-server ui
+.PHONY: help install test test-fast data reproduce ablation fleet real-drive receiver-study bench lint clean mlflow-server ui
 
 help:  ## list the targets
 	@grep -E '^[a-z-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  make %-10s %s\n", $$1, $$2}'
@@ -56,6 +56,9 @@ mlflow-server: install  ## a shared MLflow tracking server on 127.0.0.1:$(MLFLOW
 
 real-drive: install  ## the onavdata hill drive as lbo logs, the gyro EKF's noise learned on it, every classical observer on its test span -> reports/realdrive/
 	$(PY) -m lbo.realdrive
+
+receiver-study: install  ## simulated single-antenna logs at alpha 1, 3, 6: every observer beside an oracle gyro EKF -> reports/receiver_study/
+	$(PY) -m lbo.receiver_study
 
 bench: install  ## benchmarks: data generation, filters, training throughput, latency (medians)
 	$(PY) benchmarks/bench_datagen.py

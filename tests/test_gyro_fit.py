@@ -18,6 +18,7 @@ from lbo.core.errors import LboError
 from lbo.filters.gyro import GyroNoise
 from lbo.learn import gyro_fit
 from lbo.models.gyro_filter import GyroFilter
+from lbo.scoring.receiver import scored_rows
 from lbo.serve.observer import Observer
 from lbo.sim.logcheck import RECEIVER
 from lbo.sim.receiver import ReceiverSpec, sense
@@ -58,7 +59,7 @@ def test_the_torch_twin_steps_as_the_numpy_gyro_ekf(log):
     seg = gyro_fit.segments(log, OTHER, VEHICLE, R, 400)
     est = GyroFilter(OTHER, VEHICLE.dt, torch.as_tensor(R))(seg).detach().numpy()
     full = gyro_fit.estimate(log, OTHER, VEHICLE, R)
-    first = int(np.argmax(gyro_fit.scored_rows(log)))
+    first = int(np.argmax(scored_rows(log)))
     rows = first + 400 * np.arange(len(est))[:, None] + np.arange(400)
     assert len(est) >= 5 and np.abs(est - full[rows]).max() < 1e-9
     # ... the same stretches under another noise differ: the comparison can fail

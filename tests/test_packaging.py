@@ -95,7 +95,7 @@ def test_the_lbo_console_script_runs_each_command_as_python_m_does(tmp_path):
     res = subprocess.run([str(script), "trian"], capture_output=True, text=True)
     assert res.returncode == 2 and res.stderr.strip().splitlines() == [
         "error: unknown command 'trian'; expected one of datagen, simulate, train, tune, "
-        "evaluate, observe, export, reproduce, ablation, realdrive (lbo --help)"]
+        "evaluate, observe, export, reproduce, ablation, realdrive, receiver_study (lbo --help)"]
     args = ["manoeuvre=slalom", "alpha=2", "fix_rate=10"]
     for name, cmd in (("a", [str(script), "simulate"]),
                       ("b", [sys.executable, "-m", "lbo.simulate"])):

@@ -22,6 +22,7 @@ COMMANDS = {
     "reproduce": "the paper's study end to end: tables and figures",
     "ablation": "the paper's crossover, variant by variant",
     "realdrive": "the onavdata hill drive end to end",
+    "receiver_study": "simulated single-antenna logs: every observer beside an oracle",
 }
 """The commands, each a module ``lbo.<command>`` with a ``main``."""
 

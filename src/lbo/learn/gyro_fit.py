@@ -33,13 +33,12 @@ from lbo.filters import classical, measure
 from lbo.filters.gyro import GyroNoise
 from lbo.models.features import wrap_angle_torch
 from lbo.models.gyro_filter import GyroFilter, Segments
-from lbo.scoring.metrics import rmse
+from lbo.scoring.receiver import measure_ratio, scored_rows
 from lbo.sim.logio import TRUTH_COLUMNS, receiver
 from lbo.sim.noise import Noise
 from lbo.sim.vehicle import Vehicle, wrap_angle
 
-__all__ = ["GyroFit", "estimate", "fit", "fit_and_write", "measure_ratio", "scored_rows",
-           "segments"]
+__all__ = ["GyroFit", "estimate", "fit", "fit_and_write", "segments"]
 
 
 @dataclass(frozen=True)
@@ -70,17 +69,6 @@ def _columns(log: pd.DataFrame) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return m, log[["V", "r_m"]].to_numpy(dtype=float), receiver(log)
 
 
-def scored_rows(log: pd.DataFrame) -> np.ndarray:
-    """(T,) bool: the rows from the log's first course over ground on, where a single-antenna
-    observer can know the heading (a car standing since the log began cannot)."""
-    r = receiver(log)
-    course, _ = measure.course_over_ground(r[:, 3], r[:, 4], r[:, 5], log["V"].to_numpy(float))
-    if not np.isfinite(course).any():
-        raise LboError("the log never moves fast enough for a course over ground: a single "
-                       "antenna tells no heading there")
-    return np.arange(len(log)) >= int(np.argmax(np.isfinite(course)))
-
-
 def _preset(noise: GyroNoise, R: np.ndarray) -> Noise:
     """The classical observers' noise preset that carries R (3, 3), the fixes' covariance
     where one reports no accuracy (the gyro EKF takes its Q from ``noise``)."""
@@ -95,14 +83,6 @@ def estimate(log: pd.DataFrame, noise: GyroNoise, vehicle: Vehicle, R: np.ndarra
     m, u, rec = _columns(log)
     return classical.estimate(classical.GYRO, noise.rows(m, rec, u)[None], u[None], vehicle,
                               _preset(noise, R), gyro=noise)[0]
-
-
-def measure_ratio(est: np.ndarray, reference: np.ndarray, truth: np.ndarray,
-                  rows: np.ndarray) -> float:
-    """The quadratic mean over x, y and psi of the ratios of the RMSE of ``est`` to that of
-    ``reference`` (each (T, 3)) against ``truth`` over ``rows`` (T,) bool."""
-    ratios = rmse(est, truth, rows) / rmse(reference, truth, rows)
-    return float(np.sqrt(np.mean(ratios**2)))
 
 
 def segments(log: pd.DataFrame, noise: GyroNoise, vehicle: Vehicle, R: np.ndarray,

@@ -24,17 +24,31 @@ from lbo.scoring.metrics import rmse
 from lbo.sim.logio import TRUTH_COLUMNS, receiver
 from lbo.sim.vehicle import Vehicle
 
-__all__ = ["EKF", "ORACLE", "RAW", "markdown", "oracle_gyro", "pool", "ratio_to", "score"]
+__all__ = ["BLIND", "EKF", "ORACLE", "RAW", "markdown", "measure_ratio", "oracle_gyro", "pool",
+           "ratio_to", "score", "scored_rows"]
 
 RAW = "raw fixes (heading: course over ground)"
 """The raw fixes' row: position at the fix rows; heading: the course of the receiver's
 velocity, where the car moves fast enough for it to be one."""
 EKF = "ekf, receiver's accuracy and velocity"
 """lbo's kinematic EKF with the receiver's channels: the real drive's reference row."""
+BLIND = "ekf, lbo's R, no velocity"
+"""The kinematic EKF without the receiver's channels (lbo's R, no velocity)."""
 ORACLE = "oracle gyro EKF, told the true noise and bias"
 """:func:`oracle_gyro`'s row: the simulated logs' reference."""
 RMSE = ("x_m", "y_m", "psi_mrad")
 """A score table's RMSE columns."""
+
+
+def scored_rows(log: pd.DataFrame) -> np.ndarray:
+    """(T,) bool: the rows from the log's first course over ground on, where a single-antenna
+    observer can know the heading (a car standing since the log began cannot)."""
+    r = receiver(log)
+    course, _ = measure.course_over_ground(r[:, 3], r[:, 4], r[:, 5], log["V"].to_numpy(float))
+    if not np.isfinite(course).any():
+        raise LboError("the log never moves fast enough for a course over ground: a single "
+                       "antenna tells no heading there")
+    return np.arange(len(log)) >= int(np.argmax(np.isfinite(course)))
 
 
 def score(log: pd.DataFrame, observers: Sequence[str], vehicle: Vehicle, noise: Any,
@@ -52,7 +66,6 @@ def score(log: pd.DataFrame, observers: Sequence[str], vehicle: Vehicle, noise: 
     Returns the table (one row each: ``estimator, x_m, y_m, psi_mrad, rows``) and the
     estimates (T, 3) by row label (NaN where an observer has none yet, and on the rows not
     scored)."""
-    from lbo.learn.gyro_fit import scored_rows
     from lbo.serve.observer import Observer
 
     m = log[["x_m", "y_m", "psi_m"]].to_numpy(dtype=float)
@@ -70,7 +83,7 @@ def score(log: pd.DataFrame, observers: Sequence[str], vehicle: Vehicle, noise: 
             for name in observers]
     runs += [(label, classical.GYRO, r, False, gyro)
              for label, gyro in (learned or {}).items()]
-    runs += [("ekf, lbo's R, no velocity", "ekf", None, False, None),
+    runs += [(BLIND, "ekf", None, False, None),
              ("ekf, receiver's channels, smoothed (RTS, offline)", "ekf", r, True, None)]
     found = {}
     for label, name, channels, smooth, gyro in runs:
@@ -87,6 +100,13 @@ def score(log: pd.DataFrame, observers: Sequence[str], vehicle: Vehicle, noise: 
     return pd.DataFrame(table), estimates
 
 
+def measure_ratio(est: np.ndarray, reference: np.ndarray, truth: np.ndarray,
+                  rows: np.ndarray) -> float:
+    """The quadratic mean over x, y and psi of the ratios of the RMSE of ``est`` to that of
+    ``reference`` (each (T, 3)) against ``truth`` over ``rows`` (T,) bool."""
+    return float(_quadratic_mean(rmse(est, truth, rows) / rmse(reference, truth, rows)))
+
+
 def ratio_to(table: pd.DataFrame, label: str) -> np.ndarray:
     """(rows,) the quadratic mean over x, y and psi of each row's RMSE ratios to the row
     ``label`` (NaN throughout where the table has no such row)."""
@@ -94,7 +114,12 @@ def ratio_to(table: pd.DataFrame, label: str) -> np.ndarray:
     names = table["estimator"].to_list()
     if label not in names:
         return np.full(len(table), np.nan)
-    return np.sqrt(np.mean(np.square(rmses / rmses[names.index(label)]), axis=1))
+    return _quadratic_mean(rmses / rmses[names.index(label)])
+
+
+def _quadratic_mean(ratios: np.ndarray) -> np.ndarray:
+    """(..., 3) RMSE ratios of x, y and psi -> (...,) their quadratic mean: the measure."""
+    return np.sqrt(np.mean(np.square(ratios), axis=-1))
 
 
 def pool(tables: Sequence[pd.DataFrame]) -> pd.DataFrame:
