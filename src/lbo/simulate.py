@@ -106,12 +106,15 @@ def simulate(cfg: DictConfig, seed: int | None = None) -> pd.DataFrame:
     spec = check(cfg)
     truth = spec.truth
     if name == FREE_DRIVE:  # the truth model and the sensors' errors come with make_train
+        if truth.car is not None and cfg.get("receiver") is not None:
+            raise LboError("receiver: a free_drive of the car that slips does not keep the rear "
+                           "slip its velocity needs; use stop_and_go or a test manoeuvre")
         out = free_drive(spec, duration, alpha, seed)
-        z, u, m, run_in = out["z"], out["u"], out["m"], 0
+        z, u, m, run_in, slip = out["z"], out["u"], out["m"], 0, None
     else:
         if name == STOP_AND_GO:
             out = drive_stop_and_go(vehicle, spec.motion_noise.process_sigma, rng, truth.car)
-            z, u, run_in = out["z"], out["u"], 0
+            z, u, slip, run_in = out["z"], out["u"], out["slip"], 0
         else:
             man = MANOEUVRES[name]
             run_in = spec.test["run_in"]
@@ -120,6 +123,7 @@ def simulate(cfg: DictConfig, seed: int | None = None) -> pd.DataFrame:
                                                 np.array([man.speed_shape]), run_in, spec.test,
                                                 lambda: np.random.default_rng([seed, 7]))
             z, u = out["z"][0, :run_in + steps[0]], out["u"][0, :run_in + steps[0]]
+            slip = out["slip"][0, :run_in + steps[0]]
         m = measure(z, noise.meas(alpha), rng)
         if truth.sensors.gnss_sigma > 0:
             m += truth.sensors.drift((1, len(z)), vehicle.dt, alpha, rng)[0]
@@ -131,23 +135,25 @@ def simulate(cfg: DictConfig, seed: int | None = None) -> pd.DataFrame:
     df = schema.frame(np.zeros(len(z)), k, vehicle.dt, z, u, m,
                       alpha=np.full(len(z), float(alpha)), scored=k >= run_in)
     if cfg.get("receiver") is not None:
-        df = with_receiver(df, z, u, cfg, vehicle.dt, alpha, seed)
+        df = with_receiver(df, z, u, cfg, vehicle.dt, alpha, seed, slip)
     return df
 
 
 def with_receiver(df: pd.DataFrame, z: np.ndarray, u: np.ndarray, cfg: DictConfig, dt: float,
-                  alpha: float, seed: int) -> pd.DataFrame:
+                  alpha: float, seed: int, slip: np.ndarray | None = None) -> pd.DataFrame:
     """The log ``df`` with its fixes replaced by the channels of ``cfg.receiver``
     (:mod:`lbo.sim.receiver`) of the truth z (T, 3) and inputs u (T, 2), drawn from their own
     generator (``[seed, 11]``: the log's other columns are those drawn without a receiver),
-    and the gyro's true bias as a truth column ``b`` (rad/s), which an oracle is told."""
+    and the gyro's true bias as a truth column ``b`` (rad/s), which an oracle is told.
+    slip : (T,) the rear axle's side slip (rad) that turns its velocity, or None (none)."""
     from lbo.sim.receiver import COLUMNS, ReceiverSpec, sense
 
     if cfg.get("fix_rate") is not None:
         raise LboError("fix_rate: a receiver sets its own rate (receiver.position.rate); "
                        "leave fix_rate null")
     spec = ReceiverSpec.from_cfg(cfg.receiver, dt)
-    out = sense(z[None], u[None], dt, spec, alpha, np.random.default_rng([seed, 11]))
+    out = sense(z[None], u[None], dt, spec, alpha, np.random.default_rng([seed, 11]),
+                None if slip is None else slip[None])
     df = df.copy()
     for c in COLUMNS:
         df[c] = out[c][0]

@@ -34,7 +34,9 @@ def drive(paths: list[np.ndarray], speed: np.ndarray, vehicle: Vehicle,
 
     Returns
     -------
-    dict with ``z`` (G, T, 3) true states (psi wrapped) and ``u`` (G, T, 2) inputs [V, delta].
+    dict with ``z`` (G, T, 3) true states (psi wrapped), ``u`` (G, T, 2) inputs [V, delta] and
+    ``slip`` (G, T) the rear axle's side slip (rad, :func:`lbo.sim.dynamic.rear_slip`; 0 for
+    the kinematic bicycle), which a receiver's velocity shows.
     """
     g, n_steps = speed.shape
     p_max = max(len(p) for p in paths)
@@ -50,6 +52,7 @@ def drive(paths: list[np.ndarray], speed: np.ndarray, vehicle: Vehicle,
     offsets = np.arange(window)
     tan_max = np.tan(vehicle.delta_max)
     lateral = np.zeros((g, 2))  # the dynamic car's v_y and r; it starts straight
+    lateral_k = np.zeros((g, n_steps, 2))
 
     for k in range(n_steps):  # sequential in time (feedback), vectorised over paths
         cand = np.minimum(idx[:, None] + offsets, p_max - 1)
@@ -71,5 +74,8 @@ def drive(paths: list[np.ndarray], speed: np.ndarray, vehicle: Vehicle,
             s = dynamic.step(np.concatenate([z[:, k], lateral], axis=-1), u[:, k], vehicle.dt,
                              car)
             z[:, k + 1], lateral = s[:, :3] + w[:, k], s[:, 3:]
+            lateral_k[:, k + 1] = lateral
+    slip = (np.zeros((g, n_steps)) if car is None
+            else dynamic.rear_slip(np.concatenate([z, lateral_k], axis=-1), u, car))
     z[..., 2] = wrap_angle(z[..., 2])
-    return {"z": z, "u": u}
+    return {"z": z, "u": u, "slip": slip}

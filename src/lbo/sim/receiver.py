@@ -11,9 +11,9 @@ wander, and reports how accurate it thinks each fix is; and an ESC gyro whose bi
 - its reported accuracy ``sx_m, sy_m``: alpha times the error's 1-sigma
   ``sqrt(white^2 + drift^2)``, times a log-normal factor of spread ``reported_spread`` (a
   receiver's estimate of its own accuracy tracks the true error's scale, not each error);
-- velocity ``ve_m, vn_m`` (m/s) with ``sv_m``: the velocity ``V [cos psi, sin psi]``
-  at the same latency, noise and rate (a receiver gives both from one solution); along the
-  heading, also for the car that slips, whose true velocity leans by its sideslip angle;
+- velocity ``ve_m, vn_m`` (m/s) with ``sv_m``: the rear axle's velocity, along the heading
+  turned by its side slip (``slip``: 0 for the kinematic bicycle, the car that slips' rear
+  slip), at the same latency, noise and rate (a receiver gives both from one solution);
 - gyro ``r_m`` (rad/s, counter-clockwise): the true yaw rate, plus a bias that starts at
   N(0, ``gyro_bias^2``) and random-walks at ``gyro_walk`` rad/s/sqrt(s), plus white noise
   and drift; at every step unless its rate is set. alpha scales the receiver's errors, not
@@ -153,12 +153,14 @@ def gyro_bias(shape: tuple[int, int], dt: float, spec: ReceiverSpec,
 
 
 def sense(z: np.ndarray, u: np.ndarray, dt: float, spec: ReceiverSpec,
-          alpha: float | np.ndarray, rng: np.random.Generator) -> dict[str, np.ndarray]:
+          alpha: float | np.ndarray, rng: np.random.Generator,
+          slip: np.ndarray | None = None) -> dict[str, np.ndarray]:
     """The receiver's and gyro's channels of G true trajectories.
 
     z : (G, T, 3) true ``[x, y, psi]``, T >= 2; u : (G, T, 2) true ``[V, delta]``; dt : s;
     alpha : noise scale of the receiver, one or (G,); rng : the generator the channels'
-    own are spawned from.
+    own are spawned from; slip : (G, T) the rear axle's side slip (rad), or None (none): its
+    velocity is ``V / cos(slip)`` along ``psi + slip``.
 
     Returns :data:`COLUMNS` -> (G, T) arrays, NaN in the rows a channel does not hold.
     Also ``"gyro_bias"`` (G, T): the bias the gyro had (for scoring a filter's estimate).
@@ -169,8 +171,10 @@ def sense(z: np.ndarray, u: np.ndarray, dt: float, spec: ReceiverSpec,
     r_pos, r_vel, r_gyro, r_bias, r_rep = rng.spawn(5)
     pos = _delayed(z[..., :2], spec.position.latency, dt)
     pos = pos + a[..., None] * _error(spec.position, (g, t, 2), dt, r_pos)
-    heading = z[..., 2]
-    vel = u[..., :1] * np.stack([np.cos(heading), np.sin(heading)], axis=-1)
+    lean = np.zeros((g, t)) if slip is None else np.broadcast_to(np.asarray(slip, float), (g, t))
+    course = z[..., 2] + lean
+    vel = (u[..., :1] / np.cos(lean)[..., None]) * np.stack([np.cos(course), np.sin(course)],
+                                                            axis=-1)
     vel = _delayed(vel, spec.velocity.latency, dt)
     vel = vel + a[..., None] * _error(spec.velocity, (g, t, 2), dt, r_vel)
     # the yaw rate over each step (the last one repeated), heading on its branch

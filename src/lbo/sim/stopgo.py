@@ -119,11 +119,11 @@ def stop_and_go_speed(dt: float) -> np.ndarray:
 
 def drive_stop_and_go(vehicle: Vehicle, process_sigma, rng: np.random.Generator,
                       car: SingleTrack | None = None) -> dict[str, np.ndarray]:
-    """True states z (T, 3) and inputs u (T, 2) of the stop-and-go drive through town, by the
-    kinematic bicycle or by the dynamic ``car``."""
+    """True states z (T, 3), inputs u (T, 2) and the rear slip (T,) (rad) of the stop-and-go
+    drive through town, by the kinematic bicycle or by the dynamic ``car``."""
     speed = stop_and_go_speed(vehicle.dt)
     path = Chain().straight(60).turn(10, -90, 4).straight(70).turn(12, 90, 5).straight(60) \
         .turn(9, 90, 4).straight(200).segments
     out = drive([sample(path, 0.1, lead_in=0.0, tail=100.0)], speed[None], vehicle,
                 np.asarray(process_sigma), rng, ds=0.1, car=car)
-    return {"z": out["z"][0], "u": out["u"][0]}
+    return {"z": out["z"][0], "u": out["u"][0], "slip": out["slip"][0]}
