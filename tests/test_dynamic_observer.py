@@ -198,7 +198,10 @@ def test_the_body_learns_at_body_lr_times_the_optimisers_rate(body_lr):
 
 def test_reproduce_trains_the_study_beside_the_paper_at_quick_scale(tmp_path):
     cfg = compose_cfg("reproduce", ["scale=quick", f"report_dir={tmp_path}"])
-    jobs = dict(train_jobs(cfg, tmp_path))
+    jobs = {j.key: list(j.overrides) for j in train_jobs(cfg, tmp_path)}
+    kinds = {j.key: (j.kind, j.data) for j in train_jobs(cfg, tmp_path)}
+    assert kinds["dynamic-cnn"] == ("dynamic", "dynamic") and kinds["robust"] == ("robust", None)
+    assert kinds["literal-cnn-N60"] == ("literal", None)
     assert jobs["dynamic"][:2] == ["experiment=dynamic", "data=dynamic"]
     assert jobs["dynamic_drift"][:2] == ["experiment=dynamic", "data=dynamic_drift"]
     assert "resume=true" in jobs["dynamic"]
@@ -206,7 +209,7 @@ def test_reproduce_trains_the_study_beside_the_paper_at_quick_scale(tmp_path):
         assert jobs[f"dynamic-{model}"][:3] == ["experiment=dynamic_blackbox", f"model={model}",
                                                 "data=dynamic"]
         assert f"dynamic_drift-{model}" not in jobs
-    smoke = dict(train_jobs(compose_cfg("reproduce", ["scale=smoke"]), tmp_path))
+    smoke = {j.key for j in train_jobs(compose_cfg("reproduce", ["scale=smoke"]), tmp_path)}
     assert "dynamic" not in smoke  # the smoke reproduction stays seconds long
 
 

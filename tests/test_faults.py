@@ -154,6 +154,8 @@ def test_datagen_removes_the_temp_files_of_a_killed_run(tmp_path):
                          "got ['cnn', 'gru']"),
     ("train_overrides=['metric.reference=foo']",
      "metric.reference must be one of ['ekf', 'paper'], got 'foo'"),
+    ("literal.smoke=[cnn60]", "literal.smoke must be a list of <model>-N<window> (e.g. cnn-N60), "
+                              "got 'cnn60'"),
 ])
 def test_reproduce_checks_every_field_before_its_first_stage(tmp_path, override, message):
     res = subprocess.run([sys.executable, "-m", "lbo.reproduce", "scale=smoke", override,

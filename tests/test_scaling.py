@@ -110,6 +110,26 @@ def test_check_launcher_names_the_package_when_its_module_is_missing(monkeypatch
         check_launcher("joblib")
 
 
+def test_the_launcher_context_instantiates_the_launcher_a_config_names():
+    """lbo's one use of a private Hydra module (its callbacks) builds what a launcher plugin
+    is instantiated with: an ImportError or a changed signature fails here, not hours into
+    make reproduce."""
+    from hydra import compose, initialize_config_dir
+    from hydra.core.plugins import Plugins
+    from hydra.types import HydraContext
+
+    from lbo.core.cli import launcher_context
+    from lbo.core.paths import CONF_DIR
+
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        cfg = compose("train", ["hydra/launcher=joblib"], return_hydra_config=True)
+        context = launcher_context(cfg)
+        launcher = Plugins.instance().instantiate_launcher(
+            hydra_context=context, task_function=lambda c: None, config=cfg)
+    assert isinstance(context, HydraContext)
+    assert type(launcher).__name__ == "JoblibLauncher"
+
+
 @pytest.mark.slow
 def test_joblib_sweep_matches_the_serial_sweep(tmp_path, smoke_data):
     """Four smoke jobs two at a time, each job's MLflow writes racing the others' on one SQLite

@@ -14,10 +14,13 @@ what is missing.
 
 from __future__ import annotations
 
+import dataclasses
 import json
+import re
 import sys
 import time
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -85,7 +88,7 @@ def reproduce(cfg: DictConfig) -> Path:
                        "the test grid; the learned ones were scored by their runs",
                        lambda: stage_classical(cfg, out, folder))
     stages.run(5, "report", f"tables and figures in {out}",
-               lambda: stage_report(cfg, out, folder, tuned, runs, table, stages.record))
+               lambda: stage_report(cfg, out, folder, tuned, runs, table, stages.record, jobs))
     print(f"\nreport: {out / 'report.md'}  ({time.perf_counter() - t0:.0f} s in all)")
     return out
 
@@ -110,8 +113,8 @@ def check_reproduce(cfg: DictConfig) -> None:
     check_store(cfg.tracking_uri, "tracking_uri")
     # every training run's own checks (window, metric, train_overrides, ...), without the
     # tuned parameters, which do not exist yet
-    for _, overrides in train_jobs(cfg, Path(cfg.report_dir)):
-        check(compose("train", [o for o in overrides
+    for job in train_jobs(cfg, Path(cfg.report_dir)):
+        check(compose("train", [o for o in job.overrides
                                 if not o.startswith(("+tuned=", "hydra.searchpath="))]))
 
 
@@ -142,71 +145,95 @@ def stage_tune(cfg: DictConfig, out: Path) -> tuple[dict, str]:
     return results, "reused" if reused else "done"
 
 
-def train_jobs(cfg: DictConfig, out: Path) -> list[tuple[str, list[str]]]:
-    """(name, training overrides) of every observer the train stage trains."""
-    jobs = [(f"{model}-N{window}",
-             [f"experiment={cfg.scale}", f"model={model}", f"window={window}",
-              f"+tuned={model}", f"hydra.searchpath=[file://{out}]"])
+PAPER, ROBUST, LITERAL, DYNAMIC = "paper", "robust", "literal", "dynamic"
+"""The kinds of training job: the paper's eight observers, the robust observer, the paper's
+protocol beside ours, and the car-that-slips study (each its own part of the report)."""
+
+
+@dataclass(frozen=True)
+class Job:
+    """One training run of the study.
+
+    key : its name in the study and its run folder (``cnn-N20``, ``robust``,
+        ``literal-cnn-N60``, ``dynamic``, ``dynamic-cnn``).
+    kind : :data:`PAPER`, :data:`ROBUST`, :data:`LITERAL` or :data:`DYNAMIC`.
+    overrides : ``lbo.train``'s overrides.
+    data : the data set a :data:`DYNAMIC` job trains and is scored on (None for the others).
+    """
+
+    key: str
+    kind: str
+    overrides: tuple[str, ...]
+    data: str | None = None
+
+
+def _model_window(name: str, field: str) -> tuple[str, int]:
+    """``cnn-N60`` -> ("cnn", 60); anything else a one-line error naming ``field``."""
+    found = re.fullmatch(r"([a-z][a-z0-9_]*)-N([1-9][0-9]*)", str(name))
+    require(found is not None, field, "a list of <model>-N<window> (e.g. cnn-N60)", name)
+    return found.group(1), int(found.group(2))
+
+
+def train_jobs(cfg: DictConfig, out: Path) -> list[Job]:
+    """Every run the train stage trains (or reuses), in order."""
+    jobs = [Job(f"{model}-N{window}", PAPER,
+                (f"experiment={cfg.scale}", f"model={model}", f"window={window}",
+                 f"+tuned={model}", f"hydra.searchpath=[file://{out}]"))
             for model in cfg.models for window in cfg.windows]
     if cfg.robust:
-        jobs.append(("robust", ["experiment=robust", f"data={cfg.scale}",
-                                *cfg.robust_overrides[cfg.scale]]))
+        jobs.append(Job("robust", ROBUST, ("experiment=robust", f"data={cfg.scale}",
+                                           *cfg.robust_overrides[cfg.scale])))
     for name in cfg.literal[cfg.scale]:
-        model, _, window = name.partition("-N")
-        jobs.append((f"literal-{name}", [*cfg.literal_overrides[cfg.scale], f"model={model}",
-                                         f"window={window}"]))
-    for data, keys in dynamic_jobs(cfg).items():
-        for key in keys:
-            model = key.removeprefix(f"{data}-") if key != data else None
-            base = (["experiment=dynamic_blackbox", f"model={model}", f"data={data}"]
-                    if model else ["experiment=dynamic", f"data={data}"])
-            jobs.append((key, [*base, *cfg.dynamic_overrides[cfg.scale]]))
-    return [(key, [*o, "resume=true", f"output_dir={out / 'runs' / key}", *cfg.overrides,
-                   *cfg.train_overrides]) for key, o in jobs]
+        model, window = _model_window(name, f"literal.{cfg.scale}")
+        jobs.append(Job(f"literal-{model}-N{window}", LITERAL,
+                        (*cfg.literal_overrides[cfg.scale], f"model={model}",
+                         f"window={window}")))
+    # the car that slips: on each data set the observer that learns the model error (keyed
+    # by the data set), and on the first one the black-box peers (<data>-cnn, <data>-lstm)
+    for i, data in enumerate(cfg.dynamic_study[cfg.scale]):
+        jobs.append(Job(data, DYNAMIC, ("experiment=dynamic", f"data={data}",
+                                        *cfg.dynamic_overrides[cfg.scale]), data))
+        for model in (cfg.dynamic_blackbox[cfg.scale] if i == 0 else []):
+            jobs.append(Job(f"{data}-{model}", DYNAMIC,
+                            ("experiment=dynamic_blackbox", f"model={model}", f"data={data}",
+                             *cfg.dynamic_overrides[cfg.scale]), data))
+    return [dataclasses.replace(j, overrides=(*j.overrides, "resume=true",
+                                              f"output_dir={out / 'runs' / j.key}",
+                                              *cfg.overrides, *cfg.train_overrides))
+            for j in jobs]
 
 
-def dynamic_jobs(cfg: DictConfig) -> dict[str, list[str]]:
-    """Data set of the car-that-slips study -> the keys of its training jobs: the observer
-    that learns the model error (the data set's name), and on the first data set the
-    black-box peers (``<data>-cnn``, ``<data>-lstm``)."""
-    study = list(cfg.dynamic_study[cfg.scale])
-    return {data: [data, *(f"{data}-{m}" for m in (cfg.dynamic_blackbox[cfg.scale]
-                                                   if i == 0 else []))]
-            for i, data in enumerate(study)}
-
-
-def expected(cfg: DictConfig, jobs: list[tuple[str, list[str]]]) -> Eta:
+def expected(cfg: DictConfig, jobs: list[Job]) -> Eta:
     """Measure a few steps of every run still to train; print the stage's expected time."""
     from lbo.learn.builders import data_device
     from lbo.learn.resume import finished_run
     from lbo.train import config_hash
 
     estimates = []
-    for key, overrides in jobs:
-        c = compose("train", overrides)
+    for job in jobs:
+        c = compose("train", list(job.overrides))
         if finished_run(c, config_hash(c), clean=False) is not None:
             estimates.append(0.0)
             continue
         m = measure(c)
         estimates.append(m["seconds"])
-        print(f"    {key}: {m['steps']} steps x {1e3 * m['step_s']:.1f} ms + "
+        print(f"    {job.key}: {m['steps']} steps x {1e3 * m['step_s']:.1f} ms + "
               f"{m['setup_s']:.1f} s setup = {duration(m['seconds'])}", flush=True)
     total = sum(estimates) / (min(cfg.jobs, len(jobs)) if cfg.launcher == "joblib" else 1)
-    device = data_device(compose("train", jobs[0][1]))
+    device = data_device(compose("train", list(jobs[0].overrides)))
     print(f"    expected: about {duration(total)} of training at scale {cfg.scale} on "
           f"{device} (measured steps x steps per run; early stopping can only shorten it)",
           flush=True)
     return Eta(estimates)
 
 
-def stage_train(cfg: DictConfig, out: Path,
-                jobs: list[tuple[str, list[str]]]) -> tuple[dict, str]:
+def stage_train(cfg: DictConfig, out: Path, jobs: list[Job]) -> tuple[dict, str]:
     """3: train (or reuse) every observer, serially or through ``cfg.launcher``."""
     from lbo.train import train
 
     start_stage = time.perf_counter()
 
-    study = {k: data for data, keys in dynamic_jobs(cfg).items() for k in keys}
+    study = {j.key: j.data for j in jobs if j.kind == DYNAMIC}
 
     def report_line(done: int, key: str, run: dict, how: str) -> None:
         on = f" on data={study[key]}" if key in study else ""
@@ -217,15 +244,17 @@ def stage_train(cfg: DictConfig, out: Path,
     runs: dict[str, dict] = {}
     eta = expected(cfg, jobs)
     if cfg.launcher:
-        results = launch(cfg, [o for _, o in jobs], out / "runs", [k for k, _ in jobs])
-        for done, ((key, _), res) in enumerate(zip(jobs, results, strict=True), 1):
-            runs[key] = res
-            report_line(done, key, res, "reused" if res.get("reused") else "trained")
-    for done, (key, overrides) in enumerate(jobs, 1):
+        results = launch(cfg, [list(j.overrides) for j in jobs], out / "runs",
+                         [j.key for j in jobs])
+        for done, (job, res) in enumerate(zip(jobs, results, strict=True), 1):
+            runs[job.key] = res
+            report_line(done, job.key, res, "reused" if res.get("reused") else "trained")
+    for done, job in enumerate(jobs, 1):
+        key = job.key
         if key in runs:
             continue
         start = time.perf_counter()
-        runs[key] = train(compose("train", overrides))
+        runs[key] = train(compose("train", list(job.overrides)))
         seconds = time.perf_counter() - start
         reused = bool(runs[key].get("reused"))
         left = eta.skipped(done - 1) if reused else eta.finished(done - 1, seconds)
@@ -251,18 +280,19 @@ def stage_classical(cfg: DictConfig, out: Path, folder: Path) -> tuple[pd.DataFr
 
 
 def stage_report(cfg: DictConfig, out: Path, folder: Path, tuned: dict, runs: dict,
-                 classical_table: pd.DataFrame, record: dict) -> tuple[list[Path], str]:
+                 classical_table: pd.DataFrame, record: dict, jobs: list[Job]
+                 ) -> tuple[list[Path], str]:
     """5: the tables and figures, also logged to MLflow as a run of their own."""
     from lbo.scoring import report
 
-    study = dynamic_jobs(cfg)  # scored on test sets of their own
+    mine = {j.key: j.data for j in jobs if j.kind == DYNAMIC}  # scored on test sets of their own
     dynamic = {data: pd.concat([pd.read_csv(run_artifact(runs[k], "evaluation.csv",
-                                                      cfg.tracking_uri)) for k in keys],
+                                                      cfg.tracking_uri))
+                                for k, d in mine.items() if d == data],
                                ignore_index=True).drop_duplicates(["observer", "alpha"])
-               for data, keys in study.items()}
-    mine = {k: data for data, keys in study.items() for k in keys}
+               for data in dict.fromkeys(mine.values())}
     run_ids = {f"{runs[k]['name']} on data={data}": runs[k]["run_id"] for k, data in mine.items()}
-    literal = [k for k in runs if k.startswith("literal-")]  # the paper's protocol, a section
+    literal = [j.key for j in jobs if j.kind == LITERAL]  # the paper's protocol, a section
     literal_table = pd.concat([_renamed(run_artifact(runs[k], "evaluation.csv", cfg.tracking_uri),
                                         runs[k]["name"], k) for k in literal],
                               ignore_index=True) if literal else None
@@ -280,7 +310,7 @@ def stage_report(cfg: DictConfig, out: Path, folder: Path, tuned: dict, runs: di
     best_cnn = report.best_window(table, "cnn")
     traj = _trajectory(folder, runs.get(best_cnn), cfg.trajectory_manoeuvre,
                        cfg.tracking_uri) if best_cnn else None
-    robust = runs["robust"]["name"] if "robust" in runs else None
+    robust = next((runs[j.key]["name"] for j in jobs if j.kind == ROBUST), None)
     files = report.write(out, cfg.scale, table, run_ids, record, traj,
                          folder / "friction_circle.png", robust=robust, dynamic=dynamic,
                          literal=literal_table)
@@ -312,11 +342,10 @@ def launch(cfg: DictConfig, job_overrides: list[list[str]], sweep_dir: Path,
     its Hydra node, and one override list per job. The jobs may differ in more than a grid's
     keys (the robust observer), which a command-line sweep cannot say.
     """
-    from hydra._internal.callbacks import Callbacks
-    from hydra.core.global_hydra import GlobalHydra
     from hydra.core.hydra_config import HydraConfig
     from hydra.core.plugins import Plugins
-    from hydra.types import HydraContext
+
+    from lbo.core.cli import launcher_context
 
     master = compose("train", [f"hydra/launcher={cfg.launcher}", f"hydra.sweep.dir={sweep_dir}",
                                *([f"hydra.launcher.n_jobs={cfg.jobs}"]
@@ -325,8 +354,7 @@ def launch(cfg: DictConfig, job_overrides: list[list[str]], sweep_dir: Path,
     own = HydraConfig.instance().cfg
     try:
         launcher = Plugins.instance().instantiate_launcher(
-            hydra_context=HydraContext(config_loader=GlobalHydra.instance().config_loader(),
-                                       callbacks=Callbacks(master)),
+            hydra_context=launcher_context(master),
             task_function=_train_job, config=master)
         returns = launcher.launch([[*o, f"hydra.sweep.subdir={n}"]
                                    for o, n in zip(job_overrides, names, strict=True)],

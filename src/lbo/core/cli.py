@@ -239,3 +239,19 @@ def launcher_from_argv(argv: list[str]) -> str | None:
         if key == "hydra/launcher" and value:
             return value
     return None
+
+
+def launcher_context(config: DictConfig) -> Any:
+    """The ``hydra.types.HydraContext`` a launcher plugin is instantiated with, for the
+    composed ``config`` (with its Hydra node): the global config loader and the callbacks
+    ``config`` names.
+
+    Hydra has no public constructor for its callbacks; this is the one place lbo reaches its
+    private ``hydra._internal.callbacks`` (``hydra-core`` is pinned below 1.4; a move there is one
+    ImportError here, which ``tests/test_scaling.py`` catches)."""
+    from hydra._internal.callbacks import Callbacks
+    from hydra.core.global_hydra import GlobalHydra
+    from hydra.types import HydraContext
+
+    return HydraContext(config_loader=GlobalHydra.instance().config_loader(),
+                        callbacks=Callbacks(config))
