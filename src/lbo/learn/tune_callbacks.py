@@ -35,9 +35,8 @@ class Interrupts(L.Callback):
 
     Python raises KeyboardInterrupt at whatever line runs when the signal comes; inside a
     database call it can leave a connection holding SQLite's write lock, and the runs that
-    the study must close then wait for that lock (seen on a busy machine: tune hung for
-    minutes after one Ctrl-C). The first Ctrl-C is only recorded; a second one interrupts at
-    once, for a study stuck where no check comes.
+    the study must close then wait for that lock. The first Ctrl-C is only recorded; a second
+    one interrupts at once, for a study stuck where no check comes.
     """
 
     def __init__(self) -> None:

@@ -67,15 +67,12 @@ def default_form(net: Any) -> str:
     """The form a learned observer runs in unless asked for another: ``recursive`` for the
     robust observer's window filter, ``window`` for every other net.
 
-    Measured on the robust test grid (``docs/serving.md``), the recursive form of the robust
-    observer is within 0.5 % of its window form at every alpha (0.996 to 1.004 times its NRMSE;
-    a tie on average), at a constant cost per step and
-    with a covariance. A window filter with a learned process model (``residual``, a
-    single-track body) or drift states (the car that slips, ``experiment=dynamic``) stays in
-    its window form: its noise model learned to inflate R at high noise as the window's
-    memory, which a filter carried from step to step does not forget, so its heading drifts
-    (on ``data=dynamic``: 1.01 to 1.06 times the window form's NRMSE up to alpha 1.5, 8.3 times
-    at alpha 6, measured)."""
+    The recursive form estimates as well as the window form (``docs/serving.md`` has the
+    measurement), at a constant cost per step and with a covariance. A window filter with a
+    learned process model (``residual``, a single-track body) or drift states (the car that
+    slips, ``experiment=dynamic``) stays in its window form: its noise model learned to
+    inflate R at high noise as the window's memory, which a filter carried from step to step
+    does not forget, so its heading would drift (``docs/dynamic.md``)."""
     inner = getattr(net, "net", None)
     if not getattr(net, "physical", False) or getattr(inner, "residual", 0) or \
             getattr(inner, "drift", False) or getattr(inner, "single_track", False):
