@@ -20,7 +20,7 @@ from lbo.learn import gyro_fit
 from lbo.models.gyro_filter import GyroFilter
 from lbo.scoring.receiver import scored_rows
 from lbo.serve.observer import Observer
-from lbo.sim.logcheck import RECEIVER
+from lbo.sim.columns import RECEIVER
 from lbo.sim.receiver import ReceiverSpec, sense
 from lbo.sim.vehicle import Vehicle, simulate
 
@@ -53,6 +53,19 @@ def _log(seed: int, seconds: float = 60.0, reported: float = 1.0) -> pd.DataFram
 @pytest.fixture(scope="module")
 def log() -> pd.DataFrame:
     return _log(0)
+
+
+def test_trusting_the_velocity_less_widens_its_course_but_keeps_its_rows(log):
+    """velocity_scale weighs the course; the receiver's reported sigma says which rows hold
+    one (a learned factor of 3 must not drop the courses of a car moving at 3 m/s)."""
+    m = log[["x_m", "y_m", "psi_m"]].to_numpy()
+    rec = log[list(RECEIVER)].to_numpy()
+    u = log[["V", "delta"]].to_numpy()
+    plain = dataclasses.replace(OTHER, velocity_scale=1.0, course_lever=1e-9).rows(m, rec, u)
+    wide = dataclasses.replace(OTHER, velocity_scale=3.0, course_lever=1e-9).rows(m, rec, u)
+    held = np.isfinite(plain[:, 6])
+    assert held.sum() > 10 and np.array_equal(held, np.isfinite(wide[:, 6]))
+    np.testing.assert_allclose(wide[held, 7], 3.0 * plain[held, 7], rtol=1e-9)
 
 
 def test_the_torch_twin_steps_as_the_numpy_gyro_ekf(log):

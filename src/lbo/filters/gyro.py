@@ -65,7 +65,8 @@ class GyroNoise:
     gyro_sigma, bias_walk : the gyro's white noise (rad/s) and bias walk (rad/s/sqrt(s)).
     accuracy_scale : factor on the receiver's reported ``sx_m, sy_m`` (a receiver's reported
         accuracy is a scale of its error, not its size).
-    velocity_scale : factor on its ``sv_m`` (or :data:`lbo.filters.measure.SV_DEFAULT`).
+    velocity_scale : factor on its ``sv_m`` (or :data:`lbo.filters.measure.SV_DEFAULT`) in
+        the course's variance; which rows hold a course is the reported sigma's to say.
     course_lever : the antenna's distance (m) from the rear axle that the course's variance
         allows for (:data:`lbo.filters.measure.COURSE_LEVER`).
     """
@@ -97,12 +98,12 @@ class GyroNoise:
 
     def rows(self, m: np.ndarray, receiver: np.ndarray, u: np.ndarray) -> np.ndarray:
         """The filter's rows (T, 8) of fixes m (T, 3), a receiver's channels (T, 7)
-        (:data:`lbo.sim.logcheck.RECEIVER`) and inputs u (T, 2) ``[V, r_m]``: the reported
-        accuracies and the velocity's sigma scaled, the course's allowance at the lever."""
+        (:data:`lbo.sim.columns.RECEIVER`) and inputs u (T, 2) ``[V, r_m]``: the reported
+        accuracies scaled, the course's variance with the velocity's sigma scaled and the
+        allowance at the lever (its rows those the reported sigma gives)."""
         sigma = receiver[:, :3] * np.array([self.accuracy_scale, self.accuracy_scale, 1.0])
-        sv = np.where(np.isfinite(receiver[:, 5]), receiver[:, 5], measure.SV_DEFAULT)
-        return measure.rows(m, sigma, receiver[:, 3:5], self.velocity_scale * sv, u[:, 0],
-                            u[:, 1], self.course_lever)
+        return measure.rows(m, sigma, receiver[:, 3:5], receiver[:, 5], u[:, 0], u[:, 1],
+                            self.course_lever, self.velocity_scale)
 
     def stepper(self) -> dict[str, float]:
         """The keyword arguments of :class:`GyroStepper` and :func:`gyro_ekf_batch`."""

@@ -70,8 +70,8 @@ def widen(m: np.ndarray) -> np.ndarray:
 
 
 def course_over_ground(ve: np.ndarray, vn: np.ndarray, sv: np.ndarray, V: np.ndarray,
-                       turn: np.ndarray | None = None, lever: float = COURSE_LEVER
-                       ) -> tuple[np.ndarray, np.ndarray]:
+                       turn: np.ndarray | None = None, lever: float = COURSE_LEVER,
+                       trust: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
     """The course channel of GNSS velocities: ``(course, s_course)`` (T,) rad, NaN where not held.
 
     ve, vn : (T,) m/s east and north, NaN where the row has no velocity.
@@ -80,6 +80,9 @@ def course_over_ground(ve: np.ndarray, vn: np.ndarray, sv: np.ndarray, V: np.nda
         the course plus pi.
     turn : (T,) the turn rate (rad/s), e.g. ``V tan(delta) / L``, or None (not allowed for).
     lever : the antenna's distance (m) from the rear axle that the variance allows for.
+    trust : a factor on ``sv`` in the variance (a learned ``velocity_scale``); which rows hold
+        a course is the receiver's own sigma's to say, so a filter told to trust the velocity
+        less still takes its course from the same speed on.
     """
     ve, vn, sv, V = (np.asarray(a, dtype=float) for a in (ve, vn, sv, V))
     turn = np.zeros_like(V) if turn is None else np.asarray(turn, dtype=float)
@@ -88,20 +91,22 @@ def course_over_ground(ve: np.ndarray, vn: np.ndarray, sv: np.ndarray, V: np.nda
     held = np.isfinite(speed) & (speed >= COURSE_MIN_SPEED) & (speed >= COURSE_MIN_SNR * sv)
     safe = np.where(held, speed, 1.0)
     course = np.arctan2(vn, ve) + np.where(V < 0, np.pi, 0.0)
-    sigma = np.hypot(sv, lever * turn) / safe
+    sigma = np.hypot(trust * sv, lever * turn) / safe
     return np.where(held, wrap_angle(course), np.nan), np.where(held, sigma, np.nan)
 
 
 def rows(m: np.ndarray, sigma: np.ndarray | None = None, velocity: np.ndarray | None = None,
          sv: np.ndarray | None = None, V: np.ndarray | None = None,
-         turn: np.ndarray | None = None, lever: float = COURSE_LEVER) -> np.ndarray:
+         turn: np.ndarray | None = None, lever: float = COURSE_LEVER,
+         trust: float = 1.0) -> np.ndarray:
     """The filters' rows (T, 8) of a log's columns.
 
     m : (T, 3) ``[x_m, y_m, psi_m]``.
     sigma : (T, 3) reported ``[sx_m, sy_m, spsi_m]`` (NaN: none), or None.
     velocity : (T, 2) ``[ve_m, vn_m]`` (NaN: none), or None; needs ``V`` (T,).
     sv : (T,) ``sv_m`` or None (:data:`SV_DEFAULT`).
-    turn : (T,) turn rate (rad/s) or None, and lever (m): see :func:`course_over_ground`.
+    turn : (T,) turn rate (rad/s) or None, lever (m) and trust: see
+        :func:`course_over_ground`.
     """
     out = widen(m).copy()
     if sigma is not None:
@@ -110,7 +115,7 @@ def rows(m: np.ndarray, sigma: np.ndarray | None = None, velocity: np.ndarray | 
         velocity = np.asarray(velocity, dtype=float)
         spread = np.full(len(out), np.nan) if sv is None else sv
         out[:, 6], out[:, 7] = course_over_ground(velocity[:, 0], velocity[:, 1], spread, V,
-                                                  turn, lever)
+                                                  turn, lever, trust)
     return out
 
 

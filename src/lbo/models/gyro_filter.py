@@ -85,11 +85,11 @@ class GyroFilter(nn.Module):
         Q = torch.diag(q)
         H = eye4  # channels x_m, y_m, course (on psi) and the standstill gyro (on b)
         # the velocity's course, as lbo.filters.measure.course_over_ground holds it
-        sv = p["velocity_scale"] * seg.sv
         speed = torch.nan_to_num(seg.speed, nan=0.0)
         course_held = ((speed >= measure.COURSE_MIN_SPEED)
-                       & (speed >= measure.COURSE_MIN_SNR * sv) & torch.isfinite(seg.course))
+                       & (speed >= measure.COURSE_MIN_SNR * seg.sv) & torch.isfinite(seg.course))
         safe = torch.where(course_held, speed, torch.ones_like(speed))
+        sv = p["velocity_scale"] * seg.sv  # trusted less or more; held where it is reported
         course_var = (sv**2 + (p["course_lever"] * seg.u[..., 1]) ** 2) / safe**2
         # the fixes' R: a reported accuracy replaces the filter's variance and drops its
         # correlation (lbo.filters.measure.step_cov)
