@@ -9,7 +9,7 @@ import pytest
 from helpers import compose_cfg
 from lbo.core.errors import LboError
 from lbo.datagen import generate
-from lbo.sim import schema
+from lbo.sim import columns, schema
 from lbo.sim.datasets import G, build, make_test, spec_from_cfg
 from lbo.sim.friction import Grid, accelerations, generate_train
 from lbo.sim.manoeuvres import MANOEUVRES
@@ -23,10 +23,10 @@ def smoke_spec(root, *overrides):
 
 def test_sets_follow_the_schema(smoke_data):
     train = pd.read_parquet(smoke_data / "train.parquet")
-    assert tuple(train.columns) == schema.COLUMNS
+    assert tuple(train.columns) == columns.SET
     for name in ("val", "test"):
         df = pd.read_parquet(smoke_data / f"{name}.parquet")
-        assert tuple(df.columns) == schema.EVAL_COLUMNS
+        assert tuple(df.columns) == columns.SCORED_SET
         assert df["scored"].dtype == bool
     assert (smoke_data / "friction_circle.png").stat().st_size > 10_000
     assert (smoke_data / "test_manoeuvres.png").stat().st_size > 10_000
@@ -175,7 +175,7 @@ def test_reading_a_set_checks_its_columns(tmp_path):
         schema.read_set(tmp_path / "x.parquet")
     with pytest.raises(LboError, match="not found"):
         schema.read_set(tmp_path / "nope.parquet")
-    full = {c: [0.0, np.nan] for c in schema.COLUMNS}
+    full = {c: [0.0, np.nan] for c in columns.SET}
     schema.write_set(pd.DataFrame(full), tmp_path / "nan.parquet")
     with pytest.raises(LboError, match="column 'traj' has NaN"):
         schema.read_set(tmp_path / "nan.parquet")

@@ -15,7 +15,8 @@ from lbo.filters import classical
 from lbo.filters.gyro import gyro_ekf_batch
 from lbo.filters.measure import rows
 from lbo.serve.observer import Observer
-from lbo.sim.logcheck import RECEIVER, check_receiver
+from lbo.sim.columns import RECEIVER
+from lbo.sim.logcheck import check_receiver
 from lbo.sim.noise import Noise
 from lbo.sim.receiver import Channel, ReceiverSpec, sense
 from lbo.sim.vehicle import Vehicle, simulate, wrap_angle

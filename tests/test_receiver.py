@@ -15,7 +15,8 @@ from helpers import compose_cfg
 from lbo.core.errors import LboError
 from lbo.filters import classical, measure
 from lbo.serve.observer import Observer
-from lbo.sim.logcheck import RECEIVER, check_receiver
+from lbo.sim.columns import RECEIVER
+from lbo.sim.logcheck import check_receiver
 from lbo.sim.logio import resample
 from lbo.sim.noise import Noise
 from lbo.sim.vehicle import Vehicle, wrap_angle

@@ -12,7 +12,7 @@ import pytest
 from lbo.core.errors import LboError
 from lbo.filters import classical
 from lbo.serve.observer import Observer
-from lbo.sim.logcheck import RECEIVER
+from lbo.sim.columns import RECEIVER
 from lbo.sim.noise import Noise
 from lbo.sim.receiver import Channel, ReceiverSpec, gyro_bias, sense
 from lbo.sim.vehicle import Vehicle, simulate, wrap_angle

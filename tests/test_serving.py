@@ -13,28 +13,24 @@ import pandas as pd
 import pytest
 import requests
 
-from helpers import ROBUST_SMOKE, train_in_own_store
 from helpers.servers import model_server
 from lbo.core.errors import LboError
 from lbo.export import register
 from lbo.serve.observer import Observer
-from lbo.serve.serving import INPUT_COLUMNS, OUTPUT_COLUMNS, estimates
+from lbo.serve.serving import estimates
+from lbo.sim.columns import SERVED, WINDOW
 
 pytestmark = [pytest.mark.slow, pytest.mark.usefixtures("one_torch_thread")]
 
 
 @pytest.fixture(scope="module")
-def robust(tmp_path_factory, smoke_data):
-    """The robust observer trained at smoke scale in an MLflow store of its own."""
-    tmp = tmp_path_factory.mktemp("serving")
-    _, out, uri = train_in_own_store(tmp, smoke_data, *ROBUST_SMOKE,
-                                     "trainer.limit_train_batches=3", "window=40", "batch_size=32")
-    return {"run_id": out["run_id"], "uri": uri}
+def robust(robust_smoke):
+    return robust_smoke
 
 
 @pytest.fixture(scope="module")
 def log(manoeuvre):
-    frame = manoeuvre[list(INPUT_COLUMNS)].reset_index(drop=True).iloc[:300].copy()
+    frame = manoeuvre[list(WINDOW)].reset_index(drop=True).iloc[:300].copy()
     frame.loc[frame.index % 5 != 0, ["x_m", "y_m", "psi_m"]] = np.nan  # fixes at 10 Hz
     return frame
 
@@ -66,7 +62,7 @@ def test_every_training_run_logs_a_model_that_pyfunc_loads_in_a_fresh_process(ro
     assert res.returncode == 0, res.stderr[-3000:]
     got = pd.read_parquet(tmp_path / "out.parquet")
     want = _expected(robust, log)
-    assert list(got.columns) == list(OUTPUT_COLUMNS) and len(got) == len(log)
+    assert list(got.columns) == list(SERVED) and len(got) == len(log)
     pd.testing.assert_frame_equal(got, want, atol=1e-9)
     # the robust observer knows how sure it is: a covariance on every valid row
     assert got["valid"].all() and (got[["var_x", "var_y", "var_psi"]] > 0).all(axis=None)
@@ -95,7 +91,7 @@ def test_the_registry_registers_the_model(robust, monkeypatch):
     assert uri == "models:/lbo-robust/1"
     assert Observer.load(uri).name == "filternet-N40"
     model = mlflow.pyfunc.load_model(uri)  # the pyfunc model, not a folder of checkpoints
-    assert list(model.metadata.get_input_schema().input_names()) == [*INPUT_COLUMNS, "log"]
+    assert list(model.metadata.get_input_schema().input_names()) == [*WINDOW, "log"]
 
 
 def test_a_log_without_its_columns_is_one_line():

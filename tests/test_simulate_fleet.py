@@ -11,7 +11,7 @@ import pytest
 
 from helpers import compose_cfg
 from lbo.core.errors import LboError
-from lbo.sim import schema
+from lbo.sim import columns
 from lbo.sim.vehicle import wrap_angle
 from lbo.simulate import simulate, write_logs
 
@@ -33,7 +33,7 @@ def test_free_drive_is_one_seeded_friction_circle_trajectory():
     cfg = compose_cfg("simulate", FREE)
     assert cfg.vehicle.dt == 0.02
     df = simulate(cfg)
-    assert tuple(df.columns) == schema.EVAL_COLUMNS  # the columns of the other logs
+    assert tuple(df.columns) == columns.SCORED_SET  # the columns of the other logs
     assert len(df) == 500
     assert np.isfinite(df.drop(columns="scored").to_numpy(float)).all()
     np.testing.assert_array_equal(df["k"], np.arange(500))

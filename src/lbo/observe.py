@@ -56,9 +56,9 @@ from lbo.core.cli import entry
 from lbo.core.errors import LboError
 from lbo.models.envelope import check_mode
 from lbo.scoring.metrics import PAPER_REFERENCE, nrmse, rmse
+from lbo.sim.columns import COVARIANCE, LOG, RECEIVER, STATE
 from lbo.sim.logcheck import (
     MAX_GAP,
-    RECEIVER,
     check_alpha,
     check_device,
     check_max_gap,
@@ -66,9 +66,6 @@ from lbo.sim.logcheck import (
 )
 from lbo.sim.logformat import LogFormat
 from lbo.sim.logio import (
-    COVARIANCE_COLUMNS,
-    LOG_COLUMNS,
-    TRUTH_COLUMNS,
     check_log,
     check_output_path,
     check_period,
@@ -151,7 +148,7 @@ def observe(cfg: DictConfig) -> dict[str, Any]:
                        envelope_mode=mode)
     check_steering(df, obs.vehicle, where)
     check_time_unit(df["t"].to_numpy(dtype=float), obs.dt, where)
-    columns = (LOG_COLUMNS[1:] + (TRUTH_COLUMNS if truth else ())
+    columns = (LOG[1:] + (STATE if truth else ())
                + tuple(c for c in RECEIVER if c in df.columns))
     if cfg.resample:
         df = resample(df, obs.dt, columns, max_gap, where)
@@ -168,13 +165,13 @@ def observe(cfg: DictConfig) -> dict[str, Any]:
     result: dict[str, Any] = {"output": output, "observer": obs.name, "rows": len(df),
                               "valid": int(valid.sum())}
     if truth:
-        z = df[list(TRUTH_COLUMNS)].to_numpy(dtype=float)
+        z = df[list(STATE)].to_numpy(dtype=float)
         result["rmse"] = rmse(est, z, valid)
         result["nrmse"] = nrmse(result["rmse"]) if valid.any() else float("nan")
     out = pd.DataFrame({"t": df["t"].to_numpy(dtype=float), "x": est[:, 0], "y": est[:, 1],
                         "psi": est[:, 2], "valid": valid})
     if obs.gives_covariance:
-        for name_, (i, j) in zip(COVARIANCE_COLUMNS, ((0, 0), (1, 1), (2, 2), (0, 1))):
+        for name_, (i, j) in zip(COVARIANCE, ((0, 0), (1, 1), (2, 2), (0, 1))):
             out[name_] = cov[:, i, j]
     if envelope is not None:  # the fields of the training envelope each row is outside of
         out["outside"] = envelope.reasons()
@@ -185,7 +182,7 @@ def observe(cfg: DictConfig) -> dict[str, Any]:
         from lbo.core import plots
 
         plots.save(plots.observed_log(out["t"].to_numpy(), m, np.where(valid[:, None], est, np.nan),
-                                      obs.name, df[list(TRUTH_COLUMNS)].to_numpy(dtype=float)
+                                      obs.name, df[list(STATE)].to_numpy(dtype=float)
                                       if truth else None, cov if obs.gives_covariance else None),
                    plot)
 

@@ -42,7 +42,8 @@ from lbo.filters import classical
 from lbo.filters.gyro import GyroNoise
 from lbo.scoring.receiver import EKF, markdown, ratio_to, score
 from lbo.sim import hguide
-from lbo.sim.logio import TRUTH_COLUMNS, check_log, check_output_path, write_table
+from lbo.sim.columns import STATE
+from lbo.sim.logio import check_log, check_output_path, write_table
 
 __all__ = ["FINE_TUNED", "LEARNED", "SIMULATED", "main", "realdrive"]
 
@@ -106,7 +107,7 @@ def realdrive(cfg: DictConfig) -> dict[str, Any]:
     best = (LEARNED if learned
             else f"{observers[0]}, receiver's accuracy and velocity")
     plots.save(plots.observed_log(test["t"].to_numpy(), test[["x_m", "y_m", "psi_m"]].to_numpy(),
-                                  estimates[best], best, test[list(TRUTH_COLUMNS)].to_numpy()),
+                                  estimates[best], best, test[list(STATE)].to_numpy()),
                out / "test.png")
     print(f"test span ({len(test) * vehicle.dt:.0f} s), RMSE against the INS/GNSS truth "
           "at the antenna:")

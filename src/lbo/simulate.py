@@ -34,6 +34,7 @@ from lbo.core.checks import integer, number, require
 from lbo.core.cli import entry
 from lbo.core.errors import LboError
 from lbo.sim import schema
+from lbo.sim.columns import INPUT, MEAS, STATE
 from lbo.sim.logcheck import fix_period
 from lbo.sim.manoeuvres import MANOEUVRES
 from lbo.sim.stopgo import drive_stop_and_go
@@ -60,8 +61,8 @@ def free_drive(spec, duration: float, alpha: float, seed: int) -> dict[str, np.n
     train = {**spec.train, "n_traj": 1, "duration": float(duration), "stop_and_go": 0.0,
              "alpha": float(alpha)}
     df = make_train(dataclasses.replace(spec, seed=int(seed), train=train))
-    return {"z": df[list(schema.STATE)].to_numpy(), "u": df[list(schema.INPUT)].to_numpy(),
-            "m": df[list(schema.MEAS)].to_numpy()}
+    return {"z": df[list(STATE)].to_numpy(), "u": df[list(INPUT)].to_numpy(),
+            "m": df[list(MEAS)].to_numpy()}
 
 
 def check_duration(cfg: DictConfig, dt: float) -> float:

@@ -34,14 +34,13 @@ from lbo.learn.draws import AlphaDraw, draw_fixes, loss_weights, noisy_measureme
 from lbo.models.features import last_measurement, state_to_target, window_features, window_view
 from lbo.models.net import check_scaling
 from lbo.sim import schema
-
-INPUT_COLUMNS = [*schema.MEAS, *schema.INPUT]
+from lbo.sim.columns import MEAS, SCORED_SET, STATE, WINDOW
 
 
 def rows(df: pd.DataFrame) -> tuple[torch.Tensor, torch.Tensor]:
     """(R, 5) inputs and (R, 3) states of a frame sorted by trajectory and step, float64."""
-    x = torch.from_numpy(np.ascontiguousarray(df[INPUT_COLUMNS].to_numpy(np.float64)))
-    y = torch.from_numpy(np.ascontiguousarray(df[list(schema.STATE)].to_numpy(np.float64)))
+    x = torch.from_numpy(np.ascontiguousarray(df[list(WINDOW)].to_numpy(np.float64)))
+    y = torch.from_numpy(np.ascontiguousarray(df[list(STATE)].to_numpy(np.float64)))
     return x, y
 
 
@@ -221,12 +220,12 @@ class WindowDataModule(L.LightningDataModule):
             return
         # steps without a position fix (a user's logs, GNSS slower than the inputs) are NaN rows
         train = schema.read_set(self.folder / "train.parquet", missing_fixes=True)
-        val = schema.read_set(self.folder / "val.parquet", schema.EVAL_COLUMNS, missing_fixes=True)
+        val = schema.read_set(self.folder / "val.parquet", SCORED_SET, missing_fixes=True)
         for name, df in (("training", train), ("validation", val)):
             lengths = df.groupby("traj", sort=False).size().to_numpy()
             first = int(df.loc[df["scored"], "k"].min()) if "scored" in df else None
             _check_window(self.window, lengths, first, name)
-        if self.draw is None and not self.fix_periods and train[list(schema.MEAS)].isna().any(
+        if self.draw is None and not self.fix_periods and train[list(MEAS)].isna().any(
                 axis=None):
             raise LboError("the training set has steps without a position fix (GNSS slower than "
                            "the inputs): train with fix_rates (e.g. fix_rates=[10]) so that the "

@@ -34,7 +34,8 @@ from lbo.filters.gyro import GyroNoise
 from lbo.models.features import wrap_angle_torch
 from lbo.models.gyro_filter import GyroFilter, Segments
 from lbo.scoring.receiver import measure_ratio, scored_rows
-from lbo.sim.logio import TRUTH_COLUMNS, receiver
+from lbo.sim.columns import STATE
+from lbo.sim.logio import receiver
 from lbo.sim.noise import Noise
 from lbo.sim.vehicle import Vehicle, wrap_angle
 
@@ -115,7 +116,7 @@ def segments(log: pd.DataFrame, noise: GyroNoise, vehicle: Vehicle, R: np.ndarra
                     fix=as_t(m[idx][..., :2]), accuracy=as_t(rec[idx][..., :2]),
                     course=as_t(wrap_angle(course)[idx]),
                     speed=as_t(np.hypot(rec[:, 3], rec[:, 4])[idx]), sv=as_t(sv[idx]),
-                    u=as_t(u[idx]), truth=as_t(log[list(TRUTH_COLUMNS)].to_numpy(float)[idx]))
+                    u=as_t(u[idx]), truth=as_t(log[list(STATE)].to_numpy(float)[idx]))
 
 
 def _mse(est: torch.Tensor, truth: torch.Tensor) -> torch.Tensor:
@@ -140,7 +141,7 @@ def _pooled(logs: list[pd.DataFrame], noise: GyroNoise, reference: list[np.ndarr
     """:func:`measure_ratio` of ``noise`` against the reference estimates, over the scored
     rows of every log pooled."""
     est = np.concatenate([estimate(log, noise, vehicle, R) for log in logs])
-    truth = np.concatenate([log[list(TRUTH_COLUMNS)].to_numpy(float) for log in logs])
+    truth = np.concatenate([log[list(STATE)].to_numpy(float) for log in logs])
     rows = np.concatenate([scored_rows(log) for log in logs])
     return measure_ratio(est, np.concatenate(reference), truth, rows)
 

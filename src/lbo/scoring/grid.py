@@ -21,6 +21,7 @@ from lbo.filters.classical import estimate as run_classical
 from lbo.filters.kalman import ekf_batch, pcrb
 from lbo.scoring.metrics import PAPER_REFERENCE, SCORE_COLUMNS, rmse, score_table
 from lbo.sim import schema
+from lbo.sim.columns import SCORED_SET
 from lbo.sim.noise import Noise
 from lbo.sim.truth import Truth
 from lbo.sim.vehicle import Vehicle
@@ -43,7 +44,7 @@ def load_test(path: str | Path) -> dict[str, np.ndarray]:
     ``mask`` (G, T) scored steps, ``alpha`` (G,), with G = trajectories x alpha levels.
     Steps without a position fix (``x_m, y_m, psi_m`` all empty) are NaN rows of ``m``.
     """
-    return schema.to_arrays(schema.read_set(path, schema.EVAL_COLUMNS, missing_fixes=True))
+    return schema.to_arrays(schema.read_set(path, SCORED_SET, missing_fixes=True))
 
 
 def rows_of(arr: dict[str, np.ndarray], pick: np.ndarray) -> dict[str, np.ndarray]:

@@ -23,6 +23,7 @@ from lbo.filters.classical import first_fixes
 from lbo.scoring.grid import rows_of
 from lbo.scoring.metrics import nrmse, rmse
 from lbo.sim import schema
+from lbo.sim.columns import SCORED_SET
 from lbo.sim.noise import Noise
 from lbo.sim.vehicle import Vehicle
 
@@ -39,7 +40,7 @@ def load(folder: str | Path) -> dict[str, np.ndarray]:
     plus ``file`` (G,), the index of each segment's log; each is scored from its first fix on
     (a log may start between fixes), and segments with nothing to score (shorter than
     ``data.run_in``) are left out."""
-    df = schema.read_set(Path(folder) / "test.parquet", schema.EVAL_COLUMNS, missing_fixes=True)
+    df = schema.read_set(Path(folder) / "test.parquet", SCORED_SET, missing_fixes=True)
     arr = schema.to_arrays(df)
     arr["file"] = df.groupby("traj")["file"].first().loc[arr["traj"]].to_numpy()
     # a segment may start between fixes: every observer is scored from its first fix on

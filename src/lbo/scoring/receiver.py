@@ -21,7 +21,8 @@ from lbo.core.errors import LboError
 from lbo.filters import classical, measure
 from lbo.filters.gyro import GyroNoise, gyro_ekf_batch
 from lbo.scoring.metrics import rmse
-from lbo.sim.logio import TRUTH_COLUMNS, receiver
+from lbo.sim.columns import STATE
+from lbo.sim.logio import receiver
 from lbo.sim.vehicle import Vehicle
 
 __all__ = ["BLIND", "EKF", "ORACLE", "RAW", "markdown", "measure_ratio", "oracle_gyro", "pool",
@@ -70,7 +71,7 @@ def score(log: pd.DataFrame, observers: Sequence[str], vehicle: Vehicle, noise: 
 
     m = log[["x_m", "y_m", "psi_m"]].to_numpy(dtype=float)
     u = log[["V", "delta"]].to_numpy(dtype=float)
-    z = log[list(TRUTH_COLUMNS)].to_numpy(dtype=float)
+    z = log[list(STATE)].to_numpy(dtype=float)
     r = receiver(log)
     course, _ = measure.course_over_ground(r[:, 3], r[:, 4], r[:, 5], u[:, 0])
     scored = scored_rows(log)  # every estimator alike, from the first course over ground

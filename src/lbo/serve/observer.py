@@ -44,8 +44,8 @@ from lbo.filters.classical import OBSERVERS as CLASSICAL
 from lbo.filters.gyro import GyroNoise
 from lbo.models.envelope import Envelope, EnvelopeCheck, check_mode
 from lbo.models.features import window_view
+from lbo.sim.columns import RECEIVER
 from lbo.sim.logcheck import (
-    RECEIVER,
     check_alpha,
     check_device,
     check_fix_windows,
@@ -82,8 +82,6 @@ def default_form(net: Any) -> str:
 NET_KINDS = {"WindowCNN": "cnn", "WindowLSTM": "lstm", "WindowFilter": "filter"}
 """The name an untrained or unnamed net goes by (``<kind>-N<window>``), per net class."""
 
-INPUT_COLUMNS = ("x_m", "y_m", "psi_m", "V", "delta")
-"""Channel order of a window (N, 5)."""
 
 RUN_ID = re.compile(r"[0-9a-f]{32}")
 """An MLflow run id, as ``observer=<run id>`` takes it."""
@@ -673,7 +671,7 @@ class Observer:
         smooth : the Rauch-Tung-Striebel smoother's estimates (and covariances) after the
             filter (:mod:`lbo.filters.smoother`): every row drawn on the whole log, for offline
             logs. Classical observers and a window filter in its recursive form only.
-        receiver : (T, 7) a receiver's channels, :data:`lbo.sim.logcheck.RECEIVER`
+        receiver : (T, 7) a receiver's channels, :data:`lbo.sim.columns.RECEIVER`
             ``[sx_m, sy_m, spsi_m, ve_m, vn_m, sv_m, r_m]``, NaN where a row holds none: the
             accuracy it reports per fix (the R of that step), a GNSS velocity (its course
             over ground, :mod:`lbo.filters.measure`) and a gyro's yaw rate (the ``gyro``

@@ -30,21 +30,20 @@ import numpy as np
 import pandas as pd
 
 from lbo.core.errors import LboError
+from lbo.sim.columns import COVARIANCE, INPUT, MEAS, SERVED, STATE, WINDOW
 
-INPUT_COLUMNS = ("x_m", "y_m", "psi_m", "V", "delta")
-OUTPUT_COLUMNS = ("x", "y", "psi", "valid", "var_x", "var_y", "var_psi", "cov_xy")
 ARTIFACT = "model"
 """Where a training run logs its model: ``runs:/<run id>/model``."""
 
 
 def estimates(observer: Any, frame: pd.DataFrame) -> pd.DataFrame:
-    """An observer's estimates over a log frame (:data:`INPUT_COLUMNS`, optionally ``log``),
-    one output row per input row (:data:`OUTPUT_COLUMNS`); raises LboError naming a missing
+    """An observer's estimates over a log frame (:data:`WINDOW`, optionally ``log``),
+    one output row per input row (:data:`SERVED`); raises LboError naming a missing
     column or a bad value."""
-    missing = [c for c in INPUT_COLUMNS if c not in frame.columns]
+    missing = [c for c in WINDOW if c not in frame.columns]
     if missing:
         raise LboError(f"model input: missing column{'s' if len(missing) > 1 else ''} "
-                       f"{', '.join(missing)} (a log needs {', '.join(INPUT_COLUMNS)}, one "
+                       f"{', '.join(missing)} (a log needs {', '.join(WINDOW)}, one "
                        "row per sample)")
     groups = frame.groupby("log", sort=False).indices.values() if "log" in frame.columns \
         else [np.arange(len(frame))]
@@ -52,15 +51,15 @@ def estimates(observer: Any, frame: pd.DataFrame) -> pd.DataFrame:
     valid = np.zeros(len(frame), bool)
     for rows in groups:
         part = frame.iloc[rows]
-        m = part[list(INPUT_COLUMNS[:3])].to_numpy(dtype=float)
-        u = part[list(INPUT_COLUMNS[3:])].to_numpy(dtype=float)
+        m = part[list(MEAS)].to_numpy(dtype=float)
+        u = part[list(INPUT)].to_numpy(dtype=float)
         est, ok, cov = observer.run(m, u, cov=True, source="model input")
         out[rows, :3] = est
         out[rows, 3:] = cov[:, [0, 1, 2, 0], [0, 1, 2, 1]]
         valid[rows] = ok
-    result = pd.DataFrame(out, columns=["x", "y", "psi", "var_x", "var_y", "var_psi", "cov_xy"])
-    result.insert(3, "valid", valid)
-    return result
+    result = pd.DataFrame(out, columns=[*STATE, *COVARIANCE])
+    result.insert(len(STATE), "valid", valid)
+    return result[list(SERVED)]
 
 
 class ServedModel(mlflow.pyfunc.PythonModel):
@@ -85,10 +84,10 @@ def signature() -> Any:
     from mlflow.models import ModelSignature
     from mlflow.types import ColSpec, Schema
 
-    inputs = Schema([ColSpec("double", c) for c in INPUT_COLUMNS]
+    inputs = Schema([ColSpec("double", c) for c in WINDOW]
                     + [ColSpec("long", "log", required=False)])
     outputs = Schema([ColSpec("boolean" if c == "valid" else "double", c)
-                      for c in OUTPUT_COLUMNS])
+                      for c in SERVED])
     return ModelSignature(inputs=inputs, outputs=outputs)
 
 

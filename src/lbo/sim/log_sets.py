@@ -33,7 +33,8 @@ from lbo.core.atomic import data_lock, remove_stale_temps, write_text
 from lbo.core.checks import integer, require
 from lbo.core.errors import LboError
 from lbo.sim import schema
-from lbo.sim.logcheck import TRUTH, check_max_gap, check_time_unit
+from lbo.sim.columns import INPUT, LOG, MEAS, STATE
+from lbo.sim.logcheck import check_max_gap, check_time_unit
 from lbo.sim.logformat import LogFormat
 from lbo.sim.noise import Noise
 from lbo.sim.vehicle import Vehicle, wrap_angle
@@ -177,7 +178,6 @@ def segments(path: Path, spec: LogSpec) -> list[pd.DataFrame]:
     """
     from lbo.sim.logio import (
         DT_TOLERANCE,
-        LOG_COLUMNS,
         check_log,
         check_steering,
         read_log,
@@ -186,8 +186,8 @@ def segments(path: Path, spec: LogSpec) -> list[pd.DataFrame]:
 
     source = f"log {path}"
     df, _ = spec.log_format.apply(read_log(path), source)
-    missing = [c for c in TRUTH if c not in df.columns]
-    if missing and all(c in df.columns for c in LOG_COLUMNS):
+    missing = [c for c in STATE if c not in df.columns]
+    if missing and all(c in df.columns for c in LOG):
         raise LboError(f"{source}: missing true-state column{'s' if len(missing) > 1 else ''} "
                        f"{', '.join(missing)} (data=logs trains and scores against the "
                        "reference system's x, y in m and psi in rad)")
@@ -206,14 +206,14 @@ def segments(path: Path, spec: LogSpec) -> list[pd.DataFrame]:
                            f"is not the vehicle's dt={dt:g} s; pass data.resample=true to "
                            f"interpolate the logs to dt={dt:g} s")
         cuts = np.flatnonzero(np.abs(steps - dt) / dt > DT_TOLERANCE) + 1
-    columns = (*LOG_COLUMNS[1:], *TRUTH)
+    columns = (*LOG[1:], *STATE)
     out = []
     for rows in np.split(np.arange(len(df)), cuts):
         seg = df.iloc[rows]
         if spec.resample and len(seg) > 1:
             seg = resample(seg, dt, columns, None, source)
         seg = seg[["t", *columns]].reset_index(drop=True)
-        if len(seg) >= 2 and np.isfinite(seg[list(schema.MEAS)].to_numpy(float)).all(1).any():
+        if len(seg) >= 2 and np.isfinite(seg[list(MEAS)].to_numpy(float)).all(1).any():
             out.append(seg)
     if not out:
         raise LboError(f"{source}: no stretch of at least two steps at dt={dt:g} s with a "
@@ -240,8 +240,8 @@ def make_set(part: str, spec: LogSpec) -> tuple[pd.DataFrame, list[dict]]:
     frames, facts, traj = [], [], 0
     for i, path in enumerate(spec.files[part]):
         segs = segments(path, spec)
-        z = np.concatenate([s[list(TRUTH)].to_numpy(float) for s in segs])
-        m = np.concatenate([s[list(schema.MEAS)].to_numpy(float) for s in segs])
+        z = np.concatenate([s[list(STATE)].to_numpy(float) for s in segs])
+        m = np.concatenate([s[list(MEAS)].to_numpy(float) for s in segs])
         level = noise_level(m, z, spec.noise.measurement_sigma)
         for seg in segs:
             n = len(seg)
@@ -250,9 +250,9 @@ def make_set(part: str, spec: LogSpec) -> tuple[pd.DataFrame, list[dict]]:
             if part != "train":
                 extra.update(alpha=np.full(n, level), scored=k >= spec.run_in)
             f = schema.frame(np.full(n, traj), k, spec.vehicle.dt,
-                             seg[list(TRUTH)].to_numpy(float),
-                             seg[list(schema.INPUT)].to_numpy(float),
-                             seg[list(schema.MEAS)].to_numpy(float), **extra)
+                             seg[list(STATE)].to_numpy(float),
+                             seg[list(INPUT)].to_numpy(float),
+                             seg[list(MEAS)].to_numpy(float), **extra)
             f["t"] = seg["t"].to_numpy(float)
             frames.append(f)
             traj += 1

@@ -21,21 +21,11 @@ import numpy as np
 
 from lbo.core.checks import number
 from lbo.core.errors import LboError
+from lbo.sim.columns import INPUT, MEAS, RECEIVER, STATE
 
-MEAS = ("x_m", "y_m", "psi_m")
-"""Columns of a position fix: x_m and y_m, with or without psi_m (the classical observers take
-a position without a heading); all three NaN: a step without a fix."""
 FIX_RULE = ("a row holds x_m and y_m (a position fix), with or without psi_m, or none of "
             "them (a step without a fix)")
 """What a row of a log may hold, as the checks say it."""
-INPUTS = ("V", "delta")
-TRUTH = ("x", "y", "psi")
-RECEIVER = ("sx_m", "sy_m", "spsi_m", "ve_m", "vn_m", "sv_m", "r_m")
-"""Optional columns of a receiver's log, each held or NaN row by row: the 1-sigma accuracy
-it reports for its fix (sx_m, sy_m in m; spsi_m in rad, of psi_m), a GNSS velocity ve_m,
-vn_m (m/s east, north) with its 1-sigma sv_m (m/s), and a gyro's yaw rate r_m (rad/s,
-counter-clockwise, at any rate). The classical observers take them (:mod:`lbo.filters.measure`;
-r_m: the ``gyro`` observer, :mod:`lbo.filters.gyro`)."""
 GYRO_LIMIT = 10.0
 """Largest |r_m| (rad/s): a car's yaw rate stays within 2 rad/s; beyond 10, the gyro is in
 deg/s or the column is not a yaw rate."""
@@ -297,9 +287,9 @@ def check_samples(m: np.ndarray, u: np.ndarray, *, delta_max: float | None = Non
         looks like degrees by how fast it turns (:func:`check_heading_unit`); |x_m|, |y_m|
         (and |x|, |y|) beyond 1e7 m; |V| beyond 100 m/s; |delta| beyond ``delta_max``.
     """
-    _finite(u, INPUTS, source)
+    _finite(u, INPUT, source)
     if truth is not None:
-        _finite(truth, TRUTH, source)
+        _finite(truth, STATE, source)
     _finite(np.where(np.isnan(m), 0.0, m), MEAS, source)  # inf; NaN is a missing fix
     fix = check_fixes(m, source, position_only)
     headings = [("psi_m", m[:, 2], np.isfinite(m[:, 2]))] + ([("psi", truth[:, 2], True)]

@@ -14,9 +14,9 @@ import pandas as pd
 
 from lbo.core.atomic import atomic_path
 from lbo.core.errors import LboError
+from lbo.sim.columns import LOG, MEAS, RECEIVER, STATE
 from lbo.sim.logcheck import (
     MAX_GAP,
-    RECEIVER,
     check_conventions,
     check_gaps,
     check_receiver,
@@ -24,27 +24,13 @@ from lbo.sim.logcheck import (
     check_time,
 )
 from lbo.sim.logcheck import check_steering as check_delta
-from lbo.sim.schema import MEAS as MEAS_COLUMNS
 from lbo.sim.schema import check_outside_data_sets, check_values, write_set
 from lbo.sim.vehicle import wrap_angle
-
-LOG_COLUMNS = ("t", "x_m", "y_m", "psi_m", "V", "delta")
-
-
-TRUTH_COLUMNS = ("x", "y", "psi")
-
-
-OUTPUT_COLUMNS = ("t", "x", "y", "psi", "valid")
-
-
-COVARIANCE_COLUMNS = ("var_x", "var_y", "var_psi", "cov_xy")
-"""The covariance's entries an observer that gives one adds to the output."""
-
 
 FORMATS = (".csv", ".parquet")
 
 
-LANDING = ((("x_m", "y_m"), (*MEAS_COLUMNS, "sx_m", "sy_m", "spsi_m")),
+LANDING = ((("x_m", "y_m"), (*MEAS, "sx_m", "sy_m", "spsi_m")),
            (("ve_m", "vn_m"), ("ve_m", "vn_m", "sv_m")), (("r_m",), ("r_m",)))
 """(key, columns) of the samples :func:`resample` never interpolates: a fix (its position, the
 heading and accuracies that come with it), a GNSS velocity (with its sigma) and a gyro's
@@ -128,26 +114,26 @@ def check_log(df: pd.DataFrame, source: str = "input", heading: str = "enu",
     """
     if len(df) == 0:
         raise LboError(f"{source}: empty file (no rows)")
-    missing = [c for c in LOG_COLUMNS if c not in df.columns]
+    missing = [c for c in LOG if c not in df.columns]
     if missing:
         raise LboError(f"{source}: missing column{'s' if len(missing) > 1 else ''} "
-                       f"{', '.join(missing)} (a log needs {', '.join(LOG_COLUMNS)}; "
+                       f"{', '.join(missing)} (a log needs {', '.join(LOG)}; "
                        "t in s, x_m and y_m in m, psi_m in rad, V in m/s, delta in rad; "
                        f"found {', '.join(map(str, df.columns))})")
-    truth = all(c in df.columns for c in TRUTH_COLUMNS)
+    truth = all(c in df.columns for c in STATE)
     check_values(df, ("t",), source, kinds="iuf")
     present = tuple(c for c in RECEIVER if c in df.columns)
-    for c in ("V", "delta") + MEAS_COLUMNS + (TRUTH_COLUMNS if truth else ()) + present:
+    for c in ("V", "delta") + MEAS + (STATE if truth else ()) + present:
         if df[c].dtype.kind not in "iuf":
             raise LboError(f"{source}: column {c!r} is not numeric (dtype {df[c].dtype})")
-    check_samples(df[list(MEAS_COLUMNS)].to_numpy(dtype=float),
+    check_samples(df[list(MEAS)].to_numpy(dtype=float),
                   df[["V", "delta"]].to_numpy(dtype=float),
-                  truth=df[list(TRUTH_COLUMNS)].to_numpy(dtype=float) if truth else None,
+                  truth=df[list(STATE)].to_numpy(dtype=float) if truth else None,
                   source=source, t=df["t"].to_numpy(dtype=float), position_only=position_only)
     if present:
-        check_receiver(df[list(MEAS_COLUMNS)].to_numpy(dtype=float), receiver(df), source)
+        check_receiver(df[list(MEAS)].to_numpy(dtype=float), receiver(df), source)
     check_time(df["t"].to_numpy(dtype=float), source)
-    check_conventions(df["t"].to_numpy(dtype=float), df[list(MEAS_COLUMNS)].to_numpy(dtype=float),
+    check_conventions(df["t"].to_numpy(dtype=float), df[list(MEAS)].to_numpy(dtype=float),
                       df[["V", "delta"]].to_numpy(dtype=float), source, heading)
     return truth
 

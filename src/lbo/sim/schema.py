@@ -18,13 +18,9 @@ import pyarrow.parquet as pq
 
 from lbo.core.atomic import atomic_path
 from lbo.core.errors import LboError
+from lbo.sim.columns import INPUT, MEAS, SCORED_SET, SET, STATE
 from lbo.sim.logcheck import check_fixes
 
-COLUMNS = ("traj", "k", "t", "x", "y", "psi", "V", "delta", "x_m", "y_m", "psi_m")
-EVAL_COLUMNS = COLUMNS + ("alpha", "scored")
-STATE = ("x", "y", "psi")
-MEAS = ("x_m", "y_m", "psi_m")
-INPUT = ("V", "delta")
 _INT = ("traj", "k")
 MANIFEST = "manifest.json"
 """The file a data-set folder (generated, or a user's logs) records itself in."""
@@ -72,7 +68,7 @@ def fix_rows(df: pd.DataFrame, source: str = "input") -> np.ndarray:
     return check_fixes(np.where(empty, np.nan, 0.0), source)
 
 
-def read_set(path: str | Path, required: tuple[str, ...] = COLUMNS,
+def read_set(path: str | Path, required: tuple[str, ...] = SET,
              missing_fixes: bool = False) -> pd.DataFrame:
     """Read a Parquet set and check its columns (see :func:`check_frame`). Raises LboError
     for missing or unreadable files (cut short, not Parquet) or missing columns."""
@@ -204,7 +200,7 @@ def cached_set(path: Path, recorded: dict | None, name: str
         df = pd.read_parquet(path)
     except Exception as e:  # noqa: BLE001 - pyarrow's errors are many; each means unreadable
         return None, f"not a readable Parquet file ({first_line(e)})"
-    required = COLUMNS if name == "train" else EVAL_COLUMNS
+    required = SET if name == "train" else SCORED_SET
     missing = [c for c in required if c not in df.columns]
     if missing:
         return None, (f"not a {name} set: it lacks column {missing[0]!r} (another program's "
