@@ -63,3 +63,17 @@ def manoeuvre(smoke_data):
 
     test = pd.read_parquet(smoke_data / "test.parquet")
     return test[(test["traj"] == 0) & (test["alpha"] == 1.0)].sort_values("k")
+
+
+@pytest.fixture(scope="session")
+def robust_smoke(tmp_path_factory, smoke_data):
+    """The robust observer trained once at smoke scale, in an MLflow store of its own
+    (``cfg``, training's ``out``, ``uri``, ``dir``, ``run_id``): test_robust.py and
+    test_serving.py both read it, and neither changes it."""
+    from helpers import ROBUST_SMOKE, train_in_own_store
+
+    tmp = tmp_path_factory.mktemp("robust")
+    cfg, out, uri = train_in_own_store(tmp, smoke_data, *ROBUST_SMOKE,
+                                       "trainer.limit_train_batches=5", "window=40",
+                                       "batch_size=64")
+    return {"cfg": cfg, "out": out, "uri": uri, "dir": tmp / "out", "run_id": out["run_id"]}

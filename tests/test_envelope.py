@@ -9,8 +9,6 @@ steering, alpha, fix rate), and ``lbo.observe`` / ``Observer`` warn or mark the 
 from __future__ import annotations
 
 import re
-import subprocess
-import sys
 import warnings
 
 import numpy as np
@@ -18,7 +16,7 @@ import pandas as pd
 import pytest
 import torch
 
-from helpers import train_in_own_store
+from helpers import observe, train_in_own_store
 from lbo.core.errors import LboError
 from lbo.models.envelope import Envelope, alpha_estimates, fix_spacing
 from lbo.serve.observer import EnvelopeWarning, Observer
@@ -54,11 +52,6 @@ def drive(speed: float, steer: float = 0.02, alpha: float = 1.0, steps: int = 60
 def arrays(df: pd.DataFrame) -> tuple[np.ndarray, np.ndarray]:
     return (df[["x_m", "y_m", "psi_m"]].to_numpy(copy=True),
             df[["V", "delta"]].to_numpy(copy=True))
-
-
-def observe(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "lbo.observe", *args], capture_output=True,
-                          text=True)
 
 
 # --- what training stores -------------------------------------------------------------------

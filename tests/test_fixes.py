@@ -2,15 +2,12 @@
 
 from __future__ import annotations
 
-import subprocess
-import sys
-
 import numpy as np
 import pandas as pd
 import pytest
 import torch
 
-from helpers import ROBUST_SMOKE, compose_cfg, train_in_own_store
+from helpers import ROBUST_SMOKE, compose_cfg, observe, train_in_own_store
 from lbo.core.errors import LboError
 from lbo.filters import classical
 from lbo.filters.kalman import KalmanStepper
@@ -159,11 +156,6 @@ def test_training_data_with_stop_and_go_has_standstill(tmp_path):
         spec_from_cfg(compose_cfg("datagen", ["data=smoke", "+data.train.stop_and_go=2"]))
 
 
-def _observe(*args, cwd):
-    return subprocess.run([sys.executable, "-m", "lbo.observe", *args], capture_output=True,
-                          text=True, cwd=cwd)
-
-
 @pytest.mark.parametrize("blank, message", [
     ({"x_m": [4], "y_m": [4]}, r"row 4 has a heading without a position \(psi_m without x_m, "
                                r"y_m\); a row holds x_m and y_m \(a position fix\), with or "
@@ -176,7 +168,7 @@ def test_a_heading_without_a_position_or_no_fix_is_one_line_and_no_output(tmp_pa
     for col, rows in blank.items():
         df.loc[df.index if rows == "all" else df.index[rows], col] = np.nan
     df.to_csv(tmp_path / "log.csv", index=False)
-    res = _observe("observer=ekf", f"input={tmp_path / 'log.csv'}",
+    res = observe("observer=ekf", f"input={tmp_path / 'log.csv'}",
                    f"output={tmp_path / 'est.csv'}", cwd=tmp_path)
     assert res.returncode == 2
     lines = res.stderr.strip().splitlines()
@@ -194,7 +186,7 @@ def test_a_smoke_robust_checkpoint_runs_on_a_thinned_log(tmp_path, smoke_data):
     df = simulate(compose_cfg("simulate", ["manoeuvre=slalom", "fix_rate=10", "alpha=1"]))
     log = tmp_path / "log.csv"
     df[LOG].to_csv(log, index=False)
-    res = _observe(f"observer={out['checkpoint']}", f"input={log}",
+    res = observe(f"observer={out['checkpoint']}", f"input={log}",
                    f"output={tmp_path / 'est.csv'}", cwd=tmp_path)
     assert res.returncode == 0, res.stderr
     assert "fixes: 190 of 950 rows (10 Hz; inputs at 50 Hz)" in res.stdout

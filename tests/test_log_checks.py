@@ -5,8 +5,6 @@ from __future__ import annotations
 
 import re
 import socket
-import subprocess
-import sys
 import time
 
 import numpy as np
@@ -16,7 +14,7 @@ import pyarrow.parquet as pq
 import pytest
 import torch
 
-from helpers import compose_cfg, train_in_own_store
+from helpers import compose_cfg, observe, one_line_error, train_in_own_store
 from lbo.core.errors import LboError
 from lbo.models.features import window_view
 from lbo.models.net import WindowNet
@@ -40,17 +38,10 @@ def fix_rates_cnn(tmp_path_factory, smoke_data):
     return out["checkpoint"]
 
 
-def observe(*overrides, timeout=None):
-    return subprocess.run([sys.executable, "-m", "lbo.observe", *overrides],
-                          capture_output=True, text=True, timeout=timeout)
-
-
 def assert_refused(res, message, out):
     """Exit 2, one line `error: ...` matching ``message``, no traceback, no output file."""
-    assert res.returncode == 2, res.stdout[-2000:] + res.stderr[-2000:]
-    lines = res.stderr.strip().splitlines()
-    assert len(lines) == 1 and lines[0].startswith("error: "), res.stderr
-    assert re.search(message, lines[0]), lines[0]
+    line = one_line_error(res)
+    assert re.search(message, line), line
     assert not out.exists()
 
 

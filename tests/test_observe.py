@@ -1,6 +1,7 @@
 import re
 import subprocess
 import sys
+from functools import partial
 
 import numpy as np
 import pandas as pd
@@ -8,6 +9,7 @@ import pytest
 import torch
 
 from helpers import compose_cfg, train_in_own_store
+from helpers import observe as run_observe
 from lbo.core.errors import LboError
 from lbo.export import register
 from lbo.filters.classical import estimate as run_classical
@@ -52,12 +54,7 @@ def arrays(frame, window=1):
     return arr
 
 
-def observe(*overrides, check=True):
-    res = subprocess.run([sys.executable, "-m", "lbo.observe", *overrides],
-                         capture_output=True, text=True)
-    if check:
-        assert res.returncode == 0, res.stderr[-3000:]
-    return res
+observe = partial(run_observe, check=True)
 
 
 def classical_cov(name, arr):

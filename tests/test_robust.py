@@ -11,7 +11,7 @@ import pandas as pd
 import pytest
 import torch
 
-from helpers import ROBUST_SMOKE, compose_cfg, train_in_own_store
+from helpers import compose_cfg
 from lbo.core.errors import LboError
 from lbo.learn.lightning_module import TrainingModule
 from lbo.serve.observer import Observer
@@ -24,17 +24,13 @@ pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 @pytest.fixture(scope="module")
-def robust(tmp_path_factory, smoke_data):
-    """One robust observer trained at smoke scale, logged to its own MLflow store."""
-    tmp = tmp_path_factory.mktemp("robust")
-    cfg, out, uri = train_in_own_store(tmp, smoke_data, *ROBUST_SMOKE,
-                                       "trainer.limit_train_batches=5", "window=40",
-                                       "batch_size=64")
-    return {"cfg": cfg, "out": out, "uri": uri, "dir": tmp / "out"}
+def robust(robust_smoke):
+    return robust_smoke
 
 
 @pytest.fixture(scope="module")
-def manoeuvre(smoke_data):
+def noisy(smoke_data):
+    """The smoke test set's first manoeuvre at alpha = 3 (conftest's ``manoeuvre`` is at 1)."""
     test = pd.read_parquet(smoke_data / "test.parquet")
     return test[(test["traj"] == 0) & (test["alpha"] == 3.0)].sort_values("k")
 
@@ -63,9 +59,9 @@ def test_robust_experiment_trains_and_scores(robust):
     assert net.noise[-1].weight.abs().max() > 0 or net.log_q_scale.abs().max() > 0
 
 
-def test_observe_cli_runs_the_robust_checkpoint(robust, manoeuvre, tmp_path):
+def test_observe_cli_runs_the_robust_checkpoint(robust, noisy, tmp_path):
     log, est_path = tmp_path / "log.csv", tmp_path / "est.csv"
-    manoeuvre[LOG].to_csv(log, index=False)
+    noisy[LOG].to_csv(log, index=False)
     res = subprocess.run([sys.executable, "-m", "lbo.observe",
                           f"observer={robust['out']['checkpoint']}", f"input={log}",
                           f"output={est_path}"], capture_output=True, text=True)
@@ -81,42 +77,42 @@ def test_observe_cli_runs_the_robust_checkpoint(robust, manoeuvre, tmp_path):
                                  "cov_xy", "outside"]
     assert (est[["var_x", "var_y", "var_psi"]] > 0).all(axis=None)
     # a window filter that starts at its first fix: valid from the log's first row
-    assert len(est) == len(manoeuvre) and est["valid"].all()
+    assert len(est) == len(noisy) and est["valid"].all()
     assert np.isfinite(est[["x", "y", "psi"]].to_numpy()).all()
     # the same numbers as the Python API
-    m, u = manoeuvre[["x_m", "y_m", "psi_m"]].to_numpy(), manoeuvre[["V", "delta"]].to_numpy()
+    m, u = noisy[["x_m", "y_m", "psi_m"]].to_numpy(), noisy[["V", "delta"]].to_numpy()
     ref, valid = Observer.load(robust["out"]["checkpoint"]).run(m, u)
     np.testing.assert_array_equal(est["valid"].to_numpy(), valid)
     np.testing.assert_allclose(est[["x", "y"]].to_numpy(), ref[:, :2], rtol=0, atol=1e-9)
     np.testing.assert_allclose(wrap_angle(est["psi"].to_numpy() - ref[:, 2]), 0, atol=1e-9)
 
 
-def test_observe_smooths_the_robust_observer(robust, manoeuvre, tmp_path):
+def test_observe_smooths_the_robust_observer(robust, noisy, tmp_path):
     from lbo.observe import observe
 
     log = tmp_path / "log.csv"
-    manoeuvre[LOG].to_csv(log, index=False)
+    noisy[LOG].to_csv(log, index=False)
     ckpt = robust["out"]["checkpoint"]
     res = {s: observe(compose_cfg("observe", [f"observer={ckpt}", f"input={log}", f"smooth={s}",
                                           f"output={tmp_path / f'{s}.csv'}"]))
            for s in ("false", "true")}
     assert (res["true"]["rmse"][:2] < 0.95 * res["false"]["rmse"][:2]).all(), res
-    m, u = manoeuvre[["x_m", "y_m", "psi_m"]].to_numpy(), manoeuvre[["V", "delta"]].to_numpy()
+    m, u = noisy[["x_m", "y_m", "psi_m"]].to_numpy(), noisy[["V", "delta"]].to_numpy()
     ref, _, cov = Observer.load(ckpt, form="recursive").run(m, u, cov=True, smooth=True)
     est = pd.read_csv(tmp_path / "true.csv")
     np.testing.assert_allclose(est[["x", "y"]].to_numpy(), ref[:, :2], rtol=0, atol=1e-9)
     np.testing.assert_allclose(est["var_y"].to_numpy(), cov[:, 1, 1], rtol=1e-9)
 
 
-def test_observer_load_runs_and_streams_the_robust_checkpoint(robust, manoeuvre):
+def test_observer_load_runs_and_streams_the_robust_checkpoint(robust, noisy):
     obs = Observer.load(robust["out"]["checkpoint"])
     assert (obs.name, obs.kind, obs.window, obs.features) == ("filternet-N40", "learned", 40,
                                                               "frame")
-    m, u = manoeuvre[["x_m", "y_m", "psi_m"]].to_numpy(), manoeuvre[["V", "delta"]].to_numpy()
+    m, u = noisy[["x_m", "y_m", "psi_m"]].to_numpy(), noisy[["V", "delta"]].to_numpy()
     est, valid = obs.run(m, u)
     assert est.shape == (len(m), 3) and np.isfinite(est).all()
     assert valid.all()  # it starts at the first fix, so a window reaching back is no loss
-    z = manoeuvre[["x", "y", "psi"]].to_numpy()
+    z = noisy[["x", "y", "psi"]].to_numpy()
     err = np.abs(est[valid, :2] - z[valid, :2])
     assert err.mean() < 3.0  # a filter at alpha=3 (sigma 3 m), not garbage
     # step by step: the same estimates

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import contextlib
 import json
-import os
 import subprocess
 import sys
 from pathlib import Path
@@ -16,7 +15,7 @@ import pandas as pd
 import pytest
 import torch
 
-from helpers import train_cfg
+from helpers import cli, one_line_error, train_cfg
 from helpers.servers import free_port
 from lbo.core.errors import LboError, TrainingDiverged
 from lbo.core.runfolder import claim
@@ -26,21 +25,6 @@ from lbo.serve.observer import Observer
 from lbo.train import train
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
-
-
-def cli(module: str, *args: str, env: dict | None = None, cwd: Path | None = None):
-    return subprocess.run([sys.executable, "-m", module, *args], capture_output=True, text=True,
-                          env={**os.environ, **(env or {})}, cwd=cwd, timeout=300)
-
-
-def one_line_error(res: subprocess.CompletedProcess, *words: str) -> str:
-    assert res.returncode == 2, res.stdout[-2000:] + res.stderr[-2000:]
-    lines = res.stderr.strip().splitlines()
-    assert len(lines) == 1 and lines[0].startswith("error: "), res.stderr[-2000:]
-    assert "Traceback" not in res.stderr
-    for w in words:
-        assert w in lines[0], lines[0]
-    return lines[0]
 
 
 @contextlib.contextmanager

@@ -11,17 +11,15 @@
 
 from __future__ import annotations
 
-import os
 import shutil
 import subprocess
-import sys
 from pathlib import Path
 
 import mlflow
 import pytest
 import torch
 
-from helpers import train_cfg
+from helpers import cli, one_line_error, train_cfg
 from helpers.servers import free_port
 from lbo.core.errors import LboError
 from lbo.core.paths import EXAMPLE_LOG
@@ -40,19 +38,8 @@ def snapshot(folder: Path) -> dict[str, bytes]:
             if p.is_file()}
 
 
-def cli(module: str, *args: str, env: dict[str, str]) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", module, *args], capture_output=True, text=True,
-                          env={**os.environ, "OMP_NUM_THREADS": "1", **env}, timeout=300)
-
-
-def one_line_error(res: subprocess.CompletedProcess, *words: str) -> str:
-    """The single ``error:`` line of a refused command (exit 2, no traceback)."""
-    assert res.returncode == 2, res.stdout[-2000:] + res.stderr[-3000:]
-    lines = res.stderr.strip().splitlines()
-    assert len(lines) == 1 and lines[0].startswith("error: "), res.stderr[-3000:]
-    for w in words:
-        assert w in lines[0], lines[0]
-    return lines[0]
+def one_thread_cli(module: str, *args: str, env: dict[str, str]) -> subprocess.CompletedProcess:
+    return cli(module, *args, env={"OMP_NUM_THREADS": "1", **env})
 
 
 # --- item 3: an output_dir that holds another run's files ------------------------------------
@@ -98,10 +85,10 @@ def test_hydra_run_dir_of_a_finished_run_keeps_its_hydra_record(tmp_path, smoke_
     env = {"MLFLOW_TRACKING_URI": f"sqlite:///{tmp_path / 'mlflow.db'}"}
     args = ["experiment=smoke", f"data.root={smoke_data.parent}", *SHORT]
     folder = tmp_path / "run"
-    done = cli("lbo.train", *args, f"hydra.run.dir={folder}", env=env)
+    done = one_thread_cli("lbo.train", *args, f"hydra.run.dir={folder}", env=env)
     assert done.returncode == 0, done.stderr[-3000:]
     before = snapshot(folder)
-    res = cli("lbo.train", *args, "seed=5", f"hydra.run.dir={folder}", env=env)
+    res = one_thread_cli("lbo.train", *args, "seed=5", f"hydra.run.dir={folder}", env=env)
     one_line_error(res, f"hydra.run.dir: {folder} already holds the files of the finished run",
                    "give hydra.run.dir=<a new or empty folder>")
     after = snapshot(folder)
@@ -257,8 +244,8 @@ def test_the_error_line_and_hydra_files_never_hold_a_password_with_slashes(tmp_p
     whether or not it holds a ``/``."""
     uri = f"http://alice:{password}@127.0.0.1:{free_port()}"
     folder = tmp_path / "run"
-    res = cli("lbo.train", "experiment=smoke", f"logger.tracking_uri={uri}",
-              f"hydra.run.dir={folder}", env={})
+    res = one_thread_cli("lbo.train", "experiment=smoke", f"logger.tracking_uri={uri}",
+                         f"hydra.run.dir={folder}", env={})
     one_line_error(res, "no MLflow tracking server answers at http://alice:***@127.0.0.1")
     assert password not in res.stdout + res.stderr
     written = snapshot(folder)
@@ -281,9 +268,9 @@ def test_a_damaged_tracking_store_is_one_line_naming_it(tmp_path, smoke_data):
     run_id = "0123456789abcdef0123456789abcdef"
     observe = ("lbo.observe", f"observer={run_id}", f"input={EXAMPLE_LOG}",
                f"output={tmp_path / 'est.csv'}")
-    for res in (cli("lbo.train", "experiment=smoke", f"data.root={smoke_data.parent}",
-                    f"hydra.run.dir={tmp_path / 'run'}", env=env),
-                cli(*observe, env=env)):
+    train = ("lbo.train", "experiment=smoke", f"data.root={smoke_data.parent}",
+             f"hydra.run.dir={tmp_path / 'run'}")
+    for res in (one_thread_cli(*train, env=env), one_thread_cli(*observe, env=env)):
         one_line_error(res, f"MLFLOW_TRACKING_URI: the SQLite tracking store {store} is "
                             "damaged (file is not a database)",
                        f"mv {store} {store}.damaged")
@@ -293,7 +280,7 @@ def test_a_damaged_tracking_store_is_one_line_naming_it(tmp_path, smoke_data):
     # the advice, followed: a new store (MLflow says it creates its tables); the run id is
     # then simply not found
     store.rename(tmp_path / "mlflow.db.damaged")
-    res = cli(*observe, env=env)
+    res = one_thread_cli(*observe, env=env)
     assert res.returncode == 2 and "Traceback" not in res.stderr
     assert res.stderr.strip().splitlines()[-1].startswith(
         f"error: observer: MLflow run {run_id} not found in sqlite:///{store}")

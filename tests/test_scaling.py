@@ -16,7 +16,7 @@ import pandas as pd
 import pytest
 from omegaconf import open_dict
 
-from helpers import compose_cfg, train_cfg
+from helpers import cli, compose_cfg, train_cfg
 from helpers.servers import PG_PASSWORD, free_port, mlflow_server, postgres
 from lbo.core.cli import check_launcher, launcher_from_argv
 from lbo.core.errors import LboError
@@ -25,11 +25,6 @@ from lbo.tracking.study_storage import MAX_CONNECTIONS
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 optuna.logging.set_verbosity(optuna.logging.WARNING)
 SWEEP = ["model=cnn,lstm", "window=20,40"]
-
-
-def cli(module: str, *args: str, env: dict | None = None, timeout: int = 600):
-    return subprocess.run([sys.executable, "-m", module, *args], capture_output=True, text=True,
-                          env={**os.environ, **(env or {})}, timeout=timeout)
 
 
 def finished_runs(uri: str) -> pd.DataFrame:

@@ -5,13 +5,16 @@ hooks stay in ``tests/conftest.py``.
   ``ROBUST_SMOKE``)
 - :mod:`helpers.training`: training runs at smoke size (``train_in_own_store``)
 - :mod:`helpers.processes`: faults injected into running processes (``kill_when_written``)
+- :mod:`helpers.commands`: lbo's commands in a subprocess (``cli``, ``observe``) and their
+  one-line refusals (``one_line_error``)
 - :mod:`helpers.servers`: real PostgreSQL, MLflow and model servers (import it by name:
   ``from helpers.servers import postgres``)
 """
 
+from helpers.commands import cli, observe, one_line_error
 from helpers.config import ROBUST_SMOKE, compose_cfg, train_cfg
 from helpers.processes import kill_when_written
 from helpers.training import train_in_own_store
 
-__all__ = ["ROBUST_SMOKE", "compose_cfg", "kill_when_written", "train_cfg",
-           "train_in_own_store"]
+__all__ = ["ROBUST_SMOKE", "cli", "compose_cfg", "kill_when_written", "observe",
+           "one_line_error", "train_cfg", "train_in_own_store"]
