@@ -39,6 +39,7 @@ import torch
 
 from lbo.core.errors import LboError
 from lbo.sim.logcheck import fix_mask
+from lbo.sim.vehicle import wrap_angle
 
 FEATURE_MODES = ("relative", "frame", "absolute")
 
@@ -53,7 +54,7 @@ def wrap_angle_torch(a: torch.Tensor) -> torch.Tensor:
 def _wrap(a: Array) -> Array:
     if isinstance(a, torch.Tensor):
         return wrap_angle_torch(a)
-    return np.pi - np.mod(np.pi - a, 2 * np.pi)
+    return wrap_angle(a)
 
 
 def _cat_last(parts: list[Array]) -> Array:

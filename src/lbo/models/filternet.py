@@ -40,6 +40,7 @@ from torch import nn
 
 from lbo.core.checks import integer, number
 from lbo.core.errors import LboError
+from lbo.models.features import wrap_angle_torch
 
 SUBSTEPS = 4
 """Euler sub-steps per sampling period of the single-track body's lateral states."""
@@ -58,10 +59,6 @@ def _check_sigmas(name: str, values: Sequence[float]) -> tuple[float, float, flo
         raise LboError(f"model.{name}: expected three sigmas > 0 for [x (m), y (m), psi (rad)], "
                        f"got {values!r}")
     return out  # type: ignore[return-value]
-
-
-def _wrap(a: torch.Tensor) -> torch.Tensor:
-    return math.pi - torch.remainder(math.pi - a, 2 * math.pi)
 
 
 def _tan(a: torch.Tensor) -> torch.Tensor:
@@ -331,7 +328,7 @@ class WindowFilter(nn.Module):
                              torch.stack([zero, zero, zero, zero, phi * one], -1)], -2)
             P = F @ P @ F.transpose(1, 2) + Qp
             y = x[:, k, :3] - (H @ z.unsqueeze(-1)).squeeze(-1)
-            y = torch.cat([y[:, :2], _wrap(y[:, 2:])], -1)
+            y = torch.cat([y[:, :2], wrap_angle_torch(y[:, 2:])], -1)
             PH = P @ H.T  # (B, 5, 3)
             K = PH @ _inverse_sym3(H @ PH + R)
             z_new = z + (K @ y.unsqueeze(-1)).squeeze(-1)
@@ -346,7 +343,7 @@ class WindowFilter(nn.Module):
                 started = started | f
             else:
                 z, P = z_new, P_new
-        return torch.cat([z[:, :2], _wrap(z[:, 2:3])], -1)
+        return torch.cat([z[:, :2], wrap_angle_torch(z[:, 2:3])], -1)
 
     @staticmethod
     def _drift_start(R: torch.Tensor, var_b: torch.Tensor, e: torch.Tensor) -> torch.Tensor:
@@ -372,7 +369,7 @@ class WindowFilter(nn.Module):
             gap = gap + 1
             f = fix[:, k]
             r = x[:, k, :3] - dr
-            r = torch.cat([r[:, :2], _wrap(r[:, 2:])], -1)
+            r = torch.cat([r[:, :2], wrap_angle_torch(r[:, 2:])], -1)
             use = (f & seen).to(x.dtype)
             total = total + use[:, None] * r ** 2
             count, gaps = count + use, gaps + use * gap
@@ -393,7 +390,7 @@ class WindowFilter(nn.Module):
         else:
             m = x[:, :, :3]
             d2 = m[:, 2:] - 2 * m[:, 1:-1] + m[:, :-2]
-            d2 = torch.cat([d2[..., :2], _wrap(d2[..., 2:])], -1)
+            d2 = torch.cat([d2[..., :2], wrap_angle_torch(d2[..., 2:])], -1)
             # second differences of i.i.d. noise of variance s^2 have variance 6 s^2
             ms = (d2 ** 2).mean(1) / 6.0
             log_gap = speed[:, :0]  # no column
@@ -426,7 +423,7 @@ class WindowFilter(nn.Module):
                              torch.stack([zero, zero, one], -1)], -2)
             P = F @ P @ F.transpose(1, 2) + Q
             y = x[:, k, :3] - z
-            y = torch.cat([y[:, :2], _wrap(y[:, 2:])], -1)
+            y = torch.cat([y[:, :2], wrap_angle_torch(y[:, 2:])], -1)
             K = P @ _inverse_sym3(P + R)
             z_new = z + (K @ y.unsqueeze(-1)).squeeze(-1)
             P_new = (eye - K) @ P
@@ -440,4 +437,4 @@ class WindowFilter(nn.Module):
                 started = started | f
             else:
                 z, P = z_new, P_new
-        return torch.cat([z[:, :2], _wrap(z[:, 2:])], -1)
+        return torch.cat([z[:, :2], wrap_angle_torch(z[:, 2:])], -1)

@@ -37,7 +37,8 @@ import numpy as np
 import torch
 from torch import nn
 
-from lbo.models.filternet import WindowFilter, _inverse_sym3, _wrap
+from lbo.models.features import wrap_angle_torch
+from lbo.models.filternet import WindowFilter, _inverse_sym3
 
 STATE_NAMES = ("z", "P", "body", "u_prev", "last", "dead_reckoning", "gap", "heading",
                "ring", "sums", "speeds", "speed_sum", "k", "started")
@@ -162,7 +163,7 @@ class RecursiveFilter(nn.Module):
             dr = fo._step(dr, u_prev[:, 0], u_prev[:, 1])
             gap = gap + 1
             res = m0 - dr
-            res = torch.cat([res[:, :2], _wrap(res[:, 2:])], -1)
+            res = torch.cat([res[:, :2], wrap_angle_torch(res[:, 2:])], -1)
             counted = (fix & going).to(m.dtype)
             entry = torch.stack([res[:, 0] ** 2, res[:, 1] ** 2, res[:, 0] * res[:, 1],
                                  res[:, 2] ** 2], 1) / 2  # two fixes' noise in a residual
@@ -172,7 +173,7 @@ class RecursiveFilter(nn.Module):
             gap = torch.where(fix, zero, gap)
         else:
             d2 = m0 - 2 * last[:, 1] + last[:, 0]
-            d2 = torch.cat([d2[:, :2], _wrap(d2[:, 2:])], -1)
+            d2 = torch.cat([d2[:, :2], wrap_angle_torch(d2[:, 2:])], -1)
             counted = (k >= 2).to(m.dtype) * one
             entry = torch.stack([d2[:, 0] ** 2, d2[:, 1] ** 2, d2[:, 0] * d2[:, 1],
                                  d2[:, 2] ** 2], 1) / 6  # i.i.d. noise: variance 6 s^2
@@ -218,7 +219,7 @@ class RecursiveFilter(nn.Module):
             z_pred = pose
         P_pred = F @ P @ F.transpose(1, 2) + Qn
         y = m0 - (H @ z_pred.unsqueeze(-1)).squeeze(-1)
-        y = torch.cat([y[:, :2], _wrap(y[:, 2:])], -1)
+        y = torch.cat([y[:, :2], wrap_angle_torch(y[:, 2:])], -1)
         PH = P_pred @ H.T
         K = PH @ _inverse_sym3(H @ PH + R)
         z_upd = z_pred + (K @ y.unsqueeze(-1)).squeeze(-1)
@@ -245,7 +246,7 @@ class RecursiveFilter(nn.Module):
                         torch.where((fix & going)[:, None, None], P_upd, P_pred))
         body = torch.where(first[:, None], fo.body_start(u[:, 0], u[:, 1]), body_new)
         started = torch.where(fix, one, started)
-        out = torch.cat([z[:, :2], _wrap(z[:, 2:3])], -1)
+        out = torch.cat([z[:, :2], wrap_angle_torch(z[:, 2:3])], -1)
         out = torch.where(started[:, None] > 0.5, out, torch.full_like(out, math.nan))
         cov = torch.where(started[:, None, None] > 0.5, P[:, :3, :3],
                           torch.full_like(P[:, :3, :3], math.nan))

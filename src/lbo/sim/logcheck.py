@@ -22,6 +22,7 @@ import numpy as np
 from lbo.core.checks import number
 from lbo.core.errors import LboError
 from lbo.sim.columns import INPUT, MEAS, RECEIVER, STATE
+from lbo.sim.vehicle import wrap_angle
 
 FIX_RULE = ("a row holds x_m and y_m (a position fix), with or without psi_m, or none of "
             "them (a step without a fix)")
@@ -190,11 +191,6 @@ def _heading(where: str, column: str, value: float) -> LboError:
                     "a heading in rad wrapped within it (a whole log, on any branch)")
 
 
-def _wrap(a: np.ndarray) -> np.ndarray:
-    """Angles (any shape) wrapped to (-pi, pi] (as :func:`lbo.sim.vehicle.wrap_angle`)."""
-    return np.pi - np.mod(np.pi - a, 2 * np.pi)
-
-
 def _turn_rates(psi: np.ndarray, t: np.ndarray) -> np.ndarray:
     """|heading change| / time (rad/s) over pairs of the finite headings ``psi`` (T,) at times
     ``t`` (T,), strictly increasing: each with the first one at least :data:`RATE_SPAN` later,
@@ -207,7 +203,7 @@ def _turn_rates(psi: np.ndarray, t: np.ndarray) -> np.ndarray:
     i, j = at[ok], at[k[ok]]
     span = t[j] - t[i]
     near = span <= 2 * RATE_SPAN
-    return np.abs(_wrap(psi[j[near]] - psi[i[near]])) / span[near]
+    return np.abs(wrap_angle(psi[j[near]] - psi[i[near]])) / span[near]
 
 
 def check_heading_unit(psi: np.ndarray, t: np.ndarray, column: str = "psi_m",
