@@ -25,8 +25,8 @@ from lbo.sim.columns import STATE
 from lbo.sim.logio import receiver
 from lbo.sim.vehicle import Vehicle
 
-__all__ = ["BLIND", "EKF", "ORACLE", "RAW", "markdown", "measure_ratio", "oracle_gyro", "pool",
-           "ratio_to", "score", "scored_rows"]
+__all__ = ["BLIND", "EKF", "NOISE_ORACLE", "ORACLE", "RAW", "markdown", "measure_ratio",
+           "oracle_gyro", "pool", "ratio_to", "score", "scored_rows"]
 
 RAW = "raw fixes (heading: course over ground)"
 """The raw fixes' row: position at the fix rows; heading: the course of the receiver's
@@ -36,7 +36,10 @@ EKF = "ekf, receiver's accuracy and velocity"
 BLIND = "ekf, lbo's R, no velocity"
 """The kinematic EKF without the receiver's channels (lbo's R, no velocity)."""
 ORACLE = "oracle gyro EKF, told the true noise and bias"
-""":func:`oracle_gyro`'s row: the simulated logs' reference."""
+""":func:`oracle_gyro`'s row, told the bias's value: the simulated logs' reference."""
+NOISE_ORACLE = "oracle gyro EKF, told the true noise, bias estimated"
+""":func:`oracle_gyro`'s row told the bias's statistics, not its value: the best a causal
+filter that must learn the bias from the log can hope for."""
 RMSE = ("x_m", "y_m", "psi_mrad")
 """A score table's RMSE columns."""
 
@@ -139,12 +142,16 @@ def pool(tables: Sequence[pd.DataFrame]) -> pd.DataFrame:
 
 
 def oracle_gyro(log: pd.DataFrame, vehicle: Vehicle, position_sigma: float,
-                process_sigma: float, gyro_sigma: float) -> np.ndarray:
+                process_sigma: float, gyro_sigma: float,
+                bias: tuple[float, float] | None = None) -> np.ndarray:
     """The gyro EKF told what drew a simulated single-antenna log (``python -m lbo.simulate
     receiver=...``): estimates (T, 3).
 
-    - The gyro less its true bias (the log's ``b`` column), so its bias state starts and stays
-      at 0 (sigma 1e-6 rad/s, no walk).
+    - With ``bias`` None, the gyro less its true bias (the log's ``b`` column), so its bias
+      state starts and stays at 0 (sigma 1e-6 rad/s, no walk). With ``bias`` ``(sigma,
+      walk)``, the gyro as logged, its bias a state that starts at N(0, sigma^2) rad/s and
+      walks at ``walk`` rad/s/sqrt(s): told the bias's statistics, it learns the value from
+      the log as any causal filter must (:data:`NOISE_ORACLE`).
     - Each fix's R is its true 1-sigma ``position_sigma`` (m: alpha times the receiver's white
       and drift combined) in place of the reported accuracy.
     - The process noise is the truth's on x and y (``process_sigma``, m a step) and none on the
@@ -155,7 +162,7 @@ def oracle_gyro(log: pd.DataFrame, vehicle: Vehicle, position_sigma: float,
 
     Not told: the drift's correlation in time (an EKF's R is white) and the channels' latency
     (neither is noise; no observer here is told them)."""
-    if "b" not in log:
+    if bias is None and "b" not in log:
         raise LboError("oracle_gyro: the log has no 'b' column (the gyro's true bias): "
                        "simulate it with a receiver (python -m lbo.simulate receiver=...)")
     m = log[["x_m", "y_m", "psi_m"]].to_numpy(dtype=float)
@@ -165,18 +172,22 @@ def oracle_gyro(log: pd.DataFrame, vehicle: Vehicle, position_sigma: float,
     fix = np.isfinite(m[:, 0])
     r[:, :2] = np.where(fix[:, None], position_sigma, np.nan)
     v = log["V"].to_numpy(dtype=float)
-    rate = log["r_m"].to_numpy(float) - log["b"].to_numpy(float)
+    rate = log["r_m"].to_numpy(float)
+    if bias is None:
+        rate = rate - log["b"].to_numpy(float)
+        bias = (1e-6, 1e-12)
     rows = measure.rows(m, r[:, :3], r[:, 3:5], r[:, 5], v, np.zeros(len(v)), 0.0)
     Q = np.diag([process_sigma**2, process_sigma**2, 0.0])
     R = np.diag([position_sigma**2, position_sigma**2, 1.0])  # every fix reports its own
     return gyro_ekf_batch(rows[None], np.column_stack([v, rate])[None], vehicle, Q, R,
-                          gyro_sigma=gyro_sigma, bias_sigma=1e-6, bias_walk=1e-12)[0]
+                          gyro_sigma=gyro_sigma, bias_sigma=bias[0], bias_walk=bias[1])[0]
 
 
-def markdown(table: pd.DataFrame, versus: str) -> str:
-    """The table as markdown, with its ratio column ``versus`` (e.g. ``vs_ekf``)."""
-    head = versus.replace("_", " ")
-    lines = [f"| estimator | x (m) | y (m) | psi (mrad) | {head} |", "|---|---:|---:|---:|---:|"]
-    lines += [f"| {r['estimator']} | {r['x_m']:.2f} | {r['y_m']:.2f} | {r['psi_mrad']:.1f} | "
-              f"{r[versus]:.2f} |" for _, r in table.iterrows()]
+def markdown(table: pd.DataFrame, *versus: str) -> str:
+    """The table as markdown, with its ratio columns ``versus`` (e.g. ``vs_ekf``)."""
+    heads = "".join(f" {v.replace('_', ' ')} |" for v in versus)
+    lines = [f"| estimator | x (m) | y (m) | psi (mrad) |{heads}",
+             "|---|---:|---:|---:|" + "---:|" * len(versus)]
+    lines += [f"| {r['estimator']} | {r['x_m']:.2f} | {r['y_m']:.2f} | {r['psi_mrad']:.1f} |"
+              + "".join(f" {r[v]:.2f} |" for v in versus) for _, r in table.iterrows()]
     return "\n".join(lines) + "\n"
