@@ -20,11 +20,13 @@ help:  ## list the targets
 
 install: $(STAMP)  ## create .venv and install lbo with everything it needs (CPU torch)
 
-$(STAMP): pyproject.toml constraints.txt
+$(STAMP): pyproject.toml constraints.txt examples/plugin/pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	# torch first, at constraints.txt's version: an unpinned torch pulls gigabytes of CUDA packages
 	$(PY) -m pip install -q -c constraints.txt torch
 	$(PY) -m pip install -q -c constraints.txt -e ".[dev,launchers,cluster,real]"
+	# the plug-in example (docs/plugins.md), which its tests train, tune, observe and export
+	$(PY) -m pip install -q --no-deps -e examples/plugin
 	touch $@
 
 test: install  ## run every test, the slow ones included, in TEST_JOBS processes (pytest-xdist)
@@ -67,7 +69,7 @@ bench: install  ## benchmarks: data generation, filters, training throughput, la
 	$(PY) benchmarks/bench_latency.py
 
 lint: install  ## ruff
-	$(VENV)/bin/ruff check src tests benchmarks
+	$(VENV)/bin/ruff check src tests benchmarks examples
 
 clean:  ## remove generated outputs (keeps .venv, data/ and the MLflow/Optuna stores)
 	rm -rf outputs multirun .pytest_cache

@@ -34,7 +34,7 @@ import signal
 import sys
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -403,7 +403,7 @@ def _run_study(cfg: DictConfig, space: list[Param], pruner: optuna.pruners.BaseP
         raise LboError(f"study {t.study_name}: no trial has completed "
                        f"({counts[TrialState.PRUNED]} pruned, {counts[TrialState.FAIL]} failed),"
                        f" so no hand-off was written; rerun with a larger tune.n_trials")
-    command = train_command(cfg.model.name, handoff)
+    command = train_command(cfg.model.name, handoff, _searchpath())
     params = {p.key: p.decode(best.params[p.key]) for p in space if p.key in best.params}
     print(f"best: trial {best.number}, val_loss {best.value:.6g}: "
           + " ".join(f"{k}={_short(v)}" for k, v in params.items()))
@@ -472,19 +472,30 @@ def write_handoff(cfg: DictConfig, study: optuna.Study, space: list[Param],
         f"{scrub(storage)}\n"
         f"# (model {cfg.model.name}, window {cfg.window}, data {cfg.data.name}; trial "
         f"{best.number}, val_loss {best.value:.6g}).\n"
-        f"# Use: {train_command(cfg.model.name, path)}\n")
+        f"# Use: {train_command(cfg.model.name, path, _searchpath())}\n")
     return write_text(path, header + OmegaConf.to_yaml(values))
 
 
-def train_command(model: str, handoff: Path) -> str:
+def train_command(model: str, handoff: Path, searchpath: Sequence[str] = ()) -> str:
     """The training line that composes ``handoff``: ``+<folder>=<name>``, with a search path
-    when the folder is not under conf/."""
+    when the folder is not under conf/. ``searchpath``: the study's own search path (e.g. a
+    plug-in's configs), kept in front."""
     handoff = Path(handoff).resolve()
     command = (f"python -m lbo.train -m model={model} +{handoff.parent.name}={handoff.stem} "
                f"window=20,40,60,80")
+    paths = list(searchpath)
     if handoff.parent.parent != CONF_DIR.resolve():
-        command += f" 'hydra.searchpath=[file://{handoff.parent.parent}]'"
+        paths.append(f"file://{handoff.parent.parent}")
+    if paths:
+        command += f" 'hydra.searchpath=[{','.join(paths)}]'"
     return command
+
+
+def _searchpath() -> list[str]:
+    """The running command's ``hydra.searchpath`` (empty outside a Hydra run)."""
+    from hydra.core.hydra_config import HydraConfig
+
+    return list(HydraConfig.get().searchpath) if HydraConfig.initialized() else []
 
 
 _QUIET = {"lightning": False}

@@ -9,6 +9,7 @@ from typing import Any
 import lightning as L
 import torch
 
+from lbo.core import plugins
 from lbo.core.checks import SCHEDULES
 from lbo.core.errors import TrainingDiverged
 from lbo.models.net import CHECKPOINT_FORMAT, WindowNet
@@ -43,6 +44,8 @@ class TrainingModule(L.LightningModule):
         self.save_hyperparameters(ignore=["optimizer", "lr_schedule", "net"])
         self.lr_schedule = lr_schedule
         self.hparams["format"] = CHECKPOINT_FORMAT
+        # the package that registers the model: a machine without it is told what to install
+        self.hparams["provider"] = plugins.provider("model", model["name"])
         kwargs = {k: v for k, v in model.items() if k != "name"}
         self.observer = net if net is not None else WindowNet(model["name"], window, features,
                                                               fixes, **kwargs)

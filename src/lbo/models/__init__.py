@@ -1,8 +1,10 @@
-"""Learned observers as plain ``nn.Module``s: (B, N, 5) windows -> (B, 3) states.
+"""Learned observers as plain ``nn.Module``s: (B, N, C) windows -> (B, 3) states.
 
-``build_model`` is the one place that turns a model name and hyperparameters (from a config or
-a search space) into a module, and rejects unknown names and parameters with a one-line
-:class:`~lbo.core.errors.LboError` before anything trains.
+``build_model`` is the one place that turns a model name and hyperparameters (from a config, a
+search space or a checkpoint) into a module, and rejects unknown names and parameters with a
+one-line :class:`~lbo.core.errors.LboError` before anything trains. A name is looked up among
+the installed packages' entry points (group ``lbo.models``, :mod:`lbo.core.plugins`): lbo's own
+``cnn``, ``lstm`` and ``filternet`` are registered there as a user's model is (docs/plugins.md).
 """
 
 from __future__ import annotations
@@ -12,25 +14,32 @@ from typing import Any
 
 from torch import nn
 
+from lbo.core import plugins
 from lbo.core.errors import LboError
 from lbo.models.cnn import WindowCNN
 from lbo.models.filternet import WindowFilter
 from lbo.models.lstm import WindowLSTM
 
-MODELS: dict[str, type[nn.Module]] = {"cnn": WindowCNN, "lstm": WindowLSTM,
-                                      "filternet": WindowFilter}
+
+def model_names() -> tuple[str, ...]:
+    """The registered models' names, lbo's own first (``cnn``, ``lstm``, ``filternet``)."""
+    return plugins.names("model")
+
+
+def model_class(name: str, recorded: dict[str, Any] | None = None) -> type[nn.Module]:
+    """The class registered as ``name``; ``recorded``: the provider a checkpoint stored, for
+    the error when it is not installed. Raises LboError naming ``model.name``."""
+    cls = plugins.load("model", name, "model.name", recorded)
+    if not (isinstance(cls, type) and issubclass(cls, nn.Module)):
+        raise LboError(f"model.name: model {name!r} is registered as {cls!r}, not a "
+                       "torch.nn.Module class")
+    return cls
 
 
 def model_parameters(name: str) -> tuple[str, ...]:
     """The keyword arguments that model ``name`` accepts besides ``window``."""
-    _check_name(name)
-    params = inspect.signature(MODELS[name]).parameters
+    params = inspect.signature(model_class(name)).parameters
     return tuple(p for p in params if p != "window")
-
-
-def _check_name(name: str) -> None:
-    if name not in MODELS:
-        raise LboError(f"model: unknown model {name!r}; expected one of {', '.join(MODELS)}")
 
 
 def build_model(name: str, window: int, **kwargs: Any) -> nn.Module:
@@ -38,9 +47,10 @@ def build_model(name: str, window: int, **kwargs: Any) -> nn.Module:
 
     Parameters
     ----------
-    name : a key of :data:`MODELS` (``"cnn"`` or ``"lstm"``).
+    name : a registered model's name (:func:`model_names`).
     window : N, time steps per window.
-    **kwargs : the model's hyperparameters (see :class:`WindowCNN`, :class:`WindowLSTM`).
+    **kwargs : the model's hyperparameters (see :class:`WindowCNN`, :class:`WindowLSTM`,
+        :class:`WindowFilter`, or the plug-in's class).
 
     Raises
     ------
@@ -52,8 +62,16 @@ def build_model(name: str, window: int, **kwargs: Any) -> nn.Module:
     if unknown:
         raise LboError(f"model.{unknown[0]}: not a parameter of model {name!r}; "
                        f"accepted: {', '.join(accepted)}")
-    return MODELS[name](window, **kwargs)
+    cls = model_class(name)
+    if name in plugins.OWN["model"]:  # lbo's own check every value in one line themselves
+        return cls(window, **kwargs)
+    try:
+        return cls(window, **kwargs)
+    except (TypeError, ValueError) as e:  # a plug-in's own check, said in lbo's one line
+        raise LboError(f"model: model {name!r} refused its settings "
+                       f"({', '.join(f'{k}={v!r}' for k, v in kwargs.items()) or 'defaults'}):"
+                       f" {e}") from None
 
 
-__all__ = ["MODELS", "WindowCNN", "WindowFilter", "WindowLSTM", "build_model",
-           "model_parameters"]
+__all__ = ["WindowCNN", "WindowFilter", "WindowLSTM", "build_model", "model_class",
+           "model_names", "model_parameters"]

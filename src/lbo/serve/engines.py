@@ -8,10 +8,13 @@ from __future__ import annotations
 
 import io
 import warnings
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from lbo.core.errors import LboError
 
 OPSET = 17
 TOLERANCE = 1e-5
@@ -38,6 +41,18 @@ def _without_fixes(win):
     return win
 
 
+def _exporting(form: str, net: Any, make: Callable[[], Any]) -> Any:
+    """``make()``, a failure said in one line: a plug-in's model may use what TorchScript or
+    ONNX cannot hold (an operator without an ONNX form, Python on the tensors' values)."""
+    try:
+        return make()
+    except Exception as e:
+        reason = (str(e).strip().splitlines() or [""])[0][:200]
+        raise LboError(f"engine: model {type(net.net).__name__} does not export to {form} "
+                       f"({type(e).__name__}: {reason}); it still runs with engine=torch"
+                       ) from None
+
+
 def trace(net: Any) -> Any:
     """TorchScript of an :class:`~lbo.models.net.WindowNet`, traced on one float64 window
     on the net's device.
@@ -52,7 +67,8 @@ def trace(net: Any) -> Any:
     with warnings.catch_warnings():
         # torch 2.13 marks jit.trace deprecated; nn.LSTM's shape checks warn while traced
         warnings.simplefilter("ignore")
-        return torch.jit.trace(net, example, check_trace=False)
+        return _exporting("TorchScript", net,
+                          lambda: torch.jit.trace(net, example, check_trace=False))
 
 
 def onnx_bytes(net: Any) -> bytes:
@@ -63,9 +79,10 @@ def onnx_bytes(net: Any) -> bytes:
     buf = io.BytesIO()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # the legacy exporter's deprecation and LSTM notes
-        torch.onnx.export(net.eval(), (_example(net),), buf, dynamo=False, opset_version=OPSET,
-                          input_names=["window"], output_names=["state"],
-                          dynamic_axes={"window": {0: "batch"}, "state": {0: "batch"}})
+        _exporting("ONNX", net, lambda: torch.onnx.export(
+            net.eval(), (_example(net),), buf, dynamo=False, opset_version=OPSET,
+            input_names=["window"], output_names=["state"],
+            dynamic_axes={"window": {0: "batch"}, "state": {0: "batch"}}))
     return buf.getvalue()
 
 

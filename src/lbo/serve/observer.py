@@ -826,6 +826,7 @@ def read_checkpoint(path: str | os.PathLike, features: str | None = None,
     """
     import torch
 
+    from lbo.models import model_class
     from lbo.models.features import FEATURE_MODES
     from lbo.models.net import CHECKPOINT_FORMAT, WindowNet
 
@@ -860,6 +861,9 @@ def read_checkpoint(path: str | os.PathLike, features: str | None = None,
                        f"but features={features} was asked for")
     try:
         model = dict(hp["model"])
+        # the name is looked up among the installed plug-ins only (nothing the file names is
+        # imported); one that is missing says which package provided it
+        model_class(model.get("name"), hp.get("provider"))
         net = WindowNet(model.pop("name"), hp["window"], mode, bool(hp.get("fixes", False)),
                           **model)
         state = {k.removeprefix("observer."): v for k, v in ckpt["state_dict"].items()

@@ -1,0 +1,236 @@
+"""Plug-ins (issue 37): parts found by name among the installed packages' entry points, lbo's
+own by the same path; the example package (examples/plugin, installed by make install) trained,
+tuned, evaluated, observed, streamed and exported as a built-in model is; checkpoints that
+name a part refused in one line when it is missing, and never importing what they name."""
+
+from __future__ import annotations
+
+import sys
+import textwrap
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+import torch
+
+from helpers.commands import cli, one_line_error
+from lbo.core import plugins
+from lbo.core.errors import LboError
+from lbo.models import build_model, model_class, model_names
+from lbo.models.net import CHECKPOINT_FORMAT
+from lbo.serve.observer import Observer, read_checkpoint
+
+EXAMPLE = "my_gru"
+SEARCHPATH = "hydra.searchpath=[pkg://lbo_plugin_example.conf]"
+
+
+def _checkpoint(path: Path, name: object, provider: dict | None = None) -> Path:
+    """A checkpoint's outer form naming model ``name`` (no weights: the name is refused
+    before any are read)."""
+    hp = {"format": CHECKPOINT_FORMAT, "features": "relative", "window": 20,
+          "model": {"name": name}, "provider": provider or {}}
+    torch.save({"hyper_parameters": hp, "state_dict": {}}, path)
+    return path
+
+
+@pytest.fixture
+def planted(tmp_path, monkeypatch):
+    """A module on the import path that writes a file if it is ever imported."""
+    folder = tmp_path / "path"
+    folder.mkdir()
+    marker = tmp_path / "imported.txt"
+    (folder / "planted_evil.py").write_text(
+        f"from pathlib import Path\nPath({str(marker)!r}).write_text('imported')\n"
+        "class Evil:\n    pass\n")
+    monkeypatch.syspath_prepend(str(folder))
+    monkeypatch.setenv("PYTHONPATH", str(folder))
+    return marker
+
+
+@pytest.fixture
+def registered(tmp_path, monkeypatch):
+    """Register entry points in the ``lbo.models`` group from a distribution planted on the
+    import path (as pip leaves one), for this test only: ``registered({"name": "mod:Cls"})``."""
+    def plant(points: dict[str, str]) -> None:
+        info = tmp_path / "site" / "planted_plugin-0.1.dist-info"
+        info.mkdir(parents=True)
+        (info / "METADATA").write_text("Metadata-Version: 2.1\nName: planted-plugin\n"
+                                       "Version: 0.1\n")
+        (info / "entry_points.txt").write_text(
+            "[lbo.models]\n" + "".join(f"{k} = {v}\n" for k, v in points.items()))
+        monkeypatch.syspath_prepend(str(tmp_path / "site"))
+        plugins._entry_points.cache_clear()
+
+    yield plant
+    plugins._entry_points.cache_clear()
+
+
+def test_lbo_registers_its_own_models_as_a_plug_in_would():
+    names = model_names()
+    assert names[:3] == ("cnn", "lstm", "filternet")
+    assert EXAMPLE in names  # the example package, installed beside lbo by make install
+    assert plugins.provider("model", "cnn")["package"] == "lbo"
+    assert plugins.provider("model", EXAMPLE) == {"package": "lbo-plugin-example",
+                                                  "version": "0.1.0"}
+    assert type(build_model(EXAMPLE, 20, hidden=8)).__name__ == "WindowGRU"
+
+
+def test_a_plug_ins_bad_settings_and_bad_names_are_one_line_errors():
+    with pytest.raises(LboError, match=r"^model: model 'my_gru' refused its settings "
+                                       r"\(hidden=0\): hidden and layers must be"):
+        build_model(EXAMPLE, 20, hidden=0)
+    with pytest.raises(LboError, match=r"^model.my_width: not a parameter of model 'my_gru'; "
+                                       r"accepted: in_features, hidden, layers$"):
+        build_model(EXAMPLE, 20, my_width=3)
+    with pytest.raises(LboError, match=r"^plug-in kind 'truths': expected one of model$"):
+        plugins.names("truths")
+
+
+def test_a_registered_part_that_fails_to_import_or_is_no_module_says_so(registered, tmp_path,
+                                                                       monkeypatch):
+    mod = tmp_path / "mods"
+    mod.mkdir()
+    (mod / "half_done.py").write_text("import not_a_module_anywhere\n")
+    (mod / "not_a_net.py").write_text("class Plain:\n    pass\n")
+    monkeypatch.syspath_prepend(str(mod))
+    registered({"half_done": "half_done:Net", "not_a_net": "not_a_net:Plain"})
+    assert "half_done" in model_names()
+    with pytest.raises(LboError, match=r"^model.name: model 'half_done' is registered "
+                                       r"\(half_done:Net\) but does not import: "
+                                       r"ModuleNotFoundError"):
+        model_class("half_done")
+    with pytest.raises(LboError, match=r"^model.name: model 'not_a_net' is registered as "
+                                       r".*Plain.*, not a torch.nn.Module class$"):
+        build_model("not_a_net", 20)
+
+
+def test_a_plug_in_that_does_not_export_says_so_in_one_line(registered, tmp_path,
+                                                          monkeypatch):
+    """ONNX has no modified Bessel function: a model using one runs in PyTorch and is refused
+    by the ONNX engine (export, engine=onnx) in one line."""
+    from lbo.models.net import WindowNet
+    from lbo.serve.engines import onnx_bytes, trace
+
+    mod = tmp_path / "mods"
+    mod.mkdir()
+    (mod / "bessel_net.py").write_text(textwrap.dedent("""
+        import torch
+        from torch import nn
+
+        class BesselNet(nn.Module):
+            def __init__(self, window, in_features=5):
+                super().__init__()
+                self.head = nn.Linear(in_features, 3)
+
+            def forward(self, x):
+                return self.head(torch.special.i0(x)).mean(1)
+        """))
+    monkeypatch.syspath_prepend(str(mod))
+    registered({"bessel": "bessel_net:BesselNet"})
+    net = WindowNet("bessel", 20).eval()
+    windows = torch.randn(4, 20, 5, dtype=torch.float64)
+    assert torch.isfinite(net(windows)).all()
+    torch.testing.assert_close(trace(net)(windows), net(windows))
+    with pytest.raises(LboError, match=r"^engine: model BesselNet does not export to ONNX "
+                                       r"\(UnsupportedOperatorError: .*i0.*\); it still runs "
+                                       r"with engine=torch$"):
+        onnx_bytes(net)
+
+
+def test_a_checkpoint_whose_model_is_not_installed_names_the_package(tmp_path):
+    path = _checkpoint(tmp_path / "absent.ckpt", "absent_gru",
+                       {"package": "lbo-absent-plugin", "version": "1.2"})
+    with pytest.raises(LboError) as err:
+        read_checkpoint(path)
+    assert str(err.value) == (
+        f"checkpoint {path}: model.name: model 'absent_gru' is not installed (it was provided "
+        f"by lbo-absent-plugin 1.2: pip install lbo-absent-plugin); installed: "
+        f"{', '.join(model_names())}")
+    # the command a user types says the same, in one line
+    res = cli("lbo.export", f"observer={path}", f"out_dir={tmp_path / 'exp'}", cwd=tmp_path)
+    one_line_error(res, "'absent_gru' is not installed", "pip install lbo-absent-plugin")
+    assert not (tmp_path / "exp").exists()
+
+
+@pytest.mark.parametrize("name", ["planted_evil", "planted_evil:Evil", "planted_evil.Evil",
+                                  {"_target_": "planted_evil.Evil"}])
+def test_a_checkpoint_never_imports_a_module_it_names(planted, tmp_path, name):
+    path = _checkpoint(tmp_path / "planted.ckpt", name, {"package": "planted_evil"})
+    with pytest.raises(LboError, match=r"^checkpoint .*: model.name: "):
+        Observer.load(str(path))
+    res = cli("lbo.export", f"observer={path}", f"out_dir={tmp_path / 'exp'}", cwd=tmp_path)
+    one_line_error(res, "model")
+    assert "planted_evil" not in sys.modules
+    assert not planted.exists()
+    assert not (tmp_path / "exp").exists()
+
+
+def test_tunes_training_line_keeps_the_studys_search_path(tmp_path):
+    from lbo.tune import train_command
+
+    line = train_command(EXAMPLE, tmp_path / "tuned" / "my_gru.yaml",
+                         ["pkg://lbo_plugin_example.conf"])
+    assert line.endswith("'hydra.searchpath=[pkg://lbo_plugin_example.conf,"
+                         f"file://{tmp_path.resolve()}]'")
+
+
+@pytest.mark.slow
+def test_the_example_plug_in_trains_tunes_evaluates_observes_streams_and_exports(
+        tmp_path, smoke_data, one_torch_thread):
+    tracking = f"logger.tracking_uri=sqlite:///{tmp_path / 'mlflow.db'}"
+    data = f"data.root={smoke_data.parent}"
+    res = cli("lbo.train", f"model={EXAMPLE}", SEARCHPATH, "experiment=smoke", data,
+              f"output_dir={tmp_path / 'out'}", "trainer.max_epochs=1", tracking,
+              f"hydra.run.dir={tmp_path / 'train'}", "model.hidden=8")
+    assert res.returncode == 0, res.stderr[-3000:]
+    ckpt = tmp_path / "out" / "checkpoints" / "best.ckpt"
+    assert f"trained {EXAMPLE}-N20" in res.stdout
+    net, hp = read_checkpoint(ckpt)
+    assert hp["provider"] == {"package": "lbo-plugin-example", "version": "0.1.0"}
+    assert hp["model"] == {"name": EXAMPLE, "hidden": 8, "layers": 1}
+
+    res = cli("lbo.tune", f"hparams_search={EXAMPLE}", SEARCHPATH, "experiment=smoke", data,
+              "trainer.limit_train_batches=3", "tune.n_trials=1",
+              f"tune.storage=sqlite:///{tmp_path / 'optuna.db'}",
+              f"tune.handoff={tmp_path / 'tuned' / 'my_gru.yaml'}", tracking,
+              f"hydra.run.dir={tmp_path / 'tune'}")
+    assert res.returncode == 0, res.stderr[-3000:]
+    assert "model.hidden=" in res.stdout and "pkg://lbo_plugin_example.conf" in res.stdout
+
+    res = cli("lbo.evaluate", "data=smoke", data, f"learned=[{ckpt}]",
+              f"output_dir={tmp_path / 'eval'}", "observers=[ekf]",
+              f"hydra.run.dir={tmp_path / 'evaluate'}", cwd=tmp_path,
+              env={"MLFLOW_TRACKING_URI": f"sqlite:///{tmp_path / 'mlflow.db'}"})
+    assert res.returncode == 0, res.stderr[-3000:]
+    table = pd.read_csv(tmp_path / "eval" / "evaluation.csv")
+    rows = table[table["observer"].str.startswith(EXAMPLE)]
+    assert len(rows) > 0 and np.isfinite(rows["nrmse"]).all()
+
+    log = tmp_path / "log.csv"
+    assert cli("lbo.simulate", "manoeuvre=free_drive", "duration=4", f"output={log}",
+               cwd=tmp_path).returncode == 0
+    res = cli("lbo.observe", f"observer={ckpt}", f"input={log}", "output=est.csv",
+              cwd=tmp_path)
+    assert res.returncode == 0, res.stderr[-3000:]
+    batch = pd.read_csv(tmp_path / "est.csv")
+
+    # streamed one sample at a time, it gives what the batch run gave
+    frame = pd.read_csv(log)
+    obs = Observer.load(str(ckpt))
+    streamed = np.array([obs.step(m, u)[0] for m, u in zip(
+        frame[["x_m", "y_m", "psi_m"]].to_numpy(), frame[["V", "delta"]].to_numpy())])
+    valid = batch["valid"].to_numpy(bool)
+    assert valid.sum() > 100
+    np.testing.assert_allclose(streamed[valid], batch[["x", "y", "psi"]].to_numpy()[valid],
+                               atol=1e-6)
+
+    res = cli("lbo.export", f"observer={ckpt}", f"out_dir={tmp_path / 'exp'}", cwd=tmp_path)
+    assert res.returncode == 0, res.stderr[-3000:]
+    scripted = torch.jit.load(str(tmp_path / "exp" / f"{EXAMPLE}-N20.pt"))
+    windows = torch.as_tensor(np.lib.stride_tricks.sliding_window_view(
+        frame[["x_m", "y_m", "psi_m", "V", "delta"]].to_numpy(), 20, axis=0)
+        .transpose(0, 2, 1)[:8].copy())
+    torch.testing.assert_close(scripted(windows), net(windows))
+    assert (tmp_path / "exp" / f"{EXAMPLE}-N20.onnx").stat().st_size > 0
+
