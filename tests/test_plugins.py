@@ -1,7 +1,8 @@
 """Plug-ins (issue 37): parts found by name among the installed packages' entry points, lbo's
-own by the same path; the example package (examples/plugin, installed by make install) trained,
-tuned, evaluated, observed, streamed and exported as a built-in model is; checkpoints that
-name a part refused in one line when it is missing, and never importing what they name."""
+own by the same path; the example package (examples/plugin, installed by make install): its
+model trained, tuned, evaluated, observed, streamed and exported as a built-in model is, its
+classical filter observed, streamed and scored as lbo's are; checkpoints that name a part
+refused in one line when it is missing, and never importing what they name."""
 
 from __future__ import annotations
 
@@ -34,6 +35,14 @@ def _checkpoint(path: Path, name: object, provider: dict | None = None) -> Path:
     return path
 
 
+@pytest.fixture(scope="module")
+def drive() -> pd.DataFrame:
+    from helpers import compose_cfg
+    from lbo.simulate import simulate
+
+    return simulate(compose_cfg("simulate", ["manoeuvre=free_drive", "duration=20", "seed=5"]))
+
+
 @pytest.fixture
 def planted(tmp_path, monkeypatch):
     """A module on the import path that writes a file if it is ever imported."""
@@ -50,15 +59,15 @@ def planted(tmp_path, monkeypatch):
 
 @pytest.fixture
 def registered(tmp_path, monkeypatch):
-    """Register entry points in the ``lbo.models`` group from a distribution planted on the
-    import path (as pip leaves one), for this test only: ``registered({"name": "mod:Cls"})``."""
-    def plant(points: dict[str, str]) -> None:
+    """Register entry points from a distribution planted on the import path (as pip leaves
+    one), for this test only: ``registered({"name": "mod:Cls"}, group="lbo.models")``."""
+    def plant(points: dict[str, str], group: str = "lbo.models") -> None:
         info = tmp_path / "site" / "planted_plugin-0.1.dist-info"
         info.mkdir(parents=True)
         (info / "METADATA").write_text("Metadata-Version: 2.1\nName: planted-plugin\n"
                                        "Version: 0.1\n")
         (info / "entry_points.txt").write_text(
-            "[lbo.models]\n" + "".join(f"{k} = {v}\n" for k, v in points.items()))
+            f"[{group}]\n" + "".join(f"{k} = {v}\n" for k, v in points.items()))
         monkeypatch.syspath_prepend(str(tmp_path / "site"))
         plugins._entry_points.cache_clear()
 
@@ -83,7 +92,8 @@ def test_a_plug_ins_bad_settings_and_bad_names_are_one_line_errors():
     with pytest.raises(LboError, match=r"^model.my_width: not a parameter of model 'my_gru'; "
                                        r"accepted: in_features, hidden, layers$"):
         build_model(EXAMPLE, 20, my_width=3)
-    with pytest.raises(LboError, match=r"^plug-in kind 'truths': expected one of model$"):
+    with pytest.raises(LboError, match=r"^plug-in kind 'truths': expected one of model, "
+                                       r"observer$"):
         plugins.names("truths")
 
 
@@ -234,3 +244,64 @@ def test_the_example_plug_in_trains_tunes_evaluates_observes_streams_and_exports
     torch.testing.assert_close(scripted(windows), net(windows))
     assert (tmp_path / "exp" / f"{EXAMPLE}-N20.onnx").stat().st_size > 0
 
+
+
+def test_lbo_registers_its_own_classical_observers_as_a_plug_in_would():
+    from lbo.filters import classical
+    from lbo.filters.gyro import GyroStepper
+    from lbo.filters.kalman import AdaptiveStepper, KalmanStepper, UnscentedStepper
+
+    assert plugins.names("observer")[:4] == ("ekf", "adaptive", "ukf", "gyro")
+    assert [plugins.load("observer", n, "observer") for n in plugins.OWN["observer"]] == [
+        KalmanStepper, AdaptiveStepper, UnscentedStepper, GyroStepper]
+    assert classical.on_logs() == (*classical.ON_LOGS, "my_blend")
+
+
+def test_a_plug_in_observer_runs_batch_and_stream_alike_and_filters(drive):
+    """The example's constant-gain filter, through Observer: step by step as in one batch
+    run, every estimate finite, and its position closer to the truth than the raw fixes."""
+    m = drive[["x_m", "y_m", "psi_m"]].to_numpy()
+    u = drive[["V", "delta"]].to_numpy()
+    z = drive[["x", "y", "psi"]].to_numpy()
+    est, valid = Observer.load("my_blend").run(m, u)
+    assert valid.all() and np.isfinite(est).all()
+    obs = Observer.load("my_blend")
+    streamed = np.array([obs.step(mk, uk)[0] for mk, uk in zip(m, u)])
+    np.testing.assert_allclose(streamed, est, atol=1e-9)
+    raw = np.sqrt(np.mean((m[:, :2] - z[:, :2]) ** 2))
+    assert np.sqrt(np.mean((est[:, :2] - z[:, :2]) ** 2)) < 0.8 * raw
+    with pytest.raises(LboError, match=r"^my_blend: a plug-in's observer has no smoother"):
+        Observer.load("my_blend").run(m, u, smooth=True)
+
+
+def test_a_plug_in_observer_that_fails_to_start_says_so(registered, tmp_path, monkeypatch):
+    mod = tmp_path / "mods"
+    mod.mkdir()
+    (mod / "picky.py").write_text("class Picky:\n    def __init__(self, m0, vehicle, Q, R):\n"
+                                  "        raise ValueError('needs a heading at its start')\n")
+    monkeypatch.syspath_prepend(str(mod))
+    registered({"picky": "picky:Picky"}, group="lbo.observers")
+    with pytest.raises(LboError, match=r"^observer 'picky' failed to start \(ValueError: needs "
+                                       r"a heading at its start\)$"):
+        Observer.load("picky").run(np.zeros((3, 3)), np.full((3, 2), 0.1))
+    with pytest.raises(LboError, match=r"^observer: 'nobody' is not a checkpoint file, .*nor "
+                                       r"one of ekf, oracle, adaptive, ukf, gyro, my_blend, "
+                                       r"picky$"):
+        Observer.load("nobody")
+
+
+def test_a_plug_in_observer_is_observed_and_scored_on_the_test_grid(tmp_path, smoke_data,
+                                                                    drive):
+    res = cli("lbo.evaluate", "data=smoke", f"data.root={smoke_data.parent}",
+              "observers=[ekf,my_blend]", f"output_dir={tmp_path / 'eval'}",
+              f"hydra.run.dir={tmp_path / 'evaluate'}", cwd=tmp_path,
+              env={"MLFLOW_TRACKING_URI": f"sqlite:///{tmp_path / 'mlflow.db'}"})
+    assert res.returncode == 0, res.stderr[-3000:]
+    table = pd.read_csv(tmp_path / "eval" / "evaluation.csv")
+    rows = table[table["observer"] == "my_blend"]
+    assert len(rows) == table["alpha"].nunique() and np.isfinite(rows["nrmse"]).all()
+    drive.to_csv(tmp_path / "log.csv", index=False)
+    res = cli("lbo.observe", "observer=my_blend", "input=log.csv", "output=est.csv",
+              cwd=tmp_path)
+    assert res.returncode == 0, res.stderr[-3000:]
+    assert pd.read_csv(tmp_path / "est.csv")["valid"].all()

@@ -88,8 +88,7 @@ def observe(cfg: DictConfig) -> dict[str, Any]:
     ``output`` (Path), ``observer`` (name), ``rows``, ``valid`` (rows with a full window),
     and, when the log holds the true state, ``rmse`` (3,) (m, m, rad) and ``nrmse``.
     """
-    from lbo.filters.classical import GYRO, check_gyro_noise
-    from lbo.filters.classical import ON_LOGS as CLASSICAL
+    from lbo.filters.classical import GYRO, check_gyro_noise, on_logs
     from lbo.filters.gyro import GyroNoise
     from lbo.serve.observer import EnvelopeWarning, Observer
     from lbo.sim.noise import Noise
@@ -105,7 +104,7 @@ def observe(cfg: DictConfig) -> dict[str, Any]:
                        "observer=\"'<run id>'\"")
     source = str(cfg.input)
     name = str(cfg.observer)
-    classical = name in CLASSICAL
+    classical = name in on_logs()  # lbo's own and the installed plug-ins'
     # the settings first: no log nor checkpoint is read for a run that cannot go on
     alpha = check_alpha(cfg.alpha)
     threads = integer(cfg.get("threads", 1), "threads", 1)

@@ -51,13 +51,19 @@ RATIOS = {"vs_oracle": scoring.ORACLE, "vs_noise_oracle": scoring.NOISE_ORACLE}
 """The ratio columns of the results, each to its oracle's row."""
 
 
-def _drive(cfg: DictConfig, alpha: float, seed: int) -> pd.DataFrame:
-    """One simulated single-antenna log at ``alpha`` (with truth and the gyro's bias)."""
+def _drive(base: DictConfig, alpha: float, seed: int) -> pd.DataFrame:
+    """One simulated single-antenna log at ``alpha`` (with truth and the gyro's bias);
+    ``base``: the study's config, resolved and out of struct mode (:func:`_resolved`)."""
     from lbo.simulate import simulate
 
-    one = OmegaConf.create(OmegaConf.to_container(cfg, resolve=True))  # not in struct mode
+    one = OmegaConf.create(base)  # a copy: each drive sets its own alpha and seed
     one.alpha, one.seed = float(alpha), int(seed)
     return simulate(one)
+
+
+def _resolved(cfg: DictConfig) -> DictConfig:
+    """The config resolved once, out of struct mode, for :func:`_drive` to copy."""
+    return OmegaConf.create(OmegaConf.to_container(cfg, resolve=True))
 
 
 def _settings(cfg: DictConfig) -> dict[str, Any]:
@@ -94,13 +100,14 @@ def receiver_study(cfg: DictConfig) -> dict[str, Any]:
     out = Path(str(cfg.output_dir))
     check_output_path(out / "results.csv")
     out.mkdir(parents=True, exist_ok=True)
+    base = _resolved(cfg)
     learned: dict[str, GyroNoise] = {}
     if s["epochs"]:
         n = s["learn_drives"]
         # each drive its own alpha, the train and the validation drives each spread over
         # the whole range
         levels = [*np.linspace(*s["range"], n), *np.linspace(*s["range"], max(1, n // 2))]
-        logs = [_drive(cfg, a, s["seed"] + j) for j, a in enumerate(levels)]
+        logs = [_drive(base, a, s["seed"] + j) for j, a in enumerate(levels)]
         R = classical.measurement_cov("ekf", noise, 1.0, 1)[0]
         learned[LEARNED] = gyro_fit.fit_and_write(
             out, "gyro_noise", logs[:n], logs[n:], vehicle, R, GyroNoise.from_q(noise.Q),
@@ -110,7 +117,7 @@ def receiver_study(cfg: DictConfig) -> dict[str, Any]:
     for i, alpha in enumerate(s["alphas"]):
         per_drive = []
         for j in range(s["drives"]):
-            log = _drive(cfg, alpha, s["seed"] + 100 * (i + 1) + j)
+            log = _drive(base, alpha, s["seed"] + 100 * (i + 1) + j)
             told = (log, vehicle, max(alpha * spec.position.sigma, SIGMA_FLOOR),
                     float(np.sqrt(np.prod(noise.process_sigma[:2]))), spec.gyro.sigma)
             oracles = {scoring.NOISE_ORACLE: scoring.oracle_gyro(

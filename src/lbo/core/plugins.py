@@ -1,7 +1,8 @@
 """Parts found by name among the installed packages: lbo's own and a user's, by one path.
 
-A part is a class that lbo builds by name: a learned model (group ``lbo.models``). A package
-offers one through a Python entry point in its ``pyproject.toml``::
+A part is a class that lbo builds by name: a learned model (group ``lbo.models``) or a
+classical observer's stepper (group ``lbo.observers``). A package offers one through a Python
+entry point in its ``pyproject.toml``::
 
     [project.entry-points."lbo.models"]
     my_gru = "my_package.gru:WindowGRU"
@@ -26,9 +27,9 @@ from typing import Any
 
 from lbo.core.errors import LboError
 
-GROUPS = {"model": "lbo.models"}
+GROUPS = {"model": "lbo.models", "observer": "lbo.observers"}
 """The entry-point group of each kind of part."""
-OWN = {"model": ("cnn", "lstm", "filternet")}
+OWN = {"model": ("cnn", "lstm", "filternet"), "observer": ("ekf", "adaptive", "ukf", "gyro")}
 """lbo's own parts of each kind (registered in its pyproject.toml): without them the
 installation is stale, which is said as such."""
 NAME = re.compile(r"[a-z][a-z0-9_]*")

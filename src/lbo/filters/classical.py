@@ -21,6 +21,12 @@
 
 Each runs over a batch (:func:`estimate`) or one step at a time (:func:`stepper`), with the same
 numbers either way.
+
+A classical observer of a user's own comes from an installed package, registered under the
+entry-point group ``lbo.observers`` (:mod:`lbo.core.plugins`, docs/plugins.md): a stepper
+class built as ``Stepper(m0, vehicle, Q, R)``. lbo's own steppers (``ekf``, ``adaptive``,
+``ukf``, ``gyro``) are registered there the same way and built through it one step at a
+time; over a batch lbo's own run their vectorised forms, a plug-in its stepper step by step.
 """
 
 from __future__ import annotations
@@ -29,14 +35,15 @@ from typing import Any
 
 import numpy as np
 
+from lbo.core import plugins
 from lbo.core.errors import LboError
-from lbo.filters.gyro import GyroNoise, GyroStepper, gyro_ekf_batch
+from lbo.filters import measure
+from lbo.filters.gyro import GyroNoise, gyro_ekf_batch
 from lbo.filters.kalman import (
-    KalmanStepper,
-    UnscentedStepper,
+    UKF_SPREAD,
     adaptive_ekf_batch,
-    adaptive_settings,
     ekf_batch,
+    run_stepper,
     ukf_batch,
 )
 from lbo.sim.noise import Noise
@@ -56,8 +63,17 @@ GYRO = "gyro"
 """The EKF of the gyro-driven model: for logs with a gyro (r_m), not the test grid's."""
 ON_LOGS = (*OBSERVERS, GYRO)
 """The classical observers ``lbo.observe`` and :class:`lbo.Observer` run on a log."""
-UKF_SPREAD = 0.1
-"""Merwe's sigma-point spread of the UKF."""
+
+
+def plugged() -> tuple[str, ...]:
+    """The classical observers of installed packages other than lbo (entry-point group
+    ``lbo.observers``)."""
+    return tuple(n for n in plugins.names("observer") if n not in plugins.OWN["observer"])
+
+
+def on_logs() -> tuple[str, ...]:
+    """Every classical observer that runs on a log: :data:`ON_LOGS` and the plug-ins'."""
+    return (*ON_LOGS, *plugged())
 
 
 def check(name: str, field: str = "observer") -> None:
@@ -69,9 +85,9 @@ def check(name: str, field: str = "observer") -> None:
         told = "the simulated car's parameters" if name == DYNAMIC else "the true states"
         raise LboError(f"{field}: {name} is told {told} and scores simulated test sets only "
                        f"(lbo.evaluate); use one of {', '.join(OBSERVERS)} or a checkpoint")
-    if name not in ON_LOGS:
+    if name not in ON_LOGS and name not in plugged():
         raise LboError(f"{field}: unknown classical observer {name!r}; "
-                       f"expected one of {', '.join(ON_LOGS)}")
+                       f"expected one of {', '.join(on_logs())}")
 
 
 def measurement_cov(name: str, noise: Noise, alpha: float | np.ndarray, g: int) -> np.ndarray:
@@ -112,6 +128,13 @@ def estimate(name: str, m: np.ndarray, u: np.ndarray, vehicle: Vehicle, noise: N
     R = measurement_cov(name, noise, alpha, np.shape(m)[0])
     kw = {"return_cov": return_cov, "smooth": smooth, "lengths": lengths}
     try:
+        if name not in ON_LOGS:  # a plug-in: its stepper, step by step
+            if smooth:
+                raise LboError(f"{name}: a plug-in's observer has no smoother in lbo; use ekf "
+                               "or ukf")
+            flt = stepper(name, m[:, 0], vehicle, noise, alpha)
+            return run_stepper(flt, measure.widen(m), u, return_cov,
+                               pose=lambda kf: kf.x[:, :3], cov=lambda kf: kf.P[:, :3, :3])
         if name == GYRO:
             if smooth:
                 raise LboError("gyro: the gyro-driven EKF has no smoother yet; use ekf or ukf")
@@ -179,15 +202,18 @@ def stepper(name: str, m0: np.ndarray, vehicle: Vehicle, noise: Noise,
     as there)."""
     check(name)
     R = measurement_cov(name, noise, alpha, len(m0))
-    if name == "adaptive":
-        return KalmanStepper(m0, vehicle, noise.Q, **adaptive_settings(R, len(m0)))
-    if name == "ukf":
-        return UnscentedStepper(m0, vehicle, noise.Q, R, UKF_SPREAD)
-    if name == GYRO:
-        if gyro is None:
-            return GyroStepper(m0, vehicle, noise.Q, R)
-        return GyroStepper(m0, vehicle, gyro.Q, R, **gyro.stepper())
-    return KalmanStepper(m0, vehicle, noise.Q, R)
+    # the oracle is the EKF told alpha (R above); every other name is a registered stepper
+    cls = plugins.load("observer", "ekf" if name == "oracle" else name, "observer")
+    if name == GYRO and gyro is not None:
+        return cls(m0, vehicle, gyro.Q, R, **gyro.stepper())
+    if name in ON_LOGS:
+        return cls(m0, vehicle, noise.Q, R)
+    try:
+        return cls(measure.widen(m0), vehicle, noise.Q.copy(), R.copy())
+    except LboError:
+        raise
+    except Exception as e:  # a plug-in's own failure, said in lbo's one line
+        raise LboError(f"observer {name!r} failed to start ({type(e).__name__}: {e})") from None
 
 
 def _oracle_dynamic(m: np.ndarray, u: np.ndarray, vehicle: Vehicle, noise: Noise,

@@ -116,6 +116,10 @@ def _start(m0: np.ndarray, R: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return x, P
 
 
+UKF_SPREAD = 0.1
+"""Merwe's sigma-point spread of lbo's UKF (alpha of the scaled unscented transform)."""
+
+
 class CourseStart:
     """The heading of trajectories whose fixes came without one, from the course over ground.
 
@@ -557,6 +561,15 @@ def ekf_batch(m: np.ndarray, u: np.ndarray, vehicle: Vehicle, Q: np.ndarray, R: 
     return _ekf_loop(m, u, vehicle, Q, R, return_cov, smooth, lengths)
 
 
+class AdaptiveStepper(KalmanStepper):
+    """The Sage-Husa EKF of :func:`adaptive_ekf_batch` one step per call, built as every
+    classical observer is (``(m0, vehicle, Q, R)``, docs/plugins.md): ``R`` is where it starts,
+    and it learns R from its innovations from then on."""
+
+    def __init__(self, m0: np.ndarray, vehicle: Vehicle, Q: np.ndarray, R: np.ndarray) -> None:
+        super().__init__(m0, vehicle, Q, **adaptive_settings(R, len(m0)))
+
+
 def adaptive_ekf_batch(m: np.ndarray, u: np.ndarray, vehicle: Vehicle, Q: np.ndarray,
                        R0: np.ndarray, forgetting: float = 0.99, prior_weight: float = 1.0,
                        r_floor: float = 1e-4,
@@ -618,7 +631,7 @@ def _circular_mean(sigmas: np.ndarray, Wm: np.ndarray) -> np.ndarray:
 
 
 def ukf(m: np.ndarray, u: np.ndarray, vehicle: Vehicle, Q: np.ndarray, R: np.ndarray,
-        spread: float = 0.1) -> np.ndarray:
+        spread: float = UKF_SPREAD) -> np.ndarray:
     """Unscented Kalman filter (filterpy, Merwe scaled sigma points) over one trajectory.
 
     Same model, noise, initialisation and wrapped heading residuals as the EKF. R's
@@ -661,7 +674,8 @@ def ukf(m: np.ndarray, u: np.ndarray, vehicle: Vehicle, Q: np.ndarray, R: np.nda
 
 
 def ukf_filterpy_batch(m: np.ndarray, u: np.ndarray, vehicle: Vehicle, Q: np.ndarray,
-                       R: np.ndarray, spread: float = 0.1, progress: bool = False) -> np.ndarray:
+                       R: np.ndarray, spread: float = UKF_SPREAD, progress: bool = False
+                       ) -> np.ndarray:
     """:func:`ukf` over G trajectories, one after the other: filterpy's loop, the reference
     that :func:`ukf_batch` is tested and benchmarked against.
 
@@ -741,7 +755,7 @@ class UnscentedStepper:
     """
 
     def __init__(self, m0: np.ndarray, vehicle: Vehicle, Q: np.ndarray, R: np.ndarray,
-                 spread: float = 0.1) -> None:
+                 spread: float = UKF_SPREAD) -> None:
         self.vehicle, self.Q = vehicle, _check_q(Q)
         self.R = _floor_diag(R)
         self.wm, self.wc, self.lam = merwe_weights(3, spread)
@@ -773,7 +787,7 @@ class UnscentedStepper:
 
 
 def ukf_batch(m: np.ndarray, u: np.ndarray, vehicle: Vehicle, Q: np.ndarray, R: np.ndarray,
-              spread: float = 0.1, progress: bool = False, return_cov: bool = False,
+              spread: float = UKF_SPREAD, progress: bool = False, return_cov: bool = False,
               smooth: bool = False, lengths: np.ndarray | None = None
               ) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
     """:func:`ukf` vectorised over G trajectories (a loop over time only, of

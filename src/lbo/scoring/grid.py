@@ -16,7 +16,7 @@ import pandas as pd
 
 from lbo.core.atomic import atomic_path
 from lbo.core.errors import LboError
-from lbo.filters.classical import BOUND, NAMES, TUNED, measurement_cov
+from lbo.filters.classical import BOUND, NAMES, TUNED, measurement_cov, plugged
 from lbo.filters.classical import estimate as run_classical
 from lbo.filters.kalman import ekf_batch, pcrb
 from lbo.scoring.metrics import PAPER_REFERENCE, SCORE_COLUMNS, rmse, score_table
@@ -77,10 +77,11 @@ def classical(name: str, arr: dict[str, np.ndarray], vehicle: Vehicle, noise: No
 
 def check_observers(names: Sequence[str], field: str = "observers") -> None:
     """Raise LboError naming ``field`` and the first name that is not a classical observer."""
+    known = (*CLASSICAL, *plugged())  # lbo's own and the installed plug-ins'
     for name in names:
-        if name not in CLASSICAL:
+        if name not in known:
             raise LboError(f"{field}: unknown observer {name!r}; "
-                           f"expected names from {list(CLASSICAL)}")
+                           f"expected names from {list(known)}")
 
 
 def reference(arr: dict[str, np.ndarray], vehicle: Vehicle, noise: Noise,

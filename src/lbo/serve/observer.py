@@ -447,8 +447,9 @@ class Observer:
             raise LboError(f"form must be one of {list(FORMS)} or null, got {form!r}")
         check_mode(envelope_mode)
         classical.check_gyro_noise(source, gyro_noise)
-        device = check_device(device, probe=source not in classical.NAMES)
-        if source in classical.NAMES + (classical.GYRO,):
+        named = source in classical.NAMES or source in classical.on_logs()
+        device = check_device(device, probe=not named)
+        if named:
             classical.check(source)  # pcrb: a bound, not an observer
             return cls(source, vehicle, noise, alpha=alpha, gyro_noise=gyro_noise)
         with _checkpoint_file(source) as path:
@@ -940,7 +941,7 @@ def _checkpoint_file(source: str) -> Iterator[Path]:
     else:
         raise LboError(f"observer: {src!r} is not a checkpoint file, an MLflow run id "
                        "(32 hex digits), a runs:/ or models:/ URI, nor one of "
-                       f"{', '.join(CLASSICAL)}")
+                       f"{', '.join(classical.on_logs())}")
     with tempfile.TemporaryDirectory(prefix="lbo-ckpt-") as tmp:
         yield _download(uri, run_id, Path(tmp))
 
