@@ -158,10 +158,10 @@ def _run_grid(cfg: DictConfig, observers: list[str], learned: list[str]
                             given={name: est for name, (est, _) in covariant.items()})
     rows, names = [], []
     for name, net in nets.items():
-        from lbo.serve.observer import default_form
+        from lbo.serve.observer import default_form, has_recursive_form
 
         chosen = [default_form(net)] if forms is None else forms
-        for form in chosen if getattr(net, "physical", False) else ["window"]:
+        for form in chosen if has_recursive_form(net) else ["window"]:
             label = name if form == default_form(net) else f"{name}-{form}"
             if form == "window":
                 est = predict_grid(net, arr, net.window)

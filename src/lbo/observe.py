@@ -90,7 +90,7 @@ def observe(cfg: DictConfig) -> dict[str, Any]:
     """
     from lbo.filters.classical import GYRO, check_gyro_noise, on_logs
     from lbo.filters.gyro import GyroNoise
-    from lbo.serve.observer import EnvelopeWarning, Observer
+    from lbo.serve.observer import EnvelopeWarning, Observer, has_recursive_form
     from lbo.sim.noise import Noise
     from lbo.sim.vehicle import Vehicle
 
@@ -140,7 +140,7 @@ def observe(cfg: DictConfig) -> dict[str, Any]:
         # checkpoint's): the model stays the checkpoint's, and rows beyond the steering it was
         # trained on are flagged by its envelope
         obs.vehicle = dataclasses.replace(obs.vehicle, delta_max=vehicle.delta_max)
-    if smooth and form is None and obs.form == "window" and getattr(obs.net, "physical", False):
+    if smooth and form is None and obs.form == "window" and has_recursive_form(obs.net):
         # the form that has a filter to smooth, from the net already read
         obs = Observer(obs.name, obs.vehicle, obs.noise, net=obs.net, alpha=alpha,
                        engine=obs.engine, device=device, meta=obs.meta, form="recursive",

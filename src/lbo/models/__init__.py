@@ -4,7 +4,8 @@
 search space or a checkpoint) into a module, and rejects unknown names and parameters with a
 one-line :class:`~lbo.core.errors.LboError` before anything trains. A name is looked up among
 the installed packages' entry points (group ``lbo.models``, :mod:`lbo.core.plugins`): lbo's own
-``cnn``, ``lstm`` and ``filternet`` are registered there as a user's model is (docs/plugins.md).
+``cnn``, ``lstm``, ``filternet`` and ``kalmannet`` are registered there as a user's model is
+(docs/plugins.md).
 """
 
 from __future__ import annotations
@@ -18,11 +19,13 @@ from lbo.core import plugins
 from lbo.core.errors import LboError
 from lbo.models.cnn import WindowCNN
 from lbo.models.filternet import WindowFilter
+from lbo.models.kalmannet import KalmanNet
 from lbo.models.lstm import WindowLSTM
 
 
 def model_names() -> tuple[str, ...]:
-    """The registered models' names, lbo's own first (``cnn``, ``lstm``, ``filternet``)."""
+    """The registered models' names, lbo's own first (``cnn``, ``lstm``, ``filternet``,
+    ``kalmannet``)."""
     return plugins.names("model")
 
 
@@ -73,5 +76,5 @@ def build_model(name: str, window: int, **kwargs: Any) -> nn.Module:
                        f" {e}") from None
 
 
-__all__ = ["WindowCNN", "WindowFilter", "WindowLSTM", "build_model", "model_class",
+__all__ = ["KalmanNet", "WindowCNN", "WindowFilter", "WindowLSTM", "build_model", "model_class",
            "model_names", "model_parameters"]

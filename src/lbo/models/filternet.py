@@ -50,7 +50,7 @@ BODY_PARAMETERS = ("log_stiffness", "log_peak", "front_logit", "log_gyration", "
 """The single-track body's learned constants (:meth:`WindowFilter.body_parameters`)."""
 
 
-def _check_sigmas(name: str, values: Sequence[float]) -> tuple[float, float, float]:
+def check_sigmas(name: str, values: Sequence[float]) -> tuple[float, float, float]:
     try:
         out = tuple(float(v) for v in values)
     except (TypeError, ValueError):
@@ -128,8 +128,8 @@ class WindowFilter(nn.Module):
         self.dt = number(dt, "model.dt", low=0.0, low_open=True, form="a period in seconds > 0")
         self.wheelbase = number(wheelbase, "model.wheelbase", low=0.0, low_open=True,
                                 form="a length in metres > 0")
-        q = torch.tensor(_check_sigmas("process_sigma", process_sigma))
-        r = torch.tensor(_check_sigmas("measurement_sigma", measurement_sigma))
+        q = torch.tensor(check_sigmas("process_sigma", process_sigma))
+        r = torch.tensor(check_sigmas("measurement_sigma", measurement_sigma))
         self.register_buffer("log_q0", q.log())
         self.register_buffer("log_r0", r.log())
         self.log_q_scale = nn.Parameter(torch.zeros(3))

@@ -74,12 +74,22 @@ def default_form(net: Any) -> str:
     inflate R at high noise as the window's memory, which a filter carried from step to step
     does not forget, so its heading would drift (``docs/dynamic.md``)."""
     inner = getattr(net, "net", None)
-    if not getattr(net, "physical", False) or getattr(inner, "residual", 0) or \
+    if not has_recursive_form(net) or getattr(inner, "residual", 0) or \
             getattr(inner, "drift", False) or getattr(inner, "single_track", False):
         return "window"
     return "recursive"
 
-NET_KINDS = {"WindowCNN": "cnn", "WindowLSTM": "lstm", "WindowFilter": "filter"}
+
+def has_recursive_form(net: Any) -> bool:
+    """Whether the net's model is the window filter, whose filter can carry from step to
+    step (:class:`lbo.models.recursive.RecursiveFilter`); any other model, a plug-in's that
+    reads metres and radians too, runs as a window."""
+    from lbo.models.filternet import WindowFilter
+
+    return isinstance(getattr(net, "net", None), WindowFilter)
+
+NET_KINDS = {"WindowCNN": "cnn", "WindowLSTM": "lstm", "WindowFilter": "filter",
+             "KalmanNet": "kalmannet"}
 """The name an untrained or unnamed net goes by (``<kind>-N<window>``), per net class."""
 
 
@@ -251,7 +261,7 @@ def check_form(form: str | None, net: Any) -> str | None:
             raise LboError(f"form={form}: a classical observer is recursive already; "
                            "leave form unset")
         return None
-    filt = bool(getattr(net, "physical", False))
+    filt = has_recursive_form(net)
     if form is None:
         return default_form(net)
     if form not in FORMS:
@@ -713,7 +723,7 @@ class Observer:
         if smooth and not self.gives_covariance:
             raise LboError(f"smooth: {self.name} has no filter to smooth"
                            + (" in its window form; use form=recursive" if self.form == "window"
-                              and getattr(self.net, "physical", False) else
+                              and has_recursive_form(self.net) else
                               "; smoothing takes a classical observer or the robust one"))
         fix = check_samples(m, u, delta_max=self.vehicle.delta_max, source=source)
         if receiver is not None:

@@ -1,0 +1,189 @@
+"""KalmanNet, architecture 2, around the kinematic bicycle: a learned peer of the literature.
+
+Revach, Shlezinger, Ni, Lopez Escoriza, van Sloun and Eldar, "KalmanNet: Neural Network Aided
+Kalman Filtering for Partially Known Dynamics", IEEE Transactions on Signal Processing 70
+(2022), 1532-1547. The filter keeps the model's prediction and learns the Kalman gain: at each
+step the kinematic bicycle predicts the pose, and three GRUs, tracking what stand for the
+process noise Q, the prior covariance Sigma and the innovation covariance S, read four
+differences and output the gain K (3 x 3) that weighs the innovation:
+
+- F1, the observation difference ``y_t - y_{t-1}``;
+- F2, the innovation ``y_t - h(x_{t|t-1})``;
+- F3, the forward evolution difference ``x_{t-1|t-1} - x_{t-2|t-2}``;
+- F4, the forward update difference ``x_{t-1|t-1} - x_{t-1|t-2}``;
+
+each normalised to unit length, as the authors do. Architecture 2's flow: F3 -> GRU_Q; GRU_Q's
+state with F4 -> GRU_Sigma; GRU_Sigma's state with F1 and F2 -> GRU_S; GRU_Sigma's and GRU_S's
+states -> K; and back, GRU_S's state with K updates GRU_Sigma's.
+
+Where this one differs from the published filter:
+
+- **Window form.** It runs over lbo's window of N steps from a cold start at the window's
+  first fix and returns the last step's estimate, trained by lbo's window trainer: the
+  gradient flows back through the N steps of each window (a truncation at N), where the
+  authors run whole sequences and carry the state (truncated back-propagation through time).
+  Its estimates draw on the last N steps only, as the robust window filter's do.
+- The GRUs' states start from learned vectors, not from priors of Q, Sigma and S.
+- The gain is learned in units of the measurement sigmas at alpha = 1, ``K = D K~ D^-1`` with
+  ``D = diag(sigma)``: the pose mixes metres and radians, and in sigma units the gain's
+  entries, the cross terms included, are of one scale.
+- A step without a fix (the ``fix`` channel) is a prediction: no gain, the GRUs hold.
+- The GRU cells are written out (the same gates as ``torch.nn.GRUCell``), so that ONNX
+  exports them.
+
+It reads ``"frame"`` features in metres and radians (the window in the frame of its latest
+fix), as :class:`lbo.models.filternet.WindowFilter` does, and is never told alpha.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import torch
+from torch import nn
+from torch.nn import functional as F
+
+from lbo.core.checks import integer, number
+from lbo.core.errors import LboError
+from lbo.models.features import wrap_angle_torch
+from lbo.models.filternet import check_sigmas
+
+N_STATE = 3
+"""The state and the measurement: the pose ``x, y, psi``."""
+
+
+class _GRUCell(nn.Module):
+    """``torch.nn.GRUCell``'s gates, written out (reset r, update z, candidate n)."""
+
+    def __init__(self, inputs: int, hidden: int) -> None:
+        super().__init__()
+        self.x = nn.Linear(inputs, 3 * hidden)
+        self.h = nn.Linear(hidden, 3 * hidden)
+
+    def forward(self, x: torch.Tensor, h: torch.Tensor) -> torch.Tensor:
+        xr, xz, xn = self.x(x).chunk(3, -1)
+        hr, hz, hn = self.h(h).chunk(3, -1)
+        r = torch.sigmoid(xr + hr)
+        z = torch.sigmoid(xz + hz)
+        n = torch.tanh(xn + r * hn)
+        return (1 - z) * n + z * h
+
+
+def _unit(f: torch.Tensor) -> torch.Tensor:
+    """Each row scaled to unit length (0 stays 0), as the authors normalise the features."""
+    return F.normalize(f, p=2.0, dim=-1, eps=1e-12)
+
+
+def _diff(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """Pose differences (B, 3), the heading wrapped."""
+    d = a - b
+    return torch.cat([d[:, :2], wrap_angle_torch(d[:, 2:])], -1)
+
+
+class KalmanNet(nn.Module):
+    """KalmanNet (architecture 2) over a window, on the kinematic bicycle (see the module).
+
+    Parameters
+    ----------
+    window : N, steps per window (>= 4).
+    dt, wheelbase : the vehicle's sampling period (s) and wheelbase (m), for the prediction.
+    measurement_sigma : (3,) the measurement sigmas at alpha = 1 (m, m, rad): the gain's
+        units.
+    in_features : channels per step: 5, or 6 with the ``fix`` channel (missing fixes).
+    width : the GRUs' states hold ``width * 9`` units (the authors' n^2 and m^2, times this).
+    hidden : width of the gain's hidden layer.
+    gain : the gain's starting value, ``gain * I`` (a low-gain filter, not dead reckoning).
+    """
+
+    def __init__(self, window: int, dt: float = 0.02, wheelbase: float = 2.7,
+                 measurement_sigma: Sequence[float] = (1.0, 1.0, 0.0174),
+                 in_features: int = 5, width: int = 4, hidden: int = 64,
+                 gain: float = 0.05) -> None:
+        super().__init__()
+        self.physical = True  # reads and writes metres and radians (see WindowNet)
+        self.feature_modes = ("frame",)
+        self.window = integer(window, "window", 4)
+        self.in_features = integer(in_features, "in_features", 5)
+        if self.in_features > 6:
+            raise LboError(f"model.in_features: expected 5, or 6 with the fix channel, "
+                           f"got {in_features!r}")
+        self.fixes = self.in_features == 6
+        self.dt = number(dt, "model.dt", low=0.0, low_open=True, form="a period in seconds > 0")
+        self.wheelbase = number(wheelbase, "model.wheelbase", low=0.0, low_open=True,
+                                form="a length in metres > 0")
+        self.register_buffer("units", torch.tensor(
+            check_sigmas("measurement_sigma", measurement_sigma)))
+        width = integer(width, "model.width", 1)
+        hidden = integer(hidden, "model.hidden", 1)
+        gain = number(gain, "model.gain", low=0.0, high=1.0, form="a number in [0, 1]")
+        n = N_STATE
+        h = width * n * n
+        wide = 5 * n  # the input layers' width (the authors' in_mult = 5)
+        self.fc_q = nn.Linear(n, wide)           # F3 -> GRU_Q
+        self.fc_f4 = nn.Linear(n, wide)          # F4 -> GRU_Sigma
+        self.fc_y = nn.Linear(2 * n, 2 * wide)   # F1, F2 -> GRU_S
+        self.gru_q = _GRUCell(wide, h)
+        self.gru_sigma = _GRUCell(h + wide, h)
+        self.fc_sigma = nn.Linear(h, h)          # Sigma's state -> GRU_S
+        self.gru_s = _GRUCell(h + 2 * wide, h)
+        self.fc_gain = nn.Sequential(nn.Linear(2 * h, hidden), nn.ReLU(),
+                                     nn.Linear(hidden, n * n))
+        self.fc_back = nn.Linear(h + n * n, h)   # S's state and K -> back to Sigma's
+        self.fc_sigma_back = nn.Linear(2 * h, h)
+        for name in ("h_q", "h_sigma", "h_s"):
+            self.register_parameter(name, nn.Parameter(torch.zeros(h)))
+        nn.init.zeros_(self.fc_gain[-1].weight)
+        with torch.no_grad():
+            self.fc_gain[-1].bias.copy_(gain * torch.eye(n).flatten())
+
+    def _predict(self, z: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+        """One bicycle step of (B, 3) poses with inputs u (B, 2) ``[V, delta]``."""
+        v, delta = u[:, 0], u[:, 1]
+        psi = z[:, 2]
+        turn = v * torch.sin(delta) / torch.cos(delta) / self.wheelbase
+        return z + torch.stack([v * torch.cos(psi), v * torch.sin(psi), turn], -1) * self.dt
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """(B, N, 5|6) features -> (B, 3) pose in the frame of the window's latest fix."""
+        b, steps = x.shape[:2]
+        y = x[:, :, :N_STATE]
+        z = y[:, 0]
+        fix = x[:, :, 5] > 0.5 if self.fixes else torch.ones(b, steps, dtype=torch.bool,
+                                                               device=x.device)
+        started = fix[:, 0]
+        h_q = self.h_q.expand(b, -1)
+        h_sigma = self.h_sigma.expand(b, -1)
+        h_s = self.h_s.expand(b, -1)
+        z_prev, z_prior_prev = z, z  # x_{t-2|t-2} and x_{t-1|t-2}: no difference at the start
+        y_last = y[:, 0]
+        for k in range(1, steps):
+            prior = self._predict(z, x[:, k - 1, 3:5])
+            f = fix[:, k]
+            innovation = _diff(y[:, k], prior)
+            f1 = _unit(_diff(y[:, k], y_last))
+            f2 = _unit(innovation)
+            f3 = _unit(_diff(z, z_prev))
+            f4 = _unit(_diff(z, z_prior_prev))
+            q = self.gru_q(F.relu(self.fc_q(f3)), h_q)
+            sigma = self.gru_sigma(torch.cat([q, F.relu(self.fc_f4(f4))], -1), h_sigma)
+            s_in = torch.cat([F.relu(self.fc_sigma(sigma)), F.relu(self.fc_y(
+                torch.cat([f1, f2], -1)))], -1)
+            s = self.gru_s(s_in, h_s)
+            gain = self.fc_gain(torch.cat([sigma, s], -1))
+            back = F.relu(self.fc_back(torch.cat([s, gain], -1)))
+            sigma = F.relu(self.fc_sigma_back(torch.cat([sigma, back], -1)))
+            # K = D K~ D^-1: the innovation in sigmas, the correction back in metres, radians
+            post = prior + self.units * (gain.view(b, N_STATE, N_STATE)
+                                         @ (innovation / self.units).unsqueeze(-1)).squeeze(-1)
+            # a step with a fix updates (the first fix: the filter starts there); one
+            # without predicts, and the GRUs hold
+            update = (f & started)[:, None]
+            first = (f & ~started)[:, None]
+            new = torch.where(first, y[:, k], torch.where(update, post, prior))
+            h_q = torch.where(update, q, h_q)
+            h_sigma = torch.where(update, sigma, h_sigma)
+            h_s = torch.where(update, s, h_s)
+            y_last = torch.where(f[:, None], y[:, k], y_last)
+            z_prev, z_prior_prev, z = z, torch.where(first, y[:, k], prior), new
+            started = started | f
+        return torch.cat([z[:, :2], wrap_angle_torch(z[:, 2:])], -1)
