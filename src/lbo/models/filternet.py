@@ -61,6 +61,25 @@ def check_sigmas(name: str, values: Sequence[float]) -> tuple[float, float, floa
     return out  # type: ignore[return-value]
 
 
+def frame_model(module: nn.Module, window: int, in_features: int, dt: float,
+                wheelbase: float) -> None:
+    """Set what a model over the kinematic bicycle in the latest fix's frame holds (the window
+    filter, KalmanNet), each checked in one line: ``physical`` (it reads and writes metres and
+    radians, see WindowNet), ``feature_modes``, ``window`` (>= 4), ``in_features`` (5, or 6
+    with the fix channel) and ``fixes``, ``dt`` (s) and ``wheelbase`` (m)."""
+    module.physical = True
+    module.feature_modes = ("frame",)
+    module.window = integer(window, "window", 4)
+    module.in_features = integer(in_features, "in_features", 5)
+    if module.in_features > 6:
+        raise LboError(f"model.in_features: expected 5, or 6 with the fix channel, "
+                       f"got {in_features!r}")
+    module.fixes = module.in_features == 6
+    module.dt = number(dt, "model.dt", low=0.0, low_open=True, form="a period in seconds > 0")
+    module.wheelbase = number(wheelbase, "model.wheelbase", low=0.0, low_open=True,
+                              form="a length in metres > 0")
+
+
 def _tan(a: torch.Tensor) -> torch.Tensor:
     """tan as sin / cos: ONNX Runtime has no float64 Tan, and the recursive form runs in
     float64 (equal to torch.tan to rounding)."""
@@ -116,18 +135,8 @@ class WindowFilter(nn.Module):
                  hidden: int = 32, in_features: int = 5, residual: int = 0,
                  drift: bool = False, body: str = "kinematic", body_lr: float = 1.0) -> None:
         super().__init__()
-        self.physical = True  # reads and writes metres and radians (see WindowNet)
-        self.feature_modes = ("frame",)
-        self.window = integer(window, "window", 4)
-        self.in_features = integer(in_features, "in_features", 5)
-        if self.in_features > 6:
-            raise LboError(f"model.in_features: expected 5, or 6 with the fix channel, "
-                           f"got {in_features!r}")
-        self.fixes = self.in_features == 6
+        frame_model(self, window, in_features, dt, wheelbase)
         hidden = integer(hidden, "hidden", 1)
-        self.dt = number(dt, "model.dt", low=0.0, low_open=True, form="a period in seconds > 0")
-        self.wheelbase = number(wheelbase, "model.wheelbase", low=0.0, low_open=True,
-                                form="a length in metres > 0")
         q = torch.tensor(check_sigmas("process_sigma", process_sigma))
         r = torch.tensor(check_sigmas("measurement_sigma", measurement_sigma))
         self.register_buffer("log_q0", q.log())

@@ -44,9 +44,8 @@ from torch import nn
 from torch.nn import functional as F
 
 from lbo.core.checks import integer, number
-from lbo.core.errors import LboError
 from lbo.models.features import wrap_angle_torch
-from lbo.models.filternet import check_sigmas
+from lbo.models.filternet import check_sigmas, frame_model
 
 N_STATE = 3
 """The state and the measurement: the pose ``x, y, psi``."""
@@ -100,23 +99,13 @@ class KalmanNet(nn.Module):
                  in_features: int = 5, width: int = 4, hidden: int = 64,
                  gain: float = 0.05) -> None:
         super().__init__()
-        self.physical = True  # reads and writes metres and radians (see WindowNet)
-        self.feature_modes = ("frame",)
-        self.window = integer(window, "window", 4)
-        self.in_features = integer(in_features, "in_features", 5)
-        if self.in_features > 6:
-            raise LboError(f"model.in_features: expected 5, or 6 with the fix channel, "
-                           f"got {in_features!r}")
-        self.fixes = self.in_features == 6
-        self.dt = number(dt, "model.dt", low=0.0, low_open=True, form="a period in seconds > 0")
-        self.wheelbase = number(wheelbase, "model.wheelbase", low=0.0, low_open=True,
-                                form="a length in metres > 0")
+        frame_model(self, window, in_features, dt, wheelbase)
         self.register_buffer("units", torch.tensor(
             check_sigmas("measurement_sigma", measurement_sigma)))
         width = integer(width, "model.width", 1)
         hidden = integer(hidden, "model.hidden", 1)
         gain = number(gain, "model.gain", low=0.0, high=1.0, form="a number in [0, 1]")
-        n = N_STATE
+        n = self.n_state = N_STATE  # an attribute: TorchScript reads no module-level int
         h = width * n * n
         wide = 5 * n  # the input layers' width (the authors' in_mult = 5)
         self.fc_q = nn.Linear(n, wide)           # F3 -> GRU_Q
@@ -146,7 +135,7 @@ class KalmanNet(nn.Module):
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         """(B, N, 5|6) features -> (B, 3) pose in the frame of the window's latest fix."""
         b, steps = x.shape[:2]
-        y = x[:, :, :N_STATE]
+        y = x[:, :, :self.n_state]
         z = y[:, 0]
         fix = x[:, :, 5] > 0.5 if self.fixes else torch.ones(b, steps, dtype=torch.bool,
                                                                device=x.device)
@@ -173,7 +162,7 @@ class KalmanNet(nn.Module):
             back = F.relu(self.fc_back(torch.cat([s, gain], -1)))
             sigma = F.relu(self.fc_sigma_back(torch.cat([sigma, back], -1)))
             # K = D K~ D^-1: the innovation in sigmas, the correction back in metres, radians
-            post = prior + self.units * (gain.view(b, N_STATE, N_STATE)
+            post = prior + self.units * (gain.view(b, self.n_state, self.n_state)
                                          @ (innovation / self.units).unsqueeze(-1)).squeeze(-1)
             # a step with a fix updates (the first fix: the filter starts there); one
             # without predicts, and the GRUs hold
