@@ -12,9 +12,10 @@ differences and output the gain K (3 x 3) that weighs the innovation:
 - F3, the forward evolution difference ``x_{t-1|t-1} - x_{t-2|t-2}``;
 - F4, the forward update difference ``x_{t-1|t-1} - x_{t-1|t-2}``;
 
-each normalised to unit length, as the authors do. Architecture 2's flow: F3 -> GRU_Q; GRU_Q's
-state with F4 -> GRU_Sigma; GRU_Sigma's state with F1 and F2 -> GRU_S; GRU_Sigma's and GRU_S's
-states -> K; and back, GRU_S's state with K updates GRU_Sigma's.
+each in measurement sigmas and normalised to unit length, as the authors normalise them.
+Architecture 2's flow: F3 -> GRU_Q; GRU_Q's state with F4 -> GRU_Sigma; GRU_Sigma's state
+with F1 and F2 -> GRU_S; GRU_Sigma's and GRU_S's states -> K; and back, GRU_S's state with K
+updates GRU_Sigma's.
 
 Where this one differs from the published filter:
 
@@ -27,6 +28,8 @@ Where this one differs from the published filter:
 - The gain is learned in units of the measurement sigmas at alpha = 1, ``K = D K~ D^-1`` with
   ``D = diag(sigma)``: the pose mixes metres and radians, and in sigma units the gain's
   entries, the cross terms included, are of one scale.
+- The features are scaled to unit length smoothly near 0 (:func:`_unit`), where a plain
+  normalisation's gradient is 1 / eps.
 - A step without a fix (the ``fix`` channel) is a prediction: no gain, the GRUs hold.
 - The GRU cells are written out (the same gates as ``torch.nn.GRUCell``), so that ONNX
   exports them.
@@ -68,9 +71,17 @@ class _GRUCell(nn.Module):
         return (1 - z) * n + z * h
 
 
+UNIT_FLOOR = 1e-3
+"""The length (in measurement sigmas) below which a feature is not scaled up to unit length."""
+
+
 def _unit(f: torch.Tensor) -> torch.Tensor:
-    """Each row scaled to unit length (0 stays 0), as the authors normalise the features."""
-    return F.normalize(f, p=2.0, dim=-1, eps=1e-12)
+    """Each row scaled to unit length, as the authors normalise the features, but smoothly
+    near 0 (``f / sqrt(|f|^2 + UNIT_FLOOR^2)``): the differences are exactly 0 at a window's
+    first step and between fixes, where a plain normalisation's gradient is 1 / eps (1e12
+    with torch's; a first training with it, ``experiment=robust``, diverged in its first
+    epoch)."""
+    return f / torch.sqrt((f * f).sum(-1, keepdim=True) + UNIT_FLOOR**2)
 
 
 def _diff(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
@@ -149,10 +160,11 @@ class KalmanNet(nn.Module):
             prior = self._predict(z, x[:, k - 1, 3:5])
             f = fix[:, k]
             innovation = _diff(y[:, k], prior)
-            f1 = _unit(_diff(y[:, k], y_last))
-            f2 = _unit(innovation)
-            f3 = _unit(_diff(z, z_prev))
-            f4 = _unit(_diff(z, z_prior_prev))
+            # the four differences in measurement sigmas (metres and radians made comparable)
+            f1 = _unit(_diff(y[:, k], y_last) / self.units)
+            f2 = _unit(innovation / self.units)
+            f3 = _unit(_diff(z, z_prev) / self.units)
+            f4 = _unit(_diff(z, z_prior_prev) / self.units)
             q = self.gru_q(F.relu(self.fc_q(f3)), h_q)
             sigma = self.gru_sigma(torch.cat([q, F.relu(self.fc_f4(f4))], -1), h_sigma)
             s_in = torch.cat([F.relu(self.fc_sigma(sigma)), F.relu(self.fc_y(
