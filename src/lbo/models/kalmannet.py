@@ -75,13 +75,13 @@ UNIT_FLOOR = 1e-3
 """The length (in measurement sigmas) below which a feature is not scaled up to unit length."""
 
 
-def _unit(f: torch.Tensor) -> torch.Tensor:
+def _unit(f: torch.Tensor, floor: float) -> torch.Tensor:
     """Each row scaled to unit length, as the authors normalise the features, but smoothly
-    near 0 (``f / sqrt(|f|^2 + UNIT_FLOOR^2)``): the differences are exactly 0 at a window's
-    first step and between fixes, where a plain normalisation's gradient is 1 / eps (1e12
-    with torch's; a first training with it, ``experiment=robust``, diverged in its first
-    epoch)."""
-    return f / torch.sqrt((f * f).sum(-1, keepdim=True) + UNIT_FLOOR**2)
+    near 0 (``f / sqrt(|f|^2 + floor^2)``, floor :data:`UNIT_FLOOR`): the differences are
+    exactly 0 at a window's first step and between fixes, where a plain normalisation's
+    gradient is 1 / eps (1e12 with torch's; a first training with it, ``experiment=robust``,
+    diverged in its first epoch)."""
+    return f / torch.sqrt((f * f).sum(-1, keepdim=True) + floor * floor)
 
 
 def _diff(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
@@ -116,7 +116,9 @@ class KalmanNet(nn.Module):
         width = integer(width, "model.width", 1)
         hidden = integer(hidden, "model.hidden", 1)
         gain = number(gain, "model.gain", low=0.0, high=1.0, form="a number in [0, 1]")
-        n = self.n_state = N_STATE  # an attribute: TorchScript reads no module-level int
+        # attributes: TorchScript reads no module-level number
+        n = self.n_state = N_STATE
+        self.unit_floor = UNIT_FLOOR
         h = width * n * n
         wide = 5 * n  # the input layers' width (the authors' in_mult = 5)
         self.fc_q = nn.Linear(n, wide)           # F3 -> GRU_Q
@@ -161,10 +163,10 @@ class KalmanNet(nn.Module):
             f = fix[:, k]
             innovation = _diff(y[:, k], prior)
             # the four differences in measurement sigmas (metres and radians made comparable)
-            f1 = _unit(_diff(y[:, k], y_last) / self.units)
-            f2 = _unit(innovation / self.units)
-            f3 = _unit(_diff(z, z_prev) / self.units)
-            f4 = _unit(_diff(z, z_prior_prev) / self.units)
+            f1 = _unit(_diff(y[:, k], y_last) / self.units, self.unit_floor)
+            f2 = _unit(innovation / self.units, self.unit_floor)
+            f3 = _unit(_diff(z, z_prev) / self.units, self.unit_floor)
+            f4 = _unit(_diff(z, z_prior_prev) / self.units, self.unit_floor)
             q = self.gru_q(F.relu(self.fc_q(f3)), h_q)
             sigma = self.gru_sigma(torch.cat([q, F.relu(self.fc_f4(f4))], -1), h_sigma)
             s_in = torch.cat([F.relu(self.fc_sigma(sigma)), F.relu(self.fc_y(
