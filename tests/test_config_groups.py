@@ -165,9 +165,9 @@ NEEDS_LOGS = Refusal(r"data\.train must be a list of log files",
 NEEDS_TEST_LOGS = Refusal(r"data\.test must be a list of log files",
                           "lbo.evaluate data=logs scores the user's test logs "
                           "(data.test=[...]), and these cases name none")
-NEEDS_FRAME = Refusal(r"features: model 'filternet' needs features in \['frame'\]",
-                      "the window EKF takes its inputs in the frame of the latest fix; with no "
-                      "experiment, or experiment=smoke, features stay relative")
+NEEDS_FRAME = Refusal(r"features: model '(filternet|kalmannet)' needs features in \['frame'\]",
+                      "the window EKF and KalmanNet take their inputs in the frame of the latest "
+                      "fix; with no experiment, or experiment=smoke, features stay relative")
 FILTERNET_ONLY = Refusal(r"model\.(body|body_lr|residual|drift): not a parameter of model",
                          "experiment=dynamic and experiment=logs set the filternet's learned "
                          "body, residual and drift; their black-box peers are "
@@ -181,7 +181,9 @@ NOT_SIMULATED = Refusal(r".*\bdata\b",
                         "settings; a user's logs (data=logs) have none")
 
 RELATIVE_FEATURES = {None, "smoke"}
-"""Experiments that leave ``features=relative`` (refused for model=filternet)."""
+"""Experiments that leave ``features=relative`` (refused for the models in FRAME_MODELS)."""
+FRAME_MODELS = {"filternet", "kalmannet"}
+"""Models that read features in the frame of the latest fix only."""
 FILTERNET_EXPERIMENTS = {"dynamic", "logs"}
 """Experiments that set model keys only the filternet takes (refused for other models)."""
 
@@ -194,7 +196,7 @@ def cuda() -> bool:
 
 def train_refusal(experiment: str | None, choice: dict[str, str | None]) -> Refusal | None:
     """The refusal ``lbo.train.check`` gives, in the order it checks; None: it passes."""
-    if choice["model"] == "filternet" and experiment in RELATIVE_FEATURES:
+    if choice["model"] in FRAME_MODELS and experiment in RELATIVE_FEATURES:
         return NEEDS_FRAME
     if experiment in FILTERNET_EXPERIMENTS and choice["model"] != "filternet":
         return FILTERNET_ONLY
