@@ -16,7 +16,9 @@ import time
 
 import numpy as np
 
-from lbo.filters.kalman import ekf_batch, run_filterpy_ekf, ukf, ukf_batch
+from lbo.filters.kalman import ekf_batch
+from lbo.filters.reference import run_filterpy_ekf, ukf
+from lbo.filters.unscented import ukf_batch
 from lbo.scoring.grid import CLASSICAL, classical
 from lbo.sim.noise import Noise
 from lbo.sim.vehicle import Vehicle

@@ -8,7 +8,8 @@ import pytest
 from helpers import compose_cfg
 from lbo.core.errors import LboError
 from lbo.evaluate import evaluate
-from lbo.filters.kalman import ekf_batch, pcrb
+from lbo.filters.kalman import ekf_batch
+from lbo.filters.pcrb import pcrb
 from lbo.scoring.grid import Q_GRID, classical, classical_table, load_test, reference, tuned_oracle
 from lbo.scoring.metrics import SCORE_COLUMNS
 from lbo.sim import schema
@@ -63,7 +64,7 @@ def test_pcrb_is_a_floor_in_expectation(smoke_data):
 def test_the_ekf_reference_is_filterpys_rmse_at_alpha_1(smoke_data, smoke_table):
     """E_ref re-derived independently: filterpy's EKF on every alpha=1 trajectory, and the
     pooled RMSE written out in numpy; and the paper's constants as printed in its Table I."""
-    from lbo.filters.kalman import run_filterpy_ekf
+    from lbo.filters.reference import run_filterpy_ekf
 
     arr = load_test(smoke_data / "test.parquet")
     at1 = np.flatnonzero(np.isclose(arr["alpha"], 1.0))

@@ -7,6 +7,9 @@ import pytest
 
 from lbo.core.errors import LboError
 from lbo.filters import kalman as filters
+from lbo.filters.pcrb import pcrb
+from lbo.filters.reference import run_filterpy_ekf, ukf_filterpy_batch
+from lbo.filters.unscented import ukf_batch
 from lbo.scoring.metrics import nrmse, rmse
 from lbo.sim.noise import Noise
 from lbo.sim.vehicle import Vehicle, measure, simulate, wrap_angle
@@ -50,7 +53,7 @@ def test_ekf_batch_matches_filterpy_loop():
     z, u, m = make_batch(3, 300, [0.5, 1.0, 4.0], seed=1)
     m[..., 2] = wrap_angle(m[..., 2])  # headings given wrapped: residuals must handle it
     R = np.stack([NOISE.R(a) for a in (0.5, 1.0, 4.0)])
-    ref = np.stack([filters.run_filterpy_ekf(m[i], u[i], VEHICLE, NOISE.Q, R[i])
+    ref = np.stack([run_filterpy_ekf(m[i], u[i], VEHICLE, NOISE.Q, R[i])
                     for i in range(3)])
     np.testing.assert_allclose(filters.ekf_batch(m, u, VEHICLE, NOISE.Q, R), ref,
                                rtol=0, atol=1e-9)
@@ -112,7 +115,7 @@ def grid():
         settled[:, 150:] = True
         adaptive = filters.adaptive_ekf_batch(m, u, VEHICLE, NOISE.Q, NOISE.R(1.0))
         oracle = filters.ekf_batch(m, u, VEHICLE, NOISE.Q, NOISE.R(alpha))
-        bound = filters.pcrb(z, u, VEHICLE, NOISE.Q, NOISE.R(alpha), n_mc=20, rng=i)
+        bound = pcrb(z, u, VEHICLE, NOISE.Q, NOISE.R(alpha), n_mc=20, rng=i)
         out[alpha] = {
             "pcrb": np.sqrt(bound.reshape(-1, 3).mean(axis=0)),
             "oracle": pooled(oracle, z),
@@ -167,7 +170,7 @@ def test_adaptive_beats_fixed_at_alpha6(grid):
 
 def test_ukf_close_to_ekf_at_alpha1():
     z, u, m = make_batch(4, 500, 1.0, seed=6)
-    est_ukf = filters.ukf_batch(m, u, VEHICLE, NOISE.Q, NOISE.R(1.0))
+    est_ukf = ukf_batch(m, u, VEHICLE, NOISE.Q, NOISE.R(1.0))
     est_ekf = filters.ekf_batch(m, u, VEHICLE, NOISE.Q, NOISE.R(1.0))
     r_ukf, r_ekf = pooled(est_ukf, z), pooled(est_ekf, z)
     assert np.all(np.abs(r_ukf / r_ekf - 1) < 0.05)  # brief allows 15 %; it is ~0.1 %
@@ -178,14 +181,14 @@ def test_alpha0_is_exact_and_finite():
     alpha = np.array([0.0, 0.0, 1.0, 6.0])
     z, u, m = make_batch(4, 200, alpha, seed=7)
     R = NOISE.R(1.0) * (alpha**2)[:, None, None]
-    bound = filters.pcrb(z, u, VEHICLE, NOISE.Q, R, n_mc=10, rng=0)
+    bound = pcrb(z, u, VEHICLE, NOISE.Q, R, n_mc=10, rng=0)
     assert bound.shape == (4, 200, 3) and np.all(np.isfinite(bound))
     np.testing.assert_array_equal(bound[:2], 0.0)
     assert np.all(bound[2:] > 0)
     np.testing.assert_allclose(filters.ekf_batch(m, u, VEHICLE, NOISE.Q, R)[:2], z[:2],
                                atol=1e-9)
     for est in (filters.adaptive_ekf_batch(m, u, VEHICLE, NOISE.Q, NOISE.R(1.0)),
-                filters.ukf_batch(m, u, VEHICLE, NOISE.Q, R)):
+                ukf_batch(m, u, VEHICLE, NOISE.Q, R)):
         assert np.all(np.isfinite(est))
         assert np.all(pooled(est[:2], z[:2]) < 0.1 * np.array(REF))
 
@@ -198,7 +201,7 @@ def test_batched_ukf_gives_filterpy_numbers_on_the_smoke_grid(smoke_data):
 
     arr = load_test(smoke_data / "test.parquet")
     for R in (NOISE.R(1.0), measurement_cov("oracle", NOISE, arr["alpha"], len(arr["alpha"]))):
-        ref = filters.ukf_filterpy_batch(arr["m"], arr["u"], VEHICLE, NOISE.Q, R)
-        new = filters.ukf_batch(arr["m"], arr["u"], VEHICLE, NOISE.Q, R)
+        ref = ukf_filterpy_batch(arr["m"], arr["u"], VEHICLE, NOISE.Q, R)
+        new = ukf_batch(arr["m"], arr["u"], VEHICLE, NOISE.Q, R)
         assert np.isfinite(new[arr["mask"]]).all()
         assert np.abs(new - ref)[arr["mask"]].max() <= 1e-9

@@ -13,7 +13,8 @@ from helpers import observe as run_observe
 from lbo.core.errors import LboError
 from lbo.export import register
 from lbo.filters.classical import estimate as run_classical
-from lbo.filters.kalman import ekf_batch, run_filterpy_ekf
+from lbo.filters.kalman import ekf_batch
+from lbo.filters.reference import run_filterpy_ekf
 from lbo.observe import observe as observe_cfg
 from lbo.scoring.grid import classical, predict_grid
 from lbo.scoring.metrics import rmse

@@ -249,7 +249,8 @@ def test_the_example_plug_in_trains_tunes_evaluates_observes_streams_and_exports
 def test_lbo_registers_its_own_classical_observers_as_a_plug_in_would():
     from lbo.filters import classical
     from lbo.filters.gyro import GyroStepper
-    from lbo.filters.kalman import AdaptiveStepper, KalmanStepper, UnscentedStepper
+    from lbo.filters.kalman import AdaptiveStepper, KalmanStepper
+    from lbo.filters.unscented import UnscentedStepper
 
     assert plugins.names("observer")[:4] == ("ekf", "adaptive", "ukf", "gyro")
     assert [plugins.load("observer", n, "observer") for n in plugins.OWN["observer"]] == [

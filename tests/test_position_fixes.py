@@ -13,7 +13,7 @@ import pytest
 from helpers import compose_cfg
 from lbo.core.errors import LboError
 from lbo.filters import classical
-from lbo.filters.kalman import HEADING_VAR0
+from lbo.filters.start import HEADING_VAR0
 from lbo.filters.update import joseph_update
 from lbo.models.net import WindowNet
 from lbo.serve.observer import Observer

@@ -340,10 +340,11 @@ def _stepped(kf, m: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def test_runs_without_a_measurement_coast_in_one_call_as_the_steps_would_go():
     """Between 2 Hz fixes (position only, some with an accuracy, courses) at 50 Hz, the EKF
-    takes each run of rows that hold nothing in closed form (kalman.KalmanStepper.coast):
+    takes each run of rows that hold nothing in closed form (KalmanStepper.coast):
     the numbers of one update per row, to rounding; the adaptive EKF and a trajectory that
     has no heading yet step row by row."""
-    from lbo.filters.kalman import KalmanStepper, run_stepper
+    from lbo.filters.kalman import KalmanStepper
+    from lbo.filters.stepper import run_stepper
     from lbo.sim.vehicle import simulate as roll
 
     vehicle, rng = Vehicle(), np.random.default_rng(0)

@@ -39,13 +39,9 @@ from lbo.core import plugins
 from lbo.core.errors import LboError
 from lbo.filters import measure
 from lbo.filters.gyro import GyroNoise, gyro_ekf_batch
-from lbo.filters.kalman import (
-    UKF_SPREAD,
-    adaptive_ekf_batch,
-    ekf_batch,
-    run_stepper,
-    ukf_batch,
-)
+from lbo.filters.kalman import adaptive_ekf_batch, ekf_batch
+from lbo.filters.stepper import run_stepper
+from lbo.filters.unscented import UKF_SPREAD, ukf_batch
 from lbo.sim.noise import Noise
 from lbo.sim.truth import Truth
 from lbo.sim.vehicle import Vehicle

@@ -20,7 +20,7 @@ The truth it is built for (``dt`` the vehicle's sampling period, ``car`` a
   ``b_{k+1} = phi b_k + sqrt(1 - phi^2) gnss_sigma eps_k``, ``phi = exp(-dt / gnss_tau)``.
 
 The state is ``[x, y, psi, v_y, r]``, plus ``[b_x, b_y]`` when any trajectory has drift (7
-states; 5 without, which is cheaper). Conventions as :mod:`lbo.filters.kalman`: the estimate at step
+states; 5 without, which is cheaper). Conventions as :mod:`lbo.filters.start`: the estimate at step
 ``k`` uses ``m_0 .. m_k`` and ``u_0 .. u_{k-1}``; a row updates with the channels it holds
 (a position without a heading: x and y only; a NaN row: a prediction-only step; a receiver's
 row, :mod:`lbo.filters.measure`: its reported accuracy as that step's R, and its course over
@@ -42,13 +42,8 @@ import numpy as np
 from lbo.core.checks import number
 from lbo.core.errors import LboError
 from lbo.filters import measure
-from lbo.filters.kalman import (
-    COV_FLOOR,
-    _batch_cov,
-    _check_q,
-    _check_trajectories,
-    run_stepper,
-)
+from lbo.filters.start import COV_FLOOR, batch_cov, check_q, check_trajectories
+from lbo.filters.stepper import run_stepper
 from lbo.filters.update import held_channels, joseph_update
 from lbo.sim import dynamic
 from lbo.sim.dynamic import SingleTrack
@@ -92,7 +87,7 @@ def _check_inputs(u: np.ndarray, g: int, name: str) -> np.ndarray:
 class DynamicStepper:
     """EKF on the dynamic single-track car, one time step per call over G trajectories.
 
-    The interface of :class:`lbo.filters.kalman.KalmanStepper`: :func:`dynamic_ekf_batch` loops over
+    The stepper contract (:mod:`lbo.filters.stepper`): :func:`dynamic_ekf_batch` loops over
     it, and a streaming observer can step it one sample at a time.
 
     Parameters
@@ -120,7 +115,7 @@ class DynamicStepper:
         P_0 = [[R + S, 0, -S], [0, diag(P0_LATERAL_SIGMA)^2, 0], [-S, 0, S]],
 
     ``S = gnss_sigma^2`` on x and y (zero-padded to 3 x 3 where it meets R), diagonal floored
-    at :data:`~lbo.filters.kalman.COV_FLOOR`. (The pose error is ``-(v_0 + b_0)``: it carries the
+    at :data:`~lbo.filters.start.COV_FLOOR`. (The pose error is ``-(v_0 + b_0)``: it carries the
     first drift, hence ``R + S`` and the cross-covariance ``-S``; without drift, ``P_0 = R`` on
     the pose as in :mod:`lbo.filters.kalman`.)
 
@@ -159,7 +154,7 @@ class DynamicStepper:
             raise LboError("m0 must be a full fix (x_m, y_m and psi_m finite) for every "
                            "trajectory; the dynamic oracle starts there, heading included")
         g = len(m0)
-        Q3 = _check_q(Q)
+        Q3 = check_q(Q)
         R = np.asarray(R, dtype=float)
         if R.shape != (g, 3, 3):
             raise LboError(f"R must be ({g}, 3, 3), got {R.shape}")
@@ -327,11 +322,11 @@ def dynamic_ekf_batch(m: np.ndarray, u: np.ndarray, vehicle: Vehicle, car: Singl
     est : (G, T, 3) filtered pose estimates; ``est[:, 0] = m[:, 0]``.
     P : (G, T, 3, 3) covariances of the pose estimates, only when ``return_cov``.
     """
-    m, u = _check_trajectories(m, u)
+    m, u = check_trajectories(m, u)
     g, t = m.shape[:2]
     if t == 0:
         raise LboError("measurements m must have at least one step, got T = 0")
-    kf = DynamicStepper(m[:, 0], vehicle, car, Q, np.array(_batch_cov(R, g, "R")), gnss_sigma,
+    kf = DynamicStepper(m[:, 0], vehicle, car, Q, np.array(batch_cov(R, g, "R")), gnss_sigma,
                         gnss_tau, steering_offset, speed_scale, u0=u[:, 0])
     return run_stepper(kf, m, u, return_cov, pose=lambda kf: kf.x[:, :3],
                        cov=lambda kf: kf.pose_cov)

@@ -15,7 +15,7 @@ the gyro integrates drifts from the fixes' course, and, while the car stands
 held and the gyro reads its bias. The process noise adds the gyro's white noise to the
 heading (``(gyro_sigma dt)^2`` a step) and the bias's walk to ``b`` (``bias_walk^2 dt``).
 The heading of a log that starts without one comes from the course over ground
-(:class:`lbo.filters.kalman.CourseStart`, its path dead-reckoned with the gyro).
+(:class:`lbo.filters.start.CourseStart`, its path dead-reckoned with the gyro).
 """
 
 from __future__ import annotations
@@ -31,13 +31,8 @@ import numpy as np
 
 from lbo.core.errors import LboError
 from lbo.filters import measure
-from lbo.filters.kalman import (
-    CourseStart,
-    _batch_cov,
-    _check_trajectories,
-    _start,
-    run_stepper,
-)
+from lbo.filters.start import CourseStart, batch_cov, check_trajectories, start_state
+from lbo.filters.stepper import run_stepper
 from lbo.filters.update import joseph_update
 from lbo.sim.vehicle import Vehicle
 
@@ -157,7 +152,7 @@ class GyroStepper:
                  gyro_sigma: float = GYRO_SIGMA, bias_sigma: float = BIAS_SIGMA,
                  bias_walk: float = BIAS_WALK) -> None:
         self.dt, self.R = vehicle.dt, np.asarray(R, dtype=float)
-        x3, P3 = _start(m0, self.R)
+        x3, P3 = start_state(m0, self.R)
         g = len(x3)
         self.x = np.concatenate([x3, np.zeros((g, 1))], axis=1)
         self.P = np.zeros((g, 4, 4))
@@ -213,10 +208,10 @@ def gyro_ekf_batch(m: np.ndarray, u: np.ndarray, vehicle: Vehicle, Q: np.ndarray
     (G, 3, 3). Returns the poses (G, T, 3), with ``return_cov`` their covariances
     (G, T, 3, 3), with ``return_bias`` the bias estimated at the last step (G,) last.
     """
-    m, u = _check_trajectories(m, u)
+    m, u = check_trajectories(m, u)
     if not np.isfinite(u).all():
         raise LboError("the gyro EKF needs V and r_m at every step (NaN or inf found)")
-    flt = GyroStepper(m[:, 0], vehicle, Q, _batch_cov(R, m.shape[0], "R"), **gyro)
+    flt = GyroStepper(m[:, 0], vehicle, Q, batch_cov(R, m.shape[0], "R"), **gyro)
     out = run_stepper(flt, m, u, return_cov, pose=lambda kf: kf.x[:, :3],
                       cov=lambda kf: kf.P[:, :3, :3])
     if not return_bias:

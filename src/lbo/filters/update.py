@@ -1,7 +1,7 @@
 """The one measurement update of the classical filters: Joseph form, per step, per channel.
 
 Every stepper (:class:`~lbo.filters.kalman.KalmanStepper` for the EKF, the oracle and the
-Sage-Husa adaptive EKF, :class:`~lbo.filters.kalman.UnscentedStepper`,
+Sage-Husa adaptive EKF, :class:`~lbo.filters.unscented.UnscentedStepper`,
 :class:`~lbo.filters.dynamic_ekf.DynamicStepper`) predicts in its own way and then calls
 :func:`joseph_update` with the measurement model of the row at hand. A log row holds any
 allowed subset of the measured channels ``[x_m, y_m, psi_m]``: a full fix, a position

@@ -72,7 +72,7 @@ class GyroFilter(nn.Module):
 
     def forward(self, seg: Segments) -> torch.Tensor:
         """Estimates (G, T, 3) ``[x, y, psi]``: step 0 is ``x0``, step k predicted with
-        ``u[:, k - 1]`` and updated with row k, as :func:`lbo.filters.kalman.run_stepper`."""
+        ``u[:, k - 1]`` and updated with row k, as :func:`lbo.filters.stepper.run_stepper`."""
         p = {k: torch.exp(v) for k, v in self.log.items()}
         dt = self.dt
         g, t = seg.fix.shape[:2]

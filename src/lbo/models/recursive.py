@@ -22,7 +22,7 @@ step exports to TorchScript and ONNX as a pure function ``(m, u, *state) -> (pos
 *state)``. It runs in float64: a drive's coordinates reach kilometres, and a running sum over
 hours of steps keeps its digits.
 
-Conventions as the filters of :mod:`lbo.filters.kalman`: ``u_k`` moves ``z_k`` to ``z_{k+1}``, so
+Conventions as the filters of :mod:`lbo.filters.start`: ``u_k`` moves ``z_k`` to ``z_{k+1}``, so
 the estimate at step k uses ``m_0 .. m_k`` and ``u_0 .. u_{k-1}``; a measurement of NaN is a step
 without a position fix (for a filter trained with the ``fix`` channel): a prediction only. The
 filter starts at the first fix, with P = 6.5^2 R (:data:`START_SCALE`).

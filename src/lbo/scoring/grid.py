@@ -18,7 +18,8 @@ from lbo.core.atomic import atomic_path
 from lbo.core.errors import LboError
 from lbo.filters.classical import BOUND, NAMES, TUNED, measurement_cov, plugged
 from lbo.filters.classical import estimate as run_classical
-from lbo.filters.kalman import ekf_batch, pcrb
+from lbo.filters.kalman import ekf_batch
+from lbo.filters.pcrb import pcrb
 from lbo.scoring.metrics import PAPER_REFERENCE, SCORE_COLUMNS, rmse, score_table
 from lbo.sim import schema
 from lbo.sim.columns import SCORED_SET

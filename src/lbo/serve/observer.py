@@ -18,7 +18,7 @@ estimate, as it was trained.
 Every classical observer and the robust observer also give the covariance of their estimate
 (``Estimate.cov``, ``run(..., cov=True)``); the CNN and the LSTM have none (NaN).
 
-Conventions as in :mod:`lbo.filters.kalman`: ``u_k`` moves ``z_k`` to ``z_{k+1}``, so the
+Conventions as in :mod:`lbo.filters.start`: ``u_k`` moves ``z_k`` to ``z_{k+1}``, so the
 estimate at step k uses ``m_0 .. m_k`` and ``u_0 .. u_{k-1}`` (the filters) or the window of
 ``[m_j, u_j]``, j = k-N+1 .. k (the networks). Estimated headings are wrapped to (-pi, pi].
 """

@@ -1,0 +1,82 @@
+"""The stepper contract of the classical filters, and the time loop that runs one over a log.
+
+A classical observer is a *stepper*: an object built as ``Stepper(m0, vehicle, Q, R)`` from the
+first rows m0 (G, 3) or (G, 8) of G trajectories (it starts there,
+:func:`lbo.filters.start.start_state`), the vehicle, the process covariance Q (3, 3) and the
+measurement covariance R (G, 3, 3), that then takes one time step per call:
+
+- ``update(m, u_prev) -> x``: predict with the inputs u_{k-1} (G, 2), update with what row
+  m_k (G, 3) or (G, 8) holds (NaN channels are not measured; :mod:`lbo.filters.measure`
+  builds the step's H and R, :func:`lbo.filters.update.joseph_update` takes them); returns
+  the estimate x_k (G, 3) and leaves it in ``x``, its covariance in ``P`` (G, 3, 3) (or
+  wider, for steppers with more states: :func:`run_stepper` reads the pose through ``pose``
+  and ``cov``);
+- to be smoothed (:mod:`lbo.filters.smoother`), ``prior``: the ``(x, P)`` the last posterior
+  came from, and ``cross``: ``cov(x_{k-1|k-1}, x_{k|k-1})`` (G, n, n);
+- optionally ``coasts`` and ``coast(u)``: a run of prediction-only steps in one call.
+
+Every batch filter (:func:`lbo.filters.kalman.ekf_batch`, the UKF, the gyro EKF, the EKF on
+the car that slips, a plug-in's) loops over its stepper with :func:`run_stepper`, and
+:class:`lbo.Observer` steps the same stepper one sample at a time, so streaming and batch give
+the same numbers. docs/plugins.md states the contract for a user's own observer.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+from tqdm.auto import tqdm
+
+
+def run_stepper(kf, m: np.ndarray, u: np.ndarray, return_cov: bool = False,
+                pose: Callable[[Any], np.ndarray] = lambda kf: kf.x,
+                cov: Callable[[Any], np.ndarray] = lambda kf: kf.P, smooth: bool = False,
+                progress: str | None = None, lengths: np.ndarray | None = None):
+    """The time loop of a batch filter: a stepper ``kf`` started at ``m[:, 0]``, updated with
+    every later step. ``pose(kf)`` (G, 3) and ``cov(kf)`` (G, 3, 3) read its estimate and
+    covariance. Returns (G, T, 3) estimates, and (G, T, 3, 3) covariances with
+    ``return_cov``. With ``smooth`` (a stepper that records ``prior`` and ``cross``, of three
+    states), the estimates and covariances are the RTS smoother's (:mod:`lbo.filters.smoother`).
+    ``progress``: show a tqdm bar over the time steps with this name; ``lengths`` (G,): the
+    real steps of padded trajectories, which the smoother does not smooth across."""
+    from lbo.filters.smoother import rts
+
+    g, t = m.shape[:2]
+    est = np.empty((g, t, 3))
+    est[:, 0] = pose(kf)
+    covs = np.empty((g, t, 3, 3)) if return_cov or smooth else None
+    if covs is not None:
+        covs[:, 0] = cov(kf)
+    if smooth:
+        x_p, P_p, cross = np.zeros_like(est), np.zeros_like(covs), np.zeros_like(covs)
+    bar = tqdm(total=t - 1, desc=progress, unit="step", disable=progress is None,
+               mininterval=2.0)
+    # rows where no trajectory holds any channel: a stepper that can (``coasts``) takes each
+    # run of them in one call (most rows of a log with 1-10 Hz fixes at 50 Hz)
+    quiet = ~np.isfinite(m).any(axis=(0, 2))
+    can_coast = not smooth and hasattr(kf, "coast")
+    k = 1
+    while k < t:
+        if can_coast and quiet[k] and kf.coasts:
+            end = k + int(np.argmin(np.append(quiet[k:], False)))  # the run's end
+            est[:, k:end], run_covs = kf.coast(u[:, k - 1:end - 1])
+            if covs is not None:
+                covs[:, k:end] = run_covs
+            bar.update(end - k)
+            k = end
+            continue
+        kf.update(m[:, k], u[:, k - 1])
+        est[:, k] = pose(kf)
+        if covs is not None:
+            covs[:, k] = cov(kf)
+        if smooth:
+            x_p[:, k], P_p[:, k] = kf.prior
+            cross[:, k] = kf.cross
+        bar.update(1)
+        k += 1
+    bar.close()
+    if smooth:
+        est, covs = rts(est, covs, x_p, P_p, cross, lengths=lengths)
+    return (est, covs) if return_cov else est
