@@ -18,8 +18,8 @@ from pathlib import Path
 import numpy as np
 
 from lbo.core.paths import REPO_ROOT
+from lbo.models.checkpoint import read_checkpoint, trained_conditions
 from lbo.scoring.grid import classical, load_test, predict_grid
-from lbo.serve.observer import read_checkpoint, trained_conditions
 from lbo.sim.truth import of_folder
 from lbo.sim.vehicle import wrap_angle
 

@@ -54,7 +54,7 @@ def cycle(graph: dict[str, set[str]]) -> list[str] | None:
 def test_no_import_cycles():
     graph = import_graph()
     assert "lbo.serve.engines" in graph["lbo.export"]
-    assert "lbo.serve.engines" in graph["lbo.serve.observer"]
+    assert "lbo.serve.engines" in graph["lbo.serve.runners"]
     assert cycle(graph) is None, " -> ".join(cycle(graph))
 
 

@@ -13,7 +13,8 @@ from lbo.filters.kalman import ekf_batch
 from lbo.models import KalmanNet, build_model
 from lbo.models.net import WindowNet
 from lbo.serve.engines import onnx_bytes, onnx_session, trace
-from lbo.serve.observer import Observer, default_form
+from lbo.serve.observer import Observer
+from lbo.serve.runners import default_form
 from lbo.sim.noise import Noise
 from lbo.sim.vehicle import Vehicle, wrap_angle
 

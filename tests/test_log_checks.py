@@ -356,11 +356,11 @@ def test_the_window_rule_refuses_exactly_the_logs_with_nan_estimates(fix_rates_c
             m = np.full((120, 3), np.nan)
             m[at] = np.stack([0.16 * at, np.zeros(len(at)), np.zeros(len(at))], 1)
             series = np.concatenate([m, u], 1)
-            if obs._pads:
+            if obs._runner.pads:
                 series = np.concatenate([np.full((n - 1, 5), np.nan), series])
                 series[: n - 1, 3:] = 0.0
-            direct = obs._predict(np.ascontiguousarray(window_view(series, n)))
-            first = 0 if obs._pads else n - 1
+            direct = obs._runner.predict(np.ascontiguousarray(window_view(series, n)))
+            first = 0 if obs._runner.pads else n - 1
             nan_rows = ~np.isfinite(direct).all(1)
             if gap <= n and ends_without < n:
                 assert not nan_rows.any(), (obs.name, gap, ends_without)

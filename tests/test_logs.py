@@ -207,7 +207,7 @@ def test_train_on_logs_scores_the_test_files_against_their_peers(logs, tmp_path,
     assert (tmp_path / "out" / "nrmse.png").stat().st_size > 0
     # fine-tuning from that run: it starts from its weights
     from lbo.learn.builders import build_net, initial_weights
-    from lbo.serve.observer import load_net
+    from lbo.tracking.artifacts import load_net
 
     cfg2 = logs_cfg(logs, tmp_path / "ft", "train_noise=paper", f"init_from={metrics['run_id']}")
     net = build_net(cfg2)

@@ -298,7 +298,7 @@ def test_streaming_equals_batch(trained, smoke_data, source):
         win = torch.from_numpy(np.concatenate([m, u], axis=1)[None, -n:])
         with torch.no_grad():
             np.testing.assert_allclose(est[-1], obs.net(win)[0].numpy(), atol=1e-6)
-        assert obs._ring.shape == (2 * n, 5)  # the history is never kept
+        assert obs._runner.ring.shape == (2 * n, 5)  # the history is never kept
 
 
 def test_step_refuses_x_without_y_and_inf():

@@ -19,8 +19,9 @@ from helpers.commands import cli, one_line_error
 from lbo.core import plugins
 from lbo.core.errors import LboError
 from lbo.models import build_model, model_class, model_names
+from lbo.models.checkpoint import read_checkpoint
 from lbo.models.net import CHECKPOINT_FORMAT
-from lbo.serve.observer import Observer, read_checkpoint
+from lbo.serve.observer import Observer
 
 EXAMPLE = "my_gru"
 SEARCHPATH = "hydra.searchpath=[pkg://lbo_plugin_example.conf]"

@@ -158,7 +158,7 @@ def _run_grid(cfg: DictConfig, observers: list[str], learned: list[str]
                             given={name: est for name, (est, _) in covariant.items()})
     rows, names = [], []
     for name, net in nets.items():
-        from lbo.serve.observer import default_form, has_recursive_form
+        from lbo.serve.runners import default_form, has_recursive_form
 
         chosen = [default_form(net)] if forms is None else forms
         for form in chosen if has_recursive_form(net) else ["window"]:
@@ -204,7 +204,7 @@ def _run_grid(cfg: DictConfig, observers: list[str], learned: list[str]
 def _extras(cfg: DictConfig) -> tuple[list[str] | None, bool, bool]:
     """The checked ``forms`` (None: each observer's default), ``calibration`` and ``smooth``
     settings."""
-    from lbo.serve.observer import FORMS
+    from lbo.serve.runners import FORMS
 
     forms = cfg.get("forms")
     for form in forms or []:

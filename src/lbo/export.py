@@ -272,7 +272,8 @@ def register(run_id: str, name: str, uri: str | None = None, alias: str | None =
 
 def export_observer(cfg: DictConfig) -> dict[str, Any]:
     """Export the configured observer; print the files and, with ``register``, the model URI."""
-    from lbo.serve.observer import RUN_ID, Observer
+    from lbo.serve.observer import Observer
+    from lbo.tracking.artifacts import RUN_ID
 
     if not cfg.get("observer"):
         raise LboError("observer: give a checkpoint path, an MLflow run id or a "

@@ -90,7 +90,8 @@ def observe(cfg: DictConfig) -> dict[str, Any]:
     """
     from lbo.filters.classical import GYRO, check_gyro_noise, on_logs
     from lbo.filters.gyro import GyroNoise
-    from lbo.serve.observer import EnvelopeWarning, Observer, has_recursive_form
+    from lbo.serve.observer import EnvelopeWarning, Observer
+    from lbo.serve.runners import has_recursive_form
     from lbo.sim.noise import Noise
     from lbo.sim.vehicle import Vehicle
 

@@ -367,8 +367,8 @@ def launch(cfg: DictConfig, job_overrides: list[list[str]], sweep_dir: Path,
 def _trajectory(folder: Path, run: dict[str, Any] | None, manoeuvre: str,
                 tracking_uri: str) -> dict[str, np.ndarray] | None:
     """Fig. 6 arrays: one manoeuvre at alpha=3 with the best CNN and the EKF."""
+    from lbo.models.checkpoint import read_checkpoint, trained_conditions
     from lbo.scoring.grid import classical, load_test, predict_grid, rows_of
-    from lbo.serve.observer import read_checkpoint, trained_conditions
 
     if run is None:
         return None

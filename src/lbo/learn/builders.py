@@ -68,7 +68,7 @@ def initial_weights(cfg: DictConfig, net, say: bool = True) -> dict[str, torch.T
     Raises LboError naming ``init_from`` for an unreadable source, another architecture or
     feature mode, or a tensor whose shape differs (another size or window).
     """
-    from lbo.serve.observer import load_net
+    from lbo.tracking.artifacts import load_net
 
     source = str(cfg.init_from)
     try:

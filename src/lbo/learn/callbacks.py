@@ -13,6 +13,7 @@ from lightning.pytorch.loggers import MLFlowLogger
 from lbo.core import plots
 from lbo.core.atomic import atomic_path
 from lbo.learn.resume import IDENTITY_KEY
+from lbo.models.checkpoint import read_checkpoint, trained_conditions
 from lbo.scoring import logscore
 from lbo.scoring.grid import (
     classical_table,
@@ -23,7 +24,6 @@ from lbo.scoring.grid import (
     reference,
     score,
 )
-from lbo.serve.observer import read_checkpoint, trained_conditions
 from lbo.sim.log_sets import is_log_folder, test_files
 from lbo.sim.truth import of_folder
 

@@ -224,7 +224,7 @@ def calibration(covariant: dict[str, tuple[np.ndarray, np.ndarray]], arr: dict[s
 def learned_nets(sources: Sequence[str]) -> dict:
     """name (``cnn-N20``, ...) -> the net of each learned observer in ``sources`` (checkpoint
     files, MLflow run ids, runs:/ or models:/ URIs), all read before any scoring starts."""
-    from lbo.serve.observer import load_net
+    from lbo.tracking.artifacts import load_net
 
     nets: dict = {}
     for source in sources:
@@ -253,8 +253,8 @@ def predict_recursive(net, arr: dict[str, np.ndarray], device: str = "cpu",
 def predict(net, arr: dict[str, np.ndarray], batch_size: int = 8192,
             device: str = "cpu") -> np.ndarray:
     """A learned observer's estimates (G, T, 3) on the padded test arrays, in the form
-    :class:`lbo.Observer` runs it by default (:func:`lbo.serve.observer.default_form`)."""
-    from lbo.serve.observer import default_form
+    :class:`lbo.Observer` runs it by default (:func:`lbo.serve.runners.default_form`)."""
+    from lbo.serve.runners import default_form
 
     if default_form(net) == "recursive":
         return predict_recursive(net, arr, device)[0]

@@ -1,7 +1,8 @@
 """Inference engines of a learned observer: TorchScript and ONNX Runtime next to PyTorch.
 
-Both :mod:`lbo.serve.observer` (``engine=``) and :mod:`lbo.export` (the files) build on these, so
-neither imports the other's internals.
+Both :mod:`lbo.serve.observer` (``engine=``: :func:`make_predictor` for a window,
+:func:`make_recursive_step` for the recursive form) and :mod:`lbo.export` (the files) build on
+these, so neither imports the other's internals.
 """
 
 from __future__ import annotations
@@ -15,7 +16,10 @@ from typing import Any
 import numpy as np
 
 from lbo.core.errors import LboError
+from lbo.sim.logcheck import check_device
 
+ENGINES = ("torch", "torchscript", "onnx")
+"""Inference engines for learned observers."""
 OPSET = 17
 TOLERANCE = 1e-5
 """Largest difference to PyTorch that an exported file may show (tested)."""
@@ -207,3 +211,79 @@ def check_recursive(rec: Any, script: Any, session: Any, steps: int = 300,
                     gap = float(np.nanmax(d)) if np.isfinite(d).any() else 0.0
                     worst[engine] = max(worst[engine], gap if nan_same.all() else float("nan"))
     return worst
+
+
+# --------------------------------------------------------------------------- in an observer
+
+
+def engine_device(engine: str, device: Any) -> Any:
+    """The checked device of ``engine``: one of :data:`ENGINES`, and ONNX on the CPU only."""
+    if engine not in ENGINES:
+        raise LboError(f"engine must be one of {list(ENGINES)}, got {engine!r}")
+    device = check_device(device)
+    if engine == "onnx" and str(device) != "cpu":
+        raise LboError(f"engine=onnx runs on the CPU (ONNX Runtime's CPU provider), "
+                       f"got device={device}")
+    return device
+
+
+Predictor = Callable[[np.ndarray], np.ndarray]
+"""Windows (B, N, 5) float64 ``[x_m, y_m, psi_m, V, delta]`` -> states (B, 3) float64."""
+
+
+def make_predictor(net: Any, engine: str = "torch", device: str = "cpu") -> Predictor:
+    """Wrap an :class:`~lbo.models.net.WindowNet` as a numpy-in, numpy-out predictor.
+
+    ``torchscript`` traces the net; ``onnx`` exports it in memory and runs it in ONNX Runtime
+    on one thread (one window per step gains nothing from more). The torch engines use
+    torch's threads: in a control loop call ``torch.set_num_threads(1)``, as intra-op threads
+    slow a single window down, by 10x on a busy 2-core machine (measured).
+    """
+    import torch
+
+    device = engine_device(engine, device)
+    net = net.to(device).eval()
+    if engine == "onnx":
+        session = onnx_session(onnx_bytes(net.cpu()), threads=1)
+        return lambda win: session.run(None, {"window": win})[0]
+    if engine == "torchscript":
+        net = trace(net)
+
+    def predict(win: np.ndarray) -> np.ndarray:
+        with torch.inference_mode():
+            return net(torch.from_numpy(win).to(device)).cpu().numpy()
+
+    return predict
+
+
+RecursiveStep = Callable[[np.ndarray, np.ndarray, list], tuple[np.ndarray, np.ndarray, list]]
+"""The recursive form's step: measurement (1, 3), input (1, 2), state -> pose (1, 3),
+covariance (1, 3, 3), new state (float64 numpy arrays in, out)."""
+
+
+def make_recursive_step(net: Any, engine: str = "torch", device: str = "cpu"
+                        ) -> tuple[RecursiveStep, list]:
+    """The recursive form (:class:`~lbo.models.recursive.RecursiveFilter`) of a window filter
+    ``net`` (an :class:`~lbo.models.net.WindowNet` of ``filternet``) as a numpy step function on
+    ``engine``, and its initial state. ``onnx`` runs on one thread, as in a control loop."""
+    import torch
+
+    from lbo.models.recursive import RecursiveFilter
+
+    device = engine_device(engine, device)
+    rec = RecursiveFilter(net.net.cpu() if engine == "onnx" else net.net).to(device)
+    state = [s.cpu().numpy() for s in rec.initial_state(1)]
+    if engine == "onnx":
+        return onnx_step(onnx_session(recursive_onnx_bytes(rec), threads=1)), state
+    module = rec
+    if engine == "torchscript":
+        module = trace_recursive(rec)
+
+    def torch_step(m: np.ndarray, u: np.ndarray, st: list) -> tuple:
+        with torch.inference_mode():
+            out = module(*(torch.from_numpy(np.require(x, requirements="W")).to(device)
+                           for x in (m, u, *st)))  # a read-only frame's rows are copied
+        out = [o.cpu().numpy() for o in out]
+        return out[0], out[1], out[2:]
+
+    return torch_step, state

@@ -1,0 +1,129 @@
+"""Reading a learned observer's checkpoint: the net it names, rebuilt from the installed parts.
+
+A checkpoint (as ``lbo.train`` writes it) stores the model's registered name, its
+hyperparameters, the vehicle and noise it was trained with, its training envelope and its
+weights. lbo reads it with ``torch.load(weights_only=True)`` (tensors and plain containers
+only) and looks the name up among the installed plug-ins (:mod:`lbo.core.plugins`): nothing a
+file names is ever imported.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Any
+
+from lbo.core.errors import LboError
+from lbo.models.envelope import Envelope
+from lbo.sim.noise import Noise
+from lbo.sim.vehicle import Vehicle
+
+
+def read_checkpoint(path: str | os.PathLike, features: str | None = None,
+                    device: str = "cpu") -> tuple[Any, dict[str, Any]]:
+    """Rebuild the :class:`~lbo.models.net.WindowNet` of an ``lbo.train`` checkpoint.
+
+    The checkpoint's hyperparameters name the architecture, window and feature mode, its
+    buffers hold the normalisation statistics and ``meta`` the vehicle (dt) and noise preset.
+    Only tensors and plain containers are unpickled (``weights_only``).
+
+    Returns
+    -------
+    (net in eval mode, hyperparameters dict).
+
+    Raises
+    ------
+    LboError
+        Unreadable file, not an lbo checkpoint, another checkpoint format, an unknown
+        feature mode or not the ``features`` asked for, weights that do not fit, weights
+        that hold NaN or inf (a diverged training).
+    """
+    import torch
+
+    from lbo.models import model_class
+    from lbo.models.features import FEATURE_MODES
+    from lbo.models.net import CHECKPOINT_FORMAT, WindowNet
+
+    path = Path(path)
+    if features is not None and features not in FEATURE_MODES:
+        raise LboError(f"features: unknown mode {features!r}; expected one of "
+                       f"{', '.join(FEATURE_MODES)}")
+    try:
+        ckpt = torch.load(path, map_location="cpu", weights_only=True)
+    except PermissionError as e:
+        raise LboError(f"checkpoint {path}: cannot read it ({e.strerror})") from None
+    except Exception as e:  # zip, pickle, EOF: not a file lbo wrote
+        # torch's own message suggests weights_only=False: unsafe advice for a foreign file
+        what = ("it holds pickled objects beyond tensors and plain containers, which lbo "
+                "never unpickles" if "weights_only" in str(e).lower() or
+                "weights only" in str(e).lower() else "damaged, or another kind of file")
+        raise LboError(f"checkpoint {path}: not a readable lbo checkpoint ({what})") from None
+    hp = ckpt.get("hyper_parameters") if isinstance(ckpt, dict) else None
+    if not isinstance(hp, dict) or "state_dict" not in ckpt:
+        raise LboError(f"checkpoint {path}: not an lbo observer checkpoint "
+                       "(no hyper_parameters and state_dict)")
+    fmt = hp.get("format")
+    if fmt != CHECKPOINT_FORMAT:
+        raise LboError(f"checkpoint {path}: checkpoint format {fmt}, this lbo reads format "
+                       f"{CHECKPOINT_FORMAT}; retrain it, or use the lbo version that wrote it")
+    mode = hp.get("features")
+    if mode not in FEATURE_MODES:
+        raise LboError(f"checkpoint {path}: feature mode {mode!r} is unknown to this lbo "
+                       f"(it knows {', '.join(FEATURE_MODES)})")
+    if features is not None and features != mode:
+        raise LboError(f"checkpoint {path}: trained with features={mode}, "
+                       f"but features={features} was asked for")
+    try:
+        model = dict(hp["model"])
+        # the name is looked up among the installed plug-ins only (nothing the file names is
+        # imported); one that is missing says which package provided it
+        model_class(model.get("name"), hp.get("provider"))
+        net = WindowNet(model.pop("name"), hp["window"], mode, bool(hp.get("fixes", False)),
+                          **model)
+        state = {k.removeprefix("observer."): v for k, v in ckpt["state_dict"].items()
+                 if k.startswith("observer.")}
+        net.load_state_dict(state)
+    except LboError as e:
+        raise LboError(f"checkpoint {path}: {e}") from None
+    except (KeyError, TypeError, RuntimeError) as e:
+        reason = str(e).strip().splitlines()[0]
+        raise LboError(f"checkpoint {path}: its weights do not fit the architecture it "
+                       f"names ({reason})") from None
+    bad = next((k for k, v in state.items() if torch.is_tensor(v) and v.is_floating_point()
+                and not bool(torch.isfinite(v).all())), None)
+    if bad is not None:
+        raise LboError(f"checkpoint {path}: its weights hold NaN or inf ({bad}: training "
+                       "diverged?); retrain it, e.g. with a smaller optimizer.lr")
+    return net.to(device).eval(), hp
+
+
+def trained_conditions(hp: dict[str, Any], path: str | os.PathLike) -> tuple[Vehicle, Noise]:
+    """The vehicle and noise preset a checkpoint was trained with (``hp["meta"]``), for the
+    reference filters and the streaming fallback; raises LboError naming the file."""
+    meta = hp.get("meta") or {}
+    try:
+        vehicle = Vehicle(**meta["vehicle"])
+    except (KeyError, TypeError) as e:
+        raise LboError(f"checkpoint {path}: no usable meta.vehicle ({e})") from None
+    except LboError as e:
+        raise LboError(f"checkpoint {path}: its stored {e}") from None
+    try:
+        n = meta["noise"]
+        noise = Noise(n["process_sigma"], n["measurement_sigma"], n.get("name", "custom"))
+    except (KeyError, TypeError, ValueError) as e:
+        if isinstance(e, LboError):  # a bad value stored in the checkpoint: its fault
+            raise LboError(f"checkpoint {path}: its stored {e}") from None
+        raise LboError(f"checkpoint {path}: no usable meta.noise ({e})") from None
+    return vehicle, noise
+
+
+def stored_envelope(name: str, meta: dict[str, Any]) -> Envelope | None:
+    """The training envelope in a checkpoint's metadata, None for one written before lbo
+    stored it; one line naming the observer for a damaged one."""
+    stored = meta.get("envelope")
+    if stored is None:
+        return None
+    try:
+        return Envelope.from_dict(stored)
+    except LboError as e:
+        raise LboError(f"observer {name}: its stored {e}") from None

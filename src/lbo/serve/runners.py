@@ -1,0 +1,349 @@
+"""How an observer turns samples into estimates: one runner per path, each both streaming and
+over a whole log, with the same numbers either way.
+
+- :class:`ClassicalRunner`: a classical observer's stepper (:mod:`lbo.filters.stepper`), one
+  sample per call; its batch filter over a log.
+- :class:`WindowRunner`: a learned net over the last N samples (a CNN, an LSTM, the window
+  filter in its window form, a plug-in's model); the paper's EKF stands in for the first N-1
+  steps of a net that needs a full window.
+- :class:`RecursiveRunner`: the robust observer's window filter carried from step to step
+  (:mod:`lbo.models.recursive`).
+
+:class:`lbo.Observer` checks every sample and hands it to its runner, which keeps the runner's
+state between steps. Each runner has ``reset()``, ``take(k, m, u, fix)`` (one checked sample
+-> :class:`Estimate`) and ``run(m, u, fix, smooth, batch_size)`` (a checked log -> estimates
+(T, 3) and covariances (T, 3, 3)), and ``first_valid``: the first row whose estimate is the
+observer's own.
+"""
+
+from __future__ import annotations
+
+from typing import Any, NamedTuple
+
+import numpy as np
+
+from lbo.core.errors import LboError
+from lbo.filters import classical, measure
+from lbo.filters.classical import OBSERVERS as CLASSICAL
+from lbo.filters.gyro import GyroNoise
+from lbo.models.features import window_view
+from lbo.serve.engines import make_predictor, make_recursive_step
+from lbo.sim.columns import RECEIVER
+from lbo.sim.logcheck import check_receiver
+from lbo.sim.noise import Noise
+from lbo.sim.vehicle import Vehicle, wrap_angle
+
+FORMS = ("window", "recursive")
+"""How a window filter (``filternet``) runs: over the last N samples for every estimate, as it
+was trained, or recursively, its filter carried from step to step."""
+
+
+def has_recursive_form(net: Any) -> bool:
+    """Whether the net's model is the window filter, whose filter can carry from step to
+    step (:class:`lbo.models.recursive.RecursiveFilter`); any other model, a plug-in's that
+    reads metres and radians too, runs as a window."""
+    from lbo.models.filternet import WindowFilter
+
+    return isinstance(getattr(net, "net", None), WindowFilter)
+
+
+def default_form(net: Any) -> str:
+    """The form a learned observer runs in unless asked for another: ``recursive`` for the
+    robust observer's window filter, ``window`` for every other net.
+
+    The recursive form estimates as well as the window form (``docs/serving.md`` has the
+    measurement), at a constant cost per step and with a covariance. A window filter with a
+    learned process model (``residual``, a single-track body) or drift states (the car that
+    slips, ``experiment=dynamic``) stays in its window form: its noise model learned to
+    inflate R at high noise as the window's memory, which a filter carried from step to step
+    does not forget, so its heading would drift (``docs/dynamic.md``)."""
+    inner = getattr(net, "net", None)
+    if not has_recursive_form(net) or getattr(inner, "residual", 0) or \
+            getattr(inner, "drift", False) or getattr(inner, "single_track", False):
+        return "window"
+    return "recursive"
+
+
+def check_form(form: str | None, net: Any) -> str | None:
+    """The form an observer runs in (None for a classical one), or one line: ``recursive``
+    needs a window filter (``filternet``), whose filter can carry from step to step."""
+    if net is None:
+        if form not in (None, "window"):
+            raise LboError(f"form={form}: a classical observer is recursive already; "
+                           "leave form unset")
+        return None
+    filt = has_recursive_form(net)
+    if form is None:
+        return default_form(net)
+    if form not in FORMS:
+        raise LboError(f"form must be one of {list(FORMS)} or null, got {form!r}")
+    if form == "recursive" and not filt:
+        raise LboError(f"form=recursive: a {type(net.net).__name__} has no filter to carry "
+                       "from step to step; only the window filter (filternet) has a recursive "
+                       "form")
+    return form
+
+
+class _Pair(NamedTuple):
+    state: np.ndarray
+    valid: bool
+
+
+class Estimate(_Pair):
+    """One step's result: ``state`` (3,) ``[x, y, psi]`` (m, m, rad; psi in (-pi, pi]) and
+    ``valid``; unpacks as ``state, valid``. ``reason`` (not unpacked) says why an estimate is
+    not valid, None when it is:
+
+    - ``"no position fix yet"``: before the first fix (state NaN);
+    - ``"window not yet full (k of N steps): the EKF's estimate"``: a CNN's or LSTM's first
+      N-1 steps;
+    - ``"no fix in the last N steps (... s): ..."``: a learned observer trained with
+      ``fix_rates`` whose window holds no fix has nothing to anchor its estimate to (state
+      NaN); estimates resume with the next fix;
+    - ``"the network's estimate is not finite ..."``: a net with NaN or inf weights;
+    - ``"outside the training envelope: ..."``: with ``envelope_mode="mark"``, a sample beyond
+      what a learned observer was trained on (:mod:`lbo.models.envelope`).
+    """
+
+    reason: str | None = None
+    cov: np.ndarray
+    """(3, 3) covariance of ``state`` (m^2, m rad, rad^2): the filter's own P; NaN for an
+    observer that gives none (the CNN and the LSTM)."""
+    outside: tuple[str, ...] = ()
+    """The fields of the training envelope this sample lies outside (``("speed",)``), in
+    every envelope mode but ``"off"``; () inside, or without an envelope."""
+
+    def __new__(cls, state: np.ndarray, valid: bool, reason: str | None = None,
+                cov: np.ndarray | None = None, outside: tuple[str, ...] = ()) -> Estimate:
+        self = super().__new__(cls, state, valid)
+        self.reason = None if valid else (reason or "the estimate is not finite")
+        self.cov = np.full((3, 3), np.nan) if cov is None else cov
+        self.outside = outside
+        return self
+
+
+def no_heading(name: str) -> str:
+    """Why a learned observer refuses a position fix without a heading."""
+    return (f"a position fix without a heading (psi_m empty), but {name} takes full fixes "
+            f"only (x_m, y_m and psi_m); the classical observers ({', '.join(CLASSICAL)}) "
+            "take it")
+
+
+def no_fix(name: str) -> str:
+    """Why an observer trained with a fix at every step refuses a step without one."""
+    return (f"no fix, but {name} was trained with a fix at every step; use an observer trained "
+            "with fix_rates (experiment=robust) or a classical one")
+
+
+def from_first_fix(name: str, m: np.ndarray, u: np.ndarray, vehicle: Vehicle, noise: Noise,
+                   alpha: float, smooth: bool = False, gyro: GyroNoise | None = None
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """Classical observer ``name`` over one log (T, 3) or (T, 8) (a receiver's rows,
+    :mod:`lbo.filters.measure`), (T, 2), started at its first fix: (T, 3) estimates and
+    (T, 3, 3) covariances, NaN before that fix (``smooth``: the RTS smoother's; ``gyro``:
+    the gyro EKF's noise)."""
+    est, cov = classical.estimate(name, m[None], u[None], vehicle, noise, alpha,
+                                  return_cov=True, smooth=smooth, gyro=gyro)
+    return est[0], cov[0]
+
+
+class ClassicalRunner:
+    """Classical observer ``name`` (:mod:`lbo.filters.classical`): its batch filter's stepper
+    one sample per call, so stepping and running a log give the same numbers."""
+
+    first_valid = 0
+
+    def __init__(self, name: str, vehicle: Vehicle, noise: Noise, alpha: float,
+                 gyro: GyroNoise | None = None) -> None:
+        self.name, self.vehicle, self.noise, self.alpha = name, vehicle, noise, alpha
+        self.gyro = gyro
+        self.reset()
+
+    def reset(self) -> None:
+        self.flt: Any = None
+        self.u_prev: np.ndarray | None = None
+        self.gyro_last: float | None = None  # the gyro's last reading (observer gyro)
+
+    def rows(self, m: np.ndarray, u: np.ndarray, receiver: np.ndarray) -> np.ndarray:
+        """The filters' rows (T, 8) of measurements m (T, 3) and a receiver's channels (T, 7)
+        at inputs u (T, 2) (``[V, r_m]`` for ``gyro``): the turn rate the course's variance
+        allows for is the gyro's, or the bicycle's ``V tan(delta) / L``."""
+        if self.gyro is not None:
+            return self.gyro.rows(m, receiver, u)
+        turn = (u[:, 1] if self.name == classical.GYRO else
+                u[:, 0] * np.tan(u[:, 1]) / self.vehicle.wheelbase)
+        return measure.rows(m, receiver[:, :3], receiver[:, 3:5], receiver[:, 5], u[:, 0], turn)
+
+    def log_rows(self, m: np.ndarray, u: np.ndarray, receiver: np.ndarray | None,
+                 source: str | None) -> tuple[np.ndarray, np.ndarray]:
+        """A checked log's rows (T, 3), or (T, 8) with a receiver's channels (T, 7), and its
+        inputs (T, 2): for ``gyro``, ``[V, r_m]``, the gyro's yaw rate held from each reading
+        to the next (the first reading back to the log's start); one line where the log has
+        no gyro."""
+        if self.name == classical.GYRO:
+            rate = None if receiver is None else receiver[:, RECEIVER.index("r_m")]
+            if rate is None or not np.isfinite(rate).any():
+                raise LboError(f"{source + ': ' if source else ''}gyro needs a gyro's yaw "
+                               "rate: a column r_m (rad/s, counter-clockwise); use ekf or ukf "
+                               "for a log without one")
+            held = np.isfinite(rate)
+            last = np.maximum.accumulate(np.where(held, np.arange(len(rate)), -1))
+            u = np.column_stack([u[:, 0], rate[np.where(last < 0, np.argmax(held), last)]])
+        return (m if receiver is None else self.rows(m, u, receiver)), u
+
+    def sample(self, k: int, m: np.ndarray, u: np.ndarray, receiver: Any
+               ) -> tuple[np.ndarray, np.ndarray]:
+        """Sample ``k``'s row (8,) of its checked measurement m (3,) and its receiver channels
+        (7,) (None: none), checked as a log's row is; and its inputs (2,): for ``gyro``,
+        ``[V, r_m]`` with the last reading held. Nothing is kept unless the sample passes."""
+        r = np.full(len(RECEIVER), np.nan)
+        if receiver is not None:
+            try:
+                r = np.asarray(receiver, dtype=float).reshape(len(RECEIVER))
+            except (TypeError, ValueError):
+                raise LboError(f"step {k}: receiver must be {len(RECEIVER)} numbers "
+                               f"[{', '.join(RECEIVER)}] (NaN where not held), got "
+                               f"{receiver!r}") from None
+            check_receiver(m[None], r[None], f"step {k}")
+        if self.name == classical.GYRO:
+            rate = r[RECEIVER.index("r_m")]
+            gyro = float(rate) if np.isfinite(rate) else self.gyro_last
+            if gyro is None:
+                raise LboError(f"step {k}: gyro needs a gyro's yaw rate r_m at its first step "
+                               f"(receiver[{RECEIVER.index('r_m')}])")
+            self.gyro_last = gyro
+            u = np.array([u[0], gyro])
+        return self.rows(m[None], u[None], r[None])[0], u
+
+    def take(self, k: int, m: np.ndarray, u: np.ndarray, fix: bool) -> Estimate:
+        """The estimate after row m (3,) or (8,) (NaN: not held) and inputs u (2,); NaN until
+        the first position fix (one without a heading starts the filter too)."""
+        if self.flt is None:
+            state = np.full(3, np.nan)
+            if np.isfinite(m[:2]).all():
+                self.flt = classical.stepper(self.name, m[None], self.vehicle, self.noise,
+                                             self.alpha, gyro=self.gyro)
+                state = self.flt.x[0, :3].copy()
+        else:
+            state = self.flt.update(m[None], np.asarray(self.u_prev, float)[None])[0].copy()
+        self.u_prev = u
+        state[2] = wrap_angle(state[2])
+        cov = None if self.flt is None else self.flt.P[0, :3, :3].copy()
+        return Estimate(state, bool(np.isfinite(state).all()), "no position fix yet", cov)
+
+    def run(self, m: np.ndarray, u: np.ndarray, fix: np.ndarray, smooth: bool = False,
+            batch_size: int = 0) -> tuple[np.ndarray, np.ndarray]:
+        return from_first_fix(self.name, m, u, self.vehicle, self.noise, self.alpha, smooth,
+                              self.gyro)
+
+
+class WindowRunner:
+    """A learned net over the last N samples (:class:`~lbo.models.net.WindowNet`), on
+    ``engine``. Until its window is full, the paper's EKF (the vehicle's and noise's, R at
+    alpha = 1) gives the estimate, flagged not valid; a window filter that starts at its first
+    fix (``pads``) reads the steps before the log as steps with no fix and no motion, and
+    estimates from the first fix on."""
+
+    def __init__(self, name: str, net: Any, vehicle: Vehicle, noise: Noise, engine: str,
+                 device: str) -> None:
+        self.name, self.window, self.dt = name, int(net.window), vehicle.dt
+        self.vehicle, self.noise = vehicle, noise
+        self.predict = make_predictor(net, engine, device)
+        self.fallback = ClassicalRunner("ekf", vehicle, noise, 1.0)
+        self.pads = bool(getattr(net, "fixes", False) and getattr(net, "physical", False))
+        self.first_valid = 0 if self.pads else self.window - 1
+        # Ring buffer written twice (rows i and i+N): the last N samples are always the
+        # contiguous rows i+1 .. i+N, so a window is a view, never a copy or a roll.
+        self.ring = np.zeros((2 * self.window, 5))
+        self.reset()
+
+    def reset(self) -> None:
+        self.fallback.reset()
+        self.last_fix: int | None = None
+        self.ring[:] = 0.0
+        if self.pads:
+            self.ring[:, :3] = np.nan
+
+    def take(self, k: int, m: np.ndarray, u: np.ndarray, fix: bool) -> Estimate:
+        n = self.window
+        i = k % n
+        self.ring[i, :3] = self.ring[i + n, :3] = m
+        self.ring[i, 3:] = self.ring[i + n, 3:] = u
+        if fix:
+            self.last_fix = k
+        if k + 1 >= n or self.pads:
+            if self.last_fix is None:
+                return Estimate(np.full(3, np.nan), False, "no position fix yet")
+            if k - self.last_fix >= n:
+                return Estimate(np.full(3, np.nan), False,
+                                f"no fix in the last {n} steps ({n * self.dt:g} s): {self.name} "
+                                f"needs a fix in every window of {n} steps")
+            state = self.predict(self.ring[None, i + 1:i + 1 + n])[0]
+            state[2] = wrap_angle(state[2])
+            return Estimate(state, bool(np.isfinite(state).all()),
+                            "the network's estimate is not finite (NaN or inf weights?)")
+        state = self.fallback.take(k, m, u, fix).state
+        finite = bool(np.isfinite(state).all())
+        return Estimate(state, False, f"window not yet full ({k + 1} of {n} steps): the "
+                                      "EKF's estimate" if finite else "no position fix yet")
+
+    def run(self, m: np.ndarray, u: np.ndarray, fix: np.ndarray, smooth: bool = False,
+            batch_size: int = 4096) -> tuple[np.ndarray, np.ndarray]:
+        n, t = self.window, len(m)
+        est = np.full((t, 3), np.nan)
+        head = 0 if self.pads else min(n - 1, t)
+        if head:
+            est[:head] = from_first_fix("ekf", m[:head], u[:head], self.vehicle, self.noise,
+                                        1.0)[0]
+        series = np.concatenate([m, u], axis=1)
+        if self.pads:  # no fix and no motion before the log
+            pad = np.zeros((n - 1, 5))
+            pad[:, :3] = np.nan
+            series = np.concatenate([pad, series])
+        if len(series) >= n:
+            windows = window_view(np.ascontiguousarray(series), n)  # a view
+            for s in range(0, len(windows), batch_size):
+                chunk = np.ascontiguousarray(windows[s:s + batch_size])
+                est[head + s:head + s + len(chunk)] = self.predict(chunk)
+        return est, np.full((t, 3, 3), np.nan)
+
+
+class RecursiveRunner:
+    """The window filter of ``net`` carried from step to step on ``engine``
+    (:func:`lbo.serve.engines.make_recursive_step`): one filter step per sample, with its
+    covariance; over a log, the same steps (or, with ``smooth``, the RTS smoother's estimates
+    in PyTorch)."""
+
+    first_valid = 0
+
+    def __init__(self, net: Any, engine: str, device: str) -> None:
+        self.net, self.device = net, device
+        self.step, self.state0 = make_recursive_step(net, engine, device)
+        self.reset()
+
+    def reset(self) -> None:
+        self.state = [x.copy() for x in self.state0]
+
+    def take(self, k: int, m: np.ndarray, u: np.ndarray, fix: bool) -> Estimate:
+        pose, cov, self.state = self.step(m[None], u[None], self.state)
+        state, cov = pose[0], cov[0]
+        state[2] = wrap_angle(state[2])
+        valid = bool(np.isfinite(state).all())
+        return Estimate(state, valid, "no position fix yet", cov if valid else None)
+
+    def run(self, m: np.ndarray, u: np.ndarray, fix: np.ndarray, smooth: bool = False,
+            batch_size: int = 0) -> tuple[np.ndarray, np.ndarray]:
+        mm = np.where(fix[:, None], m, np.nan)
+        if smooth:
+            from lbo.models.recursive import run_arrays
+
+            est, covs = run_arrays(self.net.net, mm[None], u[None], smooth=True,
+                                   device=self.device)
+            return est[0], covs[0]
+        t = len(m)
+        est, covs = np.full((t, 3), np.nan), np.full((t, 3, 3), np.nan)
+        state = [x.copy() for x in self.state0]  # through the engine's step, as take() runs
+        for k in range(t):
+            pose, c, state = self.step(mm[k:k + 1], u[k:k + 1], state)
+            est[k], covs[k] = pose[0], c[0]
+        return est, covs
