@@ -155,3 +155,13 @@ def test_the_readmes_layout_names_every_layer_in_order_and_every_command():
     listed = set(re.findall(r"`(\w+)`", section.split("On top sit the commands", 1)[1]))
     assert {c.removeprefix("lbo.").removesuffix(".__main__") for c in commands()} == \
         listed - {"python"}
+
+
+MODULE_LINES = 450
+"""The most lines a module of src/lbo holds: a module over it holds more than one idea."""
+
+
+def test_no_module_is_over_the_line_limit():
+    long = {str(f.relative_to(SRC)): n for f in SRC.rglob("*.py")
+            if (n := len(f.read_text().splitlines())) > MODULE_LINES}
+    assert not long, f"modules over {MODULE_LINES} lines: {long}"

@@ -25,8 +25,9 @@ import pytest
 from helpers import compose_cfg
 from lbo.core.errors import LboError
 from lbo.observe import observe as observe_cfg
-from lbo.sim.logcheck import check_conventions, check_samples
+from lbo.sim.logcheck import check_samples
 from lbo.sim.logformat import LogFormat, Origin
+from lbo.sim.units import check_conventions
 from lbo.sim.vehicle import simulate, wrap_angle
 
 DT = 0.02

@@ -14,8 +14,8 @@ import pytest
 from helpers import compose_cfg
 from lbo.core.errors import LboError
 from lbo.observe import observe as observe_cfg
-from lbo.sim.logcheck import check_conventions
 from lbo.sim.logformat import LogFormat, Origin, to_local
+from lbo.sim.units import check_conventions
 
 COLUMNS = ["t", "x_m", "y_m", "psi_m", "V", "delta", "x", "y", "psi"]
 ORIGIN = Origin(48.7758, 2.2886)  # near Paris

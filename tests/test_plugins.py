@@ -178,7 +178,7 @@ def test_a_checkpoint_never_imports_a_module_it_names(planted, tmp_path, name):
 
 
 def test_tunes_training_line_keeps_the_studys_search_path(tmp_path):
-    from lbo.tune import train_command
+    from lbo.tracking.handoff import train_command
 
     line = train_command(EXAMPLE, tmp_path / "tuned" / "my_gru.yaml",
                          ["pkg://lbo_plugin_example.conf"])

@@ -16,15 +16,10 @@ from omegaconf import open_dict
 from helpers import compose_cfg
 from lbo.core.errors import LboError
 from lbo.core.paths import CONF_DIR
+from lbo.tracking.search import TrialSeededTPESampler
 from lbo.tracking.study_mlflow import StudyRun, literal
 from lbo.train import check
-from lbo.tune import (
-    TrialSeededTPESampler,
-    open_storage,
-    search_space,
-    trial_config,
-    tune,
-)
+from lbo.tune import open_storage, search_space, trial_config, tune
 
 optuna.logging.set_verbosity(optuna.logging.WARNING)
 
@@ -504,7 +499,7 @@ def test_the_training_line_of_a_hand_off_composes_its_tuned_values(search, where
 
     from omegaconf import OmegaConf
 
-    from lbo.tune import write_handoff
+    from lbo.tracking.handoff import write_handoff
 
     folder = CONF_DIR / "tuned" if where == "conf" else tmp_path / "tuned"
     made = not folder.exists()

@@ -57,13 +57,7 @@ from lbo.core.errors import LboError
 from lbo.models.envelope import check_mode
 from lbo.scoring.metrics import PAPER_REFERENCE, nrmse, rmse
 from lbo.sim.columns import COVARIANCE, LOG, RECEIVER, STATE
-from lbo.sim.logcheck import (
-    MAX_GAP,
-    check_alpha,
-    check_device,
-    check_max_gap,
-    check_time_unit,
-)
+from lbo.sim.logcheck import check_alpha, check_device
 from lbo.sim.logformat import LogFormat
 from lbo.sim.logio import (
     check_log,
@@ -76,6 +70,7 @@ from lbo.sim.logio import (
     resample,
     write_table,
 )
+from lbo.sim.units import MAX_GAP, check_max_gap, check_time_unit
 
 __all__ = ["main", "observe"]
 

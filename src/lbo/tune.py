@@ -19,7 +19,8 @@ refused before any trial.
 
 ``tune(cfg)`` is plain Python: it takes a composed ``tune`` config and returns the study's
 outcome. ``main`` is the thin Hydra shell around it. The parts live beside it: the search
-space in :mod:`lbo.tracking.search`, the database and the claim lock in
+space, the sampler and the pruner in :mod:`lbo.tracking.search`, the hand-off in
+:mod:`lbo.tracking.handoff`, the database and the claim lock in
 :mod:`lbo.tracking.study_storage`, the MLflow runs and figures in :mod:`lbo.tracking.study_mlflow`.
 """
 
@@ -27,30 +28,38 @@ from __future__ import annotations
 
 import contextlib
 import copy
-import json
 import logging
 import re
 import signal
 import sys
 import threading
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import optuna
-from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf, open_dict
 from optuna.trial import FrozenTrial, TrialState
 
-from lbo.core.atomic import write_text
 from lbo.core.checks import integer, number, require
 from lbo.core.cli import entry
 from lbo.core.errors import LboError, TrainingDiverged
-from lbo.core.paths import CONF_DIR
-from lbo.core.redact import scrub
-from lbo.tracking.search import Param, check_resumed, search_space
+from lbo.tracking.handoff import (
+    best_trials,
+    hydra_searchpath,
+    outside_note,
+    train_command,
+    write_handoff,
+)
+from lbo.tracking.search import (
+    Param,
+    TrialSeededTPESampler,
+    check_resumed,
+    make_pruner,
+    search_space,
+    short_value,
+)
 from lbo.tracking.study_mlflow import RUN_ATTR, StudyRun
 from lbo.tracking.study_storage import (
     FINISHED,
@@ -89,61 +98,8 @@ def check_tune(cfg: DictConfig) -> list[Param]:
 # --- Optuna ---------------------------------------------------------------------------------
 
 
-class TrialSeededTPESampler(optuna.samplers.BaseSampler):
-    """TPE whose random draws for trial n depend only on (seed, n).
-
-    A plain seeded sampler restarts its random stream in every process: a resumed study would
-    repeat its first proposals, and workers sharing a study would propose the same ones. Seeding
-    per trial keeps a study repeatable and lets any number of processes share it. Each trial
-    gets a fresh :class:`optuna.samplers.TPESampler` seeded with (seed, n), through Optuna's
-    public sampler interface: TPE keeps no state between trials but its random stream, and
-    reads the history from the study.
-    """
-
-    def __init__(self, *, seed: int, **kwargs: Any) -> None:
-        self.seed, self.tpe_kwargs = seed, kwargs
-        self.tpe = self.for_trial(0)
-
-    def for_trial(self, number: int) -> optuna.samplers.TPESampler:
-        seed = int(np.random.SeedSequence([self.seed, number]).generate_state(1)[0])
-        return optuna.samplers.TPESampler(seed=seed, **self.tpe_kwargs)
-
-    def reseed_rng(self) -> None:  # the per-trial seeds already differ
-        return None
-
-    def before_trial(self, study: optuna.Study, trial: FrozenTrial) -> None:
-        self.tpe = self.for_trial(trial.number)
-        self.tpe.before_trial(study, trial)
-
-    def infer_relative_search_space(self, study, trial):
-        return self.tpe.infer_relative_search_space(study, trial)
-
-    def sample_relative(self, study, trial, search_space):
-        return self.tpe.sample_relative(study, trial, search_space)
-
-    def sample_independent(self, study, trial, param_name, param_distribution):
-        return self.tpe.sample_independent(study, trial, param_name, param_distribution)
-
-    def after_trial(self, study, trial, state, values) -> None:
-        self.tpe.after_trial(study, trial, state, values)
-
-
-def make_pruner(node: DictConfig) -> optuna.pruners.BasePruner:
-    """``tune.pruner`` (a ``_target_`` config, MedianPruner by default) as a pruner."""
-    try:
-        pruner = instantiate(node)
-    except Exception as e:
-        cause = e.__cause__ or e
-        reason = " ".join(str(cause).split())[:300]
-        raise LboError(f"tune.pruner: cannot build {node.get('_target_')!r} "
-                       f"({type(cause).__name__}: {reason})") from e
-    if not isinstance(pruner, optuna.pruners.BasePruner):
-        raise LboError(f"tune.pruner must build an optuna pruner, got {type(pruner).__name__}")
-    return pruner
-
-
 def _describe(trial: FrozenTrial, space: list[Param]) -> str:
-    params = " ".join(f"{p.key}={_short(p.decode(trial.params[p.key]))}" for p in space
+    params = " ".join(f"{p.key}={short_value(p.decode(trial.params[p.key]))}" for p in space
                       if p.key in trial.params)
     seconds = trial.duration.total_seconds() if trial.duration else float("nan")
     if trial.state == TrialState.COMPLETE:
@@ -154,12 +110,6 @@ def _describe(trial: FrozenTrial, space: list[Param]) -> str:
     else:
         outcome = trial.state.name.lower()
     return f"trial {trial.number:3d}  {outcome:<26s} {seconds:7.1f} s  {params}"
-
-
-def _short(value: Any) -> str:
-    if isinstance(value, float):
-        return f"{value:.4g}"
-    return json.dumps(value, separators=(",", ":")) if isinstance(value, list) else str(value)
 
 
 # --- trials ---------------------------------------------------------------------------------
@@ -361,7 +311,7 @@ def _run_study(cfg: DictConfig, space: list[Param], pruner: optuna.pruners.BaseP
                 claim.release()
         best, better = best_trials(study, space)
         if best is not None and better is not None:
-            print(_outside_note(better, best, space), flush=True)
+            print(outside_note(better, best, space), flush=True)
         if best is not None:
             handoff = write_handoff(cfg, study, space, shown, best)
         status = "FINISHED"
@@ -398,15 +348,15 @@ def _run_study(cfg: DictConfig, space: list[Param], pruner: optuna.pruners.BaseP
             _, outside = best_trials(study, space)
             raise LboError(f"study {t.study_name}: none of its {counts[TrialState.COMPLETE]} "
                            f"completed trials lies in the current search space (trial "
-                           f"{outside.number}: {_outside(outside, space)}), so no hand-off "
+                           f"{outside.number}: {outside(outside, space)}), so no hand-off "
                            f"was written; rerun with a larger tune.n_trials")
         raise LboError(f"study {t.study_name}: no trial has completed "
                        f"({counts[TrialState.PRUNED]} pruned, {counts[TrialState.FAIL]} failed),"
                        f" so no hand-off was written; rerun with a larger tune.n_trials")
-    command = train_command(cfg.model.name, handoff, _searchpath())
+    command = train_command(cfg.model.name, handoff, hydra_searchpath())
     params = {p.key: p.decode(best.params[p.key]) for p in space if p.key in best.params}
     print(f"best: trial {best.number}, val_loss {best.value:.6g}: "
-          + " ".join(f"{k}={_short(v)}" for k, v in params.items()))
+          + " ".join(f"{k}={short_value(v)}" for k, v in params.items()))
     print(f"train with: {command}")
     print(f"tuned: {handoff}", flush=True)
     return {"study_name": t.study_name, "storage": shown, "best_value": best.value,
@@ -427,75 +377,6 @@ def _no_interrupts() -> Iterator[None]:
         yield
     finally:
         signal.signal(signal.SIGINT, before)
-
-
-def best_trials(study: optuna.Study,
-                space: list[Param]) -> tuple[FrozenTrial | None, FrozenTrial | None]:
-    """``(best, better)``: the best completed trial whose settings lie in the search space, and
-    a better completed trial outside it (a range narrowed since it ran), or None."""
-    done = sorted(study.get_trials(deepcopy=False, states=(TrialState.COMPLETE,)),
-                  key=lambda tr: (tr.value, tr.number))
-    inside = [tr for tr in done if not _outside(tr, space)]
-    best = inside[0] if inside else None
-    better = done[0] if done and (best is None or done[0].value < best.value) else None
-    return best, better
-
-
-def _outside(trial: FrozenTrial, space: list[Param]) -> str:
-    """The trial's settings that the search space no longer holds, e.g.
-    ``optimizer.lr=0.005 not in [0.0001, 0.003]``; empty when it holds them all."""
-    return ", ".join(f"{p.key}={_short(p.decode(trial.params[p.key]))} not in {p.bounds}"
-                     for p in space if p.key in trial.params
-                     and not p.contains(trial.params[p.key]))
-
-
-def _outside_note(better: FrozenTrial, best: FrozenTrial, space: list[Param]) -> str:
-    return (f"note: trial {better.number} (val_loss {better.value:.6g}) is better than trial "
-            f"{best.number} (val_loss {best.value:.6g}) but lies outside the current search "
-            f"space ({_outside(better, space)}); the hand-off takes trial {best.number}, the "
-            f"best inside it")
-
-
-def write_handoff(cfg: DictConfig, study: optuna.Study, space: list[Param],
-                  storage: str, best: FrozenTrial | None = None) -> Path:
-    """Write the best trial's settings (``best``, or the study's best) as a
-    ``# @package _global_`` config (atomically)."""
-    best = best if best is not None else study.best_trial
-    values = OmegaConf.create({})
-    for p in space:
-        if p.key in best.params:
-            OmegaConf.update(values, p.key, p.decode(best.params[p.key]), merge=True)
-    path = Path(cfg.tune.handoff)
-    header = (
-        "# @package _global_\n"
-        f"# Written by `python -m lbo.tune`: the best of study {study.study_name!r} in "
-        f"{scrub(storage)}\n"
-        f"# (model {cfg.model.name}, window {cfg.window}, data {cfg.data.name}; trial "
-        f"{best.number}, val_loss {best.value:.6g}).\n"
-        f"# Use: {train_command(cfg.model.name, path, _searchpath())}\n")
-    return write_text(path, header + OmegaConf.to_yaml(values))
-
-
-def train_command(model: str, handoff: Path, searchpath: Sequence[str] = ()) -> str:
-    """The training line that composes ``handoff``: ``+<folder>=<name>``, with a search path
-    when the folder is not under conf/. ``searchpath``: the study's own search path (e.g. a
-    plug-in's configs), kept in front."""
-    handoff = Path(handoff).resolve()
-    command = (f"python -m lbo.train -m model={model} +{handoff.parent.name}={handoff.stem} "
-               f"window=20,40,60,80")
-    paths = list(searchpath)
-    if handoff.parent.parent != CONF_DIR.resolve():
-        paths.append(f"file://{handoff.parent.parent}")
-    if paths:
-        command += f" 'hydra.searchpath=[{','.join(paths)}]'"
-    return command
-
-
-def _searchpath() -> list[str]:
-    """The running command's ``hydra.searchpath`` (empty outside a Hydra run)."""
-    from hydra.core.hydra_config import HydraConfig
-
-    return list(HydraConfig.get().searchpath) if HydraConfig.initialized() else []
 
 
 _QUIET = {"lightning": False}

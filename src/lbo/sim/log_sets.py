@@ -34,9 +34,9 @@ from lbo.core.checks import integer, require
 from lbo.core.errors import LboError
 from lbo.sim import schema
 from lbo.sim.columns import INPUT, LOG, MEAS, STATE
-from lbo.sim.logcheck import check_max_gap, check_time_unit
 from lbo.sim.logformat import LogFormat
 from lbo.sim.noise import Noise
+from lbo.sim.units import check_max_gap, check_time_unit
 from lbo.sim.vehicle import Vehicle, wrap_angle
 
 KIND = "logs"

@@ -15,16 +15,10 @@ import pandas as pd
 from lbo.core.atomic import atomic_path
 from lbo.core.errors import LboError
 from lbo.sim.columns import LOG, MEAS, RECEIVER, STATE
-from lbo.sim.logcheck import (
-    MAX_GAP,
-    check_conventions,
-    check_gaps,
-    check_receiver,
-    check_samples,
-    check_time,
-)
+from lbo.sim.logcheck import check_receiver, check_samples
 from lbo.sim.logcheck import check_steering as check_delta
 from lbo.sim.schema import check_outside_data_sets, check_values, write_set
+from lbo.sim.units import MAX_GAP, check_conventions, check_gaps, check_time
 from lbo.sim.vehicle import wrap_angle
 
 FORMATS = (".csv", ".parquet")
@@ -107,10 +101,10 @@ def check_log(df: pd.DataFrame, source: str = "input", heading: str = "enu",
     NaN or inf other than a missing fix or heading, a heading without a position, x_m without
     y_m, no fix at all, a heading that
     looks like degrees, positions and speeds beyond any vehicle's), and a speed or heading
-    that contradicts the fixes (:func:`lbo.sim.logcheck.check_conventions`: km/h, a compass
+    that contradicts the fixes (:func:`lbo.sim.units.check_conventions`: km/h, a compass
     bearing; ``heading`` is the convention it was read in). The steering limit, the
     unit of ``t`` and the sampling period need the observer: :func:`check_steering`,
-    :func:`lbo.sim.logcheck.check_time_unit`, :func:`check_period`.
+    :func:`lbo.sim.units.check_time_unit`, :func:`check_period`.
     """
     if len(df) == 0:
         raise LboError(f"{source}: empty file (no rows)")
@@ -191,7 +185,7 @@ def resample(df: pd.DataFrame, dt: float, columns: tuple[str, ...],
     Raises
     ------
     LboError
-        Two rows more than ``max_gap`` seconds apart (:func:`lbo.sim.logcheck.check_gaps`): the
+        Two rows more than ``max_gap`` seconds apart (:func:`lbo.sim.units.check_gaps`): the
         inputs cannot be interpolated across a gap (None: not checked); a gap of at most
         ``dt`` never is.
     """

@@ -1,4 +1,5 @@
-"""The search space of ``lbo.tune``: training config keys and their Optuna distributions."""
+"""How ``lbo.tune`` searches: the search space (training config keys and their Optuna
+distributions), the sampler that proposes settings in it, and the pruner that stops trials."""
 
 from __future__ import annotations
 
@@ -6,8 +7,11 @@ import json
 from dataclasses import dataclass
 from typing import Any
 
+import numpy as np
 import optuna
+from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
+from optuna.trial import FrozenTrial
 
 from lbo.core.checks import integer, number, require
 from lbo.core.errors import LboError
@@ -219,3 +223,61 @@ def _check_key(cfg: DictConfig, key: str, field: str) -> None:
         raise LboError(f"{field}: {key!r} is a group of settings; search its values one by one")
 
 
+def short_value(value: Any) -> str:
+    """A setting as the study's messages show it: floats to 4 digits, lists as JSON."""
+    if isinstance(value, float):
+        return f"{value:.4g}"
+    return json.dumps(value, separators=(",", ":")) if isinstance(value, list) else str(value)
+
+
+class TrialSeededTPESampler(optuna.samplers.BaseSampler):
+    """TPE whose random draws for trial n depend only on (seed, n).
+
+    A plain seeded sampler restarts its random stream in every process: a resumed study would
+    repeat its first proposals, and workers sharing a study would propose the same ones. Seeding
+    per trial keeps a study repeatable and lets any number of processes share it. Each trial
+    gets a fresh :class:`optuna.samplers.TPESampler` seeded with (seed, n), through Optuna's
+    public sampler interface: TPE keeps no state between trials but its random stream, and
+    reads the history from the study.
+    """
+
+    def __init__(self, *, seed: int, **kwargs: Any) -> None:
+        self.seed, self.tpe_kwargs = seed, kwargs
+        self.tpe = self.for_trial(0)
+
+    def for_trial(self, number: int) -> optuna.samplers.TPESampler:
+        seed = int(np.random.SeedSequence([self.seed, number]).generate_state(1)[0])
+        return optuna.samplers.TPESampler(seed=seed, **self.tpe_kwargs)
+
+    def reseed_rng(self) -> None:  # the per-trial seeds already differ
+        return None
+
+    def before_trial(self, study: optuna.Study, trial: FrozenTrial) -> None:
+        self.tpe = self.for_trial(trial.number)
+        self.tpe.before_trial(study, trial)
+
+    def infer_relative_search_space(self, study, trial):
+        return self.tpe.infer_relative_search_space(study, trial)
+
+    def sample_relative(self, study, trial, search_space):
+        return self.tpe.sample_relative(study, trial, search_space)
+
+    def sample_independent(self, study, trial, param_name, param_distribution):
+        return self.tpe.sample_independent(study, trial, param_name, param_distribution)
+
+    def after_trial(self, study, trial, state, values) -> None:
+        self.tpe.after_trial(study, trial, state, values)
+
+
+def make_pruner(node: DictConfig) -> optuna.pruners.BasePruner:
+    """``tune.pruner`` (a ``_target_`` config, MedianPruner by default) as a pruner."""
+    try:
+        pruner = instantiate(node)
+    except Exception as e:
+        cause = e.__cause__ or e
+        reason = " ".join(str(cause).split())[:300]
+        raise LboError(f"tune.pruner: cannot build {node.get('_target_')!r} "
+                       f"({type(cause).__name__}: {reason})") from e
+    if not isinstance(pruner, optuna.pruners.BasePruner):
+        raise LboError(f"tune.pruner must build an optuna pruner, got {type(pruner).__name__}")
+    return pruner
