@@ -7,8 +7,7 @@ import pytest
 from conftest import compose_cfg
 from omegaconf import open_dict
 
-from lbo.learn.resume import finished_run
-from lbo.train import _unlayered, config_hash
+from lbo.learn.resume import _unlayered, config_hash, finished_run
 
 PRE_MOVE = {
     (): "e018b36dfba2bd07",

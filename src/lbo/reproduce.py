@@ -206,8 +206,7 @@ def train_jobs(cfg: DictConfig, out: Path) -> list[Job]:
 def expected(cfg: DictConfig, jobs: list[Job]) -> Eta:
     """Measure a few steps of every run still to train; print the stage's expected time."""
     from lbo.learn.builders import data_device
-    from lbo.learn.resume import finished_run
-    from lbo.train import config_hash
+    from lbo.learn.resume import config_hash, finished_run
 
     estimates = []
     for job in jobs:

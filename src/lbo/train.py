@@ -18,7 +18,6 @@ import torch
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf, open_dict
 
-from lbo import LAYERS
 from lbo.core.atomic import write_text
 from lbo.core.checks import SCHEDULES, integer, number, require
 from lbo.core.cli import entry
@@ -40,6 +39,7 @@ from lbo.learn.resume import (
     LAST,
     check_folder,
     clear_stale_checkpoints,
+    config_hash,
     folder_refusal,
     prior_runs,
     write_marker,
@@ -120,46 +120,6 @@ def check_optimizer(opt: DictConfig) -> None:
         number(opt.weight_decay, "optimizer.weight_decay", low=0.0)
     if opt.get("eps") is not None:
         number(opt.eps, "optimizer.eps", low=0.0, low_open=True)
-
-
-LATER_DEFAULTS = {"normalisation": "standard"}
-"""Settings added after runs were stored, with the value those runs had: a config holding
-that value hashes as if it did not have the key, so resume=true still finds the old runs."""
-
-
-def config_hash(cfg: DictConfig) -> str:
-    """Fingerprint of what a run computes: the resolved config without where it writes."""
-    import hashlib
-
-    c = cfg.copy()
-    with open_dict(c):
-        c.output_dir, c.data.root, c.resume, c.data_dir = "-", "-", False, None
-        c.pop("logger", None)
-        for key, default in LATER_DEFAULTS.items():
-            if c.get(key) == default:
-                c.pop(key)
-    text = OmegaConf.to_yaml(OmegaConf.create(_unlayered(OmegaConf.to_container(c, resolve=True))))
-    if is_logs(cfg):  # the same paths with other contents are other data
-        text += f"\nlogs: {logs_spec(cfg).digest}"
-    return hashlib.sha256(text.encode()).hexdigest()[:16]
-
-
-def _unlayered(node: Any) -> Any:
-    """``node`` with every lbo ``_target_`` written without its layer (``lbo.learn.callbacks.X``
-    -> ``lbo.callbacks.X``), as it was before lbo's modules moved into layers: a run's hash
-    does not depend on which layer a class lives in, and the runs of a store made before the
-    move are still found by ``resume=true``."""
-    if isinstance(node, dict):
-        out = {k: _unlayered(v) for k, v in node.items()}
-        target = out.get("_target_")
-        if isinstance(target, str) and target.startswith("lbo."):
-            parts = target.split(".")
-            if len(parts) > 3 and parts[1] in LAYERS:
-                out["_target_"] = ".".join([parts[0], *parts[2:]])
-        return out
-    if isinstance(node, list):
-        return [_unlayered(v) for v in node]
-    return node
 
 
 def meta(cfg: DictConfig, data_hash: str) -> dict[str, Any]:

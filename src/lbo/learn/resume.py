@@ -1,5 +1,8 @@
 """What ``resume=true`` may trust, and which folders a training may write into.
 
+A run is known by the hash of what it computes (:func:`config_hash`): the same config, on the
+same data, finds the same run.
+
 A tracking store without authentication (an MLflow server, a shared database) lets anyone
 add a run with a given config hash, naming any ``output_dir``. So a run's own folder, not the
 store, says which run it holds: a training writes :data:`MARKER` there when it creates its
@@ -11,18 +14,61 @@ this user. A new run never starts in a folder that holds another run's (or anyon
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import stat
 from pathlib import Path
 from typing import Any
 
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf, open_dict
 
+from lbo import LAYERS
 from lbo.core.atomic import write_text
 from lbo.core.errors import LboError
 from lbo.core.paths import sqlite_path
 from lbo.core.runfolder import LOCK_NAME
+from lbo.sim.log_sets import is_logs
+
+LATER_DEFAULTS = {"normalisation": "standard"}
+"""Settings added after runs were stored, with the value those runs had: a config holding
+that value hashes as if it did not have the key, so resume=true still finds the old runs."""
+
+
+def config_hash(cfg: DictConfig) -> str:
+    """Fingerprint of what a run computes: the resolved config without where it writes."""
+    c = cfg.copy()
+    with open_dict(c):
+        c.output_dir, c.data.root, c.resume, c.data_dir = "-", "-", False, None
+        c.pop("logger", None)
+        for key, default in LATER_DEFAULTS.items():
+            if c.get(key) == default:
+                c.pop(key)
+    text = OmegaConf.to_yaml(OmegaConf.create(_unlayered(OmegaConf.to_container(c, resolve=True))))
+    if is_logs(cfg):  # the same paths with other contents are other data
+        from lbo.learn.builders import logs_spec
+
+        text += f"\nlogs: {logs_spec(cfg).digest}"
+    return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+def _unlayered(node: Any) -> Any:
+    """``node`` with every lbo ``_target_`` written without its layer (``lbo.learn.callbacks.X``
+    -> ``lbo.callbacks.X``), as it was before lbo's modules moved into layers: a run's hash
+    does not depend on which layer a class lives in, and the runs of a store made before the
+    move are still found by ``resume=true``."""
+    if isinstance(node, dict):
+        out = {k: _unlayered(v) for k, v in node.items()}
+        target = out.get("_target_")
+        if isinstance(target, str) and target.startswith("lbo."):
+            parts = target.split(".")
+            if len(parts) > 3 and parts[1] in LAYERS:
+                out["_target_"] = ".".join([parts[0], *parts[2:]])
+        return out
+    if isinstance(node, list):
+        return [_unlayered(v) for v in node]
+    return node
+
 
 LAST = "last.ckpt"
 """The checkpoint written at the end of every epoch (``save_last``), from which ``resume=true``
