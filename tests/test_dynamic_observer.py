@@ -65,7 +65,8 @@ def test_report_section_where_learning_beats_the_model(dynamic, tmp_path):
     box["nrmse"] *= 1.5  # a black-box peer's rows beside it
     table = pd.concat([table, box], ignore_index=True)
     classical = table[table["observer"].isin(["ekf", "oracle"])].copy()
-    files = report.write(tmp_path, "smoke", classical, {}, {}, dynamic={"dynamic_drift": table})
+    files = report.write(tmp_path, "smoke", classical, {}, {},
+                         sections=[report.Dynamic("dynamic_drift", table)])
     text = (tmp_path / "report.md").read_text()
     assert "## Where learning beats the model: `data=dynamic_drift`" in text
     assert "times the dynamic oracle's" in text and "![dynamic_drift](nrmse_dynamic_drift.png)" \

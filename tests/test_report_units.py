@@ -266,3 +266,31 @@ def test_protocols_section_sets_the_literal_run_beside_ours_and_the_paper():
             in md)
     assert md.count("| LSTM |") == 1  # neither protocol trained an LSTM here: the paper's row
     assert "literal: literal-cnn-N60 2.00; ours: cnn-N40 2.50." in md
+
+
+# the report's sections ---------------------------------------------------------------------
+
+def test_the_report_writes_each_section_in_the_order_given_with_its_files(tmp_path):
+    from lbo.scoring import report
+
+    ours = table({"ekf": EKF, "oracle": [0.0, 0.3, 0.5, 0.7, 0.9, 1.1, 1.3],
+                  "adaptive": [0.1, 0.35, 0.6, 0.8, 1.0, 1.2, 1.4],
+                  "cnn-N20": [0.5, 0.6, 0.8, 1.0, 1.3, 1.6, 2.0],
+                  "lstm-N20": [0.6, 0.7, 0.9, 1.1, 1.4, 1.7, 2.1],
+                  "filternet-N40": [0.05, 0.31, 0.52, 0.72, 0.93, 1.12, 1.33]})
+    literal = table({"literal-cnn-N60": [0.5, 0.5, 0.6, 0.7, 0.8, 0.9, 1.0]})
+    sections = [report.Robust("filternet-N40"), report.Protocols(literal)]
+    files = report.write(tmp_path, "smoke", ours, {}, {}, sections=sections)
+    text = (tmp_path / "report.md").read_text()
+    robust = text.index("## Beyond the paper: one observer for every noise level")
+    protocols = text.index("## The paper's protocol beside ours")
+    assert robust < protocols < text.index("## Runs")  # in the order given, before the runs
+    assert "trajectory_alpha3.png, nrmse_robust.png, nrmse_protocols.png." in text
+    for name in ("nrmse_robust.png", "nrmse_protocols.png", "literal.csv"):
+        assert tmp_path / name in files and (tmp_path / name).is_file()
+    pd.testing.assert_frame_equal(pd.read_csv(tmp_path / "literal.csv"), literal)
+    bare = tmp_path / "bare"
+    report.write(bare, "smoke", ours, {}, {})
+    text = (bare / "report.md").read_text()
+    assert "## Beyond the paper" not in text and "nrmse_robust.png" not in text
+    assert not (bare / "nrmse_robust.png").exists() and not (bare / "literal.csv").exists()

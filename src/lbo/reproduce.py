@@ -309,10 +309,13 @@ def stage_report(cfg: DictConfig, out: Path, folder: Path, tuned: dict, runs: di
     best_cnn = report.best_window(table, "cnn")
     traj = _trajectory(folder, runs.get(best_cnn), cfg.trajectory_manoeuvre,
                        cfg.tracking_uri) if best_cnn else None
-    robust = next((runs[j.key]["name"] for j in jobs if j.kind == ROBUST), None)
+    sections: list[report.Section] = []
+    if literal_table is not None:
+        sections.append(report.Protocols(literal_table))
+    sections += [report.Robust(runs[j.key]["name"]) for j in jobs if j.kind == ROBUST][:1]
+    sections += [report.Dynamic(data, t) for data, t in dynamic.items()]
     files = report.write(out, cfg.scale, table, run_ids, record, traj,
-                         folder / "friction_circle.png", robust=robust, dynamic=dynamic,
-                         literal=literal_table)
+                         folder / "friction_circle.png", sections)
     _log_report(cfg, cfg.scale, out, files, folder.name)
     return files, "done"
 

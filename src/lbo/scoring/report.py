@@ -6,7 +6,10 @@ Nothing here trains or talks to MLflow; :mod:`lbo.reproduce` gathers the tables 
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Protocol
 
 import numpy as np
 import pandas as pd
@@ -257,6 +260,92 @@ def protocols_markdown(table: pd.DataFrame, literal: pd.DataFrame) -> list[str]:
     return [*out, "", "![protocols](nrmse_protocols.png)", ""]
 
 
+class Section(Protocol):
+    """A study beyond the paper's tables: its part of report.md, the observers it adds to
+    ``nrmse_all.png`` (``headline``), its figure's file name, and the files it writes."""
+
+    headline: tuple[str, ...]
+    figure: str
+
+    def markdown(self, table: pd.DataFrame) -> list[str]: ...
+
+    def write(self, folder: Path, table: pd.DataFrame) -> list[Path]: ...
+
+
+@dataclass(frozen=True)
+class Robust:
+    """The robust observer ``name`` of the score table against its classical peers
+    (:data:`ROBUST_PEERS`): ``nrmse_robust.png``."""
+
+    name: str
+    figure: str = "nrmse_robust.png"
+
+    @property
+    def headline(self) -> tuple[str, ...]:
+        return (self.name,)
+
+    def markdown(self, table: pd.DataFrame) -> list[str]:
+        return robust_markdown(table, self.name)
+
+    def write(self, folder: Path, table: pd.DataFrame) -> list[Path]:
+        peers = [self.name, *_present(table, ROBUST_PEERS)]
+        return [plots.save(plots.nrmse_curves(
+            table, f"{self.name}, never told alpha, against the classical peers",
+            observers=peers), folder / self.figure)]
+
+
+@dataclass(frozen=True)
+class Dynamic:
+    """The car-that-slips study on data set ``key``: its score ``table`` (one learned
+    observer, black boxes maybe, and the peers of :data:`DYNAMIC_PEERS`): ``<key>.csv`` and
+    ``nrmse_<key>.png``."""
+
+    key: str
+    table: pd.DataFrame
+    headline: tuple[str, ...] = ()
+
+    @property
+    def figure(self) -> str:
+        return f"nrmse_{self.key}.png"
+
+    def markdown(self, table: pd.DataFrame) -> list[str]:
+        return dynamic_markdown(self.key, self.table)
+
+    def write(self, folder: Path, table: pd.DataFrame) -> list[Path]:
+        with atomic_path(folder / f"{self.key}.csv") as tmp:
+            self.table.to_csv(tmp, index=False)
+        s = dynamic_summary(self.table)
+        return [folder / f"{self.key}.csv", plots.save(plots.nrmse_curves(
+            self.table, f"a car that slips (data={self.key}): {s['observer']} against the "
+            "kinematic EKFs and the EKF told the car",
+            observers=_present(self.table, (s["observer"], *s["black_boxes"], *DYNAMIC_PEERS))),
+            folder / self.figure)]
+
+
+@dataclass(frozen=True)
+class Protocols:
+    """The paper's protocol as lbo trains it, beside ours: score rows of observers named
+    ``literal-<model>-N<window>``: ``literal.csv`` and ``nrmse_protocols.png``."""
+
+    literal: pd.DataFrame
+    headline: tuple[str, ...] = ()
+    figure: str = "nrmse_protocols.png"
+
+    def markdown(self, table: pd.DataFrame) -> list[str]:
+        return protocols_markdown(table, self.literal)
+
+    def write(self, folder: Path, table: pd.DataFrame) -> list[Path]:
+        with atomic_path(folder / "literal.csv") as tmp:
+            self.literal.to_csv(tmp, index=False)
+        both = pd.concat([table, self.literal], ignore_index=True)
+        best = (best_window(table, m) for m in ("cnn", "lstm"))
+        curves = [*dict.fromkeys(self.literal["observer"]), *(n for n in best if n),
+                  *_present(table, ("ekf", "oracle"))]
+        return [folder / "literal.csv", plots.save(plots.nrmse_curves(
+            both, "trained at alpha = 1: the paper's protocol (literal-*) and ours",
+            observers=curves), folder / self.figure)]
+
+
 def _present(table: pd.DataFrame, names) -> list[str]:
     """The observers of ``names`` that ``table`` has rows for, in that order."""
     have = set(table["observer"])
@@ -274,10 +363,9 @@ def _md(df: pd.DataFrame, digits: int = 3) -> str:
 
 def markdown(scale: str, tables: dict[str, pd.DataFrame], table: pd.DataFrame,
              best: dict[str, str | None], runs: dict[str, str], stages: dict[str, dict],
-             robust: str | None = None,
-             dynamic: dict[str, pd.DataFrame] | None = None,
-             literal: pd.DataFrame | None = None) -> str:
-    """report.md: the tables, crossovers, best windows, run ids and stage times."""
+             sections: Sequence[Section] = ()) -> str:
+    """report.md: the tables, crossovers, best windows, each section, run ids and stage
+    times."""
     out = [f"# lbo report: scale `{scale}`", "",
            "RMSE of the EKF and of the best CNN and LSTM, ours beside the paper's "
            "(psi in mrad).", ""]
@@ -298,29 +386,23 @@ def markdown(scale: str, tables: dict[str, pd.DataFrame], table: pd.DataFrame,
     out += ["", "## NRMSE at alpha = 1, 3, 6", "",
             _md(nr.loc[nr.index.isin([1.0, 3.0, 6.0])].reset_index()), ""]
     out += crossover_markdown(table)
-    if literal is not None:
-        out += protocols_markdown(table, literal)
-    if robust is not None:
-        out += robust_markdown(table, robust)
-    for key, t in (dynamic or {}).items():
-        out += dynamic_markdown(key, t)
+    for section in sections:
+        out += section.markdown(table)
     out += ["## Runs", "", "| observer | MLflow run id |", "|---|---|"]
     out += [f"| {k} | `{v}` |" for k, v in sorted(runs.items())]
     out += ["", "## Stages", "", "| stage | status | seconds |", "|---|---|---|"]
     out += [f"| {k} | {v.get('status', '')} | {v.get('seconds', float('nan')):.1f} |"
             for k, v in stages.items()]
-    extra = ([" nrmse_protocols.png"] if literal is not None else []) + \
-        ([" nrmse_robust.png"] if robust else []) + [f" nrmse_{k}.png" for k in dynamic or {}]
+    extra = "".join(f", {section.figure}" for section in sections)
     out += ["", "Figures: friction_circle.png, nrmse_cnn.png, nrmse_lstm.png, nrmse_all.png, "
-            "trajectory_alpha3.png" + "".join("," + e for e in extra) + ".", ""]
+            "trajectory_alpha3.png" + extra + ".", ""]
     return "\n".join(out)
 
 
 def write(folder: str | Path, scale: str, table: pd.DataFrame, runs: dict[str, str],
           stages: dict[str, dict], trajectory: dict[str, np.ndarray] | None = None,
-          friction_png: str | Path | None = None, robust: str | None = None,
-          dynamic: dict[str, pd.DataFrame] | None = None,
-          literal: pd.DataFrame | None = None) -> list[Path]:
+          friction_png: str | Path | None = None, sections: Sequence[Section] = ()
+          ) -> list[Path]:
     """Write every report file into ``folder``; returns their paths.
 
     Parameters
@@ -330,14 +412,8 @@ def write(folder: str | Path, scale: str, table: pd.DataFrame, runs: dict[str, s
     runs : observer name -> MLflow run id.
     trajectory : arrays for Fig. 6: ``truth``, ``meas`` and one (T, 2) array per estimate.
     friction_png : the data set's friction_circle.png, copied beside the report.
-    robust : the name of the robust observer in ``table``, which gets a section and
-        ``nrmse_robust.png`` of its own.
-    dynamic : data-set name -> score table of the car-that-slips study on that set (one
-        learned observer and the peers of :data:`DYNAMIC_PEERS`): a section, ``<name>.csv``
-        and ``nrmse_<name>.png`` each.
-    literal : score rows of the paper's protocol as lbo trains it (observers named
-        ``literal-<model>-N<window>``): a section beside ours, ``literal.csv`` and
-        ``nrmse_protocols.png``.
+    sections : the studies beyond the paper's tables, each a section of report.md with its
+        own files, in this order (:class:`Protocols`, :class:`Robust`, :class:`Dynamic`).
     """
     folder = Path(folder)
     table = with_oracle_ratio(table)
@@ -354,33 +430,13 @@ def write(folder: str | Path, scale: str, table: pd.DataFrame, runs: dict[str, s
         fig = plots.nrmse_curves(table, title=f"{model.upper()} observers against the EKF",
                                  observers=[*names, "ekf"])
         written.append(plots.save(fig, folder / f"nrmse_{model}.png"))
-    if robust is not None:
-        peers = [robust, *_present(table, ROBUST_PEERS)]
-        written.append(plots.save(plots.nrmse_curves(
-            table, f"{robust}, never told alpha, against the classical peers", observers=peers),
-            folder / "nrmse_robust.png"))
-    every = [n for n in (best["cnn"], best["lstm"], robust) if n] + _present(table, CLASSICAL)
+    headline = [n for section in sections for n in section.headline]
+    every = [n for n in (best["cnn"], best["lstm"], *headline) if n] + _present(table, CLASSICAL)
     written.append(plots.save(plots.nrmse_curves(table, "best observers, classical peers and "
                                                  "the PCRB", observers=every),
                               folder / "nrmse_all.png"))
-    for key, t in (dynamic or {}).items():
-        with atomic_path(folder / f"{key}.csv") as tmp:
-            t.to_csv(tmp, index=False)
-        s = dynamic_summary(t)
-        written += [folder / f"{key}.csv", plots.save(plots.nrmse_curves(
-            t, f"a car that slips (data={key}): {s['observer']} against the kinematic EKFs and "
-            "the EKF told the car",
-            observers=_present(t, (s["observer"], *s["black_boxes"], *DYNAMIC_PEERS))),
-            folder / f"nrmse_{key}.png")]
-    if literal is not None:
-        with atomic_path(folder / "literal.csv") as tmp:
-            literal.to_csv(tmp, index=False)
-        both = pd.concat([table, literal], ignore_index=True)
-        curves = [*dict.fromkeys(literal["observer"]), *(n for n in best.values() if n),
-                  *_present(table, ("ekf", "oracle"))]
-        written += [folder / "literal.csv", plots.save(plots.nrmse_curves(
-            both, "trained at alpha = 1: the paper's protocol (literal-*) and ours",
-            observers=curves), folder / "nrmse_protocols.png")]
+    for section in sections:
+        written += section.write(folder, table)
     if trajectory is not None:
         written.append(plots.save(plots.trajectory(**trajectory), folder / "trajectory_alpha3.png"))
     if friction_png is not None and Path(friction_png).is_file():
@@ -388,6 +444,6 @@ def write(folder: str | Path, scale: str, table: pd.DataFrame, runs: dict[str, s
             tmp.write_bytes(Path(friction_png).read_bytes())
         written.append(folder / "friction_circle.png")
     written.append(write_text(folder / "report.md",
-                              markdown(scale, tables, table, best, runs, stages, robust,
-                                       dynamic, literal)))
+                              markdown(scale, tables, table, best, runs, stages,
+                                       sections)))
     return written
