@@ -16,10 +16,11 @@ import time
 
 import numpy as np
 
+from lbo.filters.classical import NAMES
 from lbo.filters.kalman import ekf_batch
 from lbo.filters.reference import run_filterpy_ekf, ukf
 from lbo.filters.unscented import ukf_batch
-from lbo.scoring.grid import CLASSICAL, classical
+from lbo.scoring.grid import classical
 from lbo.sim.noise import Noise
 from lbo.sim.vehicle import Vehicle
 
@@ -115,7 +116,7 @@ def main() -> None:
 
     print("\nthe classical stage (lbo.evaluate's observers on the whole grid, once each):")
     total = 0.0
-    for name in CLASSICAL:
+    for name in NAMES:
         start = time.perf_counter()
         classical(name, arr, vehicle, noise)
         seconds = time.perf_counter() - start

@@ -33,7 +33,7 @@ from lbo.core.atomic import write_text
 from lbo.core.checks import integer, require
 from lbo.core.cli import check_launcher, entry
 from lbo.core.errors import LboError
-from lbo.filters.classical import NAMES as CLASSICAL
+from lbo.filters import classical
 from lbo.learn.eta import Eta, duration, measure
 from lbo.tracking.runs import check_store, run_artifact
 
@@ -300,7 +300,7 @@ def stage_report(cfg: DictConfig, out: Path, folder: Path, tuned: dict, runs: di
     learned = pd.concat([pd.read_csv(run_artifact(r, "evaluation.csv", cfg.tracking_uri))
                          for r in runs.values()], ignore_index=True)
     # each run's table also holds the EKF and oracle rows; the classical stage has them all
-    table = pd.concat([learned[~learned["observer"].isin(CLASSICAL)], classical_table],
+    table = pd.concat([learned[~learned["observer"].isin(classical.NAMES)], classical_table],
                       ignore_index=True)
     run_ids.update({r["name"]: r["run_id"] for r in runs.values()})
     for model, res in tuned.items():

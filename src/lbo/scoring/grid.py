@@ -27,10 +27,6 @@ from lbo.sim.noise import Noise
 from lbo.sim.truth import Truth
 from lbo.sim.vehicle import Vehicle
 
-CLASSICAL = NAMES
-"""What ``observers=`` may name: the classical observers and the PCRB."""
-
-
 REFERENCES = ("ekf", "paper")
 
 
@@ -78,7 +74,7 @@ def classical(name: str, arr: dict[str, np.ndarray], vehicle: Vehicle, noise: No
 
 def check_observers(names: Sequence[str], field: str = "observers") -> None:
     """Raise LboError naming ``field`` and the first name that is not a classical observer."""
-    known = (*CLASSICAL, *plugged())  # lbo's own and the installed plug-ins'
+    known = (*NAMES, *plugged())  # lbo's own and the installed plug-ins'
     for name in names:
         if name not in known:
             raise LboError(f"{field}: unknown observer {name!r}; "
@@ -125,7 +121,7 @@ def bound_table(std: np.ndarray, arr: dict[str, np.ndarray], ref: np.ndarray) ->
 
 
 def classical_table(arr: dict[str, np.ndarray], vehicle: Vehicle, noise: Noise,
-                    observers: Sequence[str] = CLASSICAL, ref: np.ndarray | None = None,
+                    observers: Sequence[str] = NAMES, ref: np.ndarray | None = None,
                     progress: bool = False, seed: int = 0,
                     truth: Truth | None = None,
                     given: dict[str, np.ndarray] | None = None) -> pd.DataFrame:

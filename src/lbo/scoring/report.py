@@ -16,7 +16,7 @@ import pandas as pd
 
 from lbo.core import plots
 from lbo.core.atomic import atomic_path, write_text
-from lbo.filters.classical import NAMES as CLASSICAL
+from lbo.filters import classical
 from lbo.scoring.metrics import PAPER_REFERENCE, nrmse
 
 # The paper's Tables I and II (RMSE; psi in rad) and its reading of Fig. 5.
@@ -132,7 +132,7 @@ def dynamic_summary(table: pd.DataFrame, low: float = 0.25, high: float = 6.0) -
     dynamic oracle's, over the adaptive EKF's and over the kinematic EKF tuned in hindsight
     (``oracle_tuned``; None without it), and of the dynamic oracle's over the kinematic one's,
     each ``(min, max)``."""
-    learned = [o for o in dict.fromkeys(table["observer"]) if o not in CLASSICAL]
+    learned = [o for o in dict.fromkeys(table["observer"]) if o not in classical.NAMES]
     boxes = [o for o in learned if o.startswith(("cnn", "lstm"))]
     main = [o for o in learned if o not in boxes]
     if len(main) != 1:
@@ -193,7 +193,7 @@ def dynamic_markdown(key: str, table: pd.DataFrame) -> list[str]:
 def crossover_markdown(table: pd.DataFrame) -> list[str]:
     """Where each learned observer crosses the EKF."""
     learned = [o for o in dict.fromkeys(table["observer"])
-               if o not in CLASSICAL]
+               if o not in classical.NAMES]
     out = ["## Where each learned observer crosses the EKF", "",
            "| observer | training noise | below the EKF from alpha |", "|---|---|---|"]
     for name in learned:
@@ -431,7 +431,8 @@ def write(folder: str | Path, scale: str, table: pd.DataFrame, runs: dict[str, s
                                  observers=[*names, "ekf"])
         written.append(plots.save(fig, folder / f"nrmse_{model}.png"))
     headline = [n for section in sections for n in section.headline]
-    every = [n for n in (best["cnn"], best["lstm"], *headline) if n] + _present(table, CLASSICAL)
+    every = ([n for n in (best["cnn"], best["lstm"], *headline) if n]
+             + _present(table, classical.NAMES))
     written.append(plots.save(plots.nrmse_curves(table, "best observers, classical peers and "
                                                  "the PCRB", observers=every),
                               folder / "nrmse_all.png"))

@@ -29,7 +29,6 @@ import numpy as np
 
 from lbo.core.errors import LboError
 from lbo.filters import classical
-from lbo.filters.classical import OBSERVERS as CLASSICAL
 from lbo.filters.gyro import GyroNoise
 from lbo.models.checkpoint import read_checkpoint, stored_envelope, trained_conditions
 from lbo.models.envelope import EnvelopeCheck, check_mode
@@ -307,7 +306,7 @@ class Observer:
             m[2] = wrap_angle(m[2])
         if receiver is not None and self.net is not None:
             raise LboError(f"step {k}: {self.name} does not take a receiver's channels yet; "
-                           f"the classical observers ({', '.join(CLASSICAL)}) do")
+                           f"the classical observers ({', '.join(classical.OBSERVERS)}) do")
         if receiver is not None or self.name == classical.GYRO:
             m, u = self._runner.sample(k, m, u, receiver)
         # checked: from here on the sample is taken
@@ -398,7 +397,7 @@ class Observer:
             if self.net is not None:
                 raise LboError(f"receiver: {self.name} does not take a receiver's channels "
                                f"({', '.join(RECEIVER)}) yet; the classical observers "
-                               f"({', '.join(CLASSICAL)}) do")
+                               f"({', '.join(classical.OBSERVERS)}) do")
             check_receiver(m, receiver, source)
         if self.net is not None and (fix & np.isnan(m[:, 2])).any():
             raise LboError(f"{source + ': ' if source else ''}row "

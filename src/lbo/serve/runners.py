@@ -24,7 +24,6 @@ import numpy as np
 
 from lbo.core.errors import LboError
 from lbo.filters import classical, measure
-from lbo.filters.classical import OBSERVERS as CLASSICAL
 from lbo.filters.gyro import GyroNoise
 from lbo.models.features import window_view
 from lbo.serve.engines import make_predictor, make_recursive_step
@@ -125,8 +124,8 @@ class Estimate(_Pair):
 def no_heading(name: str) -> str:
     """Why a learned observer refuses a position fix without a heading."""
     return (f"a position fix without a heading (psi_m empty), but {name} takes full fixes "
-            f"only (x_m, y_m and psi_m); the classical observers ({', '.join(CLASSICAL)}) "
-            "take it")
+            "only (x_m, y_m and psi_m); the classical observers "
+            f"({', '.join(classical.OBSERVERS)}) take it")
 
 
 def no_fix(name: str) -> str:
