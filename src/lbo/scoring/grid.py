@@ -20,7 +20,7 @@ from lbo.filters.classical import BOUND, NAMES, TUNED, measurement_cov, plugged
 from lbo.filters.classical import estimate as run_classical
 from lbo.filters.kalman import ekf_batch
 from lbo.filters.pcrb import pcrb
-from lbo.scoring.metrics import PAPER_REFERENCE, SCORE_COLUMNS, rmse, score_table
+from lbo.scoring.metrics import PAPER_REFERENCE, SCORE_COLUMNS, pooled_rmse, score_table
 from lbo.sim import schema
 from lbo.sim.columns import SCORED_SET
 from lbo.sim.noise import Noise
@@ -95,11 +95,6 @@ def reference(arr: dict[str, np.ndarray], vehicle: Vehicle, noise: Noise,
     sub = rows_of(arr, at1)
     est = run_classical("ekf", sub["m"], sub["u"], vehicle, noise)
     return pooled_rmse(est, sub["z"], sub["mask"])
-
-
-def pooled_rmse(est: np.ndarray, truth: np.ndarray, mask: np.ndarray) -> np.ndarray:
-    """(3,) RMSE over every masked step of every trajectory together."""
-    return rmse(est.reshape(1, -1, 3), truth.reshape(1, -1, 3), mask.reshape(1, -1))[0]
 
 
 def score(observer: str, est: np.ndarray, arr: dict[str, np.ndarray],

@@ -21,7 +21,7 @@ import pandas as pd
 from lbo.core.errors import LboError
 from lbo.filters.classical import first_fixes
 from lbo.scoring.grid import rows_of
-from lbo.scoring.metrics import nrmse, rmse
+from lbo.scoring.metrics import nrmse, pooled_rmse
 from lbo.sim import schema
 from lbo.sim.columns import SCORED_SET
 from lbo.sim.noise import Noise
@@ -61,10 +61,6 @@ def peer_estimates(arr: Mapping[str, np.ndarray], vehicle: Vehicle, noise: Noise
     return {name: estimate(name, arr["m"], arr["u"], vehicle, noise) for name in peers}
 
 
-def _pooled(est: np.ndarray, z: np.ndarray, mask: np.ndarray) -> np.ndarray:
-    return rmse(est.reshape(1, -1, 3), z.reshape(1, -1, 3), mask.reshape(1, -1))[0]
-
-
 def table(estimates: Mapping[str, np.ndarray], arr: Mapping[str, np.ndarray],
           files: Sequence[str]) -> pd.DataFrame:
     """Rows ``observer, file, alpha, rmse_x, rmse_y, rmse_psi, nrmse, ratio_to_<peer>...``.
@@ -82,11 +78,11 @@ def table(estimates: Mapping[str, np.ndarray], arr: Mapping[str, np.ndarray],
         (str(f), arr["file"] == i) for i, f in enumerate(files) if (arr["file"] == i).any()]
     levels = {str(f): float(arr["alpha"][arr["file"] == i][0])
               for i, f in enumerate(files) if (arr["file"] == i).any()}
-    ref = _pooled(estimates["ekf"], z, mask)
+    ref = pooled_rmse(estimates["ekf"], z, mask)
     rows = []
     for name, est in estimates.items():
         for label, sel in groups:
-            e = _pooled(est[sel], z[sel], mask[sel])
+            e = pooled_rmse(est[sel], z[sel], mask[sel])
             level = levels.get(label, float(np.mean(list(levels.values()))))
             rows.append({"observer": name, "file": label, "alpha": level, "rmse_x": e[0],
                          "rmse_y": e[1], "rmse_psi": e[2], "nrmse": nrmse(e, ref)})

@@ -57,6 +57,12 @@ def rmse(est: np.ndarray, truth: np.ndarray, mask: np.ndarray | None = None) -> 
         return np.sqrt(sq.sum(axis=-2) / count)
 
 
+def pooled_rmse(est: np.ndarray, truth: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """(3,) RMSE over every masked step of every trajectory together: est, truth (G, T, 3),
+    mask (G, T)."""
+    return rmse(est.reshape(1, -1, 3), truth.reshape(1, -1, 3), mask.reshape(1, -1))[0]
+
+
 def nrmse(rmse_xyz: np.ndarray, ref: np.ndarray = PAPER_REFERENCE) -> float | np.ndarray:
     """Normalised RMSE ``sqrt(sum_i E_i^2 / (3 E_ref,i^2))`` (section IV-A); 1 for the reference.
 

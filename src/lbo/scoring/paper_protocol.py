@@ -14,8 +14,8 @@ import pandas as pd
 
 from lbo.core.errors import LboError
 from lbo.filters.kalman import ekf_batch
-from lbo.scoring.grid import pooled_rmse, rows_of
-from lbo.scoring.metrics import nrmse
+from lbo.scoring.grid import rows_of
+from lbo.scoring.metrics import nrmse, pooled_rmse
 from lbo.scoring.report import PAPER_RMSE, VARIABLES, crossover
 from lbo.sim.noise import Noise
 from lbo.sim.vehicle import Vehicle
