@@ -11,9 +11,7 @@ from __future__ import annotations
 from importlib import import_module
 from typing import Any
 
-LAYERS = ("core", "sim", "filters", "models", "tracking", "serve", "scoring", "learn")
-"""lbo's subpackages from the bottom up: a module imports from its own layer and those below
-it only; the commands (``python -m lbo.<command>``, ``lbo/<command>.py``) sit on top."""
+from lbo.core import LAYERS as LAYERS  # the layers, bottom up (its home: lbo.core)
 
 _EXPORTS = {
     "Observer": "lbo.serve.observer",

@@ -23,7 +23,7 @@ from typing import Any
 
 from omegaconf import DictConfig, OmegaConf, open_dict
 
-from lbo import LAYERS
+from lbo.core import LAYERS
 from lbo.core.atomic import write_text
 from lbo.core.errors import LboError
 from lbo.core.paths import sqlite_path

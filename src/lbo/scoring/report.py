@@ -19,8 +19,7 @@ from lbo.core.atomic import atomic_path, write_text
 from lbo.filters import classical
 from lbo.scoring.metrics import PAPER_REFERENCE, nrmse
 
-# The paper's Tables I and II (RMSE; psi in rad; its EKF at alpha 1 is E_ref) and its reading
-# of Fig. 5.
+# The paper's Tables I and II (RMSE; psi in rad; the EKF at 1 is E_ref), its reading of Fig. 5.
 PAPER_RMSE = {
     1.0: {"ekf": PAPER_REFERENCE, "cnn": (0.28, 0.23, 11e-3), "lstm": (0.65, 0.90, 13e-3)},
     6.0: {"ekf": (1.56, 1.88, 26e-3), "cnn": (0.91, 0.89, 20e-3), "lstm": (0.98, 1.10, 19e-3)},

@@ -23,7 +23,7 @@ import numpy as np
 from lbo.core.checks import number
 from lbo.core.errors import LboError
 from lbo.sim.columns import INPUT, MEAS, RECEIVER, STATE
-from lbo.sim.units import at, check_heading_unit
+from lbo.sim.units import check_heading_unit, located
 
 FIX_RULE = ("a row holds x_m and y_m (a position fix), with or without psi_m, or none of "
             "them (a step without a fix)")
@@ -95,7 +95,8 @@ def _finite(values: np.ndarray, names: tuple[str, ...], source: str | None) -> N
         bad = ~np.isfinite(values[:, c])
         if bad.any():
             first = int(np.flatnonzero(bad)[0])
-            raise LboError(at(source, f"column {name!r} has NaN or inf (first at row {first})"))
+            raise LboError(located(source, f"column {name!r} has NaN or inf (first at row "
+                                           f"{first})"))
 
 
 def fix_mask(m: Any) -> Any:
@@ -147,9 +148,9 @@ def check_fixes(m: np.ndarray, source: str | None = None,
         allowed = FIX_RULE if position_only else (
             "here a row holds x_m, y_m and psi_m (a fix) or none of them (a step without a "
             "fix)")
-        raise LboError(at(source, f"row {r} {what}; {allowed}"))
+        raise LboError(located(source, f"row {r} {what}; {allowed}"))
     if not pos.any():
-        raise LboError(at(source, "no position fix in any row (x_m and y_m are empty "
+        raise LboError(located(source, "no position fix in any row (x_m and y_m are empty "
                                    "everywhere)"))
     return pos
 
@@ -177,7 +178,7 @@ def check_steering(delta: np.ndarray, delta_max: float, source: str | None = Non
     over = np.abs(delta) > delta_max * (1 + STEERING_SLACK)
     if over.any():
         r = int(np.flatnonzero(over)[0])
-        raise _steering(at(source, f"row {r}"), float(delta[r]), delta_max)
+        raise _steering(located(source, f"row {r}"), float(delta[r]), delta_max)
 
 
 def check_samples(m: np.ndarray, u: np.ndarray, *, delta_max: float | None = None,
@@ -221,7 +222,7 @@ def check_samples(m: np.ndarray, u: np.ndarray, *, delta_max: float | None = Non
         beyond = (np.abs(psi) > HEADING_LIMIT) & rows
         if beyond.any():
             r = int(np.flatnonzero(beyond)[0])
-            raise LboError(at(source, f"row {r}: {c}={psi[r]:g} rad is beyond "
+            raise LboError(located(source, f"row {r}: {c}={psi[r]:g} rad is beyond "
                                        f"{HEADING_LIMIT:g} rad (a heading in rad, on any branch)"))
         check_heading_unit(np.where(rows, psi, np.nan), times, c, source)
     columns = {"x_m": m[:, 0], "y_m": m[:, 1], "V": u[:, 0]}
@@ -232,7 +233,7 @@ def check_samples(m: np.ndarray, u: np.ndarray, *, delta_max: float | None = Non
             over = np.abs(columns[c]) > _RANGE[c][0]  # NaN (no fix) compares False
             if over.any():
                 r = int(np.flatnonzero(over)[0])
-                raise _beyond(at(source, f"row {r}"), c, float(columns[c][r]))
+                raise _beyond(located(source, f"row {r}"), c, float(columns[c][r]))
     if delta_max is not None:
         check_steering(u[:, 1], delta_max, source)
     return fix
@@ -277,7 +278,7 @@ def check_receiver(m: np.ndarray, r: np.ndarray, source: str | None = None) -> N
         what = (f"has {what}={value:g}, not a 1-sigma > 0" if c not in (3, 4, 6) else
                 f"has {what}={value:g} m/s, beyond {SPEED_LIMIT:g} m/s" if c != 6 else
                 f"has r_m={value:g} rad/s, beyond {GYRO_LIMIT:g} rad/s (a yaw rate in rad/s)")
-    raise LboError(at(source, f"row {row} {what}; {RECEIVER_RULE}"))
+    raise LboError(located(source, f"row {row} {what}; {RECEIVER_RULE}"))
 
 
 def check_sample(m: tuple[float, float, float] | None, u: tuple[float, float], step: int,
@@ -340,10 +341,10 @@ def check_fix_windows(fix: np.ndarray, window: int, name: str, dt: float,
     if inner.size and inner.max() > window:
         j = int(np.argmax(inner))
         g = int(inner[j])
-        raise LboError(at(source, f"fixes are up to {g} steps ({g * dt:g} s) apart (rows "
+        raise LboError(located(source, f"fixes are up to {g} steps ({g * dt:g} s) apart (rows "
                                    f"{at[j]} and {at[j + 1]}), but "
                                    + window_advice(name, window, dt)))
     last = int(at[-1])
-    raise LboError(at(source, f"the last {len(fix) - 1 - last} rows (after row {last}) have "
+    raise LboError(located(source, f"the last {len(fix) - 1 - last} rows (after row {last}) have "
                                f"no fix, but {window_advice(name, window, dt)}; or cut the "
                                f"log at row {last}"))

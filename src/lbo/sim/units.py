@@ -35,7 +35,7 @@ TIME_UNITS = (("milliseconds", 1e3), ("microseconds", 1e6), ("nanoseconds", 1e9)
 """A median step of ``t`` within a factor 10 of ``dt`` in one of these units looks like it."""
 
 
-def at(source: str | None, text: str) -> str:
+def located(source: str | None, text: str) -> str:
     """``text`` prefixed with where it was found (``"input log.csv: ..."``), if anywhere."""
     return f"{source}: {text}" if source else text
 
@@ -50,7 +50,7 @@ def check_time(t: np.ndarray, source: str | None = None) -> None:
     steps = np.diff(t)
     if (steps <= 0).any():
         j = int(np.flatnonzero(steps <= 0)[0])
-        raise LboError(at(source, f"column 't' is not strictly increasing (row {j + 1}: "
+        raise LboError(located(source, f"column 't' is not strictly increasing (row {j + 1}: "
                                    f"t={t[j + 1]:g} s after t={t[j]:g} s); sort the log and "
                                    "drop repeats"))
 
@@ -65,7 +65,7 @@ def check_time_unit(t: np.ndarray, dt: float, source: str | None = None) -> None
     median = float(np.median(np.diff(t)))
     for unit, factor in TIME_UNITS:
         if 0.1 <= median / (factor * dt) <= 10:
-            raise LboError(at(source, f"column 't' looks like {unit} (median step {median:g} "
+            raise LboError(located(source, f"column 't' looks like {unit} (median step {median:g} "
                                        f"for dt={dt:g} s); give t in seconds"))
 
 
@@ -106,12 +106,12 @@ def check_heading_unit(psi: np.ndarray, t: np.ndarray, column: str = "psi_m",
         return
     degrees = _turn_rates(np.radians(psi), t)
     if np.mean(degrees > YAW_RATE_LIMIT) <= DEGREES_SHARE:
-        raise LboError(at(source, f"column {column!r} looks like degrees: read as rad it "
+        raise LboError(located(source, f"column {column!r} looks like degrees: read as rad it "
                                    f"turns faster than {YAW_RATE_LIMIT:g} rad/s (no car can) in "
                                    f"{fast:.0%} of its {RATE_SPAN:g} s spans, in degrees at "
                                    f"most {float(np.max(degrees)):.2g} rad/s; give headings in "
                                    "rad, or pass units.psi=deg"))
-    raise LboError(at(source, f"column {column!r} turns faster than {YAW_RATE_LIMIT:g} rad/s "
+    raise LboError(located(source, f"column {column!r} turns faster than {YAW_RATE_LIMIT:g} rad/s "
                                f"in {fast:.0%} of its {RATE_SPAN:g} s spans, read as rad and "
                                "as degrees alike: it is not a vehicle's heading (give the "
                                "heading of the vehicle's axis, in rad)"))
@@ -167,7 +167,7 @@ def check_conventions(t: np.ndarray, m: np.ndarray, u: np.ndarray,
     ratio = float(np.median(np.abs(travelled[j] - travelled[i]) / np.hypot(*chord.T)))
     for unit, key, low, high in SPEED_SUSPECTS:
         if low <= ratio <= high:
-            raise LboError(at(source, f"column 'V' looks like {unit}: it travels {ratio:.2f} "
+            raise LboError(located(source, f"column 'V' looks like {unit}: it travels {ratio:.2f} "
                                        "times the distance the fixes moved; give V in m/s, or "
                                        f"pass units.V={key}"))
     mid = m[(i + j) // 2, 2]
@@ -193,12 +193,12 @@ def check_conventions(t: np.ndarray, m: np.ndarray, u: np.ndarray,
     # its degrees are lost, not tried)
     if heading == "enu" and np.median(np.abs(mid[has])) > 2 * np.pi \
             and agreement(np.radians(mid[has])) > 0.8:
-        raise LboError(at(source, "column 'psi_m' looks like degrees: it does not point where "
+        raise LboError(located(source, "column 'psi_m' looks like degrees: it does not point where "
                                    "the fixes move, but read as degrees it does; give headings "
                                    "in rad, or pass units.psi=deg"))
     if along < 0.3 and agreement(np.pi / 2 - mid[has]) > 0.8:
         other = "compass" if heading == "enu" else "enu"
-        raise LboError(at(source, "column 'psi_m' does not point where the fixes move "
+        raise LboError(located(source, "column 'psi_m' does not point where the fixes move "
                                    f"(read as heading={heading}), but its mirror image does: "
                                    f"pass heading={other} (enu: counter-clockwise from east; "
                                    "compass: clockwise from north)"))
@@ -220,7 +220,7 @@ def check_gaps(t: np.ndarray, max_gap: float, source: str | None = None,
     over = steps > max(max_gap, dt)
     if over.any():
         j = int(np.flatnonzero(over)[0])
-        raise LboError(at(source, f"rows {j} and {j + 1} are {steps[j]:g} s apart "
+        raise LboError(located(source, f"rows {j} and {j + 1} are {steps[j]:g} s apart "
                                    f"(t={t[j]:g} s to {t[j + 1]:g} s), longer than "
                                    f"max_gap={max_gap:g} s: V and delta cannot be "
                                    "interpolated across it; split the log there, or raise "
