@@ -86,7 +86,7 @@ def observe(cfg: DictConfig) -> dict[str, Any]:
     from lbo.filters.classical import GYRO, check_gyro_noise, on_logs
     from lbo.filters.gyro import GyroNoise
     from lbo.serve.observer import EnvelopeWarning, Observer
-    from lbo.serve.runners import has_recursive_form
+    from lbo.serve.runners import has_recursive_form, no_receiver
     from lbo.sim.noise import Noise
     from lbo.sim.vehicle import Vehicle
 
@@ -155,7 +155,7 @@ def observe(cfg: DictConfig) -> dict[str, Any]:
     with warnings.catch_warnings():  # said below, one line per field
         warnings.simplefilter("ignore", EnvelopeWarning)
         est, valid, cov = obs.run(m, u, source=where, cov=True, smooth=smooth,
-                                  receiver=channels if classical else None)
+                                  receiver=channels if obs.takes_receiver else None)
     envelope = obs.check_envelope(m, u) if mode != "off" else None
     result: dict[str, Any] = {"output": output, "observer": obs.name, "rows": len(df),
                               "valid": int(valid.sum())}
@@ -195,12 +195,11 @@ def observe(cfg: DictConfig) -> dict[str, Any]:
           f"at {1 / obs.dt:g} Hz)")
     if channels is not None:
         told = [c for c, held in zip(RECEIVER, np.isfinite(channels).any(0)) if held]
-        idle = "r_m" in told and classical and name != GYRO  # only the gyro EKF reads it
+        idle = "r_m" in told and obs.takes_receiver and name != GYRO  # the gyro EKF's
         taken = [c for c in told if not (idle and c == "r_m")]
         print(f"receiver: {', '.join(taken) or 'no value'} "
-              + ("taken (reported accuracy as R, velocity as course over ground)" if classical
-                 else f"not read: {obs.name} does not take a receiver's channels yet; the "
-                      "classical observers do")
+              + ("taken (reported accuracy as R, velocity as course over ground)"
+                 if obs.takes_receiver else f"not read: {no_receiver(obs.name)}")
               + (f"; r_m not read by {name} (observer=gyro reads it)" if idle else ""))
     if obs.kind == "learned":
         asked = (vehicle, noise.process_sigma, noise.measurement_sigma)

@@ -26,6 +26,15 @@ Conventions as the filters of :mod:`lbo.filters.start`: ``u_k`` moves ``z_k`` to
 the estimate at step k uses ``m_0 .. m_k`` and ``u_0 .. u_{k-1}``; a measurement of NaN is a step
 without a position fix (for a filter trained with the ``fix`` channel): a prediction only. The
 filter starts at the first fix, with P = 6.5^2 R (:data:`START_SCALE`).
+
+A receiver's rows (``(B, 8)``, :data:`lbo.filters.measure.CHANNELS`) are taken as the classical
+filters take them, channel by channel: a position fix with or without ``psi_m``, the course
+over ground as the heading where a row has no ``psi_m``, and the receiver's reported
+accuracy (and the course's sigma) as the R of those channels in place of the noise model's.
+The update then uses the channels the row holds (a masked Kalman update, exactly the update
+with those channels alone). The noise model's statistic counts full fixes only, as it was
+trained. Before the first row that holds a position and a heading the estimate is NaN. A
+paper row (``(B, 3)``) gives the same numbers as before to the last bit.
 """
 
 from __future__ import annotations
@@ -141,19 +150,49 @@ class RecursiveFilter(nn.Module):
         return torch.stack([torch.stack([rxx, rxy, zero], -1), torch.stack([rxy, ryy, zero], -1),
                             torch.stack([zero, zero, vp], -1)], -2)
 
+    @staticmethod
+    def _step_cov(R: torch.Tensor, row: torch.Tensor, measured: torch.Tensor) -> torch.Tensor:
+        """The step's R (B, 3, 3) of ``[x_m, y_m, heading]``: the noise model's ``R``, with
+        the variance of each channel the row (B, 8) reports an accuracy for (``sx_m, sy_m,
+        spsi_m``) replaced by its square and that channel's correlations dropped, and the
+        heading's the course's variance where ``measured`` (B,) is False (no ``psi_m``)."""
+        told = row[:, 3:6] == row[:, 3:6]  # not NaN
+        sig = torch.where(told, row[:, 3:6], torch.zeros_like(row[:, 3:6]))
+        diag = torch.stack([R[:, 0, 0], R[:, 1, 1], R[:, 2, 2]], 1)  # ONNX: no diagonal
+        var = torch.where(told, sig * sig, diag)
+        # a heading the row does not hold gets a variance of 1: finite, and masked out
+        course = torch.where(row[:, 7] == row[:, 7], row[:, 7], torch.ones_like(row[:, 7]))
+        var = torch.cat([var[:, :2], torch.where(measured, var[:, 2], course * course)[:, None]],
+                        1)
+        xy = torch.where(told[:, 0] | told[:, 1], torch.zeros_like(R[:, 0, 1]), R[:, 0, 1])
+        zero = torch.zeros_like(xy)
+        return torch.stack([torch.stack([var[:, 0], xy, zero], -1),
+                            torch.stack([xy, var[:, 1], zero], -1),
+                            torch.stack([zero, zero, var[:, 2]], -1)], -2)
+
     def forward(self, m: torch.Tensor, u: torch.Tensor, *state: torch.Tensor
                 ) -> tuple[torch.Tensor, ...]:
-        """One step: measurement m (B, 3) (a NaN row: no fix), input u (B, 2) -> pose (B, 3)
-        (psi wrapped), its covariance (B, 3, 3), and the new state (:data:`STATE_NAMES`).
-        Before the first fix the pose and its covariance are NaN."""
+        """One step: measurement m (B, 3) (a NaN row: no fix) or a receiver's row (B, 8)
+        (:data:`lbo.filters.measure.CHANNELS`), input u (B, 2) -> pose (B, 3) (psi wrapped),
+        its covariance (B, 3, 3), and the new state (:data:`STATE_NAMES`). Before the first
+        row with a position and a heading the pose and its covariance are NaN."""
         (z, P, body, u_prev, last, dr, gap, heading, ring, sums, speeds, speed_sum, k,
          started) = state
         fo = self.net
-        fix = (m[:, 0] == m[:, 0]) & (m[:, 1] == m[:, 1]) & (m[:, 2] == m[:, 2])  # not NaN
+        if m.shape[1] == 3:  # the paper's row: no accuracy, no course
+            m = torch.cat([m, (m[:, :1] * 0.0 + math.nan).repeat(1, 5)], 1)
+        row, m = m, m[:, :3]
+        position = (m[:, 0] == m[:, 0]) & (m[:, 1] == m[:, 1])  # not NaN
+        measured = m[:, 2] == m[:, 2]
         if not self.fixes:
-            fix = torch.ones_like(fix)
+            position, measured = torch.ones_like(position), torch.ones_like(measured)
+        fix = position & measured  # a full fix, what the noise statistic counts
+        course = (row[:, 6] == row[:, 6]) & ~measured
+        held = torch.stack([position, position, measured | course], 1)  # x_m, y_m, heading
         m0 = torch.where(fix[:, None], m, torch.zeros_like(m))
-        first = fix & (started < 0.5)
+        meas = torch.where(held, torch.cat([m[:, :2], torch.where(
+            measured, m[:, 2], row[:, 6])[:, None]], 1), torch.zeros_like(m))
+        first = position & held[:, 2] & (started < 0.5)
         going = started > 0.5
         one = torch.ones_like(m[:, 0])
         zero = torch.zeros_like(one)
@@ -187,8 +226,9 @@ class RecursiveFilter(nn.Module):
         speed_sum = speed_sum + u[:, 0].abs() - speeds.index_select(1, speed_slot)[:, 0]
         speeds = speeds.index_copy(1, speed_slot, u[:, 0].abs()[:, None])
         seen = torch.clamp(k + 1, max=float(self.window))
-        heading = torch.where(fix, m0[:, 2], heading)
-        R = self._noise(sums, speed_sum / seen, heading)
+        heading = torch.where(held[:, 2], meas[:, 2], heading)
+        R_model = self._noise(sums, speed_sum / seen, heading)
+        R = self._step_cov(R_model, row, measured)
         q = torch.exp(2 * (fo.log_q0 + fo.log_q_scale))
 
         # -- the filter: predict with u_{k-1}, update with m_k
@@ -218,34 +258,43 @@ class RecursiveFilter(nn.Module):
         else:
             z_pred = pose
         P_pred = F @ P @ F.transpose(1, 2) + Qn
-        y = m0 - (H @ z_pred.unsqueeze(-1)).squeeze(-1)
-        y = torch.cat([y[:, :2], wrap_angle_torch(y[:, 2:])], -1)
+        y = meas - (H @ z_pred.unsqueeze(-1)).squeeze(-1)
+        # the channels the row holds: the others' innovations, gains and covariances zeroed
+        # and a 1 on S's diagonal, so that S stays invertible and K's columns for them are 0
+        mask = held.to(m.dtype)
+        y = torch.cat([y[:, :2], wrap_angle_torch(y[:, 2:])], -1) * mask
         PH = P_pred @ H.T
-        K = PH @ _inverse_sym3(H @ PH + R)
+        S = (H @ PH + R) * (mask[:, :, None] * mask[:, None, :]) \
+            + (1 - mask)[:, :, None] * eye[:3, :3]  # diag(1 - mask): ONNX has no diag_embed
+        K = (PH * mask[:, None, :]) @ _inverse_sym3(S)
         z_upd = z_pred + (K @ y.unsqueeze(-1)).squeeze(-1)
         I_KH = eye - K @ H  # Joseph form: over hours of steps, (I - K H) P loses symmetry
         P_upd = I_KH @ P_pred @ I_KH.transpose(1, 2) + K @ R @ K.transpose(1, 2)
         P_upd = 0.5 * (P_upd + P_upd.transpose(1, 2))
 
         # -- where the filter starts (its first fix), where it has no fix, where it goes on
+        # the noise model's R is alpha = 1's at the start (its statistic holds nothing yet);
+        # what the receiver reports is as sure as it says
+        R_start = self._step_cov(START_SCALE * R_model, row, measured)
         if self.n == 5:
-            start_z = torch.cat([m0, torch.zeros_like(m0[:, :2])], -1)
+            start_z = torch.cat([meas, torch.zeros_like(meas[:, :2])], -1)
             white = (R[:, 0, 0] * R[:, 1, 1] - R[:, 0, 1] ** 2) ** 0.25  # turn-free
-            start_P = fo._drift_start(START_SCALE * R, (torch.exp(fo.log_drift_ratio) * white) ** 2,
+            start_P = fo._drift_start(R_start, (torch.exp(fo.log_drift_ratio) * white) ** 2,
                                       eye)
         else:
-            start_z, start_P = m0, START_SCALE * R
+            start_z, start_P = meas, R_start
         # what the smoother needs: this step's prior and cov(x_{k-1|k-1}, x_{k|k-1}); none
         # where the filter starts afresh
         self.last_prior = (z_pred, P_pred, torch.where(going[:, None, None],
                                                        P @ F.transpose(1, 2),
                                                        torch.zeros_like(P)))
+        update = held.any(1) & going
         z = torch.where(first[:, None], start_z,
-                        torch.where((fix & going)[:, None], z_upd, z_pred))
+                        torch.where(update[:, None], z_upd, z_pred))
         P = torch.where(first[:, None, None], start_P,
-                        torch.where((fix & going)[:, None, None], P_upd, P_pred))
+                        torch.where(update[:, None, None], P_upd, P_pred))
         body = torch.where(first[:, None], fo.body_start(u[:, 0], u[:, 1]), body_new)
-        started = torch.where(fix, one, started)
+        started = torch.where(first, one, started)
         out = torch.cat([z[:, :2], wrap_angle_torch(z[:, 2:3])], -1)
         out = torch.where(started[:, None] > 0.5, out, torch.full_like(out, math.nan))
         cov = torch.where(started[:, None, None] > 0.5, P[:, :3, :3],

@@ -38,10 +38,12 @@ from lbo.serve.runners import (
     Estimate,
     RecursiveRunner,
     WindowRunner,
+    bicycle_rows,
     check_form,
     has_recursive_form,
     no_fix,
     no_heading,
+    no_receiver,
 )
 from lbo.sim.columns import RECEIVER
 from lbo.sim.logcheck import (
@@ -123,7 +125,8 @@ class Observer:
         else:
             self.kind, self.window, self.features = "learned", int(net.window), net.features
             self.engine = engine
-            self._runner = (RecursiveRunner(net, engine, device) if self.form == "recursive"
+            self._runner = (RecursiveRunner(net, self.vehicle, engine, device)
+                            if self.form == "recursive"
                             else WindowRunner(name, net, self.vehicle, self.noise, engine,
                                               device))
         self.envelope = stored_envelope(name, self.meta) if net is not None else None
@@ -149,6 +152,14 @@ class Observer:
     def takes_missing_fixes(self) -> bool:
         """Whether steps without a position fix are allowed (classical, or trained for it)."""
         return self.net is None or bool(getattr(self.net, "fixes", False))
+
+    @property
+    def takes_receiver(self) -> bool:
+        """Whether fixes without a heading and a receiver's channels are taken: by the
+        classical observers, and by the robust observer's recursive form on engine=torch
+        (whose update takes the channels a row holds, :mod:`lbo.models.recursive`; an
+        exported step reads the paper's three)."""
+        return self.net is None or (self.form == "recursive" and self.engine == "torch")
 
     @property
     def gives_covariance(self) -> bool:
@@ -250,12 +261,11 @@ class Observer:
         ----------
         measurement : (3,) ``[x_m, y_m, psi_m]`` (m, m, rad), or None (or all NaN) when this
             step has no position fix (classical observers, and learned ones trained with
-            ``fix_rates``); ``psi_m`` NaN alone: a position fix without a heading (classical
-            observers only).
+            ``fix_rates``); ``psi_m`` NaN alone: a position fix without a heading (where
+            :attr:`takes_receiver`).
         input : (2,) ``[V, delta]`` (m/s, rad) applied from this step to the next.
-        receiver : (7,) this sample's receiver channels, as a row of :meth:`run`'s
-            ``receiver`` (NaN where not held), or None; classical observers only. ``gyro``
-            needs it, with ``r_m`` at its first step (each reading is held to the next).
+        receiver : (7,) this sample's receiver channels, a row of :meth:`run`'s ``receiver``,
+            or None (where :attr:`takes_receiver`). ``gyro`` needs ``r_m`` at its first step.
 
         Returns
         -------
@@ -270,11 +280,9 @@ class Observer:
         LboError
             One line naming the step and the value, for a sample :meth:`run` would refuse in
             a log: inf, a heading without a position, x_m without y_m (or the reverse), a
-            position fix without a heading for a learned observer, |x_m| or
-            |y_m| beyond 1e7 m, |psi_m| beyond 2 pi, |V| beyond 100 m/s, |delta| beyond the
-            vehicle's ``delta_max``; or no fix for an observer trained with a fix at every
-            step. A refused sample changes nothing: the next :meth:`step` goes on as if it
-            had never been given.
+            position fix without a heading for a window net, |x_m| or |y_m| beyond 1e7 m,
+            |psi_m| beyond 2 pi, |V| beyond 100 m/s, |delta| beyond ``delta_max``; or no fix
+            for a net trained with a fix at every step. A refused sample changes nothing.
 
         Notes
         -----
@@ -295,7 +303,7 @@ class Observer:
                            f"{input!r}") from None
         fix = check_sample(None if m is None else tuple(m.tolist()), tuple(u.tolist()), k,
                            self.vehicle.delta_max)
-        if fix and self.net is not None and np.isnan(m[2]):
+        if fix and not self.takes_receiver and np.isnan(m[2]):
             raise LboError(f"step {k}: {no_heading(self.name)}")
         if not fix:
             if not self.takes_missing_fixes:
@@ -304,14 +312,14 @@ class Observer:
         else:  # one branch for every observer (absolute features read the angle itself)
             m = m.copy()  # never the caller's array
             m[2] = wrap_angle(m[2])
-        if receiver is not None and self.net is not None:
-            raise LboError(f"step {k}: {self.name} does not take a receiver's channels yet; "
-                           f"the classical observers ({', '.join(classical.OBSERVERS)}) do")
+        if receiver is not None and not self.takes_receiver:
+            raise LboError(f"step {k}: {no_receiver(self.name)}")
+        row = m
         if receiver is not None or self.name == classical.GYRO:
-            m, u = self._runner.sample(k, m, u, receiver)
+            row, u = self._runner.sample(k, m, u, receiver)
         # checked: from here on the sample is taken
         outside = self._envelope(m, u) if self._envelope is not None else ()
-        est = self._runner.take(k, m, u, fix)
+        est = self._runner.take(k, row, u, fix)
         self._count += 1
         if not outside:
             return est
@@ -336,8 +344,8 @@ class Observer:
         Parameters
         ----------
         m : (T, 3) measurements ``[x_m, y_m, psi_m]``; a row of NaN is a step without a
-            position fix, a NaN psi_m alone a position fix without a heading (classical
-            observers only: a learned one refuses it in one line).
+            position fix, a NaN psi_m alone a position fix without a heading (where
+            :attr:`takes_receiver`; a window net refuses it in one line).
         u : (T, 2) inputs ``[V, delta]``.
         batch_size : windows per network call.
         source : what to call the log in messages (``"input log.csv"``); None: nothing.
@@ -349,8 +357,8 @@ class Observer:
             ``[sx_m, sy_m, spsi_m, ve_m, vn_m, sv_m, r_m]``, NaN where a row holds none: the
             accuracy it reports per fix (the R of that step), a GNSS velocity (its course
             over ground, :mod:`lbo.filters.measure`) and a gyro's yaw rate (the ``gyro``
-            observer's input, held from one reading to the next). Classical observers only;
-            the adaptive one learns its own R and takes the velocity alone.
+            observer's input, held from one reading to the next). Where :attr:`takes_receiver`;
+            the adaptive EKF learns its own R and takes the velocity alone.
 
         Returns
         -------
@@ -369,11 +377,10 @@ class Observer:
             One line naming the row: the checks of ``python -m lbo.observe``
             (:func:`lbo.sim.logcheck.check_samples`: NaN or inf other than a missing fix or
             heading, a heading without a position, x_m without y_m, no fix at all, headings
-            in degrees, positions, speeds or steering beyond a vehicle's); a position fix
-            without a heading for a learned observer; a step without a fix for an observer
-            trained with a fix at every step; for a learned observer trained with ``fix_rates``
-            in its window form, a window of N steps after the first fix without any fix (its
-            estimate there would be NaN).
+            in degrees, positions, speeds or steering beyond a vehicle's); a fix without a
+            heading, or a receiver's channels, where not :attr:`takes_receiver`; no fix for a
+            net trained with a fix at every step; for a window net trained with ``fix_rates``,
+            N steps after the first fix without any (its estimate there would be NaN).
         """
         try:
             m = np.asarray(m, dtype=float)
@@ -394,12 +401,10 @@ class Observer:
             if receiver.shape != (len(m), len(RECEIVER)):
                 raise LboError(f"run needs receiver ({len(m)}, {len(RECEIVER)}) "
                                f"[{', '.join(RECEIVER)}], got {receiver.shape}")
-            if self.net is not None:
-                raise LboError(f"receiver: {self.name} does not take a receiver's channels "
-                               f"({', '.join(RECEIVER)}) yet; the classical observers "
-                               f"({', '.join(classical.OBSERVERS)}) do")
+            if not self.takes_receiver:
+                raise LboError(f"receiver: {no_receiver(self.name)}")
             check_receiver(m, receiver, source)
-        if self.net is not None and (fix & np.isnan(m[:, 2])).any():
+        if not self.takes_receiver and (fix & np.isnan(m[:, 2])).any():
             raise LboError(f"{source + ': ' if source else ''}row "
                            f"{int(np.argmax(fix & np.isnan(m[:, 2])))}: "
                            + no_heading(self.name))
@@ -412,9 +417,12 @@ class Observer:
         # observer, as step() takes them (absolute features read the angle itself)
         m = m.copy()
         m[:, 2] = wrap_angle(m[:, 2])
+        rows = m
         if self.net is None:
-            m, u = self._runner.log_rows(m, u, receiver, source)
-        est, covs = self._runner.run(m, u, fix, smooth, batch_size)
+            rows, u = self._runner.log_rows(m, u, receiver, source)
+        elif receiver is not None:
+            rows = bicycle_rows(m, u, receiver, self.vehicle.wheelbase)
+        est, covs = self._runner.run(rows, u, fix, smooth, batch_size)
         est[:, 2] = wrap_angle(est[:, 2])
         valid = np.isfinite(est).all(1)
         valid &= np.arange(len(m)) >= self._runner.first_valid

@@ -125,7 +125,39 @@ def no_heading(name: str) -> str:
     """Why a learned observer refuses a position fix without a heading."""
     return (f"a position fix without a heading (psi_m empty), but {name} takes full fixes "
             "only (x_m, y_m and psi_m); the classical observers "
-            f"({', '.join(classical.OBSERVERS)}) take it")
+            f"({', '.join(classical.OBSERVERS)}) take it, and the robust observer (filternet) "
+            "in its recursive form on engine=torch")
+
+
+def no_receiver(name: str) -> str:
+    """Why a learned observer refuses a receiver's channels."""
+    return (f"{name} does not take a receiver's channels; the classical observers "
+            f"({', '.join(classical.OBSERVERS)}) do, and the robust observer (filternet) in its "
+            "recursive form on engine=torch")
+
+
+def checked_receiver(k: int, m: np.ndarray, receiver: Any) -> np.ndarray:
+    """Step ``k``'s receiver channels (7,) (None: none held, all NaN), checked beside its
+    measurement m (3,) as a log's row is (:func:`lbo.sim.logcheck.check_receiver`)."""
+    if receiver is None:
+        return np.full(len(RECEIVER), np.nan)
+    try:
+        r = np.asarray(receiver, dtype=float).reshape(len(RECEIVER))
+    except (TypeError, ValueError):
+        raise LboError(f"step {k}: receiver must be {len(RECEIVER)} numbers "
+                       f"[{', '.join(RECEIVER)}] (NaN where not held), got "
+                       f"{receiver!r}") from None
+    check_receiver(m[None], r[None], f"step {k}")
+    return r
+
+
+def bicycle_rows(m: np.ndarray, u: np.ndarray, receiver: np.ndarray, wheelbase: float
+                 ) -> np.ndarray:
+    """The filters' rows (T, 8) of measurements m (T, 3) and a receiver's channels (T, 7) at
+    inputs u (T, 2) ``[V, delta]``: the turn rate the course's variance allows for is the
+    bicycle's ``V tan(delta) / L``."""
+    turn = u[:, 0] * np.tan(u[:, 1]) / wheelbase
+    return measure.rows(m, receiver[:, :3], receiver[:, 3:5], receiver[:, 5], u[:, 0], turn)
 
 
 def no_fix(name: str) -> str:
@@ -169,9 +201,10 @@ class ClassicalRunner:
         allows for is the gyro's, or the bicycle's ``V tan(delta) / L``."""
         if self.gyro is not None:
             return self.gyro.rows(m, receiver, u)
-        turn = (u[:, 1] if self.name == classical.GYRO else
-                u[:, 0] * np.tan(u[:, 1]) / self.vehicle.wheelbase)
-        return measure.rows(m, receiver[:, :3], receiver[:, 3:5], receiver[:, 5], u[:, 0], turn)
+        if self.name == classical.GYRO:
+            return measure.rows(m, receiver[:, :3], receiver[:, 3:5], receiver[:, 5], u[:, 0],
+                                u[:, 1])
+        return bicycle_rows(m, u, receiver, self.vehicle.wheelbase)
 
     def log_rows(self, m: np.ndarray, u: np.ndarray, receiver: np.ndarray | None,
                  source: str | None) -> tuple[np.ndarray, np.ndarray]:
@@ -195,15 +228,7 @@ class ClassicalRunner:
         """Sample ``k``'s row (8,) of its checked measurement m (3,) and its receiver channels
         (7,) (None: none), checked as a log's row is; and its inputs (2,): for ``gyro``,
         ``[V, r_m]`` with the last reading held. Nothing is kept unless the sample passes."""
-        r = np.full(len(RECEIVER), np.nan)
-        if receiver is not None:
-            try:
-                r = np.asarray(receiver, dtype=float).reshape(len(RECEIVER))
-            except (TypeError, ValueError):
-                raise LboError(f"step {k}: receiver must be {len(RECEIVER)} numbers "
-                               f"[{', '.join(RECEIVER)}] (NaN where not held), got "
-                               f"{receiver!r}") from None
-            check_receiver(m[None], r[None], f"step {k}")
+        r = checked_receiver(k, m, receiver)
         if self.name == classical.GYRO:
             rate = r[RECEIVER.index("r_m")]
             gyro = float(rate) if np.isfinite(rate) else self.gyro_last
@@ -315,10 +340,17 @@ class RecursiveRunner:
 
     first_valid = 0
 
-    def __init__(self, net: Any, engine: str, device: str) -> None:
-        self.net, self.device = net, device
+    def __init__(self, net: Any, vehicle: Vehicle, engine: str, device: str) -> None:
+        self.net, self.vehicle, self.device = net, vehicle, device
         self.step, self.state0 = make_recursive_step(net, engine, device)
         self.reset()
+
+    def sample(self, k: int, m: np.ndarray, u: np.ndarray, receiver: Any
+               ) -> tuple[np.ndarray, np.ndarray]:
+        """Sample ``k``'s row (8,) of its checked measurement m (3,) and its receiver channels
+        (7,), checked as a log's row is, and its inputs u (2,) as they are."""
+        r = checked_receiver(k, m, receiver)
+        return bicycle_rows(m[None], u[None], r[None], self.vehicle.wheelbase)[0], u
 
     def reset(self) -> None:
         self.state = [x.copy() for x in self.state0]
@@ -332,7 +364,8 @@ class RecursiveRunner:
 
     def run(self, m: np.ndarray, u: np.ndarray, fix: np.ndarray, smooth: bool = False,
             batch_size: int = 0) -> tuple[np.ndarray, np.ndarray]:
-        mm = np.where(fix[:, None], m, np.nan)
+        mm = np.array(m)  # rows (T, 3), or (T, 8) with a receiver's channels
+        mm[~fix, :3] = np.nan
         if smooth:
             from lbo.models.recursive import run_arrays
 
