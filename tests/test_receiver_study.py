@@ -89,17 +89,20 @@ def test_pooled_scores_are_those_of_the_drives_rows_as_one():
         scoring.pool([a, b.iloc[::-1]])
 
 
-def test_receiver_study_scores_every_observer_against_the_oracle(tmp_path):
+def test_receiver_study_scores_every_observer_against_the_oracle(tmp_path, robust_smoke):
     from lbo.receiver_study import LEARNED, receiver_study
 
     cfg = compose_cfg("receiver_study", [f"output_dir={tmp_path}", "alphas=[1,6]", "drives=1",
                                          "duration=30", "learn.drives=2", "learn.epochs=1",
-                                         "observers=[ekf,gyro]"])
+                                         "observers=[ekf,gyro]",
+                                         f"nets=[{robust_smoke['out']['checkpoint']}]"])
     table = receiver_study(cfg)["table"]
     written = pd.read_csv(tmp_path / "results.csv")
     assert written["estimator"].tolist() == table["estimator"].tolist()
     assert set(written["alpha"]) == {1.0, 6.0}
     assert LEARNED in set(written["estimator"])
+    # the robust observer, in its recursive form, reads the receiver's channels too
+    assert f"filternet-N40 (recursive), {scoring.NET_ROW}" in set(written["estimator"])
     oracle = written[written["estimator"] == scoring.ORACLE]
     assert (oracle["vs_oracle"] == 1.0).all()
     fair = written[written["estimator"] == scoring.NOISE_ORACLE]

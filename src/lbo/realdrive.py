@@ -17,7 +17,9 @@ antenna:
 - each classical observer with the receiver's channels (its reported accuracy as R, its
   velocity as the course), the gyro EKF with the learned noise, and the EKF without the
   channels (lbo's R, no velocity) and smoothed (RTS, offline), as :meth:`lbo.Observer.run`
-  gives them.
+  gives them;
+- each learned observer of ``nets`` (checkpoints, MLflow run ids) with the receiver's channels
+  (the robust observer's recursive form takes them).
 
 It writes ``results.csv`` and ``results.md`` (RMSE of x, y in m and psi in mrad, over the rows
 each estimates, and the quadratic mean of the three RMSE ratios to the EKF's),
@@ -88,7 +90,8 @@ def realdrive(cfg: DictConfig) -> dict[str, Any]:
     print("spans: " + ", ".join(f"{k} {len(p) * vehicle.dt:.0f} s -> {paths[k]}"
                                 for k, p in parts.items()))
     learned = _learn(learn, cfg.simulated, parts, vehicle, noise, out) if learn["epochs"] else {}
-    table, estimates = score(parts["test"], observers, vehicle, noise, learned)
+    table, estimates = score(parts["test"], observers, vehicle, noise, learned,
+                             nets=[str(n) for n in cfg.get("nets") or ()])
     table["vs_ekf"] = ratio_to(table, EKF)
     write_table(table, out / "results.csv")
     with atomic_path(out / "results.md") as tmp:

@@ -9,7 +9,7 @@ bias that walks; alpha scales the receiver's errors) and scores on each, from it
 course over ground on (:func:`lbo.scoring.receiver.score`):
 
 - the raw fixes; every classical observer with the receiver's channels; the EKF without them
-  and smoothed;
+  and smoothed; each learned observer of ``nets`` with the receiver's channels;
 - the gyro EKF with its noise learned once on simulated drives spread over
   ``learn.alpha_range`` (:mod:`lbo.learn.gyro_fit`; one noise for every alpha, never told
   it: the receiver's reported accuracy carries the scale);
@@ -123,7 +123,8 @@ def receiver_study(cfg: DictConfig) -> dict[str, Any]:
             oracles = {scoring.NOISE_ORACLE: scoring.oracle_gyro(
                            *told, bias=(spec.gyro_bias, spec.gyro_walk)),
                        scoring.ORACLE: scoring.oracle_gyro(*told)}
-            table, _ = scoring.score(log, list(cfg.observers), vehicle, noise, learned, oracles)
+            table, _ = scoring.score(log, list(cfg.observers), vehicle, noise, learned, oracles,
+                                     nets=[str(n) for n in cfg.get("nets") or ()])
             per_drive.append(table)
         table = scoring.pool(per_drive)
         table.insert(0, "alpha", float(alpha))
