@@ -90,7 +90,14 @@ def test_the_registry_registers_the_model(robust, monkeypatch):
     uri = register(robust["run_id"], "lbo-robust", robust["uri"])
     assert uri == "models:/lbo-robust/1"
     assert Observer.load(uri).name == "filternet-N40"
-    model = mlflow.pyfunc.load_model(uri)  # the pyfunc model, not a folder of checkpoints
+    # a training in this process (Lightning's MLFlowLogger) sets MLflow's process-wide tracking
+    # URI, which outranks the environment: name the store for MLflow's own loader
+    previous = mlflow.get_tracking_uri()
+    mlflow.set_tracking_uri(robust["uri"])
+    try:
+        model = mlflow.pyfunc.load_model(uri)  # the pyfunc model, not a folder of checkpoints
+    finally:
+        mlflow.set_tracking_uri(previous)
     assert list(model.metadata.get_input_schema().input_names()) == [*WINDOW, "log"]
 
 

@@ -55,10 +55,10 @@ class Stages:
         seconds = time.perf_counter() - start
         prev = self.record.get(name, {})
         if status == "reused" and prev.get("seconds") is not None:
-            entry = {"status": "reused", "seconds": prev["seconds"], "check_seconds": seconds}
+            stage = {"status": "reused", "seconds": prev["seconds"], "check_seconds": seconds}
         else:
-            entry = {"status": status, "seconds": seconds}
-        self.record[name] = entry
+            stage = {"status": status, "seconds": seconds}
+        self.record[name] = stage
         write_text(self.path, json.dumps(self.record, indent=1))
         print(f"<== [{i}/{len(STAGES)}] {name}: {status} in {seconds:.1f} s", flush=True)
         return result

@@ -49,6 +49,7 @@ from lbo.tracking.handoff import (
     best_trials,
     hydra_searchpath,
     outside_note,
+    outside_space,
     train_command,
     write_handoff,
 )
@@ -345,10 +346,10 @@ def _run_study(cfg: DictConfig, space: list[Param], pruner: optuna.pruners.BaseP
     counts = {s: len(study.get_trials(deepcopy=False, states=(s,))) for s in TrialState}
     if best is None:
         if counts[TrialState.COMPLETE]:
-            _, outside = best_trials(study, space)
+            _, better = best_trials(study, space)
             raise LboError(f"study {t.study_name}: none of its {counts[TrialState.COMPLETE]} "
                            f"completed trials lies in the current search space (trial "
-                           f"{outside.number}: {outside(outside, space)}), so no hand-off "
+                           f"{better.number}: {outside_space(better, space)}), so no hand-off "
                            f"was written; rerun with a larger tune.n_trials")
         raise LboError(f"study {t.study_name}: no trial has completed "
                        f"({counts[TrialState.PRUNED]} pruned, {counts[TrialState.FAIL]} failed),"

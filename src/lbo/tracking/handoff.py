@@ -22,13 +22,13 @@ def best_trials(study: optuna.Study,
     a better completed trial outside it (a range narrowed since it ran), or None."""
     done = sorted(study.get_trials(deepcopy=False, states=(TrialState.COMPLETE,)),
                   key=lambda tr: (tr.value, tr.number))
-    inside = [tr for tr in done if not outside(tr, space)]
+    inside = [tr for tr in done if not outside_space(tr, space)]
     best = inside[0] if inside else None
     better = done[0] if done and (best is None or done[0].value < best.value) else None
     return best, better
 
 
-def outside(trial: FrozenTrial, space: list[Param]) -> str:
+def outside_space(trial: FrozenTrial, space: list[Param]) -> str:
     """The trial's settings that the search space no longer holds, e.g.
     ``optimizer.lr=0.005 not in [0.0001, 0.003]``; empty when it holds them all."""
     return ", ".join(f"{p.key}={short_value(p.decode(trial.params[p.key]))} not in {p.bounds}"
@@ -39,7 +39,7 @@ def outside(trial: FrozenTrial, space: list[Param]) -> str:
 def outside_note(better: FrozenTrial, best: FrozenTrial, space: list[Param]) -> str:
     return (f"note: trial {better.number} (val_loss {better.value:.6g}) is better than trial "
             f"{best.number} (val_loss {best.value:.6g}) but lies outside the current search "
-            f"space ({outside(better, space)}); the hand-off takes trial {best.number}, the "
+            f"space ({outside_space(better, space)}); the hand-off takes trial {best.number}, the "
             f"best inside it")
 
 
