@@ -274,6 +274,6 @@ def test_the_recursive_form_takes_a_single_antenna_log():
     for refused, where in ((Observer.from_net(net, form="window"), "window form"),
                            (Observer.from_net(net, form="recursive", engine="onnx"), "onnx")):
         assert not refused.takes_receiver, where
-        with pytest.raises(LboError, match=r"^receiver: filter-N60 does not take a "
+        with pytest.raises(LboError, match=r"^receiver: filternet-N60 does not take a "
                                            r"receiver's channels; the classical observers"):
             refused.run(m, u, receiver=r)

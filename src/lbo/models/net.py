@@ -69,6 +69,7 @@ class WindowNet(nn.Module):
             raise LboError(f"window: expected an integer number of steps in [1, {MAX_WINDOW}], "
                            f"got {window!r}")
         self.window = int(window)
+        self.model = model  # its registered name: an observer of it is named <model>-N<window>
         self.fixes = bool(fixes)
         channels = 6 if self.fixes else 5
         if self.fixes:

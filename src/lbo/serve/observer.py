@@ -60,11 +60,6 @@ from lbo.tracking.artifacts import checkpoint_file
 
 __all__ = ["Estimate", "EnvelopeWarning", "Observer"]
 
-NET_KINDS = {"WindowCNN": "cnn", "WindowLSTM": "lstm", "WindowFilter": "filter",
-             "KalmanNet": "kalmannet"}
-"""The name an untrained or unnamed net goes by (``<kind>-N<window>``), per net class."""
-
-
 class EnvelopeWarning(UserWarning):
     """A learned observer was given samples outside the envelope of its training inputs."""
 
@@ -236,7 +231,7 @@ class Observer:
                  *, name: str | None = None, engine: str = "torch",
                  device: str = "cpu", form: str | None = None) -> Observer:
         """Wrap an :class:`~lbo.models.net.WindowNet` (trained or not) as an observer."""
-        name = name or f"{NET_KINDS.get(type(net.net).__name__, 'net')}-N{net.window}"
+        name = name or f"{net.model}-N{net.window}"  # as a checkpoint of it is named
         return cls(name, vehicle, noise, net=net, engine=engine, device=device, form=form)
 
     # ----------------------------------------------------------------------- streaming
