@@ -59,12 +59,14 @@ FINE_TUNED = "gyro, noise learned on simulated drives, fine-tuned on the train s
 
 def realdrive(cfg: DictConfig) -> dict[str, Any]:
     """Write the hill drive's span logs and score the classical observers on its test span."""
+    from lbo.serve.observer import Observer
     from lbo.sim.noise import Noise
     from lbo.sim.vehicle import Vehicle
 
     observers = list(cfg.observers)
     for name in observers:
         classical.check(str(name), "observers")
+    nets = [Observer.load(str(n)) for n in cfg.get("nets") or ()]  # refused before any work
     learn = {"epochs": integer(cfg.learn.epochs, "learn.epochs", 0),
              "simulated": integer(cfg.learn.simulated, "learn.simulated", 0),
              "segment_s": number(cfg.learn.segment_s, "learn.segment_s", 0.0, low_open=True),
@@ -91,7 +93,7 @@ def realdrive(cfg: DictConfig) -> dict[str, Any]:
                                 for k, p in parts.items()))
     learned = _learn(learn, cfg.simulated, parts, vehicle, noise, out) if learn["epochs"] else {}
     table, estimates = score(parts["test"], observers, vehicle, noise, learned,
-                             nets=[str(n) for n in cfg.get("nets") or ()])
+                             nets=nets)
     table["vs_ekf"] = ratio_to(table, EKF)
     write_table(table, out / "results.csv")
     with atomic_path(out / "results.md") as tmp:

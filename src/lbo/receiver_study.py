@@ -88,6 +88,7 @@ def _settings(cfg: DictConfig) -> dict[str, Any]:
 def receiver_study(cfg: DictConfig) -> dict[str, Any]:
     """Score every observer on simulated single-antenna logs at each alpha (see the module)."""
     from lbo.learn import gyro_fit
+    from lbo.serve.observer import Observer
     from lbo.sim.noise import Noise
     from lbo.sim.receiver import SIGMA_FLOOR, ReceiverSpec
     from lbo.sim.vehicle import Vehicle
@@ -97,6 +98,7 @@ def receiver_study(cfg: DictConfig) -> dict[str, Any]:
         raise LboError("receiver: expected a receiver to simulate (receiver=single_antenna)")
     vehicle, noise = Vehicle.from_cfg(cfg.vehicle), Noise.from_cfg(cfg.noise)
     spec = ReceiverSpec.from_cfg(cfg.receiver, vehicle.dt)
+    nets = [Observer.load(str(n)) for n in cfg.get("nets") or ()]  # read once, before any work
     out = Path(str(cfg.output_dir))
     check_output_path(out / "results.csv")
     out.mkdir(parents=True, exist_ok=True)
@@ -124,7 +126,7 @@ def receiver_study(cfg: DictConfig) -> dict[str, Any]:
                            *told, bias=(spec.gyro_bias, spec.gyro_walk)),
                        scoring.ORACLE: scoring.oracle_gyro(*told)}
             table, _ = scoring.score(log, list(cfg.observers), vehicle, noise, learned, oracles,
-                                     nets=[str(n) for n in cfg.get("nets") or ()])
+                                     nets=nets)
             per_drive.append(table)
         table = scoring.pool(per_drive)
         table.insert(0, "alpha", float(alpha))

@@ -59,7 +59,7 @@ def scored_rows(log: pd.DataFrame) -> np.ndarray:
 
 def score(log: pd.DataFrame, observers: Sequence[str], vehicle: Vehicle, noise: Any,
           learned: Mapping[str, GyroNoise] | None = None,
-          extra: Mapping[str, np.ndarray] | None = None, nets: Sequence[str] = ()
+          extra: Mapping[str, np.ndarray] | None = None, nets: Sequence[Any] = ()
           ) -> tuple[pd.DataFrame, dict[str, np.ndarray]]:
     """RMSE (x m, y m, psi mrad) of the raw fixes and each observer on ``log`` (with truth),
     every one scored from the log's first course over ground on.
@@ -68,9 +68,9 @@ def score(log: pd.DataFrame, observers: Sequence[str], vehicle: Vehicle, noise: 
     then the EKF without them (lbo's R, no velocity) and smoothed (RTS, offline).
     learned : also the gyro EKF with each of these (learned) noises, by row label.
     extra : estimates (T, 3) made elsewhere (NaN: none yet), by row label.
-    nets : learned observers (a checkpoint, an MLflow run id, ...) run with the receiver's
-        channels, each in its default form (:meth:`lbo.Observer.load`; the robust observer's
-        recursive form takes them), as ``<name> (<form>), receiver's accuracy and velocity``.
+    nets : learned observers (:class:`lbo.Observer`, loaded once by the caller) run with the
+        receiver's channels (the robust observer's recursive form takes them), as ``<name>
+        (<form>), receiver's accuracy and velocity``.
 
     Returns the table (one row each: ``estimator, x_m, y_m, psi_mrad, rows``) and the
     estimates (T, 3) by row label (NaN where an observer has none yet, and on the rows not
@@ -98,10 +98,9 @@ def score(log: pd.DataFrame, observers: Sequence[str], vehicle: Vehicle, noise: 
     for label, name, channels, smooth, gyro in runs:
         obs = Observer.load(name, vehicle, noise, gyro_noise=gyro)
         found[label] = obs.run(m, u, receiver=channels, smooth=smooth)
-    for source in nets:
-        obs = Observer.load(source)
-        label = f"{obs.name} ({obs.form}), {NET_ROW}"
-        found[label] = obs.run(m, u, receiver=r, source=str(source))
+    for obs in nets:
+        found[f"{obs.name} ({obs.form}), {NET_ROW}"] = obs.run(
+            m, u, receiver=r, source=str(obs.meta.get("source", obs.name)))
     for label, est in (extra or {}).items():
         found[label] = (est, np.isfinite(est).all(1))
     estimates = {}
