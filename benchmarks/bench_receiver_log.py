@@ -2,6 +2,7 @@
 observer, end to end (read, check, filter, write).
 
     python benchmarks/bench_receiver_log.py [--hours 1] [--repeats 3] [--fix-rate 5]
+        [--observers ekf,<robust checkpoint>] [--engines torch,onnx]
 
 The log: 180,000 rows at 50 Hz (one hour) of a simulated drive, single-antenna fixes (no
 heading) at ``--fix-rate`` Hz with the accuracy the receiver reports (``sx_m, sy_m``) and its
@@ -9,7 +10,8 @@ velocity (``ve_m, vn_m, sv_m``), a gyro (``r_m``) at every row, the truth column
 Each observer runs as a user runs it, in its own process; the table gives the median over
 ``repeats`` and the time per row. Targets: the EKF under 10 s on a 2-core CPU, a learned
 observer (``--observers ekf,<robust checkpoint>``: the robust observer's recursive form, which
-reads the receiver's channels) under 60 s.
+reads the receiver's channels) under 60 s. A learned observer runs once per engine of
+``--engines`` (``engine=`` of ``lbo.observe``).
 """
 
 from __future__ import annotations
@@ -63,6 +65,8 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--fix-rate", type=float, default=5.0)
     ap.add_argument("--observers", default="ekf,ukf,adaptive,gyro")
+    ap.add_argument("--engines", default="torch,onnx",
+                    help="engines a learned observer runs on, each its own row")
     args = ap.parse_args()
     rows = int(round(args.hours * 3600 / Vehicle().dt))
     with tempfile.TemporaryDirectory() as tmp:
@@ -73,12 +77,16 @@ def main() -> None:
               f"median of {args.repeats}")
         print("| observer | wall (s) | per row (us) | target |")
         print("|---|---:|---:|---|")
-        for name in args.observers.split(","):
+        runs = [(name, None) if name in CLASSICAL else (name, engine)
+                 for name in args.observers.split(",")
+                 for engine in ([None] if name in CLASSICAL else args.engines.split(","))]
+        for name, engine in runs:
             times = []
             for _ in range(args.repeats):
                 start = time.perf_counter()
                 res = subprocess.run([sys.executable, "-m", "lbo.observe", f"observer={name}",
-                                      f"input={log}", f"output={Path(tmp) / 'est.parquet'}"],
+                                      f"input={log}", f"output={Path(tmp) / 'est.parquet'}",
+                                      *([f"engine={engine}"] if engine else [])],
                                      capture_output=True, text=True)
                 times.append(time.perf_counter() - start)
                 if res.returncode:
@@ -88,7 +96,7 @@ def main() -> None:
             target = TARGET_S.get(kind) if args.hours == 1 else None  # set for one hour
             verdict = "" if target is None else (f"< {target:g} s: "
                                                  + ("met" if wall < target else "missed"))
-            label = name if name in CLASSICAL else f"learned ({Path(name).name})"
+            label = name if engine is None else f"learned ({Path(name).name}, {engine})"
             print(f"| {label} | {wall:.1f} | {1e6 * wall / rows:.0f} | {verdict} |")
 
 

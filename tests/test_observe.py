@@ -18,6 +18,7 @@ from lbo.filters.reference import run_filterpy_ekf
 from lbo.observe import observe as observe_cfg
 from lbo.scoring.grid import classical, predict_grid
 from lbo.scoring.metrics import rmse
+from lbo.serve.engines import TOLERANCE
 from lbo.serve.observer import Observer
 from lbo.sim import schema
 from lbo.sim.logio import resample
@@ -507,3 +508,23 @@ def test_a_learned_observer_runs_on_the_threads_it_is_given(trained, tmp_path, l
         assert torch.get_num_threads() == 1
     finally:
         torch.set_num_threads(1)  # as this module's fixture has it
+
+
+def test_engine_runs_a_learned_observer_in_torchscript_or_onnx_runtime(trained, tmp_path,
+                                                                       log_csv):
+    def run(*extra):
+        out = tmp_path / f"est{len(list(tmp_path.iterdir()))}.csv"
+        observe_cfg(compose_cfg("observe", [f"observer={trained['checkpoint']}",
+                                            f"input={log_csv}", f"output={out}", *extra]))
+        return pd.read_csv(out)
+
+    want = run()
+    for engine in ("torchscript", "onnx"):
+        got = run(f"engine={engine}")
+        np.testing.assert_allclose(got[["x", "y", "psi"]], want[["x", "y", "psi"]], rtol=0,
+                                   atol=TOLERANCE, err_msg=engine)
+    # checked before any checkpoint is read
+    with pytest.raises(LboError, match=r"^engine must be one of \['torch', 'torchscript', "
+                                       r"'onnx'\], got 'tensorrt'$"):
+        observe_cfg(compose_cfg("observe", ["observer=missing.ckpt", f"input={log_csv}",
+                                            f"output={tmp_path / 'x.csv'}", "engine=tensorrt"]))

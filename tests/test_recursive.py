@@ -7,11 +7,13 @@ import pytest
 import torch
 
 from lbo.core.errors import LboError
+from lbo.filters import measure
 from lbo.models.filternet import WindowFilter
 from lbo.models.net import WindowNet
 from lbo.models.recursive import STATE_NAMES, RecursiveFilter
 from lbo.serve.engines import TOLERANCE
 from lbo.serve.observer import Observer
+from lbo.sim.columns import RECEIVER
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
@@ -172,14 +174,22 @@ def test_export_writes_the_step_function_a_control_loop_calls(tmp_path):
              for s in spec["state"]}
     ts_state = [torch.from_numpy(v.copy()) for v in state.values()]
     inputs = {s["name"] for s in spec["state"] if s["onnx_input"]}
+    assert spec["input"]["m"]["columns"] == list(measure.CHANNELS)
     m, u = _logs(1, 120, True, seed=6)
+    rows = measure.widen(m)
+    # the second half as a single antenna gives it: no heading, an accuracy with each fix
+    rows[0, 60:, 2] = np.nan
+    rows[0, 60:, 3:5] = np.where(np.isfinite(rows[0, 60:, :1]), 0.7, np.nan)
+    receiver = np.full((120, len(RECEIVER)), np.nan)
+    receiver[:, :2] = rows[0, :, 3:5]
     for k in range(120):
-        want = obs.step(None if np.isnan(m[0, k, 0]) else m[0, k], u[0, k])
-        out = session.run(None, {"m": m[:, k], "u": u[:, k],
+        fix = rows[0, k, :3]
+        want = obs.step(None if np.isnan(fix[0]) else fix, u[0, k], receiver=receiver[k])
+        out = session.run(None, {"m": rows[:, k], "u": u[:, k],
                                  **{n: v for n, v in state.items() if n in inputs}})
         state = dict(zip(state, out[2:]))
         with torch.no_grad():
-            ts = script(torch.from_numpy(m[:, k]), torch.from_numpy(u[:, k]), *ts_state)
+            ts = script(torch.from_numpy(rows[:, k]), torch.from_numpy(u[:, k]), *ts_state)
         ts_state = list(ts[2:])
         for pose, cov in ((out[0][0], out[1][0]), (ts[0][0].numpy(), ts[1][0].numpy())):
             if want.valid:
@@ -244,7 +254,6 @@ def test_the_recursive_form_takes_a_single_antenna_log():
     noise is the paper's, as the EKF's). Where it cannot take them: one line."""
     from conftest import compose_cfg
 
-    from lbo.sim.columns import RECEIVER
     from lbo.simulate import simulate
 
     df = simulate(compose_cfg("simulate", ["manoeuvre=slalom", "receiver=single_antenna"])).head(
@@ -271,8 +280,14 @@ def test_the_recursive_form_takes_a_single_antenna_log():
 
     print("psi rmse: recursive", psi(est), "ekf", psi(ekf))
     assert psi(est) < 1.5 * psi(ekf)
+    for engine in ("torchscript", "onnx"):  # the exported step reads the same rows
+        exported = Observer.from_net(net, form="recursive", engine=engine)
+        assert exported.takes_receiver, engine
+        np.testing.assert_allclose(exported.run(m, u, receiver=r)[0], est, rtol=0,
+                                   atol=TOLERANCE, equal_nan=True, err_msg=engine)
+    blind = WindowNet("filternet", 60, features="frame")  # trained with a fix at every step
     for refused, where in ((Observer.from_net(net, form="window"), "window form"),
-                           (Observer.from_net(net, form="recursive", engine="onnx"), "onnx")):
+                           (Observer.from_net(blind, form="recursive"), "no missing fixes")):
         assert not refused.takes_receiver, where
         with pytest.raises(LboError, match=r"^receiver: filternet-N60 does not take a "
                                            r"receiver's channels; the classical observers"):

@@ -16,9 +16,10 @@ import requests
 from helpers.servers import model_server
 from lbo.core.errors import LboError
 from lbo.export import register
+from lbo.models.net import WindowNet
 from lbo.serve.observer import Observer
 from lbo.serve.serving import estimates
-from lbo.sim.columns import SERVED, WINDOW
+from lbo.sim.columns import RECEIVER, SERVED, WINDOW
 
 pytestmark = [pytest.mark.slow, pytest.mark.usefixtures("one_torch_thread")]
 
@@ -32,6 +33,20 @@ def robust(robust_smoke):
 def log(manoeuvre):
     frame = manoeuvre[list(WINDOW)].reset_index(drop=True).iloc[:300].copy()
     frame.loc[frame.index % 5 != 0, ["x_m", "y_m", "psi_m"]] = np.nan  # fixes at 10 Hz
+    return frame
+
+
+def _single_antenna(manoeuvre, log):
+    """``log`` as a single antenna gives it: no heading, each fix with its reported accuracy
+    and a GNSS velocity (the truth's, 0.1 m/s sigma)."""
+    frame = log.copy()
+    truth = manoeuvre.reset_index(drop=True).iloc[:len(frame)]
+    fix = frame["x_m"].notna()
+    frame["psi_m"] = np.nan
+    frame["sx_m"] = frame["sy_m"] = np.where(fix, 0.5, np.nan)
+    frame["ve_m"] = np.where(fix, truth["V"] * np.cos(truth["psi"]), np.nan)
+    frame["vn_m"] = np.where(fix, truth["V"] * np.sin(truth["psi"]), np.nan)
+    frame["sv_m"] = np.where(fix, 0.1, np.nan)
     return frame
 
 
@@ -68,19 +83,25 @@ def test_every_training_run_logs_a_model_that_pyfunc_loads_in_a_fresh_process(ro
     assert got["valid"].all() and (got[["var_x", "var_y", "var_psi"]] > 0).all(axis=None)
 
 
-def test_mlflow_models_serve_answers_a_posted_window(robust, log):
+def test_mlflow_models_serve_answers_a_posted_window(robust, log, manoeuvre):
     window = log.iloc[:40]  # one window of the observer's N, its estimate the last row's
-    want = _expected(robust, window)
-    body = {"dataframe_split": json.loads(window.to_json(orient="split", index=False))}
+    antenna = _single_antenna(manoeuvre, log).iloc[:60]  # and a receiver's rows
+    body, body_antenna = ({"dataframe_split": json.loads(f.to_json(orient="split", index=False))}
+                          for f in (window, antenna))
     with model_server(f"runs:/{robust['run_id']}/model", _env(robust["uri"])) as url:
         res = requests.post(f"{url}/invocations", json=body, timeout=60)
+        res_antenna = requests.post(f"{url}/invocations", json=body_antenna, timeout=60)
         bad = requests.post(f"{url}/invocations", timeout=60,
                             json={"dataframe_split": {"columns": ["x_m"], "data": [[1.0]]}})
-    assert res.status_code == 200, res.text
-    got = pd.DataFrame(res.json()["predictions"])
-    np.testing.assert_allclose(got[["x", "y", "psi"]].to_numpy(),
-                               want[["x", "y", "psi"]].to_numpy(), atol=1e-9)
-    assert got["valid"].tolist() == want["valid"].tolist()
+    for response, frame in ((res, window), (res_antenna, antenna)):
+        assert response.status_code == 200, response.text
+        got, want = pd.DataFrame(response.json()["predictions"]), _expected(robust, frame)
+        np.testing.assert_allclose(got[["x", "y", "psi"]].to_numpy(dtype=float),
+                                   want[["x", "y", "psi"]].to_numpy(), atol=1e-9)
+        assert got["valid"].tolist() == want["valid"].tolist()
+    # no heading in the fixes: the course over ground of the velocity columns gives it
+    assert want["valid"].all()
+    assert not _expected(robust, antenna.drop(columns=["ve_m", "vn_m", "sv_m"]))["valid"].any()
     # the model's signature: MLflow refuses a frame without the log's columns, naming them
     assert bad.status_code == 400 and "missing inputs" in bad.text.lower() and "delta" in bad.text
 
@@ -98,10 +119,19 @@ def test_the_registry_registers_the_model(robust, monkeypatch):
         model = mlflow.pyfunc.load_model(uri)  # the pyfunc model, not a folder of checkpoints
     finally:
         mlflow.set_tracking_uri(previous)
-    assert list(model.metadata.get_input_schema().input_names()) == [*WINDOW, "log"]
+    assert list(model.metadata.get_input_schema().input_names()) == [*WINDOW, "log",
+                                                                      *RECEIVER]
 
 
-def test_a_log_without_its_columns_is_one_line():
+def test_a_log_without_its_columns_is_one_line(manoeuvre, log):
     with pytest.raises(LboError, match="model input: missing columns V, delta"):
         estimates(Observer.load("ekf"), pd.DataFrame({"x_m": [0.0], "y_m": [0.0],
                                                       "psi_m": [0.0]}))
+    antenna = _single_antenna(manoeuvre, log)
+    with pytest.raises(LboError, match=r"^receiver: cnn-N20 does not take a receiver's "):
+        estimates(Observer.from_net(WindowNet("cnn", 20, "relative")), antenna)
+    # columns a client sends empty are no receiver: a window net takes the frame
+    full = manoeuvre[list(WINDOW)].reset_index(drop=True).iloc[:40]
+    empty = full.assign(**{c: np.nan for c in RECEIVER})
+    assert estimates(Observer.from_net(WindowNet("cnn", 20, "relative")), empty)[
+        "valid"].iloc[-1]

@@ -10,7 +10,9 @@ Writes ``<name>.pt`` (TorchScript, traced), ``<name>.onnx`` (opset 17, dynamic b
 y_m, psi_m, V, delta]``, oldest sample first, and return (B, 3) float64 ``[x, y, psi]`` at the
 window's last step: the feature transform and the normalisation are inside. The robust
 observer's files are its recursive form's step (:mod:`lbo.models.recursive`): one sample
-``m`` (B, 3) and ``u`` (B, 2) and the filter's state in, the pose (B, 3), its covariance
+``m`` (B, 8) (a receiver's row, :data:`lbo.filters.measure.CHANNELS`: the fix, its reported
+accuracy, the course over ground; NaN where not held) and ``u`` (B, 2) and the filter's state
+in, the pose (B, 3), its covariance
 (B, 3, 3) and the next state out; the JSON lists the state tensors, their shapes and their
 start (all zeros). Each file is checked against PyTorch (random windows; 300 steps of a drive
 with missing fixes) before it is kept.
@@ -161,6 +163,7 @@ def _export_lock(out: Path) -> Iterator[None]:
 def _step_sidecar(rec: Any, model: bytes) -> dict[str, Any]:
     """What a control loop needs to call the recursive form's step: its inputs and outputs,
     and the state it starts from."""
+    from lbo.filters.measure import CHANNELS
     from lbo.models.recursive import STATE_NAMES
     from lbo.serve.engines import onnx_session
 
@@ -168,9 +171,14 @@ def _step_sidecar(rec: Any, model: bytes) -> dict[str, Any]:
     used = {i.name for i in onnx_session(model).get_inputs()}
     return {
         "form": "recursive",
-        "input": {"m": {"shape": ["batch", 3], "columns": ["x_m", "y_m", "psi_m"],
-                        "missing_fix": "x_m, y_m and psi_m NaN" if rec.fixes else
-                        "not allowed: a fix at every step"},
+        "input": {"m": {"shape": ["batch", len(CHANNELS)], "columns": list(CHANNELS),
+                        "units": ["m", "m", "rad", "m", "m", "rad", "rad", "rad"],
+                        "not_held": "NaN: a paper fix is x_m, y_m, psi_m and five NaN; a "
+                                    "position fix without a heading has psi_m NaN; sx_m, sy_m, "
+                                    "spsi_m NaN: the noise model's R; course NaN: no course "
+                                    "over ground (lbo.filters.measure.course_over_ground)",
+                        "missing_fix": "every channel NaN" if rec.fixes else
+                        "not allowed: a full fix at every step, the other channels NaN"},
                   "u": {"shape": ["batch", 2], "columns": ["V", "delta"]},
                   "dtype": "float64",
                   "state": "the state tensors below, as the last call returned them"},

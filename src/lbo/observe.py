@@ -25,6 +25,9 @@ and the LSTM have none.
 for the best estimate of an offline log from every sample before and after each row: the
 classical observers and the robust observer (in its recursive form) only. ``form=recursive``
 runs the robust observer's filter from step to step instead of over a window per estimate.
+``engine=torchscript|onnx`` runs a learned observer in TorchScript or ONNX Runtime in place of
+PyTorch (:mod:`lbo.serve.engines`); a long log through the robust observer's recursive form
+runs fastest in ONNX Runtime (``benchmarks/bench_receiver_log.py``).
 
 ``resample=true`` puts a log sampled at another (or an uneven) period onto the observer's
 grid ``t0, t0 + dt, ...``: V and delta (and the true state) are interpolated linearly, but
@@ -85,6 +88,7 @@ def observe(cfg: DictConfig) -> dict[str, Any]:
     """
     from lbo.filters.classical import GYRO, check_gyro_noise, on_logs
     from lbo.filters.gyro import GyroNoise
+    from lbo.serve.engines import engine_device
     from lbo.serve.observer import EnvelopeWarning, Observer
     from lbo.serve.runners import has_recursive_form, no_receiver
     from lbo.sim.noise import Noise
@@ -105,6 +109,9 @@ def observe(cfg: DictConfig) -> dict[str, Any]:
     alpha = check_alpha(cfg.alpha)
     threads = integer(cfg.get("threads", 1), "threads", 1)
     device = check_device(cfg.get("device", "cpu"), probe=not classical)
+    engine = cfg.get("engine", "torch")
+    if not classical:
+        engine_device(engine, device)  # before any checkpoint is read
     max_gap = check_max_gap(cfg.get("max_gap", MAX_GAP))
     output = check_output_path(str(cfg.output), source)
     plot = plot_path(cfg.get("plot"), output)
@@ -124,7 +131,7 @@ def observe(cfg: DictConfig) -> dict[str, Any]:
     vehicle, noise = Vehicle.from_cfg(cfg.vehicle), Noise.from_cfg(cfg.noise)
     mode = check_mode(cfg.get("envelope", "warn"))
     kw = {"alpha": alpha, "features": cfg.get("features"), "device": device,
-          "envelope_mode": mode}
+          "envelope_mode": mode, "engine": "torch" if classical else engine}
     if not classical:  # a learned observer's small batches and steps gain nothing from more
         import torch
 

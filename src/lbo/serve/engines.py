@@ -119,18 +119,22 @@ def check_exported(net: Any, script: Any, session: Any, batch: int = 64) -> dict
 
 
 def _recursive_example(rec: Any) -> tuple:
-    """One step's inputs of a :class:`~lbo.models.recursive.RecursiveFilter`: a fix, an input,
-    and the state of a filter that has seen nothing."""
+    """One step's inputs of a :class:`~lbo.models.recursive.RecursiveFilter`: a fix as a
+    receiver's row (1, 8) (:data:`lbo.filters.measure.CHANNELS`, no accuracy nor course), an
+    input, and the state of a filter that has seen nothing."""
     import torch
 
+    from lbo.filters.measure import widen
+
     f = dict(dtype=torch.float64, device=next(rec.parameters()).device)
-    return (torch.tensor([[100.0, -50.0, 0.5]], **f), torch.tensor([[10.0, 0.02]], **f),
+    return (torch.tensor(widen([[100.0, -50.0, 0.5]]), **f), torch.tensor([[10.0, 0.02]], **f),
             *rec.initial_state(1, f["device"]))
 
 
 def trace_recursive(rec: Any) -> Any:
     """TorchScript of a recursive filter's step ``(m, u, *state) -> (pose, cov, *state)``,
-    traced on one step (the step has no data-dependent Python branch)."""
+    traced on one step (the step has no data-dependent Python branch); m is a receiver's row
+    (B, 8), :data:`lbo.filters.measure.CHANNELS` (a paper row: NaN beyond ``psi_m``)."""
     import torch
 
     with warnings.catch_warnings():
@@ -139,7 +143,8 @@ def trace_recursive(rec: Any) -> Any:
 
 
 def recursive_onnx_bytes(rec: Any) -> bytes:
-    """ONNX model of a recursive filter's step: inputs ``m`` (B, 3), ``u`` (B, 2) and the
+    """ONNX model of a recursive filter's step: inputs ``m`` (B, 8) (a receiver's row,
+    :data:`lbo.filters.measure.CHANNELS`; a paper row: NaN beyond ``psi_m``), ``u`` (B, 2) and the
     state tensors named as :data:`~lbo.models.recursive.STATE_NAMES`, outputs ``pose``
     (B, 3), ``cov`` (B, 3, 3) and ``next_<name>`` for each state tensor, all float64. A
     state tensor the model never reads (the yaw-rate memory of a filter without a learned
@@ -164,15 +169,17 @@ def recursive_onnx_bytes(rec: Any) -> bytes:
 
 def onnx_step(session: Any) -> Any:
     """The step ``(m, u, state) -> (pose, cov, next state)`` of a recursive filter's ONNX
-    session (:func:`recursive_onnx_bytes`), on numpy arrays; ``state`` is every tensor of
-    :data:`~lbo.models.recursive.STATE_NAMES`, of which it feeds those the model reads."""
+    session (:func:`recursive_onnx_bytes`), on numpy arrays; m (B, 3) or (B, 8) (widened
+    with NaN); ``state`` is every tensor of :data:`~lbo.models.recursive.STATE_NAMES`, of
+    which it feeds those the model reads."""
+    from lbo.filters.measure import widen
     from lbo.models.recursive import STATE_NAMES
 
     names = [i.name for i in session.get_inputs()]
     keys = ["m", "u", *STATE_NAMES]
 
     def step(m: np.ndarray, u: np.ndarray, state: list) -> tuple:
-        feed = dict(zip(keys, [m, u, *state]))
+        feed = dict(zip(keys, [widen(m), u, *state]))
         out = session.run(None, {k: feed[k] for k in names})
         return out[0], out[1], out[2:]
 
@@ -182,15 +189,23 @@ def onnx_step(session: Any) -> Any:
 def check_recursive(rec: Any, script: Any, session: Any, steps: int = 300,
                     seed: int = 1) -> dict[str, float]:
     """Largest |difference| of a recursive filter's TorchScript and ONNX step to PyTorch's, in
-    pose and covariance, over ``steps`` steps of a noisy drive near (100 m, -50 m) (every
-    other fix missing, for a filter that takes missing fixes)."""
+    pose and covariance, over ``steps`` steps of a noisy drive near (100 m, -50 m). For a
+    filter that takes missing fixes, every other fix is missing, and the second half is a
+    single antenna's: no ``psi_m``, the fixes' reported accuracy and a course over ground."""
     import torch
+
+    from lbo.filters.measure import widen
 
     rng = np.random.default_rng(seed)
     k = np.arange(steps)
     m = np.stack([100 + 0.2 * k, -50 + 0.01 * k, np.full(steps, 0.05)], 1)
-    m = m + rng.normal(size=(steps, 3)) * [1.0, 1.0, 0.02]
+    m = widen(m + rng.normal(size=(steps, 3)) * [1.0, 1.0, 0.02])
     if rec.fixes:
+        half = k >= steps // 2
+        m[half, 2] = np.nan
+        m[half, 3:5] = rng.uniform(0.5, 2.0, size=(int(half.sum()), 1))
+        m[half, 6] = 0.05 + 0.03 * rng.standard_normal(int(half.sum()))
+        m[half, 7] = 0.03
         m[1::2] = np.nan
     u = np.tile([10.0, 0.01], (steps, 1))
     step = onnx_step(session)
@@ -257,8 +272,9 @@ def make_predictor(net: Any, engine: str = "torch", device: str = "cpu") -> Pred
 
 
 RecursiveStep = Callable[[np.ndarray, np.ndarray, list], tuple[np.ndarray, np.ndarray, list]]
-"""The recursive form's step: measurement (1, 3), input (1, 2), state -> pose (1, 3),
-covariance (1, 3, 3), new state (float64 numpy arrays in, out)."""
+"""The recursive form's step: measurement (1, 3) or a receiver's row (1, 8)
+(:data:`lbo.filters.measure.CHANNELS`), input (1, 2), state -> pose (1, 3), covariance
+(1, 3, 3), new state (float64 numpy arrays in, out)."""
 
 
 def make_recursive_step(net: Any, engine: str = "torch", device: str = "cpu"
@@ -268,6 +284,7 @@ def make_recursive_step(net: Any, engine: str = "torch", device: str = "cpu"
     ``engine``, and its initial state. ``onnx`` runs on one thread, as in a control loop."""
     import torch
 
+    from lbo.filters.measure import widen
     from lbo.models.recursive import RecursiveFilter
 
     device = engine_device(engine, device)
@@ -282,7 +299,7 @@ def make_recursive_step(net: Any, engine: str = "torch", device: str = "cpu"
     def torch_step(m: np.ndarray, u: np.ndarray, st: list) -> tuple:
         with torch.inference_mode():
             out = module(*(torch.from_numpy(np.require(x, requirements="W")).to(device)
-                           for x in (m, u, *st)))  # a read-only frame's rows are copied
+                           for x in (widen(m), u, *st)))  # a read-only frame's rows are copied
         out = [o.cpu().numpy() for o in out]
         return out[0], out[1], out[2:]
 

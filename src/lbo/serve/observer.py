@@ -151,10 +151,11 @@ class Observer:
     @property
     def takes_receiver(self) -> bool:
         """Whether fixes without a heading and a receiver's channels are taken: by the
-        classical observers, and by the robust observer's recursive form on engine=torch
-        (whose update takes the channels a row holds, :mod:`lbo.models.recursive`; an
-        exported step reads the paper's three)."""
-        return self.net is None or (self.form == "recursive" and self.engine == "torch")
+        classical observers, and by the robust observer's recursive form on every engine
+        (whose update takes the channels a row holds, :mod:`lbo.models.recursive`) where it
+        was trained with missing fixes (one trained with a full fix at every step reads
+        nothing else)."""
+        return self.net is None or (self.form == "recursive" and self.takes_missing_fixes)
 
     @property
     def gives_covariance(self) -> bool:

@@ -126,14 +126,14 @@ def no_heading(name: str) -> str:
     return (f"a position fix without a heading (psi_m empty), but {name} takes full fixes "
             "only (x_m, y_m and psi_m); the classical observers "
             f"({', '.join(classical.OBSERVERS)}) take it, and the robust observer (filternet) "
-            "in its recursive form on engine=torch")
+            "in its recursive form")
 
 
 def no_receiver(name: str) -> str:
     """Why a learned observer refuses a receiver's channels."""
     return (f"{name} does not take a receiver's channels; the classical observers "
             f"({', '.join(classical.OBSERVERS)}) do, and the robust observer (filternet) in its "
-            "recursive form on engine=torch")
+            "recursive form")
 
 
 def checked_receiver(k: int, m: np.ndarray, receiver: Any) -> np.ndarray:

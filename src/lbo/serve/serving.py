@@ -6,7 +6,10 @@ observer=<run id> register=<name>`` registers it). Its input is a log as a DataF
 columns ``x_m, y_m, psi_m`` (m, m, rad; all three NaN or null where a step has no fix), ``V``
 (m/s) and ``delta`` (rad), one row per sample at the observer's dt, oldest first; a window of N
 rows is such a log, whose last row's estimate is the window's. An optional integer column
-``log`` runs several logs independently in one call. The output has one row per input row:
+``log`` runs several logs independently in one call. A receiver's optional columns
+(``sx_m, sy_m, spsi_m, ve_m, vn_m, sv_m, r_m``, :data:`lbo.sim.columns.RECEIVER`) are taken
+as ``lbo.observe`` takes them, by an observer that reads them (the robust observer's recursive
+form; ``psi_m`` may then be null on a row with a position). The output has one row per input row:
 ``x, y, psi`` (m, m, rad), ``valid``, and ``var_x, var_y, var_psi, cov_xy`` where the
 observer knows its covariance (NaN for the CNN and the LSTM). The numbers are those of
 ``lbo.Observer.load(<the run>).run(...)``.
@@ -30,16 +33,16 @@ import numpy as np
 import pandas as pd
 
 from lbo.core.errors import LboError
-from lbo.sim.columns import COVARIANCE, INPUT, MEAS, SERVED, STATE, WINDOW
+from lbo.sim.columns import COVARIANCE, INPUT, MEAS, RECEIVER, SERVED, STATE, WINDOW
 
 ARTIFACT = "model"
 """Where a training run logs its model: ``runs:/<run id>/model``."""
 
 
 def estimates(observer: Any, frame: pd.DataFrame) -> pd.DataFrame:
-    """An observer's estimates over a log frame (:data:`WINDOW`, optionally ``log``),
-    one output row per input row (:data:`SERVED`); raises LboError naming a missing
-    column or a bad value."""
+    """An observer's estimates over a log frame (:data:`WINDOW`, optionally ``log`` and the
+    receiver's columns :data:`RECEIVER`), one output row per input row (:data:`SERVED`);
+    raises LboError naming a missing column or a bad value."""
     missing = [c for c in WINDOW if c not in frame.columns]
     if missing:
         raise LboError(f"model input: missing column{'s' if len(missing) > 1 else ''} "
@@ -53,7 +56,9 @@ def estimates(observer: Any, frame: pd.DataFrame) -> pd.DataFrame:
         part = frame.iloc[rows]
         m = part[list(MEAS)].to_numpy(dtype=float)
         u = part[list(INPUT)].to_numpy(dtype=float)
-        est, ok, cov = observer.run(m, u, cov=True, source="model input")
+        r = part.reindex(columns=list(RECEIVER)).to_numpy(dtype=float)
+        est, ok, cov = observer.run(m, u, cov=True, source="model input",
+                                    receiver=r if np.isfinite(r).any() else None)
         out[rows, :3] = est
         out[rows, 3:] = cov[:, [0, 1, 2, 0], [0, 1, 2, 1]]
         valid[rows] = ok
@@ -85,7 +90,8 @@ def signature() -> Any:
     from mlflow.types import ColSpec, Schema
 
     inputs = Schema([ColSpec("double", c) for c in WINDOW]
-                    + [ColSpec("long", "log", required=False)])
+                    + [ColSpec("long", "log", required=False)]
+                    + [ColSpec("double", c, required=False) for c in RECEIVER])
     outputs = Schema([ColSpec("boolean" if c == "valid" else "double", c)
                       for c in SERVED])
     return ModelSignature(inputs=inputs, outputs=outputs)
