@@ -17,11 +17,11 @@ from pathlib import Path
 
 import numpy as np
 
+from lbo.core.angles import wrap_angle
 from lbo.core.paths import REPO_ROOT
 from lbo.models.checkpoint import read_checkpoint, trained_conditions
 from lbo.scoring.grid import classical, load_test, predict_grid
 from lbo.sim.truth import of_folder
-from lbo.sim.vehicle import wrap_angle
 
 
 def segments(arr: dict[str, np.ndarray], wheelbase: float) -> dict[str, np.ndarray]:

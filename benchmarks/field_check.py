@@ -18,10 +18,10 @@ import argparse
 import numpy as np
 from hydra import compose, initialize_config_dir
 
+from lbo.core.angles import wrap_angle
 from lbo.core.paths import CONF_DIR
 from lbo.serve.observer import Observer
 from lbo.sim.manoeuvres import MANOEUVRES
-from lbo.sim.vehicle import wrap_angle
 from lbo.simulate import STOP_AND_GO, simulate
 
 RATES = (None, 10.0, 1.0)

@@ -7,6 +7,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from lbo.core.angles import wrap_angle
 from lbo.core.errors import LboError
 from lbo.filters import kalman as filters
 from lbo.filters.dynamic_ekf import DynamicStepper, dynamic_ekf_batch
@@ -15,7 +16,7 @@ from lbo.sim import dynamic
 from lbo.sim.dynamic import SingleTrack
 from lbo.sim.noise import Noise
 from lbo.sim.truth import gauss_markov
-from lbo.sim.vehicle import Vehicle, wrap_angle
+from lbo.sim.vehicle import Vehicle
 
 VEHICLE = Vehicle()
 CAR = SingleTrack()

@@ -6,6 +6,7 @@ import pandas as pd
 import pytest
 
 from helpers import compose_cfg
+from lbo.core.angles import wrap_angle
 from lbo.core.errors import LboError
 from lbo.evaluate import evaluate
 from lbo.filters.kalman import ekf_batch
@@ -14,7 +15,7 @@ from lbo.scoring.grid import Q_GRID, classical, classical_table, load_test, refe
 from lbo.scoring.metrics import SCORE_COLUMNS
 from lbo.sim import schema
 from lbo.sim.noise import Noise
-from lbo.sim.vehicle import Vehicle, measure, simulate, wrap_angle
+from lbo.sim.vehicle import Vehicle, measure, simulate
 
 VEHICLE, NOISE = Vehicle(), Noise.preset("paper")
 

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 import torch
 
+from lbo.core.angles import wrap_angle
 from lbo.core.errors import LboError
 from lbo.models import WindowCNN
 from lbo.models.features import (
@@ -16,7 +17,6 @@ from lbo.models.features import (
     window_features,
     wrap_angle_torch,
 )
-from lbo.sim.vehicle import wrap_angle
 
 
 def _windows(rng: np.random.Generator, batch: int = 6, window: int = 20) -> np.ndarray:

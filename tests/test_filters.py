@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from lbo.core.angles import wrap_angle
 from lbo.core.errors import LboError
 from lbo.filters import kalman as filters
 from lbo.filters.pcrb import pcrb
@@ -12,7 +13,7 @@ from lbo.filters.reference import run_filterpy_ekf, ukf_filterpy_batch
 from lbo.filters.unscented import ukf_batch
 from lbo.scoring.metrics import nrmse, rmse
 from lbo.sim.noise import Noise
-from lbo.sim.vehicle import Vehicle, measure, simulate, wrap_angle
+from lbo.sim.vehicle import Vehicle, measure, simulate
 
 VEHICLE = Vehicle()
 NOISE = Noise.preset("paper")

@@ -8,6 +8,7 @@ import pytest
 import torch
 
 from helpers import ROBUST_SMOKE, compose_cfg, observe, train_in_own_store
+from lbo.core.angles import wrap_angle
 from lbo.core.errors import LboError
 from lbo.filters import classical
 from lbo.filters.kalman import KalmanStepper
@@ -16,7 +17,7 @@ from lbo.models.net import WindowNet
 from lbo.serve.observer import Observer
 from lbo.sim.noise import Noise
 from lbo.sim.stopgo import stop_and_go_speed
-from lbo.sim.vehicle import Vehicle, wrap_angle
+from lbo.sim.vehicle import Vehicle
 from lbo.simulate import simulate, thin
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")

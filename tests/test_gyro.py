@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from helpers import compose_cfg
+from lbo.core.angles import wrap_angle
 from lbo.core.errors import LboError
 from lbo.filters import classical
 from lbo.filters.gyro import gyro_ekf_batch
@@ -19,7 +20,7 @@ from lbo.sim.columns import RECEIVER
 from lbo.sim.logcheck import check_receiver
 from lbo.sim.noise import Noise
 from lbo.sim.receiver import Channel, ReceiverSpec, sense
-from lbo.sim.vehicle import Vehicle, simulate, wrap_angle
+from lbo.sim.vehicle import Vehicle, simulate
 from lbo.simulate import simulate as simulate_log
 
 DT = 0.02

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 import torch
 
+from lbo.core.angles import wrap_angle
 from lbo.core.errors import LboError
 from lbo.filters.kalman import ekf_batch
 from lbo.models import KalmanNet, build_model
@@ -16,7 +17,7 @@ from lbo.serve.engines import onnx_bytes, onnx_session, trace
 from lbo.serve.observer import Observer
 from lbo.serve.runners import default_form
 from lbo.sim.noise import Noise
-from lbo.sim.vehicle import Vehicle, wrap_angle
+from lbo.sim.vehicle import Vehicle
 
 N = 20
 NOISE = Noise.preset("paper")

@@ -23,12 +23,13 @@ import pandas as pd
 import pytest
 
 from helpers import compose_cfg
+from lbo.core.angles import wrap_angle
 from lbo.core.errors import LboError
 from lbo.observe import observe as observe_cfg
 from lbo.sim.logcheck import check_samples
 from lbo.sim.logformat import LogFormat, Origin
 from lbo.sim.units import check_conventions
-from lbo.sim.vehicle import simulate, wrap_angle
+from lbo.sim.vehicle import simulate
 
 DT = 0.02
 SIGMA = np.array([1.0, 1.0, 17.4e-3])  # the paper's measurement sigmas at alpha = 1

@@ -10,6 +10,7 @@ import torch
 
 from helpers import compose_cfg, train_in_own_store
 from helpers import observe as run_observe
+from lbo.core.angles import wrap_angle
 from lbo.core.errors import LboError
 from lbo.export import register
 from lbo.filters.classical import estimate as run_classical
@@ -23,7 +24,7 @@ from lbo.serve.observer import Observer
 from lbo.sim import schema
 from lbo.sim.logio import resample
 from lbo.sim.noise import Noise
-from lbo.sim.vehicle import Vehicle, wrap_angle
+from lbo.sim.vehicle import Vehicle
 
 VEHICLE, NOISE = Vehicle(), Noise.preset("paper")
 LOG = ["t", "x_m", "y_m", "psi_m", "V", "delta", "x", "y", "psi"]

@@ -11,6 +11,7 @@ import pandas as pd
 import pytest
 
 from helpers import compose_cfg
+from lbo.core.angles import wrap_angle
 from lbo.core.errors import LboError
 from lbo.filters import classical
 from lbo.filters.start import HEADING_VAR0
@@ -19,7 +20,7 @@ from lbo.models.net import WindowNet
 from lbo.serve.observer import Observer
 from lbo.sim.logcheck import check_fixes, check_sample, check_samples
 from lbo.sim.noise import Noise
-from lbo.sim.vehicle import Vehicle, wrap_angle
+from lbo.sim.vehicle import Vehicle
 from lbo.simulate import simulate
 
 LOG = ["t", "x_m", "y_m", "psi_m", "V", "delta", "x", "y", "psi"]

@@ -11,11 +11,12 @@ import numpy as np
 import pandas as pd
 import pytest
 
+from lbo.core.angles import wrap_angle
 from lbo.core.errors import LboError
 from lbo.filters.gyro import GyroNoise
 from lbo.sim import hguide
 from lbo.sim.logio import check_log
-from lbo.sim.vehicle import Vehicle, wrap_angle
+from lbo.sim.vehicle import Vehicle
 
 pytest.importorskip("onavdata", reason="the optional extra lbo[real] is not installed")
 

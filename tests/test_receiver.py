@@ -12,6 +12,7 @@ import pandas as pd
 import pytest
 
 from helpers import compose_cfg
+from lbo.core.angles import wrap_angle
 from lbo.core.errors import LboError
 from lbo.filters import classical, measure
 from lbo.serve.observer import Observer
@@ -19,7 +20,7 @@ from lbo.sim.columns import RECEIVER
 from lbo.sim.logcheck import check_receiver
 from lbo.sim.logio import resample
 from lbo.sim.noise import Noise
-from lbo.sim.vehicle import Vehicle, wrap_angle
+from lbo.sim.vehicle import Vehicle
 from lbo.simulate import simulate
 
 LOG = ["t", "x_m", "y_m", "psi_m", "V", "delta", "x", "y", "psi"]

@@ -10,11 +10,12 @@ import pandas as pd
 import pytest
 
 from helpers import compose_cfg
+from lbo.core.angles import wrap_angle
 from lbo.core.errors import LboError
 from lbo.scoring import receiver as scoring
 from lbo.sim.noise import Noise
 from lbo.sim.receiver import ReceiverSpec
-from lbo.sim.vehicle import Vehicle, wrap_angle
+from lbo.sim.vehicle import Vehicle
 from lbo.simulate import simulate
 
 

@@ -12,10 +12,10 @@ import pytest
 import torch
 
 from helpers import compose_cfg
+from lbo.core.angles import wrap_angle
 from lbo.core.errors import LboError
 from lbo.learn.lightning_module import TrainingModule
 from lbo.serve.observer import Observer
-from lbo.sim.vehicle import wrap_angle
 from lbo.train import train
 
 LOG = ["t", "x_m", "y_m", "psi_m", "V", "delta", "x", "y", "psi"]

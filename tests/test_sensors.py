@@ -9,13 +9,14 @@ import dataclasses
 import numpy as np
 import pytest
 
+from lbo.core.angles import wrap_angle
 from lbo.core.errors import LboError
 from lbo.filters import classical
 from lbo.serve.observer import Observer
 from lbo.sim.columns import RECEIVER
 from lbo.sim.noise import Noise
 from lbo.sim.receiver import Channel, ReceiverSpec, gyro_bias, sense
-from lbo.sim.vehicle import Vehicle, simulate, wrap_angle
+from lbo.sim.vehicle import Vehicle, simulate
 
 DT = 0.02
 

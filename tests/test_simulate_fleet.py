@@ -10,9 +10,9 @@ import pandas as pd
 import pytest
 
 from helpers import compose_cfg
+from lbo.core.angles import wrap_angle
 from lbo.core.errors import LboError
 from lbo.sim import columns
-from lbo.sim.vehicle import wrap_angle
 from lbo.simulate import simulate, write_logs
 
 FREE = ["manoeuvre=free_drive", "duration=10"]

@@ -5,13 +5,14 @@ import pandas as pd
 import pytest
 
 from helpers import compose_cfg
+from lbo.core.angles import wrap_angle
 from lbo.evaluate import evaluate
 from lbo.filters.classical import estimate as run_classical
 from lbo.filters.smoother import rts
 from lbo.scoring.grid import load_test
 from lbo.scoring.metrics import nees_table
 from lbo.sim.noise import Noise
-from lbo.sim.vehicle import Vehicle, wrap_angle
+from lbo.sim.vehicle import Vehicle
 
 VEHICLE, NOISE = Vehicle(), Noise.preset("paper")
 

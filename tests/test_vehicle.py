@@ -2,9 +2,10 @@ import numpy as np
 import pytest
 
 from helpers import compose_cfg
+from lbo.core.angles import wrap_angle
 from lbo.core.errors import LboError
 from lbo.sim.noise import PRESETS, Noise
-from lbo.sim.vehicle import Vehicle, f, jacobian, measure, simulate, step, wrap_angle
+from lbo.sim.vehicle import Vehicle, f, jacobian, measure, simulate, step
 
 
 def test_straight_line():

@@ -17,7 +17,7 @@ from omegaconf import DictConfig
 from lbo.core.atomic import atomic_path
 from lbo.core.cli import entry
 from lbo.core.errors import LboError
-from lbo.filters.classical import BOUND, DYNAMIC, OBSERVERS, TUNED
+from lbo.filters.classical import BOUND, DYNAMIC, LOG_PEERS, OBSERVERS, TUNED
 from lbo.filters.classical import estimate as run_classical
 from lbo.scoring.grid import (
     REFERENCES,
@@ -230,8 +230,8 @@ def run_logs(cfg: DictConfig, observers: list[str], learned: list[str]
     from lbo.sim.log_sets import build, spec_from_cfg, test_files
 
     spec = spec_from_cfg(cfg, need=("test",))
-    peers = [o for o in observers if o in logscore.PEERS]
-    left_out = [o for o in observers if o not in logscore.PEERS]
+    peers = [o for o in observers if o in LOG_PEERS]
+    left_out = [o for o in observers if o not in LOG_PEERS]
     check_observers(observers)
     if "ekf" not in peers:
         peers.insert(0, "ekf")  # the reference of the NRMSE

@@ -30,6 +30,7 @@ import numpy as np
 import pandas as pd
 from omegaconf import DictConfig
 
+from lbo.core.angles import wrap_angle
 from lbo.core.checks import integer, number, require
 from lbo.core.cli import entry
 from lbo.core.errors import LboError
@@ -38,7 +39,7 @@ from lbo.sim.columns import INPUT, MEAS, STATE
 from lbo.sim.logcheck import fix_period
 from lbo.sim.manoeuvres import MANOEUVRES
 from lbo.sim.stopgo import drive_stop_and_go
-from lbo.sim.vehicle import Vehicle, measure, wrap_angle
+from lbo.sim.vehicle import Vehicle, measure
 
 STOP_AND_GO = "stop_and_go"
 FREE_DRIVE = "free_drive"

@@ -10,6 +10,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 
+from lbo.core.angles import wrap_angle
 from lbo.core.atomic import atomic_path
 
 
@@ -141,7 +142,7 @@ def observed_log(t: np.ndarray, meas: np.ndarray, est: np.ndarray, name: str,
     err = None
     if truth is not None:
         err = est - truth
-        err[:, 2] = (err[:, 2] + np.pi) % (2 * np.pi) - np.pi
+        err[:, 2] = wrap_angle(err[:, 2])
     pos = fig.add_subplot(grid[1])
     head = fig.add_subplot(grid[2], sharex=pos)
     for ax, cols, scale, unit in ((pos, (0, 1), 1.0, "m"), (head, (2,), 1e3, "mrad")):

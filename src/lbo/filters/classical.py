@@ -60,6 +60,19 @@ GYRO = "gyro"
 ON_LOGS = (*OBSERVERS, GYRO)
 """The classical observers ``lbo.observe`` and :class:`lbo.Observer` run on a log."""
 
+# The peers a learned observer is scored and shown against, by where it is scored.
+GRID_PEERS = ("ekf", "oracle")
+"""On the kinematic test grid, in a training's final evaluation: the EKF whose NRMSE is the
+reference, and the oracle whose NRMSE is the ratio's floor."""
+KINEMATIC_PEERS = ("ekf", "oracle", "adaptive", BOUND)
+"""In the report's robust-observer table: the EKF (R at alpha = 1), the oracle (told alpha),
+the adaptive EKF and the PCRB."""
+DYNAMIC_PEERS = ("ekf", "oracle", "adaptive", TUNED, DYNAMIC)
+"""On a car that slips: the kinematic EKFs, the kinematic EKF tuned in hindsight and the EKF
+told the car."""
+LOG_PEERS = ("ekf", "adaptive", "ukf")
+"""On logs: no oracle, since a log's alpha is unknown."""
+
 
 def plugged() -> tuple[str, ...]:
     """The classical observers of installed packages other than lbo (entry-point group

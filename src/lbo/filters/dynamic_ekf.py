@@ -39,6 +39,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from lbo.core.angles import wrap_angle
 from lbo.core.checks import number
 from lbo.core.errors import LboError
 from lbo.filters import measure
@@ -47,7 +48,7 @@ from lbo.filters.stepper import run_stepper
 from lbo.filters.update import held_channels, joseph_update
 from lbo.sim import dynamic
 from lbo.sim.dynamic import SingleTrack
-from lbo.sim.vehicle import Vehicle, wrap_angle
+from lbo.sim.vehicle import Vehicle
 
 P0_LATERAL_SIGMA = (0.5, 0.2)
 """Standard deviations of the starting v_y (m/s) and r (rad/s) about their steady state: wide

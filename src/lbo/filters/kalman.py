@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from lbo.core.angles import wrap_angle
 from lbo.core.errors import LboError
 from lbo.filters import measure
 from lbo.filters.start import (
@@ -29,7 +30,7 @@ from lbo.filters.start import (
 )
 from lbo.filters.stepper import run_stepper
 from lbo.filters.update import held_channels, joseph_update
-from lbo.sim.vehicle import Vehicle, jacobian, step, wrap_angle
+from lbo.sim.vehicle import Vehicle, jacobian, step
 
 
 def _innovation(m: np.ndarray, x: np.ndarray) -> np.ndarray:

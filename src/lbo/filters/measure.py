@@ -29,8 +29,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from lbo.core.angles import wrap_angle
 from lbo.core.errors import LboError
-from lbo.sim.vehicle import wrap_angle
 
 CHANNELS = ("x_m", "y_m", "psi_m", "sx_m", "sy_m", "spsi_m", "course", "s_course")
 """The filters' row: the fix, its reported 1-sigma accuracies (NaN: the filter's R), and the

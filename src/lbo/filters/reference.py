@@ -12,9 +12,10 @@ import numpy as np
 from filterpy.kalman import ExtendedKalmanFilter, MerweScaledSigmaPoints, UnscentedKalmanFilter
 from tqdm.auto import tqdm
 
+from lbo.core.angles import wrap_angle
 from lbo.filters.start import batch_cov, check_q, check_trajectories, floor_diag
 from lbo.filters.unscented import UKF_SPREAD
-from lbo.sim.vehicle import Vehicle, jacobian, step, wrap_angle
+from lbo.sim.vehicle import Vehicle, jacobian, step
 
 _I3 = np.eye(3)
 

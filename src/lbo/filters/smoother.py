@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from lbo.sim.vehicle import wrap_angle
+from lbo.core.angles import wrap_angle
 
 
 def rts(x_f: np.ndarray, P_f: np.ndarray, x_p: np.ndarray, P_p: np.ndarray,

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from lbo.core.angles import wrap_angle
 from lbo.filters import measure
 from lbo.filters.start import (
     CourseStart,
@@ -20,7 +21,7 @@ from lbo.filters.start import (
 )
 from lbo.filters.stepper import run_stepper
 from lbo.filters.update import joseph_update
-from lbo.sim.vehicle import Vehicle, step, wrap_angle
+from lbo.sim.vehicle import Vehicle, step
 
 UKF_SPREAD = 0.1
 """Merwe's sigma-point spread of lbo's UKF (alpha of the scaled unscented transform)."""

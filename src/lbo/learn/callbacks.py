@@ -12,6 +12,7 @@ from lightning.pytorch.loggers import MLFlowLogger
 
 from lbo.core import plots
 from lbo.core.atomic import atomic_path
+from lbo.filters.classical import DYNAMIC_PEERS, GRID_PEERS
 from lbo.learn.resume import IDENTITY_KEY
 from lbo.models.checkpoint import read_checkpoint, trained_conditions
 from lbo.scoring import logscore
@@ -107,8 +108,7 @@ class Evaluation(L.Callback):
         est = predict(net, arr, self.batch_size, device=device)
         truth = of_folder(folder, vehicle.wheelbase)
         # a car that slips: the kinematic peers, and the floor of the filter told the car
-        peers = ["ekf", "oracle"] + (["adaptive", "oracle_tuned", "oracle_dynamic"]
-                                     if truth.car else [])
+        peers = list(DYNAMIC_PEERS if truth.car else GRID_PEERS)
         self.table = pd.concat([score(name, est, arr, ref),
                                 classical_table(arr, vehicle, noise, peers, ref, truth=truth)],
                                ignore_index=True)

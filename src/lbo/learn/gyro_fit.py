@@ -28,6 +28,7 @@ import numpy as np
 import pandas as pd
 import torch
 
+from lbo.core.angles import wrap_angle
 from lbo.core.errors import LboError
 from lbo.filters import classical, measure
 from lbo.filters.gyro import GyroNoise
@@ -37,7 +38,7 @@ from lbo.scoring.receiver import measure_ratio, scored_rows
 from lbo.sim.columns import STATE
 from lbo.sim.logio import receiver
 from lbo.sim.noise import Noise
-from lbo.sim.vehicle import Vehicle, wrap_angle
+from lbo.sim.vehicle import Vehicle
 
 __all__ = ["GyroFit", "estimate", "fit", "fit_and_write", "segments"]
 

@@ -37,9 +37,9 @@ from typing import TypeVar
 import numpy as np
 import torch
 
+from lbo.core.angles import wrap_angle
 from lbo.core.errors import LboError
 from lbo.sim.logcheck import fix_mask
-from lbo.sim.vehicle import wrap_angle
 
 FEATURE_MODES = ("relative", "frame", "absolute")
 
@@ -47,7 +47,7 @@ Array = TypeVar("Array", np.ndarray, torch.Tensor)
 
 
 def wrap_angle_torch(a: torch.Tensor) -> torch.Tensor:
-    """Wrap angles to (-pi, pi], the same convention as :func:`lbo.sim.vehicle.wrap_angle`."""
+    """Wrap angles to (-pi, pi], the same convention as :func:`lbo.core.angles.wrap_angle`."""
     return math.pi - torch.remainder(math.pi - a, 2 * math.pi)
 
 

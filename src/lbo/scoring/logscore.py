@@ -19,7 +19,7 @@ import numpy as np
 import pandas as pd
 
 from lbo.core.errors import LboError
-from lbo.filters.classical import first_fixes
+from lbo.filters.classical import LOG_PEERS, first_fixes
 from lbo.scoring.grid import rows_of
 from lbo.scoring.metrics import nrmse, pooled_rmse
 from lbo.sim import schema
@@ -27,8 +27,6 @@ from lbo.sim.columns import SCORED_SET
 from lbo.sim.noise import Noise
 from lbo.sim.vehicle import Vehicle
 
-PEERS = ("ekf", "adaptive", "ukf")
-"""The classical observers that run on a log: no oracle, since a log's alpha is unknown."""
 ALL = "all"
 NOTE = ("on logs the noise level is unknown, so there is no oracle EKF: the peers are the EKF "
         "at the noise preset's R (alpha=1), the adaptive EKF (learns R) and the UKF; NRMSE is "
@@ -50,14 +48,14 @@ def load(folder: str | Path) -> dict[str, np.ndarray]:
 
 
 def peer_estimates(arr: Mapping[str, np.ndarray], vehicle: Vehicle, noise: Noise,
-                   peers: Sequence[str] = PEERS) -> dict[str, np.ndarray]:
+                   peers: Sequence[str] = LOG_PEERS) -> dict[str, np.ndarray]:
     """Estimates (G, T, 3) of each classical peer on the test arrays, never told alpha."""
     from lbo.filters.classical import estimate
 
     for name in peers:
-        if name not in PEERS:
+        if name not in LOG_PEERS:
             raise LboError(f"observers: {name!r} cannot score logs ({NOTE}); expected names "
-                           f"from {list(PEERS)}")
+                           f"from {list(LOG_PEERS)}")
     return {name: estimate(name, arr["m"], arr["u"], vehicle, noise) for name in peers}
 
 
@@ -88,7 +86,7 @@ def table(estimates: Mapping[str, np.ndarray], arr: Mapping[str, np.ndarray],
                          "rmse_y": e[1], "rmse_psi": e[2], "nrmse": nrmse(e, ref)})
     out = pd.DataFrame(rows)
     piv = out.pivot(index="file", columns="observer", values="nrmse")
-    for peer in (p for p in PEERS if p in estimates):
+    for peer in (p for p in LOG_PEERS if p in estimates):
         out[f"ratio_to_{peer}"] = out["nrmse"].to_numpy() / piv.loc[out["file"], peer].to_numpy()
     return out
 

@@ -9,8 +9,8 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
+from lbo.core.angles import wrap_angle
 from lbo.core.errors import LboError
-from lbo.sim.vehicle import wrap_angle
 
 PAPER_REFERENCE = (0.24, 0.23, 4.1e-3)
 """E_ref of the paper: RMSE of its EKF at alpha=1 for x (m), y (m), psi (rad)."""

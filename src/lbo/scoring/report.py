@@ -26,12 +26,7 @@ PAPER_RMSE = {
 }
 PAPER_BEST_WINDOW = {"cnn": 60, "lstm": 80}
 PAPER_CROSSOVER = {"cnn": 2.0, "lstm": 3.0}
-ROBUST_PEERS = ("ekf", "oracle", "adaptive", "pcrb")
-"""What the robust observer is shown against."""
 VARIABLES = (("x", "m", 1.0), ("y", "m", 1.0), ("psi", "mrad", 1e3))
-DYNAMIC_PEERS = ("ekf", "oracle", "adaptive", "oracle_tuned", "oracle_dynamic")
-"""What an observer of a car that slips is shown against: the kinematic EKFs and the EKF told
-the car."""
 
 
 def learned_names(table: pd.DataFrame, model: str) -> list[str]:
@@ -110,7 +105,7 @@ def with_oracle_ratio(table: pd.DataFrame) -> pd.DataFrame:
 
 def robust_markdown(table: pd.DataFrame, robust: str) -> list[str]:
     """The robust observer against the classical peers, per alpha, with its oracle ratio."""
-    peers = _present(table, (robust, *ROBUST_PEERS))
+    peers = _present(table, (robust, *classical.KINEMATIC_PEERS))
     nr = table.pivot(index="alpha", columns="observer", values="nrmse")[peers]
     ratio = table[table["observer"] == robust].set_index("alpha")["ratio_to_oracle"]
     nr[f"{robust} / oracle"] = ratio
@@ -156,7 +151,7 @@ def dynamic_markdown(key: str, table: pd.DataFrame) -> list[str]:
     EKFs and the dynamic oracle, the ratios, RMSE per variable at alpha 1, 3 and 6."""
     s = dynamic_summary(table)
     name = s["observer"]
-    peers = _present(table, (name, *s["black_boxes"], *DYNAMIC_PEERS))
+    peers = _present(table, (name, *s["black_boxes"], *classical.DYNAMIC_PEERS))
     nr = table.pivot_table(index="alpha", columns="observer", values="nrmse")[peers]
     nr = nr[nr.index.isin([0.25, 0.5, 1.0, 2.0, 3.0, 4.0, 5.0, 6.0])]
     nr[f"{name} / oracle"] = nr[name] / nr["oracle"]
@@ -275,7 +270,7 @@ class Section(Protocol):
 @dataclass(frozen=True)
 class Robust:
     """The robust observer ``name`` of the score table against its classical peers
-    (:data:`ROBUST_PEERS`): ``nrmse_robust.png``."""
+    (:data:`lbo.filters.classical.KINEMATIC_PEERS`): ``nrmse_robust.png``."""
 
     name: str
     figure: str = "nrmse_robust.png"
@@ -288,7 +283,7 @@ class Robust:
         return robust_markdown(table, self.name)
 
     def write(self, folder: Path, table: pd.DataFrame) -> list[Path]:
-        peers = [self.name, *_present(table, ROBUST_PEERS)]
+        peers = [self.name, *_present(table, classical.KINEMATIC_PEERS)]
         return [plots.save(plots.nrmse_curves(
             table, f"{self.name}, never told alpha, against the classical peers",
             observers=peers), folder / self.figure)]
@@ -297,8 +292,8 @@ class Robust:
 @dataclass(frozen=True)
 class Dynamic:
     """The car-that-slips study on data set ``key``: its score ``table`` (one learned
-    observer, black boxes maybe, and the peers of :data:`DYNAMIC_PEERS`): ``<key>.csv`` and
-    ``nrmse_<key>.png``."""
+    observer, black boxes maybe, and :data:`lbo.filters.classical.DYNAMIC_PEERS`):
+    ``<key>.csv`` and ``nrmse_<key>.png``."""
 
     key: str
     table: pd.DataFrame
@@ -318,7 +313,8 @@ class Dynamic:
         return [folder / f"{self.key}.csv", plots.save(plots.nrmse_curves(
             self.table, f"a car that slips (data={self.key}): {s['observer']} against the "
             "kinematic EKFs and the EKF told the car",
-            observers=_present(self.table, (s["observer"], *s["black_boxes"], *DYNAMIC_PEERS))),
+            observers=_present(self.table, (s["observer"], *s["black_boxes"],
+                                            *classical.DYNAMIC_PEERS))),
             folder / self.figure)]
 
 
@@ -340,7 +336,7 @@ class Protocols:
         both = pd.concat([table, self.literal], ignore_index=True)
         best = (best_window(table, m) for m in ("cnn", "lstm"))
         curves = [*dict.fromkeys(self.literal["observer"]), *(n for n in best if n),
-                  *_present(table, ("ekf", "oracle"))]
+                  *_present(table, classical.GRID_PEERS)]
         return [folder / "literal.csv", plots.save(plots.nrmse_curves(
             both, "trained at alpha = 1: the paper's protocol (literal-*) and ours",
             observers=curves), folder / self.figure)]

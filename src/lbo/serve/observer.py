@@ -27,6 +27,7 @@ from typing import Any
 
 import numpy as np
 
+from lbo.core.angles import wrap_angle
 from lbo.core.errors import LboError
 from lbo.filters import classical
 from lbo.filters.gyro import GyroNoise
@@ -55,7 +56,7 @@ from lbo.sim.logcheck import (
     check_samples,
 )
 from lbo.sim.noise import Noise
-from lbo.sim.vehicle import Vehicle, wrap_angle
+from lbo.sim.vehicle import Vehicle
 from lbo.tracking.artifacts import checkpoint_file
 
 __all__ = ["Estimate", "EnvelopeWarning", "Observer"]

@@ -22,6 +22,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
+from lbo.core.angles import wrap_angle
 from lbo.core.errors import LboError
 from lbo.filters import classical, measure
 from lbo.filters.gyro import GyroNoise
@@ -30,7 +31,7 @@ from lbo.serve.engines import make_predictor, make_recursive_step
 from lbo.sim.columns import RECEIVER
 from lbo.sim.logcheck import check_receiver
 from lbo.sim.noise import Noise
-from lbo.sim.vehicle import Vehicle, wrap_angle
+from lbo.sim.vehicle import Vehicle
 
 FORMS = ("window", "recursive")
 """How a window filter (``filternet``) runs: over the last N samples for every estimate, as it

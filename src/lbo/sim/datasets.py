@@ -12,6 +12,7 @@ import numpy as np
 import pandas as pd
 from omegaconf import DictConfig, OmegaConf
 
+from lbo.core.angles import wrap_angle
 from lbo.core.atomic import data_lock, remove_stale_temps, write_text
 from lbo.core.checks import integer, number, positive, require
 from lbo.sim import clothoid, dynamic, schema
@@ -22,7 +23,7 @@ from lbo.sim.pursuit import drive, smooth_noise
 from lbo.sim.stopgo import generate_stop_and_go
 from lbo.sim.truth import Truth
 from lbo.sim.truth import from_cfg as truth_from_cfg
-from lbo.sim.vehicle import Vehicle, measure, wrap_angle
+from lbo.sim.vehicle import Vehicle, measure
 
 # Bump when a generator changes what it writes, so old caches are not reused.
 DATAGEN_VERSION = 1

@@ -17,8 +17,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from lbo.core.angles import wrap_angle
 from lbo.sim.noise import Noise
-from lbo.sim.vehicle import Vehicle, f, measure, wrap_angle
+from lbo.sim.vehicle import Vehicle, f, measure
 
 G = 9.81  # m/s^2
 

@@ -54,9 +54,10 @@ from dataclasses import dataclass
 import numpy as np
 import pandas as pd
 
+from lbo.core.angles import wrap_angle
 from lbo.core.errors import LboError
 from lbo.sim.logformat import Origin, to_local
-from lbo.sim.vehicle import Vehicle, wrap_angle
+from lbo.sim.vehicle import Vehicle
 
 HILL = "2021-04-27 HGuide n380 Car Hill Driving"
 """The one onavdata drive lbo reads."""

@@ -29,6 +29,7 @@ import numpy as np
 import pandas as pd
 from omegaconf import DictConfig, OmegaConf
 
+from lbo.core.angles import wrap_angle
 from lbo.core.atomic import data_lock, remove_stale_temps, write_text
 from lbo.core.checks import integer, require
 from lbo.core.errors import LboError
@@ -37,7 +38,7 @@ from lbo.sim.columns import INPUT, LOG, MEAS, STATE
 from lbo.sim.logformat import LogFormat
 from lbo.sim.noise import Noise
 from lbo.sim.units import check_max_gap, check_time_unit
-from lbo.sim.vehicle import Vehicle, wrap_angle
+from lbo.sim.vehicle import Vehicle
 
 KIND = "logs"
 SETS = ("train", "val", "test")

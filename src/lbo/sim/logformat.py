@@ -32,9 +32,9 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from lbo.core.angles import wrap_angle
 from lbo.core.checks import number
 from lbo.core.errors import LboError
-from lbo.sim.vehicle import wrap_angle
 
 FIELDS = ("t", "x_m", "y_m", "psi_m", "V", "delta", "x", "y", "psi",
           "lat", "lon", "lat_true", "lon_true")

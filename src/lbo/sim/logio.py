@@ -12,6 +12,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from lbo.core.angles import wrap_angle
 from lbo.core.atomic import atomic_path
 from lbo.core.errors import LboError
 from lbo.sim.columns import LOG, MEAS, RECEIVER, STATE
@@ -19,7 +20,6 @@ from lbo.sim.logcheck import check_receiver, check_samples
 from lbo.sim.logcheck import check_steering as check_delta
 from lbo.sim.schema import check_outside_data_sets, check_values, write_set
 from lbo.sim.units import MAX_GAP, check_conventions, check_gaps, check_time
-from lbo.sim.vehicle import wrap_angle
 
 FORMATS = (".csv", ".parquet")
 

@@ -4,8 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from lbo.core.angles import wrap_angle
 from lbo.sim import dynamic
-from lbo.sim.vehicle import Vehicle, f, wrap_angle
+from lbo.sim.vehicle import Vehicle, f
 
 
 def smooth_noise(n_traj: int, n_steps: int, dt: float, rng: np.random.Generator,

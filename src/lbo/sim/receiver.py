@@ -31,10 +31,10 @@ from typing import Any
 
 import numpy as np
 
+from lbo.core.angles import wrap_angle
 from lbo.core.checks import number
 from lbo.core.errors import LboError
 from lbo.sim.truth import gauss_markov
-from lbo.sim.vehicle import wrap_angle
 
 
 @dataclass(frozen=True)

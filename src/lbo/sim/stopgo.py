@@ -13,12 +13,13 @@ from __future__ import annotations
 
 import numpy as np
 
+from lbo.core.angles import wrap_angle
 from lbo.sim.clothoid import sample
 from lbo.sim.dynamic import SingleTrack
 from lbo.sim.manoeuvres import Chain
 from lbo.sim.noise import Noise
 from lbo.sim.pursuit import drive
-from lbo.sim.vehicle import Vehicle, f, measure, wrap_angle
+from lbo.sim.vehicle import Vehicle, f, measure
 
 MODES = ("stop", "creep", "cruise")
 

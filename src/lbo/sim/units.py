@@ -11,9 +11,9 @@ from typing import Any
 
 import numpy as np
 
+from lbo.core.angles import wrap_angle
 from lbo.core.checks import number
 from lbo.core.errors import LboError
-from lbo.sim.vehicle import wrap_angle
 
 YAW_RATE_LIMIT = 2.0
 """Fastest heading change (rad/s) of a car between two headings a :data:`RATE_SPAN` apart:

@@ -9,6 +9,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from lbo.core.angles import wrap_angle  # noqa: F401 (user code imports it from here too)
 from lbo.core.errors import LboError
 
 
@@ -74,11 +75,6 @@ def jacobian(z: np.ndarray, u: np.ndarray, dt: float) -> np.ndarray:
     jac[..., 0, 2] = -v * np.sin(psi) * dt
     jac[..., 1, 2] = v * np.cos(psi) * dt
     return jac
-
-
-def wrap_angle(a: np.ndarray) -> np.ndarray:
-    """Wrap angles to (-pi, pi]."""
-    return np.pi - np.mod(np.pi - a, 2 * np.pi)
 
 
 def simulate(z0: np.ndarray, u: np.ndarray, dt: float, wheelbase: float,
