@@ -124,7 +124,7 @@ def noisy_measurements(z: torch.Tensor, alpha: torch.Tensor, sigma: torch.Tensor
     alpha like the white noise. Returns (B, N, 3), heading wrapped to (-pi, pi] like the stored
     measurements.
     """
-    from lbo.models.features import wrap_angle_torch
+    from lbo.models.features import wrap_heading
 
     eps = torch.randn(z.shape, generator=generator, dtype=z.dtype, device=z.device)
     noise = sigma * eps
@@ -132,7 +132,7 @@ def noisy_measurements(z: torch.Tensor, alpha: torch.Tensor, sigma: torch.Tensor
         b = gauss_markov(z.shape[:2], drift[1], generator, z.dtype, z.device) * drift[0]
         noise = noise + torch.cat([b, torch.zeros_like(b[..., :1])], -1)
     m = z + alpha[:, None, None] * noise
-    return torch.cat([m[..., :2], wrap_angle_torch(m[..., 2:])], dim=-1)
+    return wrap_heading(m)
 
 
 def gauss_markov(shape: tuple[int, int], tau: float, generator: torch.Generator,

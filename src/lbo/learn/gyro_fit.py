@@ -32,7 +32,7 @@ from lbo.core.angles import wrap_angle
 from lbo.core.errors import LboError
 from lbo.filters import classical, measure
 from lbo.filters.gyro import GyroNoise
-from lbo.models.features import wrap_angle_torch
+from lbo.models.features import wrap_heading
 from lbo.models.gyro_filter import GyroFilter, Segments
 from lbo.scoring.receiver import measure_ratio, scored_rows
 from lbo.sim.columns import STATE
@@ -122,7 +122,7 @@ def segments(log: pd.DataFrame, noise: GyroNoise, vehicle: Vehicle, R: np.ndarra
 
 def _mse(est: torch.Tensor, truth: torch.Tensor) -> torch.Tensor:
     d = est - truth
-    d = torch.cat([d[..., :2], wrap_angle_torch(d[..., 2:])], -1)
+    d = wrap_heading(d)
     return (d**2).mean(dim=(0, 1))
 
 

@@ -51,6 +51,11 @@ def wrap_angle_torch(a: torch.Tensor) -> torch.Tensor:
     return math.pi - torch.remainder(math.pi - a, 2 * math.pi)
 
 
+def wrap_heading(p: torch.Tensor) -> torch.Tensor:
+    """Poses or pose differences (..., 3) ``[x, y, psi]`` with psi wrapped to (-pi, pi]."""
+    return torch.cat([p[..., :2], wrap_angle_torch(p[..., 2:])], -1)
+
+
 def _wrap(a: Array) -> Array:
     if isinstance(a, torch.Tensor):
         return wrap_angle_torch(a)

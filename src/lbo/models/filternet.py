@@ -8,11 +8,10 @@ told alpha. What it learns:
   the window's second differences (a statistic dominated by measurement noise, which the
   smooth motion hardly touches) and the mean speed, and outputs log sigma;
 - a scale on the process noise Q (initialised at the noise preset's);
-- with ``residual > 0``, the model error of the kinematic bicycle: a small net of the inputs
-  V, delta and the process model's own yaw rate of the step before corrects the yaw rate,
-  adds a side slip of the rear axle's velocity and a speed scale. A car that slips turns less
-  than its steering says (understeer) and its rear axle moves sideways; the net learns both
-  from data, and its zero-initialised output starts it as the kinematic bicycle.
+- with ``residual > 0``, the model error of the kinematic bicycle: a small net of V, delta
+  and the process model's yaw rate of the step before corrects the yaw rate, adds a side slip
+  of the rear axle and a speed scale (a car that slips turns less than its steering says and
+  its rear axle moves sideways); zero-initialised, it starts as the kinematic bicycle.
 - with ``body="single_track"``, a single-track body in place of the kinematic bicycle: two more
   carried states, the lateral speed v_y and the yaw rate r, move by Newton's laws under the two
   axles' lateral forces, each a saturating curve ``p tanh(k a / p)`` of its slip angle a. What
@@ -26,9 +25,8 @@ prediction-only step, the filter starts at the window's first fix, and the noise
 the mean square of the fixes' residuals against dead reckoning from the previous fix (the
 second differences need fixes at three consecutive steps).
 
-Trained end to end through the filter on the MSE of the final estimate, over windows whose
-alpha is drawn from a wide range, it learns to be the EKF that alpha calls for.
-"""
+Trained end to end through the filter on the MSE of the final estimate, over windows of
+alphas drawn from a wide range, it learns to be the EKF that alpha calls for."""
 
 from __future__ import annotations
 
@@ -40,7 +38,7 @@ from torch import nn
 
 from lbo.core.checks import integer, number
 from lbo.core.errors import LboError
-from lbo.models.features import wrap_angle_torch
+from lbo.models.features import wrap_heading
 
 SUBSTEPS = 4
 """Euler sub-steps per sampling period of the single-track body's lateral states."""
@@ -84,6 +82,15 @@ def _tan(a: torch.Tensor) -> torch.Tensor:
     """tan as sin / cos: ONNX Runtime has no float64 Tan, and the recursive form runs in
     float64 (equal to torch.tan to rounding)."""
     return torch.sin(a) / torch.cos(a)
+
+
+def bicycle_step(z: torch.Tensor, v: torch.Tensor, delta: torch.Tensor, dt: float,
+                 wheelbase: float) -> torch.Tensor:
+    """One step of the kinematic bicycle (:func:`lbo.sim.vehicle.step` in torch): poses
+    (B, 3) moved by speeds and steering angles (B,) over ``dt``."""
+    psi = z[:, 2]
+    return z + torch.stack([v * torch.cos(psi), v * torch.sin(psi),
+                            v * _tan(delta) / wheelbase], -1) * dt
 
 
 def _inverse_sym3(s: torch.Tensor) -> torch.Tensor:
@@ -193,12 +200,6 @@ class WindowFilter(nn.Module):
                                          nn.Linear(residual, 3))
             nn.init.zeros_(self.process[-1].weight)
             nn.init.zeros_(self.process[-1].bias)
-
-    def _step(self, z: torch.Tensor, v: torch.Tensor, delta: torch.Tensor) -> torch.Tensor:
-        """One bicycle step of (B, 3) states with inputs (B,)."""
-        psi = z[:, 2]
-        return z + torch.stack([v * torch.cos(psi), v * torch.sin(psi),
-                                v * _tan(delta) / self.wheelbase], -1) * self.dt
 
     def _axles(self) -> tuple[torch.Tensor, torch.Tensor]:
         """The learned distances (l_f, l_r) from the centre of gravity to the front and rear
@@ -337,7 +338,7 @@ class WindowFilter(nn.Module):
                              torch.stack([zero, zero, zero, zero, phi * one], -1)], -2)
             P = F @ P @ F.transpose(1, 2) + Qp
             y = x[:, k, :3] - (H @ z.unsqueeze(-1)).squeeze(-1)
-            y = torch.cat([y[:, :2], wrap_angle_torch(y[:, 2:])], -1)
+            y = wrap_heading(y)
             PH = P @ H.T  # (B, 5, 3)
             K = PH @ _inverse_sym3(H @ PH + R)
             z_new = z + (K @ y.unsqueeze(-1)).squeeze(-1)
@@ -352,7 +353,7 @@ class WindowFilter(nn.Module):
                 started = started | f
             else:
                 z, P = z_new, P_new
-        return torch.cat([z[:, :2], wrap_angle_torch(z[:, 2:3])], -1)
+        return wrap_heading(z[:, :3])
 
     @staticmethod
     def _drift_start(R: torch.Tensor, var_b: torch.Tensor, e: torch.Tensor) -> torch.Tensor:
@@ -374,11 +375,11 @@ class WindowFilter(nn.Module):
         count = torch.zeros_like(x[:, 0, 0])
         gaps = torch.zeros_like(count)
         for k in range(1, x.shape[1]):
-            dr = self._step(dr, x[:, k - 1, 3], x[:, k - 1, 4])
+            dr = bicycle_step(dr, x[:, k - 1, 3], x[:, k - 1, 4], self.dt, self.wheelbase)
             gap = gap + 1
             f = fix[:, k]
             r = x[:, k, :3] - dr
-            r = torch.cat([r[:, :2], wrap_angle_torch(r[:, 2:])], -1)
+            r = wrap_heading(r)
             use = (f & seen).to(x.dtype)
             total = total + use[:, None] * r ** 2
             count, gaps = count + use, gaps + use * gap
@@ -399,7 +400,7 @@ class WindowFilter(nn.Module):
         else:
             m = x[:, :, :3]
             d2 = m[:, 2:] - 2 * m[:, 1:-1] + m[:, :-2]
-            d2 = torch.cat([d2[..., :2], wrap_angle_torch(d2[..., 2:])], -1)
+            d2 = wrap_heading(d2)
             # second differences of i.i.d. noise of variance s^2 have variance 6 s^2
             ms = (d2 ** 2).mean(1) / 6.0
             log_gap = speed[:, :0]  # no column
@@ -432,7 +433,7 @@ class WindowFilter(nn.Module):
                              torch.stack([zero, zero, one], -1)], -2)
             P = F @ P @ F.transpose(1, 2) + Q
             y = x[:, k, :3] - z
-            y = torch.cat([y[:, :2], wrap_angle_torch(y[:, 2:])], -1)
+            y = wrap_heading(y)
             K = P @ _inverse_sym3(P + R)
             z_new = z + (K @ y.unsqueeze(-1)).squeeze(-1)
             P_new = (eye - K) @ P
@@ -446,4 +447,4 @@ class WindowFilter(nn.Module):
                 started = started | f
             else:
                 z, P = z_new, P_new
-        return torch.cat([z[:, :2], wrap_angle_torch(z[:, 2:])], -1)
+        return wrap_heading(z)

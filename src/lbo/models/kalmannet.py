@@ -47,8 +47,8 @@ from torch import nn
 from torch.nn import functional as F
 
 from lbo.core.checks import integer, number
-from lbo.models.features import wrap_angle_torch
-from lbo.models.filternet import check_sigmas, frame_model
+from lbo.models.features import wrap_heading
+from lbo.models.filternet import bicycle_step, check_sigmas, frame_model
 
 N_STATE = 3
 """The state and the measurement: the pose ``x, y, psi``."""
@@ -82,12 +82,6 @@ def _unit(f: torch.Tensor, floor: float) -> torch.Tensor:
     gradient is 1 / eps (1e12 with torch's; a first training with it, ``experiment=robust``,
     diverged in its first epoch)."""
     return f / torch.sqrt((f * f).sum(-1, keepdim=True) + floor * floor)
-
-
-def _diff(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    """Pose differences (B, 3), the heading wrapped."""
-    d = a - b
-    return torch.cat([d[:, :2], wrap_angle_torch(d[:, 2:])], -1)
 
 
 class KalmanNet(nn.Module):
@@ -140,10 +134,7 @@ class KalmanNet(nn.Module):
 
     def _predict(self, z: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
         """One bicycle step of (B, 3) poses with inputs u (B, 2) ``[V, delta]``."""
-        v, delta = u[:, 0], u[:, 1]
-        psi = z[:, 2]
-        turn = v * torch.sin(delta) / torch.cos(delta) / self.wheelbase
-        return z + torch.stack([v * torch.cos(psi), v * torch.sin(psi), turn], -1) * self.dt
+        return bicycle_step(z, u[:, 0], u[:, 1], self.dt, self.wheelbase)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         """(B, N, 5|6) features -> (B, 3) pose in the frame of the window's latest fix."""
@@ -161,12 +152,12 @@ class KalmanNet(nn.Module):
         for k in range(1, steps):
             prior = self._predict(z, x[:, k - 1, 3:5])
             f = fix[:, k]
-            innovation = _diff(y[:, k], prior)
+            innovation = wrap_heading(y[:, k] - prior)
             # the four differences in measurement sigmas (metres and radians made comparable)
-            f1 = _unit(_diff(y[:, k], y_last) / self.units, self.unit_floor)
+            f1 = _unit(wrap_heading(y[:, k] - y_last) / self.units, self.unit_floor)
             f2 = _unit(innovation / self.units, self.unit_floor)
-            f3 = _unit(_diff(z, z_prev) / self.units, self.unit_floor)
-            f4 = _unit(_diff(z, z_prior_prev) / self.units, self.unit_floor)
+            f3 = _unit(wrap_heading(z - z_prev) / self.units, self.unit_floor)
+            f4 = _unit(wrap_heading(z - z_prior_prev) / self.units, self.unit_floor)
             q = self.gru_q(F.relu(self.fc_q(f3)), h_q)
             sigma = self.gru_sigma(torch.cat([q, F.relu(self.fc_f4(f4))], -1), h_sigma)
             s_in = torch.cat([F.relu(self.fc_sigma(sigma)), F.relu(self.fc_y(
@@ -189,4 +180,4 @@ class KalmanNet(nn.Module):
             y_last = torch.where(f[:, None], y[:, k], y_last)
             z_prev, z_prior_prev, z = z, torch.where(first, y[:, k], prior), new
             started = started | f
-        return torch.cat([z[:, :2], wrap_angle_torch(z[:, 2:])], -1)
+        return wrap_heading(z)

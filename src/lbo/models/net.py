@@ -20,7 +20,7 @@ from lbo.models.features import (
     state_to_target,
     target_to_state,
     window_features,
-    wrap_angle_torch,
+    wrap_heading,
 )
 
 CHECKPOINT_FORMAT = 1
@@ -119,7 +119,7 @@ class WindowNet(nn.Module):
         """
         target = state_to_target(state, last_measurement(win, self.fixes), self.features)
         r = self.target_units(win) - target
-        r = torch.cat([r[:, :2], wrap_angle_torch(r[:, 2:])], dim=1)
+        r = wrap_heading(r)
         se = ((r / self.out_std) ** 2).mean(1)
         if weight is None:
             return se.mean().float()

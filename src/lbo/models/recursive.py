@@ -46,8 +46,8 @@ import numpy as np
 import torch
 from torch import nn
 
-from lbo.models.features import wrap_angle_torch
-from lbo.models.filternet import WindowFilter, _inverse_sym3
+from lbo.models.features import wrap_heading
+from lbo.models.filternet import WindowFilter, _inverse_sym3, bicycle_step
 
 STATE_NAMES = ("z", "P", "body", "u_prev", "last", "dead_reckoning", "gap", "heading",
                "ring", "sums", "speeds", "speed_sum", "k", "started")
@@ -199,10 +199,10 @@ class RecursiveFilter(nn.Module):
 
         # -- the statistic: one entry in, the one of N steps ago out
         if self.fixes:
-            dr = fo._step(dr, u_prev[:, 0], u_prev[:, 1])
+            dr = bicycle_step(dr, u_prev[:, 0], u_prev[:, 1], fo.dt, fo.wheelbase)
             gap = gap + 1
             res = m0 - dr
-            res = torch.cat([res[:, :2], wrap_angle_torch(res[:, 2:])], -1)
+            res = wrap_heading(res)
             counted = (fix & going).to(m.dtype)
             entry = torch.stack([res[:, 0] ** 2, res[:, 1] ** 2, res[:, 0] * res[:, 1],
                                  res[:, 2] ** 2], 1) / 2  # two fixes' noise in a residual
@@ -212,7 +212,7 @@ class RecursiveFilter(nn.Module):
             gap = torch.where(fix, zero, gap)
         else:
             d2 = m0 - 2 * last[:, 1] + last[:, 0]
-            d2 = torch.cat([d2[:, :2], wrap_angle_torch(d2[:, 2:])], -1)
+            d2 = wrap_heading(d2)
             counted = (k >= 2).to(m.dtype) * one
             entry = torch.stack([d2[:, 0] ** 2, d2[:, 1] ** 2, d2[:, 0] * d2[:, 1],
                                  d2[:, 2] ** 2], 1) / 6  # i.i.d. noise: variance 6 s^2
@@ -262,7 +262,7 @@ class RecursiveFilter(nn.Module):
         # the channels the row holds: the others' innovations, gains and covariances zeroed
         # and a 1 on S's diagonal, so that S stays invertible and K's columns for them are 0
         mask = held.to(m.dtype)
-        y = torch.cat([y[:, :2], wrap_angle_torch(y[:, 2:])], -1) * mask
+        y = wrap_heading(y) * mask
         PH = P_pred @ H.T
         S = (H @ PH + R) * (mask[:, :, None] * mask[:, None, :]) \
             + (1 - mask)[:, :, None] * eye[:3, :3]  # diag(1 - mask): ONNX has no diag_embed
@@ -295,7 +295,7 @@ class RecursiveFilter(nn.Module):
                         torch.where(update[:, None, None], P_upd, P_pred))
         body = torch.where(first[:, None], fo.body_start(u[:, 0], u[:, 1]), body_new)
         started = torch.where(first, one, started)
-        out = torch.cat([z[:, :2], wrap_angle_torch(z[:, 2:3])], -1)
+        out = wrap_heading(z[:, :3])
         out = torch.where(started[:, None] > 0.5, out, torch.full_like(out, math.nan))
         cov = torch.where(started[:, None, None] > 0.5, P[:, :3, :3],
                           torch.full_like(P[:, :3, :3], math.nan))
