@@ -53,6 +53,32 @@ def _logs(g: int, t: int, fixes: bool, seed: int = 1) -> tuple[np.ndarray, np.nd
     return m, u
 
 
+def test_rows_without_a_measurement_coast_to_the_numbers_of_one_step_each():
+    """A log's run takes each stretch of rows without any measurement in one coast
+    (RecursiveFilter.coast): the poses and covariances of one step per row, in chunks of
+    coast_limit rows (a 40-row gap at N=30), on every engine."""
+    net = _observer_net("fixes", window=30)
+    rec = RecursiveFilter(net.net)
+    assert rec.coasts and rec.coast_limit == 29
+    assert not any(RecursiveFilter(_net(kind)).coasts for kind in VARIANTS if kind != "fixes")
+    m, u = _logs(1, 300, True)
+    with torch.no_grad():
+        est, cov = rec.run(torch.from_numpy(m), torch.from_numpy(u))  # one step per row
+    for engine in ("torch", "onnx"):
+        obs = Observer.from_net(net, form="recursive", engine=engine)
+        coasted, coast = [], obs._runner.coast
+        obs._runner.coast = lambda u, state: coasted.append(len(u)) or coast(u, state)
+        got, valid, got_cov = obs.run(m[0], u[0], cov=True)
+        assert sum(coasted) == np.isnan(m[0, 3:, 0]).sum()  # every empty row once started
+        # ONNX Runtime's float32 kernels in the noise model: within the export's tolerance
+        atol = 1e-12 if engine == "torch" else TOLERANCE
+        np.testing.assert_allclose(got, est[0].numpy(), rtol=0, atol=atol, equal_nan=True)
+        np.testing.assert_allclose(got_cov, cov[0].numpy(), rtol=0, atol=atol, equal_nan=True)
+        assert valid.sum() == np.isfinite(est[0, :, 0].numpy()).sum()
+    with pytest.raises(ValueError, match="coast takes 1 to coast_limit rows"):
+        rec.coast(torch.from_numpy(u[0, :30]), *rec.initial_state(1))
+
+
 @pytest.mark.parametrize("kind", list(VARIANTS))
 def test_a_batch_run_gives_what_stepping_one_sample_at_a_time_gives(kind):
     net = _observer_net(kind)

@@ -170,6 +170,84 @@ class RecursiveFilter(nn.Module):
                             torch.stack([xy, var[:, 1], zero], -1),
                             torch.stack([zero, zero, var[:, 2]], -1)], -2)
 
+    def _process_cov(self, heading: torch.Tensor, eye: torch.Tensor) -> torch.Tensor:
+        """(B, n, n) the learned Q at the latest fix's headings (B,): its x and y are along
+        and across that heading, as R's (``eye``: the (n, n) identity)."""
+        q = torch.exp(2 * (self.net.log_q0 + self.net.log_q_scale))
+        c, sn = torch.cos(heading), torch.sin(heading)
+        qxx, qyy = c * c * q[0] + sn * sn * q[1], sn * sn * q[0] + c * c * q[1]
+        qxy = c * sn * (q[0] - q[1])
+        Qn = torch.zeros(len(heading), self.n, self.n, dtype=eye.dtype, device=eye.device)
+        Qn = Qn + torch.cat([torch.zeros_like(q[:2]), q[2:], torch.zeros_like(q[:self.n - 3])]) \
+            * eye
+        Qn[:, 0, 0], Qn[:, 1, 1], Qn[:, 0, 1], Qn[:, 1, 0] = qxx, qyy, qxy, qxy
+        return Qn
+
+    @property
+    def coasts(self) -> bool:
+        """Whether :meth:`coast` takes this filter's rows without a measurement: the
+        kinematic bicycle without a learned correction, three states, trained with missing
+        fixes (the robust observer of ``experiment=robust``)."""
+        fo = self.net
+        return self.n == 3 and self.fixes and not fo.single_track and fo.residual == 0
+
+    @property
+    def coast_limit(self) -> int:
+        """The most rows one :meth:`coast` takes: its ring slots, each written once."""
+        return min(self.slots, self.window)
+
+    def coast(self, u: torch.Tensor, *state: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        """K rows without any measurement at once (a prediction each), for one started
+        filter (B = 1, :attr:`coasts`): their inputs u (K, 2) -> poses (K, 3) (psi wrapped),
+        covariances (K, 3, 3) and the new state; the numbers of K calls of :meth:`forward`
+        with NaN rows (to rounding: tested to 1e-12). A log's fixes come at 1 to 10 Hz and
+        its inputs at 50 Hz, so most rows are such: each costs a few operations here, where
+        :meth:`forward` runs the whole step (the noise model, the statistic, the update)."""
+        (z, P, body, u_prev, last, dr, gap, heading, ring, sums, speeds, speed_sum, k,
+         started) = state
+        fo = self.net
+        steps = len(u)
+        if not (self.coasts and len(z) == 1 and 0 < steps <= self.coast_limit):
+            raise ValueError("coast takes 1 to coast_limit rows of one kinematic filter")
+        before = torch.cat([u_prev, u[:-1]])  # row j predicts with the input of row j - 1
+        v, delta = before[:, 0], before[:, 1]
+        along, across, rate, bodies = fo._motion(v, delta, body.expand(steps, 2))
+        turn = rate * fo.dt
+
+        def roll(start: torch.Tensor) -> tuple[torch.Tensor, ...]:
+            # the bicycle from ``start`` (1, 3): forward adds one step's increment at a time,
+            # and a cumulative sum adds them in the same order
+            psi = torch.cumsum(torch.cat([start[:, 2], turn]), 0)
+            c, sn = torch.cos(psi[:-1]), torch.sin(psi[:-1])
+            dx, dy = along * c - across * sn, along * sn + across * c
+            x = torch.cumsum(torch.cat([start[:, 0], dx * fo.dt]), 0)
+            y = torch.cumsum(torch.cat([start[:, 1], dy * fo.dt]), 0)
+            return torch.stack([x[1:], y[1:], psi[1:]], -1), dx, dy
+
+        poses, dx, dy = roll(z)
+        dead = roll(dr)[0]
+        eye = torch.eye(3, dtype=z.dtype, device=z.device)
+        Q = self._process_cov(heading, eye)
+        covs = []
+        for j in range(steps):  # P's recursion, as forward writes it
+            F = eye.expand(1, 3, 3).clone()
+            F[:, 0, 2], F[:, 1, 2] = -dy[j:j + 1] * fo.dt, dx[j:j + 1] * fo.dt
+            P = F @ P @ F.transpose(1, 2) + Q
+            covs.append(P)
+        # the statistic's ring and the speeds: each row writes its slot (an empty entry, its
+        # speed) and drops what the slot held; the sums take them in forward's order
+        at = k.long() + torch.arange(steps, device=k.device)
+        slots, speed_slots = torch.remainder(at, self.slots), torch.remainder(at, self.window)
+        sums = torch.cumsum(torch.cat([sums, -ring[0, slots]]), 0)[-1:]
+        ring = ring.index_fill(1, slots, 0.0)
+        speed = u[:, 0].abs()
+        speed_sum = torch.cumsum(torch.cat([speed_sum, torch.stack(
+            [speed, -speeds[0, speed_slots]], 1).reshape(-1)]), 0)[-1:]
+        speeds = speeds.index_copy(1, speed_slots, speed[None])
+        return (wrap_heading(poses), torch.cat(covs), poses[-1:], P, bodies[-1:], u[-1:], last,
+                dead[-1:], gap + steps, heading, ring, sums, speeds, speed_sum, k + steps,
+                started)
+
     def forward(self, m: torch.Tensor, u: torch.Tensor, *state: torch.Tensor
                 ) -> tuple[torch.Tensor, ...]:
         """One step: measurement m (B, 3) (a NaN row: no fix) or a receiver's row (B, 8)
@@ -229,7 +307,6 @@ class RecursiveFilter(nn.Module):
         heading = torch.where(held[:, 2], meas[:, 2], heading)
         R_model = self._noise(sums, speed_sum / seen, heading)
         R = self._step_cov(R_model, row, measured)
-        q = torch.exp(2 * (fo.log_q0 + fo.log_q_scale))
 
         # -- the filter: predict with u_{k-1}, update with m_k
         pose, f02, f12, body_new = fo._predict_pose(z[:, :3], torch.cat(
@@ -237,14 +314,7 @@ class RecursiveFilter(nn.Module):
         eye = torch.eye(self.n, dtype=m.dtype, device=m.device)
         F = eye.expand(len(m), self.n, self.n).clone()
         F[:, 0, 2], F[:, 1, 2] = f02, f12
-        # the learned Q's x and y are along and across the frame's heading, as R's
-        c, sn = torch.cos(heading), torch.sin(heading)
-        qxx, qyy = c * c * q[0] + sn * sn * q[1], sn * sn * q[0] + c * c * q[1]
-        qxy = c * sn * (q[0] - q[1])
-        Qn = torch.zeros(len(m), self.n, self.n, dtype=m.dtype, device=m.device)
-        Qn = Qn + torch.cat([torch.zeros_like(q[:2]), q[2:], torch.zeros_like(q[:self.n - 3])]) \
-            * eye
-        Qn[:, 0, 0], Qn[:, 1, 1], Qn[:, 0, 1], Qn[:, 1, 0] = qxx, qyy, qxy, qxy
+        Qn = self._process_cov(heading, eye)
         H = eye[:3]
         if self.n == 5:
             phi = torch.exp(-torch.exp(-fo.log_drift_tau))

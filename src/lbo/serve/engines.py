@@ -277,11 +277,18 @@ RecursiveStep = Callable[[np.ndarray, np.ndarray, list], tuple[np.ndarray, np.nd
 (1, 3, 3), new state (float64 numpy arrays in, out)."""
 
 
+Coast = Callable[[np.ndarray, list], tuple[np.ndarray, np.ndarray, list]]
+"""Rows without any measurement at once: their inputs (K, 2), state -> poses (K, 3),
+covariances (K, 3, 3), new state (:meth:`~lbo.models.recursive.RecursiveFilter.coast`)."""
+
+
 def make_recursive_step(net: Any, engine: str = "torch", device: str = "cpu"
-                        ) -> tuple[RecursiveStep, list]:
+                        ) -> tuple[RecursiveStep, list, Coast | None]:
     """The recursive form (:class:`~lbo.models.recursive.RecursiveFilter`) of a window filter
     ``net`` (an :class:`~lbo.models.net.WindowNet` of ``filternet``) as a numpy step function on
-    ``engine``, and its initial state. ``onnx`` runs on one thread, as in a control loop."""
+    ``engine``, its initial state, and, where the filter :attr:`coasts`, its coast over rows
+    without a measurement (in PyTorch, on the state of any engine; else None). ``onnx`` runs
+    on one thread, as in a control loop."""
     import torch
 
     from lbo.filters.measure import widen
@@ -290,17 +297,31 @@ def make_recursive_step(net: Any, engine: str = "torch", device: str = "cpu"
     device = engine_device(engine, device)
     rec = RecursiveFilter(net.net.cpu() if engine == "onnx" else net.net).to(device)
     state = [s.cpu().numpy() for s in rec.initial_state(1)]
+
+    def tensors(*arrays: np.ndarray) -> list:
+        # a read-only frame's rows are copied
+        return [torch.from_numpy(np.require(x, requirements="W")).to(device) for x in arrays]
+
+    def coast(u: np.ndarray, st: list) -> tuple:
+        poses, covs = [], []
+        with torch.inference_mode():
+            for a in range(0, len(u), rec.coast_limit):  # each ring slot written once a call
+                pose, cov, *st = rec.coast(*tensors(u[a:a + rec.coast_limit], *st))
+                poses.append(pose)
+                covs.append(cov)
+        return (torch.cat(poses).cpu().numpy(), torch.cat(covs).cpu().numpy(),
+                [x.cpu().numpy() for x in st])
+
+    coaster = coast if rec.coasts else None
     if engine == "onnx":
-        return onnx_step(onnx_session(recursive_onnx_bytes(rec), threads=1)), state
+        return onnx_step(onnx_session(recursive_onnx_bytes(rec), threads=1)), state, coaster
     module = rec
     if engine == "torchscript":
         module = trace_recursive(rec)
 
     def torch_step(m: np.ndarray, u: np.ndarray, st: list) -> tuple:
         with torch.inference_mode():
-            out = module(*(torch.from_numpy(np.require(x, requirements="W")).to(device)
-                           for x in (widen(m), u, *st)))  # a read-only frame's rows are copied
-        out = [o.cpu().numpy() for o in out]
+            out = [o.cpu().numpy() for o in module(*tensors(widen(m), u, *st))]
         return out[0], out[1], out[2:]
 
-    return torch_step, state
+    return torch_step, state, coaster

@@ -343,7 +343,7 @@ class RecursiveRunner:
 
     def __init__(self, net: Any, vehicle: Vehicle, engine: str, device: str) -> None:
         self.net, self.vehicle, self.device = net, vehicle, device
-        self.step, self.state0 = make_recursive_step(net, engine, device)
+        self.step, self.state0, self.coast = make_recursive_step(net, engine, device)
         self.reset()
 
     def sample(self, k: int, m: np.ndarray, u: np.ndarray, receiver: Any
@@ -376,7 +376,19 @@ class RecursiveRunner:
         t = len(m)
         est, covs = np.full((t, 3), np.nan), np.full((t, 3, 3), np.nan)
         state = [x.copy() for x in self.state0]  # through the engine's step, as take() runs
-        for k in range(t):
+        # the runs of rows without any measurement, once started, go in one coast each
+        # (the same numbers: RecursiveFilter.coast): most rows of a log with slow fixes
+        empty = ~np.isfinite(mm).any(1)
+        # the first row at or after each that holds a measurement (t: none)
+        held_next = np.minimum.accumulate(np.where(empty, t, np.arange(t))[::-1])[::-1]
+        k = 0
+        while k < t:
+            if self.coast is not None and empty[k] and state[-1][0] > 0.5:  # started
+                stop = int(held_next[k])
+                est[k:stop], covs[k:stop], state = self.coast(u[k:stop], state)
+                k = stop
+                continue
             pose, c, state = self.step(mm[k:k + 1], u[k:k + 1], state)
             est[k], covs[k] = pose[0], c[0]
+            k += 1
         return est, covs
