@@ -336,8 +336,10 @@ class WindowRunner:
 class RecursiveRunner:
     """The window filter of ``net`` carried from step to step on ``engine``
     (:func:`lbo.serve.engines.make_recursive_step`): one filter step per sample, with its
-    covariance; over a log, the same steps (or, with ``smooth``, the RTS smoother's estimates
-    in PyTorch)."""
+    covariance; over a log, the same numbers, each stretch of rows without any measurement
+    in one coast (:meth:`lbo.models.recursive.RecursiveFilter.coast`, where the filter
+    coasts) and every other row through the engine's step (or, with ``smooth``, the RTS
+    smoother's estimates in PyTorch)."""
 
     first_valid = 0
 
