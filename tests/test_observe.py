@@ -385,11 +385,14 @@ def test_checkpoint_carries_the_observer(trained):
     assert torch.all(obs.net.in_std != 1.0)  # normalisation statistics of the training set
 
 
-def test_run_id_and_registered_model_load_the_same_observer(trained, manoeuvre, monkeypatch):
+def test_run_id_and_registered_model_load_the_same_observer(trained, manoeuvre, monkeypatch,
+                                                            capfd):
     monkeypatch.setenv("MLFLOW_TRACKING_URI", trained["uri"])
     m, u = manoeuvre[["x_m", "y_m", "psi_m"]].to_numpy(), manoeuvre[["V", "delta"]].to_numpy()
     ref, _ = Observer.load(trained["checkpoint"]).run(m, u)
+    capfd.readouterr()
     by_run = Observer.load(trained["run_id"])
+    assert "Downloading artifacts" not in capfd.readouterr().err  # no progress bars
     np.testing.assert_array_equal(by_run.run(m, u)[0], ref)
     uri = register(trained["run_id"], "lbo-test")
     assert uri == "models:/lbo-test/1"

@@ -67,7 +67,8 @@ def test_rows_without_a_measurement_coast_to_the_numbers_of_one_step_each():
     for engine in ("torch", "onnx"):
         obs = Observer.from_net(net, form="recursive", engine=engine)
         coasted, coast = [], obs._runner.coast
-        obs._runner.coast = lambda u, state: coasted.append(len(u)) or coast(u, state)
+        obs._runner.coast = (lambda u, state, seen=coasted, inner=coast:
+                             seen.append(len(u)) or inner(u, state))
         got, valid, got_cov = obs.run(m[0], u[0], cov=True)
         assert sum(coasted) == np.isnan(m[0, 3:, 0]).sum()  # every empty row once started
         # ONNX Runtime's float32 kernels in the noise model: within the export's tolerance

@@ -52,6 +52,23 @@ def checkpoint_file(source: str) -> Iterator[Path]:
         yield _download(uri, run_id, Path(tmp))
 
 
+PROGRESS_BAR = "MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR"
+
+
+@contextlib.contextmanager
+def _no_progress_bar() -> Iterator[None]:
+    """MLflow's download bars off (a checkpoint of a few MB comes in a blink, and the bars
+    would sit between a command's own lines), unless the user set :data:`PROGRESS_BAR`."""
+    if PROGRESS_BAR in os.environ:
+        yield
+        return
+    os.environ[PROGRESS_BAR] = "false"
+    try:
+        yield
+    finally:
+        os.environ.pop(PROGRESS_BAR, None)
+
+
 def _download(uri: str, run_id: str | None, folder: Path) -> Path:
     """Download ``uri`` (runs:/ or models:/) into ``folder``; return the .ckpt in it."""
     import mlflow
@@ -70,8 +87,9 @@ def _download(uri: str, run_id: str | None, folder: Path) -> Path:
             raise LboError(f"observer: MLflow run {run_id} not found in {store}") from None
     try:
         where = _model_version_uri(client, uri) if uri.startswith("models:/") else uri
-        local = Path(mlflow.artifacts.download_artifacts(artifact_uri=where, dst_path=str(folder),
-                                                         tracking_uri=store))
+        with _no_progress_bar():
+            local = Path(mlflow.artifacts.download_artifacts(
+                artifact_uri=where, dst_path=str(folder), tracking_uri=store))
     except MlflowException as e:
         reason = str(e.message).strip().splitlines()[0]
         if run_id is not None:
