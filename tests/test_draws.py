@@ -12,7 +12,7 @@ from lbo.core.errors import LboError
 from lbo.learn.builders import noise_settings
 from lbo.learn.datamodule import FixedDataset, WindowDataModule, WindowDataset, rows, window_ends
 from lbo.learn.draws import AlphaDraw, loss_weights
-from lbo.models.features import wrap_angle_torch
+from lbo.models.poses import wrap_angle_torch
 from lbo.train import check, train
 
 SIGMA = torch.tensor([1.0, 1.0, 0.0174], dtype=torch.float64)  # the paper preset at alpha=1

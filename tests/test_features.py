@@ -15,8 +15,8 @@ from lbo.models.features import (
     state_to_target,
     target_to_state,
     window_features,
-    wrap_angle_torch,
 )
+from lbo.models.poses import wrap_angle_torch
 
 
 def _windows(rng: np.random.Generator, batch: int = 6, window: int = 20) -> np.ndarray:

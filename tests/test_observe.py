@@ -416,6 +416,13 @@ def test_import_lbo_stays_light():
     res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert res.returncode == 0, res.stderr
     assert "Observer" in res.stdout
+    # a classical observer over a log, as lbo.observe runs it, needs no torch (2 s of imports)
+    code = ("import sys, numpy as np, lbo.observe; from lbo import Observer; "
+            "m = np.c_[np.arange(50.0), np.zeros(50), np.zeros(50)]; "
+            "est, valid = Observer.load('ekf').run(m, np.tile([10.0, 0.0], (50, 1))); "
+            "assert valid.all(); assert 'torch' not in sys.modules, 'torch imported'")
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert res.returncode == 0, res.stderr
 
 
 def test_plot_draws_the_estimate_over_the_log(tmp_path, log_csv):

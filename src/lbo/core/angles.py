@@ -1,5 +1,5 @@
 """Angles: the one home of wrapping a heading to (-pi, pi] in NumPy (the torch form, for the
-networks and filters written in torch, is :func:`lbo.models.features.wrap_angle_torch`)."""
+networks and filters written in torch, is :func:`lbo.models.poses.wrap_angle_torch`)."""
 
 from __future__ import annotations
 

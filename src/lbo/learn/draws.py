@@ -124,7 +124,7 @@ def noisy_measurements(z: torch.Tensor, alpha: torch.Tensor, sigma: torch.Tensor
     alpha like the white noise. Returns (B, N, 3), heading wrapped to (-pi, pi] like the stored
     measurements.
     """
-    from lbo.models.features import wrap_heading
+    from lbo.models.poses import wrap_heading
 
     eps = torch.randn(z.shape, generator=generator, dtype=z.dtype, device=z.device)
     noise = sigma * eps

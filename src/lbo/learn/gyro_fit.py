@@ -32,8 +32,8 @@ from lbo.core.angles import wrap_angle
 from lbo.core.errors import LboError
 from lbo.filters import classical, measure
 from lbo.filters.gyro import GyroNoise
-from lbo.models.features import wrap_heading
 from lbo.models.gyro_filter import GyroFilter, Segments
+from lbo.models.poses import wrap_heading
 from lbo.scoring.receiver import measure_ratio, scored_rows
 from lbo.sim.columns import STATE
 from lbo.sim.logio import receiver

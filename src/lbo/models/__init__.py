@@ -10,17 +10,27 @@ the installed packages' entry points (group ``lbo.models``, :mod:`lbo.core.plugi
 
 from __future__ import annotations
 
+import importlib
 import inspect
-from typing import Any
-
-from torch import nn
+from typing import TYPE_CHECKING, Any
 
 from lbo.core import plugins
 from lbo.core.errors import LboError
-from lbo.models.cnn import WindowCNN
-from lbo.models.filternet import WindowFilter
-from lbo.models.kalmannet import KalmanNet
-from lbo.models.lstm import WindowLSTM
+
+if TYPE_CHECKING:
+    from torch import nn
+
+_CLASSES = {"WindowCNN": "cnn", "WindowLSTM": "lstm", "WindowFilter": "filternet",
+            "KalmanNet": "kalmannet"}
+"""lbo's own model classes, by the module under ``lbo.models`` that holds each: imported
+when first asked for, so that what needs no network (a checkpoint's envelope, a classical
+observer) does not import torch."""
+
+
+def __getattr__(name: str) -> Any:
+    if name in _CLASSES:
+        return getattr(importlib.import_module(f"lbo.models.{_CLASSES[name]}"), name)
+    raise AttributeError(f"module 'lbo.models' has no attribute {name!r}")
 
 
 def model_names() -> tuple[str, ...]:
@@ -32,6 +42,8 @@ def model_names() -> tuple[str, ...]:
 def model_class(name: str, recorded: dict[str, Any] | None = None) -> type[nn.Module]:
     """The class registered as ``name``; ``recorded``: the provider a checkpoint stored, for
     the error when it is not installed. Raises LboError naming ``model.name``."""
+    from torch import nn
+
     cls = plugins.load("model", name, "model.name", recorded)
     if not (isinstance(cls, type) and issubclass(cls, nn.Module)):
         raise LboError(f"model.name: model {name!r} is registered as {cls!r}, not a "

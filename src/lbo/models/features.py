@@ -31,46 +31,51 @@ graph.
 
 from __future__ import annotations
 
-import math
-from typing import TypeVar
+import sys
+from typing import TYPE_CHECKING, TypeVar
 
 import numpy as np
-import torch
 
 from lbo.core.angles import wrap_angle
 from lbo.core.errors import LboError
 from lbo.sim.logcheck import fix_mask
 
+if TYPE_CHECKING:
+    import torch
+
 FEATURE_MODES = ("relative", "frame", "absolute")
 
-Array = TypeVar("Array", np.ndarray, torch.Tensor)
+Array = TypeVar("Array", np.ndarray, "torch.Tensor")
 
 
-def wrap_angle_torch(a: torch.Tensor) -> torch.Tensor:
-    """Wrap angles to (-pi, pi], the same convention as :func:`lbo.core.angles.wrap_angle`."""
-    return math.pi - torch.remainder(math.pi - a, 2 * math.pi)
-
-
-def wrap_heading(p: torch.Tensor) -> torch.Tensor:
-    """Poses or pose differences (..., 3) ``[x, y, psi]`` with psi wrapped to (-pi, pi]."""
-    return torch.cat([p[..., :2], wrap_angle_torch(p[..., 2:])], -1)
+def _is_tensor(a: object) -> bool:
+    """Whether ``a`` is a torch tensor. A tensor exists only once torch is imported, so numpy
+    work (a classical observer's run, a log's checks) never imports torch through here."""
+    torch = sys.modules.get("torch")
+    return torch is not None and isinstance(a, torch.Tensor)
 
 
 def _wrap(a: Array) -> Array:
-    if isinstance(a, torch.Tensor):
+    if _is_tensor(a):
+        from lbo.models.poses import wrap_angle_torch
+
         return wrap_angle_torch(a)
     return wrap_angle(a)
 
 
 def _cat_last(parts: list[Array]) -> Array:
-    if isinstance(parts[0], torch.Tensor):
+    if _is_tensor(parts[0]):
+        import torch
+
         return torch.cat(parts, dim=-1)
     return np.concatenate(parts, axis=-1)
 
 
 def _rotate(xy: Array, psi: Array, sign: int) -> Array:
     """Rotate (..., 2) vectors by ``sign * psi`` (psi broadcasts as (..., 1))."""
-    if isinstance(xy, torch.Tensor):
+    if _is_tensor(xy):
+        import torch
+
         c, s = torch.cos(psi), torch.sin(psi) * sign
     else:
         c, s = np.cos(psi), np.sin(psi) * sign
@@ -87,7 +92,7 @@ def window_view(series: Array, n: int) -> Array:
     windows here, torch tensors and numpy arrays alike.
     """
     axis = series.ndim - 2
-    if isinstance(series, torch.Tensor):
+    if _is_tensor(series):
         return series.unfold(axis, n, 1).transpose(-1, -2)
     return np.lib.stride_tricks.sliding_window_view(series, n, axis=axis).swapaxes(-1, -2)
 
@@ -109,7 +114,9 @@ def last_measurement(win: Array, fixes: bool = False) -> Array:
         return win[..., -1, :3]
     fix = fix_mask(win)
     n = win.shape[-2]
-    if isinstance(win, torch.Tensor):
+    if _is_tensor(win):
+        import torch
+
         last = n - 1 - torch.flip(fix, [-1]).to(win.dtype).argmax(-1)
         idx = last[..., None, None].expand(*last.shape, 1, 3)
         return torch.gather(win[..., :3], -2, idx).squeeze(-2)
@@ -148,7 +155,9 @@ def window_features(win: Array, mode: str = "relative", fixes: bool = False) -> 
     if not fixes:
         return out
     fix = fix_mask(win)[..., None]
-    if isinstance(win, torch.Tensor):
+    if _is_tensor(win):
+        import torch
+
         meas = torch.where(fix, out[..., :3], torch.zeros_like(out[..., :3]))
         return torch.cat([meas, out[..., 3:5], fix.to(win.dtype)], -1)
     meas = np.where(fix, out[..., :3], 0.0)

@@ -38,7 +38,7 @@ from torch import nn
 
 from lbo.core.checks import integer, number
 from lbo.core.errors import LboError
-from lbo.models.features import wrap_heading
+from lbo.models.poses import wrap_heading
 
 SUBSTEPS = 4
 """Euler sub-steps per sampling period of the single-track body's lateral states."""

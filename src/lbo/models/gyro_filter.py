@@ -23,7 +23,7 @@ from torch import nn
 from lbo.filters import gyro as gyro_np
 from lbo.filters import measure
 from lbo.filters.gyro import GyroNoise
-from lbo.models.features import wrap_angle_torch
+from lbo.models.poses import wrap_angle_torch
 
 _NAMES = tuple(f.name for f in dataclasses.fields(GyroNoise))
 

@@ -47,8 +47,8 @@ from torch import nn
 from torch.nn import functional as F
 
 from lbo.core.checks import integer, number
-from lbo.models.features import wrap_heading
 from lbo.models.filternet import bicycle_step, check_sigmas, frame_model
+from lbo.models.poses import wrap_heading
 
 N_STATE = 3
 """The state and the measurement: the pose ``x, y, psi``."""

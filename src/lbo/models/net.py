@@ -20,8 +20,8 @@ from lbo.models.features import (
     state_to_target,
     target_to_state,
     window_features,
-    wrap_heading,
 )
+from lbo.models.poses import wrap_heading
 
 CHECKPOINT_FORMAT = 1
 """The layout of a saved observer (a checkpoint's ``format``), bumped when it changes; lbo

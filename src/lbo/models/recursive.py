@@ -46,8 +46,8 @@ import numpy as np
 import torch
 from torch import nn
 
-from lbo.models.features import wrap_heading
 from lbo.models.filternet import WindowFilter, _inverse_sym3, bicycle_step
+from lbo.models.poses import wrap_heading
 
 STATE_NAMES = ("z", "P", "body", "u_prev", "last", "dead_reckoning", "gap", "heading",
                "ring", "sums", "speeds", "speed_sum", "k", "started")
