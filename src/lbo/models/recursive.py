@@ -80,6 +80,7 @@ class RecursiveFilter(nn.Module):
 
     Attributes
     ----------
+    window_filter : its float64 copy of the window filter (the nets inside run in float32).
     window : N, the steps the noise statistic runs over.
     n : filter states, 3 ``[x, y, psi]`` or 5 with the GNSS drift ``[b_x, b_y]``.
     fixes : whether steps without a fix are taken (the net has the ``fix`` channel).
@@ -89,9 +90,9 @@ class RecursiveFilter(nn.Module):
         super().__init__()
         nets = {name: _Single(copy.deepcopy(getattr(net, name))) for name in ("noise", "process")
                 if not isinstance(getattr(net, name), nn.Identity)}
-        self.net = copy.deepcopy(net).double().eval()
+        self.window_filter = copy.deepcopy(net).double().eval()
         for name, wrapped in nets.items():
-            setattr(self.net, name, wrapped.eval())
+            setattr(self.window_filter, name, wrapped.eval())
         self.window = int(net.window)
         self.fixes = bool(net.fixes)
         self.n = 5 if net.drift else 3
@@ -126,7 +127,7 @@ class RecursiveFilter(nn.Module):
         """(B, 3, 3) measurement covariance R in world axes from the running sums (B, 6), the
         mean speed (B,) and the latest fix's heading (B,): the net's noise model on the
         statistic of the last N steps in that fix's frame (alpha = 1 before any)."""
-        fo = self.net
+        fo = self.window_filter
         count = sums[:, 4]
         some = count > 0
         c, s = torch.cos(heading), torch.sin(heading)
@@ -173,7 +174,7 @@ class RecursiveFilter(nn.Module):
     def _process_cov(self, heading: torch.Tensor, eye: torch.Tensor) -> torch.Tensor:
         """(B, n, n) the learned Q at the latest fix's headings (B,): its x and y are along
         and across that heading, as R's (``eye``: the (n, n) identity)."""
-        q = torch.exp(2 * (self.net.log_q0 + self.net.log_q_scale))
+        q = torch.exp(2 * (self.window_filter.log_q0 + self.window_filter.log_q_scale))
         c, sn = torch.cos(heading), torch.sin(heading)
         qxx, qyy = c * c * q[0] + sn * sn * q[1], sn * sn * q[0] + c * c * q[1]
         qxy = c * sn * (q[0] - q[1])
@@ -188,7 +189,7 @@ class RecursiveFilter(nn.Module):
         """Whether :meth:`coast` takes this filter's rows without a measurement: the
         kinematic bicycle without a learned correction, three states, trained with missing
         fixes (the robust observer of ``experiment=robust``)."""
-        fo = self.net
+        fo = self.window_filter
         return self.n == 3 and self.fixes and not fo.single_track and fo.residual == 0
 
     @property
@@ -205,7 +206,7 @@ class RecursiveFilter(nn.Module):
         :meth:`forward` runs the whole step (the noise model, the statistic, the update)."""
         (z, P, body, u_prev, last, dr, gap, heading, ring, sums, speeds, speed_sum, k,
          started) = state
-        fo = self.net
+        fo = self.window_filter
         steps = len(u)
         if not (self.coasts and len(z) == 1 and 0 < steps <= self.coast_limit):
             raise ValueError("coast takes 1 to coast_limit rows of one kinematic filter")
@@ -256,7 +257,7 @@ class RecursiveFilter(nn.Module):
         row with a position and a heading the pose and its covariance are NaN."""
         (z, P, body, u_prev, last, dr, gap, heading, ring, sums, speeds, speed_sum, k,
          started) = state
-        fo = self.net
+        fo = self.window_filter
         if m.shape[1] == 3:  # the paper's row: no accuracy, no course
             m = torch.cat([m, (m[:, :1] * 0.0 + math.nan).repeat(1, 5)], 1)
         row, m = m, m[:, :3]
