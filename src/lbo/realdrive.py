@@ -42,7 +42,7 @@ from lbo.core.checks import integer, number
 from lbo.core.cli import entry
 from lbo.filters import classical
 from lbo.filters.gyro import GyroNoise
-from lbo.scoring.receiver import EKF, markdown, ratio_to, score
+from lbo.scoring.receiver import EKF, load_nets, markdown, ratio_to, score
 from lbo.sim import hguide
 from lbo.sim.columns import STATE
 from lbo.sim.logio import check_log, check_output_path, write_table
@@ -59,14 +59,13 @@ FINE_TUNED = "gyro, noise learned on simulated drives, fine-tuned on the train s
 
 def realdrive(cfg: DictConfig) -> dict[str, Any]:
     """Write the hill drive's span logs and score the classical observers on its test span."""
-    from lbo.serve.observer import Observer
     from lbo.sim.noise import Noise
     from lbo.sim.vehicle import Vehicle
 
     observers = list(cfg.observers)
     for name in observers:
         classical.check(str(name), "observers")
-    nets = [Observer.load(str(n)) for n in cfg.get("nets") or ()]  # refused before any work
+    nets = load_nets(cfg.get("nets"))
     learn = {"epochs": integer(cfg.learn.epochs, "learn.epochs", 0),
              "simulated": integer(cfg.learn.simulated, "learn.simulated", 0),
              "segment_s": number(cfg.learn.segment_s, "learn.segment_s", 0.0, low_open=True),

@@ -88,7 +88,6 @@ def _settings(cfg: DictConfig) -> dict[str, Any]:
 def receiver_study(cfg: DictConfig) -> dict[str, Any]:
     """Score every observer on simulated single-antenna logs at each alpha (see the module)."""
     from lbo.learn import gyro_fit
-    from lbo.serve.observer import Observer
     from lbo.sim.noise import Noise
     from lbo.sim.receiver import SIGMA_FLOOR, ReceiverSpec
     from lbo.sim.vehicle import Vehicle
@@ -98,7 +97,7 @@ def receiver_study(cfg: DictConfig) -> dict[str, Any]:
         raise LboError("receiver: expected a receiver to simulate (receiver=single_antenna)")
     vehicle, noise = Vehicle.from_cfg(cfg.vehicle), Noise.from_cfg(cfg.noise)
     spec = ReceiverSpec.from_cfg(cfg.receiver, vehicle.dt)
-    nets = [Observer.load(str(n)) for n in cfg.get("nets") or ()]  # read once, before any work
+    nets = scoring.load_nets(cfg.get("nets"))
     out = Path(str(cfg.output_dir))
     check_output_path(out / "results.csv")
     out.mkdir(parents=True, exist_ok=True)

@@ -25,7 +25,8 @@ from lbo.sim.columns import STATE
 from lbo.sim.logio import receiver
 from lbo.sim.vehicle import Vehicle
 
-__all__ = ["BLIND", "EKF", "NOISE_ORACLE", "ORACLE", "RAW", "markdown", "measure_ratio",
+__all__ = ["BLIND", "EKF", "NOISE_ORACLE", "ORACLE", "RAW", "load_nets", "markdown",
+           "measure_ratio",
            "oracle_gyro", "pool", "ratio_to", "score", "scored_rows"]
 
 RAW = "raw fixes (heading: course over ground)"
@@ -55,6 +56,14 @@ def scored_rows(log: pd.DataFrame) -> np.ndarray:
         raise LboError("the log never moves fast enough for a course over ground: a single "
                        "antenna tells no heading there")
     return np.arange(len(log)) >= int(np.argmax(np.isfinite(course)))
+
+
+def load_nets(sources: Sequence[Any] | None) -> list[Any]:
+    """The learned observers of a command's ``nets`` (checkpoints, run ids, ``models:/``
+    URIs), each read once and before any work, so that a bad one fails at once."""
+    from lbo.serve.observer import Observer
+
+    return [Observer.load(str(source)) for source in sources or ()]
 
 
 def score(log: pd.DataFrame, observers: Sequence[str], vehicle: Vehicle, noise: Any,
