@@ -180,12 +180,22 @@ NOT_SIMULATED = Refusal(r".*\bdata\b",
                         "lbo.simulate drives the simulated test manoeuvres of a data set's "
                         "settings; a user's logs (data=logs) have none")
 
+NEEDS_FIX_RATES = Refusal(r"fix_rates must be the rates \(Hz\) of the receiver's fixes",
+                          "a net that reads a receiver (receiver=...) is trained on receivers "
+                          "drawn at the fix rates of its windows, which only experiment=robust, "
+                          "logs and receiver set")
+RECEIVER_MODEL = Refusal(r"receiver: model '(filternet|kalmannet)' does not read a receiver's "
+                         r"windows", "the window EKF and KalmanNet read a paper window (the "
+                         "robust observer reads a receiver in its recursive form)")
+
 RELATIVE_FEATURES = {None, "smoke"}
 """Experiments that leave ``features=relative`` (refused for the models in FRAME_MODELS)."""
 FRAME_MODELS = {"filternet", "kalmannet"}
 """Models that read features in the frame of the latest fix only."""
 FILTERNET_EXPERIMENTS = {"dynamic", "logs"}
 """Experiments that set model keys only the filternet takes (refused for other models)."""
+FIX_RATE_EXPERIMENTS = {"robust", "logs", "receiver"}
+"""Experiments that set ``fix_rates`` (a receiver's training windows need them)."""
 
 
 def cuda() -> bool:
@@ -196,6 +206,11 @@ def cuda() -> bool:
 
 def train_refusal(experiment: str | None, choice: dict[str, str | None]) -> Refusal | None:
     """The refusal ``lbo.train.check`` gives, in the order it checks; None: it passes."""
+    if choice.get("receiver") is not None:
+        if experiment not in FIX_RATE_EXPERIMENTS:
+            return NEEDS_FIX_RATES
+        if choice["model"] in FRAME_MODELS:
+            return RECEIVER_MODEL
     if choice["model"] in FRAME_MODELS and experiment in RELATIVE_FEATURES:
         return NEEDS_FRAME
     if experiment in FILTERNET_EXPERIMENTS and choice["model"] != "filternet":

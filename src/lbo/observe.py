@@ -86,7 +86,7 @@ def observe(cfg: DictConfig) -> dict[str, Any]:
     ``output`` (Path), ``observer`` (name), ``rows``, ``valid`` (rows with a full window),
     and, when the log holds the true state, ``rmse`` (3,) (m, m, rad) and ``nrmse``.
     """
-    from lbo.filters.classical import GYRO, check_gyro_noise, on_logs
+    from lbo.filters.classical import check_gyro_noise, on_logs
     from lbo.filters.gyro import GyroNoise
     from lbo.serve.engines import engine_device
     from lbo.serve.observer import EnvelopeWarning, Observer
@@ -202,12 +202,13 @@ def observe(cfg: DictConfig) -> dict[str, Any]:
           f"at {1 / obs.dt:g} Hz)")
     if channels is not None:
         told = [c for c, held in zip(RECEIVER, np.isfinite(channels).any(0)) if held]
-        idle = "r_m" in told and obs.takes_receiver and name != GYRO  # the gyro EKF's
+        idle = "r_m" in told and obs.takes_receiver and not obs.reads_gyro
         taken = [c for c in told if not (idle and c == "r_m")]
         print(f"receiver: {', '.join(taken) or 'no value'} "
               + ("taken (reported accuracy as R, velocity as course over ground)"
                  if obs.takes_receiver else f"not read: {no_receiver(obs.name)}")
-              + (f"; r_m not read by {name} (observer=gyro reads it)" if idle else ""))
+              + (f"; r_m not read by {name} (observer=gyro reads it, and a net trained "
+                 "with experiment=receiver)" if idle else ""))
     if obs.kind == "learned":
         asked = (vehicle, noise.process_sigma, noise.measurement_sigma)
         if asked != (obs.vehicle, obs.noise.process_sigma, obs.noise.measurement_sigma):

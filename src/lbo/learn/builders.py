@@ -17,7 +17,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from lbo.core.checks import integer, number, require
 from lbo.core.errors import LboError
-from lbo.learn.draws import SOURCES, AlphaDraw, fix_periods
+from lbo.learn.draws import SOURCES, AlphaDraw, ReceiverDraw, fix_periods
 
 
 @dataclass(frozen=True)
@@ -57,7 +57,8 @@ def build_net(cfg: DictConfig, periods: tuple[int, ...] | None = None):
     model = OmegaConf.to_container(cfg.model, resolve=True)
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(cfg.seed)
-        return WindowNet(model.pop("name"), cfg.window, cfg.features, bool(periods), **model)
+        return WindowNet(model.pop("name"), cfg.window, cfg.features, bool(periods),
+                         receiver=bool(cfg.get("receiver")), **model)
 
 
 def initial_weights(cfg: DictConfig, net, say: bool = True) -> dict[str, torch.Tensor]:
@@ -161,7 +162,7 @@ def noise_settings(cfg: DictConfig) -> dict[str, Any]:
     """
     tn = cfg.get("train_noise")
     if tn is None or tn.get("source", "stored") == "stored":
-        return {}
+        return {"receiver": receiver_draw(cfg)} if cfg.get("receiver") else {}
     require(tn.source in SOURCES, "train_noise.source", f"one of {list(SOURCES)}", tn.source)
     draw = AlphaDraw.from_cfg(tn)
     offset = tn.get("loss_weight_offset")
@@ -174,7 +175,28 @@ def noise_settings(cfg: DictConfig) -> dict[str, Any]:
     truth = cfg.get("truth") or {}
     if truth.get("gnss_sigma", 0) > 0:  # the drawn noise drifts as the data set's does
         out["drift"] = (float(truth.gnss_sigma), float(truth.gnss_tau) / cfg.vehicle.dt)
+    if cfg.get("receiver"):
+        out["receiver"] = receiver_draw(cfg)
     return out
+
+
+def receiver_draw(cfg: DictConfig) -> ReceiverDraw:
+    """The receiver drawn per training window (groups ``receiver`` and
+    ``receiver_training``); one line naming the field for a bad one."""
+    from lbo.sim.receiver import ReceiverSpec
+
+    require(bool(cfg.get("fix_rates")), "fix_rates",
+            "the rates (Hz) of the receiver's fixes in training windows, e.g. [10, 5, 1]",
+            cfg.get("fix_rates"))
+    mix = dict(cfg.get("receiver_training") or {})
+    unknown = [k for k in mix if k not in ("heading_share", "gyro_share")]
+    if unknown:
+        raise LboError(f"receiver_training.{unknown[0]}: not a field; accepted: heading_share, "
+                       "gyro_share")
+    dt = float(cfg.vehicle.dt)
+    return ReceiverDraw(ReceiverSpec.from_cfg(cfg.receiver, dt), dt=dt,
+                        heading_sigma=float(cfg.noise.measurement_sigma[2]),
+                        wheelbase=float(cfg.vehicle.wheelbase), **mix)
 
 
 def prepare_data(cfg: DictConfig) -> tuple[Path, str]:

@@ -30,7 +30,8 @@ from torch.utils.data import (
 )
 
 from lbo.core.errors import LboError
-from lbo.learn.draws import AlphaDraw, draw_fixes, loss_weights, noisy_measurements
+from lbo.learn.draws import AlphaDraw, ReceiverDraw, draw_fixes, loss_weights, noisy_measurements
+from lbo.models import receiver_window
 from lbo.models.features import last_measurement, state_to_target, window_features, window_view
 from lbo.models.net import check_scaling
 from lbo.sim import schema
@@ -75,13 +76,20 @@ class WindowDataset(Dataset):
         (steps), see :func:`lbo.learn.draws.draw_fixes`; the dropped ones become NaN. () keeps all.
     drift : (sigma (m), tau (steps)) of a Gauss-Markov GNSS drift added to drawn noise, as
         the data set's truth has it; None: white noise only.
+    receiver : draw a receiver's windows (B, N, 11) instead
+        (:meth:`lbo.learn.draws.ReceiverDraw.windows`), at the alphas of ``draw`` (1 when
+        None) and the fix rows of ``fix_periods`` (needed).
     """
 
     def __init__(self, x: torch.Tensor, y: torch.Tensor, ends: np.ndarray, window: int,
                  draw: AlphaDraw | None = None, sigma: torch.Tensor | None = None,
                  seed: int = 0, weight_offset: float | None = None,
                  fix_periods: tuple[int, ...] = (),
-                 drift: tuple[float, float] | None = None):
+                 drift: tuple[float, float] | None = None,
+                 receiver: ReceiverDraw | None = None):
+        if receiver is not None and not fix_periods:
+            raise LboError("a receiver's windows need fix rates (fix_rates=[10, 5, 1])")
+        self.receiver = receiver
         self.x, self.y, self.window = x, y, window
         self.fix_periods = tuple(fix_periods)
         self.ends = torch.from_numpy(ends)
@@ -124,6 +132,12 @@ class WindowDataset(Dataset):
         e = self.ends[torch.as_tensor(idx, device=self.ends.device)]
         s = e - self.window + 1
         win = self.windows[s]
+        if self.receiver is not None:
+            alpha = (torch.ones(len(e), dtype=self.x.dtype, device=e.device)
+                     if self.draw is None else self.draw.sample(len(e), generator))
+            fix = draw_fixes(len(e), self.window, self.fix_periods, generator, e.device)
+            rx = self.receiver.windows(self.truth[s], win[..., 3:5], alpha, fix, generator)
+            return rx, self.y[e], loss_weights(alpha, self.weight_offset)
         if self.draw is None:
             weight = torch.ones(len(e), dtype=self.x.dtype, device=e.device)
             m = win[..., :3]
@@ -191,6 +205,7 @@ class WindowDataModule(L.LightningDataModule):
         :class:`WindowDataset`); () keeps every fix.
     drift : (sigma (m), tau (steps)) of the GNSS drift drawn with the noise (see
         :class:`WindowDataset`).
+    receiver : draw a receiver's windows instead of the paper's (see :class:`WindowDataset`).
     """
 
     def __init__(self, folder: str | Path, window: int, batch_size: int = 256,
@@ -198,7 +213,8 @@ class WindowDataModule(L.LightningDataModule):
                  draw: AlphaDraw | None = None, sigma=None,
                  weight_offset: float | None = None, val_repeats: int = 1,
                  device: str = "cpu", fix_periods: tuple[int, ...] = (),
-                 drift: tuple[float, float] | None = None) -> None:
+                 drift: tuple[float, float] | None = None,
+                 receiver: ReceiverDraw | None = None) -> None:
         super().__init__()
         self.device = torch.device(device)
         self.folder = Path(folder)
@@ -209,7 +225,7 @@ class WindowDataModule(L.LightningDataModule):
         self.draw, self.sigma, self.weight_offset = draw, sigma, weight_offset
         self.val_repeats = int(val_repeats)
         self.fix_periods = tuple(fix_periods)
-        self.drift = drift
+        self.drift, self.receiver = drift, receiver
         self.train_set: WindowDataset | None = None
         self.val_set: Dataset | None = None
         self.shuffle = torch.Generator().manual_seed(seed)  # the training order, epoch by epoch
@@ -231,13 +247,14 @@ class WindowDataModule(L.LightningDataModule):
                            "the inputs): train with fix_rates (e.g. fix_rates=[10]) so that the "
                            "observer takes them, or with drawn noise (train_noise=paper)")
         noise = {"draw": self.draw, "sigma": self.sigma, "weight_offset": self.weight_offset,
-                 "fix_periods": self.fix_periods, "drift": self.drift}
+                 "fix_periods": self.fix_periods, "drift": self.drift,
+                 "receiver": self.receiver}
         self.train_set = WindowDataset(*rows(train), window_ends(train["k"].to_numpy(),
                                                                  self.window), self.window,
                                        seed=self.seed, **noise)
         val_set = WindowDataset(*rows(val), window_ends(
             val["k"].to_numpy(), self.window, val["scored"].to_numpy()), self.window, **noise)
-        if self.draw is None and not self.fix_periods:
+        if self.draw is None and not self.fix_periods and self.receiver is None:
             self.val_set = val_set
         else:  # one fixed draw, the same in every epoch and run of this seed
             g = torch.Generator().manual_seed(self.seed + 1)
@@ -249,7 +266,8 @@ class WindowDataModule(L.LightningDataModule):
     def normalisation(self, features: str, scaling: str = "standard",
                       n: int = 20_000) -> dict[str, torch.Tensor]:
         """Per-channel offsets and scales of ``n`` random training windows' features and
-        targets (with the ``fix`` channel when fixes are dropped), as the ``in_mean, in_std,
+        targets (with the ``fix`` channel when fixes are dropped; a receiver's features when
+        it draws them), as the ``in_mean, in_std,
         out_mean, out_std`` of :meth:`WindowNet.set_normalisation`.
 
         ``scaling``: ``"standard"``, the mean and standard deviation; ``"minmax"``, the minimum
@@ -262,9 +280,12 @@ class WindowDataModule(L.LightningDataModule):
         g = torch.Generator(device=self.device).manual_seed(self.seed)
         pick = torch.randperm(len(self.train_set), generator=g, device=self.device)[:n]
         win, state, _ = self.train_set.batch(pick, g)
-        f = window_features(win, features, fixes)
+        if self.receiver is not None:
+            f, anchor = receiver_window.features(win), receiver_window.anchor(win)
+        else:
+            f, anchor = window_features(win, features, fixes), last_measurement(win, fixes)
         f = f.reshape(-1, f.shape[-1]).cpu()
-        t = state_to_target(state, last_measurement(win, fixes), features).cpu()
+        t = state_to_target(state, anchor, features).cpu()
         if scaling == "minmax":
             lo_f, lo_t = f.amin(0), t.amin(0)
             return {"in_mean": lo_f, "in_std": f.amax(0) - lo_f,

@@ -1,4 +1,4 @@
-"""Measurement noise drawn on the fly for training windows.
+"""Measurement noise, and a receiver's channels, drawn on the fly for training windows.
 
 A data set stores one noise draw per step, so a network trained on the stored measurements
 soon fits that one draw. Drawing the noise afresh for every window from the true states,
@@ -12,6 +12,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import torch
@@ -191,3 +192,101 @@ def draw_fixes(n: int, window: int, periods: Sequence[int], generator: torch.Gen
     spot = torch.randint(window, (n,), generator=generator, device=device)
     mask[empty, spot[empty]] = True
     return mask
+
+
+@dataclass(frozen=True)
+class ReceiverDraw:
+    """A simulated receiver and gyro drawn afresh for every training window (as
+    :func:`lbo.sim.receiver.sense` draws them for a log), for nets that read a receiver.
+
+    spec : the receiver's channels (:class:`lbo.sim.receiver.ReceiverSpec`); its position
+        and velocity come at the fix rows :func:`draw_fixes` picks (the window's rate), each
+        channel late by its latency, with white noise and Gauss-Markov drift
+        scaled by the window's alpha, and a reported accuracy that tracks the error's scale.
+    heading_share : the share of windows whose fixes also carry a heading ``psi_m`` (a dual
+        antenna, or the paper's sensor), of 1-sigma ``alpha * heading_sigma``.
+    gyro_share : the share of windows with a gyro (the rest have none, as the paper's logs).
+    dt, wheelbase : the sampling period (s) and the course's turn rate ``V tan(delta) / L``.
+    """
+
+    spec: Any
+    heading_share: float = 0.25
+    gyro_share: float = 0.75
+    heading_sigma: float = 0.01
+    dt: float = 0.02
+    wheelbase: float = 2.7
+
+    def __post_init__(self) -> None:
+        for name in ("heading_share", "gyro_share"):
+            number(getattr(self, name), f"receiver_training.{name}", low=0.0, high=1.0,
+                   form="a share in [0, 1]")
+
+    def windows(self, z: torch.Tensor, u: torch.Tensor, alpha: torch.Tensor,
+                fix: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
+        """Receiver windows (B, N, 11) (:data:`lbo.models.receiver_window.COLUMNS`) of true
+        poses z (B, N, 3) and inputs u (B, N, 2) at noise scales alpha (B,), fixes at the
+        rows ``fix`` (B, N) bool. Vectorised over windows and steps."""
+        from lbo.filters import measure
+        from lbo.models.poses import wrap_angle_torch
+        from lbo.sim.receiver import SIGMA_FLOOR
+
+        spec, dt = self.spec, self.dt
+        b, n = fix.shape
+        opts = {"dtype": z.dtype, "device": z.device}
+
+        def late(a: torch.Tensor, latency: float) -> torch.Tensor:
+            # a (B, N, ...) as it was ``latency`` s before each row, interpolated; the first
+            # rows take the window's first value (as the log's first rows do in sense())
+            f = (torch.arange(n, **opts) - latency / dt).clamp_min(0.0)
+            i0 = f.floor().long()
+            i1 = (i0 + 1).clamp_max(n - 1)
+            w = (f - i0).reshape((n,) + (1,) * (a.ndim - 2))
+            return a[:, i0] * (1 - w) + a[:, i1] * w
+
+        def error(ch: Any, width: int) -> torch.Tensor:
+            e = ch.white * torch.randn((b, n, 2), generator=generator, **opts)
+            if ch.drift > 0:
+                e = e + ch.drift * gauss_markov((b, n), ch.tau / dt, generator, **opts)
+            return e[..., :width]
+
+        def spread() -> torch.Tensor:
+            s = spec.reported_spread
+            return torch.exp(s * torch.randn((b, n), generator=generator, **opts) - 0.5 * s * s)
+
+        a = alpha[:, None]
+        nan = torch.full((b, n), float("nan"), **opts)
+        pos = late(z[..., :2], spec.position.latency) + a[..., None] * error(spec.position, 2)
+        heading = torch.rand(b, generator=generator, **opts) < self.heading_share
+        psi_err = self.heading_sigma * torch.randn((b, n), generator=generator, **opts)
+        psi = wrap_angle_torch(late(z[..., 2], spec.position.latency) + a * psi_err)
+        told = (a * spec.position.sigma * spread()).clamp_min(SIGMA_FLOOR)
+        told_psi = (a * self.heading_sigma * spread()).clamp_min(SIGMA_FLOOR)
+        held_psi = fix & heading[:, None]
+        v = late(u[..., :1] * torch.stack([torch.cos(z[..., 2]), torch.sin(z[..., 2])], -1),
+                 spec.velocity.latency) + a[..., None] * error(spec.velocity, 2)
+        sv = torch.full((b, n), spec.velocity.sigma, **opts) * a
+        sv = sv.clamp_min(SIGMA_FLOOR)
+        speed = torch.hypot(v[..., 0], v[..., 1])
+        moving = fix & (speed >= measure.COURSE_MIN_SPEED) & (speed >= measure.COURSE_MIN_SNR * sv)
+        course = torch.atan2(v[..., 1], v[..., 0]) + torch.where(u[..., 0] < 0, math.pi, 0.0)
+        turn = u[..., 0] * torch.tan(u[..., 1]) / self.wheelbase
+        s_course = torch.hypot(sv, measure.COURSE_LEVER * turn) / speed.clamp_min(1e-9)
+        # the gyro: the yaw rate over each step (the last repeated), a bias that starts at
+        # N(0, gyro_bias^2) and walks, and its own noise; alpha scales the receiver only
+        yaw = wrap_angle_torch(torch.diff(z[..., 2], dim=1)) / dt
+        yaw = torch.cat([yaw, yaw[:, -1:]], 1)
+        walk = spec.gyro_walk * math.sqrt(dt) * torch.randn((b, n), generator=generator, **opts)
+        walk[:, 0] = spec.gyro_bias * torch.randn(b, generator=generator, **opts)
+        rate = late(yaw, spec.gyro.latency) + walk.cumsum(1) + error(spec.gyro, 1)[..., 0]
+        period = (max(1, round(1.0 / (spec.gyro.rate * dt))) if spec.gyro.rate is not None
+                  else 1)
+        phase = torch.randint(period, (b, 1), generator=generator, device=z.device)
+        has_gyro = torch.rand(b, generator=generator, **opts) < self.gyro_share
+        gyro_rows = ((torch.arange(n, device=z.device) + phase) % period == 0) & has_gyro[:, None]
+        cols = [torch.where(fix, pos[..., 0], nan), torch.where(fix, pos[..., 1], nan),
+                torch.where(held_psi, psi, nan), torch.where(fix, told, nan),
+                torch.where(fix, told, nan), torch.where(held_psi, told_psi, nan),
+                torch.where(moving, wrap_angle_torch(course), nan),
+                torch.where(moving, s_course, nan), u[..., 0], u[..., 1],
+                torch.where(gyro_rows, rate, nan)]
+        return torch.stack(cols, -1)

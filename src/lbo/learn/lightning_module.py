@@ -26,6 +26,7 @@ class TrainingModule(L.LightningModule):
     window : N.
     features : ``"relative"``, ``"frame"`` or ``"absolute"``.
     fixes : the observer takes missing fixes (a sixth, ``fix`` channel), see WindowNet.
+    receiver : the observer reads a receiver's windows, see WindowNet.
     optimizer : a partial optimiser (``params -> Optimizer``), e.g. from Hydra's
         ``_partial_: true``; Adam(lr=1e-3) when None.
     meta : what a checkpoint must carry to rebuild the observer elsewhere (dt, wheelbase,
@@ -39,7 +40,8 @@ class TrainingModule(L.LightningModule):
     def __init__(self, model: dict[str, Any], window: int, features: str = "relative",
                  optimizer: Callable[..., torch.optim.Optimizer] | None = None,
                  meta: dict[str, Any] | None = None, lr_schedule: str = "constant",
-                 fixes: bool = False, net: WindowNet | None = None) -> None:
+                 fixes: bool = False, net: WindowNet | None = None,
+                 receiver: bool = False) -> None:
         super().__init__()
         self.save_hyperparameters(ignore=["optimizer", "lr_schedule", "net"])
         self.lr_schedule = lr_schedule
@@ -48,7 +50,7 @@ class TrainingModule(L.LightningModule):
         self.hparams["provider"] = plugins.provider("model", model["name"])
         kwargs = {k: v for k, v in model.items() if k != "name"}
         self.observer = net if net is not None else WindowNet(model["name"], window, features,
-                                                              fixes, **kwargs)
+                                                              fixes, receiver, **kwargs)
         self.optimizer_factory = optimizer
         self._loss_sum: torch.Tensor | float = 0.0
         self._loss_count = 0

@@ -30,7 +30,8 @@ from lbo.core.paths import sqlite_path
 from lbo.core.runfolder import LOCK_NAME
 from lbo.sim.log_sets import is_logs
 
-LATER_DEFAULTS = {"normalisation": "standard"}
+LATER_DEFAULTS = {"normalisation": "standard", "receiver": None,
+                  "receiver_training": {"heading_share": 0.25, "gyro_share": 0.75}}
 """Settings added after runs were stored, with the value those runs had: a config holding
 that value hashes as if it did not have the key, so resume=true still finds the old runs."""
 
@@ -42,7 +43,7 @@ def config_hash(cfg: DictConfig) -> str:
         c.output_dir, c.data.root, c.resume, c.data_dir = "-", "-", False, None
         c.pop("logger", None)
         for key, default in LATER_DEFAULTS.items():
-            if c.get(key) == default:
+            if key in c and c.get(key) == default:
                 c.pop(key)
     text = OmegaConf.to_yaml(OmegaConf.create(_unlayered(OmegaConf.to_container(c, resolve=True))))
     if is_logs(cfg):  # the same paths with other contents are other data

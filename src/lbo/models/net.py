@@ -13,7 +13,7 @@ import torch
 from torch import nn
 
 from lbo.core.errors import LboError
-from lbo.models import build_model
+from lbo.models import build_model, receiver_window
 from lbo.models.features import (
     check_mode,
     last_measurement,
@@ -57,11 +57,15 @@ class WindowNet(nn.Module):
         :mod:`lbo.models.features`.
     fixes : the observer takes windows with missing fixes (NaN measurements) and its model
         reads the sixth channel ``fix``; trained with fixes dropped (``fix_rates``).
+    receiver : the observer reads a receiver's windows (..., N, 11) of
+        :data:`lbo.models.receiver_window.COLUMNS` (a paper window (..., N, 5) is widened to
+        one), each channel with its mask, in the ``"frame"`` of its anchor; trained on a
+        simulated receiver drawn per window (``receiver=``).
     **model_kwargs : passed to :func:`lbo.models.build_model`.
     """
 
     def __init__(self, model: str, window: int, features: str = "relative",
-                 fixes: bool = False, **model_kwargs: Any) -> None:
+                 fixes: bool = False, receiver: bool = False, **model_kwargs: Any) -> None:
         super().__init__()
         self.features = check_mode(features)
         if not (isinstance(window, numbers.Integral) and not isinstance(window, bool)
@@ -71,10 +75,21 @@ class WindowNet(nn.Module):
         self.window = int(window)
         self.model = model  # its registered name: an observer of it is named <model>-N<window>
         self.fixes = bool(fixes)
-        channels = 6 if self.fixes else 5
-        if self.fixes:
+        self.receiver = bool(receiver)
+        if self.receiver and self.features != "frame":
+            raise LboError(f"features: an observer that reads a receiver takes features=frame "
+                           f"(its anchor's frame), got {self.features!r}")
+        channels = len(receiver_window.FEATURES) if self.receiver else 6 if self.fixes else 5
+        if self.fixes or self.receiver:
             model_kwargs["in_features"] = channels
-        self.net = build_model(model, window, **model_kwargs)
+        try:
+            self.net = build_model(model, window, **model_kwargs)
+        except LboError as e:
+            if self.receiver and str(e).startswith("model.in_features"):
+                raise LboError(f"receiver: model {model!r} does not read a receiver's windows "
+                               f"({e}); the CNN and the LSTM do, and the robust observer "
+                               "(filternet) reads a receiver in its recursive form") from None
+            raise
         # a model with ``physical = True`` reads features and writes targets in metres and
         # radians; the statistics below then only scale its loss
         self.physical = bool(getattr(self.net, "physical", False))
@@ -88,7 +103,8 @@ class WindowNet(nn.Module):
         self.register_buffer("out_std", torch.ones(3, dtype=torch.float64))
 
     def set_normalisation(self, in_mean, in_std, out_mean, out_std) -> None:
-        """Channel statistics of the training windows' features (5,) or (6,) and targets (3,)."""
+        """Channel statistics of the training windows' features (5,), (6,) or (15,) and
+        targets (3,)."""
         for name, value in (("in_mean", in_mean), ("in_std", in_std),
                             ("out_mean", out_mean), ("out_std", out_std)):
             t = torch.as_tensor(value, dtype=torch.float64)
@@ -96,9 +112,21 @@ class WindowNet(nn.Module):
                 t = t.clamp_min(_STD_FLOOR)
             getattr(self, name).copy_(t)
 
+    def inputs(self, win: torch.Tensor) -> torch.Tensor:
+        """The features of raw windows (B, N, 5) (or (B, N, 11), a receiver's): (B, N, C)."""
+        if self.receiver:
+            return receiver_window.features(receiver_window.widen(win))
+        return window_features(win, self.features, self.fixes)
+
+    def anchor(self, win: torch.Tensor) -> torch.Tensor:
+        """The measurement each window's target is relative to (B, 3)."""
+        if self.receiver:
+            return receiver_window.anchor(receiver_window.widen(win))
+        return last_measurement(win, self.fixes)
+
     def target_units(self, win: torch.Tensor) -> torch.Tensor:
         """Network output in target units (relative or absolute state). (B, N, 5) -> (B, 3)."""
-        x = window_features(win, self.features, self.fixes)
+        x = self.inputs(win)
         net_dtype = next(self.net.parameters()).dtype
         if self.physical:  # the model works in metres and radians itself
             return self.net(x.to(net_dtype)).to(win.dtype)
@@ -107,8 +135,7 @@ class WindowNet(nn.Module):
 
     def forward(self, win: torch.Tensor) -> torch.Tensor:
         """Estimated state ``[x, y, psi]`` at each window's last step. (B, N, 5) -> (B, 3)."""
-        return target_to_state(self.target_units(win), last_measurement(win, self.fixes),
-                               self.features)
+        return target_to_state(self.target_units(win), self.anchor(win), self.features)
 
     def loss(self, win: torch.Tensor, state: torch.Tensor,
              weight: torch.Tensor | None = None) -> torch.Tensor:
@@ -117,7 +144,7 @@ class WindowNet(nn.Module):
         state : (B, 3) true states; weight : (B,) per-window weights (None: equal), the loss
         is their weighted mean.
         """
-        target = state_to_target(state, last_measurement(win, self.fixes), self.features)
+        target = state_to_target(state, self.anchor(win), self.features)
         r = self.target_units(win) - target
         r = wrap_heading(r)
         se = ((r / self.out_std) ** 2).mean(1)

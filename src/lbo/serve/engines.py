@@ -26,13 +26,29 @@ TOLERANCE = 1e-5
 
 
 def _example(net: Any, batch: int = 1, seed: int = 0):
-    """Plausible raw windows (B, N, 5) float64: a vehicle near (100 m, -50 m), noisy."""
+    """Plausible raw windows (B, N, 5) float64: a vehicle near (100 m, -50 m), noisy. For a
+    net that reads a receiver, its windows (B, N, 11): a fix every fifth step, a heading in
+    the first half of the batch only, the accuracies, a course and a gyro at every step."""
     import torch
 
     g = torch.Generator().manual_seed(seed)
     win = torch.randn(batch, net.window, 5, generator=g, dtype=torch.float64)
-    return win * torch.tensor([1.0, 1.0, 0.02, 2.0, 0.05], dtype=torch.float64) + torch.tensor(
+    win = win * torch.tensor([1.0, 1.0, 0.02, 2.0, 0.05], dtype=torch.float64) + torch.tensor(
         [100.0, -50.0, 0.5, 10.0, 0.0], dtype=torch.float64)
+    if not getattr(net, "receiver", False):
+        return win
+    from lbo.models.receiver_window import widen
+
+    rx = widen(win)
+    rx[:, :, 3:5] = 0.5 + torch.rand(batch, net.window, 2, generator=g, dtype=torch.float64)
+    rx[:, :, 6] = win[:, :, 2] + 0.05 * torch.randn(batch, net.window, generator=g,
+                                                    dtype=torch.float64)
+    rx[:, :, 7] = 0.05
+    rx[:, :, 10] = 0.02 * torch.randn(batch, net.window, generator=g, dtype=torch.float64)
+    rx[:, torch.arange(net.window) % 5 != 0, :8] = float("nan")
+    rx[batch // 2:, :, 2] = float("nan")
+    rx[:, :, 5] = torch.where(torch.isfinite(rx[:, :, 2]), 0.01, float("nan"))
+    return rx
 
 
 def _without_fixes(win):

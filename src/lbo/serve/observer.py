@@ -155,8 +155,16 @@ class Observer:
         classical observers, and by the robust observer's recursive form on every engine
         (whose update takes the channels a row holds, :mod:`lbo.models.recursive`) where it
         was trained with missing fixes (one trained with a full fix at every step reads
-        nothing else)."""
-        return self.net is None or (self.form == "recursive" and self.takes_missing_fixes)
+        nothing else); and by a window net trained on a receiver's windows
+        (:mod:`lbo.models.receiver_window`)."""
+        return (self.net is None or bool(getattr(self.net, "receiver", False))
+                or (self.form == "recursive" and self.takes_missing_fixes))
+
+    @property
+    def reads_gyro(self) -> bool:
+        """Whether a gyro's yaw rate ``r_m`` is read: by the gyro EKF, and by a window net
+        trained on a receiver's windows."""
+        return self.name == classical.GYRO or bool(getattr(self.net, "receiver", False))
 
     @property
     def gives_covariance(self) -> bool:
@@ -312,7 +320,7 @@ class Observer:
         if receiver is not None and not self.takes_receiver:
             raise LboError(f"step {k}: {no_receiver(self.name)}")
         row = m
-        if receiver is not None or self.name == classical.GYRO:
+        if receiver is not None or self.name == classical.GYRO or self._runner.reads_receiver:
             row, u = self._runner.sample(k, m, u, receiver)
         # checked: from here on the sample is taken
         outside = self._envelope(m, u) if self._envelope is not None else ()
@@ -415,7 +423,7 @@ class Observer:
         m = m.copy()
         m[:, 2] = wrap_angle(m[:, 2])
         rows = m
-        if self.net is None:
+        if self.net is None or self._runner.reads_receiver:
             rows, u = self._runner.log_rows(m, u, receiver, source)
         elif receiver is not None:
             rows = bicycle_rows(m, u, receiver, self.vehicle.wheelbase)

@@ -126,15 +126,15 @@ def no_heading(name: str) -> str:
     """Why a learned observer refuses a position fix without a heading."""
     return (f"a position fix without a heading (psi_m empty), but {name} takes full fixes "
             "only (x_m, y_m and psi_m); the classical observers "
-            f"({', '.join(classical.OBSERVERS)}) take it, and the robust observer (filternet) "
-            "in its recursive form")
+            f"({', '.join(classical.OBSERVERS)}) take it, the robust observer (filternet) "
+            "in its recursive form, and a CNN or LSTM trained on a receiver (experiment=receiver)")
 
 
 def no_receiver(name: str) -> str:
     """Why a learned observer refuses a receiver's channels."""
     return (f"{name} does not take a receiver's channels; the classical observers "
-            f"({', '.join(classical.OBSERVERS)}) do, and the robust observer (filternet) in its "
-            "recursive form")
+            f"({', '.join(classical.OBSERVERS)}) do, the robust observer (filternet) in its "
+            "recursive form, and a CNN or LSTM trained on a receiver (experiment=receiver)")
 
 
 def checked_receiver(k: int, m: np.ndarray, receiver: Any) -> np.ndarray:
@@ -184,6 +184,7 @@ class ClassicalRunner:
     one sample per call, so stepping and running a log give the same numbers."""
 
     first_valid = 0
+    reads_receiver = False  # a receiver's channels go through rows() only where given
 
     def __init__(self, name: str, vehicle: Vehicle, noise: Noise, alpha: float,
                  gyro: GyroNoise | None = None) -> None:
@@ -267,7 +268,11 @@ class WindowRunner:
     ``engine``. Until its window is full, the paper's EKF (the vehicle's and noise's, R at
     alpha = 1) gives the estimate, flagged not valid; a window filter that starts at its first
     fix (``pads``) reads the steps before the log as steps with no fix and no motion, and
-    estimates from the first fix on."""
+    estimates from the first fix on.
+
+    A net that reads a receiver (``reads_receiver``) takes rows (T, 9): the filters' row
+    (:data:`lbo.filters.measure.CHANNELS`) and the gyro's ``r_m``, as :meth:`log_rows` and
+    :meth:`sample` make them; its windows are :data:`lbo.models.receiver_window.COLUMNS`."""
 
     def __init__(self, name: str, net: Any, vehicle: Vehicle, noise: Noise, engine: str,
                  device: str) -> None:
@@ -276,11 +281,32 @@ class WindowRunner:
         self.predict = make_predictor(net, engine, device)
         self.fallback = ClassicalRunner("ekf", vehicle, noise, 1.0)
         self.pads = bool(getattr(net, "fixes", False) and getattr(net, "physical", False))
+        self.reads_receiver = bool(getattr(net, "receiver", False))
+        self.width = measure.WIDTH if self.reads_receiver else 3  # measurement columns
         self.first_valid = 0 if self.pads else self.window - 1
         # Ring buffer written twice (rows i and i+N): the last N samples are always the
         # contiguous rows i+1 .. i+N, so a window is a view, never a copy or a roll.
-        self.ring = np.zeros((2 * self.window, 5))
+        self.ring = np.zeros((2 * self.window, self.width + 2 + self.reads_receiver))
         self.reset()
+
+    def log_rows(self, m: np.ndarray, u: np.ndarray, receiver: np.ndarray | None,
+                 source: str | None) -> tuple[np.ndarray, np.ndarray]:
+        """A checked log's rows (T, 9) for a net that reads a receiver: the filters' row of
+        its fixes and receiver's channels (T, 7) (None: none), and the gyro's ``r_m``."""
+        if receiver is None:
+            receiver = np.full((len(m), len(RECEIVER)), np.nan)
+        rows = bicycle_rows(m, u, receiver, self.vehicle.wheelbase)
+        return np.column_stack([rows, receiver[:, RECEIVER.index("r_m")]]), u
+
+    def sample(self, k: int, m: np.ndarray, u: np.ndarray, receiver: Any
+               ) -> tuple[np.ndarray, np.ndarray]:
+        """Sample ``k``'s row (9,), checked as a log's row is (see :meth:`log_rows`)."""
+        r = checked_receiver(k, m, receiver)
+        return self.log_rows(m[None], u[None], r[None], None)[0][0], u
+
+    def _series(self, m: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """The window columns of rows m (T, 3) or (T, 9) and inputs u (T, 2)."""
+        return np.concatenate([m[:, :self.width], u, m[:, self.width:]], axis=1)
 
     def reset(self) -> None:
         self.fallback.reset()
@@ -292,8 +318,7 @@ class WindowRunner:
     def take(self, k: int, m: np.ndarray, u: np.ndarray, fix: bool) -> Estimate:
         n = self.window
         i = k % n
-        self.ring[i, :3] = self.ring[i + n, :3] = m
-        self.ring[i, 3:] = self.ring[i + n, 3:] = u
+        self.ring[i] = self.ring[i + n] = self._series(m[None], u[None])[0]
         if fix:
             self.last_fix = k
         if k + 1 >= n or self.pads:
@@ -307,7 +332,7 @@ class WindowRunner:
             state[2] = wrap_angle(state[2])
             return Estimate(state, bool(np.isfinite(state).all()),
                             "the network's estimate is not finite (NaN or inf weights?)")
-        state = self.fallback.take(k, m, u, fix).state
+        state = self.fallback.take(k, m[:measure.WIDTH], u, fix).state
         finite = bool(np.isfinite(state).all())
         return Estimate(state, False, f"window not yet full ({k + 1} of {n} steps): the "
                                       "EKF's estimate" if finite else "no position fix yet")
@@ -318,9 +343,9 @@ class WindowRunner:
         est = np.full((t, 3), np.nan)
         head = 0 if self.pads else min(n - 1, t)
         if head:
-            est[:head] = from_first_fix("ekf", m[:head], u[:head], self.vehicle, self.noise,
-                                        1.0)[0]
-        series = np.concatenate([m, u], axis=1)
+            est[:head] = from_first_fix("ekf", m[:head, :measure.WIDTH], u[:head], self.vehicle,
+                                        self.noise, 1.0)[0]
+        series = self._series(m, u)
         if self.pads:  # no fix and no motion before the log
             pad = np.zeros((n - 1, 5))
             pad[:, :3] = np.nan
@@ -342,6 +367,7 @@ class RecursiveRunner:
     smoother's estimates in PyTorch)."""
 
     first_valid = 0
+    reads_receiver = False
 
     def __init__(self, net: Any, vehicle: Vehicle, engine: str, device: str) -> None:
         self.net, self.vehicle, self.device = net, vehicle, device

@@ -1,0 +1,108 @@
+"""A receiver's window as a network's input: every channel with its own mask.
+
+A window net that reads a receiver (``WindowNet(..., receiver=True)``) takes windows of
+:data:`COLUMNS` (shape ``(..., N, 11)``): the classical filters' row
+(:data:`lbo.filters.measure.CHANNELS`: a position fix with or without a heading, the
+accuracies the receiver reports, the course over ground and its sigma), the inputs ``V,
+delta`` and a gyro's yaw rate ``r_m``, each NaN in the rows that do not hold it. A paper
+window (..., N, 5) ``[x_m, y_m, psi_m, V, delta]`` is a receiver window without accuracies,
+course or gyro (:func:`widen`).
+
+The window is read in the frame of its *anchor* (:func:`anchor`): the position of its latest
+fix, turned by its latest heading, measured (``psi_m``) or travelled (the course over
+ground), whichever came last; a window that holds no heading at all (a car that has not yet
+moved) is read in the world's axes, and its network sees that it held none (every heading
+mask 0). The features (:data:`FEATURES`, ``(..., N, 15)``) are each held value in that frame,
+0 where not held, and a mask per channel:
+
+``dx, dy, dpsi, dcourse`` : the fix's position (rotated) and its heading and course, relative
+    to the anchor (headings wrapped);
+``sx, sy, spsi, s_course`` : the reported 1-sigmas (0: not reported);
+``fix, heading, course_held`` : masks of the position, ``psi_m`` and course;
+``V, delta, r_m, gyro`` : the inputs, the gyro's rate (0: none) and its mask.
+
+The measurement channels come first and the inputs last, so the CNN's two branches split
+them as they split a paper window (its first three channels, the position and heading).
+The target and its inverse are the ``"frame"`` ones of :mod:`lbo.models.features`, taken
+about the anchor. Torch tensors only (the nets' own path); vectorised over any batch shape.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from lbo.filters.measure import CHANNELS
+from lbo.models.poses import wrap_angle_torch
+
+COLUMNS = (*CHANNELS, "V", "delta", "r_m")
+"""A receiver window's columns, in order."""
+WIDTH = len(COLUMNS)
+FEATURES = ("dx", "dy", "dpsi", "dcourse", "sx", "sy", "spsi", "s_course", "fix", "heading",
+            "course_held", "V", "delta", "r_m", "gyro")
+"""The features of each step, in order."""
+_X, _Y, _PSI, _SX, _SY, _SPSI, _COURSE, _SCOURSE, _V, _DELTA, _R = range(WIDTH)
+
+
+def widen(win: torch.Tensor) -> torch.Tensor:
+    """Paper windows (..., N, 5) -> receiver windows (..., N, 11), the receiver's channels
+    NaN; receiver windows are returned as they are."""
+    if win.shape[-1] == WIDTH:
+        return win
+    nan = torch.full((*win.shape[:-1], 1), float("nan"), dtype=win.dtype, device=win.device)
+    return torch.cat([win[..., :3], nan.expand(*win.shape[:-1], 5), win[..., 3:5], nan], -1)
+
+
+def _latest(held: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Index (...,) of the last True along the last axis of ``held`` (..., N), and whether
+    there is one (...,)."""
+    n = held.shape[-1]
+    last = n - 1 - torch.flip(held, [-1]).to(torch.int64).argmax(-1)
+    return last, held.any(-1)
+
+
+def _at(values: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
+    """values (..., N) at index (...,) -> (...,)."""
+    return torch.gather(values, -1, index[..., None]).squeeze(-1)
+
+
+def anchor(win: torch.Tensor) -> torch.Tensor:
+    """The frame each window is read in: ``[x_a, y_a, psi_a]`` (..., 3) from receiver
+    windows (..., N, 11). The position of the latest fix (NaN: none in the window), and the
+    latest heading, ``psi_m`` or the course, whichever is later (0: none)."""
+    fix = torch.isfinite(win[..., _X]) & torch.isfinite(win[..., _Y])
+    last_fix, any_fix = _latest(fix)
+    nan = torch.full_like(win[..., -1, 0], float("nan"))
+    x = torch.where(any_fix, _at(win[..., _X], last_fix), nan)
+    y = torch.where(any_fix, _at(win[..., _Y], last_fix), nan)
+    psi = torch.nan_to_num(win[..., _PSI], nan=0.0)
+    course = torch.nan_to_num(win[..., _COURSE], nan=0.0)
+    has_psi = torch.isfinite(win[..., _PSI])
+    heading = torch.where(has_psi, psi, course)
+    last_h, any_h = _latest(has_psi | torch.isfinite(win[..., _COURSE]))
+    h = torch.where(any_h, _at(heading, last_h), torch.zeros_like(x))
+    return torch.stack([x, y, h], -1)
+
+
+def features(win: torch.Tensor) -> torch.Tensor:
+    """Network inputs (..., N, 15) (:data:`FEATURES`) of receiver windows (..., N, 11)."""
+    a = anchor(win)[..., None, :]
+    fix = torch.isfinite(win[..., _X]) & torch.isfinite(win[..., _Y])
+    c, s = torch.cos(a[..., 2]), torch.sin(a[..., 2])
+    dx = torch.nan_to_num(win[..., _X] - a[..., 0], nan=0.0)
+    dy = torch.nan_to_num(win[..., _Y] - a[..., 1], nan=0.0)
+    zero = torch.zeros_like(dx)
+
+    def held(col: int) -> tuple[torch.Tensor, torch.Tensor]:
+        ok = torch.isfinite(win[..., col])
+        return ok, torch.where(ok, win[..., col], zero)
+
+    has_psi, psi = held(_PSI)
+    has_course, course = held(_COURSE)
+    has_rate, rate = held(_R)
+    parts = [torch.where(fix, c * dx + s * dy, zero), torch.where(fix, -s * dx + c * dy, zero),
+             torch.where(has_psi, wrap_angle_torch(psi - a[..., 2]), zero),
+             torch.where(has_course, wrap_angle_torch(course - a[..., 2]), zero),
+             held(_SX)[1], held(_SY)[1], held(_SPSI)[1], held(_SCOURSE)[1],
+             fix.to(win.dtype), has_psi.to(win.dtype), has_course.to(win.dtype),
+             win[..., _V], win[..., _DELTA], rate, has_rate.to(win.dtype)]
+    return torch.stack(parts, -1)

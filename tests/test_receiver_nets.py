@@ -1,0 +1,208 @@
+"""A CNN or LSTM that reads a receiver (issue 36): its windows' features, each channel with a
+mask (lbo.models.receiver_window); the receiver drawn afresh per training window
+(lbo.learn.draws.ReceiverDraw); the observer over a single-antenna log, stepped and run, on
+every engine; and ``experiment=receiver`` trained end to end."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from helpers import compose_cfg, train_in_own_store
+from lbo.core.errors import LboError
+from lbo.learn.builders import noise_settings
+from lbo.learn.draws import ReceiverDraw, draw_fixes
+from lbo.models import receiver_window as rw
+from lbo.models.net import WindowNet
+from lbo.serve.observer import Observer
+from lbo.sim.logio import receiver
+from lbo.sim.receiver import Channel, ReceiverSpec
+from lbo.simulate import simulate
+
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
+NAN = float("nan")
+
+
+def _window(rows: list[list[float]]) -> torch.Tensor:
+    """A receiver window (1, N, 11) of rows [x_m, y_m, psi_m, course, r_m] (NaN: none), the
+    accuracies 0.5 m where there is a fix, V = 10 and delta = 0."""
+    out = []
+    for x, y, psi, course, rate in rows:
+        fix = math.isfinite(x)
+        out.append([x, y, psi, 0.5 if fix else NAN, 0.5 if fix else NAN,
+                    0.01 if math.isfinite(psi) else NAN, course,
+                    0.05 if math.isfinite(course) else NAN, 10.0, 0.0, rate])
+    return torch.tensor([out], dtype=torch.float64)
+
+
+def test_the_anchor_is_the_latest_fix_turned_by_the_latest_heading():
+    win = _window([[0.0, 0.0, 0.3, NAN, 0.0], [NAN, NAN, NAN, NAN, 0.0],
+                   [1.0, 2.0, NAN, 0.5, NAN], [NAN, NAN, NAN, NAN, 0.1]])
+    np.testing.assert_allclose(rw.anchor(win)[0], [1.0, 2.0, 0.5])  # the course came last
+    win[0, 2, 6] = NAN  # no course: the heading measured before
+    np.testing.assert_allclose(rw.anchor(win)[0], [1.0, 2.0, 0.3])
+    win[0, 0, 2] = NAN  # no heading at all: the world's axes, and every heading mask 0
+    np.testing.assert_allclose(rw.anchor(win)[0], [1.0, 2.0, 0.0])
+    f = rw.features(win)[0]
+    assert f[:, rw.FEATURES.index("heading")].sum() == 0
+    assert f[:, rw.FEATURES.index("course_held")].sum() == 0
+
+
+def test_features_hold_each_channel_with_its_mask_in_the_anchors_frame():
+    win = _window([[0.0, 0.0, NAN, NAN, 0.02], [NAN, NAN, NAN, NAN, NAN],
+                   [0.0, 1.0, NAN, math.pi / 2, 0.03]])
+    f = rw.features(win)[0]
+    col = {name: f[:, i].tolist() for i, name in enumerate(rw.FEATURES)}
+    # the anchor is (0, 1) heading north: the first fix lies 1 m behind it
+    np.testing.assert_allclose(col["dx"], [-1.0, 0.0, 0.0], atol=1e-12)
+    np.testing.assert_allclose(col["dy"], [0.0, 0.0, 0.0], atol=1e-12)
+    assert col["fix"] == [1.0, 0.0, 1.0] and col["course_held"] == [0.0, 0.0, 1.0]
+    assert col["sx"] == [0.5, 0.0, 0.5] and col["s_course"] == [0.0, 0.0, 0.05]
+    assert col["r_m"] == [0.02, 0.0, 0.03] and col["gyro"] == [1.0, 0.0, 1.0]
+    assert torch.isfinite(f).all()
+
+
+def test_features_do_not_change_when_the_whole_window_moves_and_turns():
+    g = torch.Generator().manual_seed(0)
+    z = torch.cumsum(torch.randn(4, 30, 3, generator=g, dtype=torch.float64) * 0.1, 1)
+    u = torch.tensor([8.0, 0.02], dtype=torch.float64).expand(4, 30, 2).clone()
+    fix = draw_fixes(4, 30, (5,), g)
+    spec = ReceiverSpec()
+    draw = ReceiverDraw(spec, heading_share=0.5)
+    win = draw.windows(z, u, torch.full((4,), 1.0, dtype=torch.float64), fix,
+                       torch.Generator().manual_seed(1))
+    turn, shift = 1.1, torch.tensor([30.0, -20.0], dtype=torch.float64)
+    moved = win.clone()
+    c, s = math.cos(turn), math.sin(turn)
+    moved[..., 0] = c * win[..., 0] - s * win[..., 1] + shift[0]
+    moved[..., 1] = s * win[..., 0] + c * win[..., 1] + shift[1]
+    moved[..., 2] = win[..., 2] + turn
+    moved[..., 6] = win[..., 6] + turn
+    torch.testing.assert_close(rw.features(moved), rw.features(win), atol=1e-9, rtol=0)
+
+
+def test_a_paper_window_is_a_receiver_window_without_its_channels():
+    torch.manual_seed(0)
+    net = WindowNet("lstm", 12, "frame", True, receiver=True)
+    paper = torch.randn(3, 12, 5, dtype=torch.float64)
+    wide = rw.widen(paper)
+    assert wide.shape == (3, 12, rw.WIDTH)
+    assert torch.isnan(wide[..., 3:8]).all() and torch.isnan(wide[..., 10]).all()
+    torch.testing.assert_close(net(paper), net(wide))
+    with pytest.raises(LboError, match=r"^features: an observer that reads a receiver takes "
+                                       r"features=frame"):
+        WindowNet("cnn", 12, "relative", True, receiver=True)
+
+
+def _drawn(spec: ReceiverSpec, n: int = 400, steps: int = 50, alpha: float = 1.0,
+           heading_share: float = 0.0, gyro_share: float = 1.0, period: int = 5):
+    """Receiver windows drawn along a straight drive east at 10 m/s (psi = 0)."""
+    t = torch.arange(steps, dtype=torch.float64) * 0.02
+    z = torch.stack([10 * t, torch.zeros_like(t), torch.zeros_like(t)], -1).expand(n, steps, 3)
+    u = torch.tensor([10.0, 0.0], dtype=torch.float64).expand(n, steps, 2)
+    g = torch.Generator().manual_seed(0)
+    fix = draw_fixes(n, steps, (period,), g)
+    draw = ReceiverDraw(spec, heading_share=heading_share, gyro_share=gyro_share)
+    alphas = torch.full((n,), alpha, dtype=torch.float64)
+    return z, fix, draw.windows(z, u, alphas, fix, g)
+
+
+def test_the_drawn_receiver_holds_its_channels_where_its_specification_says():
+    spec = ReceiverSpec()
+    z, fix, win = _drawn(spec, alpha=2.0)
+    held = torch.isfinite(win)
+    assert torch.equal(held[..., 0], fix) and torch.equal(held[..., 3], fix)
+    assert not held[..., 2].any() and not held[..., 5].any()  # one antenna: no heading
+    assert torch.equal(held[..., 6], fix)  # 10 m/s: a course at every fix
+    assert held[..., 10].all()  # the gyro at every step
+    told = win[..., 3][fix]
+    assert abs(float(told.median()) / (2.0 * spec.position.sigma) - 1.0) < 0.05
+    # on a straight drive the gyro reads its bias, N(0, gyro_bias^2) per window and nearly
+    # constant within one, plus its white noise
+    bias = win[..., 10]
+    assert abs(float(bias.mean(1).std()) / spec.gyro_bias - 1.0) < 0.15
+    within = float((bias - bias.mean(1, keepdim=True)).std())
+    assert abs(within / spec.gyro.white - 1.0) < 0.1
+    _, _, some = _drawn(spec, heading_share=0.5, gyro_share=0.5)
+    with_heading = torch.isfinite(some[..., 2]).any(1).double().mean()
+    with_gyro = torch.isfinite(some[..., 10]).any(1).double().mean()
+    assert abs(float(with_heading) - 0.5) < 0.1 and abs(float(with_gyro) - 0.5) < 0.1
+
+
+def test_a_still_receiver_gives_no_course_and_an_exact_one_gives_the_truth():
+    exact = ReceiverSpec(position=Channel(None, 0.0, 0.0, 0.0), velocity=Channel(None, 0.0, 0.0))
+    z, fix, win = _drawn(exact, period=1)
+    torch.testing.assert_close(win[..., :2], z[..., :2])
+    torch.testing.assert_close(win[..., 6], torch.zeros_like(win[..., 6]))
+    late = ReceiverSpec(position=Channel(None, 0.05, 0.0, 0.0), velocity=Channel(None, 0.0, 0.0))
+    z, fix, win = _drawn(late, period=1)  # 50 ms late at 10 m/s: 0.5 m behind
+    np.testing.assert_allclose((z[..., 0] - win[..., 0])[:, 3:], 0.5, atol=1e-9)
+    spec = ReceiverSpec()
+    t = 20
+    z = torch.zeros(8, t, 3, dtype=torch.float64)
+    u = torch.zeros(8, t, 2, dtype=torch.float64)
+    g = torch.Generator().manual_seed(0)
+    still = ReceiverDraw(spec).windows(z, u, torch.ones(8, dtype=torch.float64),
+                                       torch.ones(8, t, dtype=torch.bool), g)
+    assert torch.isnan(still[..., 6:8]).all()
+
+
+def test_a_receiver_net_steps_and_runs_a_single_antenna_log_alike_on_every_engine():
+    log = simulate(compose_cfg("simulate", ["manoeuvre=free_drive", "duration=8",
+                                            "receiver=single_antenna", "seed=3"]))
+    m = log[["x_m", "y_m", "psi_m"]].to_numpy(float)
+    u = log[["V", "delta"]].to_numpy(float)
+    r = receiver(log)
+    torch.manual_seed(0)
+    net = WindowNet("cnn", 60, "frame", True, receiver=True).eval()
+    obs = Observer.from_net(net)
+    assert obs.takes_receiver and obs.reads_gyro
+    est, valid = obs.run(m, u, receiver=r)
+    assert valid[59:].all() and not valid[:59].any()
+    stepped = np.array([obs.step(m[k] if np.isfinite(m[k, 0]) else None, u[k], r[k]).state
+                        for k in range(len(m))])
+    np.testing.assert_allclose(stepped[59:], est[59:], atol=1e-5)
+    for engine in ("torchscript", "onnx"):
+        other, _ = Observer.from_net(net, engine=engine).run(m, u, receiver=r)
+        np.testing.assert_allclose(other[59:], est[59:], atol=1e-5)
+    # without the gyro (a log that has none) it still runs, and reads a different window
+    r_blind = r.copy()
+    r_blind[:, -1] = np.nan
+    blind, _ = obs.run(m, u, receiver=r_blind)
+    assert np.isfinite(blind[59:]).all() and np.abs(blind[59:] - est[59:]).max() > 0
+
+
+def test_receiver_training_settings_are_checked_in_one_line():
+    base = ["experiment=receiver", "data=smoke"]
+    cfg = compose_cfg("train", base)
+    draw = noise_settings(cfg)["receiver"]
+    assert (draw.heading_share, draw.gyro_share) == (0.25, 0.75)
+    assert draw.spec.position.rate == 1.0
+    with pytest.raises(LboError, match=r"^fix_rates must be the rates \(Hz\) of the receiver's"):
+        noise_settings(compose_cfg("train", [*base, "fix_rates=null"]))
+    with pytest.raises(LboError, match=r"^receiver_training.heading_share must be a share in "
+                                       r"\[0, 1\], got 2$"):
+        noise_settings(compose_cfg("train", [*base, "receiver_training.heading_share=2"]))
+    with pytest.raises(LboError, match=r"^receiver_training.rate: not a field"):
+        noise_settings(compose_cfg("train", [*base, "+receiver_training.rate=2"]))
+    with pytest.raises(LboError, match=r"^receiver.gyro.white"):
+        noise_settings(compose_cfg("train", [*base, "receiver.gyro.white=-1"]))
+
+
+@pytest.mark.slow
+def test_experiment_receiver_trains_and_its_checkpoint_reads_a_receiver(tmp_path, smoke_data):
+    cfg, out, _ = train_in_own_store(tmp_path, smoke_data, "experiment=receiver", "data=smoke",
+                                     "trainer.max_epochs=1", "trainer.limit_train_batches=3",
+                                     "window=60", "batch_size=64")
+    assert math.isfinite(out["val_loss"]) and math.isfinite(out["test_nrmse_alpha_1"])
+    obs = Observer.load(out["checkpoint"])
+    assert obs.net.receiver and obs.takes_receiver and obs.name == "cnn-N60"
+    # a window of 60 steps (1.2 s) holds a fix of the 1 Hz receiver
+    log = simulate(compose_cfg("simulate", ["manoeuvre=free_drive", "duration=4",
+                                            "receiver=single_antenna", "seed=1"]))
+    est, valid = obs.run(log[["x_m", "y_m", "psi_m"]].to_numpy(float),
+                         log[["V", "delta"]].to_numpy(float), receiver=receiver(log))
+    assert valid[59:].all() and np.isfinite(est[59:]).all()
