@@ -20,41 +20,72 @@ from lbo.models.net import WindowNet
 from lbo.serve.observer import Observer
 from lbo.sim.logio import receiver
 from lbo.sim.receiver import Channel, ReceiverSpec
+from lbo.sim.vehicle import step
 from lbo.simulate import simulate
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 NAN = float("nan")
 
 
-def _window(rows: list[list[float]]) -> torch.Tensor:
+DT, WHEELBASE = 0.02, 2.7
+
+
+def _window(rows: list[list[float]], v: float = 0.0) -> torch.Tensor:
     """A receiver window (1, N, 11) of rows [x_m, y_m, psi_m, course, r_m] (NaN: none), the
-    accuracies 0.5 m where there is a fix, V = 10 and delta = 0."""
+    accuracies 0.5 m where there is a fix, V = v and delta = 0."""
     out = []
     for x, y, psi, course, rate in rows:
         fix = math.isfinite(x)
         out.append([x, y, psi, 0.5 if fix else NAN, 0.5 if fix else NAN,
                     0.01 if math.isfinite(psi) else NAN, course,
-                    0.05 if math.isfinite(course) else NAN, 10.0, 0.0, rate])
+                    0.05 if math.isfinite(course) else NAN, v, 0.0, rate])
     return torch.tensor([out], dtype=torch.float64)
+
+
+def _anchor(win: torch.Tensor) -> torch.Tensor:
+    return rw.anchor(win, DT, WHEELBASE)
 
 
 def test_the_anchor_is_the_latest_fix_turned_by_the_latest_heading():
     win = _window([[0.0, 0.0, 0.3, NAN, 0.0], [NAN, NAN, NAN, NAN, 0.0],
                    [1.0, 2.0, NAN, 0.5, NAN], [NAN, NAN, NAN, NAN, 0.1]])
-    np.testing.assert_allclose(rw.anchor(win)[0], [1.0, 2.0, 0.5])  # the course came last
+    np.testing.assert_allclose(_anchor(win)[0], [1.0, 2.0, 0.5])  # the course came last
     win[0, 2, 6] = NAN  # no course: the heading measured before
-    np.testing.assert_allclose(rw.anchor(win)[0], [1.0, 2.0, 0.3])
+    np.testing.assert_allclose(_anchor(win)[0], [1.0, 2.0, 0.3])
     win[0, 0, 2] = NAN  # no heading at all: the world's axes, and every heading mask 0
-    np.testing.assert_allclose(rw.anchor(win)[0], [1.0, 2.0, 0.0])
-    f = rw.features(win)[0]
+    np.testing.assert_allclose(_anchor(win)[0], [1.0, 2.0, 0.0])
+    f = rw.features(win, _anchor(win))[0]
     assert f[:, rw.FEATURES.index("heading")].sum() == 0
     assert f[:, rw.FEATURES.index("course_held")].sum() == 0
+    win[0, :, 0:2] = NAN  # no fix: no anchor
+    assert torch.isnan(_anchor(win)[0, :2]).all()
+
+
+def test_the_anchor_is_carried_from_the_latest_fix_by_the_kinematic_bicycle():
+    """The latest fix 30 steps back and the latest heading 10 steps before it: the anchor is
+    that fix stepped on by lbo.sim.vehicle.step from that heading (the heading stepped from
+    its own row on)."""
+    n, j, h = 40, 9, 0
+    u = np.column_stack([np.linspace(8.0, 12.0, n), 0.1 * np.sin(np.arange(n) / 5.0)])
+    rows = [[NAN, NAN, NAN, NAN, NAN] for _ in range(n)]
+    rows[h] = [NAN, NAN, 0.4, NAN, NAN]  # a heading alone (as a course would be)
+    rows[h][3] = 0.4
+    rows[j] = [5.0, -3.0, NAN, NAN, NAN]
+    win = _window(rows)
+    win[0, :, 8:10] = torch.from_numpy(u)
+    z = np.array([0.0, 0.0, 0.4])
+    for k in range(h, j):
+        z = step(z, u[k], DT, WHEELBASE)
+    z = np.array([5.0, -3.0, z[2]])
+    for k in range(j, n - 1):
+        z = step(z, u[k], DT, WHEELBASE)
+    np.testing.assert_allclose(_anchor(win)[0].numpy(), z, atol=1e-9)
 
 
 def test_features_hold_each_channel_with_its_mask_in_the_anchors_frame():
     win = _window([[0.0, 0.0, NAN, NAN, 0.02], [NAN, NAN, NAN, NAN, NAN],
                    [0.0, 1.0, NAN, math.pi / 2, 0.03]])
-    f = rw.features(win)[0]
+    f = rw.features(win, _anchor(win))[0]
     col = {name: f[:, i].tolist() for i, name in enumerate(rw.FEATURES)}
     # the anchor is (0, 1) heading north: the first fix lies 1 m behind it
     np.testing.assert_allclose(col["dx"], [-1.0, 0.0, 0.0], atol=1e-12)
@@ -81,7 +112,23 @@ def test_features_do_not_change_when_the_whole_window_moves_and_turns():
     moved[..., 1] = s * win[..., 0] + c * win[..., 1] + shift[1]
     moved[..., 2] = win[..., 2] + turn
     moved[..., 6] = win[..., 6] + turn
-    torch.testing.assert_close(rw.features(moved), rw.features(win), atol=1e-9, rtol=0)
+    torch.testing.assert_close(rw.features(moved, _anchor(moved)), rw.features(win, _anchor(win)),
+                               atol=1e-9, rtol=0)
+
+
+def test_a_window_without_any_heading_teaches_no_heading():
+    """Its anchor's heading is 0, not the car's: the loss leaves the heading out there, and
+    keeps it where the window holds a course."""
+    torch.manual_seed(0)
+    net = WindowNet("cnn", 8, "frame", True, receiver=True)
+    blind = _window([[float(k), 0.0, NAN, NAN, NAN] for k in range(8)], v=0.5)
+    assert not rw.heading_known(blind).any()
+    state = torch.tensor([[7.0, 0.0, 0.0]], dtype=torch.float64)
+    turned = torch.tensor([[7.0, 0.0, 2.0]], dtype=torch.float64)
+    assert net.loss(blind, state) == net.loss(blind, turned)
+    seen = blind.clone()
+    seen[0, 3, 6] = 0.0
+    assert rw.heading_known(seen).all() and net.loss(seen, state) != net.loss(seen, turned)
 
 
 def test_a_paper_window_is_a_receiver_window_without_its_channels():
@@ -168,6 +215,15 @@ def test_a_receiver_net_steps_and_runs_a_single_antenna_log_alike_on_every_engin
     for engine in ("torchscript", "onnx"):
         other, _ = Observer.from_net(net, engine=engine).run(m, u, receiver=r)
         np.testing.assert_allclose(other[59:], est[59:], atol=1e-5)
+    # without a velocity no window holds a heading (one antenna): no estimate, and why
+    r_still = r.copy()
+    r_still[:, 3:6] = np.nan
+    none, valid = obs.run(m, u, receiver=r_still)
+    assert not valid.any() and np.isnan(none[59:]).all()
+    obs.reset()
+    said = [obs.step(m[k] if np.isfinite(m[k, 0]) else None, u[k], r_still[k])
+            for k in range(61)]
+    assert said[60].reason.startswith("no heading in the last 60 steps (1.2 s): cnn-N60 reads")
     # without the gyro (a log that has none) it still runs, and reads a different window
     r_blind = r.copy()
     r_blind[:, -1] = np.nan

@@ -58,7 +58,8 @@ def build_net(cfg: DictConfig, periods: tuple[int, ...] | None = None):
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(cfg.seed)
         return WindowNet(model.pop("name"), cfg.window, cfg.features, bool(periods),
-                         receiver=bool(cfg.get("receiver")), **model)
+                         receiver=bool(cfg.get("receiver")),
+                         motion=(float(cfg.vehicle.dt), float(cfg.vehicle.wheelbase)), **model)
 
 
 def initial_weights(cfg: DictConfig, net, say: bool = True) -> dict[str, torch.Tensor]:

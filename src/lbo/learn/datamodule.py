@@ -281,17 +281,24 @@ class WindowDataModule(L.LightningDataModule):
         pick = torch.randperm(len(self.train_set), generator=g, device=self.device)[:n]
         win, state, _ = self.train_set.batch(pick, g)
         if self.receiver is not None:
-            f, anchor = receiver_window.features(win), receiver_window.anchor(win)
+            anchor = receiver_window.anchor(win, self.receiver.dt, self.receiver.wheelbase)
+            f = receiver_window.features(win, anchor)
         else:
             f, anchor = window_features(win, features, fixes), last_measurement(win, fixes)
         f = f.reshape(-1, f.shape[-1]).cpu()
         t = state_to_target(state, anchor, features).cpu()
+        heading = t[:, 2]
+        if self.receiver is not None:  # a window without a heading teaches none (WindowNet.loss)
+            heading = heading[receiver_window.heading_known(win).cpu()]
         if scaling == "minmax":
-            lo_f, lo_t = f.amin(0), t.amin(0)
+            lo_f = f.amin(0)
+            lo_t = torch.stack([t[:, 0].amin(), t[:, 1].amin(), heading.amin()])
+            hi_t = torch.stack([t[:, 0].amax(), t[:, 1].amax(), heading.amax()])
             return {"in_mean": lo_f, "in_std": f.amax(0) - lo_f,
-                    "out_mean": lo_t, "out_std": t.amax(0) - lo_t}
+                    "out_mean": lo_t, "out_std": hi_t - lo_t}
         return {"in_mean": f.mean(0), "in_std": f.std(0),
-                "out_mean": t.mean(0), "out_std": t.std(0)}
+                "out_mean": torch.stack([t[:, 0].mean(), t[:, 1].mean(), heading.mean()]),
+                "out_std": torch.stack([t[:, 0].std(), t[:, 1].std(), heading.std()])}
 
     def _loader(self, ds: Dataset, batch: int, shuffle: bool) -> DataLoader:
         # one __getitem__ per batch: the gather is vectorised, never a loop over samples

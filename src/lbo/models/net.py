@@ -61,11 +61,15 @@ class WindowNet(nn.Module):
         :data:`lbo.models.receiver_window.COLUMNS` (a paper window (..., N, 5) is widened to
         one), each channel with its mask, in the ``"frame"`` of its anchor; trained on a
         simulated receiver drawn per window (``receiver=``).
+    motion : ``(dt (s), wheelbase (m))`` of the dead reckoning that carries a receiver
+        window's anchor to its last step (:func:`lbo.models.receiver_window.anchor`); held
+        as a buffer, so it travels in the checkpoint.
     **model_kwargs : passed to :func:`lbo.models.build_model`.
     """
 
     def __init__(self, model: str, window: int, features: str = "relative",
-                 fixes: bool = False, receiver: bool = False, **model_kwargs: Any) -> None:
+                 fixes: bool = False, receiver: bool = False,
+                 motion: tuple[float, float] = (0.02, 2.7), **model_kwargs: Any) -> None:
         super().__init__()
         self.features = check_mode(features)
         if not (isinstance(window, numbers.Integral) and not isinstance(window, bool)
@@ -97,6 +101,8 @@ class WindowNet(nn.Module):
         if needs is not None and self.features not in needs:
             raise LboError(f"features: model {model!r} needs features in {list(needs)}, "
                            f"got {self.features!r}")
+        if self.receiver:
+            self.register_buffer("motion", torch.tensor(motion, dtype=torch.float64))
         self.register_buffer("in_mean", torch.zeros(channels, dtype=torch.float64))
         self.register_buffer("in_std", torch.ones(channels, dtype=torch.float64))
         self.register_buffer("out_mean", torch.zeros(3, dtype=torch.float64))
@@ -115,13 +121,16 @@ class WindowNet(nn.Module):
     def inputs(self, win: torch.Tensor) -> torch.Tensor:
         """The features of raw windows (B, N, 5) (or (B, N, 11), a receiver's): (B, N, C)."""
         if self.receiver:
-            return receiver_window.features(receiver_window.widen(win))
+            win = receiver_window.widen(win)
+            return receiver_window.features(win, self.anchor(win))
         return window_features(win, self.features, self.fixes)
 
     def anchor(self, win: torch.Tensor) -> torch.Tensor:
-        """The measurement each window's target is relative to (B, 3)."""
+        """The pose each window's target is relative to (B, 3): its last measurement, or a
+        receiver window's dead-reckoned anchor."""
         if self.receiver:
-            return receiver_window.anchor(receiver_window.widen(win))
+            dt, wheelbase = (float(v) for v in self.motion)
+            return receiver_window.anchor(receiver_window.widen(win), dt, wheelbase)
         return last_measurement(win, self.fixes)
 
     def target_units(self, win: torch.Tensor) -> torch.Tensor:
@@ -145,8 +154,10 @@ class WindowNet(nn.Module):
         is their weighted mean.
         """
         target = state_to_target(state, self.anchor(win), self.features)
-        r = self.target_units(win) - target
-        r = wrap_heading(r)
+        r = wrap_heading(self.target_units(win) - target)
+        if self.receiver:  # a window without any heading tells none: its heading is not taught
+            known = receiver_window.heading_known(receiver_window.widen(win))
+            r = torch.cat([r[:, :2], torch.where(known[:, None], r[:, 2:], 0.0)], 1)
         se = ((r / self.out_std) ** 2).mean(1)
         if weight is None:
             return se.mean().float()

@@ -65,27 +65,51 @@ def _at(values: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
     return torch.gather(values, -1, index[..., None]).squeeze(-1)
 
 
-def anchor(win: torch.Tensor) -> torch.Tensor:
+def heading_known(win: torch.Tensor) -> torch.Tensor:
+    """Whether each receiver window (..., N, 11) holds a heading, ``psi_m`` or a course:
+    (...,) bool. Where it holds none (a car that has stood or crept for the whole window) its
+    anchor's heading is 0 and the window tells nothing of the car's: the net is not trained
+    on that heading (:meth:`lbo.models.net.WindowNet.loss`)."""
+    return (torch.isfinite(win[..., _PSI]) | torch.isfinite(win[..., _COURSE])).any(-1)
+
+
+def anchor(win: torch.Tensor, dt: float, wheelbase: float) -> torch.Tensor:
     """The frame each window is read in: ``[x_a, y_a, psi_a]`` (..., 3) from receiver
-    windows (..., N, 11). The position of the latest fix (NaN: none in the window), and the
-    latest heading, ``psi_m`` or the course, whichever is later (0: none)."""
+    windows (..., N, 11): the latest fix's position and the latest heading (``psi_m`` or the
+    course, whichever is later; 0 where the window holds none), each carried to the window's
+    last step by dead reckoning on the kinematic bicycle (its inputs V, delta; period ``dt``
+    s, ``wheelbase`` m). With fixes at 1 Hz the latest one lies up to a second, 10-30 m,
+    behind the car: the network then learns a correction to the dead reckoning, not the
+    reckoning itself. A window whose last step holds a full fix is anchored there, as a paper
+    window in the ``"frame"`` mode. NaN where the window holds no fix."""
     fix = torch.isfinite(win[..., _X]) & torch.isfinite(win[..., _Y])
     last_fix, any_fix = _latest(fix)
-    nan = torch.full_like(win[..., -1, 0], float("nan"))
-    x = torch.where(any_fix, _at(win[..., _X], last_fix), nan)
-    y = torch.where(any_fix, _at(win[..., _Y], last_fix), nan)
-    psi = torch.nan_to_num(win[..., _PSI], nan=0.0)
-    course = torch.nan_to_num(win[..., _COURSE], nan=0.0)
     has_psi = torch.isfinite(win[..., _PSI])
-    heading = torch.where(has_psi, psi, course)
+    heading = torch.where(has_psi, torch.nan_to_num(win[..., _PSI], nan=0.0),
+                          torch.nan_to_num(win[..., _COURSE], nan=0.0))
     last_h, any_h = _latest(has_psi | torch.isfinite(win[..., _COURSE]))
-    h = torch.where(any_h, _at(heading, last_h), torch.zeros_like(x))
-    return torch.stack([x, y, h], -1)
+    zero = torch.zeros_like(win[..., 0])
+    # yaw turned before each step (..., N) and the heading at each step, from the latest one
+    v, delta = win[..., _V], win[..., _DELTA]
+    turn = v * torch.sin(delta) / torch.cos(delta) * (dt / wheelbase)  # tan: no float64 ONNX
+    turned = torch.cumsum(turn, -1) - turn
+    psi0 = torch.where(any_h, _at(heading, last_h), zero[..., 0])
+    psi = psi0[..., None] + turned - _at(turned, last_h)[..., None]
+    # the way travelled before each step, and from the latest fix to the last step
+    step = v[..., None] * dt * torch.stack([torch.cos(psi), torch.sin(psi)], -1)
+    way = torch.cumsum(step, -2) - step  # before each step
+    ahead = way[..., -1, :] - torch.gather(way, -2, last_fix[..., None, None].expand(
+        *last_fix.shape, 1, 2)).squeeze(-2)
+    nan = torch.full_like(psi0, float("nan"))
+    x = torch.where(any_fix, _at(win[..., _X], last_fix), nan) + ahead[..., 0]
+    y = torch.where(any_fix, _at(win[..., _Y], last_fix), nan) + ahead[..., 1]
+    return torch.stack([x, y, psi[..., -1]], -1)
 
 
-def features(win: torch.Tensor) -> torch.Tensor:
-    """Network inputs (..., N, 15) (:data:`FEATURES`) of receiver windows (..., N, 11)."""
-    a = anchor(win)[..., None, :]
+def features(win: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
+    """Network inputs (..., N, 15) (:data:`FEATURES`) of receiver windows (..., N, 11) in
+    the frame of their anchors a (..., 3) (:func:`anchor`)."""
+    a = a[..., None, :]
     fix = torch.isfinite(win[..., _X]) & torch.isfinite(win[..., _Y])
     c, s = torch.cos(a[..., 2]), torch.sin(a[..., 2])
     dx = torch.nan_to_num(win[..., _X] - a[..., 0], nan=0.0)

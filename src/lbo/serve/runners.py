@@ -304,6 +304,18 @@ class WindowRunner:
         r = checked_receiver(k, m, receiver)
         return self.log_rows(m[None], u[None], r[None], None)[0][0], u
 
+    @property
+    def _no_heading(self) -> str:
+        n = self.window
+        return (f"no heading in the last {n} steps ({n * self.dt:g} s): {self.name} reads the "
+                "heading from its window's psi_m or course over ground, and a car that stood "
+                "or crept that long gave none")
+
+    @staticmethod
+    def _heading_held(windows: np.ndarray) -> np.ndarray:
+        """Whether receiver windows (B, N, 11) hold a heading, psi_m or a course: (B,)."""
+        return (np.isfinite(windows[..., 2]) | np.isfinite(windows[..., 6])).any(-1)
+
     def _series(self, m: np.ndarray, u: np.ndarray) -> np.ndarray:
         """The window columns of rows m (T, 3) or (T, 9) and inputs u (T, 2)."""
         return np.concatenate([m[:, :self.width], u, m[:, self.width:]], axis=1)
@@ -328,7 +340,10 @@ class WindowRunner:
                 return Estimate(np.full(3, np.nan), False,
                                 f"no fix in the last {n} steps ({n * self.dt:g} s): {self.name} "
                                 f"needs a fix in every window of {n} steps")
-            state = self.predict(self.ring[None, i + 1:i + 1 + n])[0]
+            window = self.ring[None, i + 1:i + 1 + n]
+            if self.reads_receiver and not self._heading_held(window)[0]:
+                return Estimate(np.full(3, np.nan), False, self._no_heading)
+            state = self.predict(window)[0]
             state[2] = wrap_angle(state[2])
             return Estimate(state, bool(np.isfinite(state).all()),
                             "the network's estimate is not finite (NaN or inf weights?)")
@@ -355,6 +370,8 @@ class WindowRunner:
             for s in range(0, len(windows), batch_size):
                 chunk = np.ascontiguousarray(windows[s:s + batch_size])
                 est[head + s:head + s + len(chunk)] = self.predict(chunk)
+            if self.reads_receiver:  # no heading in the window: none in the estimate (take())
+                est[head:][~self._heading_held(windows)] = np.nan
         return est, np.full((t, 3, 3), np.nan)
 
 
