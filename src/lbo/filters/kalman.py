@@ -166,24 +166,37 @@ class KalmanStepper:
         east = np.cumsum(np.concatenate([self.x[:, :1], v * np.cos(before) * dt], axis=1), 1)
         north = np.cumsum(np.concatenate([self.x[:, 1:2], v * np.sin(before) * dt], axis=1), 1)
         poses = np.stack([east[:, 1:], north[:, 1:], psi[:, 1:]], axis=-1)
-        # the covariances: a_k = dstep/dpsi of step k, S (G, n, 3) its running sums S_1..S_n
+        # the covariances: a_k = dstep/dpsi of step k
         a = np.stack([-v * np.sin(before) * dt, v * np.cos(before) * dt, np.zeros_like(v)], -1)
-        S = np.cumsum(a, axis=1)
-        C1 = np.cumsum(S, axis=1)
-        SS = S[..., :, None] * S[..., None, :]
-        C2 = np.cumsum(SS, axis=1)
-        P0, Q = self.P[:, None], self.Q
-        count = np.arange(1, n + 1, dtype=float)[None, :, None]
-        outer = lambda p, q: p[..., :, None] * q[..., None, :]  # noqa: E731
-        P = (P0 + outer(S, P0[..., 2, :]) + outer(P0[..., :, 2], S)
-             + P0[..., 2:3, 2:3] * SS)
-        D = count * S - C1                                    # sum over m of S_n - S_m
-        DD = count[..., None] * SS - outer(S, C1) - outer(C1, S) + C2
-        P = (P + count[..., None] * Q + outer(D, np.broadcast_to(Q[2], D.shape))
-             + outer(np.broadcast_to(Q[:, 2], D.shape), D) + Q[2, 2] * DD)
-        P = 0.5 * (P + P.swapaxes(-1, -2))
+        P = coast_covariance(self.P, self.Q, a)
         self.x, self.P = poses[:, -1].copy(), P[:, -1].copy()
         return poses, P
+
+
+def coast_covariance(P0, Q, a):
+    """The covariances after each of n prediction-only steps whose Jacobians are
+    ``I + a_k e3^T`` (the kinematic bicycle's: ``a_k`` is the step's derivative in the heading,
+    with no heading component), in closed form (see :meth:`KalmanStepper.coast`).
+
+    P0 : (G, 3, 3) the covariance before; Q : (3, 3) or (G, 3, 3) the process noise of
+    every step; a : (G, n, 3). Returns (G, n, 3, 3), symmetric. NumPy arrays or torch
+    tensors alike (the robust observer's coast, :mod:`lbo.models.recursive`, is the same sum).
+    """
+    S = a.cumsum(1)  # S_1 .. S_n, the running sums of a
+    C1 = S.cumsum(1)
+    SS = S[..., :, None] * S[..., None, :]
+    C2 = SS.cumsum(1)
+    count = (a[..., :1] * 0 + 1).cumsum(1)  # (G, n, 1): 1 .. n
+    P0 = P0[:, None]
+    Qg = (Q if Q.ndim == 3 else Q[None])[:, None]
+    P = (P0 + S[..., :, None] * P0[..., 2:3, :] + P0[..., :, 2:3] * S[..., None, :]
+         + P0[..., 2:3, 2:3] * SS)
+    D = count * S - C1  # sum over m of S_n - S_m
+    DD = (count[..., None] * SS - S[..., :, None] * C1[..., None, :]
+          - C1[..., :, None] * S[..., None, :] + C2)
+    P = (P + count[..., None] * Qg + D[..., :, None] * Qg[..., 2:3, :]
+         + Qg[..., :, 2:3] * D[..., None, :] + Qg[..., 2:3, 2:3] * DD)
+    return 0.5 * (P + P.swapaxes(-1, -2))
 
 
 def adaptive_settings(R0: np.ndarray, g: int, forgetting: float = 0.99,

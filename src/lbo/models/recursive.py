@@ -46,6 +46,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from lbo.filters.kalman import coast_covariance
 from lbo.models.filternet import WindowFilter, _inverse_sym3, bicycle_step
 from lbo.models.poses import wrap_heading
 
@@ -229,12 +230,10 @@ class RecursiveFilter(nn.Module):
         dead = roll(dr)[0]
         eye = torch.eye(3, dtype=z.dtype, device=z.device)
         Q = self._process_cov(heading, eye)
-        covs = []
-        for j in range(steps):  # P's recursion, as forward writes it
-            F = eye.expand(1, 3, 3).clone()
-            F[:, 0, 2], F[:, 1, 2] = -dy[j:j + 1] * fo.dt, dx[j:j + 1] * fo.dt
-            P = F @ P @ F.transpose(1, 2) + Q
-            covs.append(P)
+        # P's recursion with forward's Jacobians I + a_j e3^T, in the stepper's closed form
+        a = torch.stack([-dy * fo.dt, dx * fo.dt, torch.zeros_like(dx)], -1)[None]
+        covs = coast_covariance(P, Q, a)[0]
+        P = covs[-1:]
         # the statistic's ring and the speeds: each row writes its slot (an empty entry, its
         # speed) and drops what the slot held; the sums take them in forward's order
         at = k.long() + torch.arange(steps, device=k.device)
@@ -245,7 +244,7 @@ class RecursiveFilter(nn.Module):
         speed_sum = torch.cumsum(torch.cat([speed_sum, torch.stack(
             [speed, -speeds[0, speed_slots]], 1).reshape(-1)]), 0)[-1:]
         speeds = speeds.index_copy(1, speed_slots, speed[None])
-        return (wrap_heading(poses), torch.cat(covs), poses[-1:], P, bodies[-1:], u[-1:], last,
+        return (wrap_heading(poses), covs, poses[-1:], P, bodies[-1:], u[-1:], last,
                 dead[-1:], gap + steps, heading, ring, sums, speeds, speed_sum, k + steps,
                 started)
 
