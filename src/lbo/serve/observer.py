@@ -370,7 +370,8 @@ class Observer:
         est : (T, 3) ``[x, y, psi]``, psi in (-pi, pi]; the same numbers as T calls of
             :meth:`step` after :meth:`reset`.
         valid : (T,) bool, False on the first N-1 rows of a CNN or LSTM (EKF fallback),
-            where the estimate is not finite (before the first fix), and with
+            where the estimate is not finite (before the first fix; for a net that reads a
+            receiver, where its window holds no heading), and with
             ``envelope_mode="mark"`` on the rows outside the training envelope (see
             :meth:`check_envelope`; ``"warn"`` gives one :class:`EnvelopeWarning` instead).
         covariance : (T, 3, 3), only with ``cov=True``: each estimate's covariance (the
