@@ -5,7 +5,10 @@ every engine; and ``experiment=receiver`` trained end to end."""
 
 from __future__ import annotations
 
+import json
 import math
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -262,3 +265,11 @@ def test_experiment_receiver_trains_and_its_checkpoint_reads_a_receiver(tmp_path
     est, valid = obs.run(log[["x_m", "y_m", "psi_m"]].to_numpy(float),
                          log[["V", "delta"]].to_numpy(float), receiver=receiver(log))
     assert valid[59:].all() and np.isfinite(est[59:]).all()
+    # exported: the files take receiver windows (batch, 60, 11), as the JSON says
+    res = subprocess.run([sys.executable, "-m", "lbo.export", f"observer={out['checkpoint']}",
+                          "out_dir=exports"], cwd=tmp_path, capture_output=True, text=True)
+    assert res.returncode == 0, res.stderr[-3000:]
+    meta = json.loads((tmp_path / "exports" / "cnn-N60.json").read_text())
+    assert meta["input"]["shape"] == ["batch", 60, rw.WIDTH]
+    assert meta["input"]["columns"] == list(rw.COLUMNS)
+    assert max(meta["max_abs_diff_to_pytorch"].values()) <= 1e-5  # checked before written

@@ -197,14 +197,18 @@ def _step_sidecar(rec: Any, model: bytes) -> dict[str, Any]:
 
 def _sidecar(observer: Any, net: Any, name: str, diff: dict[str, float],
              paths: dict[str, Path]) -> dict[str, Any]:
+    from lbo.models.receiver_window import COLUMNS
+
+    columns = list(COLUMNS) if getattr(net, "receiver", False) else ["x_m", "y_m", "psi_m", "V",
+                                                                     "delta"]
     return {
         "name": name,
         "model": type(net.net).__name__,
         "window": observer.window,
         "dt": observer.dt,
         "features": observer.features,
-        "input": {"name": "window", "shape": ["batch", observer.window, 5], "dtype": "float64",
-                  "columns": ["x_m", "y_m", "psi_m", "V", "delta"],
+        "input": {"name": "window", "shape": ["batch", observer.window, len(columns)],
+                  "dtype": "float64", "columns": columns,
                   "order": "oldest sample first; the last row is the current step",
                   "missing_fix": ("x_m, y_m and psi_m NaN" if getattr(net, "fixes", False)
                                   else "not allowed: a fix at every step")},
