@@ -312,9 +312,10 @@ class WindowRunner:
                 "or crept that long gave none")
 
     @staticmethod
-    def _heading_held(windows: np.ndarray) -> np.ndarray:
-        """Whether receiver windows (B, N, 11) hold a heading, psi_m or a course: (B,)."""
-        return (np.isfinite(windows[..., 2]) | np.isfinite(windows[..., 6])).any(-1)
+    def _heading_rows(series: np.ndarray) -> np.ndarray:
+        """Which rows (..., T, 11) of receiver windows hold a heading, psi_m or a course:
+        (..., T) bool (:func:`lbo.models.receiver_window.heading_known`'s rule)."""
+        return np.isfinite(series[..., 2]) | np.isfinite(series[..., 6])
 
     def _series(self, m: np.ndarray, u: np.ndarray) -> np.ndarray:
         """The window columns of rows m (T, 3) or (T, 9) and inputs u (T, 2)."""
@@ -341,7 +342,7 @@ class WindowRunner:
                                 f"no fix in the last {n} steps ({n * self.dt:g} s): {self.name} "
                                 f"needs a fix in every window of {n} steps")
             window = self.ring[None, i + 1:i + 1 + n]
-            if self.reads_receiver and not self._heading_held(window)[0]:
+            if self.reads_receiver and not self._heading_rows(window).any():
                 return Estimate(np.full(3, np.nan), False, self._no_heading)
             state = self.predict(window)[0]
             state[2] = wrap_angle(state[2])
@@ -371,7 +372,9 @@ class WindowRunner:
                 chunk = np.ascontiguousarray(windows[s:s + batch_size])
                 est[head + s:head + s + len(chunk)] = self.predict(chunk)
             if self.reads_receiver:  # no heading in the window: none in the estimate (take())
-                est[head:][~self._heading_held(windows)] = np.nan
+                # rows holding a heading in each window, by a running count (not T x N)
+                count = np.concatenate([[0], np.cumsum(self._heading_rows(series))])
+                est[head:][count[n:] - count[:-n] == 0] = np.nan
         return est, np.full((t, 3, 3), np.nan)
 
 
