@@ -53,13 +53,14 @@ def test_training_length_in_passes_over_the_windows():
 def test_minmax_puts_the_training_windows_in_the_unit_box(tmp_path, smoke_data):
     import torch
 
-    from lbo.learn.builders import datamodule
+    from lbo.learn.builders import build_net, datamodule
     from lbo.models.features import window_features
 
     cfg = train_cfg(tmp_path, smoke_data, "features=frame", "train_noise=stored")
     dm = datamodule(cfg, smoke_data)
-    stats = dm.normalisation("frame", "minmax", n=500)
-    standard = dm.normalisation("frame", "standard", n=500)
+    net = build_net(cfg)
+    stats = dm.normalisation(net, "minmax", n=500)
+    standard = dm.normalisation(net, "standard", n=500)
     assert not bool((stats["in_std"] == standard["in_std"]).all())
 
     g = torch.Generator(device=dm.device).manual_seed(dm.seed)
@@ -69,7 +70,7 @@ def test_minmax_puts_the_training_windows_in_the_unit_box(tmp_path, smoke_data):
     assert f.min().item() == pytest.approx(0.0, abs=1e-12)
     assert f.max().item() == pytest.approx(1.0, abs=1e-12)
     with pytest.raises(LboError, match="normalisation: expected one of"):
-        dm.normalisation("frame", "zscore")
+        dm.normalisation(net, "zscore")
 
 
 def test_normalisation_is_checked_and_keeps_old_hashes(tmp_path, smoke_data):

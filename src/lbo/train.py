@@ -208,7 +208,7 @@ def _fit(cfg: DictConfig, built: Built, callbacks: list[L.Callback] | None,
                             {**meta(cfg, data_hash), "envelope": training_envelope(cfg, dm)},
                             cfg.get("lr_schedule", "constant"), bool(built.fix_periods),
                             net=built.net, receiver=built.net.receiver)
-    module.observer.set_normalisation(**dm.normalisation(cfg.features, cfg.normalisation))
+    module.observer.set_normalisation(**dm.normalisation(module.observer, cfg.normalisation))
     if built.init is not None:  # fine-tuning: its weights and its normalisation
         say_fresh(cfg, module.observer, built.init)
         module.observer.load_state_dict(built.init, strict=False)

@@ -31,8 +31,7 @@ from torch.utils.data import (
 
 from lbo.core.errors import LboError
 from lbo.learn.draws import AlphaDraw, ReceiverDraw, draw_fixes, loss_weights, noisy_measurements
-from lbo.models import receiver_window
-from lbo.models.features import last_measurement, state_to_target, window_features, window_view
+from lbo.models.features import window_view
 from lbo.models.net import check_scaling
 from lbo.sim import schema
 from lbo.sim.columns import MEAS, SCORED_SET, STATE, WINDOW
@@ -263,42 +262,17 @@ class WindowDataModule(L.LightningDataModule):
         self.train_set.to(self.device, self.seed)
         self.val_set.to(self.device, self.seed)
 
-    def normalisation(self, features: str, scaling: str = "standard",
+    def normalisation(self, net: Any, scaling: str = "standard",
                       n: int = 20_000) -> dict[str, torch.Tensor]:
-        """Per-channel offsets and scales of ``n`` random training windows' features and
-        targets (with the ``fix`` channel when fixes are dropped; a receiver's features when
-        it draws them), as the ``in_mean, in_std,
-        out_mean, out_std`` of :meth:`WindowNet.set_normalisation`.
-
-        ``scaling``: ``"standard"``, the mean and standard deviation; ``"minmax"``, the minimum
-        and the range, so the training set's inputs and targets lie in [0, 1] (the usual
-        scaling of a sigmoid network, and the paper's likely one).
-        """
+        """The statistics (:meth:`lbo.models.net.WindowNet.statistics`) of ``n`` random
+        training windows' features and targets, as ``net`` reads them (its feature mode, its
+        ``fix`` channel, a receiver's features), for its :meth:`set_normalisation`."""
         check_scaling(scaling)
         self.setup()
-        fixes = bool(self.fix_periods)
         g = torch.Generator(device=self.device).manual_seed(self.seed)
         pick = torch.randperm(len(self.train_set), generator=g, device=self.device)[:n]
         win, state, _ = self.train_set.batch(pick, g)
-        if self.receiver is not None:
-            anchor = receiver_window.anchor(win, self.receiver.dt, self.receiver.wheelbase)
-            f = receiver_window.features(win, anchor)
-        else:
-            f, anchor = window_features(win, features, fixes), last_measurement(win, fixes)
-        f = f.reshape(-1, f.shape[-1]).cpu()
-        t = state_to_target(state, anchor, features).cpu()
-        heading = t[:, 2]
-        if self.receiver is not None:  # a window without a heading teaches none (WindowNet.loss)
-            heading = heading[receiver_window.heading_known(win).cpu()]
-        if scaling == "minmax":
-            lo_f = f.amin(0)
-            lo_t = torch.stack([t[:, 0].amin(), t[:, 1].amin(), heading.amin()])
-            hi_t = torch.stack([t[:, 0].amax(), t[:, 1].amax(), heading.amax()])
-            return {"in_mean": lo_f, "in_std": f.amax(0) - lo_f,
-                    "out_mean": lo_t, "out_std": hi_t - lo_t}
-        return {"in_mean": f.mean(0), "in_std": f.std(0),
-                "out_mean": torch.stack([t[:, 0].mean(), t[:, 1].mean(), heading.mean()]),
-                "out_std": torch.stack([t[:, 0].std(), t[:, 1].std(), heading.std()])}
+        return net.statistics(win, state, scaling)
 
     def _loader(self, ds: Dataset, batch: int, shuffle: bool) -> DataLoader:
         # one __getitem__ per batch: the gather is vectorised, never a loop over samples

@@ -42,7 +42,7 @@ def measure(cfg: DictConfig, steps: int = 8, warmup: int = 3) -> dict[str, Any]:
     device = data_device(cfg)
     dm = datamodule(cfg, prepare_data(cfg)[0])
     net = build_net(cfg).to(device)
-    net.set_normalisation(**dm.normalisation(cfg.features, cfg.normalisation))
+    net.set_normalisation(**dm.normalisation(net, cfg.normalisation))
     opt = instantiate(cfg.optimizer)(params=net.parameters())
     loader = dm.train_dataloader()
     setup_s = time.perf_counter() - begin

@@ -118,6 +118,33 @@ class WindowNet(nn.Module):
                 t = t.clamp_min(_STD_FLOOR)
             getattr(self, name).copy_(t)
 
+    def statistics(self, win: torch.Tensor, state: torch.Tensor,
+                   scaling: str = "standard") -> dict[str, torch.Tensor]:
+        """Per-channel offsets and scales of training windows' features and targets, as the
+        ``in_mean, in_std, out_mean, out_std`` of :meth:`set_normalisation`.
+
+        win : (B, N, C) raw windows; state : (B, 3) their true states at the last step.
+        ``scaling``: ``"standard"``, the mean and standard deviation; ``"minmax"``, the
+        minimum and the range, so the training set's inputs and targets lie in [0, 1] (the
+        usual scaling of a sigmoid network, and the paper's likely one). The heading's target
+        counts only the windows the loss teaches it on (:meth:`loss`)."""
+        check_scaling(scaling)
+        f = self.inputs(win)
+        f = f.reshape(-1, f.shape[-1]).cpu()
+        t = state_to_target(state, self.anchor(win), self.features).cpu()
+        heading = t[:, 2]
+        if self.receiver:
+            heading = heading[receiver_window.heading_known(receiver_window.widen(win)).cpu()]
+        if scaling == "minmax":
+            lo_f = f.amin(0)
+            lo_t = torch.stack([t[:, 0].amin(), t[:, 1].amin(), heading.amin()])
+            hi_t = torch.stack([t[:, 0].amax(), t[:, 1].amax(), heading.amax()])
+            return {"in_mean": lo_f, "in_std": f.amax(0) - lo_f,
+                    "out_mean": lo_t, "out_std": hi_t - lo_t}
+        return {"in_mean": f.mean(0), "in_std": f.std(0),
+                "out_mean": torch.stack([t[:, 0].mean(), t[:, 1].mean(), heading.mean()]),
+                "out_std": torch.stack([t[:, 0].std(), t[:, 1].std(), heading.std()])}
+
     def inputs(self, win: torch.Tensor) -> torch.Tensor:
         """The features of raw windows (B, N, 5) (or (B, N, 11), a receiver's): (B, N, C)."""
         if self.receiver:
