@@ -11,9 +11,11 @@ import numpy as np
 import pandas as pd
 import pytest
 
+from helpers import train_in_own_store
 from lbo.core.angles import wrap_angle
 from lbo.core.errors import LboError
 from lbo.filters.gyro import GyroNoise
+from lbo.serve.observer import Observer
 from lbo.sim import hguide
 from lbo.sim.logio import check_log
 from lbo.sim.vehicle import Vehicle
@@ -136,6 +138,29 @@ def test_realdrive_writes_the_spans_and_scores_every_classical_observer(tmp_path
             "net trained with experiment=receiver)") in obs.stdout
 
 
+@pytest.mark.slow
+def test_realdrive_trains_a_receiver_net_on_the_train_span(tmp_path, smoke_data):
+    _, out, _ = train_in_own_store(tmp_path, smoke_data, "experiment=receiver", "data=smoke",
+                                   "trainer.max_epochs=1", "trainer.limit_train_batches=2",
+                                   "window=60", "batch_size=64", "~callbacks.evaluation")
+    res = subprocess.run([sys.executable, "-m", "lbo.realdrive", f"output_dir={tmp_path / 'rd'}",
+                          "observers=[ekf]", "learn.epochs=0", "learn.simulated=0",
+                          f"nets=[{out['checkpoint']}]", "net_fit.epochs=1"],
+                         capture_output=True, text=True, cwd=tmp_path)
+    assert res.returncode == 0, res.stderr[-3000:]
+    rows = pd.read_csv(tmp_path / "rd" / "results.csv").set_index("estimator")
+    for label in ("cnn-N60 (window), receiver's accuracy and velocity",
+                  "cnn-N60, fine-tuned on the train span",
+                  "cnn-N60, trained on the train span only"):
+        assert np.isfinite(rows.loc[label, ["x_m", "y_m", "psi_mrad"]].to_numpy(float)).all()
+    for kind in ("finetuned", "span"):
+        history = pd.read_csv(tmp_path / "rd" / f"cnn-N60_{kind}_history.csv")
+        assert list(history["epoch"]) == [0, 1]
+        obs = Observer.load(tmp_path / "rd" / f"cnn-N60_{kind}.ckpt")
+        assert obs.meta["trained_on"].startswith("on the hill drive's train span, ")
+    assert "training cnn-N60 on the hill drive's train span, from scratch" in res.stdout
+
+
 def test_without_the_extra_and_with_a_bad_observer_it_is_one_line(monkeypatch, tmp_path):
     monkeypatch.setitem(sys.modules, "onavdata", None)  # import onavdata -> ImportError
     with pytest.raises(LboError, match=r"^the onavdata package is not installed: "
@@ -149,4 +174,7 @@ def test_without_the_extra_and_with_a_bad_observer_it_is_one_line(monkeypatch, t
                           "learn.epochs=-1"], capture_output=True, text=True, cwd=tmp_path)
     assert res.returncode == 2 and res.stderr.strip() == (
         "error: learn.epochs must be an integer >= 0, got -1")
+    res = subprocess.run([sys.executable, "-m", "lbo.realdrive", f"output_dir={tmp_path}",
+                          "net_fit.lr=0"], capture_output=True, text=True, cwd=tmp_path)
+    assert res.returncode == 2 and res.stderr.startswith("error: net_fit.lr must be")
     assert not any(tmp_path.iterdir())

@@ -1,7 +1,7 @@
 """`python -m lbo.realdrive`: a real car drive end to end, every classical observer on it.
 
     python -m lbo.realdrive [output_dir=reports/realdrive] [observers=[ekf,adaptive,ukf,gyro]]
-                            [learn.epochs=12]
+                            [learn.epochs=12] [nets=[<checkpoint>]] [net_fit.epochs=8]
 
 Reads the onavdata hill drive (``pip install 'lbo[real]'``; :mod:`lbo.sim.hguide`), fits the
 INS's boresight, the antenna's lever arm and the fixes' latency, and writes it as three lbo
@@ -19,7 +19,10 @@ antenna:
   channels (lbo's R, no velocity) and smoothed (RTS, offline), as :meth:`lbo.Observer.run`
   gives them;
 - each learned observer of ``nets`` (checkpoints, MLflow run ids) with the receiver's channels
-  (the robust observer's recursive form takes them).
+  (the robust observer's recursive form takes them); and, with ``net_fit.epochs``, each of
+  them that reads a receiver (``experiment=receiver``) trained on the train span, fine-tuned
+  from its weights and from scratch (:mod:`lbo.learn.net_fit`; ``<name>_finetuned.ckpt``,
+  ``<name>_span.ckpt``).
 
 It writes ``results.csv`` and ``results.md`` (RMSE of x, y in m and psi in mrad, over the rows
 each estimates, and the quadratic mean of the three RMSE ratios to the EKF's),
@@ -40,14 +43,16 @@ from omegaconf import DictConfig
 from lbo.core.atomic import atomic_path
 from lbo.core.checks import integer, number
 from lbo.core.cli import entry
+from lbo.core.errors import LboError
 from lbo.filters import classical
 from lbo.filters.gyro import GyroNoise
-from lbo.scoring.receiver import EKF, load_nets, markdown, ratio_to, score
+from lbo.scoring.receiver import EKF, NET_ROW, load_nets, markdown, ratio_to, score
 from lbo.sim import hguide
 from lbo.sim.columns import STATE
 from lbo.sim.logio import check_log, check_output_path, write_table
 
-__all__ = ["FINE_TUNED", "LEARNED", "SIMULATED", "main", "realdrive"]
+__all__ = ["FINE_TUNED", "FIT_FINE_TUNED", "FIT_KINDS", "FIT_SPAN", "LEARNED", "SIMULATED",
+           "main", "realdrive"]
 
 LEARNED = "gyro, noise learned on the train span"
 """The row of the gyro EKF whose noise :mod:`lbo.learn.gyro_fit` learned from the defaults."""
@@ -55,6 +60,13 @@ SIMULATED = "gyro, noise learned on simulated drives only"
 """... learned on simulated single-antenna drives, not on the real one."""
 FINE_TUNED = "gyro, noise learned on simulated drives, fine-tuned on the train span"
 """... learned on simulated drives, then on the train span."""
+FIT_FINE_TUNED = "fine-tuned on the train span"
+"""The row of a net of ``nets`` trained on the train span from its own weights (its name
+first)."""
+FIT_SPAN = "trained on the train span only"
+"""... from scratch, on the train span alone."""
+FIT_KINDS = ("finetuned", "span")
+"""The checkpoints' suffixes: ``<name>_finetuned.ckpt``, ``<name>_span.ckpt``."""
 
 
 def realdrive(cfg: DictConfig) -> dict[str, Any]:
@@ -65,7 +77,20 @@ def realdrive(cfg: DictConfig) -> dict[str, Any]:
     observers = list(cfg.observers)
     for name in observers:
         classical.check(str(name), "observers")
-    nets = load_nets(cfg.get("nets"))
+    sources = [str(n) for n in cfg.get("nets") or ()]
+    nets = load_nets(sources)
+    fit = {"epochs": integer(cfg.net_fit.epochs, "net_fit.epochs", 0),
+           "lr": number(cfg.net_fit.lr, "net_fit.lr", 0.0, low_open=True),
+           "lr_scratch": number(cfg.net_fit.lr_scratch, "net_fit.lr_scratch", 0.0,
+                                low_open=True),
+           "batch": integer(cfg.net_fit.batch, "net_fit.batch", 1),
+           "seed": integer(cfg.net_fit.seed, "net_fit.seed", 0)}
+    trainable = {s: obs for s, obs in zip(sources, nets) if obs.net is not None
+                 and obs.net.receiver} if fit["epochs"] else {}
+    names = [obs.name for obs in trainable.values()]
+    if len(set(names)) < len(names):
+        raise LboError(f"nets: two nets named {max(names, key=names.count)} to train on the "
+                       "train span (net_fit.epochs > 0); give one at a time")
     learn = {"epochs": integer(cfg.learn.epochs, "learn.epochs", 0),
              "simulated": integer(cfg.learn.simulated, "learn.simulated", 0),
              "segment_s": number(cfg.learn.segment_s, "learn.segment_s", 0.0, low_open=True),
@@ -91,8 +116,10 @@ def realdrive(cfg: DictConfig) -> dict[str, Any]:
     print("spans: " + ", ".join(f"{k} {len(p) * vehicle.dt:.0f} s -> {paths[k]}"
                                 for k, p in parts.items()))
     learned = _learn(learn, cfg.simulated, parts, vehicle, noise, out) if learn["epochs"] else {}
+    fitted = _fit_nets(fit, trainable, parts, out)
     table, estimates = score(parts["test"], observers, vehicle, noise, learned,
-                             nets=nets)
+                             nets={**{f"{o.name} ({o.form}), {NET_ROW}": o for o in nets},
+                                   **fitted})
     table["vs_ekf"] = ratio_to(table, EKF)
     write_table(table, out / "results.csv")
     with atomic_path(out / "results.md") as tmp:
@@ -157,6 +184,27 @@ def _learn(cfg: dict[str, Any], simulated: DictConfig, parts: dict[str, pd.DataF
                                       cfg["epochs"], "on the train span, from the simulated "
                                       "drives'")
     return out_noise
+
+
+def _fit_nets(cfg: dict[str, Any], nets: dict[str, Any], parts: dict[str, pd.DataFrame],
+              out: Path) -> dict[str, Any]:
+    """Each net (by source) that reads a receiver trained on the train span, kept by the
+    validation span (:mod:`lbo.learn.net_fit`): fine-tuned from its weights, and from scratch.
+    Written as ``<name>_finetuned.ckpt`` and ``<name>_span.ckpt`` with their
+    ``*_history.csv``; returns them loaded, by row label."""
+    from lbo.learn.net_fit import fit_and_write
+    from lbo.serve.observer import Observer
+
+    found = {}
+    for source, obs in nets.items():
+        for kind, fresh, label in zip(FIT_KINDS, (False, True), (FIT_FINE_TUNED, FIT_SPAN)):
+            path = fit_and_write(out / f"{obs.name}_{kind}.ckpt", source, [parts["train"]],
+                                 [parts["val"]], "on the hill drive's train span", fresh=fresh,
+                                 epochs=cfg["epochs"],
+                                 lr=cfg["lr_scratch"] if fresh else cfg["lr"],
+                                 batch=cfg["batch"], seed=cfg["seed"])
+            found[f"{obs.name}, {label}"] = Observer.load(path)
+    return found
 
 
 main = entry("realdrive", realdrive)

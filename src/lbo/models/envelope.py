@@ -107,6 +107,16 @@ class Envelope:
         return cls((float(u[:, 0].min()), float(u[:, 0].max())),
                    (float(u[:, 1].min()), float(u[:, 1].max())), alpha, fix_period)
 
+    def union(self, other: Envelope) -> Envelope:
+        """The envelope of both training sets; alpha where either knows it (a real log's
+        is unknown, None)."""
+        def both(a, b):
+            return None if a is None or b is None else (min(a[0], b[0]), max(a[1], b[1]))
+
+        alpha = both(self.alpha, other.alpha) or self.alpha or other.alpha
+        return Envelope(both(self.speed, other.speed), both(self.steering, other.steering),
+                        alpha, both(self.fix_period, other.fix_period))
+
     def to_dict(self) -> dict[str, Any]:
         """Plain lists, as a checkpoint (``weights_only``) and a JSON sidecar store them."""
         return {k: (list(v) if v is not None else None) for k, v in asdict(self).items()}

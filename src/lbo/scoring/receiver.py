@@ -68,7 +68,8 @@ def load_nets(sources: Sequence[Any] | None) -> list[Any]:
 
 def score(log: pd.DataFrame, observers: Sequence[str], vehicle: Vehicle, noise: Any,
           learned: Mapping[str, GyroNoise] | None = None,
-          extra: Mapping[str, np.ndarray] | None = None, nets: Sequence[Any] = ()
+          extra: Mapping[str, np.ndarray] | None = None,
+          nets: Sequence[Any] | Mapping[str, Any] = ()
           ) -> tuple[pd.DataFrame, dict[str, np.ndarray]]:
     """RMSE (x m, y m, psi mrad) of the raw fixes and each observer on ``log`` (with truth),
     every one scored from the log's first course over ground on.
@@ -79,7 +80,7 @@ def score(log: pd.DataFrame, observers: Sequence[str], vehicle: Vehicle, noise: 
     extra : estimates (T, 3) made elsewhere (NaN: none yet), by row label.
     nets : learned observers (:class:`lbo.Observer`, loaded once by the caller) run with the
         receiver's channels (the robust observer's recursive form takes them), as ``<name>
-        (<form>), receiver's accuracy and velocity``.
+        (<form>), receiver's accuracy and velocity``; or such observers by row label.
 
     Returns the table (one row each: ``estimator, x_m, y_m, psi_mrad, rows``) and the
     estimates (T, 3) by row label (NaN where an observer has none yet, and on the rows not
@@ -107,9 +108,10 @@ def score(log: pd.DataFrame, observers: Sequence[str], vehicle: Vehicle, noise: 
     for label, name, channels, smooth, gyro in runs:
         obs = Observer.load(name, vehicle, noise, gyro_noise=gyro)
         found[label] = obs.run(m, u, receiver=channels, smooth=smooth)
-    for obs in nets:
-        found[f"{obs.name} ({obs.form}), {NET_ROW}"] = obs.run(
-            m, u, receiver=r, source=str(obs.meta.get("source", obs.name)))
+    named = (nets.items() if isinstance(nets, Mapping)
+             else ((f"{obs.name} ({obs.form}), {NET_ROW}", obs) for obs in nets))
+    for label, obs in named:
+        found[label] = obs.run(m, u, receiver=r, source=str(obs.meta.get("source", obs.name)))
     for label, est in (extra or {}).items():
         found[label] = (est, np.isfinite(est).all(1))
     estimates = {}

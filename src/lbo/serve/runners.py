@@ -161,6 +161,14 @@ def bicycle_rows(m: np.ndarray, u: np.ndarray, receiver: np.ndarray, wheelbase: 
     return measure.rows(m, receiver[:, :3], receiver[:, 3:5], receiver[:, 5], u[:, 0], turn)
 
 
+def receiver_series(m: np.ndarray, u: np.ndarray, receiver: np.ndarray, wheelbase: float
+                    ) -> np.ndarray:
+    """A log's rows (T, 11) as a receiver net reads them (:data:`lbo.models.receiver_window.
+    COLUMNS`) from m (T, 3), u (T, 2) and a receiver's channels (T, 7) (``RECEIVER``)."""
+    return np.column_stack([bicycle_rows(m, u, receiver, wheelbase), u,
+                            receiver[:, RECEIVER.index("r_m")]])
+
+
 def no_fix(name: str) -> str:
     """Why an observer trained with a fix at every step refuses a step without one."""
     return (f"no fix, but {name} was trained with a fix at every step; use an observer trained "
