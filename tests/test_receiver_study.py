@@ -129,3 +129,13 @@ def test_receiver_study_refuses_bad_settings_in_one_line(tmp_path, override, lin
     with pytest.raises(LboError, match=line):
         receiver_study(cfg)
     assert not any(tmp_path.iterdir())  # refused before anything is written
+
+
+def test_the_plot_draws_every_estimator_however_many_nets_it_scores(tmp_path):
+    from lbo.receiver_study import plot
+
+    names = [f"net {i} (window), receiver's accuracy and velocity" for i in range(14)]
+    results = pd.DataFrame([{"estimator": n, "alpha": a, "vs_oracle": 1.0 + i / 10}
+                            for i, n in enumerate(names) for a in (1.0, 3.0)])
+    plot(results, tmp_path / "ratios.png")
+    assert (tmp_path / "ratios.png").stat().st_size > 10_000

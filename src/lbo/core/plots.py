@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 from pathlib import Path
 
 import matplotlib
@@ -80,8 +81,8 @@ def nrmse_curves(table, title: str = "", observers: list[str] | None = None,
     fig, ax = plt.subplots(figsize=(6.4, 4.2))
     names = observers or list(dict.fromkeys(table["observer"]))
     # learned observers take colours the classical ones do not use
-    palette = iter(["tab:blue", "tab:red", "tab:purple", "tab:brown", "tab:pink", "tab:cyan",
-                    "navy", "darkred", "indigo", "sienna"])
+    palette = itertools.cycle(["tab:blue", "tab:red", "tab:purple", "tab:brown", "tab:pink",
+                               "tab:cyan", "navy", "darkred", "indigo", "sienna"])
     for name in names:
         rows = table[table["observer"] == name].sort_values("alpha")
         style = {"marker": ".", "lw": 1.4, **(STYLES.get(name) or {"color": next(palette)}),
@@ -201,7 +202,7 @@ def nrmse_panels(table, panels: dict[str, list[str]], title: str = "",
     fig, axes = plt.subplots(1, len(panels), figsize=(7.0 * len(panels), 4.6 + 0.14 * longest),
                              squeeze=False, sharey=True)
     for ax, (name, observers) in zip(axes[0], panels.items()):
-        palette = iter(plt.cm.tab20(np.linspace(0, 1, 20)))
+        palette = itertools.cycle(plt.cm.tab20(np.linspace(0, 1, 20)))
         for obs in observers:
             rows = table[(table["observer"] == obs) & (table["alpha"] > 0)].sort_values("alpha")
             style = {"lw": 1.3, **(STYLES.get(obs) or (styles or {}).get(obs)
