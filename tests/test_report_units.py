@@ -294,3 +294,26 @@ def test_the_report_writes_each_section_in_the_order_given_with_its_files(tmp_pa
     text = (bare / "report.md").read_text()
     assert "## Beyond the paper" not in text and "nrmse_robust.png" not in text
     assert not (bare / "nrmse_robust.png").exists() and not (bare / "literal.csv").exists()
+
+
+# the summary a training run ends with ------------------------------------------------------
+
+
+def test_a_training_run_ends_with_its_nrmse_beside_the_peers_and_its_worst_oracle_ratio():
+    from lbo.scoring.grid import summary
+
+    t = table({"cnn-N20": [0.5, 1.2, 1.5, 3.3, 4.0, 5.0, 6.6],
+               "ekf": [0.4, 1.0, 2.0, 3.0, 4.0, 5.0, 6.0],
+               "oracle": [0.3, 1.0, 1.5, 2.2, 2.5, 3.0, 3.3]})
+    lines = summary(t, "cnn-N20").splitlines()
+    assert lines[0].startswith("NRMSE on the test grid")
+    assert lines[1].split() == ["observer", "alpha", "1", "alpha", "3", "alpha", "6"]
+    assert lines[2].split() == ["cnn-N20", "1.200", "3.300", "6.600"]
+    assert lines[3].split() == ["ekf", "1.000", "3.000", "6.000"]
+    assert lines[4].split() == ["oracle", "1.000", "2.200", "3.300"]
+    # ratios over alpha 0.25-6: 1.2, 1.0, 1.5, 1.6, 1.667, 2.0 (alpha 0 is left out)
+    assert lines[5] == "  worst ratio to the oracle over alpha 0.25-6: 2.000 (at alpha 6)"
+    # a peer or an alpha the table lacks is left out, and without an oracle there is no ratio
+    short = table({"cnn-N20": [0.5, 1.2], "ekf": [0.4, 1.0]}, (0.0, 1.0))
+    out = summary(short, "cnn-N20").splitlines()
+    assert len(out) == 4 and out[1].split() == ["observer", "alpha", "1"]

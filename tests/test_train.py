@@ -181,6 +181,10 @@ def test_multirun_sweep_logs_eight_runs(tmp_path, smoke_data, tracking):
     client, found = runs(tracking)
     names = sorted(r.info.run_name for r in found)
     assert names == sorted(f"{m}-N{n}" for m in ("cnn", "lstm") for n in (20, 40, 60, 80))
+    # each run ends with its result, not only a run id
+    said = res.stdout + res.stderr
+    assert said.count("NRMSE on the test grid") == 8
+    assert said.count("worst ratio to the oracle over alpha 0.25-6: ") == 8
     for r in found:
         assert r.info.status == "FINISHED"
         for key in ("test_nrmse_alpha_1", "test_nrmse_alpha_3", "test_nrmse_alpha_6"):

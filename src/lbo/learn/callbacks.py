@@ -7,6 +7,7 @@ from pathlib import Path
 from typing import Any
 
 import lightning as L
+import numpy as np
 import pandas as pd
 from lightning.pytorch.loggers import MLFlowLogger
 
@@ -24,6 +25,7 @@ from lbo.scoring.grid import (
     predict,
     reference,
     score,
+    summary,
 )
 from lbo.sim.log_sets import is_log_folder, test_files
 from lbo.sim.truth import of_folder
@@ -104,6 +106,9 @@ class Evaluation(L.Callback):
                     device: str) -> None:
         """The test grid of a generated data set, per alpha level."""
         arr = load_test(folder / "test.parquet")
+        print(f"evaluating {name} on the test grid: {len(np.unique(arr['alpha']))} noise "
+              f"levels, {len(arr['alpha'])} trajectories, beside the classical observers ...",
+              flush=True)
         ref = reference(arr, vehicle, noise, self.reference)
         est = predict(net, arr, self.batch_size, device=device)
         truth = of_folder(folder, vehicle.wheelbase)
@@ -123,6 +128,9 @@ class Evaluation(L.Callback):
         ratio = oracle_ratio(self.table, name)
         if len(ratio):
             self.metrics["worst_oracle_ratio"] = float(ratio.max())
+        oracle = "oracle_dynamic" if truth.car else "oracle"
+        print(summary(self.table, name, peers=("ekf", "oracle", oracle)[:3 if truth.car else 2],
+                      oracle=oracle))
         if truth.car is not None and len(ratio):
             for peer, key in (("oracle_dynamic", "worst_dynamic_oracle_ratio"),
                               ("oracle_tuned", "worst_tuned_oracle_ratio")):

@@ -189,6 +189,27 @@ def oracle_ratio(table: pd.DataFrame, observer: str, low: float = 0.25,
     return (piv[observer] / piv[oracle])[keep].rename(f"ratio_to_{oracle}")
 
 
+def summary(table: pd.DataFrame, observer: str, alphas: Sequence[float] = (1.0, 3.0, 6.0),
+            peers: Sequence[str] = ("ekf", "oracle"), oracle: str = "oracle") -> str:
+    """A few lines for the end of a training run: the NRMSE of ``observer`` and ``peers`` at
+    each of ``alphas`` the table holds, and the worst ratio of ``observer`` to ``oracle`` over
+    alpha in [0.25, 6] (where the table holds the oracle)."""
+    shown = [a for a in alphas if np.isclose(table["alpha"], a).any()]
+    names = [observer, *(p for p in peers if (table["observer"] == p).any())]
+    width = max(len(n) for n in names)
+    lines = ["NRMSE on the test grid (lower is better; the EKF at alpha 1 is 1):",
+             f"  {'observer':<{width}}" + "".join(f"  {f'alpha {a:g}':>9}" for a in shown)]
+    lines += [f"  {n:<{width}}" + "".join(f"  {nrmse_at(table, n, a):>9.3f}" for a in shown)
+              for n in names]
+    if (table["observer"] == oracle).any():
+        ratio = oracle_ratio(table, observer, oracle=oracle)
+        if len(ratio):
+            worst = float(ratio.idxmax())
+            lines.append(f"  worst ratio to the {oracle} over alpha 0.25-6: {ratio.max():.3f} "
+                         f"(at alpha {worst:g})")
+    return "\n".join(lines)
+
+
 def calibration(covariant: dict[str, tuple[np.ndarray, np.ndarray]], arr: dict[str, np.ndarray],
                 out: Path) -> pd.DataFrame:
     """NEES per alpha of every observer that gives a covariance
