@@ -185,6 +185,7 @@ def test_multirun_sweep_logs_eight_runs(tmp_path, smoke_data, tracking):
     said = res.stdout + res.stderr
     assert said.count("NRMSE on the test grid") == 8
     assert said.count("worst ratio to the oracle over alpha 0.25-6: ") == 8
+    assert said.count("`Trainer.fit` stopped") == 8  # Lightning's lines once, not twice
     for r in found:
         assert r.info.status == "FINISHED"
         for key in ("test_nrmse_alpha_1", "test_nrmse_alpha_3", "test_nrmse_alpha_6"):

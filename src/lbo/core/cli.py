@@ -169,6 +169,9 @@ def entry(config_name: str, run: Callable[[DictConfig], Any],
         from lbo.core.runfolder import claim, save_hydra_files
 
         scrub_logs()
+        # Lightning prints its INFO lines through its own handler ("INFO: ...") and passes
+        # them on to the root's (Hydra's) too: each line once, Lightning's way
+        logging.getLogger("lightning").propagate = False
         folder = Path(HydraConfig.get().runtime.output_dir)
         try:
             if folder.resolve() == Path.cwd().resolve():
