@@ -106,3 +106,21 @@ def test_the_lbo_console_script_runs_each_command_as_python_m_does(tmp_path):
     bad = subprocess.run([str(script), "simulate", "alpha=-1", f"output={tmp_path / 'c.csv'}"],
                          cwd=tmp_path, capture_output=True, text=True)
     assert bad.returncode == 2 and bad.stderr.startswith("error: alpha")
+
+
+def test_each_commands_help_lists_its_own_groups_and_explains_its_settings():
+    res = subprocess.run([sys.executable, "-m", "lbo.observe", "--help"], capture_output=True,
+                         text=True)
+    assert res.returncode == 0, res.stderr
+    out = res.stdout
+    assert out.startswith("python -m lbo.observe [group=option ...] [key=value ...]")
+    groups = out.split("== Groups (group=option) ==\n")[1].split("\n\n")[0].splitlines()
+    assert groups == ["noise: literal, paper (default: paper)",
+                      "vehicle: default (default: default)"]  # not train's model, trainer ...
+    # the settings with the comments that explain them, as conf/observe.yaml holds them
+    assert "plot: null              # true: <output>.png beside the output" in out
+    train = subprocess.run([sys.executable, "-m", "lbo.train", "-h"], capture_output=True,
+                           text=True).stdout
+    assert "model: cnn, filternet, kalmannet, lstm (default: cnn)" in train
+    assert "receiver: single_antenna (default: none)" in train
+    assert "normalisation: standard # standard: each channel's mean and std" in train

@@ -194,6 +194,9 @@ def entry(config_name: str, run: Callable[[DictConfig], Any],
             fail(known)
 
     def checked() -> Any:
+        if any(a in ("--help", "-h") for a in sys.argv[1:]):
+            print(command_help(config_name))  # Hydra's lists every group of every command
+            return 0
         with scrubbed_output():
             try:
                 if not (CONF_DIR / f"{config_name}.yaml").is_file():
@@ -206,6 +209,28 @@ def entry(config_name: str, run: Callable[[DictConfig], Any],
             return main()
 
     return checked
+
+
+def command_help(config_name: str) -> str:
+    """``python -m lbo.<command> --help``: the groups its config composes, each with its
+    options, then its config file as written (every setting with the comment that explains
+    it). ``--hydra-help`` still gives Hydra's own."""
+    from omegaconf import OmegaConf
+
+    path = CONF_DIR / f"{config_name}.yaml"
+    groups = {}
+    for item in OmegaConf.to_container(OmegaConf.load(path)).get("defaults") or []:
+        if not isinstance(item, dict):  # _self_
+            continue
+        key, choice = next(iter(item.items()))
+        group = key.removeprefix("override ").lstrip("/").split("@")[0].strip()
+        if not group.startswith("hydra"):
+            found = sorted(f.stem for f in (CONF_DIR / group).glob("*.yaml"))
+            groups[group] = f"{group}: {', '.join(found)} (default: {choice or 'none'})"
+    lines = [f"python -m lbo.{config_name} [group=option ...] [key=value ...]", "",
+             "== Groups (group=option) ==", *groups.values(), "",
+             f"== Settings (key=value; {path.name} as lbo ships it) ==", path.read_text()]
+    return "\n".join(lines)
 
 
 #: Launchers named on the command line (``hydra/launcher=<name>``) -> (plugin module, package).
