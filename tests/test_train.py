@@ -186,6 +186,9 @@ def test_multirun_sweep_logs_eight_runs(tmp_path, smoke_data, tracking):
     assert said.count("NRMSE on the test grid") == 8
     assert said.count("worst ratio to the oracle over alpha 0.25-6: ") == 8
     assert said.count("`Trainer.fit` stopped") == 8  # Lightning's lines once, not twice
+    # the experiment opens in MLflow's model-training view, not its GenAI one
+    kind = client.get_experiment(found[0].info.experiment_id).tags["mlflow.experimentKind"]
+    assert kind == "custom_model_development"
     for r in found:
         assert r.info.status == "FINISHED"
         for key in ("test_nrmse_alpha_1", "test_nrmse_alpha_3", "test_nrmse_alpha_6"):
@@ -275,3 +278,15 @@ def test_training_on_cuda_draws_batches_on_the_gpu(tmp_path, smoke_data, trackin
     out = train(train_cfg(tmp_path, smoke_data, "trainer=gpu", "trainer.max_epochs=1",
                           "trainer.limit_train_batches=5"))
     assert np.isfinite(out["test_nrmse_alpha_1"])
+
+
+def test_an_experiment_made_before_lbo_set_its_kind_gets_it(tmp_path):
+    from mlflow import MlflowClient
+
+    from lbo.tracking.runs import ensure_experiment
+
+    uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
+    old = MlflowClient(uri).create_experiment("older", artifact_location=str(tmp_path / "a"))
+    client, found = ensure_experiment(uri, "older", None)
+    assert found == old
+    assert client.get_experiment(old).tags["mlflow.experimentKind"] == "custom_model_development"

@@ -170,6 +170,11 @@ def use_wal(uri: str) -> None:
             db.execute("PRAGMA journal_mode=WAL")
 
 
+KIND_TAG, KIND = "mlflow.experimentKind", "custom_model_development"
+"""The experiment tag that makes MLflow 3's UI open an experiment in its model-training view
+(runs, metrics, charts), not in its GenAI one (traces, prompts), which it would guess."""
+
+
 def ensure_experiment(uri: str, name: str, artifact_location: str | None):
     """An MLflow client on the store at ``uri`` and the id of experiment ``name``, created if
     missing, the store in WAL mode if it is SQLite. Returns ``(client, experiment_id)``.
@@ -187,9 +192,12 @@ def ensure_experiment(uri: str, name: str, artifact_location: str | None):
         use_wal(uri)
         exp = client.get_experiment_by_name(name)
         if exp is not None:
+            if exp.tags.get(KIND_TAG) != KIND:  # one lbo made before it set the kind
+                client.set_experiment_tag(exp.experiment_id, KIND_TAG, KIND)
             return client, exp.experiment_id
         try:
-            return client, client.create_experiment(name, artifact_location=artifact_location)
+            return client, client.create_experiment(name, artifact_location=artifact_location,
+                                                    tags={KIND_TAG: KIND})
         except MlflowException:
             exp = client.get_experiment_by_name(name)
             if exp is None:
