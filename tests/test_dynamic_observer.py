@@ -210,6 +210,14 @@ def test_reproduce_trains_the_study_beside_the_paper_at_quick_scale(tmp_path):
         assert jobs[f"dynamic-{model}"][:3] == ["experiment=dynamic_blackbox", f"model={model}",
                                                 "data=dynamic"]
         assert f"dynamic_drift-{model}" not in jobs
+    # every run has its own name in MLflow: the literal protocol's beside the paper's
+    names = {k: compose_cfg("train", [o for o in v if not o.startswith(("+tuned", "hydra."))]
+                            ).logger.run_name for k, v in jobs.items()}
+    assert names["literal-cnn-N60"] == "literal-cnn-N60" and names["cnn-N60"] == "cnn-N60"
+    assert names["dynamic"].startswith("dynamic-filternet-N")
+    assert names["dynamic-cnn"].startswith("dynamic-cnn-N") and names["robust"].startswith(
+        "robust-filternet-N")
+    assert len(set(names.values())) == len(names)
     smoke = {j.key for j in train_jobs(compose_cfg("reproduce", ["scale=smoke"]), tmp_path)}
     assert "dynamic" not in smoke  # the smoke reproduction stays seconds long
 

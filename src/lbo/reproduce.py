@@ -174,6 +174,13 @@ def _model_window(name: str, field: str) -> tuple[str, int]:
     return found.group(1), int(found.group(2))
 
 
+def _run_name(study: str) -> str:
+    """The MLflow run name of a job of ``study``: ``literal-cnn-N20`` beside the paper
+    protocol's ``cnn-N20`` (the logger config's name alone would give both the same; the
+    name is not part of a run's config hash, so finished runs are still reused)."""
+    return f"logger.run_name={study}-${{model.name}}-N${{window}}"
+
+
 def train_jobs(cfg: DictConfig, out: Path) -> list[Job]:
     """Every run the train stage trains (or reuses), in order."""
     jobs = [Job(f"{model}-N{window}", PAPER,
@@ -182,21 +189,23 @@ def train_jobs(cfg: DictConfig, out: Path) -> list[Job]:
             for model in cfg.models for window in cfg.windows]
     if cfg.robust:
         jobs.append(Job("robust", ROBUST, ("experiment=robust", f"data={cfg.scale}",
-                                           *cfg.robust_overrides[cfg.scale])))
+                                           *cfg.robust_overrides[cfg.scale],
+                                           _run_name("robust"))))
     for name in cfg.literal[cfg.scale]:
         model, window = _model_window(name, f"literal.{cfg.scale}")
         jobs.append(Job(f"literal-{model}-N{window}", LITERAL,
                         (*cfg.literal_overrides[cfg.scale], f"model={model}",
-                         f"window={window}")))
+                         f"window={window}", _run_name("literal"))))
     # the car that slips: on each data set the observer that learns the model error (keyed
     # by the data set), and on the first one the black-box peers (<data>-cnn, <data>-lstm)
     for i, data in enumerate(cfg.dynamic_study[cfg.scale]):
         jobs.append(Job(data, DYNAMIC, ("experiment=dynamic", f"data={data}",
-                                        *cfg.dynamic_overrides[cfg.scale]), data))
+                                        *cfg.dynamic_overrides[cfg.scale], _run_name(data)),
+                        data))
         for model in (cfg.dynamic_blackbox[cfg.scale] if i == 0 else []):
             jobs.append(Job(f"{data}-{model}", DYNAMIC,
                             ("experiment=dynamic_blackbox", f"model={model}", f"data={data}",
-                             *cfg.dynamic_overrides[cfg.scale]), data))
+                             *cfg.dynamic_overrides[cfg.scale], _run_name(data)), data))
     return [dataclasses.replace(j, overrides=(*j.overrides, "resume=true",
                                               f"output_dir={out / 'runs' / j.key}",
                                               *cfg.overrides, *cfg.train_overrides))
