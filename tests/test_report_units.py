@@ -317,3 +317,15 @@ def test_a_training_run_ends_with_its_nrmse_beside_the_peers_and_its_worst_oracl
     short = table({"cnn-N20": [0.5, 1.2], "ekf": [0.4, 1.0]}, (0.0, 1.0))
     out = summary(short, "cnn-N20").splitlines()
     assert len(out) == 4 and out[1].split() == ["observer", "alpha", "1"]
+
+
+def test_a_learned_observers_curve_is_drawn_over_the_filters_it_runs_along():
+    from lbo.core import plots
+
+    t = table({"cnn-N20": [0.3, 1.0, 1.5, 2.0, 2.5, 3.0, 3.3],
+               "oracle": [0.3, 1.0, 1.5, 2.0, 2.5, 3.0, 3.3],
+               "ekf": [0.4, 1.0, 2.0, 3.0, 4.0, 5.0, 6.0]})
+    fig = plots.nrmse_curves(t)
+    z = {line.get_label(): line.get_zorder() for line in fig.axes[0].get_lines()}
+    plots.plt.close(fig)
+    assert z["cnn-N20"] > z["oracle"] and z["cnn-N20"] > z["ekf"]

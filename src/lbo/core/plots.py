@@ -85,8 +85,9 @@ def nrmse_curves(table, title: str = "", observers: list[str] | None = None,
                                "tab:cyan", "navy", "darkred", "indigo", "sienna"])
     for name in names:
         rows = table[table["observer"] == name].sort_values("alpha")
-        style = {"marker": ".", "lw": 1.4, **(STYLES.get(name) or {"color": next(palette)}),
-                 **(styles or {}).get(name, {})}
+        # a learned observer's curve on top: the oracle's often runs along it
+        style = {"marker": ".", "lw": 1.4, "zorder": 2 if name in STYLES else 3,
+                 **(STYLES.get(name) or {"color": next(palette)}), **(styles or {}).get(name, {})}
         ax.plot(rows["alpha"], rows["nrmse"], label=name, **style)
     ax.axhline(1.0, color="0.6", lw=0.8, ls=":")
     ax.set(xlabel=r"noise scale $\alpha$", ylabel=ylabel, title=title)
@@ -205,8 +206,8 @@ def nrmse_panels(table, panels: dict[str, list[str]], title: str = "",
         palette = itertools.cycle(plt.cm.tab20(np.linspace(0, 1, 20)))
         for obs in observers:
             rows = table[(table["observer"] == obs) & (table["alpha"] > 0)].sort_values("alpha")
-            style = {"lw": 1.3, **(STYLES.get(obs) or (styles or {}).get(obs)
-                                   or {"color": next(palette)})}
+            style = {"lw": 1.3, "zorder": 2 if obs in STYLES else 3,
+                     **(STYLES.get(obs) or (styles or {}).get(obs) or {"color": next(palette)})}
             ax.plot(rows["alpha"], rows["nrmse"], label=obs, **style)
         for marker, obs in zip("sDv^", (points or {}).get(name, [])):
             rows = table[table["observer"] == obs].sort_values("alpha")
