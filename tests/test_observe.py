@@ -449,6 +449,27 @@ def test_plot_true_writes_a_png_beside_the_output(tmp_path, log_csv):
     assert imread(tmp_path / "est.png").std() > 0.01
 
 
+def test_compare_draws_more_observers_in_the_plot_and_prints_their_rmse(tmp_path, log_csv):
+    from matplotlib.image import imread
+
+    res = observe("observer=ekf", f"input={log_csv}", f"output={tmp_path / 'est.csv'}",
+                  "plot=true", "compare=[ukf,adaptive]")
+    said = [line for line in res.stdout.splitlines() if line.startswith("compare ")]
+    assert [line.split(":")[0] for line in said] == ["compare ukf", "compare adaptive"]
+    assert all(re.search(r"rmse x [\d.e-]+ m, y [\d.e-]+ m, psi [\d.e-]+ rad", line)
+               for line in said)
+    assert imread(tmp_path / "est.png").std() > 0.01
+    assert list(pd.read_csv(tmp_path / "est.csv").columns[:5]) == ["t", "x", "y", "psi", "valid"]
+    for extra, line in ((["compare=[ukf]"], "compare: draws more observers in the plot; give "
+                         "plot=true (or a .png)"),
+                        (["plot=true", "compare=ukf"], "compare: expected a list of observers, "
+                         "e.g. compare=[ekf,gyro], got 'ukf'")):
+        bad = observe("observer=ekf", f"input={log_csv}", f"output={tmp_path / 'b.csv'}",
+                      *extra, check=False)
+        assert bad.returncode == 2 and bad.stderr.strip() == f"error: {line}"
+        assert not (tmp_path / "b.csv").exists()
+
+
 def test_the_plot_shows_errors_against_the_truth_or_the_uncertainty(manoeuvre):
     from lbo.core import plots
 
@@ -473,6 +494,11 @@ def test_the_plot_shows_errors_against_the_truth_or_the_uncertainty(manoeuvre):
     assert panels(plots.observed_log(t, m, est, "cnn", z, None))[2] == ["error of psi"]
     assert len(panels(plots.observed_log(t, m, est, "cnn", None, np.full((len(t), 3, 3),
                                                                           np.nan)))) == 1
+    # another observer beside it: its path, and its errors in each panel
+    beside = panels(plots.observed_log(t, m, est, "ekf", z, None, {"ukf": est + 0.1}))
+    assert beside[0] == ["fixes", "truth", "ekf", "ukf"]
+    assert beside[1] == ["error of x", "ukf: error of x", "error of y", "ukf: error of y"]
+    assert beside[2] == ["error of psi", "ukf: error of psi"]
 
 
 def test_evaluate_scores_an_existing_observer_and_logs_to_its_run(trained, smoke_data, tmp_path,

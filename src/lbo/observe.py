@@ -119,6 +119,7 @@ def observe(cfg: DictConfig) -> dict[str, Any]:
     if not isinstance(smooth, bool):
         raise LboError(f"smooth must be true or false, got {smooth!r}")
     form = cfg.get("form")
+    compare = _compared(cfg.get("compare"), plot)
     gyro_noise = cfg.get("gyro_noise")
     if gyro_noise is not None:
         check_gyro_noise(name, gyro_noise)  # before the file is read
@@ -180,12 +181,25 @@ def observe(cfg: DictConfig) -> dict[str, Any]:
     if origin is not None:  # the estimate where the log's positions were: degrees
         out["lat"], out["lon"] = origin.to_geodetic(est[:, 0], est[:, 1])
     write_table(out, output)
+    others = {}
+    for other in compare:  # each loaded and run as the main one, the envelope left to it
+        o = Observer.load(other, *((vehicle, noise) if other in on_logs() else (None, None)),
+                          **{**kw, "envelope_mode": "off", "engine": "torch" if other in
+                             on_logs() else engine})
+        e, ok = o.run(m, u, source=where, receiver=channels if o.takes_receiver else None)
+        others[o.name if o.name not in others and o.name != obs.name else other] = \
+            np.where(ok[:, None], e, np.nan)
+        if truth:
+            r = rmse(e, df[list(STATE)].to_numpy(dtype=float), ok)
+            print(f"compare {other}: rmse x {r[0]:.6g} m, y {r[1]:.6g} m, psi {r[2]:.6g} rad "
+                  f"({int(ok.sum())} valid rows)")
     if plot is not None:
         from lbo.core import plots
 
         plots.save(plots.observed_log(out["t"].to_numpy(), m, np.where(valid[:, None], est, np.nan),
                                       obs.name, df[list(STATE)].to_numpy(dtype=float)
-                                      if truth else None, cov if obs.gives_covariance else None),
+                                      if truth else None, cov if obs.gives_covariance else None,
+                                      others),
                    plot)
 
     what = (f"learned, window {obs.window}, features {obs.features}" if obs.kind == "learned"
@@ -241,6 +255,18 @@ def observe(cfg: DictConfig) -> dict[str, Any]:
               f"{PAPER_REFERENCE[1]} m, {PAPER_REFERENCE[2] * 1e3:g} mrad)")
     print(f"observed: {output}" + (f"; plot: {plot}" if plot is not None else ""))
     return result
+
+
+def _compared(compare: Any, plot: Any) -> list[str]:
+    """The observers of ``compare``, checked: a list of names or sources, drawn in the plot."""
+    if compare is None or (hasattr(compare, "__len__") and not len(compare)):
+        return []
+    if isinstance(compare, str) or not all(isinstance(c, str) for c in compare):
+        raise LboError(f"compare: expected a list of observers, e.g. compare=[ekf,gyro], got "
+                       f"{compare!r}")
+    if plot is None:
+        raise LboError("compare: draws more observers in the plot; give plot=true (or a .png)")
+    return [str(c) for c in compare]
 
 
 main = entry("observe", observe)

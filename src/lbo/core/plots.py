@@ -116,13 +116,18 @@ def trajectory(truth: np.ndarray | None, meas: np.ndarray, title: str = "",
 
 
 def observed_log(t: np.ndarray, meas: np.ndarray, est: np.ndarray, name: str,
-                 truth: np.ndarray | None = None, cov: np.ndarray | None = None):
+                 truth: np.ndarray | None = None, cov: np.ndarray | None = None,
+                 others: dict[str, np.ndarray] | None = None):
     """One observed log: the path in the (x, y) plane (fixes, estimate, truth), and below it,
     over time, the errors of x, y (m) and psi (mrad) against the truth with the estimate's
     +-2 sigma band (either alone when the log has no truth or the observer no covariance).
 
     t (T,) s; meas, est, truth (T, 3) ``[x, y, psi]`` (NaN rows: no fix, no estimate);
-    cov (T, 3, 3) or None."""
+    cov (T, 3, 3) or None; others: more observers' estimates (T, 3) by name, drawn beside
+    (their paths, and their errors where there is a truth)."""
+    others = others or {}
+    colors = itertools.cycle(["tab:green", "tab:red", "tab:purple", "tab:brown", "tab:cyan"])
+    other_colors = {k: next(colors) for k in others}
     sigma = None
     if cov is not None and np.isfinite(cov).any():
         sigma = 2 * np.sqrt(np.clip(np.diagonal(cov, axis1=1, axis2=2), 0, None))
@@ -134,6 +139,8 @@ def observed_log(t: np.ndarray, meas: np.ndarray, est: np.ndarray, name: str,
     if truth is not None:
         ax.plot(truth[:, 0], truth[:, 1], "-", color="black", lw=2.0, label="truth")
     ax.plot(est[:, 0], est[:, 1], lw=1.3, color="tab:blue", label=name)
+    for k, other in others.items():
+        ax.plot(other[:, 0], other[:, 1], lw=1.0, color=other_colors[k], label=k)
     ax.set(xlabel="x, east (m)", ylabel="y, north (m)", title=f"{name} on {len(t)} rows")
     ax.set_aspect("equal", adjustable="datalim")
     ax.grid(alpha=0.3)
@@ -155,6 +162,11 @@ def observed_log(t: np.ndarray, meas: np.ndarray, est: np.ndarray, name: str,
                                 alpha=0.18, lw=0, label=f"+-2 sigma of {label}")
             if err is not None:
                 ax.plot(t, scale * err[:, c], lw=0.9, color=color, label=f"error of {label}")
+                for k, other in others.items():
+                    e = other[:, c] - truth[:, c]
+                    e = wrap_angle(e) if c == 2 else e
+                    ax.plot(t, scale * e, lw=0.8, color=other_colors[k], ls=("-", "--")[c % 2],
+                            label=f"{k}: error of {label}")
         ax.axhline(0.0, color="0.4", lw=0.6)
         # the first fix's wide start would flatten the rest: scale to the 99th percentile
         spread = [np.abs(a[:, list(cols)]) for a in (err, sigma) if a is not None]
