@@ -290,3 +290,23 @@ def test_an_experiment_made_before_lbo_set_its_kind_gets_it(tmp_path):
     client, found = ensure_experiment(uri, "older", None)
     assert found == old
     assert client.get_experiment(old).tags["mlflow.experimentKind"] == "custom_model_development"
+
+
+def test_threads_sets_the_runs_intra_op_threads_and_leaves_its_hash(tmp_path, smoke_data,
+                                                                   monkeypatch):
+    import lbo.train as command
+    from lbo.learn.resume import config_hash
+
+    with pytest.raises(LboError, match=r"^threads must be an integer >= 1, got 0$"):
+        train(train_cfg(tmp_path, smoke_data, "threads=0"))
+    cfg = train_cfg(tmp_path, smoke_data, "threads=1")
+    assert config_hash(cfg) == config_hash(train_cfg(tmp_path, smoke_data))
+    before = torch.get_num_threads()
+    seen = []
+    monkeypatch.setattr(command, "_train", lambda *a: seen.append(torch.get_num_threads()) or {})
+    try:
+        torch.set_num_threads(2)  # what the run changes, whatever the test worker had
+        train(cfg)
+    finally:
+        torch.set_num_threads(before)
+    assert seen == [1]

@@ -74,6 +74,8 @@ def check(cfg: DictConfig) -> Built:
             cfg.features)
     integer(cfg.batch_size, "batch_size", 1)
     integer(cfg.seed, "seed", 0)
+    if cfg.get("threads") is not None:
+        integer(cfg.threads, "threads", 1)
     check_scaling(cfg.normalisation)
     check_trainer(cfg.trainer)
     check_optimizer(cfg.optimizer)
@@ -154,6 +156,8 @@ def train(cfg: DictConfig, callbacks: list[L.Callback] | None = None,
                              finished_ok=bool(cfg.get("resume")))
     if refusal is not None:
         raise LboError(refusal)
+    if cfg.get("threads") is not None:  # e.g. two tune workers on one machine: 1 each
+        torch.set_num_threads(int(cfg.threads))
     with claim(cfg.output_dir):
         return _train(cfg, built, callbacks, tags)
 

@@ -42,6 +42,7 @@ def config_hash(cfg: DictConfig) -> str:
     with open_dict(c):
         c.output_dir, c.data.root, c.resume, c.data_dir = "-", "-", False, None
         c.pop("logger", None)
+        c.pop("threads", None)  # how fast, not what: a run on other threads is reused
         for key, default in LATER_DEFAULTS.items():
             if key in c and c.get(key) == default:
                 c.pop(key)
