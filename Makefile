@@ -67,6 +67,7 @@ bench: install  ## benchmarks: data generation, filters, training throughput, la
 	$(PY) benchmarks/bench_filters.py
 	$(PY) benchmarks/bench_train.py
 	$(PY) benchmarks/bench_latency.py
+	$(PY) benchmarks/bench_threads.py
 
 lint: install  ## ruff
 	$(VENV)/bin/ruff check src tests benchmarks examples
