@@ -134,10 +134,11 @@ def fit(net: Any, train: LogWindows, val: LogWindows, *, epochs: int, lr: float,
     net = copy.deepcopy(net)  # float32 parameters, float64 buffers, as lbo.train keeps them
     g = torch.Generator().manual_seed(seed)
     if fresh:
-        torch.manual_seed(seed)
-        for module in net.modules():
-            if module is not net and hasattr(module, "reset_parameters"):
-                module.reset_parameters()
+        with torch.random.fork_rng():  # the caller's random stream is left as it was
+            torch.manual_seed(seed)
+            for module in net.modules():
+                if module is not net and hasattr(module, "reset_parameters"):
+                    module.reset_parameters()
         pick = torch.randperm(len(train), generator=g)[:20_000]
         net.set_normalisation(**net.statistics(*train.batch(pick)))
     opt = torch.optim.Adam(net.parameters(), lr=lr)
