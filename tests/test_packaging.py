@@ -124,3 +124,12 @@ def test_each_commands_help_lists_its_own_groups_and_explains_its_settings():
     assert "model: cnn, filternet, kalmannet, lstm (default: cnn)" in train
     assert "receiver: single_antenna (default: none)" in train
     assert "normalisation: standard # standard: each channel's mean and std" in train
+
+
+def test_a_config_group_set_to_null_is_one_line_not_a_traceback(tmp_path):
+    res = subprocess.run([sys.executable, "-m", "lbo.train", "logger=null",
+                          f"hydra.run.dir={tmp_path / 'run'}"], capture_output=True, text=True)
+    assert res.returncode == 2 and res.stderr.strip() == (
+        "error: logger=null: logger is a config group; leave it out with ~logger "
+        "(or pick one: logger=<option>)")
+    assert not (tmp_path / "run").exists()

@@ -204,11 +204,22 @@ def entry(config_name: str, run: Callable[[DictConfig], Any],
                                    "the installed package: reinstall lbo (pip install <repo>), "
                                    "or set LBO_ROOT=<repo>")
                 check_launcher(launcher_from_argv(sys.argv[1:]))
+                check_null_groups(sys.argv[1:])
             except LboError as e:
                 fail(e)
             return main()
 
     return checked
+
+
+def check_null_groups(argv: list[str]) -> None:
+    """Refuse ``<group>=null`` in one line (Hydra raises a traceback): a config group is left
+    out with ``~<group>``."""
+    for arg in argv:
+        key, _, value = arg.partition("=")
+        if value == "null" and key.isidentifier() and (CONF_DIR / key).is_dir():
+            raise LboError(f"{arg}: {key} is a config group; leave it out with ~{key} "
+                           f"(or pick one: {key}=<option>)")
 
 
 def command_help(config_name: str) -> str:
