@@ -96,11 +96,16 @@ def test_reproduce_smoke_killed_and_resumed_without_duplicates(tmp_path):
     def literal(r) -> bool:  # the paper's protocol: trained on the stored noise draw
         return r.data.tags["train_noise"] == "stored"
 
+    # each run once, each under its own name (the literal protocol's, the robust and the
+    # car-that-slips observers' apart from the paper protocol's)
+    paper = {f"{m}-N{n}" for m in ("cnn", "lstm") for n in (20, 40, 60, 80)}
+    named = {*paper, "robust-filternet-N100", "dynamic-filternet-N100", "literal-cnn-N20"}
     trained = [(r.info.run_name, r.data.tags["data"], literal(r)) for r in runs
-               if "optuna_trial" not in r.data.tags and r.info.run_name in expected]
-    assert sorted(trained) == sorted([(n, "smoke", False) for n in expected]
-                                     + [("filternet-N100", "dynamic", False),
-                                        ("cnn-N20", "smoke", True)])  # each once
+               if "optuna_trial" not in r.data.tags and r.info.run_name in named]
+    assert sorted(trained) == sorted([(n, "smoke", False) for n in paper]
+                                     + [("robust-filternet-N100", "smoke", False),
+                                        ("dynamic-filternet-N100", "dynamic", False),
+                                        ("literal-cnn-N20", "smoke", True)])
     # every observer's folder holds one best.ckpt, the very file its MLflow run logged (the
     # report reads that artifact), beside the last epoch's: the resumed cnn-N80 finished its
     # own run in its own folder
