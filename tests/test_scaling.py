@@ -397,6 +397,6 @@ def test_make_reproduce_against_a_tracking_server_through_joblib(tmp_path):
         assert (table["status"] == "FINISHED").all()
         names = set(table["name"])
         assert {f"{m}-N{n}" for m in ("cnn", "lstm") for n in (20, 40, 60, 80)} <= names
-        assert {"filternet-N100", "report-smoke"} <= names
+        assert {"robust-filternet-N100", "literal-cnn-N20", "report-smoke"} <= names
         # every artifact went through the server into its own artifact root
         assert len(list((server.folder / "artifacts").rglob("best.ckpt"))) >= 9
