@@ -196,6 +196,10 @@ def test_multirun_sweep_logs_eight_runs(tmp_path, smoke_data, tracking):
         assert len(client.get_metric_history(r.info.run_id, "val_loss")) == 2
         assert len(client.get_metric_history(r.info.run_id, "train_loss")) == 2
         assert {"git_commit", "data_hash"} <= set(r.data.tags)
+        # the data set as the run's input: MLflow's UI lists it and groups runs by it
+        (used,) = client.get_run(r.info.run_id).inputs.dataset_inputs
+        assert (used.dataset.name, used.dataset.digest) == ("smoke", r.data.tags["data_hash"])
+        assert [(t.key, t.value) for t in used.tags] == [("mlflow.data.context", "training")]
         assert r.data.params["window"] == r.info.run_name.split("-N")[1]
         top = {a.path for a in client.list_artifacts(r.info.run_id)}
         assert {"evaluation.csv", "nrmse.png", "config.yaml", "checkpoints"} <= top

@@ -170,6 +170,19 @@ def use_wal(uri: str) -> None:
             db.execute("PRAGMA journal_mode=WAL")
 
 
+def dataset_input(name: str, digest: str, source: str, context: str = "training") -> Any:
+    """The data set a run reads, as an MLflow dataset input (``MlflowClient.log_inputs``):
+    its name, lbo's data hash as its digest (MLflow keeps 36 characters) and its folder, so
+    that MLflow's UI lists it with the run and groups the runs that read the same data."""
+    import json
+
+    from mlflow.entities import Dataset, DatasetInput, InputTag
+
+    return DatasetInput(Dataset(name=name, digest=digest[:36], source_type="local",
+                                source=json.dumps({"uri": str(source)})),
+                        tags=[InputTag("mlflow.data.context", context)])
+
+
 KIND_TAG, KIND = "mlflow.experimentKind", "custom_model_development"
 """The experiment tag that makes MLflow 3's UI open an experiment in its model-training view
 (runs, metrics, charts), not in its GenAI one (traces, prompts), which it would guess."""
