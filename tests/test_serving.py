@@ -66,7 +66,15 @@ def test_every_training_run_logs_a_model_that_pyfunc_loads_in_a_fresh_process(ro
                                                                               tmp_path):
     client = mlflow.MlflowClient(robust["uri"])
     assert {"model", "checkpoints"} <= {a.path for a in client.list_artifacts(robust["run_id"])}
-    assert client.get_run(robust["run_id"]).info.status == "FINISHED"
+    run = client.get_run(robust["run_id"]).info
+    assert run.status == "FINISHED"
+    # and as a logged model of its run, which MLflow 3's Models tab lists
+    (model,) = client.search_logged_models([run.experiment_id],
+                                           filter_string=f"source_run_id = '{run.run_id}'")
+    assert (model.name, model.status.to_proto(), model.model_type) == (
+        run.run_name, 2, "lbo observer")  # 2: READY
+    assert {a.path for a in client.list_logged_model_artifacts(model.model_id)} >= {
+        "MLmodel", "artifacts"}
     log.to_parquet(tmp_path / "log.parquet")
     script = ("import mlflow, pandas as pd, sys\n"
               f"model = mlflow.pyfunc.load_model('runs:/{robust['run_id']}/model')\n"

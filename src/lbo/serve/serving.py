@@ -99,8 +99,10 @@ def signature() -> Any:
 
 def log_model(tracking_uri: str, run_id: str, checkpoint: str | Path) -> str:
     """Save ``checkpoint`` as a pyfunc model and log it under ``model/`` of MLflow run
-    ``run_id`` in ``tracking_uri``; returns its ``runs:/<run id>/model`` URI. Only the client
-    API: no run is started or ended, and MLflow's global tracking URI is left alone."""
+    ``run_id`` in ``tracking_uri``, and as a logged model of that run (MLflow 3's Models tab
+    and the run's page list it, named after the run); returns its ``runs:/<run id>/model``
+    URI. Only the client API: no run is started or ended, and MLflow's global tracking URI is
+    left alone."""
     import tempfile
     import warnings
     from importlib.metadata import version
@@ -116,5 +118,11 @@ def log_model(tracking_uri: str, run_id: str, checkpoint: str | Path) -> str:
             artifacts={"checkpoint": str(checkpoint)}, signature=signature(),
             # lbo and its pinned torch: --env-manager local serves from this environment
             pip_requirements=[f"lbo=={version('lbo')}", "torch==2.13.0"])
-        mlflow.MlflowClient(tracking_uri).log_artifacts(run_id, str(folder), ARTIFACT)
+        client = mlflow.MlflowClient(tracking_uri)
+        client.log_artifacts(run_id, str(folder), ARTIFACT)
+        run = client.get_run(run_id).info
+        model = client.create_logged_model(run.experiment_id, name=run.run_name,
+                                           source_run_id=run_id, model_type="lbo observer")
+        client.log_model_artifacts(model.model_id, str(folder))
+        client.finalize_logged_model(model.model_id, "READY")
     return f"runs:/{run_id}/{ARTIFACT}"
