@@ -463,7 +463,9 @@ def test_compare_draws_more_observers_in_the_plot_and_prints_their_rmse(tmp_path
     for extra, line in ((["compare=[ukf]"], "compare: draws more observers in the plot; give "
                          "plot=true (or a .png)"),
                         (["plot=true", "compare=ukf"], "compare: expected a list of observers, "
-                         "e.g. compare=[ekf,gyro], got 'ukf'")):
+                         "e.g. compare=[ekf,gyro], got 'ukf'"),
+                        (["plot=true", f"compare=[{tmp_path / 'none.ckpt'}]"],
+                         f"observer: checkpoint not found: {tmp_path / 'none.ckpt'}")):
         bad = observe("observer=ekf", f"input={log_csv}", f"output={tmp_path / 'b.csv'}",
                       *extra, check=False)
         assert bad.returncode == 2 and bad.stderr.strip() == f"error: {line}"

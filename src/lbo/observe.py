@@ -139,6 +139,13 @@ def observe(cfg: DictConfig) -> dict[str, Any]:
         torch.set_num_threads(threads)
     obs = Observer.load(name, vehicle if classical else None, noise if classical else None,
                         form=form, gyro_noise=gyro_noise, **kw)
+    # each loaded as the main one, before any work: a bad one fails before the output is
+    # written; the envelope is the main observer's to say
+    compared = {other: Observer.load(other, *((vehicle, noise) if other in on_logs()
+                                               else (None, None)),
+                                      **{**kw, "envelope_mode": "off",
+                                         "engine": "torch" if other in on_logs() else engine})
+                for other in compare}
     if obs.kind == "learned" and vehicle.delta_max > obs.vehicle.delta_max:
         # the steering limit the log is checked against (a car whose lock is past the
         # checkpoint's): the model stays the checkpoint's, and rows beyond the steering it was
@@ -182,10 +189,7 @@ def observe(cfg: DictConfig) -> dict[str, Any]:
         out["lat"], out["lon"] = origin.to_geodetic(est[:, 0], est[:, 1])
     write_table(out, output)
     others = {}
-    for other in compare:  # each loaded and run as the main one, the envelope left to it
-        o = Observer.load(other, *((vehicle, noise) if other in on_logs() else (None, None)),
-                          **{**kw, "envelope_mode": "off", "engine": "torch" if other in
-                             on_logs() else engine})
+    for other, o in compared.items():
         e, ok = o.run(m, u, source=where, receiver=channels if o.takes_receiver else None)
         others[o.name if o.name not in others and o.name != obs.name else other] = \
             np.where(ok[:, None], e, np.nan)
