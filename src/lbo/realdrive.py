@@ -78,15 +78,15 @@ def realdrive(cfg: DictConfig) -> dict[str, Any]:
     for name in observers:
         classical.check(str(name), "observers")
     sources = [str(n) for n in cfg.get("nets") or ()]
-    nets = load_nets(sources)
     fit = {"epochs": integer(cfg.net_fit.epochs, "net_fit.epochs", 0),
            "lr": number(cfg.net_fit.lr, "net_fit.lr", 0.0, low_open=True),
            "lr_scratch": number(cfg.net_fit.lr_scratch, "net_fit.lr_scratch", 0.0,
                                 low_open=True),
            "batch": integer(cfg.net_fit.batch, "net_fit.batch", 1),
            "seed": integer(cfg.net_fit.seed, "net_fit.seed", 0)}
-    trainable = {s: obs for s, obs in zip(sources, nets) if obs.net is not None
-                 and obs.net.receiver} if fit["epochs"] else {}
+    nets = load_nets(sources)  # after the settings: each checkpoint read once, before any work
+    trainable = {s: obs for s, obs in zip(sources, nets)
+                 if getattr(obs.net, "receiver", False)} if fit["epochs"] else {}
     names = [obs.name for obs in trainable.values()]
     if len(set(names)) < len(names):
         raise LboError(f"nets: two nets named {max(names, key=names.count)} to train on the "
