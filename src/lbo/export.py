@@ -198,9 +198,9 @@ def _step_sidecar(rec: Any, model: bytes) -> dict[str, Any]:
 def _sidecar(observer: Any, net: Any, name: str, diff: dict[str, float],
              paths: dict[str, Path]) -> dict[str, Any]:
     from lbo.models.receiver_window import COLUMNS
+    from lbo.sim.columns import WINDOW
 
-    columns = list(COLUMNS) if getattr(net, "receiver", False) else ["x_m", "y_m", "psi_m", "V",
-                                                                     "delta"]
+    columns = list(COLUMNS if getattr(net, "receiver", False) else WINDOW)
     return {
         "name": name,
         "model": type(net.net).__name__,

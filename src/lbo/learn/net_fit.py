@@ -4,7 +4,7 @@
 gives one receiver, one gyro, one car: :func:`fit` trains on its windows as they are.
 
 - The windows are every N consecutive rows of a log that hold a position fix, read as an
-  observer reads the log (:func:`lbo.serve.runners.receiver_series`: the filters' row, ``V,
+  observer reads the log (:func:`lbo.serve.runners.receiver_rows`: the filters' row, ``V,
   delta`` and the gyro's ``r_m``); each one's target is the truth at its last row. A window
   that holds no heading teaches none (:meth:`lbo.models.net.WindowNet.loss`).
 - **Fine-tuned** (``fresh=False``): from the net's weights and normalisation. **From
@@ -35,7 +35,7 @@ import torch
 from lbo.core.errors import LboError
 from lbo.models.envelope import Envelope
 from lbo.models.features import window_view
-from lbo.serve.runners import receiver_series
+from lbo.serve.runners import receiver_rows, window_series
 from lbo.sim.columns import INPUT, MEAS, STATE
 from lbo.sim.logio import receiver
 
@@ -78,8 +78,8 @@ def log_windows(logs: pd.DataFrame | Sequence[pd.DataFrame], window: int,
         if channels is None:
             raise LboError("training on a log: a net that reads a receiver needs its channels "
                            "(sx_m, sy_m, ve_m, vn_m, sv_m, r_m); this log has none")
-        series.append(receiver_series(m, log[list(INPUT)].to_numpy(dtype=float), channels,
-                                      wheelbase))
+        u = log[list(INPUT)].to_numpy(dtype=float)
+        series.append(window_series(receiver_rows(m, u, channels, wheelbase), u))
         truth.append(log[list(STATE)].to_numpy(dtype=float))
         fixes = np.concatenate([[0], np.cumsum(np.isfinite(m[:, :2]).all(1))])
         end = np.arange(window - 1, len(log))

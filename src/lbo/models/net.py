@@ -129,9 +129,10 @@ class WindowNet(nn.Module):
         usual scaling of a sigmoid network, and the paper's likely one). The heading's target
         counts only the windows the loss teaches it on (:meth:`loss`)."""
         check_scaling(scaling)
-        f = self.inputs(win)
+        a = self.anchor(win)
+        f = self.inputs(win, a)
         f = f.reshape(-1, f.shape[-1]).cpu()
-        t = state_to_target(state, self.anchor(win), self.features).cpu()
+        t = state_to_target(state, a, self.features).cpu()
         heading = t[:, 2]
         if self.receiver:
             heading = heading[receiver_window.heading_known(receiver_window.widen(win)).cpu()]
@@ -145,11 +146,12 @@ class WindowNet(nn.Module):
                 "out_mean": torch.stack([t[:, 0].mean(), t[:, 1].mean(), heading.mean()]),
                 "out_std": torch.stack([t[:, 0].std(), t[:, 1].std(), heading.std()])}
 
-    def inputs(self, win: torch.Tensor) -> torch.Tensor:
-        """The features of raw windows (B, N, 5) (or (B, N, 11), a receiver's): (B, N, C)."""
+    def inputs(self, win: torch.Tensor, anchor: torch.Tensor | None = None) -> torch.Tensor:
+        """The features of raw windows (B, N, 5) (or (B, N, 11), a receiver's): (B, N, C);
+        ``anchor`` (B, 3): the windows' :meth:`anchor`, where the caller has it already."""
         if self.receiver:
             win = receiver_window.widen(win)
-            return receiver_window.features(win, self.anchor(win))
+            return receiver_window.features(win, self.anchor(win) if anchor is None else anchor)
         return window_features(win, self.features, self.fixes)
 
     def anchor(self, win: torch.Tensor) -> torch.Tensor:
@@ -160,9 +162,11 @@ class WindowNet(nn.Module):
             return receiver_window.anchor(receiver_window.widen(win), dt, wheelbase)
         return last_measurement(win, self.fixes)
 
-    def target_units(self, win: torch.Tensor) -> torch.Tensor:
-        """Network output in target units (relative or absolute state). (B, N, 5) -> (B, 3)."""
-        x = self.inputs(win)
+    def target_units(self, win: torch.Tensor, anchor: torch.Tensor | None = None
+                     ) -> torch.Tensor:
+        """Network output in target units (relative or absolute state). (B, N, 5) -> (B, 3);
+        ``anchor`` as :meth:`inputs` takes it."""
+        x = self.inputs(win, anchor)
         net_dtype = next(self.net.parameters()).dtype
         if self.physical:  # the model works in metres and radians itself
             return self.net(x.to(net_dtype)).to(win.dtype)
@@ -171,7 +175,8 @@ class WindowNet(nn.Module):
 
     def forward(self, win: torch.Tensor) -> torch.Tensor:
         """Estimated state ``[x, y, psi]`` at each window's last step. (B, N, 5) -> (B, 3)."""
-        return target_to_state(self.target_units(win), self.anchor(win), self.features)
+        a = self.anchor(win)  # once: a receiver window's is a dead reckoning over it
+        return target_to_state(self.target_units(win, a), a, self.features)
 
     def loss(self, win: torch.Tensor, state: torch.Tensor,
              weight: torch.Tensor | None = None) -> torch.Tensor:
@@ -180,8 +185,9 @@ class WindowNet(nn.Module):
         state : (B, 3) true states; weight : (B,) per-window weights (None: equal), the loss
         is their weighted mean.
         """
-        target = state_to_target(state, self.anchor(win), self.features)
-        r = wrap_heading(self.target_units(win) - target)
+        a = self.anchor(win)
+        target = state_to_target(state, a, self.features)
+        r = wrap_heading(self.target_units(win, a) - target)
         if self.receiver:  # a window without any heading tells none: its heading is not taught
             known = receiver_window.heading_known(receiver_window.widen(win))
             r = torch.cat([r[:, :2], torch.where(known[:, None], r[:, 2:], 0.0)], 1)

@@ -28,7 +28,7 @@ from lbo.filters import classical, measure
 from lbo.filters.gyro import GyroNoise
 from lbo.models.features import window_view
 from lbo.serve.engines import make_predictor, make_recursive_step
-from lbo.sim.columns import RECEIVER
+from lbo.sim.columns import RECEIVER, WINDOW
 from lbo.sim.logcheck import check_receiver
 from lbo.sim.noise import Noise
 from lbo.sim.vehicle import Vehicle
@@ -161,12 +161,18 @@ def bicycle_rows(m: np.ndarray, u: np.ndarray, receiver: np.ndarray, wheelbase: 
     return measure.rows(m, receiver[:, :3], receiver[:, 3:5], receiver[:, 5], u[:, 0], turn)
 
 
-def receiver_series(m: np.ndarray, u: np.ndarray, receiver: np.ndarray, wheelbase: float
-                    ) -> np.ndarray:
-    """A log's rows (T, 11) as a receiver net reads them (:data:`lbo.models.receiver_window.
-    COLUMNS`) from m (T, 3), u (T, 2) and a receiver's channels (T, 7) (``RECEIVER``)."""
-    return np.column_stack([bicycle_rows(m, u, receiver, wheelbase), u,
-                            receiver[:, RECEIVER.index("r_m")]])
+def receiver_rows(m: np.ndarray, u: np.ndarray, receiver: np.ndarray, wheelbase: float
+                  ) -> np.ndarray:
+    """A receiver net's rows (T, 9): the filters' row (:func:`bicycle_rows`) and ``r_m``."""
+    r_m = receiver[:, RECEIVER.index("r_m")]
+    return np.column_stack([bicycle_rows(m, u, receiver, wheelbase), r_m])
+
+
+def window_series(rows: np.ndarray, u: np.ndarray) -> np.ndarray:
+    """Window columns (T, 5) of paper rows (T, 3), or (T, 11) (``receiver_window.COLUMNS``)
+    of a receiver net's rows (T, 9) (:func:`receiver_rows`), inputs u (T, 2) between."""
+    width = min(rows.shape[-1], measure.WIDTH)
+    return np.concatenate([rows[:, :width], u, rows[:, width:]], axis=1)
 
 
 def no_fix(name: str) -> str:
@@ -290,21 +296,19 @@ class WindowRunner:
         self.fallback = ClassicalRunner("ekf", vehicle, noise, 1.0)
         self.pads = bool(getattr(net, "fixes", False) and getattr(net, "physical", False))
         self.reads_receiver = bool(getattr(net, "receiver", False))
-        self.width = measure.WIDTH if self.reads_receiver else 3  # measurement columns
         self.first_valid = 0 if self.pads else self.window - 1
         # Ring buffer written twice (rows i and i+N): the last N samples are always the
         # contiguous rows i+1 .. i+N, so a window is a view, never a copy or a roll.
-        self.ring = np.zeros((2 * self.window, self.width + 2 + self.reads_receiver))
+        width = measure.WIDTH + 3 if self.reads_receiver else len(WINDOW)  # + V, delta, r_m
+        self.ring = np.zeros((2 * self.window, width))
         self.reset()
 
     def log_rows(self, m: np.ndarray, u: np.ndarray, receiver: np.ndarray | None,
                  source: str | None) -> tuple[np.ndarray, np.ndarray]:
-        """A checked log's rows (T, 9) for a net that reads a receiver: the filters' row of
-        its fixes and receiver's channels (T, 7) (None: none), and the gyro's ``r_m``."""
+        """A checked log's :func:`receiver_rows` (T, 9); ``receiver`` (T, 7) None: none."""
         if receiver is None:
             receiver = np.full((len(m), len(RECEIVER)), np.nan)
-        rows = bicycle_rows(m, u, receiver, self.vehicle.wheelbase)
-        return np.column_stack([rows, receiver[:, RECEIVER.index("r_m")]]), u
+        return receiver_rows(m, u, receiver, self.vehicle.wheelbase), u
 
     def sample(self, k: int, m: np.ndarray, u: np.ndarray, receiver: Any
                ) -> tuple[np.ndarray, np.ndarray]:
@@ -325,10 +329,6 @@ class WindowRunner:
         (..., T) bool (:func:`lbo.models.receiver_window.heading_known`'s rule)."""
         return np.isfinite(series[..., 2]) | np.isfinite(series[..., 6])
 
-    def _series(self, m: np.ndarray, u: np.ndarray) -> np.ndarray:
-        """The window columns of rows m (T, 3) or (T, 9) and inputs u (T, 2)."""
-        return np.concatenate([m[:, :self.width], u, m[:, self.width:]], axis=1)
-
     def reset(self) -> None:
         self.fallback.reset()
         self.last_fix: int | None = None
@@ -339,7 +339,7 @@ class WindowRunner:
     def take(self, k: int, m: np.ndarray, u: np.ndarray, fix: bool) -> Estimate:
         n = self.window
         i = k % n
-        self.ring[i] = self.ring[i + n] = self._series(m[None], u[None])[0]
+        self.ring[i] = self.ring[i + n] = window_series(m[None], u[None])[0]
         if fix:
             self.last_fix = k
         if k + 1 >= n or self.pads:
@@ -369,7 +369,7 @@ class WindowRunner:
         if head:
             est[:head] = from_first_fix("ekf", m[:head, :measure.WIDTH], u[:head], self.vehicle,
                                         self.noise, 1.0)[0]
-        series = self._series(m, u)
+        series = window_series(m, u)
         if self.pads:  # no fix and no motion before the log
             pad = np.zeros((n - 1, 5))
             pad[:, :3] = np.nan
