@@ -15,7 +15,7 @@ from helpers import compose_cfg, train_in_own_store
 from lbo.core.errors import LboError
 from lbo.learn.lightning_module import TrainingModule
 from lbo.models import WindowFilter, build_model
-from lbo.models.filternet import BODY_PARAMETERS
+from lbo.models.motion import BODY_PARAMETERS
 from lbo.models.net import WindowNet
 from lbo.reproduce import train_jobs
 from lbo.scoring import report
@@ -135,8 +135,8 @@ def _open_loop(net: WindowFilter, s0: np.ndarray, u: np.ndarray) -> np.ndarray:
     out = []
     with torch.no_grad():
         for k in range(u.shape[1] - 1):
-            step = torch.cat([torch.zeros_like(z), torch.from_numpy(u[:, k])], 1)
-            z, _, _, body = net._predict_pose(z, step, body)
+            v, delta = torch.from_numpy(u[:, k]).unbind(1)
+            z, _, _, body = net.predict_pose(z, v, delta, body)
             out.append(z.numpy())
     return np.stack(out, 1)
 

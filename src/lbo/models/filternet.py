@@ -8,22 +8,19 @@ told alpha. What it learns:
   the window's second differences (a statistic dominated by measurement noise, which the
   smooth motion hardly touches) and the mean speed, and outputs log sigma;
 - a scale on the process noise Q (initialised at the noise preset's);
-- with ``residual > 0``, the model error of the kinematic bicycle: a small net of V, delta
-  and the process model's yaw rate of the step before corrects the yaw rate, adds a side slip
-  of the rear axle and a speed scale (a car that slips turns less than its steering says and
-  its rear axle moves sideways); zero-initialised, it starts as the kinematic bicycle.
-- with ``body="single_track"``, a single-track body in place of the kinematic bicycle: two more
-  carried states, the lateral speed v_y and the yaw rate r, move by Newton's laws under the two
-  axles' lateral forces, each a saturating curve ``p tanh(k a / p)`` of its slip angle a. What
-  it learns: both axles' cornering stiffness k and peak force p (per unit mass), where the
-  centre of gravity sits between them, the yaw inertia per unit mass, and the speed below which
-  the car rolls as the kinematic bicycle (there the slip angles are singular). It starts at a
-  generic car (equal axles, 0.5 g each, the centre of gravity mid-way), not at the truth's.
+- the process model's error, with ``residual > 0`` or ``body="single_track"``
+  (:mod:`lbo.models.motion`).
 
 With a sixth input channel, ``fix`` (``in_features=6``), steps without a position fix get a
 prediction-only step, the filter starts at the window's first fix, and the noise statistic is
 the mean square of the fixes' residuals against dead reckoning from the previous fix (the
 second differences need fixes at three consecutive steps).
+
+With a receiver's features (``in_features=15``, :data:`lbo.models.receiver_window.FEATURES`),
+each row updates with the channels it holds (:func:`lbo.models.update.masked_update`): a
+position fix with or without a heading, the course over ground where it has no heading, and
+the receiver's reported accuracies as the R of those channels in place of the noise model's;
+the noise statistic counts full fixes only, as the recursive form's does.
 
 Trained end to end through the filter on the MSE of the final estimate, over windows of
 alphas drawn from a wide range, it learns to be the EKF that alpha calls for."""
@@ -38,14 +35,9 @@ from torch import nn
 
 from lbo.core.checks import integer, number
 from lbo.core.errors import LboError
+from lbo.models.motion import ProcessModel, bicycle_step
 from lbo.models.poses import wrap_heading
-
-SUBSTEPS = 4
-"""Euler sub-steps per sampling period of the single-track body's lateral states."""
-BODIES = ("kinematic", "single_track")
-"""The process model's bodies (``model.body``)."""
-BODY_PARAMETERS = ("log_stiffness", "log_peak", "front_logit", "log_gyration", "log_v_kinematic")
-"""The single-track body's learned constants (:meth:`WindowFilter.body_parameters`)."""
+from lbo.models.update import inverse_sym3
 
 
 def check_sigmas(name: str, values: Sequence[float]) -> tuple[float, float, float]:
@@ -78,37 +70,7 @@ def frame_model(module: nn.Module, window: int, in_features: int, dt: float,
                               form="a length in metres > 0")
 
 
-def _tan(a: torch.Tensor) -> torch.Tensor:
-    """tan as sin / cos: ONNX Runtime has no float64 Tan, and the recursive form runs in
-    float64 (equal to torch.tan to rounding)."""
-    return torch.sin(a) / torch.cos(a)
-
-
-def bicycle_step(z: torch.Tensor, v: torch.Tensor, delta: torch.Tensor, dt: float,
-                 wheelbase: float) -> torch.Tensor:
-    """One step of the kinematic bicycle (:func:`lbo.sim.vehicle.step` in torch): poses
-    (B, 3) moved by speeds and steering angles (B,) over ``dt``."""
-    psi = z[:, 2]
-    return z + torch.stack([v * torch.cos(psi), v * torch.sin(psi),
-                            v * _tan(delta) / wheelbase], -1) * dt
-
-
-def _inverse_sym3(s: torch.Tensor) -> torch.Tensor:
-    """Inverse of symmetric positive-definite (B, 3, 3) matrices by cofactors.
-
-    Written out so that TorchScript and ONNX export it (ONNX has no matrix inverse).
-    """
-    a, b, c = s[:, 0, 0], s[:, 0, 1], s[:, 0, 2]
-    d, e, f = s[:, 1, 1], s[:, 1, 2], s[:, 2, 2]
-    c00, c01, c02 = d * f - e * e, c * e - b * f, b * e - c * d
-    c11, c12, c22 = a * f - c * c, b * c - a * e, a * d - b * b
-    det = a * c00 + b * c01 + c * c02
-    rows = [torch.stack([c00, c01, c02], -1), torch.stack([c01, c11, c12], -1),
-            torch.stack([c02, c12, c22], -1)]
-    return torch.stack(rows, -2) / det[:, None, None]
-
-
-class WindowFilter(nn.Module):
+class WindowFilter(ProcessModel, nn.Module):
     """Window EKF on the kinematic bicycle with a learned noise model.
 
     Reads ``"frame"`` features in physical units (:mod:`lbo.models.features`): the window's
@@ -156,8 +118,6 @@ class WindowFilter(nn.Module):
                                    nn.GELU(), nn.Linear(hidden, 3))
         nn.init.zeros_(self.noise[-1].weight)
         nn.init.zeros_(self.noise[-1].bias)
-        self.residual = integer(residual, "model.residual", 0,
-                                form="an integer >= 0 (0: the kinematic bicycle)")
         if not isinstance(drift, bool):
             raise LboError(f"model.drift: expected true or false, got {drift!r}")
         self.drift = drift
@@ -169,141 +129,7 @@ class WindowFilter(nn.Module):
                 self.register_parameter(name, nn.Parameter(torch.tensor(value)))
             else:
                 self.register_buffer(name, torch.tensor(value), persistent=False)
-        if body not in BODIES:
-            raise LboError(f"model.body: expected one of {', '.join(BODIES)}, got {body!r}")
-        if body == "single_track" and residual:
-            raise LboError(f"model.residual: expected 0 with model.body=single_track (the "
-                           f"single-track body is the learned process model), got {residual!r}")
-        self.single_track = body == "single_track"
-        self.body_lr = number(body_lr, "model.body_lr", low=0.0, low_open=True,
-                              form="a multiple of the learning rate > 0")
-        self.substeps = SUBSTEPS  # an attribute: TorchScript reads no module-level int
-        # (front, rear) cornering stiffness and peak force per unit mass (m/s^2 per rad, m/s^2),
-        # the front axle's share of the wheelbase behind the centre of gravity (l_f / L, as a
-        # logit), the yaw inertia per unit mass in units of l_f l_r, and the speed (m/s) below
-        # which the body is the kinematic bicycle; unsaved buffers for the kinematic body
-        for name, value in (("log_stiffness", torch.full((2,), math.log(50.0))),
-                            ("log_peak", torch.full((2,), math.log(0.5 * 9.81))),
-                            ("front_logit", torch.tensor(0.0)),
-                            ("log_gyration", torch.tensor(0.0)),
-                            ("log_v_kinematic", torch.tensor(math.log(3.0)))):
-            if self.single_track:
-                self.register_parameter(name, nn.Parameter(value))
-            else:
-                self.register_buffer(name, value, persistent=False)
-        self.process: nn.Module = nn.Identity()  # scripted whether or not it is used
-        if residual:
-            # in: V, delta, the kinematic and the previous yaw rate, each scaled to about 1;
-            # out: yaw-rate correction (rad/s), rear side slip (rad), speed scale (_motion)
-            self.process = nn.Sequential(nn.Linear(4, residual), nn.GELU(),
-                                         nn.Linear(residual, residual), nn.GELU(),
-                                         nn.Linear(residual, 3))
-            nn.init.zeros_(self.process[-1].weight)
-            nn.init.zeros_(self.process[-1].bias)
-
-    def _axles(self) -> tuple[torch.Tensor, torch.Tensor]:
-        """The learned distances (l_f, l_r) from the centre of gravity to the front and rear
-        axles (m); they sum to the wheelbase."""
-        l_f = self.wheelbase * torch.sigmoid(self.front_logit)
-        return l_f, self.wheelbase - l_f
-
-    def _body_constants(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor,
-                                       torch.Tensor, torch.Tensor]:
-        """The single-track body's learned constants in physical units: cornering stiffness
-        and peak force per unit mass, each (2,) for (front, rear), l_f, l_r, the yaw inertia
-        per unit mass and the speed below which it is the kinematic bicycle."""
-        l_f, l_r = self._axles()
-        return (torch.exp(self.log_stiffness), torch.exp(self.log_peak), l_f, l_r,
-                torch.exp(self.log_gyration) * l_f * l_r, torch.exp(self.log_v_kinematic))
-
-    def body_start(self, v: torch.Tensor, delta: torch.Tensor) -> torch.Tensor:
-        """(B, 2) carried body state ``[v_y, r]`` at the first step, inputs (B,): the kinematic
-        bicycle's (no slip at the rear axle: v_y = l_r r)."""
-        r = v * _tan(delta) / self.wheelbase
-        v_y = self._axles()[1] * r if self.single_track else torch.zeros_like(r)
-        return torch.stack([v_y, r], -1)
-
-    def param_groups(self) -> list[dict]:
-        """The optimiser's parameter groups: the single-track body's constants with
-        ``lr_scale`` = ``body_lr``, and every other parameter with 1 (the optimiser's rate)."""
-        body = [p for name, p in self.named_parameters() if name in BODY_PARAMETERS]
-        rest = [p for name, p in self.named_parameters() if name not in BODY_PARAMETERS]
-        return [g for g in ({"params": rest, "lr_scale": 1.0},
-                            {"params": body, "lr_scale": self.body_lr}) if g["params"]]
-
-    def body_parameters(self) -> dict[str, float]:
-        """The single-track body's learned parameters in physical units: cornering stiffness
-        per unit mass ``k_f, k_r`` (m/s^2 per rad, i.e. C / m), peak lateral force per unit
-        mass ``peak_f, peak_r`` (m/s^2, i.e. mu F_z / m), ``l_f, l_r`` (m), the yaw inertia per
-        unit mass ``inertia`` (m^2, I_z / m) and ``v_kinematic`` (m/s)."""
-        k, p, l_f, l_r, inertia, v0 = self._body_constants()
-        values = {"k_f": k[0], "k_r": k[1], "peak_f": p[0], "peak_r": p[1], "l_f": l_f,
-                  "l_r": l_r, "inertia": inertia, "v_kinematic": v0}
-        return {name: float(v.detach()) for name, v in values.items()}
-
-    @staticmethod
-    def _lateral_rates(body: torch.Tensor, vx: torch.Tensor, delta: torch.Tensor,
-                       k: torch.Tensor, p: torch.Tensor, l_f: torch.Tensor, l_r: torch.Tensor,
-                       inertia: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """(dv_y/dt, dr/dt), each (B,), of the single-track body (B, 2) at speed vx (B,) with
-        the constants of :meth:`_body_constants`."""
-        v_y, r = body[:, 0], body[:, 1]
-        a_f = delta - (v_y + l_f * r) / vx
-        a_r = -(v_y - l_r * r) / vx
-        f_f = p[0] * torch.tanh(k[0] * a_f / p[0]) * torch.cos(delta)
-        f_r = p[1] * torch.tanh(k[1] * a_r / p[1])
-        return f_f + f_r - vx * r, (l_f * f_f - l_r * f_r) / inertia
-
-    def _motion(self, v: torch.Tensor, delta: torch.Tensor, body: torch.Tensor
-                ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-        """The process model over one step, for inputs (B,) and the carried body state
-        ``[v_y, r]`` (B, 2): the rear axle's velocity along and across the heading, the heading
-        rate, each (B,), and the next body state (B, 2).
-
-        The kinematic bicycle: ``(v, 0, v tan(delta) / L)``, corrected by the learned residual
-        (which reads the yaw rate of the step before, carried as ``r``). The single-track body:
-        :data:`SUBSTEPS` Euler sub-steps of its lateral states, whose trapezoid-rule mean over
-        the step moves the pose, blended (smoothstep) into the kinematic bicycle below the
-        learned speed."""
-        r_kin = v * _tan(delta) / self.wheelbase
-        if self.single_track:
-            k, p, l_f, l_r, inertia, v0 = self._body_constants()
-            vx = torch.maximum(v, v0)
-            n = self.substeps
-            h = self.dt / n
-            mean = 0.5 * body / n  # the trapezoid rule's mean of [v_y, r] over the step
-            for i in range(n):
-                dv_y, dr = self._lateral_rates(body, vx, delta, k, p, l_f, l_r, inertia)
-                body = body + h * torch.stack([dv_y, dr], -1)
-                mean = mean + (0.5 if i == n - 1 else 1.0) * body / n
-            s = torch.clamp(v / v0 - 1, 0.0, 1.0)
-            w = s * s * (3 - 2 * s)
-            lateral = w * (mean[:, 0] - l_r * mean[:, 1])
-            rate = w * mean[:, 1] + (1 - w) * r_kin
-            return v, lateral, rate, body
-        if self.residual == 0:
-            return v, torch.zeros_like(v), r_kin, torch.stack([body[:, 0], r_kin], -1)
-        x = torch.stack([0.1 * v, 10.0 * delta, 2.0 * r_kin, 2.0 * body[:, 1]], -1)
-        d = self.process(x)
-        speed, beta, rate = v * (1 + 0.05 * d[:, 2]), 0.05 * d[:, 1], r_kin + 0.2 * d[:, 0]
-        return (speed * torch.cos(beta), speed * torch.sin(beta), rate,
-                torch.stack([body[:, 0], rate], -1))
-
-    def _predict_pose(self, z: torch.Tensor, step: torch.Tensor, body: torch.Tensor
-                      ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-        """The process model's prediction of poses z (B, 3) over one step of features
-        ``step`` (B, C) (inputs in channels 3 and 4), body (B, 2) the carried body state
-        (:meth:`_motion`): the new pose, the Jacobian's two off-diagonal entries d x / d psi
-        and d y / d psi, each (B,), and the next body state."""
-        along, across, rate, body = self._motion(step[:, 3], step[:, 4], body)
-        # the kinematic bicycle moves along its heading at the step's start, as the classical
-        # filters' model does; the single-track body along its mid-step heading (second order)
-        heading = z[:, 2] + 0.5 * self.dt * rate if self.single_track else z[:, 2]
-        c, s = torch.cos(heading), torch.sin(heading)
-        dx, dy = along * c - across * s, along * s + across * c
-        z = z + torch.stack([dx, dy, rate], -1) * self.dt
-        # F = I + dt * [[0, 0, -dy], [0, 0, dx], [0, 0, 0]]
-        return z, -dy * self.dt, dx * self.dt, body
+        self.build_process(residual, body, body_lr)
 
     def _drift_filter(self, x: torch.Tensor, R: torch.Tensor, Q: torch.Tensor) -> torch.Tensor:
         """The window filter with two more states: a Gauss-Markov GNSS drift b on x and y,
@@ -329,7 +155,7 @@ class WindowFilter(nn.Module):
         zero = torch.zeros_like(x[:, 0, 0])
         one = torch.ones_like(zero)
         for k in range(1, x.shape[1]):
-            p, f02, f12, body = self._predict_pose(z[:, :3], x[:, k - 1], body)
+            p, f02, f12, body = self.predict_pose(z[:, :3], x[:, k - 1, 3], x[:, k - 1, 4], body)
             z = torch.cat([p, phi * z[:, 3:]], -1)
             F = torch.stack([torch.stack([one, zero, f02, zero, zero], -1),
                              torch.stack([zero, one, f12, zero, zero], -1),
@@ -340,7 +166,7 @@ class WindowFilter(nn.Module):
             y = x[:, k, :3] - (H @ z.unsqueeze(-1)).squeeze(-1)
             y = wrap_heading(y)
             PH = P @ H.T  # (B, 5, 3)
-            K = PH @ _inverse_sym3(H @ PH + R)
+            K = PH @ inverse_sym3(H @ PH + R)
             z_new = z + (K @ y.unsqueeze(-1)).squeeze(-1)
             P_new = (e - K @ H) @ P
             P_new = 0.5 * (P_new + P_new.transpose(1, 2))
@@ -425,7 +251,7 @@ class WindowFilter(nn.Module):
         started = x[:, 0, -1] > 0.5  # read only with the fix channel
         body = self.body_start(x[:, 0, 3], x[:, 0, 4])
         for k in range(1, n):
-            z, f02, f12, body = self._predict_pose(z, x[:, k - 1], body)
+            z, f02, f12, body = self.predict_pose(z, x[:, k - 1, 3], x[:, k - 1, 4], body)
             zero = torch.zeros_like(f02)
             one = torch.ones_like(f02)
             F = torch.stack([torch.stack([one, zero, f02], -1),
@@ -434,7 +260,7 @@ class WindowFilter(nn.Module):
             P = F @ P @ F.transpose(1, 2) + Q
             y = x[:, k, :3] - z
             y = wrap_heading(y)
-            K = P @ _inverse_sym3(P + R)
+            K = P @ inverse_sym3(P + R)
             z_new = z + (K @ y.unsqueeze(-1)).squeeze(-1)
             P_new = (eye - K) @ P
             P_new = 0.5 * (P_new + P_new.transpose(1, 2))

@@ -47,7 +47,8 @@ from torch import nn
 from torch.nn import functional as F
 
 from lbo.core.checks import integer, number
-from lbo.models.filternet import bicycle_step, check_sigmas, frame_model
+from lbo.models.filternet import check_sigmas, frame_model
+from lbo.models.motion import bicycle_step
 from lbo.models.poses import wrap_heading
 
 N_STATE = 3

@@ -47,8 +47,10 @@ import torch
 from torch import nn
 
 from lbo.filters.kalman import coast_covariance
-from lbo.models.filternet import WindowFilter, _inverse_sym3, bicycle_step
+from lbo.models.filternet import WindowFilter
+from lbo.models.motion import bicycle_step
 from lbo.models.poses import wrap_heading
+from lbo.models.update import masked_update, step_covariance
 
 STATE_NAMES = ("z", "P", "body", "u_prev", "last", "dead_reckoning", "gap", "heading",
                "ring", "sums", "speeds", "speed_sum", "k", "started")
@@ -106,7 +108,7 @@ class RecursiveFilter(nn.Module):
         :data:`STATE_NAMES`:
 
         z (B, n), P (B, n, n), body (B, 2) the process model's carried ``[v_y, r]``
-        (:meth:`WindowFilter._motion`), u_prev (B, 2) the last
+        (:meth:`lbo.models.motion.ProcessModel.motion`), u_prev (B, 2) the last
         input, last (B, 2, 3) the last two measurements, dead_reckoning (B, 3) the pose carried
         from the last fix, gap (B,) steps since it, heading (B,) the last fix's measured
         heading, ring (B, S, 6) the statistic's last S entries (:data:`ENTRY`: the squares and
@@ -160,17 +162,9 @@ class RecursiveFilter(nn.Module):
         heading's the course's variance where ``measured`` (B,) is False (no ``psi_m``)."""
         told = row[:, 3:6] == row[:, 3:6]  # not NaN
         sig = torch.where(told, row[:, 3:6], torch.zeros_like(row[:, 3:6]))
-        diag = torch.stack([R[:, 0, 0], R[:, 1, 1], R[:, 2, 2]], 1)  # ONNX: no diagonal
-        var = torch.where(told, sig * sig, diag)
         # a heading the row does not hold gets a variance of 1: finite, and masked out
         course = torch.where(row[:, 7] == row[:, 7], row[:, 7], torch.ones_like(row[:, 7]))
-        var = torch.cat([var[:, :2], torch.where(measured, var[:, 2], course * course)[:, None]],
-                        1)
-        xy = torch.where(told[:, 0] | told[:, 1], torch.zeros_like(R[:, 0, 1]), R[:, 0, 1])
-        zero = torch.zeros_like(xy)
-        return torch.stack([torch.stack([var[:, 0], xy, zero], -1),
-                            torch.stack([xy, var[:, 1], zero], -1),
-                            torch.stack([zero, zero, var[:, 2]], -1)], -2)
+        return step_covariance(R, sig, told, course * course, measured)
 
     def _process_cov(self, heading: torch.Tensor, eye: torch.Tensor) -> torch.Tensor:
         """(B, n, n) the learned Q at the latest fix's headings (B,): its x and y are along
@@ -213,7 +207,7 @@ class RecursiveFilter(nn.Module):
             raise ValueError("coast takes 1 to coast_limit rows of one kinematic filter")
         before = torch.cat([u_prev, u[:-1]])  # row j predicts with the input of row j - 1
         v, delta = before[:, 0], before[:, 1]
-        along, across, rate, bodies = fo._motion(v, delta, body.expand(steps, 2))
+        along, across, rate, bodies = fo.motion(v, delta, body.expand(steps, 2))
         turn = rate * fo.dt
 
         def roll(start: torch.Tensor) -> tuple[torch.Tensor, ...]:
@@ -309,8 +303,7 @@ class RecursiveFilter(nn.Module):
         R = self._step_cov(R_model, row, measured)
 
         # -- the filter: predict with u_{k-1}, update with m_k
-        pose, f02, f12, body_new = fo._predict_pose(z[:, :3], torch.cat(
-            [torch.zeros_like(m), u_prev], 1), body)
+        pose, f02, f12, body_new = fo.predict_pose(z[:, :3], u_prev[:, 0], u_prev[:, 1], body)
         eye = torch.eye(self.n, dtype=m.dtype, device=m.device)
         F = eye.expand(len(m), self.n, self.n).clone()
         F[:, 0, 2], F[:, 1, 2] = f02, f12
@@ -328,19 +321,8 @@ class RecursiveFilter(nn.Module):
         else:
             z_pred = pose
         P_pred = F @ P @ F.transpose(1, 2) + Qn
-        y = meas - (H @ z_pred.unsqueeze(-1)).squeeze(-1)
-        # the channels the row holds: the others' innovations, gains and covariances zeroed
-        # and a 1 on S's diagonal, so that S stays invertible and K's columns for them are 0
-        mask = held.to(m.dtype)
-        y = wrap_heading(y) * mask
-        PH = P_pred @ H.T
-        S = (H @ PH + R) * (mask[:, :, None] * mask[:, None, :]) \
-            + (1 - mask)[:, :, None] * eye[:3, :3]  # diag(1 - mask): ONNX has no diag_embed
-        K = (PH * mask[:, None, :]) @ _inverse_sym3(S)
-        z_upd = z_pred + (K @ y.unsqueeze(-1)).squeeze(-1)
-        I_KH = eye - K @ H  # Joseph form: over hours of steps, (I - K H) P loses symmetry
-        P_upd = I_KH @ P_pred @ I_KH.transpose(1, 2) + K @ R @ K.transpose(1, 2)
-        P_upd = 0.5 * (P_upd + P_upd.transpose(1, 2))
+        y = wrap_heading(meas - (H @ z_pred.unsqueeze(-1)).squeeze(-1))
+        z_upd, P_upd = masked_update(z_pred, P_pred, y, held.to(m.dtype), R, H)
 
         # -- where the filter starts (its first fix), where it has no fix, where it goes on
         # the noise model's R is alpha = 1's at the start (its statistic holds nothing yet);

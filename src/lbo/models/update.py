@@ -1,0 +1,79 @@
+"""The learned filters' measurement update, in torch: one update for the window filter's
+window form and its recursive form (:mod:`lbo.models.recursive`), whatever a row holds.
+
+A row holds any subset of the three measured channels ``[x, y, heading]`` (a position fix
+with or without a heading; the course over ground standing in for the heading where the row
+has no ``psi_m``). :func:`masked_update` is the Kalman update with the held channels alone,
+written with fixed shapes (a mask, not a gather) so that it batches over rows that hold
+different subsets and exports to TorchScript and ONNX. :func:`step_covariance` is the R of
+such a row: the filter's own R, with the receiver's reported accuracies in place of its
+variances where the receiver reports one.
+"""
+
+from __future__ import annotations
+
+import torch
+
+
+def inverse_sym3(s: torch.Tensor) -> torch.Tensor:
+    """Inverse of symmetric positive-definite (B, 3, 3) matrices by cofactors.
+
+    Written out so that TorchScript and ONNX export it (ONNX has no matrix inverse).
+    """
+    a, b, c = s[:, 0, 0], s[:, 0, 1], s[:, 0, 2]
+    d, e, f = s[:, 1, 1], s[:, 1, 2], s[:, 2, 2]
+    c00, c01, c02 = d * f - e * e, c * e - b * f, b * e - c * d
+    c11, c12, c22 = a * f - c * c, b * c - a * e, a * d - b * b
+    det = a * c00 + b * c01 + c * c02
+    rows = [torch.stack([c00, c01, c02], -1), torch.stack([c01, c11, c12], -1),
+            torch.stack([c02, c12, c22], -1)]
+    return torch.stack(rows, -2) / det[:, None, None]
+
+
+def masked_update(z: torch.Tensor, P: torch.Tensor, y: torch.Tensor, mask: torch.Tensor,
+                  R: torch.Tensor, H: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The Kalman update of states z (B, n) with covariances P (B, n, n) by the innovations
+    y (B, 3) (headings wrapped) of a measurement ``H z`` (H (3, n)) with covariance R
+    (B, 3, 3), using only the channels where mask (B, 3) is 1.
+
+    The other channels' innovations and gains are zeroed and S gets a 1 on their diagonal, so
+    that S stays invertible and the update equals the one with the held channels alone. The
+    covariance is updated in Joseph form, ``(I - K H) P (I - K H)^T + K R K^T``: over hours of
+    steps, ``(I - K H) P`` loses its symmetry. Returns the updated z (B, n) and P (B, n, n)."""
+    eye = torch.eye(P.shape[-1], dtype=P.dtype, device=P.device)
+    y = y * mask
+    PH = P @ H.T
+    S = (H @ PH + R) * (mask[:, :, None] * mask[:, None, :]) \
+        + (1 - mask)[:, :, None] * eye[:3, :3]  # diag(1 - mask): ONNX has no diag_embed
+    K = (PH * mask[:, None, :]) @ inverse_sym3(S)
+    z = z + (K @ y.unsqueeze(-1)).squeeze(-1)
+    I_KH = eye - K @ H
+    P = I_KH @ P @ I_KH.transpose(1, 2) + K @ R @ K.transpose(1, 2)
+    return z, 0.5 * (P + P.transpose(1, 2))
+
+
+def step_covariance(R: torch.Tensor, sigma: torch.Tensor, told: torch.Tensor,
+                    course_var: torch.Tensor, measured: torch.Tensor) -> torch.Tensor:
+    """A row's R (..., 3, 3) of ``[x, y, heading]`` (x and y in world axes): the filter's R
+    (..., 3, 3), with the variance of each channel the receiver reports an accuracy for
+    (``told`` (..., 3) of ``[sx_m, sy_m, spsi_m]``, the 1-sigmas ``sigma`` (..., 3), any value
+    where not told) replaced by its square and that channel's correlations dropped, and the
+    heading's by ``course_var`` (...,) where ``measured`` (...,) is False (the course over
+    ground stands in for a heading the row does not hold)."""
+    diag = torch.stack([R[..., 0, 0], R[..., 1, 1], R[..., 2, 2]], -1)  # ONNX: no diagonal
+    var = torch.where(told, sigma * sigma, diag)
+    heading = torch.where(measured, var[..., 2], course_var)
+    xy = torch.where(told[..., 0] | told[..., 1], torch.zeros_like(R[..., 0, 1]), R[..., 0, 1])
+    zero = torch.zeros_like(xy)
+    return torch.stack([torch.stack([var[..., 0], xy, zero], -1),
+                        torch.stack([xy, var[..., 1], zero], -1),
+                        torch.stack([zero, zero, heading], -1)], -2)
+
+
+def turn_xy(R: torch.Tensor, c: torch.Tensor, s: torch.Tensor) -> torch.Tensor:
+    """Covariances R (..., 3, 3) of ``[x, y, heading]`` with their x and y turned by the angle
+    of cosine c and sine s (...,): ``T R T^T``, T the rotation of the plane."""
+    zero, one = torch.zeros_like(c), torch.ones_like(c)
+    T = torch.stack([torch.stack([c, -s, zero], -1), torch.stack([s, c, zero], -1),
+                     torch.stack([zero, zero, one], -1)], -2)
+    return T @ R @ T.transpose(-1, -2)
