@@ -184,9 +184,12 @@ NEEDS_FIX_RATES = Refusal(r"fix_rates must be the rates \(Hz\) of the receiver's
                           "a net that reads a receiver (receiver=...) is trained on receivers "
                           "drawn at the fix rates of its windows, which only experiment=robust, "
                           "logs and receiver set")
-RECEIVER_MODEL = Refusal(r"receiver: model '(filternet|kalmannet)' does not read a receiver's "
-                         r"windows", "the window EKF and KalmanNet read a paper window (the "
-                         "robust observer reads a receiver in its recursive form)")
+RECEIVER_MODEL = Refusal(r"receiver: model 'kalmannet' does not read a receiver's windows",
+                         "KalmanNet reads a paper window (the CNN, the LSTM and the window "
+                         "filter read a receiver's)")
+RECEIVER_DRIFT = Refusal(r"model.drift: expected false for a window filter that reads a "
+                         r"receiver", "experiment=logs sets model.drift=true; the window "
+                         "filter's drift states read a paper window only")
 
 RELATIVE_FEATURES = {None, "smoke"}
 """Experiments that leave ``features=relative`` (refused for the models in FRAME_MODELS)."""
@@ -209,8 +212,10 @@ def train_refusal(experiment: str | None, choice: dict[str, str | None]) -> Refu
     if choice.get("receiver") is not None:
         if experiment not in FIX_RATE_EXPERIMENTS:
             return NEEDS_FIX_RATES
-        if choice["model"] in FRAME_MODELS:
+        if choice["model"] == "kalmannet":
             return RECEIVER_MODEL
+        if choice["model"] == "filternet" and experiment == "logs":
+            return RECEIVER_DRIFT
     if choice["model"] in FRAME_MODELS and experiment in RELATIVE_FEATURES:
         return NEEDS_FRAME
     if experiment in FILTERNET_EXPERIMENTS and choice["model"] != "filternet":

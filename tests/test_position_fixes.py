@@ -252,7 +252,8 @@ def test_a_learned_observer_refuses_a_position_only_log_in_one_line():
     line = (r"row 12: a position fix without a heading \(psi_m empty\), but cnn-N20 takes full "
             r"fixes only \(x_m, y_m and psi_m\); the classical observers \(ekf, oracle, "
             r"adaptive, ukf\) take it, the robust observer \(filternet\) in its recursive "
-            r"form, and a CNN or LSTM trained on a receiver \(experiment=receiver\)$")
+            r"form, and a CNN, LSTM or window filter trained on a receiver "
+            r"\(experiment=receiver\)$")
     with pytest.raises(LboError, match="^input log.csv: " + line):
         obs.run(m, u, source="input log.csv")
     with pytest.raises(LboError, match="^step 0: " + line[len("row 12: "):]):

@@ -191,8 +191,9 @@ def test_a_learned_observer_refuses_a_receivers_channels_in_one_line():
     with pytest.raises(LboError, match=r"^receiver: cnn-N20 does not take a receiver's "
                                        r"channels; the classical observers \(ekf, oracle, "
                                        r"adaptive, ukf\) do, the robust observer "
-                                       r"\(filternet\) in its recursive form, and a CNN or "
-                                       r"LSTM trained on a receiver \(experiment=receiver\)$"):
+                                       r"\(filternet\) in its recursive form, and a CNN, "
+                                       r"LSTM or window filter trained on a receiver "
+                                       r"\(experiment=receiver\)$"):
         obs.run(m, np.tile([10.0, 0.0], (30, 1)), receiver=r)
 
 

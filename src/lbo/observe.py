@@ -90,7 +90,8 @@ def observe(cfg: DictConfig) -> dict[str, Any]:
     from lbo.filters.gyro import GyroNoise
     from lbo.serve.engines import engine_device
     from lbo.serve.observer import EnvelopeWarning, Observer
-    from lbo.serve.runners import has_recursive_form, no_receiver
+    from lbo.serve.refusals import no_receiver
+    from lbo.serve.runners import has_recursive_form
     from lbo.sim.noise import Noise
     from lbo.sim.vehicle import Vehicle
 

@@ -37,7 +37,8 @@ from lbo.core.checks import integer, number
 from lbo.core.errors import LboError
 from lbo.models.motion import ProcessModel, bicycle_step
 from lbo.models.poses import wrap_heading
-from lbo.models.update import inverse_sym3
+from lbo.models.receiver_window import FEATURES
+from lbo.models.update import inverse_sym3, masked_update, step_covariance, turn_xy
 
 
 def check_sigmas(name: str, values: Sequence[float]) -> tuple[float, float, float]:
@@ -52,19 +53,23 @@ def check_sigmas(name: str, values: Sequence[float]) -> tuple[float, float, floa
 
 
 def frame_model(module: nn.Module, window: int, in_features: int, dt: float,
-                wheelbase: float) -> None:
+                wheelbase: float, receiver: bool = False) -> None:
     """Set what a model over the kinematic bicycle in the latest fix's frame holds (the window
     filter, KalmanNet), each checked in one line: ``physical`` (it reads and writes metres and
     radians, see WindowNet), ``feature_modes``, ``window`` (>= 4), ``in_features`` (5, or 6
-    with the fix channel) and ``fixes``, ``dt`` (s) and ``wheelbase`` (m)."""
+    with the fix channel, or with ``receiver`` (a model that can read one) 15, a receiver's
+    :data:`lbo.models.receiver_window.FEATURES`), ``fixes`` and ``receiver`` (whether it
+    reads them), ``dt`` (s) and ``wheelbase`` (m)."""
     module.physical = True
     module.feature_modes = ("frame",)
     module.window = integer(window, "window", 4)
     module.in_features = integer(in_features, "in_features", 5)
-    if module.in_features > 6:
-        raise LboError(f"model.in_features: expected 5, or 6 with the fix channel, "
+    module.receiver = receiver and module.in_features == len(FEATURES)
+    if module.in_features > 6 and not module.receiver:
+        raise LboError(f"model.in_features: expected 5, or 6 with the fix channel"
+                       f"{f', or {len(FEATURES)} (a receiver)' if receiver else ''}, "
                        f"got {in_features!r}")
-    module.fixes = module.in_features == 6
+    module.fixes = module.in_features == 6 or module.receiver
     module.dt = number(dt, "model.dt", low=0.0, low_open=True, form="a period in seconds > 0")
     module.wheelbase = number(wheelbase, "model.wheelbase", low=0.0, low_open=True,
                               form="a length in metres > 0")
@@ -85,7 +90,8 @@ class WindowFilter(ProcessModel, nn.Module):
     process_sigma : (3,) sigma of the process noise per step (m, m, rad), the training preset's.
     measurement_sigma : (3,) measurement sigmas at alpha=1, the scale of the noise model.
     hidden : width of the noise model's two hidden layers.
-    in_features : channels per step: 5, or 6 with the ``fix`` channel (missing fixes).
+    in_features : channels per step: 5, or 6 with the ``fix`` channel (missing fixes), or 15,
+        a receiver's features (:data:`lbo.models.receiver_window.FEATURES`).
     residual : width of the process model's learned correction (two hidden layers); 0 keeps
         the kinematic bicycle.
     drift : also estimate a Gauss-Markov GNSS drift on x and y (two more filter states);
@@ -104,7 +110,7 @@ class WindowFilter(ProcessModel, nn.Module):
                  hidden: int = 32, in_features: int = 5, residual: int = 0,
                  drift: bool = False, body: str = "kinematic", body_lr: float = 1.0) -> None:
         super().__init__()
-        frame_model(self, window, in_features, dt, wheelbase)
+        frame_model(self, window, in_features, dt, wheelbase, receiver=True)
         hidden = integer(hidden, "hidden", 1)
         q = torch.tensor(check_sigmas("process_sigma", process_sigma))
         r = torch.tensor(check_sigmas("measurement_sigma", measurement_sigma))
@@ -120,7 +126,13 @@ class WindowFilter(ProcessModel, nn.Module):
         nn.init.zeros_(self.noise[-1].bias)
         if not isinstance(drift, bool):
             raise LboError(f"model.drift: expected true or false, got {drift!r}")
+        if drift and self.receiver:
+            raise LboError("model.drift: expected false for a window filter that reads a "
+                           f"receiver (in_features={len(FEATURES)}), got True")
         self.drift = drift
+        # the receiver's reported accuracies are in world axes: forward takes the anchor's
+        # heading to turn them into the window's frame (lbo.models.net.WindowNet passes it)
+        self.anchor_heading = self.receiver
         # start at a 10 s correlation time and a drift of 0.3 of the white sigma; without
         # drift, the same values ride along unsaved, so TorchScript compiles either filter
         for name, value in (("log_drift_tau", math.log(10.0 / dt)),
@@ -236,8 +248,67 @@ class WindowFilter(ProcessModel, nn.Module):
                                                                    1))
         return torch.exp(log_sigma).clamp_min(1e-6)
 
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        """(B, N, 5|6) features -> (B, 3) state in the anchor's (current measurement's) frame."""
+    def _receiver_filter(self, x: torch.Tensor, heading: torch.Tensor | None) -> torch.Tensor:
+        """The window filter over a receiver's features x (B, N, 15) in the frame of their
+        anchor, whose world heading is ``heading`` (B,) (None: 0, the world's axes) -> (B, 3)
+        state in that frame; the anchor itself (0) where the window holds no row with a
+        position and a heading to start at.
+
+        Each row updates with the channels it holds (:func:`masked_update`): the position,
+        the heading ``psi_m``, or the course over ground where it has none. Their R is the
+        noise model's (read in the anchor's frame, on the full fixes alone) with the reported
+        accuracies in its place (in world axes, :func:`step_covariance`); the filter starts
+        at the first row that holds a position and a heading, with that row's R."""
+        b, n = x.shape[0], x.shape[1]
+        position, measured = x[:, :, 8] > 0.5, x[:, :, 9] > 0.5
+        course = (x[:, :, 10] > 0.5) & ~measured
+        held = torch.stack([position, position, measured | course], -1)  # (B, N, 3)
+        meas = torch.stack([x[:, :, 0], x[:, :, 1],
+                            torch.where(measured, x[:, :, 2], x[:, :, 3])], -1)
+        v, delta = x[:, :, 11], x[:, :, 12]
+        full = (position & measured).to(x.dtype)[..., None]
+        r = self.measurement_sigma(torch.cat([x[:, :, :3], v[..., None], delta[..., None],
+                                              full], -1)) ** 2  # (B, 3), the anchor's frame
+        eye = torch.eye(3, dtype=x.dtype, device=x.device)
+        if heading is None:
+            heading = torch.zeros_like(r[:, 0])
+        c, s = torch.cos(heading)[:, None], torch.sin(heading)[:, None]
+        world = turn_xy((r.unsqueeze(-1) * eye).unsqueeze(1).expand(b, n, 3, 3), c, s)
+        sigma = x[:, :, 4:7]
+        told = torch.stack([sigma[..., 0] > 0, sigma[..., 1] > 0, (sigma[..., 2] > 0) & measured],
+                           -1)
+        course_var = torch.where(x[:, :, 7] > 0, x[:, :, 7] ** 2, world[..., 2, 2])
+        R = turn_xy(step_covariance(world, sigma, told, course_var, measured), c, -s)
+        Q = torch.exp(2 * (self.log_q0 + self.log_q_scale)) * eye
+        start = position & held[..., 2]  # rows the filter can start at
+        z = torch.where(start[:, 0, None], meas[:, 0], torch.zeros_like(meas[:, 0]))
+        P = R[:, 0]
+        started = start[:, 0]
+        body = self.body_start(v[:, 0], delta[:, 0])
+        for k in range(1, n):
+            zp, f02, f12, body = self.predict_pose(z, v[:, k - 1], delta[:, k - 1], body)
+            zero, one = torch.zeros_like(f02), torch.ones_like(f02)
+            F = torch.stack([torch.stack([one, zero, f02], -1),
+                             torch.stack([zero, one, f12], -1),
+                             torch.stack([zero, zero, one], -1)], -2)
+            Pp = F @ P @ F.transpose(1, 2) + Q
+            zu, Pu = masked_update(zp, Pp, wrap_heading(meas[:, k] - zp),
+                                   held[:, k].to(x.dtype), R[:, k], eye)
+            first = start[:, k] & ~started
+            update = (held[:, k].any(-1) & started)[:, None]
+            z = torch.where(first[:, None], meas[:, k], torch.where(update, zu, zp))
+            P = torch.where(first[:, None, None], R[:, k],
+                            torch.where(update[..., None], Pu, Pp))
+            body = torch.where(first[:, None], self.body_start(v[:, k], delta[:, k]), body)
+            started = started | first
+        return torch.where(started[:, None], wrap_heading(z), torch.zeros_like(z))
+
+    def forward(self, x: torch.Tensor, heading: torch.Tensor | None = None) -> torch.Tensor:
+        """(B, N, 5|6|15) features -> (B, 3) state in the anchor's (current measurement's)
+        frame. ``heading`` (B,): the anchor's heading in world axes, read with a receiver's
+        features only (:meth:`_receiver_filter`)."""
+        if self.receiver:
+            return self._receiver_filter(x, heading)
         n = x.shape[1]
         r = self.measurement_sigma(x) ** 2  # (B, 3)
         q = torch.exp(2 * (self.log_q0 + self.log_q_scale))  # (3,)

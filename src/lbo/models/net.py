@@ -91,12 +91,13 @@ class WindowNet(nn.Module):
         except LboError as e:
             if self.receiver and str(e).startswith("model.in_features"):
                 raise LboError(f"receiver: model {model!r} does not read a receiver's windows "
-                               f"({e}); the CNN and the LSTM do, and the robust observer "
-                               "(filternet) reads a receiver in its recursive form") from None
+                               f"({e}); the CNN, the LSTM and the window filter (filternet) "
+                               "do") from None
             raise
         # a model with ``physical = True`` reads features and writes targets in metres and
         # radians; the statistics below then only scale its loss
         self.physical = bool(getattr(self.net, "physical", False))
+        self.anchor_heading = self.physical and bool(getattr(self.net, "anchor_heading", False))
         needs = getattr(self.net, "feature_modes", None)
         if needs is not None and self.features not in needs:
             raise LboError(f"features: model {model!r} needs features in {list(needs)}, "
@@ -166,9 +167,13 @@ class WindowNet(nn.Module):
                      ) -> torch.Tensor:
         """Network output in target units (relative or absolute state). (B, N, 5) -> (B, 3);
         ``anchor`` as :meth:`inputs` takes it."""
+        if anchor is None:
+            anchor = self.anchor(win)
         x = self.inputs(win, anchor)
         net_dtype = next(self.net.parameters()).dtype
         if self.physical:  # the model works in metres and radians itself
+            if self.anchor_heading:  # it turns world-axes accuracies into the anchor's frame
+                return self.net(x.to(net_dtype), anchor[..., 2].to(net_dtype)).to(win.dtype)
             return self.net(x.to(net_dtype)).to(win.dtype)
         out = self.net(((x - self.in_mean) / self.in_std).to(net_dtype)).to(win.dtype)
         return out * self.out_std + self.out_mean

@@ -33,6 +33,7 @@ from lbo.filters import classical
 from lbo.filters.gyro import GyroNoise
 from lbo.models.checkpoint import read_checkpoint, stored_envelope, trained_conditions
 from lbo.models.envelope import EnvelopeCheck, check_mode
+from lbo.serve.refusals import no_fix, no_heading, no_receiver
 from lbo.serve.runners import (
     FORMS,
     ClassicalRunner,
@@ -42,9 +43,6 @@ from lbo.serve.runners import (
     bicycle_rows,
     check_form,
     has_recursive_form,
-    no_fix,
-    no_heading,
-    no_receiver,
 )
 from lbo.sim.columns import RECEIVER
 from lbo.sim.logcheck import (

@@ -28,7 +28,7 @@ from lbo.filters import classical, measure
 from lbo.filters.gyro import GyroNoise
 from lbo.models.features import window_view
 from lbo.serve.engines import make_predictor, make_recursive_step
-from lbo.sim.columns import RECEIVER, WINDOW
+from lbo.sim.columns import RECEIVER
 from lbo.sim.logcheck import check_receiver
 from lbo.sim.noise import Noise
 from lbo.sim.vehicle import Vehicle
@@ -122,21 +122,6 @@ class Estimate(_Pair):
         return self
 
 
-def no_heading(name: str) -> str:
-    """Why a learned observer refuses a position fix without a heading."""
-    return (f"a position fix without a heading (psi_m empty), but {name} takes full fixes "
-            "only (x_m, y_m and psi_m); the classical observers "
-            f"({', '.join(classical.OBSERVERS)}) take it, the robust observer (filternet) "
-            "in its recursive form, and a CNN or LSTM trained on a receiver (experiment=receiver)")
-
-
-def no_receiver(name: str) -> str:
-    """Why a learned observer refuses a receiver's channels."""
-    return (f"{name} does not take a receiver's channels; the classical observers "
-            f"({', '.join(classical.OBSERVERS)}) do, the robust observer (filternet) in its "
-            "recursive form, and a CNN or LSTM trained on a receiver (experiment=receiver)")
-
-
 def checked_receiver(k: int, m: np.ndarray, receiver: Any) -> np.ndarray:
     """Step ``k``'s receiver channels (7,) (None: none held, all NaN), checked beside its
     measurement m (3,) as a log's row is (:func:`lbo.sim.logcheck.check_receiver`)."""
@@ -173,12 +158,6 @@ def window_series(rows: np.ndarray, u: np.ndarray) -> np.ndarray:
     of a receiver net's rows (T, 9) (:func:`receiver_rows`), inputs u (T, 2) between."""
     width = min(rows.shape[-1], measure.WIDTH)
     return np.concatenate([rows[:, :width], u, rows[:, width:]], axis=1)
-
-
-def no_fix(name: str) -> str:
-    """Why an observer trained with a fix at every step refuses a step without one."""
-    return (f"no fix, but {name} was trained with a fix at every step; use an observer trained "
-            "with fix_rates (experiment=robust) or a classical one")
 
 
 def from_first_fix(name: str, m: np.ndarray, u: np.ndarray, vehicle: Vehicle, noise: Noise,
@@ -299,8 +278,10 @@ class WindowRunner:
         self.first_valid = 0 if self.pads else self.window - 1
         # Ring buffer written twice (rows i and i+N): the last N samples are always the
         # contiguous rows i+1 .. i+N, so a window is a view, never a copy or a roll.
-        width = measure.WIDTH + 3 if self.reads_receiver else len(WINDOW)  # + V, delta, r_m
-        self.ring = np.zeros((2 * self.window, width))
+        rows = measure.WIDTH + 1 if self.reads_receiver else 3  # + r_m
+        # a step before the log (pads): no measurement and no motion
+        self.empty = window_series(np.full((1, rows), np.nan), np.zeros((1, 2)))[0]
+        self.ring = np.zeros((2 * self.window, len(self.empty)))
         self.reset()
 
     def log_rows(self, m: np.ndarray, u: np.ndarray, receiver: np.ndarray | None,
@@ -332,9 +313,7 @@ class WindowRunner:
     def reset(self) -> None:
         self.fallback.reset()
         self.last_fix: int | None = None
-        self.ring[:] = 0.0
-        if self.pads:
-            self.ring[:, :3] = np.nan
+        self.ring[:] = self.empty if self.pads else 0.0
 
     def take(self, k: int, m: np.ndarray, u: np.ndarray, fix: bool) -> Estimate:
         n = self.window
@@ -371,9 +350,7 @@ class WindowRunner:
                                         self.noise, 1.0)[0]
         series = window_series(m, u)
         if self.pads:  # no fix and no motion before the log
-            pad = np.zeros((n - 1, 5))
-            pad[:, :3] = np.nan
-            series = np.concatenate([pad, series])
+            series = np.concatenate([np.tile(self.empty, (n - 1, 1)), series])
         if len(series) >= n:
             windows = window_view(np.ascontiguousarray(series), n)  # a view
             for s in range(0, len(windows), batch_size):
