@@ -17,6 +17,7 @@ from lbo.core.errors import LboError
 from lbo.models import receiver_window as rw
 from lbo.models.filternet import WindowFilter
 from lbo.models.net import WindowNet
+from lbo.scoring.receiver import net_rows
 from lbo.serve.observer import Observer
 from lbo.sim.logio import receiver
 from lbo.simulate import simulate
@@ -156,6 +157,15 @@ def test_the_single_track_body_reads_a_receiver_too():
     with torch.no_grad():
         est = net(win)
     assert torch.isfinite(est).all() and net.net.receiver
+
+
+def test_the_scores_give_a_window_filter_that_reads_a_receiver_in_both_forms():
+    net = WindowNet("filternet", 20, "frame", receiver=True)
+    rows = net_rows([Observer.from_net(net), Observer.from_net(WindowNet("cnn", 20, "frame",
+                                                                         receiver=True))])
+    assert [(label.split(",")[0], obs.form) for label, obs in rows.items()] == [
+        ("filternet-N20 (recursive)", "recursive"), ("filternet-N20 (window)", "window"),
+        ("cnn-N20 (window)", "window")]
 
 
 @pytest.mark.slow

@@ -139,3 +139,24 @@ def test_the_plot_draws_every_estimator_however_many_nets_it_scores(tmp_path):
                             for i, n in enumerate(names) for a in (1.0, 3.0)])
     plot(results, tmp_path / "ratios.png")
     assert (tmp_path / "ratios.png").stat().st_size > 10_000
+
+
+def test_the_ratio_on_the_same_rows_leaves_out_the_rows_one_has_none_for():
+    """An estimator without estimates on some rows is measured against the reference on the
+    rows both hold; the raw fixes (no estimates) get none, printed as a dash."""
+    g = np.random.default_rng(3)
+    truth = g.normal(size=(100, 3))
+    ref = truth + g.normal(scale=[1.0, 2.0, 0.1], size=(100, 3))
+    est = truth + g.normal(scale=[0.5, 1.0, 0.05], size=(100, 3))
+    ref[:60] *= 10.0  # the reference is far worse on the rows est has none for
+    est[:60] = np.nan
+    table = pd.DataFrame({"estimator": ["raw", "ref", "est"], "x_m": 1.0, "y_m": 1.0,
+                          "psi_mrad": 1.0})
+    got = scoring.ratio_on_same_rows(table, {"ref": ref, "est": est}, truth, "ref")
+    rows = np.arange(100) >= 60
+    assert np.isnan(got[0]) and got[1] == 1.0
+    assert got[2] == pytest.approx(scoring.measure_ratio(est, ref, truth, rows), rel=1e-12)
+    assert 0.4 < got[2] < 0.6  # about half, as drawn; over every row it would be far less
+    assert np.isnan(scoring.ratio_on_same_rows(table, {"est": est}, truth, "ref")).all()
+    assert scoring.markdown(table.assign(v=got), "v").splitlines()[2] == \
+        "| raw | 1.00 | 1.00 | 1.0 | - |"

@@ -66,6 +66,21 @@ def load_nets(sources: Sequence[Any] | None) -> list[Any]:
     return [Observer.load(str(source)) for source in sources or ()]
 
 
+def net_rows(nets: Sequence[Any]) -> dict[str, Any]:
+    """Learned observers by their row label, ``<name> (<form>), receiver's accuracy and
+    velocity``; a window filter that reads a receiver in both its forms (the window form
+    beside the recursive one it loads in)."""
+    from lbo.serve.observer import Observer
+
+    rows = {}
+    for obs in nets:
+        rows[f"{obs.name} ({obs.form}), {NET_ROW}"] = obs
+        if obs.form == "recursive" and getattr(obs.net, "receiver", False):
+            window = Observer.from_net(obs.net, obs.vehicle, obs.noise, form="window")
+            rows[f"{window.name} (window), {NET_ROW}"] = window
+    return rows
+
+
 def score(log: pd.DataFrame, observers: Sequence[str], vehicle: Vehicle, noise: Any,
           learned: Mapping[str, GyroNoise] | None = None,
           extra: Mapping[str, np.ndarray] | None = None,
@@ -79,8 +94,8 @@ def score(log: pd.DataFrame, observers: Sequence[str], vehicle: Vehicle, noise: 
     learned : also the gyro EKF with each of these (learned) noises, by row label.
     extra : estimates (T, 3) made elsewhere (NaN: none yet), by row label.
     nets : learned observers (:class:`lbo.Observer`, loaded once by the caller) run with the
-        receiver's channels (the robust observer's recursive form takes them), as ``<name>
-        (<form>), receiver's accuracy and velocity``; or such observers by row label.
+        receiver's channels (the robust observer's recursive form takes them), labelled by
+        :func:`net_rows`; or such observers by row label.
 
     Returns the table (one row each: ``estimator, x_m, y_m, psi_mrad, rows``) and the
     estimates (T, 3) by row label (NaN where an observer has none yet, and on the rows not
@@ -108,9 +123,7 @@ def score(log: pd.DataFrame, observers: Sequence[str], vehicle: Vehicle, noise: 
     for label, name, channels, smooth, gyro in runs:
         obs = Observer.load(name, vehicle, noise, gyro_noise=gyro)
         found[label] = obs.run(m, u, receiver=channels, smooth=smooth)
-    named = (nets.items() if isinstance(nets, Mapping)
-             else ((f"{obs.name} ({obs.form}), {NET_ROW}", obs) for obs in nets))
-    for label, obs in named:
+    for label, obs in (nets if isinstance(nets, Mapping) else net_rows(nets)).items():
         found[label] = obs.run(m, u, receiver=r, source=str(obs.meta.get("source", obs.name)))
     for label, est in (extra or {}).items():
         found[label] = (est, np.isfinite(est).all(1))
@@ -138,6 +151,27 @@ def ratio_to(table: pd.DataFrame, label: str) -> np.ndarray:
     if label not in names:
         return np.full(len(table), np.nan)
     return _quadratic_mean(rmses / rmses[names.index(label)])
+
+
+def ratio_on_same_rows(table: pd.DataFrame, estimates: Mapping[str, np.ndarray],
+                       truth: np.ndarray, label: str) -> np.ndarray:
+    """(rows,) each estimator's :func:`measure_ratio` to the row ``label``, both over the rows
+    where both have an estimate: the fair measure for an observer that gives none on some
+    rows (a window net on a stop longer than its window). NaN for a row without estimates
+    (the raw fixes) or where the table has no ``label``."""
+    if label not in estimates:
+        return np.full(len(table), np.nan)
+    ref = estimates[label]
+    held = np.isfinite(ref).all(1)
+    out = []
+    for name in table["estimator"]:
+        est = estimates.get(name)
+        if est is None:
+            out.append(np.nan)
+            continue
+        rows = held & np.isfinite(est).all(1)
+        out.append(measure_ratio(est, ref, truth, rows) if rows.any() else np.nan)
+    return np.array(out)
 
 
 def _quadratic_mean(ratios: np.ndarray) -> np.ndarray:
@@ -208,5 +242,6 @@ def markdown(table: pd.DataFrame, *versus: str) -> str:
     lines = [f"| estimator | x (m) | y (m) | psi (mrad) |{heads}",
              "|---|---:|---:|---:|" + "---:|" * len(versus)]
     lines += [f"| {r['estimator']} | {r['x_m']:.2f} | {r['y_m']:.2f} | {r['psi_mrad']:.1f} |"
-              + "".join(f" {r[v]:.2f} |" for v in versus) for _, r in table.iterrows()]
+              + "".join(f" {r[v]:.2f} |" if np.isfinite(r[v]) else " - |" for v in versus)
+              for _, r in table.iterrows()]
     return "\n".join(lines) + "\n"
