@@ -159,6 +159,24 @@ def test_the_single_track_body_reads_a_receiver_too():
     assert torch.isfinite(est).all() and net.net.receiver
 
 
+@pytest.mark.slow
+def test_its_window_form_runs_a_single_antenna_log_alike_on_every_engine():
+    torch.manual_seed(0)
+    net = WindowNet("filternet", 60, "frame", fixes=True, receiver=True)
+    for p in net.net.noise.parameters():  # a noise model that is not the identity
+        torch.nn.init.normal_(p, std=0.3)
+    log = simulate(compose_cfg("simulate", ["manoeuvre=free_drive", "duration=4",
+                                            "receiver=single_antenna", "seed=1"]))
+    m, u = log[["x_m", "y_m", "psi_m"]].to_numpy(float), log[["V", "delta"]].to_numpy(float)
+    est = {engine: Observer.from_net(net, engine=engine, form="window").run(
+        m, u, receiver=receiver(log))[0] for engine in ("torch", "torchscript", "onnx")}
+    held = np.isfinite(est["torch"]).all(1)
+    assert held.sum() > 100
+    for engine in ("torchscript", "onnx"):
+        np.testing.assert_allclose(est[engine][held], est["torch"][held], rtol=0, atol=1e-4,
+                                   err_msg=engine)
+
+
 def test_the_scores_give_a_window_filter_that_reads_a_receiver_in_both_forms():
     net = WindowNet("filternet", 20, "frame", receiver=True)
     rows = net_rows([Observer.from_net(net), Observer.from_net(WindowNet("cnn", 20, "frame",
