@@ -35,7 +35,7 @@ from torch import nn
 
 from lbo.core.checks import integer, number
 from lbo.core.errors import LboError
-from lbo.models.motion import ProcessModel, bicycle_step
+from lbo.models.motion import ProcessModel, bicycle_step, pose_jacobian
 from lbo.models.poses import wrap_heading
 from lbo.models.receiver_window import FEATURES
 from lbo.models.update import inverse_sym3, masked_update, step_covariance, turn_xy
@@ -287,10 +287,7 @@ class WindowFilter(ProcessModel, nn.Module):
         body = self.body_start(v[:, 0], delta[:, 0])
         for k in range(1, n):
             zp, f02, f12, body = self.predict_pose(z, v[:, k - 1], delta[:, k - 1], body)
-            zero, one = torch.zeros_like(f02), torch.ones_like(f02)
-            F = torch.stack([torch.stack([one, zero, f02], -1),
-                             torch.stack([zero, one, f12], -1),
-                             torch.stack([zero, zero, one], -1)], -2)
+            F = pose_jacobian(f02, f12)
             Pp = F @ P @ F.transpose(1, 2) + Q
             zu, Pu = masked_update(zp, Pp, wrap_heading(meas[:, k] - zp),
                                    held[:, k].to(x.dtype), R[:, k], eye)
@@ -323,11 +320,7 @@ class WindowFilter(ProcessModel, nn.Module):
         body = self.body_start(x[:, 0, 3], x[:, 0, 4])
         for k in range(1, n):
             z, f02, f12, body = self.predict_pose(z, x[:, k - 1, 3], x[:, k - 1, 4], body)
-            zero = torch.zeros_like(f02)
-            one = torch.ones_like(f02)
-            F = torch.stack([torch.stack([one, zero, f02], -1),
-                             torch.stack([zero, one, f12], -1),
-                             torch.stack([zero, zero, one], -1)], -2)
+            F = pose_jacobian(f02, f12)
             P = F @ P @ F.transpose(1, 2) + Q
             y = x[:, k, :3] - z
             y = wrap_heading(y)

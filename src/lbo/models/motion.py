@@ -52,6 +52,15 @@ def bicycle_step(z: torch.Tensor, v: torch.Tensor, delta: torch.Tensor, dt: floa
                             v * tan(delta) / wheelbase], -1) * dt
 
 
+def pose_jacobian(f02: torch.Tensor, f12: torch.Tensor) -> torch.Tensor:
+    """(B, 3, 3) Jacobian of a pose step from its two off-diagonal entries d x / d psi and
+    d y / d psi (B,) (:meth:`ProcessModel.predict_pose`), built by stacking so that ONNX
+    exports it."""
+    zero, one = torch.zeros_like(f02), torch.ones_like(f02)
+    return torch.stack([torch.stack([one, zero, f02], -1), torch.stack([zero, one, f12], -1),
+                        torch.stack([zero, zero, one], -1)], -2)
+
+
 class ProcessModel:
     """The process model of a module with ``dt`` (s) and ``wheelbase`` (m) (a mixin of an
     ``nn.Module``): :meth:`build_process` registers its parameters, :meth:`predict_pose` moves
