@@ -27,6 +27,7 @@ from lbo.core.errors import LboError
 from lbo.filters import classical, measure
 from lbo.filters.gyro import GyroNoise
 from lbo.models.features import window_view
+from lbo.serve import carry
 from lbo.serve.engines import make_predictor, make_recursive_step
 from lbo.sim.columns import RECEIVER
 from lbo.sim.logcheck import check_receiver
@@ -265,7 +266,9 @@ class WindowRunner:
 
     A net that reads a receiver (``reads_receiver``) takes rows (T, 9): the filters' row
     (:data:`lbo.filters.measure.CHANNELS`) and the gyro's ``r_m``, as :meth:`log_rows` and
-    :meth:`sample` make them; its windows are :data:`lbo.models.receiver_window.COLUMNS`."""
+    :meth:`sample` make them; its windows are :data:`lbo.models.receiver_window.COLUMNS`.
+    Through a stop, where its window holds no heading, it carries its own estimate of N-1
+    steps before (:mod:`lbo.serve.carry`)."""
 
     def __init__(self, name: str, net: Any, vehicle: Vehicle, noise: Noise, engine: str,
                  device: str) -> None:
@@ -300,9 +303,10 @@ class WindowRunner:
     @property
     def _no_heading(self) -> str:
         n = self.window
-        return (f"no heading in the last {n} steps ({n * self.dt:g} s): {self.name} reads the "
-                "heading from its window's psi_m or course over ground, and a car that stood "
-                "or crept that long gave none")
+        return (f"no heading in the last {n} steps ({n * self.dt:g} s), and no estimate "
+                f"before them to carry: {self.name} reads the heading from its window's psi_m "
+                "or course over ground, and a car that has stood or crept since it began "
+                "gave none")
 
     @staticmethod
     def _heading_rows(series: np.ndarray) -> np.ndarray:
@@ -314,8 +318,15 @@ class WindowRunner:
         self.fallback.reset()
         self.last_fix: int | None = None
         self.ring[:] = self.empty if self.pads else 0.0
+        self.states = np.full((self.window, 3), np.nan)  # the last N states, at k % N
 
     def take(self, k: int, m: np.ndarray, u: np.ndarray, fix: bool) -> Estimate:
+        est = self._take(k, m, u, fix)
+        # its own estimates only: never the EKF's that stands in while the window fills
+        self.states[k % self.window] = est.state if est.valid else np.nan
+        return est
+
+    def _take(self, k: int, m: np.ndarray, u: np.ndarray, fix: bool) -> Estimate:
         n = self.window
         i = k % n
         self.ring[i] = self.ring[i + n] = window_series(m[None], u[None])[0]
@@ -330,7 +341,10 @@ class WindowRunner:
                                 f"needs a fix in every window of {n} steps")
             window = self.ring[None, i + 1:i + 1 + n]
             if self.reads_receiver and not self._heading_rows(window).any():
-                return Estimate(np.full(3, np.nan), False, self._no_heading)
+                prior = self.states[(k + 1) % n]  # the estimate at the window's first row
+                if not np.isfinite(prior).all():  # none (the log began less than N ago)
+                    return Estimate(np.full(3, np.nan), False, self._no_heading)
+                window = carry.carried(window, prior[None])
             state = self.predict(window)[0]
             state[2] = wrap_angle(state[2])
             return Estimate(state, bool(np.isfinite(state).all()),
@@ -356,10 +370,12 @@ class WindowRunner:
             for s in range(0, len(windows), batch_size):
                 chunk = np.ascontiguousarray(windows[s:s + batch_size])
                 est[head + s:head + s + len(chunk)] = self.predict(chunk)
-            if self.reads_receiver:  # no heading in the window: none in the estimate (take())
+            if self.reads_receiver:  # no heading in the window: the one carried (take())
                 # rows holding a heading in each window, by a running count (not T x N)
                 count = np.concatenate([[0], np.cumsum(self._heading_rows(series))])
-                est[head:][count[n:] - count[:-n] == 0] = np.nan
+                blind = np.flatnonzero(count[n:] - count[:-n] == 0)
+                est[head + blind] = np.nan
+                carry.run_blind(windows, blind, head, est, self.predict)
         return est, np.full((t, 3, 3), np.nan)
 
 
