@@ -125,9 +125,12 @@ def test_an_envelope_union_covers_both_and_keeps_a_known_alpha():
 @pytest.mark.slow
 def test_a_trained_receiver_net_fine_tuned_on_logs_is_a_checkpoint_lbo_loads(tmp_path,
                                                                             smoke_data):
-    _, out, _ = train_in_own_store(tmp_path, smoke_data, "experiment=receiver", "data=smoke",
-                                   "trainer.max_epochs=1", "trainer.limit_train_batches=2",
-                                   "window=60", "batch_size=64", "~callbacks.evaluation")
+    _, out, uri = train_in_own_store(tmp_path, smoke_data, "experiment=receiver", "data=smoke",
+                                     "trainer.max_epochs=1", "trainer.limit_train_batches=2",
+                                     "window=60", "batch_size=64", "~callbacks.evaluation")
+    with pytest.MonkeyPatch.context() as mp:  # without the evaluation, its run has the weights
+        mp.setenv("MLFLOW_TRACKING_URI", uri)
+        assert Observer.load(out["run_id"]).name == "cnn-N60"
     train, val = _logs(4, 5, duration=8.0), _logs(6, duration=8.0)
     for fresh, name in ((False, "tuned.ckpt"), (True, "scratch.ckpt")):
         path = net_fit.fit_and_write(tmp_path / name, out["checkpoint"], train, val,

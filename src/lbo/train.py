@@ -251,6 +251,9 @@ def _fit(cfg: DictConfig, built: Built, callbacks: list[L.Callback] | None,
             logger.experiment.set_terminated(resume_id, "RUNNING")
         trainer.fit(module, datamodule=dm,
                     ckpt_path=str(resume_ckpt) if resume_ckpt is not None else None)
+        ckpt = getattr(trainer.checkpoint_callback, "best_model_path", "") or ""
+        if isinstance(logger, MLFlowLogger) and ckpt:  # with or without the evaluation
+            _log_weights(logger, ckpt)
     except BaseException:
         if isinstance(logger, MLFlowLogger):
             logger.finalize("failed")  # also when the crash is outside Lightning's own hooks
@@ -258,7 +261,6 @@ def _fit(cfg: DictConfig, built: Built, callbacks: list[L.Callback] | None,
     if isinstance(logger, MLFlowLogger):
         logger.finalize("success")  # fast_dev_run swaps the logger out, so Lightning would not
     write_marker(output, identity.run_id, digest, finished=True)  # no new run may replace it
-    ckpt = getattr(trainer.checkpoint_callback, "best_model_path", "") or ""
     best = getattr(trainer.checkpoint_callback, "best_model_score", None)
     metrics: dict[str, Any] = {
         "name": name,
@@ -273,6 +275,16 @@ def _fit(cfg: DictConfig, built: Built, callbacks: list[L.Callback] | None,
         if isinstance(cb, Evaluation):
             metrics.update(cb.metrics)
     return metrics
+
+
+def _log_weights(logger: Any, checkpoint: str) -> None:
+    """Log the best checkpoint to the run (``checkpoints/best.ckpt``: ``Observer.load(<run
+    id>)`` reads it) and the same weights as an MLflow model (``model/``: pyfunc
+    ``load_model``, ``mlflow models serve``)."""
+    from lbo.serve.serving import log_model
+
+    logger.experiment.log_artifact(logger.run_id, checkpoint, artifact_path="checkpoints")
+    log_model(logger.experiment.tracking_uri, logger.run_id, checkpoint)
 
 
 def _noise_tag(cfg: DictConfig) -> str:

@@ -80,12 +80,6 @@ class Evaluation(L.Callback):
                 client.log_metric(run, key, value)
             client.log_artifact(run, str(self.output_dir / "evaluation.csv"))
             client.log_artifact(run, str(self.output_dir / "nrmse.png"))
-            if best:
-                client.log_artifact(run, best, artifact_path="checkpoints")
-                # the same weights as an MLflow model: pyfunc load_model, mlflow models serve
-                from lbo.serve.serving import log_model
-
-                log_model(client.tracking_uri, run, best)
 
     def _score_logs(self, folder: Path, net, hp: dict, name: str, vehicle, noise,
                     device: str) -> None:
