@@ -160,3 +160,24 @@ def test_the_ratio_on_the_same_rows_leaves_out_the_rows_one_has_none_for():
     assert np.isnan(scoring.ratio_on_same_rows(table, {"est": est}, truth, "ref")).all()
     assert scoring.markdown(table.assign(v=got), "v").splitlines()[2] == \
         "| raw | 1.00 | 1.00 | 1.0 | - |"
+
+
+def test_moving_rows_are_those_with_a_course_in_their_last_seconds():
+    """A car that drives, stands 3 s and drives off: the first 9 rows of the stop are moving
+    (their last 10 rows, 1 s, hold a course), the rest of the stop is not; the ratio can be
+    taken over the moving rows alone."""
+    dt, t = 0.1, 100
+    v = np.full(t, 10.0)
+    v[40:70] = 0.0
+    log = pd.DataFrame({"x_m": np.nan, "y_m": np.nan, "psi_m": np.nan, "V": v,
+                        "ve_m": v, "vn_m": 0.0, "sv_m": 0.1}, index=range(t))
+    moving = scoring.moving_rows(log, dt, seconds=1.0)
+    np.testing.assert_array_equal(np.flatnonzero(~moving), np.arange(49, 70))  # 10 rows
+    truth = np.zeros((t, 3))
+    ref, est = np.ones((t, 3)), np.ones((t, 3))
+    est[~moving] = 3.0  # worse where the car stands only
+    table = pd.DataFrame({"estimator": ["ref", "est"], "x_m": 1.0, "y_m": 1.0,
+                          "psi_mrad": 1.0})
+    got = scoring.ratio_on_same_rows(table, {"ref": ref, "est": est}, truth, "ref", moving)
+    np.testing.assert_allclose(got, [1.0, 1.0])
+    assert scoring.ratio_on_same_rows(table, {"ref": ref, "est": est}, truth, "ref")[1] > 1.5

@@ -26,7 +26,7 @@ from lbo.sim.logio import receiver
 from lbo.sim.vehicle import Vehicle
 
 __all__ = ["BLIND", "EKF", "NOISE_ORACLE", "ORACLE", "RAW", "load_nets", "markdown",
-           "measure_ratio",
+           "measure_ratio", "moving_rows",
            "oracle_gyro", "pool", "ratio_to", "score", "scored_rows"]
 
 RAW = "raw fixes (heading: course over ground)"
@@ -45,6 +45,8 @@ NET_ROW = "receiver's accuracy and velocity"
 """How a learned observer's row is labelled after its name and form."""
 RMSE = ("x_m", "y_m", "psi_mrad")
 """A score table's RMSE columns."""
+MOVING_S = 8.0
+"""s: a row is *moving* (:func:`moving_rows`) when its last 8 s hold a course over ground."""
 
 
 def scored_rows(log: pd.DataFrame) -> np.ndarray:
@@ -153,16 +155,29 @@ def ratio_to(table: pd.DataFrame, label: str) -> np.ndarray:
     return _quadratic_mean(rmses / rmses[names.index(label)])
 
 
+def moving_rows(log: pd.DataFrame, dt: float, seconds: float = MOVING_S) -> np.ndarray:
+    """(T,) bool: the rows whose last ``seconds`` (period ``dt`` s) hold a course over
+    ground: the car moves, or stopped less than that long ago. The rest are stops, where a
+    single antenna tells nothing of the heading and every observer holds the one it had."""
+    r = receiver(log)
+    course, _ = measure.course_over_ground(r[:, 3], r[:, 4], r[:, 5], log["V"].to_numpy(float))
+    n = max(int(round(seconds / dt)), 1)
+    count = np.concatenate([[0], np.cumsum(np.isfinite(course))])
+    k = np.arange(len(log))
+    return count[k + 1] - count[np.maximum(k + 1 - n, 0)] > 0
+
+
 def ratio_on_same_rows(table: pd.DataFrame, estimates: Mapping[str, np.ndarray],
-                       truth: np.ndarray, label: str) -> np.ndarray:
+                       truth: np.ndarray, label: str, within: np.ndarray | None = None
+                       ) -> np.ndarray:
     """(rows,) each estimator's :func:`measure_ratio` to the row ``label``, both over the rows
-    where both have an estimate: the fair measure for an observer that gives none on some
-    rows (a window net on a stop longer than its window). NaN for a row without estimates
-    (the raw fixes) or where the table has no ``label``."""
+    where both have an estimate (and ``within`` (T,) bool, if given): the fair measure for an
+    observer that gives none on some rows. NaN for a row without estimates (the raw fixes) or
+    where the table has no ``label``."""
     if label not in estimates:
         return np.full(len(table), np.nan)
     ref = estimates[label]
-    held = np.isfinite(ref).all(1)
+    held = np.isfinite(ref).all(1) & (True if within is None else within)
     out = []
     for name in table["estimator"]:
         est = estimates.get(name)
