@@ -153,9 +153,8 @@ def test_realdrive_trains_a_receiver_net_on_the_train_span(tmp_path, smoke_data)
                   "cnn-N60, fine-tuned on the train span",
                   "cnn-N60, trained on the train span only"):
         assert np.isfinite(rows.loc[label, ["x_m", "y_m", "psi_mrad"]].to_numpy(float)).all()
-    # through the stops, where its window holds no heading, the CNN carries its own: it
-    # estimates every row the EKF does
-    assert rows.loc["cnn-N60 (window), receiver's accuracy and velocity", "rows"] == \
+    # the CNN gives none where its window holds no heading: measured on the EKF's same rows
+    assert rows.loc["cnn-N60 (window), receiver's accuracy and velocity", "rows"] < \
         rows.loc["ekf, receiver's accuracy and velocity", "rows"]
     for ratio in ("vs_ekf_same_rows", "vs_ekf_moving"):
         assert np.isfinite(rows[ratio].iloc[1:]).all()

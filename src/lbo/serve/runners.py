@@ -101,6 +101,9 @@ class Estimate(_Pair):
     - ``"no fix in the last N steps (... s): ..."``: a learned observer trained with
       ``fix_rates`` whose window holds no fix has nothing to anchor its estimate to (state
       NaN); estimates resume with the next fix;
+    - ``"no heading in the last N steps (... s)..."``: a net that reads a single antenna's
+      receiver, on a car that has stood or crept that long (a window filter: since the log
+      began; after its first estimate it carries its own through a stop, :mod:`lbo.serve.carry`);
     - ``"the network's estimate is not finite ..."``: a net with NaN or inf weights;
     - ``"outside the training envelope: ..."``: with ``envelope_mode="mark"``, a sample beyond
       what a learned observer was trained on (:mod:`lbo.models.envelope`).
@@ -267,8 +270,8 @@ class WindowRunner:
     A net that reads a receiver (``reads_receiver``) takes rows (T, 9): the filters' row
     (:data:`lbo.filters.measure.CHANNELS`) and the gyro's ``r_m``, as :meth:`log_rows` and
     :meth:`sample` make them; its windows are :data:`lbo.models.receiver_window.COLUMNS`.
-    Through a stop, where its window holds no heading, it carries its own estimate of N-1
-    steps before (:mod:`lbo.serve.carry`)."""
+    Where its window holds no heading (a stop), the window filter carries its own estimate of
+    N-1 steps before (``carries``, :mod:`lbo.serve.carry`); a CNN or an LSTM gives none."""
 
     def __init__(self, name: str, net: Any, vehicle: Vehicle, noise: Noise, engine: str,
                  device: str) -> None:
@@ -278,6 +281,9 @@ class WindowRunner:
         self.fallback = ClassicalRunner("ekf", vehicle, noise, 1.0)
         self.pads = bool(getattr(net, "fixes", False) and getattr(net, "physical", False))
         self.reads_receiver = bool(getattr(net, "receiver", False))
+        # the filter holds a carried heading as a standing car does; a CNN trained on the
+        # span alone turned it 0.4 rad off on the hill drive's stop
+        self.carries = self.reads_receiver and has_recursive_form(net)
         self.first_valid = 0 if self.pads else self.window - 1
         # Ring buffer written twice (rows i and i+N): the last N samples are always the
         # contiguous rows i+1 .. i+N, so a window is a view, never a copy or a roll.
@@ -303,10 +309,15 @@ class WindowRunner:
     @property
     def _no_heading(self) -> str:
         n = self.window
-        return (f"no heading in the last {n} steps ({n * self.dt:g} s), and no estimate "
-                f"before them to carry: {self.name} reads the heading from its window's psi_m "
-                "or course over ground, and a car that has stood or crept since it began "
-                "gave none")
+        if self.carries:
+            return (f"no heading in the last {n} steps ({n * self.dt:g} s), and no estimate "
+                    f"before them to carry: {self.name} reads the heading from its window's "
+                    "psi_m or course over ground, and a car that has stood or crept since it "
+                    "began gave none")
+        return (f"no heading in the last {n} steps ({n * self.dt:g} s): {self.name} reads the "
+                "heading from its window's psi_m or course over ground, and a car that stood "
+                "or crept that long gave none (the window filter, model=filternet, carries "
+                "its own through a stop)")
 
     @staticmethod
     def _heading_rows(series: np.ndarray) -> np.ndarray:
@@ -342,7 +353,7 @@ class WindowRunner:
             window = self.ring[None, i + 1:i + 1 + n]
             if self.reads_receiver and not self._heading_rows(window).any():
                 prior = self.states[(k + 1) % n]  # the estimate at the window's first row
-                if not np.isfinite(prior).all():  # none (the log began less than N ago)
+                if not self.carries or not np.isfinite(prior).all():
                     return Estimate(np.full(3, np.nan), False, self._no_heading)
                 window = carry.carried(window, prior[None])
             state = self.predict(window)[0]
@@ -375,7 +386,8 @@ class WindowRunner:
                 count = np.concatenate([[0], np.cumsum(self._heading_rows(series))])
                 blind = np.flatnonzero(count[n:] - count[:-n] == 0)
                 est[head + blind] = np.nan
-                carry.run_blind(windows, blind, head, est, self.predict)
+                if self.carries:
+                    carry.run_blind(windows, blind, head, est, self.predict)
         return est, np.full((t, 3, 3), np.nan)
 
 
