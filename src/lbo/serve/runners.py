@@ -281,8 +281,8 @@ class WindowRunner:
         self.fallback = ClassicalRunner("ekf", vehicle, noise, 1.0)
         self.pads = bool(getattr(net, "fixes", False) and getattr(net, "physical", False))
         self.reads_receiver = bool(getattr(net, "receiver", False))
-        # the filter holds a carried heading as a standing car does; a CNN trained on the
-        # span alone turned it 0.4 rad off on the hill drive's stop
+        # the filter holds a carried heading as a standing car does; a CNN reads it as any
+        # course (one trained on the hill drive's span alone, carrying, erred 0.42 rad)
         self.carries = self.reads_receiver and has_recursive_form(net)
         self.first_valid = 0 if self.pads else self.window - 1
         # Ring buffer written twice (rows i and i+N): the last N samples are always the
