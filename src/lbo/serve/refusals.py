@@ -27,3 +27,16 @@ def no_fix(name: str) -> str:
     """Why an observer trained with a fix at every step refuses a step without one."""
     return (f"no fix, but {name} was trained with a fix at every step; use an observer trained "
             "with fix_rates (experiment=robust) or a classical one")
+
+
+def blind_window(name: str, n: int, dt: float, carries: bool) -> str:
+    """Why a net that reads a receiver gives no estimate for a window of ``n`` steps (period
+    ``dt`` s) that holds no heading; ``carries``: a window filter, which carries its own
+    estimate through a stop and so is blind only on a car that has stood since it began."""
+    if carries:
+        return (f"no heading in the last {n} steps ({n * dt:g} s), and no estimate before them "
+                f"to carry: {name} reads the heading from its window's psi_m or course over "
+                "ground, and a car that has stood or crept since it began gave none")
+    return (f"no heading in the last {n} steps ({n * dt:g} s): {name} reads the heading from "
+            "its window's psi_m or course over ground, and a car that stood or crept that long "
+            "gave none (the window filter, model=filternet, carries its own through a stop)")

@@ -27,7 +27,7 @@ from lbo.core.errors import LboError
 from lbo.filters import classical, measure
 from lbo.filters.gyro import GyroNoise
 from lbo.models.features import window_view
-from lbo.serve import carry
+from lbo.serve import carry, refusals
 from lbo.serve.engines import make_predictor, make_recursive_step
 from lbo.sim.columns import RECEIVER
 from lbo.sim.logcheck import check_receiver
@@ -306,19 +306,6 @@ class WindowRunner:
         r = checked_receiver(k, m, receiver)
         return self.log_rows(m[None], u[None], r[None], None)[0][0], u
 
-    @property
-    def _no_heading(self) -> str:
-        n = self.window
-        if self.carries:
-            return (f"no heading in the last {n} steps ({n * self.dt:g} s), and no estimate "
-                    f"before them to carry: {self.name} reads the heading from its window's "
-                    "psi_m or course over ground, and a car that has stood or crept since it "
-                    "began gave none")
-        return (f"no heading in the last {n} steps ({n * self.dt:g} s): {self.name} reads the "
-                "heading from its window's psi_m or course over ground, and a car that stood "
-                "or crept that long gave none (the window filter, model=filternet, carries "
-                "its own through a stop)")
-
     @staticmethod
     def _heading_rows(series: np.ndarray) -> np.ndarray:
         """Which rows (..., T, 11) of receiver windows hold a heading, psi_m or a course:
@@ -354,7 +341,8 @@ class WindowRunner:
             if self.reads_receiver and not self._heading_rows(window).any():
                 prior = self.states[(k + 1) % n]  # the estimate at the window's first row
                 if not self.carries or not np.isfinite(prior).all():
-                    return Estimate(np.full(3, np.nan), False, self._no_heading)
+                    return Estimate(np.full(3, np.nan), False,
+                                    refusals.blind_window(self.name, n, self.dt, self.carries))
                 window = carry.carried(window, prior[None])
             state = self.predict(window)[0]
             state[2] = wrap_angle(state[2])
