@@ -273,6 +273,12 @@ def test_a_study_name_with_a_quote_closes_its_runs(tmp_path, smoke_data, trackin
     assert client.get_run(left).info.status == "FAILED"
     assert client.get_run(parent).info.status == "FINISHED"
     assert literal("it's") == '"it\'s"' and literal('say "x"') == """'say "x"'"""
+    # the trial's run holds its weights, as a logged model named without the quote
+    trial = client.search_runs([exp.experiment_id], "tags.optuna_trial = '1'")[0].info
+    assert [f.path for f in client.list_artifacts(trial.run_id, "checkpoints")] == [
+        "checkpoints/best.ckpt"]
+    models = client.search_logged_models([exp.experiment_id])
+    assert [m.name for m in models if m.source_run_id == trial.run_id] == ["it_s-trial1"]
 
 
 def test_a_diverged_trial_fails_and_the_study_goes_on_until_too_many_diverge(

@@ -25,6 +25,7 @@ observer knows its covariance (NaN for the CNN and the LSTM). The numbers are th
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 from typing import Any
 
@@ -121,7 +122,9 @@ def log_model(tracking_uri: str, run_id: str, checkpoint: str | Path) -> str:
         client = mlflow.MlflowClient(tracking_uri)
         client.log_artifacts(run_id, str(folder), ARTIFACT)
         run = client.get_run(run_id).info
-        model = client.create_logged_model(run.experiment_id, name=run.run_name,
+        # a logged model's name may not hold / : . % " ' (a run's name may: a study's trials)
+        name = re.sub(r"""[/:.%"']""", "_", run.run_name or "") or "observer"
+        model = client.create_logged_model(run.experiment_id, name=name,
                                            source_run_id=run_id, model_type="lbo observer")
         client.log_model_artifacts(model.model_id, str(folder))
         client.finalize_logged_model(model.model_id, "READY")
