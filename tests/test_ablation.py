@@ -117,9 +117,8 @@ def test_fit_finds_a_planted_ekf_setting(smoke_test_arrays):
 
 def test_fit_needs_alpha_1_and_6(smoke_test_arrays):
     arr, vehicle, noise = smoke_test_arrays
-    keep = ~np.isclose(arr["alpha"], 6.0)
-    sub = {k: v[keep] if isinstance(v, np.ndarray) and v.shape[:1] == keep.shape else v
-           for k, v in arr.items()}
+    keep = ~np.isclose(arr.alpha, 6.0)
+    sub = arr.take(keep)
     with pytest.raises(LboError, match="no trajectory at alpha = 6"):
         pp.fit_paper_ekf(sub, vehicle, noise, ((1.0,), (1.0,)))
 

@@ -75,7 +75,7 @@ def test_paper_test_grid_has_9829_points_at_25_levels(tmp_path):
     assert test.groupby("alpha")["scored"].sum().eq(9_829).all()
     # pure pursuit keeps to the path: no manoeuvre wanders off
     arr = schema.to_arrays(test[test["alpha"] == 0.0])
-    assert np.abs(arr["u"][..., 1]).max() <= Vehicle().delta_max + 1e-12
+    assert np.abs(arr.u[..., 1]).max() <= Vehicle().delta_max + 1e-12
 
 
 def test_training_fills_the_friction_circle_within_the_limits():

@@ -45,8 +45,8 @@ def test_orderings_on_the_smoke_grid(smoke_table):
 def test_pcrb_is_a_floor_in_expectation(smoke_data):
     """The bound is on the MSE averaged over process and measurement noise: re-simulate both."""
     arr = load_test(smoke_data / "test.parquet")
-    one = np.isclose(arr["alpha"], 0.0)
-    z, u, mask = arr["z"][one], arr["u"][one], arr["mask"][one]
+    one = np.isclose(arr.alpha, 0.0)
+    z, u, mask = arr.z[one], arr.u[one], arr.mask[one]
     rng = np.random.default_rng(0)
     for alpha in (1.0, 3.0, 6.0):
         R = NOISE.R(alpha)
@@ -68,11 +68,11 @@ def test_the_ekf_reference_is_filterpys_rmse_at_alpha_1(smoke_data, smoke_table)
     from lbo.filters.reference import run_filterpy_ekf
 
     arr = load_test(smoke_data / "test.parquet")
-    at1 = np.flatnonzero(np.isclose(arr["alpha"], 1.0))
+    at1 = np.flatnonzero(np.isclose(arr.alpha, 1.0))
     sq, n = np.zeros(3), 0
     for g in at1:
-        est = run_filterpy_ekf(arr["m"][g], arr["u"][g], VEHICLE, NOISE.Q, NOISE.R(1.0))
-        err = (est - arr["z"][g])[arr["mask"][g]]
+        est = run_filterpy_ekf(arr.m[g], arr.u[g], VEHICLE, NOISE.Q, NOISE.R(1.0))
+        err = (est - arr.z[g])[arr.mask[g]]
         err[:, 2] = (err[:, 2] + np.pi) % (2 * np.pi) - np.pi
         sq, n = sq + (err**2).sum(0), n + len(err)
     expected = np.sqrt(sq / n)
@@ -89,8 +89,8 @@ def test_the_ekf_reference_is_filterpys_rmse_at_alpha_1(smoke_data, smoke_table)
 def test_alpha_zero_oracle_is_exact(smoke_data):
     arr = load_test(smoke_data / "test.parquet")
     est = classical("oracle", arr, VEHICLE, NOISE)
-    zero = np.isclose(arr["alpha"], 0.0)
-    err = (est - arr["z"])[zero][arr["mask"][zero]]
+    zero = np.isclose(arr.alpha, 0.0)
+    err = (est - arr.z)[zero][arr.mask[zero]]
     err[:, 2] = wrap_angle(err[:, 2])
     np.testing.assert_allclose(err, 0.0, atol=1e-6)
 
@@ -100,7 +100,7 @@ def test_the_tuned_oracle_is_the_best_of_its_q_grid_at_every_level(smoke_data):
     ref = reference(arr, VEHICLE, NOISE)
     est, chosen = tuned_oracle(arr, VEHICLE, NOISE, ref)
     tuned = classical_table(arr, VEHICLE, NOISE, ["oracle", "oracle_tuned"], ref)
-    assert list(chosen["alpha"]) == sorted(set(arr["alpha"]))
+    assert list(chosen["alpha"]) == sorted(set(arr.alpha))
     assert chosen["position"].isin(Q_GRID[0]).all() and chosen["heading"].isin(Q_GRID[1]).all()
     # the oracle's own Q (factors 1, 1) is on the grid: tuning never does worse than it
     assert (curve(tuned, "oracle_tuned") <= curve(tuned, "oracle") + 1e-12).all()
@@ -108,9 +108,9 @@ def test_the_tuned_oracle_is_the_best_of_its_q_grid_at_every_level(smoke_data):
     row = chosen.iloc[-1]
     Q = np.diag(np.square(np.asarray(NOISE.process_sigma)
                           * [row.position, row.position, row.heading]))
-    at = np.isclose(arr["alpha"], row.alpha)
-    R = np.einsum("g,ij->gij", arr["alpha"][at] ** 2, NOISE.R(1.0))
-    np.testing.assert_allclose(est[at], ekf_batch(arr["m"][at], arr["u"][at], VEHICLE, Q, R))
+    at = np.isclose(arr.alpha, row.alpha)
+    R = np.einsum("g,ij->gij", arr.alpha[at] ** 2, NOISE.R(1.0))
+    np.testing.assert_allclose(est[at], ekf_batch(arr.m[at], arr.u[at], VEHICLE, Q, R))
 
 
 def test_pcrb_bounds_the_kinematic_truth_with_its_own_process_noise(smoke_data):
@@ -119,7 +119,7 @@ def test_pcrb_bounds_the_kinematic_truth_with_its_own_process_noise(smoke_data):
     arr = load_test(smoke_data / "test.parquet")
     paper = classical("pcrb", arr, VEHICLE, NOISE, truth=Truth())
     calm = classical("pcrb", arr, VEHICLE, NOISE, truth=Truth(process_scale=0.1))
-    noisy = arr["mask"] & (arr["alpha"] > 0)[:, None]
+    noisy = arr.mask & (arr.alpha > 0)[:, None]
     assert (calm[noisy] < paper[noisy]).all()
     car = from_cfg({"name": "dynamic"}, 2.7)
     with pytest.raises(LboError, match="pcrb: the bound is the kinematic bicycle's"):

@@ -201,8 +201,8 @@ def test_batched_ukf_gives_filterpy_numbers_on_the_smoke_grid(smoke_data):
     from lbo.scoring.grid import load_test
 
     arr = load_test(smoke_data / "test.parquet")
-    for R in (NOISE.R(1.0), measurement_cov("oracle", NOISE, arr["alpha"], len(arr["alpha"]))):
-        ref = ukf_filterpy_batch(arr["m"], arr["u"], VEHICLE, NOISE.Q, R)
-        new = ukf_batch(arr["m"], arr["u"], VEHICLE, NOISE.Q, R)
-        assert np.isfinite(new[arr["mask"]]).all()
-        assert np.abs(new - ref)[arr["mask"]].max() <= 1e-9
+    for R in (NOISE.R(1.0), measurement_cov("oracle", NOISE, arr.alpha, len(arr.alpha))):
+        ref = ukf_filterpy_batch(arr.m, arr.u, VEHICLE, NOISE.Q, R)
+        new = ukf_batch(arr.m, arr.u, VEHICLE, NOISE.Q, R)
+        assert np.isfinite(new[arr.mask]).all()
+        assert np.abs(new - ref)[arr.mask].max() <= 1e-9

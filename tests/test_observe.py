@@ -1,6 +1,7 @@
 import re
 import subprocess
 import sys
+from dataclasses import replace
 from functools import partial
 
 import numpy as np
@@ -53,8 +54,7 @@ def log_csv(tmp_path, manoeuvre):
 def arrays(frame, window=1):
     """Padded arrays of one trajectory with every row from the window's end on scored."""
     arr = schema.to_arrays(frame.drop(columns=["scored"]))
-    arr["mask"] &= np.arange(arr["mask"].shape[1]) >= window - 1
-    return arr
+    return replace(arr, mask=arr.mask & (np.arange(arr.mask.shape[1]) >= window - 1))
 
 
 observe = partial(run_observe, check=True)
@@ -64,7 +64,7 @@ def classical_cov(name, arr):
     """(T, 3, 3) covariances of a classical filter on one log's arrays."""
     from lbo.filters.classical import estimate as run_classical
 
-    return run_classical(name, arr["m"], arr["u"], VEHICLE, NOISE, return_cov=True)[1][0]
+    return run_classical(name, arr.m, arr.u, VEHICLE, NOISE, return_cov=True)[1][0]
 
 
 def printed_rmse(stdout):
@@ -82,12 +82,12 @@ def test_observe_prints_the_evaluation_rmse(tmp_path, trained, manoeuvre, log_cs
     if which == "learned":
         net = Observer.load(trained["checkpoint"]).net
         arr = arrays(manoeuvre, net.window)
-        expected = rmse(predict_grid(net, arr, net.window), arr["z"], arr["mask"])[0]
+        expected = rmse(predict_grid(net, arr, net.window), arr.z, arr.mask)[0]
         res = observe(f"observer={trained['checkpoint']}", f"input={log_csv}", f"output={out}")
         valid = len(manoeuvre) - net.window + 1
     else:
         arr = arrays(manoeuvre)
-        expected = rmse(classical("ekf", arr, VEHICLE, NOISE), arr["z"])[0]
+        expected = rmse(classical("ekf", arr, VEHICLE, NOISE), arr.z)[0]
         res = observe("observer=ekf", f"input={log_csv}", f"output={out}")
         valid = len(manoeuvre)
     np.testing.assert_allclose(printed_rmse(res.stdout), expected, rtol=1e-5)

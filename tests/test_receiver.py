@@ -20,6 +20,7 @@ from lbo.sim.columns import RECEIVER
 from lbo.sim.logcheck import check_receiver
 from lbo.sim.logio import resample
 from lbo.sim.noise import Noise
+from lbo.sim.schema import Trajectories
 from lbo.sim.vehicle import Vehicle
 from lbo.simulate import simulate
 
@@ -286,10 +287,11 @@ def test_logs_scored_from_each_segments_first_fix():
     df = simulate(compose_cfg("simulate", ["manoeuvre=slalom", "fix_rate=5"]))[LOG].head(300)
     m = df[["x_m", "y_m", "psi_m"]].to_numpy(float)[None].repeat(2, 0)
     m[1, :25] = np.nan
-    arr = {"m": m, "u": df[["V", "delta"]].to_numpy(float)[None].repeat(2, 0),
-           "z": df[["x", "y", "psi"]].to_numpy(float)[None].repeat(2, 0),
-           "mask": np.ones((2, 300), bool), "file": np.array([0, 1]), "alpha": np.ones(2)}
-    arr["mask"] &= np.arange(300) >= classical.first_fixes(arr["m"])[:, None]
+    arr = Trajectories(z=df[["x", "y", "psi"]].to_numpy(float)[None].repeat(2, 0),
+                       u=df[["V", "delta"]].to_numpy(float)[None].repeat(2, 0), m=m,
+                       mask=np.arange(300) >= classical.first_fixes(m)[:, None],
+                       lengths=np.full(2, 300), traj=np.arange(2), alpha=np.ones(2),
+                       file=np.array([0, 1]))
     est = logscore.peer_estimates(arr, vehicle, noise)
     scores = logscore.table(est, arr, ["a.csv", "b.csv"])
     assert np.isfinite(scores[["rmse_x", "rmse_y", "rmse_psi", "nrmse"]].to_numpy()).all()

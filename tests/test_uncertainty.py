@@ -87,9 +87,9 @@ def test_grid(smoke_data):
 
 
 def _nees(name, arr):
-    est, cov = run_classical(name, arr["m"], arr["u"], VEHICLE, NOISE, alpha=arr["alpha"],
+    est, cov = run_classical(name, arr.m, arr.u, VEHICLE, NOISE, alpha=arr.alpha,
                              return_cov=True)
-    return nees_table(name, est, cov, arr["z"], arr["mask"], arr["alpha"]).set_index("alpha")
+    return nees_table(name, est, cov, arr.z, arr.mask, arr.alpha).set_index("alpha")
 
 
 @pytest.mark.parametrize("name", ["oracle", "adaptive"])
@@ -115,28 +115,27 @@ def test_the_ukf_covariance_is_near_the_ekfs(test_grid):
 
 
 def _rmse(est, arr):
-    e = est - arr["z"]
+    e = est - arr.z
     e[..., 2] = wrap_angle(e[..., 2])
-    return np.sqrt((e[arr["mask"]] ** 2).mean(0))
+    return np.sqrt((e[arr.mask] ** 2).mean(0))
 
 
 @pytest.mark.parametrize("name", ["ekf", "oracle", "adaptive", "ukf"])
 def test_smoothing_beats_filtering_and_narrows_the_covariance(test_grid, name):
     arr = test_grid
-    kw = {"alpha": arr["alpha"], "return_cov": True, "lengths": arr["lengths"]}
-    filt, P_f = run_classical(name, arr["m"], arr["u"], VEHICLE, NOISE, **kw)
-    smooth, P_s = run_classical(name, arr["m"], arr["u"], VEHICLE, NOISE, smooth=True, **kw)
-    noisy = arr["alpha"] >= 1
+    kw = {"alpha": arr.alpha, "return_cov": True, "lengths": arr.lengths}
+    filt, P_f = run_classical(name, arr.m, arr.u, VEHICLE, NOISE, **kw)
+    smooth, P_s = run_classical(name, arr.m, arr.u, VEHICLE, NOISE, smooth=True, **kw)
+    noisy = arr.alpha >= 1
     gain = 1 - _rmse(smooth[noisy], _sel(arr, noisy)) / _rmse(filt[noisy], _sel(arr, noisy))
     assert (gain[:2] > 0.1).all(), gain
-    ok = arr["mask"][noisy]
+    ok = arr.mask[noisy]
     assert (np.trace(P_s[noisy][ok], axis1=-2, axis2=-1)
             <= np.trace(P_f[noisy][ok], axis1=-2, axis2=-1) + 1e-12).all()
 
 
 def _sel(arr, which):
-    return {k: (v[which] if isinstance(v, np.ndarray) and len(v) == len(which) else v)
-            for k, v in arr.items()}
+    return arr.take(which)
 
 
 # ------------------------------------------------------------------- lbo.evaluate options

@@ -379,7 +379,7 @@ def _trajectory(folder: Path, run: dict[str, Any] | None, manoeuvre: str,
                 tracking_uri: str) -> dict[str, np.ndarray] | None:
     """Fig. 6 arrays: one manoeuvre at alpha=3 with the best CNN and the EKF."""
     from lbo.models.checkpoint import read_checkpoint, trained_conditions
-    from lbo.scoring.grid import classical, load_test, predict_grid, rows_of
+    from lbo.scoring.grid import classical, load_test, predict_grid
 
     if run is None:
         return None
@@ -387,17 +387,17 @@ def _trajectory(folder: Path, run: dict[str, Any] | None, manoeuvre: str,
     if manoeuvre not in names:
         manoeuvre = names[0]
     arr = load_test(folder / "test.parquet")
-    pick = np.flatnonzero(np.isclose(arr["alpha"], 3.0) & (arr["traj"] == names.index(manoeuvre)))
+    pick = np.flatnonzero(np.isclose(arr.alpha, 3.0) & (arr.traj == names.index(manoeuvre)))
     if pick.size == 0:
         return None
-    sub = rows_of(arr, pick)
+    sub = arr.take(pick)
     ckpt = run_artifact(run, "checkpoints/best.ckpt", tracking_uri)
     net, hp = read_checkpoint(ckpt)
     vehicle, noise = trained_conditions(hp, ckpt)
     learned = predict_grid(net, sub, hp["window"])[0]
     ekf = classical("ekf", sub, vehicle, noise)[0]
-    keep = sub["mask"][0]
-    return {"truth": sub["z"][0][keep, :2], "meas": sub["m"][0][keep, :2],
+    keep = sub.mask[0]
+    return {"truth": sub.z[0][keep, :2], "meas": sub.m[0][keep, :2],
             "title": f"{manoeuvre.replace('_', ' ')}, alpha = 3",
             run["name"]: learned[keep, :2], "EKF": ekf[keep, :2]}
 

@@ -100,8 +100,8 @@ class Evaluation(L.Callback):
                     device: str) -> None:
         """The test grid of a generated data set, per alpha level."""
         arr = load_test(folder / "test.parquet")
-        print(f"evaluating {name} on the test grid: {len(np.unique(arr['alpha']))} noise "
-              f"levels, {len(arr['alpha'])} trajectories, beside the classical observers ...",
+        print(f"evaluating {name} on the test grid: {len(np.unique(arr.alpha))} noise "
+              f"levels, {len(arr.alpha)} trajectories, beside the classical observers ...",
               flush=True)
         ref = reference(arr, vehicle, noise, self.reference)
         est = predict(net, arr, self.batch_size, device=device)

@@ -24,6 +24,7 @@ from lbo.scoring.metrics import PAPER_REFERENCE, SCORE_COLUMNS, pooled_rmse, sco
 from lbo.sim import schema
 from lbo.sim.columns import SCORED_SET
 from lbo.sim.noise import Noise
+from lbo.sim.schema import Trajectories
 from lbo.sim.truth import Truth
 from lbo.sim.vehicle import Vehicle
 
@@ -34,25 +35,15 @@ Q_GRID = ((0.1, 0.3, 1.0, 3.0), (0.3, 1.0, 3.0, 10.0, 30.0))
 """Factors on the noise preset's process sigmas (position, heading) that ``oracle_tuned`` tries."""
 
 
-def load_test(path: str | Path) -> dict[str, np.ndarray]:
-    """Read a test set (Parquet with the evaluation schema) into padded arrays.
-
-    Returns the dict of :func:`lbo.sim.schema.to_arrays`: ``z, m`` (G, T, 3), ``u`` (G, T, 2),
-    ``mask`` (G, T) scored steps, ``alpha`` (G,), with G = trajectories x alpha levels.
-    Steps without a position fix (``x_m, y_m, psi_m`` all empty) are NaN rows of ``m``.
-    """
+def load_test(path: str | Path) -> Trajectories:
+    """Read a test set (Parquet with the evaluation schema) into padded arrays
+    (:class:`~lbo.sim.schema.Trajectories`: ``z, m`` (G, T, 3), ``u`` (G, T, 2), ``mask``
+    (G, T) scored steps, ``alpha`` (G,), with G = trajectories x alpha levels). Steps without
+    a position fix (``x_m, y_m, psi_m`` all empty) are NaN rows of ``m``."""
     return schema.to_arrays(schema.read_set(path, SCORED_SET, missing_fixes=True))
 
 
-def rows_of(arr: dict[str, np.ndarray], pick: np.ndarray) -> dict[str, np.ndarray]:
-    """The trajectories ``pick`` (a (G,) mask or indices) of the padded arrays: every per-
-    trajectory array cut to them, anything else kept as it is."""
-    g = len(arr["alpha"])
-    return {k: v[pick] if isinstance(v, np.ndarray) and v.shape[:1] == (g,) else v
-            for k, v in arr.items()}
-
-
-def classical(name: str, arr: dict[str, np.ndarray], vehicle: Vehicle, noise: Noise,
+def classical(name: str, arr: Trajectories, vehicle: Vehicle, noise: Noise,
               progress: bool = False, seed: int = 0, truth: Truth | None = None) -> np.ndarray:
     """Estimates (G, T, 3) of classical observer ``name`` (:mod:`lbo.filters.classical`) on the
     padded test arrays; the oracles are told each trajectory's alpha (``oracle_dynamic`` also the
@@ -65,10 +56,10 @@ def classical(name: str, arr: dict[str, np.ndarray], vehicle: Vehicle, noise: No
         if truth is not None and truth.car is not None:
             raise LboError("pcrb: the bound is the kinematic bicycle's; it bounds nothing on a "
                            "car that slips (truth=dynamic)")
-        R = measurement_cov("oracle", noise, arr["alpha"], len(arr["alpha"]))
+        R = measurement_cov("oracle", noise, arr.alpha, len(arr.alpha))
         scale = 1.0 if truth is None else truth.process_scale
-        return np.sqrt(pcrb(arr["z"], arr["u"], vehicle, scale**2 * noise.Q, R, rng=seed))
-    return run_classical(name, arr["m"], arr["u"], vehicle, noise, alpha=arr["alpha"],
+        return np.sqrt(pcrb(arr.z, arr.u, vehicle, scale**2 * noise.Q, R, rng=seed))
+    return run_classical(name, arr.m, arr.u, vehicle, noise, alpha=arr.alpha,
                          progress=progress, truth=truth)
 
 
@@ -81,41 +72,41 @@ def check_observers(names: Sequence[str], field: str = "observers") -> None:
                            f"expected names from {list(known)}")
 
 
-def reference(arr: dict[str, np.ndarray], vehicle: Vehicle, noise: Noise,
+def reference(arr: Trajectories, vehicle: Vehicle, noise: Noise,
               mode: str = "ekf") -> np.ndarray:
     """E_ref (3,) for the NRMSE: our EKF's RMSE at alpha=1 (``ekf``) or the paper's constants."""
     if mode == "paper":
         return np.asarray(PAPER_REFERENCE)
     if mode != "ekf":
         raise LboError(f"metric.reference must be one of {list(REFERENCES)}, got {mode!r}")
-    at1 = np.isclose(arr["alpha"], 1.0)
+    at1 = np.isclose(arr.alpha, 1.0)
     if not at1.any():
         raise LboError("metric.reference=ekf needs alpha=1 in the test grid; "
                        "use metric.reference=paper")
-    sub = rows_of(arr, at1)
-    est = run_classical("ekf", sub["m"], sub["u"], vehicle, noise)
-    return pooled_rmse(est, sub["z"], sub["mask"])
+    sub = arr.take(at1)
+    est = run_classical("ekf", sub.m, sub.u, vehicle, noise)
+    return pooled_rmse(est, sub.z, sub.mask)
 
 
-def score(observer: str, est: np.ndarray, arr: dict[str, np.ndarray],
+def score(observer: str, est: np.ndarray, arr: Trajectories,
           ref: np.ndarray) -> pd.DataFrame:
     """Rows ``observer, alpha, rmse_x, rmse_y, rmse_psi, nrmse`` of estimates (G, T, 3).
 
-    Steps outside ``arr["mask"]`` are ignored and may hold NaN.
+    Steps outside ``arr.mask`` are ignored and may hold NaN.
     """
-    return score_table(observer, est, arr["z"], arr["mask"], arr["alpha"], ref)
+    return score_table(observer, est, arr.z, arr.mask, arr.alpha, ref)
 
 
-def bound_table(std: np.ndarray, arr: dict[str, np.ndarray], ref: np.ndarray) -> pd.DataFrame:
+def bound_table(std: np.ndarray, arr: Trajectories, ref: np.ndarray) -> pd.DataFrame:
     """PCRB rows: the root of the mean bound variance over the scored points of each level.
 
     Scoring ``truth + std`` as an estimate gives exactly that, since its squared error at
     each step is the bound's variance.
     """
-    return score("pcrb", arr["z"] + std, arr, ref)
+    return score("pcrb", arr.z + std, arr, ref)
 
 
-def classical_table(arr: dict[str, np.ndarray], vehicle: Vehicle, noise: Noise,
+def classical_table(arr: Trajectories, vehicle: Vehicle, noise: Noise,
                     observers: Sequence[str] = NAMES, ref: np.ndarray | None = None,
                     progress: bool = False, seed: int = 0,
                     truth: Truth | None = None,
@@ -137,7 +128,7 @@ def classical_table(arr: dict[str, np.ndarray], vehicle: Vehicle, noise: Noise,
     return pd.concat(tables, ignore_index=True)[list(SCORE_COLUMNS)]
 
 
-def tuned_oracle(arr: dict[str, np.ndarray], vehicle: Vehicle, noise: Noise,
+def tuned_oracle(arr: Trajectories, vehicle: Vehicle, noise: Noise,
                  ref: np.ndarray) -> tuple[np.ndarray, pd.DataFrame]:
     """The kinematic EKF told each level's alpha, its Q tuned per level on the scored points.
 
@@ -146,19 +137,19 @@ def tuned_oracle(arr: dict[str, np.ndarray], vehicle: Vehicle, noise: Noise,
     Returns the winners' estimates (G, T, 3) and a table ``alpha, position, heading`` of the
     factors chosen.
     """
-    R = measurement_cov("oracle", noise, arr["alpha"], len(arr["alpha"]))
+    R = measurement_cov("oracle", noise, arr.alpha, len(arr.alpha))
     sigma = np.asarray(noise.process_sigma)
-    best_est = np.full_like(arr["m"], np.nan)
+    best_est = np.full_like(arr.m, np.nan)
     best = {}  # alpha -> (nrmse, position factor, heading factor)
     for fp in Q_GRID[0]:
         for fh in Q_GRID[1]:
             Q = np.diag(np.square(sigma * [fp, fp, fh]))
-            est = ekf_batch(arr["m"], arr["u"], vehicle, Q, R)
+            est = ekf_batch(arr.m, arr.u, vehicle, Q, R)
             for a, nrmse in score(TUNED, est, arr, ref)[["alpha", "nrmse"]].itertuples(
                     index=False):
                 if a not in best or nrmse < best[a][0]:
                     best[a] = (nrmse, fp, fh)
-                    rows = np.isclose(arr["alpha"], a)
+                    rows = np.isclose(arr.alpha, a)
                     best_est[rows] = est[rows]
     chosen = pd.DataFrame([(a, fp, fh) for a, (_, fp, fh) in sorted(best.items())],
                           columns=["alpha", "position", "heading"])
@@ -210,7 +201,7 @@ def summary(table: pd.DataFrame, observer: str, alphas: Sequence[float] = (1.0, 
     return "\n".join(lines)
 
 
-def calibration(covariant: dict[str, tuple[np.ndarray, np.ndarray]], arr: dict[str, np.ndarray],
+def calibration(covariant: dict[str, tuple[np.ndarray, np.ndarray]], arr: Trajectories,
                 out: Path) -> pd.DataFrame:
     """NEES per alpha of every observer that gives a covariance
     (:func:`lbo.scoring.metrics.nees_table`); writes ``nees.csv`` and ``nees.png`` to ``out``
@@ -218,7 +209,7 @@ def calibration(covariant: dict[str, tuple[np.ndarray, np.ndarray]], arr: dict[s
     from lbo.core import plots
     from lbo.scoring.metrics import nees_table
 
-    table = pd.concat([nees_table(name, est, cov, arr["z"], arr["mask"], arr["alpha"])
+    table = pd.concat([nees_table(name, est, cov, arr.z, arr.mask, arr.alpha)
                        for name, (est, cov) in covariant.items()], ignore_index=True)
     with atomic_path(out / "nees.csv") as tmp:
         table.to_csv(tmp, index=False)
@@ -249,20 +240,20 @@ def learned_nets(sources: Sequence[str]) -> dict:
     return nets
 
 
-def predict_recursive(net, arr: dict[str, np.ndarray], device: str = "cpu",
+def predict_recursive(net, arr: Trajectories, device: str = "cpu",
                       smooth: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """A window filter (an WindowNet of ``filternet``) in its recursive form over every
     trajectory of the padded test arrays, all at once: (G, T, 3) estimates and (G, T, 3, 3)
     covariances, NaN outside the scored steps (``smooth``: the RTS smoother's)."""
     from lbo.models.recursive import run_arrays
 
-    est, cov = run_arrays(net.net, arr["m"], arr["u"], smooth, arr["lengths"], device)
-    est[~arr["mask"]] = np.nan
-    cov[~arr["mask"]] = np.nan
+    est, cov = run_arrays(net.net, arr.m, arr.u, smooth, arr.lengths, device)
+    est[~arr.mask] = np.nan
+    cov[~arr.mask] = np.nan
     return est, cov
 
 
-def predict(net, arr: dict[str, np.ndarray], batch_size: int = 8192,
+def predict(net, arr: Trajectories, batch_size: int = 8192,
             device: str = "cpu") -> np.ndarray:
     """A learned observer's estimates (G, T, 3) on the padded test arrays, in the form
     :class:`lbo.Observer` runs it by default (:func:`lbo.serve.runners.default_form`)."""
@@ -273,7 +264,7 @@ def predict(net, arr: dict[str, np.ndarray], batch_size: int = 8192,
     return predict_grid(net, arr, net.window, batch_size, device)
 
 
-def predict_grid(net, arr: dict[str, np.ndarray], window: int, batch_size: int = 8192,
+def predict_grid(net, arr: Trajectories, window: int, batch_size: int = 8192,
                  device: str = "cpu") -> np.ndarray:
     """Run a learned observer on every scored step of the padded test arrays.
 
@@ -290,12 +281,12 @@ def predict_grid(net, arr: dict[str, np.ndarray], window: int, batch_size: int =
 
     from lbo.models.features import window_view
 
-    g, t = arr["mask"].shape
-    if window - 1 > int(np.argmax(arr["mask"], axis=1).min()):
+    g, t = arr.mask.shape
+    if window - 1 > int(np.argmax(arr.mask, axis=1).min()):
         raise LboError(f"window={window} is longer than the test set's run-in")
-    series = torch.from_numpy(np.concatenate([arr["m"], arr["u"]], axis=-1))  # (G, T, 5)
+    series = torch.from_numpy(np.concatenate([arr.m, arr.u], axis=-1))  # (G, T, 5)
     windows = window_view(series, window)  # (G, T-N+1, N, 5) view
-    gi, ti = np.nonzero(arr["mask"])
+    gi, ti = np.nonzero(arr.mask)
     est = np.full((g, t, 3), np.nan)
     net = net.to(device).eval()
     with torch.inference_mode():

@@ -13,6 +13,7 @@ noise level the reference measures in each file, which no observer is told.
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -20,11 +21,11 @@ import pandas as pd
 
 from lbo.core.errors import LboError
 from lbo.filters.classical import LOG_PEERS, first_fixes
-from lbo.scoring.grid import rows_of
 from lbo.scoring.metrics import nrmse, pooled_rmse
 from lbo.sim import schema
 from lbo.sim.columns import SCORED_SET
 from lbo.sim.noise import Noise
+from lbo.sim.schema import Trajectories
 from lbo.sim.vehicle import Vehicle
 
 ALL = "all"
@@ -33,21 +34,20 @@ NOTE = ("on logs the noise level is unknown, so there is no oracle EKF: the peer
         "normalised by the EKF on the same test files")
 
 
-def load(folder: str | Path) -> dict[str, np.ndarray]:
+def load(folder: str | Path) -> Trajectories:
     """The test logs of a ``data=logs`` folder as padded arrays (:func:`lbo.sim.schema.to_arrays`)
-    plus ``file`` (G,), the index of each segment's log; each is scored from its first fix on
+    with ``file`` (G,), the index of each segment's log; each is scored from its first fix on
     (a log may start between fixes), and segments with nothing to score (shorter than
     ``data.run_in``) are left out."""
     df = schema.read_set(Path(folder) / "test.parquet", SCORED_SET, missing_fixes=True)
     arr = schema.to_arrays(df)
-    arr["file"] = df.groupby("traj")["file"].first().loc[arr["traj"]].to_numpy()
     # a segment may start between fixes: every observer is scored from its first fix on
-    arr["mask"] = arr["mask"] & (np.arange(arr["m"].shape[1]) >= first_fixes(arr["m"])[:, None])
-    keep = arr["mask"].any(axis=1)
-    return rows_of(arr, keep)
+    arr = replace(arr, file=df.groupby("traj")["file"].first().loc[arr.traj].to_numpy(),
+                  mask=arr.mask & (np.arange(arr.m.shape[1]) >= first_fixes(arr.m)[:, None]))
+    return arr.take(arr.mask.any(axis=1))
 
 
-def peer_estimates(arr: Mapping[str, np.ndarray], vehicle: Vehicle, noise: Noise,
+def peer_estimates(arr: Trajectories, vehicle: Vehicle, noise: Noise,
                    peers: Sequence[str] = LOG_PEERS) -> dict[str, np.ndarray]:
     """Estimates (G, T, 3) of each classical peer on the test arrays, never told alpha."""
     from lbo.filters.classical import estimate
@@ -56,10 +56,10 @@ def peer_estimates(arr: Mapping[str, np.ndarray], vehicle: Vehicle, noise: Noise
         if name not in LOG_PEERS:
             raise LboError(f"observers: {name!r} cannot score logs ({NOTE}); expected names "
                            f"from {list(LOG_PEERS)}")
-    return {name: estimate(name, arr["m"], arr["u"], vehicle, noise) for name in peers}
+    return {name: estimate(name, arr.m, arr.u, vehicle, noise) for name in peers}
 
 
-def table(estimates: Mapping[str, np.ndarray], arr: Mapping[str, np.ndarray],
+def table(estimates: Mapping[str, np.ndarray], arr: Trajectories,
           files: Sequence[str]) -> pd.DataFrame:
     """Rows ``observer, file, alpha, rmse_x, rmse_y, rmse_psi, nrmse, ratio_to_<peer>...``.
 
@@ -67,15 +67,15 @@ def table(estimates: Mapping[str, np.ndarray], arr: Mapping[str, np.ndarray],
     ----------
     estimates : observer name -> (G, T, 3) estimates; must hold ``ekf``, the reference.
     arr : the test arrays of :func:`load`.
-    files : the test logs' names, indexed by ``arr["file"]``.
+    files : the test logs' names, indexed by ``arr.file``.
     """
     if "ekf" not in estimates:
         raise LboError("scoring logs needs the EKF's estimates: the NRMSE is normalised by it")
-    z, mask = arr["z"], arr["mask"]
+    z, mask = arr.z, arr.mask
     groups = [(ALL, np.ones(len(z), bool))] + [
-        (str(f), arr["file"] == i) for i, f in enumerate(files) if (arr["file"] == i).any()]
-    levels = {str(f): float(arr["alpha"][arr["file"] == i][0])
-              for i, f in enumerate(files) if (arr["file"] == i).any()}
+        (str(f), arr.file == i) for i, f in enumerate(files) if (arr.file == i).any()]
+    levels = {str(f): float(arr.alpha[arr.file == i][0])
+              for i, f in enumerate(files) if (arr.file == i).any()}
     ref = pooled_rmse(estimates["ekf"], z, mask)
     rows = []
     for name, est in estimates.items():

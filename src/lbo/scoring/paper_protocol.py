@@ -14,10 +14,10 @@ import pandas as pd
 
 from lbo.core.errors import LboError
 from lbo.filters.kalman import ekf_batch
-from lbo.scoring.grid import rows_of
 from lbo.scoring.metrics import nrmse, pooled_rmse
 from lbo.scoring.report import PAPER_RMSE, VARIABLES, crossover
 from lbo.sim.noise import Noise
+from lbo.sim.schema import Trajectories
 from lbo.sim.vehicle import Vehicle
 
 EKF_FIT_GRID = ((1.0, 1.5, 2.0, 2.5, 3.0), (1.0, 1.5, 2.0, 3.0))
@@ -44,14 +44,14 @@ def scaled_q(noise: Noise, position: float, heading: float) -> np.ndarray:
     return np.diag(sigma**2)
 
 
-def run_scaled_ekf(arr: dict[str, np.ndarray], vehicle: Vehicle, noise: Noise,
+def run_scaled_ekf(arr: Trajectories, vehicle: Vehicle, noise: Noise,
                    position: float, heading: float) -> np.ndarray:
     """Estimates (G, T, 3) of the EKF with R at alpha = 1 and Q scaled (:func:`scaled_q`)."""
     R = np.diag(np.square(noise.meas(1.0)))
-    return ekf_batch(arr["m"], arr["u"], vehicle, scaled_q(noise, position, heading), R)
+    return ekf_batch(arr.m, arr.u, vehicle, scaled_q(noise, position, heading), R)
 
 
-def fit_paper_ekf(arr: dict[str, np.ndarray], vehicle: Vehicle, noise: Noise,
+def fit_paper_ekf(arr: Trajectories, vehicle: Vehicle, noise: Noise,
                   grid: Sequence[Sequence[float]] = EKF_FIT_GRID,
                   target: np.ndarray | None = None) -> pd.DataFrame:
     """Score the EKF at every (position, heading) factor of ``grid`` at alpha 1 and 6.
@@ -67,16 +67,16 @@ def fit_paper_ekf(arr: dict[str, np.ndarray], vehicle: Vehicle, noise: Noise,
     ``{x,y,psi}_{1,6}`` (psi in mrad), the growth ``growth_{x,y,psi}`` (RMSE at 6 over 1) and
     ``deviation``, the largest ``|ours / paper - 1|`` over the six numbers.
     """
-    sets = {a: rows_of(arr, np.isclose(arr["alpha"], a)) for a in ALPHAS}
+    sets = {a: arr.take(np.isclose(arr.alpha, a)) for a in ALPHAS}
     for a, s in sets.items():
-        if not len(s["alpha"]):
+        if not len(s.alpha):
             raise LboError(f"the paper's EKF is fitted at alpha 1 and 6; the test set has no "
                            f"trajectory at alpha = {a:g}")
     paper = paper_rmse("ekf") if target is None else np.asarray(target, dtype=float)
     rows = []
     for position, heading in itertools.product(*grid):
         got = np.array([pooled_rmse(run_scaled_ekf(s, vehicle, noise, position, heading),
-                                    s["z"], s["mask"]) for s in sets.values()])
+                                    s.z, s.mask) for s in sets.values()])
         row = {"q_position": position, "q_heading": heading}
         for i, a in enumerate(ALPHAS):
             for j, (var, _, scale) in enumerate(VARIABLES):

@@ -9,6 +9,7 @@ from __future__ import annotations
 import hashlib
 import json
 import re
+from dataclasses import dataclass, fields
 from pathlib import Path
 
 import numpy as np
@@ -107,14 +108,37 @@ def frame(traj: np.ndarray, k: np.ndarray, dt: float, z: np.ndarray, u: np.ndarr
     return pd.DataFrame(cols)
 
 
-def to_arrays(df: pd.DataFrame) -> dict[str, np.ndarray]:
-    """Split a schema frame (sorted by traj, k) into padded per-trajectory arrays.
+@dataclass(frozen=True)
+class Trajectories:
+    """A schema frame's trajectories as padded arrays (:func:`to_arrays`): G trajectories of
+    up to T steps, the shorter padded by repeating their last row, so that filters can run
+    over the padding harmlessly."""
 
-    Returns ``z`` (G, T, 3), ``u`` (G, T, 2), ``m`` (G, T, 3), ``mask`` (G, T) marking real
-    rows (and scored ones where the frame has ``scored``), ``lengths`` (G,), ``traj`` (G,)
-    and ``alpha`` (G,) where the frame has it. Shorter trajectories are padded by repeating
-    their last row, so filters can run over the padding harmlessly.
-    """
+    z: np.ndarray
+    """(G, T, 3) the truth ``x, y, psi``."""
+    u: np.ndarray
+    """(G, T, 2) the inputs ``V, delta``."""
+    m: np.ndarray
+    """(G, T, 3) the measurements ``x_m, y_m, psi_m`` (NaN: no fix at that step)."""
+    mask: np.ndarray
+    """(G, T) bool: the real rows (and the scored ones, where the frame has ``scored``)."""
+    lengths: np.ndarray
+    """(G,) each trajectory's number of real rows."""
+    traj: np.ndarray
+    """(G,) each trajectory's ``traj`` id."""
+    alpha: np.ndarray | None = None
+    """(G,) each trajectory's noise scale, where the frame has ``alpha``."""
+    file: np.ndarray | None = None
+    """(G,) each trajectory's index in its set's list of log files, for a user's logs."""
+
+    def take(self, pick: np.ndarray) -> Trajectories:
+        """The trajectories ``pick`` (a (G,) mask or indices)."""
+        return Trajectories(**{f.name: None if (v := getattr(self, f.name)) is None else v[pick]
+                               for f in fields(self)})
+
+
+def to_arrays(df: pd.DataFrame) -> Trajectories:
+    """Split a schema frame (sorted by traj, k) into padded per-trajectory arrays."""
     keys = ["traj", "alpha"] if "alpha" in df.columns else ["traj"]
     df = df.sort_values(keys + ["k"], kind="stable")
     group = df.groupby(keys, sort=False).ngroup().to_numpy()
@@ -126,17 +150,11 @@ def to_arrays(df: pd.DataFrame) -> dict[str, np.ndarray]:
     idx = np.minimum(np.arange(t_max)[None, :], (lengths - 1)[:, None]) + starts[:, None]
     real = np.zeros((g, t_max), bool)
     real[group, pos] = True
-    out = {
-        "z": df[list(STATE)].to_numpy()[idx],
-        "u": df[list(INPUT)].to_numpy()[idx],
-        "m": df[list(MEAS)].to_numpy()[idx],
-        "lengths": lengths,
-        "traj": df["traj"].to_numpy()[starts],
-        "mask": real & (df["scored"].to_numpy()[idx] if "scored" in df.columns else True),
-    }
-    if "alpha" in df.columns:
-        out["alpha"] = df["alpha"].to_numpy()[starts]
-    return out
+    return Trajectories(
+        z=df[list(STATE)].to_numpy()[idx], u=df[list(INPUT)].to_numpy()[idx],
+        m=df[list(MEAS)].to_numpy()[idx], lengths=lengths, traj=df["traj"].to_numpy()[starts],
+        mask=real & (df["scored"].to_numpy()[idx] if "scored" in df.columns else True),
+        alpha=df["alpha"].to_numpy()[starts] if "alpha" in df.columns else None)
 
 
 _CACHE_NAME = re.compile(r".+-[0-9a-f]{12}")
