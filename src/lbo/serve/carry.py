@@ -1,4 +1,4 @@
-"""A receiver net's window form through a stop: its own earlier estimate carried in as the
+"""The window filter's window form through a stop: its own earlier estimate carried in as the
 window's first fix.
 
 A single antenna tells the heading only while the car moves (the course over ground), so the
@@ -10,8 +10,9 @@ gets, in its first row, the observer's own estimate at that row as a course over
 sigma :data:`CARRIED_SIGMA_PSI`), and that estimate's position as its fix where the row holds
 none of its own (with the accuracy the receiver reports for the window's latest fix, or the
 net's own R where it reports none). The window filter then starts there and holds the
-carried heading through the stop, as a filter carried from step to step would; the CNN and
-the LSTM read it as a course.
+carried heading through the stop, as a filter carried from step to step would. Only the
+window filter carries (:class:`lbo.serve.runners.WindowRunner`): a CNN or an LSTM reads a
+carried course as any course, which it was not trained for, and gives none there.
 
 Each such estimate depends on one made N-1 steps earlier, so a log's blind windows are
 estimated in blocks of N-1 (:func:`run_blind`); a window whose first row has no estimate (a
@@ -27,10 +28,9 @@ import numpy as np
 from lbo.filters.measure import CHANNELS
 
 CARRIED_SIGMA_PSI = 0.05
-"""1-sigma (rad) of a carried heading, read as a course: the filter holds no other heading
-in such a window, so it sets how far the carried estimate is trusted against nothing but
-itself (its heading comes out as it went in), and the CNN and the LSTM read it as one of the
-courses they were trained on (0.01-0.2 rad)."""
+"""1-sigma (rad) of a carried heading, read as a course (within the 0.01-0.2 rad of the
+courses a receiver gives): the filter holds no other heading in such a window, so its heading
+comes out as it went in whatever this is; it weighs only the heading's pull on the position."""
 _X, _Y, _SX, _SY = (CHANNELS.index(c) for c in ("x_m", "y_m", "sx_m", "sy_m"))
 _COURSE, _SCOURSE = CHANNELS.index("course"), CHANNELS.index("s_course")
 
