@@ -77,6 +77,23 @@ def test_return_cov_and_start():
     assert np.all(np.linalg.eigvalsh(P) > 0)
 
 
+def test_with_their_covariances_the_filters_give_a_typed_posterior():
+    """Every classical observer's ``return_cov=True`` is a Posterior (mean, cov), started at
+    the first row or at the first fix (a log whose first rows hold none)."""
+    from lbo.filters.classical import estimate
+    from lbo.filters.stepper import Posterior
+
+    z, u, m = make_batch(2, 50, 1.0, seed=3)
+    late = m.copy()
+    late[:, :5] = np.nan
+    for name in ("ekf", "ukf", "adaptive", "oracle"):
+        for rows in (m, late):
+            post = estimate(name, rows, u, VEHICLE, NOISE, return_cov=True)
+            assert isinstance(post, Posterior), name
+            assert post.mean.shape == (2, 50, 3) and post.cov.shape == (2, 50, 3, 3)
+            np.testing.assert_array_equal(post.mean, estimate(name, rows, u, VEHICLE, NOISE))
+
+
 def test_heading_branch_does_not_matter():
     """Wrapped and continuous heading measurements give the same (wrapped) estimates."""
     z, u, m = make_batch(3, 300, 1.0, seed=4)

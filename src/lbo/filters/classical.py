@@ -40,7 +40,7 @@ from lbo.core.errors import LboError
 from lbo.filters import measure
 from lbo.filters.gyro import GyroNoise, gyro_ekf_batch
 from lbo.filters.kalman import adaptive_ekf_batch, ekf_batch
-from lbo.filters.stepper import run_stepper
+from lbo.filters.stepper import Posterior, run_stepper
 from lbo.filters.unscented import UKF_SPREAD, ukf_batch
 from lbo.sim.noise import Noise
 from lbo.sim.truth import Truth
@@ -110,7 +110,7 @@ def estimate(name: str, m: np.ndarray, u: np.ndarray, vehicle: Vehicle, noise: N
         alpha: float | np.ndarray = 1.0, progress: bool = False,
         truth: Truth | None = None, return_cov: bool = False, smooth: bool = False,
         lengths: np.ndarray | None = None, gyro: GyroNoise | None = None
-        ) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
+        ) -> np.ndarray | Posterior:
     """Estimates (G, T, 3) of observer ``name`` over G trajectories, and with ``return_cov``
     their covariances (G, T, 3, 3) (the filter's P of the pose). ``smooth``: the RTS
     smoother's estimates after the filter (:mod:`lbo.filters.smoother`; not for ``oracle_dynamic``),
@@ -178,7 +178,7 @@ def first_fixes(m: np.ndarray) -> np.ndarray:
 def _from_first_fixes(name: str, m: np.ndarray, u: np.ndarray, vehicle: Vehicle,
                       noise: Noise, alpha: float | np.ndarray, progress: bool,
                       return_cov: bool, smooth: bool, lengths: np.ndarray | None,
-                      gyro: GyroNoise | None) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
+                      gyro: GyroNoise | None) -> np.ndarray | Posterior:
     """:func:`estimate` of trajectories that start between fixes (a log cut anywhere): each
     is shifted to start at its first fix, filtered with the others in one batch, and shifted
     back; the rows before it (and a trajectory without any fix) are NaN."""
@@ -201,7 +201,7 @@ def _from_first_fixes(name: str, m: np.ndarray, u: np.ndarray, vehicle: Vehicle,
     gi, ki = np.nonzero(ok)
     est[gi, ki] = out[0][gi, back[gi, ki]]
     cov[gi, ki] = out[1][gi, back[gi, ki]]
-    return (est, cov) if return_cov else est
+    return Posterior(est, cov) if return_cov else est
 
 
 def stepper(name: str, m0: np.ndarray, vehicle: Vehicle, noise: Noise,
@@ -227,7 +227,7 @@ def stepper(name: str, m0: np.ndarray, vehicle: Vehicle, noise: Noise,
 
 def _oracle_dynamic(m: np.ndarray, u: np.ndarray, vehicle: Vehicle, noise: Noise,
                     alpha: float | np.ndarray, truth: Truth | None, return_cov: bool = False
-                    ) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
+                    ) -> np.ndarray | Posterior:
     from lbo.filters.dynamic_ekf import dynamic_ekf_batch
 
     if truth is None or truth.car is None:

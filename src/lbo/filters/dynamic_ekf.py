@@ -44,7 +44,7 @@ from lbo.core.checks import number
 from lbo.core.errors import LboError
 from lbo.filters import measure
 from lbo.filters.start import COV_FLOOR, batch_cov, check_q, check_trajectories
-from lbo.filters.stepper import run_stepper
+from lbo.filters.stepper import Posterior, run_stepper
 from lbo.filters.update import held_channels, joseph_update
 from lbo.sim import dynamic
 from lbo.sim.dynamic import SingleTrack
@@ -301,7 +301,7 @@ def dynamic_ekf_batch(m: np.ndarray, u: np.ndarray, vehicle: Vehicle, car: Singl
                       Q: np.ndarray, R: np.ndarray, gnss_sigma: np.ndarray | float = 0.0,
                       gnss_tau: float = 30.0, steering_offset: float = 0.0,
                       speed_scale: float = 0.0, return_cov: bool = False
-                      ) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
+                      ) -> np.ndarray | Posterior:
     """The dynamic oracle: :class:`DynamicStepper` over G trajectories (loop over time only).
 
     Parameters

@@ -28,7 +28,7 @@ from lbo.filters.start import (
     check_trajectories,
     start_state,
 )
-from lbo.filters.stepper import run_stepper
+from lbo.filters.stepper import Posterior, run_stepper
 from lbo.filters.update import held_channels, joseph_update
 from lbo.sim.vehicle import Vehicle, jacobian, step
 
@@ -223,7 +223,7 @@ def _ekf_loop(m: np.ndarray, u: np.ndarray, vehicle: Vehicle, Q: np.ndarray, R: 
 
 def ekf_batch(m: np.ndarray, u: np.ndarray, vehicle: Vehicle, Q: np.ndarray, R: np.ndarray,
               return_cov: bool = False, smooth: bool = False,
-              lengths: np.ndarray | None = None) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
+              lengths: np.ndarray | None = None) -> np.ndarray | Posterior:
     """The EKF of :class:`lbo.filters.reference.BicycleEKF`, vectorised over G trajectories
     (a loop over time only).
 
@@ -262,7 +262,7 @@ def adaptive_ekf_batch(m: np.ndarray, u: np.ndarray, vehicle: Vehicle, Q: np.nda
                        r_floor: float = 1e-4,
                        return_cov: bool = False, smooth: bool = False,
                        lengths: np.ndarray | None = None
-                       ) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
+                       ) -> np.ndarray | Posterior:
     """Noise-adaptive EKF: learns a diagonal R online from its innovations (Sage-Husa).
 
     It is never told alpha. At each step the innovation ``y = wrap(m_k - x_k^-)`` gives a

@@ -24,21 +24,33 @@ the same numbers. docs/plugins.md states the contract for a user's own observer.
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 from tqdm.auto import tqdm
 
 
+class Posterior(NamedTuple):
+    """A batch filter's estimates with their covariances, as ``return_cov=True`` gives them
+    (it unpacks as ``mean, cov``)."""
+
+    mean: np.ndarray
+    """(G, T, 3) the pose estimates ``[x, y, psi]``."""
+    cov: np.ndarray
+    """(G, T, 3, 3) their covariances: the filter's P of the pose (m^2, m rad, rad^2)."""
+
+
 def run_stepper(kf, m: np.ndarray, u: np.ndarray, return_cov: bool = False,
                 pose: Callable[[Any], np.ndarray] = lambda kf: kf.x,
                 cov: Callable[[Any], np.ndarray] = lambda kf: kf.P, smooth: bool = False,
-                progress: str | None = None, lengths: np.ndarray | None = None):
+                progress: str | None = None, lengths: np.ndarray | None = None
+                ) -> np.ndarray | Posterior:
     """The time loop of a batch filter: a stepper ``kf`` started at ``m[:, 0]``, updated with
     every later step. ``pose(kf)`` (G, 3) and ``cov(kf)`` (G, 3, 3) read its estimate and
-    covariance. Returns (G, T, 3) estimates, and (G, T, 3, 3) covariances with
-    ``return_cov``. With ``smooth`` (a stepper that records ``prior`` and ``cross``, of three
-    states), the estimates and covariances are the RTS smoother's (:mod:`lbo.filters.smoother`).
+    covariance. Returns (G, T, 3) estimates, or with ``return_cov`` a :class:`Posterior` of
+    them and their (G, T, 3, 3) covariances. With ``smooth`` (a stepper that records
+    ``prior`` and ``cross``, of three states), the estimates and covariances are the RTS
+    smoother's (:mod:`lbo.filters.smoother`).
     ``progress``: show a tqdm bar over the time steps with this name; ``lengths`` (G,): the
     real steps of padded trajectories, which the smoother does not smooth across."""
     from lbo.filters.smoother import rts
@@ -79,4 +91,4 @@ def run_stepper(kf, m: np.ndarray, u: np.ndarray, return_cov: bool = False,
     bar.close()
     if smooth:
         est, covs = rts(est, covs, x_p, P_p, cross, lengths=lengths)
-    return (est, covs) if return_cov else est
+    return Posterior(est, covs) if return_cov else est

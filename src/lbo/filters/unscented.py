@@ -19,7 +19,7 @@ from lbo.filters.start import (
     floor_diag,
     start_state,
 )
-from lbo.filters.stepper import run_stepper
+from lbo.filters.stepper import Posterior, run_stepper
 from lbo.filters.update import joseph_update
 from lbo.sim.vehicle import Vehicle, step
 
@@ -125,7 +125,7 @@ class UnscentedStepper:
 def ukf_batch(m: np.ndarray, u: np.ndarray, vehicle: Vehicle, Q: np.ndarray, R: np.ndarray,
               spread: float = UKF_SPREAD, progress: bool = False, return_cov: bool = False,
               smooth: bool = False, lengths: np.ndarray | None = None
-              ) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
+              ) -> np.ndarray | Posterior:
     """:func:`lbo.filters.reference.ukf` vectorised over G trajectories (a loop over time
     only, of :class:`UnscentedStepper`): the numbers of
     :func:`lbo.filters.reference.ukf_filterpy_batch` to rounding.
