@@ -126,15 +126,14 @@ class Trajectories:
     """(G,) each trajectory's number of real rows."""
     traj: np.ndarray
     """(G,) each trajectory's ``traj`` id."""
-    alpha: np.ndarray | None = None
-    """(G,) each trajectory's noise scale, where the frame has ``alpha``."""
-    file: np.ndarray | None = None
-    """(G,) each trajectory's index in its set's list of log files, for a user's logs."""
+    alpha: np.ndarray
+    """(G,) each trajectory's noise scale (NaN where the frame has no ``alpha``)."""
+    file: np.ndarray
+    """(G,) each trajectory's index in its set's list of log files (-1: not a user's log)."""
 
     def take(self, pick: np.ndarray) -> Trajectories:
         """The trajectories ``pick`` (a (G,) mask or indices)."""
-        return Trajectories(**{f.name: None if (v := getattr(self, f.name)) is None else v[pick]
-                               for f in fields(self)})
+        return Trajectories(**{f.name: getattr(self, f.name)[pick] for f in fields(self)})
 
 
 def to_arrays(df: pd.DataFrame) -> Trajectories:
@@ -154,7 +153,8 @@ def to_arrays(df: pd.DataFrame) -> Trajectories:
         z=df[list(STATE)].to_numpy()[idx], u=df[list(INPUT)].to_numpy()[idx],
         m=df[list(MEAS)].to_numpy()[idx], lengths=lengths, traj=df["traj"].to_numpy()[starts],
         mask=real & (df["scored"].to_numpy()[idx] if "scored" in df.columns else True),
-        alpha=df["alpha"].to_numpy()[starts] if "alpha" in df.columns else None)
+        alpha=df["alpha"].to_numpy(float)[starts] if "alpha" in df.columns else np.full(g, np.nan),
+        file=np.full(g, -1))
 
 
 _CACHE_NAME = re.compile(r".+-[0-9a-f]{12}")
