@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from helpers import compose_cfg
+from helpers import compose_cfg, step_log
 from lbo.models.net import WindowNet
 from lbo.serve import carry
 from lbo.serve.observer import Observer
@@ -58,11 +58,6 @@ def _blind(obs: Observer, m: np.ndarray, u: np.ndarray, r: np.ndarray, n: int
     return first, blind, still
 
 
-def _stepped(obs: Observer, m: np.ndarray, u: np.ndarray, r: np.ndarray) -> list:
-    obs.reset()
-    return [obs.step(m[k] if np.isfinite(m[k, 0]) else None, u[k], r[k]) for k in range(len(m))]
-
-
 def test_through_a_stop_the_window_filter_holds_the_heading_the_car_stopped_with():
     m, u, r = _stop()
     n = 20
@@ -74,7 +69,8 @@ def test_through_a_stop_the_window_filter_holds_the_heading_the_car_stopped_with
     assert valid[first:].all() and np.isfinite(est[first:]).all()
     k = np.flatnonzero(blind & still)  # a standing car does not turn
     np.testing.assert_allclose(est[k, 2], est[k - n + 1, 2], rtol=0, atol=1e-9)
-    stepped = _stepped(obs, m, u, r)
+    obs.reset()
+    stepped = step_log(obs, m, u, r)
     np.testing.assert_allclose(np.array([s.state for s in stepped])[first:], est[first:],
                                rtol=0, atol=1e-9)
     assert [s.valid for s in stepped] == list(valid)
@@ -89,7 +85,8 @@ def test_a_cnn_gives_none_where_its_window_holds_no_heading_and_names_the_filter
     first, blind, _ = _blind(obs, m, u, r, n)
     assert not valid[blind].any() and np.isnan(est[blind]).all()
     assert valid[max(first, n - 1):][~blind[max(first, n - 1):]].all()
-    said = _stepped(obs, m, u, r)
+    obs.reset()
+    said = step_log(obs, m, u, r)
     k = int(np.flatnonzero(blind)[0])
     assert said[k].reason == (
         "no heading in the last 20 steps (0.4 s): cnn-N20 reads the heading from its window's "

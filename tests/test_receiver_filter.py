@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 import torch
 
-from helpers import compose_cfg, train_in_own_store
+from helpers import compose_cfg, step_log, train_in_own_store
 from lbo.core.errors import LboError
 from lbo.models import receiver_window as rw
 from lbo.models.filternet import WindowFilter
@@ -207,7 +207,6 @@ def test_experiment_receiver_trains_a_window_filter_that_runs_in_both_forms(tmp_
         assert np.sqrt(np.mean((est[first:, :2] - z[first:]) ** 2)) < 5.0, form
         obs.reset()  # streamed, the same numbers
         r = receiver(log)
-        said = [obs.step(m[k] if np.isfinite(m[k, 0]) else None, u[k], r[k]).state
-                for k in range(first + 80)]
+        said = [s.state for s in step_log(obs, m, u, r, first + 80)]
         np.testing.assert_allclose(np.array(said)[first:], est[first:first + 80], rtol=0,
                                    atol=1e-6, err_msg=form)

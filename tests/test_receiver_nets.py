@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 import torch
 
-from helpers import compose_cfg, train_in_own_store
+from helpers import compose_cfg, step_log, train_in_own_store
 from lbo.core.errors import LboError
 from lbo.learn.builders import noise_settings
 from lbo.learn.draws import ReceiverDraw, draw_fixes
@@ -212,8 +212,7 @@ def test_a_receiver_net_steps_and_runs_a_single_antenna_log_alike_on_every_engin
     assert obs.takes_receiver and obs.reads_gyro
     est, valid = obs.run(m, u, receiver=r)
     assert valid[59:].all() and not valid[:59].any()
-    stepped = np.array([obs.step(m[k] if np.isfinite(m[k, 0]) else None, u[k], r[k]).state
-                        for k in range(len(m))])
+    stepped = np.array([s.state for s in step_log(obs, m, u, r)])
     np.testing.assert_allclose(stepped[59:], est[59:], atol=1e-5)
     for engine in ("torchscript", "onnx"):
         other, _ = Observer.from_net(net, engine=engine).run(m, u, receiver=r)
@@ -224,8 +223,7 @@ def test_a_receiver_net_steps_and_runs_a_single_antenna_log_alike_on_every_engin
     none, valid = obs.run(m, u, receiver=r_still)
     assert not valid.any() and np.isnan(none[59:]).all()
     obs.reset()
-    said = [obs.step(m[k] if np.isfinite(m[k, 0]) else None, u[k], r_still[k])
-            for k in range(61)]
+    said = step_log(obs, m, u, r_still, 61)
     assert said[60].reason.startswith("no heading in the last 60 steps (1.2 s): cnn-N60 reads")
     # without the gyro (a log that has none) it still runs, and reads a different window
     r_blind = r.copy()

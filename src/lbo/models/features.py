@@ -97,6 +97,14 @@ def window_view(series: Array, n: int) -> Array:
     return np.lib.stride_tricks.sliding_window_view(series, n, axis=axis).swapaxes(-1, -2)
 
 
+def held_within(held: np.ndarray, n: int) -> np.ndarray:
+    """(T,) bool: whether each row's window of the last ``n`` rows (fewer at the start) holds
+    a True of ``held`` (T,) bool, by a running count (not T x n)."""
+    count = np.concatenate([[0], np.cumsum(held)])
+    k = np.arange(1, len(held) + 1)
+    return count[k] - count[np.maximum(k - n, 0)] > 0
+
+
 def check_mode(mode: str) -> str:
     """Return ``mode`` if it is one of :data:`FEATURE_MODES`, else raise :class:`LboError`."""
     if mode not in FEATURE_MODES:

@@ -20,6 +20,7 @@ import pandas as pd
 from lbo.core.errors import LboError
 from lbo.filters import classical, measure
 from lbo.filters.gyro import GyroNoise, gyro_ekf_batch
+from lbo.models.features import held_within
 from lbo.scoring.metrics import rmse
 from lbo.sim.columns import STATE
 from lbo.sim.logio import receiver
@@ -49,11 +50,16 @@ MOVING_S = 8.0
 """s: a row is *moving* (:func:`moving_rows`) when its last 8 s hold a course over ground."""
 
 
+def _course(log: pd.DataFrame) -> np.ndarray:
+    """(T,) the course over ground of a log's receiver velocity (NaN where it is none)."""
+    r = receiver(log)
+    return measure.course_over_ground(r[:, 3], r[:, 4], r[:, 5], log["V"].to_numpy(float))[0]
+
+
 def scored_rows(log: pd.DataFrame) -> np.ndarray:
     """(T,) bool: the rows from the log's first course over ground on, where a single-antenna
     observer can know the heading (a car standing since the log began cannot)."""
-    r = receiver(log)
-    course, _ = measure.course_over_ground(r[:, 3], r[:, 4], r[:, 5], log["V"].to_numpy(float))
+    course = _course(log)
     if not np.isfinite(course).any():
         raise LboError("the log never moves fast enough for a course over ground: a single "
                        "antenna tells no heading there")
@@ -108,7 +114,7 @@ def score(log: pd.DataFrame, observers: Sequence[str], vehicle: Vehicle, noise: 
     u = log[["V", "delta"]].to_numpy(dtype=float)
     z = log[list(STATE)].to_numpy(dtype=float)
     r = receiver(log)
-    course, _ = measure.course_over_ground(r[:, 3], r[:, 4], r[:, 5], u[:, 0])
+    course = _course(log)
     scored = scored_rows(log)  # every estimator alike, from the first course over ground
     fix = np.isfinite(m[:, :2]).all(1) & scored
     position = rmse(np.column_stack([m[:, :2], z[:, 2]]), z, fix)  # its psi error is 0
@@ -159,12 +165,7 @@ def moving_rows(log: pd.DataFrame, dt: float, seconds: float = MOVING_S) -> np.n
     """(T,) bool: the rows whose last ``seconds`` (period ``dt`` s) hold a course over
     ground: the car moves, or stopped less than that long ago. The rest are stops, where a
     single antenna tells nothing of the heading and every observer holds the one it had."""
-    r = receiver(log)
-    course, _ = measure.course_over_ground(r[:, 3], r[:, 4], r[:, 5], log["V"].to_numpy(float))
-    n = max(int(round(seconds / dt)), 1)
-    count = np.concatenate([[0], np.cumsum(np.isfinite(course))])
-    k = np.arange(len(log))
-    return count[k + 1] - count[np.maximum(k + 1 - n, 0)] > 0
+    return held_within(np.isfinite(_course(log)), max(int(round(seconds / dt)), 1))
 
 
 def ratio_on_same_rows(table: pd.DataFrame, estimates: Mapping[str, np.ndarray],

@@ -26,7 +26,7 @@ from lbo.core.angles import wrap_angle
 from lbo.core.errors import LboError
 from lbo.filters import classical, measure
 from lbo.filters.gyro import GyroNoise
-from lbo.models.features import window_view
+from lbo.models.features import held_within, window_view
 from lbo.serve import carry, refusals
 from lbo.serve.engines import make_predictor, make_recursive_step
 from lbo.sim.columns import RECEIVER
@@ -370,9 +370,7 @@ class WindowRunner:
                 chunk = np.ascontiguousarray(windows[s:s + batch_size])
                 est[head + s:head + s + len(chunk)] = self.predict(chunk)
             if self.reads_receiver:  # no heading in the window: the one carried (take())
-                # rows holding a heading in each window, by a running count (not T x N)
-                count = np.concatenate([[0], np.cumsum(self._heading_rows(series))])
-                blind = np.flatnonzero(count[n:] - count[:-n] == 0)
+                blind = np.flatnonzero(~held_within(self._heading_rows(series), n)[n - 1:])
                 est[head + blind] = np.nan
                 if self.carries:
                     carry.run_blind(windows, blind, head, est, self.predict)
