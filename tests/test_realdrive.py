@@ -135,7 +135,8 @@ def test_realdrive_writes_the_spans_and_scores_every_classical_observer(tmp_path
     assert learned_run.returncode == 0, learned_run.stderr
     assert ("receiver: sx_m, sy_m, ve_m, vn_m, sv_m taken (reported accuracy as R, velocity "
             "as course over ground); r_m not read by ukf (observer=gyro reads it, and a "
-            "net trained with experiment=receiver)") in obs.stdout
+            "net trained with experiment=receiver, the window filter with model.gyro=true)") \
+        in obs.stdout
 
 
 @pytest.mark.slow

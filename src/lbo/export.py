@@ -179,7 +179,9 @@ def _step_sidecar(rec: Any, model: bytes) -> dict[str, Any]:
                                     "over ground (lbo.filters.measure.course_over_ground)",
                         "missing_fix": "every channel NaN" if rec.fixes else
                         "not allowed: a full fix at every step, the other channels NaN"},
-                  "u": {"shape": ["batch", 2], "columns": ["V", "delta"]},
+                  "u": {"shape": ["batch", len(rec.inputs)], "columns": list(rec.inputs),
+                        **({"r_m": "the gyro's last reading (rad/s), NaN before the first"}
+                           if rec.gyro else {})},
                   "dtype": "float64",
                   "state": "the state tensors below, as the last call returned them"},
         "output": {"pose": {"shape": ["batch", 3], "columns": ["x", "y", "psi"],

@@ -227,7 +227,8 @@ def observe(cfg: DictConfig) -> dict[str, Any]:
               + ("taken (reported accuracy as R, velocity as course over ground)"
                  if obs.takes_receiver else f"not read: {no_receiver(obs.name)}")
               + (f"; r_m not read by {name} (observer=gyro reads it, and a net trained "
-                 "with experiment=receiver)" if idle else ""))
+                 "with experiment=receiver, the window filter with model.gyro=true)"
+                 if idle else ""))
     if obs.kind == "learned":
         asked = (vehicle, noise.process_sigma, noise.measurement_sigma)
         if asked != (obs.vehicle, obs.noise.process_sigma, obs.noise.measurement_sigma):

@@ -20,7 +20,10 @@ With a receiver's features (``in_features=15``, :data:`lbo.models.receiver_windo
 each row updates with the channels it holds (:func:`lbo.models.update.masked_update`): a
 position fix with or without a heading, the course over ground where it has no heading, and
 the receiver's reported accuracies as the R of those channels in place of the noise model's;
-the noise statistic counts full fixes only, as the recursive form's does.
+the noise statistic counts full fixes only, as the recursive form's does. With ``gyro``, the
+heading turns with a gyro's yaw rate ``r_m`` where the window holds one (the last reading
+held), less a bias that is a fourth state, as the classical gyro EKF's does
+(:mod:`lbo.filters.gyro`).
 
 Trained end to end through the filter on the MSE of the final estimate, over windows of
 alphas drawn from a wide range, it learns to be the EKF that alpha calls for."""
@@ -35,6 +38,7 @@ from torch import nn
 
 from lbo.core.checks import integer, number
 from lbo.core.errors import LboError
+from lbo.filters import gyro as gyro_model
 from lbo.models.motion import ProcessModel, bicycle_step, pose_jacobian
 from lbo.models.poses import wrap_heading
 from lbo.models.receiver_window import FEATURES
@@ -102,13 +106,18 @@ class WindowFilter(ProcessModel, nn.Module):
     body_lr : the single-track body's learning rate as a multiple of the optimiser's
         (:meth:`param_groups`): its seven constants each get a consistent gradient from every
         corner, and travel from the generic car to the one in the data in fewer steps.
+    gyro : turn the heading with a gyro's yaw rate less a bias (a fourth state) where a
+        receiver's window holds one (:meth:`_receiver_filter`); the gyro's white noise, the
+        bias's start and its walk are learned, from :mod:`lbo.filters.gyro`'s defaults.
+        Needs a receiver's features and the kinematic bicycle without a residual.
     """
 
     def __init__(self, window: int, dt: float = 0.02, wheelbase: float = 2.7,
                  process_sigma: Sequence[float] = (0.0667, 0.0667, 0.00113),
                  measurement_sigma: Sequence[float] = (1.0, 1.0, 0.0174),
                  hidden: int = 32, in_features: int = 5, residual: int = 0,
-                 drift: bool = False, body: str = "kinematic", body_lr: float = 1.0) -> None:
+                 drift: bool = False, body: str = "kinematic", body_lr: float = 1.0,
+                 gyro: bool = False) -> None:
         super().__init__()
         frame_model(self, window, in_features, dt, wheelbase, receiver=True)
         hidden = integer(hidden, "hidden", 1)
@@ -142,6 +151,28 @@ class WindowFilter(ProcessModel, nn.Module):
             else:
                 self.register_buffer(name, torch.tensor(value), persistent=False)
         self.build_process(residual, body, body_lr)
+        self._build_gyro(gyro)
+
+    def _build_gyro(self, gyro: bool) -> None:
+        """Register the gyro's learned noise (``gyro``), checked in one line: log 1-sigmas of
+        its white noise over a step (rad), of the bias at the window's start (rad/s) and of
+        the bias's walk over a step (rad/s); without a gyro, the same values ride along
+        unsaved, so TorchScript compiles either filter."""
+        if not isinstance(gyro, bool):
+            raise LboError(f"model.gyro: expected true or false, got {gyro!r}")
+        if gyro and not (self.receiver and self.residual == 0 and not self.single_track):
+            raise LboError("model.gyro: expected false unless the filter reads a receiver "
+                           f"(in_features={len(FEATURES)}) on the kinematic bicycle without a "
+                           f"residual, got True")
+        self.gyro = gyro
+        for name, value in (("log_gyro_sigma", math.log(gyro_model.GYRO_SIGMA * self.dt)),
+                            ("log_bias_sigma", math.log(gyro_model.BIAS_SIGMA)),
+                            ("log_bias_walk", math.log(gyro_model.BIAS_WALK
+                                                       * math.sqrt(self.dt)))):
+            if gyro:
+                self.register_parameter(name, nn.Parameter(torch.tensor(value)))
+            else:
+                self.register_buffer(name, torch.tensor(value), persistent=False)
 
     def _drift_filter(self, x: torch.Tensor, R: torch.Tensor, Q: torch.Tensor) -> torch.Tensor:
         """The window filter with two more states: a Gauss-Markov GNSS drift b on x and y,
@@ -279,26 +310,60 @@ class WindowFilter(ProcessModel, nn.Module):
                            -1)
         course_var = torch.where(x[:, :, 7] > 0, x[:, :, 7] ** 2, world[..., 2, 2])
         R = turn_xy(step_covariance(world, sigma, told, course_var, measured), c, -s)
-        Q = torch.exp(2 * (self.log_q0 + self.log_q_scale)) * eye
+        # four states [x, y, psi, b]: the gyro's bias b moves nothing where no gyro turns the
+        # heading (F's d psi / d b is 0 there), so a filter without one is the 3-state filter
+        q = torch.exp(2 * (self.log_q0 + self.log_q_scale))
+        gyro_var = torch.exp(2 * self.log_gyro_sigma)
+        walk_var = torch.exp(2 * self.log_bias_walk)
+        start_b = torch.exp(2 * self.log_bias_sigma) * torch.ones_like(r[:, :1, None])
+        H = torch.eye(4, dtype=x.dtype, device=x.device)[:3]
         start = position & held[..., 2]  # rows the filter can start at
-        z = torch.where(start[:, 0, None], meas[:, 0], torch.zeros_like(meas[:, 0]))
-        P = R[:, 0]
+        z, P = self._start_at(meas[:, 0], R[:, 0], start_b)
+        z = torch.where(start[:, 0, None], z, torch.zeros_like(z))
         started = start[:, 0]
         body = self.body_start(v[:, 0], delta[:, 0])
+        gyro_rows = x[:, :, 14] > 0.5 if self.gyro else torch.zeros_like(start)
+        reading = torch.zeros_like(v[:, 0])  # the gyro's last reading (rad/s)
+        seen = torch.zeros_like(started)  # whether the window held one yet
+        zero, one = torch.zeros_like(reading), torch.ones_like(reading)
         for k in range(1, n):
-            zp, f02, f12, body = self.predict_pose(z, v[:, k - 1], delta[:, k - 1], body)
-            F = pose_jacobian(f02, f12)
+            reading = torch.where(gyro_rows[:, k - 1], x[:, k - 1, 13], reading)
+            seen = seen | gyro_rows[:, k - 1]
+            zp, f02, f12, body = self.predict_pose(z[:, :3], v[:, k - 1], delta[:, k - 1], body)
+            # a car at rest does not turn: its heading holds whatever the gyro reads
+            turning = seen & (v[:, k - 1].abs() >= gyro_model.STILL_SPEED)
+            psi = torch.where(seen, z[:, 2] + torch.where(turning, reading - z[:, 3], zero)
+                              * self.dt, zp[:, 2])
+            zp = torch.stack([zp[:, 0], zp[:, 1], psi, z[:, 3]], -1)
+            f23 = torch.where(turning, -self.dt * one, zero)
+            F = torch.stack([torch.stack([one, zero, f02, zero], -1),
+                             torch.stack([zero, one, f12, zero], -1),
+                             torch.stack([zero, zero, one, f23], -1),
+                             torch.stack([zero, zero, zero, one], -1)], -2)
+            Q = torch.stack([q[0] * one, q[1] * one, torch.where(seen, gyro_var, q[2]),
+                             walk_var * one], -1)[:, :, None] * torch.eye(4, dtype=x.dtype,
+                                                                         device=x.device)
             Pp = F @ P @ F.transpose(1, 2) + Q
-            zu, Pu = masked_update(zp, Pp, wrap_heading(meas[:, k] - zp),
-                                   held[:, k].to(x.dtype), R[:, k], eye)
+            zu, Pu = masked_update(zp, Pp, wrap_heading(meas[:, k] - zp[:, :3]),
+                                   held[:, k].to(x.dtype), R[:, k], H)
             first = start[:, k] & ~started
             update = (held[:, k].any(-1) & started)[:, None]
-            z = torch.where(first[:, None], meas[:, k], torch.where(update, zu, zp))
-            P = torch.where(first[:, None, None], R[:, k],
-                            torch.where(update[..., None], Pu, Pp))
+            z0, P0 = self._start_at(meas[:, k], R[:, k], start_b)
+            z = torch.where(first[:, None], z0, torch.where(update, zu, zp))
+            P = torch.where(first[:, None, None], P0, torch.where(update[..., None], Pu, Pp))
             body = torch.where(first[:, None], self.body_start(v[:, k], delta[:, k]), body)
             started = started | first
-        return torch.where(started[:, None], wrap_heading(z), torch.zeros_like(z))
+        return torch.where(started[:, None], wrap_heading(z[:, :3]), torch.zeros_like(z[:, :3]))
+
+    @staticmethod
+    def _start_at(meas: torch.Tensor, R: torch.Tensor, var_b: torch.Tensor
+                  ) -> tuple[torch.Tensor, torch.Tensor]:
+        """The four-state filter started at a row: its measurement (B, 3) and no bias, (B, 4);
+        its R (B, 3, 3) and the bias's prior variance var_b (B, 1, 1), (B, 4, 4)."""
+        zeros = torch.zeros_like(R[:, :, :1])
+        P = torch.cat([torch.cat([R, zeros], 2), torch.cat([zeros.transpose(1, 2), var_b], 2)],
+                      1)
+        return torch.cat([meas, torch.zeros_like(meas[:, :1])], -1), P
 
     def forward(self, x: torch.Tensor, heading: torch.Tensor | None = None) -> torch.Tensor:
         """(B, N, 5|6|15) features -> (B, 3) state in the anchor's (current measurement's)

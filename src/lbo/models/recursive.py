@@ -35,6 +35,10 @@ The update then uses the channels the row holds (a masked Kalman update, exactly
 with those channels alone). The noise model's statistic counts full fixes only, as it was
 trained. Before the first row that holds a position and a heading the estimate is NaN. A
 paper row (``(B, 3)``) gives the same numbers as before to the last bit.
+
+A window filter trained with a gyro (``model.gyro``) takes a third input, the gyro's last
+reading ``r_m`` (NaN before the first), and carries the gyro's bias as a fourth state: the
+heading turns by the reading less the bias, as in its window form.
 """
 
 from __future__ import annotations
@@ -46,6 +50,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from lbo.filters import gyro as gyro_model
 from lbo.filters.kalman import coast_covariance
 from lbo.models.filternet import WindowFilter
 from lbo.models.motion import bicycle_step
@@ -85,8 +90,11 @@ class RecursiveFilter(nn.Module):
     ----------
     window_filter : its float64 copy of the window filter (the nets inside run in float32).
     window : N, the steps the noise statistic runs over.
-    n : filter states, 3 ``[x, y, psi]`` or 5 with the GNSS drift ``[b_x, b_y]``.
+    n : filter states, 3 ``[x, y, psi]``, 4 with the gyro's bias ``b`` or 5 with the GNSS
+        drift ``[b_x, b_y]``.
     fixes : whether steps without a fix are taken (the net has the ``fix`` channel).
+    inputs : the columns of u: ``V, delta``, and the gyro's last reading ``r_m`` (NaN: none
+        yet) for a filter trained with a gyro.
     """
 
     def __init__(self, net: WindowFilter) -> None:
@@ -98,7 +106,9 @@ class RecursiveFilter(nn.Module):
             setattr(self.window_filter, name, wrapped.eval())
         self.window = int(net.window)
         self.fixes = bool(net.fixes)
-        self.n = 5 if net.drift else 3
+        self.gyro = bool(net.gyro)
+        self.n = 5 if net.drift else 4 if self.gyro else 3
+        self.inputs = ("V", "delta", "r_m") if self.gyro else ("V", "delta")
         # slots of the statistic's ring: N-2 second differences, or N-1 fix residuals
         self.slots = self.window - 1 if self.fixes else self.window - 2
 
@@ -108,18 +118,20 @@ class RecursiveFilter(nn.Module):
         :data:`STATE_NAMES`:
 
         z (B, n), P (B, n, n), body (B, 2) the process model's carried ``[v_y, r]``
-        (:meth:`lbo.models.motion.ProcessModel.motion`), u_prev (B, 2) the last
-        input, last (B, 2, 3) the last two measurements, dead_reckoning (B, 3) the pose carried
-        from the last fix, gap (B,) steps since it, heading (B,) the last fix's measured
-        heading, ring (B, S, 6) the statistic's last S entries (:data:`ENTRY`: the squares and
-        cross product of the x and y parts, the square of the heading part, whether the entry
-        counts, and its gap), sums (B, 6) their sum, speeds (B, N) the last N speeds,
-        speed_sum (B,), k (1,) steps taken, started (B,) 1 once a fix was seen.
+        (:meth:`lbo.models.motion.ProcessModel.motion`), u_prev (B, I) the last
+        input (:attr:`inputs`), last (B, 2, 3) the last two measurements, dead_reckoning
+        (B, 3) the pose carried from the last fix, gap (B,) steps since it, heading (B,) the
+        last fix's measured heading, ring (B, S, 6) the statistic's last S entries
+        (:data:`ENTRY`: the squares and cross product of the x and y parts, the square of the
+        heading part, whether the entry counts, and its gap), sums (B, 6) their sum, speeds
+        (B, N) the last N speeds, speed_sum (B,), k (1,) steps taken, started (B,) 1 once a
+        fix was seen.
         """
         f = dict(dtype=torch.float64, device=device)
         b, n = batch, self.n
         return (torch.zeros(b, n, **f), torch.zeros(b, n, n, **f), torch.zeros(b, 2, **f),
-                torch.zeros(b, 2, **f), torch.zeros(b, 2, 3, **f), torch.zeros(b, 3, **f),
+                torch.zeros(b, len(self.inputs), **f), torch.zeros(b, 2, 3, **f),
+                torch.zeros(b, 3, **f),
                 torch.zeros(b, **f), torch.zeros(b, **f),
                 torch.zeros(b, self.slots, len(ENTRY), **f), torch.zeros(b, len(ENTRY), **f),
                 torch.zeros(b, self.window, **f), torch.zeros(b, **f), torch.zeros(1, **f),
@@ -245,12 +257,15 @@ class RecursiveFilter(nn.Module):
     def forward(self, m: torch.Tensor, u: torch.Tensor, *state: torch.Tensor
                 ) -> tuple[torch.Tensor, ...]:
         """One step: measurement m (B, 3) (a NaN row: no fix) or a receiver's row (B, 8)
-        (:data:`lbo.filters.measure.CHANNELS`), input u (B, 2) -> pose (B, 3) (psi wrapped),
+        (:data:`lbo.filters.measure.CHANNELS`), input u (B, 2) (or (B, 3) of :attr:`inputs`:
+        without ``r_m`` a gyro filter turns with the bicycle) -> pose (B, 3) (psi wrapped),
         its covariance (B, 3, 3), and the new state (:data:`STATE_NAMES`). Before the first
         row with a position and a heading the pose and its covariance are NaN."""
         (z, P, body, u_prev, last, dr, gap, heading, ring, sums, speeds, speed_sum, k,
          started) = state
         fo = self.window_filter
+        if u.shape[1] < len(self.inputs):  # no gyro: the bicycle turns the heading
+            u = torch.cat([u, u[:, :1] * 0.0 + math.nan], 1)
         if m.shape[1] == 3:  # the paper's row: no accuracy, no course
             m = torch.cat([m, (m[:, :1] * 0.0 + math.nan).repeat(1, 5)], 1)
         row, m = m, m[:, :3]
@@ -309,7 +324,18 @@ class RecursiveFilter(nn.Module):
         F[:, 0, 2], F[:, 1, 2] = f02, f12
         Qn = self._process_cov(heading, eye)
         H = eye[:3]
-        if self.n == 5:
+        if self.gyro:  # the heading turns by the gyro's reading less the bias, b a state
+            reading = u_prev[:, 2]
+            seen = reading == reading  # not NaN
+            turning = seen & (u_prev[:, 0].abs() >= gyro_model.STILL_SPEED)
+            psi = torch.where(seen, z[:, 2] + torch.where(turning, reading - z[:, 3], zero)
+                              * fo.dt, pose[:, 2])
+            F[:, 2, 3] = torch.where(turning, -fo.dt * one, zero)
+            Qn[:, 2, 2] = torch.where(seen, torch.exp(2 * fo.log_gyro_sigma) * one,
+                                      Qn[:, 2, 2])
+            Qn[:, 3, 3] = torch.exp(2 * fo.log_bias_walk) * one
+            z_pred = torch.stack([pose[:, 0], pose[:, 1], psi, z[:, 3]], -1)
+        elif self.n == 5:
             phi = torch.exp(-torch.exp(-fo.log_drift_tau))
             F[:, 3, 3], F[:, 4, 4] = phi * one, phi * one
             white = (R[:, 0, 0] * R[:, 1, 1] - R[:, 0, 1] ** 2) ** 0.25  # turn-free
@@ -333,6 +359,11 @@ class RecursiveFilter(nn.Module):
             white = (R[:, 0, 0] * R[:, 1, 1] - R[:, 0, 1] ** 2) ** 0.25  # turn-free
             start_P = fo._drift_start(R_start, (torch.exp(fo.log_drift_ratio) * white) ** 2,
                                       eye)
+        elif self.gyro:  # no bias known: its prior
+            start_z = torch.cat([meas, torch.zeros_like(meas[:, :1])], -1)
+            start_P = torch.zeros_like(P)
+            start_P[:, :3, :3] = R_start
+            start_P[:, 3, 3] = torch.exp(2 * fo.log_bias_sigma) * one
         else:
             start_z, start_P = meas, R_start
         # what the smoother needs: this step's prior and cov(x_{k-1|k-1}, x_{k|k-1}); none
@@ -356,7 +387,7 @@ class RecursiveFilter(nn.Module):
 
     def run(self, m: torch.Tensor, u: torch.Tensor, smooth: bool = False,
             lengths: np.ndarray | None = None) -> tuple[torch.Tensor, torch.Tensor]:
-        """Every step of G logs: m (G, T, 3) (NaN rows: no fix), u (G, T, 2) -> poses
+        """Every step of G logs: m (G, T, 3) (NaN rows: no fix), u (G, T, 2|3) -> poses
         (G, T, 3) and their covariances (G, T, 3, 3), the same numbers as T calls of
         :meth:`forward` from :meth:`initial_state`. ``smooth``: the RTS smoother's instead
         (:func:`lbo.filters.smoother.rts`), over the full filter state and the first

@@ -8,6 +8,7 @@ these, so neither imports the other's internals.
 from __future__ import annotations
 
 import io
+import math
 import warnings
 from collections.abc import Callable
 from pathlib import Path
@@ -137,13 +138,15 @@ def check_exported(net: Any, script: Any, session: Any, batch: int = 64) -> dict
 def _recursive_example(rec: Any) -> tuple:
     """One step's inputs of a :class:`~lbo.models.recursive.RecursiveFilter`: a fix as a
     receiver's row (1, 8) (:data:`lbo.filters.measure.CHANNELS`, no accuracy nor course), an
-    input, and the state of a filter that has seen nothing."""
+    input (1, I) of its :attr:`~lbo.models.recursive.RecursiveFilter.inputs`, and the state of
+    a filter that has seen nothing."""
     import torch
 
     from lbo.filters.measure import widen
 
     f = dict(dtype=torch.float64, device=next(rec.parameters()).device)
-    return (torch.tensor(widen([[100.0, -50.0, 0.5]]), **f), torch.tensor([[10.0, 0.02]], **f),
+    u = [10.0, 0.02, 0.007][:len(rec.inputs)]
+    return (torch.tensor(widen([[100.0, -50.0, 0.5]]), **f), torch.tensor([u], **f),
             *rec.initial_state(1, f["device"]))
 
 
@@ -160,7 +163,7 @@ def trace_recursive(rec: Any) -> Any:
 
 def recursive_onnx_bytes(rec: Any) -> bytes:
     """ONNX model of a recursive filter's step: inputs ``m`` (B, 8) (a receiver's row,
-    :data:`lbo.filters.measure.CHANNELS`; a paper row: NaN beyond ``psi_m``), ``u`` (B, 2) and the
+    :data:`lbo.filters.measure.CHANNELS`; a paper row: NaN beyond ``psi_m``), ``u`` (B, I) and the
     state tensors named as :data:`~lbo.models.recursive.STATE_NAMES`, outputs ``pose``
     (B, 3), ``cov`` (B, 3, 3) and ``next_<name>`` for each state tensor, all float64. A
     state tensor the model never reads (the yaw-rate memory of a filter without a learned
@@ -207,7 +210,8 @@ def check_recursive(rec: Any, script: Any, session: Any, steps: int = 300,
     """Largest |difference| of a recursive filter's TorchScript and ONNX step to PyTorch's, in
     pose and covariance, over ``steps`` steps of a noisy drive near (100 m, -50 m). For a
     filter that takes missing fixes, every other fix is missing, and the second half is a
-    single antenna's: no ``psi_m``, the fixes' reported accuracy and a course over ground."""
+    single antenna's: no ``psi_m``, the fixes' reported accuracy and a course over ground; a
+    gyro filter's gyro reads the turn, biased, from the first step."""
     import torch
 
     from lbo.filters.measure import widen
@@ -223,7 +227,8 @@ def check_recursive(rec: Any, script: Any, session: Any, steps: int = 300,
         m[half, 6] = 0.05 + 0.03 * rng.standard_normal(int(half.sum()))
         m[half, 7] = 0.03
         m[1::2] = np.nan
-    u = np.tile([10.0, 0.01], (steps, 1))
+    u = np.tile([10.0, 0.01, 10.0 * math.tan(0.01) / 2.7 + 0.004], (steps, 1))
+    u = u[:, :len(rec.inputs)]
     step = onnx_step(session)
     worst = {"torchscript": 0.0, "onnx": 0.0}
     states = {e: list(rec.initial_state(1)) for e in ("torch", "torchscript")}

@@ -161,8 +161,9 @@ class Observer:
     @property
     def reads_gyro(self) -> bool:
         """Whether a gyro's yaw rate ``r_m`` is read: by the gyro EKF, and by a window net
-        trained on a receiver's windows."""
-        return self.name == classical.GYRO or bool(getattr(self.net, "receiver", False))
+        trained on a receiver's windows (the window filter only with ``model.gyro``)."""
+        return self.name == classical.GYRO or (bool(getattr(self.net, "receiver", False))
+                                               and getattr(self.net.net, "gyro", True))
 
     @property
     def gives_covariance(self) -> bool:

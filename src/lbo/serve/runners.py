@@ -157,6 +157,14 @@ def receiver_rows(m: np.ndarray, u: np.ndarray, receiver: np.ndarray, wheelbase:
     return np.column_stack([bicycle_rows(m, u, receiver, wheelbase), r_m])
 
 
+def held_reading(rate: np.ndarray) -> np.ndarray:
+    """A gyro's readings (T,) (NaN: none in that row) held from each reading to the next: the
+    last reading at each row (T,), NaN before the first."""
+    held = np.isfinite(rate)
+    last = np.maximum.accumulate(np.where(held, np.arange(len(rate)), -1))
+    return np.where(last < 0, np.nan, rate[np.maximum(last, 0)])
+
+
 def window_series(rows: np.ndarray, u: np.ndarray) -> np.ndarray:
     """Window columns (T, 5) of paper rows (T, 3), or (T, 11) (``receiver_window.COLUMNS``)
     of a receiver net's rows (T, 9) (:func:`receiver_rows`), inputs u (T, 2) between."""
@@ -217,9 +225,9 @@ class ClassicalRunner:
                 raise LboError(f"{source + ': ' if source else ''}gyro needs a gyro's yaw "
                                "rate: a column r_m (rad/s, counter-clockwise); use ekf or ukf "
                                "for a log without one")
-            held = np.isfinite(rate)
-            last = np.maximum.accumulate(np.where(held, np.arange(len(rate)), -1))
-            u = np.column_stack([u[:, 0], rate[np.where(last < 0, np.argmax(held), last)]])
+            held = held_reading(rate)
+            u = np.column_stack([u[:, 0], np.where(np.isnan(held), held[np.isfinite(held)][0],
+                                                   held)])
         return (m if receiver is None else self.rows(m, u, receiver)), u
 
     def sample(self, k: int, m: np.ndarray, u: np.ndarray, receiver: Any
@@ -383,25 +391,44 @@ class RecursiveRunner:
     covariance; over a log, the same numbers, each stretch of rows without any measurement
     in one coast (:meth:`lbo.models.recursive.RecursiveFilter.coast`, where the filter
     coasts) and every other row through the engine's step (or, with ``smooth``, the RTS
-    smoother's estimates in PyTorch)."""
+    smoother's estimates in PyTorch). A filter trained with a gyro (``reads_receiver``) takes
+    inputs (T, 3) ``[V, delta, r_m]``, the gyro's last reading held (:meth:`log_rows`)."""
 
     first_valid = 0
-    reads_receiver = False
 
     def __init__(self, net: Any, vehicle: Vehicle, engine: str, device: str) -> None:
         self.net, self.vehicle, self.device = net, vehicle, device
         self.step, self.state0, self.coast = make_recursive_step(net, engine, device)
+        self.reads_receiver = bool(getattr(net.net, "gyro", False))
         self.reset()
+
+    def log_rows(self, m: np.ndarray, u: np.ndarray, receiver: np.ndarray | None,
+                 source: str | None) -> tuple[np.ndarray, np.ndarray]:
+        """A checked log's filters' rows (T, 8) (:func:`bicycle_rows`) and, for a gyro filter,
+        inputs (T, 3) ``[V, delta, r_m]``: the gyro's last reading (:func:`held_reading`),
+        NaN before the first (there the bicycle turns the heading)."""
+        if receiver is None:
+            receiver = np.full((len(m), len(RECEIVER)), np.nan)
+        rate = held_reading(receiver[:, RECEIVER.index("r_m")])
+        return (bicycle_rows(m, u, receiver, self.vehicle.wheelbase),
+                np.column_stack([u, rate]) if self.reads_receiver else u)
 
     def sample(self, k: int, m: np.ndarray, u: np.ndarray, receiver: Any
                ) -> tuple[np.ndarray, np.ndarray]:
         """Sample ``k``'s row (8,) of its checked measurement m (3,) and its receiver channels
-        (7,), checked as a log's row is, and its inputs u (2,) as they are."""
+        (7,), checked as a log's row is, and its inputs u (2,) as they are, or for a gyro
+        filter (3,) with the gyro's last reading (kept only once the sample passes)."""
         r = checked_receiver(k, m, receiver)
-        return bicycle_rows(m[None], u[None], r[None], self.vehicle.wheelbase)[0], u
+        row = bicycle_rows(m[None], u[None], r[None], self.vehicle.wheelbase)[0]
+        if not self.reads_receiver:
+            return row, u
+        rate = r[RECEIVER.index("r_m")]
+        self.gyro_last = float(rate) if np.isfinite(rate) else self.gyro_last
+        return row, np.array([u[0], u[1], self.gyro_last])
 
     def reset(self) -> None:
         self.state = [x.copy() for x in self.state0]
+        self.gyro_last = np.nan  # the gyro's last reading
 
     def take(self, k: int, m: np.ndarray, u: np.ndarray, fix: bool) -> Estimate:
         pose, cov, self.state = self.step(m[None], u[None], self.state)
