@@ -168,6 +168,71 @@ def test_a_gyro_filter_runs_a_single_antenna_log_alike_streamed_and_on_every_eng
     assert np.abs(plain[first:, 2] - est["torch"][first:, 2]).max() > 1e-4
 
 
+def test_rows_without_a_fix_coast_to_the_numbers_of_one_step_each():
+    """A log's run takes each stretch of rows without a fix or a course in one coast, the
+    gyro turning the heading through it: the poses and covariances of one step per row (a
+    stretch of 39 rows at N=30, in two chunks), on every engine."""
+    torch.manual_seed(0)
+    net = WindowNet("filternet", 30, "frame", fixes=True, receiver=True, gyro=True)
+    log = simulate(compose_cfg("simulate", ["manoeuvre=free_drive", "duration=4",
+                                            "receiver=single_antenna", "seed=3",
+                                            "receiver.position.rate=5"]))
+    m, u = log[["x_m", "y_m", "psi_m"]].to_numpy(float), log[["V", "delta"]].to_numpy(float)
+    r = receiver(log)
+    r[120:150, :2] = m[120:150] = np.nan  # a 30-row gap
+    r[120:150, 3:6] = np.nan
+    rec = RecursiveFilter(net.net)
+    assert rec.coasts
+    rows, u3 = Observer.from_net(net)._runner.log_rows(m, u, r, None)
+    with torch.no_grad():
+        est, cov = (t[0].numpy() for t in rec.run(torch.from_numpy(rows[None]),
+                                                   torch.from_numpy(u3[None])))
+    for engine in ("torch", "onnx"):
+        obs = Observer.from_net(net, form="recursive", engine=engine)
+        coasted, coast = [], obs._runner.coast
+        obs._runner.coast = (lambda u, state, seen=coasted, inner=coast:
+                             seen.append(len(u)) or inner(u, state))
+        got, valid, got_cov = obs.run(m, u, receiver=r, cov=True)
+        assert max(coasted) > rec.coast_limit and sum(coasted) > len(m) // 2
+        atol = 1e-12 if engine == "torch" else 1e-5
+        np.testing.assert_allclose(got, est, rtol=0, atol=atol, equal_nan=True)
+        np.testing.assert_allclose(got_cov, cov, rtol=0, atol=atol, equal_nan=True)
+
+
+def test_its_export_takes_the_gyros_reading_as_a_third_input(tmp_path):
+    """The exported step (ONNX), fed u (1, 3) ``[V, delta, r_m]`` as its JSON says, gives the
+    observer's estimates over a single-antenna log."""
+    import json
+
+    import onnxruntime as ort
+
+    from lbo.export import export
+
+    torch.manual_seed(0)
+    obs = Observer.from_net(WindowNet("filternet", 60, "frame", fixes=True, receiver=True,
+                                      gyro=True))
+    paths = export(obs, tmp_path, "gyro")
+    spec = json.loads(paths["json"].read_text())
+    assert spec["input"]["u"]["columns"] == ["V", "delta", "r_m"]
+    log = simulate(compose_cfg("simulate", ["manoeuvre=free_drive", "duration=2",
+                                            "receiver=single_antenna", "seed=2"]))
+    m, u = log[["x_m", "y_m", "psi_m"]].to_numpy(float), log[["V", "delta"]].to_numpy(float)
+    est = obs.run(m, u, receiver=receiver(log))[0]
+    rows, u3 = obs._runner.log_rows(m, u, receiver(log), None)
+    assert u3.shape == (len(m), 3)
+    session = ort.InferenceSession(str(paths["onnx"]), providers=["CPUExecutionProvider"])
+    state = {s["name"]: np.zeros([1 if d == "batch" else d for d in s["shape"]])
+             for s in spec["state"]}
+    inputs = {s["name"] for s in spec["state"] if s["onnx_input"]}
+    got = []
+    for k in range(len(m)):
+        out = session.run(None, {"m": rows[k:k + 1], "u": u3[k:k + 1],
+                                 **{n: v for n, v in state.items() if n in inputs}})
+        state = dict(zip(state, out[2:]))
+        got.append(out[0][0])
+    np.testing.assert_allclose(np.array(got), est, rtol=0, atol=1e-6)
+
+
 def test_a_car_at_rest_holds_its_heading_whatever_the_gyro_reads():
     """At rest the gyro reads its bias (and noise): the heading does not move."""
     win = _drive(n=30, stop=(0, 30))
@@ -193,6 +258,17 @@ def test_without_a_gyro_in_its_window_it_is_the_filter_without_one():
     x = torch.from_numpy(win)[None]
     with torch.no_grad():
         np.testing.assert_allclose(gyro(x).numpy(), plain(x).numpy(), rtol=0, atol=1e-12)
+
+
+def test_the_train_config_builds_it_and_refuses_it_without_a_receiver():
+    from lbo.learn.builders import build_net
+
+    base = ["experiment=receiver", "model=filternet", "window=40", "model.gyro=true"]
+    net = build_net(compose_cfg("train", base))
+    assert net.net.gyro and net.net.receiver and RecursiveFilter(net.net).n == 4
+    with pytest.raises(LboError, match=r"^model.gyro: expected false unless the filter reads "
+                                       r"a receiver"):
+        build_net(compose_cfg("train", ["experiment=robust", "window=40", "model.gyro=true"]))
 
 
 @pytest.mark.parametrize("kwargs", [dict(in_features=6), dict(in_features=15, residual=8),

@@ -79,6 +79,20 @@ class _Single(nn.Module):
         return self.net(x.float()).to(x.dtype)
 
 
+def _compose(F: torch.Tensor, Q: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The covariance after each of K prediction steps ``P <- F_j P F_j^T + Q_j`` (F, Q
+    (K, n, n)) as ``A_j P_0 A_j^T + B_j``: (A, B) (K, n, n), the steps' maps composed by an
+    inclusive scan (each of its log2 K rounds one batched product, no loop over the steps)."""
+    A, B = F, Q
+    shift = 1
+    while shift < len(F):  # each entry takes in the one ``shift`` before it: (A, B) after it
+        A_i, B_i = A[shift:], B[shift:]
+        A = torch.cat([A[:shift], A_i @ A[:-shift]])
+        B = torch.cat([B[:shift], A_i @ B[:-shift] @ A_i.transpose(1, 2) + B_i])
+        shift *= 2
+    return A, B
+
+
 class RecursiveFilter(nn.Module):
     """A trained :class:`WindowFilter`, stepped one sample at a time (float64).
 
@@ -194,10 +208,12 @@ class RecursiveFilter(nn.Module):
     @property
     def coasts(self) -> bool:
         """Whether :meth:`coast` takes this filter's rows without a measurement: the
-        kinematic bicycle without a learned correction, three states, trained with missing
-        fixes (the robust observer of ``experiment=robust``)."""
+        kinematic bicycle without a learned correction, trained with missing fixes, its
+        states the pose (the robust observer of ``experiment=robust``) or the pose and the
+        gyro's bias."""
         fo = self.window_filter
-        return self.n == 3 and self.fixes and not fo.single_track and fo.residual == 0
+        return (self.n == 3 or self.gyro) and self.fixes and not fo.single_track \
+            and fo.residual == 0
 
     @property
     def coast_limit(self) -> int:
@@ -206,7 +222,7 @@ class RecursiveFilter(nn.Module):
 
     def coast(self, u: torch.Tensor, *state: torch.Tensor) -> tuple[torch.Tensor, ...]:
         """K rows without any measurement at once (a prediction each), for one started
-        filter (B = 1, :attr:`coasts`): their inputs u (K, 2) -> poses (K, 3) (psi wrapped),
+        filter (B = 1, :attr:`coasts`): their inputs u (K, I) -> poses (K, 3) (psi wrapped),
         covariances (K, 3, 3) and the new state; the numbers of K calls of :meth:`forward`
         with NaN rows (to rounding: tested to 1e-12). A log's fixes come at 1 to 10 Hz and
         its inputs at 50 Hz, so most rows are such: each costs a few operations here, where
@@ -221,9 +237,17 @@ class RecursiveFilter(nn.Module):
         v, delta = before[:, 0], before[:, 1]
         along, across, rate, bodies = fo.motion(v, delta, body.expand(steps, 2))
         turn = rate * fo.dt
+        heading_turn, c = turn, torch.zeros_like(turn)  # the pose's turn, d psi / d b
+        if self.gyro:  # the gyro's last reading less the bias, none at rest (forward's)
+            reading = before[:, 2]
+            seen = reading == reading
+            turning = seen & (v.abs() >= gyro_model.STILL_SPEED)
+            heading_turn = torch.where(seen, torch.where(turning, reading - z[0, 3], 0.0)
+                                       * fo.dt, turn)
+            c = torch.where(turning, -fo.dt * torch.ones_like(v), torch.zeros_like(v))
 
-        def roll(start: torch.Tensor) -> tuple[torch.Tensor, ...]:
-            # the bicycle from ``start`` (1, 3): forward adds one step's increment at a time,
+        def roll(start: torch.Tensor, turn: torch.Tensor) -> tuple[torch.Tensor, ...]:
+            # the motion from ``start`` (1, 3): forward adds one step's increment at a time,
             # and a cumulative sum adds them in the same order
             psi = torch.cumsum(torch.cat([start[:, 2], turn]), 0)
             c, sn = torch.cos(psi[:-1]), torch.sin(psi[:-1])
@@ -232,13 +256,24 @@ class RecursiveFilter(nn.Module):
             y = torch.cumsum(torch.cat([start[:, 1], dy * fo.dt]), 0)
             return torch.stack([x[1:], y[1:], psi[1:]], -1), dx, dy
 
-        poses, dx, dy = roll(z)
-        dead = roll(dr)[0]
-        eye = torch.eye(3, dtype=z.dtype, device=z.device)
+        poses, dx, dy = roll(z, heading_turn)
+        dead = roll(dr, turn)[0]
+        eye = torch.eye(self.n, dtype=z.dtype, device=z.device)
         Q = self._process_cov(heading, eye)
-        # P's recursion with forward's Jacobians I + a_j e3^T, in the stepper's closed form
-        a = torch.stack([-dy * fo.dt, dx * fo.dt, torch.zeros_like(dx)], -1)[None]
-        covs = coast_covariance(P, Q, a)[0]
+        if self.gyro:
+            # forward's Jacobians I + a_j e3^T + c_j e3 e4^T and noises, composed by a scan
+            F = eye.repeat(steps, 1, 1)
+            F[:, 0, 2], F[:, 1, 2], F[:, 2, 3] = -dy * fo.dt, dx * fo.dt, c
+            Qs = Q.repeat(steps, 1, 1)
+            Qs[:, 2, 2] = torch.where(seen, torch.exp(2 * fo.log_gyro_sigma), Q[0, 2, 2])
+            Qs[:, 3, 3] = torch.exp(2 * fo.log_bias_walk)
+            A, B = _compose(F, Qs)
+            full = A @ P @ A.transpose(1, 2) + B
+            covs = 0.5 * (full + full.transpose(1, 2))
+            poses = torch.cat([poses, z[:, 3:].expand(steps, 1)], 1)
+        else:  # P's recursion with Jacobians I + a_j e3^T, in the stepper's closed form
+            a = torch.stack([-dy * fo.dt, dx * fo.dt, torch.zeros_like(dx)], -1)[None]
+            covs = coast_covariance(P, Q, a)[0]
         P = covs[-1:]
         # the statistic's ring and the speeds: each row writes its slot (an empty entry, its
         # speed) and drops what the slot held; the sums take them in forward's order
@@ -250,7 +285,8 @@ class RecursiveFilter(nn.Module):
         speed_sum = torch.cumsum(torch.cat([speed_sum, torch.stack(
             [speed, -speeds[0, speed_slots]], 1).reshape(-1)]), 0)[-1:]
         speeds = speeds.index_copy(1, speed_slots, speed[None])
-        return (wrap_heading(poses), covs, poses[-1:], P, bodies[-1:], u[-1:], last,
+        return (wrap_heading(poses[:, :3]), covs[:, :3, :3], poses[-1:], P, bodies[-1:], u[-1:],
+                last,
                 dead[-1:], gap + steps, heading, ring, sums, speeds, speed_sum, k + steps,
                 started)
 
