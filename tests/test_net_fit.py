@@ -98,6 +98,25 @@ def test_from_scratch_draws_new_parameters_and_the_train_windows_normalisation(l
     assert next(fresh.parameters()).dtype == torch.float32
 
 
+def test_from_scratch_a_window_filter_starts_as_its_constructor_draws_it(logs):
+    """Every parameter anew, the filter's own scalars (its process noise's scale, the gyro's
+    noises) included: none is the trained net's."""
+    def gyro_filter() -> WindowNet:
+        return WindowNet("filternet", N, "frame", True, receiver=True, gyro=True)
+
+    trained = gyro_filter()
+    with torch.no_grad():
+        for p in trained.parameters():  # as if trained
+            p.add_(0.5)
+    train, val = (net_fit.log_windows(p, N, 2.7) for p in (logs[:2], logs[2:]))
+    fresh = net_fit.fit(trained, train, val, epochs=0, lr=1e-3, seed=7, fresh=True).net
+    torch.manual_seed(7)
+    drawn = dict(gyro_filter().named_parameters())
+    assert {"net.log_q_scale", "net.log_gyro_sigma", "net.log_bias_walk"} <= set(drawn)
+    for name, p in fresh.named_parameters():
+        assert torch.equal(p, drawn[name]), name
+
+
 def test_what_cannot_be_trained_on_a_log_is_one_line(logs):
     windows = net_fit.log_windows(logs[:1], N, 2.7)
     paper = WindowNet("cnn", N, "frame", True)

@@ -136,9 +136,7 @@ def fit(net: Any, train: LogWindows, val: LogWindows, *, epochs: int, lr: float,
     if fresh:
         with torch.random.fork_rng():  # the caller's random stream is left as it was
             torch.manual_seed(seed)
-            for module in net.modules():
-                if module is not net and hasattr(module, "reset_parameters"):
-                    module.reset_parameters()
+            net.renew()  # every parameter, a window filter's own scalars included
         pick = torch.randperm(len(train), generator=g)[:20_000]
         net.set_normalisation(**net.statistics(*train.batch(pick)))
     opt = torch.optim.Adam(net.parameters(), lr=lr)

@@ -86,6 +86,7 @@ class WindowNet(nn.Module):
         channels = len(receiver_window.FEATURES) if self.receiver else 6 if self.fixes else 5
         if self.fixes or self.receiver:
             model_kwargs["in_features"] = channels
+        self._model_args = (model, int(window), dict(model_kwargs))  # for renew()
         try:
             self.net = build_model(model, window, **model_kwargs)
         except LboError as e:
@@ -108,6 +109,14 @@ class WindowNet(nn.Module):
         self.register_buffer("in_std", torch.ones(channels, dtype=torch.float64))
         self.register_buffer("out_mean", torch.zeros(3, dtype=torch.float64))
         self.register_buffer("out_std", torch.ones(3, dtype=torch.float64))
+
+    def renew(self) -> None:
+        """Draw its model anew, as its constructor draws it (from the global random state):
+        every parameter the model's own initialisation gives, its normalisation and anchor
+        motion kept (a net trained from scratch, :mod:`lbo.learn.net_fit`)."""
+        name, window, kwargs = self._model_args
+        device = self.in_mean.device
+        self.net = build_model(name, window, **kwargs).to(device)
 
     def set_normalisation(self, in_mean, in_std, out_mean, out_std) -> None:
         """Channel statistics of the training windows' features (5,), (6,) or (15,) and
