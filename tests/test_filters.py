@@ -223,3 +223,26 @@ def test_batched_ukf_gives_filterpy_numbers_on_the_smoke_grid(smoke_data):
         new = ukf_batch(arr.m, arr.u, VEHICLE, NOISE.Q, R)
         assert np.isfinite(new[arr.mask]).all()
         assert np.abs(new - ref)[arr.mask].max() <= 1e-9
+
+
+def test_compose_covariance_equals_the_steps_one_by_one():
+    """The scan's maps, applied to any P0, give the covariance of K sequential predictions
+    (K = 13: not a power of two), in NumPy and in torch."""
+    import torch
+
+    from lbo.filters.kalman import compose_covariance
+
+    rng = np.random.default_rng(4)
+    K, n = 13, 4
+    F = np.eye(n) + 0.1 * rng.standard_normal((K, n, n))
+    L = 0.1 * rng.standard_normal((K, n, n))
+    Q = L @ L.swapaxes(1, 2)
+    P0 = np.eye(n) + 0.05 * np.ones((n, n))
+    want, P = [], P0
+    for j in range(K):
+        P = F[j] @ P @ F[j].T + Q[j]
+        want.append(P)
+    for to in (np.asarray, torch.from_numpy):
+        A, B = compose_covariance(to(F), to(Q))
+        got = A @ to(P0) @ A.swapaxes(1, 2) + B
+        np.testing.assert_allclose(np.asarray(got), np.array(want), rtol=1e-12, atol=1e-14)

@@ -199,6 +199,23 @@ def coast_covariance(P0, Q, a):
     return 0.5 * (P + P.swapaxes(-1, -2))
 
 
+def compose_covariance(F, Q):
+    """The covariance after each of K prediction steps ``P <- F_j P F_j^T + Q_j`` (F, Q
+    (K, n, n)) as ``A_j P_0 A_j^T + B_j``: returns (A, B), each (K, n, n), the steps' maps
+    composed by an inclusive scan (log2 K rounds of one batched product each, no loop over
+    the steps), for Jacobians of any form (the gyro filter's coast,
+    :mod:`lbo.models.recursive`). NumPy arrays or torch tensors alike."""
+    A, B = F * 1, Q * 1  # copies
+    shift = 1
+    while shift < len(F):  # each entry takes in the one ``shift`` before it
+        A_i = A[shift:]
+        composed = A_i @ B[:-shift] @ A_i.swapaxes(-1, -2) + B[shift:]
+        A[shift:] = A_i @ A[:-shift]
+        B[shift:] = composed
+        shift *= 2
+    return A, B
+
+
 def adaptive_settings(R0: np.ndarray, g: int, forgetting: float = 0.99,
                       prior_weight: float = 1.0, r_floor: float = 1e-4) -> dict:
     """Checked keyword arguments of a Sage-Husa :class:`KalmanStepper` (R0 (3,3) or (G,3,3))."""

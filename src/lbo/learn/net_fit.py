@@ -4,7 +4,7 @@
 gives one receiver, one gyro, one car: :func:`fit` trains on its windows as they are.
 
 - The windows are every N consecutive rows of a log that hold a position fix, read as an
-  observer reads the log (:func:`lbo.serve.runners.receiver_rows`: the filters' row, ``V,
+  observer reads the log (:func:`lbo.serve.rows.receiver_rows`: the filters' row, ``V,
   delta`` and the gyro's ``r_m``); each one's target is the truth at its last row. A window
   that holds no heading teaches none (:meth:`lbo.models.net.WindowNet.loss`).
 - **Fine-tuned** (``fresh=False``): from the net's weights and normalisation. **From
@@ -35,7 +35,7 @@ import torch
 from lbo.core.errors import LboError
 from lbo.models.envelope import Envelope
 from lbo.models.features import window_view
-from lbo.serve.runners import receiver_rows, window_series
+from lbo.serve.rows import receiver_rows, window_series
 from lbo.sim.columns import INPUT, MEAS, STATE
 from lbo.sim.logio import receiver
 

@@ -51,7 +51,7 @@ import torch
 from torch import nn
 
 from lbo.filters import gyro as gyro_model
-from lbo.filters.kalman import coast_covariance
+from lbo.filters.kalman import coast_covariance, compose_covariance
 from lbo.models.filternet import WindowFilter
 from lbo.models.motion import bicycle_step
 from lbo.models.poses import wrap_heading
@@ -77,20 +77,6 @@ class _Single(nn.Module):
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         return self.net(x.float()).to(x.dtype)
-
-
-def _compose(F: torch.Tensor, Q: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """The covariance after each of K prediction steps ``P <- F_j P F_j^T + Q_j`` (F, Q
-    (K, n, n)) as ``A_j P_0 A_j^T + B_j``: (A, B) (K, n, n), the steps' maps composed by an
-    inclusive scan (each of its log2 K rounds one batched product, no loop over the steps)."""
-    A, B = F, Q
-    shift = 1
-    while shift < len(F):  # each entry takes in the one ``shift`` before it: (A, B) after it
-        A_i, B_i = A[shift:], B[shift:]
-        A = torch.cat([A[:shift], A_i @ A[:-shift]])
-        B = torch.cat([B[:shift], A_i @ B[:-shift] @ A_i.transpose(1, 2) + B_i])
-        shift *= 2
-    return A, B
 
 
 class RecursiveFilter(nn.Module):
@@ -267,7 +253,7 @@ class RecursiveFilter(nn.Module):
             Qs = Q.repeat(steps, 1, 1)
             Qs[:, 2, 2] = torch.where(seen, torch.exp(2 * fo.log_gyro_sigma), Q[0, 2, 2])
             Qs[:, 3, 3] = torch.exp(2 * fo.log_bias_walk)
-            A, B = _compose(F, Qs)
+            A, B = compose_covariance(F, Qs)
             full = A @ P @ A.transpose(1, 2) + B
             covs = 0.5 * (full + full.transpose(1, 2))
             poses = torch.cat([poses, z[:, 3:].expand(steps, 1)], 1)

@@ -34,13 +34,13 @@ from lbo.filters.gyro import GyroNoise
 from lbo.models.checkpoint import read_checkpoint, stored_envelope, trained_conditions
 from lbo.models.envelope import EnvelopeCheck, check_mode
 from lbo.serve.refusals import no_fix, no_heading, no_receiver
+from lbo.serve.rows import bicycle_rows
 from lbo.serve.runners import (
     FORMS,
     ClassicalRunner,
     Estimate,
     RecursiveRunner,
     WindowRunner,
-    bicycle_rows,
     check_form,
     has_recursive_form,
 )
