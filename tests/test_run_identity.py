@@ -66,3 +66,12 @@ def test_only_lbo_targets_in_a_layer_lose_the_layer():
         "a": {"_target_": "lbo.callbacks.Evaluation", "k": [1, {"_target_": "lbo.x.Y"}]},
         "b": {"_target_": "lightning.pytorch.callbacks.EarlyStopping"},
         "c": {"_target_": "lbo.train.Thing"}, "d": "lbo.learn.callbacks.Evaluation"}
+
+
+def test_a_setting_added_later_hashes_as_before_at_its_old_value_only():
+    """``model.gyro`` came after these runs: false (their value) leaves the hash they carry,
+    true makes another run."""
+    plain = compose_cfg("train", ["experiment=robust"])
+    gyro = compose_cfg("train", ["experiment=robust", "model.gyro=true"])
+    assert plain.model.gyro is False
+    assert config_hash(plain) == PRE_MOVE[("experiment=robust",)] != config_hash(gyro)

@@ -31,9 +31,11 @@ from lbo.core.runfolder import LOCK_NAME
 from lbo.sim.log_sets import is_logs
 
 LATER_DEFAULTS = {"normalisation": "standard", "receiver": None,
-                  "receiver_training": {"heading_share": 0.25, "gyro_share": 0.75}}
-"""Settings added after runs were stored, with the value those runs had: a config holding
-that value hashes as if it did not have the key, so resume=true still finds the old runs."""
+                  "receiver_training": {"heading_share": 0.25, "gyro_share": 0.75},
+                  "model.gyro": False}
+"""Settings added after runs were stored (a dotted key: one inside a group), with the value
+those runs had: a config holding that value hashes as if it did not have the key, so
+resume=true still finds the old runs."""
 
 
 def config_hash(cfg: DictConfig) -> str:
@@ -44,8 +46,10 @@ def config_hash(cfg: DictConfig) -> str:
         c.pop("logger", None)
         c.pop("threads", None)  # how fast, not what: a run on other threads is reused
         for key, default in LATER_DEFAULTS.items():
-            if key in c and c.get(key) == default:
-                c.pop(key)
+            *group, name = key.split(".")
+            node = OmegaConf.select(c, ".".join(group)) if group else c
+            if isinstance(node, DictConfig) and name in node and node.get(name) == default:
+                node.pop(name)
     text = OmegaConf.to_yaml(OmegaConf.create(_unlayered(OmegaConf.to_container(c, resolve=True))))
     if is_logs(cfg):  # the same paths with other contents are other data
         from lbo.learn.builders import logs_spec
