@@ -316,47 +316,56 @@ class WindowFilter(ProcessModel, nn.Module):
         gyro_var = torch.exp(2 * self.log_gyro_sigma)
         walk_var = torch.exp(2 * self.log_bias_walk)
         start_b = torch.exp(2 * self.log_bias_sigma) * torch.ones_like(r[:, :1, None])
-        H = torch.eye(4, dtype=x.dtype, device=x.device)[:3]
+        eye4 = torch.eye(4, dtype=x.dtype, device=x.device)
+        H = eye4[:3]
         start = position & held[..., 2]  # rows the filter can start at
-        z, P = self._start_at(meas[:, 0], R[:, 0], start_b)
+        z, P = self.start_at(meas[:, 0], R[:, 0], start_b)
         z = torch.where(start[:, 0, None], z, torch.zeros_like(z))
         started = start[:, 0]
         body = self.body_start(v[:, 0], delta[:, 0])
         gyro_rows = x[:, :, 14] > 0.5 if self.gyro else torch.zeros_like(start)
-        reading = torch.zeros_like(v[:, 0])  # the gyro's last reading (rad/s)
-        seen = torch.zeros_like(started)  # whether the window held one yet
+        reading = torch.full_like(v[:, 0], math.nan)  # the gyro's last reading (rad/s)
         zero, one = torch.zeros_like(reading), torch.ones_like(reading)
         for k in range(1, n):
             reading = torch.where(gyro_rows[:, k - 1], x[:, k - 1, 13], reading)
-            seen = seen | gyro_rows[:, k - 1]
             zp, f02, f12, body = self.predict_pose(z[:, :3], v[:, k - 1], delta[:, k - 1], body)
-            # a car at rest does not turn: its heading holds whatever the gyro reads
-            turning = seen & (v[:, k - 1].abs() >= gyro_model.STILL_SPEED)
-            psi = torch.where(seen, z[:, 2] + torch.where(turning, reading - z[:, 3], zero)
-                              * self.dt, zp[:, 2])
+            turn, f23, seen = self.gyro_turn(reading, v[:, k - 1], z[:, 3])
+            psi = torch.where(seen, z[:, 2] + turn, zp[:, 2])
             zp = torch.stack([zp[:, 0], zp[:, 1], psi, z[:, 3]], -1)
-            f23 = torch.where(turning, -self.dt * one, zero)
             F = torch.stack([torch.stack([one, zero, f02, zero], -1),
                              torch.stack([zero, one, f12, zero], -1),
                              torch.stack([zero, zero, one, f23], -1),
                              torch.stack([zero, zero, zero, one], -1)], -2)
             Q = torch.stack([q[0] * one, q[1] * one, torch.where(seen, gyro_var, q[2]),
-                             walk_var * one], -1)[:, :, None] * torch.eye(4, dtype=x.dtype,
-                                                                         device=x.device)
+                             walk_var * one], -1)[:, :, None] * eye4
             Pp = F @ P @ F.transpose(1, 2) + Q
             zu, Pu = masked_update(zp, Pp, wrap_heading(meas[:, k] - zp[:, :3]),
                                    held[:, k].to(x.dtype), R[:, k], H)
             first = start[:, k] & ~started
             update = (held[:, k].any(-1) & started)[:, None]
-            z0, P0 = self._start_at(meas[:, k], R[:, k], start_b)
+            z0, P0 = self.start_at(meas[:, k], R[:, k], start_b)
             z = torch.where(first[:, None], z0, torch.where(update, zu, zp))
             P = torch.where(first[:, None, None], P0, torch.where(update[..., None], Pu, Pp))
             body = torch.where(first[:, None], self.body_start(v[:, k], delta[:, k]), body)
             started = started | first
         return torch.where(started[:, None], wrap_heading(z[:, :3]), torch.zeros_like(z[:, :3]))
 
+    def gyro_turn(self, reading: torch.Tensor, v: torch.Tensor, bias: torch.Tensor
+                  ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """The gyro-driven heading's turn over one step, for the gyro's last readings
+        (rad/s, NaN: none yet), speeds (m/s) and bias estimates (rad/s), each (B,): the
+        turn ``(r_m - b) dt`` (0 at rest: a car that stands does not turn, whatever the gyro
+        reads), its derivative in b, and whether a reading is held (elsewhere the process
+        model turns the heading); each (B,). One rule for the window form, the recursive
+        form's step and its coast."""
+        seen = reading == reading  # not NaN
+        turning = seen & (v.abs() >= gyro_model.STILL_SPEED)
+        zero = torch.zeros_like(bias)
+        turn = torch.where(turning, reading - bias, zero) * self.dt
+        return turn, torch.where(turning, -self.dt * torch.ones_like(bias), zero), seen
+
     @staticmethod
-    def _start_at(meas: torch.Tensor, R: torch.Tensor, var_b: torch.Tensor
+    def start_at(meas: torch.Tensor, R: torch.Tensor, var_b: torch.Tensor
                   ) -> tuple[torch.Tensor, torch.Tensor]:
         """The four-state filter started at a row: its measurement (B, 3) and no bias, (B, 4);
         its R (B, 3, 3) and the bias's prior variance var_b (B, 1, 1), (B, 4, 4)."""

@@ -50,7 +50,6 @@ import numpy as np
 import torch
 from torch import nn
 
-from lbo.filters import gyro as gyro_model
 from lbo.filters.kalman import coast_covariance, compose_covariance
 from lbo.models.filternet import WindowFilter
 from lbo.models.motion import bicycle_step
@@ -223,14 +222,10 @@ class RecursiveFilter(nn.Module):
         v, delta = before[:, 0], before[:, 1]
         along, across, rate, bodies = fo.motion(v, delta, body.expand(steps, 2))
         turn = rate * fo.dt
-        heading_turn, c = turn, torch.zeros_like(turn)  # the pose's turn, d psi / d b
+        heading_turn = turn  # the pose's turn
         if self.gyro:  # the gyro's last reading less the bias, none at rest (forward's)
-            reading = before[:, 2]
-            seen = reading == reading
-            turning = seen & (v.abs() >= gyro_model.STILL_SPEED)
-            heading_turn = torch.where(seen, torch.where(turning, reading - z[0, 3], 0.0)
-                                       * fo.dt, turn)
-            c = torch.where(turning, -fo.dt * torch.ones_like(v), torch.zeros_like(v))
+            gyro, c, seen = fo.gyro_turn(before[:, 2], v, z[0, 3].expand(steps))
+            heading_turn = torch.where(seen, gyro, turn)
 
         def roll(start: torch.Tensor, turn: torch.Tensor) -> tuple[torch.Tensor, ...]:
             # the motion from ``start`` (1, 3): forward adds one step's increment at a time,
@@ -347,12 +342,8 @@ class RecursiveFilter(nn.Module):
         Qn = self._process_cov(heading, eye)
         H = eye[:3]
         if self.gyro:  # the heading turns by the gyro's reading less the bias, b a state
-            reading = u_prev[:, 2]
-            seen = reading == reading  # not NaN
-            turning = seen & (u_prev[:, 0].abs() >= gyro_model.STILL_SPEED)
-            psi = torch.where(seen, z[:, 2] + torch.where(turning, reading - z[:, 3], zero)
-                              * fo.dt, pose[:, 2])
-            F[:, 2, 3] = torch.where(turning, -fo.dt * one, zero)
+            turn, F[:, 2, 3], seen = fo.gyro_turn(u_prev[:, 2], u_prev[:, 0], z[:, 3])
+            psi = torch.where(seen, z[:, 2] + turn, pose[:, 2])
             Qn[:, 2, 2] = torch.where(seen, torch.exp(2 * fo.log_gyro_sigma) * one,
                                       Qn[:, 2, 2])
             Qn[:, 3, 3] = torch.exp(2 * fo.log_bias_walk) * one
@@ -382,10 +373,8 @@ class RecursiveFilter(nn.Module):
             start_P = fo._drift_start(R_start, (torch.exp(fo.log_drift_ratio) * white) ** 2,
                                       eye)
         elif self.gyro:  # no bias known: its prior
-            start_z = torch.cat([meas, torch.zeros_like(meas[:, :1])], -1)
-            start_P = torch.zeros_like(P)
-            start_P[:, :3, :3] = R_start
-            start_P[:, 3, 3] = torch.exp(2 * fo.log_bias_sigma) * one
+            start_z, start_P = fo.start_at(meas, R_start, torch.exp(2 * fo.log_bias_sigma)
+                                            * one[:, None, None])
         else:
             start_z, start_P = meas, R_start
         # what the smoother needs: this step's prior and cov(x_{k-1|k-1}, x_{k|k-1}); none

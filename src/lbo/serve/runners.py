@@ -369,9 +369,10 @@ class RecursiveRunner:
         NaN before the first (there the bicycle turns the heading)."""
         if receiver is None:
             receiver = np.full((len(m), len(RECEIVER)), np.nan)
-        rate = held_reading(receiver[:, RECEIVER.index("r_m")])
-        return (bicycle_rows(m, u, receiver, self.vehicle.wheelbase),
-                np.column_stack([u, rate]) if self.reads_receiver else u)
+        rows = bicycle_rows(m, u, receiver, self.vehicle.wheelbase)
+        if not self.reads_receiver:
+            return rows, u
+        return rows, np.column_stack([u, held_reading(receiver[:, RECEIVER.index("r_m")])])
 
     def sample(self, k: int, m: np.ndarray, u: np.ndarray, receiver: Any
                ) -> tuple[np.ndarray, np.ndarray]:
