@@ -13,7 +13,7 @@ from helpers import compose_cfg
 from lbo.core.angles import wrap_angle
 from lbo.core.errors import LboError
 from lbo.filters import classical
-from lbo.filters.gyro import gyro_ekf_batch
+from lbo.filters.gyro import FixDrift, gyro_ekf_batch
 from lbo.filters.measure import rows
 from lbo.serve.observer import Observer
 from lbo.sim.columns import RECEIVER
@@ -116,3 +116,73 @@ def test_at_standstill_the_heading_is_held_and_the_gyro_reads_its_bias():
     est, bias = gyro_ekf_batch(m, u, vehicle, noise.Q, R, return_bias=True)
     assert np.abs(est[0, :, 2] - 0.7).max() < 1e-12
     assert bias[0] == pytest.approx(0.02, abs=0.002)
+
+
+def test_told_the_fixes_drift_it_matches_a_filter_written_out_by_hand():
+    """At standstill (V = 0) the gyro EKF is linear: the pose holds, the gyro reads its bias,
+    and, told the fixes' drift, x and y each carry a Gauss-Markov drift that a fix adds. Rows
+    hold random subsets of the fix, the heading, their reported accuracies and the course; a
+    textbook Kalman filter over ``[x, y, psi, b, dx, dy]``, written out by hand, must give the
+    same estimates and covariances."""
+    rng = np.random.default_rng(12)
+    g, t = 2, 60
+    vehicle = Vehicle()
+    dt = vehicle.dt
+    q = np.array([0.05, 0.05, 0.01])
+    gyro = {"gyro_sigma": 0.01, "bias_sigma": 0.02, "bias_walk": 1e-3,
+            "drift": FixDrift(0.5, 3.0)}
+    R1 = np.diag([0.3, 0.3, 0.05]) ** 2
+    m = np.full((g, t, 8), np.nan)
+    m[..., :3] = rng.normal(scale=[1.0, 1.0, 0.05], size=(g, t, 3))
+    m[..., 3:6] = rng.uniform(0.2, 2.0, size=(g, t, 3)) * [1.0, 1.0, 0.02]
+    m[..., 6] = rng.normal(scale=0.05, size=(g, t))
+    m[..., 7] = rng.uniform(0.01, 0.1, size=(g, t))
+    pos, head, told, course = (rng.random((4, g, t)) < 0.5)
+    m[..., 0:2][~pos] = np.nan
+    m[..., 2][~(pos & head)] = np.nan
+    m[..., 3:6][~(pos & told)] = np.nan
+    m[..., 6:8][~course] = np.nan
+    m[:, 0, :6] = [0.1, -0.2, 0.01, 0.5, 0.7, 0.01]  # a full fix to start from
+    u = np.zeros((g, t, 2))
+    u[..., 1] = 0.02 + 0.01 * rng.standard_normal((g, t))
+    est, cov = gyro_ekf_batch(m, u, vehicle, np.diag(q**2), R1, return_cov=True, **gyro)
+    phi = np.exp(-dt / 3.0)
+    F = np.diag([1.0, 1.0, 1.0, 1.0, phi, phi])
+    Q = np.diag([q[0] ** 2, q[1] ** 2, q[2] ** 2 + (0.01 * dt) ** 2, 1e-6 * dt,
+                 0.25 * (1 - phi**2), 0.25 * (1 - phi**2)])
+    for i in range(g):
+        x = np.concatenate([m[i, 0, :3], np.zeros(3)])
+        P = np.diag(np.concatenate([m[i, 0, 3:6] ** 2, [0.02**2, 0.0, 0.0]]))
+        P += 0.25 * np.array([[1, 0, 0, 0, -1, 0], [0, 1, 0, 0, 0, -1], [0] * 6, [0] * 6,
+                              [-1, 0, 0, 0, 1, 0], [0, -1, 0, 0, 0, 1]])
+        for k in range(1, t):
+            x, P = F @ x, F @ P @ F.T + Q
+            row = m[i, k]
+            zs, hs, rs = [], [], []
+            for c in range(3):
+                if np.isfinite(row[c]):
+                    zs.append(row[c])
+                    hs.append(np.eye(6)[c] + (np.eye(6)[4 + c] if c < 2 else 0.0))
+                    rs.append(row[3 + c] ** 2 if np.isfinite(row[3 + c]) else R1[c, c])
+            if np.isfinite(row[6]):
+                zs.append(row[6])
+                hs.append(np.eye(6)[2])
+                rs.append(row[7] ** 2)
+            zs.append(u[i, k - 1, 1])  # at rest the gyro reads its bias
+            hs.append(np.eye(6)[3])
+            rs.append(0.01**2)
+            h, r = np.array(hs), np.diag(rs)
+            K = P @ h.T @ np.linalg.inv(h @ P @ h.T + r)
+            x = x + K @ (np.array(zs) - h @ x)
+            P = (np.eye(6) - K @ h) @ P
+            np.testing.assert_allclose(est[i, k], x[:3], rtol=0, atol=1e-9)
+            np.testing.assert_allclose(cov[i, k], P[:3, :3], rtol=0, atol=1e-9)
+
+
+@pytest.mark.parametrize("kwargs, line", [
+    ({"sigma": 0.0, "tau": 60.0}, r"^fix drift sigma: expected a number > 0, got 0.0$"),
+    ({"sigma": 0.5, "tau": float("nan")}, r"^fix drift tau: expected a number > 0, got nan$"),
+])
+def test_a_fix_drift_is_refused_in_one_line(kwargs, line):
+    with pytest.raises(LboError, match=line):
+        FixDrift(**kwargs)

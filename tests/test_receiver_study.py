@@ -1,6 +1,6 @@
 """Simulated single-antenna logs beside an oracle (issue 36): the gyro's true bias in a
 simulated log, the oracle gyro EKF told the true noise and bias (or the bias's statistics
-only), pooling scores over drives,
+only; or also the fixes' drift and latency), pooling scores over drives,
 and ``python -m lbo.receiver_study`` end to end at smoke scale."""
 
 from __future__ import annotations
@@ -12,7 +12,9 @@ import pytest
 from helpers import compose_cfg
 from lbo.core.angles import wrap_angle
 from lbo.core.errors import LboError
+from lbo.filters.gyro import FixDrift
 from lbo.scoring import receiver as scoring
+from lbo.scoring.metrics import rmse
 from lbo.sim.noise import Noise
 from lbo.sim.receiver import ReceiverSpec
 from lbo.sim.vehicle import Vehicle
@@ -79,6 +81,28 @@ def test_the_noise_oracle_learns_the_bias_from_the_log(free_drive):
     assert heading(frozen) > 1.3 * heading(fair)
 
 
+def test_the_full_oracle_told_the_drift_and_latency_too_tracks_closer(free_drive):
+    """Told the fixes' drift (two more states, R the white part) and the channels' latency
+    (fixes and velocities brought forward to their row), the oracle's position and heading
+    come closer to the truth; the same filter told only the bias's statistics is further
+    from it in heading. Measured (60 s, alpha 1): x 0.61 m against 0.84 (the 50 ms latency
+    is most of it), heading 3.0 mrad against 3.2, and 4.8 with the bias estimated."""
+    vehicle, spec = Vehicle(), ReceiverSpec()
+    q = Noise.preset("paper").process_sigma[0]
+    timing = {"drift": FixDrift(spec.position.drift, spec.position.tau),
+              "latency": (spec.position.latency, spec.velocity.latency)}
+    oracle = scoring.oracle_gyro(free_drive, vehicle, spec.position.sigma, q, spec.gyro.sigma)
+    told = (vehicle, spec.position.white, q, spec.gyro.sigma)
+    full = scoring.oracle_gyro(free_drive, *told, **timing)
+    fair = scoring.oracle_gyro(free_drive.drop(columns="b"), *told,
+                               bias=(spec.gyro_bias, spec.gyro_walk), **timing)
+    rows = scoring.scored_rows(free_drive)
+    truth = free_drive[["x", "y", "psi"]].to_numpy()
+    e_oracle, e_full, e_fair = (rmse(e, truth, rows) for e in (oracle, full, fair))
+    assert e_full[0] < 0.8 * e_oracle[0] and e_full[2] < e_oracle[2]
+    assert e_fair[2] > 1.3 * e_full[2]
+
+
 def test_pooled_scores_are_those_of_the_drives_rows_as_one():
     a = pd.DataFrame({"estimator": ["p", "q"], "x_m": [1.0, 2.0], "y_m": [0.0, 1.0],
                       "psi_mrad": [3.0, 4.0], "rows": [100, 100]})
@@ -108,11 +132,14 @@ def test_receiver_study_scores_every_observer_against_the_oracle(tmp_path, robus
     assert (oracle["vs_oracle"] == 1.0).all()
     fair = written[written["estimator"] == scoring.NOISE_ORACLE]
     assert (fair["vs_noise_oracle"] == 1.0).all() and (fair["vs_oracle"] > 1.0).all()
+    full = written[written["estimator"] == scoring.FULL_ORACLE]
+    assert (full["vs_full_oracle"] == 1.0).all()
+    assert scoring.FULL_NOISE_ORACLE in set(written["estimator"])
     # alpha scales the receiver's errors: the raw fixes' position error grows with it
     raw = written[written["estimator"] == scoring.RAW].set_index("alpha")
     assert raw.loc[6.0, "x_m"] > 3 * raw.loc[1.0, "x_m"]
-    assert np.isfinite(written[["x_m", "y_m", "psi_mrad", "vs_oracle",
-                                "vs_noise_oracle"]]).all().all()
+    assert np.isfinite(written[["x_m", "y_m", "psi_mrad", "vs_oracle", "vs_noise_oracle",
+                                "vs_full_oracle"]]).all().all()
     for name in ("results.md", "ratios.png", "gyro_noise.json", "gyro_noise_history.csv"):
         assert (tmp_path / name).stat().st_size > 0
 

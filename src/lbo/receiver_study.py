@@ -17,7 +17,10 @@ course over ground on (:func:`lbo.scoring.receiver.score`):
   one also told the gyro's true bias, which every row is measured against (``vs_oracle``:
   the quadratic mean over x, y and psi of the RMSE ratios), and one told only the bias's
   statistics, which must learn its value from the log as every causal filter here must
-  (``vs_noise_oracle``).
+  (``vs_noise_oracle``);
+- two more told also the fixes' drift (as two states) and the channels' latency: the one
+  told the bias is the reference of ``vs_full_oracle``, the one that estimates it the best
+  causal filter we know for these logs.
 
 Writes ``results.csv`` (one row per alpha and estimator, RMSE pooled over the drives),
 ``results.md``, ``ratios.png`` (``vs_oracle`` against alpha) and ``gyro_noise.json`` (with
@@ -39,7 +42,7 @@ from lbo.core.checks import integer, number, require
 from lbo.core.cli import entry
 from lbo.core.errors import LboError
 from lbo.filters import classical
-from lbo.filters.gyro import GyroNoise
+from lbo.filters.gyro import FixDrift, GyroNoise
 from lbo.scoring import receiver as scoring
 from lbo.sim.logio import check_output_path, write_table
 
@@ -47,7 +50,8 @@ __all__ = ["LEARNED", "RATIOS", "main", "plot", "receiver_study"]
 
 LEARNED = "gyro, noise learned on simulated drives over alpha"
 """The row of the gyro EKF whose noise was learned once for every alpha."""
-RATIOS = {"vs_oracle": scoring.ORACLE, "vs_noise_oracle": scoring.NOISE_ORACLE}
+RATIOS = {"vs_oracle": scoring.ORACLE, "vs_noise_oracle": scoring.NOISE_ORACLE,
+          "vs_full_oracle": scoring.FULL_ORACLE}
 """The ratio columns of the results, each to its oracle's row."""
 
 
@@ -119,10 +123,20 @@ def receiver_study(cfg: DictConfig) -> dict[str, Any]:
         per_drive = []
         for j in range(s["drives"]):
             log = _drive(base, alpha, s["seed"] + 100 * (i + 1) + j)
-            told = (log, vehicle, max(alpha * spec.position.sigma, SIGMA_FLOOR),
-                    float(np.sqrt(np.prod(noise.process_sigma[:2]))), spec.gyro.sigma)
-            oracles = {scoring.NOISE_ORACLE: scoring.oracle_gyro(
-                           *told, bias=(spec.gyro_bias, spec.gyro_walk)),
+            process = float(np.sqrt(np.prod(noise.process_sigma[:2])))
+            told = (log, vehicle, max(alpha * spec.position.sigma, SIGMA_FLOOR), process,
+                    spec.gyro.sigma)
+            # told the drift (its white part the fix's R) and the latency too
+            full = (log, vehicle, max(alpha * spec.position.white, SIGMA_FLOOR), process,
+                    spec.gyro.sigma)
+            timing = {"drift": FixDrift(max(alpha * spec.position.drift, SIGMA_FLOOR),
+                                        spec.position.tau),
+                      "latency": (spec.position.latency, spec.velocity.latency)}
+            statistics = (spec.gyro_bias, spec.gyro_walk)
+            oracles = {scoring.FULL_NOISE_ORACLE: scoring.oracle_gyro(
+                           *full, bias=statistics, **timing),
+                       scoring.FULL_ORACLE: scoring.oracle_gyro(*full, **timing),
+                       scoring.NOISE_ORACLE: scoring.oracle_gyro(*told, bias=statistics),
                        scoring.ORACLE: scoring.oracle_gyro(*told)}
             table, _ = scoring.score(log, list(cfg.observers), vehicle, noise, learned, oracles,
                                      nets=nets)

@@ -15,7 +15,8 @@ the gyro integrates drifts from the fixes' course, and, while the car stands
 held and the gyro reads its bias. The process noise adds the gyro's white noise to the
 heading (``(gyro_sigma dt)^2`` a step) and the bias's walk to ``b`` (``bias_walk^2 dt``).
 The heading of a log that starts without one comes from the course over ground
-(:class:`lbo.filters.start.CourseStart`, its path dead-reckoned with the gyro).
+(:class:`lbo.filters.start.CourseStart`, its path dead-reckoned with the gyro). Told the
+fixes' slow error (:class:`FixDrift`), it carries it as two more states.
 """
 
 from __future__ import annotations
@@ -125,10 +126,35 @@ class GyroNoise:
         return cls(**data)
 
 
-_H = np.zeros((measure.MEASURED + 1, 4))
-_H[:measure.MEASURED, :3] = measure.H
-_H[measure.MEASURED, 3] = 1.0
-"""(5, 4) Jacobian of the measured channels and, at standstill, the gyro's reading of b."""
+@dataclass(frozen=True)
+class FixDrift:
+    """The slow part of the fixes' error, as two more states of :class:`GyroStepper`: a
+    first-order Gauss-Markov drift on x and one on y, of stationary 1-sigma ``sigma`` (m) and
+    correlation time ``tau`` (s) (:func:`lbo.sim.truth.gauss_markov`'s). A fix then measures
+    the position plus its drift, and its R is the white rest of its error. An EKF with a white
+    R cannot tell a drift from the car's own motion; told its model, it can weigh two fixes a
+    second apart as the nearly common error they share."""
+
+    sigma: float
+    tau: float
+
+    def __post_init__(self) -> None:
+        for name in ("sigma", "tau"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
+                raise LboError(f"fix drift {name}: expected a number > 0, got {v!r}")
+
+
+def _jacobian(n: int) -> np.ndarray:
+    """(5, n) Jacobian of the measured channels (:data:`lbo.filters.measure.CHANNELS`'s four)
+    and, at standstill, of the gyro's reading of b, on the state ``[x, y, psi, b]`` and, for
+    n = 6, the fixes' drift ``[dx, dy]`` (a fix measures the position plus its drift)."""
+    H = np.zeros((measure.MEASURED + 1, n))
+    H[:measure.MEASURED, :3] = measure.H
+    H[measure.MEASURED, 3] = 1.0
+    if n == 6:
+        H[0, 4] = H[1, 5] = 1.0
+    return H
 
 
 class GyroStepper:
@@ -142,27 +168,41 @@ class GyroStepper:
     Q : (3, 3) process covariance of ``[x, y, psi]``.
     R : (G, 3, 3) measurement covariance where a row reports no accuracy.
     gyro_sigma, bias_sigma, bias_walk : the gyro's errors (module constants by default).
+    drift : the fixes' drift (:class:`FixDrift`) as two more states, or None (R white).
 
     Attributes
     ----------
-    x : (G, 4) ``[x, y, psi, b]``. P : (G, 4, 4). prior, cross : as the other steppers'.
+    x : (G, n) ``[x, y, psi, b]``, then the drift ``[dx, dy]`` (n = 6). P : (G, n, n).
+    prior, cross : as the other steppers'.
     """
 
     def __init__(self, m0: np.ndarray, vehicle: Vehicle, Q: np.ndarray, R: np.ndarray,
                  gyro_sigma: float = GYRO_SIGMA, bias_sigma: float = BIAS_SIGMA,
-                 bias_walk: float = BIAS_WALK) -> None:
+                 bias_walk: float = BIAS_WALK, drift: FixDrift | None = None) -> None:
         self.dt, self.R = vehicle.dt, np.asarray(R, dtype=float)
         x3, P3 = start_state(m0, self.R)
-        g = len(x3)
-        self.x = np.concatenate([x3, np.zeros((g, 1))], axis=1)
-        self.P = np.zeros((g, 4, 4))
+        g, n = len(x3), 4 if drift is None else 6
+        self.x = np.concatenate([x3, np.zeros((g, n - 3))], axis=1)
+        self.P = np.zeros((g, n, n))
         self.P[:, :3, :3] = P3
         self.P[:, 3, 3] = bias_sigma**2
-        self.Q = np.zeros((4, 4))
+        self.Q = np.zeros((n, n))
         self.Q[:3, :3] = Q
         self.Q[2, 2] += (gyro_sigma * self.dt) ** 2
         self.gyro_var = gyro_sigma**2
         self.Q[3, 3] = bias_walk**2 * self.dt
+        self.phi = 1.0  # the drift's factor a step
+        if drift is not None:
+            # the first fix is the position plus its drift: the position's error is minus
+            # the drift's, of the drift's stationary variance (the white part is P3's)
+            var = drift.sigma**2
+            for i in (0, 1):
+                self.P[:, i, i] += var
+                self.P[:, 4 + i, 4 + i] = var
+                self.P[:, i, 4 + i] = self.P[:, 4 + i, i] = -var
+            self.phi = math.exp(-self.dt / drift.tau)
+            self.Q[4, 4] = self.Q[5, 5] = var * (1.0 - self.phi**2)
+        self.H = _jacobian(n)
         self.course = CourseStart(m0, vehicle, np.asarray(Q, dtype=float))
 
     def update(self, m: np.ndarray, u_prev: np.ndarray) -> np.ndarray:
@@ -177,10 +217,12 @@ class GyroStepper:
         x[:, 1] += v * np.sin(psi) * dt
         still = np.abs(v) < STILL_SPEED
         x[:, 2] += np.where(still, 0.0, rate - bias) * dt
-        F = np.tile(np.eye(4), (len(x), 1, 1))
+        x[:, 4:] *= self.phi
+        F = np.tile(np.eye(x.shape[1]), (len(x), 1, 1))
         F[:, 0, 2] = -v * np.sin(psi) * dt
         F[:, 1, 2] = v * np.cos(psi) * dt
         F[:, 2, 3] = np.where(still, 0.0, -dt)
+        F[:, 4:, 4:] *= self.phi
         cross = self.P @ F.swapaxes(-1, -2)
         P = F @ self.P @ F.swapaxes(-1, -2) + self.Q
         self.course.advance(u_prev, turn=np.where(still, 0.0, rate - bias))
@@ -188,14 +230,16 @@ class GyroStepper:
         m, R, P, start = self.course.take(m, 0.5 * (R[:, 0, 0] + R[:, 1, 1]), P, R)
         cross[start, :, 2] = 0.0
         self.cross, self.prior = cross, (x, P)
-        y, _, R4, held = measure.model(m, x[:, :3], R)
+        seen = x[:, :3].copy()  # what the channels measure: the pose, the fixes drifted
+        seen[:, :2] += x[:, 4:] if x.shape[1] == 6 else 0.0
+        y, _, R4, held = measure.model(m, seen, R)
         g = len(x)
         R5 = np.zeros((g, measure.MEASURED + 1, measure.MEASURED + 1))
         R5[:, :-1, :-1] = R4
         R5[:, -1, -1] = self.gyro_var
         y5 = np.concatenate([y, (rate - x[:, 3])[:, None]], axis=1)
         held5 = np.concatenate([held, still[:, None]], axis=1)
-        self.x, self.P = joseph_update(x, P, y5, _H, R5, held5)
+        self.x, self.P = joseph_update(x, P, y5, self.H, R5, held5)
         return self.x[:, :3]
 
 
@@ -205,7 +249,8 @@ def gyro_ekf_batch(m: np.ndarray, u: np.ndarray, vehicle: Vehicle, Q: np.ndarray
     """:class:`GyroStepper` over G trajectories (a loop over time only).
 
     m : (G, T, 3) or (G, T, 8) rows; u : (G, T, 2) ``[V, r_m]``; Q (3, 3); R (3, 3) or
-    (G, 3, 3). Returns the poses (G, T, 3), with ``return_cov`` their covariances
+    (G, 3, 3); ``gyro``: :class:`GyroStepper`'s keywords (the gyro's errors, the fixes'
+    drift). Returns the poses (G, T, 3), with ``return_cov`` their covariances
     (G, T, 3, 3), with ``return_bias`` the bias estimated at the last step (G,) last.
     """
     m, u = check_trajectories(m, u)

@@ -119,6 +119,36 @@ def rows(m: np.ndarray, sigma: np.ndarray | None = None, velocity: np.ndarray | 
     return out
 
 
+def undelayed(fix: np.ndarray, velocity: np.ndarray, rate: np.ndarray, fix_latency: float,
+              velocity_latency: float) -> tuple[np.ndarray, np.ndarray]:
+    """A receiver's fixes and velocities brought forward to their row from samples some
+    seconds old: each velocity turned by the turn over its latency (``rate *
+    velocity_latency``), each fix moved on along the chord it missed, by its latency times
+    the last velocity turned to the middle of that latency. Exact on a circle for the
+    velocity, to second order for the fix. For a filter told the latency; at 15 m/s and
+    0.2 rad/s, 50 ms late is 0.75 m along the road and 10 mrad of course.
+
+    fix : (T, 2) ``[x_m, y_m]`` (NaN: none); velocity : (T, 2) ``[ve_m, vn_m]`` (NaN: none);
+    rate : (T,) the turn rate (rad/s), e.g. the gyro's; fix_latency, velocity_latency : s >= 0.
+    Returns ``(fix, velocity)`` (T, 2) each; a fix before the first velocity stays as it is.
+    """
+    fix, velocity = np.asarray(fix, dtype=float), np.asarray(velocity, dtype=float)
+    rate = np.asarray(rate, dtype=float)
+    for name, late in (("fix_latency", fix_latency), ("velocity_latency", velocity_latency)):
+        if not (np.isfinite(late) and late >= 0):
+            raise LboError(f"{name}: expected a number of seconds >= 0, got {late!r}")
+
+    def turned(v: np.ndarray, angle: np.ndarray) -> np.ndarray:
+        c, s = np.cos(angle), np.sin(angle)
+        return np.column_stack([c * v[:, 0] - s * v[:, 1], s * v[:, 0] + c * v[:, 1]])
+
+    has = np.isfinite(velocity).all(1)
+    last = np.maximum.accumulate(np.where(has, np.arange(len(has)), -1))
+    held = np.where((last >= 0)[:, None], velocity[np.maximum(last, 0)], 0.0)
+    chord = turned(held, rate * (velocity_latency - 0.5 * fix_latency))
+    return fix + fix_latency * chord, turned(velocity, rate * velocity_latency)
+
+
 def heading_held(m: np.ndarray) -> np.ndarray:
     """Rows (G, 8) that measure the heading, by ``psi_m`` or the course: (G,) bool."""
     return np.isfinite(m[:, 2]) | np.isfinite(m[:, 6])

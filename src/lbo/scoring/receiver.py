@@ -19,16 +19,16 @@ import pandas as pd
 
 from lbo.core.errors import LboError
 from lbo.filters import classical, measure
-from lbo.filters.gyro import GyroNoise, gyro_ekf_batch
+from lbo.filters.gyro import FixDrift, GyroNoise, gyro_ekf_batch
 from lbo.models.features import held_within
 from lbo.scoring.metrics import rmse
 from lbo.sim.columns import STATE
 from lbo.sim.logio import receiver
 from lbo.sim.vehicle import Vehicle
 
-__all__ = ["BLIND", "EKF", "NOISE_ORACLE", "ORACLE", "RAW", "load_nets", "markdown",
-           "measure_ratio", "moving_rows",
-           "oracle_gyro", "pool", "ratio_to", "score", "scored_rows"]
+__all__ = ["BLIND", "EKF", "FULL_NOISE_ORACLE", "FULL_ORACLE", "NOISE_ORACLE", "ORACLE", "RAW",
+           "load_nets", "markdown", "measure_ratio", "moving_rows", "oracle_gyro", "pool",
+           "ratio_to", "score", "scored_rows"]
 
 RAW = "raw fixes (heading: course over ground)"
 """The raw fixes' row: position at the fix rows; heading: the course of the receiver's
@@ -42,6 +42,13 @@ ORACLE = "oracle gyro EKF, told the true noise and bias"
 NOISE_ORACLE = "oracle gyro EKF, told the true noise, bias estimated"
 """:func:`oracle_gyro`'s row told the bias's statistics, not its value: the best a causal
 filter that must learn the bias from the log can hope for."""
+FULL_ORACLE = "oracle gyro EKF, told the noise, the fixes' drift and latency, and the bias"
+""":func:`oracle_gyro`'s row told everything that drew the log: the noise, the fixes' drift
+as two more states, the channels' latency and the bias's value."""
+FULL_NOISE_ORACLE = ("oracle gyro EKF, told the noise, the fixes' drift and latency, "
+                     "bias estimated")
+""":data:`FULL_ORACLE`'s filter told the bias's statistics, not its value: what a causal
+filter that knows everything else still loses by having to learn the bias."""
 NET_ROW = "receiver's accuracy and velocity"
 """How a learned observer's row is labelled after its name and form."""
 RMSE = ("x_m", "y_m", "psi_mrad")
@@ -212,7 +219,8 @@ def pool(tables: Sequence[pd.DataFrame]) -> pd.DataFrame:
 
 def oracle_gyro(log: pd.DataFrame, vehicle: Vehicle, position_sigma: float,
                 process_sigma: float, gyro_sigma: float,
-                bias: tuple[float, float] | None = None) -> np.ndarray:
+                bias: tuple[float, float] | None = None, drift: FixDrift | None = None,
+                latency: tuple[float, float] = (0.0, 0.0)) -> np.ndarray:
     """The gyro EKF told what drew a simulated single-antenna log (``python -m lbo.simulate
     receiver=...``): estimates (T, 3).
 
@@ -221,16 +229,20 @@ def oracle_gyro(log: pd.DataFrame, vehicle: Vehicle, position_sigma: float,
       walk)``, the gyro as logged, its bias a state that starts at N(0, sigma^2) rad/s and
       walks at ``walk`` rad/s/sqrt(s): told the bias's statistics, it learns the value from
       the log as any causal filter must (:data:`NOISE_ORACLE`).
-    - Each fix's R is its true 1-sigma ``position_sigma`` (m: alpha times the receiver's white
-      and drift combined) in place of the reported accuracy.
+    - Each fix's R is its true 1-sigma ``position_sigma`` (m) in place of the reported
+      accuracy: alpha times the receiver's white noise and drift combined, or, told the
+      ``drift`` (:class:`lbo.filters.gyro.FixDrift`, two more states), its white part.
     - The process noise is the truth's on x and y (``process_sigma``, m a step) and none on the
       heading beyond the gyro's white noise ``gyro_sigma`` (rad/s): the gyro reads the true
       turn, process noise included.
     - The course's variance is the velocity's sigma over the speed, with no lever (the
       truth's point is the one the velocity is of).
+    - Told the fixes' and the velocities' ``latency`` (s each), it brings them forward to
+      their row (:func:`lbo.filters.measure.undelayed`, turned by the gyro).
 
-    Not told: the drift's correlation in time (an EKF's R is white) and the channels' latency
-    (neither is noise; no observer here is told them)."""
+    By default not told the drift's correlation in time (an EKF's R is white) nor the
+    channels' latency, as no observer here is: :data:`ORACLE`; told both,
+    :data:`FULL_ORACLE` and :data:`FULL_NOISE_ORACLE`."""
     if bias is None and "b" not in log:
         raise LboError("oracle_gyro: the log has no 'b' column (the gyro's true bias): "
                        "simulate it with a receiver (python -m lbo.simulate receiver=...)")
@@ -245,11 +257,14 @@ def oracle_gyro(log: pd.DataFrame, vehicle: Vehicle, position_sigma: float,
     if bias is None:
         rate = rate - log["b"].to_numpy(float)
         bias = (1e-6, 1e-12)
+    if any(latency):
+        m[:, :2], r[:, 3:5] = measure.undelayed(m[:, :2], r[:, 3:5], rate, *latency)
     rows = measure.rows(m, r[:, :3], r[:, 3:5], r[:, 5], v, np.zeros(len(v)), 0.0)
     Q = np.diag([process_sigma**2, process_sigma**2, 0.0])
     R = np.diag([position_sigma**2, position_sigma**2, 1.0])  # every fix reports its own
     return gyro_ekf_batch(rows[None], np.column_stack([v, rate])[None], vehicle, Q, R,
-                          gyro_sigma=gyro_sigma, bias_sigma=bias[0], bias_walk=bias[1])[0]
+                          gyro_sigma=gyro_sigma, bias_sigma=bias[0], bias_walk=bias[1],
+                          drift=drift)[0]
 
 
 def markdown(table: pd.DataFrame, *versus: str) -> str:
