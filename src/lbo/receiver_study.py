@@ -165,7 +165,13 @@ def plot(results: pd.DataFrame, path: Path) -> Path:
 
     curves = results.rename(columns={"estimator": "observer", "vs_oracle": "nrmse"})
     shown = [e for e in dict.fromkeys(curves["observer"]) if e != scoring.BLIND]
+    # the oracles in greys, dashed where they must learn the bias: references, not peers
+    oracles = {scoring.ORACLE: {"color": "black"},
+               scoring.NOISE_ORACLE: {"color": "black", "ls": "--"},
+               scoring.FULL_ORACLE: {"color": "0.55"},
+               scoring.FULL_NOISE_ORACLE: {"color": "0.55", "ls": "--"}}
     return plots.save(plots.nrmse_curves(curves, "simulated single-antenna logs", shown,
+                                         styles=oracles,
                                          ylabel="RMSE ratio to the oracle gyro EKF"), path)
 
 
