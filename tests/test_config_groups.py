@@ -165,7 +165,8 @@ NEEDS_LOGS = Refusal(r"data\.train must be a list of log files",
 NEEDS_TEST_LOGS = Refusal(r"data\.test must be a list of log files",
                           "lbo.evaluate data=logs scores the user's test logs "
                           "(data.test=[...]), and these cases name none")
-NEEDS_FRAME = Refusal(r"features: model '(filternet|kalmannet)' needs features in \['frame'\]",
+NEEDS_FRAME = Refusal(r"features: model '(filternet|kalmannet|split_kalmannet)' needs features "
+                      r"in \['frame'\]",
                       "the window EKF and KalmanNet take their inputs in the frame of the latest "
                       "fix; with no experiment, or experiment=smoke, features stay relative")
 FILTERNET_ONLY = Refusal(r"model\.(body|body_lr|residual|drift): not a parameter of model",
@@ -184,16 +185,16 @@ NEEDS_FIX_RATES = Refusal(r"fix_rates must be the rates \(Hz\) of the receiver's
                           "a net that reads a receiver (receiver=...) is trained on receivers "
                           "drawn at the fix rates of its windows, which only experiment=robust, "
                           "logs and receiver set")
-RECEIVER_MODEL = Refusal(r"receiver: model 'kalmannet' does not read a receiver's windows",
-                         "KalmanNet reads a paper window (the CNN, the LSTM and the window "
-                         "filter read a receiver's)")
+RECEIVER_MODEL = Refusal(r"receiver: model '(split_)?kalmannet' does not read a receiver's "
+                         r"windows", "KalmanNet and Split-KalmanNet read a paper window (the "
+                         "CNN, the LSTM and the window filter read a receiver's)")
 RECEIVER_DRIFT = Refusal(r"model.drift: expected false for a window filter that reads a "
                          r"receiver", "experiment=logs sets model.drift=true; the window "
                          "filter's drift states read a paper window only")
 
 RELATIVE_FEATURES = {None, "smoke"}
 """Experiments that leave ``features=relative`` (refused for the models in FRAME_MODELS)."""
-FRAME_MODELS = {"filternet", "kalmannet"}
+FRAME_MODELS = {"filternet", "kalmannet", "split_kalmannet"}
 """Models that read features in the frame of the latest fix only."""
 FILTERNET_EXPERIMENTS = {"dynamic", "logs"}
 """Experiments that set model keys only the filternet takes (refused for other models)."""
@@ -212,7 +213,7 @@ def train_refusal(experiment: str | None, choice: dict[str, str | None]) -> Refu
     if choice.get("receiver") is not None:
         if experiment not in FIX_RATE_EXPERIMENTS:
             return NEEDS_FIX_RATES
-        if choice["model"] == "kalmannet":
+        if choice["model"] in ("kalmannet", "split_kalmannet"):
             return RECEIVER_MODEL
         if choice["model"] == "filternet" and experiment == "logs":
             return RECEIVER_DRIFT

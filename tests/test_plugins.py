@@ -78,7 +78,7 @@ def registered(tmp_path, monkeypatch):
 
 def test_lbo_registers_its_own_models_as_a_plug_in_would():
     names = model_names()
-    assert names[:4] == ("cnn", "lstm", "filternet", "kalmannet")
+    assert names[:5] == ("cnn", "lstm", "filternet", "kalmannet", "split_kalmannet")
     assert EXAMPLE in names  # the example package, installed beside lbo by make install
     assert plugins.provider("model", "cnn")["package"] == "lbo"
     assert plugins.provider("model", EXAMPLE) == {"package": "lbo-plugin-example",

@@ -29,7 +29,7 @@ from lbo.core.errors import LboError
 
 GROUPS = {"model": "lbo.models", "observer": "lbo.observers"}
 """The entry-point group of each kind of part."""
-OWN = {"model": ("cnn", "lstm", "filternet", "kalmannet"),
+OWN = {"model": ("cnn", "lstm", "filternet", "kalmannet", "split_kalmannet"),
        "observer": ("ekf", "adaptive", "ukf", "gyro")}
 """lbo's own parts of each kind (registered in its pyproject.toml): without them the
 installation is stale, which is said as such."""

@@ -4,7 +4,8 @@
 search space or a checkpoint) into a module, and rejects unknown names and parameters with a
 one-line :class:`~lbo.core.errors.LboError` before anything trains. A name is looked up among
 the installed packages' entry points (group ``lbo.models``, :mod:`lbo.core.plugins`): lbo's own
-``cnn``, ``lstm``, ``filternet`` and ``kalmannet`` are registered there as a user's model is
+``cnn``, ``lstm``, ``filternet``, ``kalmannet`` and ``split_kalmannet`` are registered there as
+a user's model is
 (docs/plugins.md).
 """
 
@@ -21,7 +22,7 @@ if TYPE_CHECKING:
     from torch import nn
 
 _CLASSES = {"WindowCNN": "cnn", "WindowLSTM": "lstm", "WindowFilter": "filternet",
-            "KalmanNet": "kalmannet"}
+            "KalmanNet": "kalmannet", "SplitKalmanNet": "kalmannet"}
 """lbo's own model classes, by the module under ``lbo.models`` that holds each: imported
 when first asked for, so that what needs no network (a checkpoint's envelope, a classical
 observer) does not import torch."""
@@ -35,7 +36,7 @@ def __getattr__(name: str) -> Any:
 
 def model_names() -> tuple[str, ...]:
     """The registered models' names, lbo's own first (``cnn``, ``lstm``, ``filternet``,
-    ``kalmannet``)."""
+    ``kalmannet``, ``split_kalmannet``)."""
     return plugins.names("model")
 
 
@@ -88,5 +89,5 @@ def build_model(name: str, window: int, **kwargs: Any) -> nn.Module:
                        f" {e}") from None
 
 
-__all__ = ["KalmanNet", "WindowCNN", "WindowFilter", "WindowLSTM", "build_model", "model_class",
-           "model_names", "model_parameters"]
+__all__ = ["KalmanNet", "SplitKalmanNet", "WindowCNN", "WindowFilter", "WindowLSTM",
+           "build_model", "model_class", "model_names", "model_parameters"]

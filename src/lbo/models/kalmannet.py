@@ -1,4 +1,5 @@
-"""KalmanNet, architecture 2, around the kinematic bicycle: a learned peer of the literature.
+"""KalmanNet (architecture 2) and Split-KalmanNet around the kinematic bicycle: learned peers
+of the literature, each a filter whose Kalman gain a network gives.
 
 Revach, Shlezinger, Ni, Lopez Escoriza, van Sloun and Eldar, "KalmanNet: Neural Network Aided
 Kalman Filtering for Partially Known Dynamics", IEEE Transactions on Signal Processing 70
@@ -34,8 +35,18 @@ Where this one differs from the published filter:
 - The GRU cells are written out (the same gates as ``torch.nn.GRUCell``), so that ONNX
   exports them.
 
-It reads ``"frame"`` features in metres and radians (the window in the frame of its latest
-fix), as :class:`lbo.models.filternet.WindowFilter` does, and is never told alpha.
+Split-KalmanNet (Choi, Park, Kim, Kim and Kim, "Split-KalmanNet: A Robust Model-Based Deep
+Learning Approach for State Estimation", IEEE Transactions on Vehicular Technology 72 (2023),
+12326-12331) splits the gain in two, as a Kalman filter's is made: one GRU, reading the
+state's differences (F3, F4), gives the prior covariance P; another, reading the
+measurement's (F1, F2), gives the inverse innovation covariance S^-1; the gain is
+``K = P H^T S^-1`` (H = I: the pose is measured). The split lets each network follow its own
+noise: a change of the measurement noise moves S alone. It differs from the published one as
+KalmanNet does above, and: one GRU layer each (the authors stack two), and P and S^-1 are
+full 3 x 3 outputs in sigma units started at ``sqrt(gain) I`` each.
+
+Both read ``"frame"`` features in metres and radians (the window in the frame of its latest
+fix), as :class:`lbo.models.filternet.WindowFilter` does, and are never told alpha.
 """
 
 from __future__ import annotations
@@ -85,7 +96,71 @@ def _unit(f: torch.Tensor, floor: float) -> torch.Tensor:
     return f / torch.sqrt((f * f).sum(-1, keepdim=True) + floor * floor)
 
 
-class KalmanNet(nn.Module):
+class _GainFilter(nn.Module):
+    """A filter over the window whose gain a network gives: the kinematic bicycle predicts,
+    ``_gain`` reads the four differences (see the module) and its recurrent states, and
+    returns the gain (B, 9) in sigma units and the states it carries; a step without a fix
+    predicts, and the states hold. The subclasses build the network."""
+
+    def _setup(self, window: int, dt: float, wheelbase: float,
+               measurement_sigma: Sequence[float], in_features: int) -> None:
+        frame_model(self, window, in_features, dt, wheelbase)
+        self.register_buffer("units", torch.tensor(
+            check_sigmas("measurement_sigma", measurement_sigma)))
+        # attributes: TorchScript reads no module-level number
+        self.n_state = N_STATE
+        self.unit_floor = UNIT_FLOOR
+
+    def _start(self, b: int) -> list[torch.Tensor]:
+        """The recurrent states (B, h) each, at a window's first step."""
+        raise NotImplementedError
+
+    def _gain(self, f1: torch.Tensor, f2: torch.Tensor, f3: torch.Tensor, f4: torch.Tensor,
+              hidden: list[torch.Tensor]) -> tuple[torch.Tensor, list[torch.Tensor]]:
+        """The gain (B, 9) in sigma units, and the recurrent states after this step."""
+        raise NotImplementedError
+
+    def _predict(self, z: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+        """One bicycle step of (B, 3) poses with inputs u (B, 2) ``[V, delta]``."""
+        return bicycle_step(z, u[:, 0], u[:, 1], self.dt, self.wheelbase)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """(B, N, 5|6) features -> (B, 3) pose in the frame of the window's latest fix."""
+        b, steps = x.shape[:2]
+        y = x[:, :, :self.n_state]
+        z = y[:, 0]
+        fix = x[:, :, 5] > 0.5 if self.fixes else torch.ones(b, steps, dtype=torch.bool,
+                                                               device=x.device)
+        started = fix[:, 0]
+        hidden = self._start(b)
+        z_prev, z_prior_prev = z, z  # x_{t-2|t-2} and x_{t-1|t-2}: no difference at the start
+        y_last = y[:, 0]
+        for k in range(1, steps):
+            prior = self._predict(z, x[:, k - 1, 3:5])
+            f = fix[:, k]
+            innovation = wrap_heading(y[:, k] - prior)
+            # the four differences in measurement sigmas (metres and radians made comparable)
+            f1 = _unit(wrap_heading(y[:, k] - y_last) / self.units, self.unit_floor)
+            f2 = _unit(innovation / self.units, self.unit_floor)
+            f3 = _unit(wrap_heading(z - z_prev) / self.units, self.unit_floor)
+            f4 = _unit(wrap_heading(z - z_prior_prev) / self.units, self.unit_floor)
+            gain, after = self._gain(f1, f2, f3, f4, hidden)
+            # K = D K~ D^-1: the innovation in sigmas, the correction back in metres, radians
+            post = prior + self.units * (gain.view(b, self.n_state, self.n_state)
+                                         @ (innovation / self.units).unsqueeze(-1)).squeeze(-1)
+            # a step with a fix updates (the first fix: the filter starts there); one
+            # without predicts, and the recurrent states hold
+            update = (f & started)[:, None]
+            first = (f & ~started)[:, None]
+            new = torch.where(first, y[:, k], torch.where(update, post, prior))
+            hidden = [torch.where(update, h1, h0) for h1, h0 in zip(after, hidden)]
+            y_last = torch.where(f[:, None], y[:, k], y_last)
+            z_prev, z_prior_prev, z = z, torch.where(first, y[:, k], prior), new
+            started = started | f
+        return wrap_heading(z)
+
+
+class KalmanNet(_GainFilter):
     """KalmanNet (architecture 2) over a window, on the kinematic bicycle (see the module).
 
     Parameters
@@ -105,15 +180,11 @@ class KalmanNet(nn.Module):
                  in_features: int = 5, width: int = 4, hidden: int = 64,
                  gain: float = 0.05) -> None:
         super().__init__()
-        frame_model(self, window, in_features, dt, wheelbase)
-        self.register_buffer("units", torch.tensor(
-            check_sigmas("measurement_sigma", measurement_sigma)))
+        self._setup(window, dt, wheelbase, measurement_sigma, in_features)
         width = integer(width, "model.width", 1)
         hidden = integer(hidden, "model.hidden", 1)
         gain = number(gain, "model.gain", low=0.0, high=1.0, form="a number in [0, 1]")
-        # attributes: TorchScript reads no module-level number
-        n = self.n_state = N_STATE
-        self.unit_floor = UNIT_FLOOR
+        n = self.n_state
         h = width * n * n
         wide = 5 * n  # the input layers' width (the authors' in_mult = 5)
         self.fc_q = nn.Linear(n, wide)           # F3 -> GRU_Q
@@ -133,52 +204,67 @@ class KalmanNet(nn.Module):
         with torch.no_grad():
             self.fc_gain[-1].bias.copy_(gain * torch.eye(n).flatten())
 
-    def _predict(self, z: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
-        """One bicycle step of (B, 3) poses with inputs u (B, 2) ``[V, delta]``."""
-        return bicycle_step(z, u[:, 0], u[:, 1], self.dt, self.wheelbase)
+    def _start(self, b: int) -> list[torch.Tensor]:
+        return [self.h_q.expand(b, -1), self.h_sigma.expand(b, -1), self.h_s.expand(b, -1)]
 
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        """(B, N, 5|6) features -> (B, 3) pose in the frame of the window's latest fix."""
-        b, steps = x.shape[:2]
-        y = x[:, :, :self.n_state]
-        z = y[:, 0]
-        fix = x[:, :, 5] > 0.5 if self.fixes else torch.ones(b, steps, dtype=torch.bool,
-                                                               device=x.device)
-        started = fix[:, 0]
-        h_q = self.h_q.expand(b, -1)
-        h_sigma = self.h_sigma.expand(b, -1)
-        h_s = self.h_s.expand(b, -1)
-        z_prev, z_prior_prev = z, z  # x_{t-2|t-2} and x_{t-1|t-2}: no difference at the start
-        y_last = y[:, 0]
-        for k in range(1, steps):
-            prior = self._predict(z, x[:, k - 1, 3:5])
-            f = fix[:, k]
-            innovation = wrap_heading(y[:, k] - prior)
-            # the four differences in measurement sigmas (metres and radians made comparable)
-            f1 = _unit(wrap_heading(y[:, k] - y_last) / self.units, self.unit_floor)
-            f2 = _unit(innovation / self.units, self.unit_floor)
-            f3 = _unit(wrap_heading(z - z_prev) / self.units, self.unit_floor)
-            f4 = _unit(wrap_heading(z - z_prior_prev) / self.units, self.unit_floor)
-            q = self.gru_q(F.relu(self.fc_q(f3)), h_q)
-            sigma = self.gru_sigma(torch.cat([q, F.relu(self.fc_f4(f4))], -1), h_sigma)
-            s_in = torch.cat([F.relu(self.fc_sigma(sigma)), F.relu(self.fc_y(
-                torch.cat([f1, f2], -1)))], -1)
-            s = self.gru_s(s_in, h_s)
-            gain = self.fc_gain(torch.cat([sigma, s], -1))
-            back = F.relu(self.fc_back(torch.cat([s, gain], -1)))
-            sigma = F.relu(self.fc_sigma_back(torch.cat([sigma, back], -1)))
-            # K = D K~ D^-1: the innovation in sigmas, the correction back in metres, radians
-            post = prior + self.units * (gain.view(b, self.n_state, self.n_state)
-                                         @ (innovation / self.units).unsqueeze(-1)).squeeze(-1)
-            # a step with a fix updates (the first fix: the filter starts there); one
-            # without predicts, and the GRUs hold
-            update = (f & started)[:, None]
-            first = (f & ~started)[:, None]
-            new = torch.where(first, y[:, k], torch.where(update, post, prior))
-            h_q = torch.where(update, q, h_q)
-            h_sigma = torch.where(update, sigma, h_sigma)
-            h_s = torch.where(update, s, h_s)
-            y_last = torch.where(f[:, None], y[:, k], y_last)
-            z_prev, z_prior_prev, z = z, torch.where(first, y[:, k], prior), new
-            started = started | f
-        return wrap_heading(z)
+    def _gain(self, f1: torch.Tensor, f2: torch.Tensor, f3: torch.Tensor, f4: torch.Tensor,
+              hidden: list[torch.Tensor]) -> tuple[torch.Tensor, list[torch.Tensor]]:
+        h_q, h_sigma, h_s = hidden
+        q = self.gru_q(F.relu(self.fc_q(f3)), h_q)
+        sigma = self.gru_sigma(torch.cat([q, F.relu(self.fc_f4(f4))], -1), h_sigma)
+        s_in = torch.cat([F.relu(self.fc_sigma(sigma)), F.relu(self.fc_y(
+            torch.cat([f1, f2], -1)))], -1)
+        s = self.gru_s(s_in, h_s)
+        gain = self.fc_gain(torch.cat([sigma, s], -1))
+        back = F.relu(self.fc_back(torch.cat([s, gain], -1)))
+        sigma = F.relu(self.fc_sigma_back(torch.cat([sigma, back], -1)))
+        return gain, [q, sigma, s]
+
+
+class SplitKalmanNet(_GainFilter):
+    """Split-KalmanNet over a window, on the kinematic bicycle (see the module): the gain
+    ``K = P S^-1`` of a prior covariance P that one GRU gives from the state's differences and
+    an inverse innovation covariance S^-1 that another gives from the measurement's.
+
+    Parameters
+    ----------
+    window, dt, wheelbase, measurement_sigma, in_features : as :class:`KalmanNet`'s.
+    width : each GRU's state holds ``width * 9`` units.
+    gain : the gain's starting value, ``gain * I`` (P and S^-1 each ``sqrt(gain) I``).
+    """
+
+    def __init__(self, window: int, dt: float = 0.02, wheelbase: float = 2.7,
+                 measurement_sigma: Sequence[float] = (1.0, 1.0, 0.0174),
+                 in_features: int = 5, width: int = 4, gain: float = 0.05) -> None:
+        super().__init__()
+        self._setup(window, dt, wheelbase, measurement_sigma, in_features)
+        width = integer(width, "model.width", 1)
+        gain = number(gain, "model.gain", low=0.0, high=1.0, form="a number in [0, 1]")
+        n = self.n_state
+        h = width * n * n
+        wide = 5 * n
+        self.fc_state = nn.Linear(2 * n, wide)     # F3, F4 -> GRU_P
+        self.fc_meas = nn.Linear(2 * n, wide)      # F1, F2 -> GRU_S
+        self.gru_p = _GRUCell(wide, h)
+        self.gru_s = _GRUCell(wide, h)
+        self.fc_p = nn.Linear(h, n * n)
+        self.fc_s = nn.Linear(h, n * n)
+        for name in ("h_p", "h_s"):
+            self.register_parameter(name, nn.Parameter(torch.zeros(h)))
+        for out in (self.fc_p, self.fc_s):
+            nn.init.zeros_(out.weight)
+            with torch.no_grad():
+                out.bias.copy_(gain**0.5 * torch.eye(n).flatten())
+
+    def _start(self, b: int) -> list[torch.Tensor]:
+        return [self.h_p.expand(b, -1), self.h_s.expand(b, -1)]
+
+    def _gain(self, f1: torch.Tensor, f2: torch.Tensor, f3: torch.Tensor, f4: torch.Tensor,
+              hidden: list[torch.Tensor]) -> tuple[torch.Tensor, list[torch.Tensor]]:
+        h_p, h_s = hidden
+        p = self.gru_p(F.relu(self.fc_state(torch.cat([f3, f4], -1))), h_p)
+        s = self.gru_s(F.relu(self.fc_meas(torch.cat([f1, f2], -1))), h_s)
+        n = self.n_state
+        prior = self.fc_p(p).view(-1, n, n)
+        s_inv = self.fc_s(s).view(-1, n, n)
+        return (prior @ s_inv).flatten(1), [p, s]
