@@ -26,7 +26,8 @@ def test_output_shape(name, window):
     assert out.dtype == torch.float32
     assert torch.isfinite(out).all()
     # wrapped as the observer that trains and runs: float64 windows in, float64 states out
-    frame = name in ("filternet", "kalmannet", "split_kalmannet")  # they read metres in the latest fix's frame
+    # they read metres in the latest fix's frame
+    frame = name in ("filternet", "kalmannet", "split_kalmannet")
     net = WindowNet(name, window, features="frame" if frame else "relative")
     state = net(torch.randn(7, window, 5, dtype=torch.float64))
     assert state.shape == (7, 3) and state.dtype == torch.float64

@@ -1,7 +1,8 @@
 """Parts found by name among the installed packages: lbo's own and a user's, by one path.
 
-A part is a class that lbo builds by name: a learned model (group ``lbo.models``) or a
-classical observer's stepper (group ``lbo.observers``). A package offers one through a Python
+A part is a class that lbo builds by name: a learned model (group ``lbo.models``), a
+classical observer's stepper (group ``lbo.observers``) or a truth model, the car a simulated
+log is drawn from (group ``lbo.truths``). A package offers one through a Python
 entry point in its ``pyproject.toml``::
 
     [project.entry-points."lbo.models"]
@@ -27,10 +28,11 @@ from typing import Any
 
 from lbo.core.errors import LboError
 
-GROUPS = {"model": "lbo.models", "observer": "lbo.observers"}
+GROUPS = {"model": "lbo.models", "observer": "lbo.observers", "truth": "lbo.truths"}
 """The entry-point group of each kind of part."""
 OWN = {"model": ("cnn", "lstm", "filternet", "kalmannet", "split_kalmannet"),
-       "observer": ("ekf", "adaptive", "ukf", "gyro")}
+       "observer": ("ekf", "adaptive", "ukf", "gyro"),
+       "truth": ("kinematic", "dynamic")}
 """lbo's own parts of each kind (registered in its pyproject.toml): without them the
 installation is stale, which is said as such."""
 NAME = re.compile(r"[a-z][a-z0-9_]*")

@@ -7,9 +7,9 @@ the sensor errors of :class:`lbo.sim.truth.Sensors` and the noise levels. Its er
 that a learned observer is compared against.
 
 The truth it is built for (``dt`` the vehicle's sampling period, ``car`` a
-:class:`~lbo.sim.dynamic.SingleTrack`):
+:class:`~lbo.sim.dynamic.SingleTrack` or any car that keeps :class:`lbo.sim.truth.Car`):
 
-- ``s_{k+1} = dynamic.step(s_k, u_true_k, dt, car) + [w_k, 0, 0]``, ``s = [x, y, psi, v_y, r]``
+- ``s_{k+1} = car.step(s_k, u_true_k, dt) + [w_k, 0, 0]``, ``s = [x, y, psi, v_y, r]``
   (the rear axle's pose, the lateral speed of the centre of gravity, the yaw rate),
   ``w_k ~ N(0, Q)`` on the pose only;
 - logged inputs ``V_log = (1 + speed_scale) V_true``, ``delta_log = delta_true +
@@ -30,7 +30,7 @@ Joseph-form :func:`lbo.filters.update.joseph_update`; heading innovations are wr
 with a Python loop over time only. It starts at a full fix (a heading included).
 
 The Jacobian of the RK4 step is taken by central differences in psi, v_y and r, all
-perturbations stacked into one call of :func:`lbo.sim.dynamic.step` on (G, 7, 5) states. The step
+perturbations stacked into one call of ``car.step`` on (G, 7, 5) states. The step
 does not depend on x and y (their columns are the identity), so it is evaluated at the origin
 and the pose added back: exact, and free of round-off at large coordinates.
 """
@@ -46,8 +46,7 @@ from lbo.filters import measure
 from lbo.filters.start import COV_FLOOR, batch_cov, check_q, check_trajectories
 from lbo.filters.stepper import Posterior, run_stepper
 from lbo.filters.update import held_channels, joseph_update
-from lbo.sim import dynamic
-from lbo.sim.dynamic import SingleTrack
+from lbo.sim.truth import Car
 from lbo.sim.vehicle import Vehicle
 
 P0_LATERAL_SIGMA = (0.5, 0.2)
@@ -98,7 +97,7 @@ class DynamicStepper:
         accuracy the row reports, if any).
     vehicle : Vehicle
         Supplies ``dt``; its wheelbase must be the car's ``l_f + l_r``.
-    car : SingleTrack
+    car : the true car (:class:`lbo.sim.truth.Car`)
         The true car's parameters.
     Q : (3, 3) process covariance of x, y, psi (added after each step).
     R : (G, 3, 3) white measurement covariance at each trajectory's alpha.
@@ -108,7 +107,7 @@ class DynamicStepper:
     steering_offset : what the logged steering angle reads above the road-wheel angle (rad).
     speed_scale : relative error of the logged speed (0.02: V reads 2 % high); > -1.
     u0 : (G, 2) logged inputs at step 0, or None. Given, v_y and r start in the steady state
-        (:func:`lbo.sim.dynamic.steady_state`) of the true inputs they stand for; else at 0.
+        (``car.start``) of the true inputs they stand for; else at 0.
 
     The start: pose ``m0``, drift 0, and the covariance of that guess's error given only
     ``m_0`` (a flat prior on the pose, the stationary one on the drift):
@@ -133,19 +132,20 @@ class DynamicStepper:
     phi : (G,) drift correlation per step, ``exp(-dt / gnss_tau)``.
     """
 
-    def __init__(self, m0: np.ndarray, vehicle: Vehicle, car: SingleTrack, Q: np.ndarray,
+    def __init__(self, m0: np.ndarray, vehicle: Vehicle, car: Car, Q: np.ndarray,
                  R: np.ndarray, gnss_sigma: np.ndarray | float = 0.0, gnss_tau: float = 30.0,
                  steering_offset: float = 0.0, speed_scale: float = 0.0,
                  u0: np.ndarray | None = None) -> None:
         if not isinstance(vehicle, Vehicle):
             raise LboError(f"vehicle must be a lbo.sim.vehicle.Vehicle, got "
                            f"{type(vehicle).__name__}")
-        if not isinstance(car, SingleTrack):
-            raise LboError(f"car must be a lbo.sim.dynamic.SingleTrack, got "
-                           f"{type(car).__name__}")
+        if not isinstance(car, Car):
+            raise LboError(f"car must be a car that keeps lbo.sim.truth.Car (a SingleTrack, or "
+                           f"a registered truth model's), got {type(car).__name__}")
         if abs(car.wheelbase - vehicle.wheelbase) > 1e-6:
-            raise LboError(f"car.l_f + car.l_r must be the vehicle's wheelbase "
-                           f"({vehicle.wheelbase} m), got {car.wheelbase!r}")
+            field = "car.l_f + car.l_r" if hasattr(car, "l_f") else "car.wheelbase"
+            raise LboError(f"{field} must be the vehicle's wheelbase ({vehicle.wheelbase} m), "
+                           f"got {car.wheelbase!r}")
         m0 = np.array(m0, dtype=float)
         if m0.ndim != 2 or m0.shape[1] not in (3, measure.WIDTH):
             raise LboError(f"m0 must be (G, 3) [x_m, y_m, psi_m] or (G, {measure.WIDTH}) "
@@ -189,7 +189,7 @@ class DynamicStepper:
         self.x[:, :3] = m0[:, :3]
         if u0 is not None:
             ut = self.true_inputs(_check_inputs(u0, g, "u0"))
-            self.x[:, 3], self.x[:, 4] = dynamic.steady_state(ut[:, 0], ut[:, 1], car)
+            self.x[:, 3:5] = car.start(self.x[:, :3], ut)[:, 3:5]
         P = np.zeros((g, n, n))
         P[:, :3, :3] = measure.step_cov(m0, R)
         P[:, 3, 3], P[:, 4, 4] = np.square(P0_LATERAL_SIGMA)
@@ -221,8 +221,8 @@ class DynamicStepper:
         for j, col in enumerate(_PERTURBED):
             s[:, 1 + 2 * j, col] += FD_STEP
             s[:, 2 + 2 * j, col] -= FD_STEP
-        out = dynamic.step(s, np.broadcast_to(ut[:, None], s.shape[:2] + (2,)),
-                           self.vehicle.dt, self.car)
+        out = self.car.step(s, np.broadcast_to(ut[:, None], s.shape[:2] + (2,)),
+                            self.vehicle.dt)
         F = np.zeros((g, n, n))
         F[:, 0, 0] = F[:, 1, 1] = 1.0
         for j, col in enumerate(_PERTURBED):
@@ -285,7 +285,7 @@ class DynamicStepper:
         s[:, 2, 3] -= FD_STEP
         s[:, 3, 4] += FD_STEP
         s[:, 4, 4] -= FD_STEP
-        slip = dynamic.rear_slip(s, np.broadcast_to(ut[:, None], (g, 5, 2)), self.car)
+        slip = self.car.rear_slip(s, np.broadcast_to(ut[:, None], (g, 5, 2)))
         jac = np.ones((g, 3))
         jac[:, 1] = (slip[:, 1] - slip[:, 2]) / (2.0 * FD_STEP)
         jac[:, 2] = (slip[:, 3] - slip[:, 4]) / (2.0 * FD_STEP)
@@ -297,7 +297,7 @@ class DynamicStepper:
         return self.P[:, :3, :3]
 
 
-def dynamic_ekf_batch(m: np.ndarray, u: np.ndarray, vehicle: Vehicle, car: SingleTrack,
+def dynamic_ekf_batch(m: np.ndarray, u: np.ndarray, vehicle: Vehicle, car: Car,
                       Q: np.ndarray, R: np.ndarray, gnss_sigma: np.ndarray | float = 0.0,
                       gnss_tau: float = 30.0, steering_offset: float = 0.0,
                       speed_scale: float = 0.0, return_cov: bool = False
@@ -310,7 +310,7 @@ def dynamic_ekf_batch(m: np.ndarray, u: np.ndarray, vehicle: Vehicle, car: Singl
         row of every trajectory must be a fix.
     u : (G, T, 2) logged inputs ``[V, delta]``; ``u[:, k]`` moves step k to k + 1.
     vehicle : Vehicle (``dt``).
-    car : SingleTrack, the true car.
+    car : the true car (:class:`lbo.sim.truth.Car`: a SingleTrack, or a registered one).
     Q : (3, 3) process covariance of x, y, psi.
     R : (3, 3) shared, or (G, 3, 3) per trajectory: the white measurement covariance at alpha.
     gnss_sigma : float or (G,) GNSS drift standard deviation (m), already times alpha.

@@ -26,10 +26,14 @@ are right again once the car is fast. Everything is vectorised over leading batc
 from __future__ import annotations
 
 from dataclasses import dataclass, fields
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from lbo.core.checks import integer, number
+
+if TYPE_CHECKING:
+    from lbo.sim.truth import Car
 
 G = 9.81  # m/s^2
 STATE = ("x", "y", "psi", "v_y", "r")
@@ -90,6 +94,19 @@ class SingleTrack:
         w = self.mass * G / self.wheelbase
         return w * self.l_r, w * self.l_f
 
+    # the truth model's contract (docs/plugins.md), which a user's car keeps too
+    def start(self, z0: np.ndarray, u0: np.ndarray) -> np.ndarray:
+        """(..., 5) states at poses z0 (..., 3), in steady state for the inputs u0 (..., 2)."""
+        return start(z0, u0, self)
+
+    def step(self, s: np.ndarray, u: np.ndarray, dt: float) -> np.ndarray:
+        """One sampling period dt (s) from states s (..., 5), inputs u (..., 2) held."""
+        return step(s, u, dt, self)
+
+    def rear_slip(self, s: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """The rear axle's side slip (rad) (...,) of states s (..., 5), inputs u (..., 2)."""
+        return rear_slip(s, u, self)
+
 
 def tyre_force(alpha: np.ndarray, c: float, f_max: float) -> np.ndarray:
     """Lateral force (N) at slip angle ``alpha`` (rad): ``f_max tanh(c alpha / f_max)``."""
@@ -146,14 +163,15 @@ def start(z0: np.ndarray, u0: np.ndarray, p: SingleTrack) -> np.ndarray:
     return np.concatenate([z0, v_y[..., None], r[..., None]], axis=-1)
 
 
-def simulate(z0: np.ndarray, u: np.ndarray, dt: float, p: SingleTrack,
+def simulate(z0: np.ndarray, u: np.ndarray, dt: float, p: Car,
              process_sigma: np.ndarray | None = None,
              rng: np.random.Generator | None = None) -> np.ndarray:
     """Roll the car forward over known inputs, as :func:`lbo.sim.vehicle.simulate` does.
 
     Parameters
     ----------
-    z0 : (B, 3) initial poses; the lateral states start in steady state.
+    p : the car: a SingleTrack, or any car that keeps :class:`lbo.sim.truth.Car`.
+    z0 : (B, 3) initial poses; the lateral states start as ``p.start`` sets them.
     u : (B, T, 2) inputs; ``u[:, k]`` moves ``s_k`` to ``s_{k+1}``.
     process_sigma : (3,) standard deviations of the noise added to x, y, psi after each step.
 
@@ -163,11 +181,11 @@ def simulate(z0: np.ndarray, u: np.ndarray, dt: float, p: SingleTrack,
     """
     b, t = u.shape[:2]
     s = np.empty((b, t, 5))
-    s[:, 0] = start(z0, u[:, 0], p)
+    s[:, 0] = p.start(z0, u[:, 0])
     if process_sigma is not None:
         w = rng.standard_normal((b, t - 1, 3)) * np.asarray(process_sigma)
     for k in range(t - 1):  # sequential in time, vectorised over the batch
-        s[:, k + 1] = step(s[:, k], u[:, k], dt, p)
+        s[:, k + 1] = p.step(s[:, k], u[:, k], dt)
         if process_sigma is not None:
             s[:, k + 1, :3] += w[:, k]
     return s

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from lbo.core.angles import wrap_angle
-from lbo.sim import dynamic
+from lbo.sim.truth import Car
 from lbo.sim.vehicle import Vehicle, f
 
 
@@ -21,7 +21,7 @@ def smooth_noise(n_traj: int, n_steps: int, dt: float, rng: np.random.Generator,
 def drive(paths: list[np.ndarray], speed: np.ndarray, vehicle: Vehicle,
           process_sigma: np.ndarray, rng: np.random.Generator, ds: float = 0.1,
           gain: float = 0.4, lookahead: tuple[float, float] = (3.0, 15.0),
-          car: dynamic.SingleTrack | None = None) -> dict[str, np.ndarray]:
+          car: Car | None = None) -> dict[str, np.ndarray]:
     """Drive every path with a pure-pursuit controller at the given speed profile.
 
     Parameters
@@ -30,13 +30,14 @@ def drive(paths: list[np.ndarray], speed: np.ndarray, vehicle: Vehicle,
         the vehicle starts at each path's first sample, on its heading.
     speed : (G, T) speed V_k (m/s) to hold at every step.
     gain : look-ahead distance = clip(gain * V, *lookahead) metres.
-    car : None drives the kinematic bicycle; else this dynamic single-track car
-        (:mod:`lbo.sim.dynamic`), which slips, and which the controller steers all the same.
+    car : None drives the kinematic bicycle; else this car that slips (:class:`Car`: the
+        single-track of :mod:`lbo.sim.dynamic`, or a registered one), which the controller
+        steers all the same.
 
     Returns
     -------
     dict with ``z`` (G, T, 3) true states (psi wrapped), ``u`` (G, T, 2) inputs [V, delta] and
-    ``slip`` (G, T) the rear axle's side slip (rad, :func:`lbo.sim.dynamic.rear_slip`; 0 for
+    ``slip`` (G, T) the rear axle's side slip (rad, ``car.rear_slip``; 0 for
     the kinematic bicycle), which a receiver's velocity shows.
     """
     g, n_steps = speed.shape
@@ -72,11 +73,10 @@ def drive(paths: list[np.ndarray], speed: np.ndarray, vehicle: Vehicle,
         if car is None:
             z[:, k + 1] = z[:, k] + f(z[:, k], u[:, k], vehicle.wheelbase) * vehicle.dt + w[:, k]
         else:
-            s = dynamic.step(np.concatenate([z[:, k], lateral], axis=-1), u[:, k], vehicle.dt,
-                             car)
+            s = car.step(np.concatenate([z[:, k], lateral], axis=-1), u[:, k], vehicle.dt)
             z[:, k + 1], lateral = s[:, :3] + w[:, k], s[:, 3:]
             lateral_k[:, k + 1] = lateral
     slip = (np.zeros((g, n_steps)) if car is None
-            else dynamic.rear_slip(np.concatenate([z, lateral_k], axis=-1), u, car))
+            else car.rear_slip(np.concatenate([z, lateral_k], axis=-1), u))
     z[..., 2] = wrap_angle(z[..., 2])
     return {"z": z, "u": u, "slip": slip}

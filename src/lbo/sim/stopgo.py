@@ -15,10 +15,10 @@ import numpy as np
 
 from lbo.core.angles import wrap_angle
 from lbo.sim.clothoid import sample
-from lbo.sim.dynamic import SingleTrack
 from lbo.sim.manoeuvres import Chain
 from lbo.sim.noise import Noise
 from lbo.sim.pursuit import drive
+from lbo.sim.truth import Car
 from lbo.sim.vehicle import Vehicle, f, measure
 
 MODES = ("stop", "creep", "cruise")
@@ -119,7 +119,7 @@ def stop_and_go_speed(dt: float) -> np.ndarray:
 
 
 def drive_stop_and_go(vehicle: Vehicle, process_sigma, rng: np.random.Generator,
-                      car: SingleTrack | None = None) -> dict[str, np.ndarray]:
+                      car: Car | None = None) -> dict[str, np.ndarray]:
     """True states z (T, 3), inputs u (T, 2) and the rear slip (T,) (rad) of the stop-and-go
     drive through town, by the kinematic bicycle or by the dynamic ``car``."""
     speed = stop_and_go_speed(vehicle.dt)

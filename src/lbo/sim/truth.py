@@ -2,7 +2,10 @@
 
 ``kinematic`` is the paper's kinematic bicycle (:mod:`lbo.sim.vehicle`), the very model inside the
 classical filters; ``dynamic`` is a car that slips (:mod:`lbo.sim.dynamic`). Both log the same
-schema: the rear axle's ``x, y, psi`` as the state and ``V, delta`` as the inputs.
+schema: the rear axle's ``x, y, psi`` as the state and ``V, delta`` as the inputs. A truth
+model is found by its name among the installed packages' entry points (group
+``lbo.truths``, :mod:`lbo.core.plugins`), lbo's two as a user's: any car that keeps
+:class:`Car` drives the simulator, the data sets and the EKF told the car.
 
 Three sensor errors beside the white measurement noise, each off by default:
 
@@ -21,16 +24,52 @@ Q, the one a filter designer would choose.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import asdict, dataclass, field
-from typing import Any
+from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
+from lbo.core import plugins
 from lbo.core.checks import number, require
 from lbo.core.errors import LboError
-from lbo.sim.dynamic import SingleTrack
 
-MODELS = ("kinematic", "dynamic")
+
+@runtime_checkable
+class Car(Protocol):
+    """What a car that slips keeps, lbo's single-track (:class:`lbo.sim.dynamic.SingleTrack`)
+    and a user's (registered in the entry-point group ``lbo.truths``; docs/plugins.md): a
+    frozen dataclass whose fields are its ``truth.*`` settings (each checked in its
+    ``__post_init__``), with the state ``[x, y, psi, v_y, r]``: the rear axle's pose, then the
+    lateral speed of the centre of gravity (m/s) and the yaw rate (rad/s)."""
+
+    @property
+    def wheelbase(self) -> float:
+        """m: the vehicle's (``vehicle.wheelbase``) it must be."""
+        ...
+
+    @property
+    def understeer_gradient(self) -> float:
+        """rad per m/s^2 of lateral acceleration: the friction-circle generator steers by it."""
+        ...
+
+    def start(self, z0: np.ndarray, u0: np.ndarray) -> np.ndarray:
+        """(..., 5) states at poses z0 (..., 3) for the first inputs u0 (..., 2) [V, delta]."""
+        ...
+
+    def step(self, s: np.ndarray, u: np.ndarray, dt: float) -> np.ndarray:
+        """(..., 5) states one period dt (s) on from s (..., 5), inputs u (..., 2) held."""
+        ...
+
+    def rear_slip(self, s: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """(...,) the angle (rad) of the rear axle's velocity off the heading."""
+        ...
+
+
+class Kinematic:
+    """The paper's kinematic bicycle as a truth model: no car (:mod:`lbo.sim.vehicle` drives
+    it, as the classical filters model it). Registered as ``kinematic`` so that lbo's two
+    truth models are found by the path a user's is."""
 
 
 @dataclass(frozen=True)
@@ -84,15 +123,15 @@ class Truth:
 
     Attributes
     ----------
-    name : ``kinematic`` or ``dynamic``.
-    car : the single-track car's parameters (``dynamic`` only).
+    name : the truth model's registered name (``kinematic``, ``dynamic`` or a user's).
+    car : the car that slips (:class:`Car`), or None: the kinematic bicycle.
     sensors : the sensor errors.
     process_scale : the truth's process noise is this times the noise preset's
         ``process_sigma`` (1: the paper's random walk on x, y and psi).
     """
 
     name: str = "kinematic"
-    car: SingleTrack | None = None
+    car: Car | None = None
     sensors: Sensors = field(default_factory=Sensors)
     process_scale: float = 1.0
 
@@ -138,30 +177,45 @@ def gauss_markov(shape: tuple[int, ...], dt: float, tau: float, sigma: float,
 def from_cfg(cfg: Any, wheelbase: float) -> Truth:
     """The Truth of the Hydra group ``truth`` (None or absent: the kinematic bicycle).
 
-    Raises LboError naming the field for an unknown model, a bad value, or axle distances
-    that do not sum to the vehicle's wheelbase.
+    ``truth.name`` is looked up among the registered truth models (entry-point group
+    ``lbo.truths``; nothing a config names is imported otherwise). Raises LboError naming the
+    field for an unknown model, a bad value, a car that does not keep :class:`Car`, or axle
+    distances that do not sum to the vehicle's wheelbase.
     """
     if cfg is None:
         return Truth()
     c = dict(cfg)
     name = c.pop("name", "kinematic")
-    require(name in MODELS, "truth.name", f"one of {list(MODELS)}", name)
+    cls = plugins.load("truth", name, "truth.name")
     sensor_keys = [f for f in Sensors.__dataclass_fields__]
     sensors = Sensors(**{k: c.pop(k) for k in sensor_keys if k in c})
     scale = c.pop("process_scale", 1.0)
     sensor_keys.append("process_scale")
-    if name == "kinematic":
+    if cls is Kinematic:
         if c:
-            raise LboError(f"truth.{next(iter(c))}: not a field of truth=kinematic; "
+            raise LboError(f"truth.{next(iter(c))}: not a field of truth={name}; "
                            f"accepted: name, {', '.join(sensor_keys)}")
         return Truth(name, None, sensors, scale)
-    car_keys = list(SingleTrack.__dataclass_fields__)
+    if not dataclasses.is_dataclass(cls):
+        raise LboError(f"truth.name: truth model {name!r} is registered as {cls!r}, not a "
+                       "dataclass of its settings (docs/plugins.md)")
+    car_keys = [f.name for f in dataclasses.fields(cls)]
     unknown = [k for k in c if k not in car_keys]
     if unknown:
-        raise LboError(f"truth.{unknown[0]}: not a field of truth=dynamic; accepted: "
+        raise LboError(f"truth.{unknown[0]}: not a field of truth={name}; accepted: "
                        f"name, {', '.join(car_keys + sensor_keys)}")
-    car = SingleTrack(**c)
-    require(abs(car.wheelbase - wheelbase) < 1e-6, "truth.l_f + truth.l_r",
+    try:
+        car = cls(**c)
+    except (TypeError, ValueError) as e:  # a plug-in's own check, said in lbo's one line
+        raise LboError(f"truth: truth model {name!r} refused its settings ({e})") from None
+    missing = [m for m in ("wheelbase", "understeer_gradient", "start", "step", "rear_slip")
+               if not hasattr(car, m)]
+    if missing:
+        raise LboError(f"truth.name: truth model {name!r} lacks {', '.join(missing)} (a car "
+                       "keeps lbo.sim.truth.Car: docs/plugins.md)")
+    axles = hasattr(car, "l_f") and hasattr(car, "l_r")  # the field a user sets, if it has them
+    require(abs(float(car.wheelbase) - wheelbase) < 1e-6,
+            "truth.l_f + truth.l_r" if axles else f"truth={name}'s wheelbase",
             f"the vehicle's wheelbase ({wheelbase} m)", car.wheelbase)
     return Truth(name, car, sensors, scale)
 
