@@ -18,7 +18,7 @@ from lbo.models import WindowFilter, build_model
 from lbo.models.motion import BODY_PARAMETERS
 from lbo.models.net import WindowNet
 from lbo.reproduce import train_jobs
-from lbo.scoring import report
+from lbo.scoring import report, studies
 from lbo.serve.observer import Observer
 from lbo.sim.dynamic import SingleTrack
 from lbo.sim.dynamic import simulate as simulate_car
@@ -66,7 +66,7 @@ def test_report_section_where_learning_beats_the_model(dynamic, tmp_path):
     table = pd.concat([table, box], ignore_index=True)
     classical = table[table["observer"].isin(["ekf", "oracle"])].copy()
     files = report.write(tmp_path, "smoke", classical, {}, {},
-                         sections=[report.Dynamic("dynamic_drift", table)])
+                         sections=[studies.Dynamic("dynamic_drift", table)])
     text = (tmp_path / "report.md").read_text()
     assert "## Where learning beats the model: `data=dynamic_drift`" in text
     assert "times the dynamic oracle's" in text and "![dynamic_drift](nrmse_dynamic_drift.png)" \
@@ -74,7 +74,7 @@ def test_report_section_where_learning_beats_the_model(dynamic, tmp_path):
     assert tmp_path / "nrmse_dynamic_drift.png" in files
     assert "| alpha | filternet-N60 | cnn-N80 | ekf |" in text and "`cnn-N80`" in text
     pd.testing.assert_frame_equal(pd.read_csv(tmp_path / "dynamic_drift.csv"), table)
-    s = report.dynamic_summary(table)
+    s = studies.dynamic_summary(table)
     assert (s["observer"], s["black_boxes"]) == ("filternet-N60", ["cnn-N80"])
     nr = table.pivot_table(index="alpha", columns="observer", values="nrmse").loc[0.25:]
     assert s["vs_dynamic"][1] == pytest.approx((nr["filternet-N60"] / nr["oracle_dynamic"]).max())
@@ -220,6 +220,24 @@ def test_reproduce_trains_the_study_beside_the_paper_at_quick_scale(tmp_path):
     assert len(set(names.values())) == len(names)
     smoke = {j.key for j in train_jobs(compose_cfg("reproduce", ["scale=smoke"]), tmp_path)}
     assert "dynamic" not in smoke  # the smoke reproduction stays seconds long
+    assert not any(k.startswith("robust-") for k in jobs)  # the peers: paper scale only
+
+
+def test_reproduce_trains_the_learned_peers_as_the_robust_observer_at_paper_scale(tmp_path):
+    """KalmanNet and Split-KalmanNet: the robust observer's experiment, data set and budget,
+    each its own run folder and MLflow name, scored in its section of the report."""
+    cfg = compose_cfg("reproduce", ["scale=paper", f"report_dir={tmp_path}"])
+    jobs = {j.key: j for j in train_jobs(cfg, tmp_path)}
+    robust = list(jobs["robust"].overrides)
+    for model in ("kalmannet", "split_kalmannet"):
+        job = jobs[f"robust-{model}"]
+        assert job.kind == "robust"
+        assert list(job.overrides) == [robust[0], f"model={model}", *robust[1:-1],
+                                       f"output_dir={tmp_path / 'runs' / job.key}"]
+        name = compose_cfg("train", list(job.overrides)).logger.run_name
+        assert name == f"robust-{model}-N100"
+    off = compose_cfg("reproduce", ["scale=paper", "robust=false"])
+    assert not any(j.kind == "robust" for j in train_jobs(off, tmp_path))
 
 
 @pytest.mark.parametrize("kwargs, form", [({}, "recursive"),

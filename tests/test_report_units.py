@@ -271,7 +271,7 @@ def test_protocols_section_sets_the_literal_run_beside_ours_and_the_paper():
 # the report's sections ---------------------------------------------------------------------
 
 def test_the_report_writes_each_section_in_the_order_given_with_its_files(tmp_path):
-    from lbo.scoring import report
+    from lbo.scoring import report, studies
 
     ours = table({"ekf": EKF, "oracle": [0.0, 0.3, 0.5, 0.7, 0.9, 1.1, 1.3],
                   "adaptive": [0.1, 0.35, 0.6, 0.8, 1.0, 1.2, 1.4],
@@ -279,7 +279,7 @@ def test_the_report_writes_each_section_in_the_order_given_with_its_files(tmp_pa
                   "lstm-N20": [0.6, 0.7, 0.9, 1.1, 1.4, 1.7, 2.1],
                   "filternet-N40": [0.05, 0.31, 0.52, 0.72, 0.93, 1.12, 1.33]})
     literal = table({"literal-cnn-N60": [0.5, 0.5, 0.6, 0.7, 0.8, 0.9, 1.0]})
-    sections = [report.Robust("filternet-N40"), report.Protocols(literal)]
+    sections = [studies.Robust("filternet-N40"), report.Protocols(literal)]
     files = report.write(tmp_path, "smoke", ours, {}, {}, sections=sections)
     text = (tmp_path / "report.md").read_text()
     robust = text.index("## Beyond the paper: one observer for every noise level")
@@ -289,6 +289,13 @@ def test_the_report_writes_each_section_in_the_order_given_with_its_files(tmp_pa
     for name in ("nrmse_robust.png", "nrmse_protocols.png", "literal.csv"):
         assert tmp_path / name in files and (tmp_path / name).is_file()
     pd.testing.assert_frame_equal(pd.read_csv(tmp_path / "literal.csv"), literal)
+    # the learned peers trained as the robust observer is: their NRMSE and ratio beside it
+    peers = ours.assign(observer=ours["observer"].replace({"lstm-N20": "kalmannet-N40"}))
+    files = report.write(tmp_path / "peers", "smoke", peers, {}, {},
+                         sections=[studies.Robust("filternet-N40", ("kalmannet-N40",))])
+    text = (tmp_path / "peers" / "report.md").read_text()
+    assert "kalmannet-N40 / oracle" in text and "filternet-N40 / oracle" in text
+    assert "the learned peers' worst ratios: `kalmannet-N40` " in text
     bare = tmp_path / "bare"
     report.write(bare, "smoke", ours, {}, {})
     text = (bare / "report.md").read_text()

@@ -3,7 +3,8 @@
     python -m lbo.reproduce scale=quick
 
 Stages: 1 data, 2 tune (CNN and LSTM at N=20), 3 train the 8 observers with the tuned
-parameters, the robust observer (``experiment=robust``, beyond the paper) and the observers of
+parameters, the robust observer (``experiment=robust``, beyond the paper) with the learned
+peers trained as it is (``peers``: KalmanNet and Split-KalmanNet at paper scale), the observers of
 a car that slips (``experiment=dynamic`` on ``data=dynamic`` and ``dynamic_drift``, scored by
 their own runs on their own test sets), 4 evaluate the classical observers, 5 write the
 report. A rerun reuses the
@@ -154,7 +155,7 @@ protocol beside ours, and the car-that-slips study (each its own part of the rep
 class Job:
     """One training run of the study.
 
-    key : its name in the study and its run folder (``cnn-N20``, ``robust``,
+    key : its name in the study and its run folder (``cnn-N20``, ``robust``, ``robust-kalmannet``,
         ``literal-cnn-N60``, ``dynamic``, ``dynamic-cnn``).
     kind : :data:`PAPER`, :data:`ROBUST`, :data:`LITERAL` or :data:`DYNAMIC`.
     overrides : ``lbo.train``'s overrides.
@@ -191,6 +192,11 @@ def train_jobs(cfg: DictConfig, out: Path) -> list[Job]:
         jobs.append(Job("robust", ROBUST, ("experiment=robust", f"data={cfg.scale}",
                                            *cfg.robust_overrides[cfg.scale],
                                            _run_name("robust"))))
+        # the learned peers of the literature, trained as the robust observer is
+        for model in cfg.peers[cfg.scale]:
+            jobs.append(Job(f"robust-{model}", ROBUST, (
+                "experiment=robust", f"model={model}", f"data={cfg.scale}",
+                *cfg.robust_overrides[cfg.scale], _run_name("robust"))))
     for name in cfg.literal[cfg.scale]:
         model, window = _model_window(name, f"literal.{cfg.scale}")
         jobs.append(Job(f"literal-{model}-N{window}", LITERAL,
@@ -291,7 +297,7 @@ def stage_report(cfg: DictConfig, out: Path, folder: Path, tuned: dict, runs: di
                  classical_table: pd.DataFrame, record: dict, jobs: list[Job]
                  ) -> tuple[list[Path], str]:
     """5: the tables and figures, also logged to MLflow as a run of their own."""
-    from lbo.scoring import report
+    from lbo.scoring import report, studies
 
     mine = {j.key: j.data for j in jobs if j.kind == DYNAMIC}  # scored on test sets of their own
     dynamic = {data: pd.concat([pd.read_csv(run_artifact(runs[k], "evaluation.csv",
@@ -321,8 +327,10 @@ def stage_report(cfg: DictConfig, out: Path, folder: Path, tuned: dict, runs: di
     sections: list[report.Section] = []
     if literal_table is not None:
         sections.append(report.Protocols(literal_table))
-    sections += [report.Robust(runs[j.key]["name"]) for j in jobs if j.kind == ROBUST][:1]
-    sections += [report.Dynamic(data, t) for data, t in dynamic.items()]
+    robust = [runs[j.key]["name"] for j in jobs if j.kind == ROBUST]
+    if robust:  # the robust observer first, the peers trained as it is beside it
+        sections.append(studies.Robust(robust[0], tuple(robust[1:])))
+    sections += [studies.Dynamic(data, t) for data, t in dynamic.items()]
     files = report.write(out, cfg.scale, table, run_ids, record, traj,
                          folder / "friction_circle.png", sections)
     _log_report(cfg, cfg.scale, out, files, folder.name)

@@ -103,88 +103,6 @@ def with_oracle_ratio(table: pd.DataFrame) -> pd.DataFrame:
     return out
 
 
-def robust_markdown(table: pd.DataFrame, robust: str) -> list[str]:
-    """The robust observer against the classical peers, per alpha, with its oracle ratio."""
-    peers = _present(table, (robust, *classical.KINEMATIC_PEERS))
-    nr = table.pivot(index="alpha", columns="observer", values="nrmse")[peers]
-    ratio = table[table["observer"] == robust].set_index("alpha")["ratio_to_oracle"]
-    nr[f"{robust} / oracle"] = ratio
-    worst = ratio[(ratio.index >= 0.25 - 1e-9)].max()
-    cross = crossover(table, robust)
-    where = "never on 0..6" if cross is None else f"from alpha = {cross:.2f}"
-    return ["## Beyond the paper: one observer for every noise level", "",
-            f"`{robust}` (`experiment=robust`) is never told alpha. NRMSE per alpha beside the "
-            "EKF (R at alpha=1), the oracle EKF (told alpha), the adaptive EKF and the PCRB, "
-            f"and its ratio to the oracle. Worst ratio over alpha in [0.25, 6]: {worst:.3f}. "
-            f"It is below the EKF {where}.", "",
-            _md(nr.reset_index()), "", "![robust](nrmse_robust.png)", ""]
-
-
-def dynamic_summary(table: pd.DataFrame, low: float = 0.25, high: float = 6.0) -> dict:
-    """The observer that learns the model error (the learned one that is not a black-box CNN
-    or LSTM) in a car-that-slips table, against its peers over alpha in [low, high]: its name,
-    the black boxes' names, and the ranges of its NRMSE over the kinematic oracle's, over the
-    dynamic oracle's, over the adaptive EKF's and over the kinematic EKF tuned in hindsight
-    (``oracle_tuned``; None without it), and of the dynamic oracle's over the kinematic one's,
-    each ``(min, max)``."""
-    learned = [o for o in dict.fromkeys(table["observer"]) if o not in classical.NAMES]
-    boxes = [o for o in learned if o.startswith(("cnn", "lstm"))]
-    main = [o for o in learned if o not in boxes]
-    if len(main) != 1:
-        raise ValueError(f"expected one observer besides the black boxes, got {main}")
-    nr = table.pivot_table(index="alpha", columns="observer", values="nrmse")
-    nr = nr[(nr.index >= low - 1e-9) & (nr.index <= high + 1e-9)]
-    name = main[0]
-
-    def span(a: str, b: str) -> tuple[float, float]:
-        r = nr[a] / nr[b]
-        return float(r.min()), float(r.max())
-
-    return {"observer": name, "black_boxes": boxes, "vs_oracle": span(name, "oracle"),
-            "vs_dynamic": span(name, "oracle_dynamic"), "vs_adaptive": span(name, "adaptive"),
-            "vs_tuned": span(name, "oracle_tuned") if "oracle_tuned" in nr else None,
-            "dynamic_vs_oracle": span("oracle_dynamic", "oracle")}
-
-
-def dynamic_markdown(key: str, table: pd.DataFrame) -> list[str]:
-    """The section of a car that slips (``data=<key>``): NRMSE per alpha against the kinematic
-    EKFs and the dynamic oracle, the ratios, RMSE per variable at alpha 1, 3 and 6."""
-    s = dynamic_summary(table)
-    name = s["observer"]
-    peers = _present(table, (name, *s["black_boxes"], *classical.DYNAMIC_PEERS))
-    nr = table.pivot_table(index="alpha", columns="observer", values="nrmse")[peers]
-    nr = nr[nr.index.isin([0.25, 0.5, 1.0, 2.0, 3.0, 4.0, 5.0, 6.0])]
-    nr[f"{name} / oracle"] = nr[name] / nr["oracle"]
-    nr[f"{name} / oracle_dynamic"] = nr[name] / nr["oracle_dynamic"]
-    if s["vs_tuned"] is not None:
-        nr[f"{name} / oracle_tuned"] = nr[name] / nr["oracle_tuned"]
-    rows = []
-    for alpha in (1.0, 3.0, 6.0):
-        at = table[np.isclose(table["alpha"], alpha)].set_index("observer")
-        for obs in peers:
-            if obs in at.index:
-                rows.append({"alpha": alpha, "observer": obs,
-                             **{f"{v} ({u})": float(at.loc[obs, f"rmse_{v}"] * k)
-                                for v, u, k in VARIABLES}})
-    lo, hi = s["vs_oracle"]
-    dlo, dhi = s["dynamic_vs_oracle"]
-    return [f"## Where learning beats the model: `data={key}`", "",
-            f"`{name}` (`experiment=dynamic`) is never told alpha or the car. Over alpha in "
-            f"[0.25, 6] its NRMSE is {1 - hi:.0%} to {1 - lo:.0%} below the kinematic oracle "
-            f"EKF's (the EKF on the car, `oracle_dynamic`, is {1 - dhi:.0%} to {1 - dlo:.0%} "
-            f"below it), {s['vs_dynamic'][0]:.2f} to {s['vs_dynamic'][1]:.2f} times the "
-            f"dynamic oracle's, and {s['vs_adaptive'][0]:.2f} to {s['vs_adaptive'][1]:.2f} "
-            "times the adaptive EKF's"
-            + (f", and {s['vs_tuned'][0]:.2f} to {s['vs_tuned'][1]:.2f} times the kinematic "
-               "EKF's with Q tuned in hindsight per alpha (`oracle_tuned`), the fair kinematic "
-               "peer." if s["vs_tuned"] is not None else ".")
-            + (" Black-box peers trained on the same data (`experiment=dynamic_blackbox`): "
-               f"{', '.join(f'`{b}`' for b in s['black_boxes'])}." if s["black_boxes"] else ""),
-            "",
-            _md(nr.reset_index()), "", "RMSE per variable (psi in mrad):", "",
-            _md(pd.DataFrame(rows)), "", f"![{key}](nrmse_{key}.png)", ""]
-
-
 def crossover_markdown(table: pd.DataFrame) -> list[str]:
     """Where each learned observer crosses the EKF."""
     learned = [o for o in dict.fromkeys(table["observer"])
@@ -268,57 +186,6 @@ class Section(Protocol):
 
 
 @dataclass(frozen=True)
-class Robust:
-    """The robust observer ``name`` of the score table against its classical peers
-    (:data:`lbo.filters.classical.KINEMATIC_PEERS`): ``nrmse_robust.png``."""
-
-    name: str
-    figure: str = "nrmse_robust.png"
-
-    @property
-    def headline(self) -> tuple[str, ...]:
-        return (self.name,)
-
-    def markdown(self, table: pd.DataFrame) -> list[str]:
-        return robust_markdown(table, self.name)
-
-    def write(self, folder: Path, table: pd.DataFrame) -> list[Path]:
-        peers = [self.name, *_present(table, classical.KINEMATIC_PEERS)]
-        return [plots.save(plots.nrmse_curves(
-            table, f"{self.name}, never told alpha, against the classical peers",
-            observers=peers), folder / self.figure)]
-
-
-@dataclass(frozen=True)
-class Dynamic:
-    """The car-that-slips study on data set ``key``: its score ``table`` (one learned
-    observer, black boxes maybe, and :data:`lbo.filters.classical.DYNAMIC_PEERS`):
-    ``<key>.csv`` and ``nrmse_<key>.png``."""
-
-    key: str
-    table: pd.DataFrame
-    headline: tuple[str, ...] = ()
-
-    @property
-    def figure(self) -> str:
-        return f"nrmse_{self.key}.png"
-
-    def markdown(self, table: pd.DataFrame) -> list[str]:
-        return dynamic_markdown(self.key, self.table)
-
-    def write(self, folder: Path, table: pd.DataFrame) -> list[Path]:
-        with atomic_path(folder / f"{self.key}.csv") as tmp:
-            self.table.to_csv(tmp, index=False)
-        s = dynamic_summary(self.table)
-        return [folder / f"{self.key}.csv", plots.save(plots.nrmse_curves(
-            self.table, f"a car that slips (data={self.key}): {s['observer']} against the "
-            "kinematic EKFs and the EKF told the car",
-            observers=_present(self.table, (s["observer"], *s["black_boxes"],
-                                            *classical.DYNAMIC_PEERS))),
-            folder / self.figure)]
-
-
-@dataclass(frozen=True)
 class Protocols:
     """The paper's protocol as lbo trains it, beside ours: score rows of observers named
     ``literal-<model>-N<window>``: ``literal.csv`` and ``nrmse_protocols.png``."""
@@ -336,19 +203,19 @@ class Protocols:
         both = pd.concat([table, self.literal], ignore_index=True)
         best = (best_window(table, m) for m in ("cnn", "lstm"))
         curves = [*dict.fromkeys(self.literal["observer"]), *(n for n in best if n),
-                  *_present(table, classical.GRID_PEERS)]
+                  *present(table, classical.GRID_PEERS)]
         return [folder / "literal.csv", plots.save(plots.nrmse_curves(
             both, "trained at alpha = 1: the paper's protocol (literal-*) and ours",
             observers=curves), folder / self.figure)]
 
 
-def _present(table: pd.DataFrame, names) -> list[str]:
+def present(table: pd.DataFrame, names) -> list[str]:
     """The observers of ``names`` that ``table`` has rows for, in that order."""
     have = set(table["observer"])
     return [n for n in names if n in have]
 
 
-def _md(df: pd.DataFrame, digits: int = 3) -> str:
+def md_table(df: pd.DataFrame, digits: int = 3) -> str:
     cols = list(df.columns)
     lines = ["| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
     for _, r in df.iterrows():
@@ -368,7 +235,7 @@ def markdown(scale: str, tables: dict[str, pd.DataFrame], table: pd.DataFrame,
     for alpha, key in ((1.0, "rmse_alpha1"), (6.0, "rmse_alpha6")):
         t = tables[key].drop(columns=["cnn_observer", "lstm_observer"])
         out += [f"## RMSE at alpha = {alpha:g} (paper Table {'I' if alpha == 1 else 'II'})", "",
-                _md(t), ""]
+                md_table(t), ""]
     out += ["## Best windows and crossovers", "",
             "| architecture | best window (ours) | best window (paper) | overtakes the EKF from "
             "alpha (ours) | (paper) |", "|---|---|---|---|---|"]
@@ -380,7 +247,7 @@ def markdown(scale: str, tables: dict[str, pd.DataFrame], table: pd.DataFrame,
                    f"| about {PAPER_CROSSOVER[model]:g} |")
     nr = table.pivot(index="alpha", columns="observer", values="nrmse")
     out += ["", "## NRMSE at alpha = 1, 3, 6", "",
-            _md(nr.loc[nr.index.isin([1.0, 3.0, 6.0])].reset_index()), ""]
+            md_table(nr.loc[nr.index.isin([1.0, 3.0, 6.0])].reset_index()), ""]
     out += crossover_markdown(table)
     for section in sections:
         out += section.markdown(table)
@@ -428,7 +295,7 @@ def write(folder: str | Path, scale: str, table: pd.DataFrame, runs: dict[str, s
         written.append(plots.save(fig, folder / f"nrmse_{model}.png"))
     headline = [n for section in sections for n in section.headline]
     every = ([n for n in (best["cnn"], best["lstm"], *headline) if n]
-             + _present(table, classical.NAMES))
+             + present(table, classical.NAMES))
     written.append(plots.save(plots.nrmse_curves(table, "best observers, classical peers and "
                                                  "the PCRB", observers=every),
                               folder / "nrmse_all.png"))
