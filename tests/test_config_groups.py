@@ -196,6 +196,8 @@ RELATIVE_FEATURES = {None, "smoke"}
 """Experiments that leave ``features=relative`` (refused for the models in FRAME_MODELS)."""
 FRAME_MODELS = {"filternet", "kalmannet", "split_kalmannet"}
 """Models that read features in the frame of the latest fix only."""
+FRAME_SEARCHES = {"kalmannet", "split_kalmannet"}
+"""Searches that set ``features=frame`` themselves (their models read nothing else)."""
 FILTERNET_EXPERIMENTS = {"dynamic", "logs"}
 """Experiments that set model keys only the filternet takes (refused for other models)."""
 FIX_RATE_EXPERIMENTS = {"robust", "logs", "receiver"}
@@ -208,8 +210,10 @@ def cuda() -> bool:
     return torch.cuda.is_available()
 
 
-def train_refusal(experiment: str | None, choice: dict[str, str | None]) -> Refusal | None:
-    """The refusal ``lbo.train.check`` gives, in the order it checks; None: it passes."""
+def train_refusal(experiment: str | None, choice: dict[str, str | None],
+                  search: str | None = None) -> Refusal | None:
+    """The refusal ``lbo.train.check`` gives, in the order it checks; None: it passes.
+    ``search``: the hparams_search composed last, whose settings win."""
     if choice.get("receiver") is not None:
         if experiment not in FIX_RATE_EXPERIMENTS:
             return NEEDS_FIX_RATES
@@ -217,7 +221,8 @@ def train_refusal(experiment: str | None, choice: dict[str, str | None]) -> Refu
             return RECEIVER_MODEL
         if choice["model"] == "filternet" and experiment == "logs":
             return RECEIVER_DRIFT
-    if choice["model"] in FRAME_MODELS and experiment in RELATIVE_FEATURES:
+    if (choice["model"] in FRAME_MODELS and experiment in RELATIVE_FEATURES
+            and search not in FRAME_SEARCHES):
         return NEEDS_FRAME
     if experiment in FILTERNET_EXPERIMENTS and choice["model"] != "filternet":
         return FILTERNET_ONLY
@@ -432,7 +437,7 @@ def test_each_search_with_each_experiment_passes_the_tune_check_or_is_refused_as
                                f"output_dir={store / 'out'}"])
     choice = chosen(experiment, search=search)
     assert_kept(cfg, *sources(choice, ("experiment", experiment), ("hparams_search", search)))
-    refusal = train_refusal(experiment, choice)
+    refusal = train_refusal(experiment, choice, search)
     expect(lambda: check_tune(cfg), refusal or (NO_SEARCH if search is None else None))
 
 

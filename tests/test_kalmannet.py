@@ -138,3 +138,23 @@ def test_on_straight_drives_it_learns_to_match_the_ekf(one_torch_thread, name):
     ratio = learned / ekf
     assert ratio[:2].max() < 1.2 and ratio[2] < 1.2, ratio
     assert untrained[0] > 2 * ekf[0]  # what it learned: the gain the start did not have
+
+
+@pytest.mark.parametrize("name", PEERS)
+def test_lbo_tune_searches_it_as_it_searches_the_cnn(tmp_path, smoke_data, name):
+    """``hparams_search=<peer>``: one trial at smoke scale, features in the latest fix's
+    frame, its best written as a training config."""
+    from helpers.commands import cli
+
+    handoff = tmp_path / "tuned" / f"{name}.yaml"
+    res = cli("lbo.tune", f"hparams_search={name}", "experiment=smoke",
+              f"data.root={smoke_data.parent}", "trainer.limit_train_batches=2",
+              "trainer.max_epochs=1", "tune.n_trials=1",
+              f"tune.storage=sqlite:///{tmp_path / 'optuna.db'}", f"tune.handoff={handoff}",
+              f"logger.tracking_uri=sqlite:///{tmp_path / 'mlflow.db'}",
+              f"hydra.run.dir={tmp_path / 'tune'}", env={"OMP_NUM_THREADS": "1"})
+    assert res.returncode == 0, res.stderr[-3000:]
+    tuned = handoff.read_text()
+    assert "model:" in tuned and "gain:" in tuned and "lr:" in tuned, tuned
+    # its training line says the features it was tuned with, which the model needs
+    assert f"model={name} +tuned={name} window=20,40,60,80 features=frame" in res.stdout

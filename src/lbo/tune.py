@@ -354,7 +354,7 @@ def _run_study(cfg: DictConfig, space: list[Param], pruner: optuna.pruners.BaseP
         raise LboError(f"study {t.study_name}: no trial has completed "
                        f"({counts[TrialState.PRUNED]} pruned, {counts[TrialState.FAIL]} failed),"
                        f" so no hand-off was written; rerun with a larger tune.n_trials")
-    command = train_command(cfg.model.name, handoff, hydra_searchpath())
+    command = train_command(cfg.model.name, handoff, hydra_searchpath(), cfg.features)
     params = {p.key: p.decode(best.params[p.key]) for p in space if p.key in best.params}
     print(f"best: trial {best.number}, val_loss {best.value:.6g}: "
           + " ".join(f"{k}={short_value(v)}" for k, v in params.items()))

@@ -59,17 +59,21 @@ def write_handoff(cfg: DictConfig, study: optuna.Study, space: list[Param],
         f"{scrub(storage)}\n"
         f"# (model {cfg.model.name}, window {cfg.window}, data {cfg.data.name}; trial "
         f"{best.number}, val_loss {best.value:.6g}).\n"
-        f"# Use: {train_command(cfg.model.name, path, hydra_searchpath())}\n")
+        f"# Use: {train_command(cfg.model.name, path, hydra_searchpath(), cfg.features)}\n")
     return write_text(path, header + OmegaConf.to_yaml(values))
 
 
-def train_command(model: str, handoff: Path, searchpath: Sequence[str] = ()) -> str:
+def train_command(model: str, handoff: Path, searchpath: Sequence[str] = (),
+                  features: str = "relative") -> str:
     """The training line that composes ``handoff``: ``+<folder>=<name>``, with a search path
     when the folder is not under conf/. ``searchpath``: the study's own search path (e.g. a
-    plug-in's configs), kept in front."""
+    plug-in's configs), kept in front; ``features``: the study's, said where it is not the
+    training default (a search such as ``hparams_search=kalmannet`` sets ``frame``)."""
     handoff = Path(handoff).resolve()
     command = (f"python -m lbo.train -m model={model} +{handoff.parent.name}={handoff.stem} "
                f"window=20,40,60,80")
+    if features != "relative":
+        command += f" features={features}"
     paths = list(searchpath)
     if handoff.parent.parent != CONF_DIR.resolve():
         paths.append(f"file://{handoff.parent.parent}")

@@ -162,8 +162,9 @@ def search_space(cfg: DictConfig) -> list[Param]:
 
     walk(raw, "")
     if not params:
-        raise LboError("tune.search_space is empty: choose a search with hparams_search=cnn "
-                       "or hparams_search=lstm, or declare one under tune.search_space")
+        raise LboError("tune.search_space is empty: choose a search with hparams_search=cnn, "
+                       "lstm, kalmannet or split_kalmannet, or declare one under "
+                       "tune.search_space")
     return params
 
 
