@@ -124,40 +124,53 @@ class _GainFilter(nn.Module):
         """One bicycle step of (B, 3) poses with inputs u (B, 2) ``[V, delta]``."""
         return bicycle_step(z, u[:, 0], u[:, 1], self.dt, self.wheelbase)
 
+    def begin(self, y0: torch.Tensor, fix0: torch.Tensor) -> list[torch.Tensor]:
+        """The filter's state at a sequence's first step: y0 (B, 3) its measured pose, fix0
+        (B,) bool whether it holds one (the filter starts at the first fix). The state is a
+        list: the estimate, the two estimates before it, the last fix, whether it started,
+        then the recurrent states; :meth:`advance` carries it."""
+        b = y0.shape[0]
+        return [y0, y0, y0, y0, fix0, *self._start(b)]
+
+    def advance(self, state: list[torch.Tensor], u_prev: torch.Tensor, y: torch.Tensor,
+                fix: torch.Tensor) -> tuple[list[torch.Tensor], torch.Tensor]:
+        """One step: the state of :meth:`begin` or of the step before, the inputs of the step
+        before u_prev (B, 2) ``[V, delta]``, this step's measured pose y (B, 3) and fix (B,)
+        bool. Returns the next state and the estimate (B, 3), heading wrapped."""
+        z, z_prev, z_prior_prev, y_last, started = state[:5]
+        hidden = state[5:]
+        b = z.shape[0]
+        prior = self._predict(z, u_prev)
+        innovation = wrap_heading(y - prior)
+        # the four differences in measurement sigmas (metres and radians made comparable)
+        f1 = _unit(wrap_heading(y - y_last) / self.units, self.unit_floor)
+        f2 = _unit(innovation / self.units, self.unit_floor)
+        f3 = _unit(wrap_heading(z - z_prev) / self.units, self.unit_floor)
+        f4 = _unit(wrap_heading(z - z_prior_prev) / self.units, self.unit_floor)
+        gain, after = self._gain(f1, f2, f3, f4, hidden)
+        # K = D K~ D^-1: the innovation in sigmas, the correction back in metres, radians
+        post = prior + self.units * (gain.view(b, self.n_state, self.n_state)
+                                     @ (innovation / self.units).unsqueeze(-1)).squeeze(-1)
+        # a step with a fix updates (the first fix: the filter starts there); one without
+        # predicts, and the recurrent states hold
+        update = (fix & started)[:, None]
+        first = (fix & ~started)[:, None]
+        new = torch.where(first, y, torch.where(update, post, prior))
+        hidden = [torch.where(update, h1, h0) for h1, h0 in zip(after, hidden)]
+        y_last = torch.where(fix[:, None], y, y_last)
+        state = [new, z, torch.where(first, y, prior), y_last, started | fix, *hidden]
+        return state, wrap_heading(new)
+
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         """(B, N, 5|6) features -> (B, 3) pose in the frame of the window's latest fix."""
         b, steps = x.shape[:2]
         y = x[:, :, :self.n_state]
-        z = y[:, 0]
         fix = x[:, :, 5] > 0.5 if self.fixes else torch.ones(b, steps, dtype=torch.bool,
                                                                device=x.device)
-        started = fix[:, 0]
-        hidden = self._start(b)
-        z_prev, z_prior_prev = z, z  # x_{t-2|t-2} and x_{t-1|t-2}: no difference at the start
-        y_last = y[:, 0]
+        state = self.begin(y[:, 0], fix[:, 0])
         for k in range(1, steps):
-            prior = self._predict(z, x[:, k - 1, 3:5])
-            f = fix[:, k]
-            innovation = wrap_heading(y[:, k] - prior)
-            # the four differences in measurement sigmas (metres and radians made comparable)
-            f1 = _unit(wrap_heading(y[:, k] - y_last) / self.units, self.unit_floor)
-            f2 = _unit(innovation / self.units, self.unit_floor)
-            f3 = _unit(wrap_heading(z - z_prev) / self.units, self.unit_floor)
-            f4 = _unit(wrap_heading(z - z_prior_prev) / self.units, self.unit_floor)
-            gain, after = self._gain(f1, f2, f3, f4, hidden)
-            # K = D K~ D^-1: the innovation in sigmas, the correction back in metres, radians
-            post = prior + self.units * (gain.view(b, self.n_state, self.n_state)
-                                         @ (innovation / self.units).unsqueeze(-1)).squeeze(-1)
-            # a step with a fix updates (the first fix: the filter starts there); one
-            # without predicts, and the recurrent states hold
-            update = (f & started)[:, None]
-            first = (f & ~started)[:, None]
-            new = torch.where(first, y[:, k], torch.where(update, post, prior))
-            hidden = [torch.where(update, h1, h0) for h1, h0 in zip(after, hidden)]
-            y_last = torch.where(f[:, None], y[:, k], y_last)
-            z_prev, z_prior_prev, z = z, torch.where(first, y[:, k], prior), new
-            started = started | f
-        return wrap_heading(z)
+            state, _ = self.advance(state, x[:, k - 1, 3:5], y[:, k], fix[:, k])
+        return wrap_heading(state[0])
 
 
 class KalmanNet(_GainFilter):

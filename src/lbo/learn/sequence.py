@@ -1,0 +1,204 @@
+"""A filter trained as it runs: truncated back-propagation through time over long sequences.
+
+lbo's window trainer draws fresh windows and starts each filter at the window's first fix; a
+filter in a control loop is carried from step to step for the whole drive. Here B sequences
+of T steps are cut into consecutive chunks of L steps: the filter's state is carried from
+chunk to chunk, the gradient is cut at each chunk's start (truncated back-propagation through
+time), and the optimiser steps once per chunk, as KalmanNet's authors train it. Any module
+that keeps :class:`SequenceModel` trains here: KalmanNet and Split-KalmanNet
+(:mod:`lbo.models.kalmannet`).
+
+The loss is the mean square error in the measurement sigmas at alpha = 1 (metres and radians
+made comparable, the headings' differences wrapped), over the steps where the filter has
+started. Sequences are moved to start at their first fix (a filter's differences do not
+depend on where it is, and float32 keeps millimetres near the origin).
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Protocol
+
+import numpy as np
+import torch
+
+from lbo.core.checks import integer, number
+from lbo.core.errors import LboError
+from lbo.models.poses import wrap_heading
+
+
+class SequenceModel(Protocol):
+    """A filter that runs step by step (``torch.nn.Module``s both)."""
+
+    units: torch.Tensor
+    """(3,) the measurement sigmas at alpha = 1 (m, m, rad): the loss's units."""
+
+    def begin(self, y0: torch.Tensor, fix0: torch.Tensor) -> list[torch.Tensor]:
+        """The state at a sequence's first step: its measured pose y0 (B, 3), fix0 (B,)."""
+        ...
+
+    def advance(self, state: list[torch.Tensor], u_prev: torch.Tensor, y: torch.Tensor,
+                fix: torch.Tensor) -> tuple[list[torch.Tensor], torch.Tensor]:
+        """The next state and the estimate (B, 3) from the inputs of the step before
+        u_prev (B, 2), this step's measured pose y (B, 3) and fix (B,) bool."""
+        ...
+
+
+@dataclass(frozen=True)
+class Sequences:
+    """B sequences of T steps (float64 arrays).
+
+    m : (B, T, 3) measured poses, NaN in the rows without a fix.
+    u : (B, T, 2) inputs ``[V, delta]``.
+    z : (B, T, 3) the true poses.
+    """
+
+    m: np.ndarray
+    u: np.ndarray
+    z: np.ndarray
+
+    def __post_init__(self) -> None:
+        b, t = np.shape(self.z)[:2]
+        if (np.shape(self.m) != (b, t, 3) or np.shape(self.u) != (b, t, 2)
+                or np.shape(self.z) != (b, t, 3) or t < 2):
+            raise LboError(f"sequences: expected m (B, T, 3), u (B, T, 2), z (B, T, 3) with "
+                           f"T >= 2, got {np.shape(self.m)}, {np.shape(self.u)}, "
+                           f"{np.shape(self.z)}")
+        if not np.isfinite(self.m[:, 0, :2]).all():
+            raise LboError("sequences: every sequence must start with a position fix")
+
+    def __len__(self) -> int:
+        return len(self.z)
+
+    def take(self, rows: np.ndarray) -> Sequences:
+        return Sequences(self.m[rows], self.u[rows], self.z[rows])
+
+    def centred(self) -> Sequences:
+        """The same sequences moved so that each starts at its first fix's position."""
+        shift = np.zeros((len(self), 1, 3))
+        shift[:, 0, :2] = self.m[:, 0, :2]
+        return Sequences(self.m - shift, self.u, self.z - shift)
+
+
+def draw(z: np.ndarray, u: np.ndarray, sigma: np.ndarray, alpha: np.ndarray,
+         every: np.ndarray, rng: np.random.Generator) -> Sequences:
+    """Measured sequences of true ones: z (B, T, 3), u (B, T, 2), the measurement sigmas
+    (3,) at alpha = 1, each sequence's noise scale alpha (B,) and fix period every (B,) in
+    steps (1: a fix at every step; the first step always holds one)."""
+    z, u = np.asarray(z, dtype=float), np.asarray(u, dtype=float)
+    b, t = z.shape[:2]
+    scale = np.asarray(alpha, dtype=float).reshape(b, 1, 1) * np.asarray(sigma, dtype=float)
+    m = z + scale * rng.standard_normal(z.shape)
+    m[..., 2] = np.angle(np.exp(1j * m[..., 2]))
+    fix = np.arange(t)[None, :] % np.asarray(every, dtype=np.int64).reshape(b, 1) == 0
+    m[~fix] = np.nan
+    return Sequences(m, u, z)
+
+
+def run(model: SequenceModel, m: torch.Tensor, u: torch.Tensor,
+        state: list[torch.Tensor] | None = None, u_prev: torch.Tensor | None = None
+        ) -> tuple[torch.Tensor, list[torch.Tensor]]:
+    """The filter over L steps of B sequences, m (B, L, 3) (NaN: no fix), u (B, L, 2):
+    started at the first step when ``state`` is None, else carried on from ``state`` with
+    the inputs of the step before ``u_prev`` (B, 2). Returns the estimates (B, L, 3) (NaN
+    before a sequence's first fix) and the state after the last step."""
+    fix = torch.isfinite(m).all(-1)  # a full pose: these filters take no partial fix
+    y = torch.nan_to_num(m)
+    out = []
+    for k in range(m.shape[1]):
+        if state is None:
+            state = model.begin(y[:, 0], fix[:, 0])
+            est = wrap_heading(state[0])
+        else:
+            state, est = model.advance(state, u_prev, y[:, k], fix[:, k])
+        out.append(torch.where(state[4][:, None], est, torch.full_like(est, float("nan"))))
+        u_prev = u[:, k]
+    return torch.stack(out, 1), state
+
+
+def loss(est: torch.Tensor, z: torch.Tensor, units: torch.Tensor) -> torch.Tensor:
+    """Mean square error of estimates (B, L, 3) against the truth (B, L, 3) in the
+    measurement sigmas ``units`` (3,), over the steps with an estimate."""
+    d = wrap_heading(est - z) / units
+    held = torch.isfinite(d).all(-1)
+    if not held.any():
+        return d.new_zeros(())
+    return (d[held] ** 2).mean()
+
+
+@dataclass(frozen=True)
+class SequenceFit:
+    """What :func:`fit` did: the mean training loss and the validation loss per epoch
+    (epoch 0: before training), and the epoch whose weights it kept."""
+
+    train: list[float]
+    validation: list[float]
+    best_epoch: int
+
+
+def _tensors(seq: Sequences, device: str) -> tuple[torch.Tensor, ...]:
+    return tuple(torch.as_tensor(a, dtype=torch.float32, device=device)
+                 for a in (seq.m, seq.u, seq.z))
+
+
+def evaluate(model: SequenceModel, seq: Sequences, device: str = "cpu") -> float:
+    """The loss over whole sequences, each carried from its first step (no gradient)."""
+    m, u, z = _tensors(seq.centred(), device)
+    with torch.no_grad():
+        est, _ = run(model, m, u)
+    return float(loss(est, z, model.units))
+
+
+def fit(model: SequenceModel, train: Sequences, validation: Sequences, epochs: int,
+        chunk: int, batch: int, lr: float, seed: int = 0, device: str = "cpu",
+        progress: Callable[[str], None] | None = print) -> SequenceFit:
+    """Train ``model`` (a ``torch.nn.Module``) by truncated back-propagation through time
+    (see the module): ``epochs`` passes over ``train`` in batches of ``batch`` sequences,
+    each cut into chunks of ``chunk`` steps, Adam at ``lr``; keeps the weights of the epoch
+    with the lowest validation loss (epoch 0: the weights it started with)."""
+    epochs = integer(epochs, "sequence.epochs", 0)
+    chunk = integer(chunk, "sequence.chunk", 2)
+    batch = integer(batch, "sequence.batch", 1)
+    lr = number(lr, "sequence.lr", low=0.0, low_open=True)
+    net: torch.nn.Module = model  # type: ignore[assignment]
+    net.to(device)
+    opt = torch.optim.Adam(net.parameters(), lr=lr)
+    rng = np.random.default_rng(seed)
+    data = train.centred()
+    t = data.z.shape[1]
+    history, val = [], [evaluate(model, validation, device)]
+    best, kept = 0, copy.deepcopy(net.state_dict())
+    for epoch in range(1, epochs + 1):
+        net.train()
+        losses, skipped = [], 0
+        order = rng.permutation(len(data))
+        for start in range(0, len(order), batch):
+            m, u, z = _tensors(data.take(order[start:start + batch]), device)
+            state, u_prev = None, None
+            for k in range(0, t, chunk):
+                est, state = run(model, m[:, k:k + chunk], u[:, k:k + chunk], state, u_prev)
+                u_prev = u[:, min(k + chunk, t) - 1]
+                step_loss = loss(est, z[:, k:k + chunk], model.units)
+                if not torch.isfinite(step_loss):  # a diverged chunk: no step, and say so
+                    skipped += 1
+                elif step_loss.requires_grad:
+                    opt.zero_grad()
+                    step_loss.backward()
+                    torch.nn.utils.clip_grad_norm_(net.parameters(), 1.0)
+                    opt.step()
+                    losses.append(step_loss.item())
+                state = [s.detach() for s in state]  # the truncation: no gradient before it
+        net.eval()
+        history.append(float(np.mean(losses)) if losses else math.nan)
+        val.append(evaluate(model, validation, device))
+        if val[-1] < val[best]:  # NaN compares False: a diverged epoch is never kept
+            best, kept = epoch, copy.deepcopy(net.state_dict())
+        if progress is not None:
+            progress(f"  epoch {epoch}/{epochs}: train {history[-1]:.4g}, validation "
+                     f"{val[-1]:.4g} (before training {val[0]:.4g})"
+                     + (f", {skipped} diverged chunks skipped" if skipped else ""))
+    net.load_state_dict(kept)
+    return SequenceFit(history, val, best)
