@@ -130,14 +130,15 @@ class _GainFilter(nn.Module):
         list: the estimate, the two estimates before it, the last fix, whether it started,
         then the recurrent states; :meth:`advance` carries it."""
         b = y0.shape[0]
-        return [y0, y0, y0, y0, fix0, *self._start(b)]
+        return [y0, y0, y0, y0, fix0] + self._start(b)  # no unpacking: TorchScript compiles it
 
     def advance(self, state: list[torch.Tensor], u_prev: torch.Tensor, y: torch.Tensor,
                 fix: torch.Tensor) -> tuple[list[torch.Tensor], torch.Tensor]:
         """One step: the state of :meth:`begin` or of the step before, the inputs of the step
         before u_prev (B, 2) ``[V, delta]``, this step's measured pose y (B, 3) and fix (B,)
         bool. Returns the next state and the estimate (B, 3), heading wrapped."""
-        z, z_prev, z_prior_prev, y_last, started = state[:5]
+        # indexed, not unpacked: TorchScript cannot size a list's slice
+        z, z_prev, z_prior_prev, y_last, started = state[0], state[1], state[2], state[3], state[4]
         hidden = state[5:]
         b = z.shape[0]
         prior = self._predict(z, u_prev)
@@ -158,7 +159,7 @@ class _GainFilter(nn.Module):
         new = torch.where(first, y, torch.where(update, post, prior))
         hidden = [torch.where(update, h1, h0) for h1, h0 in zip(after, hidden)]
         y_last = torch.where(fix[:, None], y, y_last)
-        state = [new, z, torch.where(first, y, prior), y_last, started | fix, *hidden]
+        state = [new, z, torch.where(first, y, prior), y_last, started | fix] + hidden
         return state, wrap_heading(new)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
