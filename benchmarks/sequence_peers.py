@@ -76,12 +76,12 @@ def main() -> None:
               f"{fit.validation[-1]:.4g} (before {fit.validation[0]:.4g}), "
               f"{time.perf_counter() - start:.0f} s", flush=True)
     trained = time.perf_counter() - start
-    shift = np.zeros((len(te.z), 1, 3))
-    shift[:, 0, :2] = te.m[:, 0, :2]
+    test = sequence.Sequences(te.m, te.u, te.z)
+    centred = test.centred()
     with torch.no_grad():
-        est, _ = sequence.run(net, torch.as_tensor(te.m - shift, dtype=torch.float32),
-                              torch.as_tensor(te.u, dtype=torch.float32))
-    est = est.numpy().astype(float) + shift
+        est, _ = sequence.run(net, torch.as_tensor(centred.m, dtype=torch.float32),
+                              torch.as_tensor(centred.u, dtype=torch.float32))
+    est = est.numpy().astype(float) + (test.z - centred.z)  # back where the set lies
     ref = grid.reference(te, spec.vehicle, spec.noise)
     name = f"{args.model} (sequence-trained, carried)"
     table = grid.classical_table(te, spec.vehicle, spec.noise, ["ekf", "oracle"], ref)

@@ -119,6 +119,17 @@ def rows(m: np.ndarray, sigma: np.ndarray | None = None, velocity: np.ndarray | 
     return out
 
 
+def held_last(a: np.ndarray) -> np.ndarray:
+    """Samples a (T,) or (T, k) (NaN in a row: none there) held from each to the next: at
+    each row the last row's sample that holds all its values, NaN before the first."""
+    a = np.asarray(a, dtype=float)
+    has = np.isfinite(a) if a.ndim == 1 else np.isfinite(a).all(1)
+    last = np.maximum.accumulate(np.where(has, np.arange(len(has)), -1))
+    out = a[np.maximum(last, 0)]
+    out[last < 0] = np.nan
+    return out
+
+
 def undelayed(fix: np.ndarray, velocity: np.ndarray, rate: np.ndarray, fix_latency: float,
               velocity_latency: float) -> tuple[np.ndarray, np.ndarray]:
     """A receiver's fixes and velocities brought forward to their row from samples some
@@ -142,9 +153,7 @@ def undelayed(fix: np.ndarray, velocity: np.ndarray, rate: np.ndarray, fix_laten
         c, s = np.cos(angle), np.sin(angle)
         return np.column_stack([c * v[:, 0] - s * v[:, 1], s * v[:, 0] + c * v[:, 1]])
 
-    has = np.isfinite(velocity).all(1)
-    last = np.maximum.accumulate(np.where(has, np.arange(len(has)), -1))
-    held = np.where((last >= 0)[:, None], velocity[np.maximum(last, 0)], 0.0)
+    held = np.nan_to_num(held_last(velocity))  # before the first velocity: not moved
     chord = turned(held, rate * (velocity_latency - 0.5 * fix_latency))
     return fix + fix_latency * chord, turned(velocity, rate * velocity_latency)
 

@@ -4,7 +4,6 @@ channels checked as a log's row is.
 - :func:`bicycle_rows`: the classical filters' rows (:data:`lbo.filters.measure.CHANNELS`),
   the course's variance allowing for the bicycle's turn rate;
 - :func:`receiver_rows`: a receiver net's rows, those and the gyro's ``r_m``;
-- :func:`held_reading`: a gyro's last reading at each row;
 - :func:`window_series`: the columns of a net's windows.
 """
 
@@ -49,14 +48,6 @@ def receiver_rows(m: np.ndarray, u: np.ndarray, receiver: np.ndarray, wheelbase:
     """A receiver net's rows (T, 9): the filters' row (:func:`bicycle_rows`) and ``r_m``."""
     r_m = receiver[:, RECEIVER.index("r_m")]
     return np.column_stack([bicycle_rows(m, u, receiver, wheelbase), r_m])
-
-
-def held_reading(rate: np.ndarray) -> np.ndarray:
-    """A gyro's readings (T,) (NaN: none in that row) held from each reading to the next: the
-    last reading at each row (T,), NaN before the first."""
-    held = np.isfinite(rate)
-    last = np.maximum.accumulate(np.where(held, np.arange(len(rate)), -1))
-    return np.where(last < 0, np.nan, rate[np.maximum(last, 0)])
 
 
 def window_series(rows: np.ndarray, u: np.ndarray) -> np.ndarray:

@@ -32,7 +32,6 @@ from lbo.serve.engines import make_predictor, make_recursive_step
 from lbo.serve.rows import (
     bicycle_rows,
     checked_receiver,
-    held_reading,
     receiver_rows,
     window_series,
 )
@@ -185,7 +184,7 @@ class ClassicalRunner:
                 raise LboError(f"{source + ': ' if source else ''}gyro needs a gyro's yaw "
                                "rate: a column r_m (rad/s, counter-clockwise); use ekf or ukf "
                                "for a log without one")
-            held = held_reading(rate)
+            held = measure.held_last(rate)
             u = np.column_stack([u[:, 0], np.where(np.isnan(held), held[np.isfinite(held)][0],
                                                    held)])
         return (m if receiver is None else self.rows(m, u, receiver)), u
@@ -365,14 +364,15 @@ class RecursiveRunner:
     def log_rows(self, m: np.ndarray, u: np.ndarray, receiver: np.ndarray | None,
                  source: str | None) -> tuple[np.ndarray, np.ndarray]:
         """A checked log's filters' rows (T, 8) (:func:`bicycle_rows`) and, for a gyro filter,
-        inputs (T, 3) ``[V, delta, r_m]``: the gyro's last reading (:func:`held_reading`),
-        NaN before the first (there the bicycle turns the heading)."""
+        inputs (T, 3) ``[V, delta, r_m]``: the gyro's last reading
+        (:func:`lbo.filters.measure.held_last`), NaN before the first (there the bicycle
+        turns the heading)."""
         if receiver is None:
             receiver = np.full((len(m), len(RECEIVER)), np.nan)
         rows = bicycle_rows(m, u, receiver, self.vehicle.wheelbase)
         if not self.reads_receiver:
             return rows, u
-        return rows, np.column_stack([u, held_reading(receiver[:, RECEIVER.index("r_m")])])
+        return rows, np.column_stack([u, measure.held_last(receiver[:, RECEIVER.index("r_m")])])
 
     def sample(self, k: int, m: np.ndarray, u: np.ndarray, receiver: Any
                ) -> tuple[np.ndarray, np.ndarray]:

@@ -162,9 +162,11 @@ def search_space(cfg: DictConfig) -> list[Param]:
 
     walk(raw, "")
     if not params:
-        raise LboError("tune.search_space is empty: choose a search with hparams_search=cnn, "
-                       "lstm, kalmannet or split_kalmannet, or declare one under "
-                       "tune.search_space")
+        from lbo.core.paths import CONF_DIR
+
+        searches = sorted(p.stem for p in (CONF_DIR / "hparams_search").glob("*.yaml"))
+        raise LboError(f"tune.search_space is empty: choose a search with hparams_search="
+                       f"{'|'.join(searches)}, or declare one under tune.search_space")
     return params
 
 
