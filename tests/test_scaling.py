@@ -73,6 +73,35 @@ def test_an_installed_launcher_passes_the_check_and_launches_the_sweep(launcher,
     assert not (tmp_path / "mlflow.db").exists()  # refused before any run opened
 
 
+RECLAIM = """
+import os, sys
+from lbo.core.cli import ready_launcher
+if sys.argv[2] == "ready":
+    ready_launcher("joblib")
+from joblib.externals.loky.backend import resource_tracker
+os.makedirs(sys.argv[1])
+resource_tracker.register(sys.argv[1], "folder")  # left to the tracker, as a killed worker's
+print("registered", flush=True)
+"""
+
+
+@pytest.mark.parametrize("how", ["plain", "ready"])
+def test_a_joblib_sweep_ends_on_its_one_line_not_on_the_trackers_reclaims(how, tmp_path):
+    """When a joblib sweep fails, joblib kills the jobs still running and loky's resource
+    tracker reclaims what they held, after lbo's one-line error: readied for joblib, the
+    tracker reclaims without a word; not readied, it warns (the control)."""
+    held = tmp_path / "held"
+    res = subprocess.run([sys.executable, "-c", RECLAIM, str(held), how], capture_output=True,
+                         text=True, timeout=120, env={k: v for k, v in os.environ.items()
+                                                      if k != "PYTHONWARNINGS"})
+    assert res.stdout == "registered\n", res.stderr
+    deadline = time.monotonic() + 30
+    while held.exists() and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert not held.exists()  # reclaimed either way
+    assert ("leaked folder objects" in res.stderr) == (how == "plain"), res.stderr
+
+
 def test_a_missing_launcher_plugin_is_one_line_with_its_install_command(tmp_path):
     res = cli("lbo.train", "-m", "hydra/launcher=ray", "experiment=smoke",
               f"hydra.sweep.dir={tmp_path / 'sweep'}",

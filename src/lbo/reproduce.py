@@ -32,7 +32,7 @@ from omegaconf import DictConfig
 
 from lbo.core.atomic import write_text
 from lbo.core.checks import integer, require
-from lbo.core.cli import check_launcher, entry
+from lbo.core.cli import entry, ready_launcher
 from lbo.core.errors import LboError
 from lbo.filters import classical
 from lbo.learn.eta import Eta, duration, measure
@@ -110,7 +110,7 @@ def check_reproduce(cfg: DictConfig) -> None:
         require(model in searches, "models", f"a list of models with a search space "
                 f"({', '.join(searches)})", list(cfg.models))
     check_observers(list(cfg.classical), "classical")
-    check_launcher(cfg.launcher, "launcher")
+    ready_launcher(cfg.launcher, "launcher")
     check_store(cfg.tracking_uri, "tracking_uri")
     # every training run's own checks (window, metric, train_overrides, ...), without the
     # tuned parameters, which do not exist yet

@@ -203,7 +203,7 @@ def entry(config_name: str, run: Callable[[DictConfig], Any],
                     raise LboError(f"lbo's configs are neither in {REPO_ROOT / 'conf'} nor in "
                                    "the installed package: reinstall lbo (pip install <repo>), "
                                    "or set LBO_ROOT=<repo>")
-                check_launcher(launcher_from_argv(sys.argv[1:]))
+                ready_launcher(launcher_from_argv(sys.argv[1:]))
                 check_null_groups(sys.argv[1:])
             except LboError as e:
                 fail(e)
@@ -269,6 +269,27 @@ def check_launcher(name: str | None, field: str = "hydra/launcher") -> None:
     if not found:
         raise LboError(f"{field}={name}: the Hydra plugin {package} is not installed "
                        f"(pip install {package}, or make install, which installs lbo[launchers])")
+
+
+RECLAIM_WARNING = "ignore:resource_tracker:UserWarning"
+"""The warnings filter that hides loky's resource tracker's reclaims (:func:`ready_launcher`)."""
+
+
+def ready_launcher(name: str | None, field: str = "hydra/launcher") -> None:
+    """Check launcher ``name`` (:func:`check_launcher`) and ready it to fail in one line.
+
+    When a job of a joblib sweep fails, joblib stops the sweep and kills the workers still
+    running; loky's resource tracker (a process of its own, which outlives this one by a
+    moment) then unlinks the semaphores those workers held and warns about each, after the
+    job's one-line error, and only when a second job was still running (a race under load).
+    The unlinking is right and is kept; its warning is filtered, through the environment the
+    tracker is started with.
+    """
+    check_launcher(name, field)
+    if name == "joblib":
+        held = os.environ.get("PYTHONWARNINGS", "")
+        if RECLAIM_WARNING not in held.split(","):
+            os.environ["PYTHONWARNINGS"] = ",".join(w for w in (held, RECLAIM_WARNING) if w)
 
 
 def launcher_from_argv(argv: list[str]) -> str | None:
