@@ -158,3 +158,98 @@ def test_lbo_tune_searches_it_as_it_searches_the_cnn(tmp_path, smoke_data, name)
     assert "model:" in tuned and "gain:" in tuned and "lr:" in tuned, tuned
     # its training line says the features it was tuned with, which the model needs
     assert f"model={name} +tuned={name} window=20,40,60,80 features=frame" in res.stdout
+
+
+def turning(n: int, seed: int) -> torch.Tensor:
+    """n raw windows (n, N, 5) of a car turning at 5-15 m/s with a steady steering angle, its
+    pose fixes exact (what the update and the prediction are checked on)."""
+    g = torch.Generator().manual_seed(seed)
+    f64 = torch.float64
+    v = 5 + 10 * torch.rand(n, generator=g, dtype=f64)
+    delta = 0.1 * torch.rand(n, generator=g, dtype=f64) - 0.05
+    u = torch.stack([v[:, None].expand(n, N), delta[:, None].expand(n, N)], -1)
+    z = torch.zeros(n, N, 3, dtype=f64)
+    for k in range(1, N):
+        z[:, k] = z[:, k - 1] + torch.stack([v * torch.cos(z[:, k - 1, 2]),
+                                             v * torch.sin(z[:, k - 1, 2]),
+                                             v * torch.tan(delta) / 2.7], -1) * Vehicle().dt
+    return torch.cat([z, u], -1)
+
+
+@pytest.mark.parametrize("name", PEERS)
+def test_around_the_single_track_body_it_predicts_with_the_body_and_updates_the_pose(name):
+    """body=single_track: a gain of 0 rolls the learned single-track body from the first fix,
+    its lateral states started at the kinematic bicycle's; a gain of I takes every fix as it
+    is. The state is five wide, the body's constants a parameter group at body_lr."""
+    win = turning(6, 3)
+    cls = CLASSES[name]
+    dead = cls(N, gain=0.0, body="single_track").double().eval()
+    assert dead.n_state == 5 and dead.single_track
+    with torch.no_grad():
+        z = torch.cat([win[:, 0, :3], dead.body_start(win[:, 0, 3], win[:, 0, 4])], -1)
+        for k in range(1, N):
+            pose, _, _, body = dead.predict_pose(z[:, :3], win[:, k - 1, 3], win[:, k - 1, 4],
+                                                 z[:, 3:])
+            z = torch.cat([pose, body], -1)
+        torch.testing.assert_close(dead(win), z[:, :3])
+        taker = cls(N, gain=1.0, body="single_track").double().eval()
+        torch.testing.assert_close(taker(win), win[:, -1, :3])
+    groups = cls(N, body="single_track", body_lr=3.0).param_groups()
+    assert [g["lr_scale"] for g in groups] == [1.0, 3.0] and len(groups[1]["params"]) == 5
+    with pytest.raises(LboError, match=r"^model.body: expected one of kinematic, single_track"):
+        cls(N, body="bicycle")
+
+
+@pytest.mark.parametrize("name", PEERS)
+def test_its_body_setting_keeps_the_hash_of_runs_stored_before_it(name):
+    """``model.body`` was added to the peers' configs after runs of them were stored: at its
+    default it hashes as those runs did (resume=true finds them), and not otherwise; the
+    robust observer, which has always had it, keeps it in its hash."""
+    from omegaconf import open_dict
+
+    from helpers import compose_cfg
+    from lbo.learn.resume import config_hash
+
+    now = compose_cfg("train", ["experiment=robust", f"model={name}"])
+    before = now.copy()
+    with open_dict(before):
+        before.model.pop("body")
+        before.model.pop("body_lr")
+    assert config_hash(now) == config_hash(before)
+    assert config_hash(compose_cfg("train", ["experiment=robust", f"model={name}",
+                                             "model.body=single_track"])) != config_hash(now)
+    robust = compose_cfg("train", ["experiment=robust"])
+    without = robust.copy()
+    with open_dict(without):
+        without.model.pop("body")
+    assert config_hash(robust) != config_hash(without)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", PEERS)
+def test_around_the_single_track_body_it_learns_the_body_and_exports(name):
+    """A few Adam steps on windows of a car turning move the body's constants (a gradient
+    reaches them through the gain filter) and lower the loss; the filter exports."""
+    torch.manual_seed(0)
+    net = WindowNet(name, N, features="frame", body="single_track", body_lr=3.0)
+    win = turning(64, 4).float()
+    target = win[:, -1, :3]
+    noisy = win.clone()
+    noisy[..., :3] += torch.tensor([0.3, 0.3, 0.005]) * torch.randn(64, N, 3)
+    body = net.net.log_stiffness.detach().clone()
+    opt = torch.optim.Adam(net.parameters(), lr=3e-3)
+    losses = []
+    for _ in range(30):
+        opt.zero_grad()
+        loss = ((net(noisy) - target) / torch.tensor([0.3, 0.3, 0.005])).pow(2).mean()
+        loss.backward()
+        opt.step()
+        losses.append(loss.item())
+    assert not torch.equal(net.net.log_stiffness.detach(), body)
+    assert losses[-1] < 0.8 * losses[0], losses
+    net.eval()
+    noisy = noisy.double()  # as the other peers' export is checked
+    torch.testing.assert_close(trace(net)(noisy), net(noisy))
+    session = onnx_session(onnx_bytes(net))
+    np.testing.assert_allclose(session.run(None, {"window": noisy.numpy()})[0],
+                               net(noisy).detach().numpy(), atol=1e-4)

@@ -36,6 +36,10 @@ LATER_DEFAULTS = {"normalisation": "standard", "receiver": None,
 """Settings added after runs were stored (a dotted key: one inside a group), with the value
 those runs had: a config holding that value hashes as if it did not have the key, so
 resume=true still finds the old runs."""
+LATER_MODEL_DEFAULTS = {"kalmannet": {"body": "kinematic", "body_lr": 1.0},
+                        "split_kalmannet": {"body": "kinematic", "body_lr": 1.0}}
+"""As :data:`LATER_DEFAULTS`, for the settings added to one model's config (``model.body`` of
+the KalmanNet peers, which the robust observer's config has had from the start)."""
 
 
 def config_hash(cfg: DictConfig) -> str:
@@ -50,6 +54,11 @@ def config_hash(cfg: DictConfig) -> str:
             node = OmegaConf.select(c, ".".join(group)) if group else c
             if isinstance(node, DictConfig) and name in node and node.get(name) == default:
                 node.pop(name)
+        model = c.get("model")
+        for name, default in LATER_MODEL_DEFAULTS.get(model.get("name") if model else "",
+                                                      {}).items():
+            if name in model and model.get(name) == default:
+                model.pop(name)
     text = OmegaConf.to_yaml(OmegaConf.create(_unlayered(OmegaConf.to_container(c, resolve=True))))
     if is_logs(cfg):  # the same paths with other contents are other data
         from lbo.learn.builders import logs_spec

@@ -36,8 +36,10 @@ class SequenceModel(Protocol):
     units: torch.Tensor
     """(3,) the measurement sigmas at alpha = 1 (m, m, rad): the loss's units."""
 
-    def begin(self, y0: torch.Tensor, fix0: torch.Tensor) -> list[torch.Tensor]:
-        """The state at a sequence's first step: its measured pose y0 (B, 3), fix0 (B,)."""
+    def begin(self, y0: torch.Tensor, fix0: torch.Tensor, u0: torch.Tensor
+              ) -> list[torch.Tensor]:
+        """The state at a sequence's first step: its measured pose y0 (B, 3), fix0 (B,), its
+        inputs u0 (B, 2); the state's first entry is the estimate, the pose first."""
         ...
 
     def advance(self, state: list[torch.Tensor], u_prev: torch.Tensor, y: torch.Tensor,
@@ -110,8 +112,8 @@ def run(model: SequenceModel, m: torch.Tensor, u: torch.Tensor,
     out = []
     for k in range(m.shape[1]):
         if state is None:
-            state = model.begin(y[:, 0], fix[:, 0])
-            est = wrap_heading(state[0])
+            state = model.begin(y[:, 0], fix[:, 0], u[:, 0])
+            est = wrap_heading(state[0][:, :3])
         else:
             state, est = model.advance(state, u_prev, y[:, k], fix[:, k])
         out.append(torch.where(state[4][:, None], est, torch.full_like(est, float("nan"))))

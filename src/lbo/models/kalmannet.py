@@ -47,6 +47,13 @@ full 3 x 3 outputs in sigma units started at ``sqrt(gain) I`` each.
 
 Both read ``"frame"`` features in metres and radians (the window in the frame of its latest
 fix), as :class:`lbo.models.filternet.WindowFilter` does, and are never told alpha.
+
+**Around the single-track body** (``body="single_track"``, for a car that slips): the state
+is ``[x, y, psi, v_y, r]`` and the prediction is the learned single-track body of
+:class:`lbo.models.motion.ProcessModel` (the robust observer's on ``experiment=dynamic``,
+its constants learned beside the gain); the gain is 5 x 3 (the pose is measured, H = [I 0]),
+F3 and F4 are over the five states, and the lateral speed and yaw rate start at the
+kinematic bicycle's at the first fix.
 """
 
 from __future__ import annotations
@@ -59,11 +66,15 @@ from torch.nn import functional as F
 
 from lbo.core.checks import integer, number
 from lbo.models.filternet import check_sigmas, frame_model
-from lbo.models.motion import bicycle_step
-from lbo.models.poses import wrap_heading
+from lbo.models.motion import ProcessModel, bicycle_step
+from lbo.models.poses import wrap_angle_torch, wrap_heading
 
-N_STATE = 3
-"""The state and the measurement: the pose ``x, y, psi``."""
+N_MEASURED = 3
+"""The measurement, and the kinematic body's state: the pose ``x, y, psi``."""
+BODY_UNITS = (0.1, 0.02)
+"""The units of the single-track body's lateral speed (m/s) and yaw rate (rad/s) in the gain
+and the features: about the correction one fix makes to each at alpha = 1, so that the gain's
+body rows are of the pose rows' scale."""
 
 
 class _GRUCell(nn.Module):
@@ -96,19 +107,30 @@ def _unit(f: torch.Tensor, floor: float) -> torch.Tensor:
     return f / torch.sqrt((f * f).sum(-1, keepdim=True) + floor * floor)
 
 
-class _GainFilter(nn.Module):
-    """A filter over the window whose gain a network gives: the kinematic bicycle predicts,
+def _wrap(d: torch.Tensor) -> torch.Tensor:
+    """States or state differences (B, n) with the heading (column 2) wrapped."""
+    return torch.cat([d[:, :2], wrap_angle_torch(d[:, 2:3]), d[:, 3:]], -1)
+
+
+class _GainFilter(ProcessModel, nn.Module):
+    """A filter over the window whose gain a network gives: the process model predicts,
     ``_gain`` reads the four differences (see the module) and its recurrent states, and
-    returns the gain (B, 9) in sigma units and the states it carries; a step without a fix
-    predicts, and the states hold. The subclasses build the network."""
+    returns the gain (B, n x 3) in units (the measurement sigmas, :data:`BODY_UNITS`) and the
+    states it carries; a step without a fix predicts, and the states hold. The subclasses
+    build the network."""
 
     def _setup(self, window: int, dt: float, wheelbase: float,
-               measurement_sigma: Sequence[float], in_features: int) -> None:
+               measurement_sigma: Sequence[float], in_features: int, body: str,
+               body_lr: float) -> None:
         frame_model(self, window, in_features, dt, wheelbase)
-        self.register_buffer("units", torch.tensor(
-            check_sigmas("measurement_sigma", measurement_sigma)))
+        self.build_process(0, body, body_lr)
+        units = check_sigmas("measurement_sigma", measurement_sigma)
+        self.register_buffer("units", torch.tensor(units))
+        self.register_buffer("state_units", torch.tensor(
+            units + (BODY_UNITS if self.single_track else ())))
         # attributes: TorchScript reads no module-level number
-        self.n_state = N_STATE
+        self.n_measured = N_MEASURED
+        self.n_state = N_MEASURED + (2 if self.single_track else 0)
         self.unit_floor = UNIT_FLOOR
 
     def _start(self, b: int) -> list[torch.Tensor]:
@@ -121,17 +143,28 @@ class _GainFilter(nn.Module):
         raise NotImplementedError
 
     def _predict(self, z: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
-        """One bicycle step of (B, 3) poses with inputs u (B, 2) ``[V, delta]``."""
+        """One process-model step of (B, n) states with inputs u (B, 2) ``[V, delta]``."""
+        if self.single_track:
+            pose, _, _, body = self.predict_pose(z[:, :3], u[:, 0], u[:, 1], z[:, 3:])
+            return torch.cat([pose, body], -1)
         return bicycle_step(z, u[:, 0], u[:, 1], self.dt, self.wheelbase)
 
-    def begin(self, y0: torch.Tensor, fix0: torch.Tensor) -> list[torch.Tensor]:
-        """The filter's state at a sequence's first step: y0 (B, 3) its measured pose, fix0
-        (B,) bool whether it holds one (the filter starts at the first fix). The state is a
-        list: the estimate, the two estimates before it, the last fix, whether it started,
-        then the recurrent states; :meth:`advance` carries it."""
-        b = y0.shape[0]
-        return [y0, y0, y0, y0, fix0] + self._start(b)  # no unpacking: TorchScript compiles it
+    def _first(self, y: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+        """The state (B, n) at a first fix y (B, 3) with inputs u (B, 2): the single-track
+        body's lateral states the kinematic bicycle's."""
+        if self.single_track:
+            return torch.cat([y, self.body_start(u[:, 0], u[:, 1])], -1)
+        return y
 
+    def begin(self, y0: torch.Tensor, fix0: torch.Tensor, u0: torch.Tensor
+              ) -> list[torch.Tensor]:
+        """The filter's state at a sequence's first step: y0 (B, 3) its measured pose, fix0
+        (B,) bool whether it holds one (the filter starts at the first fix), u0 (B, 2) its
+        inputs ``[V, delta]``. The state is a list: the estimate (B, n), the two estimates
+        before it, the last fix, whether it started, then the recurrent states;
+        :meth:`advance` carries it."""
+        z0 = self._first(y0, u0)
+        return [z0, z0, z0, y0, fix0] + self._start(y0.shape[0])  # no unpacking: TorchScript
     def advance(self, state: list[torch.Tensor], u_prev: torch.Tensor, y: torch.Tensor,
                 fix: torch.Tensor) -> tuple[list[torch.Tensor], torch.Tensor]:
         """One step: the state of :meth:`begin` or of the step before, the inputs of the step
@@ -142,40 +175,42 @@ class _GainFilter(nn.Module):
         hidden = state[5:]
         b = z.shape[0]
         prior = self._predict(z, u_prev)
-        innovation = wrap_heading(y - prior)
-        # the four differences in measurement sigmas (metres and radians made comparable)
+        innovation = wrap_heading(y - prior[:, :3])
+        # the four differences in units (metres and radians made comparable)
         f1 = _unit(wrap_heading(y - y_last) / self.units, self.unit_floor)
         f2 = _unit(innovation / self.units, self.unit_floor)
-        f3 = _unit(wrap_heading(z - z_prev) / self.units, self.unit_floor)
-        f4 = _unit(wrap_heading(z - z_prior_prev) / self.units, self.unit_floor)
+        f3 = _unit(_wrap(z - z_prev) / self.state_units, self.unit_floor)
+        f4 = _unit(_wrap(z - z_prior_prev) / self.state_units, self.unit_floor)
         gain, after = self._gain(f1, f2, f3, f4, hidden)
-        # K = D K~ D^-1: the innovation in sigmas, the correction back in metres, radians
-        post = prior + self.units * (gain.view(b, self.n_state, self.n_state)
-                                     @ (innovation / self.units).unsqueeze(-1)).squeeze(-1)
+        # K = D_n K~ D_m^-1: the innovation in sigmas, the correction back in metres, radians
+        post = prior + self.state_units * (gain.view(b, self.n_state, self.n_measured)
+                                           @ (innovation / self.units).unsqueeze(-1)).squeeze(-1)
         # a step with a fix updates (the first fix: the filter starts there); one without
         # predicts, and the recurrent states hold
         update = (fix & started)[:, None]
         first = (fix & ~started)[:, None]
-        new = torch.where(first, y, torch.where(update, post, prior))
+        start = self._first(y, u_prev)
+        new = torch.where(first, start, torch.where(update, post, prior))
         hidden = [torch.where(update, h1, h0) for h1, h0 in zip(after, hidden)]
         y_last = torch.where(fix[:, None], y, y_last)
-        state = [new, z, torch.where(first, y, prior), y_last, started | fix] + hidden
-        return state, wrap_heading(new)
+        state = [new, z, torch.where(first, start, prior), y_last, started | fix] + hidden
+        return state, wrap_heading(new[:, :3])
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         """(B, N, 5|6) features -> (B, 3) pose in the frame of the window's latest fix."""
         b, steps = x.shape[:2]
-        y = x[:, :, :self.n_state]
+        y = x[:, :, :self.n_measured]
         fix = x[:, :, 5] > 0.5 if self.fixes else torch.ones(b, steps, dtype=torch.bool,
                                                                device=x.device)
-        state = self.begin(y[:, 0], fix[:, 0])
+        state = self.begin(y[:, 0], fix[:, 0], x[:, 0, 3:5])
         for k in range(1, steps):
             state, _ = self.advance(state, x[:, k - 1, 3:5], y[:, k], fix[:, k])
-        return wrap_heading(state[0])
+        return wrap_heading(state[0][:, :3])
 
 
 class KalmanNet(_GainFilter):
-    """KalmanNet (architecture 2) over a window, on the kinematic bicycle (see the module).
+    """KalmanNet (architecture 2) over a window, on the kinematic bicycle or the single-track
+    body (see the module).
 
     Parameters
     ----------
@@ -184,39 +219,43 @@ class KalmanNet(_GainFilter):
     measurement_sigma : (3,) the measurement sigmas at alpha = 1 (m, m, rad): the gain's
         units.
     in_features : channels per step: 5, or 6 with the ``fix`` channel (missing fixes).
-    width : the GRUs' states hold ``width * 9`` units (the authors' n^2 and m^2, times this).
+    width : the GRUs' states hold ``width * n^2`` units (the authors' n^2, times this; n = 3,
+        or 5 around the single-track body).
     hidden : width of the gain's hidden layer.
-    gain : the gain's starting value, ``gain * I`` (a low-gain filter, not dead reckoning).
+    gain : the gain's starting value, ``gain * [I 0]^T`` (a low-gain filter, not dead
+        reckoning).
+    body, body_lr : the process model, ``"kinematic"`` or ``"single_track"`` (see the module),
+        and the single-track body's learning rate as a multiple of the optimiser's.
     """
 
     def __init__(self, window: int, dt: float = 0.02, wheelbase: float = 2.7,
                  measurement_sigma: Sequence[float] = (1.0, 1.0, 0.0174),
                  in_features: int = 5, width: int = 4, hidden: int = 64,
-                 gain: float = 0.05) -> None:
+                 gain: float = 0.05, body: str = "kinematic", body_lr: float = 1.0) -> None:
         super().__init__()
-        self._setup(window, dt, wheelbase, measurement_sigma, in_features)
+        self._setup(window, dt, wheelbase, measurement_sigma, in_features, body, body_lr)
         width = integer(width, "model.width", 1)
         hidden = integer(hidden, "model.hidden", 1)
         gain = number(gain, "model.gain", low=0.0, high=1.0, form="a number in [0, 1]")
-        n = self.n_state
+        n, m = self.n_state, self.n_measured
         h = width * n * n
-        wide = 5 * n  # the input layers' width (the authors' in_mult = 5)
-        self.fc_q = nn.Linear(n, wide)           # F3 -> GRU_Q
-        self.fc_f4 = nn.Linear(n, wide)          # F4 -> GRU_Sigma
-        self.fc_y = nn.Linear(2 * n, 2 * wide)   # F1, F2 -> GRU_S
+        wide, wide_y = 5 * n, 5 * m  # the input layers' widths (the authors' in_mult = 5)
+        self.fc_q = nn.Linear(n, wide)             # F3 -> GRU_Q
+        self.fc_f4 = nn.Linear(n, wide)            # F4 -> GRU_Sigma
+        self.fc_y = nn.Linear(2 * m, 2 * wide_y)   # F1, F2 -> GRU_S
         self.gru_q = _GRUCell(wide, h)
         self.gru_sigma = _GRUCell(h + wide, h)
-        self.fc_sigma = nn.Linear(h, h)          # Sigma's state -> GRU_S
-        self.gru_s = _GRUCell(h + 2 * wide, h)
+        self.fc_sigma = nn.Linear(h, h)            # Sigma's state -> GRU_S
+        self.gru_s = _GRUCell(h + 2 * wide_y, h)
         self.fc_gain = nn.Sequential(nn.Linear(2 * h, hidden), nn.ReLU(),
-                                     nn.Linear(hidden, n * n))
-        self.fc_back = nn.Linear(h + n * n, h)   # S's state and K -> back to Sigma's
+                                     nn.Linear(hidden, n * m))
+        self.fc_back = nn.Linear(h + n * m, h)     # S's state and K -> back to Sigma's
         self.fc_sigma_back = nn.Linear(2 * h, h)
         for name in ("h_q", "h_sigma", "h_s"):
             self.register_parameter(name, nn.Parameter(torch.zeros(h)))
         nn.init.zeros_(self.fc_gain[-1].weight)
         with torch.no_grad():
-            self.fc_gain[-1].bias.copy_(gain * torch.eye(n).flatten())
+            self.fc_gain[-1].bias.copy_(gain * torch.eye(n, m).flatten())
 
     def _start(self, b: int) -> list[torch.Tensor]:
         return [self.h_q.expand(b, -1), self.h_sigma.expand(b, -1), self.h_s.expand(b, -1)]
@@ -242,33 +281,33 @@ class SplitKalmanNet(_GainFilter):
 
     Parameters
     ----------
-    window, dt, wheelbase, measurement_sigma, in_features : as :class:`KalmanNet`'s.
-    width : each GRU's state holds ``width * 9`` units.
-    gain : the gain's starting value, ``gain * I`` (P and S^-1 each ``sqrt(gain) I``).
+    window, dt, wheelbase, measurement_sigma, in_features, body, body_lr : as
+        :class:`KalmanNet`'s.
+    width : P's GRU holds ``width * n^2`` units, S's ``width * 9``.
+    gain : the gain's starting value, ``gain * [I 0]^T`` (P and S^-1 each ``sqrt(gain) I``).
     """
 
     def __init__(self, window: int, dt: float = 0.02, wheelbase: float = 2.7,
                  measurement_sigma: Sequence[float] = (1.0, 1.0, 0.0174),
-                 in_features: int = 5, width: int = 4, gain: float = 0.05) -> None:
+                 in_features: int = 5, width: int = 4, gain: float = 0.05,
+                 body: str = "kinematic", body_lr: float = 1.0) -> None:
         super().__init__()
-        self._setup(window, dt, wheelbase, measurement_sigma, in_features)
+        self._setup(window, dt, wheelbase, measurement_sigma, in_features, body, body_lr)
         width = integer(width, "model.width", 1)
         gain = number(gain, "model.gain", low=0.0, high=1.0, form="a number in [0, 1]")
-        n = self.n_state
-        h = width * n * n
-        wide = 5 * n
-        self.fc_state = nn.Linear(2 * n, wide)     # F3, F4 -> GRU_P
-        self.fc_meas = nn.Linear(2 * n, wide)      # F1, F2 -> GRU_S
-        self.gru_p = _GRUCell(wide, h)
-        self.gru_s = _GRUCell(wide, h)
-        self.fc_p = nn.Linear(h, n * n)
-        self.fc_s = nn.Linear(h, n * n)
-        for name in ("h_p", "h_s"):
-            self.register_parameter(name, nn.Parameter(torch.zeros(h)))
-        for out in (self.fc_p, self.fc_s):
+        n, m = self.n_state, self.n_measured
+        self.fc_state = nn.Linear(2 * n, 5 * n)    # F3, F4 -> GRU_P
+        self.fc_meas = nn.Linear(2 * m, 5 * m)     # F1, F2 -> GRU_S
+        self.gru_p = _GRUCell(5 * n, width * n * n)
+        self.gru_s = _GRUCell(5 * m, width * m * m)
+        self.fc_p = nn.Linear(width * n * n, n * n)
+        self.fc_s = nn.Linear(width * m * m, m * m)
+        self.register_parameter("h_p", nn.Parameter(torch.zeros(width * n * n)))
+        self.register_parameter("h_s", nn.Parameter(torch.zeros(width * m * m)))
+        for out, k in ((self.fc_p, n), (self.fc_s, m)):
             nn.init.zeros_(out.weight)
             with torch.no_grad():
-                out.bias.copy_(gain**0.5 * torch.eye(n).flatten())
+                out.bias.copy_(gain**0.5 * torch.eye(k).flatten())
 
     def _start(self, b: int) -> list[torch.Tensor]:
         return [self.h_p.expand(b, -1), self.h_s.expand(b, -1)]
@@ -278,7 +317,8 @@ class SplitKalmanNet(_GainFilter):
         h_p, h_s = hidden
         p = self.gru_p(F.relu(self.fc_state(torch.cat([f3, f4], -1))), h_p)
         s = self.gru_s(F.relu(self.fc_meas(torch.cat([f1, f2], -1))), h_s)
-        n = self.n_state
+        n, m = self.n_state, self.n_measured
         prior = self.fc_p(p).view(-1, n, n)
-        s_inv = self.fc_s(s).view(-1, n, n)
-        return (prior @ s_inv).flatten(1), [p, s]
+        s_inv = self.fc_s(s).view(-1, m, m)
+        # K = P H^T S^-1, H = [I 0]: P's columns of the measured pose
+        return (prior[:, :, :m] @ s_inv).flatten(1), [p, s]

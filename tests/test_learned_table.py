@@ -1,0 +1,66 @@
+"""The comparison table of every learned observer (benchmarks/learned_table.py), at smoke
+scale: each cell is one lbo.train run under the table's budget, read back from its
+evaluation.csv, its checkpoint and its MLflow run; a finished cell is read, not trained
+again; a cell that is not in the table is refused in one line."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pandas as pd
+import pytest
+
+from lbo.core.paths import REPO_ROOT
+
+pytestmark = [pytest.mark.slow, pytest.mark.usefixtures("one_torch_thread")]
+SCRIPT = REPO_ROOT / "benchmarks" / "learned_table.py"
+
+
+def table(tmp_path: Path, smoke_data: Path, *args: str) -> subprocess.CompletedProcess:
+    smoke = ["data=smoke", f"data.root={smoke_data.parent}",
+             "trainer.max_epochs=1", "++trainer.limit_train_batches=2",
+             "++trainer.limit_val_batches=2", "window=20"]
+    env = {**os.environ, "MLFLOW_TRACKING_URI": f"sqlite:///{tmp_path / 'mlflow.db'}"}
+    return subprocess.run([sys.executable, str(SCRIPT), "--out", str(tmp_path / "table"), *args,
+                           "--", *smoke], capture_output=True, text=True, env=env,
+                          timeout=900, cwd=tmp_path)
+
+
+def test_each_cell_is_a_run_read_back_and_a_finished_one_is_not_trained_again(
+        tmp_path, smoke_data):
+    cells = "paper/cnn,robust/split_kalmannet"
+    res = table(tmp_path, smoke_data, "--cells", cells)
+    assert res.returncode == 0, res.stderr[-3000:]
+    rows = pd.read_csv(tmp_path / "table" / "cells.csv")
+    assert list(rows["observer"]) == ["cnn", "split_kalmannet"]
+    for row in rows.itertuples():
+        ev = pd.read_csv(Path(row.folder) / "evaluation.csv")
+        nr = ev.pivot(index="alpha", columns="observer", values="nrmse")
+        for a in (1, 3, 6):
+            assert getattr(row, f"nrmse_{a}") == pytest.approx(nr.loc[a, row.run])
+            assert getattr(row, f"ratio_{a}") == pytest.approx(
+                nr.loc[a, row.run] / nr.loc[a, "oracle"])
+        assert row.parameters > 100 and row.seconds > 0
+    md = (tmp_path / "table" / "table.md").read_text()
+    assert "| paper | CNN (N=80) |" in md and "| robust | Split-KalmanNet |" in md
+    assert "train_noise=paper" in res.stdout and "model=split_kalmannet" in res.stdout
+    # again: both cells are read from their folders, none trained
+    again = table(tmp_path, smoke_data, "--cells", cells)
+    assert again.returncode == 0, again.stderr[-3000:]
+    assert "model=cnn" not in again.stdout and "train_noise" not in again.stdout
+    pd.testing.assert_frame_equal(pd.read_csv(tmp_path / "table" / "cells.csv"), rows)
+
+
+def test_a_cell_not_in_the_table_is_refused_in_one_line(tmp_path, smoke_data):
+    res = table(tmp_path, smoke_data, "--cells", "paper/cnn,paper/gru")
+    assert res.returncode == 1
+    assert res.stderr.strip().splitlines() == [
+        "error: --cells: unknown cell(s) paper/gru; expected <data set>/<observer> of "
+        "paper/cnn, paper/lstm, paper/robust, paper/slips, paper/kalmannet, "
+        "paper/split_kalmannet, robust/cnn, robust/lstm, robust/robust, robust/slips, "
+        "robust/kalmannet, robust/split_kalmannet, dynamic/cnn, dynamic/lstm, "
+        "dynamic/robust, dynamic/slips, dynamic/kalmannet, dynamic/split_kalmannet"]
+    assert not (tmp_path / "table").exists()
