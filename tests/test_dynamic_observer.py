@@ -63,7 +63,9 @@ def test_report_section_where_learning_beats_the_model(dynamic, tmp_path):
     table = pd.read_csv(dynamic["dir"] / "evaluation.csv")
     box = table[table["observer"] == "filternet-N60"].assign(observer="cnn-N80")
     box["nrmse"] *= 1.5  # a black-box peer's rows beside it
-    table = pd.concat([table, box], ignore_index=True)
+    peer = table[table["observer"] == "filternet-N60"].assign(observer="kalmannet-N60")
+    peer["nrmse"] *= 1.2  # and a learned peer's
+    table = pd.concat([table, box, peer], ignore_index=True)
     classical = table[table["observer"].isin(["ekf", "oracle"])].copy()
     files = report.write(tmp_path, "smoke", classical, {}, {},
                          sections=[studies.Dynamic("dynamic_drift", table)])
@@ -72,11 +74,17 @@ def test_report_section_where_learning_beats_the_model(dynamic, tmp_path):
     assert "times the dynamic oracle's" in text and "![dynamic_drift](nrmse_dynamic_drift.png)" \
         in text
     assert tmp_path / "nrmse_dynamic_drift.png" in files
-    assert "| alpha | filternet-N60 | cnn-N80 | ekf |" in text and "`cnn-N80`" in text
+    assert "| alpha | filternet-N60 | cnn-N80 | kalmannet-N60 | ekf |" in text
+    assert "`cnn-N80`" in text and "kalmannet-N60 / oracle_dynamic" in text
     pd.testing.assert_frame_equal(pd.read_csv(tmp_path / "dynamic_drift.csv"), table)
     s = studies.dynamic_summary(table)
-    assert (s["observer"], s["black_boxes"]) == ("filternet-N60", ["cnn-N80"])
+    assert (s["observer"], s["black_boxes"], s["peers"]) == ("filternet-N60", ["cnn-N80"],
+                                                             ["kalmannet-N60"])
     nr = table.pivot_table(index="alpha", columns="observer", values="nrmse").loc[0.25:]
+    lo, hi = s["peers_vs_dynamic"]["kalmannet-N60"]
+    assert hi == pytest.approx((nr["kalmannet-N60"] / nr["oracle_dynamic"]).max())
+    assert f"trained as it is, over the dynamic oracle's: `kalmannet-N60` {lo:.2f} to " \
+        f"{hi:.2f}." in text
     assert s["vs_dynamic"][1] == pytest.approx((nr["filternet-N60"] / nr["oracle_dynamic"]).max())
     assert s["vs_tuned"][0] == pytest.approx((nr["filternet-N60"] / nr["oracle_tuned"]).min())
     assert "times the kinematic EKF's with Q tuned in hindsight" in text
@@ -225,7 +233,8 @@ def test_reproduce_trains_the_study_beside_the_paper_at_quick_scale(tmp_path):
 
 def test_reproduce_trains_the_learned_peers_as_the_robust_observer_at_paper_scale(tmp_path):
     """KalmanNet and Split-KalmanNet: the robust observer's experiment, data set and budget,
-    each its own run folder and MLflow name, scored in its section of the report."""
+    each its own run folder and MLflow name, scored in its section of the report; and around
+    the single-track body beside the car-that-slips observer."""
     cfg = compose_cfg("reproduce", ["scale=paper", f"report_dir={tmp_path}"])
     jobs = {j.key: j for j in train_jobs(cfg, tmp_path)}
     robust = list(jobs["robust"].overrides)
@@ -236,6 +245,17 @@ def test_reproduce_trains_the_learned_peers_as_the_robust_observer_at_paper_scal
                                        f"output_dir={tmp_path / 'runs' / job.key}"]
         name = compose_cfg("train", list(job.overrides)).logger.run_name
         assert name == f"robust-{model}-N100"
+    # around the single-track body, on the first car-that-slips data set, as its observer is
+    dynamic = list(jobs["dynamic"].overrides)
+    for model in ("kalmannet", "split_kalmannet"):
+        job = jobs[f"dynamic-{model}"]
+        assert (job.kind, job.data) == ("dynamic", "dynamic")
+        assert list(job.overrides) == [dynamic[0], f"model={model}", "~model.drift",
+                                       *dynamic[1:-1], f"output_dir={tmp_path / 'runs' / job.key}"]
+        c = compose_cfg("train", list(job.overrides))
+        assert c.model.body == "single_track" and "drift" not in c.model
+        assert c.logger.run_name == f"dynamic-{model}-N400"
+        assert f"dynamic_drift-{model}" not in jobs
     off = compose_cfg("reproduce", ["scale=paper", "robust=false"])
     assert not any(j.kind == "robust" for j in train_jobs(off, tmp_path))
 

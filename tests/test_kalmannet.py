@@ -253,3 +253,30 @@ def test_around_the_single_track_body_it_learns_the_body_and_exports(name):
     session = onnx_session(onnx_bytes(net))
     np.testing.assert_allclose(session.run(None, {"window": noisy.numpy()})[0],
                                net(noisy).detach().numpy(), atol=1e-4)
+
+
+@pytest.mark.parametrize("name", PEERS)
+@pytest.mark.parametrize("body", ["kinematic", "single_track"])
+def test_streamed_sample_by_sample_it_gives_what_it_gives_over_the_log(name, body):
+    """Observer.step, one sample at a time (fixes at 10 Hz, None between), gives the
+    estimates and validity that Observer.run gives over the whole log, twice (reset starts a
+    new log)."""
+    torch.manual_seed(1)
+    net = WindowNet(name, N, features="frame", fixes=True, body=body, gain=0.3).eval()
+    t = np.arange(3 * N)
+    m = np.column_stack([np.linspace(0, 30, 3 * N), np.linspace(0, 2, 3 * N),
+                         np.full(3 * N, 0.05)])
+    m += [0.1, 0.1, 0.001] * np.random.default_rng(0).standard_normal((3 * N, 3))
+    u = np.column_stack([np.full(3 * N, 10.0), np.full(3 * N, 0.01)])
+    m[t % 5 != 0] = np.nan  # a fix every fifth sample
+    obs = Observer.from_net(net)
+    est, valid = obs.run(m, u)
+    for _ in range(2):
+        obs.reset()
+        steps = [obs.step(None if np.isnan(mk).all() else mk, uk) for mk, uk in zip(m, u)]
+        streamed = np.array([s.state for s in steps])
+        d = streamed - est
+        d[:, 2] = wrap_angle(d[:, 2])
+        assert np.nanmax(np.abs(d)) < 1e-6
+        np.testing.assert_array_equal([s.valid for s in steps], valid)
+    assert valid[-1] and np.isfinite(est[-1]).all()

@@ -5,8 +5,9 @@
 Stages: 1 data, 2 tune (CNN and LSTM at N=20), 3 train the 8 observers with the tuned
 parameters, the robust observer (``experiment=robust``, beyond the paper) with the learned
 peers trained as it is (``peers``: KalmanNet and Split-KalmanNet at paper scale), the observers of
-a car that slips (``experiment=dynamic`` on ``data=dynamic`` and ``dynamic_drift``, scored by
-their own runs on their own test sets), 4 evaluate the classical observers, 5 write the
+a car that slips (``experiment=dynamic`` on ``data=dynamic`` and ``dynamic_drift``, with the
+black-box and the learned peers on the first, ``dynamic_blackbox``, ``dynamic_peers``; scored
+by their own runs on their own test sets), 4 evaluate the classical observers, 5 write the
 report. A rerun reuses the
 cached data sets, the Optuna studies (only missing trials run), the MLflow runs that
 finished with the same config (``resume=true``) and the classical table, and redoes only
@@ -204,6 +205,7 @@ def train_jobs(cfg: DictConfig, out: Path) -> list[Job]:
                          f"window={window}", _run_name("literal"))))
     # the car that slips: on each data set the observer that learns the model error (keyed
     # by the data set), and on the first one the black-box peers (<data>-cnn, <data>-lstm)
+    # and the learned peers (<data>-kalmannet, <data>-split_kalmannet)
     for i, data in enumerate(cfg.dynamic_study[cfg.scale]):
         jobs.append(Job(data, DYNAMIC, ("experiment=dynamic", f"data={data}",
                                         *cfg.dynamic_overrides[cfg.scale], _run_name(data)),
@@ -212,6 +214,12 @@ def train_jobs(cfg: DictConfig, out: Path) -> list[Job]:
             jobs.append(Job(f"{data}-{model}", DYNAMIC,
                             ("experiment=dynamic_blackbox", f"model={model}", f"data={data}",
                              *cfg.dynamic_overrides[cfg.scale], _run_name(data)), data))
+        # the learned peers around the single-track body, which has no drift states
+        for model in (cfg.dynamic_peers[cfg.scale] if i == 0 else []):
+            jobs.append(Job(f"{data}-{model}", DYNAMIC,
+                            ("experiment=dynamic", f"model={model}", "~model.drift",
+                             f"data={data}", *cfg.dynamic_overrides[cfg.scale],
+                             _run_name(data)), data))
     return [dataclasses.replace(j, overrides=(*j.overrides, "resume=true",
                                               f"output_dir={out / 'runs' / j.key}",
                                               *cfg.overrides, *cfg.train_overrides))

@@ -46,18 +46,33 @@ def robust_markdown(table: pd.DataFrame, robust: str, peers: tuple[str, ...] = (
             md_table(nr.reset_index()), "", "![robust](nrmse_robust.png)", ""]
 
 
+BLACK_BOXES = ("cnn", "lstm")
+"""The models of a car-that-slips table's black-box peers (``experiment=dynamic_blackbox``)."""
+LEARNED_PEERS = ("kalmannet", "split_kalmannet")
+"""The models of its learned peers of the literature (``reproduce``'s ``dynamic_peers``)."""
+
+
+def _model(observer: str) -> str:
+    """The model of a learned observer's name (``kalmannet-N400`` -> ``kalmannet``)."""
+    return observer.rsplit("-N", 1)[0]
+
+
 def dynamic_summary(table: pd.DataFrame, low: float = 0.25, high: float = 6.0) -> dict:
-    """The observer that learns the model error (the learned one that is not a black-box CNN
-    or LSTM) in a car-that-slips table, against its peers over alpha in [low, high]: its name,
-    the black boxes' names, and the ranges of its NRMSE over the kinematic oracle's, over the
+    """The observer that learns the model error (the learned one that is neither a black-box
+    CNN or LSTM nor a learned peer, :data:`LEARNED_PEERS`) in a car-that-slips table, against
+    its peers over alpha in [low, high]: its name, the black boxes' and the learned peers'
+    names, each learned peer's range of NRMSE over the dynamic oracle's (``peers_vs_dynamic``),
+    and the ranges of its NRMSE over the kinematic oracle's, over the
     dynamic oracle's, over the adaptive EKF's and over the kinematic EKF tuned in hindsight
     (``oracle_tuned``; None without it), and of the dynamic oracle's over the kinematic one's,
     each ``(min, max)``."""
     learned = [o for o in dict.fromkeys(table["observer"]) if o not in classical.NAMES]
-    boxes = [o for o in learned if o.startswith(("cnn", "lstm"))]
-    main = [o for o in learned if o not in boxes]
+    boxes = [o for o in learned if _model(o) in BLACK_BOXES]
+    peers = [o for o in learned if _model(o) in LEARNED_PEERS]
+    main = [o for o in learned if o not in boxes and o not in peers]
     if len(main) != 1:
-        raise ValueError(f"expected one observer besides the black boxes, got {main}")
+        raise ValueError(f"expected one observer besides the black boxes and the learned "
+                         f"peers, got {main}")
     nr = table.pivot_table(index="alpha", columns="observer", values="nrmse")
     nr = nr[(nr.index >= low - 1e-9) & (nr.index <= high + 1e-9)]
     name = main[0]
@@ -66,7 +81,9 @@ def dynamic_summary(table: pd.DataFrame, low: float = 0.25, high: float = 6.0) -
         r = nr[a] / nr[b]
         return float(r.min()), float(r.max())
 
-    return {"observer": name, "black_boxes": boxes, "vs_oracle": span(name, "oracle"),
+    return {"observer": name, "black_boxes": boxes, "peers": peers,
+            "peers_vs_dynamic": {p: span(p, "oracle_dynamic") for p in peers},
+            "vs_oracle": span(name, "oracle"),
             "vs_dynamic": span(name, "oracle_dynamic"), "vs_adaptive": span(name, "adaptive"),
             "vs_tuned": span(name, "oracle_tuned") if "oracle_tuned" in nr else None,
             "dynamic_vs_oracle": span("oracle_dynamic", "oracle")}
@@ -77,11 +94,12 @@ def dynamic_markdown(key: str, table: pd.DataFrame) -> list[str]:
     EKFs and the dynamic oracle, the ratios, RMSE per variable at alpha 1, 3 and 6."""
     s = dynamic_summary(table)
     name = s["observer"]
-    peers = present(table, (name, *s["black_boxes"], *classical.DYNAMIC_PEERS))
+    peers = present(table, (name, *s["black_boxes"], *s["peers"], *classical.DYNAMIC_PEERS))
     nr = table.pivot_table(index="alpha", columns="observer", values="nrmse")[peers]
     nr = nr[nr.index.isin([0.25, 0.5, 1.0, 2.0, 3.0, 4.0, 5.0, 6.0])]
     nr[f"{name} / oracle"] = nr[name] / nr["oracle"]
-    nr[f"{name} / oracle_dynamic"] = nr[name] / nr["oracle_dynamic"]
+    for learned in (name, *s["peers"]):
+        nr[f"{learned} / oracle_dynamic"] = nr[learned] / nr["oracle_dynamic"]
     if s["vs_tuned"] is not None:
         nr[f"{name} / oracle_tuned"] = nr[name] / nr["oracle_tuned"]
     rows = []
@@ -105,7 +123,11 @@ def dynamic_markdown(key: str, table: pd.DataFrame) -> list[str]:
                "EKF's with Q tuned in hindsight per alpha (`oracle_tuned`), the fair kinematic "
                "peer." if s["vs_tuned"] is not None else ".")
             + (" Black-box peers trained on the same data (`experiment=dynamic_blackbox`): "
-               f"{', '.join(f'`{b}`' for b in s['black_boxes'])}." if s["black_boxes"] else ""),
+               f"{', '.join(f'`{b}`' for b in s['black_boxes'])}." if s["black_boxes"] else "")
+            + (" The learned peers around the single-track body, trained as it is, over the "
+               "dynamic oracle's: " + ", ".join(f"`{p}` {lo:.2f} to {hi:.2f}" for p, (lo, hi)
+                                                  in s["peers_vs_dynamic"].items()) + "."
+               if s["peers"] else ""),
             "",
             md_table(nr.reset_index()), "", "RMSE per variable (psi in mrad):", "",
             md_table(pd.DataFrame(rows)), "", f"![{key}](nrmse_{key}.png)", ""]
@@ -160,6 +182,6 @@ class Dynamic:
         return [folder / f"{self.key}.csv", plots.save(plots.nrmse_curves(
             self.table, f"a car that slips (data={self.key}): {s['observer']} against the "
             "kinematic EKFs and the EKF told the car",
-            observers=present(self.table, (s["observer"], *s["black_boxes"],
+            observers=present(self.table, (s["observer"], *s["black_boxes"], *s["peers"],
                                             *classical.DYNAMIC_PEERS))),
             folder / self.figure)]
