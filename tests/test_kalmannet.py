@@ -225,6 +225,20 @@ def test_its_body_setting_keeps_the_hash_of_runs_stored_before_it(name):
     assert config_hash(robust) != config_hash(without)
 
 
+@pytest.mark.parametrize("name", PEERS)
+def test_a_kinematic_peers_weights_are_those_its_stored_checkpoints_hold(name):
+    """Checkpoints of the peers stored before the single-track body existed hold the units
+    and the network, nothing more: the body's constants and the state's units are not saved
+    on the kinematic bicycle (derived, or unused), so those checkpoints load."""
+    from lbo.models.motion import BODY_PARAMETERS
+
+    kinematic = set(CLASSES[name](N).state_dict())
+    assert "units" in kinematic and "state_units" not in kinematic
+    assert not kinematic & set(BODY_PARAMETERS)
+    body = set(CLASSES[name](N, body="single_track").state_dict())
+    assert set(BODY_PARAMETERS) <= body and "state_units" not in body
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("name", PEERS)
 def test_around_the_single_track_body_it_learns_the_body_and_exports(name):

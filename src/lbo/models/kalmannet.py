@@ -126,8 +126,9 @@ class _GainFilter(ProcessModel, nn.Module):
         self.build_process(0, body, body_lr)
         units = check_sigmas("measurement_sigma", measurement_sigma)
         self.register_buffer("units", torch.tensor(units))
+        # not saved: derived, and checkpoints stored before it must still load
         self.register_buffer("state_units", torch.tensor(
-            units + (BODY_UNITS if self.single_track else ())))
+            units + (BODY_UNITS if self.single_track else ())), persistent=False)
         # attributes: TorchScript reads no module-level number
         self.n_measured = N_MEASURED
         self.n_state = N_MEASURED + (2 if self.single_track else 0)
