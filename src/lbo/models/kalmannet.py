@@ -166,6 +166,7 @@ class _GainFilter(ProcessModel, nn.Module):
         :meth:`advance` carries it."""
         z0 = self._first(y0, u0)
         return [z0, z0, z0, y0, fix0] + self._start(y0.shape[0])  # no unpacking: TorchScript
+
     def advance(self, state: list[torch.Tensor], u_prev: torch.Tensor, y: torch.Tensor,
                 fix: torch.Tensor) -> tuple[list[torch.Tensor], torch.Tensor]:
         """One step: the state of :meth:`begin` or of the step before, the inputs of the step
@@ -190,7 +191,7 @@ class _GainFilter(ProcessModel, nn.Module):
         # predicts, and the recurrent states hold
         update = (fix & started)[:, None]
         first = (fix & ~started)[:, None]
-        start = self._first(y, u_prev)
+        start = self._first(y, u_prev)  # the inputs of the step before: this step's are unread
         new = torch.where(first, start, torch.where(update, post, prior))
         hidden = [torch.where(update, h1, h0) for h1, h0 in zip(after, hidden)]
         y_last = torch.where(fix[:, None], y, y_last)
