@@ -43,9 +43,12 @@ def test_each_cell_is_a_run_read_back_and_a_finished_one_is_not_trained_again(
             assert getattr(row, f"nrmse_{a}") == pytest.approx(nr.loc[a, row.run])
             assert getattr(row, f"ratio_{a}") == pytest.approx(
                 nr.loc[a, row.run] / nr.loc[a, "oracle"])
+            assert getattr(row, f"ekf_ratio_{a}") == pytest.approx(
+                nr.loc[a, "ekf"] / nr.loc[a, "oracle"])
         assert row.parameters > 100 and row.seconds > 0
     md = (tmp_path / "table" / "table.md").read_text()
     assert "| paper | CNN (N=80) |" in md and "| robust | Split-KalmanNet |" in md
+    assert md.count("| EKF, R at alpha = 1 |") == 2  # a reference line per data set
     assert "train_noise=paper" in res.stdout and "model=split_kalmannet" in res.stdout
     # again: both cells are read from their folders, none trained
     again = table(tmp_path, smoke_data, "--cells", cells)
