@@ -36,8 +36,8 @@ LATER_DEFAULTS = {"normalisation": "standard", "receiver": None,
 """Settings added after runs were stored (a dotted key: one inside a group), with the value
 those runs had: a config holding that value hashes as if it did not have the key, so
 resume=true still finds the old runs."""
-LATER_MODEL_DEFAULTS = {"kalmannet": {"body": "kinematic", "body_lr": 1.0},
-                        "split_kalmannet": {"body": "kinematic", "body_lr": 1.0}}
+LATER_MODEL_DEFAULTS = {name: {"body": "kinematic", "body_lr": 1.0}
+                        for name in ("kalmannet", "split_kalmannet")}
 """As :data:`LATER_DEFAULTS`, for the settings added to one model's config (``model.body`` of
 the KalmanNet peers, which the robust observer's config has had from the start)."""
 

@@ -67,7 +67,7 @@ from torch.nn import functional as F
 from lbo.core.checks import integer, number
 from lbo.models.filternet import check_sigmas, frame_model
 from lbo.models.motion import ProcessModel, bicycle_step
-from lbo.models.poses import wrap_angle_torch, wrap_heading
+from lbo.models.poses import wrap_heading
 
 N_MEASURED = 3
 """The measurement, and the kinematic body's state: the pose ``x, y, psi``."""
@@ -105,11 +105,6 @@ def _unit(f: torch.Tensor, floor: float) -> torch.Tensor:
     gradient is 1 / eps (1e12 with torch's; a first training with it, ``experiment=robust``,
     diverged in its first epoch)."""
     return f / torch.sqrt((f * f).sum(-1, keepdim=True) + floor * floor)
-
-
-def _wrap(d: torch.Tensor) -> torch.Tensor:
-    """States or state differences (B, n) with the heading (column 2) wrapped."""
-    return torch.cat([d[:, :2], wrap_angle_torch(d[:, 2:3]), d[:, 3:]], -1)
 
 
 class _GainFilter(ProcessModel, nn.Module):
@@ -181,8 +176,8 @@ class _GainFilter(ProcessModel, nn.Module):
         # the four differences in units (metres and radians made comparable)
         f1 = _unit(wrap_heading(y - y_last) / self.units, self.unit_floor)
         f2 = _unit(innovation / self.units, self.unit_floor)
-        f3 = _unit(_wrap(z - z_prev) / self.state_units, self.unit_floor)
-        f4 = _unit(_wrap(z - z_prior_prev) / self.state_units, self.unit_floor)
+        f3 = _unit(wrap_heading(z - z_prev) / self.state_units, self.unit_floor)
+        f4 = _unit(wrap_heading(z - z_prior_prev) / self.state_units, self.unit_floor)
         gain, after = self._gain(f1, f2, f3, f4, hidden)
         # K = D_n K~ D_m^-1: the innovation in sigmas, the correction back in metres, radians
         post = prior + self.state_units * (gain.view(b, self.n_state, self.n_measured)

@@ -15,5 +15,6 @@ def wrap_angle_torch(a: torch.Tensor) -> torch.Tensor:
 
 
 def wrap_heading(p: torch.Tensor) -> torch.Tensor:
-    """Poses or pose differences (..., 3) ``[x, y, psi]`` with psi wrapped to (-pi, pi]."""
-    return torch.cat([p[..., :2], wrap_angle_torch(p[..., 2:])], -1)
+    """Poses or pose differences (..., 3) ``[x, y, psi]``, or states that start with one
+    (..., n >= 3), with psi (column 2) wrapped to (-pi, pi]."""
+    return torch.cat([p[..., :2], wrap_angle_torch(p[..., 2:3]), p[..., 3:]], -1)
