@@ -22,7 +22,7 @@ import numpy as np
 import torch
 
 from lbo.learn import sequence
-from lbo.models import build_model
+from lbo.models import build_model, carried
 
 RATES = (1, 5, 10, 50)
 """Fix periods (steps) drawn per training sequence: 50, 10, 5 and 1 Hz at 50 Hz."""
@@ -79,7 +79,7 @@ def main() -> None:
     test = sequence.Sequences(te.m, te.u, te.z)
     centred = test.centred()
     with torch.no_grad():
-        est, _ = sequence.run(net, torch.as_tensor(centred.m, dtype=torch.float32),
+        est, _ = carried.run(net, torch.as_tensor(centred.m, dtype=torch.float32),
                               torch.as_tensor(centred.u, dtype=torch.float32))
     est = est.numpy().astype(float) + (test.z - centred.z)  # back where the set lies
     ref = grid.reference(te, spec.vehicle, spec.noise)

@@ -24,20 +24,27 @@ def _train_cmd(tmp_path, smoke_data, out, *more):
 
 
 @pytest.mark.slow
+@pytest.mark.parametrize("trained", [
+    (), ("model=split_kalmannet", "features=frame", "window=40", "tbptt=10",
+         "lr_schedule=cosine")],
+    ids=["windows", "carried"])
 def test_a_killed_run_resumes_from_its_last_checkpoint_as_if_never_killed(tmp_path, smoke_data,
-                                                                        monkeypatch):
+                                                                        monkeypatch, trained):
+    """Killed in its third epoch and rerun: the run continues where its last checkpoint left
+    it, with the random streams restored, and ends with the unbroken run's metrics; also
+    trained carried (``tbptt``: the optimiser steps per chunk, the schedule by hand)."""
     env = {**os.environ, "PYTHONUNBUFFERED": "1", "OMP_NUM_THREADS": "1"}
     # the unbroken run, in a store of its own
     ref_env = {**env, "MLFLOW_TRACKING_URI": f"sqlite:///{tmp_path / 'ref.db'}"}
-    ref = subprocess.run(_train_cmd(tmp_path, smoke_data, tmp_path / "ref"), env=ref_env,
-                         capture_output=True, text=True)
+    ref = subprocess.run(_train_cmd(tmp_path, smoke_data, tmp_path / "ref", *trained),
+                         env=ref_env, capture_output=True, text=True)
     assert ref.returncode == 0, ref.stderr[-3000:]
 
     uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
     env["MLFLOW_TRACKING_URI"] = uri
     out = tmp_path / "out"
     last = out / "checkpoints" / "last.ckpt"
-    proc = subprocess.Popen(_train_cmd(tmp_path, smoke_data, out), env=env,
+    proc = subprocess.Popen(_train_cmd(tmp_path, smoke_data, out, *trained), env=env,
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
                             start_new_session=True)
     watcher = kill_when_written(proc, last, times=2, delay=0.3)  # into the third epoch
@@ -51,8 +58,8 @@ def test_a_killed_run_resumes_from_its_last_checkpoint_as_if_never_killed(tmp_pa
     assert len(client.get_metric_history(killed.info.run_id, "val_loss")) in (2, 3)
 
     # the rerun, from another folder, continues the killed run in its own folder
-    rerun = subprocess.run(_train_cmd(tmp_path, smoke_data, tmp_path / "elsewhere"), env=env,
-                           capture_output=True, text=True)
+    rerun = subprocess.run(_train_cmd(tmp_path, smoke_data, tmp_path / "elsewhere", *trained),
+                           env=env, capture_output=True, text=True)
     assert rerun.returncode == 0, rerun.stderr[-3000:]
     assert f"resuming the killed run {killed.info.run_id} (same config) from {last}" in \
         rerun.stdout
@@ -76,7 +83,7 @@ def test_a_killed_run_resumes_from_its_last_checkpoint_as_if_never_killed(tmp_pa
                                                                     "val_loss")}
     assert {k: v[0] for k, v in history.items()} == want
     monkeypatch.setenv("MLFLOW_TRACKING_URI", uri)
-    assert Observer.load(run.info.run_id).window == 20
+    assert Observer.load(run.info.run_id).window == (40 if trained else 20)
 
 
 @pytest.mark.slow

@@ -96,7 +96,7 @@ def test_a_step_without_a_fix_predicts_only(name):
 
 
 @pytest.mark.parametrize("name", PEERS)
-def test_it_exports_and_runs_as_a_window(name):
+def test_it_exports_and_runs_as_a_window_and_carried_on_request(name):
     net = WindowNet(name, N, features="frame", fixes=True).eval()
     assert default_form(net) == "window"
     win, _ = straight(4, 2)
@@ -104,9 +104,12 @@ def test_it_exports_and_runs_as_a_window(name):
     session = onnx_session(onnx_bytes(net))
     np.testing.assert_allclose(session.run(None, {"window": win.numpy()})[0],
                                net(win).detach().numpy(), atol=1e-4)
-    with pytest.raises(LboError, match=rf"^form=recursive: a {CLASSES[name].__name__} has no "
-                                       r"filter to carry"):
-        Observer.from_net(net, form="recursive")
+    # trained on windows it runs as one by default; carried on request, in torch alone
+    carried = Observer.from_net(net, form="recursive")
+    assert carried.form == "recursive" and not carried.gives_covariance
+    with pytest.raises(LboError, match=r"^engine=onnx: .* carried from step to step runs in "
+                                       r"torch only; use engine=torch, or form=window"):
+        Observer.from_net(net, form="recursive", engine="onnx")
 
 
 @pytest.mark.parametrize("name", PEERS)

@@ -11,7 +11,7 @@ import torch
 from lbo.core.errors import LboError
 from lbo.filters.kalman import ekf_batch
 from lbo.learn import sequence
-from lbo.models import KalmanNet, SplitKalmanNet
+from lbo.models import KalmanNet, SplitKalmanNet, carried
 from lbo.sim.noise import Noise
 from lbo.sim.vehicle import Vehicle
 
@@ -44,10 +44,10 @@ def test_carried_in_chunks_it_runs_as_in_one_pass_and_as_its_window_form(cls):
     seq = straight(5, 40, 1, every=3).centred()
     m, u = (torch.as_tensor(a, dtype=torch.float32) for a in (seq.m, seq.u))
     with torch.no_grad():
-        whole, _ = sequence.run(net, m, u)
+        whole, _ = carried.run(net, m, u)
         parts, state, u_prev = [], None, None
         for k in range(0, 40, 7):
-            est, state = sequence.run(net, m[:, k:k + 7], u[:, k:k + 7], state, u_prev)
+            est, state = carried.run(net, m[:, k:k + 7], u[:, k:k + 7], state, u_prev)
             parts.append(est)
             u_prev = u[:, min(k + 7, 40) - 1]
         window = torch.cat([torch.nan_to_num(m), u, torch.isfinite(m).all(-1, keepdim=True)
@@ -76,7 +76,7 @@ def test_trained_by_truncated_backpropagation_it_learns_to_match_the_ekf(cls,
     assert len(fit.train) == 3 and len(fit.validation) == 4
     c = test.centred()
     with torch.no_grad():
-        est, _ = sequence.run(net, *(torch.as_tensor(a, dtype=torch.float32)
+        est, _ = carried.run(net, *(torch.as_tensor(a, dtype=torch.float32)
                                      for a in (c.m, c.u)))
     ekf = ekf_batch(c.m, c.u, Vehicle(), NOISE.Q, np.diag(SIGMA**2))
 
@@ -101,3 +101,110 @@ def test_bad_sequences_and_settings_are_one_line():
         sequence.Sequences(m, seq.u, seq.z)
     with pytest.raises(LboError, match=r"^sequence.chunk must be an integer >= 2"):
         sequence.fit(KalmanNet(20), seq, seq, epochs=1, chunk=1, batch=2, lr=1e-3)
+
+
+def test_carried_through_chunks_the_gradient_stops_at_each_chunks_start():
+    """train_batch: each chunk's loss is the one a single pass gives over its steps (the
+    state carried), each is handed to the step, and a chunk's loss has no gradient from the
+    steps before its start."""
+    torch.manual_seed(0)
+    net = SplitKalmanNet(40, gain=0.3).eval()
+    seq = straight(3, 30, 2).centred()
+    m, u, z = (torch.as_tensor(a, dtype=torch.float32) for a in (seq.m, seq.u, seq.z))
+    with torch.no_grad():
+        whole, _ = carried.run(net, m, u)
+    want = [float(sequence.loss(whole[:, k:k + 10], z[:, k:k + 10], net.units))
+            for k in (0, 10, 20)]
+    m = m.clone().requires_grad_(True)
+    grads = []
+    losses = sequence.train_batch(net, m, u, z, 10,
+                                  lambda loss: grads.append(torch.autograd.grad(loss, m)[0]))
+    np.testing.assert_allclose(losses, want, rtol=1e-6)
+    assert len(grads) == 3
+    for i, grad in enumerate(grads):  # chunk i reads steps 10 i .. 10 i + 9 alone
+        inside = torch.zeros(30, dtype=torch.bool)
+        inside[10 * i:10 * i + 10] = True
+        assert grad[:, ~inside].abs().max() == 0 and grad[:, inside].abs().max() > 0
+
+
+def test_the_loss_weighs_sequences_and_sees_a_diverged_estimate():
+    """The loss in measurement sigmas: errors of 1 and 3 sigmas give 1 and 9, weights 3 and
+    1 give (3 * 1 + 9) / 4 = 3; the steps before a first fix (NaN) are left out, and an
+    estimate that diverged (inf) makes the loss non-finite, never a small one."""
+    units = torch.tensor([1.0, 2.0, 0.1])
+    z = torch.zeros(2, 4, 3)
+    est = torch.cat([units.expand(1, 4, 3), 3 * units.expand(1, 4, 3)])
+    est[0, 0] = float("nan")  # before its first fix
+    assert float(sequence.loss(est, z, units)) == pytest.approx((3 * 1 + 4 * 9) / 7)
+    assert float(sequence.loss(est, z, units, torch.tensor([3.0, 1.0]))) == pytest.approx(
+        (3 * 3 * 1 + 4 * 9) / (3 * 3 + 4))
+    net = KalmanNet(20, gain=0.3)
+    with torch.no_grad():
+        net.fc_gain[-1].bias[0] = float("nan")  # weights of a diverged training
+    seq = straight(2, 12, 3).centred()
+    m, u, z = (torch.as_tensor(a, dtype=torch.float32) for a in (seq.m, seq.u, seq.z))
+    with torch.no_grad():
+        est, _ = carried.run(net, m, u)
+    # NaN only before a first fix: from the step after it, each estimate holds an inf
+    assert torch.isfinite(est[:, 0]).all() and not torch.isnan(est[:, 1:]).any()
+    assert torch.isinf(est[:, 1:]).any(-1).all()
+    assert not torch.isfinite(sequence.loss(est, z, net.units))
+
+
+@pytest.mark.slow
+def test_lbo_train_with_tbptt_trains_a_peer_carried_and_it_runs_carried(tmp_path, smoke_data,
+                                                                       one_torch_thread):
+    """``lbo.train tbptt=20``: windows of 60 steps trained carried through chunks of 20 (one
+    optimiser step per chunk: 2 epochs x 3 batches x 3 chunks); the checkpoint says so, loads
+    in its recursive form (no covariance), is scored carried on the test grid, streams as it
+    runs, and its carried step is refused by export in one line, nothing written."""
+    import pandas as pd
+
+    from helpers.training import train_in_own_store
+    from lbo.export import export
+    from lbo.scoring.grid import load_test, predict, reference, score
+    from lbo.serve.observer import Observer
+
+    cfg, metrics, _ = train_in_own_store(
+        tmp_path, smoke_data, "experiment=smoke", "model=split_kalmannet", "features=frame",
+        "window=60", "tbptt=20", "trainer.max_epochs=2", "trainer.limit_train_batches=3")
+    last = torch.load(tmp_path / "out" / "checkpoints" / "last.ckpt", weights_only=True)
+    assert last["hyper_parameters"]["tbptt"] == 20 and last["global_step"] == 2 * 3 * 3
+    obs = Observer.load(metrics["checkpoint"], envelope_mode="off")
+    assert obs.form == "recursive" and not obs.gives_covariance and obs.net.carried
+    arr = load_test(smoke_data / "test.parquet")
+    est = predict(obs.net, arr)  # its default form: carried from each trajectory's start
+    table = pd.read_csv(tmp_path / "out" / "evaluation.csv")
+    ours = table[table.observer == "split_kalmannet-N60"].set_index("alpha").nrmse
+    want = score("x", est, arr, reference(arr, obs.vehicle, obs.noise)).set_index("alpha").nrmse
+    np.testing.assert_allclose(ours.to_numpy(), want.loc[ours.index].to_numpy(), rtol=1e-12)
+    n = int(arr.lengths[0])
+    whole, valid = obs.run(arr.m[0, :n], arr.u[0, :n])
+    steps = np.array([obs.step(m, u).state for m, u in zip(arr.m[0, :n], arr.u[0, :n])])
+    np.testing.assert_array_equal(steps, whole)
+    scored = arr.mask[0, :n]
+    np.testing.assert_allclose(whole[scored], est[0, :n][scored], rtol=0, atol=1e-9)
+    with pytest.raises(LboError, match=r"^export: split_kalmannet-N60 runs carried from step "
+                                       r"to step, .* form=window; nothing written$"):
+        export(obs, tmp_path / "exported")
+    assert not (tmp_path / "exported").exists()
+    # make reproduce's forecast times the same carried steps
+    from lbo.learn.eta import measure
+
+    timed = measure(cfg, steps=1, warmup=0)
+    assert timed["steps"] == 2 * 3 and timed["step_s"] > 0
+
+
+@pytest.mark.parametrize(("overrides", "message"), [
+    (["tbptt=1"], r"^tbptt must be null or an integer >= 2 \(steps per chunk\), got 1"),
+    (["tbptt=30", "window=20"], r"^tbptt must be at most window=20 steps"),
+    (["tbptt=10", "model=cnn"], r"^tbptt: model 'cnn' cannot be carried from step to step"),
+])
+def test_bad_tbptt_settings_are_one_line_before_any_run(tmp_path, smoke_data, overrides,
+                                                       message):
+    from helpers.config import train_cfg
+    from lbo.train import check
+
+    with pytest.raises(LboError, match=message):
+        check(train_cfg(tmp_path, smoke_data, "features=frame", *overrides))
+    assert not (tmp_path / "out").exists()

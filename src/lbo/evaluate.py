@@ -158,7 +158,7 @@ def _run_grid(cfg: DictConfig, observers: list[str], learned: list[str]
                             given={name: est for name, (est, _) in covariant.items()})
     rows, names = [], []
     for name, net in nets.items():
-        from lbo.serve.runners import default_form, has_recursive_form
+        from lbo.serve.runners import default_form, has_recursive_form, is_window_filter
 
         chosen = [default_form(net)] if forms is None else forms
         for form in chosen if has_recursive_form(net) else ["window"]:
@@ -167,10 +167,11 @@ def _run_grid(cfg: DictConfig, observers: list[str], learned: list[str]
                 est = predict_grid(net, arr, net.window)
             else:
                 est, cov = predict_recursive(net, arr)
-                covariant[label] = (est, cov)
+                if cov is not None:  # a KalmanNet's carried form gives none
+                    covariant[label] = (est, cov)
             rows.append(score(label, est, arr, ref))
             names.append(label)
-            if form == "recursive" and smooth:
+            if form == "recursive" and smooth and is_window_filter(net):
                 rows.append(score(f"{label}-smoothed",
                                   predict_recursive(net, arr, smooth=True)[0], arr, ref))
                 names.append(f"{label}-smoothed")

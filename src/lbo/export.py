@@ -46,6 +46,7 @@ from lbo.serve.engines import (
     trace,
     trace_recursive,
 )
+from lbo.serve.runners import is_window_filter
 
 
 def export(observer: Any, out_dir: str | Path, name: str | None = None) -> dict[str, Path]:
@@ -82,6 +83,10 @@ def export(observer: Any, out_dir: str | Path, name: str | None = None) -> dict[
                        "diverged training?); nothing written")
     name = name or observer.name
     out = Path(out_dir)
+    if observer.form == "recursive" and not is_window_filter(net):
+        raise LboError(f"export: {observer.name} runs carried from step to step, and only the "
+                       "window filter's carried step is exported; export its window form "
+                       "with form=window; nothing written")
     if observer.form == "recursive":
         from lbo.models.recursive import RecursiveFilter
 

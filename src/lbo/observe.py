@@ -91,7 +91,7 @@ def observe(cfg: DictConfig) -> dict[str, Any]:
     from lbo.serve.engines import engine_device
     from lbo.serve.observer import EnvelopeWarning, Observer
     from lbo.serve.refusals import no_receiver
-    from lbo.serve.runners import has_recursive_form
+    from lbo.serve.runners import is_window_filter
     from lbo.sim.noise import Noise
     from lbo.sim.vehicle import Vehicle
 
@@ -152,7 +152,7 @@ def observe(cfg: DictConfig) -> dict[str, Any]:
         # checkpoint's): the model stays the checkpoint's, and rows beyond the steering it was
         # trained on are flagged by its envelope
         obs.vehicle = dataclasses.replace(obs.vehicle, delta_max=vehicle.delta_max)
-    if smooth and form is None and obs.form == "window" and has_recursive_form(obs.net):
+    if smooth and form is None and obs.form == "window" and is_window_filter(obs.net):
         # the form that has a filter to smooth, from the net already read
         obs = Observer(obs.name, obs.vehicle, obs.noise, net=obs.net, alpha=alpha,
                        engine=obs.engine, device=device, meta=obs.meta, form="recursive",

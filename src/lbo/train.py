@@ -76,6 +76,11 @@ def check(cfg: DictConfig) -> Built:
     integer(cfg.seed, "seed", 0)
     if cfg.get("threads") is not None:
         integer(cfg.threads, "threads", 1)
+    if cfg.get("tbptt") is not None:
+        integer(cfg.tbptt, "tbptt", 2, form="null or an integer >= 2 (steps per chunk)")
+        require(cfg.tbptt <= cfg.window, "tbptt",
+                f"at most window={cfg.window} steps (the sequences carried are the windows)",
+                cfg.tbptt)
     check_scaling(cfg.normalisation)
     check_trainer(cfg.trainer)
     check_optimizer(cfg.optimizer)
@@ -211,7 +216,8 @@ def _fit(cfg: DictConfig, built: Built, callbacks: list[L.Callback] | None,
                             cfg.features, instantiate(cfg.optimizer),
                             {**meta(cfg, data_hash), "envelope": training_envelope(cfg, dm)},
                             cfg.get("lr_schedule", "constant"), bool(built.fix_periods),
-                            net=built.net, receiver=built.net.receiver)
+                            net=built.net, receiver=built.net.receiver, tbptt=cfg.get("tbptt"),
+                            clip=cfg.trainer.get("gradient_clip_val"))
     module.observer.set_normalisation(**dm.normalisation(module.observer, cfg.normalisation))
     if built.init is not None:  # fine-tuning: its weights and its normalisation
         say_fresh(cfg, module.observer, built.init)
@@ -228,8 +234,10 @@ def _fit(cfg: DictConfig, built: Built, callbacks: list[L.Callback] | None,
     identity = RunIdentity(resume_id, digest)
     callbacks = [*(instantiate(c) for c in (cfg.get("callbacks") or {}).values()),
                  *(callbacks or []), identity]
+    # trained carried, the module clips each chunk's step itself (``clip``)
+    manual = {"gradient_clip_val": None} if cfg.get("tbptt") is not None else {}
     trainer = instantiate(cfg.trainer, logger=logger if logger is not None else False,
-                          callbacks=callbacks, plugins=[AtomicCheckpointIO()])
+                          callbacks=callbacks, plugins=[AtomicCheckpointIO()], **manual)
     output = Path(cfg.output_dir)
     for cb in callbacks:
         if isinstance(cb, Evaluation) and isinstance(logger, MLFlowLogger):

@@ -59,7 +59,8 @@ def build_net(cfg: DictConfig, periods: tuple[int, ...] | None = None):
         torch.manual_seed(cfg.seed)
         return WindowNet(model.pop("name"), cfg.window, cfg.features, bool(periods),
                          receiver=bool(cfg.get("receiver")),
-                         motion=(float(cfg.vehicle.dt), float(cfg.vehicle.wheelbase)), **model)
+                         motion=(float(cfg.vehicle.dt), float(cfg.vehicle.wheelbase)),
+                         carried=cfg.get("tbptt") is not None, **model)
 
 
 def initial_weights(cfg: DictConfig, net, say: bool = True) -> dict[str, torch.Tensor]:
@@ -119,7 +120,8 @@ def datamodule(cfg: DictConfig, folder: Path, built: Built | None = None):
     periods = built.fix_periods if built else fix_periods(cfg.get("fix_rates"), cfg.vehicle.dt)
     noise = built.noise if built else noise_settings(cfg)
     dm = WindowDataModule(folder, cfg.window, cfg.batch_size, seed=cfg.seed,
-                          device=data_device(cfg), fix_periods=periods, **noise)
+                          device=data_device(cfg), fix_periods=periods,
+                          sequences=cfg.get("tbptt") is not None, **noise)
     dm.setup("fit")
     return dm
 

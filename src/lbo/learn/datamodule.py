@@ -78,6 +78,8 @@ class WindowDataset(Dataset):
     receiver : draw a receiver's windows (B, N, 11) instead
         (:meth:`lbo.learn.draws.ReceiverDraw.windows`), at the alphas of ``draw`` (1 when
         None) and the fix rows of ``fix_periods`` (needed).
+    sequences : a batch's states are the true states of every step of its windows (B, N, 3),
+        for a filter trained carried through them (``tbptt``), not the last step's (B, 3).
     """
 
     def __init__(self, x: torch.Tensor, y: torch.Tensor, ends: np.ndarray, window: int,
@@ -85,10 +87,13 @@ class WindowDataset(Dataset):
                  seed: int = 0, weight_offset: float | None = None,
                  fix_periods: tuple[int, ...] = (),
                  drift: tuple[float, float] | None = None,
-                 receiver: ReceiverDraw | None = None):
+                 receiver: ReceiverDraw | None = None, sequences: bool = False):
         if receiver is not None and not fix_periods:
             raise LboError("a receiver's windows need fix rates (fix_rates=[10, 5, 1])")
-        self.receiver = receiver
+        if receiver is not None and sequences:
+            raise LboError("tbptt: a filter trained carried reads full poses, not a receiver's "
+                           "windows; leave receiver unset")
+        self.receiver, self.sequences = receiver, bool(sequences)
         self.x, self.y, self.window = x, y, window
         self.fix_periods = tuple(fix_periods)
         self.ends = torch.from_numpy(ends)
@@ -131,12 +136,13 @@ class WindowDataset(Dataset):
         e = self.ends[torch.as_tensor(idx, device=self.ends.device)]
         s = e - self.window + 1
         win = self.windows[s]
+        truth = self.truth[s] if self.sequences else self.y[e]
         if self.receiver is not None:
             alpha = (torch.ones(len(e), dtype=self.x.dtype, device=e.device)
                      if self.draw is None else self.draw.sample(len(e), generator))
             fix = draw_fixes(len(e), self.window, self.fix_periods, generator, e.device)
             rx = self.receiver.windows(self.truth[s], win[..., 3:5], alpha, fix, generator)
-            return rx, self.y[e], loss_weights(alpha, self.weight_offset)
+            return rx, truth, loss_weights(alpha, self.weight_offset)
         if self.draw is None:
             weight = torch.ones(len(e), dtype=self.x.dtype, device=e.device)
             m = win[..., :3]
@@ -152,8 +158,8 @@ class WindowDataset(Dataset):
             lost = ~torch.isfinite(kept[..., 0]).any(1)
             m = torch.where(lost[:, None, None], m, kept)
         elif self.draw is None:
-            return win, self.y[e], weight
-        return torch.cat([m, win[..., 3:]], dim=-1), self.y[e], weight
+            return win, truth, weight
+        return torch.cat([m, win[..., 3:]], dim=-1), truth, weight
 
 
 class FixedDataset(Dataset):
@@ -205,6 +211,7 @@ class WindowDataModule(L.LightningDataModule):
     drift : (sigma (m), tau (steps)) of the GNSS drift drawn with the noise (see
         :class:`WindowDataset`).
     receiver : draw a receiver's windows instead of the paper's (see :class:`WindowDataset`).
+    sequences : batches hold the true states of every step (see :class:`WindowDataset`).
     """
 
     def __init__(self, folder: str | Path, window: int, batch_size: int = 256,
@@ -213,7 +220,7 @@ class WindowDataModule(L.LightningDataModule):
                  weight_offset: float | None = None, val_repeats: int = 1,
                  device: str = "cpu", fix_periods: tuple[int, ...] = (),
                  drift: tuple[float, float] | None = None,
-                 receiver: ReceiverDraw | None = None) -> None:
+                 receiver: ReceiverDraw | None = None, sequences: bool = False) -> None:
         super().__init__()
         self.device = torch.device(device)
         self.folder = Path(folder)
@@ -224,7 +231,7 @@ class WindowDataModule(L.LightningDataModule):
         self.draw, self.sigma, self.weight_offset = draw, sigma, weight_offset
         self.val_repeats = int(val_repeats)
         self.fix_periods = tuple(fix_periods)
-        self.drift, self.receiver = drift, receiver
+        self.drift, self.receiver, self.sequences = drift, receiver, bool(sequences)
         self.train_set: WindowDataset | None = None
         self.val_set: Dataset | None = None
         self.shuffle = torch.Generator().manual_seed(seed)  # the training order, epoch by epoch
@@ -247,7 +254,7 @@ class WindowDataModule(L.LightningDataModule):
                            "observer takes them, or with drawn noise (train_noise=paper)")
         noise = {"draw": self.draw, "sigma": self.sigma, "weight_offset": self.weight_offset,
                  "fix_periods": self.fix_periods, "drift": self.drift,
-                 "receiver": self.receiver}
+                 "receiver": self.receiver, "sequences": self.sequences}
         self.train_set = WindowDataset(*rows(train), window_ends(train["k"].to_numpy(),
                                                                  self.window), self.window,
                                        seed=self.seed, **noise)
@@ -272,6 +279,8 @@ class WindowDataModule(L.LightningDataModule):
         g = torch.Generator(device=self.device).manual_seed(self.seed)
         pick = torch.randperm(len(self.train_set), generator=g, device=self.device)[:n]
         win, state, _ = self.train_set.batch(pick, g)
+        if self.sequences:  # every step's: the statistics are the last step's
+            state = state[:, -1]
         return net.statistics(win, state, scaling)
 
     def _loader(self, ds: Dataset, batch: int, shuffle: bool) -> DataLoader:

@@ -37,6 +37,7 @@ def measure(cfg: DictConfig, steps: int = 8, warmup: int = 3) -> dict[str, Any]:
     (setup plus steps x step time: the expected training time, early stopping aside).
     """
     from lbo.learn.builders import build_net, data_device, datamodule, prepare_data
+    from lbo.learn.sequence import from_batch, train_batch
 
     begin = time.perf_counter()
     device = data_device(cfg)
@@ -47,12 +48,18 @@ def measure(cfg: DictConfig, steps: int = 8, warmup: int = 3) -> dict[str, Any]:
     loader = dm.train_dataloader()
     setup_s = time.perf_counter() - begin
     periods = []
-    for i, batch in enumerate(loader):
-        start = time.perf_counter()
-        loss = net.loss(*batch)
+    def step(loss: torch.Tensor) -> None:
         opt.zero_grad()
         loss.backward()
         opt.step()
+
+    for i, batch in enumerate(loader):
+        start = time.perf_counter()
+        if cfg.get("tbptt") is None:
+            step(net.loss(*batch))
+        else:  # trained carried: a step per chunk
+            m, u, z, weight = from_batch(batch, next(net.parameters()).dtype)
+            train_batch(net.net, m, u, z, int(cfg.tbptt), step, weight)
         if device == "cuda":
             torch.cuda.synchronize()
         if i >= warmup:

@@ -12,6 +12,9 @@ import torch
 from lbo.core import plugins
 from lbo.core.checks import SCHEDULES
 from lbo.core.errors import TrainingDiverged
+from lbo.learn.sequence import from_batch, train_batch
+from lbo.learn.sequence import loss as sequence_loss
+from lbo.models.carried import run
 from lbo.models.net import CHECKPOINT_FORMAT, WindowNet
 
 __all__ = ["CHECKPOINT_FORMAT", "SCHEDULES", "TrainingModule"]
@@ -35,23 +38,34 @@ class TrainingModule(L.LightningModule):
         cosine to zero over every step the trainer will take (``max_epochs`` of them).
     net : the :class:`WindowNet` to train, already built from the arguments above
         (:func:`lbo.learn.builders.build`); built here when None.
+    tbptt : None trains windows. An integer L trains the net's model carried from step to
+        step (:class:`lbo.models.carried.SequenceModel`) by truncated back-propagation
+        through time: each batch's windows, with the true states of every step, cut into
+        chunks of L steps, the state carried from chunk to chunk, one optimiser step per
+        chunk (:func:`lbo.learn.sequence.train_batch`; Lightning's manual optimisation).
+    clip : the gradient norm each chunk's step is clipped to (the trainer's
+        ``gradient_clip_val``, which Lightning applies only to automatic optimisation).
     """
 
     def __init__(self, model: dict[str, Any], window: int, features: str = "relative",
                  optimizer: Callable[..., torch.optim.Optimizer] | None = None,
                  meta: dict[str, Any] | None = None, lr_schedule: str = "constant",
                  fixes: bool = False, net: WindowNet | None = None,
-                 receiver: bool = False) -> None:
+                 receiver: bool = False, tbptt: int | None = None,
+                 clip: float | None = None) -> None:
         super().__init__()
-        self.save_hyperparameters(ignore=["optimizer", "lr_schedule", "net"])
+        self.save_hyperparameters(ignore=["optimizer", "lr_schedule", "net", "clip"])
         self.lr_schedule = lr_schedule
         self.hparams["format"] = CHECKPOINT_FORMAT
         # the package that registers the model: a machine without it is told what to install
         self.hparams["provider"] = plugins.provider("model", model["name"])
         kwargs = {k: v for k, v in model.items() if k != "name"}
-        self.observer = net if net is not None else WindowNet(model["name"], window, features,
-                                                              fixes, receiver, **kwargs)
+        self.observer = net if net is not None else WindowNet(
+            model["name"], window, features, fixes, receiver, carried=tbptt is not None, **kwargs)
         self.optimizer_factory = optimizer
+        self.tbptt, self.clip = tbptt, clip
+        # the chunks' optimiser steps are taken here, not by Lightning
+        self.automatic_optimization = tbptt is None
         self._loss_sum: torch.Tensor | float = 0.0
         self._loss_count = 0
         self._val_finite: torch.Tensor | bool = True
@@ -60,6 +74,8 @@ class TrainingModule(L.LightningModule):
         return self.observer(win)
 
     def training_step(self, batch, batch_idx: int) -> torch.Tensor:
+        if self.tbptt is not None:
+            return self._carried_step(batch)
         loss = self.observer.loss(*batch)
         # summed here and logged once per epoch: self.log on every step costs about 1 ms,
         # 10 % of a small CNN step on the CPU (benchmarks/bench_train.py)
@@ -68,6 +84,29 @@ class TrainingModule(L.LightningModule):
         self._loss_count += n
         return loss
 
+    def _carried_step(self, batch) -> torch.Tensor:
+        """One batch of windows trained carried, chunk by chunk (see ``tbptt``); returns the
+        mean loss of its chunks (not finite where a chunk diverged, which took no step)."""
+        opt = self.optimizers()
+
+        def step(loss: torch.Tensor) -> None:
+            opt.zero_grad()
+            self.manual_backward(loss)
+            if self.clip:
+                self.clip_gradients(opt, gradient_clip_val=self.clip,
+                                    gradient_clip_algorithm="norm")
+            opt.step()
+
+        m, u, z, weight = from_batch(batch, next(self.parameters()).dtype)
+        mean = torch.tensor(train_batch(self.observer.net, m, u, z, self.tbptt, step,
+                                        weight)).mean()
+        schedule = self.lr_schedulers()
+        if schedule is not None:  # one step per batch, as the automatic loop takes them
+            schedule.step()
+        self._loss_sum = self._loss_sum + mean * len(m)
+        self._loss_count += len(m)
+        return mean
+
     def on_train_epoch_end(self) -> None:
         if self._loss_count:
             self._check_finite(self._loss_sum, "train_loss")
@@ -75,7 +114,12 @@ class TrainingModule(L.LightningModule):
         self._loss_sum, self._loss_count = 0.0, 0
 
     def validation_step(self, batch, batch_idx: int) -> None:
-        loss = self.observer.loss(*batch)
+        if self.tbptt is None:
+            loss = self.observer.loss(*batch)
+        else:  # each window carried through, from its first fix
+            m, u, z, weight = from_batch(batch, next(self.parameters()).dtype)
+            loss = sequence_loss(run(self.observer.net, m, u)[0], z, self.observer.net.units,
+                                 weight)
         self._val_finite = torch.isfinite(loss) & self._val_finite
         self.log("val_loss", loss, on_step=False, on_epoch=True, prog_bar=True,
                  batch_size=len(batch[1]))
@@ -116,3 +160,4 @@ class TrainingModule(L.LightningModule):
         cosine = torch.optim.lr_scheduler.LambdaLR(
             opt, lambda step: 0.5 * (1.0 + math.cos(math.pi * min(step, total) / total)))
         return {"optimizer": opt, "lr_scheduler": {"scheduler": cosine, "interval": "step"}}
+

@@ -5,7 +5,7 @@ filter in a control loop is carried from step to step for the whole drive. Here 
 of T steps are cut into consecutive chunks of L steps: the filter's state is carried from
 chunk to chunk, the gradient is cut at each chunk's start (truncated back-propagation through
 time), and the optimiser steps once per chunk, as KalmanNet's authors train it. Any module
-that keeps :class:`SequenceModel` trains here: KalmanNet and Split-KalmanNet
+that keeps :class:`lbo.models.carried.SequenceModel` trains here: KalmanNet and Split-KalmanNet
 (:mod:`lbo.models.kalmannet`).
 
 The loss is the mean square error in the measurement sigmas at alpha = 1 (metres and radians
@@ -20,33 +20,14 @@ import copy
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Protocol
 
 import numpy as np
 import torch
 
 from lbo.core.checks import integer, number
 from lbo.core.errors import LboError
+from lbo.models.carried import SequenceModel, run
 from lbo.models.poses import wrap_heading
-
-
-class SequenceModel(Protocol):
-    """A filter that runs step by step (``torch.nn.Module``s both)."""
-
-    units: torch.Tensor
-    """(3,) the measurement sigmas at alpha = 1 (m, m, rad): the loss's units."""
-
-    def begin(self, y0: torch.Tensor, fix0: torch.Tensor, u0: torch.Tensor
-              ) -> list[torch.Tensor]:
-        """The state at a sequence's first step: its measured pose y0 (B, 3), fix0 (B,), its
-        inputs u0 (B, 2); the state's first entry is the estimate, the pose first."""
-        ...
-
-    def advance(self, state: list[torch.Tensor], u_prev: torch.Tensor, y: torch.Tensor,
-                fix: torch.Tensor) -> tuple[list[torch.Tensor], torch.Tensor]:
-        """The next state and the estimate (B, 3) from the inputs of the step before
-        u_prev (B, 2), this step's measured pose y (B, 3) and fix (B,) bool."""
-        ...
 
 
 @dataclass(frozen=True)
@@ -100,35 +81,58 @@ def draw(z: np.ndarray, u: np.ndarray, sigma: np.ndarray, alpha: np.ndarray,
     return Sequences(m, u, z)
 
 
-def run(model: SequenceModel, m: torch.Tensor, u: torch.Tensor,
-        state: list[torch.Tensor] | None = None, u_prev: torch.Tensor | None = None
-        ) -> tuple[torch.Tensor, list[torch.Tensor]]:
-    """The filter over L steps of B sequences, m (B, L, 3) (NaN: no fix), u (B, L, 2):
-    started at the first step when ``state`` is None, else carried on from ``state`` with
-    the inputs of the step before ``u_prev`` (B, 2). Returns the estimates (B, L, 3) (NaN
-    before a sequence's first fix) and the state after the last step."""
-    fix = torch.isfinite(m).all(-1)  # a full pose: these filters take no partial fix
-    y = torch.nan_to_num(m)
-    out = []
-    for k in range(m.shape[1]):
-        if state is None:
-            state = model.begin(y[:, 0], fix[:, 0], u[:, 0])
-            est = wrap_heading(state[0][:, :3])
-        else:
-            state, est = model.advance(state, u_prev, y[:, k], fix[:, k])
-        out.append(torch.where(state[4][:, None], est, torch.full_like(est, float("nan"))))
-        u_prev = u[:, k]
-    return torch.stack(out, 1), state
-
-
-def loss(est: torch.Tensor, z: torch.Tensor, units: torch.Tensor) -> torch.Tensor:
+def loss(est: torch.Tensor, z: torch.Tensor, units: torch.Tensor,
+         weight: torch.Tensor | None = None) -> torch.Tensor:
     """Mean square error of estimates (B, L, 3) against the truth (B, L, 3) in the
-    measurement sigmas ``units`` (3,), over the steps with an estimate."""
+    measurement sigmas ``units`` (3,), over the steps with an estimate (those before a
+    sequence's first fix are NaN: :func:`lbo.models.carried.run`); ``weight`` (B,): each
+    sequence's weight (None: equal). A diverged estimate (inf) makes it NaN or inf."""
     d = wrap_heading(est - z) / units
-    held = torch.isfinite(d).all(-1)
+    held = ~torch.isnan(est).all(-1) & torch.isfinite(z).all(-1)
     if not held.any():
         return d.new_zeros(())
-    return (d[held] ** 2).mean()
+    se = torch.where(held[..., None], d, 0.0) ** 2  # (B, L, 3)
+    w = held.to(d.dtype) if weight is None else held * weight.to(d.dtype)[:, None]
+    return (se.sum(-1) * w).sum() / (3 * w.sum())
+
+
+def train_batch(model: SequenceModel, m: torch.Tensor, u: torch.Tensor, z: torch.Tensor,
+                chunk: int, step: Callable[[torch.Tensor], None],
+                weight: torch.Tensor | None = None) -> list[float]:
+    """One batch trained by truncated back-propagation through time: B sequences m (B, T, 3)
+    (NaN: no fix), u (B, T, 2), z (B, T, 3) true, the filter carried through consecutive
+    chunks of ``chunk`` steps. Each chunk's :func:`loss` (``weight`` (B,): the sequences')
+    is handed to ``step`` (its backward pass and optimiser step) where it is finite; the
+    state is then cut from the graph, so no gradient reaches back past a chunk's start.
+    Returns every chunk's loss (a diverged chunk's not finite, and given no step)."""
+    state: list[torch.Tensor] | None = None
+    u_prev: torch.Tensor | None = None
+    t = z.shape[1]
+    losses = []
+    for k in range(0, t, chunk):
+        est, state = run(model, m[:, k:k + chunk], u[:, k:k + chunk], state, u_prev)
+        u_prev = u[:, min(k + chunk, t) - 1]
+        chunk_loss = loss(est, z[:, k:k + chunk], model.units, weight)
+        if chunk_loss.requires_grad and torch.isfinite(chunk_loss):
+            step(chunk_loss)
+        losses.append(float(chunk_loss))
+        state = [s.detach() for s in state]  # the truncation
+    return losses
+
+
+def from_batch(batch: tuple[torch.Tensor, ...], dtype: torch.dtype) -> tuple[torch.Tensor, ...]:
+    """A training batch of windows (B, N, 5|6) with every step's true states (B, N, 3) and
+    weights (B,) (:class:`lbo.learn.datamodule.WindowDataset` with ``sequences``) as a carried
+    filter takes them: measured poses m (B, N, 3) (NaN: no fix), inputs u (B, N, 2), truth
+    z (B, N, 3), each window moved to start at its first fix (see the module), in ``dtype``;
+    and the weights."""
+    win, z, weight = batch
+    m = win[..., :3]
+    first = torch.isfinite(m[..., 0]).to(torch.int8).argmax(1)  # the first fix's step
+    shift = torch.zeros_like(m[:, :1])
+    shift[:, 0, :2] = m[torch.arange(len(m), device=m.device), first, :2]
+    return ((m - shift).to(dtype), win[..., 3:5].to(dtype), (z - shift).to(dtype),
+            weight.to(dtype))
 
 
 @dataclass(frozen=True)
@@ -168,9 +172,15 @@ def fit(model: SequenceModel, train: Sequences, validation: Sequences, epochs: i
     net: torch.nn.Module = model  # type: ignore[assignment]
     net.to(device)
     opt = torch.optim.Adam(net.parameters(), lr=lr)
+
+    def step(chunk_loss: torch.Tensor) -> None:
+        opt.zero_grad()
+        chunk_loss.backward()
+        torch.nn.utils.clip_grad_norm_(net.parameters(), 1.0)
+        opt.step()
+
     rng = np.random.default_rng(seed)
     data = train.centred()
-    t = data.z.shape[1]
     history, val = [], [evaluate(model, validation, device)]
     best, kept = 0, copy.deepcopy(net.state_dict())
     for epoch in range(1, epochs + 1):
@@ -179,20 +189,9 @@ def fit(model: SequenceModel, train: Sequences, validation: Sequences, epochs: i
         order = rng.permutation(len(data))
         for start in range(0, len(order), batch):
             m, u, z = _tensors(data.take(order[start:start + batch]), device)
-            state, u_prev = None, None
-            for k in range(0, t, chunk):
-                est, state = run(model, m[:, k:k + chunk], u[:, k:k + chunk], state, u_prev)
-                u_prev = u[:, min(k + chunk, t) - 1]
-                step_loss = loss(est, z[:, k:k + chunk], model.units)
-                if not torch.isfinite(step_loss):  # a diverged chunk: no step, and say so
-                    skipped += 1
-                elif step_loss.requires_grad:
-                    opt.zero_grad()
-                    step_loss.backward()
-                    torch.nn.utils.clip_grad_norm_(net.parameters(), 1.0)
-                    opt.step()
-                    losses.append(step_loss.item())
-                state = [s.detach() for s in state]  # the truncation: no gradient before it
+            done = train_batch(model, m, u, z, chunk, step)
+            losses += [v for v in done if math.isfinite(v)]
+            skipped += sum(not math.isfinite(v) for v in done)  # diverged: no step, say so
         net.eval()
         history.append(float(np.mean(losses)) if losses else math.nan)
         val.append(evaluate(model, validation, device))

@@ -79,7 +79,8 @@ def read_checkpoint(path: str | os.PathLike, features: str | None = None,
         # imported); one that is missing says which package provided it
         model_class(model.get("name"), hp.get("provider"))
         net = WindowNet(model.pop("name"), hp["window"], mode, bool(hp.get("fixes", False)),
-                        bool(hp.get("receiver", False)), **model)
+                        bool(hp.get("receiver", False)), carried=hp.get("tbptt") is not None,
+                        **model)
         state = {k.removeprefix("observer."): v for k, v in ckpt["state_dict"].items()
                  if k.startswith("observer.")}
         net.load_state_dict(state)

@@ -20,11 +20,12 @@ updates GRU_Sigma's.
 
 Where this one differs from the published filter:
 
-- **Window form.** It runs over lbo's window of N steps from a cold start at the window's
-  first fix and returns the last step's estimate, trained by lbo's window trainer: the
-  gradient flows back through the N steps of each window (a truncation at N), where the
-  authors run whole sequences and carry the state (truncated back-propagation through time).
-  Its estimates draw on the last N steps only, as the robust window filter's do.
+- **Two forms.** By default it runs over lbo's window of N steps from a cold start at the
+  window's first fix and returns the last step's estimate, trained by lbo's window trainer
+  (the gradient flows back through the N steps of each window). With ``tbptt=L`` it is
+  trained as the authors train it, carried through each window in chunks of L steps
+  (truncated back-propagation through time, :mod:`lbo.learn.sequence`), and then runs
+  carried for the whole drive (:mod:`lbo.models.carried`).
 - The GRUs' states start from learned vectors, not from priors of Q, Sigma and S.
 - The gain is learned in units of the measurement sigmas at alpha = 1, ``K = D K~ D^-1`` with
   ``D = diag(sigma)``: the pose mixes metres and radians, and in sigma units the gain's

@@ -14,6 +14,7 @@ from torch import nn
 
 from lbo.core.errors import LboError
 from lbo.models import build_model, receiver_window
+from lbo.models.carried import is_sequence_model
 from lbo.models.features import (
     check_mode,
     last_measurement,
@@ -64,12 +65,16 @@ class WindowNet(nn.Module):
     motion : ``(dt (s), wheelbase (m))`` of the dead reckoning that carries a receiver
         window's anchor to its last step (:func:`lbo.models.receiver_window.anchor`); held
         as a buffer, so it travels in the checkpoint.
+    carried : its model was trained carried from step to step (``tbptt``,
+        :mod:`lbo.learn.sequence`) and runs so unless asked otherwise; needs a model that keeps
+        :class:`lbo.models.carried.SequenceModel`.
     **model_kwargs : passed to :func:`lbo.models.build_model`.
     """
 
     def __init__(self, model: str, window: int, features: str = "relative",
                  fixes: bool = False, receiver: bool = False,
-                 motion: tuple[float, float] = (0.02, 2.7), **model_kwargs: Any) -> None:
+                 motion: tuple[float, float] = (0.02, 2.7), carried: bool = False,
+                 **model_kwargs: Any) -> None:
         super().__init__()
         self.features = check_mode(features)
         if not (isinstance(window, numbers.Integral) and not isinstance(window, bool)
@@ -95,6 +100,11 @@ class WindowNet(nn.Module):
                                f"({e}); the CNN, the LSTM and the window filter (filternet) "
                                "do") from None
             raise
+        self.carried = bool(carried)
+        if self.carried and not is_sequence_model(self.net):
+            raise LboError(f"tbptt: model {model!r} cannot be carried from step to step (it has "
+                           "no begin and advance, lbo.models.carried.SequenceModel); kalmannet "
+                           "and split_kalmannet can")
         # a model with ``physical = True`` reads features and writes targets in metres and
         # radians; the statistics below then only scale its loss
         self.physical = bool(getattr(self.net, "physical", False))

@@ -241,10 +241,22 @@ def learned_nets(sources: Sequence[str]) -> dict:
 
 
 def predict_recursive(net, arr: Trajectories, device: str = "cpu",
-                      smooth: bool = False) -> tuple[np.ndarray, np.ndarray]:
-    """A window filter (an WindowNet of ``filternet``) in its recursive form over every
-    trajectory of the padded test arrays, all at once: (G, T, 3) estimates and (G, T, 3, 3)
-    covariances, NaN outside the scored steps (``smooth``: the RTS smoother's)."""
+                      smooth: bool = False) -> tuple[np.ndarray, np.ndarray | None]:
+    """A learned observer in its recursive form over every trajectory of the padded test
+    arrays, all at once: (G, T, 3) estimates and (G, T, 3, 3) covariances, NaN outside the
+    scored steps (``smooth``: the RTS smoother's). The window filter (an WindowNet of
+    ``filternet``) gives its covariance; a model carried otherwise (KalmanNet's peers,
+    :mod:`lbo.models.carried`) gives none (None), and nothing to smooth."""
+    from lbo.serve.runners import is_window_filter
+
+    if not is_window_filter(net):
+        from lbo.models.carried import run_arrays as run_carried
+
+        if smooth:
+            raise LboError(f"smooth: {type(net.net).__name__} has no covariance to smooth with")
+        est = run_carried(net.net, arr.m, arr.u, device)
+        est[~arr.mask] = np.nan
+        return np.where(np.isfinite(est), est, np.nan), None
     from lbo.models.recursive import run_arrays
 
     est, cov = run_arrays(net.net, arr.m, arr.u, smooth, arr.lengths, device)

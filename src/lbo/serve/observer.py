@@ -9,10 +9,9 @@ whole log at once, with the same numbers either way.
 
 Each kind of observer makes its estimates through a runner (:mod:`lbo.serve.runners`): a
 classical observer's stepper, a net over the last N samples (the paper's EKF standing in, not
-valid, for a CNN's or LSTM's first N-1 steps), or the robust observer's filter carried from
-step to step (``form="recursive"``). Every classical observer and the robust observer give
-the covariance of their estimate (``Estimate.cov``, ``run(..., cov=True)``); the CNN and the
-LSTM have none (NaN).
+valid, for a CNN's or LSTM's first N-1 steps), or a filter carried from step to step
+(``form="recursive"``: the robust observer's, a KalmanNet's). The classical observers and the
+robust one give their estimates' covariance (``Estimate.cov``, ``run(..., cov=True)``).
 
 Conventions as in :mod:`lbo.filters.start`: ``u_k`` moves ``z_k`` to ``z_{k+1}``, so the
 estimate at step k uses ``m_0 .. m_k`` and ``u_0 .. u_{k-1}`` (the filters) or the window of
@@ -23,7 +22,7 @@ from __future__ import annotations
 
 import os
 import warnings
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -33,16 +32,17 @@ from lbo.filters import classical
 from lbo.filters.gyro import GyroNoise
 from lbo.models.checkpoint import read_checkpoint, stored_envelope, trained_conditions
 from lbo.models.envelope import EnvelopeCheck, check_mode
+from lbo.serve.estimate import Estimate
 from lbo.serve.refusals import no_fix, no_heading, no_receiver
 from lbo.serve.rows import bicycle_rows
 from lbo.serve.runners import (
     FORMS,
     ClassicalRunner,
-    Estimate,
     RecursiveRunner,
     WindowRunner,
     check_form,
-    has_recursive_form,
+    is_window_filter,
+    learned_runner,
 )
 from lbo.sim.columns import RECEIVER
 from lbo.sim.logcheck import (
@@ -56,6 +56,9 @@ from lbo.sim.logcheck import (
 from lbo.sim.noise import Noise
 from lbo.sim.vehicle import Vehicle
 from lbo.tracking.artifacts import checkpoint_file
+
+if TYPE_CHECKING:  # torch, which importing lbo does not load
+    from lbo.serve.carried_runner import CarriedRunner
 
 __all__ = ["Estimate", "EnvelopeWarning", "Observer"]
 
@@ -110,7 +113,7 @@ class Observer:
         self.form = check_form(form, net)
         classical.check_gyro_noise(name, gyro_noise)
         self.gyro_noise = gyro_noise
-        self._runner: ClassicalRunner | WindowRunner | RecursiveRunner
+        self._runner: ClassicalRunner | WindowRunner | RecursiveRunner | CarriedRunner
         if net is None:
             classical.check(name)
             self.kind, self.window, self.features, self.engine = "classical", 1, None, None
@@ -119,10 +122,8 @@ class Observer:
         else:
             self.kind, self.window, self.features = "learned", int(net.window), net.features
             self.engine = engine
-            self._runner = (RecursiveRunner(net, self.vehicle, engine, device)
-                            if self.form == "recursive"
-                            else WindowRunner(name, net, self.vehicle, self.noise, engine,
-                                              device))
+            self._runner = learned_runner(name, net, self.form, self.vehicle, self.noise,
+                                          engine, device)
         self.envelope = stored_envelope(name, self.meta) if net is not None else None
         self.envelope_mode = check_mode(envelope_mode)
         self._envelope = (self.envelope.stream(**self._envelope_terms())
@@ -156,7 +157,7 @@ class Observer:
         nothing else); and by a window net trained on a receiver's windows
         (:mod:`lbo.models.receiver_window`)."""
         return (self.net is None or bool(getattr(self.net, "receiver", False))
-                or (self.form == "recursive" and self.takes_missing_fixes))
+                or (isinstance(self._runner, RecursiveRunner) and self.takes_missing_fixes))
 
     @property
     def reads_gyro(self) -> bool:
@@ -168,9 +169,9 @@ class Observer:
     @property
     def gives_covariance(self) -> bool:
         """Whether the estimates come with a covariance: the classical observers' and the
-        window filter's (its recursive form's P; the window form's is NaN), not a CNN's or
-        an LSTM's."""
-        return self.net is None or self.form == "recursive"
+        window filter's (its recursive form's P; the window form's is NaN), not a CNN's, an
+        LSTM's or a KalmanNet's."""
+        return self.net is None or isinstance(self._runner, RecursiveRunner)
 
     # ----------------------------------------------------------------------- construction
 
@@ -199,7 +200,7 @@ class Observer:
         engine : ``"torch"``, ``"torchscript"`` or ``"onnx"`` for learned observers.
         device : torch device of a learned observer (``"cpu"``, ``"cuda"``, ``"cuda:<n>"``),
             checked (and CUDA asked for) before any checkpoint is read.
-        form : how a window filter runs (:data:`FORMS`); None: :func:`default_form`.
+        form : how a learned filter runs (:data:`FORMS`); None: :func:`default_form`.
         envelope_mode : ``"warn"``, ``"mark"`` or ``"off"``: what to do with samples outside
             the envelope of a learned observer's training inputs (see :class:`Observer`).
         gyro_noise : the noise of ``"gyro"`` (:class:`lbo.filters.gyro.GyroNoise`, e.g. as
@@ -398,7 +399,7 @@ class Observer:
         if smooth and not self.gives_covariance:
             raise LboError(f"smooth: {self.name} has no filter to smooth"
                            + (" in its window form; use form=recursive" if self.form == "window"
-                              and has_recursive_form(self.net) else
+                              and is_window_filter(self.net) else
                               "; smoothing takes a classical observer or the robust one"))
         fix = check_samples(m, u, delta_max=self.vehicle.delta_max, source=source)
         if receiver is not None:

@@ -8,6 +8,7 @@ over a whole log, with the same numbers either way.
   steps of a net that needs a full window.
 - :class:`RecursiveRunner`: the robust observer's window filter carried from step to step
   (:mod:`lbo.models.recursive`).
+- :class:`~lbo.serve.carried_runner.CarriedRunner`: KalmanNet's peers carried likewise.
 
 :class:`lbo.Observer` checks every sample and hands it to its runner, which keeps the runner's
 state between steps. Each runner has ``reset()``, ``take(k, m, u, fix)`` (one checked sample
@@ -18,7 +19,7 @@ observer's own.
 
 from __future__ import annotations
 
-from typing import Any, NamedTuple
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -29,6 +30,7 @@ from lbo.filters.gyro import GyroNoise
 from lbo.models.features import held_within, window_view
 from lbo.serve import carry, refusals
 from lbo.serve.engines import make_predictor, make_recursive_step
+from lbo.serve.estimate import Estimate
 from lbo.serve.rows import (
     bicycle_rows,
     checked_receiver,
@@ -39,32 +41,41 @@ from lbo.sim.columns import RECEIVER
 from lbo.sim.noise import Noise
 from lbo.sim.vehicle import Vehicle
 
+if TYPE_CHECKING:  # torch, which importing lbo does not load
+    from lbo.serve.carried_runner import CarriedRunner
+
 FORMS = ("window", "recursive")
 """How a window filter (``filternet``) runs: over the last N samples for every estimate, as it
 was trained, or recursively, its filter carried from step to step."""
 
 
-def has_recursive_form(net: Any) -> bool:
-    """Whether the net's model is the window filter, whose filter can carry from step to
-    step (:class:`lbo.models.recursive.RecursiveFilter`); any other model, a plug-in's that
-    reads metres and radians too, runs as a window."""
+def is_window_filter(net: Any) -> bool:
+    """Whether the net's model is the window filter, whose recursive form is a Kalman filter
+    with a covariance (:class:`lbo.models.recursive.RecursiveFilter`)."""
     from lbo.models.filternet import WindowFilter
 
     return isinstance(getattr(net, "net", None), WindowFilter)
 
 
+def has_recursive_form(net: Any) -> bool:
+    """Whether the net's model can be carried from step to step: the window filter, or one
+    that keeps :class:`lbo.models.carried.SequenceModel` (KalmanNet's peers, a plug-in's)."""
+    from lbo.models.carried import is_sequence_model  # torch: loaded with a net already
+
+    return is_window_filter(net) or is_sequence_model(getattr(net, "net", None))
+
+
 def default_form(net: Any) -> str:
     """The form a learned observer runs in unless asked for another: ``recursive`` for the
-    robust observer's window filter, ``window`` for every other net.
-
-    The recursive form estimates as well as the window form (``docs/serving.md`` has the
-    measurement), at a constant cost per step and with a covariance. A window filter with a
-    learned process model (``residual``, a single-track body) or drift states (the car that
-    slips, ``experiment=dynamic``) stays in its window form: its noise model learned to
-    inflate R at high noise as the window's memory, which a filter carried from step to step
-    does not forget, so its heading would drift (``docs/dynamic.md``)."""
+    robust observer's window filter (as good as its window form, at a constant cost per step
+    and with a covariance: ``docs/serving.md``) and for a model trained carried (``tbptt``),
+    ``window`` for every other net. A window filter with a learned process model or drift
+    states stays a window: its noise model learned to inflate R at high noise as the window's
+    memory, which a filter carried from step to step never forgets (``docs/dynamic.md``)."""
+    if getattr(net, "carried", False):
+        return "recursive"
     inner = getattr(net, "net", None)
-    if not has_recursive_form(net) or getattr(inner, "residual", 0) or \
+    if not is_window_filter(net) or getattr(inner, "residual", 0) or \
             getattr(inner, "drift", False) or getattr(inner, "single_track", False):
         return "window"
     return "recursive"
@@ -72,63 +83,33 @@ def default_form(net: Any) -> str:
 
 def check_form(form: str | None, net: Any) -> str | None:
     """The form an observer runs in (None for a classical one), or one line: ``recursive``
-    needs a window filter (``filternet``), whose filter can carry from step to step."""
+    needs a model that can be carried from step to step (:func:`has_recursive_form`)."""
     if net is None:
         if form not in (None, "window"):
             raise LboError(f"form={form}: a classical observer is recursive already; "
                            "leave form unset")
         return None
-    filt = has_recursive_form(net)
     if form is None:
         return default_form(net)
     if form not in FORMS:
         raise LboError(f"form must be one of {list(FORMS)} or null, got {form!r}")
-    if form == "recursive" and not filt:
+    if form == "recursive" and not has_recursive_form(net):
         raise LboError(f"form=recursive: a {type(net.net).__name__} has no filter to carry "
-                       "from step to step; only the window filter (filternet) has a recursive "
-                       "form")
+                       "from step to step; the window filter (filternet), kalmannet and "
+                       "split_kalmannet have a recursive form")
     return form
 
 
-class _Pair(NamedTuple):
-    state: np.ndarray
-    valid: bool
+def learned_runner(name: str, net: Any, form: str, vehicle: Vehicle, noise: Noise,
+                   engine: str, device: str) -> WindowRunner | RecursiveRunner | CarriedRunner:
+    """The runner of learned observer ``name`` in ``form`` (checked by :func:`check_form`)."""
+    if form == "window":
+        return WindowRunner(name, net, vehicle, noise, engine, device)
+    if is_window_filter(net):
+        return RecursiveRunner(net, vehicle, engine, device)
+    from lbo.serve.carried_runner import CarriedRunner  # torch: loaded with the net already
 
-
-class Estimate(_Pair):
-    """One step's result: ``state`` (3,) ``[x, y, psi]`` (m, m, rad; psi in (-pi, pi]) and
-    ``valid``; unpacks as ``state, valid``. ``reason`` (not unpacked) says why an estimate is
-    not valid, None when it is:
-
-    - ``"no position fix yet"``: before the first fix (state NaN);
-    - ``"window not yet full (k of N steps): the EKF's estimate"``: a CNN's or LSTM's first
-      N-1 steps;
-    - ``"no fix in the last N steps (... s): ..."``: a learned observer trained with
-      ``fix_rates`` whose window holds no fix has nothing to anchor its estimate to (state
-      NaN); estimates resume with the next fix;
-    - ``"no heading in the last N steps (... s)..."``: a net that reads a single antenna's
-      receiver, on a car that has stood or crept that long (a window filter: since the log
-      began; after its first estimate it carries its own through a stop, :mod:`lbo.serve.carry`);
-    - ``"the network's estimate is not finite ..."``: a net with NaN or inf weights;
-    - ``"outside the training envelope: ..."``: with ``envelope_mode="mark"``, a sample beyond
-      what a learned observer was trained on (:mod:`lbo.models.envelope`).
-    """
-
-    reason: str | None = None
-    cov: np.ndarray
-    """(3, 3) covariance of ``state`` (m^2, m rad, rad^2): the filter's own P; NaN for an
-    observer that gives none (the CNN and the LSTM)."""
-    outside: tuple[str, ...] = ()
-    """The fields of the training envelope this sample lies outside (``("speed",)``), in
-    every envelope mode but ``"off"``; () inside, or without an envelope."""
-
-    def __new__(cls, state: np.ndarray, valid: bool, reason: str | None = None,
-                cov: np.ndarray | None = None, outside: tuple[str, ...] = ()) -> Estimate:
-        self = super().__new__(cls, state, valid)
-        self.reason = None if valid else (reason or "the estimate is not finite")
-        self.cov = np.full((3, 3), np.nan) if cov is None else cov
-        self.outside = outside
-        return self
+    return CarriedRunner(name, net, engine, device)
 
 
 def from_first_fix(name: str, m: np.ndarray, u: np.ndarray, vehicle: Vehicle, noise: Noise,
@@ -250,7 +231,7 @@ class WindowRunner:
         self.reads_receiver = bool(getattr(net, "receiver", False))
         # the filter holds a carried heading as a standing car does; a CNN reads it as any
         # course (one trained on the hill drive's span alone, carrying, erred 0.42 rad)
-        self.carries = self.reads_receiver and has_recursive_form(net)
+        self.carries = self.reads_receiver and is_window_filter(net)
         self.first_valid = 0 if self.pads else self.window - 1
         # Ring buffer written twice (rows i and i+N): the last N samples are always the
         # contiguous rows i+1 .. i+N, so a window is a view, never a copy or a roll.

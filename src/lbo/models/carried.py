@@ -1,0 +1,92 @@
+"""A filter carried from step to step: the contract of a learned model that runs so, and its
+run over sequences.
+
+lbo's window form starts a filter at each window's first fix; a filter in a control loop is
+carried for the whole drive. A model that keeps :class:`SequenceModel` (``begin`` and
+``advance``; KalmanNet and Split-KalmanNet, :mod:`lbo.models.kalmannet`) runs both ways: its
+window form is ``advance`` looped over the window, and :func:`run` carries it over sequences
+of any length, in chunks if need be (the truncated back-propagation through time of
+:mod:`lbo.learn.sequence`, and the streaming of :mod:`lbo.serve.sequence_runner`).
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+from typing import Any, Protocol
+
+import numpy as np
+import torch
+
+from lbo.models.poses import wrap_heading
+
+
+class SequenceModel(Protocol):
+    """A filter that runs step by step (``torch.nn.Module``s both)."""
+
+    units: torch.Tensor
+    """(3,) the measurement sigmas at alpha = 1 (m, m, rad): the loss's units."""
+
+    def begin(self, y0: torch.Tensor, fix0: torch.Tensor, u0: torch.Tensor
+              ) -> list[torch.Tensor]:
+        """The state at a sequence's first step: its measured pose y0 (B, 3), fix0 (B,), its
+        inputs u0 (B, 2); the state's first entry is the estimate, the pose first, and its
+        fifth (B,) bool whether the filter has started (had a fix)."""
+        ...
+
+    def advance(self, state: list[torch.Tensor], u_prev: torch.Tensor, y: torch.Tensor,
+                fix: torch.Tensor) -> tuple[list[torch.Tensor], torch.Tensor]:
+        """The next state and the estimate (B, 3) from the inputs of the step before
+        u_prev (B, 2), this step's measured pose y (B, 3) and fix (B,) bool."""
+        ...
+
+
+STARTED = 4
+"""The index in a :class:`SequenceModel`'s state of its (B,) flag: started at a fix."""
+
+
+def is_sequence_model(model: Any) -> bool:
+    """Whether ``model`` (a net's inner model) keeps :class:`SequenceModel`: it can be carried
+    from step to step, and trained so."""
+    return callable(getattr(model, "begin", None)) and callable(getattr(model, "advance", None))
+
+
+def run(model: SequenceModel, m: torch.Tensor, u: torch.Tensor,
+        state: list[torch.Tensor] | None = None, u_prev: torch.Tensor | None = None
+        ) -> tuple[torch.Tensor, list[torch.Tensor]]:
+    """The filter over L steps of B sequences, m (B, L, 3) (NaN: no fix), u (B, L, 2):
+    started at the first step when ``state`` is None, else carried on from ``state`` with
+    the inputs of the step before ``u_prev`` (B, 2). Returns the estimates (B, L, 3) (NaN
+    before a sequence's first fix, inf where the filter diverged) and the state after the
+    last step."""
+    fix = torch.isfinite(m).all(-1)  # a full pose: these filters take no partial fix
+    y = torch.nan_to_num(m)
+    out = []
+    for k in range(m.shape[1]):  # a recurrence: each step needs the one before
+        if state is None:
+            state = model.begin(y[:, 0], fix[:, 0], u[:, 0])
+            est = wrap_heading(state[0][:, :3])
+        else:
+            state, est = model.advance(state, u_prev, y[:, k], fix[:, k])
+        # NaN before the first fix; a diverged estimate stays inf, so that a loss sees it
+        held = est.nan_to_num(nan=math.inf, posinf=math.inf, neginf=-math.inf)
+        out.append(torch.where(state[STARTED][:, None], held, torch.full_like(est, math.nan)))
+        u_prev = u[:, k]
+    return torch.stack(out, 1), state
+
+
+def in_float64(model: Any) -> Any:
+    """A float64 copy of ``model`` in eval mode, to run it carried over whole drives: positions
+    of a drive far from the origin keep their millimetres, and the trained model is untouched."""
+    return copy.deepcopy(model).double().eval()
+
+
+def run_arrays(model: Any, m: np.ndarray, u: np.ndarray, device: str = "cpu") -> np.ndarray:
+    """:func:`run` of a :class:`SequenceModel` over numpy arrays, in float64 (:func:`in_float64`):
+    m (G, T, 3) (NaN rows: no fix), u (G, T, 2) -> estimates (G, T, 3), NaN before each
+    sequence's first fix. Rows past a padded sequence's end are run on and should be masked."""
+    double = in_float64(model).to(device)
+    with torch.inference_mode():
+        est, _ = run(double, torch.as_tensor(np.asarray(m, np.float64), device=device),
+                     torch.as_tensor(np.nan_to_num(np.asarray(u, np.float64)), device=device))
+    return est.cpu().numpy()

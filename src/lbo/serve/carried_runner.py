@@ -1,0 +1,79 @@
+"""A learned model carried from step to step: the runner of a model that keeps
+:class:`lbo.models.carried.SequenceModel` (KalmanNet and Split-KalmanNet) in its recursive
+form.
+
+The model runs in float64 (:func:`lbo.models.carried.in_float64`), in the log's own
+coordinates: one ``advance`` per sample, or :func:`lbo.models.carried.run` over a whole log,
+the same operations either way. It gives no covariance, reads full poses only (no receiver
+channels), and runs in PyTorch only.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import torch
+
+from lbo.core.errors import LboError
+from lbo.models.carried import STARTED, in_float64, run_arrays
+from lbo.models.poses import wrap_heading
+from lbo.serve.estimate import Estimate
+
+
+class CarriedRunner:
+    """The model of ``net`` (a :class:`~lbo.models.net.WindowNet`) carried from its first
+    fix; ``engine`` must be ``"torch"``."""
+
+    first_valid = 0
+    reads_receiver = False
+
+    def __init__(self, name: str, net: Any, engine: str, device: str) -> None:
+        if engine != "torch":
+            raise LboError(f"engine={engine}: {name} carried from step to step runs in torch "
+                           "only; use engine=torch, or form=window to run its window form "
+                           f"on {engine}")
+        self.device = device
+        self.model = in_float64(net.net).to(device)
+        self.reset()
+
+    def reset(self) -> None:
+        self.state: list[torch.Tensor] | None = None
+        self.u_prev: torch.Tensor | None = None
+
+    def log_rows(self, m: np.ndarray, u: np.ndarray, receiver: np.ndarray | None,
+                 source: str | None) -> tuple[np.ndarray, np.ndarray]:
+        """A checked log's rows (T, 3) and inputs (T, 2), as they are."""
+        return m, u
+
+    def sample(self, k: int, m: np.ndarray, u: np.ndarray, receiver: Any
+               ) -> tuple[np.ndarray, np.ndarray]:
+        """Sample ``k``'s measurement (3,) and inputs (2,), as they are."""
+        return m, u
+
+    def take(self, k: int, m: np.ndarray, u: np.ndarray, fix: bool) -> Estimate:
+        """The estimate after measurement m (3,) (NaN: no fix) and inputs u (2,); NaN until
+        the first fix."""
+        y = torch.as_tensor(np.nan_to_num(np.asarray(m, np.float64)), device=self.device)[None]
+        held = torch.tensor([bool(fix)], device=self.device)
+        uk = torch.as_tensor(np.asarray(u, np.float64), device=self.device)[None]
+        with torch.inference_mode():
+            if self.state is None:
+                self.state = self.model.begin(y, held, uk)
+                est = wrap_heading(self.state[0][:, :3])
+            else:
+                self.state, est = self.model.advance(self.state, self.u_prev, y, held)
+        self.u_prev = uk
+        if not bool(self.state[STARTED][0]):
+            return Estimate(np.full(3, np.nan), False, "no position fix yet")
+        state = est[0].cpu().numpy()
+        finite = bool(np.isfinite(state).all())
+        return Estimate(state if finite else np.full(3, np.nan), finite,
+                        "the network's estimate is not finite (diverged?)")
+
+    def run(self, m: np.ndarray, u: np.ndarray, fix: np.ndarray, smooth: bool = False,
+            batch_size: int = 0) -> tuple[np.ndarray, np.ndarray]:
+        mm = np.array(m, dtype=float)
+        mm[~fix] = np.nan
+        est = run_arrays(self.model, mm[None], u[None], self.device)[0]
+        return np.where(np.isfinite(est), est, np.nan), np.full((len(m), 3, 3), np.nan)
