@@ -208,3 +208,24 @@ def test_bad_tbptt_settings_are_one_line_before_any_run(tmp_path, smoke_data, ov
     with pytest.raises(LboError, match=message):
         check(train_cfg(tmp_path, smoke_data, "features=frame", *overrides))
     assert not (tmp_path / "out").exists()
+
+
+def test_trained_carried_its_windows_hold_every_steps_truth_and_validate_within_the_run_in(
+        smoke_data):
+    """With ``sequences`` a batch holds the true states of every step of its windows, the last
+    one the window's own; windows longer than the validation set's run-in train whole, and
+    validate over windows as long as the run-in allows."""
+    from lbo.learn.datamodule import WindowDataModule
+    from lbo.sim import schema
+    from lbo.sim.columns import SCORED_SET
+
+    val = schema.read_set(smoke_data / "val.parquet", SCORED_SET)
+    first = int(val.loc[val["scored"], "k"].min())
+    dm = WindowDataModule(smoke_data, first + 21, batch_size=4, sequences=True)
+    dm.setup()
+    win, truth, _ = dm.train_set[[0, 1]]
+    assert win.shape == (2, first + 21, 5) and truth.shape == (2, first + 21, 3)
+    torch.testing.assert_close(truth[:, -1], dm.train_set.y[dm.train_set.ends[[0, 1]]])
+    assert dm.val_window == first + 1 and dm.val_set[[0]][1].shape == (1, first + 1, 3)
+    with pytest.raises(LboError, match=r"needs \d+ steps of history, but the validation set"):
+        WindowDataModule(smoke_data, first + 21).setup()

@@ -211,7 +211,8 @@ class WindowDataModule(L.LightningDataModule):
     drift : (sigma (m), tau (steps)) of the GNSS drift drawn with the noise (see
         :class:`WindowDataset`).
     receiver : draw a receiver's windows instead of the paper's (see :class:`WindowDataset`).
-    sequences : batches hold the true states of every step (see :class:`WindowDataset`).
+    sequences : batches hold the true states of every step (see :class:`WindowDataset`), and
+        validation windows are as long as the validation set's run-in allows.
     """
 
     def __init__(self, folder: str | Path, window: int, batch_size: int = 256,
@@ -232,6 +233,7 @@ class WindowDataModule(L.LightningDataModule):
         self.val_repeats = int(val_repeats)
         self.fix_periods = tuple(fix_periods)
         self.drift, self.receiver, self.sequences = drift, receiver, bool(sequences)
+        self.val_window = self.window  # shorter when trained carried (setup)
         self.train_set: WindowDataset | None = None
         self.val_set: Dataset | None = None
         self.shuffle = torch.Generator().manual_seed(seed)  # the training order, epoch by epoch
@@ -243,10 +245,14 @@ class WindowDataModule(L.LightningDataModule):
         # steps without a position fix (a user's logs, GNSS slower than the inputs) are NaN rows
         train = schema.read_set(self.folder / "train.parquet", missing_fixes=True)
         val = schema.read_set(self.folder / "val.parquet", SCORED_SET, missing_fixes=True)
-        for name, df in (("training", train), ("validation", val)):
+        first = int(val.loc[val["scored"], "k"].min())
+        # a filter trained carried on long windows is validated carried over windows as long
+        # as the validation set's run-in allows (it runs carried there, from their first fix)
+        self.val_window = min(self.window, first + 1) if self.sequences else self.window
+        for name, df, n in (("training", train, self.window),
+                            ("validation", val, self.val_window)):
             lengths = df.groupby("traj", sort=False).size().to_numpy()
-            first = int(df.loc[df["scored"], "k"].min()) if "scored" in df else None
-            _check_window(self.window, lengths, first, name)
+            _check_window(n, lengths, first if name == "validation" else None, name)
         if self.draw is None and not self.fix_periods and train[list(MEAS)].isna().any(
                 axis=None):
             raise LboError("the training set has steps without a position fix (GNSS slower than "
@@ -259,7 +265,8 @@ class WindowDataModule(L.LightningDataModule):
                                                                  self.window), self.window,
                                        seed=self.seed, **noise)
         val_set = WindowDataset(*rows(val), window_ends(
-            val["k"].to_numpy(), self.window, val["scored"].to_numpy()), self.window, **noise)
+            val["k"].to_numpy(), self.val_window, val["scored"].to_numpy()), self.val_window,
+            **noise)
         if self.draw is None and not self.fix_periods and self.receiver is None:
             self.val_set = val_set
         else:  # one fixed draw, the same in every epoch and run of this seed
