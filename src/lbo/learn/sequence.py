@@ -115,7 +115,7 @@ def train_batch(model: SequenceModel, m: torch.Tensor, u: torch.Tensor, z: torch
         chunk_loss = loss(est, z[:, k:k + chunk], model.units, weight)
         if chunk_loss.requires_grad and torch.isfinite(chunk_loss):
             step(chunk_loss)
-        losses.append(float(chunk_loss))
+        losses.append(float(chunk_loss.detach()))
         state = [s.detach() for s in state]  # the truncation
     return losses
 
