@@ -229,3 +229,59 @@ def test_trained_carried_its_windows_hold_every_steps_truth_and_validate_within_
     assert dm.val_window == first + 1 and dm.val_set[[0]][1].shape == (1, first + 1, 3)
     with pytest.raises(LboError, match=r"needs \d+ steps of history, but the validation set"):
         WindowDataModule(smoke_data, first + 21).setup()
+
+
+@pytest.mark.parametrize("body", ["kinematic", "single_track"])
+def test_the_window_filter_carried_is_its_recursive_form_and_learns_through_it(body):
+    """The window filter as a SequenceModel (CarriedFilter) runs the step of its recursive
+    form: carried over sequences with fixes every third step it gives the recursive form's
+    estimates (the one lbo serves), and a chunk's loss reaches its noise model."""
+    import copy
+
+    from lbo.models.net import WindowNet
+    from lbo.models.recursive import RecursiveFilter, run_arrays
+
+    torch.manual_seed(0)
+    net = WindowNet("filternet", 40, features="frame", fixes=True, body=body).net
+    seq = straight(3, 60, 4, every=3).centred()
+    m, u, z = (torch.as_tensor(a) for a in (seq.m, seq.u, seq.z))
+    f64 = copy.deepcopy(net).double()
+    with torch.no_grad():
+        est, _ = carried.run(carried.sequence_model(f64), m, u)
+        want, _ = RecursiveFilter(f64, shared=True).run(m, u)
+    torch.testing.assert_close(est, want, rtol=0, atol=0, equal_nan=True)
+    served, _ = run_arrays(net, seq.m, seq.u)  # its noise model in float32, as served
+    np.testing.assert_allclose(est.numpy(), served, rtol=0, atol=1e-6)
+    grads = []
+    losses = sequence.train_batch(carried.sequence_model(net), m.float(), u.float(), z.float(),
+                                  20, lambda loss: grads.append(torch.autograd.grad(
+                                      loss, list(net.noise.parameters()))))
+    assert len(losses) == 3 and np.isfinite(losses).all()
+    assert all(any(g.abs().max() > 0 for g in chunk) for chunk in grads)
+
+
+@pytest.mark.slow
+def test_lbo_train_with_tbptt_trains_the_window_filter_as_its_recursive_form_runs(
+        tmp_path, smoke_data, one_torch_thread):
+    """``model=filternet tbptt=20``: the robust observer trained carried (its recursive
+    form's step, fixes dropped to 10 Hz in some windows); its checkpoint loads in the
+    recursive form, with a covariance, and the evaluation scored that form."""
+    import pandas as pd
+
+    from helpers.training import train_in_own_store
+    from lbo.scoring.grid import load_test, predict_recursive, reference, score
+    from lbo.serve.observer import Observer
+
+    _, metrics, _ = train_in_own_store(
+        tmp_path, smoke_data, "experiment=smoke", "model=filternet", "features=frame",
+        "window=60", "tbptt=20", "fix_rates=[50,10]", "trainer.max_epochs=1",
+        "trainer.limit_train_batches=3")
+    obs = Observer.load(metrics["checkpoint"], envelope_mode="off")
+    assert obs.form == "recursive" and obs.gives_covariance and obs.net.carried
+    arr = load_test(smoke_data / "test.parquet")
+    est, cov = predict_recursive(obs.net, arr)
+    table = pd.read_csv(tmp_path / "out" / "evaluation.csv")
+    ours = table[table.observer == "filternet-N60"].set_index("alpha").nrmse
+    want = score("x", est, arr, reference(arr, obs.vehicle, obs.noise)).set_index("alpha").nrmse
+    np.testing.assert_allclose(ours.to_numpy(), want.loc[ours.index].to_numpy(), rtol=1e-12)
+    assert np.isfinite(cov[arr.mask]).all()

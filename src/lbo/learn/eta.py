@@ -38,6 +38,7 @@ def measure(cfg: DictConfig, steps: int = 8, warmup: int = 3) -> dict[str, Any]:
     """
     from lbo.learn.builders import build_net, data_device, datamodule, prepare_data
     from lbo.learn.sequence import from_batch, train_batch
+    from lbo.models.carried import sequence_model
 
     begin = time.perf_counter()
     device = data_device(cfg)
@@ -59,7 +60,7 @@ def measure(cfg: DictConfig, steps: int = 8, warmup: int = 3) -> dict[str, Any]:
             step(net.loss(*batch))
         else:  # trained carried: a step per chunk
             m, u, z, weight = from_batch(batch, next(net.parameters()).dtype)
-            train_batch(net.net, m, u, z, int(cfg.tbptt), step, weight)
+            train_batch(sequence_model(net.net), m, u, z, int(cfg.tbptt), step, weight)
         if device == "cuda":
             torch.cuda.synchronize()
         if i >= warmup:

@@ -14,7 +14,7 @@ from lbo.core.checks import SCHEDULES
 from lbo.core.errors import TrainingDiverged
 from lbo.learn.sequence import from_batch, train_batch
 from lbo.learn.sequence import loss as sequence_loss
-from lbo.models.carried import run
+from lbo.models.carried import run, sequence_model
 from lbo.models.net import CHECKPOINT_FORMAT, WindowNet
 
 __all__ = ["CHECKPOINT_FORMAT", "SCHEDULES", "TrainingModule"]
@@ -98,8 +98,8 @@ class TrainingModule(L.LightningModule):
             opt.step()
 
         m, u, z, weight = from_batch(batch, next(self.parameters()).dtype)
-        mean = torch.tensor(train_batch(self.observer.net, m, u, z, self.tbptt, step,
-                                        weight)).mean()
+        mean = torch.tensor(train_batch(sequence_model(self.observer.net), m, u, z, self.tbptt,
+                                        step, weight)).mean()
         schedule = self.lr_schedulers()
         if schedule is not None:  # one step per batch, as the automatic loop takes them
             schedule.step()
@@ -118,8 +118,8 @@ class TrainingModule(L.LightningModule):
             loss = self.observer.loss(*batch)
         else:  # each window carried through, from its first fix
             m, u, z, weight = from_batch(batch, next(self.parameters()).dtype)
-            loss = sequence_loss(run(self.observer.net, m, u)[0], z, self.observer.net.units,
-                                 weight)
+            carried = sequence_model(self.observer.net)
+            loss = sequence_loss(run(carried, m, u)[0], z, carried.units, weight)
         self._val_finite = torch.isfinite(loss) & self._val_finite
         self.log("val_loss", loss, on_step=False, on_epoch=True, prog_bar=True,
                  batch_size=len(batch[1]))

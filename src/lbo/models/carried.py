@@ -35,9 +35,10 @@ class SequenceModel(Protocol):
         ...
 
     def advance(self, state: list[torch.Tensor], u_prev: torch.Tensor, y: torch.Tensor,
-                fix: torch.Tensor) -> tuple[list[torch.Tensor], torch.Tensor]:
+                fix: torch.Tensor, u: torch.Tensor) -> tuple[list[torch.Tensor], torch.Tensor]:
         """The next state and the estimate (B, 3) from the inputs of the step before
-        u_prev (B, 2), this step's measured pose y (B, 3) and fix (B,) bool."""
+        u_prev (B, 2), this step's measured pose y (B, 3), fix (B,) bool and inputs u (B, 2)
+        (which a filter's prediction reads at the next step; a statistic may read them now)."""
         ...
 
 
@@ -49,6 +50,60 @@ def is_sequence_model(model: Any) -> bool:
     """Whether ``model`` (a net's inner model) keeps :class:`SequenceModel`: it can be carried
     from step to step, and trained so."""
     return callable(getattr(model, "begin", None)) and callable(getattr(model, "advance", None))
+
+
+def can_carry(model: Any) -> bool:
+    """Whether ``model`` (a net's inner model) can be trained carried: a
+    :class:`SequenceModel`, or the window filter through its recursive form."""
+    from lbo.models.filternet import WindowFilter
+
+    return is_sequence_model(model) or isinstance(model, WindowFilter)
+
+
+def sequence_model(model: Any) -> SequenceModel:
+    """``model`` (a net's inner model) as a :class:`SequenceModel`: itself, or the window
+    filter's :class:`CarriedFilter` (its parameters shared)."""
+    return model if is_sequence_model(model) else CarriedFilter(model)
+
+
+class CarriedFilter:
+    """The window filter (:class:`lbo.models.filternet.WindowFilter`) as a
+    :class:`SequenceModel`: the step of its recursive form
+    (:class:`lbo.models.recursive.RecursiveFilter`, the one lbo runs it with), sharing its
+    parameters and dtype, so that it trains as it runs. Not a module of its own: the filter's
+    parameters stay the net's alone."""
+
+    def __init__(self, net: Any) -> None:
+        from lbo.models.recursive import RecursiveFilter
+
+        self.step = RecursiveFilter(net, shared=True)
+
+    @property
+    def units(self) -> torch.Tensor:
+        """(3,) the measurement sigmas at alpha = 1: the noise model's units."""
+        return torch.exp(self.step.window_filter.log_r0)
+
+    @staticmethod
+    def _pack(out: list[torch.Tensor]) -> list[torch.Tensor]:
+        # the recursive form's state (:data:`lbo.models.recursive.STATE_NAMES`), its started
+        # flag also fifth, as a SequenceModel's state has it
+        return [*out[:4], out[-1] > 0.5, *out[4:]]
+
+    @staticmethod
+    def _row(y: torch.Tensor, fix: torch.Tensor) -> torch.Tensor:
+        return torch.where(fix[:, None], y, torch.full_like(y, math.nan))
+
+    def begin(self, y0: torch.Tensor, fix0: torch.Tensor, u0: torch.Tensor
+              ) -> list[torch.Tensor]:
+        state = self.step.initial_state(len(y0), y0.device, y0.dtype)
+        _, _, *after = self.step(self._row(y0, fix0), u0, *state)
+        return self._pack(after)
+
+    def advance(self, state: list[torch.Tensor], u_prev: torch.Tensor, y: torch.Tensor,
+                fix: torch.Tensor, u: torch.Tensor) -> tuple[list[torch.Tensor], torch.Tensor]:
+        # u_prev is the state's own (the recursive form keeps the inputs it last read)
+        pose, _, *after = self.step(self._row(y, fix), u, *state[:4], *state[5:])
+        return self._pack(after), pose
 
 
 def run(model: SequenceModel, m: torch.Tensor, u: torch.Tensor,
@@ -67,7 +122,7 @@ def run(model: SequenceModel, m: torch.Tensor, u: torch.Tensor,
             state = model.begin(y[:, 0], fix[:, 0], u[:, 0])
             est = wrap_heading(state[0][:, :3])
         else:
-            state, est = model.advance(state, u_prev, y[:, k], fix[:, k])
+            state, est = model.advance(state, u_prev, y[:, k], fix[:, k], u[:, k])
         # NaN before the first fix; a diverged estimate stays inf, so that a loss sees it
         held = est.nan_to_num(nan=math.inf, posinf=math.inf, neginf=-math.inf)
         out.append(torch.where(state[STARTED][:, None], held, torch.full_like(est, math.nan)))

@@ -164,10 +164,12 @@ class _GainFilter(ProcessModel, nn.Module):
         return [z0, z0, z0, y0, fix0] + self._start(y0.shape[0])  # no unpacking: TorchScript
 
     def advance(self, state: list[torch.Tensor], u_prev: torch.Tensor, y: torch.Tensor,
-                fix: torch.Tensor) -> tuple[list[torch.Tensor], torch.Tensor]:
+                fix: torch.Tensor, u: torch.Tensor | None = None
+                ) -> tuple[list[torch.Tensor], torch.Tensor]:
         """One step: the state of :meth:`begin` or of the step before, the inputs of the step
         before u_prev (B, 2) ``[V, delta]``, this step's measured pose y (B, 3) and fix (B,)
-        bool. Returns the next state and the estimate (B, 3), heading wrapped."""
+        bool (this step's inputs u are read at the next step, as u_prev). Returns the next
+        state and the estimate (B, 3), heading wrapped."""
         # indexed, not unpacked: TorchScript cannot size a list's slice
         z, z_prev, z_prior_prev, y_last, started = state[0], state[1], state[2], state[3], state[4]
         hidden = state[5:]

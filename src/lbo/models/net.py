@@ -14,7 +14,7 @@ from torch import nn
 
 from lbo.core.errors import LboError
 from lbo.models import build_model, receiver_window
-from lbo.models.carried import is_sequence_model
+from lbo.models.carried import can_carry
 from lbo.models.features import (
     check_mode,
     last_measurement,
@@ -101,10 +101,10 @@ class WindowNet(nn.Module):
                                "do") from None
             raise
         self.carried = bool(carried)
-        if self.carried and not is_sequence_model(self.net):
+        if self.carried and not can_carry(self.net):
             raise LboError(f"tbptt: model {model!r} cannot be carried from step to step (it has "
-                           "no begin and advance, lbo.models.carried.SequenceModel); kalmannet "
-                           "and split_kalmannet can")
+                           "no begin and advance, lbo.models.carried.SequenceModel); filternet, "
+                           "kalmannet and split_kalmannet can")
         # a model with ``physical = True`` reads features and writes targets in metres and
         # radians; the statistics below then only scale its loss
         self.physical = bool(getattr(self.net, "physical", False))

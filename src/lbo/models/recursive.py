@@ -83,7 +83,8 @@ class RecursiveFilter(nn.Module):
 
     Parameters
     ----------
-    net : the window filter whose learned parts it runs (copied, not shared).
+    net : the window filter whose learned parts it runs: copied into float64, or with
+        ``shared`` its own, in its own dtype (to train it carried, :mod:`lbo.models.carried`).
 
     Attributes
     ----------
@@ -96,13 +97,17 @@ class RecursiveFilter(nn.Module):
         yet) for a filter trained with a gyro.
     """
 
-    def __init__(self, net: WindowFilter) -> None:
+    def __init__(self, net: WindowFilter, shared: bool = False) -> None:
         super().__init__()
-        nets = {name: _Single(copy.deepcopy(getattr(net, name))) for name in ("noise", "process")
-                if not isinstance(getattr(net, name), nn.Identity)}
-        self.window_filter = copy.deepcopy(net).double().eval()
-        for name, wrapped in nets.items():
-            setattr(self.window_filter, name, wrapped.eval())
+        if shared:
+            self.window_filter = net
+        else:
+            nets = {name: _Single(copy.deepcopy(getattr(net, name)))
+                    for name in ("noise", "process")
+                    if not isinstance(getattr(net, name), nn.Identity)}
+            self.window_filter = copy.deepcopy(net).double().eval()
+            for name, wrapped in nets.items():
+                setattr(self.window_filter, name, wrapped.eval())
         self.window = int(net.window)
         self.fixes = bool(net.fixes)
         self.gyro = bool(net.gyro)
@@ -111,8 +116,8 @@ class RecursiveFilter(nn.Module):
         # slots of the statistic's ring: N-2 second differences, or N-1 fix residuals
         self.slots = self.window - 1 if self.fixes else self.window - 2
 
-    def initial_state(self, batch: int = 1, device: torch.device | str = "cpu"
-                      ) -> tuple[torch.Tensor, ...]:
+    def initial_state(self, batch: int = 1, device: torch.device | str = "cpu",
+                      dtype: torch.dtype = torch.float64) -> tuple[torch.Tensor, ...]:
         """The state of ``batch`` filters that have seen nothing, in the order of
         :data:`STATE_NAMES`:
 
@@ -126,7 +131,7 @@ class RecursiveFilter(nn.Module):
         (B, N) the last N speeds, speed_sum (B,), k (1,) steps taken, started (B,) 1 once a
         fix was seen.
         """
-        f = dict(dtype=torch.float64, device=device)
+        f = dict(dtype=dtype, device=device)
         b, n = batch, self.n
         return (torch.zeros(b, n, **f), torch.zeros(b, n, n, **f), torch.zeros(b, 2, **f),
                 torch.zeros(b, len(self.inputs), **f), torch.zeros(b, 2, 3, **f),

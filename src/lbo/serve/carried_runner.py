@@ -62,7 +62,7 @@ class CarriedRunner:
                 self.state = self.model.begin(y, held, uk)
                 est = wrap_heading(self.state[0][:, :3])
             else:
-                self.state, est = self.model.advance(self.state, self.u_prev, y, held)
+                self.state, est = self.model.advance(self.state, self.u_prev, y, held, uk)
         self.u_prev = uk
         if not bool(self.state[STARTED][0]):
             return Estimate(np.full(3, np.nan), False, "no position fix yet")
