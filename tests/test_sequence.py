@@ -197,7 +197,9 @@ def test_lbo_train_with_tbptt_trains_a_peer_carried_and_it_runs_carried(tmp_path
 
 @pytest.mark.parametrize(("overrides", "message"), [
     (["tbptt=1"], r"^tbptt must be null or an integer >= 2 \(steps per chunk\), got 1"),
-    (["tbptt=30", "window=20"], r"^tbptt must be at most window=20 steps"),
+    (["tbptt=30", "window=20"], r"^tbptt must be at most the 20 steps of a training sequence"),
+    (["tbptt=30", "sequence_length=20"], r"^tbptt must be at most the 20 steps"),
+    (["sequence_length=100"], r"^sequence_length: set only with tbptt"),
     (["tbptt=10", "model=cnn"], r"^tbptt: model 'cnn' cannot be carried from step to step"),
 ])
 def test_bad_tbptt_settings_are_one_line_before_any_run(tmp_path, smoke_data, overrides,
@@ -263,8 +265,9 @@ def test_the_window_filter_carried_is_its_recursive_form_and_learns_through_it(b
 @pytest.mark.slow
 def test_lbo_train_with_tbptt_trains_the_window_filter_as_its_recursive_form_runs(
         tmp_path, smoke_data, one_torch_thread):
-    """``model=filternet tbptt=20``: the robust observer trained carried (its recursive
-    form's step, fixes dropped to 10 Hz in some windows); its checkpoint loads in the
+    """``model=filternet tbptt=20 sequence_length=80``: the robust observer trained carried
+    (its recursive form's step, fixes dropped to 10 Hz in some sequences) over sequences of
+    80 steps, twice its window of 40 (4 chunks a batch); its checkpoint loads in the
     recursive form, with a covariance, and the evaluation scored that form."""
     import pandas as pd
 
@@ -274,14 +277,16 @@ def test_lbo_train_with_tbptt_trains_the_window_filter_as_its_recursive_form_run
 
     _, metrics, _ = train_in_own_store(
         tmp_path, smoke_data, "experiment=smoke", "model=filternet", "features=frame",
-        "window=60", "tbptt=20", "fix_rates=[50,10]", "trainer.max_epochs=1",
-        "trainer.limit_train_batches=3")
+        "window=40", "tbptt=20", "sequence_length=80", "fix_rates=[50,10]",
+        "trainer.max_epochs=1", "trainer.limit_train_batches=3")
+    last = torch.load(tmp_path / "out" / "checkpoints" / "last.ckpt", weights_only=True)
+    assert last["global_step"] == 3 * 4
     obs = Observer.load(metrics["checkpoint"], envelope_mode="off")
     assert obs.form == "recursive" and obs.gives_covariance and obs.net.carried
     arr = load_test(smoke_data / "test.parquet")
     est, cov = predict_recursive(obs.net, arr)
     table = pd.read_csv(tmp_path / "out" / "evaluation.csv")
-    ours = table[table.observer == "filternet-N60"].set_index("alpha").nrmse
+    ours = table[table.observer == "filternet-N40"].set_index("alpha").nrmse
     want = score("x", est, arr, reference(arr, obs.vehicle, obs.noise)).set_index("alpha").nrmse
     np.testing.assert_allclose(ours.to_numpy(), want.loc[ours.index].to_numpy(), rtol=1e-12)
     assert np.isfinite(cov[arr.mask]).all()

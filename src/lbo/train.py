@@ -78,9 +78,14 @@ def check(cfg: DictConfig) -> Built:
         integer(cfg.threads, "threads", 1)
     if cfg.get("tbptt") is not None:
         integer(cfg.tbptt, "tbptt", 2, form="null or an integer >= 2 (steps per chunk)")
-        require(cfg.tbptt <= cfg.window, "tbptt",
-                f"at most window={cfg.window} steps (the sequences carried are the windows)",
-                cfg.tbptt)
+        length = cfg.get("sequence_length") or cfg.window
+        if cfg.get("sequence_length") is not None:
+            integer(length, "sequence_length", 2, form="null or an integer >= 2 (steps)")
+        require(cfg.tbptt <= length, "tbptt", f"at most the {length} steps of a training "
+                "sequence (sequence_length, or window)", cfg.tbptt)
+    elif cfg.get("sequence_length") is not None:
+        raise LboError("sequence_length: set only with tbptt (the sequences trained carried); "
+                       f"got {cfg.sequence_length} with tbptt=null")
     check_scaling(cfg.normalisation)
     check_trainer(cfg.trainer)
     check_optimizer(cfg.optimizer)

@@ -119,9 +119,11 @@ def datamodule(cfg: DictConfig, folder: Path, built: Built | None = None):
 
     periods = built.fix_periods if built else fix_periods(cfg.get("fix_rates"), cfg.vehicle.dt)
     noise = built.noise if built else noise_settings(cfg)
-    dm = WindowDataModule(folder, cfg.window, cfg.batch_size, seed=cfg.seed,
+    carried = cfg.get("tbptt") is not None  # its windows: sequences, maybe longer than N
+    length = (cfg.get("sequence_length") or cfg.window) if carried else cfg.window
+    dm = WindowDataModule(folder, length, cfg.batch_size, seed=cfg.seed,
                           device=data_device(cfg), fix_periods=periods,
-                          sequences=cfg.get("tbptt") is not None, **noise)
+                          sequences=carried, **noise)
     dm.setup("fit")
     return dm
 
