@@ -6,7 +6,10 @@ of T steps are cut into consecutive chunks of L steps: the filter's state is car
 chunk to chunk, the gradient is cut at each chunk's start (truncated back-propagation through
 time), and the optimiser steps once per chunk, as KalmanNet's authors train it. Any module
 that keeps :class:`lbo.models.carried.SequenceModel` trains here: KalmanNet and Split-KalmanNet
-(:mod:`lbo.models.kalmannet`).
+(:mod:`lbo.models.kalmannet`), and the window filter through its recursive form
+(:class:`lbo.models.carried.CarriedFilter`). :func:`train_batch` is the one chunk loop:
+``lbo.train tbptt=L`` runs it inside Lightning (:mod:`lbo.learn.lightning_module`), and
+:func:`fit`, a plain loop over :class:`Sequences`, serves the tests and benchmarks.
 
 The loss is the mean square error in the measurement sigmas at alpha = 1 (metres and radians
 made comparable, the headings' differences wrapped), over the steps where the filter has
