@@ -62,8 +62,23 @@ def test_a_cell_not_in_the_table_is_refused_in_one_line(tmp_path, smoke_data):
     assert res.returncode == 1
     assert res.stderr.strip().splitlines() == [
         "error: --cells: unknown cell(s) paper/gru; expected <data set>/<observer> of "
-        "paper/cnn, paper/lstm, paper/robust, paper/slips, paper/kalmannet, "
-        "paper/split_kalmannet, robust/cnn, robust/lstm, robust/robust, robust/slips, "
-        "robust/kalmannet, robust/split_kalmannet, dynamic/cnn, dynamic/lstm, "
-        "dynamic/robust, dynamic/slips, dynamic/kalmannet, dynamic/split_kalmannet"]
+        + ", ".join(f"{d}/{o}" for d in ("paper", "robust", "dynamic") for o in (
+            "cnn", "lstm", "robust", "slips", "kalmannet", "split_kalmannet",
+            "split_kalmannet_carried"))]
     assert not (tmp_path / "table").exists()
+
+
+def test_a_cell_that_sets_a_budget_setting_keeps_its_own(monkeypatch):
+    """Split-KalmanNet trained carried sets its batch of sequences: the budget's batch size
+    is left out (Hydra refuses a key given twice), the rest of the budget kept."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("learned_table", SCRIPT)
+    module = importlib.util.module_from_spec(spec)
+    monkeypatch.setitem(sys.modules, "learned_table", module)  # its dataclasses look it up
+    spec.loader.exec_module(module)
+    (carried,) = module.cells("robust/split_kalmannet_carried", Path("out"), {})
+    assert [o for o in carried.overrides if o.startswith("batch_size=")] == ["batch_size=100"]
+    assert "tbptt=100" in carried.overrides and "trainer.max_epochs=4" in carried.overrides
+    (plain,) = module.cells("robust/split_kalmannet", Path("out"), {})
+    assert "batch_size=256" in plain.overrides
