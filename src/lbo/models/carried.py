@@ -6,7 +6,7 @@ carried for the whole drive. A model that keeps :class:`SequenceModel` (``begin`
 ``advance``; KalmanNet and Split-KalmanNet, :mod:`lbo.models.kalmannet`) runs both ways: its
 window form is ``advance`` looped over the window, and :func:`run` carries it over sequences
 of any length, in chunks if need be (the truncated back-propagation through time of
-:mod:`lbo.learn.sequence`, and the streaming of :mod:`lbo.serve.sequence_runner`).
+:mod:`lbo.learn.sequence`, and the streaming of :mod:`lbo.serve.carried_runner`).
 """
 
 from __future__ import annotations
@@ -137,11 +137,11 @@ def in_float64(model: Any) -> Any:
 
 
 def run_arrays(model: Any, m: np.ndarray, u: np.ndarray, device: str = "cpu") -> np.ndarray:
-    """:func:`run` of a :class:`SequenceModel` over numpy arrays, in float64 (:func:`in_float64`):
-    m (G, T, 3) (NaN rows: no fix), u (G, T, 2) -> estimates (G, T, 3), NaN before each
-    sequence's first fix. Rows past a padded sequence's end are run on and should be masked."""
-    double = in_float64(model).to(device)
+    """:func:`run` of a float64 :class:`SequenceModel` (:func:`in_float64`, on ``device``) over
+    numpy arrays: m (G, T, 3) (NaN rows: no fix), u (G, T, 2) -> estimates (G, T, 3), NaN
+    before each sequence's first fix. Rows past a padded sequence's end are run on and should
+    be masked."""
     with torch.inference_mode():
-        est, _ = run(double, torch.as_tensor(np.asarray(m, np.float64), device=device),
+        est, _ = run(model, torch.as_tensor(np.asarray(m, np.float64), device=device),
                      torch.as_tensor(np.nan_to_num(np.asarray(u, np.float64)), device=device))
     return est.cpu().numpy()

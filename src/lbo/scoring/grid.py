@@ -250,11 +250,12 @@ def predict_recursive(net, arr: Trajectories, device: str = "cpu",
     from lbo.serve.runners import is_window_filter
 
     if not is_window_filter(net):
+        from lbo.models.carried import in_float64
         from lbo.models.carried import run_arrays as run_carried
 
         if smooth:
             raise LboError(f"smooth: {type(net.net).__name__} has no covariance to smooth with")
-        est = run_carried(net.net, arr.m, arr.u, device)
+        est = run_carried(in_float64(net.net).to(device), arr.m, arr.u, device)
         est[~arr.mask] = np.nan
         return np.where(np.isfinite(est), est, np.nan), None
     from lbo.models.recursive import run_arrays

@@ -3,9 +3,9 @@
 form.
 
 The model runs in float64 (:func:`lbo.models.carried.in_float64`), in the log's own
-coordinates: one ``advance`` per sample, or :func:`lbo.models.carried.run` over a whole log,
-the same operations either way. It gives no covariance, reads full poses only (no receiver
-channels), and runs in PyTorch only.
+coordinates: one step of :func:`lbo.models.carried.run` per sample, or the same run over a
+whole log. It gives no covariance, reads full poses only (no receiver channels), and runs in
+PyTorch only.
 """
 
 from __future__ import annotations
@@ -16,8 +16,7 @@ import numpy as np
 import torch
 
 from lbo.core.errors import LboError
-from lbo.models.carried import STARTED, in_float64, run_arrays
-from lbo.models.poses import wrap_heading
+from lbo.models.carried import STARTED, in_float64, run, run_arrays
 from lbo.serve.estimate import Estimate
 
 
@@ -53,20 +52,16 @@ class CarriedRunner:
 
     def take(self, k: int, m: np.ndarray, u: np.ndarray, fix: bool) -> Estimate:
         """The estimate after measurement m (3,) (NaN: no fix) and inputs u (2,); NaN until
-        the first fix."""
-        y = torch.as_tensor(np.nan_to_num(np.asarray(m, np.float64)), device=self.device)[None]
-        held = torch.tensor([bool(fix)], device=self.device)
-        uk = torch.as_tensor(np.asarray(u, np.float64), device=self.device)[None]
+        the first fix: one step of :func:`lbo.models.carried.run`, carried on."""
+        row = np.asarray(m, np.float64) if fix else np.full(3, np.nan)
+        uk = torch.as_tensor(np.asarray(u, np.float64), device=self.device)[None, None]
         with torch.inference_mode():
-            if self.state is None:
-                self.state = self.model.begin(y, held, uk)
-                est = wrap_heading(self.state[0][:, :3])
-            else:
-                self.state, est = self.model.advance(self.state, self.u_prev, y, held, uk)
-        self.u_prev = uk
+            est, self.state = run(self.model, torch.as_tensor(row, device=self.device)[None, None],
+                                  uk, self.state, self.u_prev)
+        self.u_prev = uk[:, 0]
         if not bool(self.state[STARTED][0]):
             return Estimate(np.full(3, np.nan), False, "no position fix yet")
-        state = est[0].cpu().numpy()
+        state = est[0, 0].cpu().numpy()
         finite = bool(np.isfinite(state).all())
         return Estimate(state if finite else np.full(3, np.nan), finite,
                         "the network's estimate is not finite (diverged?)")
