@@ -79,8 +79,8 @@ def main() -> None:
     test = sequence.Sequences(te.m, te.u, te.z)
     centred = test.centred()
     with torch.no_grad():
-        est, _ = carried.run(net, torch.as_tensor(centred.m, dtype=torch.float32),
-                              torch.as_tensor(centred.u, dtype=torch.float32))
+        est = carried.run(net, torch.as_tensor(centred.m, dtype=torch.float32),
+                          torch.as_tensor(centred.u, dtype=torch.float32)).est
     est = est.numpy().astype(float) + (test.z - centred.z)  # back where the set lies
     ref = grid.reference(te, spec.vehicle, spec.noise)
     name = f"{args.model} (sequence-trained, carried)"

@@ -44,10 +44,10 @@ def test_carried_in_chunks_it_runs_as_in_one_pass_and_as_its_window_form(cls):
     seq = straight(5, 40, 1, every=3).centred()
     m, u = (torch.as_tensor(a, dtype=torch.float32) for a in (seq.m, seq.u))
     with torch.no_grad():
-        whole, _ = carried.run(net, m, u)
+        whole = carried.run(net, m, u).est
         parts, state, u_prev = [], None, None
         for k in range(0, 40, 7):
-            est, state = carried.run(net, m[:, k:k + 7], u[:, k:k + 7], state, u_prev)
+            est, state, _ = carried.run(net, m[:, k:k + 7], u[:, k:k + 7], state, u_prev)
             parts.append(est)
             u_prev = u[:, min(k + 7, 40) - 1]
         window = torch.cat([torch.nan_to_num(m), u, torch.isfinite(m).all(-1, keepdim=True)
@@ -76,8 +76,8 @@ def test_trained_by_truncated_backpropagation_it_learns_to_match_the_ekf(cls,
     assert len(fit.train) == 3 and len(fit.validation) == 4
     c = test.centred()
     with torch.no_grad():
-        est, _ = carried.run(net, *(torch.as_tensor(a, dtype=torch.float32)
-                                     for a in (c.m, c.u)))
+        est = carried.run(net, *(torch.as_tensor(a, dtype=torch.float32)
+                                 for a in (c.m, c.u))).est
     ekf = ekf_batch(c.m, c.u, Vehicle(), NOISE.Q, np.diag(SIGMA**2))
 
     def mse(e):
@@ -112,7 +112,7 @@ def test_carried_through_chunks_the_gradient_stops_at_each_chunks_start():
     seq = straight(3, 30, 2).centred()
     m, u, z = (torch.as_tensor(a, dtype=torch.float32) for a in (seq.m, seq.u, seq.z))
     with torch.no_grad():
-        whole, _ = carried.run(net, m, u)
+        whole = carried.run(net, m, u).est
     want = [float(sequence.loss(whole[:, k:k + 10], z[:, k:k + 10], net.units))
             for k in (0, 10, 20)]
     m = m.clone().requires_grad_(True)
@@ -144,7 +144,7 @@ def test_the_loss_weighs_sequences_and_sees_a_diverged_estimate():
     seq = straight(2, 12, 3).centred()
     m, u, z = (torch.as_tensor(a, dtype=torch.float32) for a in (seq.m, seq.u, seq.z))
     with torch.no_grad():
-        est, _ = carried.run(net, m, u)
+        est = carried.run(net, m, u).est
     # NaN only before a first fix: from the step after it, each estimate holds an inf
     assert torch.isfinite(est[:, 0]).all() and not torch.isnan(est[:, 1:]).any()
     assert torch.isinf(est[:, 1:]).any(-1).all()
@@ -249,7 +249,7 @@ def test_the_window_filter_carried_is_its_recursive_form_and_learns_through_it(b
     m, u, z = (torch.as_tensor(a) for a in (seq.m, seq.u, seq.z))
     f64 = copy.deepcopy(net).double()
     with torch.no_grad():
-        est, _ = carried.run(carried.sequence_model(f64), m, u)
+        est = carried.run(carried.sequence_model(f64), m, u).est
         want, _ = RecursiveFilter(f64, shared=True).run(m, u)
     torch.testing.assert_close(est, want, rtol=0, atol=0, equal_nan=True)
     served, _ = run_arrays(net, seq.m, seq.u)  # its noise model in float32, as served
@@ -260,6 +260,29 @@ def test_the_window_filter_carried_is_its_recursive_form_and_learns_through_it(b
                                       loss, list(net.noise.parameters()))))
     assert len(losses) == 3 and np.isfinite(losses).all()
     assert all(any(g.abs().max() > 0 for g in chunk) for chunk in grads)
+
+
+def test_a_noise_model_driven_far_out_is_capped_and_the_carried_filter_stays_finite():
+    """The noise model's sigmas are held at SIGMA_RATIO_MAX times its sigmas at alpha = 1.
+    Trained carried on the car that slips, its output at the empty statistic of a filter's
+    first fix reached exp(20) in 23 batches, and P (float32) overflowed to NaN at the next
+    fix; capped, the same filter carried in float32 stays finite."""
+    from lbo.models.filternet import SIGMA_RATIO_MAX
+    from lbo.models.net import WindowNet
+
+    net = WindowNet("filternet", 40, features="frame", body="single_track", drift=True).net
+    with torch.no_grad():
+        net.noise[-1].bias.fill_(20.0)
+    r0 = torch.exp(net.log_r0)
+    sigma = net.noise_sigma(torch.zeros(2, 3), torch.ones(2, 1))
+    torch.testing.assert_close(sigma, (SIGMA_RATIO_MAX * r0).expand(2, 3))
+    drive = straight(4, 30, 5)
+    seq = sequence.draw(drive.z, drive.u, SIGMA, np.full(4, 6.0), np.ones(4),
+                        np.random.default_rng(1)).centred()
+    m, u = (torch.as_tensor(a, dtype=torch.float32) for a in (seq.m, seq.u))
+    with torch.no_grad():
+        est = carried.run(carried.sequence_model(net), m, u).est
+    assert torch.isfinite(est).all()
 
 
 @pytest.mark.slow
@@ -290,3 +313,61 @@ def test_lbo_train_with_tbptt_trains_the_window_filter_as_its_recursive_form_run
     want = score("x", est, arr, reference(arr, obs.vehicle, obs.noise)).set_index("alpha").nrmse
     np.testing.assert_allclose(ours.to_numpy(), want.loc[ours.index].to_numpy(), rtol=1e-12)
     assert np.isfinite(cov[arr.mask]).all()
+
+
+def test_the_nll_term_is_least_at_the_errors_own_variance_and_learns_it():
+    """Errors of a known variance v (in the units): the Gaussian NLL of a scalar covariance s
+    is the closed form (d^2 / s + log s) / 2 per channel, least at s = v; mixed into the loss
+    (nll=1, the MSE part blind to s) a learned s converges to v; a covariance that is not
+    positive definite scores inf, and a model without one is refused in one line."""
+    gen = torch.Generator().manual_seed(0)
+    units = torch.tensor([0.5, 2.0, 0.01], dtype=torch.float64)
+    v = 2.5
+    d = torch.randn(4, 2000, 3, generator=gen, dtype=torch.float64) * v ** 0.5
+    z = torch.zeros_like(d)
+    est = d * units
+    s = torch.tensor(0.7, dtype=torch.float64)
+    cov = s * torch.diag(units ** 2).expand(4, 2000, 3, 3)
+    mse = (d ** 2).mean()
+    want = mse + ((d ** 2).sum(-1) / s + 3 * torch.log(s)).mean() / 6
+    torch.testing.assert_close(sequence.loss(est, z, units, cov=cov, nll=1.0), want)
+    log_s = torch.zeros((), dtype=torch.float64, requires_grad=True)
+    opt = torch.optim.Adam([log_s], lr=0.05)
+    for _ in range(400):
+        opt.zero_grad()
+        c = torch.exp(log_s) * torch.diag(units ** 2).expand(4, 2000, 3, 3)
+        sequence.loss(est, z, units, cov=c, nll=1.0).backward()
+        opt.step()
+    assert float(torch.exp(log_s.detach())) == pytest.approx(float((d ** 2).mean()), rel=1e-3)
+    assert float((d ** 2).mean()) == pytest.approx(v, rel=0.05)
+    bad = torch.diag(torch.tensor([1.0, -1.0, 1.0], dtype=torch.float64))
+    assert sequence.gaussian_nll(d[0, :1], bad[None]).isinf().all()
+    with pytest.raises(LboError, match="^nll: this model gives no covariance"):
+        sequence.loss(est, z, units, nll=1.0)
+
+
+def test_carried_the_window_filter_gives_its_covariance_and_the_nll_term_reaches_its_noise():
+    """run gives the window filter's P per step (its recursive form's cov, NaN before the
+    first fix), KalmanNet's peers none; with nll > 0 a chunk's loss reaches the noise model
+    and the process-noise scale through P."""
+    from lbo.models.net import WindowNet
+    from lbo.models.recursive import RecursiveFilter
+
+    torch.manual_seed(0)
+    net = WindowNet("filternet", 40, features="frame", fixes=True).net.double()
+    seq = straight(2, 30, 6, every=3).centred()
+    m, u, z = (torch.as_tensor(a) for a in (seq.m, seq.u, seq.z))
+    with torch.no_grad():
+        out = carried.run(carried.sequence_model(net), m, u)
+        _, want = RecursiveFilter(net, shared=True).run(m, u)
+    torch.testing.assert_close(out.cov, want, rtol=0, atol=0, equal_nan=True)
+    assert carried.run(KalmanNet(20), m.float(), u.float()).cov is None
+    def grads(nll):
+        out = []
+        sequence.train_batch(carried.sequence_model(net), m, u, z, 15, lambda loss: out.append(
+            torch.autograd.grad(loss, [net.log_q_scale, net.noise[-1].bias])), nll=nll)
+        return out
+
+    mixed, plain = grads(0.5), grads(0.0)
+    assert len(mixed) == 2 and all(g.abs().min() > 0 for chunk in mixed for g in chunk)
+    assert all((a - b).abs().min() > 0 for c, d in zip(mixed, plain) for a, b in zip(c, d))

@@ -44,6 +44,7 @@ from lbo.learn.resume import (
     prior_runs,
     write_marker,
 )
+from lbo.models.carried import covariance_of, sequence_model
 from lbo.models.features import FEATURE_MODES
 from lbo.models.net import check_scaling
 from lbo.sim.log_sets import is_logs
@@ -86,6 +87,10 @@ def check(cfg: DictConfig) -> Built:
     elif cfg.get("sequence_length") is not None:
         raise LboError("sequence_length: set only with tbptt (the sequences trained carried); "
                        f"got {cfg.sequence_length} with tbptt=null")
+    nll = number(cfg.get("nll") or 0.0, "nll", low=0.0)
+    if nll and cfg.get("tbptt") is None:
+        raise LboError(f"nll: the Gaussian NLL term reads the covariance of a filter trained "
+                       f"carried; set tbptt too, or nll=0 (got nll={nll} with tbptt=null)")
     check_scaling(cfg.normalisation)
     check_trainer(cfg.trainer)
     check_optimizer(cfg.optimizer)
@@ -97,6 +102,9 @@ def check(cfg: DictConfig) -> Built:
     require(reference in REFERENCES, "metric.reference", f"one of {list(REFERENCES)}",
             reference)
     built = build(cfg)  # the model's own checks (its parameters, feature modes) before any data
+    if nll and covariance_of(sequence_model(built.net.net)) is None:
+        raise LboError(f"nll: model {cfg.model.name!r} gives no covariance for the Gaussian NLL "
+                       "term (filternet does); expected nll=0")
     if is_logs(cfg):
         logs_spec(cfg)  # the logs named, found and of the right kind, before any run opens
     if cfg.get("logger") and cfg.logger.get("tracking_uri"):
@@ -222,7 +230,8 @@ def _fit(cfg: DictConfig, built: Built, callbacks: list[L.Callback] | None,
                             {**meta(cfg, data_hash), "envelope": training_envelope(cfg, dm)},
                             cfg.get("lr_schedule", "constant"), bool(built.fix_periods),
                             net=built.net, receiver=built.net.receiver, tbptt=cfg.get("tbptt"),
-                            clip=cfg.trainer.get("gradient_clip_val"))
+                            clip=cfg.trainer.get("gradient_clip_val"),
+                            nll=float(cfg.get("nll") or 0.0))
     module.observer.set_normalisation(**dm.normalisation(module.observer, cfg.normalisation))
     if built.init is not None:  # fine-tuning: its weights and its normalisation
         say_fresh(cfg, module.observer, built.init)

@@ -60,7 +60,8 @@ def measure(cfg: DictConfig, steps: int = 8, warmup: int = 3) -> dict[str, Any]:
             step(net.loss(*batch))
         else:  # trained carried: a step per chunk
             m, u, z, weight = from_batch(batch, next(net.parameters()).dtype)
-            train_batch(sequence_model(net.net), m, u, z, int(cfg.tbptt), step, weight)
+            train_batch(sequence_model(net.net), m, u, z, int(cfg.tbptt), step, weight,
+                        float(cfg.get("nll") or 0.0))
         if device == "cuda":
             torch.cuda.synchronize()
         if i >= warmup:

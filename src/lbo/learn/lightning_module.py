@@ -45,6 +45,9 @@ class TrainingModule(L.LightningModule):
         chunk (:func:`lbo.learn.sequence.train_batch`; Lightning's manual optimisation).
     clip : the gradient norm each chunk's step is clipped to (the trainer's
         ``gradient_clip_val``, which Lightning applies only to automatic optimisation).
+    nll : with ``tbptt``, the weight of the Gaussian NLL of the errors under the filter's own
+        covariance, added to each chunk's MSE (:func:`lbo.learn.sequence.loss`); the
+        validation loss stays the MSE.
     """
 
     def __init__(self, model: dict[str, Any], window: int, features: str = "relative",
@@ -52,7 +55,7 @@ class TrainingModule(L.LightningModule):
                  meta: dict[str, Any] | None = None, lr_schedule: str = "constant",
                  fixes: bool = False, net: WindowNet | None = None,
                  receiver: bool = False, tbptt: int | None = None,
-                 clip: float | None = None) -> None:
+                 clip: float | None = None, nll: float = 0.0) -> None:
         super().__init__()
         self.save_hyperparameters(ignore=["optimizer", "lr_schedule", "net", "clip"])
         self.lr_schedule = lr_schedule
@@ -63,7 +66,7 @@ class TrainingModule(L.LightningModule):
         self.observer = net if net is not None else WindowNet(
             model["name"], window, features, fixes, receiver, carried=tbptt is not None, **kwargs)
         self.optimizer_factory = optimizer
-        self.tbptt, self.clip = tbptt, clip
+        self.tbptt, self.clip, self.nll = tbptt, clip, float(nll)
         # the chunks' optimiser steps are taken here, not by Lightning
         self.automatic_optimization = tbptt is None
         self._loss_sum: torch.Tensor | float = 0.0
@@ -99,7 +102,7 @@ class TrainingModule(L.LightningModule):
 
         m, u, z, weight = from_batch(batch, next(self.parameters()).dtype)
         mean = torch.tensor(train_batch(sequence_model(self.observer.net), m, u, z, self.tbptt,
-                                        step, weight)).mean()
+                                        step, weight, self.nll)).mean()
         schedule = self.lr_schedulers()
         if schedule is not None:  # one step per batch, as the automatic loop takes them
             schedule.step()
@@ -119,7 +122,7 @@ class TrainingModule(L.LightningModule):
         else:  # each window carried through, from its first fix
             m, u, z, weight = from_batch(batch, next(self.parameters()).dtype)
             carried = sequence_model(self.observer.net)
-            loss = sequence_loss(run(carried, m, u)[0], z, carried.units, weight)
+            loss = sequence_loss(run(carried, m, u).est, z, carried.units, weight)
         self._val_finite = torch.isfinite(loss) & self._val_finite
         self.log("val_loss", loss, on_step=False, on_epoch=True, prog_bar=True,
                  batch_size=len(batch[1]))

@@ -85,37 +85,68 @@ def draw(z: np.ndarray, u: np.ndarray, sigma: np.ndarray, alpha: np.ndarray,
 
 
 def loss(est: torch.Tensor, z: torch.Tensor, units: torch.Tensor,
-         weight: torch.Tensor | None = None) -> torch.Tensor:
+         weight: torch.Tensor | None = None, cov: torch.Tensor | None = None,
+         nll: float = 0.0) -> torch.Tensor:
     """Mean square error of estimates (B, L, 3) against the truth (B, L, 3) in the
     measurement sigmas ``units`` (3,), over the steps with an estimate (those before a
     sequence's first fix are NaN: :func:`lbo.models.carried.run`); ``weight`` (B,): each
-    sequence's weight (None: equal). A diverged estimate (inf) makes it NaN or inf."""
+    sequence's weight (None: equal). A diverged estimate (inf) makes it NaN or inf.
+
+    With ``nll`` > 0, plus ``nll`` times the mean Gaussian negative log-likelihood of the
+    errors under the estimates' own covariances ``cov`` (B, L, 3, 3) (:func:`gaussian_nll`):
+    the MSE alone never asks a filter's P to be right; this term is least where P is the
+    errors' covariance."""
     d = wrap_heading(est - z) / units
     held = ~torch.isnan(est).all(-1) & torch.isfinite(z).all(-1)
     if not held.any():
         return d.new_zeros(())
-    se = torch.where(held[..., None], d, 0.0) ** 2  # (B, L, 3)
+    d = torch.where(held[..., None], d, 0.0)
     w = held.to(d.dtype) if weight is None else held * weight.to(d.dtype)[:, None]
-    return (se.sum(-1) * w).sum() / (3 * w.sum())
+    per_step = (d ** 2).mean(-1)  # (B, L)
+    if nll:
+        if cov is None:
+            raise LboError("nll: this model gives no covariance for the Gaussian NLL term; "
+                           "expected nll=0")
+        scaled = cov / (units[:, None] * units[None, :])
+        eye = torch.eye(3, dtype=d.dtype, device=d.device)
+        per_step = per_step + nll * gaussian_nll(d, torch.where(held[..., None, None], scaled,
+                                                                eye))
+    return (per_step * w).sum() / w.sum()
+
+
+def gaussian_nll(d: torch.Tensor, cov: torch.Tensor) -> torch.Tensor:
+    """The negative log-likelihood of errors d (..., 3) under zero-mean Gaussians of
+    covariances cov (..., 3, 3), per channel and without its constant:
+    ``(d^T cov^-1 d + log det cov) / 6``. For a scalar variance s over errors of variance v,
+    it is least at s = v."""
+    chol, info = torch.linalg.cholesky_ex(cov)
+    # a covariance that is not positive definite (a diverged filter) scores inf, not NaN
+    ok = info == 0
+    chol = torch.where(ok[..., None, None], chol, torch.eye(3, dtype=d.dtype, device=d.device))
+    white = torch.linalg.solve_triangular(chol, d[..., None], upper=False)[..., 0]
+    log_det = 2 * torch.log(torch.diagonal(chol, dim1=-2, dim2=-1)).sum(-1)
+    out = ((white ** 2).sum(-1) + log_det) / 6
+    return torch.where(ok, out, torch.full_like(out, math.inf))
 
 
 def train_batch(model: SequenceModel, m: torch.Tensor, u: torch.Tensor, z: torch.Tensor,
                 chunk: int, step: Callable[[torch.Tensor], None],
-                weight: torch.Tensor | None = None) -> list[float]:
+                weight: torch.Tensor | None = None, nll: float = 0.0) -> list[float]:
     """One batch trained by truncated back-propagation through time: B sequences m (B, T, 3)
     (NaN: no fix), u (B, T, 2), z (B, T, 3) true, the filter carried through consecutive
-    chunks of ``chunk`` steps. Each chunk's :func:`loss` (``weight`` (B,): the sequences')
-    is handed to ``step`` (its backward pass and optimiser step) where it is finite; the
-    state is then cut from the graph, so no gradient reaches back past a chunk's start.
-    Returns every chunk's loss (a diverged chunk's not finite, and given no step)."""
+    chunks of ``chunk`` steps. Each chunk's :func:`loss` (``weight`` (B,): the sequences';
+    ``nll``: its Gaussian NLL term's weight) is handed to ``step`` (its backward pass and
+    optimiser step) where it is finite; the state is then cut from the graph, so no gradient
+    reaches back past a chunk's start. Returns every chunk's loss (a diverged chunk's not
+    finite, and given no step)."""
     state: list[torch.Tensor] | None = None
     u_prev: torch.Tensor | None = None
     t = z.shape[1]
     losses = []
     for k in range(0, t, chunk):
-        est, state = run(model, m[:, k:k + chunk], u[:, k:k + chunk], state, u_prev)
+        est, state, cov = run(model, m[:, k:k + chunk], u[:, k:k + chunk], state, u_prev)
         u_prev = u[:, min(k + chunk, t) - 1]
-        chunk_loss = loss(est, z[:, k:k + chunk], model.units, weight)
+        chunk_loss = loss(est, z[:, k:k + chunk], model.units, weight, cov, nll)
         if chunk_loss.requires_grad and torch.isfinite(chunk_loss):
             step(chunk_loss)
         losses.append(float(chunk_loss.detach()))
@@ -157,7 +188,7 @@ def evaluate(model: SequenceModel, seq: Sequences, device: str = "cpu") -> float
     """The loss over whole sequences, each carried from its first step (no gradient)."""
     m, u, z = _tensors(seq.centred(), device)
     with torch.no_grad():
-        est, _ = run(model, m, u)
+        est = run(model, m, u).est
     return float(loss(est, z, model.units))
 
 

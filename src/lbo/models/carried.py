@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import copy
 import math
-from typing import Any, Protocol
+from typing import Any, NamedTuple, Protocol
 
 import numpy as np
 import torch
@@ -44,6 +44,13 @@ class SequenceModel(Protocol):
 
 STARTED = 4
 """The index in a :class:`SequenceModel`'s state of its (B,) flag: started at a fix."""
+
+
+def covariance_of(model: Any) -> Any:
+    """A :class:`SequenceModel`'s optional ``covariance(state) -> (B, 3, 3)``, its estimate's
+    covariance (the pose's), or None where it gives none (KalmanNet's peers)."""
+    method = getattr(model, "covariance", None)
+    return method if callable(method) else None
 
 
 def is_sequence_model(model: Any) -> bool:
@@ -105,29 +112,47 @@ class CarriedFilter:
         pose, _, *after = self.step(self._row(y, fix), u, *state[:4], *state[5:])
         return self._pack(after), pose
 
+    @staticmethod
+    def covariance(state: list[torch.Tensor]) -> torch.Tensor:
+        """(B, 3, 3) the covariance of the state's pose (the recursive form's P)."""
+        return state[1][:, :3, :3]
+
+
+class Carried(NamedTuple):
+    """What :func:`run` gives: the estimates (B, L, 3) (NaN before a sequence's first fix,
+    inf where the filter diverged), the state after the last step, and the estimates'
+    covariances (B, L, 3, 3) (NaN before the first fix), None for a model that gives none."""
+
+    est: torch.Tensor
+    state: list[torch.Tensor]
+    cov: torch.Tensor | None
+
 
 def run(model: SequenceModel, m: torch.Tensor, u: torch.Tensor,
         state: list[torch.Tensor] | None = None, u_prev: torch.Tensor | None = None
-        ) -> tuple[torch.Tensor, list[torch.Tensor]]:
+        ) -> Carried:
     """The filter over L steps of B sequences, m (B, L, 3) (NaN: no fix), u (B, L, 2):
     started at the first step when ``state`` is None, else carried on from ``state`` with
-    the inputs of the step before ``u_prev`` (B, 2). Returns the estimates (B, L, 3) (NaN
-    before a sequence's first fix, inf where the filter diverged) and the state after the
-    last step."""
+    the inputs of the step before ``u_prev`` (B, 2); see :class:`Carried`."""
     fix = torch.isfinite(m).all(-1)  # a full pose: these filters take no partial fix
     y = torch.nan_to_num(m)
-    out = []
+    cov_of = covariance_of(model)
+    out, covs = [], []
     for k in range(m.shape[1]):  # a recurrence: each step needs the one before
         if state is None:
             state = model.begin(y[:, 0], fix[:, 0], u[:, 0])
             est = wrap_heading(state[0][:, :3])
         else:
             state, est = model.advance(state, u_prev, y[:, k], fix[:, k], u[:, k])
+        started = state[STARTED]
         # NaN before the first fix; a diverged estimate stays inf, so that a loss sees it
         held = est.nan_to_num(nan=math.inf, posinf=math.inf, neginf=-math.inf)
-        out.append(torch.where(state[STARTED][:, None], held, torch.full_like(est, math.nan)))
+        out.append(torch.where(started[:, None], held, torch.full_like(est, math.nan)))
+        if cov_of is not None:
+            cov = cov_of(state)
+            covs.append(torch.where(started[:, None, None], cov, torch.full_like(cov, math.nan)))
         u_prev = u[:, k]
-    return torch.stack(out, 1), state
+    return Carried(torch.stack(out, 1), state, torch.stack(covs, 1) if covs else None)
 
 
 def in_float64(model: Any) -> Any:
@@ -142,6 +167,6 @@ def run_arrays(model: Any, m: np.ndarray, u: np.ndarray, device: str = "cpu") ->
     before each sequence's first fix. Rows past a padded sequence's end are run on and should
     be masked."""
     with torch.inference_mode():
-        est, _ = run(model, torch.as_tensor(np.asarray(m, np.float64), device=device),
-                     torch.as_tensor(np.nan_to_num(np.asarray(u, np.float64)), device=device))
+        est = run(model, torch.as_tensor(np.asarray(m, np.float64), device=device),
+                  torch.as_tensor(np.nan_to_num(np.asarray(u, np.float64)), device=device)).est
     return est.cpu().numpy()

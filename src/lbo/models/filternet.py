@@ -44,6 +44,10 @@ from lbo.models.poses import wrap_heading
 from lbo.models.receiver_window import FEATURES
 from lbo.models.update import inverse_sym3, masked_update, step_covariance, turn_xy
 
+SIGMA_RATIO_MAX = 100.0
+"""The largest measurement sigma the noise model gives, in units of its sigmas at alpha = 1:
+far above the noise levels lbo trains on (alpha up to 6.5)."""
+
 
 def check_sigmas(name: str, values: Sequence[float]) -> tuple[float, float, float]:
     try:
@@ -274,9 +278,19 @@ class WindowFilter(ProcessModel, nn.Module):
             ms = (d2 ** 2).mean(1) / 6.0
             log_gap = speed[:, :0]  # no column
         log_ratio = 0.5 * torch.log(ms + 1e-12) - self.log_r0  # about log alpha
-        # start from the plain moment estimate, exp(log_ratio) * r0 = sqrt(ms)
-        log_sigma = log_ratio + self.log_r0 + self.noise(torch.cat([log_ratio, speed, log_gap],
-                                                                   1))
+        return self.noise_sigma(log_ratio, torch.cat([speed, log_gap], 1))
+
+    def noise_sigma(self, log_ratio: torch.Tensor, extra: torch.Tensor) -> torch.Tensor:
+        """The noise model's (B, 3) measurement sigmas from the statistic's log ratio to the
+        sigmas at alpha = 1 (B, 3) (about log alpha) and its other features (B, F) (log(1+V),
+        and with fixes the log of the mean gap), in the window form and the recursive form.
+
+        It starts from the plain moment estimate, ``exp(log_ratio) r0``, and is held inside
+        [1e-6, :data:`SIGMA_RATIO_MAX` r0]: a filter carried from step to step reads the
+        statistic where the window form never does (empty, at its first fix), and an
+        unbounded output there overflowed P (float32) when it was trained carried."""
+        log_sigma = log_ratio + self.log_r0 + self.noise(torch.cat([log_ratio, extra], 1))
+        log_sigma = torch.minimum(log_sigma, self.log_r0 + math.log(SIGMA_RATIO_MAX))
         return torch.exp(log_sigma).clamp_min(1e-6)
 
     def _receiver_filter(self, x: torch.Tensor, heading: torch.Tensor | None) -> torch.Tensor:

@@ -158,11 +158,11 @@ class RecursiveFilter(nn.Module):
         ms = torch.where(some[:, None], torch.stack([along, across, pp], 1),
                          torch.exp(2 * fo.log_r0).expand(len(sums), 3))
         log_ratio = 0.5 * torch.log(ms + 1e-12) - fo.log_r0
-        feats = [log_ratio, torch.log1p(speed)[:, None]]
+        extra = [torch.log1p(speed)[:, None]]
         if self.fixes:
             mean_gap = torch.where(some, sums[:, 5] / n, torch.ones_like(count))
-            feats.append(torch.log(mean_gap)[:, None])
-        sigma = torch.exp(log_ratio + fo.log_r0 + fo.noise(torch.cat(feats, 1))).clamp_min(1e-6)
+            extra.append(torch.log(mean_gap)[:, None])
+        sigma = fo.noise_sigma(log_ratio, torch.cat(extra, 1))
         va, vc, vp = sigma[:, 0] ** 2, sigma[:, 1] ** 2, sigma[:, 2] ** 2
         # back to world axes: R_xy = rot diag(va, vc) rot^T
         rxx, ryy, rxy = c * c * va + s * s * vc, s * s * va + c * c * vc, c * s * (va - vc)

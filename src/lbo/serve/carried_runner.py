@@ -56,8 +56,9 @@ class CarriedRunner:
         row = np.asarray(m, np.float64) if fix else np.full(3, np.nan)
         uk = torch.as_tensor(np.asarray(u, np.float64), device=self.device)[None, None]
         with torch.inference_mode():
-            est, self.state = run(self.model, torch.as_tensor(row, device=self.device)[None, None],
-                                  uk, self.state, self.u_prev)
+            est, self.state, _ = run(self.model,
+                                     torch.as_tensor(row, device=self.device)[None, None], uk,
+                                     self.state, self.u_prev)
         self.u_prev = uk[:, 0]
         if not bool(self.state[STARTED][0]):
             return Estimate(np.full(3, np.nan), False, "no position fix yet")
