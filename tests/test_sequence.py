@@ -201,6 +201,11 @@ def test_lbo_train_with_tbptt_trains_a_peer_carried_and_it_runs_carried(tmp_path
     (["tbptt=30", "sequence_length=20"], r"^tbptt must be at most the 20 steps"),
     (["sequence_length=100"], r"^sequence_length: set only with tbptt"),
     (["tbptt=10", "model=cnn"], r"^tbptt: model 'cnn' cannot be carried from step to step"),
+    (["nll=0.1"], r"^nll: the Gaussian NLL term reads the covariance of a filter trained "
+                  r"carried; set tbptt too"),
+    (["tbptt=10", "nll=-1"], r"^nll must be"),
+    (["tbptt=10", "model=kalmannet", "nll=0.1"],
+     r"^nll: model 'kalmannet' gives no covariance for the Gaussian NLL term"),
 ])
 def test_bad_tbptt_settings_are_one_line_before_any_run(tmp_path, smoke_data, overrides,
                                                        message):
