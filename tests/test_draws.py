@@ -152,6 +152,28 @@ def test_alpha_zero_measures_the_true_states(train_rows):
     assert torch.all(eps == 0)
 
 
+def test_along_a_sequence_the_level_changes_where_drawn_and_the_weights_follow_it(train_rows):
+    """train_noise.changes=2 on sequences: each window's alpha holds three drawn levels in
+    turn (no more), the noise of each step is its level's (alpha 0: the true state exactly),
+    and the weights are per step; without sequences a window keeps one level."""
+    x, y, ends = train_rows
+    draw = AlphaDraw("levels", levels=(0.0, 4.0), changes=2)
+    ds = WindowDataset(x, y, ends, N, draw=draw, sigma=SIGMA, seed=3, weight_offset=0.25,
+                       sequences=True)
+    win, z, weight = ds[list(range(200))]
+    assert weight.shape == (200, N)
+    alpha = alpha_of_weight(weight, 0.25)
+    switches = (alpha[:, 1:] != alpha[:, :-1]).sum(1)
+    assert switches.max() <= 2 and (switches > 0).float().mean() > 0.5
+    exact = (win[..., :3] == z).all(-1)
+    torch.testing.assert_close(exact, torch.isclose(alpha, torch.zeros_like(alpha)),
+                               rtol=0, atol=0)
+    levels = draw.along(1000, 50, torch.Generator().manual_seed(0))
+    assert levels.shape == (1000, 50) and set(levels.unique().tolist()) == {0.0, 4.0}
+    one = WindowDataset(x, y, ends, N, draw=draw, sigma=SIGMA, seed=3, weight_offset=0.25)
+    assert one[list(range(10))][2].shape == (10,)
+
+
 def per_window_alpha(eps):
     """Root mean square of the scaled noise over a window's steps and channels: ~alpha."""
     return eps.pow(2).mean(dim=(1, 2)).sqrt()
@@ -323,6 +345,8 @@ BAD = [  # overrides, the field the one line must start with
     (["train_noise.source=disk"], "train_noise.source"),
     (["train_noise.loss_weight_offset=0"], "train_noise.loss_weight_offset"),
     (["train_noise.val_repeats=0"], "train_noise.val_repeats"),
+    (["train_noise.changes=-1"], "train_noise.changes"),
+    (["train_noise.changes=1.5"], "train_noise.changes"),
 ]
 
 

@@ -138,6 +138,21 @@ def test_the_loss_weighs_sequences_and_sees_a_diverged_estimate():
     assert float(sequence.loss(est, z, units)) == pytest.approx((3 * 1 + 4 * 9) / 7)
     assert float(sequence.loss(est, z, units, torch.tensor([3.0, 1.0]))) == pytest.approx(
         (3 * 3 * 1 + 4 * 9) / (3 * 3 + 4))
+    # per step (a noise level that changes along a sequence): the second's last two steps
+    # weigh 0, so it counts 2 steps of 9
+    per_step = torch.tensor([[3.0] * 4, [1.0, 1.0, 0.0, 0.0]])
+    assert float(sequence.loss(est, z, units, per_step)) == pytest.approx(
+        (3 * 3 * 1 + 2 * 9) / (3 * 3 + 2))
+    model = carried.sequence_model(SplitKalmanNet(40, gain=0.3))
+    seq = straight(2, 12, 3).centred()
+    m, u, zz = (torch.as_tensor(a, dtype=torch.float32) for a in (seq.m, seq.u, seq.z))
+    w = torch.rand(2, 12, generator=torch.Generator().manual_seed(0))
+    with torch.no_grad():
+        whole = carried.run(model, m, u).est
+    got = sequence.train_batch(model, m, u, zz, 5, lambda loss: None, w)
+    want = [float(sequence.loss(whole[:, k:k + 5], zz[:, k:k + 5], model.units, w[:, k:k + 5]))
+            for k in (0, 5, 10)]
+    assert got == pytest.approx(want, rel=1e-6)
     net = KalmanNet(20, gain=0.3)
     with torch.no_grad():
         net.fc_gain[-1].bias[0] = float("nan")  # weights of a diverged training
@@ -291,11 +306,14 @@ def test_a_noise_model_driven_far_out_is_capped_and_the_carried_filter_stays_fin
 
 
 @pytest.mark.slow
+@pytest.mark.parametrize("more", [[], ["train_noise=diverse", "train_noise.changes=2",
+                                         "nll=0.1"]], ids=["mse", "nll-changing-noise"])
 def test_lbo_train_with_tbptt_trains_the_window_filter_as_its_recursive_form_runs(
-        tmp_path, smoke_data, one_torch_thread):
+        tmp_path, smoke_data, one_torch_thread, more):
     """``model=filternet tbptt=20 sequence_length=80``: the robust observer trained carried
     (its recursive form's step, fixes dropped to 10 Hz in some sequences) over sequences of
-    80 steps, twice its window of 40 (4 chunks a batch); its checkpoint loads in the
+    80 steps, twice its window of 40 (4 chunks a batch), with the MSE alone or with the NLL
+    term and a noise level that changes along each sequence; its checkpoint loads in the
     recursive form, with a covariance, and the evaluation scored that form."""
     import pandas as pd
 
@@ -306,9 +324,10 @@ def test_lbo_train_with_tbptt_trains_the_window_filter_as_its_recursive_form_run
     _, metrics, _ = train_in_own_store(
         tmp_path, smoke_data, "experiment=smoke", "model=filternet", "features=frame",
         "window=40", "tbptt=20", "sequence_length=80", "fix_rates=[50,10]",
-        "trainer.max_epochs=1", "trainer.limit_train_batches=3")
+        "trainer.max_epochs=1", "trainer.limit_train_batches=3", *more)
     last = torch.load(tmp_path / "out" / "checkpoints" / "last.ckpt", weights_only=True)
     assert last["global_step"] == 3 * 4
+    assert last["hyper_parameters"]["nll"] == (0.1 if more else 0.0)
     obs = Observer.load(metrics["checkpoint"], envelope_mode="off")
     assert obs.form == "recursive" and obs.gives_covariance and obs.net.carried
     arr = load_test(smoke_data / "test.parquet")

@@ -87,6 +87,10 @@ def check(cfg: DictConfig) -> Built:
     elif cfg.get("sequence_length") is not None:
         raise LboError("sequence_length: set only with tbptt (the sequences trained carried); "
                        f"got {cfg.sequence_length} with tbptt=null")
+    changes = (cfg.get("train_noise") or {}).get("changes") or 0
+    if changes and cfg.get("tbptt") is None:
+        raise LboError(f"train_noise.changes: the noise level changes along sequences trained "
+                       f"carried; set tbptt too, or train_noise.changes=0 (got {changes})")
     nll = number(cfg.get("nll") or 0.0, "nll", low=0.0)
     if nll and cfg.get("tbptt") is None:
         raise LboError(f"nll: the Gaussian NLL term reads the covariance of a filter trained "

@@ -79,7 +79,8 @@ class WindowDataset(Dataset):
         (:meth:`lbo.learn.draws.ReceiverDraw.windows`), at the alphas of ``draw`` (1 when
         None) and the fix rows of ``fix_periods`` (needed).
     sequences : a batch's states are the true states of every step of its windows (B, N, 3),
-        for a filter trained carried through them (``tbptt``), not the last step's (B, 3).
+        for a filter trained carried through them (``tbptt``), not the last step's (B, 3); with
+        ``draw.changes``, alpha changes along each window and the weights are per step (B, N).
     """
 
     def __init__(self, x: torch.Tensor, y: torch.Tensor, ends: np.ndarray, window: int,
@@ -147,8 +148,10 @@ class WindowDataset(Dataset):
             weight = torch.ones(len(e), dtype=self.x.dtype, device=e.device)
             m = win[..., :3]
         else:
-            alpha = self.draw.sample(len(e), generator)
-            weight = loss_weights(alpha, self.weight_offset)
+            alpha = (self.draw.along(len(e), self.window, generator)
+                     if self.sequences and self.draw.changes else
+                     self.draw.sample(len(e), generator))
+            weight = loss_weights(alpha, self.weight_offset)  # (B,), or (B, N) along
             m = noisy_measurements(self.truth[s], alpha, self.sigma, generator, self.drift)
         if self.fix_periods:
             fix = draw_fixes(len(e), self.window, self.fix_periods, generator, e.device)

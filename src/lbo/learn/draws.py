@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from lbo.core.checks import number
+from lbo.core.checks import integer, number
 from lbo.core.errors import LboError
 from lbo.sim.logcheck import fix_period
 
@@ -36,6 +36,9 @@ class AlphaDraw:
     alpha : the value of ``fixed``.
     low, high : the range of ``uniform`` and ``loguniform`` (``loguniform`` needs low > 0).
     levels : the values of ``levels``.
+    changes : for sequences trained carried (``tbptt``): how many times the level changes
+        along each one (:meth:`along`), so that a filter's noise model must track the noise
+        rather than fix it at a sequence's start; 0: one level per sequence.
     """
 
     distribution: str = "fixed"
@@ -43,6 +46,7 @@ class AlphaDraw:
     low: float = 0.0
     high: float = 6.5
     levels: tuple[float, ...] = ()
+    changes: int = 0
 
     def __post_init__(self) -> None:
         d = self.distribution
@@ -65,6 +69,8 @@ class AlphaDraw:
                                "got []")
             for a in self.levels:
                 _check_alpha("train_noise.levels", a)
+        integer(self.changes, "train_noise.changes", 0,
+                form="an integer >= 0 (level changes along a sequence)")
 
     def sample(self, n: int, generator: torch.Generator) -> torch.Tensor:
         """(n,) float64 alpha values, drawn with ``generator``, on its device."""
@@ -79,6 +85,19 @@ class AlphaDraw:
             return torch.exp(lo + (hi - lo) * r)
         levels = torch.tensor(self.levels, dtype=torch.float64, device=dev)
         return levels[(r * len(levels)).long().clamp_max(len(levels) - 1)]
+
+    def along(self, n: int, steps: int, generator: torch.Generator) -> torch.Tensor:
+        """(n, steps) float64 alpha per step of n sequences: :attr:`changes` + 1 levels each,
+        drawn as :meth:`sample` draws them, which change at :attr:`changes` steps drawn
+        uniformly from 1 to steps - 1 (two may fall on one step); the first level holds from
+        the first step."""
+        dev = generator.device
+        levels = self.sample(n * (self.changes + 1), generator).reshape(n, self.changes + 1)
+        cuts = torch.randint(1, max(steps, 2), (n, self.changes), generator=generator,
+                             device=dev)
+        t = torch.arange(steps, device=dev)
+        segment = (t[None, None, :] >= cuts[:, :, None]).sum(1)  # (n, steps): cuts passed
+        return levels.gather(1, segment)
 
     @property
     def bounds(self) -> tuple[float, float]:
@@ -97,7 +116,8 @@ class AlphaDraw:
             raise LboError(f"train_noise.levels: expected a list of alpha >= 0, got {levels!r}")
         return cls(distribution=str(cfg.get("distribution", "fixed")),
                    alpha=cfg.get("alpha", 1.0), low=cfg.get("low", 0.0),
-                   high=cfg.get("high", 6.5), levels=tuple(levels))
+                   high=cfg.get("high", 6.5), levels=tuple(levels),
+                   changes=cfg.get("changes", 0))
 
 
 def _check_alpha(field: str, value) -> None:
@@ -105,7 +125,8 @@ def _check_alpha(field: str, value) -> None:
 
 
 def loss_weights(alpha: torch.Tensor, offset: float | None) -> torch.Tensor:
-    """Per-window loss weights ``1 / (alpha + offset)^2`` (ones when ``offset`` is None).
+    """Loss weights ``1 / (alpha + offset)^2`` of alphas (B,) per window or (B, N) per step
+    (ones when ``offset`` is None).
 
     A window's squared error grows as alpha^2, so unweighted, the noisiest windows would
     dominate the loss and the low-noise ones would hardly be learned.
@@ -118,7 +139,8 @@ def loss_weights(alpha: torch.Tensor, offset: float | None) -> torch.Tensor:
 def noisy_measurements(z: torch.Tensor, alpha: torch.Tensor, sigma: torch.Tensor,
                        generator: torch.Generator,
                        drift: tuple[float, float] | None = None) -> torch.Tensor:
-    """Measurements of the true states ``z`` (B, N, 3) at noise scales ``alpha`` (B,).
+    """Measurements of the true states ``z`` (B, N, 3) at noise scales ``alpha`` (B,), or
+    (B, N) per step.
 
     ``sigma`` (3,) are the measurement sigmas at alpha=1. ``drift`` = (sigma (m), tau (steps))
     adds a stationary Gauss-Markov GNSS drift on x and y (:func:`gauss_markov`), scaled by
@@ -132,7 +154,7 @@ def noisy_measurements(z: torch.Tensor, alpha: torch.Tensor, sigma: torch.Tensor
     if drift is not None and drift[0] > 0:
         b = gauss_markov(z.shape[:2], drift[1], generator, z.dtype, z.device) * drift[0]
         noise = noise + torch.cat([b, torch.zeros_like(b[..., :1])], -1)
-    m = z + alpha[:, None, None] * noise
+    m = z + (alpha[:, None, None] if alpha.dim() == 1 else alpha[..., None]) * noise
     return wrap_heading(m)
 
 

@@ -90,7 +90,8 @@ def loss(est: torch.Tensor, z: torch.Tensor, units: torch.Tensor,
     """Mean square error of estimates (B, L, 3) against the truth (B, L, 3) in the
     measurement sigmas ``units`` (3,), over the steps with an estimate (those before a
     sequence's first fix are NaN: :func:`lbo.models.carried.run`); ``weight`` (B,): each
-    sequence's weight (None: equal). A diverged estimate (inf) makes it NaN or inf.
+    sequence's weight, or (B, L) each step's (None: equal). A diverged estimate (inf) makes
+    it NaN or inf.
 
     With ``nll`` > 0, plus ``nll`` times the mean Gaussian negative log-likelihood of the
     errors under the estimates' own covariances ``cov`` (B, L, 3, 3) (:func:`gaussian_nll`):
@@ -101,7 +102,10 @@ def loss(est: torch.Tensor, z: torch.Tensor, units: torch.Tensor,
     if not held.any():
         return d.new_zeros(())
     d = torch.where(held[..., None], d, 0.0)
-    w = held.to(d.dtype) if weight is None else held * weight.to(d.dtype)[:, None]
+    if weight is None:
+        w = held.to(d.dtype)
+    else:
+        w = held * (weight[:, None] if weight.dim() == 1 else weight).to(d.dtype)
     per_step = (d ** 2).mean(-1)  # (B, L)
     if nll:
         if cov is None:
@@ -134,7 +138,8 @@ def train_batch(model: SequenceModel, m: torch.Tensor, u: torch.Tensor, z: torch
                 weight: torch.Tensor | None = None, nll: float = 0.0) -> list[float]:
     """One batch trained by truncated back-propagation through time: B sequences m (B, T, 3)
     (NaN: no fix), u (B, T, 2), z (B, T, 3) true, the filter carried through consecutive
-    chunks of ``chunk`` steps. Each chunk's :func:`loss` (``weight`` (B,): the sequences';
+    chunks of ``chunk`` steps. Each chunk's :func:`loss` (``weight`` (B,): the sequences', or
+    (B, T): the steps';
     ``nll``: its Gaussian NLL term's weight) is handed to ``step`` (its backward pass and
     optimiser step) where it is finite; the state is then cut from the graph, so no gradient
     reaches back past a chunk's start. Returns every chunk's loss (a diverged chunk's not
@@ -146,7 +151,8 @@ def train_batch(model: SequenceModel, m: torch.Tensor, u: torch.Tensor, z: torch
     for k in range(0, t, chunk):
         est, state, cov = run(model, m[:, k:k + chunk], u[:, k:k + chunk], state, u_prev)
         u_prev = u[:, min(k + chunk, t) - 1]
-        chunk_loss = loss(est, z[:, k:k + chunk], model.units, weight, cov, nll)
+        w = weight[:, k:k + chunk] if weight is not None and weight.dim() == 2 else weight
+        chunk_loss = loss(est, z[:, k:k + chunk], model.units, w, cov, nll)
         if chunk_loss.requires_grad and torch.isfinite(chunk_loss):
             step(chunk_loss)
         losses.append(float(chunk_loss.detach()))
@@ -156,10 +162,10 @@ def train_batch(model: SequenceModel, m: torch.Tensor, u: torch.Tensor, z: torch
 
 def from_batch(batch: tuple[torch.Tensor, ...], dtype: torch.dtype) -> tuple[torch.Tensor, ...]:
     """A training batch of windows (B, N, 5|6) with every step's true states (B, N, 3) and
-    weights (B,) (:class:`lbo.learn.datamodule.WindowDataset` with ``sequences``) as a carried
-    filter takes them: measured poses m (B, N, 3) (NaN: no fix), inputs u (B, N, 2), truth
-    z (B, N, 3), each window moved to start at its first fix (see the module), in ``dtype``;
-    and the weights."""
+    weights (B,) or (B, N) (:class:`lbo.learn.datamodule.WindowDataset` with ``sequences``)
+    as a carried filter takes them: measured poses m (B, N, 3) (NaN: no fix), inputs
+    u (B, N, 2), truth z (B, N, 3), each window moved to start at its first fix (see the
+    module), in ``dtype``; and the weights."""
     win, z, weight = batch
     m = win[..., :3]
     first = torch.isfinite(m[..., 0]).to(torch.int8).argmax(1)  # the first fix's step
