@@ -4,6 +4,8 @@ its window form, and on a linear case (straight drives) it learns to match the E
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 import torch
@@ -119,12 +121,43 @@ def test_carried_through_chunks_the_gradient_stops_at_each_chunks_start():
     grads = []
     losses = sequence.train_batch(net, m, u, z, 10,
                                   lambda loss: grads.append(torch.autograd.grad(loss, m)[0]))
-    np.testing.assert_allclose(losses, want, rtol=1e-6)
+    assert losses.dropped == 0
+    np.testing.assert_allclose(losses.losses, want, rtol=1e-6)
     assert len(grads) == 3
     for i, grad in enumerate(grads):  # chunk i reads steps 10 i .. 10 i + 9 alone
         inside = torch.zeros(30, dtype=torch.bool)
         inside[10 * i:10 * i + 10] = True
         assert grad[:, ~inside].abs().max() == 0 and grad[:, inside].abs().max() > 0
+
+
+def test_a_sequence_whose_filter_diverges_is_dropped_and_the_rest_train_on():
+    """One sequence of three diverges in the second chunk (an infinite speed): it is dropped
+    and counted, that chunk and the next are the loss of the other two (as a clean pass
+    gives it), and every step's gradient is finite: its NaN never reaches the shared
+    weights. Where every sequence diverges, no chunk takes a step."""
+    torch.manual_seed(0)
+    net = SplitKalmanNet(40, gain=0.3)
+    seq = straight(3, 30, 2).centred()
+    m, u, z = (torch.as_tensor(a, dtype=torch.float32) for a in (seq.m, seq.u, seq.z))
+    u[1, 15, 0] = math.inf
+    with torch.no_grad():
+        whole = carried.run(net, m, u).est
+    assert torch.isinf(whole[1, 16:]).all() and torch.isfinite(whole[[0, 2]]).all()
+    rest = [0, 2]
+    want = [float(sequence.loss(whole[:, :10], z[:, :10], net.units))] + [
+        float(sequence.loss(whole[rest, k:k + 10], z[rest, k:k + 10], net.units))
+        for k in (10, 20)]
+    grads = []
+    fit = sequence.train_batch(net, m, u, z, 10, lambda loss: grads.append(
+        torch.autograd.grad(loss, list(net.parameters()), allow_unused=True)))
+    assert fit.dropped == 1 and len(grads) == 3
+    np.testing.assert_allclose(fit.losses, want, rtol=1e-6)
+    assert all(torch.isfinite(g).all() for chunk in grads for g in chunk if g is not None)
+    u[:, 15, 0] = math.inf
+    steps = []
+    fit = sequence.train_batch(net, m, u, z, 10, steps.append)
+    assert len(steps) == 1 and fit.dropped == 0
+    assert np.isfinite(fit.losses[0]) and not np.isfinite(fit.losses[1:]).any()
 
 
 def test_the_loss_weighs_sequences_and_sees_a_diverged_estimate():
@@ -149,7 +182,7 @@ def test_the_loss_weighs_sequences_and_sees_a_diverged_estimate():
     w = torch.rand(2, 12, generator=torch.Generator().manual_seed(0))
     with torch.no_grad():
         whole = carried.run(model, m, u).est
-    got = sequence.train_batch(model, m, u, zz, 5, lambda loss: None, w)
+    got = sequence.train_batch(model, m, u, zz, 5, lambda loss: None, w).losses
     want = [float(sequence.loss(whole[:, k:k + 5], zz[:, k:k + 5], model.units, w[:, k:k + 5]))
             for k in (0, 5, 10)]
     assert got == pytest.approx(want, rel=1e-6)
@@ -277,7 +310,7 @@ def test_the_window_filter_carried_is_its_recursive_form_and_learns_through_it(b
     grads = []
     losses = sequence.train_batch(carried.sequence_model(net), m.float(), u.float(), z.float(),
                                   20, lambda loss: grads.append(torch.autograd.grad(
-                                      loss, list(net.noise.parameters()))))
+                                      loss, list(net.noise.parameters())))).losses
     assert len(losses) == 3 and np.isfinite(losses).all()
     assert all(any(g.abs().max() > 0 for g in chunk) for chunk in grads)
 

@@ -71,6 +71,7 @@ class TrainingModule(L.LightningModule):
         self.automatic_optimization = tbptt is None
         self._loss_sum: torch.Tensor | float = 0.0
         self._loss_count = 0
+        self._dropped = 0  # sequences dropped in this epoch: their carried filter diverged
         self._val_finite: torch.Tensor | bool = True
 
     def forward(self, win: torch.Tensor) -> torch.Tensor:
@@ -89,7 +90,8 @@ class TrainingModule(L.LightningModule):
 
     def _carried_step(self, batch) -> torch.Tensor:
         """One batch of windows trained carried, chunk by chunk (see ``tbptt``); returns the
-        mean loss of its chunks (not finite where a chunk diverged, which took no step)."""
+        mean loss of the chunks that took a step (not finite where none did). The sequences
+        whose filter diverged are dropped and counted (``train_dropped_sequences``)."""
         opt = self.optimizers()
 
         def step(loss: torch.Tensor) -> None:
@@ -101,8 +103,11 @@ class TrainingModule(L.LightningModule):
             opt.step()
 
         m, u, z, weight = from_batch(batch, next(self.parameters()).dtype)
-        mean = torch.tensor(train_batch(sequence_model(self.observer.net), m, u, z, self.tbptt,
-                                        step, weight, self.nll)).mean()
+        fit = train_batch(sequence_model(self.observer.net), m, u, z, self.tbptt, step, weight,
+                          self.nll)
+        finite = [v for v in fit.losses if math.isfinite(v)]
+        mean = torch.tensor(sum(finite) / len(finite) if finite else math.nan)
+        self._dropped += fit.dropped
         schedule = self.lr_schedulers()
         if schedule is not None:  # one step per batch, as the automatic loop takes them
             schedule.step()
@@ -114,7 +119,9 @@ class TrainingModule(L.LightningModule):
         if self._loss_count:
             self._check_finite(self._loss_sum, "train_loss")
             self.log("train_loss", self._loss_sum / self._loss_count, prog_bar=True)
-        self._loss_sum, self._loss_count = 0.0, 0
+        if self.tbptt is not None:
+            self.log("train_dropped_sequences", float(self._dropped))
+        self._loss_sum, self._loss_count, self._dropped = 0.0, 0, 0
 
     def validation_step(self, batch, batch_idx: int) -> None:
         if self.tbptt is None:

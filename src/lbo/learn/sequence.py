@@ -23,6 +23,7 @@ import copy
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -133,31 +134,74 @@ def gaussian_nll(d: torch.Tensor, cov: torch.Tensor) -> torch.Tensor:
     return torch.where(ok, out, torch.full_like(out, math.inf))
 
 
+class BatchFit(NamedTuple):
+    """What :func:`train_batch` did: every chunk's loss, over the sequences still carried
+    (not finite, and given no step, where every one had diverged), and how many sequences
+    it dropped because their filter diverged."""
+
+    losses: list[float]
+    dropped: int
+
+
+def diverged(est: torch.Tensor, cov: torch.Tensor | None = None) -> torch.Tensor:
+    """(B,) whether each sequence's filter diverged in a chunk: an estimate (B, L, 3) that is
+    inf (:func:`lbo.models.carried.run`), or a covariance (B, L, 3, 3) not finite, after its
+    start."""
+    out = torch.isinf(est).flatten(1).any(1)
+    if cov is not None:
+        started = ~torch.isnan(est).all(-1)
+        out = out | (started & ~torch.isfinite(cov).flatten(2).all(-1)).any(1)
+    return out
+
+
+def _rows(state: list[torch.Tensor], keep: torch.Tensor) -> list[torch.Tensor]:
+    """The state of the sequences ``keep`` ((B,) bool): each tensor with a leading dimension
+    of B taken at those rows, any other (the recursive form's step count) as it is."""
+    return [s[keep] if s.dim() and s.shape[0] == len(keep) else s for s in state]
+
+
 def train_batch(model: SequenceModel, m: torch.Tensor, u: torch.Tensor, z: torch.Tensor,
                 chunk: int, step: Callable[[torch.Tensor], None],
-                weight: torch.Tensor | None = None, nll: float = 0.0) -> list[float]:
+                weight: torch.Tensor | None = None, nll: float = 0.0) -> BatchFit:
     """One batch trained by truncated back-propagation through time: B sequences m (B, T, 3)
     (NaN: no fix), u (B, T, 2), z (B, T, 3) true, the filter carried through consecutive
     chunks of ``chunk`` steps. Each chunk's :func:`loss` (``weight`` (B,): the sequences', or
-    (B, T): the steps';
-    ``nll``: its Gaussian NLL term's weight) is handed to ``step`` (its backward pass and
-    optimiser step) where it is finite; the state is then cut from the graph, so no gradient
-    reaches back past a chunk's start. Returns every chunk's loss (a diverged chunk's not
-    finite, and given no step)."""
+    (B, T): the steps'; ``nll``: its Gaussian NLL term's weight) is handed to ``step`` (its
+    backward pass and optimiser step) where it is finite; the state is then cut from the
+    graph, so no gradient reaches back past a chunk's start.
+
+    A sequence whose filter diverges in a chunk (:func:`diverged`) is dropped from the batch
+    and the chunk run again without it: its NaN would reach every parameter's gradient
+    through the batch's shared weights (a masked loss still back-propagates 0 * inf), and
+    one such sequence would cost the whole batch its steps."""
     state: list[torch.Tensor] | None = None
     u_prev: torch.Tensor | None = None
     t = z.shape[1]
-    losses = []
+    losses: list[float] = []
+    dropped = 0
     for k in range(0, t, chunk):
-        est, state, cov = run(model, m[:, k:k + chunk], u[:, k:k + chunk], state, u_prev)
-        u_prev = u[:, min(k + chunk, t) - 1]
-        w = weight[:, k:k + chunk] if weight is not None and weight.dim() == 2 else weight
-        chunk_loss = loss(est, z[:, k:k + chunk], model.units, w, cov, nll)
+        part = slice(k, k + chunk)
+        est, after, cov = run(model, m[:, part], u[:, part], state, u_prev)
+        bad = diverged(est, cov if nll else None)
+        if bad.any() and not bad.all():
+            keep = ~bad
+            dropped += int(bad.sum())
+            m, u, z = m[keep], u[keep], z[keep]
+            weight = None if weight is None else weight[keep]
+            if state is not None:
+                state, u_prev = _rows(state, keep), u_prev[keep]
+            est, after, cov = run(model, m[:, part], u[:, part], state, u_prev)
+        w = weight[:, part] if weight is not None and weight.dim() == 2 else weight
+        chunk_loss = loss(est, z[:, part], model.units, w, cov, nll)
         if chunk_loss.requires_grad and torch.isfinite(chunk_loss):
             step(chunk_loss)
         losses.append(float(chunk_loss.detach()))
-        state = [s.detach() for s in state]  # the truncation
-    return losses
+        if bad.all():  # nothing left to carry: the batch's other chunks give no step either
+            losses += [math.nan] * (len(range(k + chunk, t, chunk)))
+            break
+        state = [s.detach() for s in after]  # the truncation
+        u_prev = u[:, min(k + chunk, t) - 1]
+    return BatchFit(losses, dropped)
 
 
 def from_batch(batch: tuple[torch.Tensor, ...], dtype: torch.dtype) -> tuple[torch.Tensor, ...]:
@@ -225,13 +269,15 @@ def fit(model: SequenceModel, train: Sequences, validation: Sequences, epochs: i
     best, kept = 0, copy.deepcopy(net.state_dict())
     for epoch in range(1, epochs + 1):
         net.train()
-        losses, skipped = [], 0
+        losses, skipped, dropped = [], 0, 0
         order = rng.permutation(len(data))
         for start in range(0, len(order), batch):
             m, u, z = _tensors(data.take(order[start:start + batch]), device)
             done = train_batch(model, m, u, z, chunk, step)
-            losses += [v for v in done if math.isfinite(v)]
-            skipped += sum(not math.isfinite(v) for v in done)  # diverged: no step, say so
+            losses += [v for v in done.losses if math.isfinite(v)]
+            # diverged: no step, or the sequence dropped; say so
+            skipped += sum(not math.isfinite(v) for v in done.losses)
+            dropped += done.dropped
         net.eval()
         history.append(float(np.mean(losses)) if losses else math.nan)
         val.append(evaluate(model, validation, device))
@@ -240,6 +286,7 @@ def fit(model: SequenceModel, train: Sequences, validation: Sequences, epochs: i
         if progress is not None:
             progress(f"  epoch {epoch}/{epochs}: train {history[-1]:.4g}, validation "
                      f"{val[-1]:.4g} (before training {val[0]:.4g})"
-                     + (f", {skipped} diverged chunks skipped" if skipped else ""))
+                     + (f", {skipped} diverged chunks skipped" if skipped else "")
+                     + (f", {dropped} diverged sequences dropped" if dropped else ""))
     net.load_state_dict(kept)
     return SequenceFit(history, val, best)
