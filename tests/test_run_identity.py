@@ -75,3 +75,14 @@ def test_a_setting_added_later_hashes_as_before_at_its_old_value_only():
     gyro = compose_cfg("train", ["experiment=robust", "model.gyro=true"])
     assert plain.model.gyro is False
     assert config_hash(plain) == PRE_MOVE[("experiment=robust",)] != config_hash(gyro)
+
+
+@pytest.mark.parametrize("setting", ["nll=0.1", "train_noise.changes=2", "tbptt=100"])
+def test_the_sequence_trainers_settings_leave_old_runs_hashes_at_their_defaults(setting):
+    """``tbptt``, ``nll`` and ``train_noise.changes`` came after these runs: at their
+    defaults the hash is the one the runs carry; set, another run."""
+    plain = compose_cfg("train", ["experiment=dynamic"])
+    assert plain.nll == 0.0 and plain.train_noise.changes == 0 and plain.tbptt is None
+    assert config_hash(plain) == PRE_MOVE[("experiment=dynamic",)]
+    assert config_hash(compose_cfg("train", ["experiment=dynamic", setting])) != \
+        config_hash(plain)
