@@ -13,7 +13,8 @@ that keeps :class:`lbo.models.carried.SequenceModel` trains here: KalmanNet and 
 
 The loss is the mean square error in the measurement sigmas at alpha = 1 (metres and radians
 made comparable, the headings' differences wrapped), over the steps where the filter has
-started. Sequences are moved to start at their first fix (a filter's differences do not
+started; optionally plus the Gaussian negative log-likelihood of the errors under the
+filter's own covariance, so that its P is trained too. Sequences are moved to start at their first fix (a filter's differences do not
 depend on where it is, and float32 keeps millimetres near the origin).
 """
 
@@ -197,7 +198,7 @@ def train_batch(model: SequenceModel, m: torch.Tensor, u: torch.Tensor, z: torch
             step(chunk_loss)
         losses.append(float(chunk_loss.detach()))
         if bad.all():  # nothing left to carry: the batch's other chunks give no step either
-            losses += [math.nan] * (len(range(k + chunk, t, chunk)))
+            losses += [math.nan] * len(range(k + chunk, t, chunk))
             break
         state = [s.detach() for s in after]  # the truncation
         u_prev = u[:, min(k + chunk, t) - 1]
