@@ -14,8 +14,9 @@ that keeps :class:`lbo.models.carried.SequenceModel` trains here: KalmanNet and 
 The loss is the mean square error in the measurement sigmas at alpha = 1 (metres and radians
 made comparable, the headings' differences wrapped), over the steps where the filter has
 started; optionally plus the Gaussian negative log-likelihood of the errors under the
-filter's own covariance, so that its P is trained too. Sequences are moved to start at their first fix (a filter's differences do not
-depend on where it is, and float32 keeps millimetres near the origin).
+filter's own covariance, so that its P is trained too. Sequences are moved to start at their
+first fix (a filter's differences do not depend on where it is, and float32 keeps
+millimetres near the origin).
 """
 
 from __future__ import annotations
