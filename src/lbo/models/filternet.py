@@ -129,6 +129,8 @@ class WindowFilter(ProcessModel, nn.Module):
         r = torch.tensor(check_sigmas("measurement_sigma", measurement_sigma))
         self.register_buffer("log_q0", q.log())
         self.register_buffer("log_r0", r.log())
+        # an attribute, not the global: TorchScript reads no module-level floats
+        self.log_sigma_ratio_max = math.log(SIGMA_RATIO_MAX)
         self.log_q_scale = nn.Parameter(torch.zeros(3))
         # features: log mean square second difference per channel (in units of r0), log(1+V)
         # (with fixes, also the log of the mean gap between fixes)
@@ -290,7 +292,7 @@ class WindowFilter(ProcessModel, nn.Module):
         statistic where the window form never does (empty, at its first fix), and an
         unbounded output there overflowed P (float32) when it was trained carried."""
         log_sigma = log_ratio + self.log_r0 + self.noise(torch.cat([log_ratio, extra], 1))
-        log_sigma = torch.minimum(log_sigma, self.log_r0 + math.log(SIGMA_RATIO_MAX))
+        log_sigma = torch.minimum(log_sigma, self.log_r0 + self.log_sigma_ratio_max)
         return torch.exp(log_sigma).clamp_min(1e-6)
 
     def _receiver_filter(self, x: torch.Tensor, heading: torch.Tensor | None) -> torch.Tensor:
