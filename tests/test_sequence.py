@@ -338,6 +338,31 @@ def test_a_noise_model_driven_far_out_is_capped_and_the_carried_filter_stays_fin
     assert torch.isfinite(est).all()
 
 
+def test_a_first_residual_along_the_heading_leaves_the_carried_filter_finite():
+    """The recursive form keeps its statistic in world axes and turns it to the latest fix's
+    heading. Its first second difference, lying along the heading, leaves a rounding error
+    across it that may be negative (its log was NaN), and an R so nearly singular that its
+    determinant rounds below zero (the drift's variance, its fourth root, was NaN): the first
+    steps of a validation window of data=dynamic_drift, where the carried filter diverged
+    before any training. Both held at zero and above, the filter goes on."""
+    from lbo.models.net import WindowNet
+
+    m = torch.tensor([[[0.0, 0.0, 0.2847329378128052],
+                       [-4.105476379394531, -5.219127178192139, 0.30617648363113403],
+                       [2.195970296859741, -5.939659595489502, 0.40810874104499817],
+                       [1.7891459465026855, -4.729356288909912, 0.24279755353927612]]])
+    u = torch.tensor([[[7.293581485748291, -0.005131672136485577],
+                       [7.290780544281006, -0.004975710529834032],
+                       [7.2881245613098145, -0.011492958292365074],
+                       [7.285613536834717, -0.01752522960305214]]])
+    for seed in range(3):  # whatever the noise model's first weights
+        torch.manual_seed(seed)
+        net = WindowNet("filternet", 400, features="frame", body="single_track", drift=True).net
+        with torch.no_grad():
+            est = carried.run(carried.sequence_model(net), m, u).est
+        assert torch.isfinite(est).all(), seed
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("more", [[], ["train_noise=diverse", "train_noise.changes=2",
                                          "nll=0.1"]], ids=["mse", "nll-changing-noise"])

@@ -152,9 +152,11 @@ class RecursiveFilter(nn.Module):
         c, s = torch.cos(heading), torch.sin(heading)
         n = count.clamp_min(1)
         xx, yy, xy, pp = (sums[:, i] / n for i in range(4))
-        # the second moments in the frame turned by the heading: along and across it
-        along = c * c * xx + 2 * c * s * xy + s * s * yy
-        across = s * s * xx - 2 * c * s * xy + c * c * yy
+        # the second moments in the frame turned by the heading: along and across it; held at
+        # 0 and above, as squares are: turned from world-axis sums, a residual that lies
+        # along the heading leaves a rounding error across it, which may be negative
+        along = (c * c * xx + 2 * c * s * xy + s * s * yy).clamp_min(0.0)
+        across = (s * s * xx - 2 * c * s * xy + c * c * yy).clamp_min(0.0)
         ms = torch.where(some[:, None], torch.stack([along, across, pp], 1),
                          torch.exp(2 * fo.log_r0).expand(len(sums), 3))
         log_ratio = 0.5 * torch.log(ms + 1e-12) - fo.log_r0
@@ -181,6 +183,14 @@ class RecursiveFilter(nn.Module):
         # a heading the row does not hold gets a variance of 1: finite, and masked out
         course = torch.where(row[:, 7] == row[:, 7], row[:, 7], torch.ones_like(row[:, 7]))
         return step_covariance(R, sig, told, course * course, measured)
+
+    def _drift_variance(self, R: torch.Tensor) -> torch.Tensor:
+        """(B,) the drift's stationary variance from the step's R (B, 3, 3): the learned
+        ratio squared times the white position variance, sqrt(det) of R's xy block (free of
+        the heading R is turned by). The determinant is held above 1e-30: a nearly singular
+        block (the statistic's first entry, along the heading) rounds it below zero."""
+        det = (R[:, 0, 0] * R[:, 1, 1] - R[:, 0, 1] ** 2).clamp_min(1e-30)
+        return torch.exp(2 * self.window_filter.log_drift_ratio) * det.sqrt()
 
     def _process_cov(self, heading: torch.Tensor, eye: torch.Tensor) -> torch.Tensor:
         """(B, n, n) the learned Q at the latest fix's headings (B,): its x and y are along
@@ -356,8 +366,7 @@ class RecursiveFilter(nn.Module):
         elif self.n == 5:
             phi = torch.exp(-torch.exp(-fo.log_drift_tau))
             F[:, 3, 3], F[:, 4, 4] = phi * one, phi * one
-            white = (R[:, 0, 0] * R[:, 1, 1] - R[:, 0, 1] ** 2) ** 0.25  # turn-free
-            var_b = (torch.exp(fo.log_drift_ratio) * white) ** 2
+            var_b = self._drift_variance(R)
             Qd = (var_b * (1 - phi ** 2))[:, None, None] * (eye[3:].T @ eye[3:])
             Qn = Qn + Qd
             H = H + torch.cat([eye[3:], torch.zeros_like(eye[:1])])
@@ -374,9 +383,7 @@ class RecursiveFilter(nn.Module):
         R_start = self._step_cov(START_SCALE * R_model, row, measured)
         if self.n == 5:
             start_z = torch.cat([meas, torch.zeros_like(meas[:, :2])], -1)
-            white = (R[:, 0, 0] * R[:, 1, 1] - R[:, 0, 1] ** 2) ** 0.25  # turn-free
-            start_P = fo._drift_start(R_start, (torch.exp(fo.log_drift_ratio) * white) ** 2,
-                                      eye)
+            start_P = fo._drift_start(R_start, self._drift_variance(R), eye)
         elif self.gyro:  # no bias known: its prior
             start_z, start_P = fo.start_at(meas, R_start, torch.exp(2 * fo.log_bias_sigma)
                                             * one[:, None, None])
