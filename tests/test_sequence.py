@@ -401,7 +401,8 @@ def test_the_nll_term_is_least_at_the_errors_own_variance_and_learns_it():
     """Errors of a known variance v (in the units): the Gaussian NLL of a scalar covariance s
     is the closed form (d^2 / s + log s) / 2 per channel, least at s = v; mixed into the loss
     (nll=1, the MSE part blind to s) a learned s converges to v; a covariance that is not
-    positive definite scores inf, and a model without one is refused in one line."""
+    positive definite scores inf, and a model without one is refused in one line. The
+    sequences' weights weigh the MSE only."""
     gen = torch.Generator().manual_seed(0)
     units = torch.tensor([0.5, 2.0, 0.01], dtype=torch.float64)
     v = 2.5
@@ -422,6 +423,10 @@ def test_the_nll_term_is_least_at_the_errors_own_variance_and_learns_it():
         opt.step()
     assert float(torch.exp(log_s.detach())) == pytest.approx(float((d ** 2).mean()), rel=1e-3)
     assert float((d ** 2).mean()) == pytest.approx(v, rel=0.05)
+    # the weights that even out the MSE across noise levels leave the NLL term a plain mean
+    w = torch.tensor([1.0, 30.0, 0.1, 5.0], dtype=torch.float64)
+    nll_part = sequence.loss(est, z, units, w, cov, 1.0) - sequence.loss(est, z, units, w)
+    torch.testing.assert_close(nll_part, want - mse)
     bad = torch.diag(torch.tensor([1.0, -1.0, 1.0], dtype=torch.float64))
     assert sequence.gaussian_nll(d[0, :1], bad[None]).isinf().all()
     with pytest.raises(LboError, match="^nll: this model gives no covariance"):
