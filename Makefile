@@ -13,7 +13,7 @@ MLFLOW_PORT ?= 5000
 MLFLOW_BACKEND ?= sqlite:///$(CURDIR)/mlflow-server.db
 MLFLOW_ARTIFACTS ?= $(CURDIR)/mlflow-server-artifacts
 
-.PHONY: help install test test-fast data reproduce ablation fleet real-drive receiver-study bench lint clean mlflow-server ui
+.PHONY: help install test test-fast data reproduce ablation fleet real-drive receiver-study bench readme-tables lint clean mlflow-server ui
 
 help:  ## list the targets
 	@grep -E '^[a-z-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  make %-10s %s\n", $$1, $$2}'
@@ -68,6 +68,9 @@ bench: install  ## benchmarks: data generation, filters, training throughput, la
 	$(PY) benchmarks/bench_train.py
 	$(PY) benchmarks/bench_latency.py
 	$(PY) benchmarks/bench_threads.py
+
+readme-tables: install  ## README.md's measured tables rebuilt from docs/results/ (TAKE="results=reports/quick/nrmse.csv" takes a fresh one in)
+	$(PY) benchmarks/readme_tables.py $(foreach t,$(TAKE),--take $(t))
 
 lint: install  ## ruff
 	$(VENV)/bin/ruff check src tests benchmarks examples

@@ -87,7 +87,7 @@ OBSERVERS = {
 LABELS = {"cnn": "CNN (N=80)", "lstm": "LSTM (N=80)", "robust": "robust observer",
           "slips": "car-that-slips observer", "kalmannet": "KalmanNet",
           "split_kalmannet": "Split-KalmanNet",
-          "split_kalmannet_carried": "Split-KalmanNet, trained carried (tbptt)"}
+          "split_kalmannet_carried": "Split-KalmanNet, trained carried (`tbptt=100`)"}
 ALPHAS = (1.0, 3.0, 6.0)
 
 
