@@ -5,6 +5,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 SCALE ?= paper
+STUDY ?= paper
 TRAINER ?= cpu
 LAUNCHER ?= null
 JOBS ?= 2
@@ -38,8 +39,8 @@ test-fast: install  ## run the tests without the slow marker
 data: install  ## generate the data sets: make data SCALE=smoke|quick|paper
 	$(PY) -m lbo.datagen data=$(SCALE)
 
-reproduce: install  ## the paper's study, resumable: make reproduce SCALE=paper|quick [TRAINER=gpu] [LAUNCHER=joblib JOBS=4]
-	$(PY) -m lbo.reproduce scale=$(SCALE) "train_overrides=['trainer=$(TRAINER)']" \
+reproduce: install  ## the paper's study, resumable: make reproduce SCALE=paper|quick [STUDY=paper|dynamic|all] [TRAINER=gpu] [LAUNCHER=joblib JOBS=4]
+	$(PY) -m lbo.reproduce scale=$(SCALE) study=$(STUDY) "train_overrides=['trainer=$(TRAINER)']" \
 		launcher=$(LAUNCHER) jobs=$(JOBS)
 
 ablation: install  ## the paper's protocol variant by variant at quick scale, resumable -> reports/ablation/

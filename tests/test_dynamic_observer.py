@@ -17,7 +17,7 @@ from lbo.learn.lightning_module import TrainingModule
 from lbo.models import WindowFilter, build_model
 from lbo.models.motion import BODY_PARAMETERS
 from lbo.models.net import WindowNet
-from lbo.reproduce import train_jobs
+from lbo.learn.jobs import train_jobs
 from lbo.scoring import report, studies
 from lbo.serve.observer import Observer
 from lbo.sim.dynamic import SingleTrack
@@ -206,7 +206,7 @@ def test_the_body_learns_at_body_lr_times_the_optimisers_rate(body_lr):
 
 
 def test_reproduce_trains_the_study_beside_the_paper_at_quick_scale(tmp_path):
-    cfg = compose_cfg("reproduce", ["scale=quick", f"report_dir={tmp_path}"])
+    cfg = compose_cfg("reproduce", ["scale=quick", "study=all", f"report_dir={tmp_path}"])
     jobs = {j.key: list(j.overrides) for j in train_jobs(cfg, tmp_path)}
     kinds = {j.key: (j.kind, j.data) for j in train_jobs(cfg, tmp_path)}
     assert kinds["dynamic-cnn"] == ("dynamic", "dynamic") and kinds["robust"] == ("robust", None)
@@ -226,16 +226,26 @@ def test_reproduce_trains_the_study_beside_the_paper_at_quick_scale(tmp_path):
     assert names["dynamic-cnn"].startswith("dynamic-cnn-N") and names["robust"].startswith(
         "robust-filternet-N")
     assert len(set(names.values())) == len(names)
-    smoke = {j.key for j in train_jobs(compose_cfg("reproduce", ["scale=smoke"]), tmp_path)}
+    smoke = {j.key for j in train_jobs(compose_cfg("reproduce", ["scale=smoke", "study=all"]),
+                                       tmp_path)}
     assert "dynamic" not in smoke  # the smoke reproduction stays seconds long
     assert not any(k.startswith("robust-") for k in jobs)  # the peers: paper scale only
+    # study= picks the parts: the paper's by default, the car that slips alone, or both
+    def keys(*more: str) -> set[str]:
+        return {j.key for j in train_jobs(compose_cfg("reproduce", ["scale=quick", *more]),
+                                          tmp_path)}
+    dynamic = {"dynamic", "dynamic_drift", "dynamic-cnn", "dynamic-lstm"}
+    assert keys() == keys("study=paper") == set(jobs) - dynamic
+    assert keys("study=dynamic") == dynamic
+    with pytest.raises(LboError, match=r"^study must be paper, dynamic or all, got 'cars'$"):
+        train_jobs(compose_cfg("reproduce", ["study=cars"]), tmp_path)
 
 
 def test_reproduce_trains_the_learned_peers_as_the_robust_observer_at_paper_scale(tmp_path):
     """KalmanNet and Split-KalmanNet: the robust observer's experiment, data set and budget,
     each its own run folder and MLflow name, scored in its section of the report; and around
     the single-track body beside the car-that-slips observer."""
-    cfg = compose_cfg("reproduce", ["scale=paper", f"report_dir={tmp_path}"])
+    cfg = compose_cfg("reproduce", ["scale=paper", "study=all", f"report_dir={tmp_path}"])
     jobs = {j.key: j for j in train_jobs(cfg, tmp_path)}
     robust = list(jobs["robust"].overrides)
     for model in ("kalmannet", "split_kalmannet"):

@@ -301,6 +301,17 @@ def test_the_report_writes_each_section_in_the_order_given_with_its_files(tmp_pa
     text = (bare / "report.md").read_text()
     assert "## Beyond the paper" not in text and "nrmse_robust.png" not in text
     assert not (bare / "nrmse_robust.png").exists() and not (bare / "literal.csv").exists()
+    # a study of the car that slips alone (reproduce study=dynamic): none of the paper's
+    # observers ran, so none of its tables or figures
+    alone = tmp_path / "alone"
+    report.write(alone, "smoke", ours[ours["observer"].isin(["ekf", "oracle", "adaptive"])],
+                 {}, {})
+    text = (alone / "report.md").read_text()
+    assert "Table I" not in text and "Best windows" not in text and "CNN" not in text
+    assert "## NRMSE at alpha = 1, 3, 6" in text
+    assert "Figures: friction_circle.png, nrmse_all.png." in text
+    assert sorted(p.name for p in alone.iterdir()) == ["nrmse.csv", "nrmse_all.png",
+                                                       "report.md"]
 
 
 # the summary a training run ends with ------------------------------------------------------

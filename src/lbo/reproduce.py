@@ -16,13 +16,10 @@ what is missing.
 
 from __future__ import annotations
 
-import dataclasses
 import json
-import re
 import sys
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -37,6 +34,7 @@ from lbo.core.cli import entry, ready_launcher
 from lbo.core.errors import LboError
 from lbo.filters import classical
 from lbo.learn.eta import Eta, duration, measure
+from lbo.learn.jobs import DYNAMIC, LITERAL, ROBUST, Job, parts, train_jobs
 from lbo.tracking.runs import check_store, run_artifact
 
 STAGES = ("data", "tune", "train", "evaluate", "report")
@@ -74,16 +72,20 @@ def reproduce(cfg: DictConfig) -> Path:
     t0 = time.perf_counter()
     folder = stages.run(1, "data", f"generate the {scale} data sets (or reuse them)",
                         lambda: stage_data(cfg))
-    tuned = stages.run(2, "tune", f"{' and '.join(m.upper() for m in cfg.models)} at N=20, "
-                       f"{cfg.trials[scale]} Optuna trials each", lambda: stage_tune(cfg, out))
+    paper, dynamic = parts(cfg)
+    models = list(cfg.models) if paper else []  # tuned for the paper's observers only
+    tuned = stages.run(2, "tune", f"{' and '.join(m.upper() for m in models) or 'nothing'} "
+                       f"at N=20, {cfg.trials[scale]} Optuna trials each",
+                       lambda: stage_tune(cfg, out, models))
     jobs = train_jobs(cfg, out)
-    runs = stages.run(3, "train", f"{len(cfg.models) * len(cfg.windows)} observers "
-                      f"({', '.join(cfg.models)} x N={list(cfg.windows)}) with the tuned "
+    runs = stages.run(3, "train", (f"{len(models) * len(cfg.windows)} observers "
+                      f"({', '.join(models)} x N={list(cfg.windows)}) with the tuned "
                       "parameters" + (", and the robust observer" if cfg.robust else "")
                       + (f", the paper's protocol ({', '.join(cfg.literal[scale])})"
-                         if cfg.literal[scale] else "")
-                      + (f", and on a car that slips ({', '.join(cfg.dynamic_study[scale])})"
-                         if cfg.dynamic_study[scale] else "")
+                         if cfg.literal[scale] else "") if paper else "")
+                      + (f"{', and' if paper else ''} on a car that slips "
+                         f"({', '.join(cfg.dynamic_study[scale])})"
+                         if dynamic and cfg.dynamic_study[scale] else "")
                       + (f", through hydra/launcher={cfg.launcher}" if cfg.launcher else ""),
                       lambda: stage_train(cfg, out, jobs))
     table = stages.run(4, "evaluate", f"classical observers ({', '.join(cfg.classical)}) on "
@@ -104,6 +106,7 @@ def check_reproduce(cfg: DictConfig) -> None:
 
     if cfg.scale not in cfg.trials:
         raise LboError(f"scale must be one of {sorted(cfg.trials)}, got {cfg.scale!r}")
+    parts(cfg)
     integer(cfg.trials[cfg.scale], f"trials.{cfg.scale}", 1)
     integer(cfg.jobs, "jobs", 1)
     searches = sorted(p.stem for p in (CONF_DIR / "hparams_search").glob("*.yaml"))
@@ -127,13 +130,13 @@ def stage_data(cfg: DictConfig) -> tuple[Path, str]:
     return Path(datagen(compose("datagen", [f"data={cfg.scale}", *cfg.overrides]))), "done"
 
 
-def stage_tune(cfg: DictConfig, out: Path) -> tuple[dict, str]:
-    """2: one Optuna study per architecture at N=20 (resumed if it exists)."""
+def stage_tune(cfg: DictConfig, out: Path, models: list[str]) -> tuple[dict, str]:
+    """2: one Optuna study per architecture of ``models`` at N=20 (resumed if it exists)."""
     from lbo.tune import quiet, tune
 
     quiet()
     results, reused = {}, True
-    for model in cfg.models:
+    for model in models:
         c = compose("tune", [f"hparams_search={model}", f"experiment={cfg.scale}",
                               f"tune.n_trials={cfg.trials[cfg.scale]}",
                               f"tune.handoff={out / 'tuned' / f'{model}.yaml'}",
@@ -145,85 +148,6 @@ def stage_tune(cfg: DictConfig, out: Path) -> tuple[dict, str]:
         results[model] = tune(c)
         reused &= not results[model]["new_trials"]
     return results, "reused" if reused else "done"
-
-
-PAPER, ROBUST, LITERAL, DYNAMIC = "paper", "robust", "literal", "dynamic"
-"""The kinds of training job: the paper's eight observers, the robust observer, the paper's
-protocol beside ours, and the car-that-slips study (each its own part of the report)."""
-
-
-@dataclass(frozen=True)
-class Job:
-    """One training run of the study.
-
-    key : its name in the study and its run folder (``cnn-N20``, ``robust``, ``robust-kalmannet``,
-        ``literal-cnn-N60``, ``dynamic``, ``dynamic-cnn``).
-    kind : :data:`PAPER`, :data:`ROBUST`, :data:`LITERAL` or :data:`DYNAMIC`.
-    overrides : ``lbo.train``'s overrides.
-    data : the data set a :data:`DYNAMIC` job trains and is scored on (None for the others).
-    """
-
-    key: str
-    kind: str
-    overrides: tuple[str, ...]
-    data: str | None = None
-
-
-def _model_window(name: str, field: str) -> tuple[str, int]:
-    """``cnn-N60`` -> ("cnn", 60); anything else a one-line error naming ``field``."""
-    found = re.fullmatch(r"([a-z][a-z0-9_]*)-N([1-9][0-9]*)", str(name))
-    require(found is not None, field, "a list of <model>-N<window> (e.g. cnn-N60)", name)
-    return found.group(1), int(found.group(2))
-
-
-def _run_name(study: str) -> str:
-    """The MLflow run name of a job of ``study``: ``literal-cnn-N20`` beside the paper
-    protocol's ``cnn-N20`` (the logger config's name alone would give both the same; the
-    name is not part of a run's config hash, so finished runs are still reused)."""
-    return f"logger.run_name={study}-${{model.name}}-N${{window}}"
-
-
-def train_jobs(cfg: DictConfig, out: Path) -> list[Job]:
-    """Every run the train stage trains (or reuses), in order."""
-    jobs = [Job(f"{model}-N{window}", PAPER,
-                (f"experiment={cfg.scale}", f"model={model}", f"window={window}",
-                 f"+tuned={model}", f"hydra.searchpath=[file://{out}]"))
-            for model in cfg.models for window in cfg.windows]
-    if cfg.robust:
-        jobs.append(Job("robust", ROBUST, ("experiment=robust", f"data={cfg.scale}",
-                                           *cfg.robust_overrides[cfg.scale],
-                                           _run_name("robust"))))
-        # the learned peers of the literature, trained as the robust observer is
-        for model in cfg.peers[cfg.scale]:
-            jobs.append(Job(f"robust-{model}", ROBUST, (
-                "experiment=robust", f"model={model}", f"data={cfg.scale}",
-                *cfg.robust_overrides[cfg.scale], _run_name("robust"))))
-    for name in cfg.literal[cfg.scale]:
-        model, window = _model_window(name, f"literal.{cfg.scale}")
-        jobs.append(Job(f"literal-{model}-N{window}", LITERAL,
-                        (*cfg.literal_overrides[cfg.scale], f"model={model}",
-                         f"window={window}", _run_name("literal"))))
-    # the car that slips: on each data set the observer that learns the model error (keyed
-    # by the data set), and on the first one the black-box peers (<data>-cnn, <data>-lstm)
-    # and the learned peers (<data>-kalmannet, <data>-split_kalmannet)
-    for i, data in enumerate(cfg.dynamic_study[cfg.scale]):
-        jobs.append(Job(data, DYNAMIC, ("experiment=dynamic", f"data={data}",
-                                        *cfg.dynamic_overrides[cfg.scale], _run_name(data)),
-                        data))
-        for model in (cfg.dynamic_blackbox[cfg.scale] if i == 0 else []):
-            jobs.append(Job(f"{data}-{model}", DYNAMIC,
-                            ("experiment=dynamic_blackbox", f"model={model}", f"data={data}",
-                             *cfg.dynamic_overrides[cfg.scale], _run_name(data)), data))
-        # the learned peers around the single-track body, which has no drift states
-        for model in (cfg.dynamic_peers[cfg.scale] if i == 0 else []):
-            jobs.append(Job(f"{data}-{model}", DYNAMIC,
-                            ("experiment=dynamic", f"model={model}", "~model.drift",
-                             f"data={data}", *cfg.dynamic_overrides[cfg.scale],
-                             _run_name(data)), data))
-    return [dataclasses.replace(j, overrides=(*j.overrides, "resume=true",
-                                              f"output_dir={out / 'runs' / j.key}",
-                                              *cfg.overrides, *cfg.train_overrides))
-            for j in jobs]
 
 
 def expected(cfg: DictConfig, jobs: list[Job]) -> Eta:
@@ -320,8 +244,10 @@ def stage_report(cfg: DictConfig, out: Path, folder: Path, tuned: dict, runs: di
                               ignore_index=True) if literal else None
     run_ids.update({k: runs[k]["run_id"] for k in literal})
     runs = {k: r for k, r in runs.items() if k not in mine and k not in literal}
+    # the paper's and the robust observers' rows; none in a study of the car that slips alone
     learned = pd.concat([pd.read_csv(run_artifact(r, "evaluation.csv", cfg.tracking_uri))
-                         for r in runs.values()], ignore_index=True)
+                         for r in runs.values()] or [classical_table.iloc[:0]],
+                        ignore_index=True)
     # each run's table also holds the EKF and oracle rows; the classical stage has them all
     table = pd.concat([learned[~learned["observer"].isin(classical.NAMES)], classical_table],
                       ignore_index=True)

@@ -228,10 +228,35 @@ def markdown(scale: str, tables: dict[str, pd.DataFrame], table: pd.DataFrame,
              best: dict[str, str | None], runs: dict[str, str], stages: dict[str, dict],
              sections: Sequence[Section] = ()) -> str:
     """report.md: the tables, crossovers, best windows, each section, run ids and stage
-    times."""
-    out = [f"# lbo report: scale `{scale}`", "",
-           "RMSE of the EKF and of the best CNN and LSTM, ours beside the paper's "
-           "(psi in mrad).", ""]
+    times; the paper's tables (``tables``: Table I and II) only where its observers ran."""
+    out = [f"# lbo report: scale `{scale}`", ""]
+    if tables:
+        out += ["RMSE of the EKF and of the best CNN and LSTM, ours beside the paper's "
+                "(psi in mrad).", ""]
+        out += _paper_markdown(tables, table, best)
+    nr = table.pivot(index="alpha", columns="observer", values="nrmse")
+    out += ["## NRMSE at alpha = 1, 3, 6", "",
+            md_table(nr.loc[nr.index.isin([1.0, 3.0, 6.0])].reset_index()), ""]
+    out += crossover_markdown(table)
+    for section in sections:
+        out += section.markdown(table)
+    out += ["## Runs", "", "| observer | MLflow run id |", "|---|---|"]
+    out += [f"| {k} | `{v}` |" for k, v in sorted(runs.items())]
+    out += ["", "## Stages", "", "| stage | status | seconds |", "|---|---|---|"]
+    out += [f"| {k} | {v.get('status', '')} | {v.get('seconds', float('nan')):.1f} |"
+            for k, v in stages.items()]
+    paper = ["nrmse_cnn.png", "nrmse_lstm.png"] if tables else []
+    figures = ["friction_circle.png", *paper, "nrmse_all.png",
+               *(["trajectory_alpha3.png"] if tables else []),
+               *(section.figure for section in sections)]
+    out += ["", f"Figures: {', '.join(figures)}.", ""]
+    return "\n".join(out)
+
+
+def _paper_markdown(tables: dict[str, pd.DataFrame], table: pd.DataFrame,
+                    best: dict[str, str | None]) -> list[str]:
+    """The paper's Tables I and II, ours beside its, and its best windows and crossovers."""
+    out = []
     for alpha, key in ((1.0, "rmse_alpha1"), (6.0, "rmse_alpha6")):
         t = tables[key].drop(columns=["cnn_observer", "lstm_observer"])
         out += [f"## RMSE at alpha = {alpha:g} (paper Table {'I' if alpha == 1 else 'II'})", "",
@@ -245,21 +270,7 @@ def markdown(scale: str, tables: dict[str, pd.DataFrame], table: pd.DataFrame,
         ours = _crossing(cross)
         out.append(f"| {model.upper()} | {name or '-'} | N={PAPER_BEST_WINDOW[model]} | {ours} "
                    f"| about {PAPER_CROSSOVER[model]:g} |")
-    nr = table.pivot(index="alpha", columns="observer", values="nrmse")
-    out += ["", "## NRMSE at alpha = 1, 3, 6", "",
-            md_table(nr.loc[nr.index.isin([1.0, 3.0, 6.0])].reset_index()), ""]
-    out += crossover_markdown(table)
-    for section in sections:
-        out += section.markdown(table)
-    out += ["## Runs", "", "| observer | MLflow run id |", "|---|---|"]
-    out += [f"| {k} | `{v}` |" for k, v in sorted(runs.items())]
-    out += ["", "## Stages", "", "| stage | status | seconds |", "|---|---|---|"]
-    out += [f"| {k} | {v.get('status', '')} | {v.get('seconds', float('nan')):.1f} |"
-            for k, v in stages.items()]
-    extra = "".join(f", {section.figure}" for section in sections)
-    out += ["", "Figures: friction_circle.png, nrmse_cnn.png, nrmse_lstm.png, nrmse_all.png, "
-            "trajectory_alpha3.png" + extra + ".", ""]
-    return "\n".join(out)
+    return out + [""]
 
 
 def write(folder: str | Path, scale: str, table: pd.DataFrame, runs: dict[str, str],
@@ -281,14 +292,17 @@ def write(folder: str | Path, scale: str, table: pd.DataFrame, runs: dict[str, s
     folder = Path(folder)
     table = with_oracle_ratio(table)
     best = {m: best_window(table, m) for m in ("cnn", "lstm")}
+    # the paper's tables and figures where its observers ran (not in a study of the car
+    # that slips alone)
+    paper = any(best.values())
     tables = {"rmse_alpha1": rmse_table(table, 1.0, best["cnn"], best["lstm"]),
-              "rmse_alpha6": rmse_table(table, 6.0, best["cnn"], best["lstm"])}
+              "rmse_alpha6": rmse_table(table, 6.0, best["cnn"], best["lstm"])} if paper else {}
     written = []
     for key, t in {**tables, "nrmse": table}.items():
         with atomic_path(folder / f"{key}.csv") as tmp:
             t.to_csv(tmp, index=False)
         written.append(folder / f"{key}.csv")
-    for model in ("cnn", "lstm"):
+    for model in ("cnn", "lstm") if paper else ():
         names = learned_names(table, model)
         fig = plots.nrmse_curves(table, title=f"{model.upper()} observers against the EKF",
                                  observers=[*names, "ekf"])
