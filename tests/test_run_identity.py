@@ -2,11 +2,14 @@
 ``resume=true`` and ``make reproduce`` find the runs of a store made before the modules moved
 into layers, instead of training everything again."""
 
+from pathlib import Path
+
 import mlflow
 import pytest
 from conftest import compose_cfg
 from omegaconf import open_dict
 
+from lbo.core.paths import REPO_ROOT
 from lbo.learn.resume import _unlayered, config_hash, finished_run
 
 PRE_MOVE = {
@@ -86,3 +89,28 @@ def test_the_sequence_trainers_settings_leave_old_runs_hashes_at_their_defaults(
     assert config_hash(plain) == PRE_MOVE[("experiment=dynamic",)]
     assert config_hash(compose_cfg("train", ["experiment=dynamic", setting])) != \
         config_hash(plain)
+
+
+BEFORE = Path(__file__).parent / "data" / "before_issue39"
+"""A run trained by lbo at 41d4f39, before the modules were split into one idea each: the
+smoke robust observer (``BEFORE_OVERRIDES``) and what ``lbo.observe`` made of the example
+log's first 600 rows with it then."""
+BEFORE_OVERRIDES = ["experiment=robust", "data=smoke", "window=40", "batch_size=64",
+                    "trainer.max_epochs=1", "trainer.limit_train_batches=5"]
+
+
+def test_a_run_trained_before_the_rooms_were_split_resumes_and_observes_as_it_did(tmp_path):
+    """Its config hash (the ``config_hash`` tag its MLflow run carries) is the one today's
+    code gives, so ``resume=true`` finds it; its checkpoint observes the log as it did then."""
+    import pandas as pd
+
+    from helpers import observe
+
+    assert config_hash(compose_cfg("train", BEFORE_OVERRIDES)) == "1a3dac0ffb1381b6"
+    log = tmp_path / "log.csv"
+    log.write_text("".join((REPO_ROOT / "examples" / "stop_and_go_10hz.csv").read_text()
+                           .splitlines(keepends=True)[:601]))
+    observe(f"observer={BEFORE / 'robust-N40.ckpt'}", f"input={log}",
+            f"output={tmp_path / 'now.csv'}", f"hydra.run.dir={tmp_path / 'h'}", check=True)
+    then, now = pd.read_csv(BEFORE / "estimates.csv.gz"), pd.read_csv(tmp_path / "now.csv")
+    pd.testing.assert_frame_equal(now, then, rtol=1e-12, atol=1e-12)
