@@ -114,3 +114,17 @@ def test_a_run_trained_before_the_rooms_were_split_resumes_and_observes_as_it_di
             f"output={tmp_path / 'now.csv'}", f"hydra.run.dir={tmp_path / 'h'}", check=True)
     then, now = pd.read_csv(BEFORE / "estimates.csv.gz"), pd.read_csv(tmp_path / "now.csv")
     pd.testing.assert_frame_equal(now, then, rtol=1e-12, atol=1e-12)
+
+
+def test_the_paths_group_moves_what_lbo_writes_and_leaves_a_runs_identity():
+    """``paths`` is the one home of every path: moving its root moves the data sets, the
+    studies, the hand-offs and the reports, and no run or data set changes its hash."""
+    here, there = compose_cfg("train"), compose_cfg("train", ["paths.root=/elsewhere"])
+    assert here.data.root == f"{REPO_ROOT}/data" and there.data.root == "/elsewhere/data"
+    assert config_hash(there) == config_hash(here) == PRE_MOVE[()]
+    tune = compose_cfg("tune", ["paths.root=/elsewhere", "hparams_search=cnn"])
+    assert tune.tune.storage == "sqlite:////elsewhere/optuna.db"
+    assert tune.tune.handoff == "/elsewhere/conf/tuned/cnn.yaml"
+    reproduce = compose_cfg("reproduce", ["paths.reports=/r", "scale=quick"])
+    assert (reproduce.report_dir, reproduce.tracking_uri) == ("/r/quick", here.logger.tracking_uri)
+    assert compose_cfg("datagen", ["paths.data=/d"]).data.root == "/d"

@@ -49,6 +49,7 @@ def config_hash(cfg: DictConfig) -> str:
     with open_dict(c):
         c.output_dir, c.data.root, c.resume, c.data_dir = "-", "-", False, None
         c.pop("logger", None)
+        c.pop("paths", None)  # where it reads and writes, not what
         c.pop("threads", None)  # how fast, not what: a run on other threads is reused
         for key, default in LATER_DEFAULTS.items():
             *group, name = key.split(".")
