@@ -83,7 +83,7 @@ SEARCHES = [None, *options("hparams_search")]
 COMMANDS = ["datagen", "evaluate", "simulate", "observe", "export"]
 """The primary configs composed with each option of their own groups here (train, tune and
 reproduce have tests of their own below)."""
-SCALES = sorted(OmegaConf.load(CONF_DIR / "reproduce.yaml").trials)
+SCALES = options("scale")
 LOCAL_GROUPS = {"tuned": "lbo.tune's handoff (git-ignored), composed with +tuned=<name>"}
 
 
@@ -445,6 +445,6 @@ def test_each_search_with_each_experiment_passes_the_tune_check_or_is_refused_as
 def test_reproduce_checks_every_training_run_of_each_scale(scale):
     from lbo.reproduce import check_reproduce
 
-    cfg = compose_cfg("reproduce", [f"scale={scale}"])
+    cfg = compose_cfg("reproduce", [f"scale={scale}", "study=all"])  # every run of each part
     with initialize_config_dir(str(CONF_DIR), version_base="1.3"):  # it composes the runs
         check_reproduce(cfg)

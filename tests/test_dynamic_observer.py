@@ -13,11 +13,11 @@ import torch
 
 from helpers import compose_cfg, train_in_own_store
 from lbo.core.errors import LboError
+from lbo.learn.jobs import train_jobs
 from lbo.learn.lightning_module import TrainingModule
 from lbo.models import WindowFilter, build_model
 from lbo.models.motion import BODY_PARAMETERS
 from lbo.models.net import WindowNet
-from lbo.learn.jobs import train_jobs
 from lbo.scoring import report, studies
 from lbo.serve.observer import Observer
 from lbo.sim.dynamic import SingleTrack

@@ -161,8 +161,9 @@ def test_datagen_removes_the_temp_files_of_a_killed_run(tmp_path):
                          "kalmannet, lstm, split_kalmannet), got ['cnn', 'gru']"),
     ("train_overrides=['metric.reference=foo']",
      "metric.reference must be one of ['ekf', 'paper'], got 'foo'"),
-    ("literal.smoke=[cnn60]", "literal.smoke must be a list of <model>-N<window> (e.g. cnn-N60), "
-                              "got 'cnn60'"),
+    ("literal=[cnn60]", "literal must be a list of <model>-N<window> (e.g. cnn-N60), "
+                        "got 'cnn60'"),
+    ("study=cars", "study must be paper, dynamic or all, got 'cars'"),
 ])
 def test_reproduce_checks_every_field_before_its_first_stage(tmp_path, override, message):
     res = subprocess.run([sys.executable, "-m", "lbo.reproduce", "scale=smoke", override,
@@ -176,3 +177,20 @@ def test_reproduce_checks_every_field_before_its_first_stage(tmp_path, override,
     assert res.returncode == 2, res.stdout[-2000:]
     assert res.stderr.strip().startswith(f"error: {message}"), res.stderr
     assert sorted(p.name for p in tmp_path.iterdir()) == ["hydra"]  # no data, report, store
+
+
+@pytest.mark.parametrize("override, new", [("literal.quick=[]", "literal=[] scale=quick"),
+                                           ("trials.paper=3", "trials=3 scale=paper"),
+                                           ("search_overrides.quick.cnn=[]",
+                                            "search_overrides.cnn=[] scale=quick")])
+def test_a_setting_of_one_scale_in_its_old_spelling_is_one_line_naming_the_new(
+        tmp_path, override, new):
+    """Each scale's settings live in conf/scale/<scale>.yaml (a config group); the maps keyed
+    by scale they replace are refused before Hydra reads them, with the new spelling."""
+    from helpers import cli, one_line_error
+
+    res = cli("lbo.reproduce", override, f"hydra.run.dir={tmp_path / 'hydra'}")
+    scale = override.partition("=")[0].split(".")[1]
+    assert one_line_error(res) == (f"error: {override}: each scale's settings are in "
+                                   f"conf/scale/{scale}.yaml now; write {new}")
+    assert not (tmp_path / "hydra").exists()

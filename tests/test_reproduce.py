@@ -29,7 +29,7 @@ def command(tmp_path):
             f"optuna_storage=sqlite:///{tmp_path / 'optuna.db'}",
             f"overrides=['data.root={tmp_path / 'data'}']",
             "train_overrides=['trainer.limit_train_batches=4','trainer.max_epochs=1']",
-            "study=all", "dynamic_study.smoke=[dynamic]",  # the car that slips too, smoke size
+            "study=all", "dynamic_study=[dynamic]",  # the car that slips too, at smoke size
             f"hydra.run.dir={tmp_path / 'hydra'}"]
 
 

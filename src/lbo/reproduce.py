@@ -75,17 +75,17 @@ def reproduce(cfg: DictConfig) -> Path:
     paper, dynamic = parts(cfg)
     models = list(cfg.models) if paper else []  # tuned for the paper's observers only
     tuned = stages.run(2, "tune", f"{' and '.join(m.upper() for m in models) or 'nothing'} "
-                       f"at N=20, {cfg.trials[scale]} Optuna trials each",
+                       f"at N=20, {cfg.trials} Optuna trials each",
                        lambda: stage_tune(cfg, out, models))
     jobs = train_jobs(cfg, out)
     runs = stages.run(3, "train", (f"{len(models) * len(cfg.windows)} observers "
                       f"({', '.join(models)} x N={list(cfg.windows)}) with the tuned "
                       "parameters" + (", and the robust observer" if cfg.robust else "")
-                      + (f", the paper's protocol ({', '.join(cfg.literal[scale])})"
-                         if cfg.literal[scale] else "") if paper else "")
+                      + (f", the paper's protocol ({', '.join(cfg.literal)})"
+                         if cfg.literal else "") if paper else "")
                       + (f"{', and' if paper else ''} on a car that slips "
-                         f"({', '.join(cfg.dynamic_study[scale])})"
-                         if dynamic and cfg.dynamic_study[scale] else "")
+                         f"({', '.join(cfg.dynamic_study)})"
+                         if dynamic and cfg.dynamic_study else "")
                       + (f", through hydra/launcher={cfg.launcher}" if cfg.launcher else ""),
                       lambda: stage_train(cfg, out, jobs))
     table = stages.run(4, "evaluate", f"classical observers ({', '.join(cfg.classical)}) on "
@@ -104,10 +104,8 @@ def check_reproduce(cfg: DictConfig) -> None:
     from lbo.scoring.grid import check_observers
     from lbo.train import check
 
-    if cfg.scale not in cfg.trials:
-        raise LboError(f"scale must be one of {sorted(cfg.trials)}, got {cfg.scale!r}")
     parts(cfg)
-    integer(cfg.trials[cfg.scale], f"trials.{cfg.scale}", 1)
+    integer(cfg.trials, "trials", 1)
     integer(cfg.jobs, "jobs", 1)
     searches = sorted(p.stem for p in (CONF_DIR / "hparams_search").glob("*.yaml"))
     for model in cfg.models:
@@ -138,12 +136,12 @@ def stage_tune(cfg: DictConfig, out: Path, models: list[str]) -> tuple[dict, str
     results, reused = {}, True
     for model in models:
         c = compose("tune", [f"hparams_search={model}", f"experiment={cfg.scale}",
-                              f"tune.n_trials={cfg.trials[cfg.scale]}",
+                              f"tune.n_trials={cfg.trials}",
                               f"tune.handoff={out / 'tuned' / f'{model}.yaml'}",
                               f"tune.storage={cfg.optuna_storage}",
                               f"output_dir={out / 'tune' / model}",
-                              *cfg.tune_overrides[cfg.scale],
-                              *cfg.search_overrides[cfg.scale][model],
+                              *cfg.tune_overrides,
+                              *cfg.search_overrides[model],
                               *cfg.overrides, *cfg.train_overrides])
         results[model] = tune(c)
         reused &= not results[model]["new_trials"]
@@ -360,7 +358,26 @@ def _log_report(cfg: DictConfig, scale: str, out: Path, files: list[Path], data:
     print(f"    report logged to MLflow run {run_id}")
 
 
-main = entry("reproduce", reproduce)
+SCALE_KEYS = ("trials", "tune_overrides", "search_overrides", "robust_overrides", "peers",
+              "dynamic_study", "dynamic_blackbox", "dynamic_peers", "dynamic_overrides",
+              "literal", "literal_overrides")
+"""The settings of each scale (``conf/scale/<scale>.yaml``), once maps keyed by the scale."""
+
+
+def old_spellings(argv: list[str]) -> None:
+    """Refuse ``<key>.<scale>=...`` (a setting of one scale, as lbo took it before the scale
+    group) in one line that gives the new spelling."""
+    for arg in argv:
+        key, _, value = arg.partition("=")
+        head, _, rest = key.lstrip("+~").partition(".")
+        scale, _, inner = rest.partition(".")
+        if head in SCALE_KEYS and scale in ("smoke", "quick", "paper"):
+            new = f"{head}{'.' + inner if inner else ''}={value}"
+            raise LboError(f"{arg}: each scale's settings are in conf/scale/{scale}.yaml now; "
+                           f"write {new} scale={scale}")
+
+
+main = entry("reproduce", reproduce, spellings=old_spellings)
 
 
 if __name__ == "__main__":

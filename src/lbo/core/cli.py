@@ -151,7 +151,8 @@ def scrub_logs() -> None:
 
 
 def entry(config_name: str, run: Callable[[DictConfig], Any],
-          guard: Callable[[DictConfig], None] | None = None) -> Callable[[], Any]:
+          guard: Callable[[DictConfig], None] | None = None,
+          spellings: Callable[[list[str]], None] | None = None) -> Callable[[], Any]:
     """A ``@hydra.main`` around ``run(cfg)`` composing ``conf/<config_name>.yaml``.
 
     ``run``'s return value goes back to Hydra (a sweeper's objective); an LboError or an
@@ -160,6 +161,8 @@ def entry(config_name: str, run: Callable[[DictConfig], Any],
     anything. The job holds its run folder's lock and writes its ``.hydra`` files, without
     passwords, before ``run`` starts; ``guard(cfg)``, if given, runs before those files are
     written, to refuse a run folder that holds another run's (raise an LboError).
+    ``spellings(argv)``, if given, refuses an override spelled as an older lbo took it (raise
+    an LboError naming the new spelling), before Hydra reads it.
     """
 
     @hydra.main(version_base="1.3", config_path=str(CONF_DIR), config_name=config_name)
@@ -205,6 +208,8 @@ def entry(config_name: str, run: Callable[[DictConfig], Any],
                                    "or set LBO_ROOT=<repo>")
                 ready_launcher(launcher_from_argv(sys.argv[1:]))
                 check_null_groups(sys.argv[1:])
+                if spellings is not None:
+                    spellings(sys.argv[1:])
             except LboError as e:
                 fail(e)
             return main()

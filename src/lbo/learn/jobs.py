@@ -71,34 +71,34 @@ def train_jobs(cfg: DictConfig, out: Path) -> list[Job]:
             for model in (cfg.models if paper else []) for window in cfg.windows]
     if cfg.robust and paper:
         jobs.append(Job("robust", ROBUST, ("experiment=robust", f"data={cfg.scale}",
-                                           *cfg.robust_overrides[cfg.scale],
+                                           *cfg.robust_overrides,
                                            run_name("robust"))))
         # the learned peers of the literature, trained as the robust observer is
-        for model in cfg.peers[cfg.scale]:
+        for model in cfg.peers:
             jobs.append(Job(f"robust-{model}", ROBUST, (
                 "experiment=robust", f"model={model}", f"data={cfg.scale}",
-                *cfg.robust_overrides[cfg.scale], run_name("robust"))))
-    for name in cfg.literal[cfg.scale] if paper else []:
-        model, window = model_window(name, f"literal.{cfg.scale}")
+                *cfg.robust_overrides, run_name("robust"))))
+    for name in cfg.literal if paper else []:
+        model, window = model_window(name, "literal")
         jobs.append(Job(f"literal-{model}-N{window}", LITERAL,
-                        (*cfg.literal_overrides[cfg.scale], f"model={model}",
+                        (*cfg.literal_overrides, f"model={model}",
                          f"window={window}", run_name("literal"))))
     # the car that slips: on each data set the observer that learns the model error (keyed
     # by the data set), and on the first one the black-box peers (<data>-cnn, <data>-lstm)
     # and the learned peers (<data>-kalmannet, <data>-split_kalmannet)
-    for i, data in enumerate(cfg.dynamic_study[cfg.scale] if dynamic else []):
+    for i, data in enumerate(cfg.dynamic_study if dynamic else []):
         jobs.append(Job(data, DYNAMIC, ("experiment=dynamic", f"data={data}",
-                                        *cfg.dynamic_overrides[cfg.scale], run_name(data)),
+                                        *cfg.dynamic_overrides, run_name(data)),
                         data))
-        for model in (cfg.dynamic_blackbox[cfg.scale] if i == 0 else []):
+        for model in (cfg.dynamic_blackbox if i == 0 else []):
             jobs.append(Job(f"{data}-{model}", DYNAMIC,
                             ("experiment=dynamic_blackbox", f"model={model}", f"data={data}",
-                             *cfg.dynamic_overrides[cfg.scale], run_name(data)), data))
+                             *cfg.dynamic_overrides, run_name(data)), data))
         # the learned peers around the single-track body, which has no drift states
-        for model in (cfg.dynamic_peers[cfg.scale] if i == 0 else []):
+        for model in (cfg.dynamic_peers if i == 0 else []):
             jobs.append(Job(f"{data}-{model}", DYNAMIC,
                             ("experiment=dynamic", f"model={model}", "~model.drift",
-                             f"data={data}", *cfg.dynamic_overrides[cfg.scale],
+                             f"data={data}", *cfg.dynamic_overrides,
                              run_name(data)), data))
     return [dataclasses.replace(j, overrides=(*j.overrides, "resume=true",
                                               f"output_dir={out / 'runs' / j.key}",
