@@ -313,7 +313,7 @@ class EnvelopeStream:
         spacing = self.window / self.count if self.count else math.inf
         seen = {"speed": float(u[0]), "steering": float(u[1]), "alpha": math.nan,
                 "fix_period": spacing if k >= self.window - 1 else math.nan}
-        if fix:
+        if fix and m is not None:  # a fix has an m
             if len(self.last) == 2:
                 (j0, p0, v0, _), (j1, p1, v1, d1) = self.last
                 if j1 - j0 == k - j1:
