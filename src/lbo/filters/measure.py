@@ -28,6 +28,7 @@ course]`` that :func:`lbo.filters.update.joseph_update` takes.
 from __future__ import annotations
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from lbo.core.angles import wrap_angle
 from lbo.core.errors import LboError
@@ -56,7 +57,7 @@ COURSE_MIN_SNR = 5.0
 where the linearised model (a Gaussian error on the angle) holds."""
 
 
-def widen(m: np.ndarray) -> np.ndarray:
+def widen(m: ArrayLike) -> np.ndarray:
     """Rows (..., 3) ``[x_m, y_m, psi_m]`` or (..., 8) :data:`CHANNELS` -> (..., 8), the
     missing channels NaN (a 3-wide row reports no accuracy and no velocity)."""
     m = np.asarray(m, dtype=float)
