@@ -24,7 +24,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 import pandas as pd
@@ -173,6 +173,7 @@ def _model_window(name: str, field: str) -> tuple[str, int]:
     """``cnn-N60`` -> ("cnn", 60); anything else a one-line error naming ``field``."""
     found = re.fullmatch(r"([a-z][a-z0-9_]*)-N([1-9][0-9]*)", str(name))
     require(found is not None, field, "a list of <model>-N<window> (e.g. cnn-N60)", name)
+    found = cast(re.Match[str], found)  # required just above
     return found.group(1), int(found.group(2))
 
 
@@ -307,7 +308,8 @@ def stage_report(cfg: DictConfig, out: Path, folder: Path, tuned: dict, runs: di
     """5: the tables and figures, also logged to MLflow as a run of their own."""
     from lbo.scoring import report, studies
 
-    mine = {j.key: j.data for j in jobs if j.kind == DYNAMIC}  # scored on test sets of their own
+    # scored on test sets of their own (a dynamic job has its data set)
+    mine = {j.key: cast(str, j.data) for j in jobs if j.kind == DYNAMIC}
     dynamic = {data: pd.concat([pd.read_csv(run_artifact(runs[k], "evaluation.csv",
                                                       cfg.tracking_uri))
                                 for k, d in mine.items() if d == data],

@@ -179,8 +179,11 @@ class Section(Protocol):
     """A study beyond the paper's tables: its part of report.md, the observers it adds to
     ``nrmse_all.png`` (``headline``), its figure's file name, and the files it writes."""
 
-    headline: tuple[str, ...]
-    figure: str
+    @property
+    def headline(self) -> tuple[str, ...]: ...
+
+    @property
+    def figure(self) -> str: ...
 
     def markdown(self, table: pd.DataFrame) -> list[str]: ...
 
