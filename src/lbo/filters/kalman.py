@@ -15,7 +15,7 @@ R nothing.
 
 from __future__ import annotations
 
-from typing import Any, Literal, cast, overload
+from typing import Any, Literal, overload
 
 import numpy as np
 
@@ -118,9 +118,9 @@ class KalmanStepper:
             # exponentially forgotten running mean, weights 1 / (b W + 1); held channels only
             self.weight = np.where(held, self.forgetting * self.weight + 1.0, self.weight)
             d = np.where(held, 1.0 / self.weight, 0.0)
-            # r_floor comes with forgetting (adaptive_settings gives both); None fails here
+            assert self.r_floor is not None, "forgetting needs r_floor (adaptive_settings)"
             self.r_hat = np.maximum((1.0 - d) * self.r_hat + d * (y**2 - P[:, diag, diag]),
-                                    cast(np.ndarray, self.r_floor))
+                                    self.r_floor)
             R = R.copy()
             R[:, diag, diag] = self.r_hat
             self.R = R

@@ -66,7 +66,7 @@ class Evaluation(L.Callback):
         # the best weights through the one checkpoint reader, with its format checks
         net, hp = read_checkpoint(best) if best else (pl_module.observer, pl_module.hparams)
         vehicle, noise = trained_conditions(hp, best or "(in memory)")
-        folder = Path(trainer.datamodule.folder)  # type: ignore[attr-defined]  # set by Lightning at fit
+        folder = Path(trainer.datamodule.folder)  # type: ignore[attr-defined]  # Lightning sets it
         name = f"{hp['model']['name']}-N{hp['window']}"
         device = str(trainer.strategy.root_device)
         if is_log_folder(folder):

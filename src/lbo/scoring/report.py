@@ -149,7 +149,7 @@ def protocols_markdown(table: pd.DataFrame, literal: pd.DataFrame) -> list[str]:
         at = both[both["observer"] == name].set_index("alpha")
         rmse = [_xyz(at.loc[a, ["rmse_x", "rmse_y", "rmse_psi"]]) if a in at.index else "-"
                 for a in (1.0, 6.0)]
-        growth = (f"{at.loc[6.0, 'nrmse'] / at.loc[1.0, 'nrmse']:.1f}"  # type: ignore[index]  # pandas-stubs: a float label
+        growth = (f"{at.loc[6.0, 'nrmse'] / at.loc[1.0, 'nrmse']:.1f}"  # type: ignore[index]  # float labels
                   if {1.0, 6.0} <= set(at.index) else "-")
         return rmse[0], rmse[1], growth
 

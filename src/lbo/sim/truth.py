@@ -43,7 +43,9 @@ class Car(Protocol):
     ``__post_init__``), with the state ``[x, y, psi, v_y, r]``: the rear axle's pose, then the
     lateral speed of the centre of gravity (m/s) and the yaw rate (rad/s)."""
 
-    if TYPE_CHECKING:  # a dataclass (not checked by isinstance: from_cfg says so in its line)
+    # a dataclass (Truth.to_dict reads its fields), to the type checker only: isinstance
+    # checks the members below, and from_cfg refuses a registered car that is no dataclass
+    if TYPE_CHECKING:
         __dataclass_fields__: ClassVar[dict[str, Any]]
 
     @property
