@@ -11,6 +11,7 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import pandas as pd
 from omegaconf import DictConfig
 
@@ -151,9 +152,9 @@ def _run_grid(cfg: DictConfig, observers: list[str], learned: list[str]
     ref = reference(arr, vehicle, noise, cfg.metric.reference)
     # estimates (and covariances) of everything that gives a covariance, for calibration
     # and smoothing: the classical filters, and the window filters in their recursive form
-    covariant = {name: run_classical(name, arr.m, arr.u, vehicle, noise,
-                                     alpha=arr.alpha, return_cov=True)
-                 for name in observers if name in OBSERVERS and (calibrate or smooth)}
+    covariant: dict[str, tuple[np.ndarray, np.ndarray]] = {
+        name: run_classical(name, arr.m, arr.u, vehicle, noise, alpha=arr.alpha, return_cov=True)
+        for name in observers if name in OBSERVERS and (calibrate or smooth)}
     table = classical_table(arr, vehicle, noise, observers, ref, progress=True, truth=truth,
                             given={name: est for name, (est, _) in covariant.items()})
     rows, names = [], []

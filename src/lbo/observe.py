@@ -48,7 +48,7 @@ from __future__ import annotations
 import dataclasses
 import sys
 import warnings
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 import pandas as pd
@@ -155,8 +155,8 @@ def observe(cfg: DictConfig) -> dict[str, Any]:
     if smooth and form is None and obs.form == "window" and is_window_filter(obs.net):
         # the form that has a filter to smooth, from the net already read
         obs = Observer(obs.name, obs.vehicle, obs.noise, net=obs.net, alpha=alpha,
-                       engine=obs.engine, device=device, meta=obs.meta, form="recursive",
-                       envelope_mode=mode)
+                       engine=cast(str, obs.engine), device=device, meta=obs.meta,
+                       form="recursive", envelope_mode=mode)  # a learned one's engine: a str
     check_steering(df, obs.vehicle, where)
     check_time_unit(df["t"].to_numpy(dtype=float), obs.dt, where)
     columns = (LOG[1:] + (STATE if truth else ())
@@ -213,8 +213,9 @@ def observe(cfg: DictConfig) -> dict[str, Any]:
           + (f" (resampled from {source})" if cfg.resample else "")
           + (", smoothed (RTS)" if smooth else ""))
     if not fmt.is_plain or origin is not None:
-        print("read as: " + ", ".join(filter(None, [fmt.describe(), origin and (
-            f"lat/lon -> metres east/north of {origin.lat:.7f}, {origin.lon:.7f}")])))
+        print("read as: " + ", ".join(filter(None, [fmt.describe(), (
+            f"lat/lon -> metres east/north of {origin.lat:.7f}, {origin.lon:.7f}"
+            if origin is not None else None)])))
     fix = np.isfinite(m[:, :2]).all(1)  # a position, with or without a heading
     duration = len(df) * obs.dt
     print(f"fixes: {int(fix.sum())} of {len(df)} rows ({fix.sum() / duration:.3g} Hz; inputs "

@@ -31,7 +31,7 @@ from __future__ import annotations
 
 import sys
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 import pandas as pd
@@ -67,7 +67,8 @@ def _drive(base: DictConfig, alpha: float, seed: int) -> pd.DataFrame:
 
 def _resolved(cfg: DictConfig) -> DictConfig:
     """The config resolved once, out of struct mode, for :func:`_drive` to copy."""
-    return OmegaConf.create(OmegaConf.to_container(cfg, resolve=True))
+    # a mapping's container is a dict, and a dict's config a DictConfig
+    return cast(DictConfig, OmegaConf.create(OmegaConf.to_container(cfg, resolve=True)))
 
 
 def _settings(cfg: DictConfig) -> dict[str, Any]:
@@ -109,9 +110,10 @@ def receiver_study(cfg: DictConfig) -> dict[str, Any]:
     learned: dict[str, GyroNoise] = {}
     if s["epochs"]:
         n = s["learn_drives"]
+        span: tuple[float, float] = s["range"]
         # each drive its own alpha, the train and the validation drives each spread over
         # the whole range
-        levels = [*np.linspace(*s["range"], n), *np.linspace(*s["range"], max(1, n // 2))]
+        levels = [*np.linspace(*span, n), *np.linspace(*span, max(1, n // 2))]
         logs = [_drive(base, a, s["seed"] + j) for j, a in enumerate(levels)]
         R = classical.measurement_cov("ekf", noise, 1.0, 1)[0]
         learned[LEARNED] = gyro_fit.fit_and_write(
@@ -129,9 +131,10 @@ def receiver_study(cfg: DictConfig) -> dict[str, Any]:
             # told the drift (its white part the fix's R) and the latency too
             full = (log, vehicle, max(alpha * spec.position.white, SIGMA_FLOOR), process,
                     spec.gyro.sigma)
-            timing = {"drift": FixDrift(max(alpha * spec.position.drift, SIGMA_FLOOR),
-                                        spec.position.tau),
-                      "latency": (spec.position.latency, spec.velocity.latency)}
+            timing: dict[str, Any] = {  # oracle_gyro's drift and latency
+                "drift": FixDrift(max(alpha * spec.position.drift, SIGMA_FLOOR),
+                                  spec.position.tau),
+                "latency": (spec.position.latency, spec.velocity.latency)}
             statistics = (spec.gyro_bias, spec.gyro_walk)
             oracles = {scoring.FULL_NOISE_ORACLE: scoring.oracle_gyro(
                            *full, bias=statistics, **timing),

@@ -21,7 +21,7 @@ import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 import pandas as pd
@@ -229,7 +229,8 @@ def stage_report(cfg: DictConfig, out: Path, folder: Path, tuned: dict, runs: di
     """5: the tables and figures, also logged to MLflow as a run of their own."""
     from lbo.scoring import report, studies
 
-    mine = {j.key: j.data for j in jobs if j.kind == DYNAMIC}  # scored on test sets of their own
+    # scored on test sets of their own (a dynamic job has its data set)
+    mine = {j.key: cast(str, j.data) for j in jobs if j.kind == DYNAMIC}
     dynamic = {data: pd.concat([pd.read_csv(run_artifact(runs[k], "evaluation.csv",
                                                       cfg.tracking_uri))
                                 for k, d in mine.items() if d == data],

@@ -25,6 +25,7 @@ from __future__ import annotations
 import dataclasses
 import sys
 from pathlib import Path
+from typing import cast
 
 import numpy as np
 import pandas as pd
@@ -111,7 +112,7 @@ def simulate(cfg: DictConfig, seed: int | None = None) -> pd.DataFrame:
         if truth.car is not None and cfg.get("receiver") is not None:
             raise LboError("receiver: a free_drive of the car that slips does not keep the rear "
                            "slip its velocity needs; use stop_and_go or a test manoeuvre")
-        out = free_drive(spec, duration, alpha, seed)
+        out = free_drive(spec, cast(float, duration), alpha, seed)  # checked for a free drive
         z, u, m, run_in, slip = out["z"], out["u"], out["m"], 0, None
     else:
         if name == STOP_AND_GO:

@@ -12,7 +12,7 @@ import subprocess
 import sys
 import warnings
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, cast
 
 import torch
 from hydra.utils import instantiate
@@ -205,7 +205,7 @@ def _train(cfg: DictConfig, built: Built, callbacks: list[L.Callback] | None,
             cfg = cfg.copy()
             with open_dict(cfg):
                 cfg.output_dir = str(folder)
-            resume_ckpt = folder / "checkpoints" / LAST
+            resume_ckpt = cast(Path, folder) / "checkpoints" / LAST  # an id comes with its folder
             print(f"resuming the killed run {resume_id} (same config) from {resume_ckpt}")
     if resume_ckpt is None:  # a new run: never into another run's files
         refusal = folder_refusal(Path(cfg.output_dir), digest, bool(cfg.get("resume")))
@@ -229,7 +229,7 @@ def _fit(cfg: DictConfig, built: Built, callbacks: list[L.Callback] | None,
     L.seed_everything(cfg.seed, workers=True, verbose=False)
     folder, data_hash = prepare_data(cfg)
     dm = datamodule(cfg, folder, built)
-    module = TrainingModule(OmegaConf.to_container(cfg.model, resolve=True), cfg.window,
+    module = TrainingModule(cast(dict, OmegaConf.to_container(cfg.model, resolve=True)), cfg.window,
                             cfg.features, instantiate(cfg.optimizer),
                             {**meta(cfg, data_hash), "envelope": training_envelope(cfg, dm)},
                             cfg.get("lr_schedule", "constant"), bool(built.fix_periods),

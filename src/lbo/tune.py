@@ -36,7 +36,7 @@ import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import optuna
 from omegaconf import DictConfig, OmegaConf, open_dict
@@ -346,7 +346,8 @@ def _run_study(cfg: DictConfig, space: list[Param], pruner: optuna.pruners.BaseP
     counts = {s: len(study.get_trials(deepcopy=False, states=(s,))) for s in TrialState}
     if best is None:
         if counts[TrialState.COMPLETE]:
-            _, better = best_trials(study, space)
+            # none inside, some completed: the best of them lies outside
+            better = cast(FrozenTrial, best_trials(study, space)[1])
             raise LboError(f"study {t.study_name}: none of its {counts[TrialState.COMPLETE]} "
                            f"completed trials lies in the current search space (trial "
                            f"{better.number}: {outside_space(better, space)}), so no hand-off "
@@ -354,7 +355,8 @@ def _run_study(cfg: DictConfig, space: list[Param], pruner: optuna.pruners.BaseP
         raise LboError(f"study {t.study_name}: no trial has completed "
                        f"({counts[TrialState.PRUNED]} pruned, {counts[TrialState.FAIL]} failed),"
                        f" so no hand-off was written; rerun with a larger tune.n_trials")
-    command = train_command(cfg.model.name, handoff, hydra_searchpath(), cfg.features)
+    # a best trial: its hand-off was written
+    command = train_command(cfg.model.name, cast(Path, handoff), hydra_searchpath(), cfg.features)
     params = {p.key: p.decode(best.params[p.key]) for p in space if p.key in best.params}
     print(f"best: trial {best.number}, val_loss {best.value:.6g}: "
           + " ".join(f"{k}={short_value(v)}" for k, v in params.items()))

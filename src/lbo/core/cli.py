@@ -14,7 +14,7 @@ import sqlite3
 import sys
 from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import Any, NoReturn, TextIO
+from typing import Any, NoReturn, TextIO, cast
 
 import hydra
 from omegaconf import DictConfig
@@ -105,7 +105,8 @@ def store_error(err: BaseException, cfg: DictConfig | None) -> LboError | None:
         if reason is not None:
             if os.environ.get("MLFLOW_TRACKING_URI") == uri:
                 field = "MLFLOW_TRACKING_URI"
-            return LboError(damaged_store_message(field, path, reason))
+            # a reason: there is a path
+            return LboError(damaged_store_message(field, cast(Path, path), reason))
     return None
 
 
@@ -235,7 +236,8 @@ def command_help(config_name: str) -> str:
 
     path = CONF_DIR / f"{config_name}.yaml"
     groups = {}
-    for item in OmegaConf.to_container(OmegaConf.load(path)).get("defaults") or []:
+    config = cast(dict, OmegaConf.to_container(OmegaConf.load(path)))  # a mapping's: a dict
+    for item in config.get("defaults") or []:
         if not isinstance(item, dict):  # _self_
             continue
         key, choice = next(iter(item.items()))

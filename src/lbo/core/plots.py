@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import itertools
 from pathlib import Path
+from typing import cast
 
 import matplotlib
 
@@ -163,7 +164,7 @@ def observed_log(t: np.ndarray, meas: np.ndarray, est: np.ndarray, name: str,
             if err is not None:
                 ax.plot(t, scale * err[:, c], lw=0.9, color=color, label=f"error of {label}")
                 for k, other in others.items():
-                    e = other[:, c] - truth[:, c]
+                    e = other[:, c] - cast(np.ndarray, truth)[:, c]  # an err: a truth
                     e = wrap_angle(e) if c == 2 else e
                     ax.plot(t, scale * e, lw=0.8, color=other_colors[k], ls=("-", "--")[c % 2],
                             label=f"{k}: error of {label}")

@@ -31,7 +31,7 @@ time; over a batch lbo's own run their vectorised forms, a plug-in its stepper s
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, Literal, overload
 
 import numpy as np
 
@@ -106,6 +106,21 @@ def measurement_cov(name: str, noise: Noise, alpha: float | np.ndarray, g: int) 
     return np.einsum("gi,ij->gij", np.square(noise.meas(scale)), np.eye(3))
 
 
+@overload
+def estimate(name: str, m: np.ndarray, u: np.ndarray, vehicle: Vehicle, noise: Noise,
+             alpha: float | np.ndarray = ..., progress: bool = ..., truth: Truth | None = ...,
+             return_cov: Literal[False] = ..., smooth: bool = ...,
+             lengths: np.ndarray | None = ..., gyro: GyroNoise | None = ...) -> np.ndarray: ...
+@overload
+def estimate(name: str, m: np.ndarray, u: np.ndarray, vehicle: Vehicle, noise: Noise,
+             alpha: float | np.ndarray = ..., progress: bool = ..., truth: Truth | None = ...,
+             *, return_cov: Literal[True], smooth: bool = ...,
+             lengths: np.ndarray | None = ..., gyro: GyroNoise | None = ...) -> Posterior: ...
+@overload
+def estimate(name: str, m: np.ndarray, u: np.ndarray, vehicle: Vehicle, noise: Noise,
+             alpha: float | np.ndarray = ..., progress: bool = ..., truth: Truth | None = ...,
+             *, return_cov: bool, smooth: bool = ..., lengths: np.ndarray | None = ...,
+             gyro: GyroNoise | None = ...) -> np.ndarray | Posterior: ...
 def estimate(name: str, m: np.ndarray, u: np.ndarray, vehicle: Vehicle, noise: Noise,
         alpha: float | np.ndarray = 1.0, progress: bool = False,
         truth: Truth | None = None, return_cov: bool = False, smooth: bool = False,
@@ -135,7 +150,6 @@ def estimate(name: str, m: np.ndarray, u: np.ndarray, vehicle: Vehicle, noise: N
         return _from_first_fixes(name, m, u, vehicle, noise, alpha, progress, return_cov,
                                  smooth, lengths, gyro)
     R = measurement_cov(name, noise, alpha, np.shape(m)[0])
-    kw = {"return_cov": return_cov, "smooth": smooth, "lengths": lengths}
     try:
         if name not in ON_LOGS:  # a plug-in: its stepper, step by step
             if smooth:
@@ -152,11 +166,13 @@ def estimate(name: str, m: np.ndarray, u: np.ndarray, vehicle: Vehicle, noise: N
             return gyro_ekf_batch(m, u, vehicle, gyro.Q, R, return_cov=return_cov,
                                   **gyro.stepper())
         if name == "adaptive":
-            return adaptive_ekf_batch(m, u, vehicle, noise.Q, R, **kw)
+            return adaptive_ekf_batch(m, u, vehicle, noise.Q, R, return_cov=return_cov,
+                                      smooth=smooth, lengths=lengths)
         if name == "ukf":
             return ukf_batch(m, u, vehicle, noise.Q, R, spread=UKF_SPREAD, progress=progress,
-                             **kw)
-        return ekf_batch(m, u, vehicle, noise.Q, R, **kw)
+                             return_cov=return_cov, smooth=smooth, lengths=lengths)
+        return ekf_batch(m, u, vehicle, noise.Q, R, return_cov=return_cov, smooth=smooth,
+                         lengths=lengths)
     except np.linalg.LinAlgError as e:  # a covariance no longer positive definite
         raise LboError(f"{name}: the filter diverged ({e}); check the data's values and "
                        "units") from None

@@ -37,6 +37,8 @@ and the pose added back: exact, and free of round-off at large coordinates.
 
 from __future__ import annotations
 
+from typing import Literal, overload
+
 import numpy as np
 
 from lbo.core.angles import wrap_angle
@@ -297,6 +299,23 @@ class DynamicStepper:
         return self.P[:, :3, :3]
 
 
+@overload
+def dynamic_ekf_batch(m: np.ndarray, u: np.ndarray, vehicle: Vehicle, car: Car,
+                      Q: np.ndarray, R: np.ndarray, gnss_sigma: np.ndarray | float = ...,
+                      gnss_tau: float = ..., steering_offset: float = ...,
+                      speed_scale: float = ..., return_cov: Literal[False] = ...
+                      ) -> np.ndarray: ...
+@overload
+def dynamic_ekf_batch(m: np.ndarray, u: np.ndarray, vehicle: Vehicle, car: Car,
+                      Q: np.ndarray, R: np.ndarray, gnss_sigma: np.ndarray | float = ...,
+                      gnss_tau: float = ..., steering_offset: float = ...,
+                      speed_scale: float = ..., *, return_cov: Literal[True]) -> Posterior: ...
+@overload
+def dynamic_ekf_batch(m: np.ndarray, u: np.ndarray, vehicle: Vehicle, car: Car,
+                      Q: np.ndarray, R: np.ndarray, gnss_sigma: np.ndarray | float = ...,
+                      gnss_tau: float = ..., steering_offset: float = ...,
+                      speed_scale: float = ..., *, return_cov: bool
+                      ) -> np.ndarray | Posterior: ...
 def dynamic_ekf_batch(m: np.ndarray, u: np.ndarray, vehicle: Vehicle, car: Car,
                       Q: np.ndarray, R: np.ndarray, gnss_sigma: np.ndarray | float = 0.0,
                       gnss_tau: float = 30.0, steering_offset: float = 0.0,

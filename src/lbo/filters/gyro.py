@@ -26,14 +26,14 @@ import json
 import math
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal, TypedDict, overload
 
 import numpy as np
 
 from lbo.core.errors import LboError
 from lbo.filters import measure
 from lbo.filters.start import CourseStart, batch_cov, check_trajectories, start_state
-from lbo.filters.stepper import run_stepper
+from lbo.filters.stepper import Posterior, run_stepper
 from lbo.filters.update import joseph_update
 from lbo.sim.vehicle import Vehicle
 
@@ -49,6 +49,12 @@ STILL_SPEED = 0.05
 """Speed (m/s) below which the car stands: it does not turn, so its heading is held and the
 gyro's reading is its bias (a zero-rate update, as INS filters make at standstill)."""
 
+
+class GyroKeywords(TypedDict):
+    """What :meth:`GyroNoise.stepper` gives: keywords of :class:`GyroStepper`."""
+
+    gyro_sigma: float
+    bias_walk: float
 
 
 @dataclass(frozen=True)
@@ -101,7 +107,7 @@ class GyroNoise:
         return measure.rows(m, sigma, receiver[:, 3:5], receiver[:, 5], u[:, 0], u[:, 1],
                             self.course_lever, self.velocity_scale)
 
-    def stepper(self) -> dict[str, float]:
+    def stepper(self) -> GyroKeywords:
         """The keyword arguments of :class:`GyroStepper` and :func:`gyro_ekf_batch`."""
         return {"gyro_sigma": self.gyro_sigma, "bias_walk": self.bias_walk}
 
@@ -243,9 +249,33 @@ class GyroStepper:
         return self.x[:, :3]
 
 
+@overload
+def gyro_ekf_batch(m: np.ndarray, u: np.ndarray, vehicle: Vehicle, Q: np.ndarray,
+                   R: np.ndarray, return_cov: Literal[False] = ...,
+                   return_bias: Literal[False] = ..., **gyro: Any) -> np.ndarray: ...
+@overload
+def gyro_ekf_batch(m: np.ndarray, u: np.ndarray, vehicle: Vehicle, Q: np.ndarray,
+                   R: np.ndarray, return_cov: Literal[True],
+                   return_bias: Literal[False] = ..., **gyro: Any) -> Posterior: ...
+@overload
+def gyro_ekf_batch(m: np.ndarray, u: np.ndarray, vehicle: Vehicle, Q: np.ndarray,
+                   R: np.ndarray, return_cov: bool, return_bias: Literal[False] = ...,
+                   **gyro: Any) -> np.ndarray | Posterior: ...
+@overload
+def gyro_ekf_batch(m: np.ndarray, u: np.ndarray, vehicle: Vehicle, Q: np.ndarray,
+                   R: np.ndarray, return_cov: Literal[False] = ..., *,
+                   return_bias: Literal[True], **gyro: Any) -> tuple[np.ndarray, np.ndarray]: ...
+@overload
+def gyro_ekf_batch(m: np.ndarray, u: np.ndarray, vehicle: Vehicle, Q: np.ndarray,
+                   R: np.ndarray, return_cov: Literal[True], return_bias: Literal[True],
+                   **gyro: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]: ...
+@overload
+def gyro_ekf_batch(m: np.ndarray, u: np.ndarray, vehicle: Vehicle, Q: np.ndarray,
+                   R: np.ndarray, return_cov: bool = ..., return_bias: bool = ...,
+                   **gyro: Any) -> np.ndarray | Posterior | tuple[np.ndarray, ...]: ...
 def gyro_ekf_batch(m: np.ndarray, u: np.ndarray, vehicle: Vehicle, Q: np.ndarray,
                    R: np.ndarray, return_cov: bool = False, return_bias: bool = False,
-                   **gyro) -> np.ndarray | tuple[np.ndarray, ...]:
+                   **gyro: Any) -> np.ndarray | Posterior | tuple[np.ndarray, ...]:
     """:class:`GyroStepper` over G trajectories (a loop over time only).
 
     m : (G, T, 3) or (G, T, 8) rows; u : (G, T, 2) ``[V, r_m]``; Q (3, 3); R (3, 3) or
@@ -261,4 +291,5 @@ def gyro_ekf_batch(m: np.ndarray, u: np.ndarray, vehicle: Vehicle, Q: np.ndarray
                       cov=lambda kf: kf.P[:, :3, :3])
     if not return_bias:
         return out
-    return (*out, flt.x[:, 3]) if return_cov else (out, flt.x[:, 3])
+    # out is a Posterior exactly when return_cov
+    return (*out, flt.x[:, 3]) if isinstance(out, Posterior) else (out, flt.x[:, 3])

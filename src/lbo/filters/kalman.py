@@ -15,6 +15,8 @@ R nothing.
 
 from __future__ import annotations
 
+from typing import Any, Literal, overload
+
 import numpy as np
 
 from lbo.core.angles import wrap_angle
@@ -116,6 +118,7 @@ class KalmanStepper:
             # exponentially forgotten running mean, weights 1 / (b W + 1); held channels only
             self.weight = np.where(held, self.forgetting * self.weight + 1.0, self.weight)
             d = np.where(held, 1.0 / self.weight, 0.0)
+            assert self.r_floor is not None, "forgetting needs r_floor (adaptive_settings)"
             self.r_hat = np.maximum((1.0 - d) * self.r_hat + d * (y**2 - P[:, diag, diag]),
                                     self.r_floor)
             R = R.copy()
@@ -231,13 +234,25 @@ def adaptive_settings(R0: np.ndarray, g: int, forgetting: float = 0.99,
 
 def _ekf_loop(m: np.ndarray, u: np.ndarray, vehicle: Vehicle, Q: np.ndarray, R: np.ndarray,
               return_cov: bool, smooth: bool = False, lengths: np.ndarray | None = None,
-              **adaptive):
+              **adaptive: Any) -> np.ndarray | Posterior:
     """Shared time loop of :func:`ekf_batch` and :func:`adaptive_ekf_batch`."""
     m, u = check_trajectories(m, u)
     kf = KalmanStepper(m[:, 0], vehicle, check_q(Q), batch_cov(R, m.shape[0], "R"), **adaptive)
     return run_stepper(kf, m, u, return_cov, smooth=smooth, lengths=lengths)
 
 
+@overload
+def ekf_batch(m: np.ndarray, u: np.ndarray, vehicle: Vehicle, Q: np.ndarray, R: np.ndarray,
+              return_cov: Literal[False] = ..., smooth: bool = ...,
+              lengths: np.ndarray | None = ...) -> np.ndarray: ...
+@overload
+def ekf_batch(m: np.ndarray, u: np.ndarray, vehicle: Vehicle, Q: np.ndarray, R: np.ndarray,
+              return_cov: Literal[True], smooth: bool = ...,
+              lengths: np.ndarray | None = ...) -> Posterior: ...
+@overload
+def ekf_batch(m: np.ndarray, u: np.ndarray, vehicle: Vehicle, Q: np.ndarray, R: np.ndarray,
+              return_cov: bool, smooth: bool = ...,
+              lengths: np.ndarray | None = ...) -> np.ndarray | Posterior: ...
 def ekf_batch(m: np.ndarray, u: np.ndarray, vehicle: Vehicle, Q: np.ndarray, R: np.ndarray,
               return_cov: bool = False, smooth: bool = False,
               lengths: np.ndarray | None = None) -> np.ndarray | Posterior:
@@ -274,6 +289,21 @@ class AdaptiveStepper(KalmanStepper):
         super().__init__(m0, vehicle, Q, **adaptive_settings(R, len(m0)))
 
 
+@overload
+def adaptive_ekf_batch(m: np.ndarray, u: np.ndarray, vehicle: Vehicle, Q: np.ndarray,
+                       R0: np.ndarray, forgetting: float = ..., prior_weight: float = ...,
+                       r_floor: float = ..., return_cov: Literal[False] = ...,
+                       smooth: bool = ..., lengths: np.ndarray | None = ...) -> np.ndarray: ...
+@overload
+def adaptive_ekf_batch(m: np.ndarray, u: np.ndarray, vehicle: Vehicle, Q: np.ndarray,
+                       R0: np.ndarray, forgetting: float = ..., prior_weight: float = ...,
+                       r_floor: float = ..., *, return_cov: Literal[True],
+                       smooth: bool = ..., lengths: np.ndarray | None = ...) -> Posterior: ...
+@overload
+def adaptive_ekf_batch(m: np.ndarray, u: np.ndarray, vehicle: Vehicle, Q: np.ndarray,
+                       R0: np.ndarray, forgetting: float = ..., prior_weight: float = ...,
+                       r_floor: float = ..., *, return_cov: bool, smooth: bool = ...,
+                       lengths: np.ndarray | None = ...) -> np.ndarray | Posterior: ...
 def adaptive_ekf_batch(m: np.ndarray, u: np.ndarray, vehicle: Vehicle, Q: np.ndarray,
                        R0: np.ndarray, forgetting: float = 0.99, prior_weight: float = 1.0,
                        r_floor: float = 1e-4,

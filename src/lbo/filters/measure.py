@@ -28,6 +28,7 @@ course]`` that :func:`lbo.filters.update.joseph_update` takes.
 from __future__ import annotations
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from lbo.core.angles import wrap_angle
 from lbo.core.errors import LboError
@@ -56,7 +57,7 @@ COURSE_MIN_SNR = 5.0
 where the linearised model (a Gaussian error on the angle) holds."""
 
 
-def widen(m: np.ndarray) -> np.ndarray:
+def widen(m: ArrayLike) -> np.ndarray:
     """Rows (..., 3) ``[x_m, y_m, psi_m]`` or (..., 8) :data:`CHANNELS` -> (..., 8), the
     missing channels NaN (a 3-wide row reports no accuracy and no velocity)."""
     m = np.asarray(m, dtype=float)
@@ -69,7 +70,7 @@ def widen(m: np.ndarray) -> np.ndarray:
     return np.concatenate([m, pad], axis=-1)
 
 
-def course_over_ground(ve: np.ndarray, vn: np.ndarray, sv: np.ndarray, V: np.ndarray,
+def course_over_ground(ve: np.ndarray, vn: np.ndarray, sv: np.ndarray, V: np.ndarray | None,
                        turn: np.ndarray | None = None, lever: float = COURSE_LEVER,
                        trust: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
     """The course channel of GNSS velocities: ``(course, s_course)`` (T,) rad, NaN where not held.
@@ -77,7 +78,7 @@ def course_over_ground(ve: np.ndarray, vn: np.ndarray, sv: np.ndarray, V: np.nda
     ve, vn : (T,) m/s east and north, NaN where the row has no velocity.
     sv : (T,) their 1-sigma (m/s), NaN: :data:`SV_DEFAULT`.
     V : (T,) the speed input (m/s); where it is negative the car reverses and its heading is
-        the course plus pi.
+        the course plus pi (None, read as NaN: never).
     turn : (T,) the turn rate (rad/s), e.g. ``V tan(delta) / L``, or None (not allowed for).
     lever : the antenna's distance (m) from the rear axle that the variance allows for.
     trust : a factor on ``sv`` in the variance (a learned ``velocity_scale``); which rows hold

@@ -46,13 +46,15 @@ class BicycleEKF(ExtendedKalmanFilter):
     Q, R : (3, 3) process and measurement covariances (public, as in filterpy).
     """
 
+    x: np.ndarray  # filterpy's, untyped
+
     def __init__(self, vehicle: Vehicle, Q: np.ndarray, R: np.ndarray) -> None:
         super().__init__(dim_x=3, dim_z=3)
         self.vehicle = vehicle
         self.Q = check_q(Q).copy()
         self.R = np.asarray(R, dtype=float).copy()
 
-    def predict_x(self, u: np.ndarray = 0) -> None:
+    def predict_x(self, u: np.ndarray = 0) -> None:  # type: ignore[assignment]  # filterpy's u=0
         """Bicycle step ``z + f(z, u) dt``; u: (2,) ``[V, delta]``.
 
         Also sets ``F`` at the pre-step state, which filterpy's ``predict`` then uses for P.

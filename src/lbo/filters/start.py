@@ -85,7 +85,7 @@ def start_state(m0: np.ndarray, R: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     x[blind, 2] = 0.0
     for rows, var in ((by_course, np.square(m0[:, 7])), (blind, HEADING_VAR0)):
         P[rows, 2, :] = P[rows, :, 2] = 0.0
-        P[rows, 2, 2] = var[rows] if np.ndim(var) else var
+        P[rows, 2, 2] = var[rows] if isinstance(var, np.ndarray) else var
     return x, P
 
 class CourseStart:

@@ -24,7 +24,7 @@ the same numbers. docs/plugins.md states the contract for a user's own observer.
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import Any, NamedTuple
+from typing import Any, Literal, NamedTuple, cast, overload
 
 import numpy as np
 from tqdm.auto import tqdm
@@ -40,7 +40,22 @@ class Posterior(NamedTuple):
     """(G, T, 3, 3) their covariances: the filter's P of the pose (m^2, m rad, rad^2)."""
 
 
-def run_stepper(kf, m: np.ndarray, u: np.ndarray, return_cov: bool = False,
+@overload
+def run_stepper(kf: Any, m: np.ndarray, u: np.ndarray, return_cov: Literal[False] = ...,
+                pose: Callable[[Any], np.ndarray] = ..., cov: Callable[[Any], np.ndarray] = ...,
+                smooth: bool = ..., progress: str | None = ...,
+                lengths: np.ndarray | None = ...) -> np.ndarray: ...
+@overload
+def run_stepper(kf: Any, m: np.ndarray, u: np.ndarray, return_cov: Literal[True],
+                pose: Callable[[Any], np.ndarray] = ..., cov: Callable[[Any], np.ndarray] = ...,
+                smooth: bool = ..., progress: str | None = ...,
+                lengths: np.ndarray | None = ...) -> Posterior: ...
+@overload
+def run_stepper(kf: Any, m: np.ndarray, u: np.ndarray, return_cov: bool,
+                pose: Callable[[Any], np.ndarray] = ..., cov: Callable[[Any], np.ndarray] = ...,
+                smooth: bool = ..., progress: str | None = ...,
+                lengths: np.ndarray | None = ...) -> np.ndarray | Posterior: ...
+def run_stepper(kf: Any, m: np.ndarray, u: np.ndarray, return_cov: bool = False,
                 pose: Callable[[Any], np.ndarray] = lambda kf: kf.x,
                 cov: Callable[[Any], np.ndarray] = lambda kf: kf.P, smooth: bool = False,
                 progress: str | None = None, lengths: np.ndarray | None = None
@@ -89,6 +104,7 @@ def run_stepper(kf, m: np.ndarray, u: np.ndarray, return_cov: bool = False,
         bar.update(1)
         k += 1
     bar.close()
+    # covs is an array wherever it is read below: made above for return_cov or smooth
     if smooth:
-        est, covs = rts(est, covs, x_p, P_p, cross, lengths=lengths)
-    return Posterior(est, covs) if return_cov else est
+        est, covs = rts(est, cast(np.ndarray, covs), x_p, P_p, cross, lengths=lengths)
+    return Posterior(est, cast(np.ndarray, covs)) if return_cov else est

@@ -7,6 +7,8 @@ conventions of :mod:`lbo.filters.start`.
 
 from __future__ import annotations
 
+from typing import Literal, overload
+
 import numpy as np
 
 from lbo.core.angles import wrap_angle
@@ -122,6 +124,19 @@ class UnscentedStepper:
         return self.x
 
 
+@overload
+def ukf_batch(m: np.ndarray, u: np.ndarray, vehicle: Vehicle, Q: np.ndarray, R: np.ndarray,
+              spread: float = ..., progress: bool = ..., return_cov: Literal[False] = ...,
+              smooth: bool = ..., lengths: np.ndarray | None = ...) -> np.ndarray: ...
+@overload
+def ukf_batch(m: np.ndarray, u: np.ndarray, vehicle: Vehicle, Q: np.ndarray, R: np.ndarray,
+              spread: float = ..., progress: bool = ..., *, return_cov: Literal[True],
+              smooth: bool = ..., lengths: np.ndarray | None = ...) -> Posterior: ...
+@overload
+def ukf_batch(m: np.ndarray, u: np.ndarray, vehicle: Vehicle, Q: np.ndarray, R: np.ndarray,
+              spread: float = ..., progress: bool = ..., *, return_cov: bool,
+              smooth: bool = ..., lengths: np.ndarray | None = ...
+              ) -> np.ndarray | Posterior: ...
 def ukf_batch(m: np.ndarray, u: np.ndarray, vehicle: Vehicle, Q: np.ndarray, R: np.ndarray,
               spread: float = UKF_SPREAD, progress: bool = False, return_cov: bool = False,
               smooth: bool = False, lengths: np.ndarray | None = None

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 import torch
@@ -54,7 +54,7 @@ def build_net(cfg: DictConfig, periods: tuple[int, ...] | None = None):
 
     if periods is None:
         periods = fix_periods(cfg.get("fix_rates"), cfg.vehicle.dt)
-    model = OmegaConf.to_container(cfg.model, resolve=True)
+    model = cast(dict, OmegaConf.to_container(cfg.model, resolve=True))  # a mapping's: a dict
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(cfg.seed)
         return WindowNet(model.pop("name"), cfg.window, cfg.features, bool(periods),
@@ -177,7 +177,7 @@ def noise_settings(cfg: DictConfig) -> dict[str, Any]:
     repeats = integer(tn.get("val_repeats", 1), "train_noise.val_repeats", 1)
     out = {"draw": draw, "sigma": tuple(cfg.noise.measurement_sigma),
            "weight_offset": offset, "val_repeats": repeats}
-    truth = cfg.get("truth") or {}
+    truth: Any = cfg.get("truth") or {}  # a config node (read as one), or none
     if truth.get("gnss_sigma", 0) > 0:  # the drawn noise drifts as the data set's does
         out["drift"] = (float(truth.gnss_sigma), float(truth.gnss_tau) / cfg.vehicle.dt)
     if cfg.get("receiver"):

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import time
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -65,7 +66,7 @@ class Evaluation(L.Callback):
         # the best weights through the one checkpoint reader, with its format checks
         net, hp = read_checkpoint(best) if best else (pl_module.observer, pl_module.hparams)
         vehicle, noise = trained_conditions(hp, best or "(in memory)")
-        folder = Path(trainer.datamodule.folder)
+        folder = Path(trainer.datamodule.folder)  # type: ignore[attr-defined]  # Lightning sets it
         name = f"{hp['model']['name']}-N{hp['window']}"
         device = str(trainer.strategy.root_device)
         if is_log_folder(folder):
@@ -81,7 +82,7 @@ class Evaluation(L.Callback):
             client.log_artifact(run, str(self.output_dir / "evaluation.csv"))
             client.log_artifact(run, str(self.output_dir / "nrmse.png"))
 
-    def _score_logs(self, folder: Path, net, hp: dict, name: str, vehicle, noise,
+    def _score_logs(self, folder: Path, net, hp: Mapping[str, Any], name: str, vehicle, noise,
                     device: str) -> None:
         """A user's test logs: the learned observer beside the EKF, the adaptive EKF and the
         UKF, pooled and per file (:mod:`lbo.scoring.logscore`)."""
@@ -96,7 +97,7 @@ class Evaluation(L.Callback):
         self.metrics = logscore.metrics(self.table, name)
         print(f"test logs ({logscore.NOTE}):\n{logscore.printable(self.table)}")
 
-    def _score_grid(self, folder: Path, net, hp: dict, name: str, vehicle, noise,
+    def _score_grid(self, folder: Path, net, hp: Mapping[str, Any], name: str, vehicle, noise,
                     device: str) -> None:
         """The test grid of a generated data set, per alpha level."""
         arr = load_test(folder / "test.parquet")

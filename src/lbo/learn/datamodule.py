@@ -14,7 +14,7 @@ same alpha distribution, so that early stopping measures what is being trained.
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import lightning as L
 import numpy as np
@@ -152,6 +152,7 @@ class WindowDataset(Dataset):
                      if self.sequences and self.draw.changes else
                      self.draw.sample(len(e), generator))
             weight = loss_weights(alpha, self.weight_offset)  # (B,), or (B, N) along
+            assert self.sigma is not None, "drawn noise needs the measurement sigmas"
             m = noisy_measurements(self.truth[s], alpha, self.sigma, generator, self.drift)
         if self.fix_periods:
             fix = draw_fixes(len(e), self.window, self.fix_periods, generator, e.device)
@@ -238,7 +239,7 @@ class WindowDataModule(L.LightningDataModule):
         self.drift, self.receiver, self.sequences = drift, receiver, bool(sequences)
         self.val_window = self.window  # shorter when trained carried (setup)
         self.train_set: WindowDataset | None = None
-        self.val_set: Dataset | None = None
+        self.val_set: WindowDataset | FixedDataset | None = None
         self.shuffle = torch.Generator().manual_seed(seed)  # the training order, epoch by epoch
         self._resumed_shuffle: torch.Tensor | None = None
 
@@ -286,14 +287,15 @@ class WindowDataModule(L.LightningDataModule):
         ``fix`` channel, a receiver's features), for its :meth:`set_normalisation`."""
         check_scaling(scaling)
         self.setup()
+        train = cast(WindowDataset, self.train_set)  # setup made it
         g = torch.Generator(device=self.device).manual_seed(self.seed)
-        pick = torch.randperm(len(self.train_set), generator=g, device=self.device)[:n]
-        win, state, _ = self.train_set.batch(pick, g)
+        pick = torch.randperm(len(train), generator=g, device=self.device)[:n]
+        win, state, _ = train.batch(pick, g)
         if self.sequences:  # every step's: the statistics are the last step's
             state = state[:, -1]
         return net.statistics(win, state, scaling)
 
-    def _loader(self, ds: Dataset, batch: int, shuffle: bool) -> DataLoader:
+    def _loader(self, ds: WindowDataset | FixedDataset, batch: int, shuffle: bool) -> DataLoader:
         # one __getitem__ per batch: the gather is vectorised, never a loop over samples
         if shuffle:  # a new loader starts the order afresh, or where a checkpoint left it
             self.shuffle = torch.Generator().manual_seed(self.seed)
@@ -322,10 +324,12 @@ class WindowDataModule(L.LightningDataModule):
         self._resumed_shuffle = state["shuffle"]  # for the loader Lightning makes next
         torch.set_rng_state(state["torch"])
         if "draws" in state:
-            self.train_set.generator.set_state(state["draws"])
+            cast(WindowDataset, self.train_set).generator.set_state(state["draws"])  # set up
 
+    # the sets exist once set up, which Lightning does before it asks for a loader
     def train_dataloader(self) -> DataLoader:
-        return self._loader(self.train_set, self.batch_size, shuffle=True)
+        return self._loader(cast(WindowDataset, self.train_set), self.batch_size, shuffle=True)
 
     def val_dataloader(self) -> DataLoader:
-        return self._loader(self.val_set, self.eval_batch_size, shuffle=False)
+        return self._loader(cast(WindowDataset | FixedDataset, self.val_set),
+                            self.eval_batch_size, shuffle=False)

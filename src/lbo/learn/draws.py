@@ -12,7 +12,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, TypedDict
 
 import numpy as np
 import torch
@@ -158,7 +158,14 @@ def noisy_measurements(z: torch.Tensor, alpha: torch.Tensor, sigma: torch.Tensor
     return wrap_heading(m)
 
 
-def gauss_markov(shape: tuple[int, int], tau: float, generator: torch.Generator,
+class TensorOptions(TypedDict):
+    """The dtype and device of the tensors a draw makes: ``torch.randn(..., **opts)``."""
+
+    dtype: torch.dtype
+    device: torch.device
+
+
+def gauss_markov(shape: tuple[int, ...], tau: float, generator: torch.Generator,
                  dtype: torch.dtype = torch.float64,
                  device: torch.device | str = "cpu") -> torch.Tensor:
     """(B, N, 2) unit-variance stationary first-order Gauss-Markov sequences along N, time
@@ -254,7 +261,7 @@ class ReceiverDraw:
 
         spec, dt = self.spec, self.dt
         b, n = fix.shape
-        opts = {"dtype": z.dtype, "device": z.device}
+        opts: TensorOptions = {"dtype": z.dtype, "device": z.device}
 
         def late(a: torch.Tensor, latency: float) -> torch.Tensor:
             # a (B, N, ...) as it was ``latency`` s before each row, interpolated; the first

@@ -23,6 +23,7 @@ from __future__ import annotations
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import cast
 
 import numpy as np
 import pandas as pd
@@ -68,7 +69,8 @@ def _columns(log: pd.DataFrame) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     if np.isfinite(m[:, 2]).any():
         raise LboError("the gyro EKF's noise is learned from single-antenna logs: psi_m must "
                        "be empty")
-    return m, log[["V", "r_m"]].to_numpy(dtype=float), receiver(log)
+    # r_m is a receiver channel: the log has them
+    return m, log[["V", "r_m"]].to_numpy(dtype=float), cast(np.ndarray, receiver(log))
 
 
 def _preset(noise: GyroNoise, R: np.ndarray) -> Noise:
@@ -101,7 +103,9 @@ def segments(log: pd.DataFrame, noise: GyroNoise, vehicle: Vehicle, R: np.ndarra
     begin = int(np.argmax(np.isfinite(rows[:, 0]) & np.isfinite(rows[:, 1])))
     flt = classical.stepper(classical.GYRO, rows[begin][None], vehicle, _preset(noise, R),
                             gyro=noise)
-    x0, P0 = {}, {}
+    # by step, read back at NumPy integers (which hash as the ints)
+    x0: dict[int | np.integer, np.ndarray] = {}
+    P0: dict[int | np.integer, np.ndarray] = {}
     wanted = set(starts.tolist())
     for k in range(begin, starts[-1] + 1):
         if k > begin:

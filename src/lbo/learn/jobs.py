@@ -8,6 +8,7 @@ import dataclasses
 import re
 from dataclasses import dataclass
 from pathlib import Path
+from typing import cast
 
 from omegaconf import DictConfig
 
@@ -43,6 +44,7 @@ def model_window(name: str, field: str) -> tuple[str, int]:
     """``cnn-N60`` -> ("cnn", 60); anything else a one-line error naming ``field``."""
     found = re.fullmatch(r"([a-z][a-z0-9_]*)-N([1-9][0-9]*)", str(name))
     require(found is not None, field, "a list of <model>-N<window> (e.g. cnn-N60)", name)
+    found = cast(re.Match[str], found)  # required just above
     return found.group(1), int(found.group(2))
 
 

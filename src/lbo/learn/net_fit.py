@@ -194,7 +194,7 @@ def fit_and_write(path: Path, source: str, train_logs: Sequence[pd.DataFrame],
     meta = dict(hp.get("meta") or {})
     u = np.concatenate([log[list(INPUT)].to_numpy(dtype=float) for log in train_logs])
     rows = sum(len(log) for log in train_logs)
-    fixes = sum(int(log[list(MEAS[:2])].notna().all(1).sum()) for log in train_logs)
+    fixes = sum(int(log[list(MEAS[:2])].notna().all(axis=1).sum()) for log in train_logs)
     seen = Envelope.from_training(u, None, (rows / max(fixes, 1),) * 2)
     before = None if fresh else stored_envelope(f"{net.model}-N{net.window}", meta)
     meta["envelope"] = (seen if before is None else before.union(seen)).to_dict()

@@ -19,7 +19,7 @@ import json
 import os
 import stat
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 from omegaconf import DictConfig, OmegaConf, open_dict
 
@@ -30,15 +30,15 @@ from lbo.core.paths import sqlite_path
 from lbo.core.runfolder import LOCK_NAME
 from lbo.sim.log_sets import is_logs
 
-LATER_DEFAULTS = {"normalisation": "standard", "receiver": None,
+LATER_DEFAULTS: dict[str, Any] = {"normalisation": "standard", "receiver": None,
                   "receiver_training": {"heading_share": 0.25, "gyro_share": 0.75},
                   "model.gyro": False, "tbptt": None,
                   "sequence_length": None, "nll": 0.0, "train_noise.changes": 0}
 """Settings added after runs were stored (a dotted key: one inside a group), with the value
 those runs had: a config holding that value hashes as if it did not have the key, so
 resume=true still finds the old runs."""
-LATER_MODEL_DEFAULTS = {name: {"body": "kinematic", "body_lr": 1.0}
-                        for name in ("kalmannet", "split_kalmannet")}
+LATER_MODEL_DEFAULTS: dict[str, dict[str, Any]] = {name: {"body": "kinematic", "body_lr": 1.0}
+                                                  for name in ("kalmannet", "split_kalmannet")}
 """As :data:`LATER_DEFAULTS`, for the settings added to one model's config (``model.body`` of
 the KalmanNet peers, which the robust observer's config has had from the start)."""
 
@@ -250,6 +250,7 @@ def resumable_folder(folder: Path, run_id: str, digest: str) -> str | None:
     folder's ``checkpoints``."""
     import torch
 
+    why: str | None
     marker, why = read_marker(folder)
     if marker is None:
         return f"its output folder {folder} was not created for it here ({why})"
@@ -306,13 +307,14 @@ def folder_refusal(folder: Path, digest: str | None, resume: bool,
         return None
     marker, _ = read_marker(folder)
     same = marker is not None and (digest is None or marker.get("config_hash") == digest)
-    if same and resume and (finished_ok or not marker.get("finished")):
+    # same: there is a marker
+    if same and resume and (finished_ok or not cast(dict, marker).get("finished")):
         return None
     if marker is not None and marker.get("finished"):
         what = f"the files of the finished run {marker.get('run_id')}"
     elif same:
-        what = (f"the files of the unfinished run {marker.get('run_id')} of this config "
-                "(add resume=true to continue or replace it)")
+        what = (f"the files of the unfinished run {cast(dict, marker).get('run_id')} of this "
+                "config (add resume=true to continue or replace it)")
     elif marker is not None:
         what = f"the files of run {marker.get('run_id')} of another config"
     else:

@@ -40,9 +40,10 @@ def model_names() -> tuple[str, ...]:
     return plugins.names("model")
 
 
-def model_class(name: str, recorded: dict[str, Any] | None = None) -> type[nn.Module]:
+def model_class(name: object, recorded: dict[str, Any] | None = None) -> type[nn.Module]:
     """The class registered as ``name``; ``recorded``: the provider a checkpoint stored, for
-    the error when it is not installed. Raises LboError naming ``model.name``."""
+    the error when it is not installed. Raises LboError naming ``model.name`` (for a ``name``
+    that is not a registered name, of any type: a checkpoint's is read unchecked)."""
     from torch import nn
 
     cls = plugins.load("model", name, "model.name", recorded)

@@ -10,6 +10,7 @@ file names is ever imported.
 from __future__ import annotations
 
 import os
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -98,7 +99,7 @@ def read_checkpoint(path: str | os.PathLike, features: str | None = None,
     return net.to(device).eval(), hp
 
 
-def trained_conditions(hp: dict[str, Any], path: str | os.PathLike) -> tuple[Vehicle, Noise]:
+def trained_conditions(hp: Mapping[str, Any], path: str | os.PathLike) -> tuple[Vehicle, Noise]:
     """The vehicle and noise preset a checkpoint was trained with (``hp["meta"]``), for the
     reference filters and the streaming fallback; raises LboError naming the file."""
     meta = hp.get("meta") or {}

@@ -24,11 +24,15 @@ from __future__ import annotations
 import math
 from collections import deque
 from dataclasses import asdict, dataclass
-from typing import Any, NamedTuple
+from typing import TYPE_CHECKING, Any, NamedTuple, TypedDict
 
 import numpy as np
 
 from lbo.core.errors import LboError
+
+if TYPE_CHECKING:
+    from lbo.sim.noise import Noise
+    from lbo.sim.vehicle import Vehicle
 
 FIELDS = ("speed", "steering", "alpha", "fix_period")
 """What an envelope bounds, in the order lines and reasons name them."""
@@ -57,6 +61,28 @@ PERIOD_SLACK = 1.5
 MODES = ("warn", "mark", "off")
 """What an observer does with rows outside its envelope: ``warn`` (say so, estimates stay
 valid), ``mark`` (say so, and set those rows' ``valid`` to false) or ``off`` (no check)."""
+
+
+class EnvelopeWarning(UserWarning):
+    """A learned observer was given samples outside the envelope of its training inputs."""
+
+
+class EnvelopeTerms(TypedDict):
+    """What :meth:`Envelope.check` and :meth:`Envelope.stream` read besides the log: the
+    sampling period (s), the wheelbase (m), the measurement sigma (m) and the window (steps)."""
+
+    dt: float
+    wheelbase: float
+    sigma: float
+    window: int
+
+
+def observer_terms(vehicle: Vehicle, noise: Noise, window: int) -> EnvelopeTerms:
+    """The :class:`EnvelopeTerms` of an observer of ``window`` samples on ``vehicle`` with
+    ``noise`` (its measurement sigma: the RMS of x's and y's at alpha = 1)."""
+    sx, sy = noise.measurement_sigma[:2]
+    return {"dt": vehicle.dt, "wheelbase": vehicle.wheelbase,
+            "sigma": float(np.sqrt((sx ** 2 + sy ** 2) / 2)), "window": window}
 
 
 def check_mode(mode: Any) -> str:
@@ -313,7 +339,7 @@ class EnvelopeStream:
         spacing = self.window / self.count if self.count else math.inf
         seen = {"speed": float(u[0]), "steering": float(u[1]), "alpha": math.nan,
                 "fix_period": spacing if k >= self.window - 1 else math.nan}
-        if fix:
+        if fix and m is not None:  # a fix has an m
             if len(self.last) == 2:
                 (j0, p0, v0, _), (j1, p1, v1, d1) = self.last
                 if j1 - j0 == k - j1:

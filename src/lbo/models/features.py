@@ -42,13 +42,14 @@ from lbo.sim.logcheck import fix_mask
 
 if TYPE_CHECKING:
     import torch
+    from typing_extensions import TypeIs
 
 FEATURE_MODES = ("relative", "frame", "absolute")
 
 Array = TypeVar("Array", np.ndarray, "torch.Tensor")
 
 
-def _is_tensor(a: object) -> bool:
+def _is_tensor(a: object) -> TypeIs[torch.Tensor]:
     """Whether ``a`` is a torch tensor. A tensor exists only once torch is imported, so numpy
     work (a classical observer's run, a log's checks) never imports torch through here."""
     torch = sys.modules.get("torch")

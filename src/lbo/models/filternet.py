@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from typing import TYPE_CHECKING, cast
 
 import torch
 from torch import nn
@@ -57,10 +58,10 @@ def check_sigmas(name: str, values: Sequence[float]) -> tuple[float, float, floa
     if len(out) != 3 or not all(math.isfinite(v) and v > 0 for v in out):
         raise LboError(f"model.{name}: expected three sigmas > 0 for [x (m), y (m), psi (rad)], "
                        f"got {values!r}")
-    return out  # type: ignore[return-value]
+    return out
 
 
-def frame_model(module: nn.Module, window: int, in_features: int, dt: float,
+def frame_model(module: ProcessModel, window: int, in_features: int, dt: float,
                 wheelbase: float, receiver: bool = False) -> None:
     """Set what a model over the kinematic bicycle in the latest fix's frame holds (the window
     filter, KalmanNet), each checked in one line: ``physical`` (it reads and writes metres and
@@ -116,6 +117,15 @@ class WindowFilter(ProcessModel, nn.Module):
         Needs a receiver's features and the kinematic bicycle without a residual.
     """
 
+    if TYPE_CHECKING:  # its buffers (or parameters) registered by name, for the type checker
+        log_q0: torch.Tensor
+        log_r0: torch.Tensor
+        log_drift_tau: torch.Tensor
+        log_drift_ratio: torch.Tensor
+        log_gyro_sigma: torch.Tensor
+        log_bias_sigma: torch.Tensor
+        log_bias_walk: torch.Tensor
+
     def __init__(self, window: int, dt: float = 0.02, wheelbase: float = 2.7,
                  process_sigma: Sequence[float] = (0.0667, 0.0667, 0.00113),
                  measurement_sigma: Sequence[float] = (1.0, 1.0, 0.0174),
@@ -137,8 +147,9 @@ class WindowFilter(ProcessModel, nn.Module):
         self.noise = nn.Sequential(nn.Linear(4 + self.fixes, hidden), nn.GELU(),
                                    nn.Linear(hidden, hidden),
                                    nn.GELU(), nn.Linear(hidden, 3))
-        nn.init.zeros_(self.noise[-1].weight)
-        nn.init.zeros_(self.noise[-1].bias)
+        head = cast(nn.Linear, self.noise[-1])  # the Linear made just above
+        nn.init.zeros_(head.weight)
+        nn.init.zeros_(head.bias)
         if not isinstance(drift, bool):
             raise LboError(f"model.drift: expected true or false, got {drift!r}")
         if drift and self.receiver:

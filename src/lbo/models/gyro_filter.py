@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from typing import NamedTuple
+from typing import TYPE_CHECKING, NamedTuple
 
 import torch
 from torch import nn
@@ -57,6 +57,9 @@ class GyroFilter(nn.Module):
     noise : the starting noise; dt : the sampling period (s); R : (3, 3) the filter's R
     where a fix reports no accuracy (its x, y block is used).
     """
+
+    if TYPE_CHECKING:  # a buffer registered by name, for the type checker
+        R2: torch.Tensor
 
     def __init__(self, noise: GyroNoise, dt: float, R: torch.Tensor) -> None:
         super().__init__()

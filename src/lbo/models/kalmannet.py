@@ -60,6 +60,7 @@ kinematic bicycle's at the first fix.
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import TYPE_CHECKING, cast
 
 import torch
 from torch import nn
@@ -114,6 +115,10 @@ class _GainFilter(ProcessModel, nn.Module):
     returns the gain (B, n x 3) in units (the measurement sigmas, :data:`BODY_UNITS`) and the
     states it carries; a step without a fix predicts, and the states hold. The subclasses
     build the network."""
+
+    if TYPE_CHECKING:  # buffers registered by name, for the type checker
+        units: torch.Tensor
+        state_units: torch.Tensor
 
     def _setup(self, window: int, dt: float, wheelbase: float,
                measurement_sigma: Sequence[float], in_features: int, body: str,
@@ -228,6 +233,11 @@ class KalmanNet(_GainFilter):
         and the single-track body's learning rate as a multiple of the optimiser's.
     """
 
+    if TYPE_CHECKING:  # parameters registered by name, for the type checker
+        h_q: torch.Tensor
+        h_sigma: torch.Tensor
+        h_s: torch.Tensor
+
     def __init__(self, window: int, dt: float = 0.02, wheelbase: float = 2.7,
                  measurement_sigma: Sequence[float] = (1.0, 1.0, 0.0174),
                  in_features: int = 5, width: int = 4, hidden: int = 64,
@@ -253,9 +263,10 @@ class KalmanNet(_GainFilter):
         self.fc_sigma_back = nn.Linear(2 * h, h)
         for name in ("h_q", "h_sigma", "h_s"):
             self.register_parameter(name, nn.Parameter(torch.zeros(h)))
-        nn.init.zeros_(self.fc_gain[-1].weight)
+        head = cast(nn.Linear, self.fc_gain[-1])  # the Linear made just above
+        nn.init.zeros_(head.weight)
         with torch.no_grad():
-            self.fc_gain[-1].bias.copy_(gain * torch.eye(n, m).flatten())
+            head.bias.copy_(gain * torch.eye(n, m).flatten())
 
     def _start(self, b: int) -> list[torch.Tensor]:
         return [self.h_q.expand(b, -1), self.h_sigma.expand(b, -1), self.h_s.expand(b, -1)]
@@ -286,6 +297,10 @@ class SplitKalmanNet(_GainFilter):
     width : P's GRU holds ``width * n^2`` units, S's ``width * 9``.
     gain : the gain's starting value, ``gain * [I 0]^T`` (P and S^-1 each ``sqrt(gain) I``).
     """
+
+    if TYPE_CHECKING:  # parameters registered by name, for the type checker
+        h_p: torch.Tensor
+        h_s: torch.Tensor
 
     def __init__(self, window: int, dt: float = 0.02, wheelbase: float = 2.7,
                  measurement_sigma: Sequence[float] = (1.0, 1.0, 0.0174),

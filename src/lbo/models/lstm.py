@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import cast
 
 import torch
 from torch import nn
@@ -75,7 +76,7 @@ class WindowLSTM(nn.Module):
         )
         xavier_init(self.head)
         for lstm in self.lstms:
-            _init_lstm(lstm)
+            _init_lstm(cast(nn.LSTM, lstm))  # the LSTMs made just above
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         """(B, N, in_features) float32 windows -> (B, 3) state estimates."""

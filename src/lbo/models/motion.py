@@ -22,6 +22,7 @@ form (:mod:`lbo.models.recursive`) both step with.
 from __future__ import annotations
 
 import math
+from typing import TYPE_CHECKING, cast
 
 import torch
 from torch import nn
@@ -61,11 +62,35 @@ def pose_jacobian(f02: torch.Tensor, f12: torch.Tensor) -> torch.Tensor:
                         torch.stack([zero, zero, one], -1)], -2)
 
 
-class ProcessModel:
+# the type checker sees the mixin as the nn.Module it is mixed into; at run time it is a
+# plain class, as before
+if TYPE_CHECKING:
+    _Host = nn.Module
+else:
+    _Host = object
+
+
+class ProcessModel(_Host):
     """The process model of a module with ``dt`` (s) and ``wheelbase`` (m) (a mixin of an
     ``nn.Module``): :meth:`build_process` registers its parameters, :meth:`predict_pose` moves
-    poses over one step. (No class-level annotations: TorchScript would read them as the
-    module's attributes.)"""
+    poses over one step. (No class-level annotations at run time: TorchScript would read them
+    as the module's attributes.)"""
+
+    if TYPE_CHECKING:  # set by lbo.models.filternet.frame_model on each host
+        physical: bool
+        feature_modes: tuple[str, ...]
+        window: int
+        in_features: int
+        receiver: bool
+        fixes: bool
+        dt: float
+        wheelbase: float
+        # build_process's buffers (the kinematic body) or parameters (the single-track)
+        log_stiffness: torch.Tensor
+        log_peak: torch.Tensor
+        front_logit: torch.Tensor
+        log_gyration: torch.Tensor
+        log_v_kinematic: torch.Tensor
 
     def build_process(self, residual: int, body: str, body_lr: float) -> None:
         """Register the process model: ``residual`` the width of the kinematic bicycle's
@@ -104,8 +129,9 @@ class ProcessModel:
             self.process = nn.Sequential(nn.Linear(4, residual), nn.GELU(),
                                          nn.Linear(residual, residual), nn.GELU(),
                                          nn.Linear(residual, 3))
-            nn.init.zeros_(self.process[-1].weight)
-            nn.init.zeros_(self.process[-1].bias)
+            head = cast(nn.Linear, self.process[-1])  # the Linear made just above
+            nn.init.zeros_(head.weight)
+            nn.init.zeros_(head.bias)
 
     def _axles(self) -> tuple[torch.Tensor, torch.Tensor]:
         """The learned distances (l_f, l_r) from the centre of gravity to the front and rear

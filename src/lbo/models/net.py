@@ -7,7 +7,7 @@ buffers, so they travel in every checkpoint) and the network itself.
 from __future__ import annotations
 
 import numbers
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import torch
 from torch import nn
@@ -71,6 +71,13 @@ class WindowNet(nn.Module):
     **model_kwargs : passed to :func:`lbo.models.build_model`.
     """
 
+    if TYPE_CHECKING:  # buffers registered by name, for the type checker
+        motion: torch.Tensor
+        in_mean: torch.Tensor
+        in_std: torch.Tensor
+        out_mean: torch.Tensor
+        out_std: torch.Tensor
+
     def __init__(self, model: str, window: int, features: str = "relative",
                  fixes: bool = False, receiver: bool = False,
                  motion: tuple[float, float] = (0.02, 2.7), carried: bool = False,
@@ -83,17 +90,18 @@ class WindowNet(nn.Module):
                            f"got {window!r}")
         self.window = int(window)
         self.model = model  # its registered name: an observer of it is named <model>-N<window>
-        self.fixes = bool(fixes)
-        self.receiver = bool(receiver)
+        self.fixes: bool = bool(fixes)
+        self.receiver: bool = bool(receiver)
         if self.receiver and self.features != "frame":
             raise LboError(f"features: an observer that reads a receiver takes features=frame "
                            f"(its anchor's frame), got {self.features!r}")
         channels = len(receiver_window.FEATURES) if self.receiver else 6 if self.fixes else 5
         if self.fixes or self.receiver:
             model_kwargs["in_features"] = channels
-        self._model_args = (model, int(window), dict(model_kwargs))  # for renew()
+        self._model_args: tuple[str, int, dict[str, Any]] = (  # for renew()
+            model, int(window), dict(model_kwargs))
         try:
-            self.net = build_model(model, window, **model_kwargs)
+            self.net: nn.Module = build_model(model, window, **model_kwargs)
         except LboError as e:
             if self.receiver and str(e).startswith("model.in_features"):
                 raise LboError(f"receiver: model {model!r} does not read a receiver's windows "
@@ -107,8 +115,9 @@ class WindowNet(nn.Module):
                            "kalmannet and split_kalmannet can")
         # a model with ``physical = True`` reads features and writes targets in metres and
         # radians; the statistics below then only scale its loss
-        self.physical = bool(getattr(self.net, "physical", False))
-        self.anchor_heading = self.physical and bool(getattr(self.net, "anchor_heading", False))
+        self.physical: bool = bool(getattr(self.net, "physical", False))
+        self.anchor_heading: bool = (self.physical
+                                     and bool(getattr(self.net, "anchor_heading", False)))
         needs = getattr(self.net, "feature_modes", None)
         if needs is not None and self.features not in needs:
             raise LboError(f"features: model {model!r} needs features in {list(needs)}, "

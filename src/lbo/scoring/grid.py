@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from pathlib import Path
+from typing import cast
 
 import numpy as np
 import pandas as pd
@@ -140,7 +141,7 @@ def tuned_oracle(arr: Trajectories, vehicle: Vehicle, noise: Noise,
     R = measurement_cov("oracle", noise, arr.alpha, len(arr.alpha))
     sigma = np.asarray(noise.process_sigma)
     best_est = np.full_like(arr.m, np.nan)
-    best = {}  # alpha -> (nrmse, position factor, heading factor)
+    best: dict[float, tuple[float, float, float]] = {}  # alpha -> (nrmse, position, heading)
     for fp in Q_GRID[0]:
         for fh in Q_GRID[1]:
             Q = np.diag(np.square(sigma * [fp, fp, fh]))
@@ -195,7 +196,7 @@ def summary(table: pd.DataFrame, observer: str, alphas: Sequence[float] = (1.0, 
     if (table["observer"] == oracle).any():
         ratio = oracle_ratio(table, observer, oracle=oracle)
         if len(ratio):
-            worst = float(ratio.idxmax())
+            worst = float(cast(float, ratio.idxmax()))  # an alpha
             lines.append(f"  worst ratio to the {oracle} over alpha 0.25-6: {ratio.max():.3f} "
                          f"(at alpha {worst:g})")
     return "\n".join(lines)

@@ -15,6 +15,7 @@ from __future__ import annotations
 from collections.abc import Mapping, Sequence
 from dataclasses import replace
 from pathlib import Path
+from typing import cast
 
 import numpy as np
 import pandas as pd
@@ -44,7 +45,7 @@ def load(folder: str | Path) -> Trajectories:
     # a segment may start between fixes: every observer is scored from its first fix on
     arr = replace(arr, file=df.groupby("traj")["file"].first().loc[arr.traj].to_numpy(),
                   mask=arr.mask & (np.arange(arr.m.shape[1]) >= first_fixes(arr.m)[:, None]))
-    return arr.take(arr.mask.any(axis=1))
+    return arr.take(cast(np.ndarray, arr.mask.any(axis=1)))  # (G,): the mask is (G, T)
 
 
 def peer_estimates(arr: Trajectories, vehicle: Vehicle, noise: Noise,

@@ -6,8 +6,11 @@ Heading errors are always wrapped to (-pi, pi] before squaring, so an estimate o
 
 from __future__ import annotations
 
+from typing import cast
+
 import numpy as np
 import pandas as pd
+from numpy.typing import ArrayLike
 
 from lbo.core.angles import wrap_angle
 from lbo.core.errors import LboError
@@ -63,7 +66,7 @@ def pooled_rmse(est: np.ndarray, truth: np.ndarray, mask: np.ndarray) -> np.ndar
     return rmse(est.reshape(1, -1, 3), truth.reshape(1, -1, 3), mask.reshape(1, -1))[0]
 
 
-def nrmse(rmse_xyz: np.ndarray, ref: np.ndarray = PAPER_REFERENCE) -> float | np.ndarray:
+def nrmse(rmse_xyz: np.ndarray, ref: ArrayLike = PAPER_REFERENCE) -> float | np.ndarray:
     """Normalised RMSE ``sqrt(sum_i E_i^2 / (3 E_ref,i^2))`` (section IV-A); 1 for the reference.
 
     Parameters
@@ -85,7 +88,7 @@ def nrmse(rmse_xyz: np.ndarray, ref: np.ndarray = PAPER_REFERENCE) -> float | np
 
 
 def score_table(observer: str, est: np.ndarray, truth: np.ndarray, mask: np.ndarray | None,
-                alpha: np.ndarray, ref: np.ndarray = PAPER_REFERENCE) -> pd.DataFrame:
+                alpha: np.ndarray, ref: ArrayLike = PAPER_REFERENCE) -> pd.DataFrame:
     """Score one observer on a grid of trajectories, one row per noise level alpha.
 
     The RMSE at an alpha pools every scored point of every trajectory at that alpha (it is
@@ -168,8 +171,9 @@ def nees_table(observer: str, est: np.ndarray, cov: np.ndarray, truth: np.ndarra
     for i, a in enumerate(levels):
         runs = per_traj[(group == i) & ok.any(1)]
         g = len(runs)
-        low, high = (chi2.ppf([(1 - level) / 2, (1 + level) / 2], 3 * g) / g if g
-                     else (np.nan, np.nan))
+        # two quantiles: a (2,) array (scipy's stubs also allow a float)
+        low, high = (cast(np.ndarray, chi2.ppf([(1 - level) / 2, (1 + level) / 2], 3 * g)) / g
+                     if g else (np.nan, np.nan))
         mean = float(runs.mean()) if g else np.nan
         rows.append((observer, a, mean, low, high, bool(low <= mean <= high)))
     return pd.DataFrame(rows, columns=NEES_COLUMNS)

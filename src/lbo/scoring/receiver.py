@@ -60,6 +60,7 @@ MOVING_S = 8.0
 def _course(log: pd.DataFrame) -> np.ndarray:
     """(T,) the course over ground of a log's receiver velocity (NaN where it is none)."""
     r = receiver(log)
+    assert r is not None, "a receiver's log"
     return measure.course_over_ground(r[:, 3], r[:, 4], r[:, 5], log["V"].to_numpy(float))[0]
 
 
@@ -128,8 +129,9 @@ def score(log: pd.DataFrame, observers: Sequence[str], vehicle: Vehicle, noise: 
     heading = rmse(np.column_stack([z[:, :2], course]), z, np.isfinite(course))
     table = [{"estimator": RAW, "x_m": float(position[0]), "y_m": float(position[1]),
               "psi_mrad": 1e3 * float(heading[2]), "rows": int(fix.sum())}]
-    runs = [(f"{name}, receiver's accuracy and velocity", name, r, False, None)
-            for name in observers]
+    runs: list[tuple[str, str, np.ndarray | None, bool, GyroNoise | None]] = [
+        (f"{name}, receiver's accuracy and velocity", name, r, False, None)
+        for name in observers]
     runs += [(label, classical.GYRO, r, False, gyro)
              for label, gyro in (learned or {}).items()]
     runs += [(BLIND, "ekf", None, False, None),
@@ -250,6 +252,7 @@ def oracle_gyro(log: pd.DataFrame, vehicle: Vehicle, position_sigma: float,
     if not np.isfinite(m[0, :2]).all():
         raise LboError("oracle_gyro: the log's first row holds no fix")
     r = receiver(log)
+    assert r is not None, "a receiver's log"
     fix = np.isfinite(m[:, 0])
     r[:, :2] = np.where(fix[:, None], position_sigma, np.nan)
     v = log["V"].to_numpy(dtype=float)

@@ -9,7 +9,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Protocol
+from typing import Any, Protocol, cast
 
 import numpy as np
 import pandas as pd
@@ -76,9 +76,11 @@ def rmse_table(table: pd.DataFrame, alpha: float, cnn: str | None,
     rows = []
     at = table[np.isclose(table["alpha"], alpha)].set_index("observer")
     for i, (var, unit, scale) in enumerate(VARIABLES):
-        row = {"variable": var, "unit": unit}
+        row: dict[str, Any] = {"variable": var, "unit": unit}
         for key, name in (("ekf", "ekf"), ("cnn", cnn), ("lstm", lstm)):
-            ours = at.loc[name, f"rmse_{var}"] * scale if name in at.index else np.nan
+            # one row per observer: a number; name is one of them where it is in the index
+            ours = (cast(float, at.loc[cast(str, name), f"rmse_{var}"]) * scale
+                    if name in at.index else np.nan)
             row[key] = float(ours)
             paper = PAPER_RMSE.get(alpha, {}).get(key, (np.nan,) * 3)[i]
             row[f"{key}_paper"] = round(paper * scale, 6)
@@ -147,7 +149,7 @@ def protocols_markdown(table: pd.DataFrame, literal: pd.DataFrame) -> list[str]:
         at = both[both["observer"] == name].set_index("alpha")
         rmse = [_xyz(at.loc[a, ["rmse_x", "rmse_y", "rmse_psi"]]) if a in at.index else "-"
                 for a in (1.0, 6.0)]
-        growth = (f"{at.loc[6.0, 'nrmse'] / at.loc[1.0, 'nrmse']:.1f}"
+        growth = (f"{at.loc[6.0, 'nrmse'] / at.loc[1.0, 'nrmse']:.1f}"  # type: ignore[index]  # float labels
                   if {1.0, 6.0} <= set(at.index) else "-")
         return rmse[0], rmse[1], growth
 
@@ -177,8 +179,11 @@ class Section(Protocol):
     """A study beyond the paper's tables: its part of report.md, the observers it adds to
     ``nrmse_all.png`` (``headline``), its figure's file name, and the files it writes."""
 
-    headline: tuple[str, ...]
-    figure: str
+    @property
+    def headline(self) -> tuple[str, ...]: ...
+
+    @property
+    def figure(self) -> str: ...
 
     def markdown(self, table: pd.DataFrame) -> list[str]: ...
 
@@ -274,7 +279,7 @@ def _paper_markdown(tables: dict[str, pd.DataFrame], table: pd.DataFrame,
 
 
 def write(folder: str | Path, scale: str, table: pd.DataFrame, runs: dict[str, str],
-          stages: dict[str, dict], trajectory: dict[str, np.ndarray] | None = None,
+          stages: dict[str, dict], trajectory: dict[str, Any] | None = None,
           friction_png: str | Path | None = None, sections: Sequence[Section] = ()
           ) -> list[Path]:
     """Write every report file into ``folder``; returns their paths.

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import cast
 
 import numpy as np
 import pandas as pd
@@ -108,7 +109,7 @@ def dynamic_markdown(key: str, table: pd.DataFrame) -> list[str]:
         for obs in peers:
             if obs in at.index:
                 rows.append({"alpha": alpha, "observer": obs,
-                             **{f"{v} ({u})": float(at.loc[obs, f"rmse_{v}"] * k)
+                             **{f"{v} ({u})": float(cast(float, at.loc[obs, f"rmse_{v}"]) * k)
                                 for v, u, k in VARIABLES}})
     lo, hi = s["vs_oracle"]
     dlo, dhi = s["dynamic_vs_oracle"]

@@ -101,7 +101,9 @@ def onnx_bytes(net: Any) -> bytes:
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # the legacy exporter's deprecation and LSTM notes
         _exporting("ONNX", net, lambda: torch.onnx.export(
-            net.eval(), (_example(net),), buf, dynamo=False, opset_version=OPSET,
+            net.eval(), (_example(net),),
+            buf,  # type: ignore[arg-type]  # torch's stub: the legacy exporter takes a file too
+            dynamo=False, opset_version=OPSET,
             input_names=["window"], output_names=["state"],
             dynamic_axes={"window": {0: "batch"}, "state": {0: "batch"}}))
     return buf.getvalue()
@@ -179,8 +181,9 @@ def recursive_onnx_bytes(rec: Any) -> bytes:
             batch[name] = batch[f"next_{name}"] = {0: "batch"}
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        torch.onnx.export(rec.cpu().eval(), _recursive_example(rec.cpu()), buf, dynamo=False,
-                          opset_version=OPSET, input_names=["m", "u", *STATE_NAMES],
+        torch.onnx.export(rec.cpu().eval(), _recursive_example(rec.cpu()),
+                          buf,  # type: ignore[arg-type]  # torch's stub: it takes a file too
+                          dynamo=False, opset_version=OPSET, input_names=["m", "u", *STATE_NAMES],
                           output_names=["pose", "cov", *(f"next_{n}" for n in STATE_NAMES)],
                           dynamic_axes=batch)
     return buf.getvalue()

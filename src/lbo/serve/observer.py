@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import os
 import warnings
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Literal, cast, overload
 
 import numpy as np
 
@@ -31,7 +31,7 @@ from lbo.core.errors import LboError
 from lbo.filters import classical
 from lbo.filters.gyro import GyroNoise
 from lbo.models.checkpoint import read_checkpoint, stored_envelope, trained_conditions
-from lbo.models.envelope import EnvelopeCheck, check_mode
+from lbo.models.envelope import Envelope, EnvelopeCheck, EnvelopeWarning, check_mode, observer_terms
 from lbo.serve.estimate import Estimate
 from lbo.serve.refusals import no_fix, no_heading, no_receiver
 from lbo.serve.rows import bicycle_rows
@@ -61,9 +61,6 @@ if TYPE_CHECKING:  # torch, which importing lbo does not load
     from lbo.serve.carried_runner import CarriedRunner
 
 __all__ = ["Estimate", "EnvelopeWarning", "Observer"]
-
-class EnvelopeWarning(UserWarning):
-    """A learned observer was given samples outside the envelope of its training inputs."""
 
 
 class Observer:
@@ -117,23 +114,18 @@ class Observer:
         if net is None:
             classical.check(name)
             self.kind, self.window, self.features, self.engine = "classical", 1, None, None
-            self._runner = ClassicalRunner(name, self.vehicle, self.noise, self.alpha,
-                                           gyro_noise)
+            self._runner = ClassicalRunner(name, self.vehicle, self.noise, self.alpha, gyro_noise)
         else:
             self.kind, self.window, self.features = "learned", int(net.window), net.features
             self.engine = engine
-            self._runner = learned_runner(name, net, self.form, self.vehicle, self.noise,
-                                          engine, device)
+            self._runner = learned_runner(name, net, cast(str, self.form), self.vehicle,
+                                          self.noise, engine, device)  # a net's form: a str
         self.envelope = stored_envelope(name, self.meta) if net is not None else None
         self.envelope_mode = check_mode(envelope_mode)
-        self._envelope = (self.envelope.stream(**self._envelope_terms())
+        self._envelope = (self.envelope.stream(**observer_terms(self.vehicle, self.noise,
+                                                                self.window))
                           if self.envelope is not None and self.envelope_mode != "off" else None)
         self.reset()
-
-    def _envelope_terms(self) -> dict[str, float]:
-        sx, sy = self.noise.measurement_sigma[:2]
-        return {"dt": self.vehicle.dt, "wheelbase": self.vehicle.wheelbase,
-                "sigma": float(np.sqrt((sx ** 2 + sy ** 2) / 2)), "window": self.window}
 
     def check_envelope(self, m: np.ndarray, u: np.ndarray) -> EnvelopeCheck | None:
         """Which rows of a log (``m`` (T, 3), ``u`` (T, 2)) lie outside the envelope of the
@@ -141,7 +133,7 @@ class Observer:
         if self.envelope is None:
             return None
         return self.envelope.check(np.asarray(m, dtype=float), np.asarray(u, dtype=float),
-                                   **self._envelope_terms())
+                                   **observer_terms(self.vehicle, self.noise, self.window))
 
     @property
     def takes_missing_fixes(self) -> bool:
@@ -308,14 +300,14 @@ class Observer:
                            f"{input!r}") from None
         fix = check_sample(None if m is None else tuple(m.tolist()), tuple(u.tolist()), k,
                            self.vehicle.delta_max)
-        if fix and not self.takes_receiver and np.isnan(m[2]):
+        if fix and not self.takes_receiver and np.isnan(cast(np.ndarray, m)[2]):  # a fix: an m
             raise LboError(f"step {k}: {no_heading(self.name)}")
         if not fix:
             if not self.takes_missing_fixes:
                 raise LboError(f"step {k}: {no_fix(self.name)}")
             m = np.full(3, np.nan)
         else:  # one branch for every observer (absolute features read the angle itself)
-            m = m.copy()  # never the caller's array
+            m = cast(np.ndarray, m).copy()  # never the caller's array
             m[2] = wrap_angle(m[2])
         if receiver is not None and not self.takes_receiver:
             raise LboError(f"step {k}: {no_receiver(self.name)}")
@@ -328,8 +320,8 @@ class Observer:
         self._count += 1
         if not outside:
             return est
-        why = "outside the training envelope: " + ", ".join(
-            self.envelope.describe(f) for f in outside)
+        why = "outside the training envelope: " + ", ".join(  # outside: there is an envelope
+            cast(Envelope, self.envelope).describe(f) for f in outside)
         if self.envelope_mode == "mark":
             return Estimate(est.state, False, why if est.valid else est.reason, est.cov, outside)
         new = [f for f in outside if f not in self._warned]
@@ -340,10 +332,17 @@ class Observer:
 
     # ----------------------------------------------------------------------- batch
 
+    @overload
+    def run(self, m: np.ndarray, u: np.ndarray, batch_size: int = ..., *,
+            source: str | None = ..., cov: Literal[False] = ..., smooth: bool = ...,
+            receiver: np.ndarray | None = ...) -> tuple[np.ndarray, np.ndarray]: ...
+    @overload
+    def run(self, m: np.ndarray, u: np.ndarray, batch_size: int = ..., *,
+            source: str | None = ..., cov: Literal[True], smooth: bool = ...,
+            receiver: np.ndarray | None = ...) -> tuple[np.ndarray, np.ndarray, np.ndarray]: ...
     def run(self, m: np.ndarray, u: np.ndarray, batch_size: int = 4096, *,
             source: str | None = None, cov: bool = False, smooth: bool = False,
-            receiver: np.ndarray | None = None
-            ) -> tuple[np.ndarray, np.ndarray] | tuple[np.ndarray, np.ndarray, np.ndarray]:
+            receiver: np.ndarray | None = None) -> tuple[np.ndarray, ...]:
         """Estimates over a whole log at once (vectorised; the streaming state is untouched).
 
         Parameters
@@ -433,13 +432,13 @@ class Observer:
         valid = np.isfinite(est).all(1)
         valid &= np.arange(len(m)) >= self._runner.first_valid
         if self._envelope is not None:  # an envelope, and a mode other than off
-            check = self.check_envelope(m, u)
+            check = cast(EnvelopeCheck, self.check_envelope(m, u))  # there is an envelope
             if self.envelope_mode == "mark":
                 valid &= ~check.outside
             elif check.outside.any():
                 warnings.warn(f"{self.name}{' on ' + source if source else ''}: "
-                              + "; ".join(check.summary(self.envelope, u)), EnvelopeWarning,
-                              stacklevel=2)
+                              + "; ".join(check.summary(cast(Envelope, self.envelope), u)),
+                              EnvelopeWarning, stacklevel=2)
         covs[~valid] = np.nan
         return (est, valid, covs) if cov else (est, valid)
 

@@ -75,7 +75,7 @@ def default_form(net: Any) -> str:
     if getattr(net, "carried", False):
         return "recursive"
     inner = getattr(net, "net", None)
-    if not is_window_filter(net) or getattr(inner, "residual", 0) or \
+    if not is_window_filter(net) or bool(getattr(inner, "residual", 0)) or \
             getattr(inner, "drift", False) or getattr(inner, "single_track", False):
         return "window"
     return "recursive"
@@ -335,6 +335,7 @@ class RecursiveRunner:
     inputs (T, 3) ``[V, delta, r_m]``, the gyro's last reading held (:meth:`log_rows`)."""
 
     first_valid = 0
+    gyro_last: float  # set by reset
 
     def __init__(self, net: Any, vehicle: Vehicle, engine: str, device: str) -> None:
         self.net, self.vehicle, self.device = net, vehicle, device

@@ -29,9 +29,9 @@ import re
 from pathlib import Path
 from typing import Any
 
-import mlflow.pyfunc
 import numpy as np
 import pandas as pd
+from mlflow.pyfunc import PythonModel
 
 from lbo.core.errors import LboError
 from lbo.sim.columns import COVARIANCE, INPUT, MEAS, RECEIVER, SERVED, STATE, WINDOW
@@ -68,7 +68,7 @@ def estimates(observer: Any, frame: pd.DataFrame) -> pd.DataFrame:
     return result[list(SERVED)]
 
 
-class ServedModel(mlflow.pyfunc.PythonModel):
+class ServedModel(PythonModel):
     """A learned observer's checkpoint behind MLflow's pyfunc interface (:func:`estimates`).
 
     MLflow loads it as model code (``lbo/serve/serving_model.py``), not as a pickle, so a model
@@ -90,9 +90,10 @@ def signature() -> Any:
     from mlflow.models import ModelSignature
     from mlflow.types import ColSpec, Schema
 
-    inputs = Schema([ColSpec("double", c) for c in WINDOW]
-                    + [ColSpec("long", "log", required=False)]
-                    + [ColSpec("double", c, required=False) for c in RECEIVER])
+    # one list display: Schema takes a list of ColSpec or TensorSpec
+    inputs = Schema([*(ColSpec("double", c) for c in WINDOW),
+                     ColSpec("long", "log", required=False),
+                     *(ColSpec("double", c, required=False) for c in RECEIVER)])
     outputs = Schema([ColSpec("boolean" if c == "valid" else "double", c)
                       for c in SERVED])
     return ModelSignature(inputs=inputs, outputs=outputs)

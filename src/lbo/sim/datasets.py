@@ -7,6 +7,7 @@ import json
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any, cast
 
 import numpy as np
 import pandas as pd
@@ -79,7 +80,8 @@ def spec_from_cfg(cfg: DictConfig) -> Spec:
     truth = truth_from_cfg(cfg.get("truth"), vehicle.wheelbase)
     d = cfg.data
     integer(d.seed, "data.seed", 0)
-    tr = OmegaConf.to_container(d.train, resolve=True)
+    # each block is a mapping (a DictConfig), so its container is a dict
+    tr = cast(dict, OmegaConf.to_container(d.train, resolve=True))
     for key in ("n_traj", "candidates", "grid"):
         positive(tr, key, "data.train", integer=True)
     for key in ("duration", "radius_g", "jerk"):
@@ -93,7 +95,7 @@ def spec_from_cfg(cfg: DictConfig) -> Spec:
     share = tr.get("stop_and_go", 0.0)
     number(share, "data.train.stop_and_go", low=0.0, high=1.0,
            form="a share of the trajectories in [0, 1]")
-    va = OmegaConf.to_container(d.val, resolve=True)
+    va = cast(dict, OmegaConf.to_container(d.val, resolve=True))
     for key in ("steps", "run_in"):
         positive(va, key, "data.val", integer=True)
     for key in ("length", "amplitude", "period"):
@@ -101,7 +103,7 @@ def spec_from_cfg(cfg: DictConfig) -> Spec:
     require(0 <= va["speed_variation"] < 1, "data.val.speed_variation", "in [0, 1)",
             va["speed_variation"])
     number(va["alpha"], "data.val.alpha", low=0.0, form="a noise scale >= 0")
-    te = OmegaConf.to_container(d.test, resolve=True)
+    te = cast(dict, OmegaConf.to_container(d.test, resolve=True))
     positive(te, "run_in", "data.test", integer=True)
     require(te["run_in"] >= 80 and va["run_in"] >= 80, "data.test.run_in and data.val.run_in",
             "at least 80 steps, so every window N <= 80 is scored on the same points",
@@ -293,12 +295,13 @@ def make_test(spec: Spec) -> pd.DataFrame:
 MAKERS = {"train": make_train, "val": make_val, "test": make_test}
 
 
-def summary(spec: Spec, sets: dict[str, pd.DataFrame]) -> dict[str, float]:
-    """Rows per set, friction-circle coverage of the training set, speed and heading ranges."""
+def summary(spec: Spec, sets: dict[str, pd.DataFrame]) -> dict[str, Any]:
+    """Rows per set, friction-circle coverage of the training set, speed and heading ranges
+    (``(min, max)`` each)."""
     tr = sets["train"]
     acc = train_accelerations(spec, tr)
     grid = Grid(spec.train["radius_g"] * G, spec.train["grid"])
-    out = {f"rows_{n}": len(df) for n, df in sets.items()}
+    out: dict[str, Any] = {f"rows_{n}": len(df) for n, df in sets.items()}
     out["scored_val"] = int(sets["val"]["scored"].sum())
     out["scored_test_per_alpha"] = int(sets["test"]["scored"].sum() // len(spec.alphas))
     out["scored_test"] = int(sets["test"]["scored"].sum())
@@ -376,7 +379,7 @@ def _build(spec: Spec, folder: Path, progress: bool
         if path.is_file():
             df, problem = schema.cached_set(path, recorded.get(path.name), name)
             if problem is None:
-                sets[name] = df
+                sets[name] = cast(pd.DataFrame, df)  # cached_set gives a set where no problem
                 # checked against the record above; an older cache's file is read now
                 files[path.name] = recorded.get(path.name) or schema.fingerprint(path)
                 continue

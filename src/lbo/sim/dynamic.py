@@ -25,6 +25,7 @@ are right again once the car is fast. Everything is vectorised over leading batc
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, fields
 from typing import TYPE_CHECKING
 
@@ -164,7 +165,7 @@ def start(z0: np.ndarray, u0: np.ndarray, p: SingleTrack) -> np.ndarray:
 
 
 def simulate(z0: np.ndarray, u: np.ndarray, dt: float, p: Car,
-             process_sigma: np.ndarray | None = None,
+             process_sigma: np.ndarray | Sequence[float] | None = None,
              rng: np.random.Generator | None = None) -> np.ndarray:
     """Roll the car forward over known inputs, as :func:`lbo.sim.vehicle.simulate` does.
 
@@ -183,6 +184,7 @@ def simulate(z0: np.ndarray, u: np.ndarray, dt: float, p: Car,
     s = np.empty((b, t, 5))
     s[:, 0] = p.start(z0, u[:, 0])
     if process_sigma is not None:
+        assert rng is not None, "process_sigma needs an rng"
         w = rng.standard_normal((b, t - 1, 3)) * np.asarray(process_sigma)
     for k in range(t - 1):  # sequential in time, vectorised over the batch
         s[:, k + 1] = p.step(s[:, k], u[:, k], dt)

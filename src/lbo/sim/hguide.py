@@ -50,6 +50,7 @@ from __future__ import annotations
 import contextlib
 import io
 from dataclasses import dataclass
+from typing import cast
 
 import numpy as np
 import pandas as pd
@@ -180,7 +181,7 @@ def fit_alignment(df: pd.DataFrame) -> Alignment:
     t, e, n = fix["t"][moving], fix["east"][moving], fix["north"][moving]
     before = float(np.sqrt(np.mean((e - at_fix["east"][moving]) ** 2
                                    + (n - at_fix["north"][moving]) ** 2)))
-    best = None
+    best: tuple[float, float, np.ndarray] | None = None
     for latency in np.arange(LATENCIES[0], LATENCIES[1] + 1e-9, 0.01):
         ins = _at(track, t - latency)
         c, s = np.cos(ins["psi"]), np.sin(ins["psi"])
@@ -190,7 +191,7 @@ def fit_alignment(df: pd.DataFrame) -> Alignment:
         rms = float(np.sqrt(np.mean((e - ae) ** 2 + (n - an) ** 2)))
         if best is None or rms < best[0]:
             best = (rms, float(round(latency, 2)), lever)
-    rms, latency, lever = best
+    rms, latency, lever = cast(tuple[float, float, np.ndarray], best)  # the grid is not empty
     return Alignment(boresight=boresight, lever=lever, latency=latency, rms_before=before,
                      rms_after=rms, fixes=int(moving.sum()))
 

@@ -24,6 +24,7 @@ import json
 import os
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any, cast
 
 import numpy as np
 import pandas as pd
@@ -238,7 +239,9 @@ def noise_level(m: np.ndarray, z: np.ndarray, sigma) -> float:
 def make_set(part: str, spec: LogSpec) -> tuple[pd.DataFrame, list[dict]]:
     """One set's rows in the data-set schema (plus ``file``, the index of its log), and a
     line of facts per file (rows, segments, seconds, noise level)."""
-    frames, facts, traj = [], [], 0
+    frames: list[pd.DataFrame] = []
+    facts: list[dict[str, Any]] = []
+    traj = 0
     for i, path in enumerate(spec.files[part]):
         segs = segments(path, spec)
         z = np.concatenate([s[list(STATE)].to_numpy(float) for s in segs])
@@ -247,7 +250,7 @@ def make_set(part: str, spec: LogSpec) -> tuple[pd.DataFrame, list[dict]]:
         for seg in segs:
             n = len(seg)
             k = np.arange(n)
-            extra = {"file": np.full(n, i, np.int32)}
+            extra: dict[str, np.ndarray] = {"file": np.full(n, i, np.int32)}
             if part != "train":
                 extra.update(alpha=np.full(n, level), scored=k >= spec.run_in)
             f = schema.frame(np.full(n, traj), k, spec.vehicle.dt,
@@ -315,13 +318,13 @@ def _cached(folder: Path, paths: dict[str, Path]) -> dict[str, pd.DataFrame] | N
         recorded = json.loads(manifest.read_text()).get("sets") or {}
     except (OSError, ValueError, AttributeError):
         recorded = {}
-    sets = {}
+    sets: dict[str, pd.DataFrame | None] = {}
     for part, path in paths.items():
         sets[part], problem = schema.cached_set(path, recorded.get(path.name), part)
         if problem is not None:
             print(f"{path}: {problem}; reading the logs again", flush=True)
             return None
-    return sets
+    return cast(dict[str, pd.DataFrame], sets)  # each a set: cached_set found no problem
 
 
 def test_files(folder: str | Path) -> list[str]:

@@ -291,7 +291,7 @@ def check_sample(m: tuple[float, float, float] | None, u: tuple[float, float], s
     if not (math.isfinite(v) and math.isfinite(delta)):
         raise LboError(f"{where}: input [V, delta] = [{v:g}, {delta:g}] has NaN or inf")
     fix = m is not None and not all(math.isnan(c) for c in m)
-    if fix:
+    if fix and m is not None:  # a fix has an m
         if any(math.isinf(c) for c in m):
             bad = ", ".join(n for n, c in zip(MEAS, m) if math.isinf(c))
             raise LboError(f"{where}: measurement [{m[0]:g}, {m[1]:g}, {m[2]:g}] has inf "

@@ -27,7 +27,7 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 import pandas as pd
@@ -210,9 +210,10 @@ class LogFormat:
                 values = wrap_angle(math.pi / 2 - values)
             if col in places:  # from the local east at each fix to the first fix's east
                 lat, lon = places[col]
+                here = cast(Origin, origin)  # _geodetic gives places with their origin
                 known = np.isfinite(lat) & np.isfinite(lon)
                 # a heading without a place is refused by the checks as such
-                values = np.where(known, origin.heading_from(values, np.where(known, lat, 0.0),
+                values = np.where(known, here.heading_from(values, np.where(known, lat, 0.0),
                                                              np.where(known, lon, 0.0)), values)
             out[col] = values
         return out, origin
@@ -250,7 +251,7 @@ class LogFormat:
                     raise LboError(f"{source}: no row with both {lat_c} and {lon_c}")
                 origin = Origin(float(lat[fixed[0]]), float(lon[fixed[0]]))
             e, n = to_local(lat, lon, origin)
-            at = out.columns.get_loc(lat_c)
+            at = cast(int, out.columns.get_loc(lat_c))  # a column name read appears once
             out.drop(columns=[lat_c, lon_c], inplace=True)
             out.insert(at, east_c, e)
             out.insert(at + 1, north_c, n)

@@ -7,7 +7,7 @@ a user's logs (:mod:`lbo.sim.log_sets`) all read and write through here.
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 import pandas as pd
@@ -125,7 +125,9 @@ def check_log(df: pd.DataFrame, source: str = "input", heading: str = "enu",
                   truth=df[list(STATE)].to_numpy(dtype=float) if truth else None,
                   source=source, t=df["t"].to_numpy(dtype=float), position_only=position_only)
     if present:
-        check_receiver(df[list(MEAS)].to_numpy(dtype=float), receiver(df), source)
+        # a log with a receiver column has receiver channels
+        check_receiver(df[list(MEAS)].to_numpy(dtype=float), cast(np.ndarray, receiver(df)),
+                       source)
     check_time(df["t"].to_numpy(dtype=float), source)
     check_conventions(df["t"].to_numpy(dtype=float), df[list(MEAS)].to_numpy(dtype=float),
                       df[["V", "delta"]].to_numpy(dtype=float), source, heading)

@@ -106,7 +106,8 @@ class ReceiverSpec:
         for k in ("gyro_bias", "gyro_walk", "reported_spread"):
             if k in c:
                 number(c[k], f"receiver.{k}", low=0.0)
-        return cls(**channels, **c)
+        return cls(position=channels["position"], velocity=channels["velocity"],
+                   gyro=channels["gyro"], **c)
 
 
 SIGMA_FLOOR = 1e-3

@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import asdict, dataclass, field
-from typing import Any, Protocol, runtime_checkable
+from typing import TYPE_CHECKING, Any, ClassVar, Protocol, cast, runtime_checkable
 
 import numpy as np
 
@@ -42,6 +42,11 @@ class Car(Protocol):
     frozen dataclass whose fields are its ``truth.*`` settings (each checked in its
     ``__post_init__``), with the state ``[x, y, psi, v_y, r]``: the rear axle's pose, then the
     lateral speed of the centre of gravity (m/s) and the yaw rate (rad/s)."""
+
+    # a dataclass (Truth.to_dict reads its fields), to the type checker only: isinstance
+    # checks the members below, and from_cfg refuses a registered car that is no dataclass
+    if TYPE_CHECKING:
+        __dataclass_fields__: ClassVar[dict[str, Any]]
 
     @property
     def wheelbase(self) -> float:
@@ -186,7 +191,7 @@ def from_cfg(cfg: Any, wheelbase: float) -> Truth:
         return Truth()
     c = dict(cfg)
     name = c.pop("name", "kinematic")
-    cls = plugins.load("truth", name, "truth.name")
+    cls: type[Any] = plugins.load("truth", name, "truth.name")  # a class, Kinematic or a car
     sensor_keys = [f for f in Sensors.__dataclass_fields__]
     sensors = Sensors(**{k: c.pop(k) for k in sensor_keys if k in c})
     scale = c.pop("process_scale", 1.0)
@@ -205,7 +210,7 @@ def from_cfg(cfg: Any, wheelbase: float) -> Truth:
         raise LboError(f"truth.{unknown[0]}: not a field of truth={name}; accepted: "
                        f"name, {', '.join(car_keys + sensor_keys)}")
     try:
-        car = cls(**c)
+        car = cast(Car, cls(**c))  # that it keeps Car's members is checked below
     except (TypeError, ValueError) as e:  # a plug-in's own check, said in lbo's one line
         raise LboError(f"truth: truth model {name!r} refused its settings ({e})") from None
     missing = [m for m in ("wheelbase", "understeer_gradient", "start", "step", "rear_slip")

@@ -5,6 +5,7 @@ State ``z = [x, y, psi]`` (m, m, rad) at the rear axle, input ``u = [V, delta]``
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -78,7 +79,7 @@ def jacobian(z: np.ndarray, u: np.ndarray, dt: float) -> np.ndarray:
 
 
 def simulate(z0: np.ndarray, u: np.ndarray, dt: float, wheelbase: float,
-             process_sigma: np.ndarray | None = None,
+             process_sigma: np.ndarray | Sequence[float] | None = None,
              rng: np.random.Generator | None = None) -> np.ndarray:
     """Roll the discrete model forward over known inputs.
 
@@ -96,6 +97,7 @@ def simulate(z0: np.ndarray, u: np.ndarray, dt: float, wheelbase: float,
     z = np.empty((b, t, 3))
     z[:, 0] = z0
     if process_sigma is not None:
+        assert rng is not None, "process_sigma needs an rng"
         w = rng.standard_normal((b, t - 1, 3)) * np.asarray(process_sigma)
     for k in range(t - 1):  # sequential in time, vectorised over the batch
         z[:, k + 1] = step(z[:, k], u[:, k], dt, wheelbase,

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from pathlib import Path
+from typing import cast
 
 import optuna
 from omegaconf import DictConfig, OmegaConf
@@ -24,7 +25,9 @@ def best_trials(study: optuna.Study,
                   key=lambda tr: (tr.value, tr.number))
     inside = [tr for tr in done if not outside_space(tr, space)]
     best = inside[0] if inside else None
-    better = done[0] if done and (best is None or done[0].value < best.value) else None
+    # a completed trial has its value
+    better = (done[0] if done and (best is None or cast(float, done[0].value)
+                                   < cast(float, best.value)) else None)
     return best, better
 
 

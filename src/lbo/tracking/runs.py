@@ -170,7 +170,7 @@ def use_wal(uri: str) -> None:
             db.execute("PRAGMA journal_mode=WAL")
 
 
-def dataset_input(name: str, digest: str, source: str, context: str = "training") -> Any:
+def dataset_input(name: str, digest: str, source: str | Path, context: str = "training") -> Any:
     """The data set a run reads, as an MLflow dataset input (``MlflowClient.log_inputs``):
     its name, lbo's data hash as its digest (MLflow keeps 36 characters) and its folder, so
     that MLflow's UI lists it with the run and groups the runs that read the same data."""

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import json
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 import optuna
@@ -42,11 +42,14 @@ class Param:
         return tuple(json.dumps(c) if isinstance(c, (list, dict)) else c for c in self.choices)
 
     def suggest(self, trial: optuna.Trial) -> Any:
+        # a float's or an int's low and high are numbers (search_space checks them), an
+        # int's step an int
         if self.kind == "float":
-            return trial.suggest_float(self.key, self.low, self.high, log=self.log, step=self.step)
+            return trial.suggest_float(self.key, cast(float, self.low), cast(float, self.high),
+                                       log=self.log, step=self.step)
         if self.kind == "int":
-            return trial.suggest_int(self.key, self.low, self.high, log=self.log,
-                                     step=self.step or 1)
+            return trial.suggest_int(self.key, cast(int, self.low), cast(int, self.high),
+                                     log=self.log, step=cast(int, self.step or 1))
         return self.decode(trial.suggest_categorical(self.key, self.labels))
 
     def decode(self, raw: Any) -> Any:
@@ -62,13 +65,14 @@ class Param:
             return raw in self.labels
         if isinstance(raw, bool) or not isinstance(raw, (int, float)):
             return False
-        span = (self.high - self.low) or 1
-        if not self.low - 1e-9 * span <= raw <= self.high + 1e-9 * span:
+        low, high = cast(float, self.low), cast(float, self.high)  # a float's or an int's
+        span = (high - low) or 1
+        if not low - 1e-9 * span <= raw <= high + 1e-9 * span:
             return False
         step = self.step or (1 if self.kind == "int" else None)
         if step is None:
             return True
-        k = (raw - self.low) / step
+        k = (raw - low) / step
         return abs(k - round(k)) < 1e-6
 
     @property
@@ -80,12 +84,13 @@ class Param:
 
     def distribution(self) -> optuna.distributions.BaseDistribution:
         """This parameter as the Optuna distribution its trials are stored with."""
-        if self.kind == "float":
-            return optuna.distributions.FloatDistribution(self.low, self.high, log=self.log,
-                                                          step=self.step)
+        if self.kind == "float":  # bounds and steps as in suggest
+            return optuna.distributions.FloatDistribution(
+                cast(float, self.low), cast(float, self.high), log=self.log, step=self.step)
         if self.kind == "int":
-            return optuna.distributions.IntDistribution(self.low, self.high, log=self.log,
-                                                        step=self.step or 1)
+            return optuna.distributions.IntDistribution(
+                cast(int, self.low), cast(int, self.high), log=self.log,
+                step=cast(int, self.step or 1))
         return optuna.distributions.CategoricalDistribution(self.labels)
 
 
@@ -106,6 +111,18 @@ def _choices_text(labels: Any) -> str:
         return json.dumps(c)
 
     return "[" + ", ".join(one(c) for c in labels) + "]"
+
+
+def _categorical(d: optuna.distributions.BaseDistribution
+                 ) -> optuna.distributions.CategoricalDistribution:
+    """A distribution of the kind ``categorical`` (:data:`KINDS`, by its type's name)."""
+    return cast(optuna.distributions.CategoricalDistribution, d)
+
+
+def _ranged(d: optuna.distributions.BaseDistribution
+            ) -> optuna.distributions.FloatDistribution | optuna.distributions.IntDistribution:
+    """A distribution of the kind ``float`` or ``int`` (:data:`KINDS`)."""
+    return cast(optuna.distributions.FloatDistribution | optuna.distributions.IntDistribution, d)
 
 
 def check_resumed(trials: list[optuna.trial.FrozenTrial], space: list[Param],
@@ -129,11 +146,13 @@ def check_resumed(trials: list[optuna.trial.FrozenTrial], space: list[Param],
         kind = KINDS.get(type(old).__name__, type(old).__name__)
         if kind != p.kind:
             was, now, what = f"{_a(kind)} distribution", f"{_a(p.kind)} one", "its type"
-        elif p.kind == "categorical" and tuple(old.choices) != tuple(new.choices):
-            was, now = f"choices {_choices_text(old.choices)}", _choices_text(new.choices)
-            what = "its choices"
-        elif p.kind != "categorical" and bool(old.log) != p.log:
-            was, now = f"log: {str(old.log).lower()}", f"log: {str(p.log).lower()}"
+        # the same kind: both categorical, or both of a range (a float's or an int's)
+        elif p.kind == "categorical" and tuple(_categorical(old).choices) != tuple(
+                _categorical(new).choices):
+            was = f"choices {_choices_text(_categorical(old).choices)}"
+            now, what = _choices_text(_categorical(new).choices), "its choices"
+        elif p.kind != "categorical" and bool(_ranged(old).log) != p.log:
+            was, now = f"log: {str(_ranged(old).log).lower()}", f"log: {str(p.log).lower()}"
             what = "its log scale"
         else:
             continue
@@ -152,7 +171,7 @@ def search_space(cfg: DictConfig) -> list[Param]:
                        f"got {raw!r}")
     params: list[Param] = []
 
-    def walk(tree: dict[str, Any], prefix: str) -> None:
+    def walk(tree: dict[Any, Any], prefix: str) -> None:
         for name, value in tree.items():
             key = f"{prefix}{name}"
             if isinstance(value, dict) and "type" not in value:
@@ -184,9 +203,11 @@ def _param(cfg: DictConfig, key: str, spec: Any) -> Param:
         choices = spec.get("choices")
         require(isinstance(choices, list) and len(choices) > 0, f"{field}.choices",
                 "a non-empty list", choices)
-        return Param(key, kind, choices=tuple(choices))
-    low, high, log, step = spec.get("low"), spec.get("high"), spec.get("log", False), \
-        spec.get("step")
+        return Param(key, kind, choices=tuple(cast(list, choices)))  # a list: required above
+    # raw config values, checked below
+    low: Any = spec.get("low")
+    high: Any = spec.get("high")
+    log, step = spec.get("log", False), spec.get("step")
     bound = integer if kind == "int" else number
     for name, value in (("low", low), ("high", high)):
         bound(value, f"{field}.{name}")

@@ -9,7 +9,7 @@ import re
 import socket
 import warnings
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import optuna
 from optuna.trial import FrozenTrial, TrialState
@@ -18,6 +18,9 @@ from lbo.core.errors import LboError
 from lbo.core.paths import sqlite_path
 from lbo.core.redact import MASK, scrub
 from lbo.tracking.runs import creation_lock
+
+if TYPE_CHECKING:  # sqlalchemy, imported where a study storage is opened
+    from sqlalchemy.engine import Connection
 
 #: Trials that count towards ``tune.n_trials``; failed ones (crashes, killed processes) do not.
 FINISHED = (TrialState.COMPLETE, TrialState.PRUNED)
@@ -71,7 +74,7 @@ def open_storage(url: str, heartbeat_interval: int,
         engine_kwargs = {"pool_size": 1, "max_overflow": MAX_CONNECTIONS - 1,
                          "pool_timeout": 120, "pool_pre_ping": True}
         if backend == "postgresql":
-            args = {"connect_timeout": 10}
+            args: dict[str, int | str] = {"connect_timeout": 10}
             if "application_name" not in parsed.query:  # names the worker in pg_stat_activity
                 args["application_name"] = f"lbo.tune-{os.getpid()}"
             engine_kwargs["connect_args"] = args
@@ -125,7 +128,7 @@ class ClaimLock:
             from filelock import FileLock
 
             self.file = FileLock(db.with_name(f"{db.name}.{digest.hex()[:12]}.lock"))
-        self.conn = None
+        self.conn: Connection | None = None
 
     def acquire(self) -> None:
         from sqlalchemy import text
