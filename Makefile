@@ -73,8 +73,9 @@ bench: install  ## benchmarks: data generation, filters, training throughput, la
 readme-tables: install  ## README.md's measured tables rebuilt from docs/results/ (TAKE="results=reports/quick/nrmse.csv" takes a fresh one in)
 	$(PY) benchmarks/readme_tables.py $(foreach t,$(TAKE),--take $(t))
 
-lint: install  ## ruff
+lint: install  ## ruff, and mypy over src/lbo ([tool.mypy] in pyproject.toml)
 	$(VENV)/bin/ruff check src tests benchmarks examples
+	$(VENV)/bin/mypy
 
 clean:  ## remove generated outputs (keeps .venv, data/ and the MLflow/Optuna stores)
 	rm -rf outputs multirun .pytest_cache

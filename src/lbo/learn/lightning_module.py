@@ -4,10 +4,12 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from typing import Any
+from typing import Any, cast
 
 import lightning as L
 import torch
+from lightning.pytorch.core.optimizer import LightningOptimizer
+from torch.optim.lr_scheduler import LRScheduler
 
 from lbo.core import plugins
 from lbo.core.checks import SCHEDULES
@@ -92,23 +94,24 @@ class TrainingModule(L.LightningModule):
         """One batch of windows trained carried, chunk by chunk (see ``tbptt``); returns the
         mean loss of the chunks that took a step (not finite where none did). The sequences
         whose filter diverged are dropped and counted (``train_dropped_sequences``)."""
-        opt = self.optimizers()
+        # one optimiser (configure_optimizers), so Lightning hands back one, not a list
+        opt = cast(LightningOptimizer, self.optimizers())
 
         def step(loss: torch.Tensor) -> None:
             opt.zero_grad()
             self.manual_backward(loss)
             if self.clip:
-                self.clip_gradients(opt, gradient_clip_val=self.clip,
+                self.clip_gradients(opt.optimizer, gradient_clip_val=self.clip,
                                     gradient_clip_algorithm="norm")
             opt.step()
 
         m, u, z, weight = from_batch(batch, next(self.parameters()).dtype)
-        fit = train_batch(sequence_model(self.observer.net), m, u, z, self.tbptt, step, weight,
-                          self.nll)
+        fit = train_batch(sequence_model(self.observer.net), m, u, z, cast(int, self.tbptt),
+                          step, weight, self.nll)  # set: this step is tbptt's
         finite = [v for v in fit.losses if math.isfinite(v)]
         mean = torch.tensor(sum(finite) / len(finite) if finite else math.nan)
         self._dropped += fit.dropped
-        schedule = self.lr_schedulers()
+        schedule = cast(LRScheduler | None, self.lr_schedulers())  # one, or none: constant
         if schedule is not None:  # one step per batch, as the automatic loop takes them
             schedule.step()
         self._loss_sum = self._loss_sum + mean * len(m)
@@ -129,7 +132,8 @@ class TrainingModule(L.LightningModule):
         else:  # each window carried through, from its first fix
             m, u, z, weight = from_batch(batch, next(self.parameters()).dtype)
             carried = sequence_model(self.observer.net)
-            loss = sequence_loss(run(carried, m, u).est, z, carried.units, weight)
+            loss = sequence_loss(run(carried, m, u, covariance=False).est, z, carried.units,
+                                 weight)
         self._val_finite = torch.isfinite(loss) & self._val_finite
         self.log("val_loss", loss, on_step=False, on_epoch=True, prog_bar=True,
                  batch_size=len(batch[1]))
@@ -158,6 +162,7 @@ class TrainingModule(L.LightningModule):
         # optimiser's (the window filter's single-track body)
         groups = getattr(self.observer.net, "param_groups", None)
         params = groups() if callable(groups) else self.parameters()
+        opt: torch.optim.Optimizer
         if self.optimizer_factory is None:
             opt = torch.optim.Adam(params, lr=1e-3, fused=True)
         else:

@@ -186,16 +186,17 @@ def train_batch(model: SequenceModel, m: torch.Tensor, u: torch.Tensor, z: torch
     dropped = 0
     for k in range(0, t, chunk):
         part = slice(k, k + chunk)
-        est, after, cov = run(model, m[:, part], u[:, part], state, u_prev)
-        bad = diverged(est, cov if nll else None)
+        # the covariances only where the NLL term reads them
+        est, after, cov = run(model, m[:, part], u[:, part], state, u_prev, bool(nll))
+        bad = diverged(est, cov)
         if bad.any() and not bad.all():
             keep = ~bad
             dropped += int(bad.sum())
             m, u, z = m[keep], u[keep], z[keep]
             weight = None if weight is None else weight[keep]
-            if state is not None:
+            if state is not None and u_prev is not None:
                 state, u_prev = _rows(state, keep), u_prev[keep]
-            est, after, cov = run(model, m[:, part], u[:, part], state, u_prev)
+            est, after, cov = run(model, m[:, part], u[:, part], state, u_prev, bool(nll))
         w = weight[:, part] if weight is not None and weight.dim() == 2 else weight
         chunk_loss = loss(est, z[:, part], model.units, w, cov, nll)
         if chunk_loss.requires_grad and torch.isfinite(chunk_loss):
@@ -243,7 +244,7 @@ def evaluate(model: SequenceModel, seq: Sequences, device: str = "cpu") -> float
     """The loss over whole sequences, each carried from its first step (no gradient)."""
     m, u, z = _tensors(seq.centred(), device)
     with torch.no_grad():
-        est = run(model, m, u).est
+        est = run(model, m, u, covariance=False).est
     return float(loss(est, z, model.units))
 
 

@@ -24,8 +24,10 @@ from lbo.models.poses import wrap_heading
 class SequenceModel(Protocol):
     """A filter that runs step by step (``torch.nn.Module``s both)."""
 
-    units: torch.Tensor
-    """(3,) the measurement sigmas at alpha = 1 (m, m, rad): the loss's units."""
+    @property
+    def units(self) -> torch.Tensor:
+        """(3,) the measurement sigmas at alpha = 1 (m, m, rad): the loss's units."""
+        ...
 
     def begin(self, y0: torch.Tensor, fix0: torch.Tensor, u0: torch.Tensor
               ) -> list[torch.Tensor]:
@@ -129,17 +131,20 @@ class Carried(NamedTuple):
 
 
 def run(model: SequenceModel, m: torch.Tensor, u: torch.Tensor,
-        state: list[torch.Tensor] | None = None, u_prev: torch.Tensor | None = None
-        ) -> Carried:
-    """The filter over L steps of B sequences, m (B, L, 3) (NaN: no fix), u (B, L, 2):
+        state: list[torch.Tensor] | None = None, u_prev: torch.Tensor | None = None,
+        covariance: bool = True) -> Carried:
+    """The filter over L >= 1 steps of B sequences, m (B, L, 3) (NaN: no fix), u (B, L, 2):
     started at the first step when ``state`` is None, else carried on from ``state`` with
-    the inputs of the step before ``u_prev`` (B, 2); see :class:`Carried`."""
+    the inputs of the step before ``u_prev`` (B, 2); see :class:`Carried`. ``covariance``:
+    also stack the covariances (those of a model that gives them); off, ``cov`` is None."""
+    if state is not None and u_prev is None:
+        raise ValueError("u_prev: expected the inputs (B, 2) of the step before state")
     fix = torch.isfinite(m).all(-1)  # a full pose: these filters take no partial fix
     y = torch.nan_to_num(m)
-    cov_of = covariance_of(model)
+    cov_of = covariance_of(model) if covariance else None
     out, covs = [], []
     for k in range(m.shape[1]):  # a recurrence: each step needs the one before
-        if state is None:
+        if state is None or u_prev is None:
             state = model.begin(y[:, 0], fix[:, 0], u[:, 0])
             est = wrap_heading(state[0][:, :3])
         else:
@@ -152,6 +157,8 @@ def run(model: SequenceModel, m: torch.Tensor, u: torch.Tensor,
             cov = cov_of(state)
             covs.append(torch.where(started[:, None, None], cov, torch.full_like(cov, math.nan)))
         u_prev = u[:, k]
+    if state is None:
+        raise ValueError("m: expected at least one step, got shape (B, 0, 3)")
     return Carried(torch.stack(out, 1), state, torch.stack(covs, 1) if covs else None)
 
 
@@ -168,5 +175,6 @@ def run_arrays(model: Any, m: np.ndarray, u: np.ndarray, device: str = "cpu") ->
     be masked."""
     with torch.inference_mode():
         est = run(model, torch.as_tensor(np.asarray(m, np.float64), device=device),
-                  torch.as_tensor(np.nan_to_num(np.asarray(u, np.float64)), device=device)).est
+                  torch.as_tensor(np.nan_to_num(np.asarray(u, np.float64)), device=device),
+                  covariance=False).est
     return est.cpu().numpy()

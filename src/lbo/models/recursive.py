@@ -131,15 +131,14 @@ class RecursiveFilter(nn.Module):
         (B, N) the last N speeds, speed_sum (B,), k (1,) steps taken, started (B,) 1 once a
         fix was seen.
         """
-        f = dict(dtype=dtype, device=device)
+        def zeros(*shape: int) -> torch.Tensor:
+            return torch.zeros(*shape, dtype=dtype, device=device)
+
         b, n = batch, self.n
-        return (torch.zeros(b, n, **f), torch.zeros(b, n, n, **f), torch.zeros(b, 2, **f),
-                torch.zeros(b, len(self.inputs), **f), torch.zeros(b, 2, 3, **f),
-                torch.zeros(b, 3, **f),
-                torch.zeros(b, **f), torch.zeros(b, **f),
-                torch.zeros(b, self.slots, len(ENTRY), **f), torch.zeros(b, len(ENTRY), **f),
-                torch.zeros(b, self.window, **f), torch.zeros(b, **f), torch.zeros(1, **f),
-                torch.zeros(b, **f))
+        return (zeros(b, n), zeros(b, n, n), zeros(b, 2), zeros(b, len(self.inputs)),
+                zeros(b, 2, 3), zeros(b, 3), zeros(b), zeros(b),
+                zeros(b, self.slots, len(ENTRY)), zeros(b, len(ENTRY)), zeros(b, self.window),
+                zeros(b), zeros(1), zeros(b))
 
     def _noise(self, sums: torch.Tensor, speed: torch.Tensor, heading: torch.Tensor
                ) -> torch.Tensor:

@@ -58,7 +58,7 @@ class CarriedRunner:
         with torch.inference_mode():
             est, self.state, _ = run(self.model,
                                      torch.as_tensor(row, device=self.device)[None, None], uk,
-                                     self.state, self.u_prev)
+                                     self.state, self.u_prev, covariance=False)
         self.u_prev = uk[:, 0]
         if not bool(self.state[STARTED][0]):
             return Estimate(np.full(3, np.nan), False, "no position fix yet")
