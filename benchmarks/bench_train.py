@@ -49,6 +49,7 @@ from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
 import lbo.core.paths
+from lbo.learn.builders import build_net
 from lbo.learn.datamodule import WindowDataModule
 from lbo.learn.lightning_module import TrainingModule
 from lbo.models.net import WindowNet
@@ -203,7 +204,8 @@ def main() -> None:
             folder, _, _ = build(spec_from_cfg(cfg), progress=False)
             dm = WindowDataModule(folder, n, BATCH, seed=SEED, device=args.device)
             dm.setup("fit")
-            norm = dm.normalisation(cfg.features)
+            # the statistics of the windows as this net reads them (its features)
+            norm = dm.normalisation(build_net(cfg), cfg.normalisation)
             warmup, measured = STEPS.get((m, n), (10, 100))
             runs: dict[str, list[Run]] = {"bare": [], "lightning": []}
             for _ in range(args.repeats):
