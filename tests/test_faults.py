@@ -164,6 +164,8 @@ def test_datagen_removes_the_temp_files_of_a_killed_run(tmp_path):
     ("literal=[cnn60]", "literal must be a list of <model>-N<window> (e.g. cnn-N60), "
                         "got 'cnn60'"),
     ("study=cars", "study must be paper, dynamic or all, got 'cars'"),
+    ("study=dynamic", "study=dynamic trains nothing at scale smoke (its models, robust, "
+                      "literal or dynamic_study are empty)"),
 ])
 def test_reproduce_checks_every_field_before_its_first_stage(tmp_path, override, message):
     res = subprocess.run([sys.executable, "-m", "lbo.reproduce", "scale=smoke", override,

@@ -1,6 +1,7 @@
-"""`make reproduce SCALE=paper|quick`: the paper's study from one command, resumable.
+"""`make reproduce SCALE=paper|quick [STUDY=paper|dynamic|all]`: the paper's study from one
+command, resumable.
 
-    python -m lbo.reproduce scale=quick
+    python -m lbo.reproduce scale=quick [study=paper|dynamic|all]
 
 Stages: 1 data, 2 tune (CNN and LSTM at N=20), 3 train the 8 observers with the tuned
 parameters, the robust observer (``experiment=robust``, beyond the paper) with the learned
@@ -114,9 +115,14 @@ def check_reproduce(cfg: DictConfig) -> None:
     check_observers(list(cfg.classical), "classical")
     ready_launcher(cfg.launcher, "launcher")
     check_store(cfg.tracking_uri, "tracking_uri")
+    jobs = train_jobs(cfg, Path(cfg.report_dir))
+    if not jobs:
+        raise LboError(f"study={cfg.study} trains nothing at scale {cfg.scale} (its models, "
+                       "robust, literal or dynamic_study are empty); pick another study or "
+                       "give it runs, e.g. dynamic_study=[dynamic]")
     # every training run's own checks (window, metric, train_overrides, ...), without the
     # tuned parameters, which do not exist yet
-    for job in train_jobs(cfg, Path(cfg.report_dir)):
+    for job in jobs:
         check(compose("train", [o for o in job.overrides
                                 if not o.startswith(("+tuned=", "hydra.searchpath="))]))
 
