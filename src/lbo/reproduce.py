@@ -365,20 +365,20 @@ def _log_report(cfg: DictConfig, scale: str, out: Path, files: list[Path], data:
     print(f"    report logged to MLflow run {run_id}")
 
 
-SCALE_KEYS = ("trials", "tune_overrides", "search_overrides", "robust_overrides", "peers",
-              "dynamic_study", "dynamic_blackbox", "dynamic_peers", "dynamic_overrides",
-              "literal", "literal_overrides")
-"""The settings of each scale (``conf/scale/<scale>.yaml``), once maps keyed by the scale."""
-
-
 def old_spellings(argv: list[str]) -> None:
     """Refuse ``<key>.<scale>=...`` (a setting of one scale, as lbo took it before the scale
-    group) in one line that gives the new spelling."""
+    group) in one line that gives the new spelling. The scales and their settings are read
+    from ``conf/scale/``, so that a new scale or setting needs no edit here."""
+    from omegaconf import OmegaConf
+
+    from lbo.core.paths import CONF_DIR
+
+    files = {p.stem: p for p in (CONF_DIR / "scale").glob("*.yaml")}
     for arg in argv:
         key, _, value = arg.partition("=")
         head, _, rest = key.lstrip("+~").partition(".")
         scale, _, inner = rest.partition(".")
-        if head in SCALE_KEYS and scale in ("smoke", "quick", "paper"):
+        if scale in files and head != "scale" and head in OmegaConf.load(files[scale]):
             new = f"{head}{'.' + inner if inner else ''}={value}"
             raise LboError(f"{arg}: each scale's settings are in conf/scale/{scale}.yaml now; "
                            f"write {new} scale={scale}")
