@@ -37,10 +37,12 @@ LATER_DEFAULTS: dict[str, Any] = {"normalisation": "standard", "receiver": None,
 """Settings added after runs were stored (a dotted key: one inside a group), with the value
 those runs had: a config holding that value hashes as if it did not have the key, so
 resume=true still finds the old runs."""
-LATER_MODEL_DEFAULTS: dict[str, dict[str, Any]] = {name: {"body": "kinematic", "body_lr": 1.0}
-                                                  for name in ("kalmannet", "split_kalmannet")}
+LATER_MODEL_DEFAULTS: dict[str, dict[str, Any]] = {
+    **{name: {"body": "kinematic", "body_lr": 1.0} for name in ("kalmannet", "split_kalmannet")},
+    "filternet": {"empty_statistic": "net"}}
 """As :data:`LATER_DEFAULTS`, for the settings added to one model's config (``model.body`` of
-the KalmanNet peers, which the robust observer's config has had from the start)."""
+the KalmanNet peers, which the robust observer's config has had from the start, and its
+``model.empty_statistic``)."""
 
 
 def config_hash(cfg: DictConfig) -> str:
@@ -50,7 +52,10 @@ def config_hash(cfg: DictConfig) -> str:
         c.output_dir, c.data.root, c.resume, c.data_dir = "-", "-", False, None
         c.pop("logger", None)
         c.pop("paths", None)  # where it reads and writes, not what
-        c.pop("threads", None)  # how fast, not what: a run on other threads is reused
+        # how fast, not what: a run on other threads, or compiled (the same numbers to
+        # rounding), is reused
+        c.pop("threads", None)
+        c.pop("compile", None)
         for key, default in LATER_DEFAULTS.items():
             *group, name = key.split(".")
             node = OmegaConf.select(c, ".".join(group)) if group else c

@@ -37,51 +37,22 @@ from typing import TYPE_CHECKING, cast
 import torch
 from torch import nn
 
-from lbo.core.checks import integer, number
+from lbo.core.checks import integer
 from lbo.core.errors import LboError
 from lbo.filters import gyro as gyro_model
+from lbo.models.frame import check_sigmas, frame_model
 from lbo.models.motion import ProcessModel, bicycle_step, pose_jacobian
 from lbo.models.poses import wrap_heading
 from lbo.models.receiver_window import FEATURES
 from lbo.models.update import inverse_sym3, masked_update, step_covariance, turn_xy
 
+EMPTY_STATISTIC = ("net", "alpha1")
+"""R where the noise statistic is empty (under two fixes; a carried filter's start): ``net``,
+the noise model at alpha = 1's statistic, which stands in; ``alpha1``, alpha = 1's R, the
+model not asked. Asked there at every sequence's start, it learns alpha = 1 as "nothing seen"."""
 SIGMA_RATIO_MAX = 100.0
 """The largest measurement sigma the noise model gives, in units of its sigmas at alpha = 1:
 far above the noise levels lbo trains on (alpha up to 6.5)."""
-
-
-def check_sigmas(name: str, values: Sequence[float]) -> tuple[float, float, float]:
-    try:
-        out = tuple(float(v) for v in values)
-    except (TypeError, ValueError):
-        out = ()
-    if len(out) != 3 or not all(math.isfinite(v) and v > 0 for v in out):
-        raise LboError(f"model.{name}: expected three sigmas > 0 for [x (m), y (m), psi (rad)], "
-                       f"got {values!r}")
-    return out
-
-
-def frame_model(module: ProcessModel, window: int, in_features: int, dt: float,
-                wheelbase: float, receiver: bool = False) -> None:
-    """Set what a model over the kinematic bicycle in the latest fix's frame holds (the window
-    filter, KalmanNet), each checked in one line: ``physical`` (it reads and writes metres and
-    radians, see WindowNet), ``feature_modes``, ``window`` (>= 4), ``in_features`` (5, or 6
-    with the fix channel, or with ``receiver`` (a model that can read one) 15, a receiver's
-    :data:`lbo.models.receiver_window.FEATURES`), ``fixes`` and ``receiver`` (whether it
-    reads them), ``dt`` (s) and ``wheelbase`` (m)."""
-    module.physical = True
-    module.feature_modes = ("frame",)
-    module.window = integer(window, "window", 4)
-    module.in_features = integer(in_features, "in_features", 5)
-    module.receiver = receiver and module.in_features == len(FEATURES)
-    if module.in_features > 6 and not module.receiver:
-        raise LboError(f"model.in_features: expected 5, or 6 with the fix channel"
-                       f"{f', or {len(FEATURES)} (a receiver)' if receiver else ''}, "
-                       f"got {in_features!r}")
-    module.fixes = module.in_features == 6 or module.receiver
-    module.dt = number(dt, "model.dt", low=0.0, low_open=True, form="a period in seconds > 0")
-    module.wheelbase = number(wheelbase, "model.wheelbase", low=0.0, low_open=True,
-                              form="a length in metres > 0")
 
 
 class WindowFilter(ProcessModel, nn.Module):
@@ -115,6 +86,8 @@ class WindowFilter(ProcessModel, nn.Module):
         receiver's window holds one (:meth:`_receiver_filter`); the gyro's white noise, the
         bias's start and its walk are learned, from :mod:`lbo.filters.gyro`'s defaults.
         Needs a receiver's features and the kinematic bicycle without a residual.
+    empty_statistic : R where the noise statistic holds nothing yet, one of
+        :data:`EMPTY_STATISTIC`.
     """
 
     if TYPE_CHECKING:  # its buffers (or parameters) registered by name, for the type checker
@@ -131,9 +104,13 @@ class WindowFilter(ProcessModel, nn.Module):
                  measurement_sigma: Sequence[float] = (1.0, 1.0, 0.0174),
                  hidden: int = 32, in_features: int = 5, residual: int = 0,
                  drift: bool = False, body: str = "kinematic", body_lr: float = 1.0,
-                 gyro: bool = False) -> None:
+                 gyro: bool = False, empty_statistic: str = "net") -> None:
         super().__init__()
         frame_model(self, window, in_features, dt, wheelbase, receiver=True)
+        if empty_statistic not in EMPTY_STATISTIC:
+            raise LboError(f"model.empty_statistic: expected one of {list(EMPTY_STATISTIC)}, "
+                           f"got {empty_statistic!r}")
+        self.empty_statistic = empty_statistic
         hidden = integer(hidden, "hidden", 1)
         q = torch.tensor(check_sigmas("process_sigma", process_sigma))
         r = torch.tensor(check_sigmas("measurement_sigma", measurement_sigma))
@@ -249,10 +226,11 @@ class WindowFilter(ProcessModel, nn.Module):
         cross = e[:2].T @ e[3:]  # ones at (0, 3), (1, 4)
         return e[:3].T @ R @ e[:3] + var_b[:, None, None] * (xy - cross - cross.T + bb)
 
-    def _fix_residuals(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def _fix_residuals(self, x: torch.Tensor
+                       ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Mean square residual of each fix against dead reckoning from the previous fix,
-        halved (two fixes' noise), (B, 3), and the log of the mean gap between fixes (B, 1).
-        A window with fewer than two fixes gets the alpha=1 variance."""
+        halved (two fixes' noise), (B, 3), the log of the mean gap between fixes (B, 1), and
+        whether the window had fewer than two fixes (B,): it gets the alpha=1 variance."""
         fix = x[:, :, 5] > 0.5
         dr = x[:, 0, :3]
         seen = fix[:, 0]
@@ -276,13 +254,14 @@ class WindowFilter(ProcessModel, nn.Module):
         ms = torch.where(some[:, None], total / (2 * count.clamp_min(1))[:, None],
                          torch.exp(2 * self.log_r0).expand_as(total))
         mean_gap = torch.where(some, gaps / count.clamp_min(1), torch.ones_like(gaps))
-        return ms, torch.log(mean_gap)[:, None]
+        return ms, torch.log(mean_gap)[:, None], ~some
 
     def measurement_sigma(self, x: torch.Tensor) -> torch.Tensor:
         """The noise model: (B, N, 5|6) features -> (B, 3) measurement sigmas."""
         speed = torch.log1p(x[:, :, 3].abs().mean(1, keepdim=True))
+        empty = None  # N - 2 second differences: never empty
         if self.fixes:
-            ms, log_gap = self._fix_residuals(x)
+            ms, log_gap, empty = self._fix_residuals(x)
         else:
             m = x[:, :, :3]
             d2 = m[:, 2:] - 2 * m[:, 1:-1] + m[:, :-2]
@@ -291,9 +270,10 @@ class WindowFilter(ProcessModel, nn.Module):
             ms = (d2 ** 2).mean(1) / 6.0
             log_gap = speed[:, :0]  # no column
         log_ratio = 0.5 * torch.log(ms + 1e-12) - self.log_r0  # about log alpha
-        return self.noise_sigma(log_ratio, torch.cat([speed, log_gap], 1))
+        return self.noise_sigma(log_ratio, torch.cat([speed, log_gap], 1), empty)
 
-    def noise_sigma(self, log_ratio: torch.Tensor, extra: torch.Tensor) -> torch.Tensor:
+    def noise_sigma(self, log_ratio: torch.Tensor, extra: torch.Tensor,
+                    empty: torch.Tensor | None = None) -> torch.Tensor:
         """The noise model's (B, 3) measurement sigmas from the statistic's log ratio to the
         sigmas at alpha = 1 (B, 3) (about log alpha) and its other features (B, F) (log(1+V),
         and with fixes the log of the mean gap), in the window form and the recursive form.
@@ -301,9 +281,14 @@ class WindowFilter(ProcessModel, nn.Module):
         It starts from the plain moment estimate, ``exp(log_ratio) r0``, and is held inside
         [1e-6, :data:`SIGMA_RATIO_MAX` r0]: a filter carried from step to step reads the
         statistic where the window form never does (empty, at its first fix), and an
-        unbounded output there overflowed P (float32) when it was trained carried."""
+        unbounded output there overflowed P (float32) when it was trained carried. ``empty``
+        (B,): where the statistic holds nothing (None: nowhere), which
+        :attr:`empty_statistic` ``alpha1`` answers with alpha = 1's sigmas."""
         log_sigma = log_ratio + self.log_r0 + self.noise(torch.cat([log_ratio, extra], 1))
         log_sigma = torch.minimum(log_sigma, self.log_r0 + self.log_sigma_ratio_max)
+        if empty is not None and self.empty_statistic == "alpha1":
+            log_sigma = torch.where(empty[:, None], self.log_r0.expand_as(log_sigma),
+                                    log_sigma)
         return torch.exp(log_sigma).clamp_min(1e-6)
 
     def _receiver_filter(self, x: torch.Tensor, heading: torch.Tensor | None) -> torch.Tensor:

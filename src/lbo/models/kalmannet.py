@@ -67,7 +67,7 @@ from torch import nn
 from torch.nn import functional as F
 
 from lbo.core.checks import integer, number
-from lbo.models.filternet import check_sigmas, frame_model
+from lbo.models.frame import check_sigmas, frame_model
 from lbo.models.motion import ProcessModel, bicycle_step
 from lbo.models.poses import wrap_heading
 

@@ -76,7 +76,7 @@ class ProcessModel(_Host):
     poses over one step. (No class-level annotations at run time: TorchScript would read them
     as the module's attributes.)"""
 
-    if TYPE_CHECKING:  # set by lbo.models.filternet.frame_model on each host
+    if TYPE_CHECKING:  # set by lbo.models.frame.frame_model on each host
         physical: bool
         feature_modes: tuple[str, ...]
         window: int

@@ -163,7 +163,7 @@ class RecursiveFilter(nn.Module):
         if self.fixes:
             mean_gap = torch.where(some, sums[:, 5] / n, torch.ones_like(count))
             extra.append(torch.log(mean_gap)[:, None])
-        sigma = fo.noise_sigma(log_ratio, torch.cat(extra, 1))
+        sigma = fo.noise_sigma(log_ratio, torch.cat(extra, 1), ~some)
         va, vc, vp = sigma[:, 0] ** 2, sigma[:, 1] ** 2, sigma[:, 2] ** 2
         # back to world axes: R_xy = rot diag(va, vc) rot^T
         rxx, ryy, rxy = c * c * va + s * s * vc, s * s * va + c * c * vc, c * s * (va - vc)
