@@ -56,10 +56,16 @@ def groups(primary: str) -> list[str]:
 
 def overridden(config: Path) -> dict[str, str]:
     """group -> option of the ``override /<group>: <option>`` entries of a config file (an
-    experiment's data, model and training noise)."""
-    return {group[len("override /"):]: option for entry in defaults(config)
-            if isinstance(entry, dict) for group, option in entry.items()
-            if group.startswith("override /") and "@" not in group}
+    experiment's data, model and training noise), those of the option it starts from
+    (``defaults: [dynamic]``) first."""
+    out: dict[str, str] = {}
+    for entry in defaults(config):
+        if isinstance(entry, str) and entry != "_self_":  # the option it starts from
+            out.update(overridden(config.parent / f"{entry}.yaml"))
+        elif isinstance(entry, dict):
+            out.update({group[len("override /"):]: option for group, option in entry.items()
+                        if group.startswith("override /") and "@" not in group})
+    return out
 
 
 def data_truth(option: str) -> str | None:
@@ -129,10 +135,14 @@ def own_settings(group: str, option: str) -> dict[str, Any]:
     """The leaves an option file sets itself (its defaults list left out), keyed by where they
     land in the composed config: under the group, or at the root for ``@package _global_``."""
     path = CONF_DIR / group / f"{option}.yaml"
+    out: dict[str, Any] = {}
+    for entry in defaults(path):  # an option it starts from (`defaults: [paper]`): first
+        if isinstance(entry, str) and entry != "_self_":
+            out.update(own_settings(group, entry))
     raw = OmegaConf.to_container(OmegaConf.load(path), resolve=False)
     raw.pop("defaults", None)
     is_global = path.read_text().lstrip().startswith("# @package _global_")
-    return flat(raw, "" if is_global else f"{group}.")
+    return {**out, **flat(raw, "" if is_global else f"{group}.")}
 
 
 def assert_kept(cfg, *sources: tuple[str, str | None]) -> None:
@@ -170,7 +180,7 @@ NEEDS_FRAME = Refusal(r"features: model '(filternet|kalmannet|split_kalmannet)' 
                       "the window EKF and KalmanNet take their inputs in the frame of the latest "
                       "fix; with no experiment, or experiment=smoke, features stay relative")
 FILTERNET_ONLY = Refusal(r"model\.(body|body_lr|residual|drift): not a parameter of model",
-                         "experiment=dynamic and experiment=logs set the filternet's learned "
+                         "experiment=dynamic, dynamic_carried and logs set the filternet's learned "
                          "body, residual and drift; their black-box peers are "
                          "experiment=dynamic_blackbox model=cnn|lstm")
 NO_CUDA = Refusal(r"trainer=gpu needs CUDA",
@@ -198,7 +208,7 @@ FRAME_MODELS = {"filternet", "kalmannet", "split_kalmannet"}
 """Models that read features in the frame of the latest fix only."""
 FRAME_SEARCHES = {"kalmannet", "split_kalmannet"}
 """Searches that set ``features=frame`` themselves (their models read nothing else)."""
-FILTERNET_EXPERIMENTS = {"dynamic", "logs"}
+FILTERNET_EXPERIMENTS = {"dynamic", "dynamic_carried", "logs"}
 """Experiments that set model keys only the filternet takes (refused for other models)."""
 FIX_RATE_EXPERIMENTS = {"robust", "logs", "receiver"}
 """Experiments that set ``fix_rates`` (a receiver's training windows need them)."""

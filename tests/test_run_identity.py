@@ -128,3 +128,13 @@ def test_the_paths_group_moves_what_lbo_writes_and_leaves_a_runs_identity():
     reproduce = compose_cfg("reproduce", ["paths.reports=/r", "scale=quick"])
     assert (reproduce.report_dir, reproduce.tracking_uri) == ("/r/quick", here.logger.tracking_uri)
     assert compose_cfg("datagen", ["paths.data=/d"]).data.root == "/d"
+
+
+def test_a_compiled_run_is_the_same_run():
+    """``compile=true`` changes how fast a carried filter trains, not what (the same numbers to
+    rounding): it leaves the config hash, so a run trained either way is reused."""
+    carried = compose_cfg("train", ["experiment=dynamic_carried"])
+    assert carried.compile is True
+    assert config_hash(carried) == config_hash(
+        compose_cfg("train", ["experiment=dynamic_carried", "compile=false"]))
+    assert config_hash(carried) != PRE_MOVE[("experiment=dynamic",)]

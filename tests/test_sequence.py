@@ -254,6 +254,8 @@ def test_lbo_train_with_tbptt_trains_a_peer_carried_and_it_runs_carried(tmp_path
     (["tbptt=10", "nll=-1"], r"^nll must be"),
     (["tbptt=10", "model=kalmannet", "nll=0.1"],
      r"^nll: model 'kalmannet' gives no covariance for the Gaussian NLL term"),
+    (["compile=true"], r"^compile: it compiles the step of a filter trained carried; set tbptt"),
+    (["tbptt=10", "compile=yes"], r"^compile must be true or false, got 'yes'"),
 ])
 def test_bad_tbptt_settings_are_one_line_before_any_run(tmp_path, smoke_data, overrides,
                                                        message):
@@ -458,3 +460,66 @@ def test_carried_the_window_filter_gives_its_covariance_and_the_nll_term_reaches
     mixed, plain = grads(0.5), grads(0.0)
     assert len(mixed) == 2 and all(g.abs().min() > 0 for chunk in mixed for g in chunk)
     assert all((a - b).abs().min() > 0 for c, d in zip(mixed, plain) for a, b in zip(c, d))
+
+
+@pytest.mark.slow
+def test_the_compiled_carried_step_gives_the_eager_steps_numbers_and_trains(one_torch_thread):
+    """``sequence_model(net, compiled=True)``: the window filter's carried step compiled by
+    torch.compile. Over sequences with a fix every third step it gives the eager step's
+    estimates and covariances and a chunk's loss to float32 rounding; its gradient is as near
+    the float64 gradient as the eager float32 one is (the step is ill-conditioned in float32:
+    the two differ by about 1 % at the noise model's output, and each from float64 as much);
+    and it trains through :func:`lbo.learn.sequence.train_batch`, keeping one compiled step."""
+    import copy
+
+    from lbo.models.net import WindowNet
+
+    torch.manual_seed(0)
+    net = WindowNet("filternet", 40, features="frame", fixes=True).net
+    seq = straight(8, 30, 4, every=3).centred()
+
+    def chunk(model, params, dtype):
+        m, u, z = (torch.as_tensor(a[:, :15], dtype=dtype) for a in (seq.m, seq.u, seq.z))
+        out = carried.run(model, m, u)
+        value = sequence.loss(out.est, z, model.units, cov=out.cov, nll=0.1)
+        grads = torch.autograd.grad(value, list(params), allow_unused=True)
+        return out, value, torch.cat([g.flatten().double() for g in grads if g is not None])
+
+    compiled = carried.sequence_model(net, compiled=True)
+    assert isinstance(compiled, carried.Compiled)
+    fast, fast_loss, fast_grad = chunk(compiled, net.parameters(), torch.float32)
+    eager, eager_loss, eager_grad = chunk(carried.sequence_model(net), net.parameters(),
+                                          torch.float32)
+    f64 = copy.deepcopy(net).double()
+    _, _, exact = chunk(carried.sequence_model(f64), f64.parameters(), torch.float64)
+    torch.testing.assert_close(fast.est, eager.est, rtol=1e-5, atol=1e-5, equal_nan=True)
+    torch.testing.assert_close(fast.cov, eager.cov, rtol=1e-4, atol=1e-6, equal_nan=True)
+    torch.testing.assert_close(fast_loss, eager_loss, rtol=1e-5, atol=0)
+    scale = exact.abs().max()
+    assert (fast_grad - exact).abs().max() <= 3 * (eager_grad - exact).abs().max() + 1e-5 * scale
+    before = copy.deepcopy(net.state_dict())
+    opt = torch.optim.Adam(net.parameters(), lr=1e-3)
+
+    def step(value):
+        opt.zero_grad()
+        value.backward()
+        opt.step()
+
+    m, u, z = (torch.as_tensor(a, dtype=torch.float32) for a in (seq.m, seq.u, seq.z))
+    fit = sequence.train_batch(compiled, m, u, z, 15, step, nll=0.1)
+    assert len(fit.losses) == 2 and np.isfinite(fit.losses).all()
+    assert any(not torch.equal(before[k], v) for k, v in net.state_dict().items())
+
+
+@pytest.mark.parametrize("compiled", [False, True])
+def test_the_training_module_keeps_one_carried_model_compiled_as_asked(compiled):
+    """``lbo.train compile=true`` reaches the module: its carried model is compiled
+    (:class:`lbo.models.carried.Compiled`), and the same object at every step and validation,
+    so that it compiles once."""
+    from lbo.learn.lightning_module import TrainingModule
+
+    module = TrainingModule({"name": "filternet"}, 40, "frame", fixes=True, tbptt=10,
+                            compiled=compiled)
+    assert isinstance(module.carried, carried.Compiled) == compiled
+    assert module.carried is module.carried
+    assert "compiled" not in module.hparams  # how fast, not what: not in the checkpoint

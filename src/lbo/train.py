@@ -8,6 +8,7 @@ is the thin Hydra shell around it.
 
 from __future__ import annotations
 
+import shutil
 import subprocess
 import sys
 import warnings
@@ -67,6 +68,18 @@ def git_commit() -> str:
         return "unknown"
 
 
+def check_compile(cfg: DictConfig) -> None:
+    """``compile``: a flag, set only with ``tbptt``, and a C++ compiler for torch's inductor."""
+    flag = cfg.get("compile")
+    require(flag is None or isinstance(flag, bool), "compile", "true or false", flag)
+    if flag and cfg.get("tbptt") is None:
+        raise LboError("compile: it compiles the step of a filter trained carried; set tbptt "
+                       "too, or compile=false")
+    if flag and not any(shutil.which(cc) for cc in ("g++", "c++", "clang++")):
+        raise LboError("compile: torch.compile needs a C++ compiler (g++ or clang++) on the "
+                       "PATH, and none was found; install one, or set compile=false")
+
+
 def check(cfg: DictConfig) -> Built:
     """Reject bad training settings with one line naming the field, before any work; return
     the run's objects built on the way (:func:`lbo.learn.builders.build`)."""
@@ -95,6 +108,7 @@ def check(cfg: DictConfig) -> Built:
     if nll and cfg.get("tbptt") is None:
         raise LboError(f"nll: the Gaussian NLL term reads the covariance of a filter trained "
                        f"carried; set tbptt too, or nll=0 (got nll={nll} with tbptt=null)")
+    check_compile(cfg)
     check_scaling(cfg.normalisation)
     check_trainer(cfg.trainer)
     check_optimizer(cfg.optimizer)
@@ -235,7 +249,8 @@ def _fit(cfg: DictConfig, built: Built, callbacks: list[L.Callback] | None,
                             cfg.get("lr_schedule", "constant"), bool(built.fix_periods),
                             net=built.net, receiver=built.net.receiver, tbptt=cfg.get("tbptt"),
                             clip=cfg.trainer.get("gradient_clip_val"),
-                            nll=float(cfg.get("nll") or 0.0))
+                            nll=float(cfg.get("nll") or 0.0),
+                            compiled=bool(cfg.get("compile")))
     module.observer.set_normalisation(**dm.normalisation(module.observer, cfg.normalisation))
     if built.init is not None:  # fine-tuning: its weights and its normalisation
         say_fresh(cfg, module.observer, built.init)

@@ -47,6 +47,9 @@ def measure(cfg: DictConfig, steps: int = 8, warmup: int = 3) -> dict[str, Any]:
     net.set_normalisation(**dm.normalisation(net, cfg.normalisation))
     opt = instantiate(cfg.optimizer)(params=net.parameters())
     loader = dm.train_dataloader()
+    # one carried model for every step: a compiled one compiles in the warm-up steps
+    carried = sequence_model(net.net, bool(cfg.get("compile"))) \
+        if cfg.get("tbptt") is not None else None
     setup_s = time.perf_counter() - begin
     periods = []
     def step(loss: torch.Tensor) -> None:
@@ -56,11 +59,11 @@ def measure(cfg: DictConfig, steps: int = 8, warmup: int = 3) -> dict[str, Any]:
 
     for i, batch in enumerate(loader):
         start = time.perf_counter()
-        if cfg.get("tbptt") is None:
+        if carried is None:
             step(net.loss(*batch))
         else:  # trained carried: a step per chunk
             m, u, z, weight = from_batch(batch, next(net.parameters()).dtype)
-            train_batch(sequence_model(net.net), m, u, z, int(cfg.tbptt), step, weight,
+            train_batch(carried, m, u, z, int(cfg.tbptt), step, weight,
                         float(cfg.get("nll") or 0.0))
         if device == "cuda":
             torch.cuda.synchronize()

@@ -16,7 +16,7 @@ from lbo.core.checks import SCHEDULES
 from lbo.core.errors import TrainingDiverged
 from lbo.learn.sequence import from_batch, train_batch
 from lbo.learn.sequence import loss as sequence_loss
-from lbo.models.carried import run, sequence_model
+from lbo.models.carried import SequenceModel, run, sequence_model
 from lbo.models.net import CHECKPOINT_FORMAT, WindowNet
 
 __all__ = ["CHECKPOINT_FORMAT", "SCHEDULES", "TrainingModule"]
@@ -50,6 +50,9 @@ class TrainingModule(L.LightningModule):
     nll : with ``tbptt``, the weight of the Gaussian NLL of the errors under the filter's own
         covariance, added to each chunk's MSE (:func:`lbo.learn.sequence.loss`); the
         validation loss stays the MSE.
+    compiled : with ``tbptt``, run the carried filter's step compiled
+        (:class:`lbo.models.carried.Compiled`): the same numbers to rounding, a few times
+        faster a step on the CPU.
     """
 
     def __init__(self, model: dict[str, Any], window: int, features: str = "relative",
@@ -57,9 +60,9 @@ class TrainingModule(L.LightningModule):
                  meta: dict[str, Any] | None = None, lr_schedule: str = "constant",
                  fixes: bool = False, net: WindowNet | None = None,
                  receiver: bool = False, tbptt: int | None = None,
-                 clip: float | None = None, nll: float = 0.0) -> None:
+                 clip: float | None = None, nll: float = 0.0, compiled: bool = False) -> None:
         super().__init__()
-        self.save_hyperparameters(ignore=["optimizer", "lr_schedule", "net", "clip"])
+        self.save_hyperparameters(ignore=["optimizer", "lr_schedule", "net", "clip", "compiled"])
         self.lr_schedule = lr_schedule
         self.hparams["format"] = CHECKPOINT_FORMAT
         # the package that registers the model: a machine without it is told what to install
@@ -69,6 +72,8 @@ class TrainingModule(L.LightningModule):
             model["name"], window, features, fixes, receiver, carried=tbptt is not None, **kwargs)
         self.optimizer_factory = optimizer
         self.tbptt, self.clip, self.nll = tbptt, clip, float(nll)
+        self.compiled = bool(compiled)
+        self._sequence: SequenceModel | None = None
         # the chunks' optimiser steps are taken here, not by Lightning
         self.automatic_optimization = tbptt is None
         self._loss_sum: torch.Tensor | float = 0.0
@@ -78,6 +83,14 @@ class TrainingModule(L.LightningModule):
 
     def forward(self, win: torch.Tensor) -> torch.Tensor:
         return self.observer(win)
+
+    @property
+    def carried(self) -> SequenceModel:
+        """The observer's model as the filter carried from step to step (``tbptt``): one for
+        the module's life, so that a compiled step compiles once."""
+        if self._sequence is None:
+            self._sequence = sequence_model(self.observer.net, self.compiled)
+        return self._sequence
 
     def training_step(self, batch, batch_idx: int) -> torch.Tensor:
         if self.tbptt is not None:
@@ -106,8 +119,8 @@ class TrainingModule(L.LightningModule):
             opt.step()
 
         m, u, z, weight = from_batch(batch, next(self.parameters()).dtype)
-        fit = train_batch(sequence_model(self.observer.net), m, u, z, cast(int, self.tbptt),
-                          step, weight, self.nll)  # set: this step is tbptt's
+        fit = train_batch(self.carried, m, u, z, cast(int, self.tbptt), step, weight,
+                          self.nll)  # set: this step is tbptt's
         finite = [v for v in fit.losses if math.isfinite(v)]
         mean = torch.tensor(sum(finite) / len(finite) if finite else math.nan)
         self._dropped += fit.dropped
@@ -131,9 +144,8 @@ class TrainingModule(L.LightningModule):
             loss = self.observer.loss(*batch)
         else:  # each window carried through, from its first fix
             m, u, z, weight = from_batch(batch, next(self.parameters()).dtype)
-            carried = sequence_model(self.observer.net)
-            loss = sequence_loss(run(carried, m, u, covariance=False).est, z, carried.units,
-                                 weight)
+            loss = sequence_loss(run(self.carried, m, u, covariance=False).est, z,
+                                 self.carried.units, weight)
         self._val_finite = torch.isfinite(loss) & self._val_finite
         self.log("val_loss", loss, on_step=False, on_epoch=True, prog_bar=True,
                  batch_size=len(batch[1]))
