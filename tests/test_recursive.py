@@ -322,18 +322,21 @@ def test_the_recursive_form_takes_a_single_antenna_log():
 
 
 @pytest.mark.parametrize("fixes", [False, True])
-def test_an_empty_statistic_gets_alpha_1s_r_without_the_noise_model_with_alpha1(fixes):
-    """``model.empty_statistic=alpha1``: where the noise statistic holds nothing yet (the
-    recursive form's first fix; a window with fewer than two fixes) R is alpha = 1's and no
-    gradient reaches the noise model from there; ``net`` (the default) asks the noise model,
-    here set to say e^2 times alpha's sigma. Elsewhere the two are the same filter."""
+def test_an_empty_statistic_gets_its_own_learned_r_with_learned(fixes):
+    """``model.empty_statistic=learned``: where the noise statistic holds nothing yet (the
+    recursive form's first fix; a window with fewer than two fixes) R is the filter's own
+    ``log_empty_sigma`` (here e times alpha = 1's), which learns from there, and no gradient
+    reaches the noise model; ``net`` (the default, whose checkpoints hold no such parameter)
+    asks the noise model, here set to say e^2 times alpha's sigma. Elsewhere the two agree."""
     r0 = torch.exp(_net("plain").log_r0).double()
     starts, windows, grads = {}, {}, {}
-    for mode in ("net", "alpha1"):
+    for mode in ("net", "learned"):
         net = WindowNet("filternet", 40, features="frame", fixes=fixes,
                         empty_statistic=mode).net
         with torch.no_grad():
             net.noise[-1].bias.fill_(2.0)
+            net.log_empty_sigma.add_(1.0)
+        assert ("log_empty_sigma" in net.state_dict()) == (mode == "learned")
         rec = RecursiveFilter(net)
         m = torch.tensor([[3.0, -2.0, 0.4]], dtype=torch.float64)
         _, cov, *_ = rec(m, torch.tensor([[8.0, 0.0]], dtype=torch.float64),
@@ -344,12 +347,12 @@ def test_an_empty_statistic_gets_alpha_1s_r_without_the_noise_model_with_alpha1(
         grads[mode] = torch.autograd.grad(sigma[0].sum(), net.noise[-1].bias)[0]
         windows[mode] = sigma.detach().double()
     want = START_SCALE * torch.diag(r0 ** 2)
-    torch.testing.assert_close(starts["alpha1"], want)
+    torch.testing.assert_close(starts["learned"], want * np.exp(2.0))
     torch.testing.assert_close(starts["net"], want * np.exp(4.0))
-    torch.testing.assert_close(windows["alpha1"][0], r0, rtol=1e-6, atol=0)
+    torch.testing.assert_close(windows["learned"][0], r0 * np.exp(1.0), rtol=1e-6, atol=0)
     torch.testing.assert_close(windows["net"][0], r0 * np.exp(2.0), rtol=1e-6, atol=0)
-    torch.testing.assert_close(windows["alpha1"][1], windows["net"][1])
-    assert grads["alpha1"].abs().max() == 0 < grads["net"].abs().max()
+    torch.testing.assert_close(windows["learned"][1], windows["net"][1])
+    assert grads["learned"].abs().max() == 0 < grads["net"].abs().max()
     with pytest.raises(LboError, match=r"^model.empty_statistic: expected one of \['net', "
-                                       r"'alpha1'\], got 'zero'$"):
+                                       r"'learned'\], got 'zero'$"):
         WindowNet("filternet", 40, features="frame", empty_statistic="zero")

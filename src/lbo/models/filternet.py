@@ -46,10 +46,10 @@ from lbo.models.poses import wrap_heading
 from lbo.models.receiver_window import FEATURES
 from lbo.models.update import inverse_sym3, masked_update, step_covariance, turn_xy
 
-EMPTY_STATISTIC = ("net", "alpha1")
+EMPTY_STATISTIC = ("net", "learned")
 """R where the noise statistic is empty (under two fixes; a carried filter's start): ``net``,
-the noise model at alpha = 1's statistic, which stands in; ``alpha1``, alpha = 1's R, the
-model not asked. Asked there at every sequence's start, it learns alpha = 1 as "nothing seen"."""
+the noise model at alpha = 1's statistic, which stands in; ``learned``, sigmas of their own
+(``log_empty_sigma``). Asked there at every start, the net learns alpha = 1 as "nothing seen"."""
 SIGMA_RATIO_MAX = 100.0
 """The largest measurement sigma the noise model gives, in units of its sigmas at alpha = 1:
 far above the noise levels lbo trains on (alpha up to 6.5)."""
@@ -95,6 +95,7 @@ class WindowFilter(ProcessModel, nn.Module):
         log_r0: torch.Tensor
         log_drift_tau: torch.Tensor
         log_drift_ratio: torch.Tensor
+        log_empty_sigma: torch.Tensor
         log_gyro_sigma: torch.Tensor
         log_bias_sigma: torch.Tensor
         log_bias_walk: torch.Tensor
@@ -116,6 +117,11 @@ class WindowFilter(ProcessModel, nn.Module):
         r = torch.tensor(check_sigmas("measurement_sigma", measurement_sigma))
         self.register_buffer("log_q0", q.log())
         self.register_buffer("log_r0", r.log())
+        # learned from alpha = 1's; without, the same values ride along unsaved (TorchScript)
+        if empty_statistic == "learned":
+            self.log_empty_sigma = nn.Parameter(r.log())
+        else:
+            self.register_buffer("log_empty_sigma", r.log(), persistent=False)
         # an attribute, not the global: TorchScript reads no module-level floats
         self.log_sigma_ratio_max = math.log(SIGMA_RATIO_MAX)
         self.log_q_scale = nn.Parameter(torch.zeros(3))
@@ -283,12 +289,12 @@ class WindowFilter(ProcessModel, nn.Module):
         statistic where the window form never does (empty, at its first fix), and an
         unbounded output there overflowed P (float32) when it was trained carried. ``empty``
         (B,): where the statistic holds nothing (None: nowhere), which
-        :attr:`empty_statistic` ``alpha1`` answers with alpha = 1's sigmas."""
+        :attr:`empty_statistic` ``learned`` answers with its own sigmas."""
         log_sigma = log_ratio + self.log_r0 + self.noise(torch.cat([log_ratio, extra], 1))
-        log_sigma = torch.minimum(log_sigma, self.log_r0 + self.log_sigma_ratio_max)
-        if empty is not None and self.empty_statistic == "alpha1":
-            log_sigma = torch.where(empty[:, None], self.log_r0.expand_as(log_sigma),
+        if empty is not None and self.empty_statistic == "learned":
+            log_sigma = torch.where(empty[:, None], self.log_empty_sigma.expand_as(log_sigma),
                                     log_sigma)
+        log_sigma = torch.minimum(log_sigma, self.log_r0 + self.log_sigma_ratio_max)
         return torch.exp(log_sigma).clamp_min(1e-6)
 
     def _receiver_filter(self, x: torch.Tensor, heading: torch.Tensor | None) -> torch.Tensor:
