@@ -73,7 +73,9 @@ class TrainingModule(L.LightningModule):
         self.optimizer_factory = optimizer
         self.tbptt, self.clip, self.nll = tbptt, clip, float(nll)
         self.compiled = bool(compiled)
-        self._sequence: SequenceModel | None = None
+        # in a plain dict: KalmanNet's peers are their own SequenceModel, and a module held as
+        # an attribute would join the checkpoint's state a second time
+        self._sequence: dict[str, SequenceModel] = {}
         # the chunks' optimiser steps are taken here, not by Lightning
         self.automatic_optimization = tbptt is None
         self._loss_sum: torch.Tensor | float = 0.0
@@ -88,9 +90,9 @@ class TrainingModule(L.LightningModule):
     def carried(self) -> SequenceModel:
         """The observer's model as the filter carried from step to step (``tbptt``): one for
         the module's life, so that a compiled step compiles once."""
-        if self._sequence is None:
-            self._sequence = sequence_model(self.observer.net, self.compiled)
-        return self._sequence
+        if "carried" not in self._sequence:
+            self._sequence["carried"] = sequence_model(self.observer.net, self.compiled)
+        return self._sequence["carried"]
 
     def training_step(self, batch, batch_idx: int) -> torch.Tensor:
         if self.tbptt is not None:
