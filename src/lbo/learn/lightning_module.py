@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Callable
 from typing import Any, cast
@@ -73,9 +74,6 @@ class TrainingModule(L.LightningModule):
         self.optimizer_factory = optimizer
         self.tbptt, self.clip, self.nll = tbptt, clip, float(nll)
         self.compiled = bool(compiled)
-        # in a plain dict: KalmanNet's peers are their own SequenceModel, and a module held as
-        # an attribute would join the checkpoint's state a second time
-        self._sequence: dict[str, SequenceModel] = {}
         # the chunks' optimiser steps are taken here, not by Lightning
         self.automatic_optimization = tbptt is None
         self._loss_sum: torch.Tensor | float = 0.0
@@ -86,13 +84,14 @@ class TrainingModule(L.LightningModule):
     def forward(self, win: torch.Tensor) -> torch.Tensor:
         return self.observer(win)
 
-    @property
+    @functools.cached_property
     def carried(self) -> SequenceModel:
         """The observer's model as the filter carried from step to step (``tbptt``): one for
-        the module's life, so that a compiled step compiles once."""
-        if "carried" not in self._sequence:
-            self._sequence["carried"] = sequence_model(self.observer.net, self.compiled)
-        return self._sequence["carried"]
+        the module's life, so that a compiled step compiles once. Cached in the instance's
+        ``__dict__``, past nn.Module's attribute hook: KalmanNet's peers are their own
+        SequenceModel, and registered as a submodule their weights would join the
+        checkpoint's state a second time."""
+        return sequence_model(self.observer.net, self.compiled)
 
     def training_step(self, batch, batch_idx: int) -> torch.Tensor:
         if self.tbptt is not None:

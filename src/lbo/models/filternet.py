@@ -265,7 +265,7 @@ class WindowFilter(ProcessModel, nn.Module):
     def measurement_sigma(self, x: torch.Tensor) -> torch.Tensor:
         """The noise model: (B, N, 5|6) features -> (B, 3) measurement sigmas."""
         speed = torch.log1p(x[:, :, 3].abs().mean(1, keepdim=True))
-        empty = torch.zeros_like(speed[:, 0], dtype=torch.bool)  # N - 2 differences: never
+        empty = torch.zeros_like(speed[:, 0], dtype=torch.bool)  # differences: never empty
         if self.fixes:
             ms, log_gap, empty = self._fix_residuals(x)
         else:
