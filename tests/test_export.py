@@ -119,3 +119,30 @@ def test_export_refusals(tmp_path, checkpoint, overrides, message):
     with pytest.raises(LboError, match=message):
         export_observer(compose_cfg("export", [*overrides, f"out_dir={tmp_path / 'x'}"]))
     assert not (tmp_path / "x").exists()
+
+
+def test_onnx_comes_from_the_dynamo_exporter_but_a_filters_window(capfd):
+    """The CNN's window and the recursive step by the dynamo exporter, the window filter's
+    window (its N steps unrolled) by the TorchScript-based one, which names its nodes by
+    module scope (``/net/...``); neither says anything on the way (no warning, no exporter
+    note on stderr)."""
+    import warnings
+
+    import onnx
+
+    from lbo.models.recursive import RecursiveFilter
+    from lbo.serve.engines import onnx_bytes, recursive_onnx_bytes
+
+    torch.manual_seed(0)
+    filt = WindowNet("filternet", 10, features="frame", fixes=True)
+    made = {}
+    with warnings.catch_warnings(record=True) as said:
+        warnings.simplefilter("always")
+        made["cnn"] = onnx_bytes(WindowNet("cnn", 20))
+        made["step"] = recursive_onnx_bytes(RecursiveFilter(filt.net))
+        made["window filter"] = onnx_bytes(filt)
+    names = {k: [n.name for n in onnx.load_from_string(b).graph.node] for k, b in made.items()}
+    assert not any(n.startswith("/") for n in names["cnn"] + names["step"])
+    assert any(n.startswith("/") for n in names["window filter"])
+    assert [str(w.message) for w in said] == []
+    assert capfd.readouterr().err == ""

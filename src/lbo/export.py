@@ -4,7 +4,7 @@
     python -m lbo.export observer=<run id> register=lbo-cnn     # also: models:/lbo-cnn/<version>
     python -m lbo.export observer=<run id> register=lbo-cnn alias=champion  # and @champion
 
-Writes ``<name>.pt`` (TorchScript, traced), ``<name>.onnx`` (opset 17, dynamic batch axis) and
+Writes ``<name>.pt`` (TorchScript, traced), ``<name>.onnx`` (opset 20, dynamic batch axis) and
 ``<name>.json`` (window, dt, features, channel order, vehicle, noise). A CNN's or LSTM's files
 (and a window filter's with ``form=window``) take the raw window (B, N, 5) float64 ``[x_m,
 y_m, psi_m, V, delta]``, oldest sample first, and return (B, 3) float64 ``[x, y, psi]`` at the

@@ -157,7 +157,7 @@ class RecursiveFilter(nn.Module):
         along = (c * c * xx + 2 * c * s * xy + s * s * yy).clamp_min(0.0)
         across = (s * s * xx - 2 * c * s * xy + c * c * yy).clamp_min(0.0)
         ms = torch.where(some[:, None], torch.stack([along, across, pp], 1),
-                         torch.exp(2 * fo.log_r0).expand(len(sums), 3))
+                         torch.exp(2 * fo.log_r0).expand(sums.shape[0], 3))
         log_ratio = 0.5 * torch.log(ms + 1e-12) - fo.log_r0
         extra = [torch.log1p(speed)[:, None]]
         if self.fixes:
@@ -198,7 +198,7 @@ class RecursiveFilter(nn.Module):
         c, sn = torch.cos(heading), torch.sin(heading)
         qxx, qyy = c * c * q[0] + sn * sn * q[1], sn * sn * q[0] + c * c * q[1]
         qxy = c * sn * (q[0] - q[1])
-        Qn = torch.zeros(len(heading), self.n, self.n, dtype=eye.dtype, device=eye.device)
+        Qn = torch.zeros(heading.shape[0], self.n, self.n, dtype=eye.dtype, device=eye.device)
         Qn = Qn + torch.cat([torch.zeros_like(q[:2]), q[2:], torch.zeros_like(q[:self.n - 3])]) \
             * eye
         Qn[:, 0, 0], Qn[:, 1, 1], Qn[:, 0, 1], Qn[:, 1, 0] = qxx, qyy, qxy, qxy
@@ -351,7 +351,7 @@ class RecursiveFilter(nn.Module):
         # -- the filter: predict with u_{k-1}, update with m_k
         pose, f02, f12, body_new = fo.predict_pose(z[:, :3], u_prev[:, 0], u_prev[:, 1], body)
         eye = torch.eye(self.n, dtype=m.dtype, device=m.device)
-        F = eye.expand(len(m), self.n, self.n).clone()
+        F = eye.expand(m.shape[0], self.n, self.n).clone()
         F[:, 0, 2], F[:, 1, 2] = f02, f12
         Qn = self._process_cov(heading, eye)
         H = eye[:3]
