@@ -12,6 +12,7 @@ of any length, in chunks if need be (the truncated back-propagation through time
 from __future__ import annotations
 
 import copy
+import functools
 import math
 from typing import Any, NamedTuple, Protocol
 
@@ -93,6 +94,9 @@ class Compiled:
         self.model = model
         self.advance = torch.compile(model.advance)
         self.begin = model.begin
+        # run's step with what it records of it (the masking of each estimate and covariance,
+        # a sixth of the step outside the compiled graph), compiled as one
+        self.recorded_step = torch.compile(functools.partial(recorded_step, model))
 
     @property
     def units(self) -> torch.Tensor:
@@ -170,25 +174,45 @@ def run(model: SequenceModel, m: torch.Tensor, u: torch.Tensor,
         raise ValueError("u_prev: expected the inputs (B, 2) of the step before state")
     fix = torch.isfinite(m).all(-1)  # a full pose: these filters take no partial fix
     y = torch.nan_to_num(m)
-    cov_of = covariance_of(model) if covariance else None
+    keep_cov = covariance and covariance_of(model) is not None
+    step = getattr(model, "recorded_step", None) or functools.partial(recorded_step, model)
     out, covs = [], []
     for k in range(m.shape[1]):  # a recurrence: each step needs the one before
         if state is None or u_prev is None:
             state = model.begin(y[:, 0], fix[:, 0], u[:, 0])
-            est = wrap_heading(state[0][:, :3])
+            est, cov = recorded(model, state, wrap_heading(state[0][:, :3]), keep_cov)
         else:
-            state, est = model.advance(state, u_prev, y[:, k], fix[:, k], u[:, k])
-        started = state[STARTED]
-        # NaN before the first fix; a diverged estimate stays inf, so that a loss sees it
-        held = est.nan_to_num(nan=math.inf, posinf=math.inf, neginf=-math.inf)
-        out.append(torch.where(started[:, None], held, torch.full_like(est, math.nan)))
-        if cov_of is not None:
-            cov = cov_of(state)
-            covs.append(torch.where(started[:, None, None], cov, torch.full_like(cov, math.nan)))
+            state, est, cov = step(state, u_prev, y[:, k], fix[:, k], u[:, k], keep_cov)
+        out.append(est)
+        if cov is not None:
+            covs.append(cov)
         u_prev = u[:, k]
     if state is None:
         raise ValueError("m: expected at least one step, got shape (B, 0, 3)")
     return Carried(torch.stack(out, 1), state, torch.stack(covs, 1) if covs else None)
+
+
+def recorded(model: Any, state: list[torch.Tensor], est: torch.Tensor, covariance: bool
+             ) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """What :func:`run` records of a step: the estimate (B, 3), NaN before the sequence's
+    first fix and inf where the filter diverged (so that a loss sees it), and with
+    ``covariance`` its covariance (B, 3, 3) (NaN before the first fix), else None."""
+    started = state[STARTED]
+    held = est.nan_to_num(nan=math.inf, posinf=math.inf, neginf=-math.inf)
+    est = torch.where(started[:, None], held, torch.full_like(est, math.nan))
+    if not covariance:
+        return est, None
+    cov = covariance_of(model)(state)
+    return est, torch.where(started[:, None, None], cov, torch.full_like(cov, math.nan))
+
+
+def recorded_step(model: Any, state: list[torch.Tensor], u_prev: torch.Tensor,
+                  y: torch.Tensor, fix: torch.Tensor, u: torch.Tensor, covariance: bool
+                  ) -> tuple[list[torch.Tensor], torch.Tensor, torch.Tensor | None]:
+    """One ``advance`` of a :class:`SequenceModel` and what :func:`run` records of it
+    (:func:`recorded`): the next state, the estimate and its covariance or None."""
+    state, est = model.advance(state, u_prev, y, fix, u)
+    return (state, *recorded(model, state, est, covariance))
 
 
 def in_float64(model: Any) -> Any:

@@ -54,7 +54,7 @@ from lbo.filters.kalman import coast_covariance, compose_covariance
 from lbo.models.filternet import WindowFilter
 from lbo.models.motion import bicycle_step
 from lbo.models.poses import wrap_heading
-from lbo.models.update import masked_update, step_covariance
+from lbo.models.update import masked_update, mm, step_covariance
 
 STATE_NAMES = ("z", "P", "body", "u_prev", "last", "dead_reckoning", "gap", "heading",
                "ring", "sums", "speeds", "speed_sum", "k", "started")
@@ -372,8 +372,8 @@ class RecursiveFilter(nn.Module):
             z_pred = torch.cat([pose, phi * z[:, 3:]], -1)
         else:
             z_pred = pose
-        P_pred = F @ P @ F.transpose(1, 2) + Qn
-        y = wrap_heading(meas - (H @ z_pred.unsqueeze(-1)).squeeze(-1))
+        P_pred = mm(mm(F, P), F.transpose(1, 2)) + Qn
+        y = wrap_heading(meas - mm(H, z_pred.unsqueeze(-1)).squeeze(-1))
         z_upd, P_upd = masked_update(z_pred, P_pred, y, held.to(m.dtype), R, H)
 
         # -- where the filter starts (its first fix), where it has no fix, where it goes on
@@ -391,7 +391,7 @@ class RecursiveFilter(nn.Module):
         # what the smoother needs: this step's prior and cov(x_{k-1|k-1}, x_{k|k-1}); none
         # where the filter starts afresh
         self.last_prior = (z_pred, P_pred, torch.where(going[:, None, None],
-                                                       P @ F.transpose(1, 2),
+                                                       mm(P, F.transpose(1, 2)),
                                                        torch.zeros_like(P)))
         update = held.any(1) & going
         z = torch.where(first[:, None], start_z,
