@@ -20,7 +20,6 @@ from __future__ import annotations
 import argparse
 import statistics
 import time
-import warnings
 
 import numpy as np
 import torch
@@ -28,21 +27,6 @@ import torch
 MODELS = {"cnn": {}, "lstm": {}, "kalmannet": {"features": "frame"},
           "filternet": {"features": "frame", "fixes": True},
           "step": {"features": "frame", "fixes": True}}
-
-
-def legacy_onnx(module: torch.nn.Module, args: tuple, names: tuple[list, list]) -> bytes:
-    """The TorchScript-based exporter's ONNX, the batch axis dynamic."""
-    import io
-
-    from lbo.serve.engines import OPSET
-
-    buf = io.BytesIO()
-    axes = {n: {0: "batch"} for n in (*names[0], *names[1]) if n not in ("k", "next_k")}
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        torch.onnx.export(module, args, buf, dynamo=False, opset_version=OPSET,  # type: ignore
-                          input_names=names[0], output_names=names[1], dynamic_axes=axes)
-    return buf.getvalue()
 
 
 def case(model: str, window: int, repeats: int) -> None:
@@ -64,7 +48,7 @@ def case(model: str, window: int, repeats: int) -> None:
         batch = torch.export.Dim("batch", min=1)
         dynamo = lambda: engines._dynamo_onnx(  # noqa: E731
             net, (engines._example(net, batch=2),), names, ({0: batch},))
-    for exporter, make in (("legacy", lambda: legacy_onnx(module, args, names)),
+    for exporter, make in (("legacy", lambda: engines.legacy_onnx(module, args, names)),
                            ("dynamo", dynamo)):
         start = time.perf_counter()
         model_bytes = make()

@@ -165,14 +165,23 @@ def onnx_bytes(net: Any) -> bytes:
         batch = torch.export.Dim("batch", min=1)
         return _exporting("ONNX", net, lambda: _dynamo_onnx(
             net, (_example(net, batch=2),), (["window"], ["state"]), ({0: batch},)))
+    return _exporting("ONNX", net, lambda: legacy_onnx(
+        net, (_example(net),), (["window"], ["state"])))
+
+
+def legacy_onnx(module: Any, args: tuple, names: tuple[list[str], list[str]]) -> bytes:
+    """ONNX (opset :data:`OPSET`) of ``module`` by the TorchScript-based exporter, traced on
+    the example ``args``, the batch axis of every input and output (``names``) dynamic but
+    the step count ``k``'s."""
+    import torch
+
     buf = io.BytesIO()
+    axes = {n: {0: "batch"} for n in (*names[0], *names[1]) if n not in ("k", "next_k")}
     with _quiet():
-        _exporting("ONNX", net, lambda: torch.onnx.export(
-            net, (_example(net),),
-            buf,  # type: ignore[arg-type]  # torch's stub: the legacy exporter takes a file too
-            dynamo=False, opset_version=OPSET,
-            input_names=["window"], output_names=["state"],
-            dynamic_axes={"window": {0: "batch"}, "state": {0: "batch"}}))
+        torch.onnx.export(module, args,
+                          buf,  # type: ignore[arg-type]  # torch's stub: it takes a file too
+                          dynamo=False, opset_version=OPSET, input_names=names[0],
+                          output_names=names[1], dynamic_axes=axes)
     return buf.getvalue()
 
 
