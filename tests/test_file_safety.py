@@ -116,13 +116,13 @@ def test_observe_refuses_to_write_into_a_data_set_cache(tmp_path, smoke_data, ma
     _, folder = _cache_copy(smoke_data, tmp_path)
     log = tmp_path / "log.csv"
     manoeuvre[LOG].to_csv(log, index=False)
-    before = {p.name: p.read_bytes() for p in folder.iterdir()}
+    before = {p: p.read_bytes() for p in folder.rglob("*") if p.is_file()}
     outputs = {"output": str(tmp_path / "estimates.csv"), field: str(folder / path)}
     with pytest.raises(LboError, match=rf"^{field}: .* is in the data-set cache .*; give a path "
                                        "outside that folder$"):
         observe(compose_cfg("observe", ["observer=ekf", f"input={log}",
                                         *(f"{k}={v}" for k, v in outputs.items())]))
-    assert {p.name: p.read_bytes() for p in folder.iterdir()} == before
+    assert {p: p.read_bytes() for p in folder.rglob("*") if p.is_file()} == before
     # the advice, followed: a path outside the cache
     observe(compose_cfg("observe", ["observer=ekf", f"input={log}",
                                     f"output={tmp_path / 'out' / 'test.parquet'}",

@@ -133,11 +133,12 @@ def _run_grid(cfg: DictConfig, observers: list[str], learned: list[str]
     vehicle, noise = Vehicle.from_cfg(cfg.vehicle), Noise.from_cfg(cfg.noise)
     truth = truth_from_cfg(cfg.get("truth"), vehicle.wheelbase)
     nets = learned_nets(learned)  # every checkpoint read before any data is made
+    keep = None  # the classical rows are kept beside lbo's data sets, not a user's file
     if cfg.get("test_file"):
         path = Path(cfg.test_file)
     else:
         folder, _, _ = build(spec_from_cfg(cfg))
-        path = folder / "test.parquet"
+        path = keep = folder / "test.parquet"
     if truth.car is not None:  # a car that slips: its oracle is the floor, the tuned
         if BOUND in observers:  # kinematic EKF the fair classical peer
             observers.remove(BOUND)
@@ -156,7 +157,8 @@ def _run_grid(cfg: DictConfig, observers: list[str], learned: list[str]
         name: run_classical(name, arr.m, arr.u, vehicle, noise, alpha=arr.alpha, return_cov=True)
         for name in observers if name in OBSERVERS and (calibrate or smooth)}
     table = classical_table(arr, vehicle, noise, observers, ref, progress=True, truth=truth,
-                            given={name: est for name, (est, _) in covariant.items()})
+                            given={name: est for name, (est, _) in covariant.items()},
+                            keep=keep)
     rows, names = [], []
     for name, net in nets.items():
         from lbo.serve.runners import default_form, has_recursive_form, is_window_filter

@@ -110,7 +110,8 @@ class Evaluation(L.Callback):
         # a car that slips: the kinematic peers, and the floor of the filter told the car
         peers = list(DYNAMIC_PEERS if truth.car else GRID_PEERS)
         self.table = pd.concat([score(name, est, arr, ref),
-                                classical_table(arr, vehicle, noise, peers, ref, truth=truth)],
+                                classical_table(arr, vehicle, noise, peers, ref, truth=truth,
+                                                keep=folder / "test.parquet")],
                                ignore_index=True)
         csv, png = self.output_dir / "evaluation.csv", self.output_dir / "nrmse.png"
         with atomic_path(csv) as tmp:

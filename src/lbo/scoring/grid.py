@@ -8,6 +8,7 @@ observers' evaluation callback both score through here.
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Sequence
 from pathlib import Path
 from typing import cast
@@ -21,6 +22,7 @@ from lbo.filters.classical import BOUND, NAMES, TUNED, measurement_cov, plugged
 from lbo.filters.classical import estimate as run_classical
 from lbo.filters.kalman import ekf_batch
 from lbo.filters.pcrb import pcrb
+from lbo.scoring import score_cache
 from lbo.scoring.metrics import PAPER_REFERENCE, SCORE_COLUMNS, pooled_rmse, score_table
 from lbo.sim import schema
 from lbo.sim.columns import SCORED_SET
@@ -111,21 +113,32 @@ def classical_table(arr: Trajectories, vehicle: Vehicle, noise: Noise,
                     observers: Sequence[str] = NAMES, ref: np.ndarray | None = None,
                     progress: bool = False, seed: int = 0,
                     truth: Truth | None = None,
-                    given: dict[str, np.ndarray] | None = None) -> pd.DataFrame:
+                    given: dict[str, np.ndarray] | None = None,
+                    keep: Path | None = None) -> pd.DataFrame:
     """Score the classical observers on the test arrays; ``ref`` defaults to our EKF's;
     ``truth``: what the set was drawn from, for ``oracle_dynamic``; ``given``: estimates
-    (G, T, 3) already made, by name, which are scored instead of running that filter again."""
+    (G, T, 3) already made, by name, which are scored instead of running that filter again;
+    ``keep``: the test set's file the arrays were read from, beside which lbo's own observers'
+    rows are kept and read back (:mod:`lbo.scoring.score_cache`), None: always scored."""
     check_observers(observers)
     ref = reference(arr, vehicle, noise) if ref is None else ref
-    tables = []
-    for name in observers:
+    given = given or {}
+
+    def rows(name: str) -> pd.DataFrame:
         if name == TUNED:
-            tables.append(score(name, tuned_oracle(arr, vehicle, noise, ref)[0], arr, ref))
-            continue
-        out = (given or {}).get(name)
+            return score(name, tuned_oracle(arr, vehicle, noise, ref)[0], arr, ref)
+        out = given.get(name)
         if out is None:
             out = classical(name, arr, vehicle, noise, progress=progress, seed=seed, truth=truth)
-        tables.append(bound_table(out, arr, ref) if name == "pcrb" else score(name, out, arr, ref))
+        return bound_table(out, arr, ref) if name == BOUND else score(name, out, arr, ref)
+
+    tables = []
+    for name in observers:
+        if keep is None or name in given or name not in NAMES:  # a plug-in's: never kept
+            tables.append(rows(name))
+        else:
+            tables.append(score_cache.cached(keep, name, (vehicle, noise, truth, seed), ref,
+                                             functools.partial(rows, name)))
     return pd.concat(tables, ignore_index=True)[list(SCORE_COLUMNS)]
 
 
