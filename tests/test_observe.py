@@ -1,8 +1,10 @@
 import re
+import sqlite3
 import subprocess
 import sys
 from dataclasses import replace
 from functools import partial
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
@@ -383,6 +385,39 @@ def test_checkpoint_carries_the_observer(trained):
     assert (obs.name, obs.window, obs.dt, obs.features) == ("cnn-N20", 20, 0.02, "relative")
     assert obs.noise.name == "paper" and obs.vehicle == VEHICLE
     assert torch.all(obs.net.in_std != 1.0)  # normalisation statistics of the training set
+
+
+def test_a_run_in_a_local_store_is_read_in_place_and_others_through_mlflow(trained,
+                                                                           monkeypatch):
+    import mlflow
+
+    from lbo.tracking.artifacts import checkpoint_file, local_run_checkpoint
+
+    run = mlflow.MlflowClient(trained["uri"]).get_run(trained["run_id"])
+    folder = Path(run.info.artifact_uri.removeprefix("file://"))
+    in_place = local_run_checkpoint(trained["run_id"], trained["uri"])
+    assert in_place == folder / "checkpoints" / "best.ckpt"
+    assert in_place.read_bytes() == Path(trained["checkpoint"]).read_bytes()
+    # not in place: no such run, no such store, a server, a run whose checkpoint is gone
+    assert local_run_checkpoint("0" * 32, trained["uri"]) is None
+    assert local_run_checkpoint(trained["run_id"], trained["uri"] + ".missing") is None
+    assert local_run_checkpoint(trained["run_id"], "http://127.0.0.1:1") is None
+    not_mlflow = Path(trained["checkpoint"]).parent / "other.db"
+    sqlite3.connect(not_mlflow).close()  # an empty database: no runs table
+    assert local_run_checkpoint(trained["run_id"], f"sqlite:///{not_mlflow}") is None
+    moved = in_place.with_name("moved.ckpt")
+    in_place.rename(moved)
+    try:
+        assert local_run_checkpoint(trained["run_id"], trained["uri"]) is None
+    finally:
+        moved.rename(in_place)
+    # the store is only read: its bytes are the same after
+    store = Path(trained["uri"].removeprefix("sqlite:///"))
+    before = store.read_bytes()
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", trained["uri"])
+    with checkpoint_file(trained["run_id"]) as path:
+        assert path == in_place
+    assert store.read_bytes() == before
 
 
 def test_run_id_and_registered_model_load_the_same_observer(trained, manoeuvre, monkeypatch,

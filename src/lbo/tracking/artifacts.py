@@ -1,11 +1,18 @@
 """Where a learned observer's checkpoint is: a file, an MLflow run, a run's or a registered
-model's URI, resolved to a local file (downloaded into a temporary folder when it is remote)."""
+model's URI, resolved to a local file (downloaded into a temporary folder when it is remote).
+
+A run id in lbo's own kind of store (a SQLite file whose runs keep their artifacts in a local
+folder, as ``sqlite:///mlflow.db`` and its ``mlartifacts/`` do) is read in place: the run's
+artifact folder is looked up in the database with the standard library, and its
+``checkpoints/best.ckpt`` opened where it lies. MLflow's import, its store and its copy of the
+file cost about 2.5 s of a 9 s ``lbo.observe``; anything else goes through MLflow."""
 
 from __future__ import annotations
 
 import contextlib
 import os
 import re
+import sqlite3
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
@@ -13,7 +20,7 @@ from typing import Any
 from urllib.parse import unquote, urlparse
 
 from lbo.core.errors import LboError
-from lbo.core.paths import tracking_uri
+from lbo.core.paths import sqlite_path, tracking_uri
 from lbo.filters import classical
 
 RUN_ID = re.compile(r"[0-9a-f]{32}")
@@ -39,6 +46,10 @@ def checkpoint_file(source: str) -> Iterator[Path]:
         yield Path(src)
         return
     if RUN_ID.fullmatch(src):
+        in_place = local_run_checkpoint(src, tracking_uri())
+        if in_place is not None:
+            yield in_place
+            return
         uri, run_id = f"runs:/{src}/checkpoints/best.ckpt", src
     elif src.startswith(("runs:/", "models:/")):
         uri, run_id = src, None
@@ -50,6 +61,33 @@ def checkpoint_file(source: str) -> Iterator[Path]:
                        f"{', '.join(classical.on_logs())}")
     with tempfile.TemporaryDirectory(prefix="lbo-ckpt-") as tmp:
         yield _download(uri, run_id, Path(tmp))
+
+
+def local_run_checkpoint(run_id: str, store: str) -> Path | None:
+    """A run's ``checkpoints/best.ckpt`` where it lies, when ``store`` is a SQLite file that
+    holds the run and the run's artifacts are a local folder; None otherwise (a server, another
+    database, remote artifacts, no such run or file), and MLflow is asked instead."""
+    db = sqlite_path(store)
+    if db is None or not db.is_file():
+        return None
+    try:  # read-only: a command that only reads never changes the store
+        with contextlib.closing(sqlite3.connect(f"{db.resolve().as_uri()}?mode=ro",
+                                                uri=True)) as con:
+            row = con.execute("SELECT artifact_uri FROM runs WHERE run_uuid = ?",
+                              (run_id,)).fetchone()
+    except sqlite3.Error:  # not MLflow's schema, locked, damaged: MLflow says what is wrong
+        return None
+    if not row or not isinstance(row[0], str):
+        return None
+    where = urlparse(row[0])
+    if where.scheme == "file":
+        folder = Path(unquote(where.path))
+    elif not where.scheme:
+        folder = Path(row[0])
+    else:  # mlflow-artifacts:, s3:, ...: MLflow fetches them
+        return None
+    path = folder / "checkpoints" / "best.ckpt"
+    return path if path.is_file() else None
 
 
 PROGRESS_BAR = "MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR"
