@@ -24,6 +24,15 @@ def pytest_configure(config) -> None:
     torch.set_num_threads(int(os.environ["OMP_NUM_THREADS"]))
 
 
+@pytest.fixture(scope="session", autouse=True)
+def own_cache_dir(tmp_path_factory):
+    """lbo's cache folder (kept ONNX exports) in the session's temp folder, for this process
+    and the commands it starts: the tests never write into the user's ~/.cache."""
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("LBO_CACHE_DIR", str(tmp_path_factory.mktemp("lbo-cache")))
+        yield
+
+
 @pytest.fixture(scope="session")
 def smoke_data(tmp_path_factory) -> Path:
     """The smoke data sets, generated once per test session."""

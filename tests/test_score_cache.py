@@ -7,6 +7,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
+from lbo.core import sources
 from lbo.scoring import grid, score_cache
 from lbo.scoring.grid import classical_table, load_test, reference
 from lbo.sim.noise import Noise
@@ -82,19 +83,19 @@ def test_the_key_follows_every_input(test_file, tmp_path, monkeypatch):
 
 
 def test_the_source_digest_follows_the_filters_source(tmp_path):
-    src = score_cache.Path(score_cache.__file__).resolve().parents[1]
-    assert score_cache.source_digest() == score_cache.tree_digest(src, score_cache._SOURCES)
+    src = sources.PACKAGE
+    assert score_cache.source_digest() == sources.tree_digest(src, score_cache._SOURCES)
     for package in score_cache._SOURCES:
         shutil.copytree(src / package, tmp_path / package,
                         ignore=shutil.ignore_patterns("__pycache__"))
-    copy = score_cache.tree_digest(tmp_path, score_cache._SOURCES)
+    copy = sources.tree_digest(tmp_path, score_cache._SOURCES)
     assert copy == score_cache.source_digest()
     kalman = tmp_path / "filters" / "kalman.py"
     kalman.write_text(kalman.read_text() + "\n# a change\n")
-    changed = score_cache.tree_digest(tmp_path, score_cache._SOURCES)
+    changed = sources.tree_digest(tmp_path, score_cache._SOURCES)
     assert changed != copy
     (tmp_path / "sim" / "new.py").write_text("")  # a new module counts too
-    assert score_cache.tree_digest(tmp_path, score_cache._SOURCES) not in (copy, changed)
+    assert sources.tree_digest(tmp_path, score_cache._SOURCES) not in (copy, changed)
 
 
 def test_an_unreadable_kept_file_is_scored_afresh_and_replaced(test_file):

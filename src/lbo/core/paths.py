@@ -31,6 +31,17 @@ EXAMPLE_LOG: Path = CONF_DIR.parent / "examples" / "stop_and_go_10hz.csv"
 the package): ``python -m lbo.simulate manoeuvre=stop_and_go fix_rate=10 output=...`` writes it
 again, byte for byte."""
 
+
+
+def cache_dir() -> Path:
+    """Where lbo keeps what it can make again (ONNX exports of in-memory sessions):
+    ``LBO_CACHE_DIR``, else ``$XDG_CACHE_HOME/lbo``, else ``~/.cache/lbo``."""
+    if os.environ.get("LBO_CACHE_DIR"):
+        return Path(os.environ["LBO_CACHE_DIR"])
+    base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
+    return Path(base) / "lbo"
+
+
 # `${lbo.root:}` in any config resolves to the repo root, whatever the working directory.
 if not OmegaConf.has_resolver("lbo.root"):
     OmegaConf.register_new_resolver("lbo.root", lambda: str(REPO_ROOT))

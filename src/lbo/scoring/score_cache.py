@@ -19,7 +19,6 @@ file that cannot be read is scored afresh and replaced.
 
 from __future__ import annotations
 
-import functools
 import hashlib
 from collections.abc import Callable
 from pathlib import Path
@@ -27,6 +26,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from lbo.core import sources
 from lbo.core.atomic import atomic_path
 from lbo.core.errors import LboError
 from lbo.scoring.metrics import SCORE_COLUMNS
@@ -37,21 +37,9 @@ FOLDER = "scores"
 _SOURCES = ("filters", "sim", "scoring", "core")
 
 
-@functools.cache
 def source_digest() -> str:
     """sha256 of the source of the lbo packages that score the classical observers."""
-    return tree_digest(Path(__file__).resolve().parents[1], _SOURCES)
-
-
-def tree_digest(root: Path, packages: tuple[str, ...]) -> str:
-    """sha256 of the ``.py`` files under ``root / package`` for each package: their paths
-    relative to ``root`` and their bytes, in sorted order."""
-    h = hashlib.sha256()
-    for package in packages:
-        for path in sorted((root / package).rglob("*.py")):
-            h.update(path.relative_to(root).as_posix().encode() + b"\0")
-            h.update(path.read_bytes())
-    return h.hexdigest()
+    return sources.source_digest(_SOURCES)
 
 
 def file_digest(path: Path) -> str:

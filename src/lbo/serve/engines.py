@@ -19,6 +19,7 @@ from typing import Any
 import numpy as np
 
 from lbo.core.errors import LboError
+from lbo.serve import onnx_cache
 from lbo.sim.logcheck import check_device
 
 ENGINES = ("torch", "torchscript", "onnx")
@@ -343,17 +344,20 @@ Predictor = Callable[[np.ndarray], np.ndarray]
 def make_predictor(net: Any, engine: str = "torch", device: str = "cpu") -> Predictor:
     """Wrap an :class:`~lbo.models.net.WindowNet` as a numpy-in, numpy-out predictor.
 
-    ``torchscript`` traces the net; ``onnx`` exports it in memory and runs it in ONNX Runtime
-    on one thread (one window per step gains nothing from more). The torch engines use
-    torch's threads: in a control loop call ``torch.set_num_threads(1)``, as intra-op threads
-    slow a single window down, by 10x on a busy 2-core machine (measured).
+    ``torchscript`` traces the net; ``onnx`` exports it (or reads the export kept from an
+    earlier session, :mod:`lbo.serve.onnx_cache`) and runs it in ONNX Runtime on one thread
+    (one window per step gains nothing from more). The torch engines use torch's threads: in
+    a control loop call ``torch.set_num_threads(1)``, as intra-op threads slow a single window
+    down, by 10x on a busy 2-core machine (measured).
     """
     import torch
 
     device = engine_device(engine, device)
     net = net.to(device).eval()
     if engine == "onnx":
-        session = onnx_session(onnx_bytes(net.cpu()), threads=1)
+        net = net.cpu()
+        session = onnx_cache.session(net, "window", OPSET, lambda: onnx_bytes(net),
+                                     lambda model: onnx_session(model, threads=1))
         return lambda win: session.run(None, {"window": win})[0]
     if engine == "torchscript":
         net = trace(net)
@@ -408,7 +412,9 @@ def make_recursive_step(net: Any, engine: str = "torch", device: str = "cpu"
 
     coaster = coast if rec.coasts else None
     if engine == "onnx":
-        return onnx_step(onnx_session(recursive_onnx_bytes(rec), threads=1)), state, coaster
+        kept = onnx_cache.session(rec, "recursive", OPSET, lambda: recursive_onnx_bytes(rec),
+                                  lambda model: onnx_session(model, threads=1))
+        return onnx_step(kept), state, coaster
     module = rec
     if engine == "torchscript":
         module = trace_recursive(rec)

@@ -1,0 +1,75 @@
+"""ONNX exports kept between sessions.
+
+``engine="onnx"`` runs a learned observer in ONNX Runtime, exported in memory when it is
+loaded. The dynamo exporter takes about 11 s for the robust observer's recursive step and 3 s
+for a CNN, at every load; so each export is kept in lbo's cache folder
+(:func:`lbo.core.paths.cache_dir`, ``onnx/``) and read back by the next session of the same
+model. A file's name is a digest of everything the export depends on: the module's structure
+(its ``repr``) and every tensor of its state, the form exported, torch's and onnxscript's
+versions, the opset and the source of the lbo packages the graph is traced from. A kept
+file that ONNX Runtime refuses is exported afresh and replaced; a cache folder that cannot be
+written leaves each session to export for itself.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from collections.abc import Callable
+from importlib import metadata
+from pathlib import Path
+from typing import Any
+
+from lbo.core import sources
+from lbo.core.atomic import atomic_path
+from lbo.core.errors import LboError
+from lbo.core.paths import cache_dir
+
+_SOURCES = ("models", "filters", "serve", "sim", "core")
+"""The lbo packages whose code an exported graph is traced from."""
+
+
+def key(module: Any, form: str, opset: int) -> str:
+    """The digest (24 hex digits) of an export of ``module`` as ``form`` (e.g. ``window``,
+    ``recursive``) at ``opset`` (see the module)."""
+    import torch
+
+    h = hashlib.sha256()
+    for part in (form, str(opset), torch.__version__, _version("onnxscript"),
+                 sources.source_digest(_SOURCES), repr(module)):
+        h.update(part.encode() + b"\0")
+    for name, tensor in module.state_dict().items():
+        t = tensor.detach().cpu().contiguous()
+        h.update(f"{name}:{t.dtype}:{tuple(t.shape)}".encode() + b"\0")
+        h.update(t.reshape(-1).view(torch.uint8).numpy().tobytes())
+    return h.hexdigest()[:24]
+
+
+def _version(package: str) -> str:
+    try:
+        return metadata.version(package)
+    except metadata.PackageNotFoundError:
+        return "none"
+
+
+def session(module: Any, form: str, opset: int, export: Callable[[], bytes],
+            open_session: Callable[[bytes], Any]) -> Any:
+    """An ONNX Runtime session (``open_session(bytes)``) of ``module``'s export: of the kept
+    file where there is one, else of a new ``export()``, which is then kept."""
+    path = cache_dir() / "onnx" / f"{form}-{key(module, form, opset)}.onnx"
+    try:
+        return open_session(path.read_bytes())
+    except Exception:  # noqa: BLE001  # none kept, or damaged (ONNX Runtime's errors share no base)
+        pass
+    model = export()
+    out = open_session(model)
+    _keep(path, model)
+    return out
+
+
+def _keep(path: Path, model: bytes) -> None:
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with atomic_path(path) as tmp:
+            tmp.write_bytes(model)
+    except (OSError, LboError):  # a read-only home: every session exports for itself
+        pass

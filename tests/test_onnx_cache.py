@@ -1,0 +1,81 @@
+"""ONNX exports of in-memory sessions kept between sessions (lbo.serve.onnx_cache)."""
+
+import numpy as np
+import pytest
+import torch
+
+from lbo.core.paths import cache_dir
+from lbo.models.net import WindowNet
+from lbo.serve import engines, onnx_cache
+from lbo.serve.observer import Observer
+
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
+
+
+@pytest.fixture
+def own_cache(tmp_path, monkeypatch):
+    monkeypatch.setenv("LBO_CACHE_DIR", str(tmp_path / "cache"))
+    return tmp_path / "cache" / "onnx"
+
+
+def _cnn(seed: int = 0) -> WindowNet:
+    torch.manual_seed(seed)
+    return WindowNet("cnn", 20, "relative")
+
+
+def _windows() -> np.ndarray:
+    return np.random.default_rng(0).normal(size=(4, 20, 5)) * [1, 1, 0.1, 5, 0.05] + [0, 0, 0,
+                                                                                      10, 0]
+
+
+def _refuse(*args, **kwargs):
+    raise AssertionError("exported again, though its export is kept")
+
+
+def test_an_export_is_kept_and_the_next_session_reads_it(own_cache, monkeypatch):
+    assert cache_dir() == own_cache.parent
+    first = Observer.from_net(_cnn(), engine="onnx")
+    (kept,) = own_cache.iterdir()
+    assert kept.name.startswith("window-") and kept.suffix == ".onnx"
+    monkeypatch.setattr(engines, "onnx_bytes", _refuse)
+    again = Observer.from_net(_cnn(), engine="onnx")  # the same weights: read back
+    win = _windows()
+    np.testing.assert_array_equal(again._runner.predict(win), first._runner.predict(win))
+    # other weights: another key, so an export of their own (refused here)
+    with pytest.raises(AssertionError, match="exported again"):
+        Observer.from_net(_cnn(seed=1), engine="onnx")
+
+
+def test_the_key_follows_the_weights_the_form_and_the_opset():
+    net = _cnn()
+    base = onnx_cache.key(net, "window", 20)
+    assert onnx_cache.key(_cnn(), "window", 20) == base
+    assert onnx_cache.key(net, "recursive", 20) != base
+    assert onnx_cache.key(net, "window", 21) != base
+    with torch.no_grad():
+        next(net.parameters()).view(-1)[0] += 1e-3
+    assert onnx_cache.key(net, "window", 20) != base
+
+
+def test_a_damaged_kept_export_is_exported_afresh_and_replaced(own_cache):
+    win = _windows()
+    ref = Observer.from_net(_cnn(), engine="onnx")._runner.predict(win)
+    (kept,) = own_cache.iterdir()
+    good = kept.read_bytes()
+    kept.write_bytes(good[: len(good) // 2])
+    np.testing.assert_array_equal(Observer.from_net(_cnn(), engine="onnx")._runner.predict(win),
+                                  ref)
+    assert kept.read_bytes() == good
+
+
+def test_a_cache_folder_that_cannot_be_written_leaves_each_session_to_export(tmp_path,
+                                                                            monkeypatch):
+    blocker = tmp_path / "cache"
+    blocker.write_text("a file where the folder would go")
+    monkeypatch.setenv("LBO_CACHE_DIR", str(blocker))
+    win = _windows()
+    with torch.inference_mode():
+        ref = _cnn().eval()(torch.from_numpy(win)).numpy()
+    np.testing.assert_allclose(Observer.from_net(_cnn(), engine="onnx")._runner.predict(win),
+                               ref, atol=engines.TOLERANCE)  # float32 inside
+    assert blocker.read_text() == "a file where the folder would go"
