@@ -68,8 +68,8 @@ def train_jobs(cfg: DictConfig, out: Path) -> list[Job]:
     """Every run the train stage trains (or reuses) for ``cfg.study``, in order."""
     paper, dynamic = parts(cfg)
     jobs = [Job(f"{model}-N{window}", PAPER,
-                (f"experiment={cfg.scale}", f"model={model}", f"window={window}",
-                 f"+tuned={model}", f"hydra.searchpath=[file://{out}]"))
+                (f"experiment={cfg.scale}", *cfg.paper_overrides, f"model={model}",
+                 f"window={window}", f"+tuned={model}", f"hydra.searchpath=[file://{out}]"))
             for model in (cfg.models if paper else []) for window in cfg.windows]
     if cfg.robust and paper:
         jobs.append(Job("robust", ROBUST, ("experiment=robust", f"data={cfg.scale}",
