@@ -58,6 +58,10 @@ def test_reproduce_smoke_killed_and_resumed_without_duplicates(tmp_path):
     assert "<== [2/5] tune: reused" in out
     assert out.count("reusing finished run") == 3  # cnn-N20, N40, N60 finished before the kill
     assert out.count("resuming the killed run") == 1  # cnn-N80, from its last checkpoint
+    # each progress line names its job: the paper's observer, or the job and its observer
+    assert "5/11 lstm-N20: reused" in out or "5/11 lstm-N20: trained" in out
+    assert "9/11 robust (filternet-N100): trained" in out
+    assert "10/11 literal-cnn-N20 (cnn-N20): trained" in out
 
     report = tmp_path / "report"
     for name in REPORT_FILES:

@@ -187,7 +187,9 @@ def stage_train(cfg: DictConfig, out: Path, jobs: list[Job]) -> tuple[dict, str]
 
     def report_line(done: int, key: str, run: dict, how: str) -> None:
         on = f" on data={study[key]}" if key in study else ""
-        print(f"    {done}/{len(jobs)} {run['name']}{on}: {how}, NRMSE at alpha=1/3/6 "
+        # the job's key where it says more than the observer's name (literal-cnn-N60, robust)
+        name = run["name"] if key == run["name"] else f"{key} ({run['name']})"
+        print(f"    {done}/{len(jobs)} {name}{on}: {how}, NRMSE at alpha=1/3/6 "
               + "/".join(f"{run.get(f'test_nrmse_alpha_{a}', np.nan):.2f}" for a in (1, 3, 6))
               + f"  (stage {time.perf_counter() - start_stage:.0f} s)", flush=True)
 
