@@ -79,3 +79,24 @@ def test_a_cache_folder_that_cannot_be_written_leaves_each_session_to_export(tmp
     np.testing.assert_allclose(Observer.from_net(_cnn(), engine="onnx")._runner.predict(win),
                                ref, atol=engines.TOLERANCE)  # float32 inside
     assert blocker.read_text() == "a file where the folder would go"
+
+
+def test_the_key_reads_a_modules_extra_state():
+    class WithExtra(torch.nn.Module):
+        def __init__(self, tag: str) -> None:
+            super().__init__()
+            self.lin = torch.nn.Linear(2, 1)
+            self.tag = tag
+
+        def get_extra_state(self):
+            return {"tag": self.tag}
+
+        def set_extra_state(self, state):
+            self.tag = state["tag"]
+
+    torch.manual_seed(0)
+    a = WithExtra("a")
+    b = WithExtra("b")
+    b.load_state_dict({k: v for k, v in a.state_dict().items() if k != "_extra_state"},
+                      strict=False)
+    assert onnx_cache.key(a, "window", 20) != onnx_cache.key(b, "window", 20)

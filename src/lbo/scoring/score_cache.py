@@ -53,9 +53,9 @@ def file_digest(path: Path) -> str:
 
 def key(test_file: Path, observer: str, conditions: tuple[object, ...],
         ref: np.ndarray) -> str:
-    """The name's digest (16 hex digits) of one observer's rows on ``test_file``:
-    ``conditions`` are the vehicle, noise and truth (their reprs are compared), ``ref`` (3,)
-    is E_ref."""
+    """The digest (16 hex digits) that names one observer's rows on ``test_file``:
+    ``conditions`` are the vehicle, noise, truth and seed (their reprs enter the digest),
+    ``ref`` (3,) is E_ref."""
     h = hashlib.sha256()
     for part in (file_digest(test_file), observer, *map(repr, conditions), source_digest()):
         h.update(str(part).encode())
@@ -70,8 +70,8 @@ def cached(test_file: Path, observer: str, conditions: tuple[object, ...], ref: 
     ``test_file``: read from the data set's ``scores/`` folder when kept there under the same
     :func:`key`, else computed by ``compute()`` and kept there (where the folder takes it: a
     read-only data set is scored every time)."""
-    path = test_file.parent / FOLDER / f"{observer}-{key(test_file, observer, conditions, ref)}" \
-        ".parquet"
+    name = f"{observer}-{key(test_file, observer, conditions, ref)}.parquet"
+    path = test_file.parent / FOLDER / name
     if path.is_file():
         try:
             table = pd.read_parquet(path)

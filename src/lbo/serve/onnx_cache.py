@@ -38,6 +38,9 @@ def key(module: Any, form: str, opset: int) -> str:
                  sources.source_digest(_SOURCES), repr(module)):
         h.update(part.encode() + b"\0")
     for name, tensor in module.state_dict().items():
+        if not isinstance(tensor, torch.Tensor):  # a plug-in's extra state: by its repr
+            h.update(f"{name}={tensor!r}".encode() + b"\0")
+            continue
         t = tensor.detach().cpu().contiguous()
         h.update(f"{name}:{t.dtype}:{tuple(t.shape)}".encode() + b"\0")
         h.update(t.reshape(-1).view(torch.uint8).numpy().tobytes())
