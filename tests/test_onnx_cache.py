@@ -46,6 +46,28 @@ def test_an_export_is_kept_and_the_next_session_reads_it(own_cache, monkeypatch)
         Observer.from_net(_cnn(seed=1), engine="onnx")
 
 
+def test_the_key_follows_the_settings_beside_the_weights():
+    """Nets of the same weights whose window or feature mode differ trace other graphs (a
+    recursive step's ring of N steps): each has a key of its own."""
+    from lbo.models.recursive import RecursiveFilter
+
+    def net(window: int) -> WindowNet:
+        torch.manual_seed(0)
+        return WindowNet("filternet", window, "frame", fixes=True)
+
+    assert onnx_cache.key(RecursiveFilter(net(30).net), "recursive", 20) != onnx_cache.key(
+        RecursiveFilter(net(60).net), "recursive", 20)
+    assert onnx_cache.key(net(30), "window", 20) != onnx_cache.key(net(60), "window", 20)
+    torch.manual_seed(0)
+    relative = WindowNet("cnn", 20, "relative")
+    torch.manual_seed(0)
+    frame = WindowNet("cnn", 20, "frame")
+    assert onnx_cache.key(relative, "window", 20) != onnx_cache.key(frame, "window", 20)
+    assert onnx_cache.key(net(30), "window", 20) == onnx_cache.key(net(30), "window", 20)
+    train, infer = net(30), net(30).eval()
+    assert onnx_cache.key(train, "window", 20) != onnx_cache.key(infer, "window", 20)
+
+
 def test_the_key_follows_the_weights_the_form_and_the_opset():
     net = _cnn()
     base = onnx_cache.key(net, "window", 20)

@@ -5,7 +5,8 @@ loaded. The dynamo exporter takes about 11 s for the robust observer's recursive
 for a CNN, at every load; so each export is kept in lbo's cache folder
 (:func:`lbo.core.paths.cache_dir`, ``onnx/``) and read back by the next session of the same
 model. A file's name is a digest of everything the export depends on: the module's structure
-(its ``repr``) and every tensor of its state, the form exported, torch's and onnxscript's
+(its ``repr``, and each submodule's settings: a window's N, a feature mode, a flag) and every
+tensor of its state, the form exported, torch's and onnxscript's
 versions, the opset and the source of the lbo packages the graph is traced from. A kept
 file that ONNX Runtime refuses is exported afresh and replaced; a cache folder that cannot be
 written leaves each session to export for itself.
@@ -13,11 +14,14 @@ written leaves each session to export for itself.
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 from collections.abc import Callable
 from importlib import metadata
 from pathlib import Path
 from typing import Any
+
+import numpy as np
 
 from lbo.core import sources
 from lbo.core.atomic import atomic_path
@@ -37,14 +41,40 @@ def key(module: Any, form: str, opset: int) -> str:
     for part in (form, str(opset), torch.__version__, _version("onnxscript"),
                  sources.source_digest(_SOURCES), repr(module)):
         h.update(part.encode() + b"\0")
-    for name, tensor in module.state_dict().items():
-        if not isinstance(tensor, torch.Tensor):  # a plug-in's extra state: by its repr
-            h.update(f"{name}={tensor!r}".encode() + b"\0")
-            continue
-        t = tensor.detach().cpu().contiguous()
+    for prefix, sub in module.named_modules():
+        h.update(f"{prefix}:{type(sub).__module__}.{type(sub).__qualname__}".encode() + b"\0")
+        # every setting held beside the weights: a window's N, a feature mode, a flag, a ring's
+        # size; each shapes the traced graph, and none is in the state dict
+        for name, value in sorted(vars(sub).items()):
+            if not name.startswith("_"):
+                _update(h, f"{prefix}.{name}", value)
+    for name, tensor in [*module.named_parameters(), *module.named_buffers()]:
+        _update(h, name, tensor)
+    for name, value in module.state_dict().items():  # a plug-in's extra state
+        if not isinstance(value, torch.Tensor):
+            h.update(f"{name}={value!r}".encode() + b"\0")
+    return h.hexdigest()[:24]
+
+
+def _update(h: Any, name: str, value: Any) -> None:
+    """Add one named setting or tensor to the digest ``h``: a tensor or an array by its dtype,
+    shape and bytes; a number, string, flag or dataclass (a vehicle) by its repr; anything
+    else (a function, a module, already walked) by its type alone, as its repr may hold an
+    address that changes from run to run."""
+    import torch
+
+    if isinstance(value, torch.Tensor):
+        t = value.detach().cpu().contiguous()
         h.update(f"{name}:{t.dtype}:{tuple(t.shape)}".encode() + b"\0")
         h.update(t.reshape(-1).view(torch.uint8).numpy().tobytes())
-    return h.hexdigest()[:24]
+    elif isinstance(value, np.ndarray):
+        h.update(f"{name}:{value.dtype}:{value.shape}".encode() + b"\0")
+        h.update(np.ascontiguousarray(value).tobytes())
+    elif isinstance(value, (bool, int, float, str, bytes, type(None), tuple, list, dict)) or (
+            dataclasses.is_dataclass(value) and not isinstance(value, type)):
+        h.update(f"{name}={value!r}".encode() + b"\0")
+    else:
+        h.update(f"{name}:{type(value).__qualname__}".encode() + b"\0")
 
 
 def _version(package: str) -> str:
