@@ -198,6 +198,13 @@ def onnx_session(model: bytes | str | Path, threads: int | None = None) -> Any:
     return ort.InferenceSession(source, opts, providers=["CPUExecutionProvider"])
 
 
+def _kept_session(module: Any, form: str, export: Callable[[], bytes]) -> Any:
+    """A one-thread ONNX Runtime session of ``module``'s export as ``form``, the export kept
+    between sessions (:mod:`lbo.serve.onnx_cache`)."""
+    return onnx_cache.session(module, form, OPSET, export,
+                              lambda model: onnx_session(model, threads=1))
+
+
 def check_exported(net: Any, script: Any, session: Any, batch: int = 64) -> dict[str, float]:
     """Largest |difference| of TorchScript and ONNX Runtime to PyTorch on random windows
     (and the same with fixes missing, for a net that takes them)."""
@@ -356,8 +363,7 @@ def make_predictor(net: Any, engine: str = "torch", device: str = "cpu") -> Pred
     net = net.to(device).eval()
     if engine == "onnx":
         net = net.cpu()
-        session = onnx_cache.session(net, "window", OPSET, lambda: onnx_bytes(net),
-                                     lambda model: onnx_session(model, threads=1))
+        session = _kept_session(net, "window", lambda: onnx_bytes(net))
         return lambda win: session.run(None, {"window": win})[0]
     if engine == "torchscript":
         net = trace(net)
@@ -412,8 +418,7 @@ def make_recursive_step(net: Any, engine: str = "torch", device: str = "cpu"
 
     coaster = coast if rec.coasts else None
     if engine == "onnx":
-        kept = onnx_cache.session(rec, "recursive", OPSET, lambda: recursive_onnx_bytes(rec),
-                                  lambda model: onnx_session(model, threads=1))
+        kept = _kept_session(rec, "recursive", lambda: recursive_onnx_bytes(rec))
         return onnx_step(kept), state, coaster
     module = rec
     if engine == "torchscript":
