@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # The worked example of docs/logs.md (make fleet): train an observer on a fleet of logs of one
 # car, score it on separate test drives, then observe a new drive. The logs are simulated: a
-# car whose tyres slip (truth=dynamic) and whose GNSS fixes come at 10 Hz with an error that
+# car whose tyres slip (car=dynamic) and whose GNSS fixes come at 10 Hz with an error that
 # drifts (data=dynamic_drift), as a test car's production sensors would log beside a reference.
 # Everything is written under fleet/ (its train/, val/ and test/ folders are replaced).
 set -euo pipefail

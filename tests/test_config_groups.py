@@ -68,18 +68,20 @@ def overridden(config: Path) -> dict[str, str]:
     return out
 
 
-def data_truth(option: str) -> str | None:
-    """The truth a data option picks (``override /truth@_global_.truth: <truth>``), through
-    the options it starts from; None: it leaves train.yaml's."""
-    truth = None
+def data_picks(option: str) -> dict[str, str]:
+    """The car and sensors a data option picks (``override /car@_global_.car: <car>``, the
+    same for ``sensors``), through the options it starts from; a group it leaves out keeps
+    train.yaml's."""
+    picks: dict[str, str] = {}
     for entry in defaults(CONF_DIR / "data" / f"{option}.yaml"):
         if isinstance(entry, str) and entry != "_self_":
-            truth = data_truth(entry) or truth
+            picks.update(data_picks(entry))
         elif isinstance(entry, dict):
             for key, value in entry.items():
-                if key.startswith("override /truth@"):
-                    truth = value
-    return truth
+                for group in ("car", "sensors"):
+                    if key.startswith(f"override /{group}@"):
+                        picks[group] = value
+    return picks
 
 
 PRIMARIES = sorted(p.stem for p in CONF_DIR.glob("*.yaml"))
@@ -97,7 +99,8 @@ def chosen(experiment: str | None, group: str | None = None, option: str | None 
            search: str | None = None) -> dict[str, str | None]:
     """The option of each training group that ``experiment=E [G=O] [hparams_search=S]``
     ends up with: train.yaml's, then the experiment's overrides, then the search's, then the
-    command line's (Hydra's order), and the truth the data set picks unless G is truth."""
+    command line's (Hydra's order), and the car and sensors the data set picks unless G is
+    that group."""
     out = default_choices("train")
     if experiment is not None:
         out.update(overridden(CONF_DIR / "experiment" / f"{experiment}.yaml"))
@@ -105,8 +108,10 @@ def chosen(experiment: str | None, group: str | None = None, option: str | None 
         out.update(overridden(CONF_DIR / "hparams_search" / f"{search}.yaml"))
     if group is not None:
         out[group] = option
-    if group != "truth":  # the command line's truth wins over the data set's
-        out["truth"] = data_truth(out["data"]) or out["truth"]
+    picks = data_picks(str(out["data"]))
+    for g in ("car", "sensors"):
+        if group != g:  # the command line's choice wins over the data set's
+            out[g] = picks.get(g) or out[g]
     return out
 
 
@@ -287,12 +292,12 @@ def data_checks(cfg) -> None:
 
 def evaluate_checks(cfg) -> None:
     """``lbo.evaluate``: the observers, the reference, the forms and flags, the vehicle, noise
-    and truth, and the test grid's settings (or the test logs named)."""
+    car and sensors, and the test grid's settings (or the test logs named)."""
     from lbo import evaluate
     from lbo.scoring import grid
     from lbo.sim import log_sets as logs
     from lbo.sim.datasets import spec_from_cfg
-    from lbo.sim.truth import from_cfg as truth_from_cfg
+    from lbo.sim.truth import of_config
     from lbo.sim.vehicle import Vehicle
 
     grid.check_observers(list(cfg.observers))
@@ -301,13 +306,13 @@ def evaluate_checks(cfg) -> None:
     if logs.is_logs(cfg):
         logs.spec_from_cfg(cfg, need=("test",))
     else:
-        truth_from_cfg(cfg.get("truth"), Vehicle.from_cfg(cfg.vehicle).wheelbase)
+        of_config(cfg, Vehicle.from_cfg(cfg.vehicle).wheelbase)
         spec_from_cfg(cfg)
 
 
 def simulate_checks(cfg) -> None:
-    """``lbo.simulate``: the data, noise, vehicle and truth groups, as ``simulate`` checks them
-    before it drives anything."""
+    """``lbo.simulate``: the data, noise, vehicle, car and sensors groups, as ``simulate``
+    checks them before it drives anything."""
     from lbo.simulate import check
 
     check(cfg)

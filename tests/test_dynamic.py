@@ -14,7 +14,7 @@ from lbo.learn.draws import gauss_markov as gauss_markov_torch
 from lbo.sim import dynamic
 from lbo.sim.datasets import MAKERS, build, spec_from_cfg
 from lbo.sim.dynamic import SingleTrack, derivatives, rear_slip, steady_state, step, tyre_force
-from lbo.sim.truth import Sensors, Truth, from_cfg, gauss_markov
+from lbo.sim.truth import Sensors, Truth, config_dict, from_cfg, from_dict, gauss_markov
 from lbo.sim.vehicle import f as kinematic_f
 
 CAR = SingleTrack()
@@ -119,22 +119,35 @@ def test_gauss_markov_drift_has_its_variance_and_correlation_time():
     assert corr_t == pytest.approx(np.exp(-1), abs=0.03)
 
 
-@pytest.mark.parametrize("cfg, field", [
-    ({"name": "bicycle"}, "truth.name"),
-    ({"name": "dynamic", "l_f": 1.0}, "truth.l_f + truth.l_r"),
-    ({"name": "dynamic", "mass": -1.0}, "truth.mass"),
-    ({"name": "dynamic", "wheels": 4}, "truth.wheels"),
-    ({"name": "kinematic", "mass": 1500.0}, "truth.mass"),
-    ({"name": "kinematic", "gnss_sigma": -0.1}, "truth.gnss_sigma"),
-    ({"name": "kinematic", "gnss_tau": 0.0}, "truth.gnss_tau"),
-    ({"name": "dynamic", "substeps": 0}, "truth.substeps"),
-    ({"name": "dynamic", "process_scale": -0.1}, "truth.process_scale"),
-    ({"name": "kinematic", "process_scale": "a lot"}, "truth.process_scale"),
+@pytest.mark.parametrize("car, sensors, field", [
+    ({"name": "bicycle"}, {}, "car.name"),
+    ({"name": "dynamic", "l_f": 1.0}, {}, "car.l_f + car.l_r"),
+    ({"name": "dynamic", "mass": -1.0}, {}, "car.mass"),
+    ({"name": "dynamic", "wheels": 4}, {}, "car.wheels"),
+    ({"name": "kinematic", "mass": 1500.0}, {}, "car.mass"),
+    ({"name": "kinematic", "gnss_sigma": 0.5}, {}, "car.gnss_sigma"),  # a sensor's, not the car's
+    ({"name": "kinematic"}, {"gnss_sigma": -0.1}, "sensors.gnss_sigma"),
+    ({"name": "kinematic"}, {"gnss_tau": 0.0}, "sensors.gnss_tau"),
+    ({"name": "kinematic"}, {"mu": 0.8}, "sensors.mu"),  # the car's, not a sensor's
+    ({"name": "dynamic", "substeps": 0}, {}, "car.substeps"),
+    ({"name": "dynamic", "process_scale": -0.1}, {}, "car.process_scale"),
+    ({"name": "kinematic", "process_scale": "a lot"}, {}, "car.process_scale"),
 ])
-def test_bad_truth_names_the_field(cfg, field):
+def test_bad_car_or_sensors_names_the_field(car, sensors, field):
     with pytest.raises(LboError, match=field.replace("+", r"\+")) as e:
-        from_cfg(cfg, 2.7)
+        from_cfg(car, sensors, 2.7)
     assert "\n" not in str(e.value)
+
+
+def test_a_truth_kept_as_one_mapping_reads_back_split():
+    """A data set's manifest and a checkpoint keep the truth as one mapping (the car's keys,
+    then the sensors'): it reads back as the car and sensors it was drawn from."""
+    cfg = compose_cfg("datagen", ["data=dynamic_drift"])
+    truth = from_cfg(cfg.car, cfg.sensors, 2.7)
+    assert truth.sensors.gnss_sigma == 0.5 and truth.car is not None
+    assert from_dict(truth.to_dict(), 2.7) == truth
+    assert from_dict(config_dict(cfg), 2.7) == truth
+    assert list(config_dict(cfg))[:2] == ["name", "mass"] and from_dict(None, 2.7) == Truth()
 
 
 def _fingerprint(df: pd.DataFrame) -> tuple[float, float]:
@@ -175,7 +188,7 @@ def dynamic_sets(tmp_path_factory):
     root = tmp_path_factory.mktemp("dyn")
 
     def sets(*overrides: str) -> dict[str, pd.DataFrame]:
-        cfg = compose_cfg("datagen", ["data=smoke", "truth=dynamic", f"data.root={root}",
+        cfg = compose_cfg("datagen", ["data=smoke", "car=dynamic", f"data.root={root}",
                                       "data.train.n_traj=8", *overrides])
         return build(spec_from_cfg(cfg), progress=False)[1]
 
@@ -200,8 +213,8 @@ def test_dynamic_sets_keep_the_schema_and_understeer_in_corners(dynamic_sets):
 
 def test_sensor_errors_change_the_logs_not_the_truth(dynamic_sets):
     clean = dynamic_sets()["test"]
-    off = dynamic_sets("truth.steering_offset=0.01", "truth.speed_scale=0.02",
-                       "truth.gnss_sigma=0.5", "truth.gnss_tau=5.0")["test"]
+    off = dynamic_sets("sensors.steering_offset=0.01", "sensors.speed_scale=0.02",
+                       "sensors.gnss_sigma=0.5", "sensors.gnss_tau=5.0")["test"]
     pd.testing.assert_frame_equal(clean[["x", "y", "psi"]], off[["x", "y", "psi"]])
     np.testing.assert_allclose(off["delta"] - clean["delta"], 0.01, atol=1e-12)
     np.testing.assert_allclose(off["V"], 1.02 * clean["V"], rtol=1e-12)
@@ -224,13 +237,13 @@ def test_sensors_are_off_by_default():
 
 def test_a_car_moves_as_its_dynamics_say_up_to_a_tenth_of_the_papers_random_walk(
         dynamic_sets):
-    # truth=dynamic carries process_scale 0.1: the pose's unmodelled steps are a tenth of the
+    # car=dynamic carries process_scale 0.1: the pose's unmodelled steps are a tenth of the
     # noise preset's sigmas. Rolled forward one step from each true state with the true car,
     # what is left is that noise.
-    truth = from_cfg(compose_cfg("datagen", ["truth=dynamic"]).truth, 2.7)
+    truth = from_cfg(compose_cfg("datagen", ["car=dynamic"]).car, None, 2.7)
     assert truth.process_scale == pytest.approx(0.1)
     for scale in (0.1, 1.0):
-        train = dynamic_sets(f"truth.process_scale={scale}")["train"].sort_values(["traj", "k"])
+        train = dynamic_sets(f"car.process_scale={scale}")["train"].sort_values(["traj", "k"])
         z = train[["x", "y", "psi"]].to_numpy().reshape(8, -1, 3)
         u = train[["V", "delta"]].to_numpy().reshape(8, -1, 2)
         # v_y and r are not logged: take them from a noise-free run of the same inputs, which
@@ -247,11 +260,11 @@ def test_a_car_moves_as_its_dynamics_say_up_to_a_tenth_of_the_papers_random_walk
 def test_process_scale_1_keeps_the_dynamic_sets_of_the_papers_random_walk(tmp_path):
     # the field only scales: process_scale=1 is the random walk of the noise preset, and a
     # kinematic truth with process_scale=1 is the paper's setting (default, same digest)
-    kin = spec_from_cfg(compose_cfg("datagen", ["data=smoke", "truth.process_scale=1.0",
+    kin = spec_from_cfg(compose_cfg("datagen", ["data=smoke", "car.process_scale=1.0",
                                                 f"data.root={tmp_path}"]))
     assert kin.truth.default and kin.digest == "a8c688af2968"
     assert kin.motion_noise is kin.noise
-    half = spec_from_cfg(compose_cfg("datagen", ["data=smoke", "truth.process_scale=0.5",
+    half = spec_from_cfg(compose_cfg("datagen", ["data=smoke", "car.process_scale=0.5",
                                                  f"data.root={tmp_path}"]))
     assert not half.truth.default and half.digest != kin.digest
     np.testing.assert_allclose(half.motion_noise.process_sigma,

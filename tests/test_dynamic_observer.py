@@ -42,7 +42,7 @@ def dynamic(tmp_path_factory, smoke_data):
 
 def test_experiment_trains_on_the_car_that_slips_and_scores_against_its_oracle(dynamic):
     cfg, out = dynamic["cfg"], dynamic["out"]
-    assert (cfg.truth.name, cfg.truth.gnss_sigma, cfg.model.body, cfg.model.drift) == \
+    assert (cfg.car.name, cfg.sensors.gnss_sigma, cfg.model.body, cfg.model.drift) == \
         ("dynamic", 0.5, "single_track", True)
     table = pd.read_csv(dynamic["dir"] / "evaluation.csv")
     assert set(table["observer"]) == {"filternet-N60", "ekf", "oracle", "adaptive",

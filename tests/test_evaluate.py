@@ -121,7 +121,7 @@ def test_pcrb_bounds_the_kinematic_truth_with_its_own_process_noise(smoke_data):
     calm = classical("pcrb", arr, VEHICLE, NOISE, truth=Truth(process_scale=0.1))
     noisy = arr.mask & (arr.alpha > 0)[:, None]
     assert (calm[noisy] < paper[noisy]).all()
-    car = from_cfg({"name": "dynamic"}, 2.7)
+    car = from_cfg({"name": "dynamic"}, None, 2.7)
     with pytest.raises(LboError, match="pcrb: the bound is the kinematic bicycle's"):
         classical("pcrb", arr, VEHICLE, NOISE, truth=car)
 

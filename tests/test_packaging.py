@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -124,6 +125,34 @@ def test_each_commands_help_lists_its_own_groups_and_explains_its_settings():
     assert "model: cnn, filternet, kalmannet, lstm, split_kalmannet (default: cnn)" in train
     assert "receiver: single_antenna (default: none)" in train
     assert "normalisation: standard # standard: each channel's mean and std" in train
+
+
+@pytest.mark.parametrize("old, new", [
+    ("truth=dynamic", "car=dynamic"),
+    ("truth=dynamic_drift", "car=dynamic sensors=drift"),
+    ("truth.gnss_sigma=0.3", "sensors.gnss_sigma=0.3"),
+    ("truth.mu=0.8", "car.mu=0.8"),
+    ("+truth.speed_scale=0.02", "+sensors.speed_scale=0.02"),
+    ("simulated.truth.gnss_tau=5", "simulated.sensors.gnss_tau=5"),
+])
+def test_the_truth_group_split_in_two_names_the_new_spelling(old, new):
+    from lbo.core.cli import check_truth_split
+    from lbo.core.errors import LboError
+
+    with pytest.raises(LboError, match=f"^{re.escape(old)}: the truth group is two groups now, "
+                                       rf".*; write {re.escape(new)}$"):
+        check_truth_split(["data=smoke", old])
+    check_truth_split(["car=dynamic", "sensors.gnss_sigma=0.3", "data.truthful=1"])
+
+
+def test_an_old_truth_override_is_one_line_before_anything_runs(tmp_path):
+    res = subprocess.run([sys.executable, "-m", "lbo.simulate", "truth=dynamic_drift",
+                          f"output={tmp_path / 'log.csv'}", f"hydra.run.dir={tmp_path / 'run'}"],
+                         capture_output=True, text=True)
+    assert res.returncode == 2 and res.stderr.strip().splitlines() == [
+        "error: truth=dynamic_drift: the truth group is two groups now, the car and its "
+        "sensors' errors (conf/car, conf/sensors); write car=dynamic sensors=drift"]
+    assert not (tmp_path / "run").exists() and not (tmp_path / "log.csv").exists()
 
 
 def test_a_config_group_set_to_null_is_one_line_not_a_traceback(tmp_path):

@@ -318,7 +318,7 @@ def test_lbo_registers_its_own_truth_models_as_a_plug_in_would():
 
     assert plugins.names("truth")[:2] == ("kinematic", "dynamic")
     assert "linear_car" in plugins.names("truth")  # the example's, installed by make install
-    assert [plugins.load("truth", n, "truth.name") for n in plugins.OWN["truth"]] == [
+    assert [plugins.load("truth", n, "car.name") for n in plugins.OWN["truth"]] == [
         Kinematic, SingleTrack]
     assert isinstance(SingleTrack(), Car)
 
@@ -335,12 +335,12 @@ def test_a_plug_in_truth_drives_the_simulator_and_the_ekf_told_the_car(tmp_path)
     from lbo.sim.vehicle import Vehicle
 
     log = tmp_path / "log.csv"
-    res = cli("lbo.simulate", "truth=linear_car", "manoeuvre=double_lane_change",
+    res = cli("lbo.simulate", "car=linear_car", "manoeuvre=double_lane_change",
               "alpha=1", f"output={log}", "hydra.searchpath=[pkg://lbo_plugin_example.conf]",
               cwd=tmp_path)
     assert res.returncode == 0, res.stderr[-3000:]
     frame = pd.read_csv(log)
-    truth = from_cfg({"name": "linear_car", "process_scale": 0.1}, Vehicle().wheelbase)
+    truth = from_cfg({"name": "linear_car", "process_scale": 0.1}, None, Vehicle().wheelbase)
     assert type(truth.car).__name__ == "LinearCar" and truth.to_dict()["c_f"] == 80_000.0
     m = frame[["x_m", "y_m", "psi_m"]].to_numpy()[None]
     u = frame[["V", "delta"]].to_numpy()[None]
@@ -355,7 +355,7 @@ def test_a_plug_in_truth_drives_the_simulator_and_the_ekf_told_the_car(tmp_path)
     assert np.isfinite(told) and told < 0.8 * kinematic, (told, kinematic)
     # a data set drawn from it records it by name and fields, and reads it back through the
     # entry points
-    res = cli("lbo.datagen", "data=smoke", "truth=linear_car", f"data.root={tmp_path / 'd'}",
+    res = cli("lbo.datagen", "data=smoke", "car=linear_car", f"data.root={tmp_path / 'd'}",
               "hydra.searchpath=[pkg://lbo_plugin_example.conf]", f"hydra.run.dir={tmp_path}",
               cwd=tmp_path)
     assert res.returncode == 0, res.stderr[-3000:]
@@ -372,9 +372,9 @@ def test_a_truth_model_that_is_not_installed_or_breaks_the_contract_is_one_line(
     from lbo.sim.truth import from_cfg
 
     for name in ("planted_evil", "planted_evil:Evil"):
-        with pytest.raises(LboError, match=r"^truth.name: (truth 'planted_evil' is not "
+        with pytest.raises(LboError, match=r"^car.name: (truth 'planted_evil' is not "
                                            r"installed|expected the name of a registered)"):
-            from_cfg({"name": name}, 2.7)
+            from_cfg({"name": name}, None, 2.7)
     assert not planted.exists()
     mod = tmp_path / "mods"
     mod.mkdir()
@@ -390,18 +390,18 @@ def test_a_truth_model_that_is_not_installed_or_breaks_the_contract_is_one_line(
         """))
     monkeypatch.syspath_prepend(str(mod))
     registered({"cart": "cars:Cart", "plain": "cars:Plain"}, group="lbo.truths")
-    with pytest.raises(LboError, match=r"^truth.name: truth model 'cart' lacks "
+    with pytest.raises(LboError, match=r"^car.name: truth model 'cart' lacks "
                                        r"understeer_gradient, start, step, rear_slip"):
-        from_cfg({"name": "cart"}, 2.7)
-    with pytest.raises(LboError, match=r"^truth.name: truth model 'plain' is registered as .*"
+        from_cfg({"name": "cart"}, None, 2.7)
+    with pytest.raises(LboError, match=r"^car.name: truth model 'plain' is registered as .*"
                                        r"not a dataclass"):
-        from_cfg({"name": "plain"}, 2.7)
-    with pytest.raises(LboError, match=r"^truth.mass: not a field of truth=cart; accepted: "
-                                       r"name, wheelbase, gnss_sigma"):
-        from_cfg({"name": "cart", "mass": 1.0}, 2.7)
-    with pytest.raises(LboError, match=r"^truth: truth model 'linear_car' refused its "
-                                       r"settings \(truth.mass must be a number > 0"):
-        from_cfg({"name": "linear_car", "mass": -1.0}, 2.7)
-    with pytest.raises(LboError, match=r"^truth.l_f \+ truth.l_r must be the vehicle's "
+        from_cfg({"name": "plain"}, None, 2.7)
+    with pytest.raises(LboError, match=r"^car.mass: not a field of car=cart; accepted: "
+                                       r"name, process_scale, wheelbase$"):
+        from_cfg({"name": "cart", "mass": 1.0}, None, 2.7)
+    with pytest.raises(LboError, match=r"^car: truth model 'linear_car' refused its "
+                                       r"settings \(car.mass must be a number > 0"):
+        from_cfg({"name": "linear_car", "mass": -1.0}, None, 2.7)
+    with pytest.raises(LboError, match=r"^car.l_f \+ car.l_r must be the vehicle's "
                                        r"wheelbase \(2.5 m\), got 2.7"):
-        from_cfg({"name": "linear_car"}, 2.5)
+        from_cfg({"name": "linear_car"}, None, 2.5)

@@ -91,6 +91,24 @@ def test_the_sequence_trainers_settings_leave_old_runs_hashes_at_their_defaults(
         config_hash(plain)
 
 
+PRE_SPLIT = {
+    ("experiment=dynamic", "data=dynamic_drift"): ("4a7fe7b6352bad5c", "f6b39670d94a"),
+    ("experiment=dynamic_carried", "data=dynamic_drift"): ("9f22da9d9da64c1c", "f6b39670d94a"),
+    ("data=dynamic",): ("adb25d1b2027d6f7", "e47207bbd8a4"),
+    ("experiment=robust", "sensors.steering_offset=0.01"): ("dd32348cea6058e3", "ae120a23946c"),
+}
+"""Config hashes and data-set digests from before the ``truth`` group was split into ``car``
+and ``sensors`` (the last override was then ``truth.steering_offset=0.01``)."""
+
+
+@pytest.mark.parametrize("overrides", list(PRE_SPLIT), ids=" ".join)
+def test_the_car_apart_from_its_sensors_leaves_runs_and_data_sets_as_they_were(overrides):
+    from lbo.sim.datasets import spec_from_cfg
+
+    cfg = compose_cfg("train", list(overrides))
+    assert (config_hash(cfg), spec_from_cfg(cfg).digest) == PRE_SPLIT[overrides]
+
+
 BEFORE = Path(__file__).parent / "data" / "before_issue39"
 """A run trained by lbo at 41d4f39, before the modules were split into one idea each: the
 smoke robust observer (``BEFORE_OVERRIDES``) and what ``lbo.observe`` made of the example

@@ -57,8 +57,8 @@ def test_free_drive_thins_fixes_and_scales_the_noise():
 
 def test_dynamic_truth_gives_a_car_that_slips():
     dynamic_cfg = compose_cfg("simulate", [*FREE, "data=dynamic"])
-    kinematic_cfg = compose_cfg("simulate", [*FREE, "data=dynamic", "truth=kinematic"])
-    assert dynamic_cfg.truth.name == "dynamic" and kinematic_cfg.truth.name == "kinematic"
+    kinematic_cfg = compose_cfg("simulate", [*FREE, "data=dynamic", "car=kinematic"])
+    assert dynamic_cfg.car.name == "dynamic" and kinematic_cfg.car.name == "kinematic"
     dyn, kin = simulate(dynamic_cfg), simulate(kinematic_cfg)
     assert len(dyn) == len(kin) == 500 and np.isfinite(dyn.drop(columns="scored")).all().all()
     assert not np.allclose(dyn[["x", "y", "psi"]], kin[["x", "y", "psi"]])

@@ -124,14 +124,14 @@ def _run_grid(cfg: DictConfig, observers: list[str], learned: list[str]
     names the ``learned`` observers have in it, in order, and every file written."""
     from lbo.core import plots
     from lbo.sim.datasets import build, spec_from_cfg
-    from lbo.sim.truth import from_cfg as truth_from_cfg
+    from lbo.sim.truth import of_config as truth_of_config
 
     check_observers(observers)
     if cfg.metric.reference not in REFERENCES:
         raise LboError(f"metric.reference must be one of {list(REFERENCES)}, "
                        f"got {cfg.metric.reference!r}")
     vehicle, noise = Vehicle.from_cfg(cfg.vehicle), Noise.from_cfg(cfg.noise)
-    truth = truth_from_cfg(cfg.get("truth"), vehicle.wheelbase)
+    truth = truth_of_config(cfg, vehicle.wheelbase)
     nets = learned_nets(learned)  # every checkpoint read before any data is made
     keep = None  # the classical rows are kept beside lbo's data sets, not a user's file
     if cfg.get("test_file"):

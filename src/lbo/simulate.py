@@ -8,8 +8,8 @@ conditions of your own car before trusting it, or a fleet of drives to train one
 ``manoeuvre`` is ``stop_and_go`` (an urban drive that stands still more than 30% of the time,
 with starts from rest and creeping), ``free_drive`` (``duration`` seconds of one
 friction-circle trajectory, as a training trajectory of the data sets, seeded by ``seed``) or
-any test manoeuvre of the data sets. The ``truth`` group (``data=dynamic`` picks
-``truth=dynamic``) decides whether the car slips and what the sensors' errors are. ``fix_rate``
+any test manoeuvre of the data sets. The ``car`` group (``data=dynamic`` picks ``car=dynamic``)
+decides whether the car slips, the ``sensors`` group what its sensors' errors are. ``fix_rate``
 thins the position fixes to that rate (Hz; the inputs stay at 1/dt): the rows between fixes
 have empty ``x_m, y_m, psi_m``. The log has the test-set columns (``traj, k, t``, the true
 ``x, y, psi``, ``V, delta``, ``x_m, y_m, psi_m``, ``alpha``, ``scored``), so both
@@ -77,7 +77,7 @@ def check_duration(cfg: DictConfig, dt: float) -> float:
 
 def check(cfg: DictConfig):
     """The data set's spec (:func:`lbo.sim.datasets.spec_from_cfg`), its data, noise, vehicle
-    and truth groups checked; one line for a user's logs, which have nothing to simulate."""
+    car and sensors groups checked; one line for a user's logs, which have nothing to simulate."""
     from lbo.sim.datasets import spec_from_cfg
     from lbo.sim.log_sets import is_logs
 

@@ -49,6 +49,7 @@ from lbo.models.carried import covariance_of, sequence_model
 from lbo.models.features import FEATURE_MODES
 from lbo.models.net import check_scaling
 from lbo.sim.log_sets import is_logs
+from lbo.sim.truth import config_dict as truth_dict
 from lbo.tracking.runs import check_store, dataset_input, ensure_experiment
 
 if TYPE_CHECKING:  # Lightning takes seconds to import: only a training run needs it
@@ -164,8 +165,7 @@ def meta(cfg: DictConfig, data_hash: str) -> dict[str, Any]:
     """What a checkpoint carries besides the weights, to rebuild the observer elsewhere."""
     return {"vehicle": OmegaConf.to_container(cfg.vehicle, resolve=True),
             "noise": OmegaConf.to_container(cfg.noise, resolve=True),
-            "truth": OmegaConf.to_container(cfg.truth, resolve=True) if cfg.get("truth")
-            else None,
+            "truth": truth_dict(cfg),
             "data": cfg.data.name, "data_hash": data_hash, "seed": cfg.seed}
 
 

@@ -1,7 +1,7 @@
 """A truth model kept to lbo's car contract (docs/plugins.md): a single-track car whose tyres
-stay linear, where lbo's own (``truth=dynamic``) saturate.
+stay linear, where lbo's own (``car=dynamic``) saturate.
 
-The contract, in short: a frozen dataclass whose fields are its ``truth.*`` settings, with a
+The contract, in short: a frozen dataclass whose fields are its ``car.*`` settings, with a
 ``wheelbase`` (m, the vehicle's) and an ``understeer_gradient`` (rad per m/s^2), and three
 methods on the state ``[x, y, psi, v_y, r]`` (the rear axle's pose, the lateral speed of the
 centre of gravity, the yaw rate), vectorised over leading dimensions: ``start(z0, u0)``,
@@ -37,7 +37,7 @@ class LinearCar:
         for f in fields(self):
             value = getattr(self, f.name)
             if not (isinstance(value, (int, float)) and np.isfinite(value) and value > 0):
-                raise ValueError(f"truth.{f.name} must be a number > 0, got {value!r}")
+                raise ValueError(f"car.{f.name} must be a number > 0, got {value!r}")
 
     @property
     def wheelbase(self) -> float:

@@ -209,6 +209,7 @@ def entry(config_name: str, run: Callable[[DictConfig], Any],
                                    "or set LBO_ROOT=<repo>")
                 ready_launcher(launcher_from_argv(sys.argv[1:]))
                 check_null_groups(sys.argv[1:])
+                check_truth_split(sys.argv[1:])
                 if spellings is not None:
                     spellings(sys.argv[1:])
             except LboError as e:
@@ -226,6 +227,34 @@ def check_null_groups(argv: list[str]) -> None:
         if value == "null" and key.isidentifier() and (CONF_DIR / key).is_dir():
             raise LboError(f"{arg}: {key} is a config group; leave it out with ~{key} "
                            f"(or pick one: {key}=<option>)")
+
+
+def check_truth_split(argv: list[str]) -> None:
+    """Refuse the ``truth`` group, split into ``car`` and ``sensors``, in one line that gives
+    the new spelling: ``truth=dynamic`` is ``car=dynamic``, ``truth=dynamic_drift`` is
+    ``car=dynamic sensors=drift``, and ``truth.<key>=...`` is ``sensors.<key>`` for a sensor
+    error (the keys of ``conf/sensors/white.yaml``) and ``car.<key>`` for any other."""
+    from omegaconf import OmegaConf
+
+    sensor_keys = set(OmegaConf.load(CONF_DIR / "sensors" / "white.yaml"))
+    for arg in argv:
+        key, sep, value = arg.partition("=")
+        head = key.lstrip("+~")
+        path = head.split("@")[0].split(".")
+        if "truth" not in path:
+            continue
+        at = path.index("truth")
+        outer, inner = ".".join(path[:at]), path[at + 1:]
+        prefix = key[:len(key) - len(head)] + (outer + "." if outer else "")
+        if inner:
+            group = "sensors" if inner[0] in sensor_keys else "car"
+            new = f"{prefix}{group}.{'.'.join(inner)}{sep}{value}"
+        elif value == "dynamic_drift":
+            new = f"{prefix}car=dynamic {prefix}sensors=drift"
+        else:
+            new = f"{prefix}car{sep}{value}"
+        raise LboError(f"{arg}: the truth group is two groups now, the car and its sensors' "
+                       f"errors (conf/car, conf/sensors); write {new}")
 
 
 def command_help(config_name: str) -> str:

@@ -7,7 +7,7 @@
 - ``ukf``: the unscented filter (filterpy's, vectorised), R at alpha = 1;
 - ``oracle_dynamic``: the EKF on the true dynamic car (:mod:`lbo.filters.dynamic_ekf`), told
   alpha, the car's parameters, its process noise and the sensors' errors: the floor on a test
-  set drawn from ``truth=dynamic`` (it needs that truth, so it scores simulated test sets
+  set drawn from ``car=dynamic`` (it needs that truth, so it scores simulated test sets
   only, not a user's log);
 - ``oracle_tuned``: the kinematic EKF told alpha, with at each alpha level the process noise Q
   that serves it best on the scored set itself (:func:`lbo.scoring.grid.tuned_oracle`): the best a
@@ -137,7 +137,7 @@ def estimate(name: str, m: np.ndarray, u: np.ndarray, vehicle: Vehicle, noise: N
     m : (G, T, 3) or (G, T, 8) rows (:mod:`lbo.filters.measure`); u : (G, T, 2) inputs
     (``[V, r_m]`` for ``gyro``, else ``[V, delta]``); alpha : the noise scale the oracles are
     told, one for all or (G,) per trajectory (the others ignore it); truth : what the log was
-    drawn from, which ``oracle_dynamic`` is told (a ``truth=dynamic`` one); gyro : the gyro
+    drawn from, which ``oracle_dynamic`` is told (a ``car=dynamic`` one); gyro : the gyro
     EKF's noise (its Q in place of ``noise``'s, and its gyro's; None: the defaults).
     """
     if name == DYNAMIC:
@@ -247,8 +247,8 @@ def _oracle_dynamic(m: np.ndarray, u: np.ndarray, vehicle: Vehicle, noise: Noise
     from lbo.filters.dynamic_ekf import dynamic_ekf_batch
 
     if truth is None or truth.car is None:
-        raise LboError("oracle_dynamic: the test set was not drawn from truth=dynamic, so there "
-                       "is no car to tell it; score it on data=dynamic (or truth=dynamic)")
+        raise LboError("oracle_dynamic: the test set was not drawn from car=dynamic, so there "
+                       "is no car to tell it; score it on data=dynamic (or car=dynamic)")
     g = np.shape(m)[0]
     scale = np.broadcast_to(np.asarray(alpha, dtype=float), (g,))
     R = measurement_cov("oracle", noise, scale, g)

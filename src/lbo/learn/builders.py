@@ -177,9 +177,9 @@ def noise_settings(cfg: DictConfig) -> dict[str, Any]:
     repeats = integer(tn.get("val_repeats", 1), "train_noise.val_repeats", 1)
     out = {"draw": draw, "sigma": tuple(cfg.noise.measurement_sigma),
            "weight_offset": offset, "val_repeats": repeats}
-    truth: Any = cfg.get("truth") or {}  # a config node (read as one), or none
-    if truth.get("gnss_sigma", 0) > 0:  # the drawn noise drifts as the data set's does
-        out["drift"] = (float(truth.gnss_sigma), float(truth.gnss_tau) / cfg.vehicle.dt)
+    sensors: Any = cfg.get("sensors") or {}  # a config node (read as one), or none
+    if sensors.get("gnss_sigma", 0) > 0:  # the drawn noise drifts as the data set's does
+        out["drift"] = (float(sensors.gnss_sigma), float(sensors.gnss_tau) / cfg.vehicle.dt)
     if cfg.get("receiver"):
         out["receiver"] = receiver_draw(cfg)
     return out

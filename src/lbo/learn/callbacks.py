@@ -40,7 +40,7 @@ class Evaluation(L.Callback):
     ``evaluation.csv`` and ``nrmse.png`` to ``output_dir`` and log them, the metrics and the
     checkpoint to MLflow. ``worst_oracle_ratio`` is the largest NRMSE ratio to the oracle over
     alpha in [0.25, 6], so that ``mlflow ui`` can sort observers by it. On a test set drawn from
-    a car that slips (``truth=dynamic``) the table also holds the adaptive EKF, the kinematic EKF
+    a car that slips (``car=dynamic``) the table also holds the adaptive EKF, the kinematic EKF
     with its Q tuned on the test set (``oracle_tuned``) and the oracle on the true car
     (``oracle_dynamic``); ``worst_dynamic_oracle_ratio`` and ``worst_tuned_oracle_ratio`` are
     the ratios to the last two.

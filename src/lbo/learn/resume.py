@@ -66,12 +66,29 @@ def config_hash(cfg: DictConfig) -> str:
                                                       {}).items():
             if name in model and model.get(name) == default:
                 model.pop(name)
-    text = OmegaConf.to_yaml(OmegaConf.create(_unlayered(OmegaConf.to_container(c, resolve=True))))
+    text = OmegaConf.to_yaml(OmegaConf.create(_as_before_groups_moved(
+        _unlayered(OmegaConf.to_container(c, resolve=True)))))
     if is_logs(cfg):  # the same paths with other contents are other data
         from lbo.learn.builders import logs_spec
 
         text += f"\nlogs: {logs_spec(cfg).digest}"
     return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+def _as_before_groups_moved(tree: dict[str, Any]) -> dict[str, Any]:
+    """``tree`` (a resolved training config) in the layout it had before its groups moved, in
+    the same key order: the ``car`` and ``sensors`` groups as the one ``truth`` group they
+    were (the car's keys, then the sensors', where ``car`` stands). So a run's hash does not
+    depend on that move, and the runs of a store made before it are still found."""
+    if "car" not in tree:
+        return tree
+    out: dict[str, Any] = {}
+    for key, value in tree.items():
+        if key == "car":
+            out["truth"] = {**value, **(tree.get("sensors") or {})}
+        elif key != "sensors":
+            out[key] = value
+    return out
 
 
 def _unlayered(node: Any) -> Any:

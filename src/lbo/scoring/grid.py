@@ -58,7 +58,7 @@ def classical(name: str, arr: Trajectories, vehicle: Vehicle, noise: Noise,
     if name == BOUND:
         if truth is not None and truth.car is not None:
             raise LboError("pcrb: the bound is the kinematic bicycle's; it bounds nothing on a "
-                           "car that slips (truth=dynamic)")
+                           "car that slips (car=dynamic)")
         R = measurement_cov("oracle", noise, arr.alpha, len(arr.alpha))
         scale = 1.0 if truth is None else truth.process_scale
         return np.sqrt(pcrb(arr.z, arr.u, vehicle, scale**2 * noise.Q, R, rng=seed))

@@ -23,7 +23,7 @@ from lbo.sim.noise import Noise
 from lbo.sim.pursuit import drive, smooth_noise
 from lbo.sim.stopgo import generate_stop_and_go
 from lbo.sim.truth import Truth
-from lbo.sim.truth import from_cfg as truth_from_cfg
+from lbo.sim.truth import of_config as truth_of_config
 from lbo.sim.vehicle import Vehicle, measure
 
 # Bump when a generator changes what it writes, so old caches are not reused.
@@ -57,7 +57,7 @@ class Spec:
 
     @property
     def motion_noise(self) -> Noise:
-        """The noise preset with the truth's own process noise (``truth.process_scale``)."""
+        """The noise preset with the truth's own process noise (``car.process_scale``)."""
         if self.truth.process_scale == 1.0:
             return self.noise
         return Noise(tuple(self.truth.process_sigma(self.noise)), self.noise.measurement_sigma,
@@ -77,7 +77,7 @@ def spec_from_cfg(cfg: DictConfig) -> Spec:
     """
     vehicle = Vehicle.from_cfg(cfg.vehicle)
     noise = Noise.from_cfg(cfg.noise)
-    truth = truth_from_cfg(cfg.get("truth"), vehicle.wheelbase)
+    truth = truth_of_config(cfg, vehicle.wheelbase)
     d = cfg.data
     integer(d.seed, "data.seed", 0)
     # each block is a mapping (a DictConfig), so its container is a dict

@@ -75,9 +75,9 @@ class SingleTrack:
     def __post_init__(self) -> None:
         for f in fields(self):
             if f.name == "substeps":
-                object.__setattr__(self, f.name, integer(self.substeps, "truth.substeps", 1))
+                object.__setattr__(self, f.name, integer(self.substeps, "car.substeps", 1))
             else:
-                object.__setattr__(self, f.name, number(getattr(self, f.name), f"truth.{f.name}",
+                object.__setattr__(self, f.name, number(getattr(self, f.name), f"car.{f.name}",
                                                         low=0.0, low_open=True))
 
     @property

@@ -1,4 +1,5 @@
-"""What a simulated log is drawn from: the vehicle model, and the sensors' errors.
+"""What a simulated log is drawn from: the car (config group ``car``) and its sensors' errors
+(group ``sensors``), together a :class:`Truth`.
 
 ``kinematic`` is the paper's kinematic bicycle (:mod:`lbo.sim.vehicle`), the very model inside the
 classical filters; ``dynamic`` is a car that slips (:mod:`lbo.sim.dynamic`). Both log the same
@@ -7,7 +8,8 @@ model is found by its name among the installed packages' entry points (group
 ``lbo.truths``, :mod:`lbo.core.plugins`), lbo's two as a user's: any car that keeps
 :class:`Car` drives the simulator, the data sets and the EKF told the car.
 
-Three sensor errors beside the white measurement noise, each off by default:
+Three sensor errors beside the white measurement noise, each off by default (``sensors=white``;
+``sensors=drift`` turns the drift on):
 
 - GNSS drift: a first-order Gauss-Markov error on x and y,
   ``b_{k+1} = phi b_k + sqrt(1 - phi^2) sigma eps_k``, ``phi = exp(-dt / tau)``, stationary from
@@ -16,10 +18,10 @@ Three sensor errors beside the white measurement noise, each off by default:
 - a steering offset: the logged delta is the road-wheel angle plus ``steering_offset`` (rad);
 - a speed scale-factor error: the logged V is ``(1 + speed_scale)`` times the true speed.
 
-Beside the sensors, ``process_scale`` sets how much of the noise preset's process noise the
-truth itself carries: the paper's kinematic truth adds all of it (1), a car's pose moves as its
-dynamics say, up to a small unmodelled rest. The classical filters are still told the preset's
-Q, the one a filter designer would choose.
+Beside the car's own settings, ``car.process_scale`` sets how much of the noise preset's process
+noise the truth itself carries: the paper's kinematic truth adds all of it (1), a car's pose
+moves as its dynamics say, up to a small unmodelled rest. The classical filters are still told
+the preset's Q, the one a filter designer would choose.
 """
 
 from __future__ import annotations
@@ -39,7 +41,7 @@ from lbo.core.errors import LboError
 class Car(Protocol):
     """What a car that slips keeps, lbo's single-track (:class:`lbo.sim.dynamic.SingleTrack`)
     and a user's (registered in the entry-point group ``lbo.truths``; docs/plugins.md): a
-    frozen dataclass whose fields are its ``truth.*`` settings (each checked in its
+    frozen dataclass whose fields are its ``car.*`` settings (each checked in its
     ``__post_init__``), with the state ``[x, y, psi, v_y, r]``: the rear axle's pose, then the
     lateral speed of the centre of gravity (m/s) and the yaw rate (rad/s)."""
 
@@ -95,10 +97,10 @@ class Sensors:
     speed_scale: float = 0.0
 
     def __post_init__(self) -> None:
-        number(self.gnss_sigma, "truth.gnss_sigma", low=0.0)
-        number(self.gnss_tau, "truth.gnss_tau", low=0.0, low_open=True)
-        number(self.steering_offset, "truth.steering_offset", low=-0.2, high=0.2)
-        number(self.speed_scale, "truth.speed_scale", low=-0.5, high=0.5)
+        number(self.gnss_sigma, "sensors.gnss_sigma", low=0.0)
+        number(self.gnss_tau, "sensors.gnss_tau", low=0.0, low_open=True)
+        number(self.steering_offset, "sensors.steering_offset", low=-0.2, high=0.2)
+        number(self.speed_scale, "sensors.speed_scale", low=-0.5, high=0.5)
 
     @property
     def off(self) -> bool:
@@ -142,7 +144,7 @@ class Truth:
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "process_scale", number(self.process_scale,
-                                                         "truth.process_scale", low=0.0))
+                                                         "car.process_scale", low=0.0))
 
     @property
     def default(self) -> bool:
@@ -179,50 +181,76 @@ def gauss_markov(shape: tuple[int, ...], dt: float, tau: float, sigma: float,
     return sigma * b
 
 
-def from_cfg(cfg: Any, wheelbase: float) -> Truth:
-    """The Truth of the Hydra group ``truth`` (None or absent: the kinematic bicycle).
+def from_cfg(car: Any, sensors: Any, wheelbase: float) -> Truth:
+    """The Truth of the Hydra groups ``car`` and ``sensors`` (either None or absent: the
+    kinematic bicycle, white noise alone).
 
-    ``truth.name`` is looked up among the registered truth models (entry-point group
+    ``car.name`` is looked up among the registered truth models (entry-point group
     ``lbo.truths``; nothing a config names is imported otherwise). Raises LboError naming the
-    field for an unknown model, a bad value, a car that does not keep :class:`Car`, or axle
-    distances that do not sum to the vehicle's wheelbase.
+    field for an unknown model, a bad value, a car that does not keep :class:`Car`, axle
+    distances that do not sum to the vehicle's wheelbase, or a key of neither group.
     """
-    if cfg is None:
-        return Truth()
-    c = dict(cfg)
+    s = dict(sensors or {})
+    unknown = [k for k in s if k not in Sensors.__dataclass_fields__]
+    if unknown:
+        raise LboError(f"sensors.{unknown[0]}: not a sensor error; accepted: "
+                       f"{', '.join(Sensors.__dataclass_fields__)}")
+    c = dict(car or {})
     name = c.pop("name", "kinematic")
-    cls: type[Any] = plugins.load("truth", name, "truth.name")  # a class, Kinematic or a car
-    sensor_keys = [f for f in Sensors.__dataclass_fields__]
-    sensors = Sensors(**{k: c.pop(k) for k in sensor_keys if k in c})
     scale = c.pop("process_scale", 1.0)
-    sensor_keys.append("process_scale")
+    cls: type[Any] = plugins.load("truth", name, "car.name")  # a class, Kinematic or a car
     if cls is Kinematic:
         if c:
-            raise LboError(f"truth.{next(iter(c))}: not a field of truth={name}; "
-                           f"accepted: name, {', '.join(sensor_keys)}")
-        return Truth(name, None, sensors, scale)
+            raise LboError(f"car.{next(iter(c))}: not a field of car={name}; "
+                           "accepted: name, process_scale")
+        return Truth(name, None, Sensors(**s), scale)
     if not dataclasses.is_dataclass(cls):
-        raise LboError(f"truth.name: truth model {name!r} is registered as {cls!r}, not a "
+        raise LboError(f"car.name: truth model {name!r} is registered as {cls!r}, not a "
                        "dataclass of its settings (docs/plugins.md)")
     car_keys = [f.name for f in dataclasses.fields(cls)]
     unknown = [k for k in c if k not in car_keys]
     if unknown:
-        raise LboError(f"truth.{unknown[0]}: not a field of truth={name}; accepted: "
-                       f"name, {', '.join(car_keys + sensor_keys)}")
+        raise LboError(f"car.{unknown[0]}: not a field of car={name}; accepted: "
+                       f"name, process_scale, {', '.join(car_keys)}")
     try:
-        car = cast(Car, cls(**c))  # that it keeps Car's members is checked below
+        built = cast(Car, cls(**c))  # that it keeps Car's members is checked below
     except (TypeError, ValueError) as e:  # a plug-in's own check, said in lbo's one line
-        raise LboError(f"truth: truth model {name!r} refused its settings ({e})") from None
+        raise LboError(f"car: truth model {name!r} refused its settings ({e})") from None
     missing = [m for m in ("wheelbase", "understeer_gradient", "start", "step", "rear_slip")
-               if not hasattr(car, m)]
+               if not hasattr(built, m)]
     if missing:
-        raise LboError(f"truth.name: truth model {name!r} lacks {', '.join(missing)} (a car "
+        raise LboError(f"car.name: truth model {name!r} lacks {', '.join(missing)} (a car "
                        "keeps lbo.sim.truth.Car: docs/plugins.md)")
-    axles = hasattr(car, "l_f") and hasattr(car, "l_r")  # the field a user sets, if it has them
-    require(abs(float(car.wheelbase) - wheelbase) < 1e-6,
-            "truth.l_f + truth.l_r" if axles else f"truth={name}'s wheelbase",
-            f"the vehicle's wheelbase ({wheelbase} m)", car.wheelbase)
-    return Truth(name, car, sensors, scale)
+    axles = hasattr(built, "l_f") and hasattr(built, "l_r")  # the fields a user sets, if any
+    require(abs(float(built.wheelbase) - wheelbase) < 1e-6,
+            "car.l_f + car.l_r" if axles else f"car={name}'s wheelbase",
+            f"the vehicle's wheelbase ({wheelbase} m)", built.wheelbase)
+    return Truth(name, built, Sensors(**s), scale)
+
+
+def of_config(cfg: Any, wheelbase: float) -> Truth:
+    """The Truth of a composed config's ``car`` and ``sensors`` groups (see :func:`from_cfg`)."""
+    return from_cfg(cfg.get("car"), cfg.get("sensors"), wheelbase)
+
+
+def config_dict(cfg: Any) -> dict[str, Any] | None:
+    """A composed config's ``car`` and ``sensors`` groups as one mapping, the car's keys first
+    (the form :func:`from_dict` reads and a checkpoint keeps as its ``truth``); None: neither."""
+    from omegaconf import OmegaConf
+
+    groups = [cfg.get(g) for g in ("car", "sensors")]
+    if all(g is None for g in groups):
+        return None
+    return {k: v for g in groups if g is not None
+            for k, v in cast(dict, OmegaConf.to_container(g, resolve=True)).items()}
+
+
+def from_dict(truth: dict[str, Any] | None, wheelbase: float) -> Truth:
+    """The Truth of :meth:`Truth.to_dict`'s mapping (a data set's manifest, a checkpoint's
+    ``truth``): the car's fields and the sensors' in one; None: the paper's."""
+    d = dict(truth or {})
+    sensors = {k: d.pop(k) for k in list(d) if k in Sensors.__dataclass_fields__}
+    return from_cfg(d, sensors, wheelbase)
 
 
 def of_folder(folder: Any, wheelbase: float) -> Truth:
@@ -234,4 +262,4 @@ def of_folder(folder: Any, wheelbase: float) -> Truth:
     manifest = Path(folder) / "manifest.json"
     if not manifest.is_file():
         return Truth()
-    return from_cfg(json.loads(manifest.read_text()).get("truth"), wheelbase)
+    return from_dict(json.loads(manifest.read_text()).get("truth"), wheelbase)
