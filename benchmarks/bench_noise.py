@@ -45,7 +45,7 @@ def main() -> None:
                                              sigma=tuple(cfg.noise.measurement_sigma))}
             for dm in dms.values():
                 dm.setup("fit")
-            norm = dms["stored"].normalisation(cfg.features)
+            norm = dms["stored"].normalisation(cfg.model.features)
             warmup, measured = STEPS.get((m, n), (10, 100))
             runs = {k: [] for k in dms}
             for _ in range(args.repeats):

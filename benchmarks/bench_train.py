@@ -107,7 +107,7 @@ def bare(cfg: DictConfig, dm: WindowDataModule, norm: dict, warmup: int, measure
     torch.manual_seed(SEED)
     model = OmegaConf.to_container(cfg.model, resolve=True)
     kwargs = {k: v for k, v in model.items() if k != "name"}
-    net = WindowNet(model["name"], cfg.window, cfg.features, **kwargs).to(dm.device)
+    net = WindowNet(model["name"], cfg.model.window, cfg.model.features, **kwargs).to(dm.device)
     net.set_normalisation(**norm)
     net.train()
     opt = instantiate(cfg.optimizer)(params=net.parameters())
@@ -150,8 +150,8 @@ def lightning(cfg: DictConfig, dm: WindowDataModule, norm: dict, warmup: int,
               measured: int) -> Run:
     """``Trainer.fit`` for ``warmup + measured`` steps."""
     torch.manual_seed(SEED)
-    module = TrainingModule(OmegaConf.to_container(cfg.model, resolve=True), cfg.window,
-                            cfg.features, instantiate(cfg.optimizer))
+    module = TrainingModule(OmegaConf.to_container(cfg.model, resolve=True), cfg.model.window,
+                            cfg.model.features, instantiate(cfg.optimizer))
     module.observer.set_normalisation(**norm)
     clock = StepClock(warmup)
     trainer = L.Trainer(accelerator="gpu" if dm.device.type == "cuda" else "cpu", devices=1,
@@ -205,7 +205,7 @@ def main() -> None:
             dm = WindowDataModule(folder, n, BATCH, seed=SEED, device=args.device)
             dm.setup("fit")
             # the statistics of the windows as this net reads them (its features)
-            norm = dm.normalisation(build_net(cfg), cfg.normalisation)
+            norm = dm.normalisation(build_net(cfg), cfg.model.normalisation)
             warmup, measured = STEPS.get((m, n), (10, 100))
             runs: dict[str, list[Run]] = {"bare": [], "lightning": []}
             for _ in range(args.repeats):

@@ -99,7 +99,7 @@ def lightning_overhead(model: str, window: int, repeats: int = 3) -> float:
     folder, _, _ = build(spec_from_cfg(cfg), progress=False)
     dm = WindowDataModule(folder, window, BATCH, seed=SEED)
     dm.setup("fit")
-    norm = dm.normalisation(cfg.features)
+    norm = dm.normalisation(cfg.model.features)
     diffs = []
     for _ in range(repeats):
         b = bare(cfg, dm, norm, 5, 40)

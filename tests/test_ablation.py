@@ -78,12 +78,13 @@ def test_normalisation_is_checked_and_keeps_old_hashes(tmp_path, smoke_data):
 
     from lbo.train import check, config_hash
 
-    with pytest.raises(LboError, match=r"^normalisation: expected one of \['standard', 'minmax'\]"):
+    with pytest.raises(LboError, match=r"^model.normalisation: expected one of "
+                                       r"\['standard', 'minmax'\]"):
         check(train_cfg(tmp_path, smoke_data, "normalisation=zscore"))
     standard = train_cfg(tmp_path, smoke_data)
     before = standard.copy()  # a config from before the setting existed
     with open_dict(before):
-        before.pop("normalisation")
+        before.model.pop("normalisation")
     assert config_hash(standard) == config_hash(before)
     assert config_hash(train_cfg(tmp_path, smoke_data, "normalisation=minmax")) \
         != config_hash(standard)

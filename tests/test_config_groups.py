@@ -403,13 +403,13 @@ def test_experiment_quick_and_paper_train_on_their_own_data_and_their_studies_pa
 
     cfg = compose_cfg("train", [f"experiment={experiment}", f"output_dir={store / 'out'}"])
     assert cfg.data.name == experiment
-    assert (cfg.model.name, cfg.features) == ("cnn", "frame")
+    assert (cfg.model.name, cfg.model.features) == ("cnn", "frame")
     assert_kept(cfg, *sources(chosen(experiment), ("experiment", experiment)))
     train_checks(cfg)
     for search in SEARCHES[1:]:
         study = compose_cfg("tune", [f"hparams_search={search}", f"experiment={experiment}",
                                      f"output_dir={store / 'out'}"])
-        assert (study.data.name, study.model.name, study.window) == (experiment, search, 20)
+        assert (study.data.name, study.model.name, study.model.window) == (experiment, search, 20)
         assert check_tune(study)
 
 

@@ -156,7 +156,8 @@ def test_datagen_removes_the_temp_files_of_a_killed_run(tmp_path):
 
 @pytest.mark.parametrize("override, message", [
     ("classical=[ekf,kalman]", "classical: unknown observer 'kalman'; expected names from"),
-    ("windows=[20,3]", "window must be an integer >= 4 (the CNN pools windows by 4), got 3"),
+    ("windows=[20,3]",
+     "model.window must be an integer >= 4 (the CNN pools windows by 4), got 3"),
     ("models=[cnn,gru]", "models must be a list of models with a search space (cnn, "
                          "kalmannet, lstm, split_kalmannet), got ['cnn', 'gru']"),
     ("train_overrides=['metric.reference=foo']",

@@ -243,14 +243,14 @@ def _save_checkpoint(path: Path, smoke_data: Path) -> None:
     """An untrained smoke CNN (N=20), saved the way lbo.train saves its best checkpoint."""
     import torch
 
-    from lbo.learn.builders import build_net
+    from lbo.learn.builders import build_net, model_settings
     from lbo.models.net import CHECKPOINT_FORMAT
     from lbo.train import meta
 
     cfg = compose_cfg("train", ["experiment=smoke", f"data.root={smoke_data.parent}"])
     net = build_net(cfg)
-    model = {"name": cfg.model.name, **{k: v for k, v in cfg.model.items() if k != "name"}}
-    hp = {"model": dict(model), "window": cfg.window, "features": cfg.features,
+    hp = {"model": model_settings(cfg), "window": cfg.model.window,
+          "features": cfg.model.features,
           "fixes": False, "format": CHECKPOINT_FORMAT, "meta": meta(cfg, "x")}
     torch.save({"hyper_parameters": hp,
                 "state_dict": {f"observer.{k}": v for k, v in net.state_dict().items()}}, path)

@@ -124,7 +124,9 @@ def test_each_commands_help_lists_its_own_groups_and_explains_its_settings():
                            text=True).stdout
     assert "model: cnn, filternet, kalmannet, lstm, split_kalmannet (default: cnn)" in train
     assert "receiver: single_antenna (default: none)" in train
-    assert "normalisation: standard # standard: each channel's mean and std" in train
+    assert "  normalisation: standard  # standard: each channel's mean and std" in train
+    assert "car: dynamic, kinematic (default: kinematic)" in train
+    assert "sensors: drift, white (default: white)" in train
 
 
 @pytest.mark.parametrize("old, new", [

@@ -155,7 +155,7 @@ def test_filternet_with_relative_features_is_refused_before_training(tmp_path, s
     uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
     monkeypatch.setenv("MLFLOW_TRACKING_URI", uri)
     cfg = _filternet_relative(tmp_path, smoke_data.parent)
-    assert cfg.features == "relative"
+    assert cfg.model.features == "relative"
     with pytest.raises(LboError, match=r"^features: model 'filternet' needs features in "
                                        r"\['frame'\], got 'relative'$") as err:
         train(cfg)

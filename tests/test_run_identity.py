@@ -7,9 +7,10 @@ from pathlib import Path
 import mlflow
 import pytest
 from conftest import compose_cfg
+from hydra import compose, initialize_config_dir
 from omegaconf import open_dict
 
-from lbo.core.paths import REPO_ROOT
+from lbo.core.paths import CONF_DIR, REPO_ROOT
 from lbo.learn.resume import _unlayered, config_hash, finished_run
 
 PRE_MOVE = {
@@ -107,6 +108,30 @@ def test_the_car_apart_from_its_sensors_leaves_runs_and_data_sets_as_they_were(o
 
     cfg = compose_cfg("train", list(overrides))
     assert (config_hash(cfg), spec_from_cfg(cfg).digest) == PRE_SPLIT[overrides]
+
+
+PRE_MODEL_KEYS = {
+    ("model=lstm", "window=60"): "3961f067d85918ee",
+    ("experiment=quick_literal", "model=cnn", "window=60"): "f57995013e1b0c39",
+    ("experiment=paper_literal", "model=lstm", "window=80", "normalisation=standard"):
+        "f2fe7c53ed4985e6",
+    ("features=absolute", "window=40", "seed=3"): "96c94486ff3d65a2",
+}
+"""Config hashes from before ``window``, ``features`` and ``normalisation`` moved under
+``model``, with the overrides as they were then spelled."""
+
+
+@pytest.mark.parametrize("overrides", list(PRE_MODEL_KEYS), ids=" ".join)
+def test_the_model_keys_under_model_leave_runs_as_they_were_in_either_spelling(overrides):
+    from lbo.core.cli import respell
+
+    long = respell(list(overrides))
+    assert [o for o in long if o.split("=")[0] in ("window", "features", "normalisation")] == []
+    with initialize_config_dir(str(CONF_DIR), version_base="1.3"):
+        plain = compose(config_name="train", overrides=long)  # Hydra itself: no respelling
+    assert plain.model.window == int(next(o for o in long if "window=" in o).split("=")[1])
+    assert config_hash(plain) == config_hash(compose_cfg("train", list(overrides))) \
+        == PRE_MODEL_KEYS[overrides]
 
 
 BEFORE = Path(__file__).parent / "data" / "before_issue39"

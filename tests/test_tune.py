@@ -79,7 +79,7 @@ def test_rerun_adds_only_missing_trials_and_hands_off(tmp_path, smoke_data, trac
                          "model.conv_channels", "model.feature_channels", "model.dense_units"}
     cfg = compose_cfg("train", ["model=cnn", "+tuned=cnn", "window=60",
                                 f"hydra.searchpath=[file://{tmp_path / 'conf'}]"])
-    assert cfg.window == 60
+    assert cfg.model.window == 60
     assert cfg.optimizer.lr == best["optimizer.lr"] and cfg.batch_size == best["batch_size"]
     assert cfg.model.conv_channels == best["model.conv_channels"]
     check(cfg)
@@ -532,7 +532,7 @@ def test_the_training_line_of_a_hand_off_composes_its_tuned_values(search, where
         assert any(w.startswith("hydra.searchpath=") for w in overrides) == (where != "conf")
         for window in (20, 40, 60, 80):
             trained = compose_cfg("train", [*overrides, f"window={window}"])
-            assert trained.window == window and trained.model.name == search
+            assert trained.model.window == window and trained.model.name == search
             assert {k: OmegaConf.select(trained, k) for k in wanted} == wanted
             check(trained)
         if where != "conf":  # without its search path, Hydra would read +tuned=<name> as a

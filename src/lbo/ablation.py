@@ -29,7 +29,7 @@ from omegaconf import DictConfig
 
 from lbo.core import plots
 from lbo.core.atomic import atomic_path, write_text
-from lbo.core.cli import entry
+from lbo.core.cli import entry, respell
 from lbo.core.errors import LboError
 from lbo.tracking.runs import check_store, run_artifact
 
@@ -54,10 +54,11 @@ def expand(sweep: str) -> list[list[str]]:
 def factors(cfg: DictConfig) -> dict[str, Any]:
     """The variant a training config is: model, window and :data:`FACTORS`, and its seed."""
     source = cfg.train_noise.source
-    return {"model": cfg.model.name, "window": int(cfg.window), "features": cfg.features,
+    return {"model": cfg.model.name, "window": int(cfg.model.window),
+            "features": cfg.model.features,
             "train_noise": "stored" if source == "stored" else "fresh",
             "activation": cfg.model.get("activation", "-"),
-            "normalisation": cfg.normalisation, "epochs": epochs(cfg),
+            "normalisation": cfg.model.normalisation, "epochs": epochs(cfg),
             "seed": int(cfg.seed)}
 
 
@@ -86,8 +87,8 @@ def jobs(cfg: DictConfig) -> list[list[str]]:
     out: dict[str, list[str]] = {}
     for sweep in cfg.sweeps:
         for combo in expand(sweep):
-            out.setdefault(" ".join(combo), [f"experiment={cfg.scale}", *combo,
-                                               "resume=true", *cfg.overrides])
+            out.setdefault(" ".join(combo), respell([f"experiment={cfg.scale}", *combo,
+                                                       "resume=true", *cfg.overrides]))
     return list(out.values())
 
 

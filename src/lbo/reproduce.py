@@ -31,7 +31,7 @@ from omegaconf import DictConfig
 
 from lbo.core.atomic import write_text
 from lbo.core.checks import integer, require
-from lbo.core.cli import entry, ready_launcher
+from lbo.core.cli import entry, ready_launcher, respell
 from lbo.core.errors import LboError
 from lbo.filters import classical
 from lbo.learn.eta import Eta, duration, measure
@@ -141,14 +141,14 @@ def stage_tune(cfg: DictConfig, out: Path, models: list[str]) -> tuple[dict, str
     quiet()
     results, reused = {}, True
     for model in models:
-        c = compose("tune", [f"hparams_search={model}", f"experiment={cfg.scale}",
-                              f"tune.n_trials={cfg.trials}",
-                              f"tune.handoff={out / 'tuned' / f'{model}.yaml'}",
-                              f"tune.storage={cfg.optuna_storage}",
-                              f"output_dir={out / 'tune' / model}",
-                              *cfg.tune_overrides,
-                              *cfg.search_overrides[model],
-                              *cfg.overrides, *cfg.train_overrides])
+        c = compose("tune", respell([f"hparams_search={model}", f"experiment={cfg.scale}",
+                                     f"tune.n_trials={cfg.trials}",
+                                     f"tune.handoff={out / 'tuned' / f'{model}.yaml'}",
+                                     f"tune.storage={cfg.optuna_storage}",
+                                     f"output_dir={out / 'tune' / model}",
+                                     *cfg.tune_overrides,
+                                     *cfg.search_overrides[model],
+                                     *cfg.overrides, *cfg.train_overrides]))
         results[model] = tune(c)
         reused &= not results[model]["new_trials"]
     return results, "reused" if reused else "done"

@@ -31,6 +31,7 @@ from lbo.learn.builders import (
     build,
     datamodule,
     logs_spec,
+    model_settings,
     prepare_data,
     say_fresh,
     targets,
@@ -84,20 +85,21 @@ def check_compile(cfg: DictConfig) -> None:
 def check(cfg: DictConfig) -> Built:
     """Reject bad training settings with one line naming the field, before any work; return
     the run's objects built on the way (:func:`lbo.learn.builders.build`)."""
-    integer(cfg.window, "window", 4, form="an integer >= 4 (the CNN pools windows by 4)")
-    require(cfg.features in FEATURE_MODES, "features", f"one of {list(FEATURE_MODES)}",
-            cfg.features)
+    integer(cfg.model.window, "model.window", 4,
+            form="an integer >= 4 (the CNN pools windows by 4)")
+    require(cfg.model.features in FEATURE_MODES, "model.features",
+            f"one of {list(FEATURE_MODES)}", cfg.model.features)
     integer(cfg.batch_size, "batch_size", 1)
     integer(cfg.seed, "seed", 0)
     if cfg.get("threads") is not None:
         integer(cfg.threads, "threads", 1)
     if cfg.get("tbptt") is not None:
         integer(cfg.tbptt, "tbptt", 2, form="null or an integer >= 2 (steps per chunk)")
-        length = cfg.get("sequence_length") or cfg.window
+        length = cfg.get("sequence_length") or cfg.model.window
         if cfg.get("sequence_length") is not None:
             integer(length, "sequence_length", 2, form="null or an integer >= 2 (steps)")
         require(cfg.tbptt <= length, "tbptt", f"at most the {length} steps of a training "
-                "sequence (sequence_length, or window)", cfg.tbptt)
+                "sequence (sequence_length, or model.window)", cfg.tbptt)
     elif cfg.get("sequence_length") is not None:
         raise LboError("sequence_length: set only with tbptt (the sequences trained carried); "
                        f"got {cfg.sequence_length} with tbptt=null")
@@ -110,7 +112,7 @@ def check(cfg: DictConfig) -> Built:
         raise LboError(f"nll: the Gaussian NLL term reads the covariance of a filter trained "
                        f"carried; set tbptt too, or nll=0 (got nll={nll} with tbptt=null)")
     check_compile(cfg)
-    check_scaling(cfg.normalisation)
+    check_scaling(cfg.model.normalisation, "model.normalisation")
     check_trainer(cfg.trainer)
     check_optimizer(cfg.optimizer)
     require(cfg.get("lr_schedule", "constant") in SCHEDULES, "lr_schedule",
@@ -243,23 +245,24 @@ def _fit(cfg: DictConfig, built: Built, callbacks: list[L.Callback] | None,
     L.seed_everything(cfg.seed, workers=True, verbose=False)
     folder, data_hash = prepare_data(cfg)
     dm = datamodule(cfg, folder, built)
-    module = TrainingModule(cast(dict, OmegaConf.to_container(cfg.model, resolve=True)), cfg.window,
-                            cfg.features, instantiate(cfg.optimizer),
+    module = TrainingModule(model_settings(cfg), cfg.model.window,
+                            cfg.model.features, instantiate(cfg.optimizer),
                             {**meta(cfg, data_hash), "envelope": training_envelope(cfg, dm)},
                             cfg.get("lr_schedule", "constant"), bool(built.fix_periods),
                             net=built.net, receiver=built.net.receiver, tbptt=cfg.get("tbptt"),
                             clip=cfg.trainer.get("gradient_clip_val"),
                             nll=float(cfg.get("nll") or 0.0),
                             compiled=bool(cfg.get("compile")))
-    module.observer.set_normalisation(**dm.normalisation(module.observer, cfg.normalisation))
+    module.observer.set_normalisation(**dm.normalisation(module.observer, cfg.model.normalisation))
     if built.init is not None:  # fine-tuning: its weights and its normalisation
         say_fresh(cfg, module.observer, built.init)
         module.observer.load_state_dict(built.init, strict=False)
         print(f"init_from: starting from the weights of {cfg.init_from}")
 
-    name = f"{cfg.model.name}-N{cfg.window}"
+    name = f"{cfg.model.name}-N{cfg.model.window}"
     tags = {"git_commit": git_commit(), "data_hash": data_hash, "data": cfg.data.name,
-            "model": cfg.model.name, "window": str(cfg.window), "features": cfg.features,
+            "model": cfg.model.name, "window": str(cfg.model.window),
+            "features": cfg.model.features,
             "train_noise": _noise_tag(cfg),
             "config_hash": digest, **(tags or {})}
     logger = (instantiate(cfg.logger, tags=tags, **({"run_id": resume_id} if resume_id else {}))
@@ -366,7 +369,7 @@ def _command(cfg: DictConfig) -> float:
     return metrics["val_loss"]
 
 
-main = entry("train", _command, guard=check_folder)
+main = entry("train", _command, guard=check_folder, short_model_keys=True)
 
 
 if __name__ == "__main__":

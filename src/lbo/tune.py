@@ -214,7 +214,7 @@ def _run_study(cfg: DictConfig, space: list[Param], pruner: optuna.pruners.BaseP
                                 pruner=pruner, direction="minimize", load_if_exists=True)
     check_resumed(study.get_trials(deepcopy=False), space, f"{t.study_name!r} in {shown}")
     check_same_logs(study, cfg)
-    for key, value in (("model", cfg.model.name), ("window", cfg.window),
+    for key, value in (("model", cfg.model.name), ("window", cfg.model.window),
                        ("data", cfg.data.name)):
         study.set_user_attr(key, value)
     output = Path(cfg.output_dir)
@@ -356,7 +356,8 @@ def _run_study(cfg: DictConfig, space: list[Param], pruner: optuna.pruners.BaseP
                        f"({counts[TrialState.PRUNED]} pruned, {counts[TrialState.FAIL]} failed),"
                        f" so no hand-off was written; rerun with a larger tune.n_trials")
     # a best trial: its hand-off was written
-    command = train_command(cfg.model.name, cast(Path, handoff), hydra_searchpath(), cfg.features)
+    command = train_command(cfg.model.name, cast(Path, handoff), hydra_searchpath(),
+                            cfg.model.features)
     params = {p.key: p.decode(best.params[p.key]) for p in space if p.key in best.params}
     print(f"best: trial {best.number}, val_loss {best.value:.6g}: "
           + " ".join(f"{k}={short_value(v)}" for k, v in params.items()))
@@ -400,7 +401,7 @@ def _quiet_tune(cfg: DictConfig) -> float:
         raise SystemExit(130) from None
 
 
-main = entry("tune", _quiet_tune)
+main = entry("tune", _quiet_tune, short_model_keys=True)
 
 
 if __name__ == "__main__":

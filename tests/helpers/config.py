@@ -4,13 +4,21 @@ from __future__ import annotations
 
 from hydra import compose, initialize_config_dir
 
+from lbo.core.cli import respell
 from lbo.core.paths import CONF_DIR
+
+TRAINING = ("train", "tune")
+"""The configs whose command lines take the short model keys."""
 
 
 def compose_cfg(name: str, overrides: list[str] | None = None):
-    """Compose a config from conf/ the way the entry points do, without running Hydra."""
+    """Compose a config from conf/ the way the entry points do, without running Hydra: a
+    training config (``train``, ``tune``) reads ``window=`` as ``model.window=`` (and the
+    other short model keys, :func:`lbo.core.cli.respell`), as their command lines do."""
+    overrides = list(overrides or [])
     with initialize_config_dir(str(CONF_DIR), version_base="1.3"):
-        return compose(config_name=name, overrides=overrides or [])
+        return compose(config_name=name,
+                       overrides=respell(overrides) if name in TRAINING else overrides)
 
 
 def train_cfg(tmp_path, smoke_data, *overrides):

@@ -151,9 +151,22 @@ def scrub_logs() -> None:
             handler.addFilter(_ScrubRecords())
 
 
+MODEL_SHORT = ("window", "features", "normalisation")
+"""The model's own settings every observer has (``model.window``, ...), which a training's command
+line may spell short, as the paper's command does: ``model=cnn,lstm window=20,40,60,80``."""
+
+
+def respell(overrides: list[str]) -> list[str]:
+    """Training overrides as Hydra reads them: ``window=20`` (and ``features=``,
+    ``normalisation=``, :data:`MODEL_SHORT`) is ``model.window=20``; the rest as given."""
+    return [f"model.{arg}" if arg.partition("=")[0] in MODEL_SHORT and "=" in arg else arg
+            for arg in overrides]
+
+
 def entry(config_name: str, run: Callable[[DictConfig], Any],
           guard: Callable[[DictConfig], None] | None = None,
-          spellings: Callable[[list[str]], None] | None = None) -> Callable[[], Any]:
+          spellings: Callable[[list[str]], None] | None = None,
+          short_model_keys: bool = False) -> Callable[[], Any]:
     """A ``@hydra.main`` around ``run(cfg)`` composing ``conf/<config_name>.yaml``.
 
     ``run``'s return value goes back to Hydra (a sweeper's objective); an LboError or an
@@ -163,7 +176,9 @@ def entry(config_name: str, run: Callable[[DictConfig], Any],
     passwords, before ``run`` starts; ``guard(cfg)``, if given, runs before those files are
     written, to refuse a run folder that holds another run's (raise an LboError).
     ``spellings(argv)``, if given, refuses an override spelled as an older lbo took it (raise
-    an LboError naming the new spelling), before Hydra reads it.
+    an LboError naming the new spelling), before Hydra reads it. With ``short_model_keys``
+    (the commands that compose a training config) ``window=`` and the other
+    :data:`MODEL_SHORT` keys are read as ``model.window=`` (:func:`respell`).
     """
 
     @hydra.main(version_base="1.3", config_path=str(CONF_DIR), config_name=config_name)
@@ -212,6 +227,8 @@ def entry(config_name: str, run: Callable[[DictConfig], Any],
                 check_truth_split(sys.argv[1:])
                 if spellings is not None:
                     spellings(sys.argv[1:])
+                if short_model_keys:  # Hydra reads the overrides from sys.argv
+                    sys.argv[1:] = respell(sys.argv[1:])
             except LboError as e:
                 fail(e)
             return main()

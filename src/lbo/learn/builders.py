@@ -16,6 +16,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 from lbo.core.checks import integer, number, require
+from lbo.core.cli import MODEL_SHORT
 from lbo.core.errors import LboError
 from lbo.learn.draws import SOURCES, AlphaDraw, ReceiverDraw, fix_periods
 
@@ -46,6 +47,14 @@ def build(cfg: DictConfig) -> Built:
     return Built(net, periods, noise, init)
 
 
+def model_settings(cfg: DictConfig) -> dict[str, Any]:
+    """``cfg.model`` without the settings every observer has (:data:`lbo.core.cli.MODEL_SHORT`:
+    its window, feature mode and normalisation, given to it apart): its ``name`` and its
+    architecture's own keyword arguments, as a checkpoint keeps them."""
+    model = cast(dict, OmegaConf.to_container(cfg.model, resolve=True))  # a mapping's: a dict
+    return {k: v for k, v in model.items() if k not in MODEL_SHORT}
+
+
 def build_net(cfg: DictConfig, periods: tuple[int, ...] | None = None):
     """The :class:`~lbo.models.net.WindowNet` that ``cfg.model`` describes, untrained, its
     weights drawn from ``cfg.seed`` (the global random state is left as it was). ``periods``:
@@ -54,10 +63,10 @@ def build_net(cfg: DictConfig, periods: tuple[int, ...] | None = None):
 
     if periods is None:
         periods = fix_periods(cfg.get("fix_rates"), cfg.vehicle.dt)
-    model = cast(dict, OmegaConf.to_container(cfg.model, resolve=True))  # a mapping's: a dict
+    model = model_settings(cfg)
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(cfg.seed)
-        return WindowNet(model.pop("name"), cfg.window, cfg.features, bool(periods),
+        return WindowNet(model.pop("name"), cfg.model.window, cfg.model.features, bool(periods),
                          receiver=bool(cfg.get("receiver")),
                          motion=(float(cfg.vehicle.dt), float(cfg.vehicle.wheelbase)),
                          carried=cfg.get("tbptt") is not None, **model)
@@ -81,14 +90,16 @@ def initial_weights(cfg: DictConfig, net, say: bool = True) -> dict[str, torch.T
     name = hp["model"]["name"]
     require(name == cfg.model.name, "init_from",
             f"an observer of this run's model={cfg.model.name} ({source} is a {name})", source)
-    require(hp["features"] == cfg.features, "init_from",
-            f"an observer of features={cfg.features} ({source} has features={hp['features']})",
+    require(hp["features"] == cfg.model.features, "init_from",
+            f"an observer of features={cfg.model.features} ({source} has "
+            f"features={hp['features']})",
             source)
     own, theirs = net.state_dict(), src.state_dict()
     for key, value in theirs.items():
         if key in own and own[key].shape != value.shape:
             raise LboError(f"init_from: {source} has {key} of shape {tuple(value.shape)}, this "
-                           f"run's {cfg.model.name}-N{cfg.window} {tuple(own[key].shape)}; give "
+                           f"run's {cfg.model.name}-N{cfg.model.window} "
+                           f"{tuple(own[key].shape)}; give "
                            "the window, fix_rates and model sizes it was trained with")
     init = {k: v for k, v in theirs.items() if k in own}
     if say:
@@ -120,7 +131,7 @@ def datamodule(cfg: DictConfig, folder: Path, built: Built | None = None):
     periods = built.fix_periods if built else fix_periods(cfg.get("fix_rates"), cfg.vehicle.dt)
     noise = built.noise if built else noise_settings(cfg)
     carried = cfg.get("tbptt") is not None  # its windows: sequences, maybe longer than N
-    length = (cfg.get("sequence_length") or cfg.window) if carried else cfg.window
+    length = (cfg.get("sequence_length") or cfg.model.window) if carried else cfg.model.window
     dm = WindowDataModule(folder, length, cfg.batch_size, seed=cfg.seed,
                           device=data_device(cfg), fix_periods=periods,
                           sequences=carried, **noise)

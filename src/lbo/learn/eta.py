@@ -44,7 +44,7 @@ def measure(cfg: DictConfig, steps: int = 8, warmup: int = 3) -> dict[str, Any]:
     device = data_device(cfg)
     dm = datamodule(cfg, prepare_data(cfg)[0])
     net = build_net(cfg).to(device)
-    net.set_normalisation(**dm.normalisation(net, cfg.normalisation))
+    net.set_normalisation(**dm.normalisation(net, cfg.model.normalisation))
     opt = instantiate(cfg.optimizer)(params=net.parameters())
     loader = dm.train_dataloader()
     # one carried model for every step: a compiled one compiles in the warm-up steps

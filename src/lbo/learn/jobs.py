@@ -13,6 +13,7 @@ from typing import cast
 from omegaconf import DictConfig
 
 from lbo.core.checks import require
+from lbo.core.cli import respell
 
 STUDIES = ("paper", "dynamic", "all")
 """``study=``: the paper's study (its eight observers tuned and trained, the robust observer
@@ -52,7 +53,7 @@ def run_name(study: str) -> str:
     """The MLflow run name of a job of ``study``: ``literal-cnn-N20`` beside the paper
     protocol's ``cnn-N20`` (the logger config's name alone would give both the same; the
     name is not part of a run's config hash, so finished runs are still reused)."""
-    return f"logger.run_name={study}-${{model.name}}-N${{window}}"
+    return f"logger.run_name={study}-${{model.name}}-N${{model.window}}"
 
 
 def parts(cfg: DictConfig) -> tuple[bool, bool]:
@@ -69,7 +70,8 @@ def train_jobs(cfg: DictConfig, out: Path) -> list[Job]:
     paper, dynamic = parts(cfg)
     jobs = [Job(f"{model}-N{window}", PAPER,
                 (f"experiment={cfg.scale}", *cfg.paper_overrides, f"model={model}",
-                 f"window={window}", f"+tuned={model}", f"hydra.searchpath=[file://{out}]"))
+                 f"model.window={window}", f"+tuned={model}",
+                 f"hydra.searchpath=[file://{out}]"))
             for model in (cfg.models if paper else []) for window in cfg.windows]
     if cfg.robust and paper:
         jobs.append(Job("robust", ROBUST, ("experiment=robust", f"data={cfg.scale}",
@@ -84,7 +86,7 @@ def train_jobs(cfg: DictConfig, out: Path) -> list[Job]:
         model, window = model_window(name, "literal")
         jobs.append(Job(f"literal-{model}-N{window}", LITERAL,
                         (*cfg.literal_overrides, f"model={model}",
-                         f"window={window}", run_name("literal"))))
+                         f"model.window={window}", run_name("literal"))))
     # the car that slips: on each data set the observer that learns the model error (keyed
     # by the data set), and on the first one the black-box peers (<data>-cnn, <data>-lstm)
     # and the learned peers (<data>-kalmannet, <data>-split_kalmannet)
@@ -102,7 +104,6 @@ def train_jobs(cfg: DictConfig, out: Path) -> list[Job]:
                             ("experiment=dynamic", f"model={model}", "~model.drift",
                              f"data={data}", *cfg.dynamic_overrides,
                              run_name(data)), data))
-    return [dataclasses.replace(j, overrides=(*j.overrides, "resume=true",
-                                              f"output_dir={out / 'runs' / j.key}",
-                                              *cfg.overrides, *cfg.train_overrides))
-            for j in jobs]
+    return [dataclasses.replace(j, overrides=tuple(respell(
+        [*j.overrides, "resume=true", f"output_dir={out / 'runs' / j.key}", *cfg.overrides,
+         *cfg.train_overrides]))) for j in jobs]

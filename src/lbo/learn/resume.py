@@ -30,7 +30,7 @@ from lbo.core.paths import sqlite_path
 from lbo.core.runfolder import LOCK_NAME
 from lbo.sim.log_sets import is_logs
 
-LATER_DEFAULTS: dict[str, Any] = {"normalisation": "standard", "receiver": None,
+LATER_DEFAULTS: dict[str, Any] = {"model.normalisation": "standard", "receiver": None,
                   "receiver_training": {"heading_share": 0.25, "gyro_share": 0.75},
                   "model.gyro": False, "tbptt": None,
                   "sequence_length": None, "nll": 0.0, "train_noise.changes": 0}
@@ -75,19 +75,36 @@ def config_hash(cfg: DictConfig) -> str:
     return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 
+MOVED_INTO_MODEL = ("window", "features", "normalisation")
+"""The model's own settings, at the top of a training config before they moved under ``model``."""
+
+
 def _as_before_groups_moved(tree: dict[str, Any]) -> dict[str, Any]:
     """``tree`` (a resolved training config) in the layout it had before its groups moved, in
-    the same key order: the ``car`` and ``sensors`` groups as the one ``truth`` group they
-    were (the car's keys, then the sensors', where ``car`` stands). So a run's hash does not
-    depend on that move, and the runs of a store made before it are still found."""
-    if "car" not in tree:
-        return tree
+    the same key order, so that a run's hash does not depend on either move and the runs of a
+    store made before them are still found:
+
+    - the ``car`` and ``sensors`` groups as the one ``truth`` group they were (the car's keys,
+      then the sensors', where ``car`` stands);
+    - :data:`MOVED_INTO_MODEL` out of ``model``, back at the top (``window`` before ``seed``,
+      the others before ``batch_size``), and ``model`` after ``data``, where its group stood."""
+    model = tree.get("model")
+    moved: dict[str, Any] = {}
+    if isinstance(model, dict) and any(k in model for k in MOVED_INTO_MODEL):
+        model = dict(model)
+        moved = {k: model.pop(k) for k in MOVED_INTO_MODEL if k in model}
     out: dict[str, Any] = {}
     for key, value in tree.items():
+        if key == "seed" and "window" in moved:
+            out["window"] = moved.pop("window")
+        if key == "batch_size":
+            out.update({k: moved.pop(k) for k in ("features", "normalisation") if k in moved})
         if key == "car":
             out["truth"] = {**value, **(tree.get("sensors") or {})}
-        elif key != "sensors":
+        elif key != "sensors" and not (key == "model" and "data" in tree):
             out[key] = value
+        if key == "data" and "model" in tree:
+            out["model"] = model
     return out
 
 

@@ -40,10 +40,11 @@ SCALINGS = ("standard", "minmax")
 """How a net's inputs and targets are scaled (the ``normalisation`` setting)."""
 
 
-def check_scaling(scaling: str) -> str:
-    """Return ``scaling`` if it is one of :data:`SCALINGS`, else raise one line naming it."""
+def check_scaling(scaling: str, field: str = "normalisation") -> str:
+    """Return ``scaling`` if it is one of :data:`SCALINGS`, else raise one line naming
+    ``field``."""
     if scaling not in SCALINGS:
-        raise LboError(f"normalisation: expected one of {list(SCALINGS)}, got {scaling!r}")
+        raise LboError(f"{field}: expected one of {list(SCALINGS)}, got {scaling!r}")
     return scaling
 
 

@@ -60,9 +60,9 @@ def write_handoff(cfg: DictConfig, study: optuna.Study, space: list[Param],
         "# @package _global_\n"
         f"# Written by `python -m lbo.tune`: the best of study {study.study_name!r} in "
         f"{scrub(storage)}\n"
-        f"# (model {cfg.model.name}, window {cfg.window}, data {cfg.data.name}; trial "
+        f"# (model {cfg.model.name}, window {cfg.model.window}, data {cfg.data.name}; trial "
         f"{best.number}, val_loss {best.value:.6g}).\n"
-        f"# Use: {train_command(cfg.model.name, path, hydra_searchpath(), cfg.features)}\n")
+        f"# Use: {train_command(cfg.model.name, path, hydra_searchpath(), cfg.model.features)}\n")
     return write_text(path, header + OmegaConf.to_yaml(values))
 
 

@@ -53,7 +53,7 @@ class StudyRun:
         storage = scrub(storage)
         own = self.client.create_run(exp_id, run_name=f"study-{name}", tags={
             "optuna_study": name, "optuna_storage": storage, "optuna_role": "study",
-            "model": cfg.model.name, "window": str(cfg.window), "data": cfg.data.name}).info
+            "model": cfg.model.name, "window": str(cfg.model.window), "data": cfg.data.name}).info
         try:
             self.run_id = self._first(exp_id, name, storage, own)
             if self.run_id != own.run_id:  # a worker that started with this one was first
@@ -61,7 +61,7 @@ class StudyRun:
                 return
             study.set_user_attr(PARENT_ATTR, self.run_id)
             for key, value in {"study_name": name, "storage": storage,
-                               "model": cfg.model.name, "window": cfg.window,
+                               "model": cfg.model.name, "window": cfg.model.window,
                                "data": cfg.data.name, "sampler": "TPE",
                                "sampler_seed": cfg.tune.seed,
                                "pruner": cfg.tune.pruner.get("_target_", "")}.items():
