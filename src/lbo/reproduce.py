@@ -300,7 +300,8 @@ def launch(cfg: DictConfig, job_overrides: list[list[str]], sweep_dir: Path,
 
     The launcher gets what ``python -m lbo.train -m`` would give it: the training config with
     its Hydra node, and one override list per job. The jobs may differ in more than a grid's
-    keys (the robust observer), which a command-line sweep cannot say.
+    keys (the robust observer), which a command-line sweep cannot say. The overrides are
+    read as lbo.train's command line reads them (``window=`` is ``model.window=``).
     """
     from hydra.core.hydra_config import HydraConfig
     from hydra.core.plugins import Plugins
@@ -316,7 +317,7 @@ def launch(cfg: DictConfig, job_overrides: list[list[str]], sweep_dir: Path,
         launcher = Plugins.instance().instantiate_launcher(
             hydra_context=launcher_context(master),
             task_function=_train_job, config=master)
-        returns = launcher.launch([[*o, f"hydra.sweep.subdir={n}"]
+        returns = launcher.launch([[*respell(o), f"hydra.sweep.subdir={n}"]
                                    for o, n in zip(job_overrides, names, strict=True)],
                                   initial_job_idx=0)
     finally:
