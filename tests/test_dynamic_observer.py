@@ -4,6 +4,7 @@ the kinematic EKFs and the EKF told the car, reported, streamed on a log."""
 
 import functools
 import math
+import os
 
 import mlflow
 import numpy as np
@@ -104,6 +105,28 @@ def test_the_observer_streams_a_log_of_the_car(dynamic, tmp_path):
     np.testing.assert_allclose(streamed[59:], est[59:80], atol=1e-6)
     truth = log[["x", "y"]].to_numpy()
     assert np.sqrt(np.mean((est[valid, :2] - truth[valid]) ** 2)) < 2.0  # metres, at alpha 2
+
+
+def test_the_drift_calibration_benchmark_reads_the_run_and_prints_each_level(dynamic):
+    """``benchmarks/drift_calibration.py`` on the trained run: a row per level, the data's
+    true sigmas beside the filter's, every share of the NEES finite and positive."""
+    import subprocess
+    import sys
+
+    from lbo.core.paths import REPO_ROOT
+
+    res = subprocess.run([sys.executable, str(REPO_ROOT / "benchmarks" / "drift_calibration.py"),
+                          "--run", str(dynamic["dir"]), "--alphas", "1", "3",
+                          "--data-root", str(dynamic["cfg"].data.root)],
+                         capture_output=True, text=True, env={**os.environ,
+                                                              "OMP_NUM_THREADS": "1"})
+    assert res.returncode == 0, res.stderr[-3000:]
+    lines = res.stdout.strip().splitlines()
+    assert "white sigma 1.0 m, drift sigma 0.5 m at alpha = 1" in lines[0]
+    rows = [[float(x) for x in line.split()] for line in lines[2:]]
+    assert [r[0] for r in rows] == [1.0, 3.0]
+    assert [(r[2], r[4]) for r in rows] == [(1.0, 0.5), (3.0, 1.5)]  # the data's sigmas
+    assert all(math.isfinite(x) and x > 0 for r in rows for x in (r[1], r[3], *r[5:]))
 
 
 def test_residual_and_drift_start_as_the_kinematic_window_filter():
