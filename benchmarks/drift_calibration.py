@@ -24,10 +24,10 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from dynamic_segments import run_and_data
 
 from lbo.core.angles import wrap_angle
 from lbo.core.paths import REPO_ROOT
-from lbo.models.checkpoint import read_checkpoint, trained_conditions
 from lbo.models.recursive import RecursiveFilter
 from lbo.scoring.grid import load_test
 from lbo.sim.truth import of_folder
@@ -60,15 +60,11 @@ def main() -> None:
                                                                 5.0, 6.0])
     p.add_argument("--data-root", type=Path, default=REPO_ROOT / "data")
     args = p.parse_args()
-    net, hp = read_checkpoint(args.run / "checkpoints" / "best.ckpt")
-    vehicle, noise = trained_conditions(hp, str(args.run))
-    found = sorted(args.data_root.glob(f"*-{hp['meta']['data_hash']}"))
-    if not found:
-        raise SystemExit(f"no data set {hp['meta']['data_hash']} under {args.data_root}")
-    truth = of_folder(found[0], vehicle.wheelbase)
-    arr = load_test(found[0] / "test.parquet")
+    net, _, vehicle, noise, folder = run_and_data(args.run, args.data_root)
+    truth = of_folder(folder, vehicle.wheelbase)
+    arr = load_test(folder / "test.parquet")
     sigma, drift = float(noise.measurement_sigma[0]), truth.sensors.gnss_sigma
-    print(f"{found[0].name}: white sigma {sigma} m, drift sigma {drift} m at alpha = 1 "
+    print(f"{folder.name}: white sigma {sigma} m, drift sigma {drift} m at alpha = 1 "
           f"(correlation time {truth.sensors.gnss_tau} s)")
     print(f"{'alpha':>5} {'R sigma':>8} {'true':>6} {'drift sigma':>11} {'true':>6} "
           f"{'NEES xy':>8} {'NEES psi':>8} {'err/P xy':>8}")

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -21,7 +22,9 @@ from lbo.core.angles import wrap_angle
 from lbo.core.paths import REPO_ROOT
 from lbo.models.checkpoint import read_checkpoint, trained_conditions
 from lbo.scoring.grid import classical, load_test, predict_grid
+from lbo.sim.noise import Noise
 from lbo.sim.truth import of_folder
+from lbo.sim.vehicle import Vehicle
 
 
 def segments(arr: dict[str, np.ndarray], wheelbase: float) -> dict[str, np.ndarray]:
@@ -32,18 +35,25 @@ def segments(arr: dict[str, np.ndarray], wheelbase: float) -> dict[str, np.ndarr
             "V > 8 m/s": v > 8.0}
 
 
+def run_and_data(run: Path, data_root: Path) -> tuple[Any, dict[str, Any], Vehicle, Noise, Path]:
+    """A training run's observer (``run/checkpoints/best.ckpt``), its hyperparameters, the
+    vehicle and noise it was trained with, and its data-set folder, found under ``data_root``
+    by the data hash its checkpoint records."""
+    net, hp = read_checkpoint(run / "checkpoints" / "best.ckpt")
+    vehicle, noise = trained_conditions(hp, str(run))
+    found = sorted(data_root.glob(f"*-{hp['meta']['data_hash']}"))
+    if not found:
+        raise SystemExit(f"no data set {hp['meta']['data_hash']} under {data_root}")
+    return net, hp, vehicle, noise, found[0]
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--run", required=True, type=Path, help="output dir of the training run")
     p.add_argument("--alphas", type=float, nargs="+", default=[1.0, 3.0])
     p.add_argument("--data-root", type=Path, default=REPO_ROOT / "data")
     args = p.parse_args()
-    net, hp = read_checkpoint(args.run / "checkpoints" / "best.ckpt")
-    vehicle, noise = trained_conditions(hp, str(args.run))
-    found = sorted(args.data_root.glob(f"*-{hp['meta']['data_hash']}"))
-    if not found:
-        raise SystemExit(f"no data set {hp['meta']['data_hash']} under {args.data_root}")
-    folder = found[0]
+    net, hp, vehicle, noise, folder = run_and_data(args.run, args.data_root)
     truth = of_folder(folder, vehicle.wheelbase)
     arr = load_test(folder / "test.parquet")
     pick = np.isin(np.round(arr["alpha"], 9), args.alphas)

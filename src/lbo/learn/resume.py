@@ -25,6 +25,7 @@ from omegaconf import DictConfig, OmegaConf, open_dict
 
 from lbo.core import LAYERS
 from lbo.core.atomic import write_text
+from lbo.core.cli import MODEL_SHORT
 from lbo.core.errors import LboError
 from lbo.core.paths import sqlite_path
 from lbo.core.runfolder import LOCK_NAME
@@ -75,10 +76,6 @@ def config_hash(cfg: DictConfig) -> str:
     return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 
-MOVED_INTO_MODEL = ("window", "features", "normalisation")
-"""The model's own settings, at the top of a training config before they moved under ``model``."""
-
-
 def _as_before_groups_moved(tree: dict[str, Any]) -> dict[str, Any]:
     """``tree`` (a resolved training config) in the layout it had before its groups moved, in
     the same key order, so that a run's hash does not depend on either move and the runs of a
@@ -86,13 +83,14 @@ def _as_before_groups_moved(tree: dict[str, Any]) -> dict[str, Any]:
 
     - the ``car`` and ``sensors`` groups as the one ``truth`` group they were (the car's keys,
       then the sensors', where ``car`` stands);
-    - :data:`MOVED_INTO_MODEL` out of ``model``, back at the top (``window`` before ``seed``,
-      the others before ``batch_size``), and ``model`` after ``data``, where its group stood."""
+    - the model's own settings (:data:`lbo.core.cli.MODEL_SHORT`) out of ``model``, back at
+      the top (``window`` before ``seed``, the others before ``batch_size``), and ``model``
+      after ``data``, where its group stood."""
     model = tree.get("model")
     moved: dict[str, Any] = {}
-    if isinstance(model, dict) and any(k in model for k in MOVED_INTO_MODEL):
+    if isinstance(model, dict) and any(k in model for k in MODEL_SHORT):
         model = dict(model)
-        moved = {k: model.pop(k) for k in MOVED_INTO_MODEL if k in model}
+        moved = {k: model.pop(k) for k in MODEL_SHORT if k in model}
     out: dict[str, Any] = {}
     for key, value in tree.items():
         if key == "seed" and "window" in moved:
