@@ -15,11 +15,14 @@ level, over the scored points:
   shares of the mean NEES;
 - ``err/P xy``: the mean square position error over the mean of the position variances P
   reports (1 for an honest filter).
+
+Its header gives the drift's correlation time and size the filter learned beside the data's.
 """
 
 from __future__ import annotations
 
 import argparse
+import math
 from pathlib import Path
 
 import numpy as np
@@ -66,6 +69,11 @@ def main() -> None:
     sigma, drift = float(noise.measurement_sigma[0]), truth.sensors.gnss_sigma
     print(f"{folder.name}: white sigma {sigma} m, drift sigma {drift} m at alpha = 1 "
           f"(correlation time {truth.sensors.gnss_tau} s)")
+    fo = net.net
+    if fo.drift:  # what the filter learned of the drift, beside the data's
+        tau, ratio = fo.log_drift_tau.item(), fo.log_drift_ratio.item()
+        print(f"learned: correlation time {math.exp(tau) * fo.dt:.2f} s, drift sigma "
+              f"{math.exp(ratio):.3f} of the white sigma (data: {drift / sigma:.3f})")
     print(f"{'alpha':>5} {'R sigma':>8} {'true':>6} {'drift sigma':>11} {'true':>6} "
           f"{'NEES xy':>8} {'NEES psi':>8} {'err/P xy':>8}")
     for alpha in args.alphas:

@@ -123,7 +123,12 @@ def test_the_drift_calibration_benchmark_reads_the_run_and_prints_each_level(dyn
     assert res.returncode == 0, res.stderr[-3000:]
     lines = res.stdout.strip().splitlines()
     assert "white sigma 1.0 m, drift sigma 0.5 m at alpha = 1" in lines[0]
-    rows = [[float(x) for x in line.split()] for line in lines[2:]]
+    # what the filter learned of the drift, read from its checkpoint, beside the data's
+    net = Observer.load(dynamic["out"]["checkpoint"]).net.net
+    tau, ratio = math.exp(net.log_drift_tau.item()) * 0.02, math.exp(net.log_drift_ratio.item())
+    assert lines[1] == (f"learned: correlation time {tau:.2f} s, drift sigma {ratio:.3f} of "
+                        f"the white sigma (data: 0.500)")
+    rows = [[float(x) for x in line.split()] for line in lines[3:]]
     assert [r[0] for r in rows] == [1.0, 3.0]
     assert [(r[2], r[4]) for r in rows] == [(1.0, 0.5), (3.0, 1.5)]  # the data's sigmas
     assert all(math.isfinite(x) and x > 0 for r in rows for x in (r[1], r[3], *r[5:]))

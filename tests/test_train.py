@@ -1,3 +1,4 @@
+import logging
 import subprocess
 import sys
 
@@ -8,6 +9,7 @@ import pytest
 import torch
 
 from helpers import train_cfg
+from lbo.core.cli import quiet_lightning
 from lbo.core.errors import LboError
 from lbo.learn.datamodule import WindowDataModule, rows, window_ends
 from lbo.learn.lightning_module import TrainingModule
@@ -171,6 +173,26 @@ def test_a_crash_is_marked_failed_and_leaves_no_half_artifact(tmp_path, smoke_da
     assert not (tmp_path / "out" / "evaluation.csv").exists()
 
 
+def test_lightning_speaks_once_and_advertises_nothing(caplog):
+    from lightning.pytorch.utilities.rank_zero import rank_zero_info
+
+    quiet_lightning()
+    quiet_lightning()  # idempotent: one filter, whatever the number of calls
+    ranked = logging.getLogger("lightning.pytorch.utilities.rank_zero")
+    assert len(ranked.filters) == 1
+    assert logging.getLogger("lightning").propagate is False
+    seen = []
+    handler = logging.Handler()
+    handler.emit = seen.append
+    ranked.addHandler(handler)
+    try:
+        rank_zero_info("\N{ELECTRIC LIGHT BULB} Tip: For seamless cloud logging, try installing x")
+        rank_zero_info("GPU available: False, used: False")
+    finally:
+        ranked.removeHandler(handler)
+    assert [r.getMessage() for r in seen] == ["GPU available: False, used: False"]
+
+
 @pytest.mark.slow
 def test_multirun_sweep_logs_eight_runs(tmp_path, smoke_data, tracking):
     res = subprocess.run(
@@ -186,6 +208,7 @@ def test_multirun_sweep_logs_eight_runs(tmp_path, smoke_data, tracking):
     assert said.count("NRMSE on the test grid") == 8
     assert said.count("worst ratio to the oracle over alpha 0.25-6: ") == 8
     assert said.count("`Trainer.fit` stopped") == 8  # Lightning's lines once, not twice
+    assert "Tip:" not in said  # nor its advertisements
     # the experiment opens in MLflow's model-training view, not its GenAI one
     kind = client.get_experiment(found[0].info.experiment_id).tags["mlflow.experimentKind"]
     assert kind == "custom_model_development"

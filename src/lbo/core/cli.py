@@ -151,6 +151,25 @@ def scrub_logs() -> None:
             handler.addFilter(_ScrubRecords())
 
 
+class _NoAdverts(logging.Filter):
+    def filter(self, record: logging.LogRecord) -> bool:
+        return not record.getMessage().startswith(LIGHTNING_ADVERT)
+
+
+LIGHTNING_ADVERT = "\N{ELECTRIC LIGHT BULB} Tip:"
+"""How Lightning's advertisements begin (a cloud logger's, at every Trainer): not lbo's
+output, so :func:`quiet_lightning` drops them."""
+
+
+def quiet_lightning() -> None:
+    """Lightning's INFO lines once each, without its advertisements. Lightning prints them
+    through its own handler ("INFO: ...") and passes them on to the root's (Hydra's) too."""
+    logging.getLogger("lightning").propagate = False
+    ranked = logging.getLogger("lightning.pytorch.utilities.rank_zero")  # its rank_zero_info
+    if not any(isinstance(f, _NoAdverts) for f in ranked.filters):
+        ranked.addFilter(_NoAdverts())
+
+
 MODEL_SHORT = ("window", "features", "normalisation")
 """The model's own settings every observer has (``model.window``, ...), which a training's command
 line may spell short, as the paper's command does: ``model=cnn,lstm window=20,40,60,80``."""
@@ -188,9 +207,7 @@ def entry(config_name: str, run: Callable[[DictConfig], Any],
         from lbo.core.runfolder import claim, save_hydra_files
 
         scrub_logs()
-        # Lightning prints its INFO lines through its own handler ("INFO: ...") and passes
-        # them on to the root's (Hydra's) too: each line once, Lightning's way
-        logging.getLogger("lightning").propagate = False
+        quiet_lightning()
         folder = Path(HydraConfig.get().runtime.output_dir)
         try:
             if folder.resolve() == Path.cwd().resolve():
