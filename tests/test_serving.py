@@ -18,7 +18,7 @@ from lbo.core.errors import LboError
 from lbo.export import register
 from lbo.models.net import WindowNet
 from lbo.serve.observer import Observer
-from lbo.serve.serving import estimates
+from lbo.serve.serving import estimates, log_model
 from lbo.sim.columns import RECEIVER, SERVED, WINDOW
 
 pytestmark = [pytest.mark.slow, pytest.mark.usefixtures("one_torch_thread")]
@@ -89,6 +89,19 @@ def test_every_training_run_logs_a_model_that_pyfunc_loads_in_a_fresh_process(ro
     pd.testing.assert_frame_equal(got, want, atol=1e-9)
     # the robust observer knows how sure it is: a covariance on every valid row
     assert got["valid"].all() and (got[["var_x", "var_y", "var_psi"]] > 0).all(axis=None)
+
+
+def test_logging_the_model_prints_no_download_bars(robust, tmp_path, capfd):
+    """Training ends with its result: MLflow's bars from saving the model would follow it."""
+    uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
+    client = mlflow.MlflowClient(uri)
+    run = client.create_run(client.create_experiment(
+        "bars", artifact_location=(tmp_path / "artifacts").as_uri()))
+    capfd.readouterr()
+    log_model(uri, run.info.run_id, robust["out"]["checkpoint"])
+    said = capfd.readouterr()
+    assert "Downloading artifacts" not in said.out + said.err
+    assert "model" in {a.path for a in client.list_artifacts(run.info.run_id)}
 
 
 def test_mlflow_models_serve_answers_a_posted_window(robust, log, manoeuvre):

@@ -209,6 +209,7 @@ def test_multirun_sweep_logs_eight_runs(tmp_path, smoke_data, tracking):
     assert said.count("worst ratio to the oracle over alpha 0.25-6: ") == 8
     assert said.count("`Trainer.fit` stopped") == 8  # Lightning's lines once, not twice
     assert "Tip:" not in said  # nor its advertisements
+    assert "Downloading artifacts" not in said  # nor MLflow's bars after the result
     # the experiment opens in MLflow's model-training view, not its GenAI one
     kind = client.get_experiment(found[0].info.experiment_id).tags["mlflow.experimentKind"]
     assert kind == "custom_model_development"

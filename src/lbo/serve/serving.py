@@ -111,7 +111,11 @@ def log_model(tracking_uri: str, run_id: str, checkpoint: str | Path) -> str:
 
     import mlflow
 
-    with tempfile.TemporaryDirectory(prefix="lbo-model-") as tmp, warnings.catch_warnings():
+    from lbo.tracking.artifacts import no_progress_bar
+
+    # saving copies the checkpoint in through MLflow's downloader: no bars after the result
+    with tempfile.TemporaryDirectory(prefix="lbo-model-") as tmp, warnings.catch_warnings(), \
+            no_progress_bar():
         # the signature names every column; an example would cost a model load per run
         warnings.filterwarnings("ignore", message=".*input example was not provided")
         folder = Path(tmp) / ARTIFACT

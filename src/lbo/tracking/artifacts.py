@@ -94,9 +94,10 @@ PROGRESS_BAR = "MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR"
 
 
 @contextlib.contextmanager
-def _no_progress_bar() -> Iterator[None]:
-    """MLflow's download bars off (a checkpoint of a few MB comes in a blink, and the bars
-    would sit between a command's own lines), unless the user set :data:`PROGRESS_BAR`."""
+def no_progress_bar() -> Iterator[None]:
+    """MLflow's download bars off for the ``with`` block (a checkpoint of a few MB comes in a
+    blink, and the bars would sit between a command's own lines), unless the user set
+    :data:`PROGRESS_BAR`."""
     if PROGRESS_BAR in os.environ:
         yield
         return
@@ -125,7 +126,7 @@ def _download(uri: str, run_id: str | None, folder: Path) -> Path:
             raise LboError(f"observer: MLflow run {run_id} not found in {store}") from None
     try:
         where = _model_version_uri(client, uri) if uri.startswith("models:/") else uri
-        with _no_progress_bar():
+        with no_progress_bar():
             local = Path(mlflow.artifacts.download_artifacts(
                 artifact_uri=where, dst_path=str(folder), tracking_uri=store))
     except MlflowException as e:
