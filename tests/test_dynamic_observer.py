@@ -149,6 +149,24 @@ def test_residual_and_drift_start_as_the_kinematic_window_filter():
     assert "log_drift_tau" not in plain.state_dict() and "log_drift_tau" in rich.state_dict()
 
 
+def test_a_drift_correlation_time_given_is_held_and_saved():
+    """``drift_tau`` (s) holds the drift's correlation time: not a parameter (no optimiser
+    moves it), saved with the checkpoint, and the same filter as a learned one set to it."""
+    torch.manual_seed(0)
+    held = build_model("filternet", 40, drift=True, drift_tau=4.0).double()
+    learned = build_model("filternet", 40, drift=True).double()
+    assert "log_drift_tau" not in dict(held.named_parameters())
+    assert "log_drift_tau" in dict(learned.named_parameters())
+    assert held.state_dict()["log_drift_tau"].item() == pytest.approx(math.log(4.0 / 0.02))
+    learned.load_state_dict(held.state_dict())  # the same keys either way
+    x = torch.randn(6, 40, 5, dtype=torch.float64) * 0.5
+    x[..., 3], x[..., 4] = 8.0, 0.05 * torch.randn(6, 40, dtype=torch.float64)
+    torch.testing.assert_close(held(x), learned(x), rtol=0, atol=0)
+    with torch.no_grad():
+        learned.log_drift_tau.fill_(math.log(10.0 / 0.02))  # another time: another filter
+    assert not torch.allclose(held(x), learned(x))
+
+
 def _told_the_car(p: SingleTrack) -> WindowFilter:
     """A single-track window filter whose body has the car's own parameters."""
     net = build_model("filternet", 40, body="single_track").double()
@@ -203,7 +221,17 @@ def test_the_single_track_body_told_the_cars_parameters_follows_the_car():
                                            ({"body_lr": 0}, "model.body_lr"),
                                            ({"body_lr": -2.0}, "model.body_lr"),
                                            ({"body_lr": True}, "model.body_lr"),
-                                           ({"body_lr": "fast"}, "model.body_lr")])
+                                           ({"body_lr": "fast"}, "model.body_lr"),
+                                           ({"drift": True, "drift_tau": 0}, "model.drift_tau"),
+                                           ({"drift": True, "drift_tau": -5.0},
+                                            "model.drift_tau"),
+                                           ({"drift": True, "drift_tau": math.inf},
+                                            "model.drift_tau"),
+                                           ({"drift": True, "drift_tau": True},
+                                            "model.drift_tau"),
+                                           ({"drift": True, "drift_tau": "10 s"},
+                                            "model.drift_tau"),
+                                           ({"drift_tau": 10.0}, "model.drift_tau")])
 def test_bad_residual_drift_or_body_names_the_field(kwargs, field):
     with pytest.raises(LboError, match=field) as e:
         build_model("filternet", 40, **kwargs)

@@ -76,6 +76,8 @@ class WindowFilter(ProcessModel, nn.Module):
         the kinematic bicycle.
     drift : also estimate a Gauss-Markov GNSS drift on x and y (two more filter states);
         its correlation time and its size relative to the white noise are learned.
+    drift_tau : the drift's correlation time (s), held where given (a receiver's data sheet
+        value); None learns it, from 10 s.
     body : the process model's body, ``"kinematic"`` (the bicycle, with the ``residual``
         correction if any) or ``"single_track"`` (lateral speed and yaw rate under learned
         tyre forces).
@@ -105,7 +107,8 @@ class WindowFilter(ProcessModel, nn.Module):
                  measurement_sigma: Sequence[float] = (1.0, 1.0, 0.0174),
                  hidden: int = 32, in_features: int = 5, residual: int = 0,
                  drift: bool = False, body: str = "kinematic", body_lr: float = 1.0,
-                 gyro: bool = False, empty_statistic: str = "net") -> None:
+                 gyro: bool = False, empty_statistic: str = "net",
+                 drift_tau: float | None = None) -> None:
         super().__init__()
         frame_model(self, window, in_features, dt, wheelbase, receiver=True)
         if empty_statistic not in EMPTY_STATISTIC:
@@ -142,14 +145,20 @@ class WindowFilter(ProcessModel, nn.Module):
         # the receiver's reported accuracies are in world axes: forward takes the anchor's
         # heading to turn them into the window's frame (lbo.models.net.WindowNet passes it)
         self.anchor_heading = self.receiver
-        # start at a 10 s correlation time and a drift of 0.3 of the white sigma; without
-        # drift, the same values ride along unsaved, so TorchScript compiles either filter
-        for name, value in (("log_drift_tau", math.log(10.0 / dt)),
+        if drift_tau is not None and not (
+                drift and isinstance(drift_tau, (int, float)) and not isinstance(drift_tau, bool)
+                and math.isfinite(drift_tau) and drift_tau > 0):
+            raise LboError("model.drift_tau: expected null (learned) or a correlation time in "
+                           f"seconds > 0 with model.drift=true, got {drift_tau!r}")
+        # start at a 10 s correlation time (or the one given, held) and a drift of 0.3 of the
+        # white sigma; without drift, the same values ride along unsaved, so TorchScript
+        # compiles either filter
+        for name, value in (("log_drift_tau", math.log((drift_tau or 10.0) / dt)),
                             ("log_drift_ratio", math.log(0.3))):
-            if drift:
+            if drift and not (name == "log_drift_tau" and drift_tau is not None):
                 self.register_parameter(name, nn.Parameter(torch.tensor(value)))
-            else:
-                self.register_buffer(name, torch.tensor(value), persistent=False)
+            else:  # held: saved with the drift, so a checkpoint has the key either way
+                self.register_buffer(name, torch.tensor(value), persistent=drift)
         self.build_process(residual, body, body_lr)
         self._build_gyro(gyro)
 
