@@ -173,7 +173,7 @@ def test_a_crash_is_marked_failed_and_leaves_no_half_artifact(tmp_path, smoke_da
     assert not (tmp_path / "out" / "evaluation.csv").exists()
 
 
-def test_lightning_speaks_once_and_advertises_nothing(caplog):
+def test_lightning_speaks_once_and_advertises_nothing():
     from lightning.pytorch.utilities.rank_zero import rank_zero_info
 
     quiet_lightning()

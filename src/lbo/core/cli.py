@@ -151,14 +151,14 @@ def scrub_logs() -> None:
             handler.addFilter(_ScrubRecords())
 
 
-class _NoAdverts(logging.Filter):
-    def filter(self, record: logging.LogRecord) -> bool:
-        return not record.getMessage().startswith(LIGHTNING_ADVERT)
-
-
 LIGHTNING_ADVERT = "\N{ELECTRIC LIGHT BULB} Tip:"
 """How Lightning's advertisements begin (a cloud logger's, at every Trainer): not lbo's
 output, so :func:`quiet_lightning` drops them."""
+
+
+class _NoAdverts(logging.Filter):
+    def filter(self, record: logging.LogRecord) -> bool:
+        return not record.getMessage().startswith(LIGHTNING_ADVERT)
 
 
 def quiet_lightning() -> None:
