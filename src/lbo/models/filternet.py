@@ -37,7 +37,7 @@ from typing import TYPE_CHECKING, cast
 import torch
 from torch import nn
 
-from lbo.core.checks import integer
+from lbo.core.checks import integer, number, require
 from lbo.core.errors import LboError
 from lbo.filters import gyro as gyro_model
 from lbo.models.frame import check_sigmas, frame_model
@@ -145,11 +145,10 @@ class WindowFilter(ProcessModel, nn.Module):
         # the receiver's reported accuracies are in world axes: forward takes the anchor's
         # heading to turn them into the window's frame (lbo.models.net.WindowNet passes it)
         self.anchor_heading = self.receiver
-        if drift_tau is not None and not (
-                drift and isinstance(drift_tau, (int, float)) and not isinstance(drift_tau, bool)
-                and math.isfinite(drift_tau) and drift_tau > 0):
-            raise LboError("model.drift_tau: expected null (learned) or a correlation time in "
-                           f"seconds > 0 with model.drift=true, got {drift_tau!r}")
+        if drift_tau is not None:
+            form = "null (learned) or a correlation time in seconds > 0 with model.drift=true"
+            drift_tau = number(drift_tau, "model.drift_tau", low=0.0, low_open=True, form=form)
+            require(drift, "model.drift_tau", form, drift_tau)
         # start at a 10 s correlation time (or the one given, held) and a drift of 0.3 of the
         # white sigma; without drift, the same values ride along unsaved, so TorchScript
         # compiles either filter
