@@ -469,7 +469,8 @@ def test_the_compiled_carried_step_gives_the_eager_steps_numbers_and_trains(one_
     estimates and covariances and a chunk's loss to float32 rounding; its gradient is as near
     the float64 gradient as the eager float32 one is (the step is ill-conditioned in float32:
     the two differ by about 1 % at the noise model's output, and each from float64 as much);
-    and it trains through :func:`lbo.learn.sequence.train_batch`, keeping one compiled step."""
+    and it trains through :func:`lbo.learn.sequence.train_batch`, keeping one compiled step
+    and one compiled graph of it."""
     import copy
 
     from lbo.models.net import WindowNet
@@ -506,8 +507,13 @@ def test_the_compiled_carried_step_gives_the_eager_steps_numbers_and_trains(one_
         opt.step()
 
     m, u, z = (torch.as_tensor(a, dtype=torch.float32) for a in (seq.m, seq.u, seq.z))
+    sequence.train_batch(compiled, m, u, z, 30, step, nll=0.1)  # one chunk: compiles its step
+    graphs = torch._dynamo.utils.counters["stats"]["unique_graphs"]
     fit = sequence.train_batch(compiled, m, u, z, 15, step, nll=0.1)
     assert len(fit.losses) == 2 and np.isfinite(fit.losses).all()
+    # the second chunk's first step, its state cut from the graph, runs the graph compiled
+    # for the others: compiling one more cost a first run 25 s
+    assert torch._dynamo.utils.counters["stats"]["unique_graphs"] == graphs
     assert any(not torch.equal(before[k], v) for k, v in net.state_dict().items())
 
 
@@ -528,3 +534,28 @@ def test_the_training_module_keeps_one_carried_model_compiled_as_asked(compiled,
     assert module.carried is module.carried
     assert set(module.state_dict()) == keys
     assert "compiled" not in module.hparams  # how fast, not what: not in the checkpoint
+
+
+def test_a_compiled_module_validates_with_its_step_eager():
+    """Validation carries each window without a gradient, a graph of its own to compile
+    (25 s on a first run for the car that slips, to save 1 s a validation): a module trained
+    compiled validates with its step eager, compiling nothing, and gives the eager loss."""
+    from lbo.learn.lightning_module import TrainingModule
+
+    torch.manual_seed(0)
+    logged = {}
+    module = TrainingModule({"name": "filternet"}, 40, "frame", fixes=True, tbptt=10,
+                            compiled=True)
+    module.log = lambda name, value, **kw: logged.update({name: float(value)})
+    seq = straight(4, 20, 2).centred()
+    win = torch.as_tensor(np.concatenate([seq.m, seq.u], -1), dtype=torch.float32)
+    batch = (win, torch.as_tensor(seq.z, dtype=torch.float32), torch.ones(4))
+    graphs = torch._dynamo.utils.counters["stats"]["unique_graphs"]
+    with torch.no_grad():
+        module.validation_step(batch, 0)
+    assert torch._dynamo.utils.counters["stats"]["unique_graphs"] == graphs
+    m, u, z, weight = sequence.from_batch(batch, torch.float32)
+    eager = carried.sequence_model(module.observer.net)
+    with torch.no_grad():
+        want = sequence.loss(carried.run(eager, m, u).est, z, eager.units, weight)
+    assert logged["val_loss"] == pytest.approx(float(want), rel=1e-6)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import time
 from collections.abc import Mapping
 from pathlib import Path
@@ -17,7 +18,7 @@ from lbo.core.atomic import atomic_path
 from lbo.filters.classical import DYNAMIC_PEERS, GRID_PEERS
 from lbo.learn.resume import IDENTITY_KEY
 from lbo.models.checkpoint import read_checkpoint, trained_conditions
-from lbo.scoring import logscore
+from lbo.scoring import logscore, peers_ahead
 from lbo.scoring.grid import (
     classical_table,
     load_test,
@@ -56,12 +57,56 @@ class Evaluation(L.Callback):
         self.reference = reference
         self.batch_size = batch_size
         self.table: pd.DataFrame | None = None
+        self._ahead: peers_ahead.Ahead | None = None
+        self._ahead_tried = False
         self.metrics: dict[str, float] = {}
         # set by lbo.train: Lightning hides the run's logger behind a dummy in fast_dev_run
         self.mlflow: MLFlowLogger | None = None
 
+    def on_train_batch_end(self, trainer: L.Trainer, pl_module: L.LightningModule,
+                           outputs: Any, batch: Any, batch_idx: int) -> None:
+        # after the first batch, which compiles a compiled step on both cores
+        if self._ahead is None and not self._ahead_tried:
+            self._ahead_tried = True
+            self._ahead = self._start_ahead(trainer, pl_module)
+
+    def _start_ahead(self, trainer: L.Trainer, pl_module: L.LightningModule
+                     ) -> peers_ahead.Ahead | None:
+        """The classical peers of a generated test set scored on the core this training
+        leaves idle (:mod:`lbo.scoring.peers_ahead`), or None where none is idle."""
+        import torch
+
+        folder = Path(trainer.datamodule.folder)  # type: ignore[attr-defined]  # Lightning sets it
+        if (is_log_folder(folder) or not (folder / "test.parquet").is_file()
+                or not os.access(folder, os.W_OK)  # where the rows would not be kept
+                or not peers_ahead.spare_core(torch.get_num_threads())):
+            return None
+        meta = pl_module.hparams.get("meta") or {}
+        vehicle, _ = trained_conditions(pl_module.hparams, "(in memory)")
+        return peers_ahead.start(folder, meta, self._peers(folder, vehicle), self.reference)
+
+    @staticmethod
+    def _peers(folder: Path, vehicle) -> list[str]:
+        """The classical observers scored beside a learned one on ``folder``'s test grid: on
+        a car that slips, the kinematic peers and the oracle told the car."""
+        return list(DYNAMIC_PEERS if of_folder(folder, vehicle.wheelbase).car else GRID_PEERS)
+
+    def on_exception(self, trainer: L.Trainer, pl_module: L.LightningModule,
+                     exception: BaseException) -> None:
+        if self._ahead is not None:
+            self._ahead.stop()
+            self._ahead = None
+
     def on_fit_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         start = time.perf_counter()
+        if self._ahead is not None:  # its kept rows are read back below
+            if self._ahead.running():
+                print("waiting for the classical observers, scored beside the training ...",
+                      flush=True)
+            failed, self._ahead = self._ahead.wait(), None
+            if failed:
+                print(f"the classical observers scored beside the training failed ({failed}); "
+                      "scoring them now", flush=True)
         best = getattr(trainer.checkpoint_callback, "best_model_path", "") or ""
         # the best weights through the one checkpoint reader, with its format checks
         net, hp = read_checkpoint(best) if best else (pl_module.observer, pl_module.hparams)
@@ -107,8 +152,7 @@ class Evaluation(L.Callback):
         ref = reference(arr, vehicle, noise, self.reference)
         est = predict(net, arr, self.batch_size, device=device)
         truth = of_folder(folder, vehicle.wheelbase)
-        # a car that slips: the kinematic peers, and the floor of the filter told the car
-        peers = list(DYNAMIC_PEERS if truth.car else GRID_PEERS)
+        peers = self._peers(folder, vehicle)
         self.table = pd.concat([score(name, est, arr, ref),
                                 classical_table(arr, vehicle, noise, peers, ref, truth=truth,
                                                 keep=folder / "test.parquet")],

@@ -17,7 +17,7 @@ from lbo.core.checks import SCHEDULES
 from lbo.core.errors import TrainingDiverged
 from lbo.learn.sequence import from_batch, train_batch
 from lbo.learn.sequence import loss as sequence_loss
-from lbo.models.carried import SequenceModel, run, sequence_model
+from lbo.models.carried import SequenceModel, eager, run, sequence_model
 from lbo.models.net import CHECKPOINT_FORMAT, WindowNet
 
 __all__ = ["CHECKPOINT_FORMAT", "SCHEDULES", "TrainingModule"]
@@ -143,10 +143,13 @@ class TrainingModule(L.LightningModule):
     def validation_step(self, batch, batch_idx: int) -> None:
         if self.tbptt is None:
             loss = self.observer.loss(*batch)
-        else:  # each window carried through, from its first fix
+        else:  # each window carried through, from its first fix, its step eager: compiled,
+            # a validation (no gradient, no covariance, its own batch size) is a graph of its
+            # own, 25 s to compile on a first run for 1 s saved a validation (the car that slips)
             m, u, z, weight = from_batch(batch, next(self.parameters()).dtype)
-            loss = sequence_loss(run(self.carried, m, u, covariance=False).est, z,
-                                 self.carried.units, weight)
+            model = eager(self.carried)
+            loss = sequence_loss(run(model, m, u, covariance=False).est, z, model.units,
+                                 weight)
         self._val_finite = torch.isfinite(loss) & self._val_finite
         self.log("val_loss", loss, on_step=False, on_epoch=True, prog_bar=True,
                  batch_size=len(batch[1]))

@@ -205,7 +205,10 @@ def train_batch(model: SequenceModel, m: torch.Tensor, u: torch.Tensor, z: torch
         if bad.all():  # nothing left to carry: the batch's other chunks give no step either
             losses += [math.nan] * len(range(k + chunk, t, chunk))
             break
-        state = [s.detach() for s in after]  # the truncation
+        # the truncation; each tensor keeps its requires_grad (its gradient is dropped), so
+        # that a chunk's first step is the same compiled graph as its others: a new one for
+        # it cost a first run 25 s of compiling (compile=true, the car that slips)
+        state = [s.detach().requires_grad_(s.requires_grad) for s in after]
         u_prev = u[:, min(k + chunk, t) - 1]
     return BatchFit(losses, dropped)
 

@@ -79,6 +79,12 @@ def sequence_model(model: Any, compiled: bool = False) -> SequenceModel:
     return Compiled(out) if compiled else out
 
 
+def eager(model: SequenceModel) -> SequenceModel:
+    """``model`` with its step run eagerly: a :class:`Compiled` one's own model, any other
+    itself."""
+    return model.model if isinstance(model, Compiled) else model
+
+
 class Compiled:
     """A :class:`SequenceModel` whose step (``advance``) runs compiled by ``torch.compile``.
 
@@ -128,8 +134,11 @@ class CarriedFilter:
     @staticmethod
     def _pack(out: list[torch.Tensor]) -> list[torch.Tensor]:
         # the recursive form's state (:data:`lbo.models.recursive.STATE_NAMES`), its started
-        # flag also fifth, as a SequenceModel's state has it
-        return [*out[:4], out[-1] > 0.5, *out[4:]]
+        # flag also fifth, as a SequenceModel's state has it. Its u_prev is the step's own
+        # input where the filter takes no gyro, a view of the sequence's inputs: a copy here,
+        # since torch.compile guards on which inputs are views, and a state carried across a
+        # chunk's boundary is none (a second compiled graph, 25 s on a first run)
+        return [*out[:3], out[3].clone(), out[-1] > 0.5, *out[4:]]
 
     @staticmethod
     def _row(y: torch.Tensor, fix: torch.Tensor) -> torch.Tensor:
