@@ -92,9 +92,10 @@ class Compiled:
     is a few hundred operations on (B, 3, 3) tensors, each too small to keep a core busy, so
     eager PyTorch spends the step dispatching them, forward and backward. Compiled, they run
     fused: 4 to 5 times faster a training step on the CPU (``benchmarks/bench_carried.py``),
-    the same numbers to float rounding. The first steps pay the compilation (a minute or two
-    for the car that slips, seconds from torch's cache after that); ``begin``, once per
-    sequence, stays eager. Needs the C++ compiler torch's inductor calls on the CPU."""
+    the same numbers to float rounding. The first steps pay the compilation (33 s for the car
+    that slips, seconds from torch's cache after that); ``begin``, once per sequence, stays
+    eager, and so does a run without gradient (:func:`eager`). Needs the C++ compiler torch's
+    inductor calls on the CPU."""
 
     def __init__(self, model: SequenceModel) -> None:
         self.model = model
