@@ -16,6 +16,13 @@ from lbo.scoring.grid import classical_table, load_test, reference
 from lbo.train import meta
 
 
+def unscored_copy(smoke_data, folder):
+    """A copy of the smoke data set in ``folder``, without the classical rows kept in it."""
+    shutil.copytree(smoke_data, folder)
+    shutil.rmtree(folder / score_cache.FOLDER, ignore_errors=True)
+    return folder
+
+
 def conditions(tmp_path, smoke_data):
     from lbo.models.checkpoint import trained_conditions
 
@@ -24,9 +31,7 @@ def conditions(tmp_path, smoke_data):
 
 
 def test_peers_scored_ahead_are_kept_as_the_evaluation_scores_them(tmp_path, smoke_data):
-    folder = tmp_path / "set"
-    shutil.copytree(smoke_data, folder)
-    shutil.rmtree(folder / score_cache.FOLDER, ignore_errors=True)
+    folder = unscored_copy(smoke_data, tmp_path / "set")
     info, vehicle, noise = conditions(tmp_path, smoke_data)
     ahead = peers_ahead.start(folder, info, GRID_PEERS, "ekf")
     assert ahead.wait() is None
@@ -49,15 +54,14 @@ def test_a_failed_scoring_says_why_in_one_line_and_keeps_nothing(tmp_path, smoke
 
 
 def test_a_stopped_scoring_ends_and_leaves_no_partial_file(tmp_path, smoke_data):
-    folder = tmp_path / "set"
-    shutil.copytree(smoke_data, folder)
-    shutil.rmtree(folder / score_cache.FOLDER, ignore_errors=True)
+    folder = unscored_copy(smoke_data, tmp_path / "set")
     info, _, _ = conditions(tmp_path, smoke_data)
     ahead = peers_ahead.start(folder, info, GRID_PEERS, "ekf")
     ahead.stop()
     assert not ahead.running()
     kept = folder / score_cache.FOLDER
     assert all(p.suffix == ".parquet" for p in kept.iterdir()) if kept.exists() else True
+    assert ahead.process.returncode in (143, -15)  # its own exit, or killed before it set it
 
 
 def test_a_spare_core_is_one_no_launcher_shares_out(monkeypatch):
@@ -77,8 +81,7 @@ def test_a_training_on_one_thread_scores_its_peers_on_the_idle_core(tmp_path, sm
     from lbo.train import train
 
     root = tmp_path / "data"
-    shutil.copytree(smoke_data, root / smoke_data.name)
-    shutil.rmtree(root / smoke_data.name / score_cache.FOLDER, ignore_errors=True)
+    unscored_copy(smoke_data, root / smoke_data.name)
     monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
     started, waited = [], []
     real_start = peers_ahead.start

@@ -44,7 +44,8 @@ class Evaluation(L.Callback):
     a car that slips (``car=dynamic``) the table also holds the adaptive EKF, the kinematic EKF
     with its Q tuned on the test set (``oracle_tuned``) and the oracle on the true car
     (``oracle_dynamic``); ``worst_dynamic_oracle_ratio`` and ``worst_tuned_oracle_ratio`` are
-    the ratios to the last two.
+    the ratios to the last two. A training that leaves a core idle scores the classical
+    observers there while it trains (:mod:`lbo.scoring.peers_ahead`), and this reads them back.
 
     Parameters
     ----------
@@ -66,7 +67,7 @@ class Evaluation(L.Callback):
     def on_train_batch_end(self, trainer: L.Trainer, pl_module: L.LightningModule,
                            outputs: Any, batch: Any, batch_idx: int) -> None:
         # after the first batch, which compiles a compiled step on both cores
-        if self._ahead is None and not self._ahead_tried:
+        if not self._ahead_tried:
             self._ahead_tried = True
             self._ahead = self._start_ahead(trainer, pl_module)
 

@@ -207,7 +207,7 @@ def train_batch(model: SequenceModel, m: torch.Tensor, u: torch.Tensor, z: torch
             break
         # the truncation; each tensor keeps its requires_grad (its gradient is dropped), so
         # that a chunk's first step is the same compiled graph as its others: a new one for
-        # it cost a first run 25 s of compiling (compile=true, the car that slips)
+        # it cost a first run 17 s more compiling (compile=true, the car that slips)
         state = [s.detach().requires_grad_(s.requires_grad) for s in after]
         u_prev = u[:, min(k + chunk, t) - 1]
     return BatchFit(losses, dropped)

@@ -138,7 +138,7 @@ class CarriedFilter:
         # flag also fifth, as a SequenceModel's state has it. Its u_prev is the step's own
         # input where the filter takes no gyro, a view of the sequence's inputs: a copy here,
         # since torch.compile guards on which inputs are views, and a state carried across a
-        # chunk's boundary is none (a second compiled graph, 25 s on a first run)
+        # chunk's boundary is none (a second compiled graph, 17 s more on a first run)
         return [*out[:3], out[3].clone(), out[-1] > 0.5, *out[4:]]
 
     @staticmethod

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import json
 import os
+import signal
 import subprocess
 import sys
 import tempfile
@@ -107,6 +108,8 @@ def score(spec: Mapping[str, Any]) -> None:
 
 
 if __name__ == "__main__":
+    # stopped (Ahead.stop), unwind: a file being kept is then deleted, not left half-written
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))
     try:
         score(json.loads(sys.argv[1]))
     except (LboError, OSError, ValueError) as e:
