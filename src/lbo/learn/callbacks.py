@@ -30,7 +30,7 @@ from lbo.scoring.grid import (
     summary,
 )
 from lbo.sim.log_sets import is_log_folder, test_files
-from lbo.sim.truth import of_folder
+from lbo.sim.truth import Truth, of_folder
 
 LOGGED_ALPHAS = (1.0, 3.0, 6.0)
 
@@ -82,15 +82,16 @@ class Evaluation(L.Callback):
                 or not os.access(folder, os.W_OK)  # where the rows would not be kept
                 or not peers_ahead.spare_core(torch.get_num_threads())):
             return None
-        meta = pl_module.hparams.get("meta") or {}
         vehicle, _ = trained_conditions(pl_module.hparams, "(in memory)")
-        return peers_ahead.start(folder, meta, self._peers(folder, vehicle), self.reference)
+        return peers_ahead.start(folder, pl_module.hparams["meta"],
+                                 self._peers(of_folder(folder, vehicle.wheelbase)),
+                                 self.reference)
 
     @staticmethod
-    def _peers(folder: Path, vehicle) -> list[str]:
-        """The classical observers scored beside a learned one on ``folder``'s test grid: on
-        a car that slips, the kinematic peers and the oracle told the car."""
-        return list(DYNAMIC_PEERS if of_folder(folder, vehicle.wheelbase).car else GRID_PEERS)
+    def _peers(truth: Truth) -> list[str]:
+        """The classical observers scored beside a learned one on a test grid drawn from
+        ``truth``: on a car that slips, the kinematic peers and the oracle told the car."""
+        return list(DYNAMIC_PEERS if truth.car else GRID_PEERS)
 
     def on_exception(self, trainer: L.Trainer, pl_module: L.LightningModule,
                      exception: BaseException) -> None:
@@ -153,7 +154,7 @@ class Evaluation(L.Callback):
         ref = reference(arr, vehicle, noise, self.reference)
         est = predict(net, arr, self.batch_size, device=device)
         truth = of_folder(folder, vehicle.wheelbase)
-        peers = self._peers(folder, vehicle)
+        peers = self._peers(truth)
         self.table = pd.concat([score(name, est, arr, ref),
                                 classical_table(arr, vehicle, noise, peers, ref, truth=truth,
                                                 keep=folder / "test.parquet")],
