@@ -599,6 +599,6 @@ def test_engine_runs_a_learned_observer_in_torchscript_or_onnx_runtime(trained, 
                                    atol=TOLERANCE, err_msg=engine)
     # checked before any checkpoint is read
     with pytest.raises(LboError, match=r"^engine must be one of \['torch', 'torchscript', "
-                                       r"'onnx'\], got 'tensorrt'$"):
+                                       r"'onnx', 'auto'\], got 'tensorrt'$"):
         observe_cfg(compose_cfg("observe", ["observer=missing.ckpt", f"input={log_csv}",
                                             f"output={tmp_path / 'x.csv'}", "engine=tensorrt"]))

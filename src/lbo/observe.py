@@ -27,7 +27,9 @@ classical observers and the robust observer (in its recursive form) only. ``form
 runs the robust observer's filter from step to step instead of over a window per estimate.
 ``engine=torchscript|onnx`` runs a learned observer in TorchScript or ONNX Runtime in place of
 PyTorch (:mod:`lbo.serve.engines`); a long log through the robust observer's recursive form
-runs fastest in ONNX Runtime (``benchmarks/bench_receiver_log.py``).
+runs fastest in ONNX Runtime (``benchmarks/bench_receiver_log.py``). ``engine=auto`` (the
+default) runs the robust observer's recursive form from the ONNX graphs ``lbo.train`` kept of
+it, without loading torch (:mod:`lbo.serve.exported`), and PyTorch otherwise.
 
 ``resample=true`` puts a log sampled at another (or an uneven) period onto the observer's
 grid ``t0, t0 + dt, ...``: V and delta (and the true state) are interpolated linearly, but
@@ -110,7 +112,7 @@ def observe(cfg: DictConfig) -> dict[str, Any]:
     alpha = check_alpha(cfg.alpha)
     threads = integer(cfg.get("threads", 1), "threads", 1)
     device = check_device(cfg.get("device", "cpu"), probe=not classical)
-    engine = cfg.get("engine", "torch")
+    engine = cfg.get("engine", "auto")
     if not classical:
         engine_device(engine, device)  # before any checkpoint is read
     max_gap = check_max_gap(cfg.get("max_gap", MAX_GAP))
@@ -132,12 +134,10 @@ def observe(cfg: DictConfig) -> dict[str, Any]:
 
     vehicle, noise = Vehicle.from_cfg(cfg.vehicle), Noise.from_cfg(cfg.noise)
     mode = check_mode(cfg.get("envelope", "warn"))
+    if smooth and engine == "auto":  # the smoother runs in PyTorch
+        engine = "torch"
     kw = {"alpha": alpha, "features": cfg.get("features"), "device": device,
           "envelope_mode": mode, "engine": "torch" if classical else engine}
-    if not classical:  # a learned observer's small batches and steps gain nothing from more
-        import torch
-
-        torch.set_num_threads(threads)
     obs = Observer.load(name, vehicle if classical else None, noise if classical else None,
                         form=form, gyro_noise=gyro_noise, **kw)
     # each loaded as the main one, before any work: a bad one fails before the output is
@@ -147,6 +147,10 @@ def observe(cfg: DictConfig) -> dict[str, Any]:
                                       **{**kw, "envelope_mode": "off",
                                          "engine": "torch" if other in on_logs() else engine})
                 for other in compare}
+    if sys.modules.get("torch") is not None:  # loaded for a learned observer: its small
+        import torch  # batches and steps gain nothing from more threads (none: ONNX Runtime)
+
+        torch.set_num_threads(threads)
     if obs.kind == "learned" and vehicle.delta_max > obs.vehicle.delta_max:
         # the steering limit the log is checked against (a car whose lock is past the
         # checkpoint's): the model stays the checkpoint's, and rows beyond the steering it was

@@ -22,8 +22,10 @@ def compose_cfg(name: str, overrides: list[str] | None = None):
 
 
 def train_cfg(tmp_path, smoke_data, *overrides):
-    """The training config at smoke scale, writing under ``tmp_path / 'out'``."""
-    return compose_cfg("train", ["experiment=smoke", f"data.root={smoke_data.parent}",
+    """The training config at smoke scale, writing under ``tmp_path / 'out'`` (no ONNX graphs
+    kept for ``lbo.observe``: seconds per run)."""
+    return compose_cfg("train", ["experiment=smoke", "keep_onnx=false",
+                                 f"data.root={smoke_data.parent}",
                                  f"output_dir={tmp_path / 'out'}", *overrides])
 
 

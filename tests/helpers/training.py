@@ -10,14 +10,15 @@ from helpers.config import compose_cfg
 
 
 def train_in_own_store(tmp: Path, smoke_data: Path, *overrides: str):
-    """Train at smoke size into ``tmp / 'out'``, logged to an MLflow store of its own.
+    """Train at smoke size into ``tmp / 'out'``, logged to an MLflow store of its own (no ONNX
+    graphs kept for ``lbo.observe``, unless ``keep_onnx=true`` is among the overrides).
 
     Returns ``(cfg, metrics, tracking_uri)``; ``overrides`` choose the experiment and sizes.
     """
     from lbo.train import train
 
     uri = f"sqlite:///{tmp / 'mlflow.db'}"
-    cfg = compose_cfg("train", [*overrides, f"data.root={smoke_data.parent}",
+    cfg = compose_cfg("train", ["keep_onnx=false", *overrides, f"data.root={smoke_data.parent}",
                                 f"output_dir={tmp / 'out'}"])
     with pytest.MonkeyPatch.context() as mp:
         mp.setenv("MLFLOW_TRACKING_URI", uri)

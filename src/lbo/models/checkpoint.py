@@ -42,13 +42,10 @@ def read_checkpoint(path: str | os.PathLike, features: str | None = None,
     import torch
 
     from lbo.models import model_class
-    from lbo.models.features import FEATURE_MODES
     from lbo.models.net import CHECKPOINT_FORMAT, WindowNet
 
     path = Path(path)
-    if features is not None and features not in FEATURE_MODES:
-        raise LboError(f"features: unknown mode {features!r}; expected one of "
-                       f"{', '.join(FEATURE_MODES)}")
+    check_features(path, None, features)
     try:
         ckpt = torch.load(path, map_location="cpu", weights_only=True)
     except PermissionError as e:
@@ -68,18 +65,13 @@ def read_checkpoint(path: str | os.PathLike, features: str | None = None,
         raise LboError(f"checkpoint {path}: checkpoint format {fmt}, this lbo reads format "
                        f"{CHECKPOINT_FORMAT}; retrain it, or use the lbo version that wrote it")
     mode = hp.get("features")
-    if mode not in FEATURE_MODES:
-        raise LboError(f"checkpoint {path}: feature mode {mode!r} is unknown to this lbo "
-                       f"(it knows {', '.join(FEATURE_MODES)})")
-    if features is not None and features != mode:
-        raise LboError(f"checkpoint {path}: trained with features={mode}, "
-                       f"but features={features} was asked for")
+    check_features(path, mode, features)
     try:
         model = dict(hp["model"])
         # the name is looked up among the installed plug-ins only (nothing the file names is
         # imported); one that is missing says which package provided it
         model_class(model.get("name"), hp.get("provider"))
-        net = WindowNet(model.pop("name"), hp["window"], mode, bool(hp.get("fixes", False)),
+        net = WindowNet(model.pop("name"), hp["window"], str(mode), bool(hp.get("fixes", False)),
                         bool(hp.get("receiver", False)), carried=hp.get("tbptt") is not None,
                         **model)
         state = {k.removeprefix("observer."): v for k, v in ckpt["state_dict"].items()
@@ -97,6 +89,25 @@ def read_checkpoint(path: str | os.PathLike, features: str | None = None,
         raise LboError(f"checkpoint {path}: its weights hold NaN or inf ({bad}: training "
                        "diverged?); retrain it, e.g. with a smaller optimizer.lr")
     return net.to(device).eval(), hp
+
+
+def check_features(path: str | os.PathLike, mode: Any, features: str | None) -> None:
+    """One line where the feature mode asked for (``features``; None: any) is unknown, or
+    where the checkpoint at ``path`` was trained with another ``mode`` (None: not read
+    yet)."""
+    from lbo.models.features import FEATURE_MODES
+
+    if features is not None and features not in FEATURE_MODES:
+        raise LboError(f"features: unknown mode {features!r}; expected one of "
+                       f"{', '.join(FEATURE_MODES)}")
+    if mode is None:
+        return
+    if mode not in FEATURE_MODES:
+        raise LboError(f"checkpoint {path}: feature mode {mode!r} is unknown to this lbo "
+                       f"(it knows {', '.join(FEATURE_MODES)})")
+    if features is not None and features != mode:
+        raise LboError(f"checkpoint {path}: trained with features={mode}, "
+                       f"but features={features} was asked for")
 
 
 def trained_conditions(hp: Mapping[str, Any], path: str | os.PathLike) -> tuple[Vehicle, Noise]:

@@ -22,8 +22,9 @@ from lbo.core.errors import LboError
 from lbo.serve import onnx_cache
 from lbo.sim.logcheck import check_device
 
-ENGINES = ("torch", "torchscript", "onnx")
-"""Inference engines for learned observers."""
+ENGINES = ("torch", "torchscript", "onnx", "auto")
+"""Inference engines for learned observers; ``auto``: ``onnx`` where the recursive form is
+kept as ONNX graphs (:mod:`lbo.serve.exported`), else ``torch``."""
 OPSET = 20
 """The ONNX opset of the exported files."""
 TOLERANCE = 1e-5
@@ -267,16 +268,21 @@ def recursive_onnx_bytes(rec: Any) -> bytes:
         rec, _recursive_example(rec, batch=2), names, dynamic))
 
 
-def onnx_step(session: Any) -> Any:
+def onnx_step(session: Any, state_names: tuple[str, ...] | None = None) -> Any:
     """The step ``(m, u, state) -> (pose, cov, next state)`` of a recursive filter's ONNX
     session (:func:`recursive_onnx_bytes`), on numpy arrays; m (B, 3) or (B, 8) (widened
-    with NaN); ``state`` is every tensor of :data:`~lbo.models.recursive.STATE_NAMES`, of
-    which it feeds those the model reads."""
+    with NaN); ``state`` is every tensor of ``state_names`` (None:
+    :data:`~lbo.models.recursive.STATE_NAMES`, which loads torch), of which it feeds those
+    the model reads."""
     from lbo.filters.measure import widen
-    from lbo.models.recursive import STATE_NAMES
+
+    if state_names is None:
+        from lbo.models.recursive import STATE_NAMES
+
+        state_names = STATE_NAMES
 
     names = [i.name for i in session.get_inputs()]
-    keys = ["m", "u", *STATE_NAMES]
+    keys = ["m", "u", *state_names]
 
     def step(m: np.ndarray, u: np.ndarray, state: list) -> tuple:
         feed = dict(zip(keys, [widen(m), u, *state]))

@@ -30,8 +30,9 @@ from lbo.core.angles import wrap_angle
 from lbo.core.errors import LboError
 from lbo.filters import classical
 from lbo.filters.gyro import GyroNoise
-from lbo.models.checkpoint import read_checkpoint, stored_envelope, trained_conditions
+from lbo.models import checkpoint
 from lbo.models.envelope import Envelope, EnvelopeCheck, EnvelopeWarning, check_mode, observer_terms
+from lbo.serve import exported
 from lbo.serve.estimate import Estimate
 from lbo.serve.refusals import no_fix, no_heading, no_receiver
 from lbo.serve.rows import bicycle_rows
@@ -67,9 +68,8 @@ class Observer:
     """A state observer for the kinematic bicycle, learned or classical, for logs and loops.
 
     Build one with :meth:`load` (checkpoint, MLflow run, registered model or classical name)
-    or :meth:`from_net`. Then either :meth:`step` through a log sample by sample (O(1) per
-    step: a ring buffer of the last N samples, no history kept) or :meth:`run` it over a
-    whole log at once; both give the same numbers (to 1e-6, tested).
+    or :meth:`from_net`. Then :meth:`step` through a log sample by sample (O(1) per step) or
+    :meth:`run` it over a whole log at once: the same numbers (to 1e-6, tested).
 
     Attributes
     ----------
@@ -77,22 +77,20 @@ class Observer:
     kind : ``"learned"`` or ``"classical"``.
     window : N, samples per window (1 for the classical observers).
     dt : the sampling period (s) the observer expects.
-    features : feature mode of a learned observer (``"relative"``, ``"frame"``,
-        ``"absolute"``), else None.
-    vehicle, noise : the model the filters use (for a learned observer: its checkpoint's,
-        used by the fallback EKF).
+    features : a learned observer's feature mode (``"relative"``, ...), else None.
+    vehicle, noise : the filters' model (a learned observer's: its checkpoint's).
     alpha : measurement-noise scale the ``oracle`` is told (R = noise.R(alpha)).
-    engine : ``"torch"``, ``"torchscript"`` or ``"onnx"`` (learned observers).
-    form : ``"window"`` or ``"recursive"`` for a window filter (``filternet``), see
-        :data:`FORMS`; ``"window"`` for the CNN and the LSTM; None for classical observers.
+    engine : ``"torch"``, ``"torchscript"`` or ``"onnx"`` (learned observers; ``"auto"``
+        resolved).
+    form : ``"window"`` or ``"recursive"`` (:data:`FORMS`) for a window filter, ``"window"``
+        for the CNN and the LSTM, None for classical observers.
     meta : the checkpoint's metadata (data set, data hash, seed, ...), {} for classical.
-    net : the :class:`~lbo.models.net.WindowNet`, or None.
-    envelope : the :class:`~lbo.models.envelope.Envelope` of the inputs a learned observer was
-        trained on (its checkpoint's), or None (classical, or a checkpoint from before lbo
-        stored it).
-    envelope_mode : what :meth:`step` and :meth:`run` do with samples outside ``envelope``
-        (:data:`lbo.models.envelope.MODES`): ``"warn"`` (an :class:`EnvelopeWarning`),
-        ``"mark"`` (also ``valid=False`` there) or ``"off"``.
+    net : the :class:`~lbo.models.net.WindowNet` (or its recursive form's ONNX graphs,
+        :class:`lbo.serve.exported.ExportedNet`), or None.
+    envelope : the :class:`~lbo.models.envelope.Envelope` of a learned observer's training
+        inputs, or None (classical, or a checkpoint from before lbo stored it).
+    envelope_mode : what :meth:`step` and :meth:`run` do with samples outside ``envelope``:
+        ``"warn"`` (an :class:`EnvelopeWarning`), ``"mark"`` (also not valid) or ``"off"``.
     """
 
     def __init__(self, name: str, vehicle: Vehicle | None = None, noise: Noise | None = None,
@@ -117,10 +115,12 @@ class Observer:
             self._runner = ClassicalRunner(name, self.vehicle, self.noise, self.alpha, gyro_noise)
         else:
             self.kind, self.window, self.features = "learned", int(net.window), net.features
+            if engine == "auto":  # ONNX Runtime where the recursive form is kept as graphs
+                engine = "onnx" if isinstance(net, exported.ExportedNet) else "torch"
             self.engine = engine
             self._runner = learned_runner(name, net, cast(str, self.form), self.vehicle,
                                           self.noise, engine, device)  # a net's form: a str
-        self.envelope = stored_envelope(name, self.meta) if net is not None else None
+        self.envelope = checkpoint.stored_envelope(name, self.meta) if net is not None else None
         self.envelope_mode = check_mode(envelope_mode)
         self._envelope = (self.envelope.stream(**observer_terms(self.vehicle, self.noise,
                                                                 self.window))
@@ -189,7 +189,9 @@ class Observer:
             ``vehicle.dt`` must then be the dt it was trained at.
         alpha : measurement-noise scale told to the ``oracle``, in [0, 100].
         features : refuse a checkpoint trained with another feature mode (None: any).
-        engine : ``"torch"``, ``"torchscript"`` or ``"onnx"`` for learned observers.
+        engine : ``"torch"``, ``"torchscript"``, ``"onnx"`` or ``"auto"`` (learned observers):
+            ``"auto"`` and ``"onnx"`` run the recursive form's ONNX graphs without torch where
+            ``lbo.train`` kept them (:mod:`lbo.serve.exported`); else ``"auto"`` is PyTorch.
         device : torch device of a learned observer (``"cpu"``, ``"cuda"``, ``"cuda:<n>"``),
             checked (and CUDA asked for) before any checkpoint is read.
         form : how a learned filter runs (:data:`FORMS`); None: :func:`default_form`.
@@ -217,9 +219,13 @@ class Observer:
             classical.check(source)  # pcrb: a bound, not an observer
             return cls(source, vehicle, noise, alpha=alpha, gyro_noise=gyro_noise)
         with checkpoint_file(source) as path:
-            net, hp = read_checkpoint(path, features=features, device=device)
+            # its recursive form kept as ONNX graphs: read without torch
+            found = (exported.find(path) if engine in ("auto", "onnx") and form in (
+                None, "recursive") and device == "cpu" else None)
+            net, hp = found or checkpoint.read_checkpoint(path, features=features, device=device)
+            checkpoint.check_features(path, net.features, features)
         meta = dict(hp.get("meta") or {})
-        trained, trained_noise = trained_conditions(hp, path)
+        trained, trained_noise = checkpoint.trained_conditions(hp, path)
         if vehicle is not None and not np.isclose(vehicle.dt, trained.dt, rtol=1e-9):
             raise LboError(f"vehicle.dt={vehicle.dt:g} s, but the observer was trained at "
                            f"dt={trained.dt:g} s; resample the data to {trained.dt:g} s")
@@ -283,11 +289,9 @@ class Observer:
 
         Notes
         -----
-        Cost per call: scalar checks of the five numbers, one ring-buffer write and one
-        network call on a (1, N, 5) view (or one filter step), whatever the length of the
-        log; in the recursive form, one step of the filter, whatever N is. For a control
-        loop, run torch on one thread (``torch.set_num_threads(1)``) or use ``engine="onnx"``
-        (one thread already).
+        Cost per call, whatever the log's length: scalar checks, a ring-buffer write and a
+        net on a (1, N, 5) view; in the recursive form, one filter step, whatever N is. In a
+        control loop run torch on one thread, or ``engine="onnx"`` (one thread already).
         """
         k = self._count
         try:
@@ -379,13 +383,10 @@ class Observer:
         Raises
         ------
         LboError
-            One line naming the row: the checks of ``python -m lbo.observe``
-            (:func:`lbo.sim.logcheck.check_samples`: NaN or inf other than a missing fix or
-            heading, a heading without a position, x_m without y_m, no fix at all, headings
-            in degrees, positions, speeds or steering beyond a vehicle's); a fix without a
-            heading, or a receiver's channels, where not :attr:`takes_receiver`; no fix for a
-            net trained with a fix at every step; for a window net trained with ``fix_rates``,
-            N steps after the first fix without any (its estimate there would be NaN).
+            One line naming the row: ``python -m lbo.observe``'s checks
+            (:func:`lbo.sim.logcheck.check_samples`); a fix without a heading, or a
+            receiver's channels, where not :attr:`takes_receiver`; no fix for a net trained
+            with one at every step; N steps without a fix for a window net (a NaN estimate).
         """
         try:
             m = np.asarray(m, dtype=float)

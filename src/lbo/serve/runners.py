@@ -31,6 +31,7 @@ from lbo.models.features import held_within, window_view
 from lbo.serve import carry, refusals
 from lbo.serve.engines import make_predictor, make_recursive_step
 from lbo.serve.estimate import Estimate
+from lbo.serve.exported import ExportedNet
 from lbo.serve.rows import (
     bicycle_rows,
     checked_receiver,
@@ -51,7 +52,10 @@ was trained, or recursively, its filter carried from step to step."""
 
 def is_window_filter(net: Any) -> bool:
     """Whether the net's model is the window filter, whose recursive form is a Kalman filter
-    with a covariance (:class:`lbo.models.recursive.RecursiveFilter`)."""
+    with a covariance (:class:`lbo.models.recursive.RecursiveFilter`); one kept as ONNX graphs
+    (:class:`lbo.serve.exported.ExportedNet`) is one, read without torch."""
+    if isinstance(net, ExportedNet):
+        return True
     from lbo.models.filternet import WindowFilter
 
     return isinstance(getattr(net, "net", None), WindowFilter)
@@ -60,9 +64,11 @@ def is_window_filter(net: Any) -> bool:
 def has_recursive_form(net: Any) -> bool:
     """Whether the net's model can be carried from step to step: the window filter, or one
     that keeps :class:`lbo.models.carried.SequenceModel` (KalmanNet's peers, a plug-in's)."""
+    if is_window_filter(net):
+        return True
     from lbo.models.carried import is_sequence_model  # torch: loaded with a net already
 
-    return is_window_filter(net) or is_sequence_model(getattr(net, "net", None))
+    return is_sequence_model(getattr(net, "net", None))
 
 
 def default_form(net: Any) -> str:
@@ -339,7 +345,10 @@ class RecursiveRunner:
 
     def __init__(self, net: Any, vehicle: Vehicle, engine: str, device: str) -> None:
         self.net, self.vehicle, self.device = net, vehicle, device
-        self.step, self.state0, self.coast = make_recursive_step(net, engine, device)
+        self.state0: list[np.ndarray]
+        self.step, self.state0, self.coast = (
+            net.recursive_step() if isinstance(net, ExportedNet)
+            else make_recursive_step(net, engine, device))
         self.reads_receiver = bool(getattr(net.net, "gyro", False))
         self.reset()
 
@@ -385,6 +394,9 @@ class RecursiveRunner:
         mm = np.array(m)  # rows (T, 3), or (T, 8) with a receiver's channels
         mm[~fix, :3] = np.nan
         if smooth:
+            if isinstance(self.net, ExportedNet):
+                raise LboError("smooth: the robust observer's ONNX graphs run its filter "
+                               "only; load it with engine=torch to smooth")
             from lbo.models.recursive import run_arrays
 
             est, covs = run_arrays(self.net.net, mm[None], u[None], smooth=True,
