@@ -190,3 +190,17 @@ def test_the_observe_benchmark_times_both_commands(cache):
     ratio = float(lines[2].split("ratio: ")[1].split(" times")[0])
     assert ratio == pytest.approx(learned / ekf, abs=0.01)
     assert "engine=auto" in lines[2]
+
+
+def test_the_exporters_notes_are_not_logged(caplog):
+    """The dynamo exporter's optimiser logs a line per merged initializer (about 380 for the
+    robust observer's coast): under Hydra's INFO logging they flooded ``lbo.train``'s end."""
+    import logging
+
+    from lbo.serve import engines
+
+    with caplog.at_level(logging.INFO), engines._quiet():
+        for name in ("onnx_ir.passes.common.initializer_deduplication", "onnxscript.optimizer",
+                     "torch.onnx._internal.exporter"):
+            logging.getLogger(name).info("a note")
+    assert caplog.records == []

@@ -86,7 +86,7 @@ def _quiet() -> Iterator[None]:
     """Silence what torch's exporters say that is no concern of a user's: jit.trace's and the
     TorchScript-based ONNX exporter's deprecation, nn.LSTM's shape checks while traced, and
     the dynamo exporter's notes (torchvision's operators, its own FutureWarnings, attributes
-    set in a forward, the batch axis's name)."""
+    set in a forward, the batch axis's name, its optimiser's line per merged initializer)."""
     import logging
 
     from torch.jit import TracerWarning
@@ -104,7 +104,7 @@ def _quiet() -> Iterator[None]:
         # forward runs; and the dynamic axes, one name for the batch of every input
         warnings.filterwarnings("ignore", message=r"The tensor attributes .* were assigned "
                                 r"during export|# The axis name: batch", category=UserWarning)
-        loggers = [logging.getLogger(name) for name in ("torch.onnx", "onnxscript")]
+        loggers = [logging.getLogger(name) for name in ("torch.onnx", "onnxscript", "onnx_ir")]
         levels = [lg.level for lg in loggers]
         for lg in loggers:
             lg.setLevel(logging.ERROR)
