@@ -39,14 +39,14 @@ def case(model: str, window: int, repeats: int) -> None:
     net = WindowNet("filternet" if model == "step" else model, window, **MODELS[model]).eval()
     if model == "step":
         module: torch.nn.Module = RecursiveFilter(net.net).eval()
-        args = engines._recursive_example(module)
+        args = engines.recursive_example(module)
         names = (["m", "u", *STATE_NAMES], ["pose", "cov", *(f"next_{n}" for n in STATE_NAMES)])
         dynamo = lambda: engines.recursive_onnx_bytes(module)  # noqa: E731
     else:
         module, args = net, (engines._example(net),)
         names = (["window"], ["state"])
         batch = torch.export.Dim("batch", min=1)
-        dynamo = lambda: engines._dynamo_onnx(  # noqa: E731
+        dynamo = lambda: engines.dynamo_onnx(  # noqa: E731
             net, (engines._example(net, batch=2),), names, ({0: batch},))
     for exporter, make in (("legacy", lambda: engines.legacy_onnx(module, args, names)),
                            ("dynamo", dynamo)):

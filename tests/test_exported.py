@@ -175,6 +175,15 @@ def test_training_keeps_the_graphs_of_the_robust_observer_only(tmp_path, smoke_d
     assert calls == [out["checkpoint"]]
 
 
+def test_keep_onnx_is_a_flag_checked_before_any_run(tmp_path, smoke_data):
+    from helpers import train_cfg
+    from lbo.train import check
+
+    with pytest.raises(LboError, match=r"^keep_onnx must be true or false, got 'yes'$"):
+        check(train_cfg(tmp_path, smoke_data, "keep_onnx=yes"))
+    assert not (tmp_path / "out").exists()
+
+
 def test_the_observe_benchmark_times_both_commands(cache):
     """``benchmarks/bench_observe.py``: the EKF's and the observer's commands, their medians
     and the ratio."""

@@ -112,6 +112,8 @@ def check(cfg: DictConfig) -> Built:
         raise LboError(f"nll: the Gaussian NLL term reads the covariance of a filter trained "
                        f"carried; set tbptt too, or nll=0 (got nll={nll} with tbptt=null)")
     check_compile(cfg)
+    require(isinstance(cfg.get("keep_onnx", True), bool), "keep_onnx", "true or false",
+            cfg.get("keep_onnx"))
     check_scaling(cfg.model.normalisation, "model.normalisation")
     check_trainer(cfg.trainer)
     check_optimizer(cfg.optimizer)

@@ -67,7 +67,7 @@ def _without_fixes(win):
     return win
 
 
-def _exporting(form: str, net: Any, make: Callable[[], Any]) -> Any:
+def exporting(form: str, net: Any, make: Callable[[], Any]) -> Any:
     """``make()``, a failure said in one line: a plug-in's model may use what TorchScript or
     ONNX cannot hold (an operator without an ONNX form, Python on the tensors' values)."""
     try:
@@ -129,11 +129,11 @@ def trace(net: Any) -> Any:
     net = net.eval()
     example = _example(net).to(net.in_mean.device)
     with _quiet():
-        return _exporting("TorchScript", net,
+        return exporting("TorchScript", net,
                           lambda: torch.jit.trace(net, example, check_trace=False))
 
 
-def _dynamo_onnx(module: Any, args: tuple, names: tuple[list[str], list[str]],
+def dynamo_onnx(module: Any, args: tuple, names: tuple[list[str], list[str]],
                  dynamic: Any) -> bytes:
     """ONNX (opset :data:`OPSET`) of ``module`` by the dynamo exporter (``torch.export``,
     then onnxscript's translation and optimiser), its batch axis dynamic (``dynamic``: the
@@ -165,9 +165,9 @@ def onnx_bytes(net: Any) -> bytes:
     net = net.eval()
     if not can_carry(net.net):
         batch = torch.export.Dim("batch", min=1)
-        return _exporting("ONNX", net, lambda: _dynamo_onnx(
+        return exporting("ONNX", net, lambda: dynamo_onnx(
             net, (_example(net, batch=2),), (["window"], ["state"]), ({0: batch},)))
-    return _exporting("ONNX", net, lambda: legacy_onnx(
+    return exporting("ONNX", net, lambda: legacy_onnx(
         net, (_example(net),), (["window"], ["state"])))
 
 
@@ -222,7 +222,7 @@ def check_exported(net: Any, script: Any, session: Any, batch: int = 64) -> dict
             "onnx": float(np.abs(ort_out - ref).max())}
 
 
-def _recursive_example(rec: Any, batch: int = 1) -> tuple:
+def recursive_example(rec: Any, batch: int = 1) -> tuple:
     """One step's inputs of a :class:`~lbo.models.recursive.RecursiveFilter` for ``batch``
     filters: a fix as a receiver's row (B, 8) (:data:`lbo.filters.measure.CHANNELS`, no
     accuracy nor course), an input (B, I) of its
@@ -245,7 +245,7 @@ def trace_recursive(rec: Any) -> Any:
     import torch
 
     with _quiet():
-        return torch.jit.trace(rec.eval(), _recursive_example(rec), check_trace=False)
+        return torch.jit.trace(rec.eval(), recursive_example(rec), check_trace=False)
 
 
 def recursive_onnx_bytes(rec: Any) -> bytes:
@@ -264,8 +264,8 @@ def recursive_onnx_bytes(rec: Any) -> bytes:
                "state": tuple(None if name == "k" else {0: batch} for name in STATE_NAMES)}
     names = (["m", "u", *STATE_NAMES],
              ["pose", "cov", *(f"next_{n}" for n in STATE_NAMES)])
-    return _exporting("ONNX", rec, lambda: _dynamo_onnx(
-        rec, _recursive_example(rec, batch=2), names, dynamic))
+    return exporting("ONNX", rec, lambda: dynamo_onnx(
+        rec, recursive_example(rec, batch=2), names, dynamic))
 
 
 def onnx_step(session: Any, state_names: tuple[str, ...] | None = None) -> Any:

@@ -25,7 +25,6 @@ import json
 import os
 import shutil
 import tempfile
-from importlib import metadata
 from pathlib import Path
 from typing import Any
 
@@ -34,12 +33,12 @@ import numpy as np
 from lbo.core import sources
 from lbo.core.paths import cache_dir
 from lbo.serve.engines import OPSET, Coast, RecursiveStep, onnx_session, onnx_step
+from lbo.serve.onnx_cache import SOURCES, version
 
 FORMAT = 1
 """The layout of a kept folder (``observer.json``'s ``format``)."""
-_SOURCES = ("models", "filters", "serve", "sim", "core")
-"""The lbo packages whose code the graphs are traced from, or that read them."""
 _VERSIONS = ("torch", "onnxscript", "onnxruntime")
+"""The packages whose versions make or read the graphs."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -100,8 +99,8 @@ def key(checkpoint: str | os.PathLike) -> str:
     """The digest (24 hex digits) the graphs of ``checkpoint`` are kept under (see the
     module); read without torch."""
     h = hashlib.sha256()
-    for part in (str(FORMAT), str(OPSET), sources.source_digest(_SOURCES),
-                 *(_version(p) for p in _VERSIONS)):
+    for part in (str(FORMAT), str(OPSET), sources.source_digest(SOURCES),
+                 *(version(p) for p in _VERSIONS)):
         h.update(part.encode() + b"\0")
     h.update(Path(checkpoint).read_bytes())
     return h.hexdigest()[:24]
@@ -178,10 +177,9 @@ def _coast_bytes(rec: Any) -> bytes:
     import torch
 
     from lbo.models.recursive import STATE_NAMES
-    from lbo.serve.engines import _dynamo_onnx, _exporting, _recursive_example
+    from lbo.serve.engines import dynamo_onnx, exporting, recursive_example
 
-    class Coast(torch.nn.Module):
-        # the state as named arguments: the exporter's dynamic shapes are given per name
+    class Coast(torch.nn.Module):  # the exporter exports a module's forward
         def __init__(self) -> None:
             super().__init__()
             self.rec = rec
@@ -189,18 +187,13 @@ def _coast_bytes(rec: Any) -> bytes:
         def forward(self, u: torch.Tensor, *state: torch.Tensor) -> tuple[torch.Tensor, ...]:
             return self.rec.coast(u, *state)
 
-    m, u, *state = _recursive_example(rec)
+    m, u, *state = recursive_example(rec)
     with torch.inference_mode():  # a started filter: its first fix taken
         state = list(rec(m, u, *state)[2:])
     rows = torch.tensor([[10.0, 0.02, 0.007][:len(rec.inputs)]] * 4, dtype=torch.float64)
     names = (["u", *STATE_NAMES], ["pose", "cov", *(f"next_{n}" for n in STATE_NAMES)])
+    # K dynamic (a named Dim with bounds was specialised to the example's K); the state static:
+    # {} per tensor, as a tuple of None alone is read back as a list that fits no input
     dynamic = {"u": {0: torch.export.Dim.DYNAMIC}, "state": tuple({} for _ in STATE_NAMES)}
-    return _exporting("ONNX", rec, lambda: _dynamo_onnx(Coast().eval(), (rows, *state), names,
+    return exporting("ONNX", rec, lambda: dynamo_onnx(Coast().eval(), (rows, *state), names,
                                                         dynamic))
-
-
-def _version(package: str) -> str:
-    try:
-        return metadata.version(package)
-    except metadata.PackageNotFoundError:
-        return "none"

@@ -28,7 +28,7 @@ from lbo.core.atomic import atomic_path
 from lbo.core.errors import LboError
 from lbo.core.paths import cache_dir
 
-_SOURCES = ("models", "filters", "serve", "sim", "core")
+SOURCES = ("models", "filters", "serve", "sim", "core")
 """The lbo packages whose code an exported graph is traced from."""
 
 
@@ -38,8 +38,8 @@ def key(module: Any, form: str, opset: int) -> str:
     import torch
 
     h = hashlib.sha256()
-    for part in (form, str(opset), torch.__version__, _version("onnxscript"),
-                 sources.source_digest(_SOURCES), repr(module)):
+    for part in (form, str(opset), torch.__version__, version("onnxscript"),
+                 sources.source_digest(SOURCES), repr(module)):
         h.update(part.encode() + b"\0")
     for prefix, sub in module.named_modules():
         h.update(f"{prefix}:{type(sub).__module__}.{type(sub).__qualname__}".encode() + b"\0")
@@ -77,7 +77,8 @@ def _update(h: Any, name: str, value: Any) -> None:
         h.update(f"{name}:{type(value).__qualname__}".encode() + b"\0")
 
 
-def _version(package: str) -> str:
+def version(package: str) -> str:
+    """An installed package's version, read without importing it; ``none`` where absent."""
     try:
         return metadata.version(package)
     except metadata.PackageNotFoundError:
