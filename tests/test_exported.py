@@ -143,6 +143,18 @@ def test_a_changed_checkpoint_or_a_half_kept_folder_runs_in_pytorch(cache, tmp_p
     assert exported.find(tmp_path / "copy.ckpt") is not None
 
 
+def test_settings_that_do_not_fit_json_are_one_line_and_keep_nothing(cache, tmp_path):
+    ckpt = torch.load(cache["checkpoint"], map_location="cpu", weights_only=True)
+    ckpt["epoch"] = ckpt.get("epoch", 0) + 2
+    other = tmp_path / "other.ckpt"
+    torch.save(ckpt, other)
+    net, hp = read_checkpoint(other)
+    with pytest.raises(LboError, match=r"its settings do not fit JSON \(.*not JSON serial"):
+        exported.keep(net, {**hp, "plug_in": {1, 2}}, other)
+    assert not exported.folder(other).exists()
+    assert not [p for p in exported.folder(other).parent.iterdir() if p.name.startswith(".")]
+
+
 def test_what_the_kept_graphs_refuse_is_said_in_one_line(cache, log):
     obs = Observer.load(cache["checkpoint"], engine="onnx")
     assert isinstance(obs.net, exported.ExportedNet)

@@ -465,6 +465,8 @@ def test_trials_never_see_the_test_set(tmp_path, smoke_data, tracking):
     other = trial_config(cfg, {}, 7, "../cnn/x y", tmp_path / "out")  # one folder, never above
     assert other.output_dir == str(tmp_path / "out" / "_cnn_x_y" / "trial_007")
     assert "tune" not in trial and cfg.optimizer.lr == 0.001  # the study's config is untouched
+    # nor does a trial keep ONNX graphs for lbo.observe (15 s for a window filter's)
+    assert trial.keep_onnx is False and cfg.get("keep_onnx", True) is True
     # by type, not by name: a subclass of the evaluation callback under another name is
     # dropped too; a target that cannot be imported is one line
     with open_dict(cfg):

@@ -148,6 +148,7 @@ def trial_config(cfg: DictConfig, values: dict[str, Any], number: int, study_nam
                 del callbacks[name]
         out.trainer.enable_progress_bar = False
         out.trainer.enable_model_summary = False
+        out.keep_onnx = False  # a trial is never observed: no graphs to keep for lbo.observe
         if out.get("logger"):
             out.logger.run_name = f"{study_name}-trial{number}"
     return out

@@ -31,6 +31,7 @@ from typing import Any
 import numpy as np
 
 from lbo.core import sources
+from lbo.core.errors import LboError
 from lbo.core.paths import cache_dir
 from lbo.serve.engines import OPSET, Coast, RecursiveStep, onnx_session, onnx_step
 from lbo.serve.onnx_cache import SOURCES, version
@@ -142,9 +143,6 @@ def keep(net: Any, hp: dict[str, Any], checkpoint: str | os.PathLike) -> Path:
     if find(checkpoint) is not None:
         return target
     rec = RecursiveFilter(net.net.cpu()).eval()
-    graphs = {"step.onnx": recursive_onnx_bytes(rec)}
-    if rec.coasts:
-        graphs["coast.onnx"] = _coast_bytes(rec)
     inner = net.net
     info = {"format": FORMAT, "hparams": hp, "coast_limit": rec.coast_limit if rec.coasts else 0,
             "state": [[n, list(s.shape)] for n, s in zip(STATE_NAMES, rec.initial_state(1))],
@@ -154,12 +152,19 @@ def keep(net: Any, hp: dict[str, Any], checkpoint: str | os.PathLike) -> Path:
                     "net": {"gyro": bool(inner.gyro), "residual": int(inner.residual),
                             "drift": bool(inner.drift),
                             "single_track": bool(inner.single_track)}}}
+    try:
+        described = json.dumps(info, indent=1)
+    except (TypeError, ValueError) as e:  # a plug-in's setting of a type JSON has not
+        raise LboError(f"checkpoint {checkpoint}: its settings do not fit JSON ({e})") from None
+    graphs = {"step.onnx": recursive_onnx_bytes(rec)}
+    if rec.coasts:
+        graphs["coast.onnx"] = _coast_bytes(rec)
     target.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{target.name}.", dir=target.parent))
     try:
         for name, data in graphs.items():
             (tmp / name).write_bytes(data)
-        (tmp / "observer.json").write_text(json.dumps(info, indent=1))
+        (tmp / "observer.json").write_text(described)
         os.replace(tmp, target)  # whole, or not at all
     except OSError:
         if not target.is_dir():
