@@ -392,6 +392,20 @@ Coast = Callable[[np.ndarray, list], tuple[np.ndarray, np.ndarray, list]]
 covariances (K, 3, 3), new state (:meth:`~lbo.models.recursive.RecursiveFilter.coast`)."""
 
 
+def chunked(coast: Coast, limit: int) -> Coast:
+    """``coast`` (which takes 1 to ``limit`` rows a call: its ring slots, each written once)
+    over any number of rows, ``limit`` at a time."""
+    def over(u: np.ndarray, st: list) -> tuple[np.ndarray, np.ndarray, list]:
+        poses, covs = [], []
+        for a in range(0, len(u), limit):
+            pose, cov, st = coast(u[a:a + limit], st)
+            poses.append(pose)
+            covs.append(cov)
+        return np.concatenate(poses), np.concatenate(covs), st
+
+    return over
+
+
 def make_recursive_step(net: Any, engine: str = "torch", device: str = "cpu"
                         ) -> tuple[RecursiveStep, list, Coast | None]:
     """The recursive form (:class:`~lbo.models.recursive.RecursiveFilter`) of a window filter
@@ -413,16 +427,11 @@ def make_recursive_step(net: Any, engine: str = "torch", device: str = "cpu"
         return [torch.from_numpy(np.require(x, requirements="W")).to(device) for x in arrays]
 
     def coast(u: np.ndarray, st: list) -> tuple:
-        poses, covs = [], []
         with torch.inference_mode():
-            for a in range(0, len(u), rec.coast_limit):  # each ring slot written once a call
-                pose, cov, *st = rec.coast(*tensors(u[a:a + rec.coast_limit], *st))
-                poses.append(pose)
-                covs.append(cov)
-        return (torch.cat(poses).cpu().numpy(), torch.cat(covs).cpu().numpy(),
-                [x.cpu().numpy() for x in st])
+            pose, cov, *st = (x.cpu().numpy() for x in rec.coast(*tensors(u, *st)))
+        return pose, cov, st
 
-    coaster = coast if rec.coasts else None
+    coaster = chunked(coast, rec.coast_limit) if rec.coasts else None
     if engine == "onnx":
         kept = _kept_session(rec, "recursive", lambda: recursive_onnx_bytes(rec))
         return onnx_step(kept), state, coaster

@@ -33,7 +33,7 @@ import numpy as np
 from lbo.core import sources
 from lbo.core.errors import LboError
 from lbo.core.paths import cache_dir
-from lbo.serve.engines import OPSET, Coast, RecursiveStep, onnx_session, onnx_step
+from lbo.serve.engines import OPSET, Coast, RecursiveStep, chunked, onnx_session, onnx_step
 from lbo.serve.onnx_cache import SOURCES, version
 
 FORMAT = 1
@@ -82,18 +82,13 @@ class ExportedNet:
             return step, state0, None
         session = onnx_session(self.folder / "coast.onnx", threads=1)
         inputs = [i.name for i in session.get_inputs()]
-        limit = self.coast_limit
 
         def coast(u: np.ndarray, st: list) -> tuple:
-            poses, covs = [], []
-            for a in range(0, len(u), limit):  # each ring slot written once a call
-                feed = dict(zip(("u", *names), (np.ascontiguousarray(u[a:a + limit]), *st)))
-                pose, cov, *st = session.run(None, {k: feed[k] for k in inputs})
-                poses.append(pose)
-                covs.append(cov)
-            return np.concatenate(poses), np.concatenate(covs), st
+            feed = dict(zip(("u", *names), (np.ascontiguousarray(u), *st)))
+            pose, cov, *st = session.run(None, {k: feed[k] for k in inputs})
+            return pose, cov, st
 
-        return step, state0, coast
+        return step, state0, chunked(coast, self.coast_limit)
 
 
 def key(checkpoint: str | os.PathLike) -> str:
@@ -115,7 +110,11 @@ def folder(checkpoint: str | os.PathLike) -> Path:
 def find(checkpoint: str | os.PathLike) -> tuple[ExportedNet, dict[str, Any]] | None:
     """The kept graphs of ``checkpoint`` as an :class:`ExportedNet`, and the checkpoint's
     hyperparameters; None where none are kept (or they cannot be read)."""
-    where = folder(checkpoint)
+    return _read(folder(checkpoint))
+
+
+def _read(where: Path) -> tuple[ExportedNet, dict[str, Any]] | None:
+    """:func:`find`'s answer for the folder ``where``."""
     try:
         info = json.loads((where / "observer.json").read_text())
         if info.get("format") != FORMAT or not all(
@@ -140,7 +139,7 @@ def keep(net: Any, hp: dict[str, Any], checkpoint: str | os.PathLike) -> Path:
     from lbo.serve.engines import recursive_onnx_bytes
 
     target = folder(checkpoint)
-    if find(checkpoint) is not None:
+    if _read(target) is not None:
         return target
     rec = RecursiveFilter(net.net.cpu()).eval()
     inner = net.net

@@ -219,11 +219,11 @@ class Observer:
             classical.check(source)  # pcrb: a bound, not an observer
             return cls(source, vehicle, noise, alpha=alpha, gyro_noise=gyro_noise)
         with checkpoint_file(source) as path:
-            # its recursive form kept as ONNX graphs: read without torch
             found = (exported.find(path) if engine in ("auto", "onnx") and form in (
-                None, "recursive") and device == "cpu" else None)
+                None, "recursive") and device == "cpu" else None)  # graphs: without torch
+            if found is not None:  # read_checkpoint checks the features itself
+                checkpoint.check_features(path, found[0].features, features)
             net, hp = found or checkpoint.read_checkpoint(path, features=features, device=device)
-            checkpoint.check_features(path, net.features, features)
         meta = dict(hp.get("meta") or {})
         trained, trained_noise = checkpoint.trained_conditions(hp, path)
         if vehicle is not None and not np.isclose(vehicle.dt, trained.dt, rtol=1e-9):
