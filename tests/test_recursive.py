@@ -101,6 +101,44 @@ def test_a_batch_run_gives_what_stepping_one_sample_at_a_time_gives(kind):
 
 
 @pytest.mark.parametrize("kind", list(VARIANTS))
+def test_a_step_in_inference_leaves_out_what_no_filter_uses_and_keeps_every_bit(kind,
+                                                                                  monkeypatch):
+    """In inference a step skips the start where no filter of the batch starts, the NaN where
+    all have started, and the receiver's R where no row has an accuracy or a course: the
+    numbers of the one graph that tracing and training take (with gradients), to the last
+    bit, for a batch whose filters start at different rows and alone."""
+    fixes = kind == "fixes"
+    m, u = _logs(2, 120, fixes)
+    rows = np.concatenate([m, np.full(m.shape[:2] + (5,), np.nan)], -1)
+    if fixes:
+        rows[1, :20] = np.nan  # the second log starts later
+        rows[0, 30:50, 3:5] = 0.8  # a receiver's accuracy
+        rows[1, 60:70, 2], rows[1, 60:70, 6:8] = np.nan, (0.3, 0.05)  # a course, no heading
+    rec = RecursiveFilter(_net(kind))
+    calls, inner = [], rec._step_cov
+    monkeypatch.setattr(rec, "_step_cov", lambda *a: calls.append(1) or inner(*a))
+
+    def steps(batch: list[int]) -> list[np.ndarray]:
+        state, out = rec.initial_state(len(batch)), []
+        for k in range(rows.shape[1]):
+            pose, cov, *state = rec(torch.from_numpy(rows[batch, k]),
+                                    torch.from_numpy(u[batch, k]), *state)
+            out += [t.detach().numpy().copy() for t in (pose, cov, *state)]
+        return out
+
+    for batch in ([0, 1], [0], [1]):
+        with torch.enable_grad():
+            graph, graph_calls = steps(batch), len(calls)
+        calls.clear()
+        with torch.inference_mode():
+            lean, lean_calls = steps(batch), len(calls)
+        calls.clear()
+        for a, b in zip(graph, lean, strict=True):
+            np.testing.assert_array_equal(a, b)
+        assert graph_calls == 2 * rows.shape[1] and lean_calls < graph_calls / 2
+
+
+@pytest.mark.parametrize("kind", list(VARIANTS))
 def test_torchscript_and_onnx_steps_equal_pytorch(kind):
     m, u = _logs(1, 200, kind == "fixes", seed=2)
     net = _observer_net(kind)
@@ -242,6 +280,7 @@ def test_a_receivers_row_updates_with_the_channels_it_holds():
     each against the update with those channels alone, written out by hand; a full paper row
     gives the same numbers as its 8-wide form."""
     rec = RecursiveFilter(_net("fixes"))
+    rec.keep_prior = True  # each step's prior, to write the update out against
     nan = np.nan
     rows = np.array([[5.0, -3.0, nan, 0.4, 0.6, nan, 0.3, 0.05],   # position + course
                      [nan] * 8,                                     # a prediction

@@ -95,6 +95,8 @@ class RecursiveFilter(nn.Module):
     fixes : whether steps without a fix are taken (the net has the ``fix`` channel).
     inputs : the columns of u: ``V, delta``, and the gyro's last reading ``r_m`` (NaN: none
         yet) for a filter trained with a gyro.
+    keep_prior : whether :meth:`forward` keeps each step's prior and cross covariance in
+        ``last_prior`` (what :func:`lbo.filters.smoother.rts` needs); set by :meth:`run`.
     """
 
     def __init__(self, net: WindowFilter, shared: bool = False) -> None:
@@ -110,6 +112,7 @@ class RecursiveFilter(nn.Module):
                 setattr(self.window_filter, name, wrapped.eval())
         self.window = int(net.window)
         self.fixes = bool(net.fixes)
+        self.keep_prior = False
         self.gyro = bool(net.gyro)
         self.n = 5 if net.drift else 4 if self.gyro else 3
         self.inputs = ("V", "delta", "r_m") if self.gyro else ("V", "delta")
@@ -149,38 +152,38 @@ class RecursiveFilter(nn.Module):
         count = sums[:, 4]
         some = count > 0
         c, s = torch.cos(heading), torch.sin(heading)
-        n = count.clamp_min(1)
-        xx, yy, xy, pp = (sums[:, i] / n for i in range(4))
+        cc, ss, cs = c * c, s * s, c * s
+        xx, yy, xy, pp = (sums[:, :4] / count.clamp_min(1)[:, None]).unbind(1)
         # the second moments in the frame turned by the heading: along and across it; held at
         # 0 and above, as squares are: turned from world-axis sums, a residual that lies
         # along the heading leaves a rounding error across it, which may be negative
-        along = (c * c * xx + 2 * c * s * xy + s * s * yy).clamp_min(0.0)
-        across = (s * s * xx - 2 * c * s * xy + c * c * yy).clamp_min(0.0)
+        along = (cc * xx + 2 * cs * xy + ss * yy).clamp_min(0.0)
+        across = (ss * xx - 2 * cs * xy + cc * yy).clamp_min(0.0)
         ms = torch.where(some[:, None], torch.stack([along, across, pp], 1),
                          torch.exp(2 * fo.log_r0).expand(sums.shape[0], 3))
         log_ratio = 0.5 * torch.log(ms + 1e-12) - fo.log_r0
         extra = [torch.log1p(speed)[:, None]]
         if self.fixes:
-            mean_gap = torch.where(some, sums[:, 5] / n, torch.ones_like(count))
+            mean_gap = torch.where(some, sums[:, 5] / count.clamp_min(1), torch.ones_like(count))
             extra.append(torch.log(mean_gap)[:, None])
-        sigma = fo.noise_sigma(log_ratio, torch.cat(extra, 1), ~some)
-        va, vc, vp = sigma[:, 0] ** 2, sigma[:, 1] ** 2, sigma[:, 2] ** 2
+        va, vc, vp = (fo.noise_sigma(log_ratio, torch.cat(extra, 1), ~some) ** 2).unbind(1)
         # back to world axes: R_xy = rot diag(va, vc) rot^T
-        rxx, ryy, rxy = c * c * va + s * s * vc, s * s * va + c * c * vc, c * s * (va - vc)
+        rxx, ryy, rxy = cc * va + ss * vc, ss * va + cc * vc, cs * (va - vc)
         zero = torch.zeros_like(va)
-        return torch.stack([torch.stack([rxx, rxy, zero], -1), torch.stack([rxy, ryy, zero], -1),
-                            torch.stack([zero, zero, vp], -1)], -2)
+        return torch.stack([rxx, rxy, zero, rxy, ryy, zero, zero, zero, vp], -1).view(-1, 3, 3)
 
     @staticmethod
-    def _step_cov(R: torch.Tensor, row: torch.Tensor, measured: torch.Tensor) -> torch.Tensor:
+    def _step_cov(R: torch.Tensor, row: torch.Tensor, there: torch.Tensor, measured: torch.Tensor
+                  ) -> torch.Tensor:
         """The step's R (B, 3, 3) of ``[x_m, y_m, heading]``: the noise model's ``R``, with
         the variance of each channel the row (B, 8) reports an accuracy for (``sx_m, sy_m,
-        spsi_m``) replaced by its square and that channel's correlations dropped, and the
-        heading's the course's variance where ``measured`` (B,) is False (no ``psi_m``)."""
-        told = row[:, 3:6] == row[:, 3:6]  # not NaN
+        spsi_m``; ``there`` (B, 8): the row's entries that are not NaN) replaced by its square
+        and that channel's correlations dropped, and the heading's the course's variance
+        where ``measured`` (B,) is False (no ``psi_m``)."""
+        told = there[:, 3:6]
         sig = torch.where(told, row[:, 3:6], torch.zeros_like(row[:, 3:6]))
         # a heading the row does not hold gets a variance of 1: finite, and masked out
-        course = torch.where(row[:, 7] == row[:, 7], row[:, 7], torch.ones_like(row[:, 7]))
+        course = torch.where(there[:, 7], row[:, 7], torch.ones_like(row[:, 7]))
         return step_covariance(R, sig, told, course * course, measured)
 
     def _drift_variance(self, R: torch.Tensor) -> torch.Tensor:
@@ -191,18 +194,17 @@ class RecursiveFilter(nn.Module):
         det = (R[:, 0, 0] * R[:, 1, 1] - R[:, 0, 1] ** 2).clamp_min(1e-30)
         return torch.exp(2 * self.window_filter.log_drift_ratio) * det.sqrt()
 
-    def _process_cov(self, heading: torch.Tensor, eye: torch.Tensor) -> torch.Tensor:
+    def _process_cov(self, heading: torch.Tensor) -> torch.Tensor:
         """(B, n, n) the learned Q at the latest fix's headings (B,): its x and y are along
-        and across that heading, as R's (``eye``: the (n, n) identity)."""
+        and across that heading, as R's."""
         q = torch.exp(2 * (self.window_filter.log_q0 + self.window_filter.log_q_scale))
         c, sn = torch.cos(heading), torch.sin(heading)
-        qxx, qyy = c * c * q[0] + sn * sn * q[1], sn * sn * q[0] + c * c * q[1]
-        qxy = c * sn * (q[0] - q[1])
-        Qn = torch.zeros(heading.shape[0], self.n, self.n, dtype=eye.dtype, device=eye.device)
-        Qn = Qn + torch.cat([torch.zeros_like(q[:2]), q[2:], torch.zeros_like(q[:self.n - 3])]) \
-            * eye
-        Qn[:, 0, 0], Qn[:, 1, 1], Qn[:, 0, 1], Qn[:, 1, 0] = qxx, qyy, qxy, qxy
-        return Qn
+        cc, ss = c * c, sn * sn
+        qxx, qyy, qxy = cc * q[0] + ss * q[1], ss * q[0] + cc * q[1], c * sn * (q[0] - q[1])
+        zero = torch.zeros_like(qxx)
+        Q = torch.stack([qxx, qxy, zero, qxy, qyy, zero, zero, zero, q[2].expand_as(qxx)],
+                        -1).view(-1, 3, 3)
+        return Q if self.n == 3 else nn.functional.pad(Q, (0, self.n - 3, 0, self.n - 3))
 
     @property
     def coasts(self) -> bool:
@@ -254,7 +256,7 @@ class RecursiveFilter(nn.Module):
         poses, dx, dy = roll(z, heading_turn)
         dead = roll(dr, turn)[0]
         eye = torch.eye(self.n, dtype=z.dtype, device=z.device)
-        Q = self._process_cov(heading, eye)
+        Q = self._process_cov(heading)
         if self.gyro:
             # forward's Jacobians I + a_j e3^T + c_j e3 e4^T and noises, composed by a scan
             F = eye.repeat(steps, 1, 1)
@@ -281,8 +283,7 @@ class RecursiveFilter(nn.Module):
             [speed, -speeds[0, speed_slots]], 1).reshape(-1)]), 0)[-1:]
         speeds = speeds.index_copy(1, speed_slots, speed[None])
         return (wrap_heading(poses[:, :3]), covs[:, :3, :3], poses[-1:], P, bodies[-1:], u[-1:],
-                last,
-                dead[-1:], gap + steps, heading, ring, sums, speeds, speed_sum, k + steps,
+                last, dead[-1:], gap + steps, heading, ring, sums, speeds, speed_sum, k + steps,
                 started)
 
     def forward(self, m: torch.Tensor, u: torch.Tensor, *state: torch.Tensor
@@ -300,12 +301,12 @@ class RecursiveFilter(nn.Module):
         if m.shape[1] == 3:  # the paper's row: no accuracy, no course
             m = torch.cat([m, (m[:, :1] * 0.0 + math.nan).repeat(1, 5)], 1)
         row, m = m, m[:, :3]
-        position = (m[:, 0] == m[:, 0]) & (m[:, 1] == m[:, 1])  # not NaN
-        measured = m[:, 2] == m[:, 2]
+        there = row == row  # (B, 8): not NaN
+        position, measured = there[:, 0] & there[:, 1], there[:, 2]
         if not self.fixes:
             position, measured = torch.ones_like(position), torch.ones_like(measured)
         fix = position & measured  # a full fix, what the noise statistic counts
-        course = (row[:, 6] == row[:, 6]) & ~measured
+        course = there[:, 6] & ~measured
         held = torch.stack([position, position, measured | course], 1)  # x_m, y_m, heading
         m0 = torch.where(fix[:, None], m, torch.zeros_like(m))
         meas = torch.where(held, torch.cat([m[:, :2], torch.where(
@@ -316,27 +317,20 @@ class RecursiveFilter(nn.Module):
         zero = torch.zeros_like(one)
 
         # -- the statistic: one entry in, the one of N steps ago out
-        if self.fixes:
+        if self.fixes:  # a fix's residual against dead reckoning: two fixes' noise
             dr = bicycle_step(dr, u_prev[:, 0], u_prev[:, 1], fo.dt, fo.wheelbase)
             gap = gap + 1
-            res = m0 - dr
-            res = wrap_heading(res)
-            counted = (fix & going).to(m.dtype)
-            entry = torch.stack([res[:, 0] ** 2, res[:, 1] ** 2, res[:, 0] * res[:, 1],
-                                 res[:, 2] ** 2], 1) / 2  # two fixes' noise in a residual
-            entry = torch.cat([counted[:, None] * entry, counted[:, None],
-                               (counted * gap)[:, None]], 1)
+            d, scale, counted = wrap_heading(m0 - dr), 2, (fix & going).to(m.dtype)
+            entry_gap = counted * gap
             dr = torch.where(fix[:, None], m0, dr)
             gap = torch.where(fix, zero, gap)
-        else:
-            d2 = m0 - 2 * last[:, 1] + last[:, 0]
-            d2 = wrap_heading(d2)
-            counted = (k >= 2).to(m.dtype) * one
-            entry = torch.stack([d2[:, 0] ** 2, d2[:, 1] ** 2, d2[:, 0] * d2[:, 1],
-                                 d2[:, 2] ** 2], 1) / 6  # i.i.d. noise: variance 6 s^2
-            entry = torch.cat([counted[:, None] * entry, counted[:, None],
-                               zero[:, None]], 1)
+        else:  # the second difference: i.i.d. noise, variance 6 s^2
+            d, scale = wrap_heading(m0 - 2 * last[:, 1] + last[:, 0]), 6
+            counted, entry_gap = (k >= 2).to(m.dtype) * one, zero
             last = torch.stack([last[:, 1], m0], 1)
+        entry = torch.stack([d[:, 0] ** 2, d[:, 1] ** 2, d[:, 0] * d[:, 1], d[:, 2] ** 2], 1)
+        entry = torch.cat([counted[:, None] * (entry / scale), counted[:, None],
+                           entry_gap[:, None]], 1)
         slot = torch.remainder(k, self.slots).long()
         sums = sums + entry - ring.index_select(1, slot)[:, 0]
         ring = ring.index_copy(1, slot, entry[:, None])
@@ -346,14 +340,21 @@ class RecursiveFilter(nn.Module):
         seen = torch.clamp(k + 1, max=float(self.window))
         heading = torch.where(held[:, 2], meas[:, 2], heading)
         R_model = self._noise(sums, speed_sum / seen, heading)
-        R = self._step_cov(R_model, row, measured)
+        # in inference a step leaves out what no filter of the batch uses: the same numbers (a
+        # torch.where whose condition is all False is its other operand), in less time. Traced,
+        # compiled or exported, and with gradients, it stays one graph without branches
+        lean = not (torch.is_grad_enabled() or torch.jit.is_tracing()
+                    or torch.compiler.is_compiling() or torch.onnx.is_in_onnx_export())
+        # full fixes alone, no accuracy reported: R is the noise model's
+        plain = lean and bool(measured.all()) and not bool(there[:, 3:].any())
+        R = R_model if plain else self._step_cov(R_model, row, there, measured)
 
         # -- the filter: predict with u_{k-1}, update with m_k
         pose, f02, f12, body_new = fo.predict_pose(z[:, :3], u_prev[:, 0], u_prev[:, 1], body)
         eye = torch.eye(self.n, dtype=m.dtype, device=m.device)
         F = eye.expand(m.shape[0], self.n, self.n).clone()
         F[:, 0, 2], F[:, 1, 2] = f02, f12
-        Qn = self._process_cov(heading, eye)
+        Qn = self._process_cov(heading)
         H = eye[:3]
         if self.gyro:  # the heading turns by the gyro's reading less the bias, b a state
             turn, F[:, 2, 3], seen = fo.gyro_turn(u_prev[:, 2], u_prev[:, 0], z[:, 3])
@@ -366,8 +367,7 @@ class RecursiveFilter(nn.Module):
             phi = torch.exp(-torch.exp(-fo.log_drift_tau))
             F[:, 3, 3], F[:, 4, 4] = phi * one, phi * one
             var_b = self._drift_variance(R)
-            Qd = (var_b * (1 - phi ** 2))[:, None, None] * (eye[3:].T @ eye[3:])
-            Qn = Qn + Qd
+            Qn = Qn + (var_b * (1 - phi ** 2))[:, None, None] * (eye[3:].T @ eye[3:])
             H = H + torch.cat([eye[3:], torch.zeros_like(eye[:1])])
             z_pred = torch.cat([pose, phi * z[:, 3:]], -1)
         else:
@@ -376,36 +376,38 @@ class RecursiveFilter(nn.Module):
         y = wrap_heading(meas - mm(H, z_pred.unsqueeze(-1)).squeeze(-1))
         z_upd, P_upd = masked_update(z_pred, P_pred, y, held.to(m.dtype), R, H)
 
-        # -- where the filter starts (its first fix), where it has no fix, where it goes on
-        # the noise model's R is alpha = 1's at the start (its statistic holds nothing yet);
-        # what the receiver reports is as sure as it says
-        R_start = self._step_cov(START_SCALE * R_model, row, measured)
-        if self.n == 5:
-            start_z = torch.cat([meas, torch.zeros_like(meas[:, :2])], -1)
-            start_P = fo._drift_start(R_start, self._drift_variance(R), eye)
-        elif self.gyro:  # no bias known: its prior
-            start_z, start_P = fo.start_at(meas, R_start, torch.exp(2 * fo.log_bias_sigma)
-                                            * one[:, None, None])
-        else:
-            start_z, start_P = meas, R_start
-        # what the smoother needs: this step's prior and cov(x_{k-1|k-1}, x_{k|k-1}); none
-        # where the filter starts afresh
-        self.last_prior = (z_pred, P_pred, torch.where(going[:, None, None],
-                                                       mm(P, F.transpose(1, 2)),
-                                                       torch.zeros_like(P)))
+        # -- where the filter goes on, where it has no fix, where it starts (its first fix)
+        if self.keep_prior:  # the smoother's: the prior and cov(x_{k-1|k-1}, x_{k|k-1}), the
+            # latter none where the filter starts afresh
+            self.last_prior = (z_pred, P_pred, torch.where(
+                going[:, None, None], mm(P, F.transpose(1, 2)), torch.zeros_like(P)))
         update = held.any(1) & going
-        z = torch.where(first[:, None], start_z,
-                        torch.where(update[:, None], z_upd, z_pred))
-        P = torch.where(first[:, None, None], start_P,
-                        torch.where(update[:, None, None], P_upd, P_pred))
-        body = torch.where(first[:, None], fo.body_start(u[:, 0], u[:, 1]), body_new)
-        started = torch.where(first, one, started)
-        out = wrap_heading(z[:, :3])
-        out = torch.where(started[:, None] > 0.5, out, torch.full_like(out, math.nan))
-        cov = torch.where(started[:, None, None] > 0.5, P[:, :3, :3],
-                          torch.full_like(P[:, :3, :3], math.nan))
-        return (out, cov, z, P, body, u, last, dr, gap, heading, ring, sums, speeds, speed_sum,
-                k + 1, started)
+        z = torch.where(update[:, None], z_upd, z_pred)
+        P = torch.where(update[:, None, None], P_upd, P_pred)
+        if not lean or bool(first.any()):  # lean: the start where a filter starts
+            # the noise model's R is alpha = 1's at the start (its statistic holds nothing
+            # yet); what the receiver reports is as sure as it says
+            R_start = self._step_cov(START_SCALE * R_model, row, there, measured)
+            if self.n == 5:
+                start_z = torch.cat([meas, torch.zeros_like(meas[:, :2])], -1)
+                start_P = fo._drift_start(R_start, var_b, eye)
+            elif self.gyro:  # no bias known: its prior
+                start_z, start_P = fo.start_at(meas, R_start, torch.exp(2 * fo.log_bias_sigma)
+                                                * one[:, None, None])
+            else:
+                start_z, start_P = meas, R_start
+            z = torch.where(first[:, None], start_z, z)
+            P = torch.where(first[:, None, None], start_P, P)
+            body_new = torch.where(first[:, None], fo.body_start(u[:, 0], u[:, 1]), body_new)
+            started = torch.where(first, one, started)
+        out, cov = wrap_heading(z[:, :3]), P[:, :3, :3]
+        if not lean or not bool((started > 0.5).all()):  # lean: NaN before a start
+            out = torch.where(started[:, None] > 0.5, out, torch.full_like(out, math.nan))
+            cov = torch.where(started[:, None, None] > 0.5, cov, torch.full_like(cov, math.nan))
+        else:  # never a view of the state: a caller may write into it
+            cov = cov.clone()
+        return (out, cov, z, P, body_new, u, last, dr, gap, heading, ring, sums, speeds,
+                speed_sum, k + 1, started)
 
     def run(self, m: torch.Tensor, u: torch.Tensor, smooth: bool = False,
             lengths: np.ndarray | None = None) -> tuple[torch.Tensor, torch.Tensor]:
@@ -416,6 +418,7 @@ class RecursiveFilter(nn.Module):
         ``lengths`` (G,) steps of each padded log (None: all)."""
         state = self.initial_state(m.shape[0], m.device)
         poses, covs, record = [], [], []
+        self.keep_prior = smooth
         for k in range(m.shape[1]):
             pose, cov, *state = self(m[:, k], u[:, k], *state)
             poses.append(pose)

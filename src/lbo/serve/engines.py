@@ -421,10 +421,13 @@ def make_recursive_step(net: Any, engine: str = "torch", device: str = "cpu"
     device = engine_device(engine, device)
     rec = RecursiveFilter(net.net.cpu() if engine == "onnx" else net.net).to(device)
     state = [s.cpu().numpy() for s in rec.initial_state(1)]
+    on_cpu = str(device) == "cpu"
 
     def tensors(*arrays: np.ndarray) -> list:
-        # a read-only frame's rows are copied
-        return [torch.from_numpy(np.require(x, requirements="W")).to(device) for x in arrays]
+        # a read-only frame's rows are copied; on the CPU the tensors share the arrays'
+        # memory (a step's tenth, were each moved)
+        out = [torch.from_numpy(x if x.flags.writeable else x.copy()) for x in arrays]
+        return out if on_cpu else [x.to(device) for x in out]
 
     def coast(u: np.ndarray, st: list) -> tuple:
         with torch.inference_mode():
