@@ -22,12 +22,15 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def timed(observer: str, log: str, folder: Path, extra: list[str]) -> float:
-    """Wall time (s) of one ``lbo.observe`` command; its failure is said and ends the run."""
+def timed(observer: str, log: str | Path, output: Path, extra: list[str],
+          cwd: Path | None = ROOT) -> float:
+    """Wall time (s) of one ``python -m lbo.observe observer=<observer> input=<log>
+    output=<output> <extra>`` command, run in ``cwd`` (None: this one); its failure is said
+    and ends the run."""
     start = time.perf_counter()
     res = subprocess.run([sys.executable, "-m", "lbo.observe", f"observer={observer}",
-                          f"input={log}", f"output={folder / 'estimates.csv'}", "plot=true",
-                          *extra], capture_output=True, text=True, cwd=ROOT)
+                          f"input={log}", f"output={output}", *extra], capture_output=True,
+                         text=True, cwd=cwd)
     wall = time.perf_counter() - start
     if res.returncode != 0:
         sys.exit(f"observer={observer}: {res.stderr.strip().splitlines()[-1]}")
@@ -44,9 +47,10 @@ def main() -> None:
     times: dict[str, list[float]] = {"ekf": [], args.observer: []}
     with tempfile.TemporaryDirectory(prefix="lbo-observe-") as tmp:
         for _ in range(args.repeats):
-            times["ekf"].append(timed("ekf", args.input, Path(tmp), []))
-            times[args.observer].append(timed(args.observer, args.input, Path(tmp),
-                                              [f"engine={args.engine}"]))
+            out = Path(tmp) / "estimates.csv"
+            times["ekf"].append(timed("ekf", args.input, out, ["plot=true"]))
+            times[args.observer].append(timed(args.observer, args.input, out,
+                                              ["plot=true", f"engine={args.engine}"]))
     med = {k: statistics.median(v) for k, v in times.items()}
     for name, values in times.items():
         print(f"{name}: median {med[name]:.2f} s ({', '.join(f'{v:.2f}' for v in values)})")

@@ -19,15 +19,13 @@ from __future__ import annotations
 import argparse
 import platform
 import statistics
-import subprocess
-import sys
 import tempfile
-import time
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 from bench_latency import truth
+from bench_observe import timed
 
 from lbo.sim.vehicle import Vehicle
 
@@ -81,17 +79,9 @@ def main() -> None:
                  for name in args.observers.split(",")
                  for engine in ([None] if name in CLASSICAL else args.engines.split(","))]
         for name, engine in runs:
-            times = []
-            for _ in range(args.repeats):
-                start = time.perf_counter()
-                res = subprocess.run([sys.executable, "-m", "lbo.observe", f"observer={name}",
-                                      f"input={log}", f"output={Path(tmp) / 'est.parquet'}",
-                                      *([f"engine={engine}"] if engine else [])],
-                                     capture_output=True, text=True)
-                times.append(time.perf_counter() - start)
-                if res.returncode:
-                    raise SystemExit(res.stderr)
-            wall = statistics.median(times)
+            wall = statistics.median([timed(name, log, Path(tmp) / "est.parquet",
+                                            [f"engine={engine}"] if engine else [], cwd=None)
+                                      for _ in range(args.repeats)])
             kind = name if name in CLASSICAL else "learned"
             target = TARGET_S.get(kind) if args.hours == 1 else None  # set for one hour
             verdict = "" if target is None else (f"< {target:g} s: "
