@@ -158,8 +158,12 @@ def _log(t: int = 6) -> tuple[np.ndarray, np.ndarray]:
     (3, "ve_m", 1.0, "row 3 has ve_m without vn_m"),
     (3, "vn_m", 1.0, "row 3 has vn_m without ve_m"),
     (4, "sv_m", 0.1, r"row 4 has sv_m without a velocity \(ve_m, vn_m\)"),
-    (0, "sx_m sy_m", -1.0, "row 0 has sx_m=-1, not a 1-sigma > 0"),
-    (0, "spsi_m", 0.0, "row 0 has spsi_m=0, not a 1-sigma > 0"),
+    (0, "sx_m sy_m", -1.0, r"row 0 has sx_m=-1 m, not a 1-sigma in \(0, 10000\] m"),
+    (0, "spsi_m", 0.0, r"row 0 has spsi_m=0 rad, not a 1-sigma in \(0, 1\] rad"),
+    # a sigma too large to be a receiver's squares towards inf: NaN estimates (issue 68)
+    (0, "sx_m sy_m", 1e160, r"row 0 has sx_m=1e\+160 m, not a 1-sigma in \(0, 10000\] m"),
+    (2, "sx_m sy_m", 2e4, r"row 2 has sx_m=20000 m, not a 1-sigma in \(0, 10000\] m"),
+    (0, "spsi_m", 1.5, r"row 0 has spsi_m=1.5 rad, not a 1-sigma in \(0, 1\] rad"),
     (5, "ve_m vn_m", 400.0, "row 5 has ve_m=400 m/s, beyond 100 m/s"),
 ])
 def test_each_channel_rule_is_one_line_naming_the_row(row, column, value, message):
@@ -170,6 +174,24 @@ def test_each_channel_rule_is_one_line_naming_the_row(row, column, value, messag
         check_receiver(m, r, "input log.csv")
     assert "\n" not in str(e.value) and str(e.value).startswith("input log.csv: ")
     assert "an accuracy comes with what it is the accuracy of" in str(e.value)
+
+
+def test_every_accuracy_channel_is_bounded_at_its_limit():
+    """Each reported 1-sigma is taken up to its limit and refused past it, naming the row,
+    the column and the range (issue 68: sx_m=1e160 passed and the filters wrote NaN)."""
+    m, r = _log()
+    r[0, :3] = [1e4, 1e4, 1.0]
+    r[3, 3:6] = [20.0, 0.0, 100.0]  # a velocity between fixes, at the largest sigma
+    check_receiver(m, r)
+    for c, value, line in ((1, 1e4 * 1.01, r"row 0 has sy_m=10100 m, not a 1-sigma in "
+                                           r"\(0, 10000\] m; "),
+                           (5, 101.0, r"row 3 has sv_m=101 m/s, not a 1-sigma in "
+                                      r"\(0, 100\] m/s; ")):
+        bad = r.copy()
+        bad[0 if c < 3 else 3, c] = value
+        with pytest.raises(LboError, match=r"^input log.csv: " + line
+                           + r"an accuracy comes with .* sv_m in \(0, 100\] m/s$"):
+            check_receiver(m, bad, "input log.csv")
 
 
 def test_a_full_receiver_row_and_an_inf_one():
@@ -252,7 +274,29 @@ def test_lbo_observe_takes_reported_accuracies_and_velocities(tmp_path):
                           f"input={tmp_path / 'bad.csv'}", f"output={tmp_path / 'bad.out.csv'}"],
                          capture_output=True, text=True, cwd=tmp_path)
     assert res.returncode != 0 and not (tmp_path / "bad.out.csv").exists()
-    assert "row 0 has sx_m=-1, not a 1-sigma > 0" in res.stderr
+    assert "row 0 has sx_m=-1 m, not a 1-sigma in (0, 10000] m" in res.stderr
+
+
+@pytest.mark.parametrize("observer", ["ekf", "ukf"])
+def test_lbo_observe_refuses_an_accuracy_no_receiver_reports(tmp_path, observer):
+    """Issue 68: sx_m = sy_m = 1e160 passed the check; the filters then wrote NaN after the
+    second fix with RuntimeWarnings, exit 0 (with smooth=true every row invalid). Now one
+    line naming the row, the column and the range, before anything is written."""
+    from lbo.observe import observe
+
+    df = simulate(compose_cfg("simulate", ["manoeuvre=slalom"]))[LOG].head(300).copy()
+    fix = df.index % 50 == 0
+    df.loc[:, "psi_m"] = np.nan
+    df.loc[~fix, ["x_m", "y_m"]] = np.nan
+    df["sx_m"] = df["sy_m"] = np.where(fix, 1e160, np.nan)
+    df.to_csv(tmp_path / "log.csv", index=False)
+    out = tmp_path / "est.csv"
+    cfg = compose_cfg("observe", [f"observer={observer}", f"input={tmp_path / 'log.csv'}",
+                                  f"output={out}", "smooth=true"])
+    with pytest.raises(LboError, match=r"^input .*log\.csv: row 0 has sx_m=1e\+160 m, not a "
+                                       r"1-sigma in \(0, 10000\] m; an accuracy comes with"):
+        observe(cfg)
+    assert not out.exists()
 
 
 # --------------------------------------------------------------------------- starting between fixes
@@ -317,7 +361,8 @@ def test_step_with_a_receivers_channels_gives_what_run_gives(name):
     obs.reset()
     bad = r[0].copy()
     bad[0] = -1.0
-    with pytest.raises(LboError, match=r"^step 0: row 0 has sx_m=-1, not a 1-sigma > 0"):
+    with pytest.raises(LboError, match=r"^step 0: row 0 has sx_m=-1 m, not a 1-sigma in "
+                                       r"\(0, 10000\] m"):
         obs.step(m[0], u[0], receiver=bad)
 
 

@@ -31,10 +31,6 @@ FIX_RULE = ("a row holds x_m and y_m (a position fix), with or without psi_m, or
 GYRO_LIMIT = 10.0
 """Largest |r_m| (rad/s): a car's yaw rate stays within 2 rad/s; beyond 10, the gyro is in
 deg/s or the column is not a yaw rate."""
-RECEIVER_RULE = ("an accuracy comes with what it is the accuracy of (sx_m and sy_m > 0 m with "
-                 "x_m, y_m; spsi_m > 0 rad with psi_m), a velocity as ve_m and vn_m (m/s) "
-                 "with an optional sv_m > 0 m/s")
-
 POSITION_LIMIT = 1e7
 """Largest |x|, |y| (m): positions are metres in a local frame, not degrees nor UTM in mm."""
 SPEED_LIMIT = 100.0
@@ -53,6 +49,27 @@ RANGES = (("x_m", POSITION_LIMIT, "m", "positions are metres in a local frame"),
           ("V", SPEED_LIMIT, "m/s", "no road vehicle is that fast; speeds are in m/s"))
 """(column, largest |value|, unit, why) of the physical range checks of a log."""
 _RANGE = {c: (limit, unit, why) for c, limit, unit, why in RANGES}
+
+POSITION_SIGMA_LIMIT = 1e4
+"""Largest reported 1-sigma of a position, sx_m and sy_m (m): a fix known no better than
+10 km is no GNSS fix (a receiver without one may report a sentinel such as 4295 km: leave its
+x_m, y_m empty). Unbounded, a sigma past 1.3e154 squares to inf and every estimate after the
+next fix turns NaN."""
+HEADING_SIGMA_LIMIT = 1.0
+"""Largest reported 1-sigma of a heading, spsi_m (rad): a heading known no better than 57 deg
+is none, and a first fix's variance beyond 1 rad^2 breaks the unscented filter's circular
+mean (:data:`lbo.filters.start.HEADING_VAR0`; at 1.5 rad it diverged)."""
+SPEED_SIGMA_LIMIT = SPEED_LIMIT
+"""Largest reported 1-sigma of a velocity, sv_m (m/s): the fastest speed's (a velocity gives
+a course only where it is 5 sigma, so past 20 m/s it gives none anyway)."""
+SIGMA_LIMITS = {"sx_m": (POSITION_SIGMA_LIMIT, "m"), "sy_m": (POSITION_SIGMA_LIMIT, "m"),
+                "spsi_m": (HEADING_SIGMA_LIMIT, "rad"), "sv_m": (SPEED_SIGMA_LIMIT, "m/s")}
+"""The accuracy channels of :data:`RECEIVER`: (largest 1-sigma, unit); each in (0, limit]."""
+RECEIVER_RULE = ("an accuracy comes with what it is the accuracy of (sx_m and sy_m in (0, "
+                 f"{POSITION_SIGMA_LIMIT:g}] m with x_m, y_m; spsi_m in (0, "
+                 f"{HEADING_SIGMA_LIMIT:g}] rad with psi_m), a velocity as ve_m and vn_m "
+                 f"(m/s, at most {SPEED_LIMIT:g} each) with an optional sv_m in (0, "
+                 f"{SPEED_SIGMA_LIMIT:g}] m/s")
 
 ALPHA_MAX = 100.0
 """Largest measurement-noise scale alpha (the paper's range is 0.25 .. 6; beyond 100 the
@@ -247,8 +264,9 @@ def check_receiver(m: np.ndarray, r: np.ndarray, source: str | None = None) -> N
 
     One :class:`LboError` line for the first of: inf anywhere; sx_m without sy_m (or the
     reverse); an accuracy without the fix (or heading) it is of; vn_m without ve_m (or the
-    reverse); sv_m without a velocity; a sigma not > 0; a velocity beyond 100 m/s; a yaw
-    rate beyond 10 rad/s."""
+    reverse); sv_m without a velocity; a sigma outside (0, its limit] (:data:`SIGMA_LIMITS`:
+    10 km for sx_m, sy_m, 1 rad for spsi_m, 100 m/s for sv_m); a velocity beyond 100 m/s; a
+    yaw rate beyond 10 rad/s."""
     m = np.asarray(m, dtype=float)
     r = np.asarray(r, dtype=float)
     _finite(np.where(np.isnan(r), 0.0, r), RECEIVER, source)
@@ -262,8 +280,10 @@ def check_receiver(m: np.ndarray, r: np.ndarray, source: str | None = None) -> N
         (ve & ~vn, "has ve_m without vn_m"), (vn & ~ve, "has vn_m without ve_m"),
         (sv & ~(ve & vn), "has sv_m without a velocity (ve_m, vn_m)"),
     ]
-    for c in (0, 1, 2, 5):
-        rules.append((has[:, c] & ~(np.where(has[:, c], r[:, c], 1.0) > 0), RECEIVER[c]))
+    for c in (0, 1, 2, 5):  # a 1-sigma in (0, limit]; NaN (not held) passes
+        limit = SIGMA_LIMITS[RECEIVER[c]][0]
+        sigma = np.where(has[:, c], r[:, c], 1.0)
+        rules.append((~((sigma > 0) & (sigma <= limit)), RECEIVER[c]))
     for c in (3, 4, 6):
         limit = GYRO_LIMIT if c == 6 else SPEED_LIMIT
         rules.append((np.abs(np.where(has[:, c], r[:, c], 0.0)) > limit, RECEIVER[c]))
@@ -275,7 +295,9 @@ def check_receiver(m: np.ndarray, r: np.ndarray, source: str | None = None) -> N
     if what in RECEIVER:
         c = RECEIVER.index(what)
         value = float(r[row, c])
-        what = (f"has {what}={value:g}, not a 1-sigma > 0" if c not in (3, 4, 6) else
+        limit, unit = SIGMA_LIMITS.get(what, (0.0, ""))
+        what = (f"has {what}={value:g} {unit}, not a 1-sigma in (0, {limit:g}] {unit}"
+                if c not in (3, 4, 6) else
                 f"has {what}={value:g} m/s, beyond {SPEED_LIMIT:g} m/s" if c != 6 else
                 f"has r_m={value:g} rad/s, beyond {GYRO_LIMIT:g} rad/s (a yaw rate in rad/s)")
     raise LboError(located(source, f"row {row} {what}; {RECEIVER_RULE}"))
