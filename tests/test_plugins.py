@@ -61,15 +61,25 @@ def planted(tmp_path, monkeypatch):
 @pytest.fixture
 def registered(tmp_path, monkeypatch):
     """Register entry points from a distribution planted on the import path (as pip leaves
-    one), for this test only: ``registered({"name": "mod:Cls"}, group="lbo.models")``."""
-    def plant(points: dict[str, str], group: str = "lbo.models") -> None:
-        info = tmp_path / "site" / "planted_plugin-0.1.dist-info"
+    one), for this test only: ``registered({"name": "mod:Cls"}, group="lbo.models")``.
+    ``dist`` names the distribution; ``last`` puts its folder after the installed packages'
+    on ``sys.path`` (found after them) instead of before. Each call plants a folder of its
+    own, so one distribution planted twice is found twice, as through two path entries."""
+    folders = iter(range(1000))
+    monkeypatch.setattr(plugins, "_warned", set(), raising=False)  # each test its warnings
+
+    def plant(points: dict[str, str], group: str = "lbo.models", dist: str = "planted-plugin",
+              last: bool = False) -> None:
+        site = tmp_path / f"site{next(folders)}"
+        info = site / f"{dist.replace('-', '_')}-0.1.dist-info"
         info.mkdir(parents=True)
-        (info / "METADATA").write_text("Metadata-Version: 2.1\nName: planted-plugin\n"
-                                       "Version: 0.1\n")
+        (info / "METADATA").write_text(f"Metadata-Version: 2.1\nName: {dist}\nVersion: 0.1\n")
         (info / "entry_points.txt").write_text(
             f"[{group}]\n" + "".join(f"{k} = {v}\n" for k, v in points.items()))
-        monkeypatch.syspath_prepend(str(tmp_path / "site"))
+        if last:
+            monkeypatch.setattr(sys, "path", [*sys.path, str(site)])
+        else:
+            monkeypatch.syspath_prepend(str(site))
         plugins._entry_points.cache_clear()
 
     yield plant
@@ -175,6 +185,93 @@ def test_a_checkpoint_never_imports_a_module_it_names(planted, tmp_path, name):
     assert "planted_evil" not in sys.modules
     assert not planted.exists()
     assert not (tmp_path / "exp").exists()
+
+
+@pytest.mark.parametrize("provider, hint", [
+    ({"package": "evil; rm -rf ~", "version": "1.2"},
+     "the provider its file records, 'evil; rm -rf ~', is not a package name; install the "
+     "package that registers it under the entry-point group lbo.models"),
+    ({"package": "$(touch pwned)\nx"},
+     "the provider its file records, '$(touch pwned)\\nx', is not a package name; install "
+     "the package that registers it under the entry-point group lbo.models"),
+    ({"package": "lbo-absent-plugin", "version": "1.2 && curl x"},
+     "it was provided by lbo-absent-plugin: pip install lbo-absent-plugin"),
+])
+def test_a_checkpoints_recorded_provider_is_data_not_a_command(tmp_path, provider, hint):
+    """The provider a checkpoint records is read from a file: it is put in ``pip install``
+    advice only if it is a distribution's name (PEP 508), quoted, and its version only if it
+    is one; any other gets no advice, shown as a Python literal in the one line."""
+    path = _checkpoint(tmp_path / "odd.ckpt", "absent_gru", provider)
+    with pytest.raises(LboError) as err:
+        read_checkpoint(path)
+    assert str(err.value) == (f"checkpoint {path}: model.name: model 'absent_gru' is not "
+                              f"installed ({hint}); installed: {', '.join(model_names())}")
+
+
+# ----------------------------------------------------------- one name, two distributions
+
+
+@pytest.mark.parametrize("last", [False, True], ids=["found-first", "found-last"])
+@pytest.mark.parametrize("kind, own, field", [("model", "cnn", "model.name"),
+                                              ("observer", "ekf", "observer"),
+                                              ("truth", "kinematic", "car.name")])
+def test_lbos_own_name_registered_by_another_package_stays_lbos_and_says_so(
+        registered, planted, capsys, kind, own, field, last):
+    """Whichever of the two is found first, lbo's own name is lbo's: the other package's
+    entry point is ignored (its module never imported) and named once, in one line."""
+    group = plugins.GROUPS[kind]
+    lbos = plugins.load(kind, own, field)
+    registered({own: "planted_evil:Evil"}, group=group, last=last)
+    assert plugins.load(kind, own, field) is lbos
+    assert plugins.load(kind, own, field) is lbos  # said once a process
+    assert plugins.provider(kind, own)["package"] == "lbo"
+    assert plugins.names(kind).count(own) == 1
+    assert capsys.readouterr().err.splitlines() == [
+        f"warning: {field}: {kind} '{own}' is lbo's own; the entry point of planted-plugin 0.1 "
+        f"(planted_evil:Evil) registered under that name in {group} is ignored (lbo's own "
+        "names always belong to lbo; rename it there)"]
+    assert "planted_evil" not in sys.modules and not planted.exists()
+
+
+@pytest.mark.parametrize("kind, field", [("model", "model.name"), ("observer", "observer"),
+                                         ("truth", "car.name")])
+def test_a_name_two_packages_register_is_refused_naming_both_when_used(
+        registered, planted, kind, field):
+    """Neither wins by the order of a directory listing: using the name is one line naming
+    both packages, nothing of either imported; the other names load as before."""
+    group = plugins.GROUPS[kind]
+    registered({"twin": "planted_evil:Evil"}, group=group, dist="plugin-a")
+    registered({"twin": "planted_evil:Other"}, group=group, dist="plugin-b", last=True)
+    assert plugins.names(kind).count("twin") == 1
+    with pytest.raises(LboError) as err:
+        plugins.load(kind, "twin", field)
+    assert str(err.value) == (
+        f"{field}: {kind} 'twin' is registered by 2 packages, plugin-a 0.1 (planted_evil:Evil)"
+        f" and plugin-b 0.1 (planted_evil:Other), under the entry-point group {group}; "
+        "uninstall all but one (none of them was imported)")
+    with pytest.raises(LboError, match=rf"^{field}: {kind} 'twin' is registered by 2 "):
+        plugins.provider(kind, "twin")  # what a checkpoint would record: the same rule
+    unrelated = {"model": EXAMPLE, "observer": "my_blend", "truth": "linear_car"}[kind]
+    assert plugins.load(kind, unrelated, field).__name__ in ("WindowGRU", "BlendFilter",
+                                                             "LinearCar")
+    assert plugins.load(kind, plugins.OWN[kind][0], field) is not None
+    assert "planted_evil" not in sys.modules and not planted.exists()
+
+
+def test_one_distribution_found_twice_is_no_clash(registered, tmp_path, monkeypatch, capsys):
+    """An editable install seen through two ``sys.path`` entries registers its names once."""
+    mod = tmp_path / "mods"
+    mod.mkdir()
+    (mod / "solo_net.py").write_text("from torch import nn\n\nclass Solo(nn.Module):\n"
+                                     "    def __init__(self, window):\n"
+                                     "        super().__init__()\n")
+    monkeypatch.syspath_prepend(str(mod))
+    registered({"solo": "solo_net:Solo", "cnn": "solo_net:Solo"}, dist="twice-found")
+    registered({"solo": "solo_net:Solo", "cnn": "solo_net:Solo"}, dist="twice_found", last=True)
+    assert model_class("solo").__name__ == "Solo"
+    assert plugins.provider("model", "solo") == {"package": "twice-found", "version": "0.1"}
+    assert model_class("cnn").__name__ == "WindowCNN"
+    assert capsys.readouterr().err.count("warning: ") == 1  # its cnn named once, not twice
 
 
 def test_tunes_training_line_keeps_the_studys_search_path(tmp_path):
