@@ -32,7 +32,7 @@ def kept(robust_smoke, tmp_path_factory):
         mp.setenv("LBO_CACHE_DIR", str(cache))
         checkpoint = robust_smoke["out"]["checkpoint"]
         assert exported.find(checkpoint) is None
-        folder = exported.keep(*read_checkpoint(checkpoint), checkpoint)
+        folder = exported.keep(read_checkpoint(checkpoint)[0], checkpoint)
         assert folder == exported.folder(checkpoint)
         assert sorted(p.name for p in folder.iterdir()) == ["coast.onnx", "observer.json",
                                                             "step.onnx"]
@@ -143,16 +143,96 @@ def test_a_changed_checkpoint_or_a_half_kept_folder_runs_in_pytorch(cache, tmp_p
     assert exported.find(tmp_path / "copy.ckpt") is not None
 
 
-def test_settings_that_do_not_fit_json_are_one_line_and_keep_nothing(cache, tmp_path):
-    ckpt = torch.load(cache["checkpoint"], map_location="cpu", weights_only=True)
-    ckpt["epoch"] = ckpt.get("epoch", 0) + 2
-    other = tmp_path / "other.ckpt"
-    torch.save(ckpt, other)
-    net, hp = read_checkpoint(other)
-    with pytest.raises(LboError, match=r"its settings do not fit JSON \(.*not JSON serial"):
-        exported.keep(net, {**hp, "plug_in": {1, 2}}, other)
-    assert not exported.folder(other).exists()
-    assert not [p for p in exported.folder(other).parent.iterdir() if p.name.startswith(".")]
+@pytest.fixture
+def copy(cache, tmp_path):
+    """A copy of the checkpoint (the same bytes: its graphs are the kept ones) whose kept
+    folder this test may damage; the folder is restored afterwards, from what it held."""
+    path = tmp_path / "copy.ckpt"
+    path.write_bytes(open(cache["checkpoint"], "rb").read())
+    folder = exported.folder(path)
+    saved = {p.name: p.read_bytes() for p in folder.iterdir()}
+    yield {"checkpoint": path, "folder": folder, "files": saved}
+    exported.discard(folder)
+    folder.mkdir()
+    for name, data in saved.items():
+        (folder / name).write_bytes(data)
+
+
+def test_the_kept_folder_holds_no_hyperparameters_they_are_the_checkpoints(cache):
+    """The vehicle, noise and envelope an observer is told come from the checkpoint itself,
+    read without torch, equal to what PyTorch reads; the kept folder holds only the graphs,
+    their digests and the net's flags."""
+    info = json.loads((cache["folder"] / "observer.json").read_text())
+    assert sorted(info) == ["coast_limit", "files", "format", "net", "state"]
+    net, hp = exported.find(cache["checkpoint"])
+    assert hp == read_checkpoint(cache["checkpoint"])[1]
+
+
+def test_settings_written_into_the_kept_folder_are_not_read(copy, log):
+    """Widening the envelope (or the vehicle, or the noise) in the kept ``observer.json``
+    silenced the envelope check with engine=auto: they are read from the checkpoint."""
+    ref = Observer.load(copy["checkpoint"], engine="torch")
+    info = json.loads(copy["files"]["observer.json"])
+    _, hp = read_checkpoint(copy["checkpoint"])
+    meta = hp["meta"]
+    forged = {**hp, "meta": {**meta, "envelope": {**meta["envelope"], "speed": [0, 1000]},
+                             "vehicle": {**meta["vehicle"], "wheelbase": 9.0}}}
+    (copy["folder"] / "observer.json").write_text(json.dumps({**info, "hparams": forged}))
+    obs = Observer.load(copy["checkpoint"], engine="auto")
+    assert obs.engine == "onnx"
+    assert obs.envelope == ref.envelope and obs.vehicle == ref.vehicle
+    fast = log.assign(V=39.0)
+    m, u = fast[["x_m", "y_m", "psi_m"]].to_numpy(), fast[["V", "delta"]].to_numpy()
+    with pytest.warns(UserWarning, match="outside the trained speed"):
+        obs.run(m, u)
+
+
+def _damage(copy, damage: str) -> None:
+    folder = copy["folder"]
+    if damage == "step cut short":
+        (folder / "step.onnx").write_bytes(copy["files"]["step.onnx"][:1000])
+    elif damage == "coast empty":
+        (folder / "coast.onnx").write_bytes(b"")
+    elif damage == "coast as step":
+        (folder / "step.onnx").write_bytes(copy["files"]["coast.onnx"])
+    else:  # the digest listed for a graph edited
+        info = json.loads(copy["files"]["observer.json"])
+        info["files"]["step.onnx"] = "0" * 64
+        (folder / "observer.json").write_text(json.dumps(info))
+
+
+@pytest.mark.parametrize("damage", ["step cut short", "coast empty", "coast as step",
+                                    "digest edited"])
+def test_a_damaged_kept_folder_is_said_and_runs_in_pytorch(copy, log, damage):
+    """A graph cut short or emptied failed every later run with ONNX Runtime's traceback;
+    one swapped for the other ran the wrong graph (NRMSE 7.26 for 1.75). Each fails the
+    digest kept beside the graphs, as does a listed digest edited: ``auto`` says so in one
+    warning, removes the folder and runs PyTorch, with PyTorch's numbers."""
+    _damage(copy, damage)
+    assert exported.find(copy["checkpoint"]) is None
+    ref = _run(Observer.load(copy["checkpoint"], engine="torch"), log)
+    with pytest.warns(exported.KeptGraphsWarning, match=r"^kept ONNX graphs .*; removed them, "
+                      r"running it in PyTorch"):
+        obs = Observer.load(copy["checkpoint"], engine="auto")
+    assert obs.engine == "torch" and not copy["folder"].exists()
+    for got, want in zip(_run(obs, log), ref):
+        np.testing.assert_array_equal(got, want)
+
+
+def test_engine_onnx_exports_a_damaged_kept_folder_afresh(copy, log):
+    """``engine=onnx`` on a folder that fails its check exports the graphs again and keeps
+    them; the next ``auto`` runs them, with PyTorch's numbers."""
+    _damage(copy, "step cut short")
+    with pytest.warns(exported.KeptGraphsWarning, match="exporting them afresh"):
+        obs = Observer.load(copy["checkpoint"], engine="onnx")
+    assert isinstance(obs.net, exported.ExportedNet)
+    assert exported.find(copy["checkpoint"]) is not None
+    obs = Observer.load(copy["checkpoint"], engine="auto")
+    assert obs.engine == "onnx"
+    est, ok, _ = _run(obs, log)
+    ref, ok_ref, _ = _run(Observer.load(copy["checkpoint"], engine="torch"), log)
+    np.testing.assert_array_equal(ok, ok_ref)
+    np.testing.assert_allclose(est[ok], ref[ok], rtol=0, atol=TOLERANCE)
 
 
 def test_what_the_kept_graphs_refuse_is_said_in_one_line(cache, log):
@@ -175,7 +255,7 @@ def test_training_keeps_the_graphs_of_the_robust_observer_only(tmp_path, smoke_d
     calls: list[str] = []
     for run in "abc":
         (tmp_path / run).mkdir()
-    monkeypatch.setattr(exported, "keep", lambda net, hp, path: calls.append(path) or tmp_path)
+    monkeypatch.setattr(exported, "keep", lambda net, path: calls.append(path) or tmp_path)
     _, out, _ = train_in_own_store(tmp_path / "a", smoke_data, *ROBUST_SMOKE, "keep_onnx=true",
                                    "trainer.limit_train_batches=2", "window=40",
                                    "batch_size=64")

@@ -336,14 +336,14 @@ def _keep_graphs(checkpoint: str) -> None:
     from lbo.serve import exported
     from lbo.serve.runners import default_form, is_window_filter
 
-    net, hp = read_checkpoint(checkpoint)
+    net, _ = read_checkpoint(checkpoint)
     if not is_window_filter(net) or default_form(net) != "recursive":
         return
     print("keeping its recursive form as ONNX graphs, so that lbo.observe runs it without "
           "torch (about 20 s) ...", flush=True)
     start = time.perf_counter()
     try:
-        kept = exported.keep(net, hp, checkpoint)
+        kept = exported.keep(net, checkpoint)
     except (LboError, OSError) as e:
         print(f"not kept ({e}); lbo.observe runs it in PyTorch")
         return

@@ -9,7 +9,10 @@ file names is ever imported.
 
 from __future__ import annotations
 
+import collections
 import os
+import pickle
+import zipfile
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -89,6 +92,51 @@ def read_checkpoint(path: str | os.PathLike, features: str | None = None,
         raise LboError(f"checkpoint {path}: its weights hold NaN or inf ({bad}: training "
                        "diverged?); retrain it, e.g. with a smaller optimizer.lr")
     return net.to(device).eval(), hp
+
+
+class _Tensor:
+    """Stands in for a tensor (or its storage) where :func:`hyperparameters` reads a
+    checkpoint without torch: the weights are not read there."""
+
+    def __init__(self, *_: Any) -> None:
+        pass
+
+
+class _Hyperparameters(pickle.Unpickler):
+    """Unpickles a checkpoint's ``data.pkl`` building nothing but plain containers: the names
+    it may refer to map to :class:`_Tensor` or ``OrderedDict``, and any other raises, so no
+    code a file names runs (the same allowance as ``torch.load(weights_only=True)``, less)."""
+
+    def find_class(self, module: str, name: str) -> Any:
+        if (module, name) == ("collections", "OrderedDict"):
+            return collections.OrderedDict
+        if (module == "torch._utils" and name.startswith("_rebuild_")) or (
+                module == "torch" and name.endswith("Storage")):
+            return _Tensor
+        raise pickle.UnpicklingError(f"{module}.{name} is not a plain container")
+
+    def persistent_load(self, pid: Any) -> Any:
+        return _Tensor()
+
+
+def hyperparameters(path: str | os.PathLike) -> dict[str, Any] | None:
+    """The hyperparameters stored in an ``lbo.train`` checkpoint (its ``hyper_parameters``,
+    with the vehicle, noise and training envelope in ``meta``), read without torch: from the
+    zip's pickle of plain containers, tensors left out (:class:`_Hyperparameters`). None
+    where the file is not such a checkpoint, or holds anything else;
+    :func:`read_checkpoint` then says why in one line."""
+    try:
+        with zipfile.ZipFile(path) as z:
+            pkl = [n for n in z.namelist() if n.endswith("/data.pkl") or n == "data.pkl"]
+            if len(pkl) != 1:
+                return None
+            with z.open(pkl[0]) as f:
+                ckpt = _Hyperparameters(f).load()
+    except (OSError, zipfile.BadZipFile, pickle.UnpicklingError, EOFError, ValueError,
+            TypeError, AttributeError, IndexError, KeyError, MemoryError, RecursionError):
+        return None
+    hp = ckpt.get("hyper_parameters") if isinstance(ckpt, dict) else None
+    return hp if isinstance(hp, dict) else None
 
 
 def check_features(path: str | os.PathLike, mode: Any, features: str | None) -> None:

@@ -25,6 +25,7 @@ import json
 import os
 import shutil
 import tempfile
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -33,11 +34,13 @@ import numpy as np
 from lbo.core import sources
 from lbo.core.errors import LboError
 from lbo.core.paths import cache_dir
+from lbo.models.checkpoint import hyperparameters
 from lbo.serve.engines import OPSET, Coast, RecursiveStep, chunked, onnx_session, onnx_step
 from lbo.serve.onnx_cache import SOURCES, version
 
-FORMAT = 1
-"""The layout of a kept folder (``observer.json``'s ``format``)."""
+FORMAT = 2
+"""The layout of a kept folder (``observer.json``'s ``format``); 2: each graph's digest kept,
+the hyperparameters read from the checkpoint."""
 _VERSIONS = ("torch", "onnxscript", "onnxruntime")
 """The packages whose versions make or read the graphs."""
 
@@ -76,11 +79,11 @@ class ExportedNet:
         has seen nothing, and the coast over rows without a measurement (None where the
         filter does not coast): as :func:`lbo.serve.engines.make_recursive_step` gives."""
         names = tuple(name for name, _ in self.state)
-        step = onnx_step(onnx_session(self.folder / "step.onnx", threads=1), names)
+        step = onnx_step(self._session("step.onnx"), names)
         state0 = [np.zeros(shape) for _, shape in self.state]
         if not self.coast_limit:
             return step, state0, None
-        session = onnx_session(self.folder / "coast.onnx", threads=1)
+        session = self._session("coast.onnx")
         inputs = [i.name for i in session.get_inputs()]
 
         def coast(u: np.ndarray, st: list) -> tuple:
@@ -89,6 +92,16 @@ class ExportedNet:
             return pose, cov, st
 
         return step, state0, chunked(coast, self.coast_limit)
+
+    def _session(self, file: str) -> Any:
+        """A one-thread ONNX Runtime session of a kept graph; one line where ONNX Runtime
+        refuses it (its digest held: the graph was made by another ONNX Runtime?)."""
+        try:
+            return onnx_session(self.folder / file, threads=1)
+        except Exception as e:  # noqa: BLE001  # ONNX Runtime's errors share no base
+            raise DamagedGraphs(f"kept ONNX graphs {self.folder}: ONNX Runtime refuses {file} "
+                                f"({str(e).strip().splitlines()[0][:200]}); delete the folder, "
+                                "or run with engine=torch") from None
 
 
 def key(checkpoint: str | os.PathLike) -> str:
@@ -107,63 +120,144 @@ def folder(checkpoint: str | os.PathLike) -> Path:
     return cache_dir() / "onnx" / f"observer-{key(checkpoint)}"
 
 
+class DamagedGraphs(LboError):
+    """A kept folder that fails its check: unreadable, of another layout, a graph missing or
+    not the bytes its digest names, or settings the checkpoint does not hold."""
+
+
+class KeptGraphsWarning(UserWarning):
+    """The kept graphs of a checkpoint were damaged: the observer runs without them."""
+
+
 def find(checkpoint: str | os.PathLike) -> tuple[ExportedNet, dict[str, Any]] | None:
     """The kept graphs of ``checkpoint`` as an :class:`ExportedNet`, and the checkpoint's
-    hyperparameters; None where none are kept (or they cannot be read)."""
-    return _read(folder(checkpoint))
-
-
-def _read(where: Path) -> tuple[ExportedNet, dict[str, Any]] | None:
-    """:func:`find`'s answer for the folder ``where``."""
+    hyperparameters; None where none are kept, where the kept folder fails its check
+    (:class:`DamagedGraphs`) or where the checkpoint cannot be read without torch."""
     try:
-        info = json.loads((where / "observer.json").read_text())
-        if info.get("format") != FORMAT or not all(
-                (where / f).is_file() for f in ("step.onnx", *(("coast.onnx",)
-                                                               if info["coast_limit"] else ()))):
-            return None
-        net = ExportedNet(**{**info["net"], "net": ExportedFilter(**info["net"]["net"]),
-                             "folder": where,
-                             "state": tuple((n, tuple(s)) for n, s in info["state"]),
-                             "coast_limit": int(info["coast_limit"])})
-        return net, info["hparams"]
-    except (OSError, ValueError, KeyError, TypeError):
+        return _find(checkpoint)
+    except DamagedGraphs:
         return None
 
 
-def keep(net: Any, hp: dict[str, Any], checkpoint: str | os.PathLike) -> Path:
+def _find(checkpoint: str | os.PathLike) -> tuple[ExportedNet, dict[str, Any]] | None:
+    """:func:`find`, raising :class:`DamagedGraphs` for a kept folder that fails its check.
+    The hyperparameters are read from the checkpoint itself, without torch
+    (:func:`lbo.models.checkpoint.hyperparameters`): the vehicle, noise and training
+    envelope an observer is told are never the cache's."""
+    where = folder(checkpoint)
+    if not where.exists():
+        return None
+    hp = hyperparameters(checkpoint)
+    if hp is None:  # read_checkpoint says why, in PyTorch
+        return None
+    return _read(where, hp), hp
+
+
+def load(checkpoint: str | os.PathLike, engine: str) -> tuple[ExportedNet, dict[str, Any]] | None:
+    """:func:`find`'s answer for ``Observer.load`` on ``engine`` (``auto`` or ``onnx``); a
+    folder that fails its check is removed and said (:class:`KeptGraphsWarning`): ``auto``
+    then runs the observer in PyTorch, ``onnx`` exports its graphs afresh and keeps them
+    (torch, about 20 s)."""
+    try:
+        return _find(checkpoint)
+    except DamagedGraphs as e:
+        discard(folder(checkpoint))
+        then = ("running it in PyTorch (engine=onnx exports them afresh)" if engine == "auto"
+                else "exporting them afresh (about 20 s)")
+        warnings.warn(f"{e}; removed them, {then}", KeptGraphsWarning, stacklevel=3)
+        if engine == "auto":
+            return None
+    from lbo.models.checkpoint import read_checkpoint  # torch: the export needs it
+
+    keep(read_checkpoint(checkpoint)[0], checkpoint)
+    return _find(checkpoint)
+
+
+def discard(where: Path) -> None:
+    """Remove a kept folder: renamed aside first, so that a folder kept afresh meanwhile
+    under the same name is never the one removed."""
+    aside = where.with_name(f".{where.name}.{os.getpid()}.removed")
+    try:
+        os.replace(where, aside)
+    except OSError:
+        return
+    shutil.rmtree(aside, ignore_errors=True)
+
+
+def digest(path: Path) -> str:
+    """The SHA-256 of a file's bytes, in hex."""
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def _read(where: Path, hp: dict[str, Any]) -> ExportedNet:
+    """The :class:`ExportedNet` kept in the folder ``where`` for a checkpoint of
+    hyperparameters ``hp``; raises :class:`DamagedGraphs` naming what fails."""
+    name = f"kept ONNX graphs {where}"
+    try:
+        info = json.loads((where / "observer.json").read_text())
+    except (OSError, ValueError) as e:
+        raise DamagedGraphs(f"{name}: observer.json unreadable ({e})") from None
+    if not isinstance(info, dict) or info.get("format") != FORMAT:
+        raise DamagedGraphs(f"{name}: observer.json is not of format {FORMAT}")
+    try:
+        files = dict(info["files"])
+        if set(files) != {"step.onnx", *(("coast.onnx",) if info["coast_limit"] else ())}:
+            raise DamagedGraphs(f"{name}: observer.json names the graphs {sorted(files)}")
+        for file, expected in files.items():
+            try:
+                got = digest(where / file)
+            except OSError as e:
+                raise DamagedGraphs(f"{name}: {file} unreadable ({e.strerror})") from None
+            if got != expected:
+                raise DamagedGraphs(f"{name}: {file} is not the graph kept (its SHA-256 "
+                                    f"{got[:12]}..., kept as {str(expected)[:12]}...)")
+        model = hp["model"]["name"]
+        return ExportedNet(model=str(model), window=int(hp["window"]),
+                           features=str(hp["features"]), fixes=bool(hp.get("fixes", False)),
+                           receiver=bool(hp.get("receiver", False)),
+                           carried=hp.get("tbptt") is not None,
+                           net=ExportedFilter(**info["net"]), folder=where,
+                           state=tuple((str(n), tuple(int(d) for d in s))
+                                       for n, s in info["state"]),
+                           coast_limit=int(info["coast_limit"]))
+    except (KeyError, TypeError, ValueError) as e:
+        raise DamagedGraphs(f"{name}: observer.json or the checkpoint's settings "
+                            f"unreadable ({type(e).__name__}: {e})") from None
+
+
+def keep(net: Any, checkpoint: str | os.PathLike) -> Path:
     """Export the recursive form of ``net`` (a window filter's
-    :class:`~lbo.models.net.WindowNet`, read from ``checkpoint`` with its hyperparameters
-    ``hp``) and keep it for :func:`find`; returns the folder. Needs torch; raises
-    :class:`~lbo.core.errors.LboError` where the model does not export."""
+    :class:`~lbo.models.net.WindowNet`, read from ``checkpoint``) and keep it for
+    :func:`find`, replacing a folder that fails its check; returns the folder. Needs torch;
+    raises :class:`~lbo.core.errors.LboError` where the model does not export."""
     from lbo.models.recursive import STATE_NAMES, RecursiveFilter
     from lbo.serve.engines import recursive_onnx_bytes
 
     target = folder(checkpoint)
-    if _read(target) is not None:
-        return target
+    try:
+        if _find(checkpoint) is not None:
+            return target
+    except DamagedGraphs:
+        discard(target)
     rec = RecursiveFilter(net.net.cpu()).eval()
     inner = net.net
-    info = {"format": FORMAT, "hparams": hp, "coast_limit": rec.coast_limit if rec.coasts else 0,
-            "state": [[n, list(s.shape)] for n, s in zip(STATE_NAMES, rec.initial_state(1))],
-            "net": {"model": net.model, "window": int(net.window), "features": net.features,
-                    "fixes": bool(net.fixes), "receiver": bool(net.receiver),
-                    "carried": bool(getattr(net, "carried", False)),
-                    "net": {"gyro": bool(inner.gyro), "residual": int(inner.residual),
-                            "drift": bool(inner.drift),
-                            "single_track": bool(inner.single_track)}}}
-    try:
-        described = json.dumps(info, indent=1)
-    except (TypeError, ValueError) as e:  # a plug-in's setting of a type JSON has not
-        raise LboError(f"checkpoint {checkpoint}: its settings do not fit JSON ({e})") from None
     graphs = {"step.onnx": recursive_onnx_bytes(rec)}
     if rec.coasts:
         graphs["coast.onnx"] = _coast_bytes(rec)
+    # only what the checkpoint's hyperparameters do not hold, and each graph's digest:
+    # whatever an observer is told about its training (vehicle, noise, envelope) is read
+    # from the checkpoint itself (find)
+    info = {"format": FORMAT, "coast_limit": rec.coast_limit if rec.coasts else 0,
+            "state": [[n, list(s.shape)] for n, s in zip(STATE_NAMES, rec.initial_state(1))],
+            "net": {"gyro": bool(inner.gyro), "residual": int(inner.residual),
+                    "drift": bool(inner.drift), "single_track": bool(inner.single_track)},
+            "files": {name: hashlib.sha256(data).hexdigest() for name, data in graphs.items()}}
     target.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{target.name}.", dir=target.parent))
     try:
         for name, data in graphs.items():
             (tmp / name).write_bytes(data)
-        (tmp / "observer.json").write_text(described)
+        (tmp / "observer.json").write_text(json.dumps(info, indent=1))
         os.replace(tmp, target)  # whole, or not at all
     except OSError:
         if not target.is_dir():

@@ -219,7 +219,7 @@ class Observer:
             classical.check(source)  # pcrb: a bound, not an observer
             return cls(source, vehicle, noise, alpha=alpha, gyro_noise=gyro_noise)
         with checkpoint_file(source) as path:
-            found = (exported.find(path) if engine in ("auto", "onnx") and form in (
+            found = (exported.load(path, engine) if engine in ("auto", "onnx") and form in (
                 None, "recursive") and device == "cpu" else None)  # graphs: without torch
             if found is not None:  # read_checkpoint checks the features itself
                 checkpoint.check_features(path, found[0].features, features)
