@@ -6,6 +6,7 @@ refused in one line when it is missing, and never importing what they name."""
 
 from __future__ import annotations
 
+import re
 import sys
 import textwrap
 from pathlib import Path
@@ -272,6 +273,68 @@ def test_one_distribution_found_twice_is_no_clash(registered, tmp_path, monkeypa
     assert plugins.provider("model", "solo") == {"package": "twice-found", "version": "0.1"}
     assert model_class("cnn").__name__ == "WindowCNN"
     assert capsys.readouterr().err.count("warning: ") == 1  # its cnn named once, not twice
+
+
+# ------------------------------------------------------- the contract, on one batch first
+
+
+_BROKEN = {
+    "flat": ("class Net(nn.Module):\n"
+             "    def __init__(self, window, in_features=5):\n"
+             "        super().__init__()\n"
+             "        self.head = nn.Linear(in_features, 2)\n\n"
+             "    def forward(self, x):  # (B, N, C) -> (B, 2): one state short\n"
+             "        return self.head(x).mean(1)\n",
+             r"model: model 'flat' gives an output of shape \(128, 2\) on a batch of windows "
+             r"\(128, 20, 5\); expected \(128, 3\) \(the state x, y, psi of each window; "
+             r"docs/plugins.md\)"),
+    "wide": ("class Net(nn.Module):\n"
+             "    def __init__(self, window, in_features=5):\n"
+             "        super().__init__()\n"
+             "        self.head = nn.Linear(7, 3)  # reads 7 features, is given 5\n\n"
+             "    def forward(self, x):\n"
+             "        return self.head(x[:, -1])\n",
+             r"model: model 'wide' fails on a batch of windows \(128, 20, 5\) \(RuntimeError: "
+             r"mat1 and mat2 shapes cannot be multiplied [^\n]*\); expected an output of shape "
+             r"\(128, 3\) \(docs/plugins.md\)"),
+}
+
+
+def _plug_in_cfg(tmp_path: Path, name: str, command: str = "train"):
+    """A smoke training (or tuning) config of plug-in model ``name``, with the settings every
+    model has only; its data and output folders under ``tmp_path``."""
+    from omegaconf import open_dict
+
+    from helpers import compose_cfg
+    from lbo.core.cli import MODEL_SHORT
+
+    cfg = compose_cfg(command, ["experiment=smoke", f"data.root={tmp_path / 'data'}",
+                                f"output_dir={tmp_path / 'out'}"])
+    with open_dict(cfg):
+        cfg.model = {"name": name, **{k: cfg.model[k] for k in MODEL_SHORT}}
+    return cfg
+
+
+@pytest.mark.parametrize("name", list(_BROKEN))
+def test_a_plug_in_breaking_the_output_contract_is_refused_before_any_run(
+        registered, tmp_path, monkeypatch, tracking, name):
+    """A model whose output is (B, 2), or that fails on the windows it is given, is refused
+    on one batch of the training's shape, in one line naming the model and the shapes,
+    by lbo.train and lbo.tune alike: no data set, output folder or MLflow store is made."""
+    from lbo.train import train
+    from lbo.tune import check_tune
+
+    mod = tmp_path / "mods"
+    mod.mkdir()
+    (mod / f"{name}_net.py").write_text("from torch import nn\n\n\n" + _BROKEN[name][0])
+    monkeypatch.syspath_prepend(str(mod))
+    registered({name: f"{name}_net:Net"})
+    for command, run in (("train", train), ("tune", check_tune)):
+        with pytest.raises(LboError) as err:
+            run(_plug_in_cfg(tmp_path, name, command))
+        assert re.fullmatch(_BROKEN[name][1], str(err.value)), str(err.value)
+    assert not any(p.exists() for p in (tmp_path / "out", tmp_path / "data",
+                                        tmp_path / "mlflow.db"))
 
 
 def test_tunes_training_line_keeps_the_studys_search_path(tmp_path):

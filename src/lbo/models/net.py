@@ -89,8 +89,8 @@ class WindowNet(nn.Module):
                 and 1 <= window <= MAX_WINDOW):
             raise LboError(f"window: expected an integer number of steps in [1, {MAX_WINDOW}], "
                            f"got {window!r}")
-        self.window = int(window)
-        self.model = model  # its registered name: an observer of it is named <model>-N<window>
+        self.window: int = int(window)
+        self.model: str = model  # its registered name: an observer of it is named <model>-N<window>
         self.fixes: bool = bool(fixes)
         self.receiver: bool = bool(receiver)
         if self.receiver and self.features != "frame":
@@ -198,14 +198,51 @@ class WindowNet(nn.Module):
         ``anchor`` as :meth:`inputs` takes it."""
         if anchor is None:
             anchor = self.anchor(win)
-        x = self.inputs(win, anchor)
+        out = self._run_model(self.inputs(win, anchor), anchor).to(win.dtype)
+        return out if self.physical else out * self.out_std + self.out_mean
+
+    def _run_model(self, x: torch.Tensor, anchor: torch.Tensor) -> Any:
+        """The model's own output for the features x (B, N, C) of windows anchored at
+        ``anchor`` (B, 3): (B, 3) by its contract, normalised unless it is ``physical``."""
         net_dtype = next(self.net.parameters()).dtype
         if self.physical:  # the model works in metres and radians itself
             if self.anchor_heading:  # it turns world-axes accuracies into the anchor's frame
-                return self.net(x.to(net_dtype), anchor[..., 2].to(net_dtype)).to(win.dtype)
-            return self.net(x.to(net_dtype)).to(win.dtype)
-        out = self.net(((x - self.in_mean) / self.in_std).to(net_dtype)).to(win.dtype)
-        return out * self.out_std + self.out_mean
+                return self.net(x.to(net_dtype), anchor[..., 2].to(net_dtype))
+            return self.net(x.to(net_dtype))
+        return self.net(((x - self.in_mean) / self.in_std).to(net_dtype))
+
+    def check_output(self, batch: int) -> None:
+        """Run the model once on a batch of ``batch`` windows of the shape training gives it
+        (raw windows (batch, N, 5) drawn at random, their features (batch, N, C)) and refuse,
+        in one line naming the model and the shapes, an output that is not a (batch, 3)
+        tensor or a model that fails on them. A plug-in's contract (docs/plugins.md) is so
+        checked before any run or folder exists, not first met as a traceback inside a
+        training step. Run in eval mode without gradients (no batch statistics move) and with
+        a generator of its own (the global random state, which seeds the run, is left as it
+        was)."""
+        draw = torch.Generator().manual_seed(0)
+        win = torch.randn(batch, self.window, 5, generator=draw, dtype=torch.float64)
+        anchor = self.anchor(win)
+        x = self.inputs(win, anchor)
+        expected = (batch, 3)
+        training = self.net.training
+        self.net.eval()
+        try:
+            with torch.no_grad():
+                out = self._run_model(x, anchor)
+        except Exception as e:  # the plug-in's own failure on the contract's input: one line
+            why = " ".join(str(e).split())[:300]
+            raise LboError(f"model: model {self.model!r} fails on a batch of windows "
+                           f"{tuple(x.shape)} ({type(e).__name__}: {why}); expected an output "
+                           f"of shape {expected} (docs/plugins.md)") from None
+        finally:
+            self.net.train(training)
+        got = (f"shape {tuple(out.shape)}" if isinstance(out, torch.Tensor)
+               else f"type {type(out).__name__}")
+        if got != f"shape {expected}":
+            raise LboError(f"model: model {self.model!r} gives an output of {got} on a batch "
+                           f"of windows {tuple(x.shape)}; expected {expected} (the state x, y, "
+                           "psi of each window; docs/plugins.md)")
 
     def forward(self, win: torch.Tensor) -> torch.Tensor:
         """Estimated state ``[x, y, psi]`` at each window's last step. (B, N, 5) -> (B, 3)."""
