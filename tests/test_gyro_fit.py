@@ -6,8 +6,10 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import os
 import subprocess
 import sys
+import threading
 
 import numpy as np
 import pandas as pd
@@ -15,7 +17,7 @@ import pytest
 import torch
 
 from lbo.core.errors import LboError
-from lbo.filters.gyro import GyroNoise
+from lbo.filters.gyro import NOISE_RANGES, GyroNoise
 from lbo.learn import gyro_fit
 from lbo.models.gyro_filter import GyroFilter
 from lbo.scoring.receiver import scored_rows
@@ -116,14 +118,14 @@ def test_the_learned_noise_steps_as_it_runs_in_an_observer(log):
 
 
 def test_gyro_noise_is_checked_saved_and_read_back(tmp_path):
-    with pytest.raises(LboError, match=r"^gyro noise course_lever: expected a number > 0, "
-                                       r"got -1\.0$"):
+    with pytest.raises(LboError, match=r"^gyro noise course_lever: expected a number in "
+                                       r"\[1e-12, 100\] \(m\), got -1\.0$"):
         dataclasses.replace(START, course_lever=-1.0)
     OTHER.save(tmp_path / "noise.json")
     assert GyroNoise.load(tmp_path / "noise.json") == OTHER
     (tmp_path / "bad.json").write_text(json.dumps({"q_position": 0.1}))
-    with pytest.raises(LboError, match=r"^gyro noise .*bad\.json: expected a JSON object with "
-                                       r"exactly accuracy_scale, bias_walk, "):
+    with pytest.raises(LboError, match=r"^gyro noise .*bad\.json: expected a JSON object of "
+                                       r"numbers with exactly accuracy_scale, bias_walk, "):
         GyroNoise.load(tmp_path / "bad.json")
     (tmp_path / "broken.json").write_text("{")
     with pytest.raises(LboError, match=r"^gyro noise .*broken\.json: not a readable JSON file"):
@@ -133,6 +135,79 @@ def test_gyro_noise_is_checked_saved_and_read_back(tmp_path):
         Observer.load("ekf", gyro_noise=OTHER)
     with pytest.raises(LboError, match="single-antenna logs: psi_m must be empty"):
         gyro_fit.segments(_log(3, 10.0).assign(psi_m=0.0), START, VEHICLE, R, 100)
+
+
+@pytest.mark.parametrize("field, value, line", [
+    # 1e200 and 1e308 passed, then GyroNoise.Q raised OverflowError squaring them (issue 68)
+    ("q_position", 1e200, r"q_position: expected a number in \[1e-12, 100\] \(m per step\), "
+                          r"got 1e\+200$"),
+    ("gyro_sigma", 1e308, r"gyro_sigma: expected a number in \[1e-12, 10\] \(rad/s\), "
+                          r"got 1e\+308$"),
+    ("q_heading", 10**400, r"q_heading: expected a number in \[1e-12, 1\] \(rad per step\), "
+                           r"got 1000000000000000000000000000000000000\.\.\.$"),
+    ("accuracy_scale", 1e-300, r"accuracy_scale: expected a number in \[1e-12, 1000\] "
+                               r"\(a factor\), got 1e-300$"),
+    # JSON's true was taken as 1, a string refused only by luck of the comparison
+    ("q_position", True, r"q_position: expected a number in \[1e-12, 100\] \(m per step\), "
+                         r"got True$"),
+    ("course_lever", "0.5", r"course_lever: expected a number in \[1e-12, 100\] \(m\), "
+                            r"got '0\.5'$"),
+])
+def test_a_noise_file_takes_only_numbers_in_range(tmp_path, field, value, line):
+    path = tmp_path / "noise.json"
+    path.write_text(json.dumps({**dataclasses.asdict(OTHER), field: value}))
+    with pytest.raises(LboError, match=r"^gyro noise " + line):
+        GyroNoise.load(path)
+    with pytest.raises(LboError, match=r"^gyro noise " + line):
+        dataclasses.replace(OTHER, **{field: value})
+    for end in (0, 1):  # each range's ends are taken, and their Q is finite
+        noise = GyroNoise(**{k: ends[end] for k, ends in NOISE_RANGES.items()})
+        assert np.isfinite(noise.Q).all() and noise.Q[2, 2] > 0
+
+
+def test_a_noise_path_is_read_only_as_a_small_regular_file(tmp_path):
+    """/dev/zero was read until memory ran out, a FIFO hung, a large file was read whole
+    (issue 68): each is now one line, without reading past 64 KiB."""
+    big = tmp_path / "big.json"
+    big.write_text(json.dumps(dataclasses.asdict(OTHER)) + " " * (64 * 1024))
+    with pytest.raises(LboError, match=r"^gyro noise .*big\.json: larger than 64 KiB; expected "
+                                       r"a JSON object of numbers with exactly .* \(a regular "
+                                       r"file of at most 64 KiB\)$"):
+        GyroNoise.load(big)
+    for folder in (tmp_path, tmp_path / "missing.json"):
+        with pytest.raises(LboError, match=r"^gyro noise .*: (not a regular file|cannot read "
+                                           r"it \(No such file or directory\)); expected "):
+            GyroNoise.load(folder)
+    fifo = tmp_path / "noise.fifo"
+    os.mkfifo(fifo)
+    said: list[BaseException | None] = []
+
+    def load() -> None:
+        try:
+            GyroNoise.load(fifo)
+            said.append(None)
+        except BaseException as e:  # noqa: BLE001 - handed to the test's thread
+            said.append(e)
+
+    reader = threading.Thread(target=load, daemon=True)
+    reader.start()
+    reader.join(10)
+    if reader.is_alive():  # blocked in open(): a writer lets it go, so the test ends
+        os.close(os.open(fifo, os.O_WRONLY | os.O_NONBLOCK))
+        reader.join(10)
+        pytest.fail("GyroNoise.load blocked on a FIFO")
+    assert isinstance(said[0], LboError) and "noise.fifo: not a regular file" in str(said[0])
+    # /dev/zero, in a process of its own with 1 GiB of memory, in case it reads it whole
+    script = ("import resource, sys\n"
+              "resource.setrlimit(resource.RLIMIT_AS, (1 << 30, 1 << 30))\n"
+              "from lbo.filters.gyro import GyroNoise\n"
+              "GyroNoise.load('/dev/zero')\n")
+    res = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
+                         timeout=120)
+    assert res.returncode == 1 and res.stderr.strip().splitlines()[-1] == (
+        "lbo.core.errors.LboError: gyro noise /dev/zero: not a regular file; expected a JSON "
+        "object of numbers with exactly accuracy_scale, bias_walk, course_lever, gyro_sigma, "
+        "q_heading, q_position, velocity_scale (a regular file of at most 64 KiB)")
 
 
 def test_observe_reads_a_learned_noise_for_the_gyro_ekf_only(log, tmp_path):

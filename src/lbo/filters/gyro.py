@@ -31,6 +31,7 @@ from typing import Any, Literal, TypedDict, overload
 import numpy as np
 
 from lbo.core.errors import LboError
+from lbo.core.smallfile import read_small
 from lbo.filters import measure
 from lbo.filters.start import CourseStart, batch_cov, check_trajectories, start_state
 from lbo.filters.stepper import Posterior, run_stepper
@@ -44,6 +45,22 @@ BIAS_SIGMA = 0.02
 MEMS gyro's turn-on bias)."""
 BIAS_WALK = 1e-3
 """Random walk (rad/s/sqrt(s)) of the bias, by default: it drifts with temperature."""
+
+NOISE_RANGES = {
+    "q_position": (1e-12, 100.0, "m per step"),
+    "q_heading": (1e-12, 1.0, "rad per step"),
+    "gyro_sigma": (1e-12, 10.0, "rad/s"),
+    "bias_walk": (1e-12, 10.0, "rad/s/sqrt(s)"),
+    "accuracy_scale": (1e-12, 1e3, "a factor"),
+    "velocity_scale": (1e-12, 1e3, "a factor"),
+    "course_lever": (1e-12, 100.0, "m"),
+}
+"""(smallest, largest, unit) of each noise of :class:`GyroNoise`. Past them a noise says
+nothing a filter can use, and its square runs towards float64's ends (1e200 overflowed ``Q``):
+a car moves under 2 m a step at 100 m/s, a heading that wanders a radian a step is not
+tracked, a gyro reads within 10 rad/s (:data:`lbo.sim.logcheck.GYRO_LIMIT`), an antenna sits
+on the car; below 1e-12 a sigma's square is lost to rounding beside any other variance, and a
+covariance made of such zeros turns singular."""
 
 STILL_SPEED = 0.05
 """Speed (m/s) below which the car stands: it does not turn, so its heading is held and the
@@ -84,8 +101,14 @@ class GyroNoise:
     def __post_init__(self) -> None:
         for f in dataclasses.fields(self):
             v = getattr(self, f.name)
-            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
-                raise LboError(f"gyro noise {f.name}: expected a number > 0, got {v!r}")
+            low, high, unit = NOISE_RANGES[f.name]
+            # a bool is an int to Python, not a noise; a comparison, unlike float(), takes an
+            # int of any size, and NaN fails it
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not low <= v <= high:
+                got = repr(v) if len(repr(v)) <= 40 else repr(v)[:37] + "..."  # one short line
+                raise LboError(f"gyro noise {f.name}: expected a number in [{low:g}, {high:g}] "
+                               f"({unit}), got {got}")
+            object.__setattr__(self, f.name, float(v))  # frozen: set once, checked
 
     @classmethod
     def from_q(cls, Q: np.ndarray) -> GyroNoise:
@@ -120,15 +143,19 @@ class GyroNoise:
 
     @classmethod
     def load(cls, path: str | Path) -> GyroNoise:
-        """Read what :meth:`save` wrote; anything else is a one-line error."""
+        """Read what :meth:`save` wrote; anything else is a one-line error: a path that is
+        not a regular file of at most 64 KiB (:func:`lbo.core.smallfile.read_small`), not
+        JSON, not an object of exactly the seven noises, or a noise that is not a number in
+        its range (:data:`NOISE_RANGES`; ``true`` is not 1)."""
+        names = sorted(f.name for f in dataclasses.fields(cls))
+        form = f"a JSON object of numbers with exactly {', '.join(names)}"
+        raw = read_small(path, f"gyro noise {path}", form)
         try:
-            data: Any = json.loads(Path(path).read_text())
-        except (OSError, ValueError) as e:
+            data: Any = json.loads(raw.decode("utf-8"))
+        except (ValueError, RecursionError) as e:  # UnicodeDecodeError is a ValueError
             raise LboError(f"gyro noise {path}: not a readable JSON file ({e})") from None
-        names = {f.name for f in dataclasses.fields(cls)}
-        if not isinstance(data, dict) or set(data) != names:
-            raise LboError(f"gyro noise {path}: expected a JSON object with exactly "
-                           f"{', '.join(sorted(names))}")
+        if not isinstance(data, dict) or set(data) != set(names):
+            raise LboError(f"gyro noise {path}: expected {form}")
         return cls(**data)
 
 
