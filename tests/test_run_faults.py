@@ -103,6 +103,23 @@ def test_a_diverged_training_says_so_and_keeps_no_nan_checkpoint(tmp_path, smoke
     assert not (tmp_path / "out" / "evaluation.csv").exists()
 
 
+def test_a_model_whose_output_is_never_finite_is_not_told_to_lower_the_rate(
+        tmp_path, smoke_data, tracking, monkeypatch):
+    """A model whose output is NaN from its first batch, before any update, did not diverge:
+    a smaller learning rate cannot help, and the one line says so."""
+    from lbo.models.cnn import WindowCNN
+
+    forward = WindowCNN.forward
+    monkeypatch.setattr(WindowCNN, "forward", lambda self, x: forward(self, x) * float("nan"))
+    cfg = train_cfg(tmp_path, smoke_data, "trainer.max_epochs=1", "trainer.limit_train_batches=2")
+    with pytest.raises(TrainingDiverged, match=r"^training cannot start: val_loss was NaN or inf "
+                       r"before any update \(the first training batch's loss too\): model 'cnn' "
+                       r".*cannot help\)$") as e:
+        train(cfg)
+    assert "lower optimizer.lr" not in str(e.value) and "\n" not in str(e.value)
+    assert not list((tmp_path / "out").rglob("*.ckpt"))
+
+
 # --- export ---------------------------------------------------------------------------------
 
 

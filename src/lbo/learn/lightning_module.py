@@ -80,6 +80,10 @@ class TrainingModule(L.LightningModule):
         self._loss_count = 0
         self._dropped = 0  # sequences dropped in this epoch: their carried filter diverged
         self._val_finite: torch.Tensor | bool = True
+        # whether the first training batch's loss, before any update, was finite: where it was
+        # not, the model gives no finite output with its initial weights, and no learning
+        # rate mends that
+        self._first_finite: bool | None = None
 
     def forward(self, win: torch.Tensor) -> torch.Tensor:
         return self.observer(win)
@@ -97,6 +101,8 @@ class TrainingModule(L.LightningModule):
         if self.tbptt is not None:
             return self._carried_step(batch)
         loss = self.observer.loss(*batch)
+        if self._first_finite is None:  # one sync, on the first batch alone
+            self._first_finite = bool(torch.isfinite(loss))
         # summed here and logged once per epoch: self.log on every step costs about 1 ms,
         # 10 % of a small CNN step on the CPU (benchmarks/bench_train.py)
         n = len(batch[1])
@@ -124,6 +130,8 @@ class TrainingModule(L.LightningModule):
                           self.nll)  # set: this step is tbptt's
         finite = [v for v in fit.losses if math.isfinite(v)]
         mean = torch.tensor(sum(finite) / len(finite) if finite else math.nan)
+        if self._first_finite is None:
+            self._first_finite = bool(finite) and len(finite) == len(fit.losses)
         self._dropped += fit.dropped
         schedule = cast(LRScheduler | None, self.lr_schedulers())  # one, or none: constant
         if schedule is not None:  # one step per batch, as the automatic loop takes them
@@ -166,6 +174,12 @@ class TrainingModule(L.LightningModule):
             else math.isfinite(float(value))
         if ok:
             return
+        if self._first_finite is False:
+            raise TrainingDiverged(
+                f"training cannot start: {name} was NaN or inf before any update (the first "
+                f"training batch's loss too): model {self.observer.model!r} gives no finite "
+                "output (or loss) on these inputs with its initial weights; check its forward "
+                "and the data (a smaller optimizer.lr cannot help)")
         lr = self.trainer.optimizers[0].param_groups[0]["lr"] if self.trainer.optimizers \
             else float("nan")
         raise TrainingDiverged(
