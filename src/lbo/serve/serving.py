@@ -38,12 +38,25 @@ from lbo.sim.columns import COVARIANCE, INPUT, MEAS, RECEIVER, SERVED, STATE, WI
 
 ARTIFACT = "model"
 """Where a training run logs its model: ``runs:/<run id>/model``."""
+MAX_ROWS = 10_000
+"""Most rows one request may hold (every ``log`` of it together): 200 s of a 50 Hz log. The
+robust observer's PyTorch step took 1.3 to 2.3 ms a row where every row holds a fix (a busy
+2-core machine), so the largest request is answered in 13 to 23 s, within MLflow's 60 s
+request timeout (``MLFLOW_SCORING_SERVER_REQUEST_TIMEOUT``). A request past the timeout is
+answered 504, but its worker runs on to the end: 10^6 rows held one at 100% CPU long after
+the answer."""
 
 
 def estimates(observer: Any, frame: pd.DataFrame) -> pd.DataFrame:
     """An observer's estimates over a log frame (:data:`WINDOW`, optionally ``log`` and the
     receiver's columns :data:`RECEIVER`), one output row per input row (:data:`SERVED`);
-    raises LboError naming a missing column or a bad value."""
+    raises LboError naming a missing column or a bad value, or a frame of more than
+    :data:`MAX_ROWS` rows (before any work; MLflow answers it HTTP 400)."""
+    if len(frame) > MAX_ROWS:
+        raise LboError(f"model input: {len(frame)} rows, more than the {MAX_ROWS} one request "
+                       f"may hold ({MAX_ROWS * 0.02:g} s at 50 Hz); send a longer log in parts "
+                       f"of at most {MAX_ROWS} rows (each starts its observer afresh), or run "
+                       "it with python -m lbo.observe or lbo.Observer.run, which take any length")
     missing = [c for c in WINDOW if c not in frame.columns]
     if missing:
         raise LboError(f"model input: missing column{'s' if len(missing) > 1 else ''} "
@@ -81,8 +94,17 @@ class ServedModel(PythonModel):
 
     def predict(self, context: Any, model_input: pd.DataFrame,
                 params: dict[str, Any] | None = None) -> pd.DataFrame:
+        """:func:`estimates` of ``model_input``; a request lbo refuses (too many rows, a bad
+        value) raises MLflow's invalid-parameter error with lbo's line as its message, which
+        ``mlflow models serve`` answers HTTP 400 (any other exception: 400 with a generic
+        message, lbo's line only in the stack trace)."""
+        from mlflow.exceptions import MlflowException
+
         self.observer.reset()
-        return estimates(self.observer, pd.DataFrame(model_input))
+        try:
+            return estimates(self.observer, pd.DataFrame(model_input))
+        except LboError as e:
+            raise MlflowException.invalid_parameter_value(str(e)) from None
 
 
 def signature() -> Any:
