@@ -59,6 +59,7 @@ from omegaconf import DictConfig
 from lbo.core.checks import integer
 from lbo.core.cli import entry
 from lbo.core.errors import LboError
+from lbo.filters.consistency import SIGNIFICANCE, WINDOW
 from lbo.models.envelope import check_mode
 from lbo.scoring.metrics import PAPER_REFERENCE, nrmse, rmse
 from lbo.sim.columns import COVARIANCE, LOG, RECEIVER, STATE
@@ -86,7 +87,8 @@ def observe(cfg: DictConfig) -> dict[str, Any]:
     Returns
     -------
     ``output`` (Path), ``observer`` (name), ``rows``, ``valid`` (rows with a full window),
-    and, when the log holds the true state, ``rmse`` (3,) (m, m, rad) and ``nrmse``.
+    ``inconsistent`` (rows a classical observer's consistency test flagged), and, when the
+    log holds the true state, ``rmse`` (3,) (m, m, rad) and ``nrmse``.
     """
     from lbo.filters.classical import check_gyro_noise, on_logs
     from lbo.filters.gyro import GyroNoise
@@ -255,6 +257,16 @@ def observe(cfg: DictConfig) -> dict[str, Any]:
         print(f"valid: {result['valid']} of {len(df)} rows; the others (before the first fix, "
               "a learned observer's window not yet full, or outside its envelope with "
               "envelope=mark) are not scored")
+    # a classical observer's estimate is finite from its first fix on: a finite one not valid
+    # is one its consistency test flagged (the gyro EKF's, lbo.filters.consistency)
+    flagged = int((np.isfinite(est).all(1) & ~valid).sum()) if obs.kind == "classical" else 0
+    result["inconsistent"] = flagged
+    if flagged:
+        print(f"consistency: {flagged} rows flagged valid=false: innovations inconsistent with "
+              f"the covariance (the NIS of the last {WINDOW} updates beyond its "
+              f"{SIGNIFICANCE:.1%} chi-square bound; lbo.filters.consistency)"
+              + ("; the heading's and the gyro bias's variances widened to learn the bias "
+                 "again" if name == "gyro" else ""))
     if truth and not valid.any():
         print(f"rmse: no valid row to score (the log is shorter than the window, "
               f"N={obs.window})")

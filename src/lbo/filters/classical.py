@@ -38,6 +38,7 @@ import numpy as np
 from lbo.core import plugins
 from lbo.core.errors import LboError
 from lbo.filters import measure
+from lbo.filters.consistency import Checks
 from lbo.filters.gyro import GyroNoise, gyro_ekf_batch
 from lbo.filters.kalman import adaptive_ekf_batch, ekf_batch
 from lbo.filters.stepper import Posterior, run_stepper
@@ -217,7 +218,12 @@ def _from_first_fixes(name: str, m: np.ndarray, u: np.ndarray, vehicle: Vehicle,
     gi, ki = np.nonzero(ok)
     est[gi, ki] = out[0][gi, back[gi, ki]]
     cov[gi, ki] = out[1][gi, back[gi, ki]]
-    return Posterior(est, cov) if return_cov else est
+    checks = None
+    if out.checks is not None:  # the consistency test's rows, shifted back as well
+        checks = Checks.empty(g, t)
+        for mine, theirs in zip(checks, out.checks):
+            mine[gi, ki] = theirs[gi, back[gi, ki]]
+    return Posterior(est, cov, checks) if return_cov else est
 
 
 def stepper(name: str, m0: np.ndarray, vehicle: Vehicle, noise: Noise,

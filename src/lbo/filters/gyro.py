@@ -17,6 +17,15 @@ heading (``(gyro_sigma dt)^2`` a step) and the bias's walk to ``b`` (``bias_walk
 The heading of a log that starts without one comes from the course over ground
 (:class:`lbo.filters.start.CourseStart`, its path dead-reckoned with the gyro). Told the
 fixes' slow error (:class:`FixDrift`), it carries it as two more states.
+
+A bias far beyond its prior (0.5 rad/s where the prior says 0.02) on a log that starts moving
+is not learned from the fixes: the filter, sure of a wrong bias, reports a heading sd of 0.02
+rad while its heading errs by 0.25 rad. So every update's innovations are tested against
+their covariance (:mod:`lbo.filters.consistency`: the NIS of the last 10 updates beyond its
+99.9% chi-square bound), the rows from a failed test to the next update are flagged
+(:attr:`GyroStepper.inconsistent`), and, with ``relearn`` (the default), the heading's and
+the bias's variances are widened by the factor the innovations outgrew them by, so the
+filter learns the bias again (docs/observe.md has the numbers).
 """
 
 from __future__ import annotations
@@ -33,6 +42,7 @@ import numpy as np
 from lbo.core.errors import LboError
 from lbo.core.smallfile import read_small
 from lbo.filters import measure
+from lbo.filters.consistency import Checks, NisWindow, widen
 from lbo.filters.start import CourseStart, batch_cov, check_trajectories, start_state
 from lbo.filters.stepper import Posterior, run_stepper
 from lbo.filters.update import joseph_update
@@ -178,6 +188,10 @@ class FixDrift:
                 raise LboError(f"fix drift {name}: expected a number > 0, got {v!r}")
 
 
+TESTED = np.arange(measure.MEASURED + 1) < measure.MEASURED
+"""(5,) bool: the channels of an update whose innovations the consistency test reads."""
+
+
 def _jacobian(n: int) -> np.ndarray:
     """(5, n) Jacobian of the measured channels (:data:`lbo.filters.measure.CHANNELS`'s four)
     and, at standstill, of the gyro's reading of b, on the state ``[x, y, psi, b]`` and, for
@@ -202,16 +216,24 @@ class GyroStepper:
     R : (G, 3, 3) measurement covariance where a row reports no accuracy.
     gyro_sigma, bias_sigma, bias_walk : the gyro's errors (module constants by default).
     drift : the fixes' drift (:class:`FixDrift`) as two more states, or None (R white).
+    relearn : widen the heading's and the bias's variances where the consistency test fails
+        (:func:`lbo.filters.consistency.widen`); False: flag the rows only.
 
     Attributes
     ----------
     x : (G, n) ``[x, y, psi, b]``, then the drift ``[dx, dy]`` (n = 6). P : (G, n, n).
     prior, cross : as the other steppers'.
+    consistency : the test of its innovations (:class:`lbo.filters.consistency.NisWindow`).
+    inconsistent : (G,) bool, the last test failed: the estimate's covariance is not to be
+        trusted (:meth:`reason` says why).
+    widened : (G,) the factor the variances were last widened by where the last test failed
+        (1: not widened).
     """
 
     def __init__(self, m0: np.ndarray, vehicle: Vehicle, Q: np.ndarray, R: np.ndarray,
                  gyro_sigma: float = GYRO_SIGMA, bias_sigma: float = BIAS_SIGMA,
-                 bias_walk: float = BIAS_WALK, drift: FixDrift | None = None) -> None:
+                 bias_walk: float = BIAS_WALK, drift: FixDrift | None = None,
+                 relearn: bool = True) -> None:
         self.dt, self.R = vehicle.dt, np.asarray(R, dtype=float)
         x3, P3 = start_state(m0, self.R)
         g, n = len(x3), 4 if drift is None else 6
@@ -237,6 +259,21 @@ class GyroStepper:
             self.Q[4, 4] = self.Q[5, 5] = var * (1.0 - self.phi**2)
         self.H = _jacobian(n)
         self.course = CourseStart(m0, vehicle, np.asarray(Q, dtype=float))
+        self.consistency = NisWindow(g, measure.MEASURED)
+        self.relearn, self.widened = relearn, np.ones(g)
+
+    @property
+    def inconsistent(self) -> np.ndarray:
+        """(G,) bool: the last consistency test of each trajectory failed."""
+        return self.consistency.inconsistent
+
+    def reason(self, g: int) -> str | None:
+        """Why trajectory g's estimate is flagged, None where it is not."""
+        why = self.consistency.reason(g)
+        if why is None or self.widened[g] == 1.0:
+            return why
+        return (f"{why}; the heading's and the gyro bias's variances widened "
+                f"{self.widened[g]:.3g}-fold to learn the bias again")
 
     def update(self, m: np.ndarray, u_prev: np.ndarray) -> np.ndarray:
         """Predict with ``u_prev`` (G, 2) ``[V, r_m]`` of the last step, update with what row
@@ -272,7 +309,22 @@ class GyroStepper:
         R5[:, -1, -1] = self.gyro_var
         y5 = np.concatenate([y, (rate - x[:, 3])[:, None]], axis=1)
         held5 = np.concatenate([held, still[:, None]], axis=1)
-        self.x, self.P = joseph_update(x, P, y5, self.H, R5, held5)
+        # the test reads the sensors' channels (fix, heading, course), not the standstill's
+        # zero rate: a constraint on a car that may not quite stand (a simulated one's
+        # heading walks with its process noise even at rest)
+        self.x, self.P, nis = joseph_update(x, P, y5, self.H, R5, held5, return_nis=True,
+                                            tested=TESTED)
+        dof = (held5 & TESTED).sum(1)
+        failed = self.consistency.push(nis, dof) & (dof > 0)  # failed at this update
+        if self.relearn:
+            # innovations its covariance cannot explain: the heading and the bias the gyro
+            # drives are what a filter sure of a wrong bias gets wrong (the fixes and the
+            # course measure the pose); widened, the next fixes teach the bias again
+            self.widened = np.where(failed, self.consistency.excess(),
+                                    np.where(dof > 0, 1.0, self.widened))
+            if failed.any():
+                self.P = widen(self.P, (2, 3), self.widened, failed)
+                self.consistency.clear(failed)
         return self.x[:, :3]
 
 
@@ -307,15 +359,21 @@ def gyro_ekf_batch(m: np.ndarray, u: np.ndarray, vehicle: Vehicle, Q: np.ndarray
 
     m : (G, T, 3) or (G, T, 8) rows; u : (G, T, 2) ``[V, r_m]``; Q (3, 3); R (3, 3) or
     (G, 3, 3); ``gyro``: :class:`GyroStepper`'s keywords (the gyro's errors, the fixes'
-    drift). Returns the poses (G, T, 3), with ``return_cov`` their covariances
-    (G, T, 3, 3), with ``return_bias`` the bias estimated at the last step (G,) last.
+    drift, ``relearn``). Returns the poses (G, T, 3), with ``return_cov`` a
+    :class:`~lbo.filters.stepper.Posterior` of them, their covariances (G, T, 3, 3) and the
+    consistency test at every row (its ``checks``), with ``return_bias`` the bias estimated
+    at the last step (G,) last.
     """
     m, u = check_trajectories(m, u)
     if not np.isfinite(u).all():
         raise LboError("the gyro EKF needs V and r_m at every step (NaN or inf found)")
     flt = GyroStepper(m[:, 0], vehicle, Q, batch_cov(R, m.shape[0], "R"), **gyro)
+    checks = Checks.empty(*m.shape[:2])
     out = run_stepper(flt, m, u, return_cov, pose=lambda kf: kf.x[:, :3],
-                      cov=lambda kf: kf.P[:, :3, :3])
+                      cov=lambda kf: kf.P[:, :3, :3],
+                      record=lambda kf, k: kf.consistency.record(checks, k))
+    if isinstance(out, Posterior):
+        out = Posterior(*out, checks=checks)
     if not return_bias:
         return out
     # out is a Posterior exactly when return_cov

@@ -13,7 +13,9 @@ measurement covariance R (G, 3, 3), that then takes one time step per call:
   and ``cov``);
 - to be smoothed (:mod:`lbo.filters.smoother`), ``prior``: the ``(x, P)`` the last posterior
   came from, and ``cross``: ``cov(x_{k-1|k-1}, x_{k|k-1})`` (G, n, n);
-- optionally ``coasts`` and ``coast(u)``: a run of prediction-only steps in one call.
+- optionally ``coasts`` and ``coast(u)``: a run of prediction-only steps in one call;
+- optionally ``reason(g) -> str | None``: why trajectory g's estimate is not to be trusted
+  now, None when it is (the gyro EKF's consistency test, :mod:`lbo.filters.consistency`).
 
 Every batch filter (:func:`lbo.filters.kalman.ekf_batch`, the UKF, the gyro EKF, the EKF on
 the car that slips, a plug-in's) loops over its stepper with :func:`run_stepper`, and
@@ -29,37 +31,56 @@ from typing import Any, Literal, NamedTuple, cast, overload
 import numpy as np
 from tqdm.auto import tqdm
 
+from lbo.filters.consistency import Checks
 
-class Posterior(NamedTuple):
-    """A batch filter's estimates with their covariances, as ``return_cov=True`` gives them
-    (it unpacks as ``mean, cov``)."""
 
+class _MeanCov(NamedTuple):
     mean: np.ndarray
     """(G, T, 3) the pose estimates ``[x, y, psi]``."""
     cov: np.ndarray
     """(G, T, 3, 3) their covariances: the filter's P of the pose (m^2, m rad, rad^2)."""
 
 
+class Posterior(_MeanCov):
+    """A batch filter's estimates with their covariances, as ``return_cov=True`` gives them
+    (it unpacks as ``mean, cov``). ``checks`` (not unpacked): the consistency test of its
+    innovations at every row (:class:`lbo.filters.consistency.Checks`) for a filter that
+    makes one (the gyro EKF), else None."""
+
+    checks: Checks | None
+
+    def __new__(cls, mean: np.ndarray, cov: np.ndarray, checks: Checks | None = None
+                ) -> Posterior:
+        self = super().__new__(cls, mean, cov)
+        self.checks = checks
+        return self
+
+
+Recorder = Callable[[Any, int | slice], None]
+"""``record(kf, k)`` of :func:`run_stepper`."""
+
+
 @overload
 def run_stepper(kf: Any, m: np.ndarray, u: np.ndarray, return_cov: Literal[False] = ...,
                 pose: Callable[[Any], np.ndarray] = ..., cov: Callable[[Any], np.ndarray] = ...,
                 smooth: bool = ..., progress: str | None = ...,
-                lengths: np.ndarray | None = ...) -> np.ndarray: ...
+                lengths: np.ndarray | None = ..., record: Recorder | None = ...) -> np.ndarray: ...
 @overload
 def run_stepper(kf: Any, m: np.ndarray, u: np.ndarray, return_cov: Literal[True],
                 pose: Callable[[Any], np.ndarray] = ..., cov: Callable[[Any], np.ndarray] = ...,
                 smooth: bool = ..., progress: str | None = ...,
-                lengths: np.ndarray | None = ...) -> Posterior: ...
+                lengths: np.ndarray | None = ..., record: Recorder | None = ...) -> Posterior: ...
 @overload
 def run_stepper(kf: Any, m: np.ndarray, u: np.ndarray, return_cov: bool,
                 pose: Callable[[Any], np.ndarray] = ..., cov: Callable[[Any], np.ndarray] = ...,
                 smooth: bool = ..., progress: str | None = ...,
-                lengths: np.ndarray | None = ...) -> np.ndarray | Posterior: ...
+                lengths: np.ndarray | None = ..., record: Recorder | None = ...
+                ) -> np.ndarray | Posterior: ...
 def run_stepper(kf: Any, m: np.ndarray, u: np.ndarray, return_cov: bool = False,
                 pose: Callable[[Any], np.ndarray] = lambda kf: kf.x,
                 cov: Callable[[Any], np.ndarray] = lambda kf: kf.P, smooth: bool = False,
-                progress: str | None = None, lengths: np.ndarray | None = None
-                ) -> np.ndarray | Posterior:
+                progress: str | None = None, lengths: np.ndarray | None = None,
+                record: Recorder | None = None) -> np.ndarray | Posterior:
     """The time loop of a batch filter: a stepper ``kf`` started at ``m[:, 0]``, updated with
     every later step. ``pose(kf)`` (G, 3) and ``cov(kf)`` (G, 3, 3) read its estimate and
     covariance. Returns (G, T, 3) estimates, or with ``return_cov`` a :class:`Posterior` of
@@ -67,7 +88,9 @@ def run_stepper(kf: Any, m: np.ndarray, u: np.ndarray, return_cov: bool = False,
     ``prior`` and ``cross``, of three states), the estimates and covariances are the RTS
     smoother's (:mod:`lbo.filters.smoother`).
     ``progress``: show a tqdm bar over the time steps with this name; ``lengths`` (G,): the
-    real steps of padded trajectories, which the smoother does not smooth across."""
+    real steps of padded trajectories, which the smoother does not smooth across;
+    ``record(kf, k)``: called after the start (k = 0), each update (k) and each coast
+    (k a slice of its rows), to keep what else the stepper says of a row."""
     from lbo.filters.smoother import rts
 
     g, t = m.shape[:2]
@@ -76,6 +99,8 @@ def run_stepper(kf: Any, m: np.ndarray, u: np.ndarray, return_cov: bool = False,
     covs = np.empty((g, t, 3, 3)) if return_cov or smooth else None
     if covs is not None:
         covs[:, 0] = cov(kf)
+    if record is not None:
+        record(kf, 0)
     if smooth:
         x_p, P_p, cross = np.zeros_like(est), np.zeros_like(covs), np.zeros_like(covs)
     bar = tqdm(total=t - 1, desc=progress, unit="step", disable=progress is None,
@@ -91,6 +116,8 @@ def run_stepper(kf: Any, m: np.ndarray, u: np.ndarray, return_cov: bool = False,
             est[:, k:end], run_covs = kf.coast(u[:, k - 1:end - 1])
             if covs is not None:
                 covs[:, k:end] = run_covs
+            if record is not None:
+                record(kf, slice(k, end))
             bar.update(end - k)
             k = end
             continue
@@ -98,6 +125,8 @@ def run_stepper(kf: Any, m: np.ndarray, u: np.ndarray, return_cov: bool = False,
         est[:, k] = pose(kf)
         if covs is not None:
             covs[:, k] = cov(kf)
+        if record is not None:
+            record(kf, k)
         if smooth:
             x_p[:, k], P_p[:, k] = kf.prior
             cross[:, k] = kf.cross

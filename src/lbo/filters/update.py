@@ -24,12 +24,16 @@ holding nothing leaves the prior unchanged (K = 0).
 
 The update is Joseph's, ``P+ = (I - K H) P (I - K H)^T + K R K^T``, symmetrised: it stays
 symmetric and positive semi-definite whatever the rounding, and is filterpy's (the EKF's
-reference) for a full fix.
+reference) for a full fix. Asked (``return_nis``), it also gives each row's normalised
+innovation squared ``y^T S^-1 y`` of the held channels that are ``tested``, from this S (its
+block of them): chi-square with as many degrees of freedom as those channels while the
+filter's covariance explains its innovations (:mod:`lbo.filters.consistency` tests it).
 """
 
 from __future__ import annotations
 
 import functools
+from typing import Literal, overload
 
 import numpy as np
 
@@ -49,8 +53,17 @@ def held_channels(m: np.ndarray) -> np.ndarray:
     return np.isfinite(m)
 
 
+@overload
 def joseph_update(x: np.ndarray, P: np.ndarray, y: np.ndarray, H: np.ndarray, R: np.ndarray,
-                  held: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+                  held: np.ndarray, return_nis: Literal[False] = ...
+                  ) -> tuple[np.ndarray, np.ndarray]: ...
+@overload
+def joseph_update(x: np.ndarray, P: np.ndarray, y: np.ndarray, H: np.ndarray, R: np.ndarray,
+                  held: np.ndarray, return_nis: Literal[True], tested: np.ndarray | None = ...
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]: ...
+def joseph_update(x: np.ndarray, P: np.ndarray, y: np.ndarray, H: np.ndarray, R: np.ndarray,
+                  held: np.ndarray, return_nis: bool = False, tested: np.ndarray | None = None
+                  ) -> tuple[np.ndarray, np.ndarray] | tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Kalman measurement update of G priors with the channels each row holds.
 
     Parameters
@@ -61,11 +74,16 @@ def joseph_update(x: np.ndarray, P: np.ndarray, y: np.ndarray, H: np.ndarray, R:
     H : (p, n) or (G, p, n) measurement Jacobian of all p channels.
     R : (p, p) or (G, p, p) measurement covariance of all p channels.
     held : (G, p) bool, the channels this step's row holds.
+    return_nis : also return the normalised innovation squared.
+    tested : (p,) or (G, p) bool, the channels the NIS is of (None: all); a channel not held
+        is never in it.
 
     Returns
     -------
     x_post : (G, n) posterior mean.
     P_post : (G, n, n) posterior covariance (Joseph form, symmetrised).
+    nis : (G,) ``y^T S^-1 y`` over the held channels tested (0 where none is), with
+        ``return_nis``.
     """
     x = np.asarray(x, dtype=float)
     P = np.asarray(P, dtype=float)
@@ -81,7 +99,8 @@ def joseph_update(x: np.ndarray, P: np.ndarray, y: np.ndarray, H: np.ndarray, R:
     if not held.any():
         # a prediction step in every trajectory (most rows of a log between its fixes): K = 0,
         # and the full update below gives exactly this; skipped for its cost
-        return x, 0.5 * (P + P.swapaxes(-1, -2))
+        P = 0.5 * (P + P.swapaxes(-1, -2))
+        return (x, P, np.zeros(g)) if return_nis else (x, P)
     # a channel not held: no row of H, no innovation, uncorrelated with a unit variance, so
     # S is block diagonal and that channel's column of K is exactly zero (np.where broadcasts
     # a shared H and R over the G rows)
@@ -94,4 +113,13 @@ def joseph_update(x: np.ndarray, P: np.ndarray, y: np.ndarray, H: np.ndarray, R:
     K = np.linalg.solve(S, PHt.swapaxes(-1, -2)).swapaxes(-1, -2)   # P H^T S^-1, S symmetric
     I_KH = _eye(n) - K @ H
     post = I_KH @ P @ I_KH.swapaxes(-1, -2) + K @ R @ K.swapaxes(-1, -2)
-    return x + np.einsum("gij,gj->gi", K, y), 0.5 * (post + post.swapaxes(-1, -2))
+    x_post, P_post = x + np.einsum("gij,gj->gi", K, y), 0.5 * (post + post.swapaxes(-1, -2))
+    if not return_nis:
+        return x_post, P_post
+    # the tested channels' block of S, the others set apart as the untaken ones are above:
+    # their innovations' marginal covariance, whatever the other channels of the row say
+    t = held if tested is None else held & np.asarray(tested, dtype=bool)
+    S_t = np.where(t[:, :, None] & t[:, None, :], S, _eye(p))
+    y_t = np.where(t, y, 0.0)
+    nis = np.einsum("gp,gp->g", y_t, np.linalg.solve(S_t, y_t[..., None])[..., 0])
+    return x_post, P_post, nis

@@ -244,7 +244,9 @@ def oracle_gyro(log: pd.DataFrame, vehicle: Vehicle, position_sigma: float,
 
     By default not told the drift's correlation in time (an EKF's R is white) nor the
     channels' latency, as no observer here is: :data:`ORACLE`; told both,
-    :data:`FULL_ORACLE` and :data:`FULL_NOISE_ORACLE`."""
+    :data:`FULL_ORACLE` and :data:`FULL_NOISE_ORACLE`. It is the plain EKF told these: its
+    consistency test's remedy is off (``relearn``, :mod:`lbo.filters.consistency`), so a
+    mismatch it is not told of (the latency) is not widened away."""
     if bias is None and "b" not in log:
         raise LboError("oracle_gyro: the log has no 'b' column (the gyro's true bias): "
                        "simulate it with a receiver (python -m lbo.simulate receiver=...)")
@@ -267,7 +269,7 @@ def oracle_gyro(log: pd.DataFrame, vehicle: Vehicle, position_sigma: float,
     R = np.diag([position_sigma**2, position_sigma**2, 1.0])  # every fix reports its own
     return gyro_ekf_batch(rows[None], np.column_stack([v, rate])[None], vehicle, Q, R,
                           gyro_sigma=gyro_sigma, bias_sigma=bias[0], bias_walk=bias[1],
-                          drift=drift)[0]
+                          drift=drift, relearn=False)[0]
 
 
 def markdown(table: pd.DataFrame, *versus: str) -> str:

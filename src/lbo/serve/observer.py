@@ -374,9 +374,9 @@ class Observer:
             :meth:`step` after :meth:`reset`.
         valid : (T,) bool, False on the first N-1 rows of a CNN or LSTM (EKF fallback),
             where the estimate is not finite (before the first fix; for a net that reads a
-            receiver, where its window holds no heading), and with
-            ``envelope_mode="mark"`` on the rows outside the training envelope (see
-            :meth:`check_envelope`; ``"warn"`` gives one :class:`EnvelopeWarning` instead).
+            receiver, where its window holds no heading), on the gyro EKF's rows that fail
+            its consistency test (:mod:`lbo.filters.consistency`), and with ``envelope_mode=
+            "mark"`` outside the training envelope (:meth:`check_envelope`; "warn": a warning).
         covariance : (T, 3, 3), only with ``cov=True``: each estimate's covariance (the
             filter's P), NaN where the observer gives none (a CNN's or LSTM's windows).
 
@@ -430,8 +430,8 @@ class Observer:
             rows = bicycle_rows(m, u, receiver, self.vehicle.wheelbase)
         est, covs = self._runner.run(rows, u, fix, smooth, batch_size)
         est[:, 2] = wrap_angle(est[:, 2])
-        valid = np.isfinite(est).all(1)
-        valid &= np.arange(len(m)) >= self._runner.first_valid
+        valid = np.isfinite(est).all(1) & (np.arange(len(m)) >= self._runner.first_valid)
+        valid &= ~getattr(self._runner, "inconsistent", np.zeros(len(m), bool))  # gyro's test
         if self._envelope is not None:  # an envelope, and a mode other than off
             check = cast(EnvelopeCheck, self.check_envelope(m, u))  # there is an envelope
             if self.envelope_mode == "mark":

@@ -120,22 +120,27 @@ def learned_runner(name: str, net: Any, form: str, vehicle: Vehicle, noise: Nois
 
 def from_first_fix(name: str, m: np.ndarray, u: np.ndarray, vehicle: Vehicle, noise: Noise,
                    alpha: float, smooth: bool = False, gyro: GyroNoise | None = None
-                   ) -> tuple[np.ndarray, np.ndarray]:
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Classical observer ``name`` over one log (T, 3) or (T, 8) (a receiver's rows,
     :mod:`lbo.filters.measure`), (T, 2), started at its first fix: (T, 3) estimates and
     (T, 3, 3) covariances, NaN before that fix (``smooth``: the RTS smoother's; ``gyro``:
-    the gyro EKF's noise)."""
-    est, cov = classical.estimate(name, m[None], u[None], vehicle, noise, alpha,
-                                  return_cov=True, smooth=smooth, gyro=gyro)
-    return est[0], cov[0]
+    the gyro EKF's noise), and (T,) bool: the rows its consistency test flags (the gyro
+    EKF's, :mod:`lbo.filters.consistency`; none for the others)."""
+    post = classical.estimate(name, m[None], u[None], vehicle, noise, alpha,
+                              return_cov=True, smooth=smooth, gyro=gyro)
+    flagged = np.zeros(len(m), bool) if post.checks is None else post.checks.inconsistent[0]
+    return post.mean[0], post.cov[0], flagged
 
 
 class ClassicalRunner:
     """Classical observer ``name`` (:mod:`lbo.filters.classical`): its batch filter's stepper
-    one sample per call, so stepping and running a log give the same numbers."""
+    one sample per call, so stepping and running a log give the same numbers. The gyro EKF's
+    rows that its consistency test flags (:mod:`lbo.filters.consistency`) are not valid,
+    their reason the test's: ``inconsistent`` (T,) after :meth:`run`."""
 
     first_valid = 0
     reads_receiver = False  # a receiver's channels go through rows() only where given
+    inconsistent: np.ndarray | None = None  # the rows the last run()'s test flagged
 
     def __init__(self, name: str, vehicle: Vehicle, noise: Noise, alpha: float,
                  gyro: GyroNoise | None = None) -> None:
@@ -206,12 +211,16 @@ class ClassicalRunner:
         self.u_prev = u
         state[2] = wrap_angle(state[2])
         cov = None if self.flt is None else self.flt.P[0, :3, :3].copy()
-        return Estimate(state, bool(np.isfinite(state).all()), "no position fix yet", cov)
+        # a stepper with a consistency test (the gyro EKF's) says why its estimate is flagged
+        why = getattr(self.flt, "reason", lambda g: None)(0) if self.flt is not None else None
+        return Estimate(state, bool(np.isfinite(state).all()) and why is None,
+                        why or "no position fix yet", cov)
 
     def run(self, m: np.ndarray, u: np.ndarray, fix: np.ndarray, smooth: bool = False,
             batch_size: int = 0) -> tuple[np.ndarray, np.ndarray]:
-        return from_first_fix(self.name, m, u, self.vehicle, self.noise, self.alpha, smooth,
-                              self.gyro)
+        est, cov, self.inconsistent = from_first_fix(self.name, m, u, self.vehicle,
+                                                     self.noise, self.alpha, smooth, self.gyro)
+        return est, cov
 
 
 class WindowRunner:
