@@ -61,7 +61,7 @@ from lbo.core.cli import entry
 from lbo.core.errors import LboError
 from lbo.filters.consistency import SIGNIFICANCE, WINDOW
 from lbo.models.envelope import check_mode
-from lbo.scoring.metrics import PAPER_REFERENCE, nrmse, rmse
+from lbo.scoring.metrics import PAPER_REFERENCE, nrmse
 from lbo.sim.columns import COVARIANCE, LOG, RECEIVER, STATE
 from lbo.sim.logcheck import check_alpha, check_device
 from lbo.sim.logformat import LogFormat
@@ -96,6 +96,7 @@ def observe(cfg: DictConfig) -> dict[str, Any]:
     from lbo.serve.observer import EnvelopeWarning, Observer
     from lbo.serve.refusals import no_receiver
     from lbo.serve.runners import is_window_filter
+    from lbo.serve.unscored import heading_rows, heading_unseen, psi_text, scored_rmse, unscored
     from lbo.sim.noise import Noise
     from lbo.sim.vehicle import Vehicle
 
@@ -181,9 +182,13 @@ def observe(cfg: DictConfig) -> dict[str, Any]:
     envelope = obs.check_envelope(m, u) if mode != "off" else None
     result: dict[str, Any] = {"output": output, "observer": obs.name, "rows": len(df),
                               "valid": int(valid.sum())}
+    # a classical filter's heading before its first one is 0 rad, sd 1 rad, and valid: left
+    # out of the heading's RMSE (it is scored for the observers, not for their start)
+    unseen = heading_unseen(obs, m, u, channels) if truth else np.zeros(len(df), bool)
     if truth:
         z = df[list(STATE)].to_numpy(dtype=float)
-        result["rmse"] = rmse(est, z, valid)
+        result["rmse"] = scored_rmse(est, z, valid, unseen)
+        result["heading_unseen"] = int((valid & unseen).sum())
         result["nrmse"] = nrmse(result["rmse"]) if valid.any() else float("nan")
     out = pd.DataFrame({"t": df["t"].to_numpy(dtype=float), "x": est[:, 0], "y": est[:, 1],
                         "psi": est[:, 2], "valid": valid})
@@ -201,9 +206,10 @@ def observe(cfg: DictConfig) -> dict[str, Any]:
         others[o.name if o.name not in others and o.name != obs.name else other] = \
             np.where(ok[:, None], e, np.nan)
         if truth:
-            r = rmse(e, df[list(STATE)].to_numpy(dtype=float), ok)
-            print(f"compare {other}: rmse x {r[0]:.6g} m, y {r[1]:.6g} m, psi {r[2]:.6g} rad "
-                  f"({int(ok.sum())} valid rows)")
+            blind = heading_unseen(o, m, u, channels)
+            r = scored_rmse(e, df[list(STATE)].to_numpy(dtype=float), ok, blind)
+            print(f"compare {other}: rmse x {r[0]:.6g} m, y {r[1]:.6g} m, "
+                  f"{psi_text(o.name, r[2], ok, blind)} ({int(ok.sum())} valid rows)")
     if plot is not None:
         from lbo.core import plots
 
@@ -253,10 +259,13 @@ def observe(cfg: DictConfig) -> dict[str, Any]:
                 print(f"warning: {line}")
             print(f"envelope: {int(envelope.outside.sum())} rows outside what {obs.name} was "
                   f"trained on ({flag}; column outside names the fields)")
+    # the reasons that apply, each with its count: a log of position fixes without psi_m nor a
+    # velocity never gives the robust observer a heading, not a window or a first fix
+    reasons = unscored(obs, est, valid, fix, heading_rows(
+        m, u, channels if obs.takes_receiver else None, obs.vehicle.wheelbase),
+        envelope.outside if envelope is not None and mode == "mark" else None)
     if result["valid"] < len(df):
-        print(f"valid: {result['valid']} of {len(df)} rows; the others (before the first fix, "
-              "a learned observer's window not yet full, or outside its envelope with "
-              "envelope=mark) are not scored")
+        print(f"valid: {result['valid']} of {len(df)} rows; not scored: {'; '.join(reasons)}")
     # a classical observer's estimate is finite from its first fix on: a finite one not valid
     # is one its consistency test flagged (the gyro EKF's, lbo.filters.consistency)
     flagged = int((np.isfinite(est).all(1) & ~valid).sum()) if obs.kind == "classical" else 0
@@ -268,14 +277,17 @@ def observe(cfg: DictConfig) -> dict[str, Any]:
               + ("; the heading's and the gyro bias's variances widened to learn the bias "
                  "again" if name == "gyro" else ""))
     if truth and not valid.any():
-        print(f"rmse: no valid row to score (the log is shorter than the window, "
-              f"N={obs.window})")
+        short = obs.kind == "learned" and obs.form == "window" and len(df) < obs.window
+        print("rmse: no valid row to score (" + (f"the log is shorter than the window, "
+                                                 f"N={obs.window}" if short else
+                                                 "; ".join(reasons)) + ")")
     elif truth:
         e = result["rmse"]
-        print(f"rmse x {e[0]:.6g} m, y {e[1]:.6g} m, psi {e[2]:.6g} rad "
+        print(f"rmse x {e[0]:.6g} m, y {e[1]:.6g} m, {psi_text(obs.name, e[2], valid, unseen)} "
               f"({result['valid']} valid rows)")
         print(f"nrmse {result['nrmse']:.6g} (E_ref: the paper's EKF, {PAPER_REFERENCE[0]} m, "
-              f"{PAPER_REFERENCE[1]} m, {PAPER_REFERENCE[2] * 1e3:g} mrad)")
+              f"{PAPER_REFERENCE[1]} m, {PAPER_REFERENCE[2] * 1e3:g} mrad)"
+              if np.isfinite(e[2]) else "nrmse: not scored (no heading was observed to score)")
     print(f"observed: {output}" + (f"; plot: {plot}" if plot is not None else ""))
     return result
 
