@@ -12,8 +12,8 @@ from helpers import compose_cfg
 from lbo.filters.start import CourseStart
 from lbo.observe import observe
 from lbo.scoring.metrics import rmse
+from lbo.scoring.unscored import heading_unseen
 from lbo.serve.observer import Observer
-from lbo.serve.unscored import heading_unseen
 from lbo.sim.columns import RECEIVER
 from lbo.simulate import simulate
 

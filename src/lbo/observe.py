@@ -92,11 +92,11 @@ def observe(cfg: DictConfig) -> dict[str, Any]:
     """
     from lbo.filters.classical import check_gyro_noise, on_logs
     from lbo.filters.gyro import GyroNoise
+    from lbo.scoring.unscored import heading_rows, heading_unseen, psi_text, scored_rmse, unscored
     from lbo.serve.engines import engine_device
     from lbo.serve.observer import EnvelopeWarning, Observer
     from lbo.serve.refusals import no_receiver
     from lbo.serve.runners import is_window_filter
-    from lbo.serve.unscored import heading_rows, heading_unseen, psi_text, scored_rmse, unscored
     from lbo.sim.noise import Noise
     from lbo.sim.vehicle import Vehicle
 
