@@ -54,8 +54,8 @@ def describe(nis: float, dof: int, updates: int, significance: float = SIGNIFICA
     """The reason a row is flagged, of the window's NIS, its degrees of freedom and updates."""
     bound = chi2_bounds(int(dof), significance)[int(dof)]
     return (f"innovations inconsistent with the covariance: NIS {nis:.4g} over the last "
-            f"{updates} updates ({dof} degrees of freedom), beyond the {significance:.1%} "
-            f"chi-square bound {bound:.4g}")
+            f"{updates} update{'s' if updates != 1 else ''} ({dof} degrees of freedom), "
+            f"beyond the {significance:.1%} chi-square bound {bound:.4g}")
 
 
 class Checks(NamedTuple):
