@@ -4,6 +4,8 @@ and ``rmse:`` lines name the reasons that apply, not a fixed list."""
 
 from __future__ import annotations
 
+from types import SimpleNamespace
+
 import numpy as np
 import pandas as pd
 import pytest
@@ -12,7 +14,7 @@ from helpers import compose_cfg
 from lbo.filters.start import CourseStart
 from lbo.observe import observe
 from lbo.scoring.metrics import rmse
-from lbo.scoring.unscored import heading_unseen
+from lbo.scoring.unscored import heading_unseen, unscored
 from lbo.serve.observer import Observer
 from lbo.sim.columns import RECEIVER
 from lbo.simulate import simulate
@@ -120,6 +122,37 @@ def test_rows_before_the_first_heading_leave_only_the_headings_rmse(tmp_path, ca
     full = log.assign(psi_m=np.where(log["x_m"].notna(), log["psi"], np.nan))
     result = _observe(tmp_path, full)
     assert result["heading_unseen"] == 0 and "left out" not in capsys.readouterr().out
+
+
+def test_each_reason_is_named_only_where_it_applies():
+    """The valid line's reasons, each with its count, in row order; a classical filter is
+    never said to wait for a heading (it starts at its first fix)."""
+    t = 10
+    fix = np.arange(t) >= 2
+    est = np.zeros((t, 3))
+    est[:2] = np.nan
+    classical = SimpleNamespace(kind="classical", name="ekf", form=None, window=1)
+    valid = np.isfinite(est).all(1)
+    assert unscored(classical, est, valid, fix, np.zeros(t, bool), None) == [
+        "2 before the first fix (row 2)"]
+    est[7:] = np.nan
+    valid = np.isfinite(est).all(1)
+    valid[5] = False  # finite, not valid: its consistency test
+    assert unscored(classical, est, valid, fix, np.zeros(t, bool), None) == [
+        "2 before the first fix (row 2)", "1 flagged by its consistency test",
+        "3 with an estimate that is not finite (the filter's numbers overflowed: check the "
+        "log's values and units)"]
+    cnn = SimpleNamespace(kind="learned", name="cnn-N4", form="window", window=4)
+    est = np.zeros((t, 3))
+    est[:1] = np.nan
+    est[8:] = np.nan  # a window without a fix
+    valid = np.isfinite(est).all(1) & (np.arange(t) >= 3)
+    outside = np.arange(t) == 5
+    valid &= ~outside
+    assert unscored(cnn, est, valid, np.arange(t) >= 1, np.arange(t) >= 1, outside) == [
+        "1 before the first fix (row 1)", "1 outside its training envelope (envelope=mark)",
+        "2 while its window of 4 steps fills (the EKF's estimate)",
+        "2 without an estimate (its window held no fix or no heading)"]
 
 
 @pytest.mark.slow

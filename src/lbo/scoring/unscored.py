@@ -7,7 +7,7 @@ Two things a user reads in ``lbo.observe``'s summary:
   outside the training envelope (``envelope=mark``); no heading yet (the robust observer
   starts at the first row holding a position and a heading, and a log of position fixes
   without ``psi_m`` nor a GNSS velocity never gives one); a window without a fix or heading;
-  a classical observer's consistency test;
+  a classical observer's consistency test, or its numbers not finite;
 - the heading's RMSE: a classical filter whose fixes hold no heading starts it at 0 rad,
   variance 1 rad^2, and reports it valid until the course over ground gives it
   (:class:`lbo.filters.start.CourseStart`). Those rows (a standstill from the start: all of
@@ -147,9 +147,11 @@ def unscored(obs: Any, est: np.ndarray, valid: np.ndarray, fix: np.ndarray,
         groups.append((filling, f"while its window of {obs.window} steps fills (the EKF's "
                                 "estimate)"))
         left &= ~filling
-    if obs.kind == "classical":  # finite but not valid: its consistency test flagged them
+    if obs.kind == "classical":  # valid from its first fix, heading or not
         groups.append((left & finite, "flagged by its consistency test"))
-        left &= ~finite
+        groups.append((left & ~finite, "with an estimate that is not finite (the filter's "
+                                       "numbers overflowed: check the log's values and units)"))
+        return [f"{int(g.sum())} {why}" for g, why in groups if g.any()]
     unseen = left & (rows < first_heading)
     groups.append((unseen, f"with no heading yet: {obs.name} starts at the first row that "
                            f"holds a position and a heading ({COURSE_TEXT}); "
