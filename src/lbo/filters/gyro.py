@@ -315,16 +315,17 @@ class GyroStepper:
         self.x, self.P, nis = joseph_update(x, P, y5, self.H, R5, held5, return_nis=True,
                                             tested=TESTED)
         dof = (held5 & TESTED).sum(1)
+        if not dof.any():  # no fix nor course in any trajectory (most rows): nothing to test
+            return self.x[:, :3]
         failed = self.consistency.push(nis, dof) & (dof > 0)  # failed at this update
-        if self.relearn:
+        self.widened[dof > 0] = 1.0
+        if self.relearn and failed.any():
             # innovations its covariance cannot explain: the heading and the bias the gyro
             # drives are what a filter sure of a wrong bias gets wrong (the fixes and the
             # course measure the pose); widened, the next fixes teach the bias again
-            self.widened = np.where(failed, self.consistency.excess(),
-                                    np.where(dof > 0, 1.0, self.widened))
-            if failed.any():
-                self.P = widen(self.P, (2, 3), self.widened, failed)
-                self.consistency.clear(failed)
+            self.widened[failed] = self.consistency.excess()[failed]
+            self.P = widen(self.P, (2, 3), self.widened, failed)
+            self.consistency.clear(failed)
         return self.x[:, :3]
 
 

@@ -119,6 +119,8 @@ def joseph_update(x: np.ndarray, P: np.ndarray, y: np.ndarray, H: np.ndarray, R:
     # the tested channels' block of S, the others set apart as the untaken ones are above:
     # their innovations' marginal covariance, whatever the other channels of the row say
     t = held if tested is None else held & np.asarray(tested, dtype=bool)
+    if not t.any():  # nothing tested in any row (a standstill's zero rate alone)
+        return x_post, P_post, np.zeros(g)
     S_t = np.where(t[:, :, None] & t[:, None, :], S, _eye(p))
     y_t = np.where(t, y, 0.0)
     nis = np.einsum("gp,gp->g", y_t, np.linalg.solve(S_t, y_t[..., None])[..., 0])
