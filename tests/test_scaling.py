@@ -182,6 +182,67 @@ def test_joblib_sweep_matches_the_serial_sweep(tmp_path, smoke_data):
 # --- an MLflow tracking server ------------------------------------------------------------------
 
 
+def test_a_data_set_input_lost_to_a_racing_run_is_logged_again():
+    """Two runs logging the same data set at once: the store's second insert fails on its
+    unique key (the record exists by then), and log_input logs the input again; any other
+    error, or the same one every time, is raised."""
+    from mlflow.exceptions import MlflowException
+
+    from lbo.tracking.runs import dataset_input, log_input
+
+    class Store:
+        def __init__(self, errors):
+            self.errors, self.logged = list(errors), []
+
+        def log_inputs(self, run_id, datasets):
+            if self.errors:
+                raise MlflowException(self.errors.pop(0))
+            self.logged.append((run_id, datasets[0].dataset.digest))
+
+    race = ("BAD_REQUEST: (sqlite3.IntegrityError) UNIQUE constraint failed: "
+            "datasets.experiment_id, datasets.name, datasets.digest")
+    store = Store([race])
+    log_input(store, "r1", dataset_input("smoke", "a8c688af2968", "/data/smoke-a8c688af2968"))
+    assert store.logged == [("r1", "a8c688af2968")]
+    for errors in ([race] * 3, ["RESOURCE_DOES_NOT_EXIST: run r1"]):
+        with pytest.raises(MlflowException):
+            log_input(Store(errors), "r1", dataset_input("smoke", "a8", "/data"))
+
+
+@pytest.mark.slow
+def test_runs_started_together_all_log_their_data_set_on_a_server():
+    """Eight runs log the same data set at the same moment through a real tracking server,
+    in five experiments: each run has its input. (MlflowClient.log_inputs alone failed for 5
+    of these 40 runs, on the store's unique key.)"""
+    import threading
+
+    from lbo.tracking.runs import dataset_input, log_input
+
+    with mlflow_server() as server:
+        client = mlflow.MlflowClient(server.url)
+        for k in range(5):
+            exp = client.create_experiment(f"race-{k}")
+            runs = [client.create_run(exp).info.run_id for _ in range(8)]
+            start, failed = threading.Barrier(len(runs)), []
+
+            def log(run_id, start=start, failed=failed):
+                start.wait()
+                try:
+                    log_input(client, run_id, dataset_input("smoke", "a8c688af2968", "/d/s"))
+                except Exception as e:  # noqa: BLE001 - reported below
+                    failed.append(e)
+
+            threads = [threading.Thread(target=log, args=(r,)) for r in runs]
+            for t in threads:
+                t.start()
+            for t in threads:
+                t.join()
+            assert failed == []
+            for r in runs:
+                [used] = client.get_run(r).inputs.dataset_inputs
+                assert used.dataset.digest == "a8c688af2968"
+
+
 @pytest.mark.slow
 def test_train_observe_export_and_tune_through_a_tracking_server(tmp_path, smoke_data, monkeypatch,
                                                         manoeuvre_csv):

@@ -51,7 +51,7 @@ from lbo.models.features import FEATURE_MODES
 from lbo.models.net import check_scaling
 from lbo.sim.log_sets import is_logs
 from lbo.sim.truth import config_dict as truth_dict
-from lbo.tracking.runs import check_store, dataset_input, ensure_experiment
+from lbo.tracking.runs import check_store, dataset_input, ensure_experiment, log_input
 
 if TYPE_CHECKING:  # Lightning takes seconds to import: only a training run needs it
     import lightning as L
@@ -291,8 +291,8 @@ def _fit(cfg: DictConfig, built: Built, callbacks: list[L.Callback] | None,
             config_yaml = write_text(output / "config.yaml",
                                      scrub(OmegaConf.to_yaml(cfg, resolve=True)))
             logger.experiment.log_artifact(logger.run_id, str(config_yaml))
-            logger.experiment.log_inputs(logger.run_id, datasets=[
-                dataset_input(str(cfg.data.name), data_hash, folder)])
+            log_input(logger.experiment, logger.run_id,
+                      dataset_input(str(cfg.data.name), data_hash, folder))
         elif isinstance(logger, MLFlowLogger):
             logger.experiment.set_terminated(resume_id, "RUNNING")
         trainer.fit(module, datamodule=dm,

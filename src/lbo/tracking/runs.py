@@ -183,6 +183,35 @@ def dataset_input(name: str, digest: str, source: str | Path, context: str = "tr
                         tags=[InputTag("mlflow.data.context", context)])
 
 
+DUPLICATE_KEY = ("UNIQUE constraint failed", "duplicate key value violates unique constraint",
+                 "Duplicate entry")
+"""How a store's database refuses a second record under a unique key (SQLite, PostgreSQL,
+MySQL), in the error MLflow passes on."""
+
+
+def log_input(client: Any, run_id: str, dataset: Any, tries: int = 3) -> None:
+    """Log a dataset input (:func:`dataset_input`) to run ``run_id`` through MLflow client
+    ``client``.
+
+    MLflow's store records each data set once per experiment: it looks the record up, and
+    inserts it when missing. Runs started at the same moment on the same data (the jobs of
+    a SLURM array, against a tracking server) both find it missing, and the second insert
+    fails on the database's unique key (measured: one of two jobs failed so). The record
+    exists by then: the input is logged again, up to ``tries`` times in all."""
+    import time
+
+    from mlflow.exceptions import MlflowException
+
+    for attempt in range(1, tries + 1):
+        try:
+            client.log_inputs(run_id, datasets=[dataset])
+            return
+        except MlflowException as e:
+            if attempt == tries or not any(k in str(e) for k in DUPLICATE_KEY):
+                raise
+            time.sleep(0.2 * attempt)
+
+
 KIND_TAG, KIND = "mlflow.experimentKind", "custom_model_development"
 """The experiment tag that makes MLflow 3's UI open an experiment in its model-training view
 (runs, metrics, charts), not in its GenAI one (traces, prompts), which it would guess."""
