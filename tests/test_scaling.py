@@ -464,6 +464,8 @@ def test_reproduce_trains_through_the_launcher_and_resumes_without_duplicates(
     assert [r["reused"] for r in first] == [False, False]
     assert [r["reused"] for r in second] == [True, True]
     assert [r["run_id"] for r in second] == [r["run_id"] for r in first]
+    # reused, the robust observer keeps its name (its run's is robust-filternet-N100)
+    assert [r["name"] for r in second] == [r["name"] for r in first]
     assert (tmp_path / "runs" / "robust" / ".hydra" / "overrides.yaml").is_file()
     table = finished_runs(uri)
     assert len(table) == 2 and set(table["status"]) == {"FINISHED"}

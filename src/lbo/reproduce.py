@@ -196,10 +196,15 @@ def stage_train(cfg: DictConfig, out: Path, jobs: list[Job]) -> tuple[dict, str]
     runs: dict[str, dict] = {}
     eta = expected(cfg, jobs)
     if cfg.launcher:
-        results = launch(cfg, [list(j.overrides) for j in jobs], out / "runs",
-                         [j.key for j in jobs])
-        for done, (job, res) in enumerate(zip(jobs, results, strict=True), 1):
-            runs[job.key] = res
+        # the runs that finished are reused here: a rerun queues no cluster job to learn that
+        runs = finished_runs(jobs)
+        todo = [j for j in jobs if j.key not in runs]
+        if todo:
+            results = launch(cfg, [list(j.overrides) for j in todo], out / "runs",
+                             [j.key for j in todo])
+            runs.update((j.key, res) for j, res in zip(todo, results, strict=True))
+        for done, job in enumerate(jobs, 1):
+            res = runs[job.key]
             report_line(done, job.key, res, "reused" if res.get("reused") else "trained")
     for done, job in enumerate(jobs, 1):
         key = job.key
@@ -276,6 +281,23 @@ def stage_report(cfg: DictConfig, out: Path, folder: Path, tuned: dict, runs: di
                          folder / "friction_circle.png", sections)
     _log_report(cfg, cfg.scale, out, files, folder.name)
     return files, "done"
+
+
+def finished_runs(jobs: list[Job]) -> dict[str, dict[str, Any]]:
+    """The jobs (with ``resume=true``) whose run finished, by key: their metrics, as the
+    training would return them (``reused``), found as it finds them (:func:`prior_runs
+    <lbo.learn.resume.prior_runs>`: a shared store's run only where its folder shows it is this
+    user's)."""
+    from lbo.learn.resume import config_hash, finished_run
+
+    found = {}
+    for job in jobs:
+        c = compose("train", list(job.overrides))
+        if c.get("resume") and c.get("logger"):
+            run = finished_run(c, config_hash(c))
+            if run is not None:
+                found[job.key] = run
+    return found
 
 
 def _renamed(csv: Path, name: str, key: str) -> pd.DataFrame:

@@ -180,7 +180,10 @@ def prior_runs(cfg: DictConfig, digest: str, clean: bool = True, keep_resumable:
         return None, resumable
     run = max(done, key=lambda r: r.info.end_time or 0)
     history = client.get_metric_history(run.info.run_id, "val_loss")
-    return {"name": run.info.run_name, "run_id": run.info.run_id, "reused": True,
+    # the observer's name, as a training returns it (the run's may carry a study's prefix:
+    # robust-filternet-N100), which the report looks the observer's scores up by
+    return {"name": f"{cfg.model.name}-N{cfg.model.window}", "run_id": run.info.run_id,
+            "reused": True,
             "val_loss": min((m.value for m in history), default=float("nan")),
             "checkpoint": f"{run.info.artifact_uri}/checkpoints/best.ckpt",
             **{k: v for k, v in run.data.metrics.items() if k.startswith("test_")}}, resumable
