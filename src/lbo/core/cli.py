@@ -29,6 +29,19 @@ def fail(err: Exception) -> NoReturn:
     sys.exit(2)
 
 
+def fail_job(err: Exception) -> NoReturn:
+    """:func:`fail`, or in a job of a submitit launcher (:mod:`lbo.core.launchers`): the same
+    line in the job's log, then handed back to the submitting process as the job's result
+    (:class:`lbo.core.launchers.JobFailed`), which ends the sweep in that line."""
+    launchers = sys.modules.get("lbo.core.launchers")
+    job = getattr(launchers, "current_job", None)
+    if launchers is None or job is None:
+        fail(err)
+    line = scrub(str(err))
+    print(f"error: {line}", file=sys.stderr, flush=True)
+    raise launchers.JobFailed(line, job)
+
+
 def os_error(e: OSError) -> LboError:
     """An OSError (read-only folder, full disk, a folder where a file should be) as one line."""
     where = e.filename if e.filename is not None else ""
@@ -218,16 +231,16 @@ def entry(config_name: str, run: Callable[[DictConfig], Any],
                 save_hydra_files(cfg)
                 return run(cfg)
         except LboError as e:
-            fail(e)
+            fail_job(e)
         except OSError as e:
-            fail(os_error(e))
+            fail_job(os_error(e))
         except Exception as e:
             # a damaged tracking store fails deep inside MLflow's SQLAlchemy store (opening
             # it, looking a run up): one line naming the store, not pages of SQL
             known = store_error(e, cfg)
             if known is None:
                 raise
-            fail(known)
+            fail_job(known)
 
     def checked() -> Any:
         if any(a in ("--help", "-h") for a in sys.argv[1:]):
@@ -354,8 +367,15 @@ def ready_launcher(name: str | None, field: str = "hydra/launcher") -> None:
     job's one-line error, and only when a second job was still running (a race under load).
     The unlinking is right and is kept; its warning is filtered, through the environment the
     tracker is started with.
+
+    submitit's launchers (``submitit_slurm``, ``submitit_local``) are run as lbo's
+    (:mod:`lbo.core.launchers`), whose failed jobs end the sweep in one line too.
     """
     check_launcher(name, field)
+    if name in ("submitit_slurm", "submitit_local"):
+        from lbo.core.launchers import install
+
+        install()
     if name == "joblib":
         held = os.environ.get("PYTHONWARNINGS", "")
         if RECLAIM_WARNING not in held.split(","):
