@@ -14,7 +14,7 @@ MLFLOW_PORT ?= 5000
 MLFLOW_BACKEND ?= sqlite:///$(CURDIR)/mlflow-server.db
 MLFLOW_ARTIFACTS ?= $(CURDIR)/mlflow-server-artifacts
 
-.PHONY: help install test test-fast data reproduce ablation fleet real-drive receiver-study bench readme-tables lint clean mlflow-server ui
+.PHONY: help install test test-fast slurm-check data reproduce ablation fleet real-drive receiver-study bench readme-tables lint clean mlflow-server ui
 
 help:  ## list the targets
 	@grep -E '^[a-z-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  make %-10s %s\n", $$1, $$2}'
@@ -35,6 +35,9 @@ test: install  ## run every test, the slow ones included, in TEST_JOBS processes
 
 test-fast: install  ## run the tests without the slow marker
 	$(PY) -m pytest -q -n $(TEST_JOBS) --dist loadfile -m "not slow"
+
+slurm-check: install  ## tests/test_slurm.py: sweeps, make reproduce, a killed job on a one-node SLURM cluster it starts (slurm-wlm, munge, root)
+	OMP_NUM_THREADS=1 $(PY) -m pytest -q -p no:cacheprovider tests/test_slurm.py
 
 data: install  ## generate the data sets: make data SCALE=smoke|quick|paper
 	$(PY) -m lbo.datagen data=$(SCALE)
