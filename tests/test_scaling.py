@@ -455,7 +455,8 @@ def test_reproduce_trains_through_the_launcher_and_resumes_without_duplicates(
     jobs = {"cnn-N20": ["experiment=smoke", *base, "model=cnn", "window=20",
                         f"output_dir={tmp_path / 'cnn'}"],
             "robust": ["experiment=robust", *base, "data=smoke", "window=100", "batch_size=64",
-                       "keep_onnx=false", f"output_dir={tmp_path / 'robust'}"]}
+                       "keep_onnx=false", f"output_dir={tmp_path / 'robust'}",
+                       "logger.run_name=robust-filternet-N100"]}  # as make reproduce names it
     with initialize_config_dir(str(CONF_DIR), version_base="1.3"):
         cfg = compose("reproduce", ["launcher=joblib", "jobs=2"])
         first = launch(cfg, list(jobs.values()), tmp_path / "runs", list(jobs))
