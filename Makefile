@@ -37,7 +37,7 @@ test-fast: install  ## run the tests without the slow marker
 	$(PY) -m pytest -q -n $(TEST_JOBS) --dist loadfile -m "not slow"
 
 slurm-check: install  ## tests/test_slurm.py: sweeps, make reproduce, a killed job on a one-node SLURM cluster it starts (slurm-wlm, munge, root)
-	OMP_NUM_THREADS=1 $(PY) -m pytest -q -p no:cacheprovider tests/test_slurm.py
+	OMP_NUM_THREADS=1 $(PY) -m pytest -q -s -p no:cacheprovider tests/test_slurm.py
 
 data: install  ## generate the data sets: make data SCALE=smoke|quick|paper
 	$(PY) -m lbo.datagen data=$(SCALE)
