@@ -23,12 +23,13 @@ import os
 import re
 import sys
 from collections.abc import Sequence
-from typing import Any
+from typing import Any, NoReturn
 
 from hydra.core.utils import JobReturn, JobStatus
 from hydra_plugins.hydra_submitit_launcher import submitit_launcher as plugin  # type: ignore[import-untyped]
 
 from lbo.core.errors import LboError
+from lbo.core.redact import scrub
 
 current_job: str | None = None
 """In a launched job's process: the job, as its one-line error names it (``SLURM job 12_0 on
@@ -96,16 +97,22 @@ class _Lbo:
                ) -> Sequence[JobReturn]:  # in the submitting process
         from submitit.core.utils import UncompletedJobError
 
-        from lbo.core.cli import fail
-
         try:
             returns = super().launch(job_overrides, initial_job_idx)  # type: ignore[misc]
         except UncompletedJobError as e:
-            fail(LboError(_uncompleted(e, self._EXECUTOR)))
+            _end(_uncompleted(e, self._EXECUTOR))
         for r in returns:
             if r.status is JobStatus.FAILED and isinstance(r._return_value, JobFailed):
-                fail(LboError(r._return_value.line()))
+                _end(r._return_value.line())
         return returns
+
+
+def _end(line: str) -> NoReturn:
+    """End the submitting command in ``line`` (exit code 2), as :func:`lbo.core.cli.fail`
+    does: the sweep's jobs are launched from inside Hydra, which lets only an exit through
+    without a traceback."""
+    print(f"error: {scrub(line)}", file=sys.stderr, flush=True)
+    sys.exit(2)
 
 
 class SlurmLauncher(_Lbo, plugin.SlurmLauncher):

@@ -189,7 +189,7 @@ DUPLICATE_KEY = ("UNIQUE constraint failed", "duplicate key value violates uniqu
 MySQL), in the error MLflow passes on."""
 
 
-def log_input(client: Any, run_id: str, dataset: Any, tries: int = 3) -> None:
+def log_input(client: Any, run_id: str | None, dataset: Any, tries: int = 3) -> None:
     """Log a dataset input (:func:`dataset_input`) to run ``run_id`` through MLflow client
     ``client``.
 
