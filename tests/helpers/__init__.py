@@ -10,6 +10,8 @@ hooks stay in ``tests/conftest.py``.
 - :mod:`helpers.stepping`: an observer stepped through a log (``step_log``)
 - :mod:`helpers.servers`: real PostgreSQL, MLflow and model servers (import it by name:
   ``from helpers.servers import postgres``)
+- :mod:`helpers.slurm`: a real one-node SLURM cluster (``from helpers.slurm import
+  slurm_cluster``)
 """
 
 from helpers.commands import cli, observe, one_line_error
