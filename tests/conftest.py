@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+import json
 import os
 from pathlib import Path
 
 import pytest
 
 from helpers import compose_cfg
+from helpers.shared import once
 
 
 def pytest_configure(config) -> None:
@@ -34,12 +36,13 @@ def own_cache_dir(tmp_path_factory):
 
 
 @pytest.fixture(scope="session")
-def smoke_data(tmp_path_factory) -> Path:
-    """The smoke data sets, generated once per test session."""
+def smoke_data(tmp_path_factory, worker_id) -> Path:
+    """The smoke data sets, generated once per test run and shared by its workers (their
+    data root too: a set a training draws on demand is drawn once, under lbo's data lock)."""
     from lbo.datagen import generate
 
-    root = tmp_path_factory.mktemp("data")
-    return Path(generate(compose_cfg("datagen", ["data=smoke", f"data.root={root}"])))
+    return once(tmp_path_factory, worker_id, "data", lambda root: Path(
+        generate(compose_cfg("datagen", ["data=smoke", f"data.root={root}"]))))
 
 
 @pytest.fixture(scope="module")
@@ -75,14 +78,47 @@ def manoeuvre(smoke_data):
 
 
 @pytest.fixture(scope="session")
-def robust_smoke(tmp_path_factory, smoke_data):
-    """The robust observer trained once at smoke scale, in an MLflow store of its own
-    (``cfg``, training's ``out``, ``uri``, ``dir``, ``run_id``): test_robust.py and
-    test_serving.py both read it, and neither changes it."""
+def robust_smoke(tmp_path_factory, worker_id, smoke_data):
+    """The robust observer trained once at smoke scale for the whole run, in an MLflow store
+    of its own (``cfg``, training's ``out``, ``uri``, ``dir``, ``run_id``): the tests read
+    it, and none changes it."""
     from helpers import ROBUST_SMOKE, train_in_own_store
 
-    tmp = tmp_path_factory.mktemp("robust")
-    cfg, out, uri = train_in_own_store(tmp, smoke_data, *ROBUST_SMOKE,
-                                       "trainer.limit_train_batches=5", "window=40",
-                                       "batch_size=64")
-    return {"cfg": cfg, "out": out, "uri": uri, "dir": tmp / "out", "run_id": out["run_id"]}
+    def make(tmp: Path) -> dict:
+        cfg, out, uri = train_in_own_store(tmp, smoke_data, *ROBUST_SMOKE,
+                                           "trainer.limit_train_batches=5", "window=40",
+                                           "batch_size=64")
+        return {"cfg": cfg, "out": out, "uri": uri, "dir": tmp / "out",
+                "run_id": out["run_id"]}
+
+    return once(tmp_path_factory, worker_id, "robust", make)
+
+
+@pytest.fixture(scope="session")
+def smoke_cnn(tmp_path_factory, worker_id, smoke_data):
+    """One smoke CNN (N=20, one epoch of 5 batches on the smoke friction circle at alpha = 1),
+    trained once for the whole run in an MLflow store of its own (``checkpoint``, ``run_id``,
+    ``uri``), for the tests that only read a trained observer."""
+    from helpers import train_in_own_store
+
+    def make(tmp: Path) -> dict:
+        _, out, uri = train_in_own_store(tmp, smoke_data, "experiment=smoke",
+                                         "trainer.max_epochs=1", "trainer.limit_train_batches=5")
+        return {"checkpoint": out["checkpoint"], "run_id": out["run_id"], "uri": uri}
+
+    return once(tmp_path_factory, worker_id, "smoke_cnn", make)
+
+
+def pytest_collection_modifyitems(config, items) -> None:
+    """The longest test files first (``tests/durations.json``, which
+    ``benchmarks/test_durations.py`` writes from a run's report; a file not listed there first
+    of all), each file's tests in their own order: xdist hands files to whichever worker is
+    free in this order, so no long file starts when the other worker is nearly done."""
+    listed = Path(__file__).with_name("durations.json")
+    seconds = json.loads(listed.read_text()) if listed.is_file() else {}
+    root = Path(str(config.rootpath))
+
+    def cost(item) -> float:
+        return seconds.get(Path(str(item.path)).relative_to(root).as_posix(), float("inf"))
+
+    items.sort(key=cost, reverse=True)  # stable: a file's tests keep their order

@@ -13,6 +13,7 @@ import pytest
 import torch
 
 from helpers import compose_cfg, train_in_own_store
+from helpers.shared import once
 from lbo.core.errors import LboError
 from lbo.learn.jobs import train_jobs
 from lbo.learn.lightning_module import TrainingModule
@@ -31,14 +32,17 @@ SMOKE = ["data.train.n_traj=16", "data.train.duration=10.0", "data.test.alpha_st
 
 
 @pytest.fixture(scope="module")
-def dynamic(tmp_path_factory, smoke_data):
-    """experiment=dynamic trained for a few batches on a smoke-sized data=dynamic_drift."""
-    tmp = tmp_path_factory.mktemp("dynamic")
-    cfg, out, uri = train_in_own_store(tmp, smoke_data, "experiment=dynamic",
-                                       "data=dynamic_drift", *SMOKE, "window=60",
-                                       "trainer.max_epochs=1", "trainer.limit_train_batches=4",
-                                       "batch_size=32")
-    return {"cfg": cfg, "out": out, "uri": uri, "dir": tmp / "out"}
+def dynamic(tmp_path_factory, worker_id, smoke_data):
+    """experiment=dynamic trained for a few batches on a smoke-sized data=dynamic_drift (once
+    for the run: the tests only read it)."""
+    def make(tmp):
+        cfg, out, uri = train_in_own_store(tmp, smoke_data, "experiment=dynamic",
+                                           "data=dynamic_drift", *SMOKE, "window=60",
+                                           "trainer.max_epochs=1",
+                                           "trainer.limit_train_batches=4", "batch_size=32")
+        return {"cfg": cfg, "out": out, "uri": uri, "dir": tmp / "out"}
+
+    return once(tmp_path_factory, worker_id, "dynamic", make)
 
 
 def test_experiment_trains_on_the_car_that_slips_and_scores_against_its_oracle(dynamic):

@@ -16,7 +16,7 @@ import pandas as pd
 import pytest
 import torch
 
-from helpers import observe, train_in_own_store
+from helpers import observe
 from lbo.core.errors import LboError
 from lbo.models.envelope import Envelope, alpha_estimates, fix_spacing
 from lbo.serve.observer import EnvelopeWarning, Observer
@@ -29,12 +29,9 @@ SIGMA = np.asarray(Noise.preset("paper").measurement_sigma)
 
 
 @pytest.fixture(scope="module")
-def cnn(tmp_path_factory, smoke_data):
+def cnn(smoke_cnn):
     """One smoke CNN (N=20), trained on the smoke friction circle at alpha = 1."""
-    _, out, _ = train_in_own_store(tmp_path_factory.mktemp("envelope"), smoke_data,
-                                   "experiment=smoke", "trainer.max_epochs=1",
-                                   "trainer.limit_train_batches=5")
-    return out["checkpoint"]
+    return smoke_cnn["checkpoint"]
 
 
 def drive(speed: float, steer: float = 0.02, alpha: float = 1.0, steps: int = 600,

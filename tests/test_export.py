@@ -13,21 +13,15 @@ from lbo.core.errors import LboError
 from lbo.export import export, export_observer
 from lbo.models.net import WindowNet
 from lbo.serve.observer import Observer
-from lbo.train import train
 
 # one torch thread, here and in the CLIs: see the one_torch_thread fixture in conftest.py
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 @pytest.fixture(scope="module")
-def checkpoint(tmp_path_factory, smoke_data):
-    """A smoke CNN (N=20): one short epoch, no MLflow, no evaluation."""
-    tmp = tmp_path_factory.mktemp("export")
-    out = train(compose_cfg("train", [
-        "experiment=smoke", f"data.root={smoke_data.parent}", f"output_dir={tmp / 'out'}",
-        "trainer.max_epochs=1", "trainer.limit_train_batches=5", "~logger",
-        "~callbacks.evaluation"]))
-    return out["checkpoint"]
+def checkpoint(smoke_cnn):
+    """A smoke CNN (N=20): one short epoch."""
+    return smoke_cnn["checkpoint"]
 
 
 @pytest.fixture(scope="module")

@@ -15,6 +15,7 @@ import pytest
 import torch
 
 from helpers import compose_cfg, observe, one_line_error, train_in_own_store
+from helpers.shared import once
 from lbo.core.errors import LboError
 from lbo.models.features import window_view
 from lbo.models.net import WindowNet
@@ -29,13 +30,12 @@ MEAS, INPUTS = ["x_m", "y_m", "psi_m"], ["V", "delta"]
 
 
 @pytest.fixture(scope="module")
-def fix_rates_cnn(tmp_path_factory, smoke_data):
-    """One smoke CNN (N=20) trained with missing fixes (fix_rates=[50,10]), shared here."""
-    _, out, _ = train_in_own_store(tmp_path_factory.mktemp("fix_rates"), smoke_data,
-                                   "experiment=smoke", "model=cnn", "window=20",
-                                   "fix_rates=[50,10]", "trainer.max_epochs=1",
-                                   "trainer.limit_train_batches=3")
-    return out["checkpoint"]
+def fix_rates_cnn(tmp_path_factory, worker_id, smoke_data):
+    """One smoke CNN (N=20) trained with missing fixes (fix_rates=[50,10]), shared here (made
+    once for the run: the tests only read it)."""
+    return once(tmp_path_factory, worker_id, "fix_rates_cnn", lambda tmp: train_in_own_store(
+        tmp, smoke_data, "experiment=smoke", "model=cnn", "window=20", "fix_rates=[50,10]",
+        "trainer.max_epochs=1", "trainer.limit_train_batches=3")[1]["checkpoint"])
 
 
 def assert_refused(res, message, out):
