@@ -156,7 +156,11 @@ def test_a_run_trained_before_the_rooms_were_split_resumes_and_observes_as_it_di
     observe(f"observer={BEFORE / 'robust-N40.ckpt'}", f"input={log}",
             f"output={tmp_path / 'now.csv'}", f"hydra.run.dir={tmp_path / 'h'}", check=True)
     then, now = pd.read_csv(BEFORE / "estimates.csv.gz"), pd.read_csv(tmp_path / "now.csv")
-    pd.testing.assert_frame_equal(now, then, rtol=1e-12, atol=1e-12)
+    # to the rounding of the CPU's float32 kernels, not to the bit: the reference was written
+    # on a CPU with other ones, and on a 2-core AVX2-only EPYC the net's float32 gains moved
+    # the estimates by up to 4e-9 m and the variances by up to 1.6e-7 (a change in what the
+    # filter computes moves them by orders more)
+    pd.testing.assert_frame_equal(now, then, rtol=1e-6, atol=1e-6)
 
 
 def test_the_paths_group_moves_what_lbo_writes_and_leaves_a_runs_identity():
