@@ -178,8 +178,11 @@ def _http_server(args: list[str], folder: Path, probe: str, what: str, timeout: 
 def mlflow_server(backend: str | None = None) -> Iterator[MlflowServer]:
     """``mlflow server`` with a SQLite backend store (or ``backend``) and an artifact root of
     its own, serving the artifacts itself (clients upload and download through it)."""
+    from lbo.tracking.new_store import seed
+
     folder = Path(tempfile.mkdtemp(prefix="lbo-mlflow-"))
     backend = backend or f"sqlite:///{folder / 'mlflow.db'}"
+    seed(backend)  # lbo's empty store, not the server's 3 s of migrations
     args = ["mlflow", "server", "--host", "127.0.0.1", "--port", "{port}",
             "--backend-store-uri", backend, "--artifacts-destination", str(folder / "artifacts"),
             "--workers", "1"]

@@ -229,8 +229,11 @@ def ensure_experiment(uri: str, name: str, artifact_location: str | None):
     from mlflow import MlflowClient
     from mlflow.exceptions import MlflowException
 
+    from lbo.tracking.new_store import seed
+
     with creation_lock(uri):
-        client = MlflowClient(uri)  # creates the tables of a new SQLite file
+        seed(uri)  # a new SQLite file from an empty store, not MLflow's 3 s of migrations
+        client = MlflowClient(uri)
         use_wal(uri)
         exp = client.get_experiment_by_name(name)
         if exp is not None:
