@@ -470,26 +470,3 @@ def test_reproduce_trains_through_the_launcher_and_resumes_without_duplicates(
     assert (tmp_path / "runs" / "robust" / ".hydra" / "overrides.yaml").is_file()
     table = finished_runs(uri)
     assert len(table) == 2 and set(table["status"]) == {"FINISHED"}
-
-
-@pytest.mark.slow
-def test_make_reproduce_against_a_tracking_server_through_joblib(tmp_path):
-    """The whole smoke study with its runs, artifacts and report on a real mlflow server, and
-    its train stage on the joblib launcher."""
-    with mlflow_server() as server:
-        res = cli("lbo.reproduce", "scale=smoke", f"report_dir={tmp_path / 'report'}",
-                  f"optuna_storage=sqlite:///{tmp_path / 'optuna.db'}",
-                  f"overrides=['data.root={tmp_path / 'data'}']",
-                  "train_overrides=['trainer.limit_train_batches=4','trainer.max_epochs=1']",
-                  f"hydra.run.dir={tmp_path / 'hydra'}", "launcher=joblib", "jobs=2",
-                  env={"MLFLOW_TRACKING_URI": server.url})
-        assert res.returncode == 0, res.stdout[-3000:] + res.stderr[-3000:]
-        assert "through hydra/launcher=joblib" in res.stdout
-        assert (tmp_path / "report" / "report.md").is_file()
-        table = finished_runs(server.url)
-        assert (table["status"] == "FINISHED").all()
-        names = set(table["name"])
-        assert {f"{m}-N{n}" for m in ("cnn", "lstm") for n in (20, 40, 60, 80)} <= names
-        assert {"robust-filternet-N100", "literal-cnn-N20", "report-smoke"} <= names
-        # every artifact went through the server into its own artifact root
-        assert len(list((server.folder / "artifacts").rglob("best.ckpt"))) >= 9
