@@ -1,12 +1,10 @@
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 import pytest
 
-from helpers import compose_cfg
+from helpers import cli, compose_cfg
 from lbo.core.errors import LboError
 from lbo.datagen import generate
 from lbo.sim import columns, schema
@@ -151,18 +149,16 @@ def test_bad_config_names_the_field_and_writes_nothing(tmp_path, override, field
 
 def test_cli_prints_the_folder_and_refuses_bad_input(tmp_path):
     root = tmp_path / "data"
-    ok = subprocess.run([sys.executable, "-m", "lbo.datagen", "data=smoke", f"data.root={root}",
-                         f"hydra.run.dir={tmp_path / 'run'}"],
-                        capture_output=True, text=True, check=True)
+    ok = cli("lbo.datagen", "data=smoke", f"data.root={root}", f"hydra.run.dir={tmp_path / 'run'}")
+    assert ok.returncode == 0, ok.stderr[-3000:]
     last = ok.stdout.strip().splitlines()[-1]
     assert last.startswith("datasets: ")
     folder = Path(last.removeprefix("datasets: "))
     assert sorted(p.name for p in folder.glob("*.parquet")) == [
         "test.parquet", "train.parquet", "val.parquet"]
     assert "coverage" in ok.stdout
-    bad = subprocess.run([sys.executable, "-m", "lbo.datagen", "data=smoke",
-                          f"data.root={tmp_path / 'bad'}", "data.train.n_traj=0",
-                          f"hydra.run.dir={tmp_path / 'run2'}"], capture_output=True, text=True)
+    bad = cli("lbo.datagen", "data=smoke", f"data.root={tmp_path / 'bad'}",
+              "data.train.n_traj=0", f"hydra.run.dir={tmp_path / 'run2'}")
     assert bad.returncode == 2
     assert bad.stderr.strip().splitlines()[-1].startswith("error: data.train.n_traj must be")
     assert not (tmp_path / "bad").exists()

@@ -1,11 +1,9 @@
-import subprocess
-import sys
 
 import numpy as np
 import pandas as pd
 import pytest
 
-from helpers import compose_cfg
+from helpers import cli, compose_cfg
 from lbo.core.angles import wrap_angle
 from lbo.core.errors import LboError
 from lbo.evaluate import evaluate
@@ -168,10 +166,8 @@ def test_bad_data_files_name_the_column_and_write_nothing(tmp_path, smoke_data):
 def test_cli_exit_code_and_one_line_error(tmp_path, smoke_data):
     no_col, _ = broken_copies(smoke_data, tmp_path)
     out = tmp_path / "cli"
-    res = subprocess.run([sys.executable, "-m", "lbo.evaluate", "data=smoke",
-                          f"data.root={smoke_data.parent}", f"test_file={no_col}",
-                          f"hydra.run.dir={out}", "observers=[ekf]"],
-                         capture_output=True, text=True)
+    res = cli("lbo.evaluate", "data=smoke", f"data.root={smoke_data.parent}",
+              f"test_file={no_col}", f"hydra.run.dir={out}", "observers=[ekf]")
     assert res.returncode == 2
     assert res.stderr.strip().splitlines()[-1].startswith("error: ")
     assert "missing column 'psi_m'" in res.stderr

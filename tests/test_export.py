@@ -1,6 +1,4 @@
 import json
-import subprocess
-import sys
 
 import numpy as np
 import onnxruntime as ort
@@ -8,7 +6,7 @@ import pandas as pd
 import pytest
 import torch
 
-from helpers import compose_cfg
+from helpers import cli, compose_cfg
 from lbo.core.errors import LboError
 from lbo.export import export, export_observer
 from lbo.models.net import WindowNet
@@ -43,8 +41,7 @@ def compare(net, script, session, win):
 
 
 def test_export_cli_files_match_pytorch(tmp_path, checkpoint, windows):
-    res = subprocess.run([sys.executable, "-m", "lbo.export", f"observer={checkpoint}",
-                          "out_dir=exports"], cwd=tmp_path, capture_output=True, text=True)
+    res = cli("lbo.export", f"observer={checkpoint}", "out_dir=exports", cwd=tmp_path)
     assert res.returncode == 0, res.stderr[-3000:]
     folder = tmp_path / "exports"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["exports"]  # nothing else written

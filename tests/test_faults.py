@@ -12,15 +12,21 @@ import numpy as np
 import pytest
 import torch
 
-from helpers import compose_cfg, kill_when_written
+from helpers import cli, compose_cfg, kill_when_written
 from lbo.models.net import WindowNet
 from lbo.serve.observer import Observer
 
 
+def _train_args(tmp_path, smoke_data, out, *more):
+    """``lbo.train``'s arguments; one intra-op thread in this process and in a subprocess
+    alike, so that their runs compare to the bit."""
+    return ["experiment=smoke", "resume=true", "threads=1", f"data.root={smoke_data.parent}",
+            f"output_dir={out}", "trainer.max_epochs=6", "trainer.limit_train_batches=30",
+            f"hydra.run.dir={tmp_path / 'hydra'}", *more]
+
+
 def _train_cmd(tmp_path, smoke_data, out, *more):
-    return [sys.executable, "-m", "lbo.train", "experiment=smoke", "resume=true",
-            f"data.root={smoke_data.parent}", f"output_dir={out}", "trainer.max_epochs=6",
-            "trainer.limit_train_batches=30", f"hydra.run.dir={tmp_path / 'hydra'}", *more]
+    return [sys.executable, "-m", "lbo.train", *_train_args(tmp_path, smoke_data, out, *more)]
 
 
 @pytest.mark.slow
@@ -34,10 +40,10 @@ def test_a_killed_run_resumes_from_its_last_checkpoint_as_if_never_killed(tmp_pa
     it, with the random streams restored, and ends with the unbroken run's metrics; also
     trained carried (``tbptt``: the optimiser steps per chunk, the schedule by hand)."""
     env = {**os.environ, "PYTHONUNBUFFERED": "1", "OMP_NUM_THREADS": "1"}
-    # the unbroken run, in a store of its own
-    ref_env = {**env, "MLFLOW_TRACKING_URI": f"sqlite:///{tmp_path / 'ref.db'}"}
-    ref = subprocess.run(_train_cmd(tmp_path, smoke_data, tmp_path / "ref", *trained),
-                         env=ref_env, capture_output=True, text=True)
+    # the unbroken run, in a store of its own (in this process: only the kill needs one)
+    ref_env = {"MLFLOW_TRACKING_URI": f"sqlite:///{tmp_path / 'ref.db'}"}
+    ref = cli("lbo.train", *_train_args(tmp_path, smoke_data, tmp_path / "ref", *trained),
+              env=ref_env)
     assert ref.returncode == 0, ref.stderr[-3000:]
 
     uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
@@ -58,8 +64,8 @@ def test_a_killed_run_resumes_from_its_last_checkpoint_as_if_never_killed(tmp_pa
     assert len(client.get_metric_history(killed.info.run_id, "val_loss")) in (2, 3)
 
     # the rerun, from another folder, continues the killed run in its own folder
-    rerun = subprocess.run(_train_cmd(tmp_path, smoke_data, tmp_path / "elsewhere", *trained),
-                           env=env, capture_output=True, text=True)
+    rerun = cli("lbo.train", *_train_args(tmp_path, smoke_data, tmp_path / "elsewhere", *trained),
+                env={"MLFLOW_TRACKING_URI": uri})
     assert rerun.returncode == 0, rerun.stderr[-3000:]
     assert f"resuming the killed run {killed.info.run_id} (same config) from {last}" in \
         rerun.stdout
@@ -98,7 +104,8 @@ def test_a_run_killed_before_its_first_checkpoint_is_replaced(tmp_path, smoke_da
     proc.wait(timeout=300)
     watcher.join()
     assert proc.returncode == -signal.SIGKILL and not (out / "checkpoints" / "last.ckpt").exists()
-    rerun = subprocess.run(cmd, env=env, capture_output=True, text=True)
+    rerun = cli("lbo.train", *_train_args(tmp_path, smoke_data, out),
+                env={"MLFLOW_TRACKING_URI": uri})
     assert rerun.returncode == 0, rerun.stderr[-3000:]
     client = mlflow.MlflowClient(uri)
     exp = client.get_experiment_by_name("lbo")
@@ -125,11 +132,9 @@ def test_a_non_finite_estimate_is_never_valid():
 
 def test_a_bad_metric_reference_stops_training_before_anything_is_written(tmp_path, smoke_data):
     uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
-    res = subprocess.run([sys.executable, "-m", "lbo.train", "experiment=smoke",
-                          "metric.reference=foo", f"data.root={smoke_data.parent}",
-                          f"output_dir={tmp_path / 'out'}", f"hydra.run.dir={tmp_path / 'h'}"],
-                         env={**os.environ, "MLFLOW_TRACKING_URI": uri}, capture_output=True,
-                         text=True)
+    res = cli("lbo.train", "experiment=smoke", "metric.reference=foo",
+              f"data.root={smoke_data.parent}", f"output_dir={tmp_path / 'out'}",
+              f"hydra.run.dir={tmp_path / 'h'}", env={"MLFLOW_TRACKING_URI": uri})
     assert res.returncode == 2
     assert res.stderr.strip() == ("error: metric.reference must be one of ['ekf', 'paper'], "
                                   "got 'foo'")
@@ -169,14 +174,10 @@ def test_datagen_removes_the_temp_files_of_a_killed_run(tmp_path):
                       "literal or dynamic_study are empty)"),
 ])
 def test_reproduce_checks_every_field_before_its_first_stage(tmp_path, override, message):
-    res = subprocess.run([sys.executable, "-m", "lbo.reproduce", "scale=smoke", override,
-                          f"report_dir={tmp_path / 'report'}",
-                          f"optuna_storage=sqlite:///{tmp_path / 'optuna.db'}",
-                          f"overrides=['data.root={tmp_path / 'data'}']",
-                          f"hydra.run.dir={tmp_path / 'hydra'}"],
-                         env={**os.environ, "MLFLOW_TRACKING_URI":
-                              f"sqlite:///{tmp_path / 'mlflow.db'}"},
-                         capture_output=True, text=True)
+    res = cli("lbo.reproduce", "scale=smoke", override, f"report_dir={tmp_path / 'report'}",
+              f"optuna_storage=sqlite:///{tmp_path / 'optuna.db'}",
+              f"overrides=['data.root={tmp_path / 'data'}']", f"hydra.run.dir={tmp_path / 'hydra'}",
+              env={"MLFLOW_TRACKING_URI": f"sqlite:///{tmp_path / 'mlflow.db'}"})
     assert res.returncode == 2, res.stdout[-2000:]
     assert res.stderr.strip().startswith(f"error: {message}"), res.stderr
     assert sorted(p.name for p in tmp_path.iterdir()) == ["hydra"]  # no data, report, store

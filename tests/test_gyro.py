@@ -3,13 +3,10 @@ simulated single-antenna logs with a biased gyro, through Observer.run and lbo.o
 
 from __future__ import annotations
 
-import subprocess
-import sys
-
 import numpy as np
 import pytest
 
-from helpers import compose_cfg
+from helpers import compose_cfg, observe
 from lbo.core.angles import wrap_angle
 from lbo.core.errors import LboError
 from lbo.filters import classical
@@ -96,9 +93,8 @@ def test_observer_run_takes_the_gyro_from_a_receivers_channels(drive):
 def test_lbo_observe_runs_the_gyro_ekf_on_a_simulated_receivers_log(tmp_path):
     df = simulate_log(compose_cfg("simulate", ["manoeuvre=slalom", "receiver=single_antenna"]))
     df.to_csv(tmp_path / "log.csv", index=False)
-    res = subprocess.run([sys.executable, "-m", "lbo.observe", "observer=gyro",
-                          f"input={tmp_path / 'log.csv'}", f"output={tmp_path / 'est.csv'}"],
-                         capture_output=True, text=True, cwd=tmp_path)
+    res = observe("observer=gyro", f"input={tmp_path / 'log.csv'}",
+                  f"output={tmp_path / 'est.csv'}", cwd=tmp_path)
     assert res.returncode == 0, res.stderr
     assert "receiver: sx_m, sy_m, ve_m, vn_m, sv_m, r_m taken" in res.stdout
     assert "rmse x" in res.stdout

@@ -3,15 +3,13 @@ nothing is written."""
 
 from __future__ import annotations
 
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 import pytest
 
-from helpers import compose_cfg
+from helpers import cli, compose_cfg
 from lbo.core.errors import LboError
 
 COLUMNS = ["t", "x_m", "y_m", "psi_m", "V", "delta", "x", "y", "psi"]
@@ -132,10 +130,8 @@ def test_an_unreadable_log_is_one_line(good, tmp_path, tracking):
 def test_evaluate_refuses_a_bad_test_log_and_writes_nothing(good, tmp_path):
     bad = tmp_path / "bad.csv"
     pd.read_csv(good / "test" / "a.csv").drop(columns=["y"]).to_csv(bad, index=False)
-    res = subprocess.run([sys.executable, "-m", "lbo.evaluate", "data=logs",
-                          f"data.test=[{bad}]", "data.run_in=100",
-                          f"data.root={tmp_path}/data", f"hydra.run.dir={tmp_path}/out"],
-                         capture_output=True, text=True, cwd=tmp_path)
+    res = cli("lbo.evaluate", "data=logs", f"data.test=[{bad}]", "data.run_in=100",
+              f"data.root={tmp_path}/data", f"hydra.run.dir={tmp_path}/out", cwd=tmp_path)
     assert res.returncode != 0
     lines = [ln for ln in res.stderr.splitlines() if "missing true-state column y" in ln]
     assert len(lines) == 1 and "bad.csv" in lines[0], res.stderr[-2000:]

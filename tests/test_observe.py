@@ -149,9 +149,7 @@ def test_smooth_true_writes_the_rts_smoothers_estimates(tmp_path, manoeuvre, log
 
 
 def test_observe_writes_only_its_output(tmp_path, log_csv):
-    res = subprocess.run([sys.executable, "-m", "lbo.observe", "observer=ekf",
-                          f"input={log_csv}", "output=est.csv"], cwd=tmp_path,
-                         capture_output=True, text=True)
+    res = run_observe("observer=ekf", f"input={log_csv}", "output=est.csv", cwd=tmp_path)
     assert res.returncode == 0, res.stderr
     assert sorted(p.name for p in tmp_path.iterdir()) == ["est.csv", "log.csv"]
 

@@ -3,14 +3,11 @@ observers on position-only logs, and each channel rule's one-line error."""
 
 from __future__ import annotations
 
-import subprocess
-import sys
-
 import numpy as np
 import pandas as pd
 import pytest
 
-from helpers import compose_cfg
+from helpers import compose_cfg, observe
 from lbo.core.angles import wrap_angle
 from lbo.core.errors import LboError
 from lbo.filters import classical
@@ -181,9 +178,8 @@ def test_lbo_observe_takes_a_position_only_log(tmp_path):
     df.loc[:, "psi_m"] = np.nan
     df.loc[df.index % 5 != 0, ["x_m", "y_m"]] = np.nan
     df.to_csv(tmp_path / "log.csv", index=False)
-    res = subprocess.run([sys.executable, "-m", "lbo.observe", "observer=ekf",
-                          f"input={tmp_path / 'log.csv'}", f"output={tmp_path / 'est.csv'}"],
-                         capture_output=True, text=True, cwd=tmp_path)
+    res = observe("observer=ekf", f"input={tmp_path / 'log.csv'}",
+                  f"output={tmp_path / 'est.csv'}", cwd=tmp_path)
     assert res.returncode == 0, res.stderr
     out = pd.read_csv(tmp_path / "est.csv")
     assert out["valid"].all() and np.isfinite(out[["x", "y", "psi"]].to_numpy()).all()

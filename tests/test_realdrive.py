@@ -4,14 +4,13 @@ Needs the optional extra ``lbo[real]`` (installed by ``make install``)."""
 
 from __future__ import annotations
 
-import subprocess
 import sys
 
 import numpy as np
 import pandas as pd
 import pytest
 
-from helpers import train_in_own_store
+from helpers import cli, observe, train_in_own_store
 from lbo.core.angles import wrap_angle
 from lbo.core.errors import LboError
 from lbo.filters.gyro import GyroNoise
@@ -90,9 +89,8 @@ def test_the_spans_cut_in_the_stops_and_keep_one_drive_each(drive):
 def test_realdrive_writes_the_spans_and_scores_every_classical_observer(tmp_path):
     # an epoch of each noise fit, on two simulated drives, keeps it lean (make real-drive
     # runs 12 epochs each, on four)
-    res = subprocess.run([sys.executable, "-m", "lbo.realdrive", f"output_dir={tmp_path}",
-                          "learn.epochs=1", "learn.simulated=1", "simulated.drives=2"],
-                         capture_output=True, text=True, cwd=tmp_path)
+    res = cli("lbo.realdrive", f"output_dir={tmp_path}", "learn.epochs=1", "learn.simulated=1",
+              "simulated.drives=2", cwd=tmp_path)
     assert res.returncode == 0, res.stderr
     table = pd.read_csv(tmp_path / "results.csv")
     assert len(table) == 10 and np.isfinite(table[["x_m", "y_m", "psi_mrad"]]).all().all()
@@ -122,16 +120,12 @@ def test_realdrive_writes_the_spans_and_scores_every_classical_observer(tmp_path
     assert (tmp_path / "test.png").stat().st_size > 10_000
     assert "lever arm" in res.stdout and "| ekf, receiver's accuracy and velocity |" in res.stdout
     # a span log goes through lbo.observe as it is
-    obs = subprocess.run([sys.executable, "-m", "lbo.observe", "observer=ukf",
-                          f"input={tmp_path / 'hill_val.parquet'}",
-                          f"output={tmp_path / 'val_est.csv'}"],
-                         capture_output=True, text=True, cwd=tmp_path)
+    obs = observe("observer=ukf", f"input={tmp_path / 'hill_val.parquet'}",
+                  f"output={tmp_path / 'val_est.csv'}", cwd=tmp_path)
     assert obs.returncode == 0, obs.stderr
-    learned_run = subprocess.run([sys.executable, "-m", "lbo.observe", "observer=gyro",
-                                  f"gyro_noise={tmp_path / 'gyro_noise.json'}",
-                                  f"input={tmp_path / 'hill_test.parquet'}",
-                                  f"output={tmp_path / 'test_est.csv'}"],
-                                 capture_output=True, text=True, cwd=tmp_path)
+    learned_run = observe("observer=gyro", f"gyro_noise={tmp_path / 'gyro_noise.json'}",
+                          f"input={tmp_path / 'hill_test.parquet'}",
+                          f"output={tmp_path / 'test_est.csv'}", cwd=tmp_path)
     assert learned_run.returncode == 0, learned_run.stderr
     assert ("receiver: sx_m, sy_m, ve_m, vn_m, sv_m taken (reported accuracy as R, velocity "
             "as course over ground); r_m not read by ukf (observer=gyro reads it, and a "
@@ -144,10 +138,9 @@ def test_realdrive_trains_a_receiver_net_on_the_train_span(tmp_path, smoke_data)
     _, out, _ = train_in_own_store(tmp_path, smoke_data, "experiment=receiver", "data=smoke",
                                    "trainer.max_epochs=1", "trainer.limit_train_batches=2",
                                    "window=60", "batch_size=64", "~callbacks.evaluation")
-    res = subprocess.run([sys.executable, "-m", "lbo.realdrive", f"output_dir={tmp_path / 'rd'}",
-                          "observers=[ekf]", "learn.epochs=0", "learn.simulated=0",
-                          f"nets=[{out['checkpoint']}]", "net_fit.epochs=1"],
-                         capture_output=True, text=True, cwd=tmp_path)
+    res = cli("lbo.realdrive", f"output_dir={tmp_path / 'rd'}", "observers=[ekf]",
+              "learn.epochs=0", "learn.simulated=0", f"nets=[{out['checkpoint']}]",
+              "net_fit.epochs=1", cwd=tmp_path)
     assert res.returncode == 0, res.stderr[-3000:]
     rows = pd.read_csv(tmp_path / "rd" / "results.csv").set_index("estimator")
     for label in ("cnn-N60 (window), receiver's accuracy and velocity",
@@ -175,14 +168,11 @@ def test_without_the_extra_and_with_a_bad_observer_it_is_one_line(monkeypatch, t
                                        r"pip install 'lbo\[real\]'$"):
         hguide.read()
     monkeypatch.delitem(sys.modules, "onavdata")
-    res = subprocess.run([sys.executable, "-m", "lbo.realdrive", f"output_dir={tmp_path}",
-                          "observers=[ekf,pcrb]"], capture_output=True, text=True, cwd=tmp_path)
+    res = cli("lbo.realdrive", f"output_dir={tmp_path}", "observers=[ekf,pcrb]", cwd=tmp_path)
     assert res.returncode == 2 and res.stderr.startswith("error: observers: pcrb is a bound")
-    res = subprocess.run([sys.executable, "-m", "lbo.realdrive", f"output_dir={tmp_path}",
-                          "learn.epochs=-1"], capture_output=True, text=True, cwd=tmp_path)
+    res = cli("lbo.realdrive", f"output_dir={tmp_path}", "learn.epochs=-1", cwd=tmp_path)
     assert res.returncode == 2 and res.stderr.strip() == (
         "error: learn.epochs must be an integer >= 0, got -1")
-    res = subprocess.run([sys.executable, "-m", "lbo.realdrive", f"output_dir={tmp_path}",
-                          "net_fit.lr=0"], capture_output=True, text=True, cwd=tmp_path)
+    res = cli("lbo.realdrive", f"output_dir={tmp_path}", "net_fit.lr=0", cwd=tmp_path)
     assert res.returncode == 2 and res.stderr.startswith("error: net_fit.lr must be")
     assert not any(tmp_path.iterdir())

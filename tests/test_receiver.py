@@ -4,14 +4,11 @@ a GNSS velocity as the course over ground, their one-line errors, and their way 
 
 from __future__ import annotations
 
-import subprocess
-import sys
-
 import numpy as np
 import pandas as pd
 import pytest
 
-from helpers import compose_cfg
+from helpers import compose_cfg, observe
 from lbo.core.angles import wrap_angle
 from lbo.core.errors import LboError
 from lbo.filters import classical, measure
@@ -255,10 +252,8 @@ def test_lbo_observe_takes_reported_accuracies_and_velocities(tmp_path):
     for label, scale in (("tight", 1.0), ("loose", 10.0)):
         log = df.assign(sx_m=df["sx_m"] * scale, sy_m=df["sy_m"] * scale)
         log.to_csv(tmp_path / f"{label}.csv", index=False)
-        res = subprocess.run([sys.executable, "-m", "lbo.observe", "observer=ekf",
-                              f"input={tmp_path / label}.csv",
-                              f"output={tmp_path / label}.out.csv"],
-                             capture_output=True, text=True, cwd=tmp_path)
+        res = observe("observer=ekf", f"input={tmp_path / label}.csv",
+                      f"output={tmp_path / label}.out.csv", cwd=tmp_path)
         assert res.returncode == 0, res.stderr
         assert "receiver: sx_m, sy_m, ve_m, vn_m taken" in res.stdout
         outs[label] = pd.read_csv(tmp_path / f"{label}.out.csv")
@@ -270,9 +265,8 @@ def test_lbo_observe_takes_reported_accuracies_and_velocities(tmp_path):
     assert np.sqrt(np.mean(err**2)) < 0.02
     bad = df.assign(sx_m=np.where(fix, -1.0, np.nan))
     bad.to_csv(tmp_path / "bad.csv", index=False)
-    res = subprocess.run([sys.executable, "-m", "lbo.observe", "observer=ekf",
-                          f"input={tmp_path / 'bad.csv'}", f"output={tmp_path / 'bad.out.csv'}"],
-                         capture_output=True, text=True, cwd=tmp_path)
+    res = observe("observer=ekf", f"input={tmp_path / 'bad.csv'}",
+                  f"output={tmp_path / 'bad.out.csv'}", cwd=tmp_path)
     assert res.returncode != 0 and not (tmp_path / "bad.out.csv").exists()
     assert "row 0 has sx_m=-1 m, not a 1-sigma in (0, 10000] m" in res.stderr
 

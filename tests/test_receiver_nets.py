@@ -7,14 +7,12 @@ from __future__ import annotations
 
 import json
 import math
-import subprocess
-import sys
 
 import numpy as np
 import pytest
 import torch
 
-from helpers import compose_cfg, step_log, train_in_own_store
+from helpers import cli, compose_cfg, step_log, train_in_own_store
 from lbo.core.errors import LboError
 from lbo.learn.builders import noise_settings
 from lbo.learn.draws import ReceiverDraw, draw_fixes
@@ -264,8 +262,7 @@ def test_experiment_receiver_trains_and_its_checkpoint_reads_a_receiver(tmp_path
                          log[["V", "delta"]].to_numpy(float), receiver=receiver(log))
     assert valid[59:].all() and np.isfinite(est[59:]).all()
     # exported: the files take receiver windows (batch, 60, 11), as the JSON says
-    res = subprocess.run([sys.executable, "-m", "lbo.export", f"observer={out['checkpoint']}",
-                          "out_dir=exports"], cwd=tmp_path, capture_output=True, text=True)
+    res = cli("lbo.export", f"observer={out['checkpoint']}", "out_dir=exports", cwd=tmp_path)
     assert res.returncode == 0, res.stderr[-3000:]
     meta = json.loads((tmp_path / "exports" / "cnn-N60.json").read_text())
     assert meta["input"]["shape"] == ["batch", 60, rw.WIDTH]

@@ -11,7 +11,7 @@ import optuna
 import pandas as pd
 import pytest
 
-from helpers import kill_when_written
+from helpers import cli, kill_when_written
 
 REPORT_FILES = ["rmse_alpha1.csv", "rmse_alpha6.csv", "nrmse.csv", "report.md",
                 "friction_circle.png", "nrmse_cnn.png", "nrmse_lstm.png", "nrmse_all.png",
@@ -24,8 +24,11 @@ def _sha(path: Path) -> str:
 
 
 def command(tmp_path):
-    return [sys.executable, "-m", "lbo.reproduce", "scale=smoke",
-            f"report_dir={tmp_path / 'report'}",
+    return [sys.executable, "-m", "lbo.reproduce", *arguments(tmp_path)]
+
+
+def arguments(tmp_path):
+    return ["scale=smoke", f"report_dir={tmp_path / 'report'}",
             f"optuna_storage=sqlite:///{tmp_path / 'optuna.db'}",
             f"overrides=['data.root={tmp_path / 'data'}']",
             "train_overrides=['trainer.limit_train_batches=4','trainer.max_epochs=1']",
@@ -49,7 +52,9 @@ def test_reproduce_smoke_killed_and_resumed_without_duplicates(tmp_path):
     assert not (tmp_path / "report" / "report.md").exists()
     assert "4/11 cnn-N80" not in "".join(seen)  # killed inside the run, after its checkpoint
 
-    done = subprocess.run(command(tmp_path), env=env, capture_output=True, text=True)
+    # the rerun in this process: only the kill needs a process of its own
+    done = cli("lbo.reproduce", *arguments(tmp_path),
+               env={"MLFLOW_TRACKING_URI": env["MLFLOW_TRACKING_URI"]})
     assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:]
     out = done.stdout
     for i in range(1, 6):
@@ -160,3 +165,8 @@ def test_a_measured_step_gives_the_runs_expected_time(tmp_path, smoke_data):
                           "trainer.limit_train_batches=5"), steps=4)
     assert m["steps"] == 10 and 0 < m["step_s"] < 5
     assert m["seconds"] == pytest.approx(m["setup_s"] + 10 * m["step_s"])
+    assert m["timed"] == 3 + 4  # warm-up and the steps asked for
+    # a run of 4 steps is timed on 4 steps, not the 11 (3 + 8) a longer one is
+    short = measure(train_cfg(tmp_path, smoke_data, "trainer.max_epochs=1",
+                              "trainer.limit_train_batches=4"))
+    assert (short["steps"], short["timed"]) == (4, 4) and 0 < short["step_s"] < 5

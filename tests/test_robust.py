@@ -2,8 +2,6 @@
 train, then observe a log with its checkpoint."""
 
 import re
-import subprocess
-import sys
 
 import mlflow
 import numpy as np
@@ -11,7 +9,7 @@ import pandas as pd
 import pytest
 import torch
 
-from helpers import compose_cfg
+from helpers import compose_cfg, observe
 from lbo.core.angles import wrap_angle
 from lbo.core.errors import LboError
 from lbo.learn.lightning_module import TrainingModule
@@ -62,9 +60,8 @@ def test_robust_experiment_trains_and_scores(robust):
 def test_observe_cli_runs_the_robust_checkpoint(robust, noisy, tmp_path):
     log, est_path = tmp_path / "log.csv", tmp_path / "est.csv"
     noisy[LOG].to_csv(log, index=False)
-    res = subprocess.run([sys.executable, "-m", "lbo.observe",
-                          f"observer={robust['out']['checkpoint']}", f"input={log}",
-                          f"output={est_path}"], capture_output=True, text=True)
+    res = observe(f"observer={robust['out']['checkpoint']}", f"input={log}",
+                  f"output={est_path}")
     assert res.returncode == 0, res.stderr[-3000:]
     assert "features frame" in res.stdout
     found = re.search(r"rmse x (\S+) m, y (\S+) m, psi (\S+) rad", res.stdout)

@@ -62,8 +62,9 @@ def test_a_second_training_into_a_busy_folder_is_refused_and_writes_nothing(tmp_
             (folder / name).parent.mkdir(parents=True, exist_ok=True)
             (folder / name).write_text(text)
         before = {p: p.read_bytes() for p in folder.rglob("*") if p.is_file()}
+        # another process: the folder's lock is held by a process, and this one holds it
         res = cli("lbo.train", "experiment=smoke", f"data.root={smoke_data.parent}",
-                  f"hydra.run.dir={folder}", env={"MLFLOW_TRACKING_URI": uri})
+                  f"hydra.run.dir={folder}", env={"MLFLOW_TRACKING_URI": uri}, process=True)
         after = {p: p.read_bytes() for p in folder.rglob("*") if p.is_file()}
         assert after == before
     one_line_error(res, f"run folder {folder}", "is in use by another run")

@@ -38,8 +38,9 @@ def snapshot(folder: Path) -> dict[str, bytes]:
             if p.is_file()}
 
 
-def one_thread_cli(module: str, *args: str, env: dict[str, str]) -> subprocess.CompletedProcess:
-    return cli(module, *args, env={"OMP_NUM_THREADS": "1", **env})
+def one_thread_cli(module: str, *args: str, env: dict[str, str],
+                   process: bool = False) -> subprocess.CompletedProcess:
+    return cli(module, *args, env={"OMP_NUM_THREADS": "1", **env}, process=process)
 
 
 # --- item 3: an output_dir that holds another run's files ------------------------------------
@@ -280,7 +281,9 @@ def test_a_damaged_tracking_store_is_one_line_naming_it(tmp_path, smoke_data):
     # the advice, followed: a new store (MLflow says it creates its tables); the run id is
     # then simply not found
     store.rename(tmp_path / "mlflow.db.damaged")
-    res = one_thread_cli(*observe, env=env)
+    # a process of its own, as the user's next command is: MLflow keeps the store it opened
+    # at this URI (on the damaged file) for the life of a process
+    res = one_thread_cli(*observe, env=env, process=True)
     assert res.returncode == 2 and "Traceback" not in res.stderr
     assert res.stderr.strip().splitlines()[-1].startswith(
         f"error: observer: MLflow run {run_id} not found in sqlite:///{store}")

@@ -2,14 +2,11 @@
 
 from __future__ import annotations
 
-import subprocess
-import sys
-
 import numpy as np
 import pandas as pd
 import pytest
 
-from helpers import compose_cfg
+from helpers import cli, compose_cfg
 from lbo.core.angles import wrap_angle
 from lbo.core.errors import LboError
 from lbo.sim import columns
@@ -69,10 +66,8 @@ def test_dynamic_truth_gives_a_car_that_slips():
 
 def test_drives_write_a_fleet_of_seeded_logs(tmp_path):
     out = tmp_path / "fleet" / "train" / "drive.csv"  # the folder does not exist yet
-    res = subprocess.run([sys.executable, "-m", "lbo.simulate", *FREE, "duration=4",
-                          "drives=3", "seed=5", f"output={out}",
-                          f"hydra.run.dir={tmp_path / 'run'}"],
-                         cwd=tmp_path, capture_output=True, text=True)
+    res = cli("lbo.simulate", *FREE, "duration=4", "drives=3", "seed=5", f"output={out}",
+              f"hydra.run.dir={tmp_path / 'run'}", cwd=tmp_path)
     assert res.returncode == 0, res.stderr
     names = ["drive_000.csv", "drive_001.csv", "drive_002.csv"]
     assert sorted(p.name for p in out.parent.iterdir()) == names

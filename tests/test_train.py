@@ -8,7 +8,7 @@ import pandas as pd
 import pytest
 import torch
 
-from helpers import train_cfg
+from helpers import cli, train_cfg
 from lbo.core.cli import quiet_lightning
 from lbo.core.errors import LboError
 from lbo.learn.datamodule import WindowDataModule, rows, window_ends
@@ -150,8 +150,7 @@ def test_gpu_trainer_without_cuda_is_refused(tmp_path, smoke_data, tracking):
 
 @pytest.mark.parametrize("override, listed", [("model=gru", "cnn"), ("trainer=tpu", "auto")])
 def test_unknown_group_options_are_listed_by_hydra(tmp_path, override, listed):
-    res = subprocess.run([sys.executable, "-m", "lbo.train", override,
-                          f"hydra.run.dir={tmp_path}"], capture_output=True, text=True)
+    res = cli("lbo.train", override, f"hydra.run.dir={tmp_path}")
     assert res.returncode != 0
     assert "Available options" in res.stderr and listed in res.stderr
 
