@@ -30,11 +30,14 @@ def steps_per_run(cfg: DictConfig, batches_per_epoch: int) -> int:
 
 
 def measure(cfg: DictConfig, steps: int = 8, warmup: int = 3) -> dict[str, Any]:
-    """Time ``steps`` training steps (after ``warmup``) of the run ``cfg`` on its device.
+    """Time ``steps`` training steps (after ``warmup``) of the run ``cfg`` on its device; a
+    run of fewer steps than that is timed on as many steps as it has (half of them warm-up),
+    so that its estimate never costs more than its training.
 
     Returns ``step_s`` (median seconds per step), ``steps`` (the run's step count),
-    ``setup_s`` (reading the data set and building the model, once per run) and ``seconds``
-    (setup plus steps x step time: the expected training time, early stopping aside).
+    ``setup_s`` (reading the data set and building the model, once per run), ``seconds``
+    (setup plus steps x step time: the expected training time, early stopping aside) and
+    ``timed`` (the steps it took, warm-up included).
     """
     from lbo.learn.builders import build_net, data_device, datamodule, prepare_data
     from lbo.learn.sequence import from_batch, train_batch
@@ -51,6 +54,10 @@ def measure(cfg: DictConfig, steps: int = 8, warmup: int = 3) -> dict[str, Any]:
     carried = sequence_model(net.net, bool(cfg.get("compile"))) \
         if cfg.get("tbptt") is not None else None
     setup_s = time.perf_counter() - begin
+    n = steps_per_run(cfg, len(loader))
+    if n < warmup + steps:
+        warmup = n // 2
+        steps = max(n - warmup, 1)
     periods = []
     def step(loss: torch.Tensor) -> None:
         opt.zero_grad()
@@ -72,8 +79,8 @@ def measure(cfg: DictConfig, steps: int = 8, warmup: int = 3) -> dict[str, Any]:
         if len(periods) == steps:
             break
     step_s = statistics.median(periods)
-    n = steps_per_run(cfg, len(loader))
-    return {"step_s": step_s, "steps": n, "setup_s": setup_s, "seconds": setup_s + step_s * n}
+    return {"step_s": step_s, "steps": n, "setup_s": setup_s, "seconds": setup_s + step_s * n,
+            "timed": warmup + len(periods)}
 
 
 def duration(seconds: float) -> str:
