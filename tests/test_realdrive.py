@@ -5,6 +5,7 @@ Needs the optional extra ``lbo[real]`` (installed by ``make install``)."""
 from __future__ import annotations
 
 import sys
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
@@ -32,6 +33,53 @@ def test_only_the_hill_drive_is_read():
             r"\('2021-04-27 HGuide n380 Car Hill Driving'\)$")
     with pytest.raises(LboError, match=line):
         hguide.read("another drive")
+
+
+def _hill_folder() -> Path:
+    import onavdata
+
+    return Path(onavdata.__file__).parent / "data" / "HGuide n380" / hguide.HILL_FOLDER
+
+
+def test_a_recording_folder_reads_as_the_drive_does(drive):
+    pd.testing.assert_frame_equal(hguide.read_folder(_hill_folder()), drive)
+
+
+def test_a_users_recording_is_cut_to_the_span_every_stream_covers(tmp_path):
+    """The first 261 s of the hill drive written as a user's recording (plain CSV files),
+    its velocity stream ending 2 s before the others, as on another n380 recording: the log
+    ends where the velocity does, its every speed given, and reads as a log."""
+    recording = tmp_path / "rec"
+    recording.mkdir()
+    starts = {}
+    for stream in hguide.STREAMS:
+        df = pd.read_csv(_hill_folder() / f"n380-{stream}.csv.zip", skipinitialspace=True)
+        starts[stream] = df
+    t0 = starts["position"].loc[starts["position"]["SystemTov"] > 0, "SystemTov"].min()
+    for stream, df in starts.items():
+        end = t0 + (259.0 if stream == "velocity" else 261.0)
+        df[df["SystemTov"] < end].to_csv(recording / f"n380-{stream}.csv", index=False)
+    log = hguide.to_log(hguide.read_folder(recording))
+    assert np.isfinite(log[["V", "delta", "r_m", "x", "y", "psi"]].to_numpy()).all()
+    full = hguide.read_folder(recording)
+    ins = full[full[hguide._INS["lat"]].notna()]
+    assert ins[hguide._INS["vn"]].isna().sum() > 150  # the velocity's last 2 s are missing
+    last_velocity = ins.index[ins[hguide._INS["vn"]].notna()][-1]
+    assert log["t"].iloc[-1] == pytest.approx(last_velocity - ins.index[0], abs=0.02)
+    check_log(log)
+
+
+def test_a_recording_folder_that_is_not_one_is_one_line(tmp_path):
+    with pytest.raises(LboError, match=r"^recording: .*missing is not a folder \(give the "):
+        hguide.read_folder(tmp_path / "missing")
+    (tmp_path / "n380-position.csv").write_text("SystemTov\n1.0\n")
+    with pytest.raises(LboError, match=r"^recording: .* has no n380-velocity\.csv \(or "
+                                       r"\.csv\.zip\); an n380 recording holds "):
+        hguide.read_folder(tmp_path)
+    other = _hill_folder().parents[1] / "GNSS Applications and Methods"  # not the hill drive
+    with pytest.raises(LboError, match=r"^recording: .* is an onavdata drive other than the "
+                                       r"hill drive; lbo reads only the hill drive"):
+        hguide.read_folder(other)
 
 
 def test_the_lever_arm_and_latency_bring_the_fixes_onto_the_truth(drive):

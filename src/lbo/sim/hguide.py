@@ -50,6 +50,7 @@ from __future__ import annotations
 import contextlib
 import io
 from dataclasses import dataclass
+from pathlib import Path
 from typing import cast
 
 import numpy as np
@@ -62,6 +63,8 @@ from lbo.sim.vehicle import Vehicle
 
 HILL = "2021-04-27 HGuide n380 Car Hill Driving"
 """The one onavdata drive lbo reads."""
+HILL_FOLDER = "2021-04-27C-car-hill-drive"
+"""Its folder in the onavdata package."""
 V_FLOOR = 1.0
 """Speed (m/s) below which the steering that gives the gyro's yaw rate is taken at this
 speed: at a standstill no steering turns the kinematic bicycle."""
@@ -106,25 +109,77 @@ class Alignment:
     fixes: int
 
 
-def read(name: str = HILL) -> pd.DataFrame:
-    """The drive's rows as onavdata gives them (time-sorted, index ``t`` in s), its console
-    chatter silenced. Any drive but :data:`HILL` is refused in one line."""
-    if name != HILL:
-        raise LboError(f"drive {name!r}: lbo reads only the onavdata hill drive ({HILL!r})")
+STREAMS = ("position", "velocity", "attitude", "imu-nav", "gnss-pvt")
+"""The files of an n380 recording, ``n380-<stream>.csv`` (or ``.csv.zip``), as HGuide's
+logger writes them and onavdata ships them."""
+
+
+def _onavdata():
     try:
         import onavdata
     except ImportError:
         raise LboError("the onavdata package is not installed: pip install 'lbo[real]'") from None
-    with contextlib.redirect_stdout(io.StringIO()):
-        df = onavdata.get_data(name)
+    return onavdata
+
+
+def _tidy(df: pd.DataFrame) -> pd.DataFrame:
     df = df.sort_index()
     df.index = df.index.rename("t")
     return df
 
 
+def read(name: str = HILL) -> pd.DataFrame:
+    """The drive's rows as onavdata gives them (time-sorted, index ``t`` in s), its console
+    chatter silenced. Any drive but :data:`HILL` is refused in one line."""
+    if name != HILL:
+        raise LboError(f"drive {name!r}: lbo reads only the onavdata hill drive ({HILL!r})")
+    onavdata = _onavdata()
+    with contextlib.redirect_stdout(io.StringIO()):
+        return _tidy(onavdata.get_data(name))
+
+
+def read_folder(folder: str | Path) -> pd.DataFrame:
+    """A user's own n380 recording: the folder holding its :data:`STREAMS` files, read as
+    onavdata reads its drives (its n380 settings: columns, units, the INS's aligned rows), in
+    the frame :func:`read` gives. A folder of onavdata's other than the hill drive's is
+    refused: that drive is not lbo's to read."""
+    onavdata = _onavdata()
+    folder = Path(folder).expanduser()
+    if not folder.is_dir():
+        raise LboError(f"recording: {folder} is not a folder (give the folder of an n380 "
+                       f"recording's files, n380-<stream>.csv)")
+    shipped = Path(onavdata.__file__).resolve().parent / "data"
+    resolved = folder.resolve()
+    if resolved.is_relative_to(shipped) and resolved.name != HILL_FOLDER:
+        raise LboError(f"recording: {folder} is an onavdata drive other than the hill drive; "
+                       f"lbo reads only the hill drive ({HILL!r})")
+    paths = []
+    for stream in STREAMS:
+        path = folder / f"n380-{stream}.csv"
+        if not (path.is_file() or path.with_name(path.name + ".zip").is_file()):
+            raise LboError(f"recording: {folder} has no n380-{stream}.csv (or .csv.zip); an "
+                           f"n380 recording holds {', '.join(f'n380-{s}.csv' for s in STREAMS)}")
+        paths.append(str(path))
+    import tomllib
+
+    meta = tomllib.loads((shipped / "HGuide n380" / "n380-meta.toml").read_text())
+    try:
+        with contextlib.redirect_stdout(io.StringIO()):
+            df = onavdata.get_data_direct(paths, meta)
+    except (KeyError, ValueError, pd.errors.ParserError) as e:
+        raise LboError(f"recording: {folder} is not an n380 recording onavdata can read "
+                       f"({type(e).__name__}: {e})") from None
+    return _tidy(df)
+
+
 def _ins_track(df: pd.DataFrame, origin: Origin) -> dict[str, np.ndarray]:
-    """The INS rows: t (N,), east, north (N,) m, psi (N,) rad unwrapped ENU, vn, ve, r (N,)."""
-    ins = df[df[_INS["lat"]].notna()]
+    """The INS rows: t (N,), east, north (N,) m, psi (N,) rad unwrapped ENU, vn, ve, r (N,).
+
+    Only rows that hold every INS stream (position, velocity, attitude, rate): a recording's
+    streams start and end a few rows apart (measured on another n380 recording: its velocity
+    stream ends first, which left the log's last speed empty), so the log covers only the span
+    they all cover."""
+    ins = df[df[list(_INS.values())].notna().all(axis=1)]
     east, north = to_local(np.degrees(ins[_INS["lat"]].to_numpy()),
                            np.degrees(ins[_INS["lon"]].to_numpy()), origin)
     yaw = ins[_INS["yaw"]].to_numpy()
@@ -197,7 +252,7 @@ def fit_alignment(df: pd.DataFrame) -> Alignment:
 
 
 def _origin(df: pd.DataFrame) -> Origin:
-    first = df[df[_INS["lat"]].notna()].iloc[0]
+    first = df[df[list(_INS.values())].notna().all(axis=1)].iloc[0]
     return Origin(float(np.degrees(first[_INS["lat"]])), float(np.degrees(first[_INS["lon"]])))
 
 
