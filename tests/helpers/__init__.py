@@ -5,8 +5,8 @@ hooks stay in ``tests/conftest.py``.
   ``ROBUST_SMOKE``)
 - :mod:`helpers.training`: training runs at smoke size (``train_in_own_store``)
 - :mod:`helpers.processes`: faults injected into running processes (``kill_when_written``)
-- :mod:`helpers.commands`: lbo's commands in a subprocess (``cli``, ``observe``) and their
-  one-line refusals (``one_line_error``)
+- :mod:`helpers.commands`: lbo's commands as a user types them (``cli``, ``observe``), in the
+  test's process unless ``process=True``, and their one-line refusals (``one_line_error``)
 - :mod:`helpers.stepping`: an observer stepped through a log (``step_log``)
 - :mod:`helpers.servers`: real PostgreSQL, MLflow and model servers (import it by name:
   ``from helpers.servers import postgres``)
