@@ -1,4 +1,5 @@
-"""How long each test file takes, from a JUnit XML report, and the order the suite runs them in.
+"""How long each test file and test takes, from a JUnit XML report: the order the suite runs
+the files in, and which tests ``make test-fast`` leaves out.
 
     .venv/bin/python -m pytest -n 2 --junitxml=reports/tests.xml   # any run of the suite
     python benchmarks/test_durations.py reports/tests.xml          # -> tests/durations.json
@@ -10,6 +11,8 @@ file when it is free. Taken in collection order, a long file that comes last kee
 busy after the other has finished; ``tests/conftest.py`` therefore hands them out longest
 first (the LPT rule), by the seconds this script writes into ``tests/durations.json`` (setup,
 call and teardown summed per file). A file not listed there goes first, as if it were long.
+The file also lists each test that took at least :data:`LISTED_S` seconds: ``tests/conftest.py``
+marks those of them over its ``SLOW_S`` as ``slow``, which ``make test-fast`` skips.
 """
 
 from __future__ import annotations
@@ -21,6 +24,8 @@ from collections import defaultdict
 from pathlib import Path
 
 OUT = Path(__file__).resolve().parent.parent / "tests" / "durations.json"
+LISTED_S = 1.0
+"""Seconds from which a test is listed by name (the others only count in their file's sum)."""
 
 
 def per_test(report: Path) -> dict[str, float]:
@@ -50,9 +55,11 @@ def main() -> None:
     args = p.parse_args()
     times = per_test(args.report)
     files = per_file(times)
-    args.out.write_text(json.dumps(files, indent=1) + "\n")
+    tests = {t: round(s, 1) for t, s in sorted(times.items(), key=lambda x: -x[1])
+             if s >= LISTED_S}
+    args.out.write_text(json.dumps({"files": files, "tests": tests}, indent=1) + "\n")
     print(f"{len(times)} tests in {len(files)} files, {sum(times.values()):.0f} s summed; "
-          f"per file -> {args.out}")
+          f"per file, and the {len(tests)} tests of {LISTED_S:g} s or more -> {args.out}")
     for test, seconds in sorted(times.items(), key=lambda x: -x[1])[:args.top]:
         print(f"{seconds:8.1f} s  {test}")
 

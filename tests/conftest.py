@@ -109,16 +109,27 @@ def smoke_cnn(tmp_path_factory, worker_id, smoke_data):
     return once(tmp_path_factory, worker_id, "smoke_cnn", make)
 
 
+SLOW_S = 1.5
+"""A test that took this many seconds or more in the run ``tests/durations.json`` was written
+from is marked ``slow`` (``make test-fast`` skips it), as are those marked by hand."""
+
+
+@pytest.hookimpl(tryfirst=True)  # before -m deselects by marker
 def pytest_collection_modifyitems(config, items) -> None:
     """The longest test files first (``tests/durations.json``, which
     ``benchmarks/test_durations.py`` writes from a run's report; a file not listed there first
     of all), each file's tests in their own order: xdist hands files to whichever worker is
-    free in this order, so no long file starts when the other worker is nearly done."""
+    free in this order, so no long file starts when the other worker is nearly done. Each test
+    that took :data:`SLOW_S` or more in that run is marked ``slow``."""
     listed = Path(__file__).with_name("durations.json")
-    seconds = json.loads(listed.read_text()) if listed.is_file() else {}
+    durations = json.loads(listed.read_text()) if listed.is_file() else {}
+    files, tests = durations.get("files", {}), durations.get("tests", {})
     root = Path(str(config.rootpath))
 
     def cost(item) -> float:
-        return seconds.get(Path(str(item.path)).relative_to(root).as_posix(), float("inf"))
+        return files.get(Path(str(item.path)).relative_to(root).as_posix(), float("inf"))
 
+    for item in items:
+        if tests.get(item.nodeid, 0.0) >= SLOW_S:
+            item.add_marker(pytest.mark.slow)
     items.sort(key=cost, reverse=True)  # stable: a file's tests keep their order

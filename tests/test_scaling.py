@@ -59,9 +59,13 @@ def test_an_installed_launcher_passes_the_check_and_launches_the_sweep(launcher,
     from omegaconf import OmegaConf
 
     sweep = tmp_path / "sweep"
+    # a process of its own: the jobs' lines come from joblib's workers, which write to the
+    # process's stderr, and which joblib keeps for later sweeps with the environment they
+    # started with
     res = cli("lbo.train", "-m", f"hydra/launcher={launcher}", "seed=0,1",
               "trainer.max_epochs=0", f"hydra.sweep.dir={sweep}",
-              env={"MLFLOW_TRACKING_URI": f"sqlite:///{tmp_path / 'mlflow.db'}"}, timeout=300)
+              env={"MLFLOW_TRACKING_URI": f"sqlite:///{tmp_path / 'mlflow.db'}"}, timeout=300,
+              process=True)
     assert says in res.stdout, res.stdout[-2000:] + res.stderr[-2000:]
     assert "not installed" not in res.stderr
     assert res.returncode == 2
@@ -163,9 +167,11 @@ def test_joblib_sweep_matches_the_serial_sweep(tmp_path, smoke_data):
                                                    "hydra.launcher.n_jobs=2"])):
         uri = f"sqlite:///{tmp_path / how / 'mlflow.db'}"
         start = time.perf_counter()
+        # processes of their own: joblib's workers write to the process's stderr (read for
+        # "database is locked"), and joblib keeps them, with their environment, for later sweeps
         res = cli("lbo.train", "-m", *SWEEP, "experiment=smoke", f"data.root={smoke_data.parent}",
                   "trainer.max_epochs=2", f"hydra.sweep.dir={tmp_path / how / 'sweep'}", *extra,
-                  env={"MLFLOW_TRACKING_URI": uri})
+                  env={"MLFLOW_TRACKING_URI": uri}, process=True)
         assert res.returncode == 0, res.stderr[-3000:]
         assert "database is locked" not in res.stderr
         print(f"{how}: {time.perf_counter() - start:.1f} s")

@@ -2,9 +2,12 @@
 refusals read.
 
 A command runs in the test's own process unless the test is about the process itself
-(``process=True``: exit by signal, a kill, what a fresh interpreter imports, a child's
-environment at start-up). In-process it is the same ``main`` that ``python -m`` calls, with
-the same arguments, environment and folder, its output captured and its exit code read from
+(``process=True``: exit by signal, a kill, a lock another process holds, what a fresh
+interpreter imports, a child's environment at start-up), or starts processes that outlive it
+(a joblib sweep: its workers write to the process's own stderr, and joblib keeps them, with
+the environment they started with, for the next sweep). In-process it is the same ``main``
+that ``python -m`` calls, with the same arguments, environment and folder, its output
+captured and its exit code read from
 ``SystemExit``; what it changes in the process (the environment, the folder, logging, warning
 filters, torch's threads and random state, Hydra's global state, signal handlers) is put back
 afterwards. This saves the interpreter's start-up, torch, Lightning, Hydra and MLflow imported

@@ -1,0 +1,54 @@
+"""The suite's own bookkeeping: seconds per file and per test from a JUnit report
+(benchmarks/test_durations.py), and the tests ``make test-fast`` leaves out by them."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+from conftest import SLOW_S
+
+ROOT = Path(__file__).resolve().parents[1]
+REPORT = """<?xml version="1.0" encoding="utf-8"?><testsuites><testsuite name="pytest">
+<testcase classname="tests.test_a" name="test_one" time="2.5"/>
+<testcase classname="tests.test_a" name="test_two[x]" time="0.5"/>
+<testcase classname="tests.test_b.TestGroup" name="test_three" time="1.0"/>
+</testsuite></testsuites>"""
+
+
+def _script():
+    spec = importlib.util.spec_from_file_location(
+        "test_durations_script", ROOT / "benchmarks" / "test_durations.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_a_report_gives_seconds_per_file_and_the_tests_of_a_second_or_more(tmp_path):
+    (tmp_path / "tests.xml").write_text(REPORT)
+    out = tmp_path / "durations.json"
+    res = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "test_durations.py"),
+                          str(tmp_path / "tests.xml"), "--out", str(out)],
+                         capture_output=True, text=True)
+    assert res.returncode == 0, res.stderr
+    assert json.loads(out.read_text()) == {
+        "files": {"tests/test_a.py": 3.0, "tests/test_b.py": 1.0},
+        "tests": {"tests/test_a.py::test_one": 2.5, "tests/test_b.py::test_three": 1.0}}
+    assert _script().LISTED_S <= SLOW_S  # every test it would mark is listed
+
+
+def test_test_fast_leaves_out_the_tests_listed_as_slow():
+    tests = json.loads((ROOT / "tests" / "durations.json").read_text())["tests"]
+    slow = [t for t, s in tests.items() if s >= SLOW_S and "[" not in t]
+    assert slow, "durations.json lists no test over SLOW_S"
+    file = slow[-1].split("::")[0]  # the quickest of them, in its file
+    res = subprocess.run([sys.executable, "-m", "pytest", "--collect-only", "-q", "-m",
+                          "not slow", "-p", "no:cacheprovider", file],
+                         capture_output=True, text=True, cwd=ROOT)
+    assert res.returncode in (0, 5) and "deselected" in res.stdout, res.stdout + res.stderr
+    kept = [line for line in res.stdout.splitlines() if "::" in line]
+    assert slow[-1] not in kept
+    assert all(tests.get(t, 0.0) < SLOW_S for t in kept)
