@@ -4,6 +4,7 @@ the files in, and which tests ``make test-fast`` leaves out.
     .venv/bin/python -m pytest -n 2 --junitxml=reports/tests.xml   # any run of the suite
     python benchmarks/test_durations.py reports/tests.xml          # -> tests/durations.json
     python benchmarks/test_durations.py reports/tests.xml --top 30 # also the 30 slowest tests
+    python benchmarks/test_durations.py reports/tests.xml reports/fast.xml  # and test-fast's run
 
 ``make test`` hands whole files to its two xdist workers (``--dist loadfile``: a file's
 module fixtures, a trained observer or a server, are made once), each worker taking the next
@@ -49,14 +50,22 @@ def per_file(times: dict[str, float]) -> dict[str, float]:
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("report", type=Path, help="pytest's --junitxml report")
+    p.add_argument("report", type=Path, help="pytest's --junitxml report of the whole suite")
+    p.add_argument("more", type=Path, nargs="*",
+                   help="reports of other runs (make test-fast's): a test is listed by the "
+                        "longest it took in any (its module's fixtures are charged to whichever "
+                        "of its tests comes first, which differs between runs)")
     p.add_argument("--top", type=int, default=0, help="also print the N slowest tests")
     p.add_argument("--out", type=Path, default=OUT, help="where the per-file seconds go")
     args = p.parse_args()
     times = per_test(args.report)
     files = per_file(times)
-    tests = {t: round(s, 1) for t, s in sorted(times.items(), key=lambda x: -x[1])
-             if s >= LISTED_S}
+    longest = dict(times)
+    for more in args.more:
+        for test, seconds in per_test(more).items():
+            longest[test] = max(seconds, longest.get(test, 0.0))
+    tests = {t: round(s, 1) for t, s in sorted(longest.items(), key=lambda x: -x[1])
+             if s >= LISTED_S and t in times}
     args.out.write_text(json.dumps({"files": files, "tests": tests}, indent=1) + "\n")
     print(f"{len(times)} tests in {len(files)} files, {sum(times.values()):.0f} s summed; "
           f"per file, and the {len(tests)} tests of {LISTED_S:g} s or more -> {args.out}")

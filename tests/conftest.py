@@ -109,7 +109,7 @@ def smoke_cnn(tmp_path_factory, worker_id, smoke_data):
     return once(tmp_path_factory, worker_id, "smoke_cnn", make)
 
 
-SLOW_S = 1.5
+SLOW_S = 1.0
 """A test that took this many seconds or more in the run ``tests/durations.json`` was written
 from is marked ``slow`` (``make test-fast`` skips it), as are those marked by hand."""
 

@@ -32,7 +32,7 @@ def _train_cmd(tmp_path, smoke_data, out, *more):
 @pytest.mark.slow
 @pytest.mark.parametrize("trained", [
     (), ("model=split_kalmannet", "features=frame", "window=40", "tbptt=10",
-         "lr_schedule=cosine")],
+         "lr_schedule=cosine", "trainer.limit_train_batches=15")],  # a carried epoch: seconds
     ids=["windows", "carried"])
 def test_a_killed_run_resumes_from_its_last_checkpoint_as_if_never_killed(tmp_path, smoke_data,
                                                                         monkeypatch, trained):
