@@ -16,6 +16,7 @@ import pandas as pd
 import pytest
 import torch
 
+from helpers import observe
 from lbo.core.errors import LboError
 from lbo.filters.gyro import NOISE_RANGES, GyroNoise
 from lbo.learn import gyro_fit
@@ -213,17 +214,14 @@ def test_a_noise_path_is_read_only_as_a_small_regular_file(tmp_path):
 def test_observe_reads_a_learned_noise_for_the_gyro_ekf_only(log, tmp_path):
     log.to_csv(tmp_path / "log.csv", index=False)
     OTHER.save(tmp_path / "noise.json")
-    args = [sys.executable, "-m", "lbo.observe", f"input={tmp_path / 'log.csv'}",
-            f"gyro_noise={tmp_path / 'noise.json'}"]
-    ok = subprocess.run([*args, "observer=gyro", f"output={tmp_path / 'est.csv'}"],
-                        capture_output=True, text=True, cwd=tmp_path)
+    args = [f"input={tmp_path / 'log.csv'}", f"gyro_noise={tmp_path / 'noise.json'}"]
+    ok = observe(*args, "observer=gyro", f"output={tmp_path / 'est.csv'}", cwd=tmp_path)
     assert ok.returncode == 0, ok.stderr
     out = pd.read_csv(tmp_path / "est.csv")
     full = gyro_fit.estimate(log, OTHER, VEHICLE, R)
     valid = out["valid"].to_numpy()
     assert np.allclose(out.loc[valid, ["x", "y"]], full[valid, :2], atol=1e-6)
-    bad = subprocess.run([*args, "observer=ekf", f"output={tmp_path / 'ekf.csv'}"],
-                         capture_output=True, text=True, cwd=tmp_path)
+    bad = observe(*args, "observer=ekf", f"output={tmp_path / 'ekf.csv'}", cwd=tmp_path)
     assert bad.returncode == 2 and not (tmp_path / "ekf.csv").exists()
     assert bad.stderr.strip().splitlines()[-1].endswith(
         "gyro_noise is the noise of the gyro EKF (observer=gyro), not of ekf")
