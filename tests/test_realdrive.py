@@ -223,4 +223,7 @@ def test_without_the_extra_and_with_a_bad_observer_it_is_one_line(monkeypatch, t
         "error: learn.epochs must be an integer >= 0, got -1")
     res = cli("lbo.realdrive", f"output_dir={tmp_path}", "net_fit.lr=0", cwd=tmp_path)
     assert res.returncode == 2 and res.stderr.startswith("error: net_fit.lr must be")
+    res = cli("lbo.realdrive", f"output_dir={tmp_path}", "learn.objective=nll", cwd=tmp_path)
+    assert res.returncode == 2 and res.stderr.strip() == (
+        "error: learn.objective must be one of ['truth', 'innovations'], got 'nll'")
     assert not any(tmp_path.iterdir())

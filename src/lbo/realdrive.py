@@ -82,6 +82,15 @@ the rows both estimate, and over those of them where the car moves
 (:func:`lbo.scoring.receiver.moving_rows`: a course in the last 8 s)."""
 
 
+
+def _objective(value: object) -> str:
+    """``learn.objective``, checked before any work: what the gyro EKF's noise is fitted by."""
+    from lbo.learn.gyro_fit import OBJECTIVES
+
+    if value not in OBJECTIVES:
+        raise LboError(f"learn.objective must be one of {list(OBJECTIVES)}, got {value!r}")
+    return str(value)
+
 def realdrive(cfg: DictConfig) -> dict[str, Any]:
     """Write the hill drive's span logs and score the classical observers on its test span."""
     from lbo.sim.noise import Noise
@@ -107,7 +116,8 @@ def realdrive(cfg: DictConfig) -> dict[str, Any]:
     learn = {"epochs": integer(cfg.learn.epochs, "learn.epochs", 0),
              "simulated": integer(cfg.learn.simulated, "learn.simulated", 0),
              "segment_s": number(cfg.learn.segment_s, "learn.segment_s", 0.0, low_open=True),
-             "lr": number(cfg.learn.lr, "learn.lr", 0.0, low_open=True)}
+             "lr": number(cfg.learn.lr, "learn.lr", 0.0, low_open=True),
+             "objective": _objective(cfg.learn.get("objective", "truth"))}
     out = Path(str(cfg.output_dir))
     paths = {k: check_output_path(out / f"hill_{k}.parquet") for k in hguide.SPANS}
     check_output_path(out / "results.csv")
@@ -181,7 +191,7 @@ def _learn(cfg: dict[str, Any], simulated: DictConfig, parts: dict[str, pd.DataF
               val: pd.DataFrame | list[pd.DataFrame], start: GyroNoise, epochs: int,
               where: str) -> GyroNoise:
         return gyro_fit.fit_and_write(out, name, train, val, vehicle, R, start, where, epochs,
-                                      segment, cfg["lr"])
+                                      segment, cfg["lr"], objective=cfg["objective"])
 
     defaults = GyroNoise.from_q(noise.Q)
     out_noise = {LEARNED: learn("gyro_noise", parts["train"], parts["val"], defaults,

@@ -1,4 +1,5 @@
-"""Learning the gyro EKF's noise from a log with truth: a real drive's train span.
+"""Learning the gyro EKF's noise from logs: a real drive's train span, with its truth or
+without.
 
 The gyro EKF (:mod:`lbo.filters.gyro`) assumes seven noises (:class:`GyroNoise`): the process
 noise of position and heading, the gyro's white noise and bias walk, how far to trust the
@@ -16,6 +17,11 @@ by gradient descent on the estimates' error against the truth.
   of RMSE ratios), against the filter the fit starts from.
 - After each epoch the NumPy filter runs the validation log from its first fix; the noise
   kept is the one with the lowest measure there (its ratio to the starting noise's).
+- Without truth (``objective="innovations"``, a fleet's logs) the loss is the negative
+  log-likelihood of what the filter measures (fixes, course, the gyro at standstill) under
+  its own predicted covariance, the maximum-likelihood fit of a Kalman filter's noise; the
+  noise kept is the one with the lowest such loss on the validation segments. The truth is
+  neither needed nor read.
 """
 
 from __future__ import annotations
@@ -121,7 +127,15 @@ def segments(log: pd.DataFrame, noise: GyroNoise, vehicle: Vehicle, R: np.ndarra
                     fix=as_t(m[idx][..., :2]), accuracy=as_t(rec[idx][..., :2]),
                     course=as_t(wrap_angle(course)[idx]),
                     speed=as_t(np.hypot(rec[:, 3], rec[:, 4])[idx]), sv=as_t(sv[idx]),
-                    u=as_t(u[idx]), truth=as_t(log[list(STATE)].to_numpy(float)[idx]))
+                    u=as_t(u[idx]), truth=as_t(_truth(log)[idx]))
+
+
+def _truth(log: pd.DataFrame) -> np.ndarray:
+    """The log's truth (T, 3) ``[x, y, psi]``; NaN where it has none (a fleet's log: learned
+    from its innovations, ``objective="innovations"``)."""
+    if all(c in log for c in STATE):
+        return log[list(STATE)].to_numpy(float)
+    return np.full((len(log), len(STATE)), np.nan)
 
 
 def _mse(est: torch.Tensor, truth: torch.Tensor) -> torch.Tensor:
@@ -151,43 +165,81 @@ def _pooled(logs: list[pd.DataFrame], noise: GyroNoise, reference: list[np.ndarr
     return measure_ratio(est, np.concatenate(reference), truth, rows)
 
 
+OBJECTIVES = ("truth", "innovations")
+"""What :func:`fit` minimises: the estimates' error against the truth, or the filter's
+innovations' negative log-likelihood, which needs no truth."""
+
+
+def _innovations(model: GyroFilter, seg: Segments) -> torch.Tensor:
+    """The mean negative log-likelihood per step of the segments' measurements under the
+    filter's own predictions (:meth:`GyroFilter.run`), over the steps that measure
+    anything."""
+    _, nll = model.run(seg)
+    return nll[:, 1:].sum() / torch.count_nonzero(nll[:, 1:]).clamp(min=1)
+
+
 def fit(train: pd.DataFrame | Sequence[pd.DataFrame],
         val: pd.DataFrame | Sequence[pd.DataFrame], vehicle: Vehicle, R: np.ndarray,
         start: GyroNoise, epochs: int = 12, segment: int = 500, lr: float = 0.1,
-        progress: Callable[[str], None] | None = print) -> GyroFit:
-    """Learn the gyro EKF's noise on ``train`` (a log with truth, or several), keep the best
-    on ``val`` (one or several, their scored rows pooled).
+        progress: Callable[[str], None] | None = print,
+        objective: str = "truth") -> GyroFit:
+    """Learn the gyro EKF's noise on ``train`` (one log or several), keep the best on ``val``
+    (one or several).
 
     vehicle : its dt; R (3, 3) : the fixes' covariance where one reports no accuracy;
     start : the noise to start from; epochs : full-batch Adam steps (lr on the noises' logs);
-    segment : steps per segment; progress : called with one line per epoch (None: silent).
+    segment : steps per segment; progress : called with one line per epoch (None: silent);
+    objective : ``truth`` (the logs hold it: the loss is the estimates' error, the best
+        noise the one with the lowest measure on ``val``'s scored rows, pooled), or
+        ``innovations`` (no truth needed, none read: the loss and the choice on ``val`` are
+        the mean negative log-likelihood per step of the fixes, course and standstill gyro
+        under the filter's own prediction; ``loss`` and ``val`` in the history are then its
+        change from the starting noise's, in nats per step).
     """
     if epochs < 0 or segment < 2:
         raise LboError(f"fit needs epochs >= 0 and segment >= 2, got {epochs} and {segment}")
+    if objective not in OBJECTIVES:
+        raise LboError(f"objective must be one of {list(OBJECTIVES)}, got {objective!r}")
     train, val = _logs(train), _logs(val)
     model = GyroFilter(start, vehicle.dt, torch.as_tensor(R))
     opt = torch.optim.Adam(model.parameters(), lr=lr)
-    reference = [estimate(log, start, vehicle, R) for log in val]
+    supervised = objective == "truth"
+    reference = [estimate(log, start, vehicle, R) for log in val] if supervised else []
     scale: torch.Tensor | None = None
-    best = (1.0, 0, start)
+    best: tuple[float, int, GyroNoise] = (1.0 if supervised else 0.0, 0, start)
+    val_start = 0.0
     history = []
     for epoch in range(epochs + 1):
         noise = model.noise()
         seg = _batch(train, noise, vehicle, R, segment)
-        mse = _mse(model(seg), seg.truth)
-        if scale is None:
-            scale = mse.detach()
-        loss = (mse / scale).mean()
+        if supervised:
+            mse = _mse(model(seg), seg.truth)
+            if scale is None:
+                scale = mse.detach()
+            loss = (mse / scale).mean()
+        else:
+            nll = _innovations(model, seg)
+            if scale is None:
+                scale = nll.detach()
+            loss = nll - scale
         if not torch.isfinite(loss):
             raise LboError(f"gyro noise fit: the loss is not finite at epoch {epoch} (noise "
                            f"{noise}); lower lr (now {lr:g})")
-        score = 1.0 if epoch == 0 else _pooled(val, noise, reference, vehicle, R)
+        if supervised:
+            score = 1.0 if epoch == 0 else _pooled(val, noise, reference, vehicle, R)
+        else:
+            with torch.no_grad():
+                held_out = float(_innovations(model, _batch(val, noise, vehicle, R, segment)))
+            if epoch == 0:
+                val_start = held_out
+            score = held_out - val_start
         if score < best[0]:
             best = (score, epoch, noise)
         history.append({"epoch": epoch, "loss": loss.item(), "val": score})
         if progress is not None:
             progress(f"epoch {epoch}/{epochs}: train {loss.item():.3f}, validation {score:.3f} "
-                     "(against the starting noise)")
+                     + ("(against the starting noise)" if supervised else
+                        "(innovations' NLL per step, nats, from the starting noise's)"))
         if epoch < epochs:
             opt.zero_grad()
             loss.backward()
@@ -198,17 +250,18 @@ def fit(train: pd.DataFrame | Sequence[pd.DataFrame],
 
 def fit_and_write(out: Path, name: str, train: pd.DataFrame | Sequence[pd.DataFrame],
                   val: pd.DataFrame | Sequence[pd.DataFrame], vehicle: Vehicle, R: np.ndarray,
-                  start: GyroNoise, where: str, epochs: int, segment: int, lr: float
-                  ) -> GyroNoise:
+                  start: GyroNoise, where: str, epochs: int, segment: int, lr: float,
+                  objective: str = "truth") -> GyroNoise:
     """:func:`fit`, one printed line per epoch, written into the folder ``out`` as
     ``<name>.json`` (the noise kept, :meth:`GyroNoise.save`) and ``<name>_history.csv``;
     ``where`` says in the first line what it learns on. Returns the noise kept."""
     from lbo.sim.logio import write_table
 
-    print(f"learning the gyro EKF's noise {where} ({epochs} epochs; keeps the best on its "
-          "validation drives)")
+    how = "" if objective == "truth" else ", by its innovations' likelihood, no truth read"
+    print(f"learning the gyro EKF's noise {where} ({epochs} epochs{how}; keeps the best on "
+          "its validation drives)")
     fitted = fit(train, val, vehicle, R, start, epochs=epochs, segment=segment, lr=lr,
-                 progress=lambda line: print("  " + line))
+                 progress=lambda line: print("  " + line), objective=objective)
     fitted.noise.save(Path(out) / f"{name}.json")
     write_table(fitted.history, Path(out) / f"{name}_history.csv")
     print(f"  kept epoch {fitted.best_epoch}: {fitted.noise}")

@@ -76,6 +76,13 @@ class GyroFilter(nn.Module):
     def forward(self, seg: Segments) -> torch.Tensor:
         """Estimates (G, T, 3) ``[x, y, psi]``: step 0 is ``x0``, step k predicted with
         ``u[:, k - 1]`` and updated with row k, as :func:`lbo.filters.stepper.run_stepper`."""
+        return self.run(seg)[0]
+
+    def run(self, seg: Segments) -> tuple[torch.Tensor, torch.Tensor]:
+        """Estimates (G, T, 3), as :meth:`forward`, and each step's negative log-likelihood
+        (G, T) of what it measured under the filter's own prediction (:func:`joseph_update`;
+        0 at step 0 and where it measured nothing): what the filter is fitted by where a log
+        has no truth."""
         p = {k: torch.exp(v) for k, v in self.log.items()}
         dt = self.dt
         g, t = seg.fix.shape[:2]
@@ -102,7 +109,7 @@ class GyroFilter(nn.Module):
         fix = torch.nan_to_num(seg.fix, nan=0.0)  # NaN kept out of the graph, not held there
         course = torch.nan_to_num(seg.course, nan=0.0)
         x, P = seg.x0, seg.P0
-        out = [x[:, :3]]
+        out, nll = [x[:, :3]], [torch.zeros(g, dtype=dtype)]
         for k in range(1, t):
             v, rate = seg.u[:, k - 1, 0], seg.u[:, k - 1, 1]
             psi, bias = x[:, 2], x[:, 3]
@@ -127,15 +134,21 @@ class GyroFilter(nn.Module):
                                -1)
             y = torch.stack([fix[:, k, 0] - x[:, 0], fix[:, k, 1] - x[:, 1],
                              wrap_angle_torch(course[:, k] - x[:, 2]), rate - x[:, 3]], -1)
-            x, P = joseph_update(x, P, y, H, R, held)
+            x, P, step_nll = joseph_update(x, P, y, H, R, held)
             out.append(x[:, :3])
-        return torch.stack(out, 1)
+            nll.append(step_nll)
+        return torch.stack(out, 1), torch.stack(nll, 1)
 
 
 def joseph_update(x: torch.Tensor, P: torch.Tensor, y: torch.Tensor, H: torch.Tensor,
-                  R: torch.Tensor, held: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+                  R: torch.Tensor, held: torch.Tensor
+                  ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """:func:`lbo.filters.update.joseph_update` in torch (differentiable): x (G, n),
-    P (G, n, n), y (G, p), H (p, n), R (G, p, p), held (G, p) bool."""
+    P (G, n, n), y (G, p), H (p, n), R (G, p, p), held (G, p) bool.
+
+    Returns the updated x (G, n) and P (G, n, n), and the innovation's negative
+    log-likelihood (G,) under its covariance S, ``(y^T S^-1 y + log det S + m log 2 pi) / 2``
+    over the m channels held (0 where none is: a channel not held has y = 0 and S = 1)."""
     p = held.shape[-1]
     eye_p = torch.eye(p, dtype=x.dtype)
     y = torch.where(held, y, torch.zeros_like(y))
@@ -147,4 +160,6 @@ def joseph_update(x: torch.Tensor, P: torch.Tensor, y: torch.Tensor, H: torch.Te
     K = torch.linalg.solve(S, PHt.transpose(-1, -2)).transpose(-1, -2)
     I_KH = torch.eye(x.shape[-1], dtype=x.dtype) - K @ Hm
     post = I_KH @ P @ I_KH.transpose(-1, -2) + K @ Rm @ K.transpose(-1, -2)
-    return x + (K @ y[..., None])[..., 0], 0.5 * (post + post.transpose(-1, -2))
+    mahalanobis = (y[..., None, :] @ torch.linalg.solve(S, y[..., None]))[..., 0, 0]
+    nll = 0.5 * (mahalanobis + torch.logdet(S) + held.sum(-1) * math.log(2 * math.pi))
+    return x + (K @ y[..., None])[..., 0], 0.5 * (post + post.transpose(-1, -2)), nll
