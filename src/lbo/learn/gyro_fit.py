@@ -57,7 +57,8 @@ class GyroFit:
     noise : the noise with the lowest measure on the validation log.
     start : the noise it started from.
     history : one row per epoch: ``epoch, loss`` (train, against the start: 1 at epoch 0)
-        and ``val`` (the validation measure against the start).
+        and ``val`` (the validation measure against the start); fitted by the innovations,
+        both are nats per step from the start's (0 at epoch 0).
     best_epoch : the epoch of ``noise`` (0: the start itself).
     """
 
