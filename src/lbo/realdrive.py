@@ -83,14 +83,6 @@ the rows both estimate, and over those of them where the car moves
 
 
 
-def _objective(value: object) -> str:
-    """``learn.objective``, checked before any work: what the gyro EKF's noise is fitted by."""
-    from lbo.learn.gyro_fit import OBJECTIVES
-
-    if value not in OBJECTIVES:
-        raise LboError(f"learn.objective must be one of {list(OBJECTIVES)}, got {value!r}")
-    return str(value)
-
 def realdrive(cfg: DictConfig) -> dict[str, Any]:
     """Write the hill drive's span logs and score the classical observers on its test span."""
     from lbo.sim.noise import Noise
@@ -113,11 +105,14 @@ def realdrive(cfg: DictConfig) -> dict[str, Any]:
     if len(set(names)) < len(names):
         raise LboError(f"nets: two nets named {max(names, key=names.count)} to train on the "
                        "train span (net_fit.epochs > 0); give one at a time")
+    from lbo.learn.gyro_fit import check_objective
+
     learn = {"epochs": integer(cfg.learn.epochs, "learn.epochs", 0),
              "simulated": integer(cfg.learn.simulated, "learn.simulated", 0),
              "segment_s": number(cfg.learn.segment_s, "learn.segment_s", 0.0, low_open=True),
              "lr": number(cfg.learn.lr, "learn.lr", 0.0, low_open=True),
-             "objective": _objective(cfg.learn.get("objective", "truth"))}
+             "objective": check_objective(cfg.learn.get("objective", "truth"),
+                                          "learn.objective")}
     out = Path(str(cfg.output_dir))
     paths = {k: check_output_path(out / f"hill_{k}.parquet") for k in hguide.SPANS}
     check_output_path(out / "results.csv")

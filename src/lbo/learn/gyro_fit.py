@@ -171,6 +171,13 @@ OBJECTIVES = ("truth", "innovations")
 innovations' negative log-likelihood, which needs no truth."""
 
 
+def check_objective(value: object, field: str = "objective") -> str:
+    """``value`` if it is one of :data:`OBJECTIVES`, else one line naming ``field``."""
+    if value not in OBJECTIVES:
+        raise LboError(f"{field} must be one of {list(OBJECTIVES)}, got {value!r}")
+    return str(value)
+
+
 def _innovations(model: GyroFilter, seg: Segments) -> torch.Tensor:
     """The mean negative log-likelihood per step of the segments' measurements under the
     filter's own predictions (:meth:`GyroFilter.run`), over the steps that measure
@@ -199,8 +206,7 @@ def fit(train: pd.DataFrame | Sequence[pd.DataFrame],
     """
     if epochs < 0 or segment < 2:
         raise LboError(f"fit needs epochs >= 0 and segment >= 2, got {epochs} and {segment}")
-    if objective not in OBJECTIVES:
-        raise LboError(f"objective must be one of {list(OBJECTIVES)}, got {objective!r}")
+    check_objective(objective)
     train, val = _logs(train), _logs(val)
     model = GyroFilter(start, vehicle.dt, torch.as_tensor(R))
     opt = torch.optim.Adam(model.parameters(), lr=lr)

@@ -179,7 +179,7 @@ def _ins_track(df: pd.DataFrame, origin: Origin) -> dict[str, np.ndarray]:
     streams start and end a few rows apart (measured on another n380 recording: its velocity
     stream ends first, which left the log's last speed empty), so the log covers only the span
     they all cover."""
-    ins = df[df[list(_INS.values())].notna().all(axis=1)]
+    ins = _ins_rows(df)
     east, north = to_local(np.degrees(ins[_INS["lat"]].to_numpy()),
                            np.degrees(ins[_INS["lon"]].to_numpy()), origin)
     yaw = ins[_INS["yaw"]].to_numpy()
@@ -251,8 +251,13 @@ def fit_alignment(df: pd.DataFrame) -> Alignment:
                      rms_after=rms, fixes=int(moving.sum()))
 
 
+def _ins_rows(df: pd.DataFrame) -> pd.DataFrame:
+    """The rows that hold every INS stream (see :func:`_ins_track`)."""
+    return df[df[list(_INS.values())].notna().all(axis=1)]
+
+
 def _origin(df: pd.DataFrame) -> Origin:
-    first = df[df[list(_INS.values())].notna().all(axis=1)].iloc[0]
+    first = _ins_rows(df).iloc[0]
     return Origin(float(np.degrees(first[_INS["lat"]])), float(np.degrees(first[_INS["lon"]])))
 
 
