@@ -215,8 +215,16 @@ def test_a_data_set_input_lost_to_a_racing_run_is_logged_again():
             log_input(Store(errors), "r1", dataset_input("smoke", "a8", "/data"))
 
 
+@pytest.fixture(scope="module")
+def server():
+    """One tracking server for this module's tests: each works in experiments and runs of
+    its own (a server's start is seconds of the suite's time)."""
+    with mlflow_server() as s:
+        yield s
+
+
 @pytest.mark.slow
-def test_runs_started_together_all_log_their_data_set_on_a_server():
+def test_runs_started_together_all_log_their_data_set_on_a_server(server):
     """Eight runs log the same data set at the same moment through a real tracking server,
     in five experiments: each run has its input. (MlflowClient.log_inputs alone failed for 5
     of these 40 runs, on the store's unique key.)"""
@@ -224,77 +232,75 @@ def test_runs_started_together_all_log_their_data_set_on_a_server():
 
     from lbo.tracking.runs import dataset_input, log_input
 
-    with mlflow_server() as server:
-        client = mlflow.MlflowClient(server.url)
-        for k in range(5):
-            exp = client.create_experiment(f"race-{k}")
-            runs = [client.create_run(exp).info.run_id for _ in range(8)]
-            start, failed = threading.Barrier(len(runs)), []
+    client = mlflow.MlflowClient(server.url)
+    for k in range(5):
+        exp = client.create_experiment(f"race-{k}")
+        runs = [client.create_run(exp).info.run_id for _ in range(8)]
+        start, failed = threading.Barrier(len(runs)), []
 
-            def log(run_id, start=start, failed=failed):
-                start.wait()
-                try:
-                    log_input(client, run_id, dataset_input("smoke", "a8c688af2968", "/d/s"))
-                except Exception as e:  # noqa: BLE001 - reported below
-                    failed.append(e)
+        def log(run_id, start=start, failed=failed):
+            start.wait()
+            try:
+                log_input(client, run_id, dataset_input("smoke", "a8c688af2968", "/d/s"))
+            except Exception as e:  # noqa: BLE001 - reported below
+                failed.append(e)
 
-            threads = [threading.Thread(target=log, args=(r,)) for r in runs]
-            for t in threads:
-                t.start()
-            for t in threads:
-                t.join()
-            assert failed == []
-            for r in runs:
-                [used] = client.get_run(r).inputs.dataset_inputs
-                assert used.dataset.digest == "a8c688af2968"
+        threads = [threading.Thread(target=log, args=(r,)) for r in runs]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join()
+        assert failed == []
+        for r in runs:
+            [used] = client.get_run(r).inputs.dataset_inputs
+            assert used.dataset.digest == "a8c688af2968"
 
 
 @pytest.mark.slow
 def test_train_observe_export_and_tune_through_a_tracking_server(tmp_path, smoke_data, monkeypatch,
-                                                        manoeuvre_csv):
+                                                        manoeuvre_csv, server):
     from lbo.serve.observer import Observer
     from lbo.train import train
 
-    with mlflow_server() as server:
-        monkeypatch.setenv("MLFLOW_TRACKING_URI", server.url)
-        out = train(train_cfg(tmp_path, smoke_data, "trainer.max_epochs=1",
-                              "trainer.limit_train_batches=5"))
-        client = mlflow.MlflowClient(server.url)
-        run = client.get_run(out["run_id"])
-        assert run.info.status == "FINISHED"
-        assert {"val_loss", "test_nrmse_alpha_1"} <= set(run.data.metrics)
-        assert run.info.artifact_uri.startswith("mlflow-artifacts:")  # stored by the server
-        files = [a.path for a in client.list_artifacts(out["run_id"], "checkpoints")]
-        assert files == ["checkpoints/best.ckpt"]
-        assert list((server.folder / "artifacts").rglob("best.ckpt"))
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", server.url)
+    out = train(train_cfg(tmp_path, smoke_data, "trainer.max_epochs=1",
+                          "trainer.limit_train_batches=5"))
+    client = mlflow.MlflowClient(server.url)
+    run = client.get_run(out["run_id"])
+    assert run.info.status == "FINISHED"
+    assert {"val_loss", "test_nrmse_alpha_1"} <= set(run.data.metrics)
+    assert run.info.artifact_uri.startswith("mlflow-artifacts:")  # stored by the server
+    files = [a.path for a in client.list_artifacts(out["run_id"], "checkpoints")]
+    assert files == ["checkpoints/best.ckpt"]
+    assert list((server.folder / "artifacts").rglob("best.ckpt"))
 
-        est = tmp_path / "est.csv"
-        res = cli("lbo.observe", f"observer={out['run_id']}", f"input={manoeuvre_csv}",
-                  f"output={est}", env={"MLFLOW_TRACKING_URI": server.url})
-        assert res.returncode == 0, res.stderr[-3000:]
-        assert f"observed: {est}" in res.stdout
-        log = pd.read_csv(manoeuvre_csv).head(60)
-        m, u = log[["x_m", "y_m", "psi_m"]].to_numpy(), log[["V", "delta"]].to_numpy()
-        remote = Observer.load(out["run_id"]).run(m, u)  # the checkpoint, through the server
-        local = Observer.load(out["checkpoint"]).run(m, u)
-        np.testing.assert_array_equal(remote[0], local[0])
+    est = tmp_path / "est.csv"
+    res = cli("lbo.observe", f"observer={out['run_id']}", f"input={manoeuvre_csv}",
+              f"output={est}", env={"MLFLOW_TRACKING_URI": server.url})
+    assert res.returncode == 0, res.stderr[-3000:]
+    assert f"observed: {est}" in res.stdout
+    log = pd.read_csv(manoeuvre_csv).head(60)
+    m, u = log[["x_m", "y_m", "psi_m"]].to_numpy(), log[["V", "delta"]].to_numpy()
+    remote = Observer.load(out["run_id"]).run(m, u)  # the checkpoint, through the server
+    local = Observer.load(out["checkpoint"]).run(m, u)
+    np.testing.assert_array_equal(remote[0], local[0])
 
-        res = cli("lbo.export", f"observer={out['run_id']}", "register=lbo-served",
-                  f"out_dir={tmp_path / 'exports'}", env={"MLFLOW_TRACKING_URI": server.url})
-        assert res.returncode == 0, res.stderr[-3000:]
-        assert client.get_model_version("lbo-served", "1").run_id == out["run_id"]
-        assert list((tmp_path / "exports").glob("*.onnx"))
-        registered = Observer.load("models:/lbo-served/1").run(m, u)
-        np.testing.assert_array_equal(registered[0], local[0])
+    res = cli("lbo.export", f"observer={out['run_id']}", "register=lbo-served",
+              f"out_dir={tmp_path / 'exports'}", env={"MLFLOW_TRACKING_URI": server.url})
+    assert res.returncode == 0, res.stderr[-3000:]
+    assert client.get_model_version("lbo-served", "1").run_id == out["run_id"]
+    assert list((tmp_path / "exports").glob("*.onnx"))
+    registered = Observer.load("models:/lbo-served/1").run(m, u)
+    np.testing.assert_array_equal(registered[0], local[0])
 
-        res = cli("lbo.tune", *tune_args(tmp_path, smoke_data,
-                                         f"sqlite:///{tmp_path / 'optuna.db'}",
-                                         "tune.n_trials=1", f"hydra.run.dir={tmp_path / 't'}"),
-                  env={"MLFLOW_TRACKING_URI": server.url})
-        assert res.returncode == 0, res.stderr[-3000:]
-        study = client.search_runs([run.info.experiment_id], "tags.optuna_role = 'study'")
-        assert len(study) == 1 and study[0].info.status == "FINISHED"
-        assert client.list_artifacts(study[0].info.run_id, "tuned")
+    res = cli("lbo.tune", *tune_args(tmp_path, smoke_data,
+                                     f"sqlite:///{tmp_path / 'optuna.db'}",
+                                     "tune.n_trials=1", f"hydra.run.dir={tmp_path / 't'}"),
+              env={"MLFLOW_TRACKING_URI": server.url})
+    assert res.returncode == 0, res.stderr[-3000:]
+    study = client.search_runs([run.info.experiment_id], "tags.optuna_role = 'study'")
+    assert len(study) == 1 and study[0].info.status == "FINISHED"
+    assert client.list_artifacts(study[0].info.run_id, "tuned")
 
 
 @pytest.fixture
