@@ -7,9 +7,11 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
+import re
 import subprocess
 import sys
 import threading
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
@@ -131,6 +133,43 @@ def test_the_innovations_likelihood_is_the_gaussian_one_of_the_channels_held():
     assert float(nll) == pytest.approx(0.5 * (0.5**2 / s + np.log(s) + np.log(2 * np.pi)))
     *_, none = joseph_update(x, P, y, torch.eye(2, dtype=torch.float64), R, held & False)
     assert float(none) == 0.0
+
+
+def test_a_fix_predicted_steps_ahead_is_scored_under_the_dead_reckoned_covariance(log):
+    """GyroFilter.ahead: each fix k rows into its segment or later, under the prediction from
+    the estimate ``steps`` rows before it, propagated through the model with no measurement
+    (checked by hand in NumPy for one fix, the car moving); every noise gets a gradient
+    through it."""
+    steps = 30
+    seg = gyro_fit.segments(log, START, VEHICLE, R, 400)
+    model = GyroFilter(START, VEHICLE.dt, torch.as_tensor(R))
+    nll = model.ahead(seg, steps)
+    held = torch.isfinite(seg.fix).all(-1)
+    held[:, :steps] = False
+    assert nll.shape == (int(held.sum()),) and torch.isfinite(nll).all()
+    g, k = (int(i[0]) for i in torch.nonzero(held, as_tuple=True))
+    with torch.no_grad():
+        xs, Ps, _ = model._filter(seg)
+    x, P = xs[g, k - steps].numpy().copy(), Ps[g, k - steps].numpy().copy()
+    noise, dt = model.noise(), VEHICLE.dt
+    Q = np.diag([noise.q_position**2, noise.q_position**2,
+                 noise.q_heading**2 + (noise.gyro_sigma * dt) ** 2, noise.bias_walk**2 * dt])
+    for v, rate in seg.u[g, k - steps:k].numpy():
+        assert abs(v) > 1.0  # moving: the model turns at the gyro's rate less the bias
+        F = np.eye(4)
+        F[0, 2], F[1, 2], F[2, 3] = -v * np.sin(x[2]) * dt, v * np.cos(x[2]) * dt, -dt
+        x = x + dt * np.array([v * np.cos(x[2]), v * np.sin(x[2]), rate - x[3], 0.0])
+        P = F @ P @ F.T + Q
+    acc = seg.accuracy[g, k].numpy() * noise.accuracy_scale
+    S = P[:2, :2] + np.diag(acc**2)
+    y = seg.fix[g, k].numpy() - x[:2]
+    hand = 0.5 * (y @ np.linalg.solve(S, y) + np.log(np.linalg.det(S)) + 2 * np.log(2 * np.pi))
+    assert float(nll[0]) == pytest.approx(hand, rel=1e-9)
+    nll.mean().backward()
+    grads = {name: float(p.grad) for name, p in model.log.items()}
+    assert all(np.isfinite(v) and v != 0.0 for v in grads.values()), grads
+    with pytest.raises(ValueError, match="steps must be >= 1, got 0"):
+        model.ahead(seg, 0)
 
 
 def test_the_fit_learns_how_far_to_trust_a_receiver_that_understates_its_error():
@@ -267,3 +306,51 @@ def test_observe_reads_a_learned_noise_for_the_gyro_ekf_only(log, tmp_path):
     assert bad.returncode == 2 and not (tmp_path / "ekf.csv").exists()
     assert bad.stderr.strip().splitlines()[-1].endswith(
         "gyro_noise is the noise of the gyro EKF (observer=gyro), not of ekf")
+
+
+@pytest.mark.slow
+def test_observe_adapts_the_gyro_ekfs_noise_to_the_log_it_filters(tmp_path):
+    """adapt=true: the noise fitted to the log's own innovations (the truth in the log is
+    not read), then the log filtered with it: on a receiver that reports a third of its
+    error, the position error falls below the defaults' (measured: 0.403 m against 0.421 m
+    on this 60 s log); it says so, and how long it took."""
+    log = _log(1, reported=1 / 3)
+    log.to_csv(tmp_path / "log.csv", index=False)
+    args = [f"input={tmp_path / 'log.csv'}", "observer=gyro"]
+    plain = observe(*args, f"output={tmp_path / 'plain.csv'}", cwd=tmp_path)
+    adapted = observe(*args, "adapt=true", f"output={tmp_path / 'adapted.csv'}", cwd=tmp_path)
+    assert plain.returncode == 0 and adapted.returncode == 0, adapted.stderr
+    assert re.search(r"^adapted: the gyro EKF's noise fitted to this log's innovations "
+                     r"\(offline: it read the whole log first; no truth read\), 12 epochs in "
+                     r"[0-9.]+ s, kept epoch \d+: GyroNoise\(", adapted.stdout, re.M)
+
+    def position_rmse(name):
+        out = pd.read_csv(tmp_path / name)
+        rows = scored_rows(log) & out["valid"].to_numpy()
+        d = out.loc[rows, ["x", "y"]].to_numpy() - log.loc[rows, ["x", "y"]].to_numpy()
+        return np.sqrt(np.mean(d**2))
+
+    assert position_rmse("adapted.csv") < 0.97 * position_rmse("plain.csv")
+    # the truth unread: the same fit on the log without it
+    blind = gyro_fit.adapt(log.drop(columns=["x", "y", "psi"]), START, VEHICLE,
+                           _paper_noise(), epochs=1)
+    seen = gyro_fit.adapt(log, START, VEHICLE, _paper_noise(), epochs=1)
+    assert blind.noise == seen.noise
+    for extra, line in ((["observer=ekf", "adapt=true"],
+                         "adapt: only observer=gyro adapts (its noise, to this log's "
+                         "innovations); got observer=ekf"),
+                        (["observer=gyro", "adapt=maybe"],
+                         "adapt must be true or false, got 'maybe'")):
+        bad = observe(f"input={tmp_path / 'log.csv'}", *extra,
+                      f"output={tmp_path / 'bad.csv'}", cwd=tmp_path)
+        assert bad.returncode == 2 and bad.stderr.strip().splitlines()[-1] == f"error: {line}"
+        assert not (tmp_path / "bad.csv").exists()
+
+
+def _paper_noise():
+    from omegaconf import OmegaConf
+
+    from lbo.sim.noise import Noise
+
+    return Noise.from_cfg(OmegaConf.load(Path(__file__).resolve().parents[1] / "conf" / "noise"
+                                         / "paper.yaml"))

@@ -20,6 +20,8 @@ from lbo.sim import hguide
 from lbo.sim.logio import check_log
 from lbo.sim.vehicle import Vehicle
 
+CONF = Path(__file__).resolve().parents[1] / "conf"
+
 pytest.importorskip("onavdata", reason="the optional extra lbo[real] is not installed")
 
 
@@ -133,6 +135,61 @@ def test_the_spans_cut_in_the_stops_and_keep_one_drive_each(drive):
         assert (part["V"].abs() > 5).any(), name
 
 
+@pytest.fixture(scope="module")
+def hill_log(drive) -> pd.DataFrame:
+    return hguide.to_log(drive)
+
+
+def test_the_drives_are_cut_in_the_long_stops(hill_log):
+    parts = hguide.drives(hill_log)
+    assert len(parts) == 3 and sum(len(p) for p in parts) == len(hill_log)
+    for part in parts:
+        assert part["t"].iloc[0] == 0.0
+        assert part["V"].abs().iloc[[0, -1]].max() < hguide.STILL_SPEED  # cut where it stands
+        assert (part["V"].abs() > 5).any()
+    # the same rows, in order: the second drive begins where the first ends
+    assert np.array_equal(parts[1][["x", "y"]].to_numpy(),
+                          hill_log[["x", "y"]].to_numpy()[len(parts[0]):len(parts[0])
+                                                          + len(parts[1])])
+    # a stop shorter than STOP_S is part of the drive; a log that never moves has none
+    assert len(hguide.drives(hill_log, stop_s=1e4)) == 1
+    with pytest.raises(LboError, match="^the log never moves faster than 0.5 m/s: it holds no "
+                                       "drive$"):
+        hguide.drives(hill_log.assign(V=0.0))
+
+
+def test_leave_one_drive_out_never_shows_a_fold_its_drive(hill_log):
+    """A planted mark on each drive: the learner of fold k never gets drive k, gets every
+    other, and each drive is scored once, by its own fold."""
+    from lbo.scoring import drives as across
+    from omegaconf import OmegaConf
+
+    from lbo.scoring.receiver import EKF
+    from lbo.sim.noise import Noise
+
+    parts = [p.assign(mark=k) for k, p in enumerate(hguide.drives(hill_log))]
+    seen: dict[int, list[int]] = {}
+
+    def learn(k, train):
+        seen[k] = sorted(int(p["mark"].iloc[0]) for p in train)
+        return {}
+
+    table = across.leave_one_out(parts, learn, ["ekf"], Vehicle(),
+                                 Noise.from_cfg(OmegaConf.load(CONF / "noise" / "paper.yaml")),
+                                 progress=None)
+    assert seen == {0: [1, 2], 1: [0, 2], 2: [0, 1]}
+    assert table.groupby("drive").size().to_dict() == {1: 4, 2: 4, 3: 4}
+    assert (table.loc[table["estimator"] == EKF, "vs_ekf"] == 1.0).all()
+    wide = across.summary(table)
+    ratios = wide[["drive 1", "drive 2", "drive 3"]].to_numpy()
+    assert np.allclose(wide["mean"], ratios.mean(1)) and np.allclose(wide["worst"],
+                                                                     ratios.max(1))
+    assert list(wide["estimator"]) == list(table["estimator"].iloc[:4])
+    assert f"| {EKF} | 1.000 | 1.000 | 1.000 | 1.000 | 1.000 |" in across.markdown(wide)
+    with pytest.raises(LboError, match="^leave-one-drive-out needs two drives or more, got 1$"):
+        across.folds(1)
+
+
 @pytest.mark.slow
 def test_realdrive_writes_the_spans_and_scores_every_classical_observer(tmp_path):
     # an epoch of each noise fit, on two simulated drives, keeps it lean (make real-drive
@@ -163,6 +220,14 @@ def test_realdrive_writes_the_spans_and_scores_every_classical_observer(tmp_path
         GyroNoise.load(tmp_path / f"{name}.json")
         assert len(pd.read_csv(tmp_path / f"{name}_history.csv")) == 2
     assert "on 2 simulated drives (stop_and_go, receiver single_antenna)" in res.stdout
+    # leave-one-drive-out: each drive scored by the noise learned on the other two
+    drives = pd.read_csv(tmp_path / "drives.csv")
+    assert sorted(set(drives["drive"])) == [1, 2, 3]
+    across = drives[drives["estimator"] == "gyro, noise learned on the other drives"]
+    assert len(across) == 3 and np.isfinite(across["vs_ekf"]).all()
+    for k in (1, 2, 3):
+        GyroNoise.load(tmp_path / f"gyro_noise_without_drive{k}.json")
+    assert "| gyro, noise learned on the other drives |" in (tmp_path / "drives.md").read_text()
     for k in ("train", "val", "test"):
         assert (tmp_path / f"hill_{k}.parquet").is_file()
     assert (tmp_path / "test.png").stat().st_size > 10_000
@@ -223,6 +288,13 @@ def test_without_the_extra_and_with_a_bad_observer_it_is_one_line(monkeypatch, t
         "error: learn.epochs must be an integer >= 0, got -1")
     res = cli("lbo.realdrive", f"output_dir={tmp_path}", "net_fit.lr=0", cwd=tmp_path)
     assert res.returncode == 2 and res.stderr.startswith("error: net_fit.lr must be")
+    res = cli("lbo.realdrive", f"output_dir={tmp_path}", "across_drives=yes", cwd=tmp_path)
+    assert res.stderr.strip().splitlines()[-1] == (
+        "error: across_drives must be true or false, got 'yes'")
+    res = cli("lbo.realdrive", f"output_dir={tmp_path}", "learn.ahead_s=3", cwd=tmp_path)
+    assert res.stderr.strip().splitlines()[-1] == (
+        "error: learn.ahead_s applies to learn.objective=innovations (the fit by the fixes' "
+        "likelihood), got learn.objective=truth")
     res = cli("lbo.realdrive", f"output_dir={tmp_path}", "learn.objective=nll", cwd=tmp_path)
     assert res.returncode == 2 and res.stderr.strip() == (
         "error: learn.objective must be one of ['truth', 'innovations'], got 'nll'")

@@ -1,7 +1,8 @@
 """`python -m lbo.realdrive`: a real car drive end to end, every classical observer on it.
 
     python -m lbo.realdrive [output_dir=reports/realdrive] [observers=[ekf,adaptive,ukf,gyro]]
-                            [learn.epochs=12] [nets=[<checkpoint>]] [net_fit.epochs=8]
+                            [learn.epochs=12] [learn.objective=truth|innovations]
+                            [across_drives=true] [nets=[<checkpoint>]] [net_fit.epochs=8]
 
 Reads the onavdata hill drive (``pip install 'lbo[real]'``; :mod:`lbo.sim.hguide`), fits the
 INS's boresight, the antenna's lever arm and the fixes' latency, and writes it as three lbo
@@ -24,6 +25,12 @@ antenna:
   from its weights and from scratch (:mod:`lbo.learn.net_fit`; ``<name>_finetuned.ckpt``,
   ``<name>_span.ckpt``).
 
+Then, leave-one-drive-out (``across_drives``, :mod:`lbo.scoring.drives`): the drive holds
+three drives, standing still between them (:func:`lbo.sim.hguide.drives`); for each, the gyro
+EKF's noise is learned as ``learn`` says (its objective included) on the other two, and every
+classical observer and that noise are scored on it (``drives.csv``, ``drives.md``: each
+drive's ratio to the EKF, their mean and the worst; ``gyro_noise_without_drive<k>.json``).
+
 It writes ``results.csv`` and ``results.md`` (RMSE of x, y in m and psi in mrad, over the rows
 each estimates, and the quadratic mean of the three RMSE ratios to the EKF's, :data:`RATIOS`),
 ``alignment.json`` and ``test.png`` (the learned gyro EKF's path and errors; without
@@ -41,7 +48,7 @@ import pandas as pd
 from omegaconf import DictConfig
 
 from lbo.core.atomic import atomic_path
-from lbo.core.checks import integer, number
+from lbo.core.checks import integer, number, require
 from lbo.core.cli import entry
 from lbo.core.errors import LboError
 from lbo.filters import classical
@@ -60,7 +67,7 @@ from lbo.sim import hguide
 from lbo.sim.columns import STATE
 from lbo.sim.logio import check_log, check_output_path, write_table
 
-__all__ = ["FINE_TUNED", "FIT_FINE_TUNED", "FIT_KINDS", "FIT_SPAN", "LEARNED", "RATIOS",
+__all__ = ["ACROSS", "FINE_TUNED", "FIT_FINE_TUNED", "FIT_KINDS", "FIT_SPAN", "LEARNED", "RATIOS",
            "SIMULATED", "main", "realdrive"]
 
 LEARNED = "gyro, noise learned on the train span"
@@ -69,6 +76,9 @@ SIMULATED = "gyro, noise learned on simulated drives only"
 """... learned on simulated single-antenna drives, not on the real one."""
 FINE_TUNED = "gyro, noise learned on simulated drives, fine-tuned on the train span"
 """... learned on simulated drives, then on the train span."""
+ACROSS = "gyro, noise learned on the other drives"
+"""The row of the leave-one-drive-out table (``drives.md``) whose noise was learned on every
+drive but the one scored."""
 FIT_FINE_TUNED = "fine-tuned on the train span"
 """The row of a net of ``nets`` trained on the train span from its own weights (its name
 first)."""
@@ -112,7 +122,13 @@ def realdrive(cfg: DictConfig) -> dict[str, Any]:
              "segment_s": number(cfg.learn.segment_s, "learn.segment_s", 0.0, low_open=True),
              "lr": number(cfg.learn.lr, "learn.lr", 0.0, low_open=True),
              "objective": check_objective(cfg.learn.get("objective", "truth"),
-                                          "learn.objective")}
+                                          "learn.objective"),
+             "ahead_s": number(cfg.learn.get("ahead_s", 0.0), "learn.ahead_s", 0.0)}
+    if learn["ahead_s"] and learn["objective"] != "innovations":
+        raise LboError("learn.ahead_s applies to learn.objective=innovations (the fit by "
+                       f"the fixes' likelihood), got learn.objective={learn['objective']}")
+    across_drives = cfg.get("across_drives", True)
+    require(isinstance(across_drives, bool), "across_drives", "true or false", across_drives)
     out = Path(str(cfg.output_dir))
     paths = {k: check_output_path(out / f"hill_{k}.parquet") for k in hguide.SPANS}
     check_output_path(out / "results.csv")
@@ -165,7 +181,10 @@ def realdrive(cfg: DictConfig) -> dict[str, Any]:
           "at the antenna:")
     print(markdown(table, *RATIOS), end="")
     print(f"written: {out / 'results.md'}, {out / 'test.png'}")
-    return {"table": table, "alignment": alignment, "paths": paths}
+    drives = None
+    if across_drives and learn["epochs"]:
+        drives = _across_drives(learn, observers, hguide.drives(log), vehicle, noise, out)
+    return {"table": table, "alignment": alignment, "paths": paths, "drives": drives}
 
 
 def _learn(cfg: dict[str, Any], simulated: DictConfig, parts: dict[str, pd.DataFrame],
@@ -186,7 +205,8 @@ def _learn(cfg: dict[str, Any], simulated: DictConfig, parts: dict[str, pd.DataF
               val: pd.DataFrame | list[pd.DataFrame], start: GyroNoise, epochs: int,
               where: str) -> GyroNoise:
         return gyro_fit.fit_and_write(out, name, train, val, vehicle, R, start, where, epochs,
-                                      segment, cfg["lr"], objective=cfg["objective"])
+                                      segment, cfg["lr"], objective=cfg["objective"],
+                                      ahead=_ahead(cfg, vehicle))
 
     defaults = GyroNoise.from_q(noise.Q)
     out_noise = {LEARNED: learn("gyro_noise", parts["train"], parts["val"], defaults,
@@ -205,6 +225,48 @@ def _learn(cfg: dict[str, Any], simulated: DictConfig, parts: dict[str, pd.DataF
                                       cfg["epochs"], "on the train span, from the simulated "
                                       "drives'")
     return out_noise
+
+
+def _ahead(cfg: dict[str, Any], vehicle: Any) -> int:
+    """``learn.ahead_s`` in steps: how far ahead the innovations' fit also predicts each fix
+    (0: the next step only)."""
+    return round(cfg["ahead_s"] / vehicle.dt)
+
+
+def _across_drives(cfg: dict[str, Any], observers: list[str], drives: list[pd.DataFrame],
+                   vehicle: Any, noise: Any, out: Path) -> pd.DataFrame:
+    """Leave-one-drive-out (:mod:`lbo.scoring.drives`): for each of the drive's drives, the
+    gyro EKF's noise learned from the defaults on the others (each fold's best epoch kept by
+    those same drives: none is held out of two), every observer scored on it. Writes
+    ``drives.csv`` (each drive's RMSE and ratio) and ``drives.md`` (the ratios to the EKF per
+    drive, their mean and the worst), prints the latter and returns the summary."""
+    from lbo.learn import gyro_fit
+    from lbo.scoring import drives as across
+
+    R = classical.measurement_cov("ekf", noise, 1.0, 1)[0]
+    segment = max(2, round(cfg["segment_s"] / vehicle.dt))
+    defaults = GyroNoise.from_q(noise.Q)
+    how = "truth" if cfg["objective"] == "truth" else "innovations' likelihood, no truth read"
+    print(f"leave-one-drive-out over {len(drives)} drives: the gyro EKF's noise learned on the "
+          f"others ({cfg['epochs']} epochs, {how}), scored on each")
+
+    def learn(k: int, train: list[pd.DataFrame]) -> dict[str, GyroNoise]:
+        fitted = gyro_fit.fit(train, train, vehicle, R, defaults, epochs=cfg["epochs"],
+                              segment=segment, lr=cfg["lr"], progress=None,
+                              objective=cfg["objective"], ahead=_ahead(cfg, vehicle))
+        fitted.noise.save(out / f"gyro_noise_without_drive{k + 1}.json")
+        return {ACROSS: fitted.noise}
+
+    table = across.leave_one_out(drives, learn, observers, vehicle, noise,
+                                 progress=lambda line: print("  " + line))
+    wide = across.summary(table)
+    write_table(table, out / "drives.csv")
+    with atomic_path(out / "drives.md") as tmp:
+        Path(tmp).write_text(across.markdown(wide))
+    print("each drive scored by what was learned on the others (ratio to the EKF):")
+    print(across.markdown(wide), end="")
+    print(f"written: {out / 'drives.md'}, {out / 'drives.csv'}")
+    return wide
 
 
 def _fit_nets(cfg: dict[str, Any], nets: dict[str, Any], parts: dict[str, pd.DataFrame],

@@ -47,7 +47,7 @@ from lbo.sim.logio import receiver
 from lbo.sim.noise import Noise
 from lbo.sim.vehicle import Vehicle
 
-__all__ = ["GyroFit", "estimate", "fit", "fit_and_write", "segments"]
+__all__ = ["GyroFit", "adapt", "estimate", "fit", "fit_and_write", "segments"]
 
 
 @dataclass(frozen=True)
@@ -178,19 +178,23 @@ def check_objective(value: object, field: str = "objective") -> str:
     return str(value)
 
 
-def _innovations(model: GyroFilter, seg: Segments) -> torch.Tensor:
+def _innovations(model: GyroFilter, seg: Segments, ahead: int = 0) -> torch.Tensor:
     """The mean negative log-likelihood per step of the segments' measurements under the
     filter's own predictions (:meth:`GyroFilter.run`), over the steps that measure
-    anything."""
+    anything; with ``ahead`` steps, plus the mean one of each fix predicted that many steps
+    before it (:meth:`GyroFilter.ahead`)."""
     _, nll = model.run(seg)
-    return nll[:, 1:].sum() / torch.count_nonzero(nll[:, 1:]).clamp(min=1)
+    loss = nll[:, 1:].sum() / torch.count_nonzero(nll[:, 1:]).clamp(min=1)
+    if ahead:
+        loss = loss + model.ahead(seg, ahead).mean()
+    return loss
 
 
 def fit(train: pd.DataFrame | Sequence[pd.DataFrame],
         val: pd.DataFrame | Sequence[pd.DataFrame], vehicle: Vehicle, R: np.ndarray,
         start: GyroNoise, epochs: int = 12, segment: int = 500, lr: float = 0.1,
         progress: Callable[[str], None] | None = print,
-        objective: str = "truth") -> GyroFit:
+        objective: str = "truth", ahead: int = 0) -> GyroFit:
     """Learn the gyro EKF's noise on ``train`` (one log or several), keep the best on ``val``
     (one or several).
 
@@ -202,11 +206,17 @@ def fit(train: pd.DataFrame | Sequence[pd.DataFrame],
         ``innovations`` (no truth needed, none read: the loss and the choice on ``val`` are
         the mean negative log-likelihood per step of the fixes, course and standstill gyro
         under the filter's own prediction; ``loss`` and ``val`` in the history are then its
-        change from the starting noise's, in nats per step).
+        change from the starting noise's, in nats per step);
+    ahead : with ``innovations``, steps: each fix is also scored under the prediction made
+        that many steps before it, with no measurement between (:meth:`GyroFilter.ahead`),
+        its mean negative log-likelihood added to the loss (0: none).
     """
     if epochs < 0 or segment < 2:
         raise LboError(f"fit needs epochs >= 0 and segment >= 2, got {epochs} and {segment}")
     check_objective(objective)
+    if ahead < 0 or (ahead and objective != "innovations"):
+        raise LboError(f"fit: ahead is a number of steps >= 0 for objective='innovations', "
+                       f"got {ahead} for {objective!r}")
     train, val = _logs(train), _logs(val)
     model = GyroFilter(start, vehicle.dt, torch.as_tensor(R))
     opt = torch.optim.Adam(model.parameters(), lr=lr)
@@ -225,7 +235,7 @@ def fit(train: pd.DataFrame | Sequence[pd.DataFrame],
                 scale = mse.detach()
             loss = (mse / scale).mean()
         else:
-            nll = _innovations(model, seg)
+            nll = _innovations(model, seg, ahead)
             if scale is None:
                 scale = nll.detach()
             loss = nll - scale
@@ -236,7 +246,8 @@ def fit(train: pd.DataFrame | Sequence[pd.DataFrame],
             score = 1.0 if epoch == 0 else _pooled(val, noise, reference, vehicle, R)
         else:
             with torch.no_grad():
-                held_out = float(_innovations(model, _batch(val, noise, vehicle, R, segment)))
+                held_out = float(_innovations(model, _batch(val, noise, vehicle, R, segment),
+                                              ahead))
             if epoch == 0:
                 val_start = held_out
             score = held_out - val_start
@@ -258,7 +269,7 @@ def fit(train: pd.DataFrame | Sequence[pd.DataFrame],
 def fit_and_write(out: Path, name: str, train: pd.DataFrame | Sequence[pd.DataFrame],
                   val: pd.DataFrame | Sequence[pd.DataFrame], vehicle: Vehicle, R: np.ndarray,
                   start: GyroNoise, where: str, epochs: int, segment: int, lr: float,
-                  objective: str = "truth") -> GyroNoise:
+                  objective: str = "truth", ahead: int = 0) -> GyroNoise:
     """:func:`fit`, one printed line per epoch, written into the folder ``out`` as
     ``<name>.json`` (the noise kept, :meth:`GyroNoise.save`) and ``<name>_history.csv``;
     ``where`` says in the first line what it learns on. Returns the noise kept."""
@@ -268,8 +279,25 @@ def fit_and_write(out: Path, name: str, train: pd.DataFrame | Sequence[pd.DataFr
     print(f"learning the gyro EKF's noise {where} ({epochs} epochs{how}; keeps the best on "
           "its validation drives)")
     fitted = fit(train, val, vehicle, R, start, epochs=epochs, segment=segment, lr=lr,
-                 progress=lambda line: print("  " + line), objective=objective)
+                 progress=lambda line: print("  " + line), objective=objective, ahead=ahead)
     fitted.noise.save(Path(out) / f"{name}.json")
     write_table(fitted.history, Path(out) / f"{name}_history.csv")
     print(f"  kept epoch {fitted.best_epoch}: {fitted.noise}")
     return fitted.noise
+
+
+def adapt(log: pd.DataFrame, start: GyroNoise, vehicle: Vehicle, preset: Noise,
+          epochs: int = 12, segment_s: float = 10.0, lr: float = 0.1, ahead: int = 0
+          ) -> GyroFit:
+    """The gyro EKF's noise fitted on the very log it is to filter, by its innovations
+    (:func:`fit` with ``objective="innovations"``, the log its own validation): offline, for
+    it reads the whole log first. Any truth columns are dropped unread.
+
+    preset : the classical observers' noise (its R where a fix reports no accuracy);
+    segment_s : seconds per segment (at least one such span after the first course)."""
+    R = classical.measurement_cov("ekf", preset, 1.0, 1)[0]
+    blind = log.drop(columns=list(STATE), errors="ignore")
+    segment = max(2, round(segment_s / vehicle.dt))
+    return fit(blind, blind, vehicle, R, start, epochs=epochs, segment=segment, lr=lr,
+               progress=None, objective="innovations", ahead=ahead)
+

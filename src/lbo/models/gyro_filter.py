@@ -83,17 +83,76 @@ class GyroFilter(nn.Module):
         (G, T) of what it measured under the filter's own prediction (:func:`joseph_update`;
         0 at step 0 and where it measured nothing): what the filter is fitted by where a log
         has no truth."""
+        x, _, nll = self._filter(seg)
+        return x[..., :3], nll
+
+    def ahead(self, seg: Segments, steps: int) -> torch.Tensor:
+        """The negative log-likelihood (F,) of each fix ``steps`` rows after a step of the
+        same segment, under the filter's prediction from that step's estimate with no
+        measurement between (dead reckoning on the speed and the gyro): how well the noise
+        predicts where the car will be, which a heading error or a trust in the course it
+        does not deserve spoils more than it spoils the next fix. F: the fixes so
+        predicted (those ``steps`` or more rows into their segment)."""
+        if steps < 1:
+            raise ValueError(f"steps must be >= 1, got {steps}")
+        x, P, _ = self._filter(seg)
+        g, t = seg.fix.shape[:2]
+        held = torch.isfinite(seg.fix).all(-1)
+        held[:, :steps] = False
+        gi, ti = torch.nonzero(held, as_tuple=True)  # the fixes predicted, at row ti
+        start = ti - steps
+        xs, Ps = x[gi, start], P[gi, start]
+        Q = self._Q()
+        for j in range(steps):
+            xs, Ps = self._predict(xs, Ps, seg.u[gi, start + j], Q)
+        S = Ps[:, :2, :2] + self._fix_R(seg.accuracy[gi, ti])
+        y = seg.fix[gi, ti] - xs[:, :2]
+        mahalanobis = (y[:, None, :] @ torch.linalg.solve(S, y[:, :, None]))[:, 0, 0]
+        return 0.5 * (mahalanobis + torch.logdet(S) + 2 * math.log(2 * math.pi))
+
+    def _fix_R(self, accuracy: torch.Tensor) -> torch.Tensor:
+        """(..., 2, 2) the fixes' R from their reported accuracy (..., 2) (NaN: none): a
+        reported one, times the learned scale, replaces the filter's variance and drops its
+        correlation (:func:`lbo.filters.measure.step_cov`)."""
+        told = torch.isfinite(accuracy)
+        acc = torch.nan_to_num(accuracy, nan=1.0) * torch.exp(self.log["accuracy_scale"])
+        either = told[..., :, None] | told[..., None, :]
+        R2 = torch.where(either, torch.zeros((), dtype=acc.dtype), self.R2)
+        return R2 + torch.diag_embed(torch.where(told, acc**2, torch.zeros_like(acc)))
+
+    def _Q(self) -> torch.Tensor:
+        """(4, 4) the process noise of one step."""
         p = {k: torch.exp(v) for k, v in self.log.items()}
+        return torch.diag(torch.stack([p["q_position"] ** 2, p["q_position"] ** 2,
+                                       p["q_heading"] ** 2 + (p["gyro_sigma"] * self.dt) ** 2,
+                                       p["bias_walk"] ** 2 * self.dt]))
+
+    def _predict(self, x: torch.Tensor, P: torch.Tensor, u: torch.Tensor, Q: torch.Tensor
+                 ) -> tuple[torch.Tensor, torch.Tensor]:
+        """One step of the model: x (B, 4), P (B, 4, 4) on u (B, 2) ``[V, r_m]``; the turn
+        is held at a standstill (the gyro then measures its bias)."""
         dt = self.dt
+        v, rate = u[:, 0], u[:, 1]
+        psi, bias = x[:, 2], x[:, 3]
+        zero = torch.zeros((), dtype=x.dtype)
+        still = v.abs() < gyro_np.STILL_SPEED
+        turn = torch.where(still, zero, rate - bias)
+        x = torch.stack([x[:, 0] + v * torch.cos(psi) * dt, x[:, 1] + v * torch.sin(psi) * dt,
+                         psi + turn * dt, bias], -1)
+        F = torch.eye(4, dtype=x.dtype).expand(len(x), 4, 4).clone()
+        F[:, 0, 2] = -v * torch.sin(psi) * dt
+        F[:, 1, 2] = v * torch.cos(psi) * dt
+        F[:, 2, 3] = torch.where(still, zero, torch.full_like(v, -dt))
+        return x, F @ P @ F.transpose(-1, -2) + Q
+
+    def _filter(self, seg: Segments) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """The filter over the segments: states (G, T, 4), covariances (G, T, 4, 4) and each
+        step's negative log-likelihood (G, T), as :meth:`run` says."""
+        p = {k: torch.exp(v) for k, v in self.log.items()}
         g, t = seg.fix.shape[:2]
         dtype = seg.x0.dtype
-        eye4 = torch.eye(4, dtype=dtype)
-        zero = torch.zeros((), dtype=dtype)
-        q = torch.stack([p["q_position"] ** 2, p["q_position"] ** 2,
-                         p["q_heading"] ** 2 + (p["gyro_sigma"] * dt) ** 2,
-                         p["bias_walk"] ** 2 * dt])
-        Q = torch.diag(q)
-        H = eye4  # channels x_m, y_m, course (on psi) and the standstill gyro (on b)
+        Q = self._Q()
+        H = torch.eye(4, dtype=dtype)  # channels x_m, y_m, course (on psi), standstill gyro (b)
         # the velocity's course, as lbo.filters.measure.course_over_ground holds it
         speed = torch.nan_to_num(seg.speed, nan=0.0)
         course_held = ((speed >= measure.COURSE_MIN_SPEED)
@@ -101,33 +160,18 @@ class GyroFilter(nn.Module):
         safe = torch.where(course_held, speed, torch.ones_like(speed))
         sv = p["velocity_scale"] * seg.sv  # trusted less or more; held where it is reported
         course_var = (sv**2 + (p["course_lever"] * seg.u[..., 1]) ** 2) / safe**2
-        # the fixes' R: a reported accuracy replaces the filter's variance and drops its
-        # correlation (lbo.filters.measure.step_cov)
-        told = torch.isfinite(seg.accuracy)
-        acc = torch.nan_to_num(seg.accuracy, nan=1.0) * p["accuracy_scale"]
+        fix_R = self._fix_R(seg.accuracy)
         fix_held = torch.isfinite(seg.fix)
         fix = torch.nan_to_num(seg.fix, nan=0.0)  # NaN kept out of the graph, not held there
         course = torch.nan_to_num(seg.course, nan=0.0)
         x, P = seg.x0, seg.P0
-        out, nll = [x[:, :3]], [torch.zeros(g, dtype=dtype)]
+        xs, Ps, nll = [x], [P], [torch.zeros(g, dtype=dtype)]
         for k in range(1, t):
             v, rate = seg.u[:, k - 1, 0], seg.u[:, k - 1, 1]
-            psi, bias = x[:, 2], x[:, 3]
             still = v.abs() < gyro_np.STILL_SPEED
-            turn = torch.where(still, zero, rate - bias)
-            x = torch.stack([x[:, 0] + v * torch.cos(psi) * dt, x[:, 1] + v * torch.sin(psi) * dt,
-                             psi + turn * dt, bias], -1)
-            F = eye4.expand(g, 4, 4).clone()
-            F[:, 0, 2] = -v * torch.sin(psi) * dt
-            F[:, 1, 2] = v * torch.cos(psi) * dt
-            F[:, 2, 3] = torch.where(still, zero, torch.full_like(v, -dt))
-            P = F @ P @ F.transpose(-1, -2) + Q
-            tk = told[:, k]
-            either = tk[:, :, None] | tk[:, None, :]
-            R2 = torch.where(either, zero, self.R2)
-            R2 = R2 + torch.diag_embed(torch.where(tk, acc[:, k] ** 2, zero))
+            x, P = self._predict(x, P, seg.u[:, k - 1], Q)
             R = torch.zeros((g, 4, 4), dtype=dtype)
-            R[:, :2, :2] = R2
+            R[:, :2, :2] = fix_R[:, k]
             R[:, 2, 2] = torch.where(course_held[:, k], course_var[:, k], torch.ones_like(v))
             R[:, 3, 3] = p["gyro_sigma"] ** 2
             held = torch.stack([fix_held[:, k, 0], fix_held[:, k, 1], course_held[:, k], still],
@@ -135,9 +179,10 @@ class GyroFilter(nn.Module):
             y = torch.stack([fix[:, k, 0] - x[:, 0], fix[:, k, 1] - x[:, 1],
                              wrap_angle_torch(course[:, k] - x[:, 2]), rate - x[:, 3]], -1)
             x, P, step_nll = joseph_update(x, P, y, H, R, held)
-            out.append(x[:, :3])
+            xs.append(x)
+            Ps.append(P)
             nll.append(step_nll)
-        return torch.stack(out, 1), torch.stack(nll, 1)
+        return torch.stack(xs, 1), torch.stack(Ps, 1), torch.stack(nll, 1)
 
 
 def joseph_update(x: torch.Tensor, P: torch.Tensor, y: torch.Tensor, H: torch.Tensor,

@@ -76,6 +76,11 @@ STRAIGHT_RATE = 0.03
 velocity points off the heading by its own side slip."""
 LATENCIES = (-0.5, 0.5)
 """Range (s) of latencies tried, on a 10 ms grid."""
+STILL_SPEED = 0.5
+"""Speed (m/s) below which the car counts as standing, for :func:`drives`."""
+STOP_S = 30.0
+"""Shortest standstill (s) between two drives (:func:`drives`): a stop at a junction is
+part of a drive."""
 SPANS = {"train": (0.0, 0.39), "val": (0.39, 0.6), "test": (0.6, 1.0)}
 """The drive's time spans (fractions of its duration): train on the first, validate and test
 on the later ones, one span each. The car drives three times, standing still between: the
@@ -314,3 +319,29 @@ def spans(log: pd.DataFrame) -> dict[str, pd.DataFrame]:
         part["t"] = part["t"] - part["t"].iloc[0]
         out[name] = part
     return out
+
+
+def drives(log: pd.DataFrame, still_speed: float = STILL_SPEED,
+           stop_s: float = STOP_S) -> list[pd.DataFrame]:
+    """The log cut into its drives: at the middle of each standstill (``|V|`` below
+    ``still_speed`` m/s) of ``stop_s`` s or more between moving rows, so that each drive
+    starts and ends standing, as the car did. Each keeps ``t`` from its own start. The hill
+    drive holds three (the cuts fall 254 s and 386 s in); a log without such a stop is one
+    drive.
+
+    Raises :class:`LboError` if the car never moves."""
+    t = log["t"].to_numpy(float)
+    moving = np.abs(log["V"].to_numpy(float)) >= still_speed
+    if not moving.any():
+        raise LboError(f"the log never moves faster than {still_speed:g} m/s: it holds no drive")
+    at = np.flatnonzero(moving)
+    gaps = np.flatnonzero(t[at[1:]] - t[at[:-1]] >= stop_s)  # long stops between moving rows
+    cuts = 0.5 * (t[at[gaps]] + t[at[gaps + 1]])
+    part = np.searchsorted(cuts, t, side="right")
+    out = []
+    for k in range(len(cuts) + 1):
+        one = log[part == k].reset_index(drop=True)
+        one["t"] = one["t"] - one["t"].iloc[0]
+        out.append(one)
+    return out
+
