@@ -12,7 +12,8 @@ reports for each fix (``sx_m, sy_m`` m, ``spsi_m`` rad: the classical filters' R
 step), a GNSS velocity (``ve_m, vn_m`` m/s, ``sv_m``: the course over ground, while the car
 moves; :mod:`lbo.filters.measure`) and a gyro's yaw rate ``r_m`` (rad/s), which
 ``observer=gyro`` turns the heading with in place of the steering (:mod:`lbo.filters.gyro`);
-``gyro_noise=<file.json>`` gives it a noise learned on a drive (:mod:`lbo.learn.gyro_fit`).
+``gyro_noise=<file.json>`` gives it a noise learned on a drive (:mod:`lbo.learn.gyro_fit`);
+``adapt=true`` fits that noise to the log itself first, by its innovations (offline).
 The whole log is checked before anything is written (:mod:`lbo.sim.logcheck`, the checks
 :class:`lbo.Observer` applies too); a failed run writes no output file. The output has ``t,
 x, y, psi, valid``: ``valid`` is false before the first fix, and on the first N-1 rows of a
@@ -130,6 +131,13 @@ def observe(cfg: DictConfig) -> dict[str, Any]:
     if gyro_noise is not None:
         check_gyro_noise(name, gyro_noise)  # before the file is read
         gyro_noise = GyroNoise.load(str(gyro_noise))
+    adapt = cfg.get("adapt", False)
+    if not isinstance(adapt, bool):
+        raise LboError(f"adapt must be true or false, got {adapt!r}")
+    adapt_epochs = integer(cfg.get("adapt_epochs", 12), "adapt_epochs", 1)
+    if adapt and name != "gyro":
+        raise LboError(f"adapt: only observer=gyro adapts (its noise, to this log's "
+                       f"innovations); got observer={name}")
     fmt = LogFormat.from_cfg(cfg)
     where = f"input {source}"
     df, origin = fmt.apply(read_log(source), where)
@@ -172,6 +180,9 @@ def observe(cfg: DictConfig) -> dict[str, Any]:
         df = resample(df, obs.dt, columns, max_gap, where)
     check_period(df["t"].to_numpy(dtype=float), obs.dt, where)
 
+    if adapt:
+        obs = _adapted(df, gyro_noise or GyroNoise.from_q(noise.Q), vehicle, noise,
+                       adapt_epochs, kw)
     m = df[["x_m", "y_m", "psi_m"]].to_numpy(dtype=float)
     u = df[["V", "delta"]].to_numpy(dtype=float)
     channels = receiver(df)
@@ -290,6 +301,23 @@ def observe(cfg: DictConfig) -> dict[str, Any]:
               if np.isfinite(e[2]) else "nrmse: not scored (no heading was observed to score)")
     print(f"observed: {output}" + (f"; plot: {plot}" if plot is not None else ""))
     return result
+
+
+def _adapted(df: pd.DataFrame, start: Any, vehicle: Any, noise: Any, epochs: int,
+             kw: dict[str, Any]) -> Any:
+    """The gyro EKF with its noise fitted on the log ``df`` by its innovations, from
+    ``start`` (:func:`lbo.learn.gyro_fit.adapt`), said in one line with the time it took."""
+    import time
+
+    from lbo.learn.gyro_fit import adapt
+    from lbo.serve.observer import Observer
+
+    began = time.perf_counter()
+    fitted = adapt(df, start, vehicle, noise, epochs=epochs)
+    print(f"adapted: the gyro EKF's noise fitted to this log's innovations (offline: it read "
+          f"the whole log first; no truth read), {epochs} epochs in "
+          f"{time.perf_counter() - began:.1f} s, kept epoch {fitted.best_epoch}: {fitted.noise}")
+    return Observer.load("gyro", vehicle, noise, gyro_noise=fitted.noise, **kw)
 
 
 def _compared(compare: Any, plot: Any) -> list[str]:
