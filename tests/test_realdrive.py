@@ -161,9 +161,9 @@ def test_the_drives_are_cut_in_the_long_stops(hill_log):
 def test_leave_one_drive_out_never_shows_a_fold_its_drive(hill_log):
     """A planted mark on each drive: the learner of fold k never gets drive k, gets every
     other, and each drive is scored once, by its own fold."""
-    from lbo.scoring import drives as across
     from omegaconf import OmegaConf
 
+    from lbo.scoring import drives as across
     from lbo.scoring.receiver import EKF
     from lbo.sim.noise import Noise
 
@@ -190,12 +190,45 @@ def test_leave_one_drive_out_never_shows_a_fold_its_drive(hill_log):
         across.folds(1)
 
 
+def test_realdrive_learns_on_the_other_drives_and_scores_each(hill_log, tmp_path, capsys):
+    """lbo.realdrive's leave-one-drive-out (across_drives=true, its default), on 20 s of each
+    drive from its first course over ground, and 5 s before it (lean: the whole drives take
+    minutes): a noise learned per fold, written, and the table of each drive."""
+    from omegaconf import OmegaConf
+
+    from lbo.realdrive import ACROSS, _across_drives
+    from lbo.scoring.receiver import scored_rows
+    from lbo.sim.noise import Noise
+
+    short = []
+    for part in hguide.drives(hill_log):
+        first = int(np.argmax(scored_rows(part)))
+        short.append(part.iloc[max(first - 250, 0):first + 1000].reset_index(drop=True))
+    learn = {"epochs": 1, "segment_s": 10.0, "lr": 0.1, "objective": "innovations",
+             "ahead_s": 0.0, "method": "adam"}
+    wide = _across_drives(learn, ["ekf"], short, Vehicle(),
+                          Noise.from_cfg(OmegaConf.load(CONF / "noise" / "paper.yaml")),
+                          tmp_path)
+    drives = pd.read_csv(tmp_path / "drives.csv")
+    assert sorted(set(drives["drive"])) == [1, 2, 3]
+    across = drives[drives["estimator"] == ACROSS]
+    assert len(across) == 3 and np.isfinite(across["vs_ekf"]).all()
+    noises = [GyroNoise.load(tmp_path / f"gyro_noise_without_drive{k}.json") for k in (1, 2, 3)]
+    assert len(set(noises)) == 3  # each fold its own
+    assert f"| {ACROSS} |" in (tmp_path / "drives.md").read_text()
+    assert list(wide.columns) == ["estimator", "drive 1", "drive 2", "drive 3", "mean", "worst"]
+    out = capsys.readouterr().out
+    assert "leave-one-drive-out over 3 drives: the gyro EKF's noise learned on the others " \
+           "(1 epochs, innovations' likelihood, no truth read), scored on each" in out
+    assert "drive 2 of 3, learned on drives 1, 3: best " in out
+
+
 @pytest.mark.slow
 def test_realdrive_writes_the_spans_and_scores_every_classical_observer(tmp_path):
     # an epoch of each noise fit, on two simulated drives, keeps it lean (make real-drive
     # runs 12 epochs each, on four)
     res = cli("lbo.realdrive", f"output_dir={tmp_path}", "learn.epochs=1", "learn.simulated=1",
-              "simulated.drives=2", cwd=tmp_path)
+              "simulated.drives=2", "across_drives=false", cwd=tmp_path)
     assert res.returncode == 0, res.stderr
     table = pd.read_csv(tmp_path / "results.csv")
     assert len(table) == 10 and np.isfinite(table[["x_m", "y_m", "psi_mrad"]]).all().all()
@@ -220,14 +253,7 @@ def test_realdrive_writes_the_spans_and_scores_every_classical_observer(tmp_path
         GyroNoise.load(tmp_path / f"{name}.json")
         assert len(pd.read_csv(tmp_path / f"{name}_history.csv")) == 2
     assert "on 2 simulated drives (stop_and_go, receiver single_antenna)" in res.stdout
-    # leave-one-drive-out: each drive scored by the noise learned on the other two
-    drives = pd.read_csv(tmp_path / "drives.csv")
-    assert sorted(set(drives["drive"])) == [1, 2, 3]
-    across = drives[drives["estimator"] == "gyro, noise learned on the other drives"]
-    assert len(across) == 3 and np.isfinite(across["vs_ekf"]).all()
-    for k in (1, 2, 3):
-        GyroNoise.load(tmp_path / f"gyro_noise_without_drive{k}.json")
-    assert "| gyro, noise learned on the other drives |" in (tmp_path / "drives.md").read_text()
+    assert not (tmp_path / "drives.md").exists()  # across_drives=false
     for k in ("train", "val", "test"):
         assert (tmp_path / f"hill_{k}.parquet").is_file()
     assert (tmp_path / "test.png").stat().st_size > 10_000

@@ -115,7 +115,7 @@ def realdrive(cfg: DictConfig) -> dict[str, Any]:
     if len(set(names)) < len(names):
         raise LboError(f"nets: two nets named {max(names, key=names.count)} to train on the "
                        "train span (net_fit.epochs > 0); give one at a time")
-    from lbo.learn.gyro_fit import check_objective
+    from lbo.learn.gyro_fit import check_method, check_objective
 
     learn = {"epochs": integer(cfg.learn.epochs, "learn.epochs", 0),
              "simulated": integer(cfg.learn.simulated, "learn.simulated", 0),
@@ -123,7 +123,8 @@ def realdrive(cfg: DictConfig) -> dict[str, Any]:
              "lr": number(cfg.learn.lr, "learn.lr", 0.0, low_open=True),
              "objective": check_objective(cfg.learn.get("objective", "truth"),
                                           "learn.objective"),
-             "ahead_s": number(cfg.learn.get("ahead_s", 0.0), "learn.ahead_s", 0.0)}
+             "ahead_s": number(cfg.learn.get("ahead_s", 0.0), "learn.ahead_s", 0.0),
+             "method": check_method(cfg.learn.get("method", "adam"), "learn.method")}
     if learn["ahead_s"] and learn["objective"] != "innovations":
         raise LboError("learn.ahead_s applies to learn.objective=innovations (the fit by "
                        f"the fixes' likelihood), got learn.objective={learn['objective']}")
@@ -206,7 +207,7 @@ def _learn(cfg: dict[str, Any], simulated: DictConfig, parts: dict[str, pd.DataF
               where: str) -> GyroNoise:
         return gyro_fit.fit_and_write(out, name, train, val, vehicle, R, start, where, epochs,
                                       segment, cfg["lr"], objective=cfg["objective"],
-                                      ahead=_ahead(cfg, vehicle))
+                                      ahead=_ahead(cfg, vehicle), method=cfg["method"])
 
     defaults = GyroNoise.from_q(noise.Q)
     out_noise = {LEARNED: learn("gyro_noise", parts["train"], parts["val"], defaults,
@@ -253,7 +254,8 @@ def _across_drives(cfg: dict[str, Any], observers: list[str], drives: list[pd.Da
     def learn(k: int, train: list[pd.DataFrame]) -> dict[str, GyroNoise]:
         fitted = gyro_fit.fit(train, train, vehicle, R, defaults, epochs=cfg["epochs"],
                               segment=segment, lr=cfg["lr"], progress=None,
-                              objective=cfg["objective"], ahead=_ahead(cfg, vehicle))
+                              objective=cfg["objective"], ahead=_ahead(cfg, vehicle),
+                              method=cfg["method"])
         fitted.noise.save(out / f"gyro_noise_without_drive{k + 1}.json")
         return {ACROSS: fitted.noise}
 

@@ -21,13 +21,17 @@ by gradient descent on the estimates' error against the truth.
   log-likelihood of what the filter measures (fixes, course, the gyro at standstill) under
   its own predicted covariance, the maximum-likelihood fit of a Kalman filter's noise; the
   noise kept is the one with the lowest such loss on the validation segments. The truth is
-  neither needed nor read.
+  neither needed nor read. ``ahead`` adds each fix as predicted seconds before it.
+- ``method="lbfgs"``: the classical maximum-likelihood fit, by L-BFGS (a quasi-Newton
+  optimiser with a line search) in place of Adam's small steps: the peer of the learned fit.
+  On a log drawn from the filter's own model it finds the noise that drew it.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 from typing import cast
 
@@ -47,7 +51,8 @@ from lbo.sim.logio import receiver
 from lbo.sim.noise import Noise
 from lbo.sim.vehicle import Vehicle
 
-__all__ = ["GyroFit", "adapt", "estimate", "fit", "fit_and_write", "segments"]
+__all__ = ["METHODS", "OBJECTIVES", "GyroFit", "adapt", "check_method", "check_objective",
+           "estimate", "fit", "fit_and_write", "segments"]
 
 
 @dataclass(frozen=True)
@@ -166,9 +171,21 @@ def _pooled(logs: list[pd.DataFrame], noise: GyroNoise, reference: list[np.ndarr
     return measure_ratio(est, np.concatenate(reference), truth, rows)
 
 
+METHODS = ("adam", "lbfgs")
+"""How :func:`fit` minimises: Adam's small steps, or L-BFGS, the classical quasi-Newton
+maximum-likelihood fit."""
+LBFGS_ITERATIONS = 5
+"""L-BFGS iterations per epoch (each on the segments that epoch's noise starts)."""
 OBJECTIVES = ("truth", "innovations")
 """What :func:`fit` minimises: the estimates' error against the truth, or the filter's
 innovations' negative log-likelihood, which needs no truth."""
+
+
+def check_method(value: object, field: str = "method") -> str:
+    """``value`` if it is one of :data:`METHODS`, else one line naming ``field``."""
+    if value not in METHODS:
+        raise LboError(f"{field} must be one of {list(METHODS)}, got {value!r}")
+    return str(value)
 
 
 def check_objective(value: object, field: str = "objective") -> str:
@@ -194,7 +211,7 @@ def fit(train: pd.DataFrame | Sequence[pd.DataFrame],
         val: pd.DataFrame | Sequence[pd.DataFrame], vehicle: Vehicle, R: np.ndarray,
         start: GyroNoise, epochs: int = 12, segment: int = 500, lr: float = 0.1,
         progress: Callable[[str], None] | None = print,
-        objective: str = "truth", ahead: int = 0) -> GyroFit:
+        objective: str = "truth", ahead: int = 0, method: str = "adam") -> GyroFit:
     """Learn the gyro EKF's noise on ``train`` (one log or several), keep the best on ``val``
     (one or several).
 
@@ -209,7 +226,11 @@ def fit(train: pd.DataFrame | Sequence[pd.DataFrame],
         change from the starting noise's, in nats per step);
     ahead : with ``innovations``, steps: each fix is also scored under the prediction made
         that many steps before it, with no measurement between (:meth:`GyroFilter.ahead`),
-        its mean negative log-likelihood added to the loss (0: none).
+        its mean negative log-likelihood added to the loss (0: none);
+    method : ``adam`` (``epochs`` steps of Adam at ``lr``) or ``lbfgs``, the classical
+        maximum-likelihood fit by a quasi-Newton optimiser (:data:`METHODS`: each epoch up to
+        :data:`LBFGS_ITERATIONS` L-BFGS iterations with a strong-Wolfe line search on that
+        epoch's segments; ``lr`` unused).
     """
     if epochs < 0 or segment < 2:
         raise LboError(f"fit needs epochs >= 0 and segment >= 2, got {epochs} and {segment}")
@@ -217,28 +238,38 @@ def fit(train: pd.DataFrame | Sequence[pd.DataFrame],
     if ahead < 0 or (ahead and objective != "innovations"):
         raise LboError(f"fit: ahead is a number of steps >= 0 for objective='innovations', "
                        f"got {ahead} for {objective!r}")
+    check_method(method)
     train, val = _logs(train), _logs(val)
     model = GyroFilter(start, vehicle.dt, torch.as_tensor(R))
-    opt = torch.optim.Adam(model.parameters(), lr=lr)
+    opt: torch.optim.Optimizer = (
+        torch.optim.Adam(model.parameters(), lr=lr) if method == "adam" else
+        torch.optim.LBFGS(model.parameters(), lr=1.0, max_iter=LBFGS_ITERATIONS,
+                          line_search_fn="strong_wolfe"))
     supervised = objective == "truth"
     reference = [estimate(log, start, vehicle, R) for log in val] if supervised else []
     scale: torch.Tensor | None = None
     best: tuple[float, int, GyroNoise] = (1.0 if supervised else 0.0, 0, start)
     val_start = 0.0
     history = []
-    for epoch in range(epochs + 1):
-        noise = model.noise()
-        seg = _batch(train, noise, vehicle, R, segment)
+
+
+    def train_loss(seg: Segments) -> torch.Tensor:
+        """The loss on the train segments, against the starting noise's."""
+        nonlocal scale
         if supervised:
             mse = _mse(model(seg), seg.truth)
             if scale is None:
                 scale = mse.detach()
-            loss = (mse / scale).mean()
-        else:
-            nll = _innovations(model, seg, ahead)
-            if scale is None:
-                scale = nll.detach()
-            loss = nll - scale
+            return (mse / scale).mean()
+        nll = _innovations(model, seg, ahead)
+        if scale is None:
+            scale = nll.detach()
+        return nll - scale
+
+    for epoch in range(epochs + 1):
+        noise = model.noise()
+        seg = _batch(train, noise, vehicle, R, segment)
+        loss = train_loss(seg)
         if not torch.isfinite(loss):
             raise LboError(f"gyro noise fit: the loss is not finite at epoch {epoch} (noise "
                            f"{noise}); lower lr (now {lr:g})")
@@ -258,18 +289,32 @@ def fit(train: pd.DataFrame | Sequence[pd.DataFrame],
             progress(f"epoch {epoch}/{epochs}: train {loss.item():.3f}, validation {score:.3f} "
                      + ("(against the starting noise)" if supervised else
                         "(innovations' NLL per step, nats, from the starting noise's)"))
-        if epoch < epochs:
+        if epoch < epochs and method == "adam":
             opt.zero_grad()
             loss.backward()
             opt.step()
+        elif epoch < epochs:
+            _lbfgs_step(opt, partial(train_loss, seg))
     return GyroFit(noise=best[2], start=start, history=pd.DataFrame(history),
                    best_epoch=best[1])
+
+
+def _lbfgs_step(opt: torch.optim.Optimizer, loss: Callable[[], torch.Tensor]) -> None:
+    """One step of L-BFGS, which calls ``loss`` as often as its line search needs."""
+    def closure() -> float:
+        opt.zero_grad()
+        value = loss()
+        value.backward()
+        return float(value)
+
+    opt.step(closure)
 
 
 def fit_and_write(out: Path, name: str, train: pd.DataFrame | Sequence[pd.DataFrame],
                   val: pd.DataFrame | Sequence[pd.DataFrame], vehicle: Vehicle, R: np.ndarray,
                   start: GyroNoise, where: str, epochs: int, segment: int, lr: float,
-                  objective: str = "truth", ahead: int = 0) -> GyroNoise:
+                  objective: str = "truth", ahead: int = 0, method: str = "adam"
+                  ) -> GyroNoise:
     """:func:`fit`, one printed line per epoch, written into the folder ``out`` as
     ``<name>.json`` (the noise kept, :meth:`GyroNoise.save`) and ``<name>_history.csv``;
     ``where`` says in the first line what it learns on. Returns the noise kept."""
@@ -279,7 +324,8 @@ def fit_and_write(out: Path, name: str, train: pd.DataFrame | Sequence[pd.DataFr
     print(f"learning the gyro EKF's noise {where} ({epochs} epochs{how}; keeps the best on "
           "its validation drives)")
     fitted = fit(train, val, vehicle, R, start, epochs=epochs, segment=segment, lr=lr,
-                 progress=lambda line: print("  " + line), objective=objective, ahead=ahead)
+                 progress=lambda line: print("  " + line), objective=objective, ahead=ahead,
+                 method=method)
     fitted.noise.save(Path(out) / f"{name}.json")
     write_table(fitted.history, Path(out) / f"{name}_history.csv")
     print(f"  kept epoch {fitted.best_epoch}: {fitted.noise}")
