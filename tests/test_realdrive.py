@@ -204,8 +204,9 @@ def test_realdrive_learns_on_the_other_drives_and_scores_each(hill_log, tmp_path
     for part in hguide.drives(hill_log):
         first = int(np.argmax(scored_rows(part)))
         short.append(part.iloc[max(first - 250, 0):first + 1000].reset_index(drop=True))
-    learn = {"epochs": 1, "segment_s": 10.0, "lr": 0.1, "objective": "innovations",
-             "ahead_s": 0.0, "method": "adam"}
+    from lbo.learn.gyro_fit import Settings
+
+    learn = Settings(epochs=1, segment_s=10.0, lr=0.1, objective="innovations")
     wide = _across_drives(learn, ["ekf"], short, Vehicle(),
                           Noise.from_cfg(OmegaConf.load(CONF / "noise" / "paper.yaml")),
                           tmp_path)

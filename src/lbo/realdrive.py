@@ -115,19 +115,10 @@ def realdrive(cfg: DictConfig) -> dict[str, Any]:
     if len(set(names)) < len(names):
         raise LboError(f"nets: two nets named {max(names, key=names.count)} to train on the "
                        "train span (net_fit.epochs > 0); give one at a time")
-    from lbo.learn.gyro_fit import check_method, check_objective
+    from lbo.learn.gyro_fit import Settings
 
-    learn = {"epochs": integer(cfg.learn.epochs, "learn.epochs", 0),
-             "simulated": integer(cfg.learn.simulated, "learn.simulated", 0),
-             "segment_s": number(cfg.learn.segment_s, "learn.segment_s", 0.0, low_open=True),
-             "lr": number(cfg.learn.lr, "learn.lr", 0.0, low_open=True),
-             "objective": check_objective(cfg.learn.get("objective", "truth"),
-                                          "learn.objective"),
-             "ahead_s": number(cfg.learn.get("ahead_s", 0.0), "learn.ahead_s", 0.0),
-             "method": check_method(cfg.learn.get("method", "adam"), "learn.method")}
-    if learn["ahead_s"] and learn["objective"] != "innovations":
-        raise LboError("learn.ahead_s applies to learn.objective=innovations (the fit by "
-                       f"the fixes' likelihood), got learn.objective={learn['objective']}")
+    learn = Settings.from_cfg(cfg.learn)
+    simulated_epochs = integer(cfg.learn.simulated, "learn.simulated", 0)
     across_drives = cfg.get("across_drives", True)
     require(isinstance(across_drives, bool), "across_drives", "true or false", across_drives)
     out = Path(str(cfg.output_dir))
@@ -150,7 +141,8 @@ def realdrive(cfg: DictConfig) -> dict[str, Any]:
           f"{alignment.rms_after:.2f} m)")
     print("spans: " + ", ".join(f"{k} {len(p) * vehicle.dt:.0f} s -> {paths[k]}"
                                 for k, p in parts.items()))
-    learned = _learn(learn, cfg.simulated, parts, vehicle, noise, out) if learn["epochs"] else {}
+    learned = (_learn(learn, simulated_epochs, cfg.simulated, parts, vehicle, noise, out)
+               if learn.epochs else {})
     fitted = _fit_nets(fit, trainable, parts, out)
     table, estimates = score(parts["test"], observers, vehicle, noise, learned,
                              nets={**net_rows(nets), **fitted})
@@ -183,61 +175,58 @@ def realdrive(cfg: DictConfig) -> dict[str, Any]:
     print(markdown(table, *RATIOS), end="")
     print(f"written: {out / 'results.md'}, {out / 'test.png'}")
     drives = None
-    if across_drives and learn["epochs"]:
+    if across_drives and learn.epochs:
         drives = _across_drives(learn, observers, hguide.drives(log), vehicle, noise, out)
     return {"table": table, "alignment": alignment, "paths": paths, "drives": drives}
 
 
-def _learn(cfg: dict[str, Any], simulated: DictConfig, parts: dict[str, pd.DataFrame],
-           vehicle: Any, noise: Any, out: Path) -> dict[str, GyroNoise]:
-    """The gyro EKF's noise learned on the train span from the defaults, and, with
-    ``cfg["simulated"]`` epochs, first on simulated drives (:func:`lbo.simulate.simulate` of
-    ``simulated``: ``simulated.drives`` to train on from its seed on, half as many after them
-    to validate on) and then fine-tuned on the train span; each kept by its validation
-    drives. Written as ``gyro_noise.json`` (from the defaults), ``gyro_noise_simulated.json``,
-    ``gyro_noise_finetuned.json`` and their ``*_history.csv``. Returns the noises by row
-    label."""
+def _learn(cfg: Any, simulated_epochs: int, simulated: DictConfig,
+           parts: dict[str, pd.DataFrame], vehicle: Any, noise: Any, out: Path
+           ) -> dict[str, GyroNoise]:
+    """The gyro EKF's noise learned on the train span from the defaults as ``cfg``
+    (:class:`lbo.learn.gyro_fit.Settings`) says, and, with ``simulated_epochs``, first on
+    simulated drives (:func:`lbo.simulate.simulate` of ``simulated``: ``simulated.drives`` to
+    train on from its seed on, half as many after them to validate on) and then fine-tuned on
+    the train span; each kept by its validation drives. Written as ``gyro_noise.json`` (from
+    the defaults), ``gyro_noise_simulated.json``, ``gyro_noise_finetuned.json`` and their
+    ``*_history.csv``. Returns the noises by row label."""
+    import dataclasses
+
     from lbo.learn import gyro_fit
 
     R = classical.measurement_cov("ekf", noise, 1.0, 1)[0]
-    segment = max(2, round(cfg["segment_s"] / vehicle.dt))
 
     def learn(name: str, train: pd.DataFrame | list[pd.DataFrame],
               val: pd.DataFrame | list[pd.DataFrame], start: GyroNoise, epochs: int,
               where: str) -> GyroNoise:
-        return gyro_fit.fit_and_write(out, name, train, val, vehicle, R, start, where, epochs,
-                                      segment, cfg["lr"], objective=cfg["objective"],
-                                      ahead=_ahead(cfg, vehicle), method=cfg["method"])
+        settings = dataclasses.replace(cfg, epochs=epochs)
+        return gyro_fit.fit_and_write(out, name, train, val, vehicle, R, start, where,
+                                      **settings.kwargs(vehicle.dt))
 
     defaults = GyroNoise.from_q(noise.Q)
     out_noise = {LEARNED: learn("gyro_noise", parts["train"], parts["val"], defaults,
-                                cfg["epochs"], "on the train span, from the defaults")}
-    if cfg["simulated"]:
+                                cfg.epochs, "on the train span, from the defaults")}
+    if simulated_epochs:
         from lbo.simulate import simulate
 
         seed = integer(simulated.seed, "simulated.seed", 0)
         drives = integer(simulated.drives, "simulated.drives", 2)
         logs = [simulate(simulated, seed + i) for i in range(drives + drives // 2)]
         sim = learn("gyro_noise_simulated", logs[:drives], logs[drives:], defaults,
-                    cfg["simulated"], f"on {drives} simulated drives ({simulated.manoeuvre}, "
+                    simulated_epochs, f"on {drives} simulated drives ({simulated.manoeuvre}, "
                     f"receiver {simulated.receiver.name})")
         out_noise[SIMULATED] = sim
         out_noise[FINE_TUNED] = learn("gyro_noise_finetuned", parts["train"], parts["val"], sim,
-                                      cfg["epochs"], "on the train span, from the simulated "
+                                      cfg.epochs, "on the train span, from the simulated "
                                       "drives'")
     return out_noise
 
 
-def _ahead(cfg: dict[str, Any], vehicle: Any) -> int:
-    """``learn.ahead_s`` in steps: how far ahead the innovations' fit also predicts each fix
-    (0: the next step only)."""
-    return round(cfg["ahead_s"] / vehicle.dt)
-
-
-def _across_drives(cfg: dict[str, Any], observers: list[str], drives: list[pd.DataFrame],
+def _across_drives(cfg: Any, observers: list[str], drives: list[pd.DataFrame],
                    vehicle: Any, noise: Any, out: Path) -> pd.DataFrame:
     """Leave-one-drive-out (:mod:`lbo.scoring.drives`): for each of the drive's drives, the
-    gyro EKF's noise learned from the defaults on the others (each fold's best epoch kept by
+    gyro EKF's noise learned from the defaults on the others as ``cfg``
+    (:class:`lbo.learn.gyro_fit.Settings`) says (each fold's best epoch kept by
     those same drives: none is held out of two), every observer scored on it. Writes
     ``drives.csv`` (each drive's RMSE and ratio) and ``drives.md`` (the ratios to the EKF per
     drive, their mean and the worst), prints the latter and returns the summary."""
@@ -245,17 +234,14 @@ def _across_drives(cfg: dict[str, Any], observers: list[str], drives: list[pd.Da
     from lbo.scoring import drives as across
 
     R = classical.measurement_cov("ekf", noise, 1.0, 1)[0]
-    segment = max(2, round(cfg["segment_s"] / vehicle.dt))
     defaults = GyroNoise.from_q(noise.Q)
-    how = "truth" if cfg["objective"] == "truth" else "innovations' likelihood, no truth read"
+    how = "truth" if cfg.objective == "truth" else "innovations' likelihood, no truth read"
     print(f"leave-one-drive-out over {len(drives)} drives: the gyro EKF's noise learned on the "
-          f"others ({cfg['epochs']} epochs, {how}), scored on each")
+          f"others ({cfg.epochs} epochs, {how}), scored on each")
 
     def learn(k: int, train: list[pd.DataFrame]) -> dict[str, GyroNoise]:
-        fitted = gyro_fit.fit(train, train, vehicle, R, defaults, epochs=cfg["epochs"],
-                              segment=segment, lr=cfg["lr"], progress=None,
-                              objective=cfg["objective"], ahead=_ahead(cfg, vehicle),
-                              method=cfg["method"])
+        fitted = gyro_fit.fit(train, train, vehicle, R, defaults, progress=None,
+                              **cfg.kwargs(vehicle.dt))
         fitted.noise.save(out / f"gyro_noise_without_drive{k + 1}.json")
         return {ACROSS: fitted.noise}
 

@@ -73,6 +73,8 @@ def _resolved(cfg: DictConfig) -> DictConfig:
 
 def _settings(cfg: DictConfig) -> dict[str, Any]:
     """The study's numbers, each checked in one line."""
+    from lbo.learn.gyro_fit import Settings  # torch: only once the study runs
+
     alphas = [number(a, "alphas", low=0.0, form="noise scales >= 0") for a in cfg.alphas]
     require(len(alphas) > 0, "alphas", "a list of noise scales >= 0", list(cfg.alphas))
     low, high = (number(a, "learn.alpha_range", low=0.0, form="[low, high], each >= 0")
@@ -83,11 +85,9 @@ def _settings(cfg: DictConfig) -> dict[str, Any]:
         classical.check(str(name), "observers")
     return {"alphas": alphas, "drives": integer(cfg.drives, "drives", 1),
             "seed": integer(cfg.seed, "seed", 0),
-            "epochs": integer(cfg.learn.epochs, "learn.epochs", 0),
+            "learn": Settings.from_cfg(cfg.learn),
             "learn_drives": integer(cfg.learn.drives, "learn.drives", 2),
-            "range": (low, high),
-            "segment_s": number(cfg.learn.segment_s, "learn.segment_s", 0.0, low_open=True),
-            "lr": number(cfg.learn.lr, "learn.lr", 0.0, low_open=True)}
+            "range": (low, high)}
 
 
 def receiver_study(cfg: DictConfig) -> dict[str, Any]:
@@ -108,7 +108,7 @@ def receiver_study(cfg: DictConfig) -> dict[str, Any]:
     out.mkdir(parents=True, exist_ok=True)
     base = _resolved(cfg)
     learned: dict[str, GyroNoise] = {}
-    if s["epochs"]:
+    if s["learn"].epochs:
         n = s["learn_drives"]
         span: tuple[float, float] = s["range"]
         # each drive its own alpha, the train and the validation drives each spread over
@@ -119,7 +119,7 @@ def receiver_study(cfg: DictConfig) -> dict[str, Any]:
         learned[LEARNED] = gyro_fit.fit_and_write(
             out, "gyro_noise", logs[:n], logs[n:], vehicle, R, GyroNoise.from_q(noise.Q),
             f"on {n} simulated drives at alpha {s['range'][0]:g} to {s['range'][1]:g}",
-            s["epochs"], max(2, round(s["segment_s"] / vehicle.dt)), s["lr"])
+            **s["learn"].kwargs(vehicle.dt))
     tables = []
     for i, alpha in enumerate(s["alphas"]):
         per_drive = []

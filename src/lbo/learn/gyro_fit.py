@@ -33,7 +33,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
-from typing import cast
+from typing import Any, cast
 
 import numpy as np
 import pandas as pd
@@ -51,8 +51,8 @@ from lbo.sim.logio import receiver
 from lbo.sim.noise import Noise
 from lbo.sim.vehicle import Vehicle
 
-__all__ = ["METHODS", "OBJECTIVES", "GyroFit", "adapt", "check_method", "check_objective",
-           "estimate", "fit", "fit_and_write", "segments"]
+__all__ = ["METHODS", "OBJECTIVES", "GyroFit", "Settings", "adapt", "check_method",
+           "check_objective", "estimate", "fit", "fit_and_write", "segments"]
 
 
 @dataclass(frozen=True)
@@ -71,6 +71,48 @@ class GyroFit:
     start: GyroNoise
     history: pd.DataFrame
     best_epoch: int
+
+
+@dataclass(frozen=True)
+class Settings:
+    """How a command fits the gyro EKF's noise (its ``learn:`` group), checked.
+
+    epochs : full-batch steps (0: no fit); segment_s : s per segment; lr : Adam's step;
+    objective : one of :data:`OBJECTIVES`; method : one of :data:`METHODS`;
+    ahead_s : s ahead each fix is also predicted (``innovations`` only; 0: none).
+    """
+
+    epochs: int
+    segment_s: float
+    lr: float
+    objective: str = "truth"
+    method: str = "adam"
+    ahead_s: float = 0.0
+
+    @classmethod
+    def from_cfg(cls, learn: Any, prefix: str = "learn") -> Settings:
+        """From a config group, each field checked in one line naming ``<prefix>.<field>``."""
+        from lbo.core.checks import integer, number
+
+        out = cls(epochs=integer(learn.epochs, f"{prefix}.epochs", 0),
+                  segment_s=number(learn.segment_s, f"{prefix}.segment_s", 0.0, low_open=True),
+                  lr=number(learn.lr, f"{prefix}.lr", 0.0, low_open=True),
+                  objective=check_objective(learn.get("objective", "truth"),
+                                            f"{prefix}.objective"),
+                  method=check_method(learn.get("method", "adam"), f"{prefix}.method"),
+                  ahead_s=number(learn.get("ahead_s", 0.0), f"{prefix}.ahead_s", 0.0))
+        if out.ahead_s and out.objective != "innovations":
+            raise LboError(f"{prefix}.ahead_s applies to {prefix}.objective=innovations (the "
+                           f"fit by the fixes' likelihood), got {prefix}.objective="
+                           f"{out.objective}")
+        return out
+
+    def kwargs(self, dt: float) -> dict[str, Any]:
+        """The keywords of :func:`fit` (and :func:`fit_and_write`) for a log of period
+        ``dt``: epochs, segment and ahead in steps, lr, objective and method."""
+        return {"epochs": self.epochs, "segment": max(2, round(self.segment_s / dt)),
+                "lr": self.lr, "objective": self.objective, "method": self.method,
+                "ahead": round(self.ahead_s / dt)}
 
 
 def _columns(log: pd.DataFrame) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
