@@ -135,6 +135,7 @@ def test_the_innovations_likelihood_is_the_gaussian_one_of_the_channels_held():
     assert float(none) == 0.0
 
 
+@pytest.mark.slow
 def test_a_fix_predicted_steps_ahead_is_scored_under_the_dead_reckoned_covariance(log):
     """GyroFilter.ahead: each fix k rows into its segment or later, under the prediction from
     the estimate ``steps`` rows before it, propagated through the model with no measurement

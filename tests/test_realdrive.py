@@ -158,6 +158,7 @@ def test_the_drives_are_cut_in_the_long_stops(hill_log):
         hguide.drives(hill_log.assign(V=0.0))
 
 
+@pytest.mark.slow
 def test_leave_one_drive_out_never_shows_a_fold_its_drive(hill_log):
     """A planted mark on each drive: the learner of fold k never gets drive k, gets every
     other, and each drive is scored once, by its own fold."""
@@ -190,6 +191,7 @@ def test_leave_one_drive_out_never_shows_a_fold_its_drive(hill_log):
         across.folds(1)
 
 
+@pytest.mark.slow
 def test_realdrive_learns_on_the_other_drives_and_scores_each(hill_log, tmp_path, capsys):
     """lbo.realdrive's leave-one-drive-out (across_drives=true, its default), on 20 s of each
     drive from its first course over ground, and 5 s before it (lean: the whole drives take
