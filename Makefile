@@ -60,7 +60,7 @@ mlflow-server: install  ## a shared MLflow tracking server on 127.0.0.1:$(MLFLOW
 	$(VENV)/bin/mlflow server --host 127.0.0.1 --port $(MLFLOW_PORT) \
 		--backend-store-uri "$(MLFLOW_BACKEND)" --artifacts-destination "$(MLFLOW_ARTIFACTS)"
 
-real-drive: install  ## the onavdata hill drive as lbo logs, the gyro EKF's noise learned on it, every classical observer on its test span -> reports/realdrive/
+real-drive: install  ## the onavdata hill drive as lbo logs, the gyro EKF's noise learned on it, every classical observer on its test span and each drive left out in turn -> reports/realdrive/
 	$(PY) -m lbo.realdrive
 
 receiver-study: install  ## simulated single-antenna logs at alpha 1, 3, 6: every observer beside an oracle gyro EKF -> reports/receiver_study/
