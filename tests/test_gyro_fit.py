@@ -150,7 +150,7 @@ def test_a_fix_predicted_steps_ahead_is_scored_under_the_dead_reckoned_covarianc
     assert nll.shape == (int(held.sum()),) and torch.isfinite(nll).all()
     g, k = (int(i[0]) for i in torch.nonzero(held, as_tuple=True))
     with torch.no_grad():
-        xs, Ps, _ = model._filter(seg)
+        xs, Ps, _ = model.states(seg)
     x, P = xs[g, k - steps].numpy().copy(), Ps[g, k - steps].numpy().copy()
     noise, dt = model.noise(), VEHICLE.dt
     Q = np.diag([noise.q_position**2, noise.q_position**2,

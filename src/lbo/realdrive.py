@@ -194,7 +194,7 @@ def _learn(cfg: Any, simulated_epochs: int, simulated: DictConfig,
 
     from lbo.learn import gyro_fit
 
-    R = classical.measurement_cov("ekf", noise, 1.0, 1)[0]
+    R = gyro_fit.fix_cov(noise)
 
     def learn(name: str, train: pd.DataFrame | list[pd.DataFrame],
               val: pd.DataFrame | list[pd.DataFrame], start: GyroNoise, epochs: int,
@@ -233,7 +233,7 @@ def _across_drives(cfg: Any, observers: list[str], drives: list[pd.DataFrame],
     from lbo.learn import gyro_fit
     from lbo.scoring import drives as across
 
-    R = classical.measurement_cov("ekf", noise, 1.0, 1)[0]
+    R = gyro_fit.fix_cov(noise)
     defaults = GyroNoise.from_q(noise.Q)
     how = "truth" if cfg.objective == "truth" else "innovations' likelihood, no truth read"
     print(f"leave-one-drive-out over {len(drives)} drives: the gyro EKF's noise learned on the "

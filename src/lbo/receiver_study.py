@@ -115,7 +115,7 @@ def receiver_study(cfg: DictConfig) -> dict[str, Any]:
         # the whole range
         levels = [*np.linspace(*span, n), *np.linspace(*span, max(1, n // 2))]
         logs = [_drive(base, a, s["seed"] + j) for j, a in enumerate(levels)]
-        R = classical.measurement_cov("ekf", noise, 1.0, 1)[0]
+        R = gyro_fit.fix_cov(noise)
         learned[LEARNED] = gyro_fit.fit_and_write(
             out, "gyro_noise", logs[:n], logs[n:], vehicle, R, GyroNoise.from_q(noise.Q),
             f"on {n} simulated drives at alpha {s['range'][0]:g} to {s['range'][1]:g}",

@@ -52,7 +52,7 @@ from lbo.sim.noise import Noise
 from lbo.sim.vehicle import Vehicle
 
 __all__ = ["METHODS", "OBJECTIVES", "GyroFit", "Settings", "adapt", "check_method",
-           "check_objective", "estimate", "fit", "fit_and_write", "segments"]
+           "check_objective", "estimate", "fit", "fit_and_write", "fix_cov", "segments"]
 
 
 @dataclass(frozen=True)
@@ -125,6 +125,12 @@ def _columns(log: pd.DataFrame) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
                        "be empty")
     # r_m is a receiver channel: the log has them
     return m, log[["V", "r_m"]].to_numpy(dtype=float), cast(np.ndarray, receiver(log))
+
+
+def fix_cov(preset: Noise) -> np.ndarray:
+    """(3, 3) the fixes' covariance where one reports no accuracy: the EKF's R under the
+    classical observers' noise ``preset``, at alpha 1 (the R every fit here takes)."""
+    return classical.measurement_cov("ekf", preset, 1.0, 1)[0]
 
 
 def _preset(noise: GyroNoise, R: np.ndarray) -> Noise:
@@ -242,10 +248,10 @@ def _innovations(model: GyroFilter, seg: Segments, ahead: int = 0) -> torch.Tens
     filter's own predictions (:meth:`GyroFilter.run`), over the steps that measure
     anything; with ``ahead`` steps, plus the mean one of each fix predicted that many steps
     before it (:meth:`GyroFilter.ahead`)."""
-    _, nll = model.run(seg)
+    x, P, nll = model.states(seg)  # one pass of the filter serves both terms
     loss = nll[:, 1:].sum() / torch.count_nonzero(nll[:, 1:]).clamp(min=1)
     if ahead:
-        loss = loss + model.ahead(seg, ahead).mean()
+        loss = loss + model.ahead(seg, ahead, (x, P)).mean()
     return loss
 
 
@@ -383,7 +389,7 @@ def adapt(log: pd.DataFrame, start: GyroNoise, vehicle: Vehicle, preset: Noise,
 
     preset : the classical observers' noise (its R where a fix reports no accuracy);
     segment_s : seconds per segment (at least one such span after the first course)."""
-    R = classical.measurement_cov("ekf", preset, 1.0, 1)[0]
+    R = fix_cov(preset)
     blind = log.drop(columns=list(STATE), errors="ignore")
     segment = max(2, round(segment_s / vehicle.dt))
     return fit(blind, blind, vehicle, R, start, epochs=epochs, segment=segment, lr=lr,

@@ -83,19 +83,21 @@ class GyroFilter(nn.Module):
         (G, T) of what it measured under the filter's own prediction (:func:`joseph_update`;
         0 at step 0 and where it measured nothing): what the filter is fitted by where a log
         has no truth."""
-        x, _, nll = self._filter(seg)
+        x, _, nll = self.states(seg)
         return x[..., :3], nll
 
-    def ahead(self, seg: Segments, steps: int) -> torch.Tensor:
+    def ahead(self, seg: Segments, steps: int,
+              states: tuple[torch.Tensor, torch.Tensor] | None = None) -> torch.Tensor:
         """The negative log-likelihood (F,) of each fix ``steps`` rows after a step of the
         same segment, under the filter's prediction from that step's estimate with no
         measurement between (dead reckoning on the speed and the gyro): how well the noise
         predicts where the car will be, which a heading error or a trust in the course it
         does not deserve spoils more than it spoils the next fix. F: the fixes so
-        predicted (those ``steps`` or more rows into their segment)."""
+        predicted (those ``steps`` or more rows into their segment). ``states``: the
+        segments' states and covariances as :meth:`states` gave them (None: run it)."""
         if steps < 1:
             raise ValueError(f"steps must be >= 1, got {steps}")
-        x, P, _ = self._filter(seg)
+        x, P = self.states(seg)[:2] if states is None else states
         g, t = seg.fix.shape[:2]
         held = torch.isfinite(seg.fix).all(-1)
         held[:, :steps] = False
@@ -145,7 +147,7 @@ class GyroFilter(nn.Module):
         F[:, 2, 3] = torch.where(still, zero, torch.full_like(v, -dt))
         return x, F @ P @ F.transpose(-1, -2) + Q
 
-    def _filter(self, seg: Segments) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    def states(self, seg: Segments) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """The filter over the segments: states (G, T, 4), covariances (G, T, 4, 4) and each
         step's negative log-likelihood (G, T), as :meth:`run` says."""
         p = {k: torch.exp(v) for k, v in self.log.items()}

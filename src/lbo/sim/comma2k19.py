@@ -29,15 +29,16 @@ steering and gyro all cover (``t`` from its start):
 - the truth ``x, y, psi``: the EON's pose (the receiver is in it: no lever arm); ``psi`` the
   horizontal direction of its forward axis, turned by the boresight.
 
-*Fitted on the segment* (:class:`Converted` reports them). **Boresight**: the EON sits turned
-on the windshield; driving straight (yaw rate under :data:`STRAIGHT_RATE`) above
-:data:`FIT_SPEED` the pose's velocity points off its forward axis by that angle (-16 mrad on
+*Fitted on the segment* (:class:`Converted` reports them; the thresholds:
+:mod:`lbo.sim.alignment`). **Boresight**: the EON sits turned
+on the windshield; driving straight (yaw rate under ``STRAIGHT_RATE``) above
+``FIT_SPEED`` the pose's velocity points off its forward axis by that angle (-16 mrad on
 the example), and the car's heading is the forward axis's turned by it (as
 :mod:`lbo.sim.hguide` turns its INS's). **Latency** (``latency=None``): of a 10 ms grid over
-:data:`LATENCIES`, the one leaving the smallest RMS offset of the fixes above
-:data:`FIT_SPEED` from the truth (0.08 s on the example). **Steering** (``steering=None``):
+``LATENCIES``, the one leaving the smallest RMS offset of the fixes above
+``FIT_SPEED`` from the truth (0.08 s on the example). **Steering** (``steering=None``):
 the least-squares line from the wheel's angle to ``atan(L r_m / V)`` (the road-wheel angle
-that turns the kinematic bicycle at the gyro's rate) above :data:`FIT_SPEED`. On a highway it
+that turns the kinematic bicycle at the gyro's rate) above ``FIT_SPEED``. On a highway it
 is an *effective* ratio that holds the car's understeer: 26.7 on the example (openpilot takes
 16.9 for the RAV4). *What no filter removes*: the truth shares the EON's sensors' slow errors.
 """
@@ -54,15 +55,11 @@ import pandas as pd
 
 from lbo.core.angles import wrap_angle
 from lbo.core.errors import LboError
+from lbo.sim import alignment as align
+from lbo.sim.alignment import FIT_SPEED, LATENCIES
 from lbo.sim.logformat import Origin, to_local
 from lbo.sim.vehicle import Vehicle
 
-FIT_SPEED = 2.0
-"""Slowest speed (m/s) of the rows that fit the boresight, the latency and the steering."""
-STRAIGHT_RATE = 0.03
-"""Largest yaw rate (rad/s) of the pose rows that fit the boresight."""
-LATENCIES = (-0.5, 0.5)
-"""Range (s) of latencies tried, on a 10 ms grid."""
 EXAMPLE = "segment.npz"
 """The example's arrays (``data/comma2k19/``), keyed by their paths in a segment's folder."""
 SPEEDS = ("processed_log/CAN/speed", "processed_log/CAN/car_speed")
@@ -211,11 +208,11 @@ def example() -> Segment:
 
 
 def _enu(v: np.ndarray, origin: Origin) -> tuple[np.ndarray, np.ndarray]:
-    """(east, north) components (N,) at ``origin`` of ECEF vectors (N, 3)."""
-    lat, lon = np.radians(origin.lat), np.radians(origin.lon)
-    outward = np.cos(lon) * v[:, 0] + np.sin(lon) * v[:, 1]  # in the equator's plane
-    return (-np.sin(lon) * v[:, 0] + np.cos(lon) * v[:, 1],
-            -np.sin(lat) * outward + np.cos(lat) * v[:, 2])
+    """(east, north) components (N,) at ``origin`` of ECEF vectors (N, 3) (pymap3d)."""
+    import pymap3d
+
+    east, north, _ = pymap3d.ecef2enuv(v[:, 0], v[:, 1], v[:, 2], origin.lat, origin.lon)
+    return np.asarray(east), np.asarray(north)
 
 
 def _forward(q: np.ndarray) -> np.ndarray:
@@ -242,14 +239,10 @@ def _truth(segment: Segment) -> tuple[Origin, dict[str, np.ndarray]]:
 
 
 def _boresight(pose: dict[str, np.ndarray]) -> float:
-    """The angle (rad) from the forward axis's heading to the pose's course, driving straight."""
-    rate = np.gradient(pose["psi"], pose["t"])
-    straight = (np.hypot(pose["ve"], pose["vn"]) > FIT_SPEED) & (np.abs(rate) < STRAIGHT_RATE)
-    if straight.sum() < 100:
-        raise LboError(f"segment: {int(straight.sum())} pose rows driving straight above "
-                       f"{FIT_SPEED:g} m/s; the boresight needs at least 100")
-    off = np.arctan2(pose["vn"], pose["ve"])[straight] - pose["psi"][straight]
-    return float(np.arctan2(np.sin(off).mean(), np.cos(off).mean()))
+    """The angle (rad) from the forward axis's heading to the pose's course, driving straight
+    (:func:`lbo.sim.alignment.boresight`; the yaw rate: the pose heading's)."""
+    return align.boresight(pose["psi"], pose["ve"], pose["vn"],
+                           np.gradient(pose["psi"], pose["t"]), "segment's pose")
 
 
 def _fixes(segment: Segment, origin: Origin) -> dict[str, np.ndarray]:
@@ -263,8 +256,8 @@ def _fixes(segment: Segment, origin: Origin) -> dict[str, np.ndarray]:
 
 def _offsets(pose: dict[str, np.ndarray], fix: dict[str, np.ndarray],
              latencies: np.ndarray) -> tuple[np.ndarray, int]:
-    """(K,) RMS offset (m) of the fixes above :data:`FIT_SPEED` (those inside the pose's span
-    at every latency of :data:`LATENCIES` and ``latencies``) from the truth at their logged
+    """(K,) RMS offset (m) of the fixes above ``FIT_SPEED`` (those inside the pose's span
+    at every latency of ``LATENCIES`` and ``latencies``) from the truth at their logged
     time less each of ``latencies`` (K,) s, and how many fixes."""
     speed = np.hypot(np.interp(fix["t"], pose["t"], pose["ve"]),
                      np.interp(fix["t"], pose["t"], pose["vn"]))
@@ -280,18 +273,24 @@ def _offsets(pose: dict[str, np.ndarray], fix: dict[str, np.ndarray],
 
 
 def fit_latency(segment: Segment) -> float:
-    """The latency (s), on a 10 ms grid over :data:`LATENCIES`, that leaves the smallest RMS
-    offset of the fixes above :data:`FIT_SPEED` from the truth at their logged time less it."""
+    """The latency (s), on a 10 ms grid over :data:`lbo.sim.alignment.LATENCIES`, that leaves
+    the smallest RMS offset of the fixes above ``FIT_SPEED`` from the truth at their logged
+    time less it."""
     origin, pose = _truth(segment)
-    grid = np.round(np.arange(LATENCIES[0], LATENCIES[1] + 1e-9, 0.01), 2)
-    rms, _ = _offsets(pose, _fixes(segment, origin), grid)
+    return _latency(pose, _fixes(segment, origin))
+
+
+def _latency(pose: dict[str, np.ndarray], fix: dict[str, np.ndarray]) -> float:
+    """:func:`fit_latency` of the pose rows and fixes already read."""
+    grid = align.latency_grid()
+    rms, _ = _offsets(pose, fix, grid)
     return float(grid[int(np.argmin(rms))])
 
 
 def fit_steering(V: np.ndarray, wheel_deg: np.ndarray, r: np.ndarray,
                  wheelbase: float) -> Steering:
     """The :class:`Steering` that turns the kinematic bicycle at the gyro's rate, by least
-    squares on the rows above :data:`FIT_SPEED`: ``atan(L r / V) = radians(wheel) / ratio -
+    squares on the rows above ``FIT_SPEED``: ``atan(L r / V) = radians(wheel) / ratio -
     radians(offset) / ratio``. V, wheel_deg (deg), r (rad/s, counter-clockwise) (T,)."""
     moving = V > FIT_SPEED
     if moving.sum() < 100:
@@ -318,9 +317,9 @@ def to_log(segment: Segment, vehicle: Vehicle | None = None, steering: Steering 
     """
     vehicle = vehicle or Vehicle()
     fitted = tuple(k for k, v in (("steering", steering), ("latency", latency)) if v is None)
-    latency = fit_latency(segment) if latency is None else float(latency)
     origin, pose = _truth(segment)
     fix = _fixes(segment, origin)
+    latency = _latency(pose, fix) if latency is None else float(latency)
     (rms_at_zero, rms), fixes = _offsets(pose, fix, np.array([0.0, latency]))
     boresight = _boresight(pose)
     times = [segment.pose_t, segment.speed_t, segment.steering_t, segment.gyro_t]
@@ -339,11 +338,10 @@ def to_log(segment: Segment, vehicle: Vehicle | None = None, steering: Steering 
                         "sv_m": np.nan, "V": V, "delta": delta, "r_m": r,
                         "x": np.interp(grid, pose["t"], pose["east"]),
                         "y": np.interp(grid, pose["t"], pose["north"]), "psi": wrap_angle(psi)})
-    row = np.round((fix["t"] - latency - t0) / vehicle.dt).astype(np.int64)
-    keep = (row >= 0) & (row < n)
+    row, keep = align.on_rows(fix["t"] - latency, t0, vehicle.dt, n)
     for c, k in (("x_m", "east"), ("y_m", "north"), ("ve_m", "ve"), ("vn_m", "vn")):
         column = out[c].to_numpy(copy=True)
-        column[row[keep]] = fix[k][keep]
+        column[row] = fix[k][keep]
         out[c] = column
     return Converted(log=out, steering=steering, latency=latency, boresight=boresight,
                      rms_at_zero=rms_at_zero, rms=rms, fixes=fixes, fitted=fitted, origin=origin)

@@ -27,16 +27,15 @@ velocities and the 1-sigma accuracies it reports for them.
 *Boresight, lever arm and time.* The INS reports the heading of its case, which is turned
 against the car; the position of its case, while the receiver reports that of its antenna,
 elsewhere on the car; and each fix is logged some time after the instant it is valid at.
-:func:`fit_alignment` fits all three. The boresight first, on the INS's own rows (not the
-receiver's): driving straight (yaw rate under :data:`STRAIGHT_RATE`) faster than
-:data:`FIT_SPEED`, a car moves along its heading, so the mean angle from the INS heading to
-the direction of the INS velocity (plus pi reversing) is the angle by which the case is turned;
+:func:`fit_alignment` fits all three (:mod:`lbo.sim.alignment`'s rules and thresholds). The
+boresight first, on the INS's own rows (not the receiver's): driving straight faster than
+``FIT_SPEED``, a car moves along its heading, so the mean angle from the INS heading to the
+direction of the INS velocity (plus pi reversing) is the angle by which the case is turned;
 the car's heading is the INS heading turned by it. Then, on the fixes taken above
-:data:`FIT_SPEED`:
-for each latency on a 10 ms grid over :data:`LATENCIES`, the lever arm (forward, left, m) is
-the mean of the fixes' offsets from the INS position at that latency, in the car's frame (the
-least-squares fit, the car's rotations being orthonormal); the latency kept is the one that
-leaves the smallest RMS offset. The log's fixes are put at their logged time minus that
+``FIT_SPEED``: for each latency on a 10 ms grid over ``LATENCIES``, the lever arm (forward,
+left, m) is the mean of the fixes' offsets from the INS position at that latency, in the car's
+frame (the least-squares fit, the car's rotations being orthonormal); the latency kept is the
+one that leaves the smallest RMS offset. The log's fixes are put at their logged time minus that
 latency, and the truth at the antenna, with the car's heading.
 
 *What no filter removes.* The INS/GNSS solution is aided by the same receiver: its slow
@@ -58,6 +57,8 @@ import pandas as pd
 
 from lbo.core.angles import wrap_angle
 from lbo.core.errors import LboError
+from lbo.sim import alignment as align
+from lbo.sim.alignment import FIT_SPEED, LATENCIES, on_rows
 from lbo.sim.logformat import Origin, to_local
 from lbo.sim.vehicle import Vehicle
 
@@ -68,14 +69,6 @@ HILL_FOLDER = "2021-04-27C-car-hill-drive"
 V_FLOOR = 1.0
 """Speed (m/s) below which the steering that gives the gyro's yaw rate is taken at this
 speed: at a standstill no steering turns the kinematic bicycle."""
-FIT_SPEED = 2.0
-"""Slowest speed (m/s) of the fixes that fit the lever arm and the latency: standing still,
-a latency changes nothing."""
-STRAIGHT_RATE = 0.03
-"""Largest yaw rate (rad/s) of the INS rows that fit the boresight: in a turn the INS's
-velocity points off the heading by its own side slip."""
-LATENCIES = (-0.5, 0.5)
-"""Range (s) of latencies tried, on a 10 ms grid."""
 STILL_SPEED = 0.5
 """Speed (m/s) below which the car counts as standing, for :func:`drives`."""
 STOP_S = 30.0
@@ -213,24 +206,12 @@ def _fixes(df: pd.DataFrame, origin: Origin) -> dict[str, np.ndarray]:
                if k not in ("lat", "lon")}}
 
 
-def _boresight(track: dict[str, np.ndarray]) -> float:
-    """The angle (rad) from the INS heading to the direction it moves in, driving straight."""
-    speed = np.hypot(track["vn"], track["ve"])
-    along = track["vn"] * np.sin(track["psi"]) + track["ve"] * np.cos(track["psi"])
-    straight = (speed > FIT_SPEED) & (np.abs(track["r"]) < STRAIGHT_RATE)
-    if straight.sum() < 100:
-        raise LboError(f"the drive has {int(straight.sum())} INS rows driving straight above "
-                       f"{FIT_SPEED:g} m/s; the boresight needs at least 100")
-    course = np.arctan2(track["vn"], track["ve"]) + np.where(along < 0, np.pi, 0.0)
-    off = course[straight] - track["psi"][straight]
-    return float(np.arctan2(np.sin(off).mean(), np.cos(off).mean()))
-
-
 def fit_alignment(df: pd.DataFrame) -> Alignment:
     """The boresight, lever arm and latency of the drive (see the module's docstring)."""
     origin = _origin(df)
     track, fix = _ins_track(df, origin), _fixes(df, origin)
-    boresight = _boresight(track)
+    boresight = align.boresight(track["psi"], track["ve"], track["vn"], track["r"],
+                                "the drive's INS")
     track["psi"] = track["psi"] + boresight
     inside = (fix["t"] > track["t"][0] + LATENCIES[1]) & (fix["t"] < track["t"][-1] - 0.5)
     at_fix = _at(track, fix["t"])
@@ -242,7 +223,7 @@ def fit_alignment(df: pd.DataFrame) -> Alignment:
     before = float(np.sqrt(np.mean((e - at_fix["east"][moving]) ** 2
                                    + (n - at_fix["north"][moving]) ** 2)))
     best: tuple[float, float, np.ndarray] | None = None
-    for latency in np.arange(LATENCIES[0], LATENCIES[1] + 1e-9, 0.01):
+    for latency in align.latency_grid():
         ins = _at(track, t - latency)
         c, s = np.cos(ins["psi"]), np.sin(ins["psi"])
         de, dn = e - ins["east"], n - ins["north"]
@@ -250,7 +231,7 @@ def fit_alignment(df: pd.DataFrame) -> Alignment:
         ae, an = _antenna(ins, lever)
         rms = float(np.sqrt(np.mean((e - ae) ** 2 + (n - an) ** 2)))
         if best is None or rms < best[0]:
-            best = (rms, float(round(latency, 2)), lever)
+            best = (rms, float(latency), lever)
     rms, latency, lever = cast(tuple[float, float, np.ndarray], best)  # the grid is not empty
     return Alignment(boresight=boresight, lever=lever, latency=latency, rms_before=before,
                      rms_after=rms, fixes=int(moving.sum()))
@@ -297,10 +278,7 @@ def to_log(df: pd.DataFrame, vehicle: Vehicle | None = None,
                         "sx_m": np.nan, "sy_m": np.nan, "ve_m": np.nan, "vn_m": np.nan,
                         "sv_m": np.nan, "V": V, "delta": delta, "r_m": ins["r"], "x": x, "y": y,
                         "psi": wrap_angle(ins["psi"])})
-    valid_at = fix["t"] - alignment.latency
-    row = np.round((valid_at - t0) / vehicle.dt).astype(np.int64)
-    keep = (row >= 0) & (row < n)
-    row = row[keep]
+    row, keep = on_rows(fix["t"] - alignment.latency, t0, vehicle.dt, n)
     columns = {"x_m": fix["east"], "y_m": fix["north"], "sx_m": fix["sx"], "sy_m": fix["sy"],
                "ve_m": fix["ve"], "vn_m": fix["vn"],
                "sv_m": np.sqrt(0.5 * (fix["sve"] ** 2 + fix["svn"] ** 2))}
