@@ -73,7 +73,7 @@ bench: install  ## benchmarks: data generation, filters, training throughput, la
 	$(PY) benchmarks/bench_latency.py
 	$(PY) benchmarks/bench_threads.py
 
-readme-tables: install  ## README.md's measured tables rebuilt from docs/results/ (TAKE="results=reports/quick/nrmse.csv" takes a fresh one in)
+readme-tables: install  ## the measured tables of README.md and docs/results.md rebuilt from docs/results/ (TAKE="results=reports/quick/nrmse.csv" takes a fresh one in)
 	$(PY) benchmarks/readme_tables.py $(foreach t,$(TAKE),--take $(t))
 
 lint: install  ## ruff, and mypy over src/lbo ([tool.mypy] in pyproject.toml)

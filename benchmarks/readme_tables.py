@@ -1,17 +1,18 @@
-"""The README's measured tables, rebuilt from the result files they were measured into.
+"""The measured tables of README.md and docs/results.md, rebuilt from their result files.
 
-    python benchmarks/readme_tables.py                       # rewrite README.md's tables
+    python benchmarks/readme_tables.py                       # rewrite both files' tables
     python benchmarks/readme_tables.py --check               # exit 1 if one is stale
     python benchmarks/readme_tables.py --take results=reports/quick/nrmse.csv \\
                                        --take learned=outputs/learned_table/cells.csv
 
-Each table of the README that a command measured sits between ``<!-- table: NAME -->`` and
-``<!-- /table -->``; its numbers live in a tracked CSV (:data:`SOURCES`, under
-``docs/results/``), the file the measuring command wrote, and the README block is rendered
-from it. ``--take NAME=FILE`` first copies a fresh result in (several files of one name are
-joined, e.g. the learned table's own run and its carried cell). ``make readme-tables`` runs
-the rewrite; the test suite runs ``--check``, so a table edited by hand, or a result file
-changed without its table, fails it.
+Each table of :data:`FILES` (README.md and docs/results.md) that a command measured sits
+between ``<!-- table: NAME -->`` and ``<!-- /table -->``; its numbers live in a tracked CSV
+(:data:`SOURCES`, under ``docs/results/``), the file the measuring command wrote, and every
+block of that name, in either file, is rendered from it; a file of :data:`FILES` that does
+not exist under ``--root`` is skipped. ``--take NAME=FILE`` first copies a fresh result in
+(several files of one name are joined, e.g. the learned table's own run and its carried
+cell). ``make readme-tables`` runs the rewrite; the test suite runs ``--check``, so a table
+edited by hand, or a result file changed without its table, fails it.
 """
 
 from __future__ import annotations
@@ -92,11 +93,15 @@ SOURCES: dict[str, tuple[str, Callable[[pd.DataFrame], str]]] = {
     "results": ("docs/results/quick_nrmse.csv", results),
     "learned": ("docs/results/learned_cells.csv", learned),
 }
-"""Each table's name in the README, its tracked result file, and how it is rendered."""
+"""Each table's name in :data:`FILES`, its tracked result file, and how it is rendered."""
+
+FILES = ("README.md", "docs/results.md")
+"""The files whose marked tables are rendered, relative to the repository (``--root``)."""
 
 
 def rebuild(text: str, root: Path = ROOT) -> str:
-    """``text`` (a README) with every marked table rendered afresh from its result file."""
+    """``text`` (README.md or docs/results.md) with every marked table rendered afresh from
+    its result file."""
     def render(match: re.Match) -> str:
         name = match["name"]
         if name not in SOURCES:
@@ -129,9 +134,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--take", action="append", default=[], metavar="NAME=FILE",
                     help="copy a fresh result file in as table NAME's source first")
     ap.add_argument("--root", type=Path, default=ROOT,
-                    help="the repository whose README.md and result files these are")
+                    help="the repository whose README.md, docs/results.md and result files "
+                         "these are")
     args = ap.parse_args(argv)
-    readme = args.root / "README.md"
     fresh: dict[str, list[Path]] = {}
     for item in args.take:
         name, sep, file = item.partition("=")
@@ -140,20 +145,23 @@ def main(argv: list[str] | None = None) -> int:
         fresh.setdefault(name, []).append(Path(file))
     for name, files in fresh.items():
         take(name, files, args.root)
-    text = readme.read_text()
-    new = rebuild(text, args.root)
+    texts = {f: (args.root / f).read_text() for f in FILES if (args.root / f).is_file()}
+    news = {f: rebuild(text, args.root) for f, text in texts.items()}  # all, before writing
     if args.check:
-        stale = [m["name"] for m, n in zip(BLOCK.finditer(text), BLOCK.finditer(new))
-                 if m["body"] != n["body"]]
-        if stale:
-            print(f"error: {readme.name}: tables {', '.join(stale)} differ from their "
-                  "result files; run make readme-tables", file=sys.stderr)
-            return 1
-        return 0
-    if new != text:
-        write_text(readme, new)
-    sources = ", ".join(SOURCES[m["name"]][0] for m in BLOCK.finditer(new))
-    print(f"{readme.name}: {len(BLOCK.findall(new))} tables rebuilt from {sources}")
+        failed = False
+        for f, text in texts.items():
+            stale = [m["name"] for m, n in zip(BLOCK.finditer(text), BLOCK.finditer(news[f]))
+                     if m["body"] != n["body"]]
+            if stale:
+                print(f"error: {f}: tables {', '.join(stale)} differ from their result files; "
+                      "run make readme-tables", file=sys.stderr)
+                failed = True
+        return 1 if failed else 0
+    for f, new in news.items():
+        if new != texts[f]:
+            write_text(args.root / f, new)
+        sources = ", ".join(SOURCES[m["name"]][0] for m in BLOCK.finditer(new))
+        print(f"{f}: {len(BLOCK.findall(new))} tables rebuilt from {sources}")
     return 0
 
 
