@@ -207,6 +207,9 @@ RECEIVER_DRIFT = Refusal(r"model.drift: expected false for a window filter that 
                          r"receiver", "experiment=logs sets model.drift=true; the window "
                          "filter's drift states read a paper window only")
 
+GYRO_NEEDS_LOGS = Refusal(r"data: model=gyro_ekf learns from a vehicle's logs",
+                          "the gyro EKF's noise is learned on logs with a gyro and one antenna")
+
 RELATIVE_FEATURES = {None, "smoke"}
 """Experiments that leave ``features=relative`` (refused for the models in FRAME_MODELS)."""
 FRAME_MODELS = {"filternet", "kalmannet", "split_kalmannet"}
@@ -229,6 +232,9 @@ def train_refusal(experiment: str | None, choice: dict[str, str | None],
                   search: str | None = None) -> Refusal | None:
     """The refusal ``lbo.train.check`` gives, in the order it checks; None: it passes.
     ``search``: the hparams_search composed last, whose settings win."""
+    if choice["model"] == "gyro_ekf":  # lbo.learn.noise_run.check: no net, a vehicle's logs
+        return (GYRO_NEEDS_LOGS if choice["data"] not in ("logs", "hill")
+                else NEEDS_LOGS if choice["data"] == "logs" else None)
     if choice.get("receiver") is not None:
         if experiment not in FIX_RATE_EXPERIMENTS:
             return NEEDS_FIX_RATES
@@ -268,10 +274,15 @@ def train_checks(cfg) -> None:
     """What ``lbo.train`` checks before it makes data or opens a run: :func:`lbo.train.check`,
     the data set's settings (``prepare_data``), the run's fingerprint, and every interpolation
     of the config resolved (its config.yaml and MLflow params)."""
+    from lbo.learn import noise_run
     from lbo.sim.datasets import spec_from_cfg
     from lbo.sim.log_sets import is_logs
     from lbo.train import check, config_hash
 
+    if cfg.model.name == noise_run.NAME:  # lbo.train's own branch: seven noises, no net
+        noise_run.check(cfg)
+        OmegaConf.to_container(cfg, resolve=True)
+        return
     check(cfg)
     if not is_logs(cfg):
         spec_from_cfg(cfg)
@@ -339,6 +350,8 @@ def command_refusal(primary: str, group: str, option: str) -> Refusal | None:
     if group == "data" and option == "logs":
         return {"datagen": NEEDS_LOGS, "evaluate": NEEDS_TEST_LOGS,
                 "simulate": NOT_SIMULATED}.get(primary)
+    if group == "data" and option == "hill":  # its drives are named: only simulate refuses
+        return NOT_SIMULATED if primary == "simulate" else None
     return None
 
 

@@ -19,6 +19,7 @@ import pytest
 import torch
 
 from helpers import observe
+from helpers.drives import gyro_log
 from lbo.core.errors import LboError
 from lbo.filters.gyro import NOISE_RANGES, GyroNoise
 from lbo.learn import gyro_fit
@@ -26,8 +27,7 @@ from lbo.models.gyro_filter import GyroFilter, joseph_update
 from lbo.scoring.receiver import scored_rows
 from lbo.serve.observer import Observer
 from lbo.sim.columns import RECEIVER
-from lbo.sim.receiver import ReceiverSpec, sense
-from lbo.sim.vehicle import Vehicle, simulate
+from lbo.sim.vehicle import Vehicle
 
 VEHICLE = Vehicle()
 R = np.diag([1.0, 1.0, 0.0174**2])
@@ -36,28 +36,9 @@ OTHER = GyroNoise(q_position=0.03, q_heading=0.002, gyro_sigma=0.02, bias_walk=0
                   accuracy_scale=0.7, velocity_scale=1.5, course_lever=0.5)
 
 
-def _log(seed: int, seconds: float = 60.0, reported: float = 1.0) -> pd.DataFrame:
-    """A simulated single-antenna drive with a biased gyro: it moves, turns, stops 4 s
-    (a zero-rate update) and drives on. ``reported``: factor on the accuracy the receiver
-    reports (1: it tracks the true error's scale)."""
-    t = int(round(seconds / VEHICLE.dt))
-    k = np.arange(t)
-    speed = 8.0 + 3.0 * np.sin(2 * np.pi * k / 1500)
-    speed[(k > t // 3) & (k < t // 3 + 200)] = 0.0
-    u = np.stack([speed, 0.08 * np.sin(2 * np.pi * k / 700)], axis=1)[None]
-    rng = np.random.default_rng(seed)
-    z = simulate(np.zeros((1, 3)), u, VEHICLE.dt, VEHICLE.wheelbase, np.zeros(3), rng)
-    out = sense(z, u, VEHICLE.dt, ReceiverSpec(), 1.0, rng)
-    cols = {c: out[c][0] if c in out else np.full(t, np.nan)  # spsi_m: one antenna
-            for c in ("x_m", "y_m", "psi_m", *RECEIVER)}
-    cols["sx_m"], cols["sy_m"] = reported * cols["sx_m"], reported * cols["sy_m"]
-    return pd.DataFrame({"t": k * VEHICLE.dt, **cols, "V": u[0, :, 0], "delta": u[0, :, 1],
-                         "x": z[0, :, 0], "y": z[0, :, 1], "psi": z[0, :, 2]})
-
-
 @pytest.fixture(scope="module")
 def log() -> pd.DataFrame:
-    return _log(0)
+    return gyro_log(0)
 
 
 def test_trusting_the_velocity_less_widens_its_course_but_keeps_its_rows(log):
@@ -101,8 +82,8 @@ def test_without_truth_the_innovations_learn_how_far_to_trust_the_receiver():
     supervised fit (measured: 20 epochs reach 0.407 m of position RMSE on the validation logs
     from 0.470 m, where 6 supervised ones reach 0.400 m; it first shrinks the process noise,
     which also widens what it predicts)."""
-    train = _log(1, reported=1 / 3)
-    val = [_log(2, 30.0, reported=1 / 3), _log(4, 30.0, reported=1 / 3)]
+    train = gyro_log(1, reported=1 / 3)
+    val = [gyro_log(2, 30.0, reported=1 / 3), gyro_log(4, 30.0, reported=1 / 3)]
     blind = [log.drop(columns=["x", "y", "psi"]) for log in (train, *val)]
     fitted = gyro_fit.fit(blind[0], blind[1:], VEHICLE, R, START, epochs=20, segment=250,
                           lr=0.15, progress=None, objective="innovations")
@@ -255,8 +236,8 @@ def test_lbfgs_finds_the_noise_that_drew_the_log_by_its_likelihood_alone(drawn):
 def test_the_fit_learns_how_far_to_trust_a_receiver_that_understates_its_error():
     """The receiver reports a third of its true error: the fit learns to scale it up, and
     the validation logs (drawn apart, their rows pooled) gain."""
-    train = _log(1, reported=1 / 3)
-    val = [_log(2, 30.0, reported=1 / 3), _log(4, 30.0, reported=1 / 3)]
+    train = gyro_log(1, reported=1 / 3)
+    val = [gyro_log(2, 30.0, reported=1 / 3), gyro_log(4, 30.0, reported=1 / 3)]
     fitted = gyro_fit.fit(train, val, VEHICLE, R, START, epochs=6, segment=250, lr=0.15,
                           progress=None)
     assert fitted.noise.accuracy_scale > 1.8  # 2.5 after 6 steps (the truth: 3)
@@ -296,7 +277,7 @@ def test_gyro_noise_is_checked_saved_and_read_back(tmp_path):
                                        r"\(observer=gyro\), not of ekf$"):
         Observer.load("ekf", gyro_noise=OTHER)
     with pytest.raises(LboError, match="single-antenna logs: psi_m must be empty"):
-        gyro_fit.segments(_log(3, 10.0).assign(psi_m=0.0), START, VEHICLE, R, 100)
+        gyro_fit.segments(gyro_log(3, 10.0).assign(psi_m=0.0), START, VEHICLE, R, 100)
 
 
 @pytest.mark.parametrize("field, value, line", [
@@ -394,7 +375,7 @@ def test_observe_adapts_the_gyro_ekfs_noise_to_the_log_it_filters(tmp_path):
     not read), then the log filtered with it: on a receiver that reports a third of its
     error, the position error falls below the defaults' (measured: 0.403 m against 0.421 m
     on this 60 s log); it says so, and how long it took."""
-    log = _log(1, reported=1 / 3)
+    log = gyro_log(1, reported=1 / 3)
     log.to_csv(tmp_path / "log.csv", index=False)
     args = [f"input={tmp_path / 'log.csv'}", "observer=gyro"]
     plain = observe(*args, f"output={tmp_path / 'plain.csv'}", cwd=tmp_path)

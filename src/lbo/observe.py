@@ -231,7 +231,8 @@ def observe(cfg: DictConfig) -> dict[str, Any]:
                    plot)
 
     what = (f"learned, window {obs.window}, features {obs.features}" if obs.kind == "learned"
-            else f"classical, noise {obs.noise.name}, wheelbase {obs.vehicle.wheelbase:g} m")
+            else f"classical, noise {obs.noise.name}, wheelbase {obs.vehicle.wheelbase:g} m"
+            + (f", its noise learned by run {name}" if obs.meta.get("source") == name else ""))
     print(f"observer {obs.name} ({what}, dt {obs.dt:g} s) on {len(df)} rows"
           + (f" (resampled from {source})" if cfg.resample else "")
           + (", smoothed (RTS)" if smooth else ""))

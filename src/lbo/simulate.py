@@ -82,8 +82,8 @@ def check(cfg: DictConfig):
     from lbo.sim.log_sets import is_logs
 
     if is_logs(cfg):
-        raise LboError("data=logs: lbo.simulate drives a simulated data set's manoeuvres, not "
-                       "a user's logs; pick another data= (e.g. data=paper)")
+        raise LboError(f"data={cfg.data.name}: lbo.simulate drives a simulated data set's "
+                       "manoeuvres, not a vehicle's logs; pick another data= (e.g. data=paper)")
     return spec_from_cfg(cfg)
 
 

@@ -26,6 +26,7 @@ from lbo.core.errors import LboError
 from lbo.core.paths import REPO_ROOT
 from lbo.core.redact import scrub, scrub_tree
 from lbo.core.runfolder import claim
+from lbo.learn import noise_run
 from lbo.learn.builders import (
     Built,
     build,
@@ -84,7 +85,12 @@ def check_compile(cfg: DictConfig) -> None:
 
 def check(cfg: DictConfig) -> Built:
     """Reject bad training settings with one line naming the field, before any work; return
-    the run's objects built on the way (:func:`lbo.learn.builders.build`)."""
+    the run's objects built on the way (:func:`lbo.learn.builders.build`). A net's: the gyro
+    EKF's noise (``model=gyro_ekf``) is checked by :func:`lbo.learn.noise_run.check`."""
+    if cfg.model.name == noise_run.NAME:  # tune, ablation and reproduce build nets
+        raise LboError("model=gyro_ekf: the gyro EKF's noise is learned by python -m lbo.train "
+                       "model=gyro_ekf alone; lbo.tune, lbo.ablation and lbo.reproduce "
+                       "train nets (cnn, lstm, filternet, kalmannet, split_kalmannet)")
     integer(cfg.model.window, "model.window", 4,
             form="an integer >= 4 (the CNN pools windows by 4)")
     require(cfg.model.features in FEATURE_MODES, "model.features",
@@ -188,6 +194,10 @@ def train(cfg: DictConfig, callbacks: list[L.Callback] | None = None,
     ``name``, ``val_loss`` (best), ``test_nrmse_alpha_{1,3,6}``, ``run_id``, ``checkpoint``,
     ``epochs``.
     """
+    if cfg.model.name == noise_run.NAME:  # seven noises, no weights: no Lightning
+        return noise_run.train(cfg, _flat(cfg), {"git_commit": git_commit(),
+                                                 "model": noise_run.NAME,
+                                                 "data": str(cfg.data.name), **(tags or {})})
     built = check(cfg)
     # before the folder is claimed (its lock file): a folder of another run's files is left
     # as it was. With resume=true, a finished run of this config may be reused from the

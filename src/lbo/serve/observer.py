@@ -56,7 +56,7 @@ from lbo.sim.logcheck import (
 )
 from lbo.sim.noise import Noise
 from lbo.sim.vehicle import Vehicle
-from lbo.tracking.artifacts import checkpoint_file
+from lbo.tracking.artifacts import checkpoint_file, learned_noise
 
 if TYPE_CHECKING:  # torch, which importing lbo does not load
     from lbo.serve.carried_runner import CarriedRunner
@@ -84,7 +84,7 @@ class Observer:
         resolved).
     form : ``"window"`` or ``"recursive"`` (:data:`FORMS`) for a window filter, ``"window"``
         for the CNN and the LSTM, None for classical observers.
-    meta : the checkpoint's metadata (data set, data hash, seed, ...), {} for classical.
+    meta : the checkpoint's metadata (data set, hash, seed, ...); classical: {} or its run.
     net : the :class:`~lbo.models.net.WindowNet` (or its recursive form's ONNX graphs,
         :class:`lbo.serve.exported.ExportedNet`), or None.
     envelope : the :class:`~lbo.models.envelope.Envelope` of a learned observer's training
@@ -98,13 +98,11 @@ class Observer:
                  device: str = "cpu", meta: dict[str, Any] | None = None,
                  form: str | None = None, envelope_mode: str = "warn",
                  gyro_noise: GyroNoise | None = None) -> None:
-        self.name = name
+        self.name, self.meta = name, dict(meta or {})
         self.vehicle = vehicle or Vehicle()
         self.noise = noise or Noise.preset("paper")
         self.alpha = check_alpha(alpha)
-        self.meta = dict(meta or {})
-        self.net = net
-        self.device = device
+        self.net, self.device = net, device
         self.form = check_form(form, net)
         classical.check_gyro_noise(name, gyro_noise)
         self.gyro_noise = gyro_noise
@@ -143,11 +141,10 @@ class Observer:
     @property
     def takes_receiver(self) -> bool:
         """Whether fixes without a heading and a receiver's channels are taken: by the
-        classical observers, and by the robust observer's recursive form on every engine
-        (whose update takes the channels a row holds, :mod:`lbo.models.recursive`) where it
-        was trained with missing fixes (one trained with a full fix at every step reads
-        nothing else); and by a window net trained on a receiver's windows
-        (:mod:`lbo.models.receiver_window`)."""
+        classical observers, by the robust observer's recursive form on every engine (its
+        update takes the channels a row holds, :mod:`lbo.models.recursive`) where it was
+        trained with missing fixes (one trained with a fix at every step reads nothing else),
+        and by a window net trained on a receiver's windows (:mod:`lbo.models.receiver_window`)."""
         return (self.net is None or bool(getattr(self.net, "receiver", False))
                 or (isinstance(self._runner, RecursiveRunner) and self.takes_missing_fixes))
 
@@ -161,8 +158,7 @@ class Observer:
     @property
     def gives_covariance(self) -> bool:
         """Whether the estimates come with a covariance: the classical observers' and the
-        window filter's (its recursive form's P; the window form's is NaN), not a CNN's, an
-        LSTM's or a KalmanNet's."""
+        window filter's (its recursive form's P), not a CNN's, LSTM's or KalmanNet's."""
         return self.net is None or isinstance(self._runner, RecursiveRunner)
 
     # ----------------------------------------------------------------------- construction
@@ -178,7 +174,7 @@ class Observer:
         ----------
         source : one of
             - a checkpoint file (``.ckpt``, as ``lbo.train`` writes) or a ``file://`` URI;
-            - an MLflow run id (32 hex digits): its ``checkpoints/best.ckpt``;
+            - an MLflow run id (32 hex digits): its ``checkpoints/best.ckpt`` (or its gyro noise);
             - ``runs:/<run id>/<path>``, ``models:/<name>/<version>`` or
               ``models:/<name>@<alias>``: the checkpoint there, in the store that
               :func:`tracking_uri` names;
@@ -218,6 +214,10 @@ class Observer:
         if named:
             classical.check(source)  # pcrb: a bound, not an observer
             return cls(source, vehicle, noise, alpha=alpha, gyro_noise=gyro_noise)
+        learned = learned_noise(source)  # a run of lbo.train model=gyro_ekf: data, no code
+        if learned is not None:
+            return cls(classical.GYRO, vehicle or learned[1], noise or learned[2], alpha=alpha,
+                       gyro_noise=learned[0], meta={"source": source})
         with checkpoint_file(source) as path:
             found = (exported.load(path, engine) if engine in ("auto", "onnx") and form in (
                 None, "recursive") and device == "cpu" else None)  # graphs: without torch

@@ -139,8 +139,19 @@ def spec_from_cfg(cfg: DictConfig, need: tuple[str, ...] = SETS) -> LogSpec:
     max_gap = check_max_gap(d.get("max_gap"), "data.max_gap")
     run_in = integer(d.get("run_in"), "data.run_in", 1, form="an integer >= 1 (steps of each "
                      "validation and test segment before it is scored)")
-    files = {part: expand(_listed(d.get(part)), f"data.{part}")
-             if part in need or d.get(part) else [] for part in SETS}
+    if d.get("source") == "hill":  # data=hill: the hill drive's drives, named by number
+        from lbo.sim import hill
+
+        numbers = {part: hill.check_numbers(_listed(d.get(part)), f"data.{part}")
+                   for part in SETS if part in need or d.get(part)}
+        hill.check_split(numbers)
+        files: dict[str, list[Path]] = {part: [] for part in SETS}
+        files |= hill.drive_files(Path(d.root), vehicle, numbers)
+    else:
+        require(d.get("source") in (None, "files"), "data.source", "files or hill",
+                d.get("source"))
+        files = {part: expand(_listed(d.get(part)), f"data.{part}")
+                 if part in need or d.get(part) else [] for part in SETS}
     seen: dict[Path, str] = {}
     for part in SETS:
         for path in files[part]:

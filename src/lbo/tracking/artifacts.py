@@ -10,6 +10,7 @@ file cost about 2.5 s of a 9 s ``lbo.observe``; anything else goes through MLflo
 from __future__ import annotations
 
 import contextlib
+import json
 import os
 import re
 import sqlite3
@@ -21,6 +22,7 @@ from urllib.parse import unquote, urlparse
 
 from lbo.core.errors import LboError
 from lbo.core.paths import sqlite_path, tracking_uri
+from lbo.core.smallfile import read_small
 from lbo.filters import classical
 
 RUN_ID = re.compile(r"[0-9a-f]{32}")
@@ -67,6 +69,14 @@ def local_run_checkpoint(run_id: str, store: str) -> Path | None:
     """A run's ``checkpoints/best.ckpt`` where it lies, when ``store`` is a SQLite file that
     holds the run and the run's artifacts are a local folder; None otherwise (a server, another
     database, remote artifacts, no such run or file), and MLflow is asked instead."""
+    folder = local_run_folder(run_id, store)
+    path = folder / "checkpoints" / "best.ckpt" if folder is not None else None
+    return path if path is not None and path.is_file() else None
+
+
+def local_run_folder(run_id: str, store: str) -> Path | None:
+    """A run's artifact folder, when ``store`` is a SQLite file that holds the run and keeps
+    its artifacts in a local folder; None otherwise."""
     db = sqlite_path(store)
     if db is None or not db.is_file():
         return None
@@ -81,13 +91,68 @@ def local_run_checkpoint(run_id: str, store: str) -> Path | None:
         return None
     where = urlparse(row[0])
     if where.scheme == "file":
-        folder = Path(unquote(where.path))
-    elif not where.scheme:
-        folder = Path(row[0])
-    else:  # mlflow-artifacts:, s3:, ...: MLflow fetches them
+        return Path(unquote(where.path))
+    if not where.scheme:
+        return Path(row[0])
+    return None  # mlflow-artifacts:, s3:, ...: MLflow fetches them
+
+
+NOISE_FILES = ("gyro_noise.json", "conditions.json")
+"""What a run of ``lbo.train model=gyro_ekf`` keeps in its ``gyro_ekf/`` artifact folder
+(:mod:`lbo.learn.noise_run`) for :func:`learned_noise`."""
+
+
+def learned_noise(source: str) -> tuple[Any, Any, Any] | None:
+    """The gyro EKF a run of ``lbo.train model=gyro_ekf`` learned, when ``source`` is such a
+    run's id: ``(GyroNoise, Vehicle, Noise)`` (its noise, and the vehicle and classical preset
+    it was learned with), read as data, never run. None for any other source (a checkpoint, a
+    learned observer's run), which is then loaded as a checkpoint."""
+    from lbo.filters.gyro import GyroNoise
+    from lbo.models.checkpoint import trained_conditions
+
+    if not RUN_ID.fullmatch(source):
         return None
-    path = folder / "checkpoints" / "best.ckpt"
-    return path if path.is_file() else None
+    store = tracking_uri()
+    folder = local_run_folder(source, store)
+    if folder is None and sqlite_path(store) is not None:  # lbo's own store, not its run
+        return None
+    with contextlib.ExitStack() as stack:
+        if folder is None:  # a server's run: its two small files fetched, if it has them
+            tmp = Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="lbo-noise-")))
+            found = _noise_download(source, store, tmp)
+        else:
+            found = folder / "gyro_ekf"
+        if found is None or not (found / NOISE_FILES[0]).is_file():
+            return None
+        cond = found / NOISE_FILES[1]
+        try:
+            meta = json.loads(read_small(cond, f"run {source}: {cond.name}",
+                                         "a JSON object").decode("utf-8"))
+        except ValueError as e:
+            raise LboError(f"observer: run {source}: {cond.name} is not JSON ({e})") from None
+        vehicle, noise = trained_conditions({"meta": meta}, cond)
+        return GyroNoise.load(found / NOISE_FILES[0]), vehicle, noise
+
+
+def _noise_download(run_id: str, store: str, folder: Path) -> Path | None:
+    """A remote run's ``gyro_ekf/`` folder downloaded into ``folder``; None when it has none."""
+    import mlflow
+    from mlflow.exceptions import MlflowException
+
+    from lbo.tracking.runs import check_server
+
+    check_server(store, field="MLFLOW_TRACKING_URI")
+    client = mlflow.MlflowClient(store)
+    try:
+        if not [a for a in client.list_artifacts(run_id, "gyro_ekf")
+                if a.path.endswith(NOISE_FILES[0])]:
+            return None
+        with no_progress_bar():
+            for name in NOISE_FILES:
+                client.download_artifacts(run_id, f"gyro_ekf/{name}", str(folder))
+    except MlflowException:
+        return None  # no such run: loading it as a checkpoint says so
+    return folder / "gyro_ekf"
 
 
 PROGRESS_BAR = "MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR"
