@@ -41,7 +41,7 @@ def _train(tmp_path: Path, logs: dict[str, Path], *args: str):
 
 @pytest.mark.slow
 def test_the_gyro_ekf_trains_as_a_run_that_observe_takes(tmp_path, logs):
-    res, uri = _train(tmp_path, logs)
+    res, uri = _train(tmp_path, logs, "model.across_drives=true")
     assert res.returncode == 0, res.stderr[-3000:]
     client = mlflow.MlflowClient(uri)
     [run] = client.search_runs([client.get_experiment_by_name("lbo").experiment_id])
@@ -62,6 +62,13 @@ def test_the_gyro_ekf_trains_as_a_run_that_observe_takes(tmp_path, logs):
                                           str(tmp_path)))
     assert json.loads(kept.read_text()) == json.loads((out / "gyro_noise.json").read_text())
     assert "| test | gyro, learned noise |" in (out / "test.md").read_text()
+    # leave-one-drive-out over the three logs: each scored by the noise of the other two
+    drives = [metrics[f"drives_vs_ekf_{name}"] for name in ("train", "val", "test")]
+    assert metrics["drives_vs_ekf_mean"] == pytest.approx(np.mean(drives))
+    assert metrics["drives_vs_ekf_worst"] == max(drives)
+    assert all(GyroNoise.load(out / f"gyro_noise_without_drive{k}.json") != learned
+               for k in (1, 2, 3))
+    assert "gyro, noise learned on the other drives" in (out / "drives.md").read_text()
 
     # lbo.observe and Observer.load take the run id: the gyro EKF with that noise
     by_run = cli("lbo.observe", f"observer={run.info.run_id}", f"input={logs['test']}",
@@ -76,7 +83,7 @@ def test_the_gyro_ekf_trains_as_a_run_that_observe_takes(tmp_path, logs):
         obs = Observer.load(run.info.run_id)
     assert obs.name == "gyro" and obs.gyro_noise == learned
 
-    again, _ = _train(tmp_path, logs, "resume=true")
+    again, _ = _train(tmp_path, logs, "model.across_drives=true", "resume=true")
     assert again.returncode == 0, again.stderr[-3000:]
     assert f"reusing finished run {run.info.run_id}" in again.stdout
 

@@ -53,6 +53,7 @@ from lbo.core.cli import entry
 from lbo.core.errors import LboError
 from lbo.filters import classical
 from lbo.filters.gyro import GyroNoise
+from lbo.learn.noise_run import ACROSS
 from lbo.scoring.receiver import (
     EKF,
     load_nets,
@@ -76,9 +77,6 @@ SIMULATED = "gyro, noise learned on simulated drives only"
 """... learned on simulated single-antenna drives, not on the real one."""
 FINE_TUNED = "gyro, noise learned on simulated drives, fine-tuned on the train span"
 """... learned on simulated drives, then on the train span."""
-ACROSS = "gyro, noise learned on the other drives"
-"""The row of the leave-one-drive-out table (``drives.md``) whose noise was learned on every
-drive but the one scored."""
 FIT_FINE_TUNED = "fine-tuned on the train span"
 """The row of a net of ``nets`` trained on the train span from its own weights (its name
 first)."""
@@ -230,23 +228,14 @@ def _across_drives(cfg: Any, observers: list[str], drives: list[pd.DataFrame],
     those same drives: none is held out of two), every observer scored on it. Writes
     ``drives.csv`` (each drive's RMSE and ratio) and ``drives.md`` (the ratios to the EKF per
     drive, their mean and the worst), prints the latter and returns the summary."""
-    from lbo.learn import gyro_fit
+    from lbo.learn.noise_run import across_drives
     from lbo.scoring import drives as across
 
-    R = gyro_fit.fix_cov(noise)
-    defaults = GyroNoise.from_q(noise.Q)
     how = "truth" if cfg.objective == "truth" else "innovations' likelihood, no truth read"
     print(f"leave-one-drive-out over {len(drives)} drives: the gyro EKF's noise learned on the "
           f"others ({cfg.epochs} epochs, {how}), scored on each")
-
-    def learn(k: int, train: list[pd.DataFrame]) -> dict[str, GyroNoise]:
-        fitted = gyro_fit.fit(train, train, vehicle, R, defaults, progress=None,
-                              **cfg.kwargs(vehicle.dt))
-        fitted.noise.save(out / f"gyro_noise_without_drive{k + 1}.json")
-        return {ACROSS: fitted.noise}
-
-    table = across.leave_one_out(drives, learn, observers, vehicle, noise,
-                                 progress=lambda line: print("  " + line))
+    table = across_drives(drives, cfg, vehicle, noise, observers, out,
+                          progress=lambda line: print("  " + line))
     wide = across.summary(table)
     write_table(table, out / "drives.csv")
     with atomic_path(out / "drives.md") as tmp:

@@ -83,6 +83,28 @@ def check_compile(cfg: DictConfig) -> None:
                        "PATH, and none was found; install one, or set compile=false")
 
 
+LOSSES = ("truth", "next_fix")
+"""``loss``: against the true states, or self-supervised against each window's next fix."""
+
+
+def check_loss(cfg: DictConfig) -> None:
+    """``loss``: one of :data:`LOSSES`; ``next_fix`` on windows of full poses (no ``tbptt``,
+    no ``receiver``, no GNSS drift, ``sensors.gnss_sigma``: the next fix's noise must be its
+    own)."""
+    loss = cfg.get("loss", "truth")
+    require(loss in LOSSES, "loss", f"one of {list(LOSSES)}", loss)
+    if loss != "next_fix":
+        return
+    for field, value, why in (
+            ("tbptt", cfg.get("tbptt"), "a filter trained carried learns from the truth"),
+            ("receiver", cfg.get("receiver"), "a receiver's windows learn from the truth"),
+            ("sensors.gnss_sigma", (cfg.get("sensors") or {}).get("gnss_sigma") or None,
+             "a drifting fix shares its error with the window's, so it cannot stand in for "
+             "the truth")):
+        if value is not None:
+            raise LboError(f"loss=next_fix: expected {field}=null or 0 ({why}); got {value}")
+
+
 def check(cfg: DictConfig) -> Built:
     """Reject bad training settings with one line naming the field, before any work; return
     the run's objects built on the way (:func:`lbo.learn.builders.build`). A net's: the gyro
@@ -118,6 +140,7 @@ def check(cfg: DictConfig) -> Built:
         raise LboError(f"nll: the Gaussian NLL term reads the covariance of a filter trained "
                        f"carried; set tbptt too, or nll=0 (got nll={nll} with tbptt=null)")
     check_compile(cfg)
+    check_loss(cfg)
     require(isinstance(cfg.get("keep_onnx", True), bool), "keep_onnx", "true or false",
             cfg.get("keep_onnx"))
     check_scaling(cfg.model.normalisation, "model.normalisation")
@@ -264,7 +287,9 @@ def _fit(cfg: DictConfig, built: Built, callbacks: list[L.Callback] | None,
                             net=built.net, receiver=built.net.receiver, tbptt=cfg.get("tbptt"),
                             clip=cfg.trainer.get("gradient_clip_val"),
                             nll=float(cfg.get("nll") or 0.0),
-                            compiled=bool(cfg.get("compile")))
+                            compiled=bool(cfg.get("compile")),
+                            next_fix=((float(cfg.vehicle.dt), float(cfg.vehicle.wheelbase))
+                                      if cfg.get("loss") == "next_fix" else None))
     module.observer.set_normalisation(**dm.normalisation(module.observer, cfg.model.normalisation))
     if built.init is not None:  # fine-tuning: its weights and its normalisation
         say_fresh(cfg, module.observer, built.init)

@@ -137,7 +137,7 @@ def datamodule(cfg: DictConfig, folder: Path, built: Built | None = None):
     length = (cfg.get("sequence_length") or cfg.model.window) if carried else cfg.model.window
     dm = WindowDataModule(folder, length, cfg.batch_size, seed=cfg.seed,
                           device=data_device(cfg), fix_periods=periods,
-                          sequences=carried, **noise)
+                          sequences=carried, next_fix=cfg.get("loss") == "next_fix", **noise)
     dm.setup("fit")
     return dm
 

@@ -44,11 +44,15 @@ def rows(df: pd.DataFrame) -> tuple[torch.Tensor, torch.Tensor]:
     return x, y
 
 
-def window_ends(k: np.ndarray, window: int, keep: np.ndarray | None = None) -> np.ndarray:
-    """Rows where a full window of N steps ends inside one trajectory (and ``keep`` holds)."""
+def window_ends(k: np.ndarray, window: int, keep: np.ndarray | None = None,
+                next_step: bool = False) -> np.ndarray:
+    """Rows where a full window of N steps ends inside one trajectory (and ``keep`` holds);
+    with ``next_step``, only those whose trajectory goes on a step after them."""
     ok = k >= window - 1
     if keep is not None:
         ok &= keep
+    if next_step:
+        ok &= np.append(k[1:] == k[:-1] + 1, False)
     return np.flatnonzero(ok)
 
 
@@ -81,6 +85,11 @@ class WindowDataset(Dataset):
     sequences : a batch's states are the true states of every step of its windows (B, N, 3),
         for a filter trained carried through them (``tbptt``), not the last step's (B, 3); with
         ``draw.changes``, alpha changes along each window and the weights are per step (B, N).
+    next_fix : no truth in the batches: in place of the states (B, 3), each window's next
+        step (B, 5): its fix ``[x_m, y_m, psi_m]`` (drawn at the window's alpha, afresh; or
+        stored, NaN where the step has none) and the window's last inputs ``[V, delta]``,
+        which move the estimate onto it (:meth:`lbo.models.net.WindowNet.next_fix_loss`).
+        ``ends`` must each have a next step in their trajectory.
     """
 
     def __init__(self, x: torch.Tensor, y: torch.Tensor, ends: np.ndarray, window: int,
@@ -88,7 +97,12 @@ class WindowDataset(Dataset):
                  seed: int = 0, weight_offset: float | None = None,
                  fix_periods: tuple[int, ...] = (),
                  drift: tuple[float, float] | None = None,
-                 receiver: ReceiverDraw | None = None, sequences: bool = False):
+                 receiver: ReceiverDraw | None = None, sequences: bool = False,
+                 next_fix: bool = False):
+        if next_fix and (receiver is not None or sequences):
+            raise LboError("loss=next_fix trains on windows of full poses (tbptt=null, no "
+                           "receiver)")
+        self.next_fix = bool(next_fix)
         if receiver is not None and not fix_periods:
             raise LboError("a receiver's windows need fix rates (fix_rates=[10, 5, 1])")
         if receiver is not None and sequences:
@@ -147,6 +161,8 @@ class WindowDataset(Dataset):
         if self.draw is None:
             weight = torch.ones(len(e), dtype=self.x.dtype, device=e.device)
             m = win[..., :3]
+            if self.next_fix:  # the log's own next fix, which no window of these reads
+                truth = torch.cat([self.x[e + 1, :3], self.x[e, 3:5]], -1)
         else:
             alpha = (self.draw.along(len(e), self.window, generator)
                      if self.sequences and self.draw.changes else
@@ -154,6 +170,9 @@ class WindowDataset(Dataset):
             weight = loss_weights(alpha, self.weight_offset)  # (B,), or (B, N) along
             assert self.sigma is not None, "drawn noise needs the measurement sigmas"
             m = noisy_measurements(self.truth[s], alpha, self.sigma, generator, self.drift)
+            if self.next_fix:  # drawn apart from the window's: its noise is its own
+                after = noisy_measurements(self.y[e + 1][:, None], alpha, self.sigma, generator)
+                truth = torch.cat([after[:, 0], self.x[e, 3:5]], -1)
         if self.fix_periods:
             fix = draw_fixes(len(e), self.window, self.fix_periods, generator, e.device)
             kept = torch.where(fix[..., None], m, torch.full_like(m, float("nan")))
@@ -217,6 +236,8 @@ class WindowDataModule(L.LightningDataModule):
     receiver : draw a receiver's windows instead of the paper's (see :class:`WindowDataset`).
     sequences : batches hold the true states of every step (see :class:`WindowDataset`), and
         validation windows are as long as the validation set's run-in allows.
+    next_fix : batches hold each window's next fix and last inputs, no truth (see
+        :class:`WindowDataset`), in training and validation alike.
     """
 
     def __init__(self, folder: str | Path, window: int, batch_size: int = 256,
@@ -225,7 +246,8 @@ class WindowDataModule(L.LightningDataModule):
                  weight_offset: float | None = None, val_repeats: int = 1,
                  device: str = "cpu", fix_periods: tuple[int, ...] = (),
                  drift: tuple[float, float] | None = None,
-                 receiver: ReceiverDraw | None = None, sequences: bool = False) -> None:
+                 receiver: ReceiverDraw | None = None, sequences: bool = False,
+                 next_fix: bool = False) -> None:
         super().__init__()
         self.device = torch.device(device)
         self.folder = Path(folder)
@@ -237,6 +259,7 @@ class WindowDataModule(L.LightningDataModule):
         self.val_repeats = int(val_repeats)
         self.fix_periods = tuple(fix_periods)
         self.drift, self.receiver, self.sequences = drift, receiver, bool(sequences)
+        self.next_fix = bool(next_fix)
         self.val_window = self.window  # shorter when trained carried (setup)
         self.train_set: WindowDataset | None = None
         self.val_set: WindowDataset | FixedDataset | None = None
@@ -264,13 +287,14 @@ class WindowDataModule(L.LightningDataModule):
                            "observer takes them, or with drawn noise (train_noise=paper)")
         noise = {"draw": self.draw, "sigma": self.sigma, "weight_offset": self.weight_offset,
                  "fix_periods": self.fix_periods, "drift": self.drift,
-                 "receiver": self.receiver, "sequences": self.sequences}
-        self.train_set = WindowDataset(*rows(train), window_ends(train["k"].to_numpy(),
-                                                                 self.window), self.window,
-                                       seed=self.seed, **noise)
+                 "receiver": self.receiver, "sequences": self.sequences,
+                 "next_fix": self.next_fix}
+        self.train_set = WindowDataset(*rows(train), window_ends(
+            train["k"].to_numpy(), self.window, next_step=self.next_fix), self.window,
+            seed=self.seed, **noise)
         val_set = WindowDataset(*rows(val), window_ends(
-            val["k"].to_numpy(), self.val_window, val["scored"].to_numpy()), self.val_window,
-            **noise)
+            val["k"].to_numpy(), self.val_window, val["scored"].to_numpy(), self.next_fix),
+            self.val_window, **noise)
         if self.draw is None and not self.fix_periods and self.receiver is None:
             self.val_set = val_set
         else:  # one fixed draw, the same in every epoch and run of this seed
@@ -293,6 +317,9 @@ class WindowDataModule(L.LightningDataModule):
         win, state, _ = train.batch(pick, g)
         if self.sequences:  # every step's: the statistics are the last step's
             state = state[:, -1]
+        if self.next_fix:  # no truth read: the next fixes stand in for the states
+            held = torch.isfinite(state[:, :3]).all(1)
+            win, state = win[held], state[held, :3]
         return net.statistics(win, state, scaling)
 
     def _loader(self, ds: WindowDataset | FixedDataset, batch: int, shuffle: bool) -> DataLoader:

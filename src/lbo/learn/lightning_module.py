@@ -54,6 +54,9 @@ class TrainingModule(L.LightningModule):
     compiled : with ``tbptt``, run the carried filter's step compiled
         (:class:`lbo.models.carried.Compiled`): the same numbers to rounding, a few times
         faster a step on the CPU.
+    next_fix : ``(dt, wheelbase)``: train and validate by the self-supervised loss
+        (:meth:`WindowNet.next_fix_loss`), the batches holding each window's next fix in place
+        of its truth; None: the MSE against the truth.
     """
 
     def __init__(self, model: dict[str, Any], window: int, features: str = "relative",
@@ -61,9 +64,11 @@ class TrainingModule(L.LightningModule):
                  meta: dict[str, Any] | None = None, lr_schedule: str = "constant",
                  fixes: bool = False, net: WindowNet | None = None,
                  receiver: bool = False, tbptt: int | None = None,
-                 clip: float | None = None, nll: float = 0.0, compiled: bool = False) -> None:
+                 clip: float | None = None, nll: float = 0.0, compiled: bool = False,
+                 next_fix: tuple[float, float] | None = None) -> None:
         super().__init__()
-        self.save_hyperparameters(ignore=["optimizer", "lr_schedule", "net", "clip", "compiled"])
+        self.save_hyperparameters(ignore=["optimizer", "lr_schedule", "net", "clip", "compiled",
+                                          "next_fix"])
         self.lr_schedule = lr_schedule
         self.hparams["format"] = CHECKPOINT_FORMAT
         # the package that registers the model: a machine without it is told what to install
@@ -74,6 +79,7 @@ class TrainingModule(L.LightningModule):
         self.optimizer_factory = optimizer
         self.tbptt, self.clip, self.nll = tbptt, clip, float(nll)
         self.compiled = bool(compiled)
+        self.next_fix = next_fix
         # the chunks' optimiser steps are taken here, not by Lightning
         self.automatic_optimization = tbptt is None
         self._loss_sum: torch.Tensor | float = 0.0
@@ -100,7 +106,7 @@ class TrainingModule(L.LightningModule):
     def training_step(self, batch, batch_idx: int) -> torch.Tensor:
         if self.tbptt is not None:
             return self._carried_step(batch)
-        loss = self.observer.loss(*batch)
+        loss = self._window_loss(batch)
         if self._first_finite is None:  # one sync, on the first batch alone
             self._first_finite = bool(torch.isfinite(loss))
         # summed here and logged once per epoch: self.log on every step costs about 1 ms,
@@ -109,6 +115,13 @@ class TrainingModule(L.LightningModule):
         self._loss_sum = self._loss_sum + loss.detach() * n
         self._loss_count += n
         return loss
+
+    def _window_loss(self, batch) -> torch.Tensor:
+        """A batch of windows' loss: against the truth, or against the next fixes."""
+        if self.next_fix is None:
+            return self.observer.loss(*batch)
+        win, after, weight = batch
+        return self.observer.next_fix_loss(win, after, weight, *self.next_fix)
 
     def _carried_step(self, batch) -> torch.Tensor:
         """One batch of windows trained carried, chunk by chunk (see ``tbptt``); returns the
@@ -150,7 +163,7 @@ class TrainingModule(L.LightningModule):
 
     def validation_step(self, batch, batch_idx: int) -> None:
         if self.tbptt is None:
-            loss = self.observer.loss(*batch)
+            loss = self._window_loss(batch)
         else:  # each window carried through, from its first fix, its step eager: compiled,
             # a validation (no gradient, no covariance, its own batch size) is a graph of its
             # own, 25 s to compile on a first run for 1 s saved a validation (the car that slips)

@@ -35,6 +35,7 @@ import pandas as pd
 from omegaconf import DictConfig, OmegaConf
 
 from lbo.core.atomic import write_text
+from lbo.core.checks import require
 from lbo.core.errors import LboError
 from lbo.core.redact import scrub
 from lbo.filters.gyro import GyroNoise
@@ -42,7 +43,7 @@ from lbo.learn.gyro_fit import GyroFit, Settings
 from lbo.sim.columns import STATE
 from lbo.sim.log_sets import LogSpec, is_logs, spec_from_cfg
 
-__all__ = ["FOLDER", "NAME", "check", "train"]
+__all__ = ["ACROSS", "FOLDER", "NAME", "across_drives", "check", "train"]
 
 NAME = "gyro_ekf"
 """``model.name`` of the gyro EKF learned as an observer."""
@@ -50,11 +51,16 @@ FOLDER = "gyro_ekf"
 """The run's artifact folder holding what :func:`lbo.tracking.artifacts.learned_noise` reads."""
 LEARNED = "gyro, learned noise"
 DEFAULTS = "gyro, receiver's accuracy and velocity"  # lbo.scoring.receiver.score's label
+ACROSS = "gyro, noise learned on the other drives"
+"""The row of a leave-one-drive-out table (:func:`across_drives`) whose noise was learned on
+every drive but the one scored."""
 
 
 def check(cfg: DictConfig) -> tuple[Settings, LogSpec]:
     """The run's settings and logs, checked before any work (one line naming the field)."""
     settings = Settings.from_cfg(cfg.model, "model")
+    require(isinstance(cfg.model.get("across_drives", False), bool), "model.across_drives",
+            "true or false", cfg.model.get("across_drives"))
     if not is_logs(cfg):
         raise LboError(f"data: model=gyro_ekf learns from a vehicle's logs (data=logs with "
                        f"data.train and data.val, or data=hill); got data={cfg.data.name}")
@@ -102,6 +108,30 @@ def score(logs: list[pd.DataFrame], names: list[str], noise: GyroNoise, spec: Lo
         table.insert(0, "log", name)
         tables.append(table)
     return pd.concat(tables, ignore_index=True)
+
+
+def across_drives(drives: list[pd.DataFrame], settings: Settings, vehicle: Any, noise: Any,
+                  observers: list[str], out: Path | None = None,
+                  progress: Callable[[str], None] | None = print) -> pd.DataFrame:
+    """Leave-one-drive-out (:func:`lbo.scoring.drives.leave_one_out`): for each drive (a log
+    with truth), the gyro EKF's noise learned from the defaults on all the others as
+    ``settings`` says (the epoch kept by those same drives: none is held out of two; by the
+    innovations their truth is not read), it and ``observers`` scored on the one left out.
+    With ``out``, each fold's noise is written as ``gyro_noise_without_drive<k>.json``.
+    Returns the long table (one row per drive and estimator, ``vs_ekf``)."""
+    from lbo.learn import gyro_fit
+    from lbo.scoring import drives as across
+
+    R, start = gyro_fit.fix_cov(noise), GyroNoise.from_q(noise.Q)
+
+    def learn(k: int, train: list[pd.DataFrame]) -> dict[str, GyroNoise]:
+        fitted = gyro_fit.fit(train, train, vehicle, R, start, progress=None,
+                              **settings.kwargs(vehicle.dt))
+        if out is not None:
+            fitted.noise.save(out / f"gyro_noise_without_drive{k + 1}.json")
+        return {ACROSS: fitted.noise}
+
+    return across.leave_one_out(drives, learn, observers, vehicle, noise, progress=progress)
 
 
 def test_metrics(table: pd.DataFrame) -> dict[str, float]:
@@ -152,8 +182,8 @@ def train(cfg: DictConfig, params: dict[str, Any], tags: dict[str, str]) -> dict
     tests = read(spec, "test", True) if spec.files["test"] else []
     start = GyroNoise.from_q(spec.noise.Q)
     out = Path(cfg.output_dir)
-    run = _Run.open(cfg, {**tags, "config_hash": digest}, params)
     with claim(out):
+        run = _Run.open(cfg, {**tags, "config_hash": digest}, params)
         try:
             how = "its truth" if truth else "its fixes' likelihood, no truth read"
             print(f"learning the gyro EKF's noise on {len(train_logs)} log(s) of {spec.name} "
@@ -167,6 +197,10 @@ def train(cfg: DictConfig, params: dict[str, Any], tags: dict[str, str]) -> dict
                      if tests else None)
             files = _write(out, cfg, fitted, spec, table)
             metrics = test_metrics(table) if table is not None else {}
+            if cfg.model.get("across_drives"):
+                drives, wide = _across(spec, settings, out)
+                metrics |= drives
+                files["drives.md"] = wide
             run.finish(fitted, metrics, files)
         except BaseException:
             run.fail()
@@ -177,6 +211,31 @@ def train(cfg: DictConfig, params: dict[str, Any], tags: dict[str, str]) -> dict
     return {"name": NAME, "val_loss": float(val[fitted.best_epoch]), "run_id": run.run_id,
             "checkpoint": str(files["gyro_noise.json"]), "epochs": settings.epochs,
             "reused": False, **metrics}
+
+
+def _across(spec: LogSpec, settings: Settings, out: Path) -> tuple[dict[str, float], Path]:
+    """``model.across_drives``: every log of the three sets a drive, each scored by the noise
+    learned on the others (:func:`across_drives`); its metrics ``drives_vs_ekf_<log>``,
+    ``_mean`` and ``_worst``, and ``drives.md``."""
+    from lbo.scoring import drives as across
+
+    names = [p.stem for part in ("train", "val", "test") for p in spec.files[part]]
+    if len(names) < 2:
+        raise LboError(f"model.across_drives: leave-one-drive-out needs two logs or more in "
+                       f"data.train, data.val and data.test together, got {len(names)}")
+    logs = [log for part in ("train", "val", "test") for log in read(spec, part, True)]
+    print(f"leave-one-drive-out over {len(logs)} drives ({', '.join(names)}): the noise "
+          "learned on the others, scored on each")
+    table = across_drives(logs, settings, spec.vehicle, spec.noise, ["ekf", "gyro"], out,
+                          progress=lambda line: print("  " + line))
+    wide = across.summary(table)
+    print(across.markdown(wide), end="")
+    row = wide[wide["estimator"] == ACROSS].iloc[0]
+    metrics = {f"drives_vs_ekf_{name}": float(row[f"drive {k + 1}"])
+               for k, name in enumerate(names)}
+    metrics |= {"drives_vs_ekf_mean": float(row["mean"]),
+                "drives_vs_ekf_worst": float(row["worst"])}
+    return metrics, write_text(out / "drives.md", across.markdown(wide))
 
 
 def _write(out: Path, cfg: DictConfig, fitted: GyroFit, spec: LogSpec,

@@ -22,6 +22,7 @@ from lbo.models.features import (
     target_to_state,
     window_features,
 )
+from lbo.models.motion import bicycle_step
 from lbo.models.poses import wrap_heading
 
 CHECKPOINT_FORMAT = 1
@@ -262,7 +263,33 @@ class WindowNet(nn.Module):
         if self.receiver:  # a window without any heading tells none: its heading is not taught
             known = receiver_window.heading_known(receiver_window.widen(win))
             r = torch.cat([r[:, :2], torch.where(known[:, None], r[:, 2:], 0.0)], 1)
-        se = ((r / self.out_std) ** 2).mean(1)
+        return self._weighted((r / self.out_std) ** 2, weight)
+
+    def next_fix_loss(self, win: torch.Tensor, after: torch.Tensor,
+                      weight: torch.Tensor | None = None, dt: float = 0.02,
+                      wheelbase: float = 2.7) -> torch.Tensor:
+        """The self-supervised loss: no truth read. Each window's estimate, moved one step
+        by the kinematic bicycle, against the fix of that next step, which the window does not
+        hold; its MSE in the units of :meth:`loss` over the channels the fix holds.
+
+        after : (B, 5) the next step's fix ``[x_m, y_m, psi_m]`` (NaN where it has none) and
+        the window's last inputs ``[V, delta]``. The fix's noise is its own, apart from
+        everything the window reads, so the loss is the estimate's error against the truth
+        plus a constant (the fix's noise and one step of the process noise): its minimum is
+        the truth-trained one's (the kinematic bicycle is linear in x and y, nearly so in psi
+        over a step)."""
+        moved = bicycle_step(self(win), after[:, 3], after[:, 4], dt, wheelbase)
+        r = wrap_heading(moved - after[:, :3])
+        held = torch.isfinite(r)
+        return self._weighted(torch.where(held, r / self.out_std, 0.0) ** 2, weight,
+                              held.sum(1).clamp(min=1) / 3)
+
+    @staticmethod
+    def _weighted(se: torch.Tensor, weight: torch.Tensor | None,
+                  share: torch.Tensor | float = 1.0) -> torch.Tensor:
+        """Squared errors (B, 3) as one loss: each window's mean over its channels (``share``
+        (B,): the share of them it holds), weighted over windows (None: equally)."""
+        per = se.mean(1) / share
         if weight is None:
-            return se.mean().float()
-        return ((se * weight).sum() / weight.sum()).float()
+            return per.mean().float()
+        return ((per * weight).sum() / weight.sum()).float()
