@@ -180,10 +180,6 @@ NEEDS_LOGS = Refusal(r"data\.train must be a list of log files",
 NEEDS_TEST_LOGS = Refusal(r"data\.test must be a list of log files",
                           "lbo.evaluate data=logs scores the user's test logs "
                           "(data.test=[...]), and these cases name none")
-NEEDS_FRAME = Refusal(r"features: model '(filternet|kalmannet|split_kalmannet)' needs features "
-                      r"in \['frame'\]",
-                      "the window EKF and KalmanNet take their inputs in the frame of the latest "
-                      "fix; with no experiment, or experiment=smoke, features stay relative")
 FILTERNET_ONLY = Refusal(r"model\.(body|body_lr|residual|drift): not a parameter of model",
                          "experiment=dynamic, dynamic_carried and logs set the filternet's learned "
                          "body, residual and drift; their black-box peers are "
@@ -210,12 +206,6 @@ RECEIVER_DRIFT = Refusal(r"model.drift: expected false for a window filter that 
 GYRO_NEEDS_LOGS = Refusal(r"data: model=gyro_ekf learns from a vehicle's logs",
                           "the gyro EKF's noise is learned on logs with a gyro and one antenna")
 
-RELATIVE_FEATURES = {None, "smoke"}
-"""Experiments that leave ``features=relative`` (refused for the models in FRAME_MODELS)."""
-FRAME_MODELS = {"filternet", "kalmannet", "split_kalmannet"}
-"""Models that read features in the frame of the latest fix only."""
-FRAME_SEARCHES = {"kalmannet", "split_kalmannet"}
-"""Searches that set ``features=frame`` themselves (their models read nothing else)."""
 FILTERNET_EXPERIMENTS = {"dynamic", "dynamic_carried", "logs"}
 """Experiments that set model keys only the filternet takes (refused for other models)."""
 FIX_RATE_EXPERIMENTS = {"robust", "logs", "receiver"}
@@ -242,9 +232,6 @@ def train_refusal(experiment: str | None, choice: dict[str, str | None],
             return RECEIVER_MODEL
         if choice["model"] == "filternet" and experiment == "logs":
             return RECEIVER_DRIFT
-    if (choice["model"] in FRAME_MODELS and experiment in RELATIVE_FEATURES
-            and search not in FRAME_SEARCHES):
-        return NEEDS_FRAME
     if experiment in FILTERNET_EXPERIMENTS and choice["model"] != "filternet":
         return FILTERNET_ONLY
     if choice["data"] == "logs":

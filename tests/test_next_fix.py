@@ -148,3 +148,25 @@ def test_kalmannet_trains_without_truth_as_unsupervised_kalmannet(tmp_path, smok
              if k in start and v.dtype.is_floating_point and not torch.equal(v, start[k])
              and not k.startswith(("in_", "out_"))]
     assert moved  # the gain network learned something from the next fixes
+
+
+def test_the_new_settings_keep_the_hashes_of_runs_made_before_them(tmp_path, smoke_data):
+    """``loss`` (and ``data.source`` of data=logs) came after runs were stored: at their
+    defaults a config hashes as one without them, so resume=true still finds those runs."""
+    from omegaconf import open_dict
+
+    from helpers import compose_cfg, train_cfg
+    from lbo.train import config_hash
+
+    now = train_cfg(tmp_path, smoke_data)
+    before = now.copy()
+    with open_dict(before):
+        before.pop("loss")
+    assert config_hash(now) == config_hash(before)
+    assert config_hash(train_cfg(tmp_path, smoke_data, "loss=next_fix")) != config_hash(now)
+    logs = compose_cfg("train", ["experiment=logs"] + [
+        f"data.{part}=[{smoke_data / part}.parquet]" for part in ("train", "val", "test")])
+    old = logs.copy()
+    with open_dict(old):
+        assert old.data.pop("source") == "files"
+    assert config_hash(logs) == config_hash(old)
