@@ -8,7 +8,7 @@ import pandas as pd
 import pytest
 import torch
 
-from helpers import cli, train_cfg
+from helpers import cli, one_line_error, train_cfg
 from lbo.core.cli import quiet_lightning
 from lbo.core.errors import LboError
 from lbo.learn.datamodule import WindowDataModule, rows, window_ends
@@ -208,6 +208,7 @@ def test_multirun_sweep_logs_eight_runs(tmp_path, smoke_data, tracking):
     assert said.count("worst ratio to the oracle over alpha 0.25-6: ") == 8
     assert said.count("`Trainer.fit` stopped") == 8  # Lightning's lines once, not twice
     assert "Tip:" not in said  # nor its advertisements
+    assert "Trainable params" not in said  # nor its table of the model's layers (verbose=true)
     assert "Downloading artifacts" not in said  # nor MLflow's bars after the result
     # the experiment opens in MLflow's model-training view, not its GenAI one
     kind = client.get_experiment(found[0].info.experiment_id).tags["mlflow.experimentKind"]
@@ -337,3 +338,16 @@ def test_threads_sets_the_runs_intra_op_threads_and_leaves_its_hash(tmp_path, sm
     finally:
         torch.set_num_threads(before)
     assert seen == [1]
+
+
+@pytest.mark.slow
+def test_verbose_brings_back_the_model_summary_and_is_a_flag(tmp_path, smoke_data):
+    args = ("experiment=smoke", f"data.root={smoke_data.parent}", "trainer.max_epochs=1",
+            "keep_onnx=false", f"output_dir={tmp_path / 'out'}", f"hydra.run.dir={tmp_path}")
+    env = {"MLFLOW_TRACKING_URI": f"sqlite:///{tmp_path / 'mlflow.db'}"}
+    # in a process of its own: Lightning's handler writes to the stream it started with
+    res = cli("lbo.train", *args, "verbose=true", env=env, process=True)
+    assert res.returncode == 0, res.stderr[-3000:]
+    assert "Trainable params" in res.stdout + res.stderr
+    one_line_error(cli("lbo.train", *args, "verbose=yes", env=env),
+                   "verbose must be true or false")

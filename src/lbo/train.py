@@ -141,8 +141,8 @@ def check(cfg: DictConfig) -> Built:
                        f"carried; set tbptt too, or nll=0 (got nll={nll} with tbptt=null)")
     check_compile(cfg)
     check_loss(cfg)
-    require(isinstance(cfg.get("keep_onnx", True), bool), "keep_onnx", "true or false",
-            cfg.get("keep_onnx"))
+    for flag, default in (("keep_onnx", True), ("verbose", False)):
+        require(isinstance(cfg.get(flag, default), bool), flag, "true or false", cfg.get(flag))
     check_scaling(cfg.model.normalisation, "model.normalisation")
     check_trainer(cfg.trainer)
     check_optimizer(cfg.optimizer)
@@ -308,7 +308,10 @@ def _fit(cfg: DictConfig, built: Built, callbacks: list[L.Callback] | None,
     callbacks = [*(instantiate(c) for c in (cfg.get("callbacks") or {}).values()),
                  *(callbacks or []), identity]
     # trained carried, the module clips each chunk's step itself (``clip``)
-    manual = {"gradient_clip_val": None} if cfg.get("tbptt") is not None else {}
+    manual: dict[str, Any] = ({"gradient_clip_val": None} if cfg.get("tbptt") is not None
+                              else {})
+    # Lightning's table of the model's layers: 10 lines before every run, asked for by verbose
+    manual.setdefault("enable_model_summary", bool(cfg.get("verbose")))
     trainer = instantiate(cfg.trainer, logger=logger if logger is not None else False,
                           callbacks=callbacks, plugins=[AtomicCheckpointIO()], **manual)
     output = Path(cfg.output_dir)

@@ -59,6 +59,7 @@ def config_hash(cfg: DictConfig) -> str:
         c.pop("threads", None)
         c.pop("compile", None)
         c.pop("keep_onnx", None)  # what lbo.observe finds afterwards, not what is trained
+        c.pop("verbose", None)  # what it prints
         for key, default in LATER_DEFAULTS.items():
             *group, name = key.split(".")
             node = OmegaConf.select(c, ".".join(group)) if group else c

@@ -255,5 +255,9 @@ def run_artifact(run: dict[str, Any], path: str, tracking_uri: str) -> Path:
     artifacts."""
     import mlflow
 
-    return Path(mlflow.artifacts.download_artifacts(run_id=run["run_id"], artifact_path=path,
-                                                    tracking_uri=tracking_uri))
+    from lbo.tracking.artifacts import no_progress_bar
+
+    with no_progress_bar():  # a bar per small file, between a command's own lines
+        return Path(mlflow.artifacts.download_artifacts(run_id=run["run_id"],
+                                                        artifact_path=path,
+                                                        tracking_uri=tracking_uri))
