@@ -133,7 +133,7 @@ def log_model(tracking_uri: str, run_id: str, checkpoint: str | Path) -> str:
 
     import mlflow
 
-    from lbo.tracking.artifacts import no_progress_bar
+    from lbo.tracking.runs import no_progress_bar
 
     # saving copies the checkpoint in through MLflow's downloader: no bars after the result
     with tempfile.TemporaryDirectory(prefix="lbo-model-") as tmp, warnings.catch_warnings(), \

@@ -24,6 +24,7 @@ from lbo.core.errors import LboError
 from lbo.core.paths import sqlite_path, tracking_uri
 from lbo.core.smallfile import read_small
 from lbo.filters import classical
+from lbo.tracking.runs import no_progress_bar
 
 RUN_ID = re.compile(r"[0-9a-f]{32}")
 """An MLflow run id, as ``observer=<run id>`` takes it."""
@@ -153,24 +154,6 @@ def _noise_download(run_id: str, store: str, folder: Path) -> Path | None:
     except MlflowException:
         return None  # no such run: loading it as a checkpoint says so
     return folder / "gyro_ekf"
-
-
-PROGRESS_BAR = "MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR"
-
-
-@contextlib.contextmanager
-def no_progress_bar() -> Iterator[None]:
-    """MLflow's download bars off for the ``with`` block (a checkpoint of a few MB comes in a
-    blink, and the bars would sit between a command's own lines), unless the user set
-    :data:`PROGRESS_BAR`."""
-    if PROGRESS_BAR in os.environ:
-        yield
-        return
-    os.environ[PROGRESS_BAR] = "false"
-    try:
-        yield
-    finally:
-        os.environ.pop(PROGRESS_BAR, None)
 
 
 def _download(uri: str, run_id: str | None, folder: Path) -> Path:

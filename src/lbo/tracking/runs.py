@@ -8,6 +8,7 @@ RUNNING.
 from __future__ import annotations
 
 import contextlib
+import os
 import sqlite3
 from collections.abc import Iterator
 from pathlib import Path
@@ -255,9 +256,25 @@ def run_artifact(run: dict[str, Any], path: str, tracking_uri: str) -> Path:
     artifacts."""
     import mlflow
 
-    from lbo.tracking.artifacts import no_progress_bar
-
     with no_progress_bar():  # a bar per small file, between a command's own lines
         return Path(mlflow.artifacts.download_artifacts(run_id=run["run_id"],
                                                         artifact_path=path,
                                                         tracking_uri=tracking_uri))
+
+
+PROGRESS_BAR = "MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR"
+
+
+@contextlib.contextmanager
+def no_progress_bar() -> Iterator[None]:
+    """MLflow's download bars off for the ``with`` block (a checkpoint of a few MB comes in a
+    blink, and the bars would sit between a command's own lines), unless the user set
+    :data:`PROGRESS_BAR`."""
+    if PROGRESS_BAR in os.environ:
+        yield
+        return
+    os.environ[PROGRESS_BAR] = "false"
+    try:
+        yield
+    finally:
+        os.environ.pop(PROGRESS_BAR, None)
