@@ -143,8 +143,10 @@ def test_robust_checkpoint_refuses_another_feature_mode(robust):
 
 
 def _filternet_relative(tmp_path, root):
+    """The window filter told to read relative features (its own default is frame)."""
     return compose_cfg("train", ["experiment=smoke", f"data.root={root}",
-                                 f"output_dir={tmp_path / 'out'}", "model=filternet"])
+                                 f"output_dir={tmp_path / 'out'}", "model=filternet",
+                                 "model.features=relative"])
 
 
 def test_filternet_with_relative_features_is_refused_before_training(tmp_path, smoke_data,
@@ -196,3 +198,14 @@ def test_the_robust_envelope_spans_its_drawn_noise_and_fix_rates(robust):
     env = Observer.load(robust["out"]["checkpoint"]).envelope
     assert env.alpha == (0.0, 6.5)  # train_noise=diverse
     assert env.fix_period == (1.0, 50.0)  # fix_rates [50, 10, 5, 1] at 50 Hz
+
+
+@pytest.mark.parametrize("model", ["filternet", "kalmannet", "split_kalmannet"])
+def test_a_frame_model_brings_its_feature_mode_unless_told_otherwise(model):
+    """experiment=smoke (or none) leaves features relative for the CNN and the LSTM; the
+    models that read the latest fix's frame only set it themselves (issue 73)."""
+    for experiment in ([], ["experiment=smoke"]):
+        assert compose_cfg("train", [*experiment, f"model={model}"]).model.features == "frame"
+    assert compose_cfg("train", ["experiment=smoke"]).model.features == "relative"
+    told = compose_cfg("train", [f"model={model}", "model.features=absolute"])
+    assert told.model.features == "absolute"  # the user's word wins (and is refused)
