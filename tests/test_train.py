@@ -210,7 +210,8 @@ def test_multirun_sweep_logs_eight_runs(tmp_path, smoke_data, tracking):
     assert "Tip:" not in said  # nor its advertisements
     assert "Trainable params" not in said  # nor its table of the model's layers (verbose=true)
     # and the sweep ends with one table of its eight runs (lbo.core.sweep)
-    end = res.stdout.split("the sweep's runs, NRMSE on the test grid")[-1]
+    end = res.stdout.split("the sweep's runs side by side")[-1]
+    assert end != res.stdout
     assert all(f"{m}-N{n} (job " in end for m in ("cnn", "lstm") for n in (20, 40, 60, 80))
     assert "Downloading artifacts" not in said  # nor MLflow's bars after the result
     # the experiment opens in MLflow's model-training view, not its GenAI one

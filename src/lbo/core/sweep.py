@@ -64,5 +64,5 @@ class SweepTable(Callback):
     def on_multirun_end(self, config: DictConfig, **kwargs: Any) -> None:
         text = table(str(config.hydra.sweep.dir))
         if text:
-            print(f"the sweep's runs, NRMSE on the test grid (the EKF at alpha 1 is 1), from "
-                  f"each job's evaluation.csv in {config.hydra.sweep.dir}:\n{text}", flush=True)
+            print(f"the sweep's runs side by side (NRMSE, the EKF at alpha 1 is 1), from each "
+                  f"job's evaluation.csv in {config.hydra.sweep.dir}:\n{text}", flush=True)
