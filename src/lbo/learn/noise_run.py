@@ -197,8 +197,10 @@ def train(cfg: DictConfig, params: dict[str, Any], tags: dict[str, str]) -> dict
                      if tests else None)
             files = _write(out, cfg, fitted, spec, table)
             metrics = test_metrics(table) if table is not None else {}
-            if cfg.model.get("across_drives"):
-                drives, wide = _across(spec, settings, out)
+            if cfg.model.get("across_drives"):  # every drive scored: each with its truth
+                scored = ((train_logs + val_logs) if truth
+                          else read(spec, "train", True) + read(spec, "val", True))
+                drives, wide = _across(spec, settings, out, scored + tests)
                 metrics |= drives
                 files["drives.md"] = wide
             run.finish(fitted, metrics, files)
@@ -213,17 +215,18 @@ def train(cfg: DictConfig, params: dict[str, Any], tags: dict[str, str]) -> dict
             "reused": False, **metrics}
 
 
-def _across(spec: LogSpec, settings: Settings, out: Path) -> tuple[dict[str, float], Path]:
+def _across(spec: LogSpec, settings: Settings, out: Path, logs: list[pd.DataFrame]
+            ) -> tuple[dict[str, float], Path]:
     """``model.across_drives``: every log of the three sets a drive, each scored by the noise
     learned on the others (:func:`across_drives`); its metrics ``drives_vs_ekf_<log>``,
-    ``_mean`` and ``_worst``, and ``drives.md``."""
+    ``_mean`` and ``_worst``, and ``drives.md``. ``logs``: the sets' logs in that order, each
+    with its truth (those already read, not read again)."""
     from lbo.scoring import drives as across
 
     names = [p.stem for part in ("train", "val", "test") for p in spec.files[part]]
     if len(names) < 2:
         raise LboError(f"model.across_drives: leave-one-drive-out needs two logs or more in "
                        f"data.train, data.val and data.test together, got {len(names)}")
-    logs = [log for part in ("train", "val", "test") for log in read(spec, part, True)]
     print(f"leave-one-drive-out over {len(logs)} drives ({', '.join(names)}): the noise "
           "learned on the others, scored on each")
     table = across_drives(logs, settings, spec.vehicle, spec.noise, ["ekf", "gyro"], out,
