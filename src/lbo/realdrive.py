@@ -48,7 +48,7 @@ import pandas as pd
 from omegaconf import DictConfig
 
 from lbo.core.atomic import atomic_path
-from lbo.core.checks import integer, number, require
+from lbo.core.checks import boolean, integer, number
 from lbo.core.cli import entry
 from lbo.core.errors import LboError
 from lbo.filters import classical
@@ -117,8 +117,7 @@ def realdrive(cfg: DictConfig) -> dict[str, Any]:
 
     learn = Settings.from_cfg(cfg.learn)
     simulated_epochs = integer(cfg.learn.simulated, "learn.simulated", 0)
-    across_drives = cfg.get("across_drives", True)
-    require(isinstance(across_drives, bool), "across_drives", "true or false", across_drives)
+    across_drives = boolean(cfg.get("across_drives", True), "across_drives")
     out = Path(str(cfg.output_dir))
     paths = {k: check_output_path(out / f"hill_{k}.parquet") for k in hguide.SPANS}
     check_output_path(out / "results.csv")
@@ -201,7 +200,7 @@ def _learn(cfg: Any, simulated_epochs: int, simulated: DictConfig,
         return gyro_fit.fit_and_write(out, name, train, val, vehicle, R, start, where,
                                       **settings.kwargs(vehicle.dt))
 
-    defaults = GyroNoise.from_q(noise.Q)
+    defaults = cfg.starting(GyroNoise.from_q(noise.Q))
     out_noise = {LEARNED: learn("gyro_noise", parts["train"], parts["val"], defaults,
                                 cfg.epochs, "on the train span, from the defaults")}
     if simulated_epochs:

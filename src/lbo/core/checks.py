@@ -18,6 +18,12 @@ def require(ok: bool, field: str, form: str, value: Any) -> None:
         raise LboError(f"{field} must be {form}, got {value!r}")
 
 
+def boolean(value: Any, field: str) -> bool:
+    """``value`` if it is true or false (not 1, not "yes"), else one line naming ``field``."""
+    require(isinstance(value, bool), field, "true or false", value)
+    return bool(value)
+
+
 def positive(cfg, key: str, prefix: str, integer: bool = False) -> float:
     """``cfg[key]`` checked by :func:`integer` (an integer >= 1, with ``integer``) or
     :func:`number` (a number > 0) under the field name ``<prefix>.<key>``."""

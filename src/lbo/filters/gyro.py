@@ -64,6 +64,8 @@ NOISE_RANGES = {
     "accuracy_scale": (1e-12, 1e3, "a factor"),
     "velocity_scale": (1e-12, 1e3, "a factor"),
     "course_lever": (1e-12, 100.0, "m"),
+    "drift_sigma": (1e-6, 1e3, "m"),
+    "drift_tau": (1e-2, 1e6, "s"),
 }
 """(smallest, largest, unit) of each noise of :class:`GyroNoise`. Past them a noise says
 nothing a filter can use, and its square runs towards float64's ends (1e200 overflowed ``Q``):
@@ -71,6 +73,9 @@ a car moves under 2 m a step at 100 m/s, a heading that wanders a radian a step 
 tracked, a gyro reads within 10 rad/s (:data:`lbo.sim.logcheck.GYRO_LIMIT`), an antenna sits
 on the car; below 1e-12 a sigma's square is lost to rounding beside any other variance, and a
 covariance made of such zeros turns singular."""
+
+DRIFT = ("drift_sigma", "drift_tau")
+"""The two noises of :class:`GyroNoise` that carry the fixes' drift (both or neither)."""
 
 STILL_SPEED = 0.05
 """Speed (m/s) below which the car stands: it does not turn, so its heading is held and the
@@ -82,6 +87,7 @@ class GyroKeywords(TypedDict):
 
     gyro_sigma: float
     bias_walk: float
+    drift: FixDrift | None
 
 
 @dataclass(frozen=True)
@@ -98,6 +104,9 @@ class GyroNoise:
         the course's variance; which rows hold a course is the reported sigma's to say.
     course_lever : the antenna's distance (m) from the rear axle that the course's variance
         allows for (:data:`lbo.filters.measure.COURSE_LEVER`).
+    drift_sigma, drift_tau : the fixes' slow error (:class:`FixDrift`: its stationary
+        1-sigma, m, and correlation time, s), carried as two more states; both None (the
+        default): the fixes' error is taken as white.
     """
 
     q_position: float
@@ -107,10 +116,17 @@ class GyroNoise:
     accuracy_scale: float = 1.0
     velocity_scale: float = 1.0
     course_lever: float = measure.COURSE_LEVER
+    drift_sigma: float | None = None
+    drift_tau: float | None = None
 
     def __post_init__(self) -> None:
+        if (self.drift_sigma is None) != (self.drift_tau is None):
+            raise LboError("gyro noise drift_sigma, drift_tau: expected both (the fixes' "
+                           "drift) or neither, got one")
         for f in dataclasses.fields(self):
             v = getattr(self, f.name)
+            if v is None and f.name in DRIFT:
+                continue
             low, high, unit = NOISE_RANGES[f.name]
             # a bool is an int to Python, not a noise; a comparison, unlike float(), takes an
             # int of any size, and NaN fails it
@@ -119,6 +135,24 @@ class GyroNoise:
                 raise LboError(f"gyro noise {f.name}: expected a number in [{low:g}, {high:g}] "
                                f"({unit}), got {got}")
             object.__setattr__(self, f.name, float(v))  # frozen: set once, checked
+
+    def __str__(self) -> str:
+        held = (f"{f.name}={getattr(self, f.name)!r}" for f in dataclasses.fields(self)
+                if getattr(self, f.name) is not None)  # the drift's only where it has one
+        return f"GyroNoise({', '.join(held)})"
+
+    @property
+    def drift(self) -> FixDrift | None:
+        """The fixes' drift it carries, None where it takes their error as white."""
+        if self.drift_sigma is None or self.drift_tau is None:
+            return None
+        return FixDrift(self.drift_sigma, self.drift_tau)
+
+    def with_drift(self, drift: FixDrift | None) -> GyroNoise:
+        """The same noise carrying ``drift`` (None: none)."""
+        if drift is None:
+            return dataclasses.replace(self, drift_sigma=None, drift_tau=None)
+        return dataclasses.replace(self, drift_sigma=drift.sigma, drift_tau=drift.tau)
 
     @classmethod
     def from_q(cls, Q: np.ndarray) -> GyroNoise:
@@ -142,29 +176,33 @@ class GyroNoise:
 
     def stepper(self) -> GyroKeywords:
         """The keyword arguments of :class:`GyroStepper` and :func:`gyro_ekf_batch`."""
-        return {"gyro_sigma": self.gyro_sigma, "bias_walk": self.bias_walk}
+        return {"gyro_sigma": self.gyro_sigma, "bias_walk": self.bias_walk,
+                "drift": self.drift}
 
     def save(self, path: str | Path) -> None:
-        """Write it as JSON (atomically)."""
+        """Write it as JSON (atomically); the drift's two numbers only where it carries one."""
         from lbo.core.atomic import atomic_path
 
+        data = {k: v for k, v in dataclasses.asdict(self).items() if v is not None}
         with atomic_path(Path(path)) as tmp:
-            Path(tmp).write_text(json.dumps(dataclasses.asdict(self), indent=1) + "\n")
+            Path(tmp).write_text(json.dumps(data, indent=1) + "\n")
 
     @classmethod
     def load(cls, path: str | Path) -> GyroNoise:
         """Read what :meth:`save` wrote; anything else is a one-line error: a path that is
         not a regular file of at most 64 KiB (:func:`lbo.core.smallfile.read_small`), not
-        JSON, not an object of exactly the seven noises, or a noise that is not a number in
-        its range (:data:`NOISE_RANGES`; ``true`` is not 1)."""
-        names = sorted(f.name for f in dataclasses.fields(cls))
-        form = f"a JSON object of numbers with exactly {', '.join(names)}"
+        JSON, not an object of exactly the seven noises (or the seven and the drift's two),
+        or a noise that is not a number in its range (:data:`NOISE_RANGES`; ``true`` is not
+        1)."""
+        names = [f.name for f in dataclasses.fields(cls) if f.name not in DRIFT]
+        form = (f"a JSON object of numbers with exactly {', '.join(sorted(names))} (and "
+                f"{' and '.join(DRIFT)} for the fixes' drift, both null for none)")
         raw = read_small(path, f"gyro noise {path}", form)
         try:
             data: Any = json.loads(raw.decode("utf-8"))
         except (ValueError, RecursionError) as e:  # UnicodeDecodeError is a ValueError
             raise LboError(f"gyro noise {path}: not a readable JSON file ({e})") from None
-        if not isinstance(data, dict) or set(data) != set(names):
+        if not isinstance(data, dict) or set(data) not in (set(names), {*names, *DRIFT}):
             raise LboError(f"gyro noise {path}: expected {form}")
         return cls(**data)
 

@@ -42,7 +42,7 @@ import torch
 from lbo.core.angles import wrap_angle
 from lbo.core.errors import LboError
 from lbo.filters import classical, measure
-from lbo.filters.gyro import GyroNoise
+from lbo.filters.gyro import FixDrift, GyroNoise
 from lbo.models.gyro_filter import GyroFilter, Segments
 from lbo.models.poses import wrap_heading
 from lbo.scoring.receiver import measure_ratio, scored_rows
@@ -73,13 +73,20 @@ class GyroFit:
     best_epoch: int
 
 
+DRIFT_START = FixDrift(sigma=0.3, tau=30.0)
+"""The fixes' drift a fit with ``drift`` starts from: a few decimetres over half a minute, a
+receiver's multipath and atmosphere (the fit learns both numbers)."""
+
+
 @dataclass(frozen=True)
 class Settings:
     """How a command fits the gyro EKF's noise (its ``learn:`` group), checked.
 
     epochs : full-batch steps (0: no fit); segment_s : s per segment; lr : Adam's step;
     objective : one of :data:`OBJECTIVES`; method : one of :data:`METHODS`;
-    ahead_s : s ahead each fix is also predicted (``innovations`` only; 0: none).
+    ahead_s : s ahead each fix is also predicted (``innovations`` only; 0: none);
+    drift : the filter carries the fixes' drift as two more states, its size and correlation
+        time learned from :data:`DRIFT_START` (:meth:`starting`).
     """
 
     epochs: int
@@ -88,11 +95,12 @@ class Settings:
     objective: str = "truth"
     method: str = "adam"
     ahead_s: float = 0.0
+    drift: bool = False
 
     @classmethod
     def from_cfg(cls, learn: Any, prefix: str = "learn") -> Settings:
         """From a config group, each field checked in one line naming ``<prefix>.<field>``."""
-        from lbo.core.checks import integer, number
+        from lbo.core.checks import boolean, integer, number
 
         out = cls(epochs=integer(learn.epochs, f"{prefix}.epochs", 0),
                   segment_s=number(learn.segment_s, f"{prefix}.segment_s", 0.0, low_open=True),
@@ -100,12 +108,17 @@ class Settings:
                   objective=check_objective(learn.get("objective", "truth"),
                                             f"{prefix}.objective"),
                   method=check_method(learn.get("method", "adam"), f"{prefix}.method"),
-                  ahead_s=number(learn.get("ahead_s", 0.0), f"{prefix}.ahead_s", 0.0))
+                  ahead_s=number(learn.get("ahead_s", 0.0), f"{prefix}.ahead_s", 0.0),
+                  drift=boolean(learn.get("drift", False), f"{prefix}.drift"))
         if out.ahead_s and out.objective != "innovations":
             raise LboError(f"{prefix}.ahead_s applies to {prefix}.objective=innovations (the "
                            f"fit by the fixes' likelihood), got {prefix}.objective="
                            f"{out.objective}")
         return out
+
+    def starting(self, noise: GyroNoise) -> GyroNoise:
+        """The noise a fit starts from: ``noise``, with :data:`DRIFT_START` if ``drift``."""
+        return noise.with_drift(DRIFT_START if self.drift else None)
 
     def kwargs(self, dt: float) -> dict[str, Any]:
         """The keywords of :func:`fit` (and :func:`fit_and_write`) for a log of period

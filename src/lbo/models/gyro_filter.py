@@ -8,7 +8,10 @@ It runs from a state the NumPy stepper gives (after the heading is known: the co
 the stepper's), over G segments at once; the noise it learns goes back into the NumPy
 stepper, which is what observes (tested equal to 1e-9).
 
-It reads single-antenna logs: fixes without a heading.
+It reads single-antenna logs: fixes without a heading. A noise that carries the fixes' drift
+(:attr:`GyroNoise.drift`) adds its two states, as the NumPy stepper does, and learns its size
+and correlation time with the rest: a likelihood that can tell the fixes' slow error from the
+car's motion.
 """
 
 from __future__ import annotations
@@ -26,12 +29,16 @@ from lbo.filters.gyro import GyroNoise
 from lbo.models.poses import wrap_angle_torch
 
 _NAMES = tuple(f.name for f in dataclasses.fields(GyroNoise))
+_FIX = (0, 1)
+"""The channels of a fix (x_m, y_m) among the filter's four (then the course, the gyro at
+standstill)."""
 
 
 class Segments(NamedTuple):
     """G stretches of a log, each started from the NumPy stepper's state (float64 tensors).
 
-    x0 : (G, 4) ``[x, y, psi, b]`` and P0 : (G, 4, 4) at each segment's first step.
+    x0 : (G, n) ``[x, y, psi, b]`` (n = 4; then the fixes' drift ``[dx, dy]``, n = 6) and
+        P0 : (G, n, n) at each segment's first step.
     fix : (G, T, 2) ``x_m, y_m`` (NaN: no fix).
     accuracy : (G, T, 2) reported ``sx_m, sy_m`` (NaN: the filter's R).
     course : (G, T) direction of the GNSS velocity (plus pi reversing; NaN: no velocity).
@@ -54,20 +61,29 @@ class Segments(NamedTuple):
 class GyroFilter(nn.Module):
     """The gyro EKF over :class:`Segments`, its noise learned.
 
-    noise : the starting noise; dt : the sampling period (s); R : (3, 3) the filter's R
-    where a fix reports no accuracy (its x, y block is used).
+    noise : the starting noise (with the fixes' drift, n = 6 states, else 4); dt : the
+    sampling period (s); R : (3, 3) the filter's R where a fix reports no accuracy (its x, y
+    block is used).
     """
 
-    if TYPE_CHECKING:  # a buffer registered by name, for the type checker
+    if TYPE_CHECKING:  # buffers registered by name, for the type checker
         R2: torch.Tensor
+        H: torch.Tensor
 
     def __init__(self, noise: GyroNoise, dt: float, R: torch.Tensor) -> None:
         super().__init__()
         self.dt = float(dt)
-        self.log = nn.ParameterDict({k: nn.Parameter(torch.tensor(math.log(getattr(noise, k)),
+        held = {k: getattr(noise, k) for k in _NAMES if getattr(noise, k) is not None}
+        self.log = nn.ParameterDict({k: nn.Parameter(torch.tensor(math.log(v),
                                                                   dtype=torch.float64))
-                                     for k in _NAMES})
+                                     for k, v in held.items()})
+        self.n = 6 if noise.drift is not None else 4
         self.register_buffer("R2", torch.as_tensor(R, dtype=torch.float64)[:2, :2].clone())
+        H = torch.zeros(4, self.n, dtype=torch.float64)  # x_m, y_m, course, standstill gyro
+        H[0, 0] = H[1, 1] = H[2, 2] = H[3, 3] = 1.0
+        if self.n == 6:
+            H[0, 4] = H[1, 5] = 1.0  # a fix measures the position plus its drift
+        self.register_buffer("H", H)
 
     def noise(self) -> GyroNoise:
         """The current noise."""
@@ -107,8 +123,9 @@ class GyroFilter(nn.Module):
         Q = self._Q()
         for j in range(steps):
             xs, Ps = self._predict(xs, Ps, seg.u[gi, start + j], Q)
-        S = Ps[:, :2, :2] + self._fix_R(seg.accuracy[gi, ti])
-        y = seg.fix[gi, ti] - xs[:, :2]
+        Hf = self.H[list(_FIX)]
+        S = Hf @ Ps @ Hf.T + self._fix_R(seg.accuracy[gi, ti])
+        y = seg.fix[gi, ti] - xs @ Hf.T
         mahalanobis = (y[:, None, :] @ torch.linalg.solve(S, y[:, :, None]))[:, 0, 0]
         return 0.5 * (mahalanobis + torch.logdet(S) + 2 * math.log(2 * math.pi))
 
@@ -122,39 +139,51 @@ class GyroFilter(nn.Module):
         R2 = torch.where(either, torch.zeros((), dtype=acc.dtype), self.R2)
         return R2 + torch.diag_embed(torch.where(told, acc**2, torch.zeros_like(acc)))
 
+    def _phi(self) -> torch.Tensor:
+        """The drift's factor over one step, ``exp(-dt / tau)`` (1 without a drift)."""
+        if self.n == 4:
+            return torch.ones((), dtype=torch.float64)
+        return torch.exp(-self.dt / torch.exp(self.log["drift_tau"]))
+
     def _Q(self) -> torch.Tensor:
-        """(4, 4) the process noise of one step."""
+        """(n, n) the process noise of one step (the drift's that of its stationary
+        first-order Gauss-Markov process, as :class:`lbo.filters.gyro.GyroStepper`'s)."""
         p = {k: torch.exp(v) for k, v in self.log.items()}
-        return torch.diag(torch.stack([p["q_position"] ** 2, p["q_position"] ** 2,
-                                       p["q_heading"] ** 2 + (p["gyro_sigma"] * self.dt) ** 2,
-                                       p["bias_walk"] ** 2 * self.dt]))
+        q = [p["q_position"] ** 2, p["q_position"] ** 2,
+             p["q_heading"] ** 2 + (p["gyro_sigma"] * self.dt) ** 2, p["bias_walk"] ** 2 * self.dt]
+        if self.n == 6:
+            q += [p["drift_sigma"] ** 2 * (1.0 - self._phi() ** 2)] * 2
+        return torch.diag(torch.stack(q))
 
     def _predict(self, x: torch.Tensor, P: torch.Tensor, u: torch.Tensor, Q: torch.Tensor
                  ) -> tuple[torch.Tensor, torch.Tensor]:
-        """One step of the model: x (B, 4), P (B, 4, 4) on u (B, 2) ``[V, r_m]``; the turn
-        is held at a standstill (the gyro then measures its bias)."""
-        dt = self.dt
+        """One step of the model: x (B, n), P (B, n, n) on u (B, 2) ``[V, r_m]``; the turn
+        is held at a standstill (the gyro then measures its bias); the drift decays."""
+        dt, n = self.dt, self.n
         v, rate = u[:, 0], u[:, 1]
         psi, bias = x[:, 2], x[:, 3]
         zero = torch.zeros((), dtype=x.dtype)
         still = v.abs() < gyro_np.STILL_SPEED
         turn = torch.where(still, zero, rate - bias)
-        x = torch.stack([x[:, 0] + v * torch.cos(psi) * dt, x[:, 1] + v * torch.sin(psi) * dt,
-                         psi + turn * dt, bias], -1)
-        F = torch.eye(4, dtype=x.dtype).expand(len(x), 4, 4).clone()
+        phi = self._phi()
+        x = torch.cat([torch.stack([x[:, 0] + v * torch.cos(psi) * dt,
+                                    x[:, 1] + v * torch.sin(psi) * dt,
+                                    psi + turn * dt, bias], -1), x[:, 4:] * phi], -1)
+        F = torch.eye(n, dtype=x.dtype).expand(len(x), n, n).clone()
         F[:, 0, 2] = -v * torch.sin(psi) * dt
         F[:, 1, 2] = v * torch.cos(psi) * dt
         F[:, 2, 3] = torch.where(still, zero, torch.full_like(v, -dt))
+        if n == 6:
+            F[:, 4, 4] = F[:, 5, 5] = phi
         return x, F @ P @ F.transpose(-1, -2) + Q
 
     def states(self, seg: Segments) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """The filter over the segments: states (G, T, 4), covariances (G, T, 4, 4) and each
+        """The filter over the segments: states (G, T, n), covariances (G, T, n, n) and each
         step's negative log-likelihood (G, T), as :meth:`run` says."""
         p = {k: torch.exp(v) for k, v in self.log.items()}
         g, t = seg.fix.shape[:2]
         dtype = seg.x0.dtype
-        Q = self._Q()
-        H = torch.eye(4, dtype=dtype)  # channels x_m, y_m, course (on psi), standstill gyro (b)
+        Q, H = self._Q(), self.H
         # the velocity's course, as lbo.filters.measure.course_over_ground holds it
         speed = torch.nan_to_num(seg.speed, nan=0.0)
         course_held = ((speed >= measure.COURSE_MIN_SPEED)
@@ -178,8 +207,10 @@ class GyroFilter(nn.Module):
             R[:, 3, 3] = p["gyro_sigma"] ** 2
             held = torch.stack([fix_held[:, k, 0], fix_held[:, k, 1], course_held[:, k], still],
                                -1)
-            y = torch.stack([fix[:, k, 0] - x[:, 0], fix[:, k, 1] - x[:, 1],
-                             wrap_angle_torch(course[:, k] - x[:, 2]), rate - x[:, 3]], -1)
+            seen = x @ H.T  # the fixes drifted, the heading, the bias
+            y = torch.stack([fix[:, k, 0] - seen[:, 0], fix[:, k, 1] - seen[:, 1],
+                             wrap_angle_torch(course[:, k] - seen[:, 2]), rate - seen[:, 3]],
+                            -1)
             x, P, step_nll = joseph_update(x, P, y, H, R, held)
             xs.append(x)
             Ps.append(P)
