@@ -231,9 +231,19 @@ def test_realdrive_writes_the_spans_and_scores_every_classical_observer(tmp_path
     # an epoch of each noise fit, on two simulated drives, keeps it lean (make real-drive
     # runs 12 epochs each, on four)
     res = cli("lbo.realdrive", f"output_dir={tmp_path}", "learn.epochs=1", "learn.simulated=1",
-              "simulated.drives=2", "across_drives=false", cwd=tmp_path)
+              "simulated.drives=2", "across_drives=false", "outages.length_s=10", cwd=tmp_path)
     assert res.returncode == 0, res.stderr
     table = pd.read_csv(tmp_path / "results.csv")
+    # the same observers through 10 s outages every 25 s while moving (lbo.scoring.outages)
+    through = pd.read_csv(tmp_path / "outages.csv").set_index("estimator")
+    assert list(through.index) == list(table["estimator"].iloc[1:])  # every observer's row
+    assert (through["outages"] >= 3).all() and (through["end_m"] > 0).all()
+    assert through.loc["ekf, receiver's accuracy and velocity", "end_vs_ekf"] == 1.0
+    # dead reckoning on the gyro holds the heading through an outage; the course does not
+    assert through.loc["gyro, receiver's accuracy and velocity", "end_m"] < \
+        through.loc["ekf, receiver's accuracy and velocity", "end_m"]
+    assert (tmp_path / "outages.png").stat().st_size > 10_000
+    assert "GNSS outages of 10 s (every 25 s while moving)" in res.stdout
     assert len(table) == 10 and np.isfinite(table[["x_m", "y_m", "psi_mrad"]]).all().all()
     assert table.set_index("estimator").loc["ekf, receiver's accuracy and velocity",
                                             "vs_ekf"] == 1.0

@@ -54,6 +54,7 @@ from lbo.core.errors import LboError
 from lbo.filters import classical
 from lbo.filters.gyro import GyroNoise
 from lbo.learn.noise_run import ACROSS
+from lbo.scoring.outages import Outages
 from lbo.scoring.receiver import (
     EKF,
     load_nets,
@@ -63,6 +64,7 @@ from lbo.scoring.receiver import (
     ratio_on_same_rows,
     ratio_to,
     score,
+    scored_rows,
 )
 from lbo.sim import hguide
 from lbo.sim.columns import STATE
@@ -118,6 +120,7 @@ def realdrive(cfg: DictConfig) -> dict[str, Any]:
     learn = Settings.from_cfg(cfg.learn)
     simulated_epochs = integer(cfg.learn.simulated, "learn.simulated", 0)
     across_drives = boolean(cfg.get("across_drives", True), "across_drives")
+    outages = Outages.from_cfg(cfg.get("outages"))
     out = Path(str(cfg.output_dir))
     paths = {k: check_output_path(out / f"hill_{k}.parquet") for k in hguide.SPANS}
     check_output_path(out / "results.csv")
@@ -141,8 +144,8 @@ def realdrive(cfg: DictConfig) -> dict[str, Any]:
     learned = (_learn(learn, simulated_epochs, cfg.simulated, parts, vehicle, noise, out)
                if learn.epochs else {})
     fitted = _fit_nets(fit, trainable, parts, out)
-    table, estimates = score(parts["test"], observers, vehicle, noise, learned,
-                             nets={**net_rows(nets), **fitted})
+    every_net = {**net_rows(nets), **fitted}
+    table, estimates = score(parts["test"], observers, vehicle, noise, learned, nets=every_net)
     table["vs_ekf"] = ratio_to(table, EKF)
     truth = parts["test"][list(STATE)].to_numpy(float)
     table["vs_ekf_same_rows"] = ratio_on_same_rows(table, estimates, truth, EKF)
@@ -171,10 +174,44 @@ def realdrive(cfg: DictConfig) -> dict[str, Any]:
           "at the antenna:")
     print(markdown(table, *RATIOS), end="")
     print(f"written: {out / 'results.md'}, {out / 'test.png'}")
+    through = (_outages(outages, test, observers, vehicle, noise, learned, every_net, out)
+               if outages is not None else None)
     drives = None
     if across_drives and learn.epochs:
         drives = _across_drives(learn, observers, hguide.drives(log), vehicle, noise, out)
-    return {"table": table, "alignment": alignment, "paths": paths, "drives": drives}
+    return {"table": table, "alignment": alignment, "paths": paths, "drives": drives,
+            "outages": through}
+
+
+def _outages(outages: Outages, test: pd.DataFrame, observers: list[str], vehicle: Any,
+             noise: Any, learned: dict[str, GyroNoise], nets: dict[str, Any], out: Path
+             ) -> pd.DataFrame:
+    """Every observer of the test span's table through GNSS outages cut into it
+    (:mod:`lbo.scoring.outages`): ``outages.csv``, ``outages.md`` and ``outages.png`` (the
+    position error through an outage), printed; returns the table."""
+    import numpy as np
+
+    from lbo.core import plots
+    from lbo.scoring import outages as outage
+
+    spans = outage.windows(test, outages, vehicle.dt, int(np.argmax(scored_rows(test))))
+    _, estimates = score(outage.blank(test, spans), observers, vehicle, noise, learned,
+                         nets=nets)
+    table = outage.score(estimates, test, spans, vehicle.dt, reference=EKF)
+    write_table(table, out / "outages.csv")
+    with atomic_path(out / "outages.md") as tmp:
+        Path(tmp).write_text(outage.markdown(table))
+    seconds = np.arange(spans[0, 1] - spans[0, 0]) * vehicle.dt
+    truth = test[list(STATE)].to_numpy(float)
+    plots.save(plots.outage_errors(seconds, {k: outage.curves(e, truth, spans)
+                                             for k, e in estimates.items()}),
+               out / "outages.png")
+    print(f"through {len(spans)} GNSS outages of {outages.length_s:g} s (every "
+          f"{outages.every_s:g} s while moving) on the test span, every receiver column "
+          "blanked:")
+    print(outage.markdown(table), end="")
+    print(f"written: {out / 'outages.md'}, {out / 'outages.png'}")
+    return table
 
 
 def _learn(cfg: Any, simulated_epochs: int, simulated: DictConfig,

@@ -234,3 +234,22 @@ def nrmse_panels(table, panels: dict[str, list[str]], title: str = "",
         fig.suptitle(title)
     fig.tight_layout()
     return fig
+
+
+def outage_errors(seconds: np.ndarray, errors: dict[str, np.ndarray], title: str = ""):
+    """The position error (m) through a GNSS outage, one line per observer: its median over
+    the outages, with the band between the smallest and the largest. seconds (L,) into the
+    outage; errors: observer -> (K, L) the error through each of K outages."""
+    fig, ax = plt.subplots(figsize=(7.0, 4.2))
+    colors = itertools.cycle(plt.get_cmap("tab10").colors)
+    for (name, err), color in zip(errors.items(), colors):
+        ax.plot(seconds, np.nanmedian(err, 0), lw=1.6, color=color,
+                label=f"{name} (median of {len(err)})")
+        ax.fill_between(seconds, np.nanmin(err, 0), np.nanmax(err, 0), color=color,
+                        alpha=0.12, lw=0)
+    ax.set(xlabel="seconds into the outage", ylabel="position error (m)",
+           title=title or "through a GNSS outage: median, and the band of every outage")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    return fig

@@ -1,0 +1,117 @@
+"""GNSS outages (issue 74): the windows are placed where the car moves, the receiver's columns
+are blanked there and nothing else is, no blanked fix reaches an observer, and the errors
+through them are read as the protocol says."""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+import pytest
+from omegaconf import OmegaConf
+
+from helpers.drives import gyro_log
+from lbo.core.errors import LboError
+from lbo.core.paths import CONF_DIR
+from lbo.scoring import outages
+from lbo.scoring.outages import BLANKED, Outages
+from lbo.scoring.receiver import score
+from lbo.sim.columns import RECEIVER, STATE
+from lbo.sim.noise import Noise
+from lbo.sim.vehicle import Vehicle
+
+VEHICLE = Vehicle()
+
+
+def test_outages_fall_every_so_often_where_the_car_moves_throughout():
+    """Starts every 25 s from the first row (25, 50, 75 s); the one at 50 s would hold the
+    car standing from 40 to 52 s and is left out; the last one must fit in the log."""
+    dt = 0.1
+    t = np.arange(0, 100, dt)
+    log = pd.DataFrame({"V": np.where((t >= 40) & (t < 52), 0.0, 10.0)})
+    spans = outages.windows(log, Outages(10.0, 25.0), dt)
+    np.testing.assert_array_equal(spans, [[250, 350], [750, 850]])
+    assert outages.windows(log, Outages(10.0, 25.0), dt, first=300).tolist() == [[550, 650],
+                                                                              [800, 900]]
+    assert outages.windows(log.iloc[:840], Outages(10.0, 25.0), dt).tolist() == [[250, 350]]
+
+
+def test_only_the_receivers_columns_are_blanked_and_only_inside_the_outages():
+    log = gyro_log(0)
+    spans = outages.windows(log, Outages(5.0, 15.0), VEHICLE.dt)
+    assert len(spans) == 3
+    out = outages.blank(log, spans)
+    inside = outages.inside(len(log), spans)
+    assert inside.sum() == 3 * round(5.0 / VEHICLE.dt)
+    assert set(BLANKED) == {"x_m", "y_m", "psi_m", *RECEIVER} - {"r_m"}
+    assert out.loc[inside, list(BLANKED)].isna().all().all()
+    pd.testing.assert_frame_equal(out[~inside], log[~inside])  # outside: as it was
+    kept = [c for c in log.columns if c not in BLANKED]  # the truth, the gyro, the inputs
+    pd.testing.assert_frame_equal(out[kept], log[kept])
+    assert log.loc[inside, "x_m"].notna().any()  # the log given is not changed
+
+
+def test_no_fix_inside_an_outage_reaches_an_observer():
+    """Planted: the fixes inside the outages moved by kilometres, their velocities by 30 m/s;
+    once blanked, every observer's estimate is the same to the bit as on the log as drawn
+    (and without the blanking the planted values do change them: the check can fail)."""
+    log = gyro_log(1)
+    spans = outages.windows(log, Outages(5.0, 15.0), VEHICLE.dt)
+    planted = log.copy()
+    rows = outages.inside(len(log), spans)
+    planted.loc[rows, ["x_m", "y_m"]] += 3000.0
+    planted.loc[rows, ["ve_m", "vn_m"]] += 30.0
+    noise = Noise.from_cfg(OmegaConf.load(CONF_DIR / "noise" / "paper.yaml"))
+    observers = ["ekf", "ukf", "gyro"]
+    _, drawn = score(outages.blank(log, spans), observers, VEHICLE, noise)
+    _, moved = score(outages.blank(planted, spans), observers, VEHICLE, noise)
+    assert drawn.keys() == moved.keys() and len(drawn) == 5
+    for label in drawn:
+        np.testing.assert_array_equal(drawn[label], moved[label], err_msg=label)
+    _, unblanked = score(planted, ["ekf"], VEHICLE, noise)
+    label = "ekf, receiver's accuracy and velocity"
+    assert np.nanmax(np.abs(unblanked[label] - drawn[label])) > 100.0
+
+
+def test_the_errors_through_the_outages_are_read_as_the_protocol_says():
+    """Two outages of 1 s at dt 0.5 (rows 2-3 and 6-7), at 2 m/s then 4 m/s (2 m and 4 m
+    driven): the estimate is off by (3, 4) m at each end and by 0.1 rad in heading inside."""
+    t = 10
+    log = pd.DataFrame({"x": np.zeros(t), "y": 0.0, "psi": 0.0,
+                        "V": [2.0] * 5 + [4.0] * 5})
+    spans = np.array([[2, 4], [6, 8]])
+    est = np.zeros((t, 3))
+    est[[3, 7], :2] = [3.0, 4.0]  # the ends
+    est[[2, 3, 6, 7], 2] = 0.1
+    other = np.zeros((t, 3))
+    other[[3, 7], 0] = 2.5
+    table = outages.score({"a": est, "b": other}, log, spans, 0.5, reference="b")
+    a = table.set_index("estimator").loc["a"]
+    assert a["outages"] == 2 and a["end_m"] == 5.0 and a["end_worst_m"] == 5.0
+    assert a["position_m"] == pytest.approx(np.sqrt(2 * 25 / 4))
+    assert a["psi_mrad"] == pytest.approx(100.0)
+    assert a["drift_pct"] == pytest.approx(100 * (5 / 2 + 5 / 4) / 2)
+    assert a["end_vs_b"] == 2.0
+    assert "| a | 3.54 | 100.0 | 5.00 | 5.00 | 187.50 | 2.00 |" in outages.markdown(table)
+    curves = outages.curves(est, log[list(STATE)].to_numpy(float), spans)
+    np.testing.assert_array_equal(curves, [[0.0, 5.0], [0.0, 5.0]])
+    with pytest.raises(LboError, match=r"^outages: no window fits where the car moves"):
+        outages.score({"a": est}, log, np.zeros((0, 2), int), 0.5)
+
+
+@pytest.mark.parametrize("length, every, line", [
+    (10.0, 10.0, r"^outages\.every_s must be longer than outages\.length_s \(one outage ends "
+                 r"before the next begins\), got 10 <= 10$"),
+    (-1.0, 25.0, r"^outages\.length_s must be a number of seconds > 0, got -1\.0$"),
+    (10.0, True, r"^outages\.every_s must be a number of seconds > 0, got True$"),
+    (10.0, "25", r"^outages\.every_s must be a number of seconds > 0, got '25'$"),
+])
+def test_bad_outages_are_one_line(length, every, line):
+    with pytest.raises(LboError, match=line):
+        Outages(length, every)
+
+
+def test_no_length_means_no_outages():
+    assert Outages.from_cfg(None) is None
+    assert Outages.from_cfg(OmegaConf.create({"length_s": 0, "every_s": 25.0})) is None
+    assert Outages.from_cfg(OmegaConf.create({"length_s": 10, "every_s": 25.0})) == \
+        Outages(10.0, 25.0)
