@@ -23,16 +23,24 @@ VEHICLE = Vehicle()
 
 
 def test_outages_fall_every_so_often_where_the_car_moves_throughout():
-    """Starts every 25 s from the first row (25, 50, 75 s); the one at 50 s would hold the
-    car standing from 40 to 52 s and is left out; the last one must fit in the log."""
+    """Each at the first row 25 s or more after the last began from which the car moves for
+    10 s: at 25 s, then not at 50 s (the car stands from 40 to 52 s) but at 52 s, then at
+    77 s; the last must fit in the log."""
     dt = 0.1
     t = np.arange(0, 100, dt)
     log = pd.DataFrame({"V": np.where((t >= 40) & (t < 52), 0.0, 10.0)})
     spans = outages.windows(log, Outages(10.0, 25.0), dt)
-    np.testing.assert_array_equal(spans, [[250, 350], [750, 850]])
-    assert outages.windows(log, Outages(10.0, 25.0), dt, first=300).tolist() == [[550, 650],
-                                                                              [800, 900]]
-    assert outages.windows(log.iloc[:840], Outages(10.0, 25.0), dt).tolist() == [[250, 350]]
+    np.testing.assert_array_equal(spans, [[250, 350], [520, 620], [770, 870]])
+    assert outages.windows(log, Outages(10.0, 25.0), dt, first=300).tolist() == \
+        [[550, 650], [800, 900]]
+    assert outages.windows(log.iloc[:860], Outages(10.0, 25.0), dt).tolist() == \
+        [[250, 350], [520, 620]]
+    assert outages.windows(log.assign(V=0.5), Outages(10.0, 25.0), dt).shape == (0, 2)
+    slow = gyro_log(0).assign(V=0.5)
+    with pytest.raises(LboError, match=r"^outages: no window of 10 s fits where the car moves "
+                                       r"\(at least 1 m/s throughout\); shorten "
+                                       r"outages\.length_s$"):
+        outages.place(slow, Outages(10.0, 25.0), VEHICLE.dt)
 
 
 def test_only_the_receivers_columns_are_blanked_and_only_inside_the_outages():
@@ -94,7 +102,7 @@ def test_the_errors_through_the_outages_are_read_as_the_protocol_says():
     assert "| a | 3.54 | 100.0 | 5.00 | 5.00 | 187.50 | 2.00 |" in outages.markdown(table)
     curves = outages.curves(est, log[list(STATE)].to_numpy(float), spans)
     np.testing.assert_array_equal(curves, [[0.0, 5.0], [0.0, 5.0]])
-    with pytest.raises(LboError, match=r"^outages: no window fits where the car moves"):
+    with pytest.raises(LboError, match=r"^outages: no window to score$"):
         outages.score({"a": est}, log, np.zeros((0, 2), int), 0.5)
 
 

@@ -54,6 +54,7 @@ from lbo.core.errors import LboError
 from lbo.filters import classical
 from lbo.filters.gyro import GyroNoise
 from lbo.learn.noise_run import ACROSS
+from lbo.scoring import outages as outage
 from lbo.scoring.outages import Outages
 from lbo.scoring.receiver import (
     EKF,
@@ -64,7 +65,6 @@ from lbo.scoring.receiver import (
     ratio_on_same_rows,
     ratio_to,
     score,
-    scored_rows,
 )
 from lbo.sim import hguide
 from lbo.sim.columns import STATE
@@ -129,6 +129,7 @@ def realdrive(cfg: DictConfig) -> dict[str, Any]:
     alignment = hguide.fit_alignment(df)
     log = hguide.to_log(df, vehicle, alignment)
     parts = hguide.spans(log)
+    spans = outage.place(parts["test"], outages, vehicle.dt) if outages is not None else None
     out.mkdir(parents=True, exist_ok=True)
     for k, part in parts.items():
         check_log(part, f"hill drive, {k} span")
@@ -174,8 +175,8 @@ def realdrive(cfg: DictConfig) -> dict[str, Any]:
           "at the antenna:")
     print(markdown(table, *RATIOS), end="")
     print(f"written: {out / 'results.md'}, {out / 'test.png'}")
-    through = (_outages(outages, test, observers, vehicle, noise, learned, every_net, out)
-               if outages is not None else None)
+    through = (_outages(outages, spans, test, observers, vehicle, noise, learned, every_net,
+                        out) if outages is not None and spans is not None else None)
     drives = None
     if across_drives and learn.epochs:
         drives = _across_drives(learn, observers, hguide.drives(log), vehicle, noise, out)
@@ -183,18 +184,16 @@ def realdrive(cfg: DictConfig) -> dict[str, Any]:
             "outages": through}
 
 
-def _outages(outages: Outages, test: pd.DataFrame, observers: list[str], vehicle: Any,
-             noise: Any, learned: dict[str, GyroNoise], nets: dict[str, Any], out: Path
-             ) -> pd.DataFrame:
-    """Every observer of the test span's table through GNSS outages cut into it
-    (:mod:`lbo.scoring.outages`): ``outages.csv``, ``outages.md`` and ``outages.png`` (the
-    position error through an outage), printed; returns the table."""
+def _outages(outages: Outages, spans: Any, test: pd.DataFrame, observers: list[str],
+             vehicle: Any, noise: Any, learned: dict[str, GyroNoise], nets: dict[str, Any],
+             out: Path) -> pd.DataFrame:
+    """Every observer of the test span's table through the GNSS outages ``spans`` (K, 2) cut
+    into it (:mod:`lbo.scoring.outages`): ``outages.csv``, ``outages.md`` and
+    ``outages.png`` (the position error through an outage), printed; returns the table."""
     import numpy as np
 
     from lbo.core import plots
-    from lbo.scoring import outages as outage
 
-    spans = outage.windows(test, outages, vehicle.dt, int(np.argmax(scored_rows(test))))
     _, estimates = score(outage.blank(test, spans), observers, vehicle, noise, learned,
                          nets=nets)
     table = outage.score(estimates, test, spans, vehicle.dt, reference=EKF)

@@ -239,17 +239,23 @@ def nrmse_panels(table, panels: dict[str, list[str]], title: str = "",
 def outage_errors(seconds: np.ndarray, errors: dict[str, np.ndarray], title: str = ""):
     """The position error (m) through a GNSS outage, one line per observer: its median over
     the outages, with the band between the smallest and the largest. seconds (L,) into the
-    outage; errors: observer -> (K, L) the error through each of K outages."""
-    fig, ax = plt.subplots(figsize=(7.0, 4.2))
-    colors = itertools.cycle(plt.get_cmap("tab10").colors)
-    for (name, err), color in zip(errors.items(), colors):
-        ax.plot(seconds, np.nanmedian(err, 0), lw=1.6, color=color,
+    outage; errors: observer -> (K, L) the error through each of K outages. Errors that span
+    decades are drawn on a log scale, and each line has its own dash, so that observers with
+    the same errors do not hide one another."""
+    fig, ax = plt.subplots(figsize=(7.5, 4.4))
+    styles = zip(itertools.cycle(plt.get_cmap("tab10").colors),
+                 itertools.cycle(["-", "--", ":", "-."]))
+    for (name, err), (color, dash) in zip(errors.items(), styles):
+        ax.plot(seconds, np.nanmedian(err, 0), lw=1.6, color=color, ls=dash,
                 label=f"{name} (median of {len(err)})")
         ax.fill_between(seconds, np.nanmin(err, 0), np.nanmax(err, 0), color=color,
-                        alpha=0.12, lw=0)
+                        alpha=0.08, lw=0)
+    every = np.concatenate([e[np.isfinite(e) & (e > 0)] for e in errors.values()])
+    if len(every) and every.max() > 30 * np.percentile(every, 5):
+        ax.set_yscale("log")
     ax.set(xlabel="seconds into the outage", ylabel="position error (m)",
            title=title or "through a GNSS outage: median, and the band of every outage")
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=8)
+    ax.grid(alpha=0.3, which="both")
+    ax.legend(fontsize=7.5)
     fig.tight_layout()
     return fig

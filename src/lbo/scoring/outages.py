@@ -25,8 +25,8 @@ from lbo.core.angles import wrap_angle
 from lbo.core.errors import LboError
 from lbo.sim.columns import MEAS, RECEIVER, STATE
 
-__all__ = ["BLANKED", "MOVING_SPEED", "Outages", "blank", "curves", "markdown", "score",
-           "windows"]
+__all__ = ["BLANKED", "MOVING_SPEED", "Outages", "blank", "curves", "inside", "markdown",
+           "place", "score", "windows"]
 
 BLANKED = (*MEAS, *(c for c in RECEIVER if c != "r_m"))
 """The columns an outage blanks: what a GNSS receiver gives (the gyro is the car's own)."""
@@ -63,15 +63,32 @@ class Outages:
 
 def windows(log: pd.DataFrame, outages: Outages, dt: float,
             first: int = 0) -> np.ndarray:
-    """(K, 2) the outages' rows ``[start, end)`` in ``log``: starts every ``every_s`` from
-    row ``first`` (``first`` + every_s the first), each kept where the car's speed ``V`` is at
-    least :data:`MOVING_SPEED` on all of its ``length_s`` (and it fits in the log)."""
+    """(K, 2) the outages' rows ``[start, end)`` in ``log``, in turn: each at the first row,
+    ``every_s`` or more after the last one began (after row ``first`` for the first), from
+    which the car's speed ``V`` stays at least :data:`MOVING_SPEED` for all of ``length_s``
+    (a real drive moves in stretches between stops: a fixed grid would land on them)."""
     length, every = round(outages.length_s / dt), round(outages.every_s / dt)
-    starts = np.arange(first + every, len(log) - length + 1, every)
     slow = np.r_[0, np.cumsum(~(np.abs(log["V"].to_numpy(float)) >= MOVING_SPEED))]
-    moving = slow[starts + length] - slow[starts] == 0  # no slow row in [start, end)
-    starts = starts[moving]
-    return np.column_stack([starts, starts + length]).astype(int).reshape(-1, 2)
+    k = np.arange(max(len(log) - length + 1, 0))
+    fits = k[slow[k + length] - slow[k] == 0]  # no slow row in [k, k + length)
+    starts: list[int] = []
+    at = first + every
+    while (i := np.searchsorted(fits, at)) < len(fits):  # one pass per outage, not per row
+        starts.append(int(fits[i]))
+        at = starts[-1] + every
+    return np.array([[s, s + length] for s in starts], dtype=int).reshape(-1, 2)
+
+
+def place(log: pd.DataFrame, outages: Outages, dt: float) -> np.ndarray:
+    """:func:`windows` from the log's first course over ground on (where its scoring starts:
+    :func:`lbo.scoring.receiver.scored_rows`); one line where none fits."""
+    from lbo.scoring.receiver import scored_rows
+
+    spans = windows(log, outages, dt, int(np.argmax(scored_rows(log))))
+    if not len(spans):
+        raise LboError(f"outages: no window of {outages.length_s:g} s fits where the car moves "
+                       f"(at least {MOVING_SPEED:g} m/s throughout); shorten outages.length_s")
+    return spans
 
 
 def inside(n: int, spans: np.ndarray) -> np.ndarray:
@@ -112,9 +129,7 @@ def score(estimates: Mapping[str, np.ndarray], log: pd.DataFrame, spans: np.ndar
     its outage, %), and with ``reference``, ``end_vs_<reference>`` (``end_m`` over the
     reference's)."""
     if not len(spans):
-        raise LboError("outages: no window fits where the car moves (at least "
-                       f"{MOVING_SPEED:g} m/s throughout); shorten outages.length_s or "
-                       "outages.every_s")
+        raise LboError("outages: no window to score")
     truth = log[list(STATE)].to_numpy(float)
     rows = inside(len(log), spans)
     last = spans[:, 1] - 1

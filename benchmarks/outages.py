@@ -1,0 +1,31 @@
+"""GNSS outages on the comma2k19 example segment shipped with lbo: every receiver column blanked
+for 10 s, every 25 s while the car moves (:mod:`lbo.scoring.outages`), each classical observer
+(and the gyro EKF with noises given as ``label=path``, files ``python -m lbo.realdrive`` wrote)
+scored through them. The hill drive's test span is ``python -m lbo.realdrive
+outages.length_s=10``.
+
+    python benchmarks/outages.py ["truth, train span=reports/realdrive/gyro_noise.json" ...]
+"""
+
+import sys
+
+from omegaconf import OmegaConf
+
+from lbo.filters.gyro import GyroNoise
+from lbo.scoring import outages
+from lbo.scoring.receiver import EKF, score
+from lbo.sim import comma2k19
+from lbo.sim.noise import Noise
+from lbo.sim.vehicle import Vehicle
+
+vehicle = Vehicle()
+noise = Noise.from_cfg(OmegaConf.load("conf/noise/paper.yaml"))  # lbo.observe's default
+log = comma2k19.to_log(comma2k19.example(), vehicle).log
+learned = {f"gyro, noise learned on the hill drive ({name})": GyroNoise.load(path)
+           for name, path in (a.split("=", 1) for a in sys.argv[1:])}
+protocol = outages.Outages(length_s=10.0, every_s=25.0)
+spans = outages.place(log, protocol, vehicle.dt)
+print(f"comma2k19 example: {len(log) * vehicle.dt:.0f} s, {len(spans)} outages of "
+      f"{protocol.length_s:g} s at {', '.join(f'{s * vehicle.dt:.0f}' for s in spans[:, 0])} s")
+_, estimates = score(outages.blank(log, spans), ["ekf", "gyro"], vehicle, noise, learned)
+print(outages.markdown(outages.score(estimates, log, spans, vehicle.dt, reference=EKF)), end="")
