@@ -243,7 +243,7 @@ def outage_errors(seconds: np.ndarray, errors: dict[str, np.ndarray], title: str
     decades are drawn on a log scale, and each line has its own dash, so that observers with
     the same errors do not hide one another."""
     fig, ax = plt.subplots(figsize=(7.5, 4.4))
-    styles = zip(itertools.cycle(plt.get_cmap("tab10").colors),
+    styles = zip(itertools.cycle([f"C{i}" for i in range(10)]),
                  itertools.cycle(["-", "--", ":", "-."]))
     for (name, err), (color, dash) in zip(errors.items(), styles):
         ax.plot(seconds, np.nanmedian(err, 0), lw=1.6, color=color, ls=dash,
