@@ -21,7 +21,7 @@ import torch
 from helpers import observe
 from helpers.drives import gyro_log
 from lbo.core.errors import LboError
-from lbo.filters.gyro import NOISE_RANGES, FixDrift, GyroNoise
+from lbo.filters.gyro import NOISE_RANGES, OPTIONAL, FixDrift, GyroNoise
 from lbo.learn import gyro_fit
 from lbo.models.gyro_filter import GyroFilter, joseph_update
 from lbo.scoring.receiver import scored_rows
@@ -37,6 +37,8 @@ OTHER = GyroNoise(q_position=0.03, q_heading=0.002, gyro_sigma=0.02, bias_walk=0
                   accuracy_scale=0.7, velocity_scale=1.5, course_lever=0.5)
 DRIFTING = OTHER.with_drift(FixDrift(sigma=0.6, tau=40.0))
 """OTHER carrying the fixes' drift: two more states."""
+SCALED = OTHER.with_scales(speed=1.03, gyro=0.97)
+"""OTHER reading the speed 3% high and the gyro 3% low."""
 
 
 @pytest.fixture(scope="module")
@@ -57,7 +59,7 @@ def test_trusting_the_velocity_less_widens_its_course_but_keeps_its_rows(log):
     np.testing.assert_allclose(wide[held, 7], 3.0 * plain[held, 7], rtol=1e-9)
 
 
-@pytest.mark.parametrize("noise", [OTHER, DRIFTING], ids=["white", "drift"])
+@pytest.mark.parametrize("noise", [OTHER, DRIFTING, SCALED], ids=["white", "drift", "scales"])
 def test_the_torch_twin_steps_as_the_numpy_gyro_ekf(log, noise):
     seg = gyro_fit.segments(log, noise, VEHICLE, R, 400)
     assert seg.x0.shape[1] == (4 if noise.drift is None else 6)
@@ -67,19 +69,20 @@ def test_the_torch_twin_steps_as_the_numpy_gyro_ekf(log, noise):
     rows = first + 400 * np.arange(len(est))[:, None] + np.arange(400)
     assert len(est) >= 5 and np.abs(est - full[rows]).max() < 1e-9
     # ... the same stretches under another noise differ: the comparison can fail
-    other = GyroFilter(START.with_drift(noise.drift), VEHICLE.dt,
+    other = GyroFilter(dataclasses.replace(START, **{k: getattr(noise, k) for k in OPTIONAL}),
+                       VEHICLE.dt,
                        torch.as_tensor(R))(seg).detach().numpy()
     assert np.abs(other - full[rows]).max() > 1e-3
 
 
-@pytest.mark.parametrize("noise", [START, START.with_drift(FixDrift(0.3, 30.0))],
-                         ids=["white", "drift"])
+@pytest.mark.parametrize("noise", [START, START.with_drift(FixDrift(0.3, 30.0)),
+                                   START.with_scales()], ids=["white", "drift", "scales"])
 def test_every_noise_gets_a_gradient_through_the_filter(log, noise):
     seg = gyro_fit.segments(log, noise, VEHICLE, R, 400)
     model = GyroFilter(noise, VEHICLE.dt, torch.as_tensor(R))
     ((model(seg) - seg.truth) ** 2).mean().backward()
     grads = {k: float(p.grad) for k, p in model.log.items()}
-    assert len(grads) == (7 if noise.drift is None else 9)
+    assert len(grads) == 7 + 2 * (noise.drift is not None) + 2 * (noise.speed_scale is not None)
     assert all(np.isfinite(g) and g != 0.0 for g in grads.values()), grads
     got, want = dataclasses.asdict(model.noise()), dataclasses.asdict(noise)
     held = [k for k, v in want.items() if v is not None]  # the drift's only with a drift
@@ -293,7 +296,7 @@ def test_the_fit_learns_how_far_to_trust_a_receiver_that_understates_its_error()
     assert fitted.history["loss"].iloc[0] == pytest.approx(1.0)
 
 
-@pytest.mark.parametrize("noise", [OTHER, DRIFTING], ids=["white", "drift"])
+@pytest.mark.parametrize("noise", [OTHER, DRIFTING, SCALED], ids=["white", "drift", "scales"])
 def test_the_learned_noise_steps_as_it_runs_in_an_observer(log, noise):
     obs = Observer.load("gyro", VEHICLE, gyro_noise=noise)
     m = log[["x_m", "y_m", "psi_m"]].to_numpy()
@@ -317,6 +320,16 @@ def test_gyro_noise_is_checked_saved_and_read_back(tmp_path):
     assert "drift" not in (tmp_path / "noise.json").read_text()  # a file of before reads on
     DRIFTING.save(tmp_path / "drift.json")
     assert GyroNoise.load(tmp_path / "drift.json") == DRIFTING
+    both = DRIFTING.with_scales(1.02, 0.99)
+    both.save(tmp_path / "both.json")
+    assert GyroNoise.load(tmp_path / "both.json") == both
+    assert SCALED.stepper()["speed_scale"] == 1.03 and OTHER.stepper()["gyro_scale"] == 1.0
+    with pytest.raises(LboError, match=r"^gyro noise speed_scale, gyro_scale: expected both "
+                                       r"\(the inputs' scales\) or neither, got one$"):
+        dataclasses.replace(OTHER, gyro_scale=1.1)
+    with pytest.raises(LboError, match=r"^gyro noise speed_scale: expected a number in "
+                                       r"\[0\.5, 2\] \(a factor\), got 3\.0$"):
+        OTHER.with_scales(3.0, 1.0)
     assert DRIFTING.stepper()["drift"] == FixDrift(0.6, 40.0) and OTHER.stepper()["drift"] is None
     with pytest.raises(LboError, match=r"^gyro noise drift_sigma, drift_tau: expected both "
                                        r"\(the fixes' drift\) or neither, got one$"):
@@ -324,8 +337,9 @@ def test_gyro_noise_is_checked_saved_and_read_back(tmp_path):
     half = {k: v for k, v in dataclasses.asdict(DRIFTING).items() if k != "drift_tau"}
     (tmp_path / "half.json").write_text(json.dumps(half))
     with pytest.raises(LboError, match=r"^gyro noise .*half\.json: expected .* \(and "
-                                       r"drift_sigma and drift_tau for the fixes' drift, both "
-                                       r"null for none\)$"):
+                                       r"drift_sigma and drift_tau for the fixes' drift, "
+                                       r"speed_scale and gyro_scale for the inputs' scales, "
+                                       r"each pair both null for none\)$"):
         GyroNoise.load(tmp_path / "half.json")
     (tmp_path / "null.json").write_text(json.dumps({**half, "drift_tau": None}))
     with pytest.raises(LboError, match=r"^gyro noise drift_sigma, drift_tau: expected both"):
@@ -415,7 +429,8 @@ def test_a_noise_path_is_read_only_as_a_small_regular_file(tmp_path):
         "lbo.core.errors.LboError: gyro noise /dev/zero: not a regular file; expected a JSON "
         "object of numbers with exactly accuracy_scale, bias_walk, course_lever, gyro_sigma, "
         "q_heading, q_position, velocity_scale (and drift_sigma and drift_tau for the fixes' "
-        "drift, both null for none) (a regular file of at most 64 KiB)")
+        "drift, speed_scale and gyro_scale for the inputs' scales, each pair both null for "
+        "none) (a regular file of at most 64 KiB)")
 
 
 def test_observe_reads_a_learned_noise_for_the_gyro_ekf_only(log, tmp_path):

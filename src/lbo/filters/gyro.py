@@ -66,6 +66,8 @@ NOISE_RANGES = {
     "course_lever": (1e-12, 100.0, "m"),
     "drift_sigma": (1e-6, 1e3, "m"),
     "drift_tau": (1e-2, 1e6, "s"),
+    "speed_scale": (0.5, 2.0, "a factor"),
+    "gyro_scale": (0.5, 2.0, "a factor"),
 }
 """(smallest, largest, unit) of each noise of :class:`GyroNoise`. Past them a noise says
 nothing a filter can use, and its square runs towards float64's ends (1e200 overflowed ``Q``):
@@ -76,6 +78,10 @@ covariance made of such zeros turns singular."""
 
 DRIFT = ("drift_sigma", "drift_tau")
 """The two noises of :class:`GyroNoise` that carry the fixes' drift (both or neither)."""
+SCALES = ("speed_scale", "gyro_scale")
+"""The two factors of :class:`GyroNoise` on the inputs (both or neither)."""
+OPTIONAL = (*DRIFT, *SCALES)
+"""What a :class:`GyroNoise` may leave None (and its file leave out)."""
 
 STILL_SPEED = 0.05
 """Speed (m/s) below which the car stands: it does not turn, so its heading is held and the
@@ -88,6 +94,8 @@ class GyroKeywords(TypedDict):
     gyro_sigma: float
     bias_walk: float
     drift: FixDrift | None
+    speed_scale: float
+    gyro_scale: float
 
 
 @dataclass(frozen=True)
@@ -107,6 +115,9 @@ class GyroNoise:
     drift_sigma, drift_tau : the fixes' slow error (:class:`FixDrift`: its stationary
         1-sigma, m, and correlation time, s), carried as two more states; both None (the
         default): the fixes' error is taken as white.
+    speed_scale, gyro_scale : factors on the speed ``V`` and the gyro's rate ``r_m`` that the
+        model reads (a wheel or CAN speed off by a percent, a gyro's scale error): what dead
+        reckoning through a GNSS outage needs; both None (the default): 1, not learned.
     """
 
     q_position: float
@@ -118,14 +129,17 @@ class GyroNoise:
     course_lever: float = measure.COURSE_LEVER
     drift_sigma: float | None = None
     drift_tau: float | None = None
+    speed_scale: float | None = None
+    gyro_scale: float | None = None
 
     def __post_init__(self) -> None:
-        if (self.drift_sigma is None) != (self.drift_tau is None):
-            raise LboError("gyro noise drift_sigma, drift_tau: expected both (the fixes' "
-                           "drift) or neither, got one")
+        for pair, what in ((DRIFT, "the fixes' drift"), (SCALES, "the inputs' scales")):
+            if len({getattr(self, k) is None for k in pair}) > 1:
+                raise LboError(f"gyro noise {', '.join(pair)}: expected both ({what}) or "
+                               "neither, got one")
         for f in dataclasses.fields(self):
             v = getattr(self, f.name)
-            if v is None and f.name in DRIFT:
+            if v is None and f.name in OPTIONAL:
                 continue
             low, high, unit = NOISE_RANGES[f.name]
             # a bool is an int to Python, not a noise; a comparison, unlike float(), takes an
@@ -154,6 +168,14 @@ class GyroNoise:
             return dataclasses.replace(self, drift_sigma=None, drift_tau=None)
         return dataclasses.replace(self, drift_sigma=drift.sigma, drift_tau=drift.tau)
 
+    def with_scales(self, speed: float | None = 1.0, gyro: float | None = 1.0) -> GyroNoise:
+        """The same noise with these factors on the speed and the gyro (None: none held)."""
+        return dataclasses.replace(self, speed_scale=speed, gyro_scale=gyro)
+
+    def scaled(self, u: np.ndarray) -> np.ndarray:
+        """Inputs u (..., 2) ``[V, r_m]`` times the speed's and the gyro's scales."""
+        return u * np.array([self.speed_scale or 1.0, self.gyro_scale or 1.0])
+
     @classmethod
     def from_q(cls, Q: np.ndarray) -> GyroNoise:
         """The defaults, with the process sigmas of a diagonal (3, 3) ``Q``."""
@@ -171,13 +193,15 @@ class GyroNoise:
         accuracies scaled, the course's variance with the velocity's sigma scaled and the
         allowance at the lever (its rows those the reported sigma gives)."""
         sigma = receiver[:, :3] * np.array([self.accuracy_scale, self.accuracy_scale, 1.0])
+        u = self.scaled(u)
         return measure.rows(m, sigma, receiver[:, 3:5], receiver[:, 5], u[:, 0], u[:, 1],
                             self.course_lever, self.velocity_scale)
 
     def stepper(self) -> GyroKeywords:
         """The keyword arguments of :class:`GyroStepper` and :func:`gyro_ekf_batch`."""
         return {"gyro_sigma": self.gyro_sigma, "bias_walk": self.bias_walk,
-                "drift": self.drift}
+                "drift": self.drift, "speed_scale": self.speed_scale or 1.0,
+                "gyro_scale": self.gyro_scale or 1.0}
 
     def save(self, path: str | Path) -> None:
         """Write it as JSON (atomically); the drift's two numbers only where it carries one."""
@@ -191,18 +215,21 @@ class GyroNoise:
     def load(cls, path: str | Path) -> GyroNoise:
         """Read what :meth:`save` wrote; anything else is a one-line error: a path that is
         not a regular file of at most 64 KiB (:func:`lbo.core.smallfile.read_small`), not
-        JSON, not an object of exactly the seven noises (or the seven and the drift's two),
-        or a noise that is not a number in its range (:data:`NOISE_RANGES`; ``true`` is not
-        1)."""
-        names = [f.name for f in dataclasses.fields(cls) if f.name not in DRIFT]
+        JSON, not an object of the seven noises (with or without the drift's two and the
+        scales' two), or a noise that is not a number in its range (:data:`NOISE_RANGES`;
+        ``true`` is not 1)."""
+        names = [f.name for f in dataclasses.fields(cls) if f.name not in OPTIONAL]
         form = (f"a JSON object of numbers with exactly {', '.join(sorted(names))} (and "
-                f"{' and '.join(DRIFT)} for the fixes' drift, both null for none)")
+                f"{' and '.join(DRIFT)} for the fixes' drift, {' and '.join(SCALES)} for the "
+                "inputs' scales, each pair both null for none)")
         raw = read_small(path, f"gyro noise {path}", form)
         try:
             data: Any = json.loads(raw.decode("utf-8"))
         except (ValueError, RecursionError) as e:  # UnicodeDecodeError is a ValueError
             raise LboError(f"gyro noise {path}: not a readable JSON file ({e})") from None
-        if not isinstance(data, dict) or set(data) not in (set(names), {*names, *DRIFT}):
+        if not isinstance(data, dict) or not set(names) <= set(data) or any(
+                set(data) & set(pair) not in (set(), set(pair)) for pair in (DRIFT, SCALES)) \
+                or not set(data) <= {*names, *OPTIONAL}:
             raise LboError(f"gyro noise {path}: expected {form}")
         return cls(**data)
 
@@ -254,6 +281,7 @@ class GyroStepper:
     R : (G, 3, 3) measurement covariance where a row reports no accuracy.
     gyro_sigma, bias_sigma, bias_walk : the gyro's errors (module constants by default).
     drift : the fixes' drift (:class:`FixDrift`) as two more states, or None (R white).
+    speed_scale, gyro_scale : factors on the inputs ``[V, r_m]`` the model reads.
     relearn : widen the heading's and the bias's variances where the consistency test fails
         (:func:`lbo.filters.consistency.widen`); False: flag the rows only.
 
@@ -271,8 +299,10 @@ class GyroStepper:
     def __init__(self, m0: np.ndarray, vehicle: Vehicle, Q: np.ndarray, R: np.ndarray,
                  gyro_sigma: float = GYRO_SIGMA, bias_sigma: float = BIAS_SIGMA,
                  bias_walk: float = BIAS_WALK, drift: FixDrift | None = None,
+                 speed_scale: float = 1.0, gyro_scale: float = 1.0,
                  relearn: bool = True) -> None:
         self.dt, self.R = vehicle.dt, np.asarray(R, dtype=float)
+        self.scales = np.array([speed_scale, gyro_scale])
         x3, P3 = start_state(m0, self.R)
         g, n = len(x3), 4 if drift is None else 6
         self.x = np.concatenate([x3, np.zeros((g, n - 3))], axis=1)
@@ -318,6 +348,7 @@ class GyroStepper:
         m (G, 3) or (G, 8) holds; returns the pose (G, 3)."""
         m = measure.widen(m)
         dt = self.dt
+        u_prev = u_prev * self.scales
         v, rate = u_prev[:, 0], u_prev[:, 1]
         psi, bias = self.x[:, 2], self.x[:, 3]
         x = self.x.copy()

@@ -86,7 +86,8 @@ class Settings:
     objective : one of :data:`OBJECTIVES`; method : one of :data:`METHODS`;
     ahead_s : s ahead each fix is also predicted (``innovations`` only; 0: none);
     drift : the filter carries the fixes' drift as two more states, its size and correlation
-        time learned from :data:`DRIFT_START` (:meth:`starting`).
+        time learned from :data:`DRIFT_START` (:meth:`starting`);
+    scales : factors on the speed and the gyro's rate are learned too, from 1.
     """
 
     epochs: int
@@ -96,6 +97,7 @@ class Settings:
     method: str = "adam"
     ahead_s: float = 0.0
     drift: bool = False
+    scales: bool = False
 
     @classmethod
     def from_cfg(cls, learn: Any, prefix: str = "learn") -> Settings:
@@ -109,7 +111,8 @@ class Settings:
                                             f"{prefix}.objective"),
                   method=check_method(learn.get("method", "adam"), f"{prefix}.method"),
                   ahead_s=number(learn.get("ahead_s", 0.0), f"{prefix}.ahead_s", 0.0),
-                  drift=boolean(learn.get("drift", False), f"{prefix}.drift"))
+                  drift=boolean(learn.get("drift", False), f"{prefix}.drift"),
+                  scales=boolean(learn.get("scales", False), f"{prefix}.scales"))
         if out.ahead_s and out.objective != "innovations":
             raise LboError(f"{prefix}.ahead_s applies to {prefix}.objective=innovations (the "
                            f"fit by the fixes' likelihood), got {prefix}.objective="
@@ -117,8 +120,10 @@ class Settings:
         return out
 
     def starting(self, noise: GyroNoise) -> GyroNoise:
-        """The noise a fit starts from: ``noise``, with :data:`DRIFT_START` if ``drift``."""
-        return noise.with_drift(DRIFT_START if self.drift else None)
+        """The noise a fit starts from: ``noise``, with :data:`DRIFT_START` if ``drift``, with
+        both scales at 1 if ``scales`` (else as ``noise`` holds them)."""
+        noise = noise.with_drift(DRIFT_START if self.drift else None)
+        return noise.with_scales() if self.scales else noise
 
     def kwargs(self, dt: float) -> dict[str, Any]:
         """The keywords of :func:`fit` (and :func:`fit_and_write`) for a log of period

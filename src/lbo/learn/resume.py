@@ -42,10 +42,10 @@ resume=true still finds the old runs."""
 LATER_MODEL_DEFAULTS: dict[str, dict[str, Any]] = {
     **{name: {"body": "kinematic", "body_lr": 1.0} for name in ("kalmannet", "split_kalmannet")},
     "filternet": {"empty_statistic": "net", "drift_tau": None},
-    "gyro_ekf": {"drift": False}}
+    "gyro_ekf": {"drift": False, "scales": False}}
 """As :data:`LATER_DEFAULTS`, for the settings added to one model's config (``model.body`` of
 the KalmanNet peers, which the robust observer's config has had from the start, and its
-``model.empty_statistic`` and ``model.drift_tau``; the gyro EKF's ``model.drift``)."""
+``model.empty_statistic`` and ``model.drift_tau``; the gyro EKF's ``model.drift`` and ``model.scales``)."""
 
 
 def config_hash(cfg: DictConfig) -> str:

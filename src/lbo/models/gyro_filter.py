@@ -121,8 +121,9 @@ class GyroFilter(nn.Module):
         start = ti - steps
         xs, Ps = x[gi, start], P[gi, start]
         Q = self._Q()
+        u = self._inputs(seg.u)
         for j in range(steps):
-            xs, Ps = self._predict(xs, Ps, seg.u[gi, start + j], Q)
+            xs, Ps = self._predict(xs, Ps, u[gi, start + j], Q)
         Hf = self.H[list(_FIX)]
         S = Hf @ Ps @ Hf.T + self._fix_R(seg.accuracy[gi, ti])
         y = seg.fix[gi, ti] - xs @ Hf.T
@@ -138,6 +139,13 @@ class GyroFilter(nn.Module):
         either = told[..., :, None] | told[..., None, :]
         R2 = torch.where(either, torch.zeros((), dtype=acc.dtype), self.R2)
         return R2 + torch.diag_embed(torch.where(told, acc**2, torch.zeros_like(acc)))
+
+    def _inputs(self, u: torch.Tensor) -> torch.Tensor:
+        """u (..., 2) ``[V, r_m]`` as the model reads them: times the learned scales of the
+        speed and the gyro, where the noise holds them (:attr:`GyroNoise.speed_scale`)."""
+        if "speed_scale" not in self.log:
+            return u
+        return u * torch.exp(torch.stack([self.log["speed_scale"], self.log["gyro_scale"]]))
 
     def _phi(self) -> torch.Tensor:
         """The drift's factor over one step, ``exp(-dt / tau)`` (1 without a drift)."""
@@ -184,13 +192,14 @@ class GyroFilter(nn.Module):
         g, t = seg.fix.shape[:2]
         dtype = seg.x0.dtype
         Q, H = self._Q(), self.H
+        u = self._inputs(seg.u)
         # the velocity's course, as lbo.filters.measure.course_over_ground holds it
         speed = torch.nan_to_num(seg.speed, nan=0.0)
         course_held = ((speed >= measure.COURSE_MIN_SPEED)
                        & (speed >= measure.COURSE_MIN_SNR * seg.sv) & torch.isfinite(seg.course))
         safe = torch.where(course_held, speed, torch.ones_like(speed))
         sv = p["velocity_scale"] * seg.sv  # trusted less or more; held where it is reported
-        course_var = (sv**2 + (p["course_lever"] * seg.u[..., 1]) ** 2) / safe**2
+        course_var = (sv**2 + (p["course_lever"] * u[..., 1]) ** 2) / safe**2
         fix_R = self._fix_R(seg.accuracy)
         fix_held = torch.isfinite(seg.fix)
         fix = torch.nan_to_num(seg.fix, nan=0.0)  # NaN kept out of the graph, not held there
@@ -198,9 +207,9 @@ class GyroFilter(nn.Module):
         x, P = seg.x0, seg.P0
         xs, Ps, nll = [x], [P], [torch.zeros(g, dtype=dtype)]
         for k in range(1, t):
-            v, rate = seg.u[:, k - 1, 0], seg.u[:, k - 1, 1]
+            v, rate = u[:, k - 1, 0], u[:, k - 1, 1]
             still = v.abs() < gyro_np.STILL_SPEED
-            x, P = self._predict(x, P, seg.u[:, k - 1], Q)
+            x, P = self._predict(x, P, u[:, k - 1], Q)
             R = torch.zeros((g, 4, 4), dtype=dtype)
             R[:, :2, :2] = fix_R[:, k]
             R[:, 2, 2] = torch.where(course_held[:, k], course_var[:, k], torch.ones_like(v))
