@@ -57,7 +57,7 @@ import numpy as np
 import pandas as pd
 from omegaconf import DictConfig
 
-from lbo.core.checks import integer
+from lbo.core.checks import boolean, integer
 from lbo.core.cli import entry
 from lbo.core.errors import LboError
 from lbo.filters.consistency import SIGNIFICANCE, WINDOW
@@ -122,22 +122,22 @@ def observe(cfg: DictConfig) -> dict[str, Any]:
     max_gap = check_max_gap(cfg.get("max_gap", MAX_GAP))
     output = check_output_path(str(cfg.output), source)
     plot = plot_path(cfg.get("plot"), output)
-    smooth = cfg.get("smooth", False)
-    if not isinstance(smooth, bool):
-        raise LboError(f"smooth must be true or false, got {smooth!r}")
+    smooth = boolean(cfg.get("smooth", False), "smooth")
     form = cfg.get("form")
     compare = _compared(cfg.get("compare"), plot)
     gyro_noise = cfg.get("gyro_noise")
     if gyro_noise is not None:
         check_gyro_noise(name, gyro_noise)  # before the file is read
         gyro_noise = GyroNoise.load(str(gyro_noise))
-    adapt = cfg.get("adapt", False)
-    if not isinstance(adapt, bool):
-        raise LboError(f"adapt must be true or false, got {adapt!r}")
+    adapt = boolean(cfg.get("adapt", False), "adapt")
     adapt_epochs = integer(cfg.get("adapt_epochs", 12), "adapt_epochs", 1)
+    adapt_scales = boolean(cfg.get("adapt_scales", False), "adapt_scales")
     if adapt and name != "gyro":
         raise LboError(f"adapt: only observer=gyro adapts (its noise, to this log's "
                        f"innovations); got observer={name}")
+    if adapt_scales and not adapt:
+        raise LboError("adapt_scales: the factors on the speed and the gyro are learned by "
+                       "the fit adapt=true makes; pass adapt=true with it")
     fmt = LogFormat.from_cfg(cfg)
     where = f"input {source}"
     df, origin = fmt.apply(read_log(source), where)
@@ -181,8 +181,10 @@ def observe(cfg: DictConfig) -> dict[str, Any]:
     check_period(df["t"].to_numpy(dtype=float), obs.dt, where)
 
     if adapt:
-        obs = _adapted(df, gyro_noise or GyroNoise.from_q(noise.Q), vehicle, noise,
-                       adapt_epochs, kw)
+        start = gyro_noise or GyroNoise.from_q(noise.Q)
+        if adapt_scales and start.speed_scale is None:
+            start = start.with_scales()
+        obs = _adapted(df, start, vehicle, noise, adapt_epochs, kw)
     m = df[["x_m", "y_m", "psi_m"]].to_numpy(dtype=float)
     u = df[["V", "delta"]].to_numpy(dtype=float)
     channels = receiver(df)

@@ -371,7 +371,7 @@ def _lbfgs_step(opt: torch.optim.Optimizer, loss: Callable[[], torch.Tensor]) ->
         opt.zero_grad()
         value = loss()
         value.backward()
-        return float(value)
+        return float(value.detach())
 
     opt.step(closure)
 

@@ -45,7 +45,8 @@ LATER_MODEL_DEFAULTS: dict[str, dict[str, Any]] = {
     "gyro_ekf": {"drift": False, "scales": False}}
 """As :data:`LATER_DEFAULTS`, for the settings added to one model's config (``model.body`` of
 the KalmanNet peers, which the robust observer's config has had from the start, and its
-``model.empty_statistic`` and ``model.drift_tau``; the gyro EKF's ``model.drift`` and ``model.scales``)."""
+``model.empty_statistic`` and ``model.drift_tau``; the gyro EKF's ``model.drift`` and
+``model.scales``)."""
 
 
 def config_hash(cfg: DictConfig) -> str:

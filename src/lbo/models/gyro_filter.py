@@ -3,7 +3,8 @@
 :class:`GyroFilter` steps the same model and the same update as the NumPy stepper (a fix's
 reported accuracy as R, the course over ground, the zero-rate update at standstill; the
 Joseph form with the channels each row holds) in torch, so that a loss on its estimates
-reaches the seven numbers of :class:`lbo.filters.gyro.GyroNoise`, held here as their logs.
+reaches the seven numbers of :class:`lbo.filters.gyro.GyroNoise`, held here as their logs
+(:data:`UNITS`).
 It runs from a state the NumPy stepper gives (after the heading is known: the course start is
 the stepper's), over G segments at once; the noise it learns goes back into the NumPy
 stepper, which is what observes (tested equal to 1e-9).
@@ -29,6 +30,10 @@ from lbo.filters.gyro import GyroNoise
 from lbo.models.poses import wrap_angle_torch
 
 _NAMES = tuple(f.name for f in dataclasses.fields(GyroNoise))
+UNITS = {"speed_scale": 0.02, "gyro_scale": 0.02}
+"""Each noise is learned as its log over its unit (1 where not named): a step of the optimiser
+moves a scale of the inputs by a fiftieth of what it moves a noise, for a speed off by 1% is a
+large error and a noise off by 10% a small one (Adam's steps are about lr in these units)."""
 _FIX = (0, 1)
 """The channels of a fix (x_m, y_m) among the filter's four (then the course, the gyro at
 standstill)."""
@@ -74,9 +79,9 @@ class GyroFilter(nn.Module):
         super().__init__()
         self.dt = float(dt)
         held = {k: getattr(noise, k) for k in _NAMES if getattr(noise, k) is not None}
-        self.log = nn.ParameterDict({k: nn.Parameter(torch.tensor(math.log(v),
-                                                                  dtype=torch.float64))
-                                     for k, v in held.items()})
+        self.log = nn.ParameterDict({
+            k: nn.Parameter(torch.tensor(math.log(v) / UNITS.get(k, 1.0), dtype=torch.float64))
+            for k, v in held.items()})
         self.n = 6 if noise.drift is not None else 4
         self.register_buffer("R2", torch.as_tensor(R, dtype=torch.float64)[:2, :2].clone())
         H = torch.zeros(4, self.n, dtype=torch.float64)  # x_m, y_m, course, standstill gyro
@@ -87,7 +92,11 @@ class GyroFilter(nn.Module):
 
     def noise(self) -> GyroNoise:
         """The current noise."""
-        return GyroNoise(**{k: float(torch.exp(v.detach())) for k, v in self.log.items()})
+        return GyroNoise(**{k: float(v.detach()) for k, v in self._values().items()})
+
+    def _values(self) -> dict[str, torch.Tensor]:
+        """Each noise it holds, from its parameter (:data:`UNITS`)."""
+        return {k: torch.exp(v * UNITS.get(k, 1.0)) for k, v in self.log.items()}
 
     def forward(self, seg: Segments) -> torch.Tensor:
         """Estimates (G, T, 3) ``[x, y, psi]``: step 0 is ``x0``, step k predicted with
@@ -135,7 +144,7 @@ class GyroFilter(nn.Module):
         reported one, times the learned scale, replaces the filter's variance and drops its
         correlation (:func:`lbo.filters.measure.step_cov`)."""
         told = torch.isfinite(accuracy)
-        acc = torch.nan_to_num(accuracy, nan=1.0) * torch.exp(self.log["accuracy_scale"])
+        acc = torch.nan_to_num(accuracy, nan=1.0) * self._values()["accuracy_scale"]
         either = told[..., :, None] | told[..., None, :]
         R2 = torch.where(either, torch.zeros((), dtype=acc.dtype), self.R2)
         return R2 + torch.diag_embed(torch.where(told, acc**2, torch.zeros_like(acc)))
@@ -145,18 +154,19 @@ class GyroFilter(nn.Module):
         speed and the gyro, where the noise holds them (:attr:`GyroNoise.speed_scale`)."""
         if "speed_scale" not in self.log:
             return u
-        return u * torch.exp(torch.stack([self.log["speed_scale"], self.log["gyro_scale"]]))
+        p = self._values()
+        return u * torch.stack([p["speed_scale"], p["gyro_scale"]])
 
     def _phi(self) -> torch.Tensor:
         """The drift's factor over one step, ``exp(-dt / tau)`` (1 without a drift)."""
         if self.n == 4:
             return torch.ones((), dtype=torch.float64)
-        return torch.exp(-self.dt / torch.exp(self.log["drift_tau"]))
+        return torch.exp(-self.dt / self._values()["drift_tau"])
 
     def _Q(self) -> torch.Tensor:
         """(n, n) the process noise of one step (the drift's that of its stationary
         first-order Gauss-Markov process, as :class:`lbo.filters.gyro.GyroStepper`'s)."""
-        p = {k: torch.exp(v) for k, v in self.log.items()}
+        p = self._values()
         q = [p["q_position"] ** 2, p["q_position"] ** 2,
              p["q_heading"] ** 2 + (p["gyro_sigma"] * self.dt) ** 2, p["bias_walk"] ** 2 * self.dt]
         if self.n == 6:
@@ -188,7 +198,7 @@ class GyroFilter(nn.Module):
     def states(self, seg: Segments) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """The filter over the segments: states (G, T, n), covariances (G, T, n, n) and each
         step's negative log-likelihood (G, T), as :meth:`run` says."""
-        p = {k: torch.exp(v) for k, v in self.log.items()}
+        p = self._values()
         g, t = seg.fix.shape[:2]
         dtype = seg.x0.dtype
         Q, H = self._Q(), self.H
