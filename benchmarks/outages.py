@@ -1,17 +1,21 @@
 """GNSS outages on the comma2k19 example segment shipped with lbo: every receiver column blanked
 for 10 s, every 25 s while the car moves (:mod:`lbo.scoring.outages`), each classical observer
 (and the gyro EKF with noises given as ``label=path``, files ``python -m lbo.realdrive`` wrote)
-scored through them. The hill drive's test span is ``python -m lbo.realdrive
-outages.length_s=10``.
+scored through them; and the gyro EKF adapted to the blanked log itself, by its innovations
+(``lbo.observe adapt=true``'s fit: no truth, and no fix inside an outage), with and without
+factors on the speed and the gyro (``adapt_scales=true``). The hill drive's test span is
+``python -m lbo.realdrive outages.length_s=10``.
 
     python benchmarks/outages.py ["truth, train span=reports/realdrive/gyro_noise.json" ...]
 """
 
 import sys
+import time
 
 from omegaconf import OmegaConf
 
 from lbo.filters.gyro import GyroNoise
+from lbo.learn import gyro_fit
 from lbo.scoring import outages
 from lbo.scoring.receiver import EKF, score
 from lbo.sim import comma2k19
@@ -27,5 +31,14 @@ protocol = outages.Outages(length_s=10.0, every_s=25.0)
 spans = outages.place(log, protocol, vehicle.dt)
 print(f"comma2k19 example: {len(log) * vehicle.dt:.0f} s, {len(spans)} outages of "
       f"{protocol.length_s:g} s at {', '.join(f'{s * vehicle.dt:.0f}' for s in spans[:, 0])} s")
-_, estimates = score(outages.blank(log, spans), ["ekf", "gyro"], vehicle, noise, learned)
+blanked = outages.blank(log, spans)
+defaults = GyroNoise.from_q(noise.Q)
+for label, start in (("adapt=true", defaults), ("adapt=true adapt_scales=true",
+                                                defaults.with_scales())):
+    began = time.perf_counter()
+    fitted = gyro_fit.adapt(blanked, start, vehicle, noise)  # 12 epochs, as lbo.observe's
+    print(f"{label}: {time.perf_counter() - began:.0f} s, kept epoch {fitted.best_epoch}: "
+          f"{fitted.noise}")
+    learned[f"gyro, adapted to the log around the outages ({label})"] = fitted.noise
+_, estimates = score(blanked, ["ekf", "gyro"], vehicle, noise, learned)
 print(outages.markdown(outages.score(estimates, log, spans, vehicle.dt, reference=EKF)), end="")
