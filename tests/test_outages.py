@@ -123,3 +123,35 @@ def test_no_length_means_no_outages():
     assert Outages.from_cfg(OmegaConf.create({"length_s": 0, "every_s": 25.0})) is None
     assert Outages.from_cfg(OmegaConf.create({"length_s": 10, "every_s": 25.0})) == \
         Outages(10.0, 25.0)
+
+
+def test_observe_scores_a_users_log_through_outages_it_cuts(tmp_path):
+    """``lbo.observe ... outages.length_s=5 outages.every_s=15``: the log is blanked before
+    any observer reads it, the output holds the estimates on the blanked log, and the main
+    observer and each compared one are scored through the outages; a log without truth is
+    one line."""
+    from helpers import observe
+
+    log = gyro_log(2)
+    log.to_csv(tmp_path / "log.csv", index=False)
+    res = observe("observer=gyro", f"input={tmp_path / 'log.csv'}", "compare=[ekf]",
+                  f"plot={tmp_path / 'est.png'}",
+                  f"output={tmp_path / 'est.csv'}", "outages.length_s=5", "outages.every_s=15",
+                  cwd=tmp_path, check=True)
+    assert "through 3 GNSS outages of 5 s (every 15 s while moving)" in res.stdout
+    rows = [line for line in res.stdout.splitlines() if line.startswith(("| gyro", "| ekf"))]
+    assert len(rows) == 2, res.stdout
+    spans = outages.place(log, Outages(5.0, 15.0), VEHICLE.dt)
+    _, alone = score(outages.blank(log, spans), ["gyro"], VEHICLE, Noise.from_cfg(
+        OmegaConf.load(CONF_DIR / "noise" / "paper.yaml")))
+    est = pd.read_csv(tmp_path / "est.csv")[["x", "y", "psi"]].to_numpy()
+    inside = outages.inside(len(log), spans)
+    np.testing.assert_allclose(est[inside], alone["gyro, receiver's accuracy and velocity"][
+        inside], atol=1e-9)  # the output is the blanked log's
+    log.drop(columns=list(STATE)).to_csv(tmp_path / "blind.csv", index=False)
+    bad = observe("observer=gyro", f"input={tmp_path / 'blind.csv'}",
+                  f"output={tmp_path / 'bad.csv'}", "outages.length_s=5", cwd=tmp_path)
+    assert bad.returncode == 2 and bad.stderr.strip().splitlines()[-1] == (
+        f"error: outages: scored against the log's truth (x, y, psi); input "
+        f"{tmp_path / 'blind.csv'} has none")
+    assert not (tmp_path / "bad.csv").exists()

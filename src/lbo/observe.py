@@ -62,7 +62,9 @@ from lbo.core.cli import entry
 from lbo.core.errors import LboError
 from lbo.filters.consistency import SIGNIFICANCE, WINDOW
 from lbo.models.envelope import check_mode
+from lbo.scoring import outages as outage
 from lbo.scoring.metrics import PAPER_REFERENCE, nrmse
+from lbo.scoring.outages import Outages
 from lbo.sim.columns import COVARIANCE, LOG, RECEIVER, STATE
 from lbo.sim.logcheck import check_alpha, check_device
 from lbo.sim.logformat import LogFormat
@@ -135,6 +137,7 @@ def observe(cfg: DictConfig) -> dict[str, Any]:
     if adapt and name != "gyro":
         raise LboError(f"adapt: only observer=gyro adapts (its noise, to this log's "
                        f"innovations); got observer={name}")
+    outages = Outages.from_cfg(cfg.get("outages"))
     if adapt_scales and not adapt:
         raise LboError("adapt_scales: the factors on the speed and the gyro are learned by "
                        "the fit adapt=true makes; pass adapt=true with it")
@@ -179,6 +182,13 @@ def observe(cfg: DictConfig) -> dict[str, Any]:
     if cfg.resample:
         df = resample(df, obs.dt, columns, max_gap, where)
     check_period(df["t"].to_numpy(dtype=float), obs.dt, where)
+    spans = None
+    if outages is not None:  # blanked before anything reads the log, the adapting fit too
+        if not truth:
+            raise LboError(f"outages: scored against the log's truth (x, y, psi); {where} "
+                           "has none")
+        spans = outage.place(df, outages, obs.dt)
+        df = outage.blank(df, spans)
 
     if adapt:
         start = gyro_noise or GyroNoise.from_q(noise.Q)
@@ -223,6 +233,14 @@ def observe(cfg: DictConfig) -> dict[str, Any]:
             r = scored_rmse(e, df[list(STATE)].to_numpy(dtype=float), ok, blind)
             print(f"compare {other}: rmse x {r[0]:.6g} m, y {r[1]:.6g} m, "
                   f"{psi_text(o.name, r[2], ok, blind)} ({int(ok.sum())} valid rows)")
+    if spans is not None and outages is not None:
+        through = outage.score({obs.name: np.where(valid[:, None], est, np.nan), **others},
+                               df, spans, obs.dt)
+        result["outages"] = through
+        print(f"through {len(spans)} GNSS outages of {outages.length_s:g} s (every "
+              f"{outages.every_s:g} s while moving), every receiver column blanked (so in "
+              f"{output} too):")
+        print(outage.markdown(through), end="")
     if plot is not None:
         from lbo.core import plots
 

@@ -80,11 +80,16 @@ def windows(log: pd.DataFrame, outages: Outages, dt: float,
 
 
 def place(log: pd.DataFrame, outages: Outages, dt: float) -> np.ndarray:
-    """:func:`windows` from the log's first course over ground on (where its scoring starts:
-    :func:`lbo.scoring.receiver.scored_rows`); one line where none fits."""
+    """:func:`windows` from the log's first course over ground on (where a receiver's log is
+    scored from: :func:`lbo.scoring.receiver.scored_rows`), or from its first fix where it
+    has no GNSS velocity; one line where none fits."""
     from lbo.scoring.receiver import scored_rows
 
-    spans = windows(log, outages, dt, int(np.argmax(scored_rows(log))))
+    if {"ve_m", "vn_m"} <= set(log.columns):
+        first = int(np.argmax(scored_rows(log)))
+    else:
+        first = int(np.argmax(np.isfinite(log[list(MEAS[:2])].to_numpy(float)).all(1)))
+    spans = windows(log, outages, dt, first)
     if not len(spans):
         raise LboError(f"outages: no window of {outages.length_s:g} s fits where the car moves "
                        f"(at least {MOVING_SPEED:g} m/s throughout); shorten outages.length_s")
