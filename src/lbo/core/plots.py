@@ -256,6 +256,7 @@ def outage_errors(seconds: np.ndarray, errors: dict[str, np.ndarray], title: str
     ax.set(xlabel="seconds into the outage", ylabel="position error (m)",
            title=title or "through a GNSS outage: median, and the band of every outage")
     ax.grid(alpha=0.3, which="both")
-    ax.legend(fontsize=7.5)
+    # below the axes: the lines it names run through every corner of them
+    ax.legend(fontsize=7.5, loc="upper center", bbox_to_anchor=(0.5, -0.14), ncol=2)
     fig.tight_layout()
     return fig
