@@ -447,3 +447,19 @@ def test_fixes_and_velocities_late_by_a_latency_are_brought_forward_to_their_row
     assert np.abs(fix[3:] - pos[3:]).max() > 0.7  # 0.75 m along the road, uncorrected
     with pytest.raises(LboError, match=r"^velocity_latency: expected a number of seconds >= 0"):
         measure.undelayed(fix, velocity, np.full(t, rate), 0.05, -0.1)
+
+
+def test_a_speed_sensor_that_reads_off_scales_the_logs_speed_only():
+    """``receiver.speed_scale=1.02``: the log's V is the car's speed times 1.02, while the
+    truth, the fixes and the gyro are those of the same drive with an exact sensor (the
+    learned factor that undoes it: docs/logs.md section 11); out of [0.5, 2] it is one line."""
+    args = ["receiver=single_antenna", "manoeuvre=free_drive", "duration=20"]
+    exact = simulate(compose_cfg("simulate", args))
+    off = simulate(compose_cfg("simulate", [*args, "receiver.speed_scale=1.02"]))
+    assert (exact["V"] > 1.0).mean() > 0.5
+    np.testing.assert_allclose(off["V"], 1.02 * exact["V"], rtol=1e-12)
+    same = [c for c in exact.columns if c != "V"]
+    pd.testing.assert_frame_equal(off[same], exact[same])
+    with pytest.raises(LboError, match=r"^receiver\.speed_scale must be a number in "
+                                       r"\[0\.5, 2\], got 3\.0$"):
+        simulate(compose_cfg("simulate", [*args, "receiver.speed_scale=3.0"]))

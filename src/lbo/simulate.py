@@ -147,7 +147,8 @@ def with_receiver(df: pd.DataFrame, z: np.ndarray, u: np.ndarray, cfg: DictConfi
     """The log ``df`` with its fixes replaced by the channels of ``cfg.receiver``
     (:mod:`lbo.sim.receiver`) of the truth z (T, 3) and inputs u (T, 2), drawn from their own
     generator (``[seed, 11]``: the log's other columns are those drawn without a receiver),
-    and the gyro's true bias as a truth column ``b`` (rad/s), which an oracle is told.
+    and the gyro's true bias as a truth column ``b`` (rad/s), which an oracle is told; ``V``
+    as the receiver's speed sensor reads it (``receiver.speed_scale``).
     slip : (T,) the rear axle's side slip (rad) that turns its velocity, or None (none)."""
     from lbo.sim.receiver import COLUMNS, ReceiverSpec, sense
 
@@ -161,6 +162,7 @@ def with_receiver(df: pd.DataFrame, z: np.ndarray, u: np.ndarray, cfg: DictConfi
     for c in COLUMNS:
         df[c] = out[c][0]
     df["b"] = out["gyro_bias"][0]
+    df["V"] = df["V"] * spec.speed_scale  # what the speed sensor reads (the truth moved at V)
     return df
 
 

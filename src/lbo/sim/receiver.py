@@ -84,6 +84,9 @@ class ReceiverSpec:
     gyro_bias: float = 0.005
     gyro_walk: float = 1e-4
     reported_spread: float = 0.2
+    speed_scale: float = 1.0
+    """The speed sensor's factor: the log's ``V`` is the car's speed times it (a wheel or CAN
+    speed reads a percent or two off; 1: exact)."""
 
     @classmethod
     def from_cfg(cls, cfg: Any, dt: float) -> ReceiverSpec:
@@ -106,6 +109,8 @@ class ReceiverSpec:
         for k in ("gyro_bias", "gyro_walk", "reported_spread"):
             if k in c:
                 number(c[k], f"receiver.{k}", low=0.0)
+        if "speed_scale" in c:
+            number(c["speed_scale"], "receiver.speed_scale", low=0.5, high=2.0)
         return cls(position=channels["position"], velocity=channels["velocity"],
                    gyro=channels["gyro"], **c)
 
