@@ -129,10 +129,10 @@ class GyroFilter(nn.Module):
         gi, ti = torch.nonzero(held, as_tuple=True)  # the fixes predicted, at row ti
         start = ti - steps
         xs, Ps = x[gi, start], P[gi, start]
-        Q = self._Q()
+        Q, phi = self._Q(), self._phi()
         u = self._inputs(seg.u)
         for j in range(steps):
-            xs, Ps = self._predict(xs, Ps, u[gi, start + j], Q)
+            xs, Ps = self._predict(xs, Ps, u[gi, start + j], Q, phi)
         Hf = self.H[list(_FIX)]
         S = Hf @ Ps @ Hf.T + self._fix_R(seg.accuracy[gi, ti])
         y = seg.fix[gi, ti] - xs @ Hf.T
@@ -173,17 +173,17 @@ class GyroFilter(nn.Module):
             q += [p["drift_sigma"] ** 2 * (1.0 - self._phi() ** 2)] * 2
         return torch.diag(torch.stack(q))
 
-    def _predict(self, x: torch.Tensor, P: torch.Tensor, u: torch.Tensor, Q: torch.Tensor
-                 ) -> tuple[torch.Tensor, torch.Tensor]:
+    def _predict(self, x: torch.Tensor, P: torch.Tensor, u: torch.Tensor, Q: torch.Tensor,
+                 phi: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """One step of the model: x (B, n), P (B, n, n) on u (B, 2) ``[V, r_m]``; the turn
-        is held at a standstill (the gyro then measures its bias); the drift decays."""
+        is held at a standstill (the gyro then measures its bias); the drift decays by phi
+        (:meth:`_phi`, computed once per run)."""
         dt, n = self.dt, self.n
         v, rate = u[:, 0], u[:, 1]
         psi, bias = x[:, 2], x[:, 3]
         zero = torch.zeros((), dtype=x.dtype)
         still = v.abs() < gyro_np.STILL_SPEED
         turn = torch.where(still, zero, rate - bias)
-        phi = self._phi()
         x = torch.cat([torch.stack([x[:, 0] + v * torch.cos(psi) * dt,
                                     x[:, 1] + v * torch.sin(psi) * dt,
                                     psi + turn * dt, bias], -1), x[:, 4:] * phi], -1)
@@ -201,7 +201,7 @@ class GyroFilter(nn.Module):
         p = self._values()
         g, t = seg.fix.shape[:2]
         dtype = seg.x0.dtype
-        Q, H = self._Q(), self.H
+        Q, H, phi = self._Q(), self.H, self._phi()  # once: the same at every step
         u = self._inputs(seg.u)
         # the velocity's course, as lbo.filters.measure.course_over_ground holds it
         speed = torch.nan_to_num(seg.speed, nan=0.0)
@@ -219,7 +219,7 @@ class GyroFilter(nn.Module):
         for k in range(1, t):
             v, rate = u[:, k - 1, 0], u[:, k - 1, 1]
             still = v.abs() < gyro_np.STILL_SPEED
-            x, P = self._predict(x, P, u[:, k - 1], Q)
+            x, P = self._predict(x, P, u[:, k - 1], Q, phi)
             R = torch.zeros((g, 4, 4), dtype=dtype)
             R[:, :2, :2] = fix_R[:, k]
             R[:, 2, 2] = torch.where(course_held[:, k], course_var[:, k], torch.ones_like(v))

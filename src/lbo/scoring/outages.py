@@ -21,8 +21,8 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from lbo.core.angles import wrap_angle
 from lbo.core.errors import LboError
+from lbo.scoring.metrics import rmse
 from lbo.sim.columns import MEAS, RECEIVER, STATE
 
 __all__ = ["BLANKED", "MOVING_SPEED", "Outages", "blank", "curves", "inside", "markdown",
@@ -142,12 +142,11 @@ def score(estimates: Mapping[str, np.ndarray], log: pd.DataFrame, spans: np.ndar
     driven = travelled[spans[:, 1]] - travelled[spans[:, 0]]  # m in each outage
     table = []
     for label, est in estimates.items():
-        d = est - truth
-        d[:, 2] = wrap_angle(d[:, 2])
-        end = np.hypot(d[last, 0], d[last, 1])
+        e = rmse(est, truth, rows)
+        end = np.hypot(*(est[last, :2] - truth[last, :2]).T)
         table.append({"estimator": label, "outages": len(spans),
-                      "position_m": float(np.sqrt(np.mean(np.sum(d[rows, :2] ** 2, 1)))),
-                      "psi_mrad": 1e3 * float(np.sqrt(np.mean(d[rows, 2] ** 2))),
+                      "position_m": float(np.hypot(e[0], e[1])),
+                      "psi_mrad": 1e3 * float(e[2]),
                       "end_m": float(np.mean(end)), "end_worst_m": float(np.max(end)),
                       "drift_pct": 100 * float(np.mean(end / driven))})
     out = pd.DataFrame(table)
