@@ -236,7 +236,7 @@ def _learn(cfg: Any, simulated_epochs: int, simulated: DictConfig,
         return gyro_fit.fit_and_write(out, name, train, val, vehicle, R, start, where,
                                       **settings.kwargs(vehicle.dt))
 
-    defaults = cfg.starting(GyroNoise.from_q(noise.Q))
+    defaults = cfg.start(noise.Q)
     out_noise = {LEARNED: learn("gyro_noise", parts["train"], parts["val"], defaults,
                                 cfg.epochs, "on the train span, from the defaults")}
     if simulated_epochs:

@@ -118,7 +118,7 @@ def receiver_study(cfg: DictConfig) -> dict[str, Any]:
         R = gyro_fit.fix_cov(noise)
         learned[LEARNED] = gyro_fit.fit_and_write(
             out, "gyro_noise", logs[:n], logs[n:], vehicle, R,
-            s["learn"].starting(GyroNoise.from_q(noise.Q)),
+            s["learn"].start(noise.Q),
             f"on {n} simulated drives at alpha {s['range'][0]:g} to {s['range'][1]:g}",
             **s["learn"].kwargs(vehicle.dt))
     tables = []

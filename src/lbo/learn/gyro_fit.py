@@ -125,6 +125,11 @@ class Settings:
         noise = noise.with_drift(DRIFT_START if self.drift else None)
         return noise.with_scales() if self.scales else noise
 
+    def start(self, Q: np.ndarray) -> GyroNoise:
+        """:meth:`starting` from the defaults with the process sigmas of ``Q`` (3, 3), the
+        classical observers' (:meth:`GyroNoise.from_q`): where every command's fit starts."""
+        return self.starting(GyroNoise.from_q(Q))
+
     def kwargs(self, dt: float) -> dict[str, Any]:
         """The keywords of :func:`fit` (and :func:`fit_and_write`) for a log of period
         ``dt``: epochs, segment and ahead in steps, lr, objective and method."""

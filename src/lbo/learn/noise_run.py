@@ -122,7 +122,7 @@ def across_drives(drives: list[pd.DataFrame], settings: Settings, vehicle: Any, 
     from lbo.learn import gyro_fit
     from lbo.scoring import drives as across
 
-    R, start = gyro_fit.fix_cov(noise), settings.starting(GyroNoise.from_q(noise.Q))
+    R, start = gyro_fit.fix_cov(noise), settings.start(noise.Q)
 
     def learn(k: int, train: list[pd.DataFrame]) -> dict[str, GyroNoise]:
         fitted = gyro_fit.fit(train, train, vehicle, R, start, progress=None,
@@ -180,7 +180,7 @@ def train(cfg: DictConfig, params: dict[str, Any], tags: dict[str, str]) -> dict
     truth = settings.objective == "truth"
     train_logs, val_logs = read(spec, "train", truth), read(spec, "val", truth)
     tests = read(spec, "test", True) if spec.files["test"] else []
-    start = settings.starting(GyroNoise.from_q(spec.noise.Q))
+    start = settings.start(spec.noise.Q)
     out = Path(cfg.output_dir)
     with claim(out):
         run = _Run.open(cfg, {**tags, "config_hash": digest}, params)
