@@ -13,7 +13,7 @@ import pytest
 from hydra.errors import MissingConfigException
 from omegaconf import open_dict
 
-from helpers import compose_cfg
+from helpers import cli, compose_cfg
 from lbo.core.errors import LboError
 from lbo.core.paths import CONF_DIR
 from lbo.tracking.search import TrialSeededTPESampler
@@ -231,8 +231,8 @@ def test_ctrl_c_fails_the_trial_kills_the_study_run_and_a_rerun_finishes_n_trial
         rf"interrupted: study ctrl-c in {re.escape(storage)}: {hit} of 3 trials finished, "
         rf"trial {hit} failed; rerun the same command to finish it", err.strip().splitlines()[-1])
 
-    again = subprocess.run([*args, f"hydra.run.dir={tmp_path / 'b'}"], capture_output=True,
-                           text=True, timeout=300)
+    # the rerun in this process: only the Ctrl-C needs a process of its own
+    again = cli("lbo.tune", *args[3:], f"hydra.run.dir={tmp_path / 'b'}")
     assert again.returncode == 0, again.stderr[-3000:]
     assert again.stdout.startswith(f"study ctrl-c in {storage}: {hit} of 3 trials finished, "
                                    f"running {3 - hit} more")
@@ -434,12 +434,11 @@ def test_two_workers_share_one_study(tmp_path, smoke_data, tracking):
 @pytest.mark.slow
 def test_cli_tunes_the_lstm_and_prints_the_hand_off_last(tmp_path, smoke_data, tracking):
     handoff = tmp_path / "tuned" / "lstm.yaml"
-    res = subprocess.run(
-        [sys.executable, "-m", "lbo.tune", "hparams_search=lstm", "experiment=smoke",
-         f"data.root={smoke_data.parent}", "trainer.limit_train_batches=5", "tune.n_trials=1",
-         f"tune.storage=sqlite:///{tmp_path / 'optuna.db'}", f"tune.handoff={handoff}",
-         f"logger.tracking_uri={tracking}", f"hydra.run.dir={tmp_path / 'run'}"],
-        capture_output=True, text=True)
+    res = cli("lbo.tune", "hparams_search=lstm", "experiment=smoke",
+              f"data.root={smoke_data.parent}", "trainer.limit_train_batches=5",
+              "tune.n_trials=1", f"tune.storage=sqlite:///{tmp_path / 'optuna.db'}",
+              f"tune.handoff={handoff}", f"logger.tracking_uri={tracking}",
+              f"hydra.run.dir={tmp_path / 'run'}")
     assert res.returncode == 0, res.stderr[-3000:]
     lines = res.stdout.strip().splitlines()
     assert lines[0].startswith("study lstm-smoke-N20 in sqlite:///")

@@ -186,7 +186,10 @@ def mlflow_server(backend: str | None = None) -> Iterator[MlflowServer]:
     args = ["mlflow", "server", "--host", "127.0.0.1", "--port", "{port}",
             "--backend-store-uri", backend, "--artifacts-destination", str(folder / "artifacts"),
             "--workers", "1"]
-    with _http_server(args, folder, "health", "mlflow server", 120) as url:
+    # no job runner: lbo queues no server-side job, and its huey consumers took 60 s of CPU
+    # over one run of the suite (py-spy)
+    env = {**os.environ, "MLFLOW_SERVER_ENABLE_JOB_EXECUTION": "false"}
+    with _http_server(args, folder, "health", "mlflow server", 120, env) as url:
         yield MlflowServer(url, folder)
 
 
