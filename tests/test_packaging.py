@@ -39,6 +39,9 @@ def test_the_wheel_ships_every_config(wheel):
     assert conf and {f"lbo/conf/{c}" for c in conf} <= names
     assert "lbo/py.typed" in names
     assert "lbo/examples/stop_and_go_10hz.csv" in names  # the quickstart's log
+    for run in ("comma2k19/segment.npz", "sideslip/run.npz"):  # the real runs, licensed
+        folder = run.split("/")[0]
+        assert {f"lbo/sim/data/{run}", f"lbo/sim/data/{folder}/LICENSE"} <= names
     assert not [n for n in names if n.endswith(".sh")]
 
 

@@ -1,0 +1,64 @@
+"""Side slip on a real car at the limit: the MBDS run shipped with lbo (:mod:`lbo.sim.sideslip`),
+split by time 60/20/20, each classical estimate of beta scored against the INS's on each span.
+
+The linear single-track Kalman filter is told the car's published parameters
+(:data:`lbo.sim.sideslip.CAR`) and the noise read off the training span alone
+(:meth:`lbo.filters.lateral.LateralNoise.of`); nothing looks at the test span but the scoring.
+Writes the markdown table to stdout and the plot of beta over the test span to ``docs/``.
+
+    python benchmarks/sideslip.py [docs/sideslip.png]
+"""
+
+import sys
+import time
+
+import numpy as np
+
+from lbo.core import plots
+from lbo.filters.lateral import LateralNoise, kinematic_beta, linear_single_track
+from lbo.sim import sideslip
+
+out = sys.argv[1] if len(sys.argv) > 1 else "docs/sideslip.png"
+spans = sideslip.split(sideslip.example())
+noise = LateralNoise.of(*sideslip.observed(spans["train"]))
+print(f"noise read off the train span: {noise}")
+
+
+def deg_rms(err: np.ndarray) -> float:
+    return float(np.rad2deg(np.sqrt(np.mean(err**2))))
+
+
+rows, test_estimates = [], {}
+for name, span in spans.items():
+    vx, delta, y = sideslip.observed(span)
+    beta = span["beta"].to_numpy()
+    start = time.perf_counter()
+    lkf = linear_single_track(vx, delta, y, sideslip.CAR, noise, sideslip.DT)
+    seconds = time.perf_counter() - start
+    estimates = {"zero (straight ahead)": np.zeros_like(beta),
+                 "kinematic bicycle": kinematic_beta(delta, sideslip.CAR),
+                 "linear single-track KF": lkf.beta}
+    for observer, est in estimates.items():
+        rows.append((name, observer, deg_rms(est - beta), np.rad2deg(np.abs(est - beta).max())))
+    print(f"{name}: {len(span)} rows, {span['t'].iloc[0]:.2f}-{span['t'].iloc[-1]:.2f} s; "
+          f"the filter {seconds:.1f} s ({1e6 * seconds / len(span):.0f} us a row)")
+    if name == "test":
+        test_estimates = {"INS (reference)": beta, **estimates}
+        t = span["t"].to_numpy()
+
+print("\n| span | estimate of beta | RMSE (deg) | largest error (deg) |")
+print("|---|---|---|---|")
+for name, observer, rmse, worst in rows:
+    print(f"| {name} | {observer} | {rmse:.2f} | {worst:.2f} |")
+
+import matplotlib.pyplot as plt  # noqa: E402  (after the numbers: the plot is the last step)
+
+fig, ax = plt.subplots(figsize=(10, 3.6))
+for observer, est in test_estimates.items():
+    ax.plot(t, np.rad2deg(est), lw=1.6 if observer.startswith("INS") else 0.9,
+            color="k" if observer.startswith("INS") else None, label=observer)
+ax.set_xlabel("t (s)")
+ax.set_ylabel("side slip beta (deg)")
+ax.set_title("MBDS side-slip run, test span (the last 20%)")
+ax.legend(ncol=4, fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.2))
+print(f"\nplot: {plots.save(fig, out)}")
