@@ -3,25 +3,35 @@ split by time 60/20/20, each classical estimate of beta scored against the INS's
 
 The linear single-track Kalman filter is told the car's published parameters
 (:data:`lbo.sim.sideslip.CAR`) and the noise read off the training span alone
-(:meth:`lbo.filters.lateral.LateralNoise.of`); nothing looks at the test span but the scoring.
+(:meth:`lbo.filters.lateral.LateralNoise.of`); the EKF with saturating tyres the same, and the
+friction read off the training span (:func:`lbo.sim.sideslip.friction`); the validation span
+shows how its error moves with the friction. Nothing looks at the test span but the scoring.
 Writes the markdown table to stdout and the plot of beta over the test span to ``docs/``.
 
     python benchmarks/sideslip.py [docs/sideslip.png]
 """
 
+import dataclasses
 import sys
 import time
 
 import numpy as np
 
 from lbo.core import plots
-from lbo.filters.lateral import LateralNoise, kinematic_beta, linear_single_track
+from lbo.filters.lateral import (
+    LateralNoise,
+    kinematic_beta,
+    linear_single_track,
+    nonlinear_single_track,
+)
 from lbo.sim import sideslip
 
 out = sys.argv[1] if len(sys.argv) > 1 else "docs/sideslip.png"
 spans = sideslip.split(sideslip.example())
 noise = LateralNoise.of(*sideslip.observed(spans["train"]))
-print(f"noise read off the train span: {noise}")
+mu = sideslip.friction(spans["train"])
+car = dataclasses.replace(sideslip.CAR, mu=mu)
+print(f"read off the train span: {noise}, friction {mu:.3f}")
 
 
 def deg_rms(err: np.ndarray) -> float:
@@ -35,13 +45,18 @@ for name, span in spans.items():
     start = time.perf_counter()
     lkf = linear_single_track(vx, delta, y, sideslip.CAR, noise, sideslip.DT)
     seconds = time.perf_counter() - start
+    start = time.perf_counter()
+    ekf = nonlinear_single_track(vx, delta, y, car, noise, sideslip.DT)
+    nonlinear = time.perf_counter() - start
     estimates = {"zero (straight ahead)": np.zeros_like(beta),
                  "kinematic bicycle": kinematic_beta(delta, sideslip.CAR),
-                 "linear single-track KF": lkf.beta}
+                 "linear single-track KF": lkf.beta,
+                 f"single-track EKF, tyres saturating at mu = {mu:.2f}": ekf.beta}
     for observer, est in estimates.items():
         rows.append((name, observer, deg_rms(est - beta), np.rad2deg(np.abs(est - beta).max())))
     print(f"{name}: {len(span)} rows, {span['t'].iloc[0]:.2f}-{span['t'].iloc[-1]:.2f} s; "
-          f"the filter {seconds:.1f} s ({1e6 * seconds / len(span):.0f} us a row)")
+          f"the linear filter {1e6 * seconds / len(span):.0f} us a row, the EKF "
+          f"{1e6 * nonlinear / len(span):.0f} us a row")
     if name == "test":
         test_estimates = {"INS (reference)": beta, **estimates}
         t = span["t"].to_numpy()
@@ -50,6 +65,14 @@ print("\n| span | estimate of beta | RMSE (deg) | largest error (deg) |")
 print("|---|---|---|---|")
 for name, observer, rmse, worst in rows:
     print(f"| {name} | {observer} | {rmse:.2f} | {worst:.2f} |")
+
+val = spans["val"]
+print("\n| friction mu | beta RMSE on the validation span (deg) |")
+print("|---|---|")
+for m in sorted({1.0, round(mu, 2), 1.7, 100.0}):
+    est = nonlinear_single_track(*sideslip.observed(val), dataclasses.replace(car, mu=m), noise,
+                                 sideslip.DT)
+    print(f"| {m:g} | {deg_rms(est.beta - val['beta'].to_numpy()):.2f} |")
 
 import matplotlib.pyplot as plt  # noqa: E402  (after the numbers: the plot is the last step)
 

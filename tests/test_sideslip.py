@@ -1,10 +1,18 @@
-"""The MBDS side-slip run shipped with lbo, and the linear single-track Kalman filter."""
+"""The MBDS side-slip run shipped with lbo, and the single-track filters of side slip."""
+
+import dataclasses
 
 import numpy as np
+import pandas as pd
 import pytest
 
 from lbo.core.errors import LboError
-from lbo.filters.lateral import LateralNoise, kinematic_beta, linear_single_track
+from lbo.filters.lateral import (
+    LateralNoise,
+    kinematic_beta,
+    linear_single_track,
+    nonlinear_single_track,
+)
 from lbo.sim import sideslip
 
 NOISE = LateralNoise(delta=0.8, ay=1.0, r=0.005)
@@ -107,6 +115,28 @@ def test_a_missing_measurement_is_a_prediction_step(run):
     est = linear_single_track(vx, delta, y, sideslip.CAR, NOISE, sideslip.DT)
     assert np.isfinite(est.x).all()
     assert np.trace(est.P[59]) > np.trace(est.P[49])  # it grew uncertain while blind
+
+
+def test_tyres_that_never_saturate_make_the_ekf_the_linear_filter(run):
+    """The EKF's tyres are linear at small slip: with a friction no tyre reaches, it gives
+    the linear filter's side slip (up to the small-angle steps the linear model takes)."""
+    vx, delta, y = sideslip.observed(run.iloc[20000:20300])
+    linear = linear_single_track(vx, delta, y, sideslip.CAR, NOISE, sideslip.DT)
+    grippy = dataclasses.replace(sideslip.CAR, mu=1e6)
+    ekf = nonlinear_single_track(vx, delta, y, grippy, NOISE, sideslip.DT)
+    assert np.abs(ekf.beta - linear.beta).max() < 0.02 * np.abs(linear.beta).max()
+    assert np.abs(ekf.r - linear.r).max() < 0.02 * np.abs(linear.r).max()
+    # at the car's own friction it departs from it where the tyres saturate
+    real = nonlinear_single_track(vx, delta, y, dataclasses.replace(grippy, mu=1.0), NOISE,
+                                  sideslip.DT)
+    assert np.abs(real.beta - linear.beta).max() > 0.1 * np.abs(linear.beta).max()
+    assert np.allclose(real.P, real.P.transpose(0, 2, 1)) and np.isfinite(real.x).all()
+
+
+def test_the_friction_is_read_off_a_span_of_lateral_acceleration():
+    span = pd.DataFrame({"ay_m": np.r_[np.full(999, 9.81), 30.0]})
+    assert sideslip.friction(span) == pytest.approx(1.0, abs=0.03)  # the spike left out
+    assert sideslip.friction(span, share=100) == pytest.approx(30.0 / 9.81)
 
 
 def test_the_kinematic_side_slip_needs_only_the_axles():

@@ -24,6 +24,7 @@ assumes no tyre slips: the guess that needs no parameter but the axles'.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -31,7 +32,7 @@ import numpy as np
 from lbo.core.checks import number
 from lbo.core.errors import LboError
 from lbo.filters.update import joseph_update
-from lbo.sim.dynamic import SingleTrack
+from lbo.sim.dynamic import SingleTrack, lateral_rates
 
 STATE = ("beta", "r")
 """The filter's states, in the order ``x`` holds them; ``y`` holds [ay, r]."""
@@ -122,6 +123,12 @@ def _model(vx: np.ndarray, car: SingleTrack, dt: float
     return A, B, C, D
 
 
+Model = Callable[[np.ndarray, np.ndarray, np.ndarray],
+                 tuple[np.ndarray, np.ndarray, np.ndarray]]
+"""(x (G, 2), vx (G,), delta (G,)) -> (value (G, 2), Jacobian in x (G, 2, 2), derivative in
+delta (G, 2)): the step from one row to the next, or the measurements [ay, r] at a row."""
+
+
 def linear_single_track(vx: np.ndarray, delta: np.ndarray, y: np.ndarray, car: SingleTrack,
                         noise: LateralNoise, dt: float, p0: float = 1e4) -> LateralEstimate:
     """The linear single-track Kalman filter over G logs at once.
@@ -141,6 +148,54 @@ def linear_single_track(vx: np.ndarray, delta: np.ndarray, y: np.ndarray, car: S
     LateralEstimate with x (G, T, 2) (or (T, 2)) and P (G, T, 2, 2) (or (T, 2, 2)); row 0 is
     the starting prior.
     """
+    def step(x: np.ndarray, v: np.ndarray, d: np.ndarray):
+        A, B, _, _ = _model(v, car, dt)
+        return np.einsum("gij,gj->gi", A, x) + B * d[:, None], A, B
+
+    def measure(x: np.ndarray, v: np.ndarray, d: np.ndarray):
+        _, _, C, D = _model(v, car, dt)
+        return np.einsum("gij,gj->gi", C, x) + D * d[:, None], C, np.broadcast_to(D, x.shape)
+
+    return _filter("linear_single_track", vx, delta, y, noise, p0, step, measure)
+
+
+def nonlinear_single_track(vx: np.ndarray, delta: np.ndarray, y: np.ndarray, car: SingleTrack,
+                           noise: LateralNoise, dt: float, p0: float = 1e4) -> LateralEstimate:
+    """The single-track EKF with tyres that saturate: each axle's force
+    ``mu F_z tanh(C alpha / (mu F_z))`` (:func:`lbo.sim.dynamic.lateral_rates`, lbo's car that
+    slips), linear with the cornering stiffness C at small slip, capped at ``car.mu`` times
+    the axle's load. Arguments and result as :func:`linear_single_track`; the Jacobians by
+    central differences (the model is smooth), the steering's noise through the model's
+    derivative in delta as in the linear filter."""
+    def rates(x: np.ndarray, v: np.ndarray, d: np.ndarray) -> np.ndarray:
+        v_y = v * np.tan(x[:, 0])
+        dv_y, dr = lateral_rates(v_y, x[:, 1], v, d, car)
+        return np.stack([v * dv_y / (v**2 + v_y**2), dr], axis=-1), dv_y + v * x[:, 1]
+
+    def step(x: np.ndarray, v: np.ndarray, d: np.ndarray):
+        def f(xx: np.ndarray, dd: np.ndarray) -> np.ndarray:
+            return xx + dt * rates(xx, v, dd)[0]
+        return f(x, d), *_derivatives(f, x, d)
+
+    def measure(x: np.ndarray, v: np.ndarray, d: np.ndarray):
+        def h(xx: np.ndarray, dd: np.ndarray) -> np.ndarray:
+            return np.stack([rates(xx, v, dd)[1], xx[:, 1]], axis=-1)
+        return h(x, d), *_derivatives(h, x, d)
+
+    return _filter("nonlinear_single_track", vx, delta, y, noise, p0, step, measure)
+
+
+def _derivatives(f: Callable[[np.ndarray, np.ndarray], np.ndarray], x: np.ndarray,
+                 d: np.ndarray, eps: float = 1e-6) -> tuple[np.ndarray, np.ndarray]:
+    """Central differences of f(x (G, 2), d (G,)) -> (G, 2): in x (G, 2, 2), in d (G, 2)."""
+    cols = [(f(x + e, d) - f(x - e, d)) / (2 * eps) for e in np.eye(2) * eps]
+    return np.stack(cols, axis=-1), (f(x, d + eps) - f(x, d - eps)) / (2 * eps)
+
+
+def _filter(name: str, vx: np.ndarray, delta: np.ndarray, y: np.ndarray, noise: LateralNoise,
+            p0: float, step: Model, measure: Model) -> LateralEstimate:
+    """The Kalman filter both models share: the prediction to row k from row k-1's speed and
+    steering, the update with row k's (a NaN channel is not held)."""
     single = np.ndim(vx) == 1
     vx, delta, y = (np.atleast_2d(np.asarray(vx, float)), np.atleast_2d(np.asarray(delta, float)),
                     np.asarray(y, float))
@@ -148,8 +203,8 @@ def linear_single_track(vx: np.ndarray, delta: np.ndarray, y: np.ndarray, car: S
         y = y[None]
     g, t = vx.shape
     if delta.shape != (g, t) or y.shape != (g, t, 2):
-        raise LboError(f"linear_single_track needs vx and delta (G, T), y (G, T, 2); got "
-                         f"{vx.shape}, {delta.shape}, {y.shape}")
+        raise LboError(f"{name} needs vx and delta (G, T), y (G, T, 2); got "
+                       f"{vx.shape}, {delta.shape}, {y.shape}")
     if not (vx > 0).all():
         raise LboError("vx: expected speeds above 0 m/s (the model divides by them), got "
                        f"{float(np.nanmin(vx)):g}")
@@ -158,14 +213,11 @@ def linear_single_track(vx: np.ndarray, delta: np.ndarray, y: np.ndarray, car: S
     x, P = np.zeros((g, 2)), np.broadcast_to(np.eye(2) * p0, (g, 2, 2)).copy()
     Ps[:, 0] = P
     for k in range(1, t):  # a recursive filter: one step per row, every log at once
-        A, B, _, _ = _model(vx[:, k - 1], car, dt)
-        x = np.einsum("gij,gj->gi", A, x) + B * delta[:, k - 1, None]
-        P = A @ P @ A.transpose(0, 2, 1) + noise.delta**2 * B[:, :, None] * B[:, None, :]
-        _, _, C, D = _model(vx[:, k], car, dt)
+        x, F, B = step(x, vx[:, k - 1], delta[:, k - 1])
+        P = F @ P @ F.transpose(0, 2, 1) + noise.delta**2 * B[:, :, None] * B[:, None, :]
+        h, H, _ = measure(x, vx[:, k], delta[:, k])
         held = np.isfinite(y[:, k])
-        innovation = np.where(held, y[:, k] - np.einsum("gij,gj->gi", C, x)
-                              - D * delta[:, k, None], 0.0)
-        x, P = joseph_update(x, P, innovation, C, R, held)
+        x, P = joseph_update(x, P, np.where(held, y[:, k] - h, 0.0), H, R, held)
         xs[:, k], Ps[:, k] = x, P
     if single:
         return LateralEstimate(xs[0], Ps[0])
