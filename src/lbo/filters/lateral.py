@@ -167,7 +167,8 @@ def nonlinear_single_track(vx: np.ndarray, delta: np.ndarray, y: np.ndarray, car
     the axle's load. Arguments and result as :func:`linear_single_track`; the Jacobians by
     central differences (the model is smooth), the steering's noise through the model's
     derivative in delta as in the linear filter."""
-    def rates(x: np.ndarray, v: np.ndarray, d: np.ndarray) -> np.ndarray:
+    def rates(x: np.ndarray, v: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(beta', r') (G, 2) and the lateral acceleration (G,) at states x (G, 2)."""
         v_y = v * np.tan(x[:, 0])
         dv_y, dr = lateral_rates(v_y, x[:, 1], v, d, car)
         return np.stack([v * dv_y / (v**2 + v_y**2), dr], axis=-1), dv_y + v * x[:, 1]
