@@ -184,11 +184,18 @@ def test_lightning_speaks_once_and_advertises_nothing():
     handler = logging.Handler()
     handler.emit = seen.append
     ranked.addHandler(handler)
+    # what ran before in this process (lbo.tune sets lightning.pytorch to WARNING; a logging
+    # config may disable loggers) is not this test's business: the filter is
+    level, disabled = ranked.level, ranked.disabled
+    ranked.setLevel(logging.INFO)
+    ranked.disabled = False
     try:
         rank_zero_info("\N{ELECTRIC LIGHT BULB} Tip: For seamless cloud logging, try installing x")
         rank_zero_info("GPU available: False, used: False")
     finally:
         ranked.removeHandler(handler)
+        ranked.setLevel(level)
+        ranked.disabled = disabled
     assert [r.getMessage() for r in seen] == ["GPU available: False, used: False"]
 
 
