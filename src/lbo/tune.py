@@ -283,8 +283,10 @@ def _run_study(cfg: DictConfig, space: list[Param], pruner: optuna.pruners.BaseP
     status, handoff, best = "FAILED", None, None
     from lbo.learn.tune_callbacks import Interrupts
 
+    lightning_log = logging.getLogger("lightning.pytorch")
+    lightning_level = lightning_log.level  # put back as tune ends, as Optuna's verbosity is
     if _QUIET["lightning"]:  # Lightning sets its logger to INFO when first imported, above
-        logging.getLogger("lightning.pytorch").setLevel(logging.WARNING)
+        lightning_log.setLevel(logging.WARNING)
     interrupts = Interrupts()
     interrupts.install()
     try:
@@ -324,6 +326,7 @@ def _run_study(cfg: DictConfig, space: list[Param], pruner: optuna.pruners.BaseP
         try:
             with _no_interrupts():  # a second Ctrl-C must not leave the runs open
                 optuna.logging.set_verbosity(verbosity)
+                lightning_log.setLevel(lightning_level)
                 failed: list[int] = []
                 try:
                     if status != "FINISHED":
