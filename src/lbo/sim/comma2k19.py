@@ -46,7 +46,6 @@ is an *effective* ratio that holds the car's understeer: 26.7 on the example (op
 from __future__ import annotations
 
 from dataclasses import dataclass
-from importlib import resources
 from pathlib import Path
 from typing import Any
 
@@ -58,6 +57,7 @@ from lbo.core.errors import LboError
 from lbo.sim import alignment as align
 from lbo.sim.alignment import FIT_SPEED, LATENCIES
 from lbo.sim.logformat import Origin, to_local
+from lbo.sim.logio import shipped
 from lbo.sim.vehicle import Vehicle
 
 EXAMPLE = "segment.npz"
@@ -201,10 +201,7 @@ def read(folder: str | Path) -> Segment:
 def example() -> Segment:
     """The shipped example segment (the comma2k19 repository's ``Example_1``), read as
     :func:`read` reads a folder."""
-    source = resources.files("lbo.sim").joinpath("data", "comma2k19", EXAMPLE)
-    with resources.as_file(source) as path, np.load(path, allow_pickle=False) as z:
-        arrays = {k: z[k] for k in z.files}
-    return _segment(arrays.get, f"example ({EXAMPLE})")
+    return _segment(shipped("comma2k19", EXAMPLE).get, f"example ({EXAMPLE})")
 
 
 def _enu(v: np.ndarray, origin: Origin) -> tuple[np.ndarray, np.ndarray]:

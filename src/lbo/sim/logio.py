@@ -247,3 +247,13 @@ def write_table(df: pd.DataFrame, path: Path) -> Path:
     with atomic_path(path) as tmp:
         df.to_csv(tmp, index=False)
     return path
+
+
+def shipped(folder: str, name: str) -> dict[str, np.ndarray]:
+    """The arrays of a real run lbo ships with its licence, ``data/<folder>/<name>`` in
+    :mod:`lbo.sim` (a ``numpy.savez_compressed`` file, no pickles), keyed as saved."""
+    from importlib import resources
+
+    source = resources.files("lbo.sim").joinpath("data", folder, name)
+    with resources.as_file(source) as path, np.load(path, allow_pickle=False) as z:
+        return {k: z[k] for k in z.files}

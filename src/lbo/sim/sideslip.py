@@ -20,12 +20,11 @@ learned observer trains, validates and is tested on.
 
 from __future__ import annotations
 
-from importlib import resources
-
 import numpy as np
 import pandas as pd
 
 from lbo.sim.dynamic import G, SingleTrack
+from lbo.sim.logio import shipped
 
 EXAMPLE = "run.npz"
 """The run's arrays (``data/sideslip/``), keyed by the repository's file names."""
@@ -50,10 +49,9 @@ SPANS = (("train", 0.6), ("val", 0.2), ("test", 0.2))
 
 def example() -> pd.DataFrame:
     """The shipped run, (55001 rows) with the columns of :data:`COLUMNS`, float64."""
-    source = resources.files("lbo.sim").joinpath("data", "sideslip", EXAMPLE)
-    with resources.as_file(source) as path, np.load(path, allow_pickle=False) as z:
-        return pd.DataFrame({ours: z[theirs].astype(np.float64)
-                             for theirs, ours in COLUMNS.items()})
+    arrays = shipped("sideslip", EXAMPLE)
+    return pd.DataFrame({ours: arrays[theirs].astype(np.float64)
+                         for theirs, ours in COLUMNS.items()})
 
 
 def split(run: pd.DataFrame) -> dict[str, pd.DataFrame]:
