@@ -106,27 +106,27 @@ def kinematic_beta(delta: np.ndarray, car: SingleTrack) -> np.ndarray:
 
 def _model(vx: np.ndarray, car: SingleTrack, dt: float
            ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """The discrete model at speeds vx (G,): A (G, 2, 2), B (G, 2), C (G, 2, 2), D (2,)."""
+    """The discrete model at speeds vx (...): A (..., 2, 2), B (..., 2), C (..., 2, 2),
+    D (2,)."""
     m, iz, lf, lr, cf, cr = car.mass, car.yaw_inertia, car.l_f, car.l_r, car.c_f, car.c_r
-    g = vx.shape[0]
-    A = np.empty((g, 2, 2))
-    A[:, 0, 0] = 1 - dt * (cf + cr) / (m * vx)
-    A[:, 0, 1] = -dt * (1 + (lf * cf - lr * cr) / (m * vx**2))
-    A[:, 1, 0] = -dt * (lf * cf - lr * cr) / iz
-    A[:, 1, 1] = 1 - dt * (lf**2 * cf + lr**2 * cr) / (iz * vx)
-    B = np.stack([dt * cf / (m * vx), np.full(g, dt * lf * cf / iz)], axis=-1)
-    C = np.zeros((g, 2, 2))
-    C[:, 0, 0] = -(cf + cr) / m
-    C[:, 0, 1] = -(lf * cf - lr * cr) / (m * vx)
-    C[:, 1, 1] = 1.0
+    A = np.empty((*vx.shape, 2, 2))
+    A[..., 0, 0] = 1 - dt * (cf + cr) / (m * vx)
+    A[..., 0, 1] = -dt * (1 + (lf * cf - lr * cr) / (m * vx**2))
+    A[..., 1, 0] = -dt * (lf * cf - lr * cr) / iz
+    A[..., 1, 1] = 1 - dt * (lf**2 * cf + lr**2 * cr) / (iz * vx)
+    B = np.stack([dt * cf / (m * vx), np.full(vx.shape, dt * lf * cf / iz)], axis=-1)
+    C = np.zeros((*vx.shape, 2, 2))
+    C[..., 0, 0] = -(cf + cr) / m
+    C[..., 0, 1] = -(lf * cf - lr * cr) / (m * vx)
+    C[..., 1, 1] = 1.0
     D = np.array([cf / m, 0.0])
     return A, B, C, D
 
 
-Model = Callable[[np.ndarray, np.ndarray, np.ndarray],
-                 tuple[np.ndarray, np.ndarray, np.ndarray]]
-"""(x (G, 2), vx (G,), delta (G,)) -> (value (G, 2), Jacobian in x (G, 2, 2), derivative in
-delta (G, 2)): the step from one row to the next, or the measurements [ay, r] at a row."""
+Model = Callable[[np.ndarray, int], tuple[np.ndarray, np.ndarray, np.ndarray]]
+"""(x (G, 2), row k) -> (value (G, 2), Jacobian in x (G, 2, 2), derivative in delta (G, 2)):
+the step from row k to the next on row k's speed and steering, or the measurements [ay, r]
+at row k."""
 
 
 def linear_single_track(vx: np.ndarray, delta: np.ndarray, y: np.ndarray, car: SingleTrack,
@@ -148,15 +148,17 @@ def linear_single_track(vx: np.ndarray, delta: np.ndarray, y: np.ndarray, car: S
     LateralEstimate with x (G, T, 2) (or (T, 2)) and P (G, T, 2, 2) (or (T, 2, 2)); row 0 is
     the starting prior.
     """
-    def step(x: np.ndarray, v: np.ndarray, d: np.ndarray):
-        A, B, _, _ = _model(v, car, dt)
-        return np.einsum("gij,gj->gi", A, x) + B * d[:, None], A, B
+    vx, delta, y, single = _inputs("linear_single_track", vx, delta, y)
+    A, B, C, D = _model(vx, car, dt)  # every row's at once: (G, T, ...)
 
-    def measure(x: np.ndarray, v: np.ndarray, d: np.ndarray):
-        _, _, C, D = _model(v, car, dt)
-        return np.einsum("gij,gj->gi", C, x) + D * d[:, None], C, np.broadcast_to(D, x.shape)
+    def step(x: np.ndarray, k: int):
+        return np.einsum("gij,gj->gi", A[:, k], x) + B[:, k] * delta[:, k, None], A[:, k], B[:, k]
 
-    return _filter("linear_single_track", vx, delta, y, noise, p0, step, measure)
+    def measure(x: np.ndarray, k: int):
+        return (np.einsum("gij,gj->gi", C[:, k], x) + D * delta[:, k, None], C[:, k],
+                np.broadcast_to(D, x.shape))
+
+    return _filter(y, single, noise, p0, step, measure)
 
 
 def nonlinear_single_track(vx: np.ndarray, delta: np.ndarray, y: np.ndarray, car: SingleTrack,
@@ -173,17 +175,19 @@ def nonlinear_single_track(vx: np.ndarray, delta: np.ndarray, y: np.ndarray, car
         dv_y, dr = lateral_rates(v_y, x[:, 1], v, d, car)
         return np.stack([v * dv_y / (v**2 + v_y**2), dr], axis=-1), dv_y + v * x[:, 1]
 
-    def step(x: np.ndarray, v: np.ndarray, d: np.ndarray):
+    vx, delta, y, single = _inputs("nonlinear_single_track", vx, delta, y)
+
+    def step(x: np.ndarray, k: int):
         def f(xx: np.ndarray, dd: np.ndarray) -> np.ndarray:
-            return xx + dt * rates(xx, v, dd)[0]
-        return f(x, d), *_derivatives(f, x, d)
+            return xx + dt * rates(xx, vx[:, k], dd)[0]
+        return f(x, delta[:, k]), *_derivatives(f, x, delta[:, k])
 
-    def measure(x: np.ndarray, v: np.ndarray, d: np.ndarray):
+    def measure(x: np.ndarray, k: int):
         def h(xx: np.ndarray, dd: np.ndarray) -> np.ndarray:
-            return np.stack([rates(xx, v, dd)[1], xx[:, 1]], axis=-1)
-        return h(x, d), *_derivatives(h, x, d)
+            return np.stack([rates(xx, vx[:, k], dd)[1], xx[:, 1]], axis=-1)
+        return h(x, delta[:, k]), *_derivatives(h, x, delta[:, k])
 
-    return _filter("nonlinear_single_track", vx, delta, y, noise, p0, step, measure)
+    return _filter(y, single, noise, p0, step, measure)
 
 
 def _derivatives(f: Callable[[np.ndarray, np.ndarray], np.ndarray], x: np.ndarray,
@@ -193,10 +197,9 @@ def _derivatives(f: Callable[[np.ndarray, np.ndarray], np.ndarray], x: np.ndarra
     return np.stack(cols, axis=-1), (f(x, d + eps) - f(x, d - eps)) / (2 * eps)
 
 
-def _filter(name: str, vx: np.ndarray, delta: np.ndarray, y: np.ndarray, noise: LateralNoise,
-            p0: float, step: Model, measure: Model) -> LateralEstimate:
-    """The Kalman filter both models share: the prediction to row k from row k-1's speed and
-    steering, the update with row k's (a NaN channel is not held)."""
+def _inputs(name: str, vx: np.ndarray, delta: np.ndarray, y: np.ndarray
+            ) -> tuple[np.ndarray, np.ndarray, np.ndarray, bool]:
+    """vx, delta (G, T), y (G, T, 2) as floats, and whether one log (T,) was given; checked."""
     single = np.ndim(vx) == 1
     vx, delta, y = (np.atleast_2d(np.asarray(vx, float)), np.atleast_2d(np.asarray(delta, float)),
                     np.asarray(y, float))
@@ -209,14 +212,22 @@ def _filter(name: str, vx: np.ndarray, delta: np.ndarray, y: np.ndarray, noise: 
     if not (vx > 0).all():
         raise LboError("vx: expected speeds above 0 m/s (the model divides by them), got "
                        f"{float(np.nanmin(vx)):g}")
+    return vx, delta, y, single
+
+
+def _filter(y: np.ndarray, single: bool, noise: LateralNoise, p0: float, step: Model,
+            measure: Model) -> LateralEstimate:
+    """The Kalman filter both models share over y (G, T, 2): the prediction to row k from
+    row k-1's speed and steering, the update with row k's (a NaN channel is not held)."""
+    g, t = y.shape[:2]
     R = np.diag([noise.ay**2, noise.r**2])
     xs, Ps = np.zeros((g, t, 2)), np.zeros((g, t, 2, 2))
     x, P = np.zeros((g, 2)), np.broadcast_to(np.eye(2) * p0, (g, 2, 2)).copy()
     Ps[:, 0] = P
     for k in range(1, t):  # a recursive filter: one step per row, every log at once
-        x, F, B = step(x, vx[:, k - 1], delta[:, k - 1])
+        x, F, B = step(x, k - 1)
         P = F @ P @ F.transpose(0, 2, 1) + noise.delta**2 * B[:, :, None] * B[:, None, :]
-        h, H, _ = measure(x, vx[:, k], delta[:, k])
+        h, H, _ = measure(x, k)
         held = np.isfinite(y[:, k])
         x, P = joseph_update(x, P, np.where(held, y[:, k] - h, 0.0), H, R, held)
         xs[:, k], Ps[:, k] = x, P
