@@ -88,6 +88,9 @@ PRIMARIES = sorted(p.stem for p in CONF_DIR.glob("*.yaml"))
 TRAIN_GROUPS = [g for g in groups("train") if g != "experiment"]
 EXPERIMENTS = [None, *options("experiment")]
 SEARCHES = [None, *options("hparams_search")]
+POSE_SEARCHES = [s for s in SEARCHES[1:] if s != "slip_gru"]
+"""The studies of the pose observers, which make reproduce runs (slip_gru's is the real side-slip
+run's, with a data set of its own)."""
 COMMANDS = ["datagen", "evaluate", "simulate", "observe", "export"]
 """The primary configs composed with each option of their own groups here (train, tune and
 reproduce have tests of their own below)."""
@@ -206,10 +209,26 @@ RECEIVER_DRIFT = Refusal(r"model.drift: expected false for a window filter that 
 GYRO_NEEDS_LOGS = Refusal(r"data: model=gyro_ekf learns from a vehicle's logs",
                           "the gyro EKF's noise is learned on logs with a gyro and one antenna")
 
+SLIP_NEEDS_RUN = Refusal(r"data: model=slip_gru learns on the side-slip run",
+                         "the side-slip observer learns on the real run (data=sideslip) alone")
+SIDESLIP_SLIP_ONLY = Refusal(r"data: data=sideslip is the real side-slip run",
+                             "the real side-slip run is read by model=slip_gru alone: no pose "
+                             "observer, data set or test grid is made of it")
+SLIP_RECEIVER = Refusal(r"receiver: expected None with model=slip_gru",
+                        "the side-slip observer reads a car's lateral sensors, not a receiver")
+SLIP_FIX_RATES = Refusal(r"fix_rates: expected None with model=slip_gru",
+                         "the side-slip observer reads no position fixes")
+SLIP_SCHEDULE = Refusal(r"lr_schedule: expected constant with model=slip_gru",
+                        "the side-slip observer trains at a constant rate; these experiments "
+                        "set the pose observers' cosine schedule")
+
 FILTERNET_EXPERIMENTS = {"dynamic", "dynamic_carried", "logs"}
 """Experiments that set model keys only the filternet takes (refused for other models)."""
 FIX_RATE_EXPERIMENTS = {"robust", "logs", "receiver"}
 """Experiments that set ``fix_rates`` (a receiver's training windows need them)."""
+COSINE_EXPERIMENTS = {"dynamic", "dynamic_blackbox", "logs", "quick", "quick_literal",
+                      "receiver", "robust"}
+"""Experiments that set ``lr_schedule: cosine``."""
 
 
 def cuda() -> bool:
@@ -225,6 +244,20 @@ def train_refusal(experiment: str | None, choice: dict[str, str | None],
     if choice["model"] == "gyro_ekf":  # lbo.learn.noise_run.check: no net, a vehicle's logs
         return (GYRO_NEEDS_LOGS if choice["data"] not in ("logs", "hill")
                 else NEEDS_LOGS if choice["data"] == "logs" else None)
+    if choice["model"] == "slip_gru":  # lbo.learn.slip_run.check: the real run, its own net
+        if choice["data"] != "sideslip":
+            return SLIP_NEEDS_RUN
+        if experiment in FILTERNET_EXPERIMENTS:  # their model keys come first
+            return FILTERNET_ONLY
+        if choice.get("receiver") is not None:
+            return SLIP_RECEIVER
+        if experiment in FIX_RATE_EXPERIMENTS:
+            return SLIP_FIX_RATES
+        if experiment in COSINE_EXPERIMENTS:
+            return SLIP_SCHEDULE
+        return NO_CUDA if choice["trainer"] == "gpu" and not cuda() else None
+    if choice["data"] == "sideslip":
+        return SIDESLIP_SLIP_ONLY
     if choice.get("receiver") is not None:
         if experiment not in FIX_RATE_EXPERIMENTS:
             return NEEDS_FIX_RATES
@@ -261,13 +294,18 @@ def train_checks(cfg) -> None:
     """What ``lbo.train`` checks before it makes data or opens a run: :func:`lbo.train.check`,
     the data set's settings (``prepare_data``), the run's fingerprint, and every interpolation
     of the config resolved (its config.yaml and MLflow params)."""
-    from lbo.learn import noise_run
+    from lbo.learn import noise_run, slip_run
     from lbo.sim.datasets import spec_from_cfg
     from lbo.sim.log_sets import is_logs
     from lbo.train import check, config_hash
 
     if cfg.model.name == noise_run.NAME:  # lbo.train's own branch: seven noises, no net
         noise_run.check(cfg)
+        OmegaConf.to_container(cfg, resolve=True)
+        return
+    if cfg.model.name == slip_run.NAME:  # its own branch too: the real run, the lateral net
+        slip_run.check(cfg)
+        config_hash(cfg)
         OmegaConf.to_container(cfg, resolve=True)
         return
     check(cfg)
@@ -339,6 +377,9 @@ def command_refusal(primary: str, group: str, option: str) -> Refusal | None:
                 "simulate": NOT_SIMULATED}.get(primary)
     if group == "data" and option == "hill":  # its drives are named: only simulate refuses
         return NOT_SIMULATED if primary == "simulate" else None
+    if group == "data" and option == "sideslip" and primary in ("datagen", "evaluate",
+                                                                 "simulate"):
+        return SIDESLIP_SLIP_ONLY
     return None
 
 
@@ -406,7 +447,7 @@ def test_experiment_quick_and_paper_train_on_their_own_data_and_their_studies_pa
     assert (cfg.model.name, cfg.model.features) == ("cnn", "frame")
     assert_kept(cfg, *sources(chosen(experiment), ("experiment", experiment)))
     train_checks(cfg)
-    for search in SEARCHES[1:]:
+    for search in POSE_SEARCHES:
         study = compose_cfg("tune", [f"hparams_search={search}", f"experiment={experiment}",
                                      f"output_dir={store / 'out'}"])
         assert (study.data.name, study.model.name, study.model.window) == (experiment, search, 20)

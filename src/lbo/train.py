@@ -50,6 +50,8 @@ from lbo.learn.resume import (
 from lbo.models.carried import covariance_of, sequence_model
 from lbo.models.features import FEATURE_MODES
 from lbo.models.net import check_scaling
+from lbo.models.slip import NAME as SLIP
+from lbo.sim.datasets import refuse_sideslip
 from lbo.sim.log_sets import is_logs
 from lbo.sim.truth import config_dict as truth_dict
 from lbo.tracking.runs import check_store, dataset_input, ensure_experiment, log_input
@@ -113,6 +115,12 @@ def check(cfg: DictConfig) -> Built:
         raise LboError("model=gyro_ekf: the gyro EKF's noise is learned by python -m lbo.train "
                        "model=gyro_ekf alone; lbo.tune, lbo.ablation and lbo.reproduce "
                        "train nets (cnn, lstm, filternet, kalmannet, split_kalmannet)")
+    if cfg.model.name == SLIP:  # lbo.tune checks it by slip_run.check
+        raise LboError(f"model={SLIP}: the side-slip observer is trained by python -m lbo.train "
+                       f"and tuned by python -m lbo.tune on data=sideslip; lbo.ablation and "
+                       "lbo.reproduce train the pose observers (cnn, lstm, filternet, "
+                       "kalmannet, split_kalmannet)")
+    refuse_sideslip(cfg)
     integer(cfg.model.window, "model.window", 4,
             form="an integer >= 4 (the CNN pools windows by 4)")
     require(cfg.model.features in FEATURE_MODES, "model.features",
@@ -221,6 +229,11 @@ def train(cfg: DictConfig, callbacks: list[L.Callback] | None = None,
         return noise_run.train(cfg, _flat(cfg), {"git_commit": git_commit(),
                                                  "model": noise_run.NAME,
                                                  "data": str(cfg.data.name), **(tags or {})})
+    if cfg.model.name == SLIP:  # a lateral observer on a real run, not a pose window's net
+        from lbo.learn import slip_run
+
+        return slip_run.train(cfg, _flat(cfg), {"git_commit": git_commit(), **(tags or {})},
+                              callbacks)
     built = check(cfg)
     # before the folder is claimed (its lock file): a folder of another run's files is left
     # as it was. With resume=true, a finished run of this config may be reused from the

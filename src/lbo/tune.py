@@ -72,7 +72,7 @@ from lbo.tracking.study_storage import (
     redact,
     worker_id,
 )
-from lbo.train import check, train
+from lbo.train import SLIP, check, train
 
 
 def check_tune(cfg: DictConfig) -> list[Param]:
@@ -92,7 +92,12 @@ def check_tune(cfg: DictConfig) -> list[Param]:
             "a path ending in .yaml", t.handoff)
     for key in ("heartbeat_interval", "grace_period", "n_startup_trials"):
         integer(t[key], f"tune.{key}", 1)
-    check(cfg)
+    if cfg.model.name == SLIP:  # the side-slip observer: its own data and net
+        from lbo.learn.slip_run import check as check_slip
+
+        check_slip(cfg)
+    else:
+        check(cfg)
     return search_space(cfg)
 
 

@@ -130,7 +130,8 @@ at row k."""
 
 
 def linear_single_track(vx: np.ndarray, delta: np.ndarray, y: np.ndarray, car: SingleTrack,
-                        noise: LateralNoise, dt: float, p0: float = 1e4) -> LateralEstimate:
+                        noise: LateralNoise, dt: float, p0: float = 1e4,
+                        start: LateralEstimate | None = None) -> LateralEstimate:
     """The linear single-track Kalman filter over G logs at once.
 
     Parameters
@@ -142,6 +143,9 @@ def linear_single_track(vx: np.ndarray, delta: np.ndarray, y: np.ndarray, car: S
     noise : :class:`LateralNoise`.
     dt : sampling period (s).
     p0 : the first row's variance of each state (the state starts at zero, straight ahead).
+    start : row 0's state and covariance in place of zero and p0, x (G, 2) or (2,) and P
+        (G, 2, 2) or (2, 2): a filter carried on from an earlier call (a stream's step is a
+        call on rows k-1 and k, started from row k-1's estimate).
 
     Returns
     -------
@@ -158,7 +162,7 @@ def linear_single_track(vx: np.ndarray, delta: np.ndarray, y: np.ndarray, car: S
         return (np.einsum("gij,gj->gi", C[:, k], x) + D * delta[:, k, None], C[:, k],
                 np.broadcast_to(D, x.shape))
 
-    return _filter(y, single, noise, p0, step, measure)
+    return _filter(y, single, noise, p0, step, measure, start)
 
 
 def nonlinear_single_track(vx: np.ndarray, delta: np.ndarray, y: np.ndarray, car: SingleTrack,
@@ -216,14 +220,18 @@ def _inputs(name: str, vx: np.ndarray, delta: np.ndarray, y: np.ndarray
 
 
 def _filter(y: np.ndarray, single: bool, noise: LateralNoise, p0: float, step: Model,
-            measure: Model) -> LateralEstimate:
+            measure: Model, start: LateralEstimate | None = None) -> LateralEstimate:
     """The Kalman filter both models share over y (G, T, 2): the prediction to row k from
     row k-1's speed and steering, the update with row k's (a NaN channel is not held)."""
     g, t = y.shape[:2]
     R = np.diag([noise.ay**2, noise.r**2])
     xs, Ps = np.zeros((g, t, 2)), np.zeros((g, t, 2, 2))
-    x, P = np.zeros((g, 2)), np.broadcast_to(np.eye(2) * p0, (g, 2, 2)).copy()
-    Ps[:, 0] = P
+    if start is None:
+        x, P = np.zeros((g, 2)), np.broadcast_to(np.eye(2) * p0, (g, 2, 2)).copy()
+    else:
+        x = np.broadcast_to(np.asarray(start.x, float), (g, 2)).copy()
+        P = np.broadcast_to(np.asarray(start.P, float), (g, 2, 2)).copy()
+    xs[:, 0], Ps[:, 0] = x, P
     for k in range(1, t):  # a recursive filter: one step per row, every log at once
         x, F, B = step(x, k - 1)
         P = F @ P @ F.transpose(0, 2, 1) + noise.delta**2 * B[:, :, None] * B[:, None, :]

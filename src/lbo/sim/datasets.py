@@ -16,6 +16,7 @@ from omegaconf import DictConfig, OmegaConf
 from lbo.core.angles import wrap_angle
 from lbo.core.atomic import data_lock, remove_stale_temps, write_text
 from lbo.core.checks import integer, number, positive, require
+from lbo.core.errors import LboError
 from lbo.sim import clothoid, dynamic, schema
 from lbo.sim.friction import G, Grid, accelerations, generate_train
 from lbo.sim.manoeuvres import MANOEUVRES, validation_path
@@ -70,11 +71,25 @@ class Spec:
         return np.round(np.arange(n + 1) * t["alpha_step"], 10)
 
 
+SIDESLIP = "sideslip"
+"""``data.name`` of the real side-slip run, which only its observer reads."""
+
+
+def refuse_sideslip(cfg: DictConfig) -> None:
+    """``data=sideslip`` is the lateral observer's (``model=slip_gru``): no pose observer, data
+    set or test grid is made of it. One line naming ``data``."""
+    if cfg.get("data") is not None and cfg.data.get("name") == SIDESLIP:
+        raise LboError("data: data=sideslip is the real side-slip run, which model=slip_gru "
+                       "alone reads (python -m lbo.train model=slip_gru data=sideslip); expected "
+                       "a simulated data set (smoke, quick, paper, robust, dynamic) or logs")
+
+
 def spec_from_cfg(cfg: DictConfig) -> Spec:
     """Check a composed config (groups ``data``, ``vehicle``, ``noise``) and build the Spec.
 
     Raises LboError with one line naming the first bad field.
     """
+    refuse_sideslip(cfg)
     vehicle = Vehicle.from_cfg(cfg.vehicle)
     noise = Noise.from_cfg(cfg.noise)
     truth = truth_of_config(cfg, vehicle.wheelbase)

@@ -15,7 +15,7 @@ from optuna.trial import FrozenTrial
 
 from lbo.core.checks import integer, number, require
 from lbo.core.errors import LboError
-from lbo.models import model_parameters
+from lbo.models import model_parameters, slip
 
 DISTRIBUTIONS = {"float": {"low", "high", "log", "step"}, "int": {"low", "high", "log", "step"},
                  "categorical": {"choices"}}
@@ -232,7 +232,8 @@ def _check_key(cfg: DictConfig, key: str, field: str) -> None:
     value already in the training config."""
     if key.startswith("model."):
         name = key[len("model."):]
-        accepted = model_parameters(cfg.model.name)
+        accepted = (slip.PARAMETERS if cfg.model.name == slip.NAME  # not a pose window's net
+                    else model_parameters(cfg.model.name))
         if name not in accepted:
             raise LboError(f"{field}: {name!r} is not a parameter of model {cfg.model.name!r}; "
                            f"accepted: {', '.join(accepted)}")

@@ -1,0 +1,295 @@
+"""The learned side-slip observer trained on the real run: ``lbo.train model=slip_gru``.
+
+    python -m lbo.train model=slip_gru data=sideslip [model.window=50] [trainer.max_epochs=30]
+    python -m lbo.tune hparams_search=slip_gru [tune.n_trials=20]
+
+The MBDS side-slip run lbo ships (:mod:`lbo.sim.sideslip`) split by time: the network
+(:mod:`lbo.models.slip`) is fitted on the first 60%, its epoch kept by the next 20% (``val_loss``:
+beta's RMSE there, in degrees) and, with the evaluation callback configured (as ``lbo.train``
+has it, and no trial of ``lbo.tune``), scored on the last 20% beside the linear single-track
+Kalman filter it corrects. The prior is that filter told the car's published parameters
+(:data:`lbo.sim.sideslip.CAR`) and the noise read off the training span alone. The truth (vy,
+beta) is the loss's target and the score's reference, never an input.
+
+It is trained as every learned observer is: by Lightning, with the configured trainer and
+callbacks (the checkpoint of the best epoch, early stopping; Optuna's pruning in a study),
+logged as one MLflow run: params (the resolved config), ``train_loss`` (deg^2) and
+``val_loss`` (deg) per epoch; ``<span>_beta_rmse_deg``, ``<span>_linear_beta_rmse_deg`` and
+``test_vs_linear``; artifacts ``checkpoints/best.ckpt`` (:func:`lbo.models.slip.load` reads
+it), ``slip/spans.md`` and ``config.yaml``. ``resume=true`` reuses a finished run of the same
+config.
+"""
+
+from __future__ import annotations
+
+import functools
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+import pandas as pd
+import torch
+from hydra.utils import instantiate
+from omegaconf import DictConfig, OmegaConf
+
+from lbo.core.atomic import write_text
+from lbo.core.checks import integer, number
+from lbo.core.errors import LboError
+from lbo.core.redact import scrub
+from lbo.filters.lateral import LateralEstimate
+from lbo.models.slip import NAME, PARAMETERS, Prior, SlipNet, SlipObserver, features, load, windows
+
+if TYPE_CHECKING:  # Lightning takes seconds to import: only a training run needs it
+    import lightning as L
+
+__all__ = ["DATA", "KEYS", "check", "prior_of", "score", "shipped", "spans_markdown", "train"]
+
+DATA = "sideslip"
+"""``data.name`` the observer learns on: the real run lbo ships."""
+SPANS = ("train", "val", "test")
+
+
+KEYS = ("name", "window", *PARAMETERS, "features", "normalisation")
+"""The ``model`` keys it takes (``features`` and ``normalisation``, every model's, are the pose
+windows' and not read: its six channels are standardised)."""
+UNREAD = (("receiver", None, "it reads the car's lateral sensors, not a receiver"),
+          ("tbptt", None, "it is trained on windows"),
+          ("sequence_length", None, "it is trained on windows"),
+          ("nll", 0.0, "it gives no covariance"),
+          ("fix_rates", None, "it reads no position fixes"),
+          ("loss", "truth", "it learns from the INS's side slip"),
+          ("lr_schedule", "constant", "it trains at the optimiser's constant rate"),
+          ("init_from", None, "it starts from fresh weights"),
+          ("data_dir", None, "it reads the run lbo ships"))
+"""Training settings of the pose observers it does not take: (key, the value it needs, why)."""
+
+
+def check(cfg: DictConfig) -> None:
+    """The run's settings, checked before any work (one line naming the field)."""
+    if cfg.data.name != DATA:
+        raise LboError(f"data: model={NAME} learns on the side-slip run (data={DATA}); got "
+                       f"data={cfg.data.name}")
+    for key in cfg.model:
+        if key not in KEYS:
+            raise LboError(f"model.{key}: not a parameter of model {NAME!r} (it takes "
+                           f"window, {', '.join(PARAMETERS)})")
+    for key, needed, why in UNREAD:
+        value = cfg.get(key, needed)
+        if value != needed and not (needed == 0.0 and value is None):
+            raise LboError(f"{key}: expected {needed} with model={NAME} ({why}); got {value}")
+    integer(cfg.model.window, "model.window", 2, form="an integer >= 2 (rows of a window)")
+    integer(cfg.model.hidden, "model.hidden", 1)
+    integer(cfg.model.layers, "model.layers", 1)
+    number(cfg.model.prior_gain, "model.prior_gain", low=0.0, low_open=True)
+    integer(cfg.batch_size, "batch_size", 1)
+    integer(cfg.seed, "seed", 0)
+    from lbo.train import check_optimizer, check_trainer
+
+    check_trainer(cfg.trainer)
+    check_optimizer(cfg.optimizer)
+    if cfg.get("logger") and cfg.logger.get("tracking_uri"):
+        from lbo.tracking.runs import check_store
+
+        check_store(cfg.logger.tracking_uri)
+    if cfg.trainer.accelerator == "gpu" and not torch.cuda.is_available():
+        raise LboError("trainer=gpu needs CUDA, which torch does not see here; "
+                       "use trainer=cpu or trainer=auto")
+
+
+def prior_of(train: pd.DataFrame, gain: float) -> Prior:
+    """The linear filter the network corrects: the published car, the noise read off the
+    training span (:meth:`lbo.filters.lateral.LateralNoise.of`)."""
+    from lbo.filters.lateral import LateralNoise
+    from lbo.sim import sideslip
+
+    noise = LateralNoise.of(*sideslip.observed(train), process_gain=gain)
+    return Prior(sideslip.CAR, noise, sideslip.DT)
+
+
+@functools.lru_cache(maxsize=2)
+def shipped(gain: float) -> tuple[dict[str, pd.DataFrame], Prior, dict[str, LateralEstimate]]:
+    """The shipped run's spans, the prior of ``gain`` and its estimate of each span (each span
+    a log of its own, the filter starting afresh): 4 s of filtering, made once a process."""
+    from lbo.sim import sideslip
+
+    spans = sideslip.split(sideslip.example())
+    prior = prior_of(spans["train"], gain)
+    return spans, prior, {k: prior.run(*sideslip.observed(s)) for k, s in spans.items()}
+
+
+def _set(span: pd.DataFrame, est: LateralEstimate, window: int
+         ) -> tuple[np.ndarray, np.ndarray]:
+    """A span's windows (T, N, 6) and targets (T,): beta's reference less the prior's
+    estimate ``est`` (rad)."""
+    from lbo.sim.sideslip import observed
+
+    vx, delta, y = observed(span)
+    target = (span["beta"].to_numpy(float) - est.beta).astype(np.float32)
+    return np.ascontiguousarray(windows(features(vx, delta, y, est), window)), target
+
+
+def score(observer: SlipObserver, spans: dict[str, pd.DataFrame],
+          priors: dict[str, LateralEstimate] | None = None) -> pd.DataFrame:
+    """beta's RMSE and largest error (deg) on each span, the observer's and its prior's: one
+    row per span and estimator (``span, estimator, rmse_deg, max_deg``). ``priors``: the
+    prior's estimate of each span, if made already."""
+    from lbo.sim.sideslip import observed
+
+    rows = []
+    for name, span in spans.items():
+        vx, delta, y = observed(span)
+        prior = (priors or {}).get(name) or observer.prior.run(vx, delta, y)
+        truth = span["beta"].to_numpy(float)
+        for label, est in ((NAME, observer.run(vx, delta, y, prior=prior)),
+                           ("linear single-track KF", prior)):
+            err = np.rad2deg(est.beta - truth)
+            rows.append({"span": name, "estimator": label,
+                         "rmse_deg": float(np.sqrt(np.mean(err**2))),
+                         "max_deg": float(np.abs(err).max())})
+    return pd.DataFrame(rows)
+
+
+def spans_markdown(table: pd.DataFrame) -> str:
+    lines = ["| span | estimator | beta RMSE (deg) | largest error (deg) |", "|---|---|---:|---:|"]
+    lines += [f"| {r.span} | {r.estimator} | {r.rmse_deg:.3f} | {r.max_deg:.2f} |"
+              for r in table.itertuples()]
+    return "\n".join(lines) + "\n"
+
+
+def _metrics(table: pd.DataFrame) -> dict[str, float]:
+    out = {}
+    for r in table.itertuples():
+        key = "beta_rmse_deg" if r.estimator == NAME else "linear_beta_rmse_deg"
+        out[f"{r.span}_{key}"] = r.rmse_deg
+    if "test_beta_rmse_deg" in out:
+        out["test_vs_linear"] = out["test_beta_rmse_deg"] / out["test_linear_beta_rmse_deg"]
+    return out
+
+
+def _module(hidden: int, layers: int, window: int, prior: Prior, optimizer: Any
+            ) -> L.LightningModule:
+    """The Lightning module: the :class:`SlipNet`, its loss in deg^2 and ``val_loss``, beta's
+    RMSE (deg) over the validation span."""
+    import lightning as L
+
+    from lbo.models.slip import UNIT
+
+    class SlipModule(L.LightningModule):
+        def __init__(self) -> None:
+            super().__init__()
+            # plain numbers only: load() reads them with weights_only
+            self.save_hyperparameters({"name": NAME, "hidden": hidden, "layers": layers,
+                                       "window": window, "prior": prior.as_dict()})
+            self.net = SlipNet(hidden, layers)
+            self._sums = torch.zeros(2)
+
+        def training_step(self, batch: list[torch.Tensor], batch_idx: int) -> torch.Tensor:
+            w, target = batch
+            loss = torch.mean(((self.net(w) - target) / UNIT) ** 2)
+            self.log("train_loss", loss, on_step=False, on_epoch=True, batch_size=len(w))
+            return loss
+
+        def on_validation_epoch_start(self) -> None:
+            self._sums = torch.zeros(2)
+
+        def validation_step(self, batch: list[torch.Tensor], batch_idx: int) -> None:
+            w, target = batch
+            err = (self.net(w) - target) / UNIT  # the estimate's error: prior + fix - truth
+            self._sums += torch.stack([torch.sum(err.detach().cpu() ** 2),
+                                       torch.tensor(float(len(w)))])
+
+        def on_validation_epoch_end(self) -> None:
+            self.log("val_loss", torch.sqrt(self._sums[0] / self._sums[1].clamp(min=1.0)),
+                     prog_bar=True)
+
+        def configure_optimizers(self) -> Any:
+            return optimizer(self.parameters())
+
+    return SlipModule()
+
+
+def train(cfg: DictConfig, params: dict[str, Any], tags: dict[str, str],
+          callbacks: list[Any] | None = None) -> dict[str, Any]:
+    """Fit the observer as ``cfg`` says and log it as an MLflow run.
+
+    params : the run's flat params (the resolved config); tags : its tags besides lbo's;
+    callbacks : extra Lightning callbacks (a study's pruning).
+
+    Returns ``name``, ``val_loss`` (the kept epoch's), ``run_id`` (None without a logger),
+    ``checkpoint``, ``epochs``, ``reused`` and the spans' metrics."""
+    import lightning as L
+    from lightning.pytorch.callbacks import ModelCheckpoint
+
+    from lbo.core.runfolder import claim
+    from lbo.learn.builders import targets
+    from lbo.learn.callbacks import Evaluation
+    from lbo.learn.checkpoint_io import AtomicCheckpointIO
+    from lbo.learn.resume import config_hash, prior_runs
+    check(cfg)
+    digest = config_hash(cfg)
+    name = f"{NAME}-N{cfg.model.window}"
+    if cfg.get("resume") and cfg.get("logger"):
+        reused, _ = prior_runs(cfg, digest)
+        if reused is not None:
+            print(f"reusing finished run {reused['run_id']} ({name}, same config)")
+            return reused
+    configured = dict(cfg.get("callbacks") or {})
+    scored = any(targets(c, Evaluation) for c in configured.values())  # never in a trial
+    L.seed_everything(cfg.seed, workers=True, verbose=False)
+    spans, prior, priors = shipped(float(cfg.model.prior_gain))
+    w, target = _set(spans["train"], priors["train"], int(cfg.model.window))
+    val_w, val_target = _set(spans["val"], priors["val"], int(cfg.model.window))
+    module = _module(int(cfg.model.hidden), int(cfg.model.layers), int(cfg.model.window), prior,
+                     instantiate(cfg.optimizer))
+    module.net.set_normalisation(w[:, -1])  # each row once: the last of each window
+    loaders = [torch.utils.data.DataLoader(torch.utils.data.TensorDataset(
+        torch.from_numpy(a), torch.from_numpy(b)), batch_size=int(cfg.batch_size), shuffle=s)
+        for a, b, s in ((w, target, True), (val_w, val_target, False))]
+    out = Path(cfg.output_dir)
+    tags = {**tags, "data": DATA, "model": NAME, "window": str(cfg.model.window),
+            "config_hash": digest}
+    logger = instantiate(cfg.logger, tags=tags) if cfg.get("logger") else None
+    cbs = [instantiate(c) for c in configured.values() if not targets(c, Evaluation)]
+    cbs += callbacks or []
+    trainer = instantiate(cfg.trainer, logger=logger if logger is not None else False,
+                          callbacks=cbs, plugins=[AtomicCheckpointIO()],
+                          enable_model_summary=bool(cfg.get("verbose")))
+    with claim(out):
+        try:
+            if logger is not None:
+                logger.log_hyperparams(params)
+                config_yaml = write_text(out / "config.yaml",
+                                         scrub(OmegaConf.to_yaml(cfg, resolve=True)))
+                logger.experiment.log_artifact(logger.run_id, str(config_yaml))
+            if scored:  # a study's trial is one line of the study's
+                print(f"learning the side-slip correction on the train span ({len(w)} windows "
+                      f"of {cfg.model.window} rows); the epoch best on the validation span is "
+                      "kept")
+            trainer.fit(module, *loaders)
+            ckpt = next((c.best_model_path for c in cbs if isinstance(c, ModelCheckpoint)
+                         and c.best_model_path), "")
+            observer = load(ckpt) if ckpt else SlipObserver(module.net.cpu(),
+                                                            int(cfg.model.window), prior)
+            table = score(observer, spans if scored else {k: spans[k] for k in SPANS[:2]},
+                          priors)
+            metrics = _metrics(table)
+            report = write_text(out / "spans.md", spans_markdown(table))
+            if logger is not None:
+                logger.log_metrics(metrics, step=trainer.current_epoch)
+                logger.experiment.log_artifact(logger.run_id, str(report), "slip")
+                if ckpt:
+                    logger.experiment.log_artifact(logger.run_id, ckpt, "checkpoints")
+        except BaseException:
+            if logger is not None:
+                logger.finalize("failed")
+            raise
+        if logger is not None:
+            logger.finalize("success")
+    if scored:
+        print(f"beta RMSE (deg) on each span:\n{spans_markdown(table)}", end="")
+    best = next((c.best_model_score for c in cbs if isinstance(c, ModelCheckpoint)
+                 and c.best_model_score is not None), None)
+    val = float(best) if best is not None else metrics["val_beta_rmse_deg"]
+    return {"name": name, "val_loss": val, "checkpoint": ckpt,
+            "run_id": logger.run_id if logger is not None else None,
+            "epochs": trainer.current_epoch, "reused": False, **metrics}

@@ -1,0 +1,157 @@
+"""The learned side-slip observer (lbo.models.slip) and its training on the real run
+(lbo.train model=slip_gru data=sideslip)."""
+
+import mlflow
+import numpy as np
+import pytest
+import torch
+
+from helpers import cli, one_line_error
+from lbo.core.errors import LboError
+from lbo.filters.lateral import LateralEstimate, linear_single_track
+from lbo.learn import slip_run
+from lbo.models import slip
+from lbo.sim import sideslip
+
+GAIN = 1000.0
+
+
+@pytest.fixture(scope="module")
+def shipped():
+    return slip_run.shipped(GAIN)
+
+
+@pytest.fixture(scope="module")
+def observer(shipped):
+    """An untrained observer (seeded weights), standardised by the training span's rows."""
+    spans, prior, priors = shipped
+    torch.manual_seed(0)
+    net = slip.SlipNet(hidden=8)
+    net.set_normalisation(slip.features(*sideslip.observed(spans["train"]), priors["train"]))
+    return slip.SlipObserver(net, 12, prior)
+
+
+def test_windows_end_at_their_row_and_start_with_copies_of_the_first():
+    rows = np.arange(15, dtype=np.float32).reshape(5, 3)
+    w = slip.windows(rows, 3)
+    assert w.shape == (5, 3, 3)
+    assert np.array_equal(w[4], rows[2:5]) and np.array_equal(w[2], rows[0:3])
+    assert np.array_equal(w[0], np.repeat(rows[:1], 3, axis=0))
+    assert np.array_equal(w[1], rows[[0, 0, 1]])
+
+
+def test_the_linear_filter_carried_on_from_a_start_is_the_same_filter(shipped):
+    vx, delta, y = sideslip.observed(shipped[0]["val"].iloc[:200])
+    whole = linear_single_track(vx, delta, y, sideslip.CAR, shipped[1].noise, sideslip.DT)
+    first = linear_single_track(vx[:100], delta[:100], y[:100], sideslip.CAR, shipped[1].noise,
+                                sideslip.DT)
+    rest = linear_single_track(vx[99:], delta[99:], y[99:], sideslip.CAR, shipped[1].noise,
+                               sideslip.DT, start=LateralEstimate(first.x[-1], first.P[-1]))
+    assert np.allclose(rest.x, whole.x[99:], rtol=0, atol=1e-12)
+    assert np.allclose(rest.P, whole.P[99:], rtol=1e-10, atol=0)
+
+
+def test_the_observer_reads_no_truth_a_planted_check(shipped):
+    """The windows and the estimate are the same when the INS's vy and beta are replaced by
+    noise: only the training target reads them."""
+    spans, _, priors = shipped
+    span = spans["val"].iloc[:300].copy()
+    planted = span.copy()
+    rng = np.random.default_rng(0)
+    planted["vy"], planted["beta"] = rng.normal(size=(2, len(span)))
+    est = LateralEstimate(priors["val"].x[:300], priors["val"].P[:300])
+    w, target = slip_run._set(span, est, 12)
+    w2, target2 = slip_run._set(planted, est, 12)
+    assert np.array_equal(w, w2) and not np.allclose(target, target2)
+    assert not set(sideslip.TRUTH) & set(slip.FEATURES)
+
+
+def test_a_stream_of_rows_gives_what_the_whole_log_gives(shipped, observer):
+    span = shipped[0]["test"].iloc[:80]
+    vx, delta, y = sideslip.observed(span)
+    whole = observer.run(vx, delta, y)
+    assert whole.x.shape == (80, 2) and np.isnan(whole.P).all()  # no covariance: none claimed
+    stream = observer.stream()
+    rows = np.array([stream.step(*row) for row in zip(vx, delta, y[:, 0], y[:, 1])])
+    assert rows.shape == (80, 2)
+    assert np.allclose(rows, whole.x, rtol=0, atol=1e-6)
+    assert np.array_equal(whole.x[:, 1], observer.prior.run(vx, delta, y).r)  # the prior's r
+
+
+def test_load_refuses_what_is_not_its_checkpoint(tmp_path):
+    other = tmp_path / "other.ckpt"
+    torch.save({"hyper_parameters": {"name": "cnn"}, "state_dict": {}}, other)
+    with pytest.raises(LboError, match=r"not a slip_gru checkpoint"):
+        slip.load(other)
+    (tmp_path / "junk.ckpt").write_text("not a checkpoint")
+    with pytest.raises(LboError, match=r"not a checkpoint lbo can read"):
+        slip.load(tmp_path / "junk.ckpt")
+    with pytest.raises(LboError, match=r"no such file"):
+        slip.load(tmp_path / "none.ckpt")
+
+
+@pytest.mark.parametrize(("args", "words"), [
+    (["data=paper"], ["data: model=slip_gru learns on the side-slip run", "data=paper"]),
+    (["model.window=1"], ["model.window", "an integer >= 2"]),
+    (["+model.body=single_track"], ["model.body: not a parameter of model 'slip_gru'"]),
+    (["fix_rates=[10]"], ["fix_rates: expected None", "reads no position fixes"]),
+    (["lr_schedule=cosine"], ["lr_schedule: expected constant"]),
+])
+def test_bad_settings_are_refused_in_one_line(args, words, tmp_path):
+    res = cli("lbo.train", "model=slip_gru", "data=sideslip", *args,
+              f"hydra.run.dir={tmp_path / 'run'}", f"logger.tracking_uri=sqlite:///{tmp_path}/m.db")
+    one_line_error(res, *words)
+
+
+def test_pose_observers_refuse_the_side_slip_run(tmp_path):
+    res = cli("lbo.train", "model=cnn", "data=sideslip", f"hydra.run.dir={tmp_path / 'run'}")
+    one_line_error(res, "data: data=sideslip is the real side-slip run", "model=slip_gru")
+
+
+SMOKE = ["model=slip_gru", "data=sideslip", "model.window=12", "model.hidden=8",
+         "trainer.max_epochs=2", "+trainer.limit_train_batches=3", "+trainer.limit_val_batches=4",
+         "callbacks.progress_bar.refresh_rate=0"]
+
+
+@pytest.mark.slow
+def test_train_learns_on_the_train_span_logs_a_run_and_a_rerun_reuses_it(tmp_path, tracking):
+    args = [*SMOKE, f"logger.tracking_uri={tracking}", "resume=true"]
+    res = cli("lbo.train", *args, f"hydra.run.dir={tmp_path / 'a'}")
+    assert res.returncode == 0, res.stderr[-3000:]
+    assert "| test | slip_gru |" in res.stdout and "| test | linear single-track KF |" in res.stdout
+    client = mlflow.MlflowClient(tracking)
+    (run,) = client.search_runs(client.get_experiment_by_name("lbo").experiment_id)
+    assert run.info.status == "FINISHED" and run.data.tags["model"] == "slip_gru"
+    m = run.data.metrics
+    assert m["test_linear_beta_rmse_deg"] == pytest.approx(0.964, abs=0.001)  # the docs' KF
+    assert m["test_vs_linear"] == pytest.approx(m["test_beta_rmse_deg"] / 0.964, rel=2e-3)
+    assert len(client.get_metric_history(run.info.run_id, "val_loss")) == 2
+    files = {f.path for f in client.list_artifacts(run.info.run_id, "checkpoints")}
+    assert files == {"checkpoints/best.ckpt"}
+    observer = slip.load(tmp_path / "a" / "checkpoints" / "best.ckpt")
+    assert (observer.window, observer.net.gru.hidden_size) == (12, 8)
+    assert observer.prior.noise == slip_run.shipped(GAIN)[1].noise  # read off the train span
+
+    again = cli("lbo.train", *args, f"hydra.run.dir={tmp_path / 'b'}")
+    assert again.returncode == 0, again.stderr[-3000:]
+    assert f"reusing finished run {run.info.run_id}" in again.stdout
+
+
+@pytest.mark.slow
+def test_tune_studies_the_side_slip_observer_on_the_validation_span(tmp_path, tracking):
+    handoff = tmp_path / "tuned" / "slip_gru.yaml"
+    res = cli("lbo.tune", "hparams_search=slip_gru", *SMOKE[2:4], "trainer.max_epochs=1",
+              *SMOKE[5:],
+              "tune.n_trials=1", f"tune.storage=sqlite:///{tmp_path / 'optuna.db'}",
+              f"tune.handoff={handoff}", f"logger.tracking_uri={tracking}",
+              f"hydra.run.dir={tmp_path / 'run'}")
+    assert res.returncode == 0, res.stderr[-3000:]
+    assert res.stdout.splitlines()[1].startswith("trial   0  val_loss")
+    assert handoff.exists()
+    client = mlflow.MlflowClient(tracking)
+    runs = client.search_runs(client.get_experiment_by_name("lbo").experiment_id,
+                              "tags.optuna_trial = '0'")
+    (trial,) = runs
+    assert trial.data.tags["model"] == "slip_gru" and trial.info.status == "FINISHED"
+    assert "val_beta_rmse_deg" in trial.data.metrics
+    assert not any(k.startswith("test_") for k in trial.data.metrics)  # never the test span
