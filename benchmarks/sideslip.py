@@ -6,16 +6,21 @@ The linear single-track Kalman filter is told the car's published parameters
 (:meth:`lbo.filters.lateral.LateralNoise.of`); the EKF with saturating tyres the same, and the
 friction read off the training span (:func:`lbo.sim.sideslip.friction`); the validation span
 shows how its error moves with the friction. Nothing looks at the test span but the scoring.
-Writes the markdown table to stdout and the plot of beta over the test span to ``docs/``.
+With ``--slip``, the learned observer of an ``lbo.train model=slip_gru data=sideslip``
+checkpoint joins the table and the plot, and its stream is timed a row at a time on one thread
+(its network in PyTorch and in ONNX Runtime; the first 100 rows left out, the median and the
+99th percentile of the test span's rows). Writes the markdown tables to stdout and the plot of
+beta over the test span to ``docs/``.
 
-    python benchmarks/sideslip.py [docs/sideslip.png]
+    python benchmarks/sideslip.py [--slip outputs/<run>/checkpoints/best.ckpt] [docs/sideslip.png]
 """
 
+import argparse
 import dataclasses
-import sys
 import time
 
 import numpy as np
+import torch
 
 from lbo.core import plots
 from lbo.filters.lateral import (
@@ -24,9 +29,15 @@ from lbo.filters.lateral import (
     linear_single_track,
     nonlinear_single_track,
 )
+from lbo.models import slip
 from lbo.sim import sideslip
 
-out = sys.argv[1] if len(sys.argv) > 1 else "docs/sideslip.png"
+parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+parser.add_argument("plot", nargs="?", default="docs/sideslip.png")
+parser.add_argument("--slip", help="a model=slip_gru checkpoint to score and time")
+args = parser.parse_args()
+out = args.plot
+learned = slip.load(args.slip) if args.slip else None
 spans = sideslip.split(sideslip.example())
 noise = LateralNoise.of(*sideslip.observed(spans["train"]))
 mu = sideslip.friction(spans["train"])
@@ -52,6 +63,8 @@ for name, span in spans.items():
                  "kinematic bicycle": kinematic_beta(delta, sideslip.CAR),
                  "linear single-track KF": lkf.beta,
                  f"single-track EKF, tyres saturating at mu = {mu:.2f}": ekf.beta}
+    if learned is not None:
+        estimates["learned: linear KF + GRU correction (slip_gru)"] = learned.run(vx, delta, y).beta
     for observer, est in estimates.items():
         rows.append((name, observer, deg_rms(est - beta), np.rad2deg(np.abs(est - beta).max())))
     print(f"{name}: {len(span)} rows, {span['t'].iloc[0]:.2f}-{span['t'].iloc[-1]:.2f} s; "
@@ -65,6 +78,20 @@ print("\n| span | estimate of beta | RMSE (deg) | largest error (deg) |")
 print("|---|---|---|---|")
 for name, observer, rmse, worst in rows:
     print(f"| {name} | {observer} | {rmse:.2f} | {worst:.2f} |")
+
+if learned is not None:
+    torch.set_num_threads(1)
+    vx, delta, y = sideslip.observed(spans["test"])
+    print(f"\nslip_gru (window {learned.window}), one row at a time on one thread:")
+    print("| its network in | median (us) | 99th percentile (us) |\n|---|---|---|")
+    for engine in slip.ENGINES:
+        stream, took = learned.stream(engine), []
+        for row in zip(vx, delta, y[:, 0], y[:, 1]):
+            start = time.perf_counter()
+            stream.step(*row)
+            took.append(time.perf_counter() - start)
+        us = 1e6 * np.array(took[100:])
+        print(f"| {engine} | {np.median(us):.0f} | {np.percentile(us, 99):.0f} |")
 
 val = spans["val"]
 print("\n| friction mu | beta RMSE on the validation span (deg) |")

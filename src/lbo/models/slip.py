@@ -18,7 +18,7 @@ an ``lbo.train model=slip_gru`` checkpoint, reading tensors and plain containers
 from __future__ import annotations
 
 import os
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
@@ -128,17 +128,51 @@ class SlipObserver:
         x[:, 0] += fix
         return LateralEstimate(x, np.full_like(prior.P, np.nan))
 
-    def stream(self) -> SlipStream:
-        """A stream of rows from the start of a log (:class:`SlipStream`)."""
-        return SlipStream(self)
+    def stream(self, engine: str = "torch") -> SlipStream:
+        """A stream of rows from the start of a log (:class:`SlipStream`), its network run by
+        ``engine``: ``torch``, or ``onnx`` (ONNX Runtime, one thread: a car's computer)."""
+        if engine not in ENGINES:
+            raise LboError(f"engine: expected one of {list(ENGINES)}, got {engine!r}")
+        if engine == "torch":
+            def correct(rows: np.ndarray) -> float:
+                with torch.no_grad():
+                    return float(self.net(torch.from_numpy(rows[None]))[0])
+        else:
+            from lbo.serve.engines import onnx_session
+
+            session = onnx_session(self.onnx(), threads=1)
+
+            def correct(rows: np.ndarray) -> float:
+                return float(session.run(None, {"window": rows[None]})[0][0])
+        return SlipStream(self, correct)
+
+    def onnx(self) -> bytes:
+        """The network as an ONNX model: input ``window`` (batch, N, 6) of raw
+        :data:`FEATURES`, output ``fix`` (batch,) the correction (rad), float32. By the
+        TorchScript-based exporter, which writes the GRU as ONNX's own GRU node."""
+        import warnings
+
+        from lbo.serve.engines import legacy_onnx
+
+        example = torch.zeros(1, self.window, len(FEATURES))
+        with warnings.catch_warnings():
+            # that a GRU with a dynamic batch "can cause an error" at another batch: its state
+            # starts at zero, and batches of 1 to 300 give PyTorch's numbers (tests/test_slip.py)
+            warnings.filterwarnings("ignore", message="Exporting a model to ONNX with a batch")
+            return legacy_onnx(self.net, (example,), (["window"], ["fix"]))
+
+
+ENGINES = ("torch", "onnx")
+"""What runs a stream's network (:meth:`SlipObserver.stream`)."""
 
 
 class SlipStream:
     """One row at a time, as a car runs: :meth:`step` carries the prior's filter one row and
-    corrects its beta over the last ``window`` rows held."""
+    corrects its beta over the last ``window`` rows held; ``correct`` runs the network on
+    them, (N, 6) -> the correction (rad)."""
 
-    def __init__(self, observer: SlipObserver) -> None:
-        self.observer = observer
+    def __init__(self, observer: SlipObserver, correct: Callable[[np.ndarray], float]) -> None:
+        self.observer, self.correct = observer, correct
         self.rows = np.zeros((observer.window, len(FEATURES)), np.float32)
         self.last: tuple[float, float] | None = None  # the previous row's vx and delta
         self.estimate: LateralEstimate | None = None  # the prior's at the previous row
@@ -163,9 +197,7 @@ class SlipStream:
         else:
             self.rows = np.concatenate([self.rows[1:], row])
         self.last = (float(vx), float(delta))
-        with torch.no_grad():
-            fix = float(self.observer.net(torch.from_numpy(self.rows[None]))[0])
-        return np.array([prior.x[-1, 0] + fix, prior.x[-1, 1]])
+        return np.array([prior.x[-1, 0] + self.correct(self.rows), prior.x[-1, 1]])
 
 
 def load(path: str | os.PathLike) -> SlipObserver:
