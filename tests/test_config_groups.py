@@ -209,9 +209,12 @@ RECEIVER_DRIFT = Refusal(r"model.drift: expected false for a window filter that 
 GYRO_NEEDS_LOGS = Refusal(r"data: model=gyro_ekf learns from a vehicle's logs",
                           "the gyro EKF's noise is learned on logs with a gyro and one antenna")
 
+SLIP_DATA = ("sideslip", "sideslip_sim")
+"""The side-slip observer's data sets, which only it reads."""
 SLIP_NEEDS_RUN = Refusal(r"data: model=slip_gru learns on the side-slip run",
                          "the side-slip observer learns on the real run (data=sideslip) alone")
-SIDESLIP_SLIP_ONLY = Refusal(r"data: data=sideslip is the real side-slip run",
+SIDESLIP_SLIP_ONLY = Refusal(r"data: data=sideslip(_sim)? is (the real side-slip run|simulated "
+                             r"runs of the side-slip run's kind), which model=slip_gru alone",
                              "the real side-slip run is read by model=slip_gru alone: no pose "
                              "observer, data set or test grid is made of it")
 SLIP_RECEIVER = Refusal(r"receiver: expected None with model=slip_gru",
@@ -245,7 +248,7 @@ def train_refusal(experiment: str | None, choice: dict[str, str | None],
         return (GYRO_NEEDS_LOGS if choice["data"] not in ("logs", "hill")
                 else NEEDS_LOGS if choice["data"] == "logs" else None)
     if choice["model"] == "slip_gru":  # lbo.learn.slip_run.check: the real run, its own net
-        if choice["data"] != "sideslip":
+        if choice["data"] not in SLIP_DATA:
             return SLIP_NEEDS_RUN
         if experiment in FILTERNET_EXPERIMENTS:  # their model keys come first
             return FILTERNET_ONLY
@@ -256,7 +259,7 @@ def train_refusal(experiment: str | None, choice: dict[str, str | None],
         if experiment in COSINE_EXPERIMENTS:
             return SLIP_SCHEDULE
         return NO_CUDA if choice["trainer"] == "gpu" and not cuda() else None
-    if choice["data"] == "sideslip":
+    if choice["data"] in SLIP_DATA:
         return SIDESLIP_SLIP_ONLY
     if choice.get("receiver") is not None:
         if experiment not in FIX_RATE_EXPERIMENTS:
@@ -377,8 +380,8 @@ def command_refusal(primary: str, group: str, option: str) -> Refusal | None:
                 "simulate": NOT_SIMULATED}.get(primary)
     if group == "data" and option == "hill":  # its drives are named: only simulate refuses
         return NOT_SIMULATED if primary == "simulate" else None
-    if group == "data" and option == "sideslip" and primary in ("datagen", "evaluate",
-                                                                 "simulate"):
+    if group == "data" and option in SLIP_DATA and primary in ("datagen", "evaluate",
+                                                                "simulate"):
         return SIDESLIP_SLIP_ONLY
     return None
 

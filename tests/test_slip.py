@@ -9,16 +9,19 @@ import torch
 from helpers import cli, one_line_error
 from lbo.core.errors import LboError
 from lbo.filters.lateral import LateralEstimate, linear_single_track
-from lbo.learn import slip_run
+from lbo.learn import slip_data
 from lbo.models import slip
-from lbo.sim import sideslip
+from lbo.sim import lateral, sideslip
 
 GAIN = 1000.0
 
 
 @pytest.fixture(scope="module")
 def shipped():
-    return slip_run.shipped(GAIN)
+    """The real run's spans, the prior the training reads off its train span, its estimates."""
+    spans = slip_data.real_spans()
+    prior = slip.Prior(sideslip.CAR, slip_data.noise_of([spans["train"]], GAIN), sideslip.DT)
+    return spans, prior, slip_data.real_estimates(prior)
 
 
 @pytest.fixture(scope="module")
@@ -27,7 +30,7 @@ def observer(shipped):
     spans, prior, priors = shipped
     torch.manual_seed(0)
     net = slip.SlipNet(hidden=8)
-    net.set_normalisation(slip.features(*sideslip.observed(spans["train"]), priors["train"]))
+    net.set_normalisation(slip.features(*sideslip.observed(spans["train"]), priors["train"].x))
     return slip.SlipObserver(net, 12, prior)
 
 
@@ -60,8 +63,8 @@ def test_the_observer_reads_no_truth_a_planted_check(shipped):
     rng = np.random.default_rng(0)
     planted["vy"], planted["beta"] = rng.normal(size=(2, len(span)))
     est = LateralEstimate(priors["val"].x[:300], priors["val"].P[:300])
-    w, target = slip_run._set(span, est, 12)
-    w2, target2 = slip_run._set(planted, est, 12)
+    w, target = slip_data._windows([span], est, 12, 1)
+    w2, target2 = slip_data._windows([planted], est, 12, 1)
     assert np.array_equal(w, w2) and not np.allclose(target, target2)
     assert not set(sideslip.TRUTH) & set(slip.FEATURES)
 
@@ -111,6 +114,8 @@ def test_load_refuses_what_is_not_its_checkpoint(tmp_path):
 
 @pytest.mark.parametrize(("args", "words"), [
     (["data=paper"], ["data: model=slip_gru learns on the side-slip run", "data=paper"]),
+    (["data=sideslip_sim", "data.spread=0.9"], ["data.spread", "a share in [0, 0.5]"]),
+    (["init_from=nowhere.ckpt"], ["init_from: expected the path of a model=slip_gru checkpoint"]),
     (["model.window=1"], ["model.window", "an integer >= 2"]),
     (["+model.body=single_track"], ["model.body: not a parameter of model 'slip_gru'"]),
     (["fix_rates=[10]"], ["fix_rates: expected None", "reads no position fixes"]),
@@ -125,6 +130,24 @@ def test_bad_settings_are_refused_in_one_line(args, words, tmp_path):
 def test_pose_observers_refuse_the_side_slip_run(tmp_path):
     res = cli("lbo.train", "model=cnn", "data=sideslip", f"hydra.run.dir={tmp_path / 'run'}")
     one_line_error(res, "data: data=sideslip is the real side-slip run", "model=slip_gru")
+
+
+def test_simulated_runs_are_cars_at_the_limit_like_the_real_one():
+    runs = lateral.simulate(lateral.Settings(n=6, duration=20.0), seed=3)
+    again = lateral.simulate(lateral.Settings(n=6, duration=20.0), seed=3)
+    assert all(a.equals(b) for a, b in zip(runs, again))  # the seed decides
+    assert [len(r) for r in runs] == [2000] * 6
+    assert list(runs[0].columns) == ["t", "vx", "delta", "ay_m", "r_m", "vy", "beta"]
+    cars = [r.attrs["car"] for r in runs]
+    assert len({c["mass"] for c in cars}) == 6  # each car its own
+    for r in runs:
+        assert np.allclose(r["beta"], np.arctan2(r["vy"], r["vx"]))
+        assert 15.9 < r["vx"].min() and r["vx"].max() < 61.1
+        # the tyres' limit is reached, and no car spins: beta stays within a road car's
+        assert np.abs(r["beta"]).max() < np.deg2rad(15)
+    assert max(np.abs(r["ay_m"]).max() for r in runs) > 0.8 * 9.81
+    with pytest.raises(LboError, match=r"data\.mu must be \[low, high\]"):
+        lateral.Settings(mu=(1.4, 0.9))
 
 
 SMOKE = ["model=slip_gru", "data=sideslip", "model.window=12", "model.hidden=8",
@@ -149,11 +172,39 @@ def test_train_learns_on_the_train_span_logs_a_run_and_a_rerun_reuses_it(tmp_pat
     assert files == {"checkpoints/best.ckpt"}
     observer = slip.load(tmp_path / "a" / "checkpoints" / "best.ckpt")
     assert (observer.window, observer.net.gru.hidden_size) == (12, 8)
-    assert observer.prior.noise == slip_run.shipped(GAIN)[1].noise  # read off the train span
+    assert observer.prior.noise == slip_data.noise_of([slip_data.real_spans()["train"]], GAIN)
+
+    # fine-tuned from it on the real run: its prior and normalisation kept, its weights moved
+    tuned = cli("lbo.train", *SMOKE, "trainer.max_epochs=1", f"logger.tracking_uri={tracking}",
+                f"init_from={tmp_path / 'a' / 'checkpoints' / 'best.ckpt'}",
+                f"hydra.run.dir={tmp_path / 'c'}")
+    assert tuned.returncode == 0, tuned.stderr[-3000:]
+    assert "init_from: starting from the weights of" in tuned.stdout
+    fine = slip.load(tmp_path / "c" / "checkpoints" / "best.ckpt")
+    assert fine.prior == observer.prior
+    assert torch.equal(fine.net.mean, observer.net.mean)
+    assert not torch.equal(fine.net.head.weight, observer.net.head.weight)
 
     again = cli("lbo.train", *args, f"hydra.run.dir={tmp_path / 'b'}")
     assert again.returncode == 0, again.stderr[-3000:]
     assert f"reusing finished run {run.info.run_id}" in again.stdout
+
+
+@pytest.mark.slow
+def test_train_on_simulation_reads_nothing_of_the_real_run_but_to_score_it(tmp_path, tracking):
+    res = cli("lbo.train", *SMOKE, "data=sideslip_sim", "data.train=3", "data.val=1",
+              "data.duration=20", f"logger.tracking_uri={tracking}",
+              f"hydra.run.dir={tmp_path / 'sim'}")
+    assert res.returncode == 0, res.stderr[-3000:]
+    assert "on 3 simulated runs (1500 windows of 12 rows)" in res.stdout
+    observer = slip.load(tmp_path / "sim" / "checkpoints" / "best.ckpt")
+    settings = lateral.Settings(n=4, duration=20.0)
+    sim_train = lateral.simulate(settings, seed=0)[:3]
+    assert observer.prior.noise == slip_data.noise_of(sim_train, GAIN)  # not the real run's
+    client = mlflow.MlflowClient(tracking)
+    (run,) = client.search_runs(client.get_experiment_by_name("lbo").experiment_id)
+    assert run.data.tags["data"] == "sideslip_sim"
+    assert {"test_beta_rmse_deg", "test_vs_linear"} <= set(run.data.metrics)
 
 
 @pytest.mark.slow

@@ -1,14 +1,15 @@
-"""The learned side-slip observer trained on the real run: ``lbo.train model=slip_gru``.
+"""The learned side-slip observer, trained: ``lbo.train model=slip_gru``.
 
     python -m lbo.train model=slip_gru data=sideslip [model.window=50] [trainer.max_epochs=30]
+    python -m lbo.train model=slip_gru data=sideslip_sim        # simulation only
+    python -m lbo.train model=slip_gru data=sideslip init_from=<its checkpoint>  # fine-tuned
     python -m lbo.tune hparams_search=slip_gru [tune.n_trials=20]
 
-The MBDS side-slip run lbo ships (:mod:`lbo.sim.sideslip`) split by time: the network
-(:mod:`lbo.models.slip`) is fitted on the first 60%, its epoch kept by the next 20% (``val_loss``:
-beta's RMSE there, in degrees) and, with the evaluation callback configured (as ``lbo.train``
-has it, and no trial of ``lbo.tune``), scored on the last 20% beside the linear single-track
-Kalman filter it corrects. The prior is that filter told the car's published parameters
-(:data:`lbo.sim.sideslip.CAR`) and the noise read off the training span alone. The truth (vy,
+The network (:mod:`lbo.models.slip`) is fitted on the training windows of
+:mod:`lbo.learn.slip_data` (the real run's first 60%, or simulated runs), its epoch kept by
+the validation windows (``val_loss``: beta's RMSE there, in degrees) and, with the evaluation
+callback configured (as ``lbo.train`` has it, and no trial of ``lbo.tune``), scored on each
+span of the real run beside the linear single-track Kalman filter it corrects. The truth (vy,
 beta) is the loss's target and the score's reference, never an input.
 
 It is trained as every learned observer is: by Lightning, with the configured trainer and
@@ -22,7 +23,6 @@ config.
 
 from __future__ import annotations
 
-import functools
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -37,15 +37,14 @@ from lbo.core.checks import integer, number
 from lbo.core.errors import LboError
 from lbo.core.redact import scrub
 from lbo.filters.lateral import LateralEstimate
-from lbo.models.slip import NAME, PARAMETERS, Prior, SlipNet, SlipObserver, features, load, windows
+from lbo.learn.slip_data import DATA, REAL, SIMULATED
+from lbo.models.slip import NAME, PARAMETERS, Prior, SlipNet, SlipObserver, load
 
 if TYPE_CHECKING:  # Lightning takes seconds to import: only a training run needs it
     import lightning as L
 
-__all__ = ["DATA", "KEYS", "check", "prior_of", "score", "shipped", "spans_markdown", "train"]
+__all__ = ["KEYS", "check", "score", "spans_markdown", "train"]
 
-DATA = "sideslip"
-"""``data.name`` the observer learns on: the real run lbo ships."""
 SPANS = ("train", "val", "test")
 
 
@@ -59,16 +58,27 @@ UNREAD = (("receiver", None, "it reads the car's lateral sensors, not a receiver
           ("fix_rates", None, "it reads no position fixes"),
           ("loss", "truth", "it learns from the INS's side slip"),
           ("lr_schedule", "constant", "it trains at the optimiser's constant rate"),
-          ("init_from", None, "it starts from fresh weights"),
           ("data_dir", None, "it reads the run lbo ships"))
 """Training settings of the pose observers it does not take: (key, the value it needs, why)."""
 
 
 def check(cfg: DictConfig) -> None:
     """The run's settings, checked before any work (one line naming the field)."""
-    if cfg.data.name != DATA:
-        raise LboError(f"data: model={NAME} learns on the side-slip run (data={DATA}); got "
+    if cfg.data.name not in DATA:
+        raise LboError(f"data: model={NAME} learns on the side-slip run (data={REAL}) or "
+                       f"simulated runs of its kind (data={SIMULATED}); got "
                        f"data={cfg.data.name}")
+    if cfg.data.name == SIMULATED:
+        from lbo.learn.slip_data import settings
+
+        settings(cfg.data)
+        for key in ("train", "val", "stride"):
+            integer(cfg.data[key], f"data.{key}", 1)
+        integer(cfg.data.seed, "data.seed", 0)
+    start = cfg.get("init_from")
+    if start is not None and not (isinstance(start, str) and Path(start).is_file()):
+        raise LboError(f"init_from: expected the path of a model={NAME} checkpoint to fine-tune "
+                       f"(outputs/<run>/checkpoints/best.ckpt), got {start!r}")
     for key in cfg.model:
         if key not in KEYS:
             raise LboError(f"model.{key}: not a parameter of model {NAME!r} (it takes "
@@ -94,38 +104,6 @@ def check(cfg: DictConfig) -> None:
     if cfg.trainer.accelerator == "gpu" and not torch.cuda.is_available():
         raise LboError("trainer=gpu needs CUDA, which torch does not see here; "
                        "use trainer=cpu or trainer=auto")
-
-
-def prior_of(train: pd.DataFrame, gain: float) -> Prior:
-    """The linear filter the network corrects: the published car, the noise read off the
-    training span (:meth:`lbo.filters.lateral.LateralNoise.of`)."""
-    from lbo.filters.lateral import LateralNoise
-    from lbo.sim import sideslip
-
-    noise = LateralNoise.of(*sideslip.observed(train), process_gain=gain)
-    return Prior(sideslip.CAR, noise, sideslip.DT)
-
-
-@functools.lru_cache(maxsize=2)
-def shipped(gain: float) -> tuple[dict[str, pd.DataFrame], Prior, dict[str, LateralEstimate]]:
-    """The shipped run's spans, the prior of ``gain`` and its estimate of each span (each span
-    a log of its own, the filter starting afresh): 4 s of filtering, made once a process."""
-    from lbo.sim import sideslip
-
-    spans = sideslip.split(sideslip.example())
-    prior = prior_of(spans["train"], gain)
-    return spans, prior, {k: prior.run(*sideslip.observed(s)) for k, s in spans.items()}
-
-
-def _set(span: pd.DataFrame, est: LateralEstimate, window: int
-         ) -> tuple[np.ndarray, np.ndarray]:
-    """A span's windows (T, N, 6) and targets (T,): beta's reference less the prior's
-    estimate ``est`` (rad)."""
-    from lbo.sim.sideslip import observed
-
-    vx, delta, y = observed(span)
-    target = (span["beta"].to_numpy(float) - est.beta).astype(np.float32)
-    return np.ascontiguousarray(windows(features(vx, delta, y, est), window)), target
 
 
 def score(observer: SlipObserver, spans: dict[str, pd.DataFrame],
@@ -221,10 +199,12 @@ def train(cfg: DictConfig, params: dict[str, Any], tags: dict[str, str],
     from lightning.pytorch.callbacks import ModelCheckpoint
 
     from lbo.core.runfolder import claim
+    from lbo.learn import slip_data
     from lbo.learn.builders import targets
     from lbo.learn.callbacks import Evaluation
     from lbo.learn.checkpoint_io import AtomicCheckpointIO
     from lbo.learn.resume import config_hash, prior_runs
+
     check(cfg)
     digest = config_hash(cfg)
     name = f"{NAME}-N{cfg.model.window}"
@@ -236,17 +216,27 @@ def train(cfg: DictConfig, params: dict[str, Any], tags: dict[str, str],
     configured = dict(cfg.get("callbacks") or {})
     scored = any(targets(c, Evaluation) for c in configured.values())  # never in a trial
     L.seed_everything(cfg.seed, workers=True, verbose=False)
-    spans, prior, priors = shipped(float(cfg.model.prior_gain))
-    w, target = _set(spans["train"], priors["train"], int(cfg.model.window))
-    val_w, val_target = _set(spans["val"], priors["val"], int(cfg.model.window))
+    start = load(cfg.init_from) if cfg.get("init_from") else None
+    made = slip_data.sets(cfg.data, int(cfg.model.window), float(cfg.model.prior_gain),
+                          start.prior if start else None)
+    (w, target), (val_w, val_target), prior = made.train, made.val, made.prior
     module = _module(int(cfg.model.hidden), int(cfg.model.layers), int(cfg.model.window), prior,
                      instantiate(cfg.optimizer))
-    module.net.set_normalisation(w[:, -1])  # each row once: the last of each window
+    if start is not None:  # its weights and its normalisation: the windows are its prior's
+        if (start.window, start.net.gru.hidden_size, start.net.gru.num_layers) != (
+                cfg.model.window, cfg.model.hidden, cfg.model.layers):
+            raise LboError(f"init_from: {cfg.init_from} has window {start.window}, hidden "
+                           f"{start.net.gru.hidden_size}, layers {start.net.gru.num_layers}; "
+                           "expected the same model.window, model.hidden and model.layers")
+        module.net.load_state_dict(start.net.state_dict())
+        print(f"init_from: starting from the weights of {cfg.init_from}")
+    else:
+        module.net.set_normalisation(w[:, -1])  # each row once: the last of each window
     loaders = [torch.utils.data.DataLoader(torch.utils.data.TensorDataset(
         torch.from_numpy(a), torch.from_numpy(b)), batch_size=int(cfg.batch_size), shuffle=s)
         for a, b, s in ((w, target, True), (val_w, val_target, False))]
     out = Path(cfg.output_dir)
-    tags = {**tags, "data": DATA, "model": NAME, "window": str(cfg.model.window),
+    tags = {**tags, "data": str(cfg.data.name), "model": NAME, "window": str(cfg.model.window),
             "config_hash": digest}
     logger = instantiate(cfg.logger, tags=tags) if cfg.get("logger") else None
     cbs = [instantiate(c) for c in configured.values() if not targets(c, Evaluation)]
@@ -262,16 +252,21 @@ def train(cfg: DictConfig, params: dict[str, Any], tags: dict[str, str],
                                          scrub(OmegaConf.to_yaml(cfg, resolve=True)))
                 logger.experiment.log_artifact(logger.run_id, str(config_yaml))
             if scored:  # a study's trial is one line of the study's
-                print(f"learning the side-slip correction on the train span ({len(w)} windows "
-                      f"of {cfg.model.window} rows); the epoch best on the validation span is "
-                      "kept")
+                where = ("the train span" if cfg.data.name == REAL
+                         else f"{cfg.data.train} simulated runs")
+                print(f"learning the side-slip correction on {where} ({len(w)} windows of "
+                      f"{cfg.model.window} rows); the epoch best on the validation "
+                      f"{'span' if cfg.data.name == REAL else 'runs'} is kept")
             trainer.fit(module, *loaders)
             ckpt = next((c.best_model_path for c in cbs if isinstance(c, ModelCheckpoint)
                          and c.best_model_path), "")
             observer = load(ckpt) if ckpt else SlipObserver(module.net.cpu(),
                                                             int(cfg.model.window), prior)
-            table = score(observer, spans if scored else {k: spans[k] for k in SPANS[:2]},
-                          priors)
+            # the real run scored: every span after a training, none of the test in a trial
+            spans = slip_data.real_spans()
+            shown = SPANS if scored else SPANS[:2] if cfg.data.name == REAL else ()
+            table = score(observer, {k: spans[k] for k in shown},
+                          slip_data.real_estimates(observer.prior) if shown else None)
             metrics = _metrics(table)
             report = write_text(out / "spans.md", spans_markdown(table))
             if logger is not None:
@@ -289,7 +284,7 @@ def train(cfg: DictConfig, params: dict[str, Any], tags: dict[str, str],
         print(f"beta RMSE (deg) on each span:\n{spans_markdown(table)}", end="")
     best = next((c.best_model_score for c in cbs if isinstance(c, ModelCheckpoint)
                  and c.best_model_score is not None), None)
-    val = float(best) if best is not None else metrics["val_beta_rmse_deg"]
+    val = float(best) if best is not None else float("nan")
     return {"name": name, "val_loss": val, "checkpoint": ckpt,
             "run_id": logger.run_id if logger is not None else None,
             "epochs": trainer.current_epoch, "reused": False, **metrics}

@@ -64,11 +64,11 @@ class Prior:
         return cls(SingleTrack(**d["car"]), LateralNoise(**d["noise"]), float(d["dt"]))
 
 
-def features(vx: np.ndarray, delta: np.ndarray, y: np.ndarray, prior: LateralEstimate
+def features(vx: np.ndarray, delta: np.ndarray, y: np.ndarray, prior: np.ndarray
              ) -> np.ndarray:
     """The window rows (..., T, 6) of :data:`FEATURES`, float32: vx, delta (..., T), the
-    measurements y (..., T, 2) [ay_m, r_m] and the prior's estimate."""
-    return np.concatenate([np.stack([vx, delta], axis=-1), y, prior.x], axis=-1
+    measurements y (..., T, 2) [ay_m, r_m] and the prior's estimate x (..., T, 2)."""
+    return np.concatenate([np.stack([vx, delta], axis=-1), y, prior], axis=-1
                           ).astype(np.float32)
 
 
@@ -120,7 +120,7 @@ class SlipObserver:
             prior = self.prior.run(vx, delta, y)
         if prior.x.ndim != 2:
             raise LboError("SlipObserver.run takes one log: vx, delta (T,) and y (T, 2)")
-        rows = windows(features(vx, delta, y, prior), self.window)
+        rows = windows(features(vx, delta, y, prior.x), self.window)
         with torch.no_grad():
             fix = np.concatenate([self.net(torch.from_numpy(np.ascontiguousarray(
                 rows[i:i + batch]))).numpy() for i in range(0, len(rows), batch)])
@@ -190,8 +190,7 @@ class SlipStream:
                                             np.stack([np.full(2, np.nan), y]),
                                             start=self.estimate)
         self.estimate = LateralEstimate(prior.x[-1], prior.P[-1])
-        row = features(np.array([vx]), np.array([delta]), y[None],
-                       LateralEstimate(prior.x[-1:], prior.P[-1:]))
+        row = features(np.array([vx]), np.array([delta]), y[None], prior.x[-1:])
         if self.last is None:
             self.rows[:] = row
         else:

@@ -71,17 +71,19 @@ class Spec:
         return np.round(np.arange(n + 1) * t["alpha_step"], 10)
 
 
-SIDESLIP = "sideslip"
-"""``data.name`` of the real side-slip run, which only its observer reads."""
+SIDESLIP = {"sideslip": "the real side-slip run",
+            "sideslip_sim": "simulated runs of the side-slip run's kind"}
+"""``data.name`` of the side-slip observer's data sets, which only it reads."""
 
 
 def refuse_sideslip(cfg: DictConfig) -> None:
-    """``data=sideslip`` is the lateral observer's (``model=slip_gru``): no pose observer, data
-    set or test grid is made of it. One line naming ``data``."""
-    if cfg.get("data") is not None and cfg.data.get("name") == SIDESLIP:
-        raise LboError("data: data=sideslip is the real side-slip run, which model=slip_gru "
-                       "alone reads (python -m lbo.train model=slip_gru data=sideslip); expected "
-                       "a simulated data set (smoke, quick, paper, robust, dynamic) or logs")
+    """``data=sideslip`` and ``sideslip_sim`` are the lateral observer's (``model=slip_gru``):
+    no pose observer, data set or test grid is made of them. One line naming ``data``."""
+    name = cfg.data.get("name") if cfg.get("data") is not None else None
+    if name in SIDESLIP:
+        raise LboError(f"data: data={name} is {SIDESLIP[name]}, which model=slip_gru alone "
+                       f"reads (python -m lbo.train model=slip_gru data={name}); expected a "
+                       "simulated data set (smoke, quick, paper, robust, dynamic) or logs")
 
 
 def spec_from_cfg(cfg: DictConfig) -> Spec:

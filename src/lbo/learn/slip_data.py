@@ -1,0 +1,116 @@
+"""The side-slip observer's training sets: the real run's spans, or simulated runs of its kind.
+
+- ``data=sideslip``: the run lbo ships (:mod:`lbo.sim.sideslip`), its first 60% to train and
+  the next 20% to pick the epoch; the prior's noise read off the training span.
+- ``data=sideslip_sim``: runs simulated by :mod:`lbo.sim.lateral` (cars drawn around the
+  published one), ``data.train`` runs to train and ``data.val`` others to pick the epoch; the
+  prior's noise read off the simulated training runs. Nothing of the real run is read.
+
+Either way the prior is told the published car (:data:`lbo.sim.sideslip.CAR`), and a net
+fine-tuned from a checkpoint (``init_from``) keeps that checkpoint's prior: its windows are
+made of that filter's estimates. Each window's target is the reference beta less the prior's.
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import pandas as pd
+from omegaconf import DictConfig, OmegaConf
+
+from lbo.filters.lateral import LateralEstimate, LateralNoise
+from lbo.models.slip import Prior, features, windows
+from lbo.sim import lateral, sideslip
+
+REAL = "sideslip"
+SIMULATED = "sideslip_sim"
+DATA = (REAL, SIMULATED)
+"""The ``data.name`` the side-slip observer learns on."""
+
+
+@dataclass(frozen=True)
+class Sets:
+    """Training and validation windows (W, N, 6) float32 and their targets (W,) (rad), and
+    the prior whose estimates they hold."""
+
+    train: tuple[np.ndarray, np.ndarray]
+    val: tuple[np.ndarray, np.ndarray]
+    prior: Prior
+
+
+def noise_of(logs: Sequence[pd.DataFrame], gain: float) -> LateralNoise:
+    """The prior's noise read off training logs (:meth:`LateralNoise.of`), averaged over them."""
+    each = [LateralNoise.of(*sideslip.observed(log), process_gain=gain) for log in logs]
+    return LateralNoise(*(float(np.mean([getattr(n, k) for n in each]))
+                          for k in ("delta", "ay", "r")))
+
+
+@functools.lru_cache(maxsize=1)
+def real_spans() -> dict[str, pd.DataFrame]:
+    """The shipped run's spans (:func:`lbo.sim.sideslip.split`), read once a process."""
+    return sideslip.split(sideslip.example())
+
+
+@functools.lru_cache(maxsize=4)
+def real_estimates(prior: Prior) -> dict[str, LateralEstimate]:
+    """The prior's estimate of each real span, each a log of its own (the filter starting
+    afresh): 4 s of filtering, made once a process for each prior."""
+    return {k: prior.run(*sideslip.observed(s)) for k, s in real_spans().items()}
+
+
+def settings(data: DictConfig) -> lateral.Settings:
+    """``data=sideslip_sim``'s simulation settings, checked (one line naming the field)."""
+    d = OmegaConf.to_container(data, resolve=True)
+    assert isinstance(d, dict)
+    keys = ("duration", "spread", "sigma_ay", "sigma_r")
+    pairs = ("mu", "speed", "demand")
+    return lateral.Settings(n=int(d["train"]) + int(d["val"]), **{k: d[k] for k in keys},
+                            **{k: tuple(d[k]) for k in pairs})
+
+
+@functools.lru_cache(maxsize=2)
+def _simulated(s: lateral.Settings, seed: int) -> tuple[pd.DataFrame, ...]:
+    return tuple(lateral.simulate(s, seed))
+
+
+def sets(data: DictConfig, window: int, gain: float, start: Prior | None = None) -> Sets:
+    """The windows ``data`` names (``data.name`` one of :data:`DATA`) for windows of
+    ``window`` rows, the prior's noise ``gain``; ``start``: the prior of a checkpoint
+    fine-tuned from, kept."""
+    if data.name == REAL:
+        spans = real_spans()
+        prior = start or Prior(sideslip.CAR, noise_of([spans["train"]], gain), sideslip.DT)
+        est = real_estimates(prior)
+        return Sets(_windows([spans["train"]], est["train"], window, 1),
+                    _windows([spans["val"]], est["val"], window, 1), prior)
+    s = settings(data)
+    runs = _simulated(s, int(data.seed))
+    train, val = list(runs[:int(data.train)]), list(runs[int(data.train):])
+    prior = start or Prior(sideslip.CAR, noise_of(train, gain), sideslip.DT)
+    stride = int(data.stride)
+    return Sets(_windows(train, _estimate(prior, train), window, stride),
+                _windows(val, _estimate(prior, val), window, stride), prior)
+
+
+def _estimate(prior: Prior, logs: list[pd.DataFrame]) -> LateralEstimate:
+    """The prior over logs of one length, all at once: x (G, T, 2)."""
+    vx, delta, y = (np.stack(a) for a in zip(*(sideslip.observed(log) for log in logs)))
+    return prior.run(vx, delta, y)
+
+
+def _windows(logs: list[pd.DataFrame], est: LateralEstimate, window: int, stride: int
+             ) -> tuple[np.ndarray, np.ndarray]:
+    """Every ``stride``-th row's window (W, N, 6) of each log and its target (W,): beta's
+    reference less the prior's estimate ``est`` ((T, 2) for one log, (G, T, 2) for G)."""
+    x = est.x if est.x.ndim == 3 else est.x[None]
+    w, target = [], []
+    for log, xg in zip(logs, x):
+        vx, delta, y = sideslip.observed(log)
+        rows = features(vx, delta, y, xg)
+        w.append(windows(rows, window)[::stride])
+        target.append((log["beta"].to_numpy(float) - xg[:, 0])[::stride])
+    return (np.ascontiguousarray(np.concatenate(w)),
+            np.concatenate(target).astype(np.float32))
