@@ -30,6 +30,7 @@ from lbo.filters.lateral import (
     nonlinear_single_track,
 )
 from lbo.models import slip
+from lbo.serve import lateral
 from lbo.sim import sideslip
 
 parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -84,8 +85,8 @@ if learned is not None:
     vx, delta, y = sideslip.observed(spans["test"])
     print(f"\nslip_gru (window {learned.window}), one row at a time on one thread:")
     print("| its network in | median (us) | 99th percentile (us) |\n|---|---|---|")
-    for engine in slip.ENGINES:
-        stream, took = learned.stream(engine), []
+    for engine in lateral.ENGINES:
+        stream, took = lateral.stream(learned, engine), []
         for row in zip(vx, delta, y[:, 0], y[:, 1]):
             start = time.perf_counter()
             stream.step(*row)

@@ -82,9 +82,10 @@ def test_a_stream_of_rows_gives_what_the_whole_log_gives(shipped, observer):
 
 
 def test_the_onnx_network_and_stream_give_pytorchs_numbers(shipped, observer):
+    from lbo.serve import lateral as serve
     from lbo.serve.engines import onnx_session
 
-    session = onnx_session(observer.onnx(), threads=1)
+    session = onnx_session(serve.onnx_bytes(observer), threads=1)
     for batch in (1, 7):
         w = np.random.default_rng(batch).normal(size=(batch, 12, 6)).astype(np.float32)
         with torch.no_grad():
@@ -92,12 +93,12 @@ def test_the_onnx_network_and_stream_give_pytorchs_numbers(shipped, observer):
         assert np.allclose(session.run(None, {"window": w})[0], expected, rtol=0, atol=1e-7)
     vx, delta, y = sideslip.observed(shipped[0]["test"].iloc[:30])
     rows = list(zip(vx, delta, y[:, 0], y[:, 1]))
-    torch_stream, onnx_stream = observer.stream(), observer.stream("onnx")
+    torch_stream, onnx_stream = serve.stream(observer), serve.stream(observer, "onnx")
     a = np.array([torch_stream.step(*r) for r in rows])
     b = np.array([onnx_stream.step(*r) for r in rows])
     assert np.allclose(a, b, rtol=0, atol=1e-7)
     with pytest.raises(LboError, match=r"engine: expected one of \['torch', 'onnx'\]"):
-        observer.stream("tensorrt")
+        serve.stream(observer, "tensorrt")
 
 
 def test_load_refuses_what_is_not_its_checkpoint(tmp_path):

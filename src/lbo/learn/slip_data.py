@@ -16,6 +16,7 @@ from __future__ import annotations
 import functools
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import pandas as pd
@@ -65,10 +66,9 @@ def settings(data: DictConfig) -> lateral.Settings:
     """``data=sideslip_sim``'s simulation settings, checked (one line naming the field)."""
     d = OmegaConf.to_container(data, resolve=True)
     assert isinstance(d, dict)
-    keys = ("duration", "spread", "sigma_ay", "sigma_r")
-    pairs = ("mu", "speed", "demand")
-    return lateral.Settings(n=int(d["train"]) + int(d["val"]), **{k: d[k] for k in keys},
-                            **{k: tuple(d[k]) for k in pairs})
+    given: dict[str, Any] = {k: d[k] for k in ("duration", "spread", "sigma_ay", "sigma_r")}
+    given |= {k: tuple(d[k]) for k in ("mu", "speed", "demand")}
+    return lateral.Settings(n=int(d["train"]) + int(d["val"]), **given)
 
 
 @functools.lru_cache(maxsize=2)

@@ -38,6 +38,7 @@ from lbo.core.errors import LboError
 from lbo.core.redact import scrub
 from lbo.filters.lateral import LateralEstimate
 from lbo.learn.slip_data import DATA, REAL, SIMULATED
+from lbo.learn.trainer_checks import check_device, check_optimizer, check_trainer
 from lbo.models.slip import NAME, PARAMETERS, Prior, SlipNet, SlipObserver, load
 
 if TYPE_CHECKING:  # Lightning takes seconds to import: only a training run needs it
@@ -93,17 +94,13 @@ def check(cfg: DictConfig) -> None:
     number(cfg.model.prior_gain, "model.prior_gain", low=0.0, low_open=True)
     integer(cfg.batch_size, "batch_size", 1)
     integer(cfg.seed, "seed", 0)
-    from lbo.train import check_optimizer, check_trainer
-
     check_trainer(cfg.trainer)
     check_optimizer(cfg.optimizer)
+    check_device(cfg.trainer)
     if cfg.get("logger") and cfg.logger.get("tracking_uri"):
         from lbo.tracking.runs import check_store
 
         check_store(cfg.logger.tracking_uri)
-    if cfg.trainer.accelerator == "gpu" and not torch.cuda.is_available():
-        raise LboError("trainer=gpu needs CUDA, which torch does not see here; "
-                       "use trainer=cpu or trainer=auto")
 
 
 def score(observer: SlipObserver, spans: dict[str, pd.DataFrame],
@@ -135,17 +132,17 @@ def spans_markdown(table: pd.DataFrame) -> str:
 
 
 def _metrics(table: pd.DataFrame) -> dict[str, float]:
-    out = {}
-    for r in table.itertuples():
-        key = "beta_rmse_deg" if r.estimator == NAME else "linear_beta_rmse_deg"
-        out[f"{r.span}_{key}"] = r.rmse_deg
+    out: dict[str, float] = {}
+    for span, estimator, rmse in table[["span", "estimator", "rmse_deg"]].itertuples(
+            index=False):
+        key = "beta_rmse_deg" if estimator == NAME else "linear_beta_rmse_deg"
+        out[f"{span}_{key}"] = float(rmse)
     if "test_beta_rmse_deg" in out:
         out["test_vs_linear"] = out["test_beta_rmse_deg"] / out["test_linear_beta_rmse_deg"]
     return out
 
 
-def _module(hidden: int, layers: int, window: int, prior: Prior, optimizer: Any
-            ) -> L.LightningModule:
+def _module(net: SlipNet, window: int, prior: Prior, optimizer: Any) -> L.LightningModule:
     """The Lightning module: the :class:`SlipNet`, its loss in deg^2 and ``val_loss``, beta's
     RMSE (deg) over the validation span."""
     import lightning as L
@@ -156,9 +153,10 @@ def _module(hidden: int, layers: int, window: int, prior: Prior, optimizer: Any
         def __init__(self) -> None:
             super().__init__()
             # plain numbers only: load() reads them with weights_only
-            self.save_hyperparameters({"name": NAME, "hidden": hidden, "layers": layers,
-                                       "window": window, "prior": prior.as_dict()})
-            self.net = SlipNet(hidden, layers)
+            self.save_hyperparameters({"name": NAME, "hidden": net.gru.hidden_size,
+                                       "layers": net.gru.num_layers, "window": window,
+                                       "prior": prior.as_dict()})
+            self.net = net
             self._sums = torch.zeros(2)
 
         def training_step(self, batch: list[torch.Tensor], batch_idx: int) -> torch.Tensor:
@@ -220,18 +218,18 @@ def train(cfg: DictConfig, params: dict[str, Any], tags: dict[str, str],
     made = slip_data.sets(cfg.data, int(cfg.model.window), float(cfg.model.prior_gain),
                           start.prior if start else None)
     (w, target), (val_w, val_target), prior = made.train, made.val, made.prior
-    module = _module(int(cfg.model.hidden), int(cfg.model.layers), int(cfg.model.window), prior,
-                     instantiate(cfg.optimizer))
+    net = SlipNet(int(cfg.model.hidden), int(cfg.model.layers))
+    module = _module(net, int(cfg.model.window), prior, instantiate(cfg.optimizer))
     if start is not None:  # its weights and its normalisation: the windows are its prior's
         if (start.window, start.net.gru.hidden_size, start.net.gru.num_layers) != (
                 cfg.model.window, cfg.model.hidden, cfg.model.layers):
             raise LboError(f"init_from: {cfg.init_from} has window {start.window}, hidden "
                            f"{start.net.gru.hidden_size}, layers {start.net.gru.num_layers}; "
                            "expected the same model.window, model.hidden and model.layers")
-        module.net.load_state_dict(start.net.state_dict())
+        net.load_state_dict(start.net.state_dict())
         print(f"init_from: starting from the weights of {cfg.init_from}")
     else:
-        module.net.set_normalisation(w[:, -1])  # each row once: the last of each window
+        net.set_normalisation(w[:, -1])  # each row once: the last of each window
     loaders = [torch.utils.data.DataLoader(torch.utils.data.TensorDataset(
         torch.from_numpy(a), torch.from_numpy(b)), batch_size=int(cfg.batch_size), shuffle=s)
         for a, b, s in ((w, target, True), (val_w, val_target, False))]
@@ -260,7 +258,7 @@ def train(cfg: DictConfig, params: dict[str, Any], tags: dict[str, str],
             trainer.fit(module, *loaders)
             ckpt = next((c.best_model_path for c in cbs if isinstance(c, ModelCheckpoint)
                          and c.best_model_path), "")
-            observer = load(ckpt) if ckpt else SlipObserver(module.net.cpu(),
+            observer = load(ckpt) if ckpt else SlipObserver(net.cpu(),
                                                             int(cfg.model.window), prior)
             # the real run scored: every span after a training, none of the test in a trial
             spans = slip_data.real_spans()

@@ -86,6 +86,9 @@ class SlipNet(nn.Module):
     beta (rad). The rows are standardised by the training windows' ``mean`` and ``std`` (6,),
     held as buffers so that a checkpoint carries them."""
 
+    mean: torch.Tensor
+    std: torch.Tensor
+
     def __init__(self, hidden: int = 32, layers: int = 1) -> None:
         super().__init__()
         self.gru = nn.GRU(len(FEATURES), hidden, num_layers=layers, batch_first=True)
@@ -128,42 +131,15 @@ class SlipObserver:
         x[:, 0] += fix
         return LateralEstimate(x, np.full_like(prior.P, np.nan))
 
-    def stream(self, engine: str = "torch") -> SlipStream:
-        """A stream of rows from the start of a log (:class:`SlipStream`), its network run by
-        ``engine``: ``torch``, or ``onnx`` (ONNX Runtime, one thread: a car's computer)."""
-        if engine not in ENGINES:
-            raise LboError(f"engine: expected one of {list(ENGINES)}, got {engine!r}")
-        if engine == "torch":
+    def stream(self, correct: Callable[[np.ndarray], float] | None = None) -> SlipStream:
+        """A stream of rows from the start of a log (:class:`SlipStream`), its network run in
+        PyTorch, or by ``correct`` (rows (N, 6) -> the correction, rad; ONNX Runtime's:
+        :func:`lbo.serve.lateral.stream`)."""
+        if correct is None:
             def correct(rows: np.ndarray) -> float:
                 with torch.no_grad():
                     return float(self.net(torch.from_numpy(rows[None]))[0])
-        else:
-            from lbo.serve.engines import onnx_session
-
-            session = onnx_session(self.onnx(), threads=1)
-
-            def correct(rows: np.ndarray) -> float:
-                return float(session.run(None, {"window": rows[None]})[0][0])
         return SlipStream(self, correct)
-
-    def onnx(self) -> bytes:
-        """The network as an ONNX model: input ``window`` (batch, N, 6) of raw
-        :data:`FEATURES`, output ``fix`` (batch,) the correction (rad), float32. By the
-        TorchScript-based exporter, which writes the GRU as ONNX's own GRU node."""
-        import warnings
-
-        from lbo.serve.engines import legacy_onnx
-
-        example = torch.zeros(1, self.window, len(FEATURES))
-        with warnings.catch_warnings():
-            # that a GRU with a dynamic batch "can cause an error" at another batch: its state
-            # starts at zero, and batches of 1 to 300 give PyTorch's numbers (tests/test_slip.py)
-            warnings.filterwarnings("ignore", message="Exporting a model to ONNX with a batch")
-            return legacy_onnx(self.net, (example,), (["window"], ["fix"]))
-
-
-ENGINES = ("torch", "onnx")
-"""What runs a stream's network (:meth:`SlipObserver.stream`)."""
 
 
 class SlipStream:

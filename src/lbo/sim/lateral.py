@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import pandas as pd
@@ -74,8 +75,8 @@ def _cars(rng: np.random.Generator, s: Settings) -> list[SingleTrack]:
         factors = rng.uniform(1 - s.spread, 1 + s.spread, (s.n, len(SCALED)))
         mus = rng.uniform(*s.mu, s.n)
         for row, m in zip(factors, mus):
-            car = dataclasses.replace(CAR, mu=float(m), **{k: float(getattr(CAR, k) * f)
-                                                           for k, f in zip(SCALED, row)})
+            scaled: dict[str, Any] = {k: float(getattr(CAR, k) * f) for k, f in zip(SCALED, row)}
+            car = dataclasses.replace(CAR, mu=float(m), **scaled)
             if car.understeer_gradient >= 0.5 * CAR.understeer_gradient and len(cars) < s.n:
                 cars.append(car)
     return cars

@@ -1,0 +1,49 @@
+"""The side-slip observer served: its network as an ONNX model, and its stream run by ONNX
+Runtime, one thread (a car's computer), as ``lbo.observe`` runs the pose observers' graphs.
+
+    from lbo.models import slip
+    from lbo.serve import lateral
+    stream = lateral.stream(slip.load("outputs/slip/checkpoints/best.ckpt"), "onnx")
+    beta, r = stream.step(vx, delta, ay, r_m)
+"""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import torch
+
+from lbo.core.errors import LboError
+from lbo.models.slip import FEATURES, SlipObserver, SlipStream
+from lbo.serve.engines import legacy_onnx, onnx_session
+
+ENGINES = ("torch", "onnx")
+"""What runs a stream's network (:func:`stream`)."""
+
+
+def onnx_bytes(observer: SlipObserver) -> bytes:
+    """The observer's network as an ONNX model: input ``window`` (batch, N, 6) of raw
+    :data:`~lbo.models.slip.FEATURES`, output ``fix`` (batch,) the correction (rad), float32.
+    By the TorchScript-based exporter, which writes the GRU as ONNX's own GRU node."""
+    example = torch.zeros(1, observer.window, len(FEATURES))
+    with warnings.catch_warnings():
+        # that a GRU with a dynamic batch "can cause an error" at another batch: its state
+        # starts at zero, and batches of 1 to 300 give PyTorch's numbers (tests/test_slip.py)
+        warnings.filterwarnings("ignore", message="Exporting a model to ONNX with a batch")
+        return legacy_onnx(observer.net.eval(), (example,), (["window"], ["fix"]))
+
+
+def stream(observer: SlipObserver, engine: str = "torch") -> SlipStream:
+    """A stream of rows from the start of a log, its network run by ``engine``: ``torch``,
+    or ``onnx`` (ONNX Runtime, one thread)."""
+    if engine not in ENGINES:
+        raise LboError(f"engine: expected one of {list(ENGINES)}, got {engine!r}")
+    if engine == "torch":
+        return observer.stream()
+    session = onnx_session(onnx_bytes(observer), threads=1)
+
+    def correct(rows: np.ndarray) -> float:
+        return float(session.run(None, {"window": rows[None]})[0][0])
+
+    return observer.stream(correct)
