@@ -212,7 +212,8 @@ GYRO_NEEDS_LOGS = Refusal(r"data: model=gyro_ekf learns from a vehicle's logs",
 SLIP_DATA = ("sideslip", "sideslip_sim")
 """The side-slip observer's data sets, which only it reads."""
 SLIP_NEEDS_RUN = Refusal(r"data: model=slip_gru learns on the side-slip run",
-                         "the side-slip observer learns on the real run (data=sideslip) alone")
+                         "the side-slip observer learns on the real run (data=sideslip) or on "
+                         "simulated runs of its kind (data=sideslip_sim)")
 SIDESLIP_SLIP_ONLY = Refusal(r"data: data=sideslip(_sim)? is (the real side-slip run|simulated "
                              r"runs of the side-slip run's kind), which model=slip_gru alone",
                              "the real side-slip run is read by model=slip_gru alone: no pose "
