@@ -173,6 +173,11 @@ def test_train_learns_on_the_train_span_logs_a_run_and_a_rerun_reuses_it(tmp_pat
     assert files == {"checkpoints/best.ckpt"}
     observer = slip.load(tmp_path / "a" / "checkpoints" / "best.ckpt")
     assert (observer.window, observer.net.gru.hidden_size) == (12, 8)
+    from lbo.serve import lateral as serve
+
+    by_run = serve.load(run.info.run_id)  # the run's logged checkpoint: the same observer
+    assert all(torch.equal(a, b) for a, b in zip(by_run.net.state_dict().values(),
+                                                 observer.net.state_dict().values()))
     assert observer.prior.noise == slip_data.noise_of([slip_data.real_spans()["train"]], GAIN)
 
     # fine-tuned from it on the real run: its prior and normalisation kept, its weights moved

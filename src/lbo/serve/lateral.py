@@ -1,9 +1,9 @@
 """The side-slip observer served: its network as an ONNX model, and its stream run by ONNX
 Runtime, one thread (a car's computer), as ``lbo.observe`` runs the pose observers' graphs.
 
-    from lbo.models import slip
     from lbo.serve import lateral
-    stream = lateral.stream(slip.load("outputs/slip/checkpoints/best.ckpt"), "onnx")
+    observer = lateral.load("outputs/slip/checkpoints/best.ckpt")  # or its MLflow run id
+    stream = lateral.stream(observer, "onnx")
     beta, r = stream.step(vx, delta, ay, r_m)
 """
 
@@ -15,11 +15,22 @@ import numpy as np
 import torch
 
 from lbo.core.errors import LboError
+from lbo.models import slip
 from lbo.models.slip import FEATURES, SlipObserver, SlipStream
 from lbo.serve.engines import legacy_onnx, onnx_session
 
 ENGINES = ("torch", "onnx")
 """What runs a stream's network (:func:`stream`)."""
+
+
+def load(source: str) -> SlipObserver:
+    """The observer of ``source``: an ``lbo.train model=slip_gru`` checkpoint file, its MLflow
+    run id or a ``runs:/`` or ``models:/`` URI (in the store of ``MLFLOW_TRACKING_URI``), read
+    as :func:`lbo.models.slip.load` reads one."""
+    from lbo.tracking.artifacts import checkpoint_file
+
+    with checkpoint_file(source) as path:
+        return slip.load(path)
 
 
 def onnx_bytes(observer: SlipObserver) -> bytes:
