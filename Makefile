@@ -14,7 +14,7 @@ MLFLOW_PORT ?= 5000
 MLFLOW_BACKEND ?= sqlite:///$(CURDIR)/mlflow-server.db
 MLFLOW_ARTIFACTS ?= $(CURDIR)/mlflow-server-artifacts
 
-.PHONY: help install test test-fast slurm-check data reproduce ablation fleet real-drive receiver-study bench readme-tables lint clean mlflow-server ui
+.PHONY: help install test test-fast slurm-check data reproduce ablation fleet real-drive receiver-study side-slip bench readme-tables lint clean mlflow-server ui
 
 help:  ## list the targets
 	@grep -E '^[a-z-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  make %-10s %s\n", $$1, $$2}'
@@ -65,6 +65,10 @@ real-drive: install  ## the onavdata hill drive as lbo logs, the gyro EKF's nois
 
 receiver-study: install  ## simulated single-antenna logs at alpha 1, 3, 6: every observer beside an oracle gyro EKF -> reports/receiver_study/
 	$(PY) -m lbo.receiver_study
+
+side-slip: install  ## the side-slip observer trained on the MBDS run's train span (a rerun reuses it), every estimate of beta scored on each span, its stream timed -> reports/sideslip/
+	$(PY) -m lbo.train model=slip_gru data=sideslip resume=true hydra.run.dir=reports/sideslip/run
+	$(PY) benchmarks/sideslip.py --slip reports/sideslip/run/checkpoints/best.ckpt reports/sideslip/sideslip.png
 
 bench: install  ## benchmarks: data generation, filters, training throughput, latency (medians)
 	$(PY) benchmarks/bench_datagen.py

@@ -191,9 +191,11 @@ def test_train_learns_on_the_train_span_logs_a_run_and_a_rerun_reuses_it(tmp_pat
     assert torch.equal(fine.net.mean, observer.net.mean)
     assert not torch.equal(fine.net.head.weight, observer.net.head.weight)
 
-    again = cli("lbo.train", *args, f"hydra.run.dir={tmp_path / 'b'}")
+    again = cli("lbo.train", *args, f"hydra.run.dir={tmp_path / 'a'}")  # its own folder
     assert again.returncode == 0, again.stderr[-3000:]
     assert f"reusing finished run {run.info.run_id}" in again.stdout
+    other = cli("lbo.train", *args, "model.hidden=4", f"hydra.run.dir={tmp_path / 'a'}")
+    one_line_error(other, f"already holds the files of the finished run {run.info.run_id}")
 
 
 @pytest.mark.slow

@@ -201,7 +201,13 @@ def train(cfg: DictConfig, params: dict[str, Any], tags: dict[str, str],
     from lbo.learn.builders import targets
     from lbo.learn.callbacks import Evaluation
     from lbo.learn.checkpoint_io import AtomicCheckpointIO
-    from lbo.learn.resume import config_hash, prior_runs
+    from lbo.learn.resume import (
+        clear_stale_checkpoints,
+        config_hash,
+        folder_refusal,
+        prior_runs,
+        write_marker,
+    )
 
     check(cfg)
     digest = config_hash(cfg)
@@ -242,7 +248,12 @@ def train(cfg: DictConfig, params: dict[str, Any], tags: dict[str, str],
     trainer = instantiate(cfg.trainer, logger=logger if logger is not None else False,
                           callbacks=cbs, plugins=[AtomicCheckpointIO()],
                           enable_model_summary=bool(cfg.get("verbose")))
+    refusal = folder_refusal(out, digest, bool(cfg.get("resume")))
+    if refusal is not None:  # never into another run's files (a finished one was reused above)
+        raise LboError(refusal)
     with claim(out):
+        clear_stale_checkpoints(out / "checkpoints")  # a killed run's, replaced by this one
+        write_marker(out, logger.run_id if logger is not None else None, digest)
         try:
             if logger is not None:
                 logger.log_hyperparams(params)
@@ -278,6 +289,8 @@ def train(cfg: DictConfig, params: dict[str, Any], tags: dict[str, str],
             raise
         if logger is not None:
             logger.finalize("success")
+        # the folder is a finished run's: a rerun with resume=true reuses it, no other trains there
+        write_marker(out, logger.run_id if logger is not None else None, digest, finished=True)
     if scored:
         print(f"beta RMSE (deg) on each span:\n{spans_markdown(table)}", end="")
     best = next((c.best_model_score for c in cbs if isinstance(c, ModelCheckpoint)
