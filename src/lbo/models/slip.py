@@ -169,8 +169,9 @@ class SlipStream:
         row = features(np.array([vx]), np.array([delta]), y[None], prior.x[-1:])
         if self.last is None:
             self.rows[:] = row
-        else:
-            self.rows = np.concatenate([self.rows[1:], row])
+        else:  # shifted in place: no new array a row
+            self.rows[:-1] = self.rows[1:]
+            self.rows[-1] = row[0]
         self.last = (float(vx), float(delta))
         return np.array([prior.x[-1, 0] + self.correct(self.rows), prior.x[-1, 1]])
 

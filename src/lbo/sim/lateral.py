@@ -137,8 +137,10 @@ def simulate(settings: Settings, seed: int) -> list[pd.DataFrame]:
             k4 = rates(x + h * k3, k)
             x = x + h / 6.0 * (k1 + 2 * k2 + 2 * k3 + k4)
         states[:, k + 1] = x
-    rates_now = np.stack([rates(states[:, k], k) for k in range(len(t))], axis=1)
-    true_ay = rates_now[..., 0] + vx * states[..., 1]  # v_y' + vx r at the centre of gravity
+    # every row's rates at once: time first, so the cars' (n,) parameters broadcast
+    dv_y_now = dynamic.lateral_rates(states[..., 0].T, states[..., 1].T, vx.T, delta.T,
+                                     batch)[0].T
+    true_ay = dv_y_now + vx * states[..., 1]  # v_y' + vx r at the centre of gravity
     noise = rng.standard_normal((2, s.n, len(t)))
     frames = []
     for i, car in enumerate(cars):
