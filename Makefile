@@ -66,9 +66,10 @@ real-drive: install  ## the onavdata hill drive as lbo logs, the gyro EKF's nois
 receiver-study: install  ## simulated single-antenna logs at alpha 1, 3, 6: every observer beside an oracle gyro EKF -> reports/receiver_study/
 	$(PY) -m lbo.receiver_study
 
-side-slip: install  ## the side-slip observer trained on the MBDS run's train span (a rerun reuses it), every estimate of beta scored on each span, its stream timed -> reports/sideslip/
+side-slip: install  ## the side-slip observers trained on the MBDS run's train span (a rerun reuses them), every estimate of beta scored on each span, their streams timed -> reports/sideslip/
 	$(PY) -m lbo.train model=slip_gru data=sideslip resume=true hydra.run.dir=reports/sideslip/run
-	$(PY) benchmarks/sideslip.py --slip reports/sideslip/run/checkpoints/best.ckpt reports/sideslip/sideslip.png
+	$(PY) -m lbo.train model=slip_filter data=sideslip batch_size=32 optimizer.lr=0.005 trainer.max_epochs=40 resume=true hydra.run.dir=reports/sideslip/filter
+	$(PY) benchmarks/sideslip.py --slip reports/sideslip/run/checkpoints/best.ckpt --filter reports/sideslip/filter/checkpoints/best.ckpt reports/sideslip/sideslip.png
 
 bench: install  ## benchmarks: data generation, filters, training throughput, latency (medians)
 	$(PY) benchmarks/bench_datagen.py

@@ -9,10 +9,13 @@ shows how its error moves with the friction. Nothing looks at the test span but 
 With ``--slip``, the learned observer of an ``lbo.train model=slip_gru data=sideslip``
 checkpoint joins the table and the plot, and its stream is timed a row at a time on one thread
 (its network in PyTorch and in ONNX Runtime; the first 100 rows left out, the median and the
-99th percentile of the test span's rows). Writes the markdown tables to stdout and the plot of
-beta over the test span to ``docs/``.
+99th percentile of the test span's rows). With ``--filter``, the learned filter of an
+``lbo.train model=slip_filter data=sideslip`` checkpoint joins them the same way (its stream in
+PyTorch), with the share of the test span's rows whose beta lies inside its 2-sigma band.
+Writes the markdown tables to stdout and the plot of beta over the test span to ``docs/``.
 
-    python benchmarks/sideslip.py [--slip outputs/<run>/checkpoints/best.ckpt] [docs/sideslip.png]
+    python benchmarks/sideslip.py [--slip <slip_gru run>/checkpoints/best.ckpt]
+        [--filter <slip_filter run>/checkpoints/best.ckpt] [docs/sideslip.png]
 """
 
 import argparse
@@ -29,16 +32,19 @@ from lbo.filters.lateral import (
     linear_single_track,
     nonlinear_single_track,
 )
-from lbo.models import slip
+from lbo.models import slip, slip_filter
 from lbo.serve import lateral
 from lbo.sim import sideslip
 
 parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
 parser.add_argument("plot", nargs="?", default="docs/sideslip.png")
 parser.add_argument("--slip", help="a model=slip_gru checkpoint to score and time")
+parser.add_argument("--filter", help="a model=slip_filter checkpoint to score and time")
 args = parser.parse_args()
 out = args.plot
 learned = slip.load(args.slip) if args.slip else None
+lfilter = slip_filter.load(args.filter) if args.filter else None
+FILTER = "learned: linear KF, tyres and noise learned (slip_filter)"
 spans = sideslip.split(sideslip.example())
 noise = LateralNoise.of(*sideslip.observed(spans["train"]))
 mu = sideslip.friction(spans["train"])
@@ -66,6 +72,12 @@ for name, span in spans.items():
                  f"single-track EKF, tyres saturating at mu = {mu:.2f}": ekf.beta}
     if learned is not None:
         estimates["learned: linear KF + GRU correction (slip_gru)"] = learned.run(vx, delta, y).beta
+    if lfilter is not None:
+        filtered = lfilter.run(vx, delta, y)
+        estimates[FILTER] = filtered.beta
+        inside = np.abs(filtered.beta - beta) <= 2 * np.sqrt(filtered.P[:, 0, 0])
+        print(f"{name}: slip_filter's beta inside its 2-sigma band on {inside.mean():.1%} of "
+              "the rows")
     for observer, est in estimates.items():
         rows.append((name, observer, deg_rms(est - beta), np.rad2deg(np.abs(est - beta).max())))
     print(f"{name}: {len(span)} rows, {span['t'].iloc[0]:.2f}-{span['t'].iloc[-1]:.2f} s; "
@@ -80,13 +92,16 @@ print("|---|---|---|---|")
 for name, observer, rmse, worst in rows:
     print(f"| {name} | {observer} | {rmse:.2f} | {worst:.2f} |")
 
-if learned is not None:
+streams = ([(f"slip_gru (window {learned.window})", learned, lateral.ENGINES)]
+           if learned is not None else [])
+streams += [("slip_filter", lfilter, ("torch",))] if lfilter is not None else []
+for label, observer, engines in streams:
     torch.set_num_threads(1)
     vx, delta, y = sideslip.observed(spans["test"])
-    print(f"\nslip_gru (window {learned.window}), one row at a time on one thread:")
+    print(f"\n{label}, one row at a time on one thread:")
     print("| its network in | median (us) | 99th percentile (us) |\n|---|---|---|")
-    for engine in lateral.ENGINES:
-        stream, took = lateral.stream(learned, engine), []
+    for engine in engines:
+        stream, took = lateral.stream(observer, engine), []
         for row in zip(vx, delta, y[:, 0], y[:, 1]):
             start = time.perf_counter()
             stream.step(*row)

@@ -88,9 +88,11 @@ PRIMARIES = sorted(p.stem for p in CONF_DIR.glob("*.yaml"))
 TRAIN_GROUPS = [g for g in groups("train") if g != "experiment"]
 EXPERIMENTS = [None, *options("experiment")]
 SEARCHES = [None, *options("hparams_search")]
-POSE_SEARCHES = [s for s in SEARCHES[1:] if s != "slip_gru"]
-"""The studies of the pose observers, which make reproduce runs (slip_gru's is the real side-slip
-run's, with a data set of its own)."""
+SLIP_MODELS = ("slip_gru", "slip_filter")
+"""The side-slip observers, which learn on the side-slip run and its kind alone."""
+POSE_SEARCHES = [s for s in SEARCHES[1:] if s not in SLIP_MODELS]
+"""The studies of the pose observers, which make reproduce runs (the side-slip observers' are
+the real side-slip run's, with a data set of its own)."""
 COMMANDS = ["datagen", "evaluate", "simulate", "observe", "export"]
 """The primary configs composed with each option of their own groups here (train, tune and
 reproduce have tests of their own below)."""
@@ -211,18 +213,19 @@ GYRO_NEEDS_LOGS = Refusal(r"data: model=gyro_ekf learns from a vehicle's logs",
 
 SLIP_DATA = ("sideslip", "sideslip_sim")
 """The side-slip observer's data sets, which only it reads."""
-SLIP_NEEDS_RUN = Refusal(r"data: model=slip_gru learns on the side-slip run",
+SLIP_NEEDS_RUN = Refusal(r"data: model=slip_(gru|filter) learns on the side-slip run",
                          "the side-slip observer learns on the real run (data=sideslip) or on "
                          "simulated runs of its kind (data=sideslip_sim)")
 SIDESLIP_SLIP_ONLY = Refusal(r"data: data=sideslip(_sim)? is (the real side-slip run|simulated "
-                             r"runs of the side-slip run's kind), which model=slip_gru alone",
-                             "the real side-slip run is read by model=slip_gru alone: no pose "
+                             r"runs of the side-slip run's kind), which the side-slip "
+                             r"observers alone", "the real side-slip run is read by the "
+                             "side-slip observers alone: no pose "
                              "observer, data set or test grid is made of it")
-SLIP_RECEIVER = Refusal(r"receiver: expected None with model=slip_gru",
+SLIP_RECEIVER = Refusal(r"receiver: expected None with model=slip_(gru|filter)",
                         "the side-slip observer reads a car's lateral sensors, not a receiver")
-SLIP_FIX_RATES = Refusal(r"fix_rates: expected None with model=slip_gru",
+SLIP_FIX_RATES = Refusal(r"fix_rates: expected None with model=slip_(gru|filter)",
                          "the side-slip observer reads no position fixes")
-SLIP_SCHEDULE = Refusal(r"lr_schedule: expected constant with model=slip_gru",
+SLIP_SCHEDULE = Refusal(r"lr_schedule: expected constant with model=slip_(gru|filter)",
                         "the side-slip observer trains at a constant rate; these experiments "
                         "set the pose observers' cosine schedule")
 
@@ -248,7 +251,7 @@ def train_refusal(experiment: str | None, choice: dict[str, str | None],
     if choice["model"] == "gyro_ekf":  # lbo.learn.noise_run.check: no net, a vehicle's logs
         return (GYRO_NEEDS_LOGS if choice["data"] not in ("logs", "hill")
                 else NEEDS_LOGS if choice["data"] == "logs" else None)
-    if choice["model"] == "slip_gru":  # lbo.learn.slip_run.check: the real run, its own net
+    if choice["model"] in SLIP_MODELS:  # lbo.learn.slip_run.check: the real run, its own net
         if choice["data"] not in SLIP_DATA:
             return SLIP_NEEDS_RUN
         if experiment in FILTERNET_EXPERIMENTS:  # their model keys come first
@@ -307,7 +310,7 @@ def train_checks(cfg) -> None:
         noise_run.check(cfg)
         OmegaConf.to_container(cfg, resolve=True)
         return
-    if cfg.model.name == slip_run.NAME:  # its own branch too: the real run, the lateral net
+    if cfg.model.name in SLIP_MODELS:  # its own branch too: the real run, the lateral net
         slip_run.check(cfg)
         config_hash(cfg)
         OmegaConf.to_container(cfg, resolve=True)

@@ -125,8 +125,8 @@ def test_each_commands_help_lists_its_own_groups_and_explains_its_settings():
     assert "plot: null              # true: <output>.png beside the output" in out
     train = subprocess.run([sys.executable, "-m", "lbo.train", "-h"], capture_output=True,
                            text=True).stdout
-    assert ("model: cnn, filternet, gyro_ekf, kalmannet, lstm, slip_gru, split_kalmannet "
-            "(default: cnn)") in train
+    assert ("model: cnn, filternet, gyro_ekf, kalmannet, lstm, slip_filter, slip_gru, "
+            "split_kalmannet (default: cnn)") in train
     assert "receiver: single_antenna (default: none)" in train
     assert "  normalisation: standard  # standard: each channel's mean and std" in train
     assert "car: dynamic, kinematic (default: kinematic)" in train

@@ -111,7 +111,7 @@ def check_reproduce(cfg: DictConfig) -> None:
     # the pose observers' searches: the side-slip observer's study is of the real run, not a
     # paper table
     searches = sorted(p.stem for p in (CONF_DIR / "hparams_search").glob("*.yaml")
-                      if p.stem != SLIP)
+                      if p.stem not in SLIP)
     for model in cfg.models:
         require(model in searches, "models", f"a list of models with a search space "
                 f"({', '.join(searches)})", list(cfg.models))

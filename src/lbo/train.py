@@ -51,7 +51,7 @@ from lbo.learn.trainer_checks import check_device, check_optimizer, check_traine
 from lbo.models.carried import covariance_of, sequence_model
 from lbo.models.features import FEATURE_MODES
 from lbo.models.net import check_scaling
-from lbo.models.slip import NAME as SLIP
+from lbo.models.slip_filter import SIDE_SLIP as SLIP
 from lbo.sim.datasets import refuse_sideslip
 from lbo.sim.log_sets import is_logs
 from lbo.sim.truth import config_dict as truth_dict
@@ -116,8 +116,9 @@ def check(cfg: DictConfig) -> Built:
         raise LboError("model=gyro_ekf: the gyro EKF's noise is learned by python -m lbo.train "
                        "model=gyro_ekf alone; lbo.tune, lbo.ablation and lbo.reproduce "
                        "train nets (cnn, lstm, filternet, kalmannet, split_kalmannet)")
-    if cfg.model.name == SLIP:  # lbo.tune checks it by slip_run.check
-        raise LboError(f"model={SLIP}: the side-slip observer is trained by python -m lbo.train "
+    if cfg.model.name in SLIP:  # lbo.tune checks it by slip_run.check
+        raise LboError(f"model={cfg.model.name}: the side-slip observers are trained by "
+                       f"python -m lbo.train "
                        f"and tuned by python -m lbo.tune on data=sideslip; lbo.ablation and "
                        "lbo.reproduce train the pose observers (cnn, lstm, filternet, "
                        "kalmannet, split_kalmannet)")
@@ -201,7 +202,7 @@ def train(cfg: DictConfig, callbacks: list[L.Callback] | None = None,
         return noise_run.train(cfg, _flat(cfg), {"git_commit": git_commit(),
                                                  "model": noise_run.NAME,
                                                  "data": str(cfg.data.name), **(tags or {})})
-    if cfg.model.name == SLIP:  # a lateral observer on a real run, not a pose window's net
+    if cfg.model.name in SLIP:  # a lateral observer on a real run, not a pose window's net
         from lbo.learn import slip_run
 
         return slip_run.train(cfg, _flat(cfg), {"git_commit": git_commit(), **(tags or {})},

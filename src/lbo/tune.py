@@ -92,7 +92,7 @@ def check_tune(cfg: DictConfig) -> list[Param]:
             "a path ending in .yaml", t.handoff)
     for key in ("heartbeat_interval", "grace_period", "n_startup_trials"):
         integer(t[key], f"tune.{key}", 1)
-    if cfg.model.name == SLIP:  # the side-slip observer: its own data and net
+    if cfg.model.name in SLIP:  # the side-slip observers: their own data and nets
         from lbo.learn.slip_run import check as check_slip
 
         check_slip(cfg)

@@ -34,8 +34,9 @@ DATA = (REAL, SIMULATED)
 
 @dataclass(frozen=True)
 class Sets:
-    """Training and validation windows (W, N, 6) float32 and their targets (W,) (rad), and
-    the prior whose estimates they hold."""
+    """Training and validation inputs and their targets (rad), and the prior: windows
+    (W, N, 6) float32 and targets (W,) for the side-slip network (:func:`sets`), or sequences
+    (S, T, 5) and targets (S, T) for the learned filter (:func:`sequences`)."""
 
     train: tuple[np.ndarray, np.ndarray]
     val: tuple[np.ndarray, np.ndarray]
@@ -76,23 +77,55 @@ def _simulated(s: lateral.Settings, seed: int) -> tuple[pd.DataFrame, ...]:
     return tuple(lateral.simulate(s, seed))
 
 
-def sets(data: DictConfig, window: int, gain: float, start: Prior | None = None) -> Sets:
-    """The windows ``data`` names (``data.name`` one of :data:`DATA`) for windows of
-    ``window`` rows, the prior's noise ``gain``; ``start``: the prior of a checkpoint
-    fine-tuned from, kept."""
+def logs(data: DictConfig) -> tuple[list[pd.DataFrame], list[pd.DataFrame]]:
+    """The training and validation logs ``data`` names (``data.name`` one of :data:`DATA`):
+    the real run's train and validation spans, or ``data.train`` and ``data.val`` simulated
+    runs."""
     if data.name == REAL:
         spans = real_spans()
-        prior = start or Prior(sideslip.CAR, noise_of([spans["train"]], gain), sideslip.DT)
-        est = real_estimates(prior)
-        return Sets(_windows([spans["train"]], est["train"], window, 1),
-                    _windows([spans["val"]], est["val"], window, 1), prior)
-    s = settings(data)
-    runs = _simulated(s, int(data.seed))
-    train, val = list(runs[:int(data.train)]), list(runs[int(data.train):])
+        return [spans["train"]], [spans["val"]]
+    runs = _simulated(settings(data), int(data.seed))
+    return list(runs[:int(data.train)]), list(runs[int(data.train):])
+
+
+def sets(data: DictConfig, window: int, gain: float, start: Prior | None = None) -> Sets:
+    """The windows ``data`` names for windows of ``window`` rows (every ``data.stride``-th
+    row's of simulated runs), the prior's noise ``gain``; ``start``: the prior of a checkpoint
+    fine-tuned from, kept."""
+    train, val = logs(data)
     prior = start or Prior(sideslip.CAR, noise_of(train, gain), sideslip.DT)
+    if data.name == REAL:
+        est = real_estimates(prior)
+        return Sets(_windows(train, est["train"], window, 1),
+                    _windows(val, est["val"], window, 1), prior)
     stride = int(data.stride)
     return Sets(_windows(train, _estimate(prior, train), window, stride),
                 _windows(val, _estimate(prior, val), window, stride), prior)
+
+
+def sequences(data: DictConfig, length: int, gain: float, start: Prior | None = None) -> Sets:
+    """The learned filter's sequences: the training and the validation logs each cut into
+    pieces of ``length`` rows (S, length, 5) ``[vx, delta, ay_m, r_m, beta]``, each starting
+    half a piece after the one before (a filter started afresh on each); the targets are
+    their beta columns (S, length). The prior as in :func:`sets`."""
+    train, val = logs(data)
+    prior = start or Prior(sideslip.CAR, noise_of(train, gain), sideslip.DT)
+    step = max(1, length // 2)
+
+    def pieces(logs: list[pd.DataFrame]) -> tuple[np.ndarray, np.ndarray]:
+        rows = np.ascontiguousarray(np.concatenate([
+            np.lib.stride_tricks.sliding_window_view(_columns(log), length, axis=0)
+            .transpose(0, 2, 1)[::step] for log in logs]))
+        return rows, rows[..., 4]
+
+    return Sets(pieces(train), pieces(val), prior)
+
+
+def _columns(log: pd.DataFrame) -> np.ndarray:
+    """(T, 5) ``[vx, delta, ay_m, r_m, beta]`` of a log, float64: what the filter reads, and
+    the reference it is scored by last."""
+    vx, delta, y = sideslip.observed(log)
+    return np.column_stack([vx, delta, y, log["beta"].to_numpy(float)])
 
 
 def _estimate(prior: Prior, logs: list[pd.DataFrame]) -> LateralEstimate:

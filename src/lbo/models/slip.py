@@ -176,9 +176,12 @@ class SlipStream:
         return np.array([prior.x[-1, 0] + self.correct(self.rows), prior.x[-1, 1]])
 
 
-def load(path: str | os.PathLike) -> SlipObserver:
-    """The observer of an ``lbo.train model=slip_gru`` checkpoint (``torch.load`` with
-    ``weights_only``: tensors and plain containers, nothing a file names is run)."""
+def read_checkpoint(path: str | os.PathLike, *names: str
+                    ) -> tuple[dict[str, Any], dict[str, torch.Tensor]]:
+    """The hyperparameters and the network's weights (its ``net.`` keys, the prefix off) of an
+    ``lbo.train model=<name>`` checkpoint, one of ``names``, read by ``torch.load`` with
+    ``weights_only`` (tensors and plain containers: nothing a file names is run); LboError in
+    one line for a missing, damaged or foreign file."""
     path = Path(path)
     try:
         ckpt = torch.load(path, map_location="cpu", weights_only=True)
@@ -188,10 +191,20 @@ def load(path: str | os.PathLike) -> SlipObserver:
         raise LboError(f"checkpoint {path}: not a checkpoint lbo can read ({type(e).__name__})"
                        ) from None
     hp = ckpt.get("hyper_parameters") if isinstance(ckpt, dict) else None
-    if not isinstance(hp, dict) or hp.get("name") != NAME:
-        raise LboError(f"checkpoint {path}: not a {NAME} checkpoint (lbo.train model={NAME})")
+    if not isinstance(hp, dict) or hp.get("name") not in names:
+        raise LboError(f"checkpoint {path}: not a {' or '.join(names)} checkpoint "
+                       f"(lbo.train model={names[0]})")
+    return hp, {k.removeprefix("net."): v for k, v in ckpt["state_dict"].items()
+                if k.startswith("net.")}
+
+
+def load(path: str | os.PathLike) -> SlipObserver:
+    """The observer of an ``lbo.train model=slip_gru`` checkpoint (:func:`read_checkpoint`)."""
+    return observer(*read_checkpoint(path, NAME))
+
+
+def observer(hp: Mapping[str, Any], state: Mapping[str, torch.Tensor]) -> SlipObserver:
+    """The observer a checkpoint's hyperparameters and weights describe."""
     net = SlipNet(int(hp["hidden"]), int(hp["layers"]))
-    state = {k.removeprefix("net."): v for k, v in ckpt["state_dict"].items()
-             if k.startswith("net.")}
     net.load_state_dict(state)
     return SlipObserver(net, int(hp["window"]), Prior.from_dict(hp["prior"]))

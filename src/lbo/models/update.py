@@ -30,6 +30,14 @@ def inverse_sym3(s: torch.Tensor) -> torch.Tensor:
     return torch.stack(rows, -2) / det[:, None, None]
 
 
+def inverse_sym2(s: torch.Tensor) -> torch.Tensor:
+    """Inverse of symmetric positive-definite (B, 2, 2) matrices, written out as
+    :func:`inverse_sym3` is."""
+    a, b, d = s[:, 0, 0], s[:, 0, 1], s[:, 1, 1]
+    rows = [torch.stack([d, -b], -1), torch.stack([-b, a], -1)]
+    return torch.stack(rows, -2) / (a * d - b * b)[:, None, None]
+
+
 def mm(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     """``a @ b`` for batches of small matrices, a (..., n, k) and b (..., k, m) -> (..., n, m).
 
@@ -46,19 +54,24 @@ def mm(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
 def masked_update(z: torch.Tensor, P: torch.Tensor, y: torch.Tensor, mask: torch.Tensor,
                   R: torch.Tensor, H: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """The Kalman update of states z (B, n) with covariances P (B, n, n) by the innovations
-    y (B, 3) (headings wrapped) of a measurement ``H z`` (H (3, n)) with covariance R
-    (B, 3, 3), using only the channels where mask (B, 3) is 1.
+    y (B, m) (headings wrapped) of a measurement ``H z`` (H (m, n), or (B, m, n) per row: a
+    linearised model's) with covariance R (B, m, m), using only the channels where mask (B, m)
+    is 1; m is 3 (a pose: ``[x, y, heading]``) or 2 (the side-slip filter's ``[ay, r]``).
 
     The other channels' innovations and gains are zeroed and S gets a 1 on their diagonal, so
     that S stays invertible and the update equals the one with the held channels alone. The
     covariance is updated in Joseph form, ``(I - K H) P (I - K H)^T + K R K^T``: over hours of
     steps, ``(I - K H) P`` loses its symmetry. Returns the updated z (B, n) and P (B, n, n)."""
+    m = y.shape[-1]
     eye = torch.eye(P.shape[-1], dtype=P.dtype, device=P.device)
+    eye_m = torch.eye(m, dtype=P.dtype, device=P.device)
+    inverse = inverse_sym3 if m == 3 else inverse_sym2
     y = y * mask
-    PH = mm(P, H.T)
+    Ht = H.transpose(-1, -2)
+    PH = mm(P, Ht)
     S = (mm(H, PH) + R) * (mask[:, :, None] * mask[:, None, :]) \
-        + (1 - mask)[:, :, None] * eye[:3, :3]  # diag(1 - mask): ONNX has no diag_embed
-    K = mm(PH * mask[:, None, :], inverse_sym3(S))
+        + (1 - mask)[:, :, None] * eye_m  # diag(1 - mask): ONNX has no diag_embed
+    K = mm(PH * mask[:, None, :], inverse(S))
     z = z + mm(K, y.unsqueeze(-1)).squeeze(-1)
     I_KH = eye - mm(K, H)
     P = mm(mm(I_KH, P), I_KH.transpose(1, 2)) + mm(mm(K, R), K.transpose(1, 2))

@@ -15,22 +15,22 @@ import numpy as np
 import torch
 
 from lbo.core.errors import LboError
-from lbo.models import slip
 from lbo.models.slip import FEATURES, SlipObserver, SlipStream
+from lbo.models.slip_filter import FilterObserver, FilterStream, load_any
 from lbo.serve.engines import legacy_onnx, onnx_session
 
 ENGINES = ("torch", "onnx")
 """What runs a stream's network (:func:`stream`)."""
 
 
-def load(source: str) -> SlipObserver:
-    """The observer of ``source``: an ``lbo.train model=slip_gru`` checkpoint file, its MLflow
-    run id or a ``runs:/`` or ``models:/`` URI (in the store of ``MLFLOW_TRACKING_URI``), read
-    as :func:`lbo.models.slip.load` reads one."""
+def load(source: str) -> SlipObserver | FilterObserver:
+    """The observer of ``source``: an ``lbo.train model=slip_gru`` or ``slip_filter``
+    checkpoint file, its MLflow run id or a ``runs:/`` or ``models:/`` URI (in the store of
+    ``MLFLOW_TRACKING_URI``), read as :func:`lbo.models.slip_filter.load_any` reads one."""
     from lbo.tracking.artifacts import checkpoint_file
 
     with checkpoint_file(source) as path:
-        return slip.load(path)
+        return load_any(path)
 
 
 def onnx_bytes(observer: SlipObserver) -> bytes:
@@ -45,13 +45,17 @@ def onnx_bytes(observer: SlipObserver) -> bytes:
         return legacy_onnx(observer.net.eval(), (example,), (["window"], ["fix"]))
 
 
-def stream(observer: SlipObserver, engine: str = "torch") -> SlipStream:
+def stream(observer: SlipObserver | FilterObserver, engine: str = "torch"
+           ) -> SlipStream | FilterStream:
     """A stream of rows from the start of a log, its network run by ``engine``: ``torch``,
-    or ``onnx`` (ONNX Runtime, one thread)."""
+    or ``onnx`` (ONNX Runtime, one thread; the side-slip network's alone)."""
     if engine not in ENGINES:
         raise LboError(f"engine: expected one of {list(ENGINES)}, got {engine!r}")
     if engine == "torch":
         return observer.stream()
+    if isinstance(observer, FilterObserver):
+        raise LboError("engine: the learned side-slip filter (model=slip_filter) runs in "
+                       "PyTorch alone; expected engine='torch'")
     session = onnx_session(onnx_bytes(observer), threads=1)
 
     def correct(rows: np.ndarray) -> float:

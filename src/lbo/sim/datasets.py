@@ -73,16 +73,18 @@ class Spec:
 
 SIDESLIP = {"sideslip": "the real side-slip run",
             "sideslip_sim": "simulated runs of the side-slip run's kind"}
-"""``data.name`` of the side-slip observer's data sets, which only it reads."""
+"""``data.name`` of the side-slip observers' data sets, which only they read."""
 
 
 def refuse_sideslip(cfg: DictConfig) -> None:
-    """``data=sideslip`` and ``sideslip_sim`` are the lateral observer's (``model=slip_gru``):
+    """``data=sideslip`` and ``sideslip_sim`` are the side-slip observers' (``model=slip_gru``,
+    ``slip_filter``):
     no pose observer, data set or test grid is made of them. One line naming ``data``."""
     name = cfg.data.get("name") if cfg.get("data") is not None else None
     if name in SIDESLIP:
-        raise LboError(f"data: data={name} is {SIDESLIP[name]}, which model=slip_gru alone "
-                       f"reads (python -m lbo.train model=slip_gru data={name}); expected a "
+        raise LboError(f"data: data={name} is {SIDESLIP[name]}, which the side-slip observers "
+                       f"alone read (python -m lbo.train model=slip_gru|slip_filter "
+                       f"data={name}); expected a "
                        "simulated data set (smoke, quick, paper, robust, dynamic) or logs")
 
 

@@ -15,7 +15,8 @@ from optuna.trial import FrozenTrial
 
 from lbo.core.checks import integer, number, require
 from lbo.core.errors import LboError
-from lbo.models import model_parameters, slip
+from lbo.models import model_parameters
+from lbo.models.slip_filter import SIDE_SLIP
 
 DISTRIBUTIONS = {"float": {"low", "high", "log", "step"}, "int": {"low", "high", "log", "step"},
                  "categorical": {"choices"}}
@@ -232,8 +233,8 @@ def _check_key(cfg: DictConfig, key: str, field: str) -> None:
     value already in the training config."""
     if key.startswith("model."):
         name = key[len("model."):]
-        accepted = (slip.PARAMETERS if cfg.model.name == slip.NAME  # not a pose window's net
-                    else model_parameters(cfg.model.name))
+        accepted = (SIDE_SLIP[cfg.model.name] if cfg.model.name in SIDE_SLIP  # not a pose
+                    else model_parameters(cfg.model.name))              # window's net
         if name not in accepted:
             raise LboError(f"{field}: {name!r} is not a parameter of model {cfg.model.name!r}; "
                            f"accepted: {', '.join(accepted)}")
