@@ -68,7 +68,7 @@ receiver-study: install  ## simulated single-antenna logs at alpha 1, 3, 6: ever
 
 side-slip: install  ## the side-slip observers trained on the MBDS run's train span (a rerun reuses them), every estimate of beta scored on each span, their streams timed -> reports/sideslip/
 	$(PY) -m lbo.train model=slip_gru data=sideslip resume=true hydra.run.dir=reports/sideslip/run
-	$(PY) -m lbo.train model=slip_filter data=sideslip batch_size=32 optimizer.lr=0.005 trainer.max_epochs=40 resume=true hydra.run.dir=reports/sideslip/filter
+	$(PY) -m lbo.train model=slip_filter data=sideslip batch_size=32 optimizer.lr=0.005 nll=0.3 trainer.max_epochs=40 resume=true hydra.run.dir=reports/sideslip/filter
 	$(PY) benchmarks/sideslip.py --slip reports/sideslip/run/checkpoints/best.ckpt --filter reports/sideslip/filter/checkpoints/best.ckpt reports/sideslip/sideslip.png
 
 bench: install  ## benchmarks: data generation, filters, training throughput, latency (medians)

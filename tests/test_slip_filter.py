@@ -62,7 +62,7 @@ def test_the_filter_reads_no_truth_and_learns_through_both_networks(slice_and_pr
     """A planted check: the training sequences' inputs are what the car measures, the INS's
     beta only their target; the loss's gradient reaches the tyres and the noise."""
     part, prior = slice_and_prior
-    cols = slip_data._columns(part)
+    cols = slip_data.columns(part)
     vx, delta, y = sideslip.observed(part)
     assert np.array_equal(cols[:, :4], np.column_stack([vx, delta, y]))
     assert np.array_equal(cols[:, 4], part["beta"].to_numpy())
@@ -99,6 +99,7 @@ def test_load_and_stream_refuse_what_they_cannot_take(tmp_path, slice_and_prior)
                            "hidden, prior_gain, sequence, warmup"]),
     (["data=dynamic"], ["data: model=slip_filter learns on the side-slip run"]),
     (["tbptt=10"], ["tbptt: expected None with model=slip_filter", "model.sequence"]),
+    (["nll=-1"], ["nll must be a number >= 0, got -1"]),
 ])
 def test_bad_settings_are_refused_in_one_line(args, words, tmp_path):
     res = cli("lbo.train", "model=slip_filter", "data=sideslip", *args,
@@ -106,9 +107,29 @@ def test_bad_settings_are_refused_in_one_line(args, words, tmp_path):
     one_line_error(res, *words)
 
 
+def test_its_loss_adds_the_nll_of_beta_under_its_own_variance(slice_and_prior):
+    """With nll > 0 the loss is the squared error plus nll times the Gaussian NLL of beta's
+    error under the filter's variance of it (both in degrees), so the noise network learns
+    to say how far off beta is; slip_gru refuses nll (it gives no covariance)."""
+    from lbo.learn.slip_models import _filter_module
+
+    part, prior = slice_and_prior
+    rows = torch.from_numpy(slip_data.columns(part))[None]
+    net = trained_like(prior)
+    batch = [rows, rows[..., 4]]
+    plain = _filter_module(net, 20, 0.0, torch.optim.Adam).training_step(batch, 0)
+    weighed = _filter_module(net, 20, 0.3, torch.optim.Adam).training_step(batch, 0)
+    x, P = net(rows[..., 0], rows[..., 1], rows[..., 2:4])
+    err = (x[0, 20:, 0] - rows[0, 20:, 4]) / slip.UNIT
+    var = P[0, 20:, 0, 0] / slip.UNIT**2
+    assert float(plain) == pytest.approx(float(torch.mean(err**2)), rel=1e-12)
+    nll = torch.mean(0.5 * (torch.log(var) + err**2 / var))
+    assert float(weighed) == pytest.approx(float(torch.mean(err**2) + 0.3 * nll), rel=1e-12)
+
+
 SMOKE = ["model=slip_filter", "data=sideslip_sim", "data.train=2", "data.val=1",
          "data.duration=4", "model.sequence=100", "model.warmup=20", "model.hidden=4",
-         "batch_size=8", "trainer.max_epochs=2", "callbacks.progress_bar.refresh_rate=0"]
+         "batch_size=8", "trainer.max_epochs=2", "nll=0.3", "callbacks.progress_bar.refresh_rate=0"]
 
 
 @pytest.mark.slow

@@ -114,14 +114,14 @@ def sequences(data: DictConfig, length: int, gain: float, start: Prior | None = 
 
     def pieces(logs: list[pd.DataFrame]) -> tuple[np.ndarray, np.ndarray]:
         rows = np.ascontiguousarray(np.concatenate([
-            np.lib.stride_tricks.sliding_window_view(_columns(log), length, axis=0)
+            np.lib.stride_tricks.sliding_window_view(columns(log), length, axis=0)
             .transpose(0, 2, 1)[::step] for log in logs]))
         return rows, rows[..., 4]
 
     return Sets(pieces(train), pieces(val), prior)
 
 
-def _columns(log: pd.DataFrame) -> np.ndarray:
+def columns(log: pd.DataFrame) -> np.ndarray:
     """(T, 5) ``[vx, delta, ay_m, r_m, beta]`` of a log, float64: what the filter reads, and
     the reference it is scored by last."""
     vx, delta, y = sideslip.observed(log)

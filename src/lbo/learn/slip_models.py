@@ -103,7 +103,8 @@ def make(cfg: DictConfig, optimizer: Any, start: Observer | None) -> Made:
         lateral = LateralFilter(sets.prior, int(model.hidden))
         if isinstance(start, FilterObserver):
             lateral.load_state_dict(start.net.state_dict())
-        module = _filter_module(lateral, int(model.warmup), optimizer)
+        module = _filter_module(lateral, int(model.warmup), float(cfg.get("nll") or 0.0),
+                                optimizer)
         what = (f"{len(sets.train[0])} sequences of {model.sequence} rows, each filtered "
                 f"afresh, its first {model.warmup} rows unscored")
     train, val = ((torch.from_numpy(a), torch.from_numpy(b)) for a, b in (sets.train, sets.val))
@@ -130,9 +131,11 @@ def _words(shape: tuple[Any, ...]) -> str:
 
 
 def _rmse_module(base: type, hparams: dict[str, Any], net: torch.nn.Module, optimizer: Any,
-                 error: Any) -> L.LightningModule:
-    """A module whose loss is the mean of ``error(net, batch)`` squared (deg^2) and whose
-    ``val_loss`` is its root over the validation set (deg)."""
+                 error: Any, nll: float = 0.0) -> L.LightningModule:
+    """A module whose loss is the mean of the error squared (deg^2), ``error(net, batch)`` ->
+    (the error (deg), its variance (deg^2) or None), plus ``nll`` times the mean Gaussian
+    negative log-likelihood of the error under that variance; ``val_loss`` is the error's
+    root mean square over the validation set (deg)."""
 
     class Module(base):
         def __init__(self) -> None:
@@ -142,7 +145,10 @@ def _rmse_module(base: type, hparams: dict[str, Any], net: torch.nn.Module, opti
             self._sums = torch.zeros(2)
 
         def training_step(self, batch: list[torch.Tensor], batch_idx: int) -> torch.Tensor:
-            loss = torch.mean(error(self.net, batch) ** 2)
+            err, var = error(self.net, batch)
+            loss = torch.mean(err**2)
+            if nll > 0 and var is not None:  # the covariance trained to say the error's size
+                loss = loss + nll * torch.mean(0.5 * (torch.log(var) + err**2 / var))
             self.log("train_loss", loss, on_step=False, on_epoch=True, batch_size=len(batch[0]))
             return loss
 
@@ -150,7 +156,7 @@ def _rmse_module(base: type, hparams: dict[str, Any], net: torch.nn.Module, opti
             self._sums = torch.zeros(2)
 
         def validation_step(self, batch: list[torch.Tensor], batch_idx: int) -> None:
-            err = error(self.net, batch).detach().cpu().double()
+            err = error(self.net, batch)[0].detach().cpu().double()
             self._sums += torch.stack([torch.sum(err**2), torch.tensor(float(err.numel()))])
 
         def on_validation_epoch_end(self) -> None:
@@ -167,25 +173,28 @@ def _gru_module(net: SlipNet, window: int, prior: Prior, optimizer: Any) -> L.Li
     """The side-slip network's module: windows in, the correction's error (deg) out."""
     import lightning as L
 
-    def error(net: SlipNet, batch: list[torch.Tensor]) -> torch.Tensor:
+    def error(net: SlipNet, batch: list[torch.Tensor]) -> tuple[torch.Tensor, None]:
         w, target = batch  # the target: the reference less the prior
-        return (net(w) - target) / UNIT
+        return (net(w) - target) / UNIT, None
 
     return _rmse_module(L.LightningModule, {
         "name": slip.NAME, "hidden": net.gru.hidden_size, "layers": net.gru.num_layers,
         "window": window, "prior": prior.as_dict()}, net, optimizer, error)
 
 
-def _filter_module(net: LateralFilter, warmup: int, optimizer: Any) -> L.LightningModule:
-    """The learned filter's module: sequences in, beta's error (deg) after ``warmup`` rows."""
+def _filter_module(net: LateralFilter, warmup: int, nll: float, optimizer: Any
+                   ) -> L.LightningModule:
+    """The learned filter's module: sequences in, beta's error (deg) after ``warmup`` rows and
+    the filter's variance of it (deg^2), its NLL weighed by ``nll``."""
     import lightning as L
 
-    def error(net: LateralFilter, batch: list[torch.Tensor]) -> torch.Tensor:
+    def error(net: LateralFilter, batch: list[torch.Tensor]
+              ) -> tuple[torch.Tensor, torch.Tensor]:
         rows, beta = batch
-        x, _ = net(rows[..., 0], rows[..., 1], rows[..., 2:4])
-        return (x[:, warmup:, 0] - beta[:, warmup:]) / UNIT
+        x, P = net(rows[..., 0], rows[..., 1], rows[..., 2:4])
+        return ((x[:, warmup:, 0] - beta[:, warmup:]) / UNIT, P[:, warmup:, 0, 0] / UNIT**2)
 
     return _rmse_module(L.LightningModule, {
         "name": slip_filter.NAME, "hidden": net.hidden, "prior": net.prior.as_dict()},
-        net, optimizer, error)
+        net, optimizer, error, nll)
 

@@ -35,7 +35,7 @@ from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
 from lbo.core.atomic import write_text
-from lbo.core.checks import integer
+from lbo.core.checks import integer, number
 from lbo.core.errors import LboError
 from lbo.core.redact import scrub
 from lbo.filters.lateral import LateralEstimate
@@ -60,7 +60,7 @@ UNREAD = (("receiver", None, "it reads the car's lateral sensors, not a receiver
           ("tbptt", None, "it sets its own windows or sequences (model.window, model.sequence)"),
           ("sequence_length", None,
            "it sets its own windows or sequences (model.window, model.sequence)"),
-          ("nll", 0.0, "its loss is beta's squared error"),
+          ("nll", 0.0, "it gives no covariance: its loss is beta's squared error"),
           ("fix_rates", None, "it reads no position fixes"),
           ("loss", "truth", "it learns from the INS's side slip"),
           ("lr_schedule", "constant", "it trains at the optimiser's constant rate"),
@@ -92,6 +92,9 @@ def check(cfg: DictConfig) -> None:
             raise LboError(f"model.{key}: not a parameter of model {name!r} (it takes "
                            f"{', '.join(takes)})")
     for key, needed, why in UNREAD:
+        if key == "nll" and name != SLIP_GRU:  # the filter's covariance can be trained
+            number(cfg.get("nll") or 0.0, "nll", low=0.0)
+            continue
         value = cfg.get(key, needed)
         if value != needed and not (needed == 0.0 and value is None):
             raise LboError(f"{key}: expected {needed} with model={name} ({why}); got {value}")
@@ -193,7 +196,7 @@ def train(cfg: DictConfig, params: dict[str, Any], tags: dict[str, str],
     tags = {**tags, "data": str(cfg.data.name), "model": str(cfg.model.name),
             "config_hash": digest, **({"window": str(cfg.model.window)}
                                       if "window" in cfg.model else {})}
-    logger = instantiate(cfg.logger, tags=tags) if cfg.get("logger") else None
+    logger = instantiate(cfg.logger, tags=tags, run_name=name) if cfg.get("logger") else None
     cbs = [instantiate(c) for c in configured.values() if not targets(c, Evaluation)]
     cbs += callbacks or []
     trainer = instantiate(cfg.trainer, logger=logger if logger is not None else False,
