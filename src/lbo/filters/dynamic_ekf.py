@@ -37,7 +37,7 @@ and the pose added back: exact, and free of round-off at large coordinates.
 
 from __future__ import annotations
 
-from typing import Literal, overload
+from typing import Literal, NamedTuple, overload
 
 import numpy as np
 
@@ -299,6 +299,62 @@ class DynamicStepper:
         return self.P[:, :3, :3]
 
 
+class Lateral(NamedTuple):
+    """The lateral states the dynamic oracle carries beside the pose, each row's estimate and
+    covariance: what no sensor of the car measures."""
+
+    mean: np.ndarray
+    """(G, T, 2) ``[v_y, r]``: the lateral speed of the centre of gravity (m/s) and the yaw
+    rate (rad/s)."""
+    cov: np.ndarray
+    """(G, T, 2, 2) their covariance (the filter's P)."""
+
+    def beta(self, vx: np.ndarray) -> np.ndarray:
+        """(G, T) side slip at the centre of gravity (rad), ``atan2(v_y, vx)``, at the
+        speeds vx (G, T) (the true ones: :meth:`DynamicStepper.true_inputs`)."""
+        return np.arctan2(self.mean[..., 0], vx)
+
+    def beta_var(self, vx: np.ndarray) -> np.ndarray:
+        """(G, T) the variance of :meth:`beta` (rad^2), v_y's carried through the angle to
+        first order: ``var(v_y) (vx / (vx^2 + v_y^2))^2``."""
+        return self.cov[..., 0, 0] * (vx / (vx**2 + self.mean[..., 0] ** 2)) ** 2
+
+
+def dynamic_ekf_lateral(m: np.ndarray, u: np.ndarray, vehicle: Vehicle, car: Car, Q: np.ndarray,
+                        R: np.ndarray, gnss_sigma: np.ndarray | float = 0.0,
+                        gnss_tau: float = 30.0, steering_offset: float = 0.0,
+                        speed_scale: float = 0.0) -> tuple[Posterior, Lateral]:
+    """The dynamic oracle of :func:`dynamic_ekf_batch` (the same arguments, the same run) with
+    what it carries beside the pose: the pose's :class:`~lbo.filters.stepper.Posterior` and
+    the :class:`Lateral` states, v_y and r, with their covariances, each (G, T, ...). The
+    lateral states start at the steady state of the first inputs (``car.start``)."""
+    kf, m, u = _stepper(m, u, vehicle, car, Q, R, gnss_sigma, gnss_tau, steering_offset,
+                        speed_scale)
+    g, t = m.shape[:2]
+    mean, cov = np.empty((g, t, 2)), np.empty((g, t, 2, 2))
+
+    def record(kf: DynamicStepper, k: int | slice) -> None:
+        mean[:, k], cov[:, k] = kf.x[:, 3:5], kf.P[:, 3:5, 3:5]
+
+    pose = run_stepper(kf, m, u, True, pose=lambda kf: kf.x[:, :3], cov=lambda kf: kf.pose_cov,
+                       record=record)
+    return pose, Lateral(mean, cov)
+
+
+def _stepper(m: np.ndarray, u: np.ndarray, vehicle: Vehicle, car: Car, Q: np.ndarray,
+             R: np.ndarray, gnss_sigma: np.ndarray | float, gnss_tau: float,
+             steering_offset: float, speed_scale: float
+             ) -> tuple[DynamicStepper, np.ndarray, np.ndarray]:
+    """The checked m (G, T, 3), u (G, T, 2) and the stepper started at their first row."""
+    m, u = check_trajectories(m, u)
+    g, t = m.shape[:2]
+    if t == 0:
+        raise LboError("measurements m must have at least one step, got T = 0")
+    kf = DynamicStepper(m[:, 0], vehicle, car, Q, np.array(batch_cov(R, g, "R")), gnss_sigma,
+                        gnss_tau, steering_offset, speed_scale, u0=u[:, 0])
+    return kf, m, u
+
+
 @overload
 def dynamic_ekf_batch(m: np.ndarray, u: np.ndarray, vehicle: Vehicle, car: Car,
                       Q: np.ndarray, R: np.ndarray, gnss_sigma: np.ndarray | float = ...,
@@ -342,11 +398,7 @@ def dynamic_ekf_batch(m: np.ndarray, u: np.ndarray, vehicle: Vehicle, car: Car,
     est : (G, T, 3) filtered pose estimates; ``est[:, 0] = m[:, 0]``.
     P : (G, T, 3, 3) covariances of the pose estimates, only when ``return_cov``.
     """
-    m, u = check_trajectories(m, u)
-    g, t = m.shape[:2]
-    if t == 0:
-        raise LboError("measurements m must have at least one step, got T = 0")
-    kf = DynamicStepper(m[:, 0], vehicle, car, Q, np.array(batch_cov(R, g, "R")), gnss_sigma,
-                        gnss_tau, steering_offset, speed_scale, u0=u[:, 0])
+    kf, m, u = _stepper(m, u, vehicle, car, Q, R, gnss_sigma, gnss_tau, steering_offset,
+                        speed_scale)
     return run_stepper(kf, m, u, return_cov, pose=lambda kf: kf.x[:, :3],
                        cov=lambda kf: kf.pose_cov)
