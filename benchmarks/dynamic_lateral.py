@@ -1,55 +1,59 @@
-"""Side slip on the simulated car that slips: what the EKF told the true car (the dynamic oracle,
-:func:`lbo.filters.dynamic_ekf.dynamic_ekf_lateral`) estimates of beta, v_y and r from the
-pose fixes alone, at alpha 1, 3 and 6, beside the kinematic bicycle's side slip and the same
-filter told 3x softer tyres.
+"""Side slip on the simulated car that slips: what the EKF told the true car (``oracle_dynamic``,
+:func:`lbo.filters.classical.oracle_dynamic_lateral`) estimates of beta, v_y and r from the
+pose fixes alone, on ``data=dynamic``'s test manoeuvres at alpha 1, 3 and 6, beside the
+kinematic bicycle's side slip and the same filter told tyres 3x softer than the car's.
 
-The drives: 16 slaloms of 20 s at 10-12 m/s (steering 0.06 sin(2 pi 0.3 t)), the default
-single-track car (:class:`lbo.sim.dynamic.SingleTrack`), the paper's process noise on the pose
-and its measurement noise times alpha. beta is the centre of gravity's side slip,
-atan2(v_y, V). NEES: the mean of beta's error squared over its variance (1 is honest).
+Only the test set is made (in memory, from the config; nothing is written). Its rows hold the
+car's true v_y and r (:data:`lbo.sim.columns.LATERAL`); the scored rows (after the run-in)
+are scored. beta is the centre of gravity's side slip, atan2(v_y, V). NEES: the mean of
+beta's error squared over the filter's variance of it (1 is honest).
 
-    python benchmarks/dynamic_lateral.py
+    python benchmarks/dynamic_lateral.py [data=dynamic ...]
 """
 
-from dataclasses import replace
+import dataclasses
+import sys
 
 import numpy as np
+from hydra import compose, initialize_config_dir
 
-from lbo.filters.dynamic_ekf import dynamic_ekf_lateral
+from lbo.core.paths import CONF_DIR
+from lbo.filters.classical import oracle_dynamic_lateral
 from lbo.filters.lateral import kinematic_beta
-from lbo.sim import dynamic
-from lbo.sim.dynamic import SingleTrack
-from lbo.sim.noise import Noise
-from lbo.sim.vehicle import Vehicle
+from lbo.sim import schema
+from lbo.sim.datasets import make_test, spec_from_cfg
 
-VEHICLE, CAR, NOISE = Vehicle(), SingleTrack(), Noise.preset("paper")
-G, T = 16, 1000
-rng = np.random.default_rng(0)
-t = np.arange(T) * VEHICLE.dt
-u = np.stack([np.broadcast_to(rng.uniform(10, 12, (G, 1)), (G, T)),
-              0.06 * np.sin(2 * np.pi * 0.3 * t + rng.uniform(0, 2 * np.pi, (G, 1)))], -1)
-z0 = np.column_stack([rng.normal(0, 50, G), rng.normal(0, 50, G), rng.uniform(-np.pi, np.pi, G)])
-s = dynamic.simulate(z0, u, VEHICLE.dt, CAR, np.array(NOISE.process_sigma), rng)
-truth = np.arctan2(s[..., 3], u[..., 0])
+with initialize_config_dir(str(CONF_DIR), version_base="1.3"):
+    cfg = compose("datagen", ["data=dynamic", *sys.argv[1:]])
+spec = spec_from_cfg(cfg)
+car, vehicle = spec.truth.car, spec.vehicle
+assert car is not None, "the data set must be drawn from a car that slips (car=dynamic)"
+test = schema.to_arrays(make_test(spec))
+soft = dataclasses.replace(spec.truth, car=dataclasses.replace(car, c_f=car.c_f / 3,
+                                                                 c_r=car.c_r / 3))
 
 
 def deg(err: np.ndarray) -> float:
     return float(np.rad2deg(np.sqrt(np.mean(err**2))))
 
 
-print(f"beta over the drives: RMS {deg(truth):.3f} deg, at most "
-      f"{np.rad2deg(np.abs(truth).max()):.2f} deg\n")
-print("| alpha | EKF told the car: beta RMSE (deg) | its beta NEES | v_y RMSE (m/s) | "
-      "r RMSE (rad/s) | told 3x softer tyres (deg) | kinematic bicycle (deg) |")
-print("|---|---:|---:|---:|---:|---:|---:|")
-soft = replace(CAR, c_f=CAR.c_f / 3, c_r=CAR.c_r / 3)
+print(f"data={spec.name}: {len(set(test.traj))} manoeuvres, alphas "
+      f"{sorted(set(test.alpha.tolist()))}")
+print("\n| alpha | told the car: beta RMSE (deg) | its beta NEES | v_y RMSE (m/s) | "
+      "r RMSE (rad/s) | told 3x softer tyres (deg) | kinematic bicycle (deg) | beta RMS (deg) |")
+print("|---|---:|---:|---:|---:|---:|---:|---:|")
 for alpha in (1.0, 3.0, 6.0):
-    m = s[..., :3] + rng.standard_normal((G, T, 3)) * np.array(NOISE.measurement_sigma) * alpha
-    _, lat = dynamic_ekf_lateral(m, u, VEHICLE, CAR, NOISE.Q, NOISE.R(alpha))
-    _, wrong = dynamic_ekf_lateral(m, u, VEHICLE, soft, NOISE.Q, NOISE.R(alpha))
-    err = lat.beta(u[..., 0]) - truth
-    e = lat.mean - s[..., 3:5]
-    print(f"| {alpha:g} | {deg(err):.4f} | {np.mean(err**2 / lat.beta_var(u[..., 0])):.4f} | "
-          f"{np.sqrt(np.mean(e[..., 0] ** 2)):.5f} | {np.sqrt(np.mean(e[..., 1] ** 2)):.5f} | "
-          f"{deg(wrong.beta(u[..., 0]) - truth):.3f} | "
-          f"{deg(kinematic_beta(u[..., 1], CAR) - truth):.3f} |")
+    t = test.take(test.alpha == alpha)
+    assert t.lateral is not None
+    vx = t.u[..., 0] / (1.0 + spec.truth.sensors.speed_scale)  # the true speed, not the logged
+    truth = np.arctan2(t.lateral[..., 0], vx)
+    _, lat = oracle_dynamic_lateral(t.m, t.u, vehicle, spec.noise, t.alpha, spec.truth)
+    _, wrong = oracle_dynamic_lateral(t.m, t.u, vehicle, spec.noise, t.alpha, soft)
+    s = t.mask
+    err = (lat.beta(vx) - truth)[s]
+    e = (lat.mean - t.lateral)[s]
+    delta = t.u[..., 1] - spec.truth.sensors.steering_offset
+    print(f"| {alpha:g} | {deg(err):.2e} | {np.mean(err**2 / lat.beta_var(vx)[s]):.2e} | "
+          f"{np.sqrt(np.mean(e[:, 0] ** 2)):.2e} | {np.sqrt(np.mean(e[:, 1] ** 2)):.2e} | "
+          f"{deg((wrong.beta(vx) - truth)[s]):.3f} | "
+          f"{deg((kinematic_beta(delta, car) - truth)[s]):.3f} | {deg(truth[s]):.3f} |")

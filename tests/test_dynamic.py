@@ -300,3 +300,49 @@ def test_no_test_manoeuvre_corners_harder_than_the_cap(dynamic_sets):
     assert free[0] > 0.6 and free[1] < 0.6
     assert capped[0] <= 0.6 and n_capped[0] > n_free[0]
     assert n_capped[1] == n_free[1] and capped[1] == pytest.approx(free[1], rel=0.1)
+
+
+def test_a_car_that_slips_leaves_its_lateral_states_in_the_scored_sets(dynamic_sets):
+    """The validation and test sets of a car that slips hold its true v_y and r (no observer
+    reads them: they score a side slip); the heading turns at that r, up to the process
+    noise; the kinematic bicycle's sets have no such columns."""
+    sets = dynamic_sets()
+    assert "v_y" not in sets["train"] and {"v_y", "r"} <= set(sets["val"].columns)
+    t = sets["test"]
+    t = t[t["alpha"] == 0].sort_values(["traj", "k"])
+    same = t["traj"].to_numpy()[1:] == t["traj"].to_numpy()[:-1]
+    turned = np.diff(np.unwrap(t["psi"].to_numpy())) / DT
+    r = t["r"].to_numpy()
+    r_step = 0.5 * (r[1:] + r[:-1])  # the step's mean rate, as the car's integrator takes it
+    assert np.corrcoef(turned[same], r_step[same])[0, 1] > 0.99
+    beta = np.arctan2(t["v_y"], t["V"])
+    assert 0.005 < np.abs(beta).max() < 0.2  # the car slips, within a road car's range
+
+
+def test_the_oracle_told_the_car_finds_its_lateral_states_in_the_set(dynamic_sets, tmp_path):
+    """oracle_dynamic_lateral reads a test set's padded arrays (the lateral states beside the
+    pose, schema.to_arrays) and, told the car, gives its side slip on the scored rows; told
+    tyres 3x too soft, it is far off. No truth column is read: the pose fixes and inputs."""
+    from dataclasses import replace
+
+    from lbo.filters.classical import oracle_dynamic_lateral
+    from lbo.sim import schema
+
+    cfg = compose_cfg("datagen", ["data=smoke", "car=dynamic", f"data.root={tmp_path}",
+                                  "data.train.n_traj=8"])
+    spec = spec_from_cfg(cfg)
+    t = schema.to_arrays(dynamic_sets()["test"])
+    t = t.take(t.alpha == 1.0)
+    assert t.lateral is not None and t.lateral.shape == (*t.m.shape[:2], 2)
+    truth = np.arctan2(t.lateral[..., 0], t.u[..., 0])[t.mask]
+    _, lat = oracle_dynamic_lateral(t.m, t.u, spec.vehicle, spec.noise, t.alpha, spec.truth)
+    told = np.rad2deg(np.sqrt(np.mean((lat.beta(t.u[..., 0])[t.mask] - truth) ** 2)))
+    soft = replace(spec.truth, car=replace(spec.truth.car, c_f=spec.truth.car.c_f / 3,
+                                           c_r=spec.truth.car.c_r / 3))
+    _, wrong = oracle_dynamic_lateral(t.m, t.u, spec.vehicle, spec.noise, t.alpha, soft)
+    off = np.rad2deg(np.sqrt(np.mean((wrong.beta(t.u[..., 0])[t.mask] - truth) ** 2)))
+    assert told < 1e-3 and off > 100 * told
+    planted = replace(t, lateral=np.zeros_like(t.lateral), z=np.zeros_like(t.z))
+    again = oracle_dynamic_lateral(planted.m, planted.u, spec.vehicle, spec.noise,
+                                   planted.alpha, spec.truth)[1]
+    assert np.array_equal(again.mean, lat.mean)

@@ -31,7 +31,8 @@ time; over a batch lbo's own run their vectorised forms, a plug-in its stepper s
 
 from __future__ import annotations
 
-from typing import Any, Literal, overload
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Any, Literal, overload
 
 import numpy as np
 
@@ -46,6 +47,9 @@ from lbo.filters.unscented import UKF_SPREAD, ukf_batch
 from lbo.sim.noise import Noise
 from lbo.sim.truth import Truth
 from lbo.sim.vehicle import Vehicle
+
+if TYPE_CHECKING:  # the dynamic EKF is imported when the oracle on a car that slips runs
+    from lbo.filters.dynamic_ekf import Lateral
 
 OBSERVERS = ("ekf", "oracle", "adaptive", "ukf")
 """Causal observers that run on a log."""
@@ -252,6 +256,26 @@ def _oracle_dynamic(m: np.ndarray, u: np.ndarray, vehicle: Vehicle, noise: Noise
                     ) -> np.ndarray | Posterior:
     from lbo.filters.dynamic_ekf import dynamic_ekf_batch
 
+    return _told_the_car(dynamic_ekf_batch, m, u, vehicle, noise, alpha, truth,
+                         return_cov=return_cov)
+
+
+def oracle_dynamic_lateral(m: np.ndarray, u: np.ndarray, vehicle: Vehicle, noise: Noise,
+                           alpha: float | np.ndarray, truth: Truth | None
+                           ) -> tuple[Posterior, Lateral]:
+    """``oracle_dynamic`` with the lateral states it carries (G trajectories, m (G, T, 3),
+    u (G, T, 2), ``alpha`` (G,) or one): the pose's posterior and :class:`Lateral`'s v_y, r
+    and their covariance (:func:`lbo.filters.dynamic_ekf.dynamic_ekf_lateral`)."""
+    from lbo.filters.dynamic_ekf import dynamic_ekf_lateral
+
+    return _told_the_car(dynamic_ekf_lateral, m, u, vehicle, noise, alpha, truth)
+
+
+def _told_the_car(run: Callable[..., Any], m: np.ndarray, u: np.ndarray, vehicle: Vehicle,
+                  noise: Noise, alpha: float | np.ndarray, truth: Truth | None,
+                  **kwargs: Any) -> Any:
+    """``run`` (the dynamic EKF) told what the set was drawn from: the car, its sensors'
+    errors, the process noise's scale and each trajectory's alpha."""
     if truth is None or truth.car is None:
         raise LboError("oracle_dynamic: the test set was not drawn from car=dynamic, so there "
                        "is no car to tell it; score it on data=dynamic (or car=dynamic)")
@@ -260,11 +284,10 @@ def _oracle_dynamic(m: np.ndarray, u: np.ndarray, vehicle: Vehicle, noise: Noise
     R = measurement_cov("oracle", noise, scale, g)
     sensors = truth.sensors
     try:
-        return dynamic_ekf_batch(m, u, vehicle, truth.car, truth.process_scale**2 * noise.Q, R,
-                                 gnss_sigma=scale * sensors.gnss_sigma,
-                                 gnss_tau=sensors.gnss_tau,
-                                 steering_offset=sensors.steering_offset,
-                                 speed_scale=sensors.speed_scale, return_cov=return_cov)
+        return run(m, u, vehicle, truth.car, truth.process_scale**2 * noise.Q, R,
+                   gnss_sigma=scale * sensors.gnss_sigma, gnss_tau=sensors.gnss_tau,
+                   steering_offset=sensors.steering_offset, speed_scale=sensors.speed_scale,
+                   **kwargs)
     except np.linalg.LinAlgError as e:
         raise LboError(f"oracle_dynamic: the filter diverged ({e}); check the data's values "
                        "and units") from None

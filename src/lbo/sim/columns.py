@@ -25,6 +25,10 @@ SET = ("traj", "k", "t", *STATE, *INPUT, *MEAS)
 """A data set's rows: trajectory, step, time, truth, inputs, fix."""
 SCORED_SET = (*SET, "alpha", "scored")
 """A validation or test set's rows: also the noise scale and whether the row is scored."""
+LATERAL = ("v_y", "r")
+"""The true lateral states of a car that slips (``car=dynamic``), which a validation or test
+set drawn from one also holds: the centre of gravity's lateral speed (m/s) and the yaw rate
+(rad/s). No observer reads them: they score its side slip and yaw rate."""
 OUTPUT = ("t", *STATE, "valid")
 """``lbo.observe``'s output: time, the estimate, and whether the observer has one yet."""
 COVARIANCE = ("var_x", "var_y", "var_psi", "cov_xy")

@@ -18,6 +18,7 @@ from lbo.core.atomic import data_lock, remove_stale_temps, write_text
 from lbo.core.checks import integer, number, positive, require
 from lbo.core.errors import LboError
 from lbo.sim import clothoid, dynamic, schema
+from lbo.sim.columns import LATERAL
 from lbo.sim.friction import G, Grid, accelerations, generate_train
 from lbo.sim.manoeuvres import MANOEUVRES, validation_path
 from lbo.sim.noise import Noise
@@ -148,6 +149,8 @@ def spec_from_cfg(cfg: DictConfig) -> Spec:
               "noise": [noise.process_sigma, noise.measurement_sigma]}
     if not truth.default:  # the paper's sets keep the folder names they always had
         hashed["truth"] = truth.to_dict()
+    if truth.car is not None:  # its sets hold the lateral states: not an older folder's
+        hashed["lateral"] = list(LATERAL)
     digest = hashlib.sha256(json.dumps(hashed, sort_keys=True).encode()).hexdigest()[:12]
     return Spec(str(d.name), Path(d.root), int(d.seed), vehicle, noise, tr, va, te, digest,
                 truth)
@@ -227,15 +230,18 @@ def drive_paths(spec: Spec, segments: list, steps: np.ndarray, shapes: np.ndarra
 
 
 def _scored_frame(spec: Spec, z: np.ndarray, u: np.ndarray, n_real: np.ndarray, run_in: int,
-                  alphas: np.ndarray, key: int) -> pd.DataFrame:
+                  alphas: np.ndarray, key: int, lateral: np.ndarray) -> pd.DataFrame:
     """Rows for every alpha level (independent seeded noise per level), alpha-major.
 
-    z, u: (G, T, 3|2) padded; n_real: (G,) real steps per trajectory.
+    z, u, lateral: (G, T, 3|2|2) padded; n_real: (G,) real steps per trajectory. A car that
+    slips adds its true lateral states (:data:`lbo.sim.columns.LATERAL`) to each row.
     """
     g, t_max = z.shape[:2]
     real = np.arange(t_max)[None, :] < n_real[:, None]
     traj, k = np.nonzero(real)
     zs, us = z[real], spec.truth.sensors.logged_inputs(u[real])
+    states = ({} if spec.truth.car is None else
+              {name: lateral[real][:, i] for i, name in enumerate(LATERAL)})
     frames = []
     for i, a in enumerate(alphas):
         m = measure(zs, spec.noise.meas(a), _rng(spec, key, i))
@@ -244,7 +250,7 @@ def _scored_frame(spec: Spec, z: np.ndarray, u: np.ndarray, n_real: np.ndarray, 
                                           _rng(spec, key, i, 1))[real]
         m[:, 2] = wrap_angle(m[:, 2])
         frames.append(schema.frame(traj, k, spec.vehicle.dt, zs, us, m,
-                                   alpha=np.full(len(k), a), scored=k >= run_in))
+                                   alpha=np.full(len(k), a), scored=k >= run_in, **states))
     return pd.concat(frames, ignore_index=True)
 
 
@@ -297,7 +303,7 @@ def make_val(spec: Spec) -> pd.DataFrame:
     out, steps, _ = drive_within_grip(spec, [seg], steps, np.ones((1, 2)), va["run_in"], va,
                                       lambda: _rng(spec, 2))
     return _scored_frame(spec, out["z"], out["u"], va["run_in"] + steps,
-                         va["run_in"], np.array([va["alpha"]]), 3)
+                         va["run_in"], np.array([va["alpha"]]), 3, out["lateral"])
 
 
 def make_test(spec: Spec) -> pd.DataFrame:
@@ -308,7 +314,7 @@ def make_test(spec: Spec) -> pd.DataFrame:
                                       np.array([m.speed_shape for m in man]), te["run_in"], te,
                                       lambda: _rng(spec, 4))
     return _scored_frame(spec, out["z"], out["u"], te["run_in"] + steps, te["run_in"],
-                         spec.alphas, 5)
+                         spec.alphas, 5, out["lateral"])
 
 
 MAKERS = {"train": make_train, "val": make_val, "test": make_test}

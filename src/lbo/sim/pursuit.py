@@ -36,9 +36,10 @@ def drive(paths: list[np.ndarray], speed: np.ndarray, vehicle: Vehicle,
 
     Returns
     -------
-    dict with ``z`` (G, T, 3) true states (psi wrapped), ``u`` (G, T, 2) inputs [V, delta] and
+    dict with ``z`` (G, T, 3) true states (psi wrapped), ``u`` (G, T, 2) inputs [V, delta],
     ``slip`` (G, T) the rear axle's side slip (rad, ``car.rear_slip``; 0 for
-    the kinematic bicycle), which a receiver's velocity shows.
+    the kinematic bicycle), which a receiver's velocity shows, and ``lateral`` (G, T, 2) the
+    car's ``[v_y, r]`` (0 for the kinematic bicycle).
     """
     g, n_steps = speed.shape
     p_max = max(len(p) for p in paths)
@@ -79,4 +80,4 @@ def drive(paths: list[np.ndarray], speed: np.ndarray, vehicle: Vehicle,
     slip = (np.zeros((g, n_steps)) if car is None
             else car.rear_slip(np.concatenate([z, lateral_k], axis=-1), u))
     z[..., 2] = wrap_angle(z[..., 2])
-    return {"z": z, "u": u, "slip": slip}
+    return {"z": z, "u": u, "slip": slip, "lateral": lateral_k}

@@ -11,6 +11,7 @@ import json
 import re
 from dataclasses import dataclass, fields
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pandas as pd
@@ -19,7 +20,7 @@ import pyarrow.parquet as pq
 
 from lbo.core.atomic import atomic_path
 from lbo.core.errors import LboError
-from lbo.sim.columns import INPUT, MEAS, SCORED_SET, SET, STATE
+from lbo.sim.columns import INPUT, LATERAL, MEAS, SCORED_SET, SET, STATE
 from lbo.sim.logcheck import check_fixes
 
 _INT = ("traj", "k")
@@ -130,10 +131,15 @@ class Trajectories:
     """(G,) each trajectory's noise scale (NaN where the frame has no ``alpha``)."""
     file: np.ndarray
     """(G,) each trajectory's index in its set's list of log files (-1: not a user's log)."""
+    lateral: np.ndarray | None = None
+    """(G, T, 2) the true ``v_y, r`` of a car that slips (:data:`LATERAL`), None where the
+    frame has none."""
 
     def take(self, pick: np.ndarray) -> Trajectories:
         """The trajectories ``pick`` (a (G,) mask or indices)."""
-        return Trajectories(**{f.name: getattr(self, f.name)[pick] for f in fields(self)})
+        picked: dict[str, Any] = {f.name: None if getattr(self, f.name) is None
+                                  else getattr(self, f.name)[pick] for f in fields(self)}
+        return Trajectories(**picked)
 
 
 def to_arrays(df: pd.DataFrame) -> Trajectories:
@@ -154,7 +160,8 @@ def to_arrays(df: pd.DataFrame) -> Trajectories:
         m=df[list(MEAS)].to_numpy()[idx], lengths=lengths, traj=df["traj"].to_numpy()[starts],
         mask=real & (df["scored"].to_numpy()[idx] if "scored" in df.columns else True),
         alpha=df["alpha"].to_numpy(float)[starts] if "alpha" in df.columns else np.full(g, np.nan),
-        file=np.full(g, -1))
+        file=np.full(g, -1),
+        lateral=(df[list(LATERAL)].to_numpy()[idx] if set(LATERAL) <= set(df.columns) else None))
 
 
 _CACHE_NAME = re.compile(r".+-[0-9a-f]{12}")
