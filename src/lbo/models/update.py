@@ -65,13 +65,16 @@ def masked_update(z: torch.Tensor, P: torch.Tensor, y: torch.Tensor, mask: torch
     m = y.shape[-1]
     eye = torch.eye(P.shape[-1], dtype=P.dtype, device=P.device)
     eye_m = torch.eye(m, dtype=P.dtype, device=P.device)
-    inverse = inverse_sym3 if m == 3 else inverse_sym2
     y = y * mask
     Ht = H.transpose(-1, -2)
     PH = mm(P, Ht)
     S = (mm(H, PH) + R) * (mask[:, :, None] * mask[:, None, :]) \
         + (1 - mask)[:, :, None] * eye_m  # diag(1 - mask): ONNX has no diag_embed
-    K = mm(PH * mask[:, None, :], inverse(S))
+    if m == 3:  # written out, as TorchScript scripts it (no function as a value)
+        S_inv = inverse_sym3(S)
+    else:
+        S_inv = inverse_sym2(S)
+    K = mm(PH * mask[:, None, :], S_inv)
     z = z + mm(K, y.unsqueeze(-1)).squeeze(-1)
     I_KH = eye - mm(K, H)
     P = mm(mm(I_KH, P), I_KH.transpose(1, 2)) + mm(mm(K, R), K.transpose(1, 2))
