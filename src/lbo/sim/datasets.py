@@ -149,8 +149,6 @@ def spec_from_cfg(cfg: DictConfig) -> Spec:
               "noise": [noise.process_sigma, noise.measurement_sigma]}
     if not truth.default:  # the paper's sets keep the folder names they always had
         hashed["truth"] = truth.to_dict()
-    if truth.car is not None:  # its sets hold the lateral states: not an older folder's
-        hashed["lateral"] = list(LATERAL)
     digest = hashlib.sha256(json.dumps(hashed, sort_keys=True).encode()).hexdigest()[:12]
     return Spec(str(d.name), Path(d.root), int(d.seed), vehicle, noise, tr, va, te, digest,
                 truth)

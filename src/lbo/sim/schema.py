@@ -133,7 +133,8 @@ class Trajectories:
     """(G,) each trajectory's index in its set's list of log files (-1: not a user's log)."""
     lateral: np.ndarray | None = None
     """(G, T, 2) the true ``v_y, r`` of a car that slips (:data:`LATERAL`), None where the
-    frame has none."""
+    frame has none (a kinematic set, or a car-that-slips set made before lbo kept them: its
+    folder keeps its name, so that stored runs still find it; delete it to make it again)."""
 
     def take(self, pick: np.ndarray) -> Trajectories:
         """The trajectories ``pick`` (a (G,) mask or indices)."""
