@@ -319,6 +319,7 @@ def test_a_car_that_slips_leaves_its_lateral_states_in_the_scored_sets(dynamic_s
     assert 0.005 < np.abs(beta).max() < 0.2  # the car slips, within a road car's range
 
 
+@pytest.mark.slow  # 16 s: two runs of the dynamic EKF over the smoke test set
 def test_the_oracle_told_the_car_finds_its_lateral_states_in_the_set(dynamic_sets, tmp_path):
     """oracle_dynamic_lateral reads a test set's padded arrays (the lateral states beside the
     pose, schema.to_arrays) and, told the car, gives its side slip on the scored rows; told
