@@ -130,9 +130,9 @@ class GyroFilter(nn.Module):
         start = ti - steps
         xs, Ps = x[gi, start], P[gi, start]
         Q, phi = self._Q(), self._phi()
-        u = self._inputs(seg.u)
+        drive, F = self._steps(self._inputs(seg.u), phi)
         for j in range(steps):
-            xs, Ps = self._predict(xs, Ps, u[gi, start + j], Q, phi)
+            xs, Ps = self._predict(xs, Ps, drive[gi, start + j], Q, phi, F[gi, start + j])
         Hf = self.H[list(_FIX)]
         S = Hf @ Ps @ Hf.T + self._fix_R(seg.accuracy[gi, ti])
         y = seg.fix[gi, ti] - xs @ Hf.T
@@ -173,26 +173,37 @@ class GyroFilter(nn.Module):
             q += [p["drift_sigma"] ** 2 * (1.0 - self._phi() ** 2)] * 2
         return torch.diag(torch.stack(q))
 
-    def _predict(self, x: torch.Tensor, P: torch.Tensor, u: torch.Tensor, Q: torch.Tensor,
-                 phi: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """One step of the model: x (B, n), P (B, n, n) on u (B, 2) ``[V, r_m]``; the turn
-        is held at a standstill (the gyro then measures its bias); the drift decays by phi
-        (:meth:`_phi`, computed once per run)."""
-        dt, n = self.dt, self.n
-        v, rate = u[:, 0], u[:, 1]
-        psi, bias = x[:, 2], x[:, 3]
-        zero = torch.zeros((), dtype=x.dtype)
-        still = v.abs() < gyro_np.STILL_SPEED
-        turn = torch.where(still, zero, rate - bias)
-        x = torch.cat([torch.stack([x[:, 0] + v * torch.cos(psi) * dt,
-                                    x[:, 1] + v * torch.sin(psi) * dt,
-                                    psi + turn * dt, bias], -1), x[:, 4:] * phi], -1)
-        F = torch.eye(n, dtype=x.dtype).expand(len(x), n, n).clone()
-        F[:, 0, 2] = -v * torch.sin(psi) * dt
-        F[:, 1, 2] = v * torch.cos(psi) * dt
-        F[:, 2, 3] = torch.where(still, zero, torch.full_like(v, -dt))
+    def _steps(self, u: torch.Tensor, phi: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """What the model takes from inputs u (..., 2) ``[V, r_m]``, whatever the state:
+        ``[V, r_m]`` with the gyro's rate 0 at a standstill (the turn is held there), and
+        (..., n, n) the Jacobian's part that the state does not move (the identity, the
+        bias's pull on the heading, -dt where the car moves, and the drift's decay phi).
+        :meth:`_predict` adds what depends on the state."""
+        n, dt = self.n, self.dt
+        still = u[..., 0].abs() < gyro_np.STILL_SPEED
+        zero = torch.zeros((), dtype=u.dtype)
+        F = torch.eye(n, dtype=u.dtype).expand(*u.shape[:-1], n, n).clone()
+        F[..., 2, 3] = torch.where(still, zero, torch.full((), -dt, dtype=u.dtype))
         if n == 6:
-            F[:, 4, 4] = F[:, 5, 5] = phi
+            F[..., 4, 4] = F[..., 5, 5] = phi
+        return torch.stack([u[..., 0], torch.where(still, zero, u[..., 1])], -1), F
+
+    def _predict(self, x: torch.Tensor, P: torch.Tensor, drive: torch.Tensor, Q: torch.Tensor,
+                 phi: torch.Tensor, F: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """One step of the model: x (B, n), P (B, n, n) on drive (B, 2) and F (B, n, n) as
+        :meth:`_steps` gives them: the heading turns by the gyro less its bias, held at a
+        standstill (the gyro then measures its bias: F's bias term is 0 there); the drift
+        decays by phi (:meth:`_phi`, computed once per run)."""
+        dt = self.dt
+        v = drive[:, 0]
+        psi, bias = x[:, 2], x[:, 3]
+        c, s = torch.cos(psi), torch.sin(psi)
+        x = torch.cat([torch.stack([x[:, 0] + v * c * dt, x[:, 1] + v * s * dt,
+                                    psi + drive[:, 1] * dt + F[:, 2, 3] * bias, bias], -1),
+                       x[:, 4:] * phi], -1)
+        F = F.clone()
+        F[:, 0, 2] = -v * s * dt
+        F[:, 1, 2] = v * c * dt
         return x, F @ P @ F.transpose(-1, -2) + Q
 
     def states(self, seg: Segments) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -203,6 +214,7 @@ class GyroFilter(nn.Module):
         dtype = seg.x0.dtype
         Q, H, phi = self._Q(), self.H, self._phi()  # once: the same at every step
         u = self._inputs(seg.u)
+        drive, F = self._steps(u, phi)
         # the velocity's course, as lbo.filters.measure.course_over_ground holds it
         speed = torch.nan_to_num(seg.speed, nan=0.0)
         course_held = ((speed >= measure.COURSE_MIN_SPEED)
@@ -210,31 +222,69 @@ class GyroFilter(nn.Module):
         safe = torch.where(course_held, speed, torch.ones_like(speed))
         sv = p["velocity_scale"] * seg.sv  # trusted less or more; held where it is reported
         course_var = (sv**2 + (p["course_lever"] * u[..., 1]) ** 2) / safe**2
-        fix_R = self._fix_R(seg.accuracy)
+        # what every step measures, how well, and which channels it holds, for all steps at
+        # once: the loop keeps only what the state moves
+        R = torch.zeros((g, t, 4, 4), dtype=dtype)
+        R[..., :2, :2] = self._fix_R(seg.accuracy)
+        R[..., 2, 2] = torch.where(course_held, course_var, torch.ones_like(course_var))
+        R[..., 3, 3] = p["gyro_sigma"] ** 2
         fix_held = torch.isfinite(seg.fix)
-        fix = torch.nan_to_num(seg.fix, nan=0.0)  # NaN kept out of the graph, not held there
-        course = torch.nan_to_num(seg.course, nan=0.0)
+        # step k is predicted on the inputs of row k - 1, and its standstill gyro update
+        # reads them too (row 0 is the start: its slot is never read)
+        before = torch.cat([u[:, :1], u[:, :-1]], 1)
+        still = before[..., 0].abs() < gyro_np.STILL_SPEED
+        held = torch.stack([fix_held[..., 0], fix_held[..., 1], course_held, still], -1)
+        measured = torch.stack([*torch.nan_to_num(seg.fix, nan=0.0).unbind(-1),
+                                torch.nan_to_num(seg.course, nan=0.0), before[..., 1]], -1)
+        Hm, Rm, y_held, m = _masked(H, R, held)
+        angle = torch.tensor([False, False, True, False])  # the course's innovation wraps
+        # each step's slice taken by one unbind: indexing a tensor that needs a gradient
+        # step by step would have its backward fill a whole (G, T, ...) zero tensor per step
+        drive_k, F_k, measured_k, y_held_k, Hm_k, Rm_k, m_k = (
+            a.unbind(1) for a in (drive, F, measured, y_held, Hm, Rm, m))
         x, P = seg.x0, seg.P0
         xs, Ps, nll = [x], [P], [torch.zeros(g, dtype=dtype)]
         for k in range(1, t):
-            v, rate = u[:, k - 1, 0], u[:, k - 1, 1]
-            still = v.abs() < gyro_np.STILL_SPEED
-            x, P = self._predict(x, P, u[:, k - 1], Q, phi)
-            R = torch.zeros((g, 4, 4), dtype=dtype)
-            R[:, :2, :2] = fix_R[:, k]
-            R[:, 2, 2] = torch.where(course_held[:, k], course_var[:, k], torch.ones_like(v))
-            R[:, 3, 3] = p["gyro_sigma"] ** 2
-            held = torch.stack([fix_held[:, k, 0], fix_held[:, k, 1], course_held[:, k], still],
-                               -1)
-            seen = x @ H.T  # the fixes drifted, the heading, the bias
-            y = torch.stack([fix[:, k, 0] - seen[:, 0], fix[:, k, 1] - seen[:, 1],
-                             wrap_angle_torch(course[:, k] - seen[:, 2]), rate - seen[:, 3]],
-                            -1)
-            x, P, step_nll = joseph_update(x, P, y, H, R, held)
+            x, P = self._predict(x, P, drive_k[k - 1], Q, phi, F_k[k - 1])
+            y = measured_k[k] - x @ H.T  # the fixes drifted, the heading, the bias
+            y = torch.where(angle, wrap_angle_torch(y), y)
+            x, P, step_nll = _joseph(x, P, y * y_held_k[k], Hm_k[k], Rm_k[k], m_k[k])
             xs.append(x)
             Ps.append(P)
             nll.append(step_nll)
         return torch.stack(xs, 1), torch.stack(Ps, 1), torch.stack(nll, 1)
+
+
+def _masked(H: torch.Tensor, R: torch.Tensor, held: torch.Tensor
+            ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """A measurement model cut to the channels held, for any leading dims (...): H (p, n),
+    R (..., p, p), held (..., p) bool. Returns H (..., p, n) with the rows not held zero, R
+    (..., p, p) with the identity where a channel is not held, the innovation's mask
+    (..., p) as 0 or 1, and the number of channels held (...): a channel not held then has
+    y = 0 and S = 1, and adds nothing to the update or the likelihood."""
+    eye_p = torch.eye(held.shape[-1], dtype=R.dtype)
+    mask = held.to(R.dtype)
+    both = held[..., :, None] & held[..., None, :]
+    return H * mask[..., None], torch.where(both, R, eye_p), mask, held.sum(-1)
+
+
+def _joseph(x: torch.Tensor, P: torch.Tensor, y: torch.Tensor, H: torch.Tensor,
+            R: torch.Tensor, m: torch.Tensor
+            ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The Joseph update of x (G, n), P (G, n, n) by innovations y (G, p) under H (G, p, n)
+    and R (G, p, p) already cut to the m (G,) channels held (:func:`_masked`); S is factored
+    once (Cholesky: S is symmetric positive definite) for the gain, the Mahalanobis distance
+    and log det S."""
+    PHt = P @ H.transpose(-1, -2)
+    S = H @ PHt + R
+    L = torch.linalg.cholesky(S)
+    K = torch.cholesky_solve(PHt.transpose(-1, -2), L).transpose(-1, -2)
+    I_KH = torch.eye(x.shape[-1], dtype=x.dtype) - K @ H
+    post = I_KH @ P @ I_KH.transpose(-1, -2) + K @ R @ K.transpose(-1, -2)
+    white = torch.linalg.solve_triangular(L, y[..., None], upper=False)[..., 0]
+    log_det = 2 * torch.log(torch.diagonal(L, dim1=-2, dim2=-1)).sum(-1)
+    nll = 0.5 * ((white**2).sum(-1) + log_det + m * math.log(2 * math.pi))
+    return x + (K @ y[..., None])[..., 0], 0.5 * (post + post.transpose(-1, -2)), nll
 
 
 def joseph_update(x: torch.Tensor, P: torch.Tensor, y: torch.Tensor, H: torch.Tensor,
@@ -246,17 +296,5 @@ def joseph_update(x: torch.Tensor, P: torch.Tensor, y: torch.Tensor, H: torch.Te
     Returns the updated x (G, n) and P (G, n, n), and the innovation's negative
     log-likelihood (G,) under its covariance S, ``(y^T S^-1 y + log det S + m log 2 pi) / 2``
     over the m channels held (0 where none is: a channel not held has y = 0 and S = 1)."""
-    p = held.shape[-1]
-    eye_p = torch.eye(p, dtype=x.dtype)
-    y = torch.where(held, y, torch.zeros_like(y))
-    Hm = H * held[..., None].to(x.dtype)
-    both = held[:, :, None] & held[:, None, :]
-    Rm = torch.where(both, R, eye_p)
-    PHt = P @ Hm.transpose(-1, -2)
-    S = Hm @ PHt + Rm
-    K = torch.linalg.solve(S, PHt.transpose(-1, -2)).transpose(-1, -2)
-    I_KH = torch.eye(x.shape[-1], dtype=x.dtype) - K @ Hm
-    post = I_KH @ P @ I_KH.transpose(-1, -2) + K @ Rm @ K.transpose(-1, -2)
-    mahalanobis = (y[..., None, :] @ torch.linalg.solve(S, y[..., None]))[..., 0, 0]
-    nll = 0.5 * (mahalanobis + torch.logdet(S) + held.sum(-1) * math.log(2 * math.pi))
-    return x + (K @ y[..., None])[..., 0], 0.5 * (post + post.transpose(-1, -2)), nll
+    Hm, Rm, mask, m = _masked(H, R, held)
+    return _joseph(x, P, y * mask, Hm, Rm, m)
