@@ -69,14 +69,16 @@ def test_export_cli_files_match_pytorch(tmp_path, checkpoint, windows):
 
 def test_lstm_exports_for_any_batch(tmp_path, windows):
     torch.manual_seed(0)
-    net = WindowNet("lstm", 80)
+    # N = 20, the paper's shortest: the dynamo exporter unrolls the LSTM's steps (24 s at 80)
+    net = WindowNet("lstm", 20)
     net.set_normalisation([0.0, 0.0, 0.0, 10.0, 0.0], [1.0, 1.0, 0.02, 5.0, 0.1],
                           [0.0, 0.0, 0.0], [0.5, 0.5, 0.01])
     paths = export(Observer.from_net(net), tmp_path)
-    assert paths["onnx"].name == "lstm-N80.onnx"
+    assert paths["onnx"].name == "lstm-N20.onnx"
     script = torch.jit.load(str(paths["torchscript"]))
     session = ort.InferenceSession(str(paths["onnx"]), providers=["CPUExecutionProvider"])
-    for batch in (windows[:1], windows[:7], windows):
+    win = windows[:, -20:]
+    for batch in (win[:1], win[:7], win):
         ts_diff, onnx_diff = compare(net.eval(), script, session, batch)
         assert ts_diff < 1e-5 and onnx_diff < 1e-5
 

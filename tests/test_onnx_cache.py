@@ -46,6 +46,21 @@ def test_an_export_is_kept_and_the_next_session_reads_it(own_cache, monkeypatch)
         Observer.from_net(_cnn(seed=1), engine="onnx")
 
 
+def test_lbo_export_writes_the_kept_export_of_an_observer_run_in_onnx_runtime(
+        own_cache, monkeypatch, tmp_path):
+    """An observer run with engine=onnx and then exported: lbo.export writes the kept graph
+    (and checks it against PyTorch as it checks a new one) rather than tracing it again."""
+    import lbo.export
+
+    Observer.from_net(_cnn(), engine="onnx")
+    (kept,) = own_cache.iterdir()
+    monkeypatch.setattr(lbo.export, "onnx_bytes", _refuse)
+    paths = lbo.export.export(Observer.from_net(_cnn()), tmp_path / "out")
+    assert paths["onnx"].read_bytes() == kept.read_bytes()
+    with pytest.raises(AssertionError, match="exported again"):  # other weights: traced
+        lbo.export.export(Observer.from_net(_cnn(seed=1)), tmp_path / "other")
+
+
 def test_the_key_follows_the_settings_beside_the_weights():
     """Nets of the same weights whose window or feature mode differ trace other graphs (a
     recursive step's ring of N steps): each has a key of its own."""

@@ -329,7 +329,9 @@ def test_the_recursive_form_takes_a_single_antenna_log():
     z = df[["x", "y", "psi"]].to_numpy(float)
     r = df.reindex(columns=list(RECEIVER)).to_numpy(float)
     assert np.isnan(m[:, 2]).all() and np.isfinite(m[:, 0]).sum() < len(m) / 40
-    net = WindowNet("filternet", 60, features="frame", fixes=True)
+    # test_torchscript_and_onnx_steps_equal_pytorch's [fixes] net: its ONNX step is kept
+    # (lbo's cache folder), so this test reads the export rather than making it again
+    net = _observer_net("fixes")
     obs = Observer.from_net(net, form="recursive")
     assert obs.takes_receiver
     est, valid = obs.run(m, u, receiver=r)

@@ -40,8 +40,8 @@ from lbo.serve.engines import (
     TOLERANCE,
     check_exported,
     check_recursive,
+    kept_export,
     onnx_bytes,
-    onnx_session,
     recursive_onnx_bytes,
     trace,
     trace_recursive,
@@ -91,11 +91,13 @@ def export(observer: Any, out_dir: str | Path, name: str | None = None) -> dict[
         from lbo.models.recursive import RecursiveFilter
 
         rec = RecursiveFilter(net.net)
-        script, model = trace_recursive(rec), recursive_onnx_bytes(rec)
-        diff = check_recursive(rec, script, onnx_session(model, threads=1))
+        model, session = kept_export(rec, "recursive", lambda: recursive_onnx_bytes(rec))
+        script = trace_recursive(rec)
+        diff = check_recursive(rec, script, session)
     else:
-        script, model = trace(net), onnx_bytes(net)
-        diff = check_exported(net, script, onnx_session(model))
+        model, session = kept_export(net, "window", lambda: onnx_bytes(net))
+        script = trace(net)
+        diff = check_exported(net, script, session)
     worst = max(diff, key=lambda k: diff[k] if diff[k] == diff[k] else float("inf"))  # NaN
     if not diff[worst] <= TOLERANCE:  # NaN fails too
         raise LboError(f"export: {worst} differs from PyTorch by {diff[worst]:.2e} "

@@ -202,8 +202,15 @@ def onnx_session(model: bytes | str | Path, threads: int | None = None) -> Any:
 def _kept_session(module: Any, form: str, export: Callable[[], bytes]) -> Any:
     """A one-thread ONNX Runtime session of ``module``'s export as ``form``, the export kept
     between sessions (:mod:`lbo.serve.onnx_cache`)."""
-    return onnx_cache.session(module, form, OPSET, export,
-                              lambda model: onnx_session(model, threads=1))
+    return kept_export(module, form, export)[1]
+
+
+def kept_export(module: Any, form: str, export: Callable[[], bytes]) -> tuple[bytes, Any]:
+    """``module``'s export as ``form`` (``window``: :func:`onnx_bytes`; ``recursive``:
+    :func:`recursive_onnx_bytes`) and a one-thread ONNX Runtime session of it, read from lbo's
+    cache folder where an earlier session kept it (:func:`lbo.serve.onnx_cache.kept`)."""
+    return onnx_cache.kept(module, form, OPSET, export,
+                           lambda model: onnx_session(model, threads=1))
 
 
 def check_exported(net: Any, script: Any, session: Any, batch: int = 64) -> dict[str, float]:

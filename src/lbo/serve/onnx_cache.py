@@ -89,15 +89,25 @@ def session(module: Any, form: str, opset: int, export: Callable[[], bytes],
             open_session: Callable[[bytes], Any]) -> Any:
     """An ONNX Runtime session (``open_session(bytes)``) of ``module``'s export: of the kept
     file where there is one, else of a new ``export()``, which is then kept."""
+    return kept(module, form, opset, export, open_session)[1]
+
+
+def kept(module: Any, form: str, opset: int, export: Callable[[], bytes],
+         open_session: Callable[[bytes], Any]) -> tuple[bytes, Any]:
+    """``module``'s export as ``form`` and a session of it (``open_session(bytes)``): the kept
+    file's where there is one that ONNX Runtime opens, else a new ``export()``'s, which is
+    then kept. ``lbo.export`` writes these bytes: an observer already run with
+    ``engine=onnx`` (or trained with its graphs kept) exports without tracing again."""
     path = cache_dir() / "onnx" / f"{form}-{key(module, form, opset)}.onnx"
     try:
-        return open_session(path.read_bytes())
+        model = path.read_bytes()
+        return model, open_session(model)
     except Exception:  # noqa: BLE001  # none kept, or damaged (ONNX Runtime's errors share no base)
         pass
     model = export()
     out = open_session(model)
     _keep(path, model)
-    return out
+    return model, out
 
 
 def _keep(path: Path, model: bytes) -> None:
