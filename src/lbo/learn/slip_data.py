@@ -88,12 +88,18 @@ def logs(data: DictConfig) -> tuple[list[pd.DataFrame], list[pd.DataFrame]]:
     return list(runs[:int(data.train)]), list(runs[int(data.train):])
 
 
+def _prior(train: list[pd.DataFrame], gain: float, start: Prior | None) -> Prior:
+    """``start`` (a fine-tuned checkpoint's prior, kept), else the published car's with the
+    noise of the training logs times ``gain``."""
+    return start or Prior(sideslip.CAR, noise_of(train, gain), sideslip.DT)
+
+
 def sets(data: DictConfig, window: int, gain: float, start: Prior | None = None) -> Sets:
     """The windows ``data`` names for windows of ``window`` rows (every ``data.stride``-th
     row's of simulated runs), the prior's noise ``gain``; ``start``: the prior of a checkpoint
     fine-tuned from, kept."""
     train, val = logs(data)
-    prior = start or Prior(sideslip.CAR, noise_of(train, gain), sideslip.DT)
+    prior = _prior(train, gain, start)
     if data.name == REAL:
         est = real_estimates(prior)
         return Sets(_windows(train, est["train"], window, 1),
@@ -109,7 +115,7 @@ def sequences(data: DictConfig, length: int, gain: float, start: Prior | None = 
     half a piece after the one before (a filter started afresh on each); the targets are
     their beta columns (S, length). The prior as in :func:`sets`."""
     train, val = logs(data)
-    prior = start or Prior(sideslip.CAR, noise_of(train, gain), sideslip.DT)
+    prior = _prior(train, gain, start)
     step = max(1, length // 2)
 
     def pieces(logs: list[pd.DataFrame]) -> tuple[np.ndarray, np.ndarray]:

@@ -130,14 +130,15 @@ def _words(shape: tuple[Any, ...]) -> str:
     return f"model={shape[0]} with hidden {shape[1]}"
 
 
-def _rmse_module(base: type, hparams: dict[str, Any], net: torch.nn.Module, optimizer: Any,
-                 error: Any, nll: float = 0.0) -> L.LightningModule:
+def _rmse_module(hparams: dict[str, Any], net: torch.nn.Module, optimizer: Any, error: Any,
+                 nll: float = 0.0) -> L.LightningModule:
     """A module whose loss is the mean of the error squared (deg^2), ``error(net, batch)`` ->
     (the error (deg), its variance (deg^2) or None), plus ``nll`` times the mean Gaussian
     negative log-likelihood of the error under that variance; ``val_loss`` is the error's
     root mean square over the validation set (deg)."""
+    import lightning as L
 
-    class Module(base):
+    class Module(L.LightningModule):
         def __init__(self) -> None:
             super().__init__()
             self.save_hyperparameters(hparams)  # plain numbers only: read with weights_only
@@ -171,13 +172,11 @@ def _rmse_module(base: type, hparams: dict[str, Any], net: torch.nn.Module, opti
 
 def _gru_module(net: SlipNet, window: int, prior: Prior, optimizer: Any) -> L.LightningModule:
     """The side-slip network's module: windows in, the correction's error (deg) out."""
-    import lightning as L
-
     def error(net: SlipNet, batch: list[torch.Tensor]) -> tuple[torch.Tensor, None]:
         w, target = batch  # the target: the reference less the prior
         return (net(w) - target) / UNIT, None
 
-    return _rmse_module(L.LightningModule, {
+    return _rmse_module({
         "name": slip.NAME, "hidden": net.gru.hidden_size, "layers": net.gru.num_layers,
         "window": window, "prior": prior.as_dict()}, net, optimizer, error)
 
@@ -186,15 +185,13 @@ def _filter_module(net: LateralFilter, warmup: int, nll: float, optimizer: Any
                    ) -> L.LightningModule:
     """The learned filter's module: sequences in, beta's error (deg) after ``warmup`` rows and
     the filter's variance of it (deg^2), its NLL weighed by ``nll``."""
-    import lightning as L
-
     def error(net: LateralFilter, batch: list[torch.Tensor]
               ) -> tuple[torch.Tensor, torch.Tensor]:
         rows, beta = batch
         x, P = net(rows[..., 0], rows[..., 1], rows[..., 2:4])
         return ((x[:, warmup:, 0] - beta[:, warmup:]) / UNIT, P[:, warmup:, 0, 0] / UNIT**2)
 
-    return _rmse_module(L.LightningModule, {
+    return _rmse_module({
         "name": slip_filter.NAME, "hidden": net.hidden, "prior": net.prior.as_dict()},
         net, optimizer, error, nll)
 

@@ -33,7 +33,7 @@ from __future__ import annotations
 import os
 from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
@@ -94,6 +94,11 @@ class LateralFilter(nn.Module):
     hidden : units of each network's two hidden layers.
     """
 
+    if TYPE_CHECKING:  # buffers registered by name, for the type checker
+        offsets: torch.Tensor
+        delta_offsets: torch.Tensor
+        row_scales: torch.Tensor
+
     def __init__(self, prior: Prior, hidden: int = 16) -> None:
         super().__init__()
         self.prior, self.hidden = prior, int(hidden)
@@ -101,6 +106,10 @@ class LateralFilter(nn.Module):
         self.car = (c.mass, c.yaw_inertia, c.l_f, c.l_r, c.c_f, c.c_r)
         self.tyres = _mlp(3, self.hidden, 2)
         self.noise = _mlp(4, self.hidden, 3)
+        # constants of every step, made once and moved with the module (not in its state)
+        self.register_buffer("offsets", torch.tensor(_PREDICTED), persistent=False)
+        self.register_buffer("delta_offsets", torch.tensor(_PREDICTED_DELTA), persistent=False)
+        self.register_buffer("row_scales", torch.tensor(_SCALES), persistent=False)
         self.double()
 
     def _rates(self, x: torch.Tensor, vx: torch.Tensor, delta: torch.Tensor
@@ -121,15 +130,15 @@ class LateralFilter(nn.Module):
         (...,) and measurements y (..., 2); a channel not held (NaN) reads as 0."""
         rows = torch.stack([vx, delta, torch.nan_to_num(y[..., 0]),
                             torch.nan_to_num(y[..., 1])], -1)
-        return self.noise(rows / rows.new_tensor(_SCALES))
+        return self.noise(rows / self.row_scales)
 
     def _predict(self, s: FilterState, vx: torch.Tensor, delta: torch.Tensor, s_q: torch.Tensor
                  ) -> tuple[torch.Tensor, torch.Tensor]:
         """One Euler step from the state s on inputs (B,) with process scale s_q (B,)."""
         dt, h = self.prior.dt, FD_STEP
         # x, x +- h e_i, and x at delta +- h: one call of the tyre network for all seven
-        xs = s.x[:, None] + s.x.new_tensor(_PREDICTED)
-        ds = delta[:, None] + delta.new_tensor(_PREDICTED_DELTA)
+        xs = s.x[:, None] + self.offsets
+        ds = delta[:, None] + self.delta_offsets
         nxt = xs + dt * self._rates(xs, vx[:, None], ds)[0]
         F = torch.stack([nxt[:, 1] - nxt[:, 2], nxt[:, 3] - nxt[:, 4]], -1) / (2 * h)
         b = (nxt[:, 5] - nxt[:, 6]) / (2 * h)
@@ -140,7 +149,7 @@ class LateralFilter(nn.Module):
     def _measure(self, x: torch.Tensor, vx: torch.Tensor, delta: torch.Tensor
                  ) -> tuple[torch.Tensor, torch.Tensor]:
         """The measurements [ay, r] (B, 2) at states x (B, 2) and their Jacobian (B, 2, 2)."""
-        xs = x[:, None] + x.new_tensor(_PREDICTED[:5])
+        xs = x[:, None] + self.offsets[:5]
         ay = self._rates(xs, vx[:, None], delta[:, None])[1]
         h = torch.stack([ay, xs[..., 1]], -1)
         H = torch.stack([h[:, 1] - h[:, 2], h[:, 3] - h[:, 4]], -1) / (2 * FD_STEP)
@@ -194,11 +203,12 @@ class FilterObserver:
     def __init__(self, net: LateralFilter) -> None:
         self.net, self.prior = net.eval(), net.prior
 
-    def run(self, vx: np.ndarray, delta: np.ndarray, y: np.ndarray, batch: int = 0,
+    def run(self, vx: np.ndarray, delta: np.ndarray, y: np.ndarray,
             prior: LateralEstimate | None = None) -> LateralEstimate:
         """Estimate a whole log: vx, delta (T,), y (T, 2) [ay_m, r_m] -> x (T, 2) [beta, r]
-        and P (T, 2, 2). ``batch`` and ``prior`` are the side-slip network's arguments
-        (:meth:`lbo.models.slip.SlipObserver.run`), not read: the filter runs the log once."""
+        and P (T, 2, 2). ``prior``: the linear filter's estimate, which the side-slip network
+        corrects (:meth:`lbo.models.slip.SlipObserver.run`, called alike); not read here: this
+        filter holds its own model of the car."""
         with torch.no_grad():
             x, P = self.net(*(torch.from_numpy(np.array(a, float))[None]
                               for a in (vx, delta, y)))
