@@ -2,9 +2,10 @@
 
     python benchmarks/bench_gyro_fit.py [--seconds 60] [--segment 500] [--repeats 5]
 
-A simulated single-antenna drive with a biased gyro (fixes at 5 Hz with their reported
-accuracy, the GNSS velocity, a stop), ``seconds`` long, cut into segments of ``segment``
-steps. Timed, each the median of ``repeats``, on one torch thread:
+A simulated single-antenna drive with a biased gyro (:func:`lbo.sim.gyro_drive.draw`: fixes
+with their reported accuracy, the GNSS velocity, a stop; its truth dropped), ``seconds``
+long, cut into segments of ``segment`` steps. Timed, each the median of ``repeats``, on one
+torch thread:
 
 - ``segments``: the NumPy gyro EKF run over the log to start each segment from its state;
 - ``forward``: the torch filter over the segments, the innovations' likelihood (no graph);
@@ -22,34 +23,16 @@ import statistics
 import time
 
 import numpy as np
-import pandas as pd
 import torch
 
 from lbo.filters.gyro import GyroNoise
 from lbo.learn import gyro_fit
 from lbo.models.gyro_filter import GyroFilter
-from lbo.sim.columns import RECEIVER
-from lbo.sim.receiver import ReceiverSpec, sense
-from lbo.sim.vehicle import Vehicle, simulate
+from lbo.sim import gyro_drive
 
-VEHICLE = Vehicle()
+VEHICLE = gyro_drive.VEHICLE
 R = np.diag([1.0, 1.0, 0.0174**2])
 START = GyroNoise.from_q(np.diag([0.0667**2, 0.0667**2, 0.00113**2]))
-
-
-def drive(seconds: float, seed: int = 0) -> pd.DataFrame:
-    """A single-antenna drive with a gyro: it weaves, stops 2 s and drives on (no truth)."""
-    t = int(round(seconds / VEHICLE.dt))
-    k = np.arange(t)
-    speed = 8.0 + 3.0 * np.sin(2 * np.pi * k / 1500)
-    speed[(k > t // 3) & (k < t // 3 + 200)] = 0.0
-    u = np.stack([speed, 0.08 * np.sin(2 * np.pi * k / 700)], axis=1)[None]
-    rng = np.random.default_rng(seed)
-    z = simulate(np.zeros((1, 3)), u, VEHICLE.dt, VEHICLE.wheelbase, np.zeros(3), rng)
-    out = sense(z, u, VEHICLE.dt, ReceiverSpec(), 1.0, rng)
-    cols = {c: out[c][0] if c in out else np.full(t, np.nan)
-            for c in ("x_m", "y_m", "psi_m", *RECEIVER)}
-    return pd.DataFrame({"t": k * VEHICLE.dt, **cols, "V": u[0, :, 0], "delta": u[0, :, 1]})
 
 
 def median_s(fn, repeats: int) -> float:
@@ -69,7 +52,7 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=5)
     args = ap.parse_args()
     torch.set_num_threads(1)
-    log = drive(args.seconds)
+    log = gyro_drive.draw(0, args.seconds).drop(columns=["x", "y", "psi"])  # no truth
     seg = gyro_fit.segments(log, START, VEHICLE, R, args.segment)
     model = GyroFilter(START, VEHICLE.dt, torch.as_tensor(R))
 

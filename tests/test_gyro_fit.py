@@ -19,13 +19,13 @@ import pytest
 import torch
 
 from helpers import observe
-from helpers.drives import gyro_log
 from lbo.core.errors import LboError
 from lbo.filters.gyro import NOISE_RANGES, OPTIONAL, FixDrift, GyroNoise
 from lbo.learn import gyro_fit
 from lbo.models.gyro_filter import GyroFilter, joseph_update
 from lbo.scoring.receiver import scored_rows
 from lbo.serve.observer import Observer
+from lbo.sim import gyro_drive
 from lbo.sim.columns import RECEIVER
 from lbo.sim.truth import gauss_markov
 from lbo.sim.vehicle import Vehicle
@@ -43,7 +43,7 @@ SCALED = OTHER.with_scales(speed=1.03, gyro=0.97)
 
 @pytest.fixture(scope="module")
 def log() -> pd.DataFrame:
-    return gyro_log(0)
+    return gyro_drive.draw(0)
 
 
 def test_trusting_the_velocity_less_widens_its_course_but_keeps_its_rows(log):
@@ -98,8 +98,8 @@ def test_without_truth_the_innovations_learn_how_far_to_trust_the_receiver():
     supervised fit (measured: 20 epochs reach 0.407 m of position RMSE on the validation logs
     from 0.470 m, where 6 supervised ones reach 0.400 m; it first shrinks the process noise,
     which also widens what it predicts)."""
-    train = gyro_log(1, reported=1 / 3)
-    val = [gyro_log(2, 30.0, reported=1 / 3), gyro_log(4, 30.0, reported=1 / 3)]
+    train = gyro_drive.draw(1, reported=1 / 3)
+    val = [gyro_drive.draw(2, 30.0, reported=1 / 3), gyro_drive.draw(4, 30.0, reported=1 / 3)]
     blind = [log.drop(columns=["x", "y", "psi"]) for log in (train, *val)]
     fitted = gyro_fit.fit(blind[0], blind[1:], VEHICLE, R, START, epochs=20, segment=250,
                           lr=0.15, progress=None, objective="innovations")
@@ -286,8 +286,8 @@ def test_lbfgs_finds_the_noise_that_drew_the_log_by_its_likelihood_alone(drawn):
 def test_the_fit_learns_how_far_to_trust_a_receiver_that_understates_its_error():
     """The receiver reports a third of its true error: the fit learns to scale it up, and
     the validation logs (drawn apart, their rows pooled) gain."""
-    train = gyro_log(1, reported=1 / 3)
-    val = [gyro_log(2, 30.0, reported=1 / 3), gyro_log(4, 30.0, reported=1 / 3)]
+    train = gyro_drive.draw(1, reported=1 / 3)
+    val = [gyro_drive.draw(2, 30.0, reported=1 / 3), gyro_drive.draw(4, 30.0, reported=1 / 3)]
     fitted = gyro_fit.fit(train, val, VEHICLE, R, START, epochs=6, segment=250, lr=0.15,
                           progress=None)
     assert fitted.noise.accuracy_scale > 1.8  # 2.5 after 6 steps (the truth: 3)
@@ -355,7 +355,7 @@ def test_gyro_noise_is_checked_saved_and_read_back(tmp_path):
                                        r"\(observer=gyro\), not of ekf$"):
         Observer.load("ekf", gyro_noise=OTHER)
     with pytest.raises(LboError, match="single-antenna logs: psi_m must be empty"):
-        gyro_fit.segments(gyro_log(3, 10.0).assign(psi_m=0.0), START, VEHICLE, R, 100)
+        gyro_fit.segments(gyro_drive.draw(3, 10.0).assign(psi_m=0.0), START, VEHICLE, R, 100)
 
 
 @pytest.mark.parametrize("field, value, line", [
@@ -455,7 +455,7 @@ def test_observe_adapts_the_gyro_ekfs_noise_to_the_log_it_filters(tmp_path):
     not read), then the log filtered with it: on a receiver that reports a third of its
     error, the position error falls below the defaults' (measured: 0.403 m against 0.421 m
     on this 60 s log); it says so, and how long it took."""
-    log = gyro_log(1, reported=1 / 3)
+    log = gyro_drive.draw(1, reported=1 / 3)
     log.to_csv(tmp_path / "log.csv", index=False)
     args = [f"input={tmp_path / 'log.csv'}", "observer=gyro"]
     plain = observe(*args, f"output={tmp_path / 'plain.csv'}", cwd=tmp_path)

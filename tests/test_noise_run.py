@@ -13,10 +13,10 @@ import pandas as pd
 import pytest
 
 from helpers import cli, observe, one_line_error
-from helpers.drives import gyro_log
 from lbo.core.errors import LboError
 from lbo.filters.gyro import GyroNoise
 from lbo.serve.observer import Observer
+from lbo.sim import gyro_drive
 
 
 @pytest.fixture(scope="module")
@@ -26,7 +26,7 @@ def logs(tmp_path_factory) -> dict[str, Path]:
     out = {}
     for name, seed, seconds in (("train", 1, 60.0), ("val", 2, 30.0), ("test", 4, 30.0)):
         out[name] = folder / f"{name}.parquet"
-        gyro_log(seed, seconds, reported=1 / 3).to_parquet(out[name])
+        gyro_drive.draw(seed, seconds, reported=1 / 3).to_parquet(out[name])
     return out
 
 

@@ -9,12 +9,12 @@ import pandas as pd
 import pytest
 from omegaconf import OmegaConf
 
-from helpers.drives import gyro_log
 from lbo.core.errors import LboError
 from lbo.core.paths import CONF_DIR
 from lbo.scoring import outages
 from lbo.scoring.outages import BLANKED, Outages
 from lbo.scoring.receiver import score
+from lbo.sim import gyro_drive
 from lbo.sim.columns import RECEIVER, STATE
 from lbo.sim.noise import Noise
 from lbo.sim.vehicle import Vehicle
@@ -36,7 +36,7 @@ def test_outages_fall_every_so_often_where_the_car_moves_throughout():
     assert outages.windows(log.iloc[:860], Outages(10.0, 25.0), dt).tolist() == \
         [[250, 350], [520, 620]]
     assert outages.windows(log.assign(V=0.5), Outages(10.0, 25.0), dt).shape == (0, 2)
-    slow = gyro_log(0).assign(V=0.5)
+    slow = gyro_drive.draw(0).assign(V=0.5)
     with pytest.raises(LboError, match=r"^outages: no window of 10 s fits where the car moves "
                                        r"\(at least 1 m/s throughout\); shorten "
                                        r"outages\.length_s$"):
@@ -44,7 +44,7 @@ def test_outages_fall_every_so_often_where_the_car_moves_throughout():
 
 
 def test_only_the_receivers_columns_are_blanked_and_only_inside_the_outages():
-    log = gyro_log(0)
+    log = gyro_drive.draw(0)
     spans = outages.windows(log, Outages(5.0, 15.0), VEHICLE.dt)
     assert len(spans) == 3
     out = outages.blank(log, spans)
@@ -62,7 +62,7 @@ def test_no_fix_inside_an_outage_reaches_an_observer():
     """Planted: the fixes inside the outages moved by kilometres, their velocities by 30 m/s;
     once blanked, every observer's estimate is the same to the bit as on the log as drawn
     (and without the blanking the planted values do change them: the check can fail)."""
-    log = gyro_log(1)
+    log = gyro_drive.draw(1)
     spans = outages.windows(log, Outages(5.0, 15.0), VEHICLE.dt)
     planted = log.copy()
     rows = outages.inside(len(log), spans)
@@ -132,7 +132,7 @@ def test_observe_scores_a_users_log_through_outages_it_cuts(tmp_path):
     one line."""
     from helpers import observe
 
-    log = gyro_log(2)
+    log = gyro_drive.draw(2)
     log.to_csv(tmp_path / "log.csv", index=False)
     res = observe("observer=gyro", f"input={tmp_path / 'log.csv'}", "compare=[ekf]",
                   f"plot={tmp_path / 'est.png'}",

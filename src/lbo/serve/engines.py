@@ -199,16 +199,9 @@ def onnx_session(model: bytes | str | Path, threads: int | None = None) -> Any:
     return ort.InferenceSession(source, opts, providers=["CPUExecutionProvider"])
 
 
-def _kept_session(module: Any, form: str, export: Callable[[], bytes]) -> Any:
-    """A one-thread ONNX Runtime session of ``module``'s export as ``form``, the export kept
-    between sessions (:mod:`lbo.serve.onnx_cache`)."""
-    return kept_export(module, form, export)[1]
-
-
 def kept_export(module: Any, form: str, export: Callable[[], bytes]) -> tuple[bytes, Any]:
-    """``module``'s export as ``form`` (``window``: :func:`onnx_bytes`; ``recursive``:
-    :func:`recursive_onnx_bytes`) and a one-thread ONNX Runtime session of it, read from lbo's
-    cache folder where an earlier session kept it (:func:`lbo.serve.onnx_cache.kept`)."""
+    """``module``'s ONNX export as ``form`` and a one-thread session of it, the export kept
+    between sessions (:func:`lbo.serve.onnx_cache.kept`)."""
     return onnx_cache.kept(module, form, OPSET, export,
                            lambda model: onnx_session(model, threads=1))
 
@@ -376,7 +369,7 @@ def make_predictor(net: Any, engine: str = "torch", device: str = "cpu") -> Pred
     net = net.to(device).eval()
     if engine == "onnx":
         net = net.cpu()
-        session = _kept_session(net, "window", lambda: onnx_bytes(net))
+        session = kept_export(net, "window", lambda: onnx_bytes(net))[1]
         return lambda win: session.run(None, {"window": win})[0]
     if engine == "torchscript":
         net = trace(net)
@@ -443,7 +436,7 @@ def make_recursive_step(net: Any, engine: str = "torch", device: str = "cpu"
 
     coaster = chunked(coast, rec.coast_limit) if rec.coasts else None
     if engine == "onnx":
-        kept = _kept_session(rec, "recursive", lambda: recursive_onnx_bytes(rec))
+        kept = kept_export(rec, "recursive", lambda: recursive_onnx_bytes(rec))[1]
         return onnx_step(kept), state, coaster
     module = rec
     if engine == "torchscript":

@@ -1,4 +1,5 @@
-"""Simulated single-antenna drives with a gyro, as the gyro EKF's fits read them."""
+"""A simulated single-antenna drive with a biased gyro: what the gyro EKF's noise fits are
+tested and timed on (``tests/``, ``benchmarks/bench_gyro_fit.py``)."""
 
 from __future__ import annotations
 
@@ -10,12 +11,15 @@ from lbo.sim.receiver import ReceiverSpec, sense
 from lbo.sim.vehicle import Vehicle, simulate
 
 VEHICLE = Vehicle()
+"""The car it drives (the paper's, at its dt)."""
 
 
-def gyro_log(seed: int, seconds: float = 60.0, reported: float = 1.0) -> pd.DataFrame:
-    """A simulated single-antenna drive with a biased gyro: it moves, turns, stops 4 s
-    (a zero-rate update) and drives on. ``reported``: factor on the accuracy the receiver
-    reports (1: it tracks the true error's scale)."""
+def draw(seed: int, seconds: float = 60.0, reported: float = 1.0) -> pd.DataFrame:
+    """A log of ``seconds`` (rows at :data:`VEHICLE`'s dt): the car weaves at 5-11 m/s, stops
+    for 4 s a third of the way in (a zero-rate update) and drives on; the receiver's fixes
+    with their reported accuracy (times ``reported``: 1 tracks the true error's scale), no
+    heading (one antenna), its velocity, and a biased gyro ``r_m`` at every row; the truth in
+    ``x, y, psi``."""
     t = int(round(seconds / VEHICLE.dt))
     k = np.arange(t)
     speed = 8.0 + 3.0 * np.sin(2 * np.pi * k / 1500)
