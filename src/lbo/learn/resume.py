@@ -49,6 +49,11 @@ the KalmanNet peers, which the robust observer's config has had from the start, 
 ``model.scales``)."""
 
 
+WAS = {"lbo.learn.progress.EpochBar": "lightning.pytorch.callbacks.TQDMProgressBar"}
+"""Callbacks that replaced another in ``conf/``, by what they replaced: a config hash reads
+them as it, so that the runs of a store made before still resume and are reused."""
+
+
 def config_hash(cfg: DictConfig) -> str:
     """Fingerprint of what a run computes: the resolved config without where it writes."""
     c = cfg.copy()
@@ -62,6 +67,9 @@ def config_hash(cfg: DictConfig) -> str:
         c.pop("compile", None)
         c.pop("keep_onnx", None)  # what lbo.observe finds afterwards, not what is trained
         c.pop("verbose", None)  # what it prints
+        bar = OmegaConf.select(c, "callbacks.progress_bar")
+        if isinstance(bar, DictConfig) and bar.get("_target_") in WAS:
+            bar["_target_"] = WAS[bar["_target_"]]  # how it prints, hashed as it was before
         for key, default in LATER_DEFAULTS.items():
             *group, name = key.split(".")
             node = OmegaConf.select(c, ".".join(group)) if group else c

@@ -1,0 +1,31 @@
+"""The training's progress bar says which epoch of how many (lbo.learn.progress)."""
+
+from __future__ import annotations
+
+import pytest
+
+from helpers import cli
+from lbo.learn.progress import epoch_words
+
+
+@pytest.mark.parametrize(("epoch", "most", "early", "said"), [
+    (2, 10, False, "epoch 3 of 10"), (0, 100, True, "epoch 1 of at most 100"),
+    (4, -1, True, "epoch 5"), (0, None, False, "epoch 1")])
+def test_an_epoch_is_counted_from_one_and_of_its_total(epoch, most, early, said):
+    assert epoch_words(epoch, most, early) == said
+
+
+def test_a_training_says_epoch_k_of_n_on_its_bar(tmp_path, smoke_data):
+    res = cli("lbo.train", "experiment=smoke", f"data.root={smoke_data.parent}",
+              "trainer.max_epochs=2", "trainer.limit_train_batches=2", "keep_onnx=false",
+              "~callbacks.evaluation", f"output_dir={tmp_path / 'out'}",
+              f"hydra.run.dir={tmp_path}",
+              env={"MLFLOW_TRACKING_URI": f"sqlite:///{tmp_path / 'mlflow.db'}"})
+    assert res.returncode == 0, res.stderr[-3000:]
+    # Lightning's bar writes to stdout; the default callbacks stop early: the total is at most
+    assert "epoch 1 of at most 2" in res.stdout and "epoch 2 of at most 2" in res.stdout
+    # each bar's last word on its epoch is ours (Lightning's own "Epoch 0", from 0 and without
+    # a total, is drawn first and overwritten at once)
+    done = [f for f in res.stdout.replace("\r", "\n").splitlines()
+            if "100%|" in f and not f.startswith("Validation")]
+    assert done and all(f.startswith("epoch ") for f in done), done
