@@ -15,6 +15,7 @@ def test_an_epoch_is_counted_from_one_and_of_its_total(epoch, most, early, said)
     assert epoch_words(epoch, most, early) == said
 
 
+@pytest.mark.slow
 def test_a_training_says_epoch_k_of_n_on_its_bar(tmp_path, smoke_data):
     res = cli("lbo.train", "experiment=smoke", f"data.root={smoke_data.parent}",
               "trainer.max_epochs=2", "trainer.limit_train_batches=2", "keep_onnx=false",
