@@ -63,6 +63,10 @@ if TYPE_CHECKING:  # Lightning takes seconds to import: only a training run need
 # Lightning 2.6 on torch 2.13 warns once per fit about its own use of a torch API; a sweep or a
 # study would print it once per run
 warnings.filterwarnings("ignore", message=r"`isinstance\(treespec, LeafSpec\)` is deprecated")
+# lbo logs its losses once per epoch, never per step, so Lightning's logging interval, and
+# its warning that an epoch of fewer batches than it logs nothing per step, do not apply
+warnings.filterwarnings("ignore", message=r"The number of training batches \(\d+\) is smaller "
+                        r"than the logging interval")
 
 
 def git_commit() -> str:
