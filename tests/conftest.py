@@ -109,6 +109,29 @@ def smoke_cnn(tmp_path_factory, worker_id, smoke_data):
     return once(tmp_path_factory, worker_id, "smoke_cnn", make)
 
 
+@pytest.fixture(scope="session")
+def paper_sweep(tmp_path_factory, worker_id, smoke_data):
+    """The paper's sweep at smoke size, ``python -m lbo.train -m model=cnn,lstm
+    window=20,40,60,80 experiment=smoke``, run once for the whole run in a process of its own
+    (one torch thread) into an MLflow store of its own: ``uri``, ``sweep`` (its folder),
+    ``returncode``, ``stdout``, ``stderr``. test_train reads the sweep; test_scaling's joblib
+    sweep is compared with its runs."""
+    import subprocess
+    import sys
+
+    def make(tmp: Path) -> dict:
+        uri = f"sqlite:///{tmp / 'mlflow.db'}"
+        res = subprocess.run(
+            [sys.executable, "-m", "lbo.train", "-m", "model=cnn,lstm", "window=20,40,60,80",
+             "experiment=smoke", f"data.root={smoke_data.parent}",
+             f"hydra.sweep.dir={tmp / 'sweep'}"], capture_output=True, text=True,
+            env={**os.environ, "MLFLOW_TRACKING_URI": uri, "OMP_NUM_THREADS": "1"})
+        return {"uri": uri, "sweep": tmp / "sweep", "returncode": res.returncode,
+                "stdout": res.stdout, "stderr": res.stderr}
+
+    return once(tmp_path_factory, worker_id, "paper_sweep", make)
+
+
 SLOW_S = 1.0
 """A test that took this many seconds or more in the run ``tests/durations.json`` was written
 from is marked ``slow`` (``make test-fast`` skips it), as are those marked by hand."""

@@ -159,30 +159,31 @@ def test_the_launcher_context_instantiates_the_launcher_a_config_names():
 
 
 @pytest.mark.slow
-def test_joblib_sweep_matches_the_serial_sweep(tmp_path, smoke_data):
+def test_joblib_sweep_matches_the_serial_sweep(tmp_path, smoke_data, paper_sweep):
     """Four smoke jobs two at a time, each job's MLflow writes racing the others' on one SQLite
-    file: four finished runs in four folders, with the serial sweep's numbers."""
-    results = {}
-    for how, extra in (("serial", []), ("joblib", ["hydra/launcher=joblib",
-                                                   "hydra.launcher.n_jobs=2"])):
-        uri = f"sqlite:///{tmp_path / how / 'mlflow.db'}"
-        start = time.perf_counter()
-        # processes of their own: joblib's workers write to the process's stderr (read for
-        # "database is locked"), and joblib keeps them, with their environment, for later sweeps
-        res = cli("lbo.train", "-m", *SWEEP, "experiment=smoke", f"data.root={smoke_data.parent}",
-                  "trainer.max_epochs=2", f"hydra.sweep.dir={tmp_path / how / 'sweep'}", *extra,
-                  env={"MLFLOW_TRACKING_URI": uri}, process=True)
-        assert res.returncode == 0, res.stderr[-3000:]
-        assert "database is locked" not in res.stderr
-        print(f"{how}: {time.perf_counter() - start:.1f} s")
-        table = finished_runs(uri)
-        assert len(table) == 4 and set(table["status"]) == {"FINISHED"}
-        assert table["output"].nunique() == 4  # one folder, and one checkpoint, per job
-        assert all(str(o).startswith(str(tmp_path / how / "sweep")) for o in table["output"])
-        assert len(list((tmp_path / how / "sweep").glob("*/checkpoints/best*.ckpt"))) == 4
-        results[how] = table.set_index("name").drop(columns=["status", "output"]).sort_index()
-    assert sorted(results["serial"].index) == ["cnn-N20", "cnn-N40", "lstm-N20", "lstm-N40"]
-    pd.testing.assert_frame_equal(results["joblib"], results["serial"], rtol=1e-6)
+    file: four finished runs in four folders, with the numbers of the same four runs in the
+    serial sweep (the paper's, run once for the test run: ``paper_sweep`` in conftest)."""
+    uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
+    start = time.perf_counter()
+    # a process of its own: joblib's workers write to the process's stderr (read for
+    # "database is locked"), and joblib keeps them, with their environment, for later sweeps
+    res = cli("lbo.train", "-m", *SWEEP, "experiment=smoke", f"data.root={smoke_data.parent}",
+              "trainer.max_epochs=2", f"hydra.sweep.dir={tmp_path / 'sweep'}",
+              "hydra/launcher=joblib", "hydra.launcher.n_jobs=2",
+              env={"MLFLOW_TRACKING_URI": uri}, process=True)
+    assert res.returncode == 0, res.stderr[-3000:]
+    assert "database is locked" not in res.stderr
+    print(f"joblib: {time.perf_counter() - start:.1f} s")
+    table = finished_runs(uri)
+    assert len(table) == 4 and set(table["status"]) == {"FINISHED"}
+    assert table["output"].nunique() == 4  # one folder, and one checkpoint, per job
+    assert all(str(o).startswith(str(tmp_path / "sweep")) for o in table["output"])
+    assert len(list((tmp_path / "sweep").glob("*/checkpoints/best*.ckpt"))) == 4
+    joblib = table.set_index("name").drop(columns=["status", "output"]).sort_index()
+    assert sorted(joblib.index) == ["cnn-N20", "cnn-N40", "lstm-N20", "lstm-N40"]
+    assert paper_sweep["returncode"] == 0, paper_sweep["stderr"][-3000:]
+    serial = finished_runs(paper_sweep["uri"]).set_index("name").loc[joblib.index]
+    pd.testing.assert_frame_equal(joblib, serial.drop(columns=["status", "output"]), rtol=1e-6)
 
 
 # --- an MLflow tracking server ------------------------------------------------------------------

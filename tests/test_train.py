@@ -1,6 +1,4 @@
 import logging
-import subprocess
-import sys
 
 import mlflow
 import numpy as np
@@ -200,25 +198,22 @@ def test_lightning_speaks_once_and_advertises_nothing():
 
 
 @pytest.mark.slow
-def test_multirun_sweep_logs_eight_runs(tmp_path, smoke_data, tracking):
-    res = subprocess.run(
-        [sys.executable, "-m", "lbo.train", "-m", "model=cnn,lstm", "window=20,40,60,80",
-         "experiment=smoke", f"data.root={smoke_data.parent}",
-         f"hydra.sweep.dir={tmp_path / 'sweep'}"], capture_output=True, text=True)
-    assert res.returncode == 0, res.stderr[-3000:]
-    client, found = runs(tracking)
+def test_multirun_sweep_logs_eight_runs(tmp_path, paper_sweep):
+    # the paper's command: python -m lbo.train -m model=cnn,lstm window=20,40,60,80 (conftest)
+    assert paper_sweep["returncode"] == 0, paper_sweep["stderr"][-3000:]
+    client, found = runs(paper_sweep["uri"])
     names = sorted(r.info.run_name for r in found)
     assert names == sorted(f"{m}-N{n}" for m in ("cnn", "lstm") for n in (20, 40, 60, 80))
     # each run ends with its result, not only a run id
-    said = res.stdout + res.stderr
+    said = paper_sweep["stdout"] + paper_sweep["stderr"]
     assert said.count("NRMSE on the test grid") == 8
     assert said.count("worst ratio to the oracle over alpha 0.25-6: ") == 8
     assert said.count("`Trainer.fit` stopped") == 8  # Lightning's lines once, not twice
     assert "Tip:" not in said  # nor its advertisements
     assert "Trainable params" not in said  # nor its table of the model's layers (verbose=true)
     # and the sweep ends with one table of its eight runs (lbo.core.sweep)
-    end = res.stdout.split("the sweep's runs side by side")[-1]
-    assert end != res.stdout
+    end = paper_sweep["stdout"].split("the sweep's runs side by side")[-1]
+    assert end != paper_sweep["stdout"]
     assert all(f"{m}-N{n} (job " in end for m in ("cnn", "lstm") for n in (20, 40, 60, 80))
     assert "Downloading artifacts" not in said  # nor MLflow's bars after the result
     # the experiment opens in MLflow's model-training view, not its GenAI one
@@ -244,7 +239,7 @@ def test_multirun_sweep_logs_eight_runs(tmp_path, smoke_data, tracking):
         table = pd.read_csv(local)
         assert list(table.columns) == list(SCORE_COLUMNS)
         assert set(table["observer"]) == {r.info.run_name, "ekf", "oracle"}
-    jobs = sorted(p.name for p in (tmp_path / "sweep").iterdir() if p.name.isdigit())
+    jobs = sorted(p.name for p in paper_sweep["sweep"].iterdir() if p.name.isdigit())
     assert jobs == [str(i) for i in range(8)]
 
 
