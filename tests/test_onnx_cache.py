@@ -46,6 +46,7 @@ def test_an_export_is_kept_and_the_next_session_reads_it(own_cache, monkeypatch)
         Observer.from_net(_cnn(seed=1), engine="onnx")
 
 
+@pytest.mark.slow  # an export (3 s): the tests of 1 s or more are out of make test-fast
 def test_lbo_export_writes_the_kept_export_of_an_observer_run_in_onnx_runtime(
         own_cache, monkeypatch, tmp_path):
     """An observer run with engine=onnx and then exported: lbo.export writes the kept graph
