@@ -97,7 +97,7 @@ def kept(module: Any, form: str, opset: int, export: Callable[[], bytes],
     """``module``'s export as ``form`` and a session of it (``open_session(bytes)``): the kept
     file's where there is one that ONNX Runtime opens, else a new ``export()``'s, which is
     then kept. ``lbo.export`` writes these bytes: an observer already run with
-    ``engine=onnx`` (or trained with its graphs kept) exports without tracing again."""
+    ``engine=onnx`` exports without tracing again."""
     path = cache_dir() / "onnx" / f"{form}-{key(module, form, opset)}.onnx"
     try:
         model = path.read_bytes()
