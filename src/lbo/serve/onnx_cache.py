@@ -85,13 +85,6 @@ def version(package: str) -> str:
         return "none"
 
 
-def session(module: Any, form: str, opset: int, export: Callable[[], bytes],
-            open_session: Callable[[bytes], Any]) -> Any:
-    """An ONNX Runtime session (``open_session(bytes)``) of ``module``'s export: of the kept
-    file where there is one, else of a new ``export()``, which is then kept."""
-    return kept(module, form, opset, export, open_session)[1]
-
-
 def kept(module: Any, form: str, opset: int, export: Callable[[], bytes],
          open_session: Callable[[bytes], Any]) -> tuple[bytes, Any]:
     """``module``'s export as ``form`` and a session of it (``open_session(bytes)``): the kept
