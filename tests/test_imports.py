@@ -146,9 +146,9 @@ def test_a_missing_conf_folder_is_one_line(tmp_path):
                                   "<repo>), or set LBO_ROOT=<repo>")
 
 
-def test_the_readmes_layout_names_every_layer_in_order_and_every_command():
-    readme = (SRC.parents[1] / "README.md").read_text()
-    section = readme.split("## Layout\n", 1)[1].split("\n## ", 1)[0]
+def test_the_documented_layout_names_every_layer_in_order_and_every_command():
+    design = (SRC.parents[1] / "docs" / "design.md").read_text()
+    section = design.split("## Layout\n", 1)[1].split("\n## ", 1)[0]
     rows = [line.split("|")[1].strip().strip("`/") for line in section.splitlines()
             if line.startswith("| `")]
     assert tuple(rows) == LAYERS

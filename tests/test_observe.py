@@ -21,7 +21,7 @@ from lbo.filters.kalman import ekf_batch
 from lbo.filters.reference import run_filterpy_ekf
 from lbo.observe import observe as observe_cfg
 from lbo.scoring.grid import classical, predict_grid
-from lbo.scoring.metrics import rmse
+from lbo.scoring.metrics import nrmse, rmse
 from lbo.serve.engines import TOLERANCE
 from lbo.serve.observer import Observer
 from lbo.sim import schema
@@ -93,6 +93,15 @@ def test_observe_prints_the_evaluation_rmse(tmp_path, trained, manoeuvre, log_cs
         res = observe("observer=ekf", f"input={log_csv}", f"output={out}")
         valid = len(manoeuvre)
     np.testing.assert_allclose(printed_rmse(res.stdout), expected, rtol=1e-5)
+    # the NRMSE's E_ref: the EKF's RMSE on the rows scored (the EKF itself scores 1)
+    e_ref = rmse(classical("ekf", arr, VEHICLE, NOISE), arr.z, arr.mask)[0]
+    found = re.search(r"nrmse (\S+) \(E_ref: the EKF on the same rows, x (\S+) m, y (\S+) m, "
+                      r"psi (\S+) rad", res.stdout)
+    assert found, res.stdout
+    np.testing.assert_allclose([float(v) for v in found.groups()[1:]], e_ref, rtol=1e-3)
+    np.testing.assert_allclose(float(found.group(1)), nrmse(expected, e_ref), rtol=1e-5)
+    if which == "ekf":
+        assert found.group(1) == "1"
     assert f"observed: {out}" in res.stdout
     est = pd.read_csv(out)
     # the EKF gives its covariance's entries; the CNN has none to give, but names the rows
@@ -125,6 +134,8 @@ def test_ekf_output_matches_filterpys_ekf(tmp_path, manoeuvre, log_csv):
     np.testing.assert_allclose(est["psi"], wrap_angle(ref[:, 2]), rtol=0, atol=1e-9)
     z = manoeuvre[["x", "y", "psi"]].to_numpy()
     np.testing.assert_allclose(result["rmse"], rmse(ref, z), rtol=1e-12)
+    np.testing.assert_array_equal(result["e_ref"], result["rmse"])  # the EKF is its reference
+    assert result["nrmse"] == pytest.approx(1.0, abs=1e-12)
 
 
 def test_smooth_true_writes_the_rts_smoothers_estimates(tmp_path, manoeuvre, log_csv, trained):
@@ -142,6 +153,12 @@ def test_smooth_true_writes_the_rts_smoothers_estimates(tmp_path, manoeuvre, log
     filtered = observe_cfg(compose_cfg("observe", ["observer=oracle", "alpha=1", f"input={log_csv}",
                                            f"output={tmp_path / 'f.csv'}"]))
     assert (result["rmse"][:2] < 0.9 * filtered["rmse"][:2]).all()
+    # scored against the same EKF (R at alpha=1, filtering), which the smoother beats
+    ekf = run_classical("ekf", m[None], u[None], VEHICLE, NOISE)[0]
+    np.testing.assert_allclose(result["e_ref"], rmse(ekf, manoeuvre[["x", "y", "psi"]].to_numpy()),
+                               rtol=1e-12)
+    assert result["nrmse"] == pytest.approx(nrmse(result["rmse"], result["e_ref"]))
+    assert result["nrmse"] < 1
     with pytest.raises(LboError, match="has no filter to smooth"):
         observe_cfg(compose_cfg("observe", [f"observer={trained['checkpoint']}", f"input={log_csv}",
                                     f"output={tmp_path / 'cnn.csv'}", "smooth=true"]))

@@ -172,9 +172,9 @@ class Evaluation(L.Callback):
             self.metrics["worst_oracle_ratio"] = float(ratio.max())
         if truth.car is not None:  # the floor on a car that slips: the EKF told the car
             print(summary(self.table, name, peers=("ekf", "oracle", "oracle_dynamic"),
-                          oracle="oracle_dynamic"))
+                          oracle="oracle_dynamic", reference=self.reference))
         else:
-            print(summary(self.table, name))
+            print(summary(self.table, name, reference=self.reference))
         if truth.car is not None and len(ratio):
             for peer, key in (("oracle_dynamic", "worst_dynamic_oracle_ratio"),
                               ("oracle_tuned", "worst_tuned_oracle_ratio")):

@@ -195,14 +195,20 @@ def oracle_ratio(table: pd.DataFrame, observer: str, low: float = 0.25,
 
 
 def summary(table: pd.DataFrame, observer: str, alphas: Sequence[float] = (1.0, 3.0, 6.0),
-            peers: Sequence[str] = ("ekf", "oracle"), oracle: str = "oracle") -> str:
+            peers: Sequence[str] = ("ekf", "oracle"), oracle: str = "oracle",
+            reference: str = "ekf") -> str:
     """A few lines for the end of a training run: the NRMSE of ``observer`` and ``peers`` at
     each of ``alphas`` the table holds, and the worst ratio of ``observer`` to ``oracle`` over
-    alpha in [0.25, 6] (where the table holds the oracle)."""
+    alpha in [0.25, 6] (where the table holds the oracle); ``reference``: the table's E_ref
+    (:func:`reference`'s mode), named in the first line."""
+    by = ("the EKF at alpha 1 is 1" if reference == "ekf" else
+          "E_ref: the paper's EKF, " + ", ".join(f"{v:g} {u}" for v, u in zip(
+              (PAPER_REFERENCE[0], PAPER_REFERENCE[1], PAPER_REFERENCE[2] * 1e3),
+              ("m", "m", "mrad"))))
     shown = [a for a in alphas if np.isclose(table["alpha"], a).any()]
     names = [observer, *(p for p in peers if (table["observer"] == p).any())]
     width = max(len(n) for n in names)
-    lines = ["NRMSE on the test grid (lower is better; the EKF at alpha 1 is 1):",
+    lines = [f"NRMSE on the test grid (lower is better; {by}):",
              f"  {'observer':<{width}}" + "".join(f"  {f'alpha {a:g}':>9}" for a in shown)]
     lines += [f"  {n:<{width}}" + "".join(f"  {nrmse_at(table, n, a):>9.3f}" for a in shown)
               for n in names]
