@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import re
+
 import pytest
 
 from helpers import cli
-from lbo.learn.progress import epoch_words
+from lbo.learn.progress import epoch_words, estimate_words
 
 
 @pytest.mark.parametrize(("epoch", "most", "early", "said"), [
@@ -13,6 +15,15 @@ from lbo.learn.progress import epoch_words
     (4, -1, True, "epoch 5"), (0, None, False, "epoch 1")])
 def test_an_epoch_is_counted_from_one_and_of_its_total(epoch, most, early, said):
     assert epoch_words(epoch, most, early) == said
+
+
+def test_the_estimate_multiplies_epochs_batches_and_the_time_of_one():
+    said = estimate_words(0.73, 100, 4, 9, early_stopping=True)
+    assert said.startswith("estimate: 4 epochs x 100 batches x 0.73 s (timed over 9 of its "
+                           "first batches): about 4 min 52 s of training, less if early "
+                           "stopping ends it;")
+    assert "about 2 s of training;" in estimate_words(1.0, 2, 1, 1, early_stopping=False)
+    assert "): under 1 s of training;" in estimate_words(0.01, 20, 2, 9, early_stopping=False)
 
 
 @pytest.mark.slow
@@ -26,6 +37,10 @@ def test_a_training_says_epoch_k_of_n_on_its_bar(tmp_path, smoke_data):
     assert res.returncode == 0, res.stderr[-3000:]
     # Lightning's bar writes to stdout; the default callbacks stop early: the total is at most
     assert "epoch 1 of at most 2" in res.stdout and "epoch 2 of at most 2" in res.stdout
+    # how long it will take, said once, after its first epoch's two batches (one timed)
+    estimates = re.findall(r"estimate: 2 epochs x 2 batches x (\S+) s \(timed over 1 of its "
+                           r"first batches\): (?:about \d+ s|under 1 s) of training", res.stdout)
+    assert len(estimates) == 1 and float(estimates[0]) > 0, res.stdout[-3000:]
     # each bar's last word on its epoch is ours (Lightning's own "Epoch 0", from 0 and without
     # a total, is drawn first and overwritten at once)
     done = [f for f in res.stdout.replace("\r", "\n").splitlines()
@@ -33,3 +48,5 @@ def test_a_training_says_epoch_k_of_n_on_its_bar(tmp_path, smoke_data):
     assert done and all(f.startswith("epoch ") for f in done), done
     # lbo logs per epoch: Lightning's warning on its per-step logging interval is not shown
     assert "log_every_n_steps" not in res.stdout + res.stderr
+    # nor its hint at srun where SLURM is installed (lbo's SLURM jobs come through submitit)
+    assert "srun" not in res.stdout + res.stderr

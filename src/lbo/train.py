@@ -67,6 +67,9 @@ warnings.filterwarnings("ignore", message=r"`isinstance\(treespec, LeafSpec\)` i
 # its warning that an epoch of fewer batches than it logs nothing per step, do not apply
 warnings.filterwarnings("ignore", message=r"The number of training batches \(\d+\) is smaller "
                         r"than the logging interval")
+# Lightning hints at srun wherever SLURM's commands are installed (twice a run); lbo reaches
+# SLURM through its submitit launcher, whose jobs need no srun
+warnings.filterwarnings("ignore", message=r"The `srun` command is available on your system")
 
 
 def git_commit() -> str:
