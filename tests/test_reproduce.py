@@ -164,7 +164,9 @@ def test_a_measured_step_gives_the_runs_expected_time(tmp_path, smoke_data):
     m = measure(train_cfg(tmp_path, smoke_data, "trainer.max_epochs=2",
                           "trainer.limit_train_batches=5"), steps=4)
     assert m["steps"] == 10 and 0 < m["step_s"] < 5
-    assert m["seconds"] == pytest.approx(m["setup_s"] + 10 * m["step_s"])
+    # and the forward passes beside the steps: each epoch's validation, the test set's scoring
+    assert 0 < m["eval_s"] < 60
+    assert m["seconds"] == pytest.approx(m["setup_s"] + 10 * m["step_s"] + m["eval_s"])
     assert m["timed"] == 3 + 4  # warm-up and the steps asked for
     # a run of 4 steps is timed on 4 steps, not the 11 (3 + 8) a longer one is
     short = measure(train_cfg(tmp_path, smoke_data, "trainer.max_epochs=1",

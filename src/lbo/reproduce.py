@@ -163,6 +163,7 @@ def expected(cfg: DictConfig, jobs: list[Job]) -> Eta:
     from lbo.learn.resume import config_hash, finished_run
 
     estimates = []
+    begin = time.perf_counter()
     for job in jobs:
         c = compose("train", list(job.overrides))
         if finished_run(c, config_hash(c), clean=False) is not None:
@@ -171,12 +172,14 @@ def expected(cfg: DictConfig, jobs: list[Job]) -> Eta:
         m = measure(c)
         estimates.append(m["seconds"])
         print(f"    {job.key}: {m['steps']} steps x {1e3 * m['step_s']:.1f} ms + "
-              f"{m['setup_s']:.1f} s setup = {duration(m['seconds'])}", flush=True)
+              f"{m['setup_s']:.1f} s setup + {m['eval_s']:.1f} s validation and test = "
+              f"{duration(m['seconds'])}", flush=True)
     total = sum(estimates) / (min(cfg.jobs, len(jobs)) if cfg.launcher == "joblib" else 1)
     device = data_device(compose("train", list(jobs[0].overrides)))
     print(f"    expected: about {duration(total)} of training at scale {cfg.scale} on "
-          f"{device} (measured steps x steps per run; early stopping can only shorten it)",
-          flush=True)
+          f"{device} (measured steps x steps per run, and forward passes for validation and "
+          f"the test set, timed in {time.perf_counter() - begin:.0f} s; early stopping can "
+          "only shorten it)", flush=True)
     return Eta(estimates)
 
 

@@ -9,8 +9,10 @@ from __future__ import annotations
 import math
 import statistics
 import time
+from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 from hydra.utils import instantiate
 from omegaconf import DictConfig
@@ -35,9 +37,11 @@ def measure(cfg: DictConfig, steps: int = 8, warmup: int = 3) -> dict[str, Any]:
     so that its estimate never costs more than its training.
 
     Returns ``step_s`` (median seconds per step), ``steps`` (the run's step count),
-    ``setup_s`` (reading the data set and building the model, once per run), ``seconds``
-    (setup plus steps x step time: the expected training time, early stopping aside) and
-    ``timed`` (the steps it took, warm-up included).
+    ``setup_s`` (reading the data set and building the model, once per run), ``eval_s`` (its
+    validation in every epoch and its evaluation on the test set, from a forward pass timed;
+    0 for a model trained carried), ``seconds`` (setup plus steps x step time plus eval_s: the
+    expected training time, early stopping aside) and ``timed`` (the steps it took, warm-up
+    included).
     """
     from lbo.learn.builders import build_net, data_device, datamodule, prepare_data
     from lbo.learn.sequence import from_batch, train_batch
@@ -45,7 +49,8 @@ def measure(cfg: DictConfig, steps: int = 8, warmup: int = 3) -> dict[str, Any]:
 
     begin = time.perf_counter()
     device = data_device(cfg)
-    dm = datamodule(cfg, prepare_data(cfg)[0])
+    folder = prepare_data(cfg)[0]
+    dm = datamodule(cfg, folder)
     net = build_net(cfg).to(device)
     net.set_normalisation(**dm.normalisation(net, cfg.model.normalisation))
     opt = instantiate(cfg.optimizer)(params=net.parameters())
@@ -79,8 +84,41 @@ def measure(cfg: DictConfig, steps: int = 8, warmup: int = 3) -> dict[str, Any]:
         if len(periods) == steps:
             break
     step_s = statistics.median(periods)
-    return {"step_s": step_s, "steps": n, "setup_s": setup_s, "seconds": setup_s + step_s * n,
-            "timed": warmup + len(periods)}
+    eval_s = _forward_s(cfg, net, dm, folder) if carried is None else 0.0
+    return {"step_s": step_s, "steps": n, "setup_s": setup_s, "eval_s": eval_s,
+            "seconds": setup_s + step_s * n + eval_s, "timed": warmup + len(periods)}
+
+
+def _forward_s(cfg: DictConfig, net: Any, dm: Any, folder: Path) -> float:
+    """Seconds of the forward passes a run makes besides its steps, each timed: every epoch's
+    validation (one batch of its loader, times its batches) and the final evaluation on the
+    test set (:func:`lbo.scoring.grid.predict` on its first few trajectories and on twice as
+    many, carried on in a line to all of them: the recursive form runs them together)."""
+    from lbo.scoring.grid import load_test, predict
+
+    def timed(run: Any) -> float:
+        start = time.perf_counter()
+        run()
+        return time.perf_counter() - start
+
+    loader = dm.val_dataloader()
+    batch = next(iter(loader))
+    net.eval()
+    with torch.no_grad():  # once: the training steps timed before warmed the model up
+        one = timed(lambda: net.loss(*batch))
+    val_s = one * len(loader) * int(cfg.trainer.max_epochs)
+    test = folder / "test.parquet"
+    if not test.is_file():  # a user's logs: scored file by file, not timed here
+        return val_s
+    arr = load_test(test)
+    g = len(arr.alpha)
+    k = min(4, g)
+    first = timed(lambda: predict(net, arr.take(np.arange(k))))
+    if g == k:
+        return val_s + first
+    twice = timed(lambda: predict(net, arr.take(np.arange(min(2 * k, g)))))
+    per = max(twice - first, 0.0) / (min(2 * k, g) - k)
+    return val_s + first + per * (g - k)
 
 
 def duration(seconds: float) -> str:
