@@ -537,20 +537,19 @@ def test_the_plot_shows_errors_against_the_truth_or_the_uncertainty(manoeuvre):
         plots.plt.close(fig)
         return labels
 
+    # the path, then a panel each for x, y and psi: its error and its own sigma band
     both = panels(plots.observed_log(t, m, est, "ekf", z, cov))
-    assert len(both) == 3 and both[0] == ["fixes", "truth", "ekf"]
-    assert both[1] == ["+-2 sigma of x", "error of x", "+-2 sigma of y", "error of y"]
-    assert both[2] == ["+-2 sigma of psi", "error of psi"]
-    assert panels(plots.observed_log(t, m, est, "ekf", None, cov))[1] == \
-        ["+-2 sigma of x", "+-2 sigma of y"]
-    assert panels(plots.observed_log(t, m, est, "cnn", z, None))[2] == ["error of psi"]
+    assert len(both) == 4 and both[0] == ["fixes", "ekf", "truth"]
+    assert both[1] == both[2] == both[3] == ["ekf: +-2 sigma", "ekf: error"]
+    assert panels(plots.observed_log(t, m, est, "ekf", None, cov))[1:] == \
+        [["ekf: +-2 sigma"]] * 3
+    assert panels(plots.observed_log(t, m, est, "cnn", z, None))[3] == ["cnn: error"]
     assert len(panels(plots.observed_log(t, m, est, "cnn", None, np.full((len(t), 3, 3),
                                                                           np.nan)))) == 1
     # another observer beside it: its path, and its errors in each panel
     beside = panels(plots.observed_log(t, m, est, "ekf", z, None, {"ukf": est + 0.1}))
-    assert beside[0] == ["fixes", "truth", "ekf", "ukf"]
-    assert beside[1] == ["error of x", "ukf: error of x", "error of y", "ukf: error of y"]
-    assert beside[2] == ["error of psi", "ukf: error of psi"]
+    assert beside[0] == ["fixes", "ekf", "ukf", "truth"]
+    assert beside[1] == beside[2] == beside[3] == ["ekf: error", "ukf: error"]
 
 
 def test_evaluate_scores_an_existing_observer_and_logs_to_its_run(trained, smoke_data, tmp_path,

@@ -188,10 +188,13 @@ def _figures(study: optuna.Study, folder: Path) -> list[Path]:
     # optuna's plots switch the global style to ggplot: keep that to these two figures
     with warnings.catch_warnings(), plt.rc_context():
         warnings.simplefilter("ignore")  # optuna marks its matplotlib plots experimental
-        for name, plot in (("optimization_history", ovm.plot_optimization_history),
-                           ("intermediate_values", ovm.plot_intermediate_values)):
-            ax = plot(study)
-            out.append(plots.save(ax.figure, folder / f"{name}.png"))
+        # each names its objective: a trial's best validation loss, and the loss each epoch
+        ax = ovm.plot_optimization_history(study, target_name="val_loss (best of the trial)")
+        ax.set_ylabel("val_loss: validation loss (lower is better)")
+        out.append(plots.save(ax.figure, folder / "optimization_history.png"))
+        ax = ovm.plot_intermediate_values(study)
+        ax.set(xlabel="epoch", ylabel="val_loss after the epoch (lower is better)")
+        out.append(plots.save(ax.figure, folder / "intermediate_values.png"))
     return out
 
 
