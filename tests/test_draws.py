@@ -370,5 +370,5 @@ def test_bad_train_noise_is_refused_before_anything_is_written(tmp_path, smoke_d
     with pytest.raises(LboError, match="^train_noise"):
         train(train_cfg(tmp_path, smoke_data, *overrides))
     assert not (tmp_path / "out").exists()  # no checkpoint folder, no config.yaml
-    exp = mlflow.MlflowClient(tracking).get_experiment_by_name("lbo")
+    exp = mlflow.MlflowClient(tracking).get_experiment_by_name("lbo-smoke")
     assert exp is None or mlflow.MlflowClient(tracking).search_runs([exp.experiment_id]) == []

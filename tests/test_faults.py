@@ -58,7 +58,7 @@ def test_a_killed_run_resumes_from_its_last_checkpoint_as_if_never_killed(tmp_pa
     watcher.join()
     assert proc.returncode == -signal.SIGKILL and last.exists()
     client = mlflow.MlflowClient(uri)
-    exp = client.get_experiment_by_name("lbo")
+    exp = client.get_experiment_by_name("lbo-smoke")
     (killed,) = client.search_runs([exp.experiment_id])
     assert killed.info.status == "RUNNING"
     assert len(client.get_metric_history(killed.info.run_id, "val_loss")) in (2, 3)
@@ -74,7 +74,8 @@ def test_a_killed_run_resumes_from_its_last_checkpoint_as_if_never_killed(tmp_pa
     assert sorted(p.name for p in last.parent.glob("*.ckpt")) == ["best.ckpt", "last.ckpt"]
     # the same final metrics, to the last bit on the CPU, as the run that was never killed
     ref_client = mlflow.MlflowClient(ref_env["MLFLOW_TRACKING_URI"])
-    (unbroken,) = ref_client.search_runs([ref_client.get_experiment_by_name("lbo").experiment_id])
+    (unbroken,) = ref_client.search_runs(
+        [ref_client.get_experiment_by_name("lbo-smoke").experiment_id])
     tests = {k: v for k, v in run.data.metrics.items() if k.startswith("test_")}
     assert tests and tests == {k: v for k, v in unbroken.data.metrics.items()
                                if k.startswith("test_")}
@@ -108,7 +109,7 @@ def test_a_run_killed_before_its_first_checkpoint_is_replaced(tmp_path, smoke_da
                 env={"MLFLOW_TRACKING_URI": uri})
     assert rerun.returncode == 0, rerun.stderr[-3000:]
     client = mlflow.MlflowClient(uri)
-    exp = client.get_experiment_by_name("lbo")
+    exp = client.get_experiment_by_name("lbo-smoke")
     finished = client.search_runs([exp.experiment_id], "attributes.status = 'FINISHED'")
     killed = [r for r in client.search_runs([exp.experiment_id], run_view_type=3)
               if r.info.run_id != finished[0].info.run_id]

@@ -44,7 +44,7 @@ def test_the_gyro_ekf_trains_as_a_run_that_observe_takes(tmp_path, logs):
     res, uri = _train(tmp_path, logs, "model.across_drives=true")
     assert res.returncode == 0, res.stderr[-3000:]
     client = mlflow.MlflowClient(uri)
-    [run] = client.search_runs([client.get_experiment_by_name("lbo").experiment_id])
+    [run] = client.search_runs([client.get_experiment_by_name("lbo-logs").experiment_id])
     assert run.info.status == "FINISHED" and run.data.tags["model"] == "gyro_ekf"
     assert run.data.tags["config_hash"] and run.data.params["model.objective"] == "truth"
     val = [m.value for m in client.get_metric_history(run.info.run_id, "val_loss")]

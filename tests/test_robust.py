@@ -160,7 +160,7 @@ def test_filternet_with_relative_features_is_refused_before_training(tmp_path, s
         train(cfg)
     assert "\n" not in str(err.value)
     assert not (tmp_path / "out").exists()
-    exp = mlflow.MlflowClient(uri).get_experiment_by_name("lbo")
+    exp = mlflow.MlflowClient(uri).get_experiment_by_name("lbo-smoke")
     assert exp is None or mlflow.MlflowClient(uri).search_runs([exp.experiment_id]) == []
 
 

@@ -43,7 +43,7 @@ def tmpfs(folder: Path, options: str) -> None:
 
 def runs_in(uri: str) -> list:
     client = mlflow.MlflowClient(uri)
-    exp = client.get_experiment_by_name("lbo")
+    exp = client.get_experiment_by_name("lbo-smoke")
     return client.search_runs([exp.experiment_id]) if exp else []
 
 

@@ -11,7 +11,7 @@ from hydra import compose, initialize_config_dir
 from omegaconf import open_dict
 
 from lbo.core.paths import CONF_DIR, REPO_ROOT
-from lbo.learn.resume import _unlayered, config_hash, finished_run
+from lbo.learn.resume import EXPERIMENT_BEFORE, _unlayered, config_hash, finished_run
 
 PRE_MOVE = {
     (): "e018b36dfba2bd07",
@@ -26,9 +26,10 @@ evaluation callback's path), as the runs of an existing store carry them in thei
 
 @pytest.fixture(scope="module")
 def old_store(tmp_path_factory):
-    """An MLflow store with one FINISHED run per config above, tagged as before the move."""
+    """An MLflow store with one FINISHED run per config above, tagged as before the move, in
+    the one experiment every run went to then (each data set has its own since)."""
     uri = f"sqlite:///{tmp_path_factory.mktemp('store')}/mlflow.db"
-    name = compose_cfg("train").logger.experiment_name
+    name = EXPERIMENT_BEFORE
     client = mlflow.MlflowClient(uri)
     exp = client.create_experiment(name)
     ids = {}

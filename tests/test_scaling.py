@@ -29,7 +29,7 @@ SWEEP = ["model=cnn,lstm", "window=20,40"]
 
 def finished_runs(uri: str) -> pd.DataFrame:
     client = mlflow.MlflowClient(uri)
-    exp = client.get_experiment_by_name("lbo")
+    exp = client.get_experiment_by_name("lbo-smoke")
     found = client.search_runs([exp.experiment_id]) if exp else []
     return pd.DataFrame([{"name": r.info.run_name, "status": r.info.status,
                           "output": r.data.params.get("output_dir"),
@@ -388,7 +388,7 @@ def test_workers_on_postgres_finish_exactly_n_trials_after_a_kill(tmp_path, smok
         assert len(workers_held) == 3  # a, b and a again
         assert all(peak <= MAX_CONNECTIONS and now == 0 for peak, now in workers_held.values())
     client = mlflow.MlflowClient(uri)
-    exp = client.get_experiment_by_name("lbo")
+    exp = client.get_experiment_by_name("lbo-smoke")
     live = client.search_runs([exp.experiment_id], "attributes.status = 'RUNNING'")
     assert live == []  # the killed trial's run was closed FAILED, the study's FINISHED
     tags = [r.data.tags.get("optuna_storage", "") for r in client.search_runs(
@@ -445,7 +445,7 @@ def test_a_wrong_postgres_password_is_one_line_and_leaves_no_run(tmp_path, smoke
                                f"127.0.0.1:{pg.port}/postgres (OperationalError: ")
     assert "password authentication failed" in lines[0]
     client = mlflow.MlflowClient(uri)
-    exp = client.get_experiment_by_name("lbo")
+    exp = client.get_experiment_by_name("lbo-smoke")
     assert exp is None or client.search_runs([exp.experiment_id]) == []
 
 

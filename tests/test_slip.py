@@ -163,7 +163,7 @@ def test_train_learns_on_the_train_span_logs_a_run_and_a_rerun_reuses_it(tmp_pat
     assert res.returncode == 0, res.stderr[-3000:]
     assert "| test | slip_gru |" in res.stdout and "| test | linear single-track KF |" in res.stdout
     client = mlflow.MlflowClient(tracking)
-    (run,) = client.search_runs(client.get_experiment_by_name("lbo").experiment_id)
+    (run,) = client.search_runs(client.get_experiment_by_name("lbo-sideslip").experiment_id)
     assert run.info.status == "FINISHED" and run.data.tags["model"] == "slip_gru"
     m = run.data.metrics
     assert m["test_linear_beta_rmse_deg"] == pytest.approx(0.964, abs=0.001)  # the docs' KF
@@ -210,7 +210,7 @@ def test_train_on_simulation_reads_nothing_of_the_real_run_but_to_score_it(tmp_p
     sim_train = lateral.simulate(settings, seed=0)[:3]
     assert observer.prior.noise == slip_data.noise_of(sim_train, GAIN)  # not the real run's
     client = mlflow.MlflowClient(tracking)
-    (run,) = client.search_runs(client.get_experiment_by_name("lbo").experiment_id)
+    (run,) = client.search_runs(client.get_experiment_by_name("lbo-sideslip_sim").experiment_id)
     assert run.data.tags["data"] == "sideslip_sim"
     assert {"test_beta_rmse_deg", "test_vs_linear"} <= set(run.data.metrics)
 
@@ -227,7 +227,7 @@ def test_tune_studies_the_side_slip_observer_on_the_validation_span(tmp_path, tr
     assert res.stdout.splitlines()[1].startswith("trial   0  val_loss")
     assert handoff.exists()
     client = mlflow.MlflowClient(tracking)
-    runs = client.search_runs(client.get_experiment_by_name("lbo").experiment_id,
+    runs = client.search_runs(client.get_experiment_by_name("lbo-sideslip").experiment_id,
                               "tags.optuna_trial = '0'")
     (trial,) = runs
     assert trial.data.tags["model"] == "slip_gru" and trial.info.status == "FINISHED"

@@ -140,7 +140,7 @@ def test_train_fits_it_on_sequences_logs_a_run_and_refuses_another_kinds_start(
               f"hydra.run.dir={tmp_path / 'a'}")
     assert res.returncode == 0, res.stderr[-3000:]
     client = mlflow.MlflowClient(tracking)
-    (run,) = client.search_runs(client.get_experiment_by_name("lbo").experiment_id)
+    (run,) = client.search_runs(client.get_experiment_by_name("lbo-sideslip_sim").experiment_id)
     assert run.info.status == "FINISHED" and run.data.tags["model"] == "slip_filter"
     assert len(client.get_metric_history(run.info.run_id, "val_loss")) == 2
     ckpt = tmp_path / "a" / "checkpoints" / "best.ckpt"

@@ -187,7 +187,7 @@ def environment(cluster: Slurm, server, extra: dict[str, str] | None = None) -> 
 def runs_under(server, folder: Path) -> list:
     """The MLflow runs whose output folder lies under ``folder``."""
     client = mlflow.MlflowClient(server.url)
-    exp = client.get_experiment_by_name("lbo")
+    exp = client.get_experiment_by_name("lbo-smoke")
     found = client.search_runs([exp.experiment_id]) if exp else []
     return [r for r in found if r.data.params.get("output_dir", "").startswith(str(folder))]
 

@@ -18,7 +18,7 @@ from lbo.train import train
 
 def runs(uri):
     client = mlflow.MlflowClient(uri)
-    exp = client.get_experiment_by_name("lbo")
+    exp = client.get_experiment_by_name("lbo-smoke")
     return client, client.search_runs([exp.experiment_id]) if exp else []
 
 
@@ -96,8 +96,14 @@ def test_fast_dev_run_trains_and_scores(tmp_path, smoke_data, tracking):
     table = pd.read_csv(tmp_path / "out" / "evaluation.csv")
     assert set(table["observer"]) == {"lstm-N40", "ekf", "oracle"}
     assert np.isfinite(out["worst_oracle_ratio"]) and out["worst_oracle_ratio"] > 0
-    client, found = runs(tracking)
+    client, found = runs(tracking)  # in its data set's experiment, lbo-smoke
     assert [r.info.status for r in found] == ["FINISHED"]
+    assert {e.name for e in client.search_experiments()} - {"Default"} == {"lbo-smoke"}
+    # its description in the MLflow UI: the result table it printed
+    note = found[0].data.tags["mlflow.note.content"]
+    assert note.startswith("lstm-N40 on 21 test trajectories:")
+    assert "NRMSE on the test grid (lower is better; the EKF at alpha 1 is 1):" in note
+    assert f"{out['test_nrmse_alpha_3']:.3f}" in note
 
 
 def test_same_seed_same_metrics(tmp_path, smoke_data, tracking):

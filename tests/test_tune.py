@@ -42,7 +42,7 @@ def tune_cfg(tmp_path, smoke_data, tracking, *overrides, search="cnn"):
 
 def study_runs(tracking, study_name):
     client = mlflow.MlflowClient(tracking)
-    exp = client.get_experiment_by_name("lbo")
+    exp = client.get_experiment_by_name("lbo-smoke")
     if exp is None:  # nothing logged yet
         return client, [], []
     found = client.search_runs([exp.experiment_id], f"tags.optuna_study = {literal(study_name)}")
@@ -137,8 +137,9 @@ def test_a_killed_trial_is_failed_then_retried(tmp_path, smoke_data, tracking, r
     lr = dead.suggest_float("optimizer.lr", 1e-4, 3e-3, log=True)  # the search space's range
     storage.record_heartbeat(dead._trial_id)
     client = mlflow.MlflowClient(tracking)
-    exp = client.get_experiment_by_name("lbo") or client.get_experiment(client.create_experiment(
-        "lbo", artifact_location=cfg.logger.artifact_location))
+    name = cfg.logger.experiment_name  # the study's own: lbo-<data>
+    exp = client.get_experiment_by_name(name) or client.get_experiment(client.create_experiment(
+        name, artifact_location=cfg.logger.artifact_location))
     run_id = client.create_run(exp.experiment_id, tags={
         "optuna_study": "killed", "optuna_trial": "0", "mlflow.parentRunId": parent}).info.run_id
     if recorded:
@@ -264,7 +265,7 @@ def test_a_study_name_with_a_quote_closes_its_runs(tmp_path, smoke_data, trackin
     parent = StudyRun(cfg, study, "the study's storage").run_id
     study.add_trial(optuna.trial.create_trial(state=optuna.trial.TrialState.FAIL))
     client = mlflow.MlflowClient(tracking)
-    exp = client.get_experiment_by_name("lbo")
+    exp = client.get_experiment_by_name("lbo-smoke")
     left = client.create_run(exp.experiment_id, tags={
         "optuna_study": "it's", "optuna_trial": "0", "mlflow.parentRunId": parent}).info.run_id
 

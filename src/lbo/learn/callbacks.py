@@ -61,6 +61,7 @@ class Evaluation(L.Callback):
         self._ahead: peers_ahead.Ahead | None = None
         self._ahead_tried = False
         self.metrics: dict[str, float] = {}
+        self.description = ""  # the result table, as the run's MLflow description
         # set by lbo.train: Lightning hides the run's logger behind a dummy in fast_dev_run
         self.mlflow: MLFlowLogger | None = None
 
@@ -126,6 +127,8 @@ class Evaluation(L.Callback):
             client, run = logger.experiment, logger.run_id
             for key, value in self.metrics.items():
                 client.log_metric(run, key, value)
+            # the run's description in the MLflow UI: its result table
+            client.set_tag(run, "mlflow.note.content", self.description)
             client.log_artifact(run, str(self.output_dir / "evaluation.csv"))
             client.log_artifact(run, str(self.output_dir / "nrmse.png"))
 
@@ -142,7 +145,9 @@ class Evaluation(L.Callback):
         plots.save(logscore.figure(self.table, f"{name} on the test logs"),
                    self.output_dir / "nrmse.png")
         self.metrics = logscore.metrics(self.table, name)
-        print(f"test logs ({logscore.NOTE}):\n{logscore.printable(self.table)}")
+        said = logscore.printable(self.table)
+        print(f"test logs ({logscore.NOTE}):\n{said}")
+        self.description = f"{name} on the test logs ({logscore.NOTE}):\n\n```\n{said}\n```"
 
     def _score_grid(self, folder: Path, net, hp: Mapping[str, Any], name: str, vehicle, noise,
                     device: str) -> None:
@@ -171,10 +176,12 @@ class Evaluation(L.Callback):
         if len(ratio):
             self.metrics["worst_oracle_ratio"] = float(ratio.max())
         if truth.car is not None:  # the floor on a car that slips: the EKF told the car
-            print(summary(self.table, name, peers=("ekf", "oracle", "oracle_dynamic"),
-                          oracle="oracle_dynamic", reference=self.reference))
+            said = summary(self.table, name, peers=("ekf", "oracle", "oracle_dynamic"),
+                           oracle="oracle_dynamic", reference=self.reference)
         else:
-            print(summary(self.table, name, reference=self.reference))
+            said = summary(self.table, name, reference=self.reference)
+        print(said)
+        self.description = f"{name} on {len(arr.alpha)} test trajectories:\n\n```\n{said}\n```"
         if truth.car is not None and len(ratio):
             for peer, key in (("oracle_dynamic", "worst_dynamic_oracle_ratio"),
                               ("oracle_tuned", "worst_tuned_oracle_ratio")):

@@ -54,6 +54,11 @@ WAS = {"lbo.learn.progress.EpochBar": "lightning.pytorch.callbacks.TQDMProgressB
 them as it, so that the runs of a store made before still resume and are reused."""
 
 
+EXPERIMENT_BEFORE = "lbo"
+"""The one MLflow experiment every run went to before each data set had its own
+(``lbo-<data>``): its runs are still found, reused and continued."""
+
+
 def config_hash(cfg: DictConfig) -> str:
     """Fingerprint of what a run computes: the resolved config without where it writes."""
     c = cfg.copy()
@@ -168,10 +173,12 @@ def prior_runs(cfg: DictConfig, digest: str, clean: bool = True, keep_resumable:
 
     uri = cfg.logger.tracking_uri
     client = mlflow.MlflowClient(uri)
-    exp = client.get_experiment_by_name(cfg.logger.experiment_name)
-    if exp is None:
+    exps = [e for e in (client.get_experiment_by_name(n) for n in dict.fromkeys(
+        (cfg.logger.experiment_name, EXPERIMENT_BEFORE))) if e is not None]
+    if not exps:
         return None, (None, None)
-    found = client.search_runs([exp.experiment_id], f"tags.config_hash = '{digest}'")
+    found = client.search_runs([e.experiment_id for e in exps],
+                               f"tags.config_hash = '{digest}'")
     own = own_store(uri)
     done = []
     for r in (r for r in found if r.info.status == "FINISHED"):
