@@ -69,6 +69,10 @@ def test_rerun_adds_only_missing_trials_and_hands_off(tmp_path, smoke_data, trac
     assert all(len(t.intermediate_values) == 2 for t in study.trials)  # val_loss every epoch
 
     printed = capsys.readouterr().out.strip().splitlines()
+    # after its first trial, the first run said how long the other one would take
+    said = [line for line in printed if line.startswith("estimate: ")]
+    assert len(said) == 1 and re.match(r"estimate: 1 more trial x \d+\.\d s \(the first's "
+                                       r"time\): (about \d+ s|under)", said[0]), said
     handoff = tmp_path / "conf" / "tuned" / "cnn.yaml"
     assert printed[-1] == f"tuned: {handoff}"
     assert "+tuned=cnn" in printed[-2] and "window=20,40,60,80" in printed[-2]

@@ -283,9 +283,18 @@ def _run_study(cfg: DictConfig, space: list[Param], pruner: optuna.pruners.BaseP
         if run is not None:
             run.mark(trial)
         print(_describe(trial, space), flush=True)
+        left = remaining - len(new)
+        if len(new) == 1 and left > 0 and trial.duration is not None:
+            from lbo.learn.eta import duration
+
+            took = trial.duration.total_seconds()  # the first trial, as the rest will run
+            print(f"estimate: {left} more trial{'s' if left > 1 else ''} x {took:.1f} s (the "
+                  f"first's time): about {duration(left * took)}; pruning can only shorten it",
+                  flush=True)
 
     run = StudyRun(cfg, study, shown) if tracking else None
     status, handoff, best = "FAILED", None, None
+    remaining = t.n_trials  # the trials this run adds, counted once the study is read
     from lbo.learn.tune_callbacks import Interrupts
 
     lightning_log = logging.getLogger("lightning.pytorch")
