@@ -84,12 +84,12 @@ def measure(cfg: DictConfig, steps: int = 8, warmup: int = 3) -> dict[str, Any]:
         if len(periods) == steps:
             break
     step_s = statistics.median(periods)
-    eval_s = _forward_s(cfg, net, dm, folder) if carried is None else 0.0
+    eval_s = _forward_s(cfg, net, dm, folder, str(device)) if carried is None else 0.0
     return {"step_s": step_s, "steps": n, "setup_s": setup_s, "eval_s": eval_s,
             "seconds": setup_s + step_s * n + eval_s, "timed": warmup + len(periods)}
 
 
-def _forward_s(cfg: DictConfig, net: Any, dm: Any, folder: Path) -> float:
+def _forward_s(cfg: DictConfig, net: Any, dm: Any, folder: Path, device: str) -> float:
     """Seconds of the forward passes a run makes besides its steps, each timed: every epoch's
     validation (one batch of its loader, times its batches) and the final evaluation on the
     test set (:func:`lbo.scoring.grid.predict` on its first few trajectories and on twice as
@@ -99,6 +99,8 @@ def _forward_s(cfg: DictConfig, net: Any, dm: Any, folder: Path) -> float:
     def timed(run: Any) -> float:
         start = time.perf_counter()
         run()
+        if device.startswith("cuda"):  # its kernels run on after the call returns
+            torch.cuda.synchronize()
         return time.perf_counter() - start
 
     loader = dm.val_dataloader()
@@ -113,10 +115,10 @@ def _forward_s(cfg: DictConfig, net: Any, dm: Any, folder: Path) -> float:
     arr = load_test(test)
     g = len(arr.alpha)
     k = min(4, g)
-    first = timed(lambda: predict(net, arr.take(np.arange(k))))
+    first = timed(lambda: predict(net, arr.take(np.arange(k)), device=device))
     if g == k:
         return val_s + first
-    twice = timed(lambda: predict(net, arr.take(np.arange(min(2 * k, g)))))
+    twice = timed(lambda: predict(net, arr.take(np.arange(min(2 * k, g))), device=device))
     per = max(twice - first, 0.0) / (min(2 * k, g) - k)
     return val_s + first + per * (g - k)
 
