@@ -155,3 +155,30 @@ def test_observe_scores_a_users_log_through_outages_it_cuts(tmp_path):
         f"error: outages: scored against the log's truth (x, y, psi); input "
         f"{tmp_path / 'blind.csv'} has none")
     assert not (tmp_path / "bad.csv").exists()
+
+
+def test_the_simulator_drops_the_fixes_in_the_outages_and_keeps_the_truth(tmp_path):
+    """``lbo.simulate ... outages.length_s=10 outages.every_s=25``: the same log as without
+    outages but for the receiver's columns, blank on the rows of the windows the protocol
+    places (so ``lbo.observe outages=`` with the same settings scores through exactly them),
+    and the line it prints counts them."""
+    from helpers import cli
+
+    args = ["manoeuvre=stop_and_go", "receiver=single_antenna", "seed=3"]
+    plain, cut = tmp_path / "plain.csv", tmp_path / "cut.csv"
+    assert cli("lbo.simulate", *args, f"output={plain}").returncode == 0
+    res = cli("lbo.simulate", *args, f"output={cut}", "outages.length_s=10",
+              "outages.every_s=25")
+    assert res.returncode == 0, res.stderr[-2000:]
+    before, after = pd.read_csv(plain), pd.read_csv(cut)
+    spans = outages.place(before, Outages(10.0, 25.0), VEHICLE.dt)
+    assert f", {len(spans)} GNSS outages of 10 s (receiver columns blanked, truth kept)" \
+        in res.stdout
+    rows = outages.inside(len(before), spans)
+    assert len(spans) >= 2 and rows.sum() == 500 * len(spans)  # 10 s at 50 Hz each
+    blanked = [c for c in BLANKED if c in before]
+    assert after.loc[rows, blanked].isna().all(axis=None)
+    pd.testing.assert_frame_equal(after.loc[~rows], before.loc[~rows])
+    kept = [c for c in before if c not in blanked]  # the truth, the inputs, the gyro
+    pd.testing.assert_frame_equal(after[kept], before[kept])
+    assert (before.loc[rows, ["x_m", "y_m"]].notna().any(axis=None))  # there were fixes

@@ -35,6 +35,8 @@ from lbo.core.angles import wrap_angle
 from lbo.core.checks import integer, number, require
 from lbo.core.cli import entry
 from lbo.core.errors import LboError
+from lbo.scoring import outages as outage
+from lbo.scoring.outages import Outages
 from lbo.sim import schema
 from lbo.sim.columns import INPUT, MEAS, STATE
 from lbo.sim.logcheck import fix_period
@@ -139,6 +141,9 @@ def simulate(cfg: DictConfig, seed: int | None = None) -> pd.DataFrame:
                       alpha=np.full(len(z), float(alpha)), scored=k >= run_in)
     if cfg.get("receiver") is not None:
         df = with_receiver(df, z, u, cfg, vehicle.dt, alpha, seed, slip)
+    outages = Outages.from_cfg(cfg.get("outages"))
+    if outages is not None:  # the receiver silent in windows while the car moves; truth kept
+        df = outage.blank(df, outage.place(df, outages, vehicle.dt))
     return df
 
 
@@ -178,9 +183,14 @@ def describe(cfg: DictConfig, df: pd.DataFrame) -> tuple[str, float]:
     fix = np.isfinite(df[["x_m", "y_m"]].to_numpy()).all(1)  # a position, with or without psi_m
     still = float((df["V"] == 0).mean())
     duration = len(df) * float(cfg.vehicle.dt)
+    outages = Outages.from_cfg(cfg.get("outages"))
+    # placed again on the blanked log: the same rows (the rule reads the speed and the first fix)
+    gaps = len(outage.place(df, outages, float(cfg.vehicle.dt))) if outages else 0
     return (f"{cfg.manoeuvre}: {len(df)} rows ({duration:.1f} s at {1 / cfg.vehicle.dt:g} Hz), "
             f"{fix.sum()} fixes ({fix.sum() / duration:.3g} Hz), standing still "
-            f"{still:.0%} of the time, alpha {cfg.alpha:g}"), duration
+            f"{still:.0%} of the time, alpha {cfg.alpha:g}"
+            + (f", {gaps} GNSS outages of {outages.length_s:g} s (receiver columns blanked, "
+               "truth kept)" if outages else "")), duration
 
 
 def write_logs(cfg: DictConfig) -> Path:
