@@ -347,3 +347,46 @@ def test_the_oracle_told_the_car_finds_its_lateral_states_in_the_set(dynamic_set
     again = oracle_dynamic_lateral(planted.m, planted.u, spec.vehicle, spec.noise,
                                    planted.alpha, spec.truth)[1]
     assert np.array_equal(again.mean, lat.mean)
+
+
+@pytest.mark.slow  # 8 s: the dynamic EKF over two levels of the smoke test set
+def test_the_lateral_states_are_scored_per_level_and_written_by_evaluate(dynamic_sets, tmp_path,
+                                                                         capsys):
+    """lbo.scoring.lateral: beta, v_y and r of each estimator against the set's own, per noise
+    level over the scored rows; the EKF told the car far below the kinematic bicycle's and
+    straight ahead's; only the oracle gives beta a variance; no truth column is read.
+    lbo.evaluate's part writes it as lateral.csv and prints beta in degrees."""
+    from dataclasses import replace
+
+    from lbo.evaluate import _lateral
+    from lbo.scoring import lateral
+    from lbo.sim import schema
+
+    cfg = compose_cfg("datagen", ["data=smoke", "car=dynamic", f"data.root={tmp_path}",
+                                  "data.train.n_traj=8"])
+    spec = spec_from_cfg(cfg)
+    t = schema.to_arrays(dynamic_sets()["test"])
+    t = t.take(np.isin(t.alpha, [1.0, 3.0]))
+    scores = lateral.table(t, spec.vehicle, spec.noise, spec.truth)
+    assert list(scores.columns) == lateral.COLUMNS and len(scores) == 6
+    by = scores.set_index(["observer", "alpha"])
+    at1 = t.mask & (t.alpha == 1.0)[:, None]
+    beta = np.arctan2(t.lateral[..., 0], t.u[..., 0])  # exact inputs: the logged V is the car's
+    assert by.loc[("zero", 1.0), "rmse_beta"] == pytest.approx(np.sqrt(np.mean(beta[at1] ** 2)))
+    assert by.loc[("zero", 1.0), "rmse_vy"] == pytest.approx(
+        np.sqrt(np.mean(t.lateral[..., 0][at1] ** 2)))
+    assert np.isnan(by.loc[("zero", 1.0), "rmse_r"])
+    for a in (1.0, 3.0):
+        told = by.loc[("oracle_dynamic", a)]
+        assert told["rmse_beta"] < 0.1 * by.loc[("kinematic", a), "rmse_beta"]
+        assert told["rmse_beta"] < 0.1 * by.loc[("zero", a), "rmse_beta"]
+        assert np.isfinite(told["nees_beta"]) and np.isnan(by.loc[("kinematic", a), "nees_beta"])
+    # the estimates read the fixes and the inputs only
+    planted = replace(t, lateral=np.zeros_like(t.lateral), z=np.zeros_like(t.z))
+    again = lateral.estimates(planted, spec.vehicle, spec.noise, spec.truth)
+    first = lateral.estimates(t, spec.vehicle, spec.noise, spec.truth)
+    assert all(np.array_equal(again[n]["beta"], first[n]["beta"]) for n in first)
+    path = _lateral(t, spec.vehicle, spec.noise, spec.truth, tmp_path)
+    pd.testing.assert_frame_equal(pd.read_csv(path), scores)
+    said = capsys.readouterr().out
+    assert "beta (deg)" in said and f"lateral states: {path}" in said

@@ -10,6 +10,7 @@ from __future__ import annotations
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pandas as pd
@@ -34,6 +35,7 @@ from lbo.scoring.grid import (
     score,
 )
 from lbo.sim.noise import Noise
+from lbo.sim.schema import Trajectories
 from lbo.sim.vehicle import Vehicle
 
 
@@ -196,6 +198,8 @@ def _run_grid(cfg: DictConfig, observers: list[str], learned: list[str]
     if calibrate:
         calibration(covariant, arr, out)
         written += [out / "nees.csv", out / "nees.png"]
+    if truth.car is not None and arr.lateral is not None:  # the states no sensor gives
+        written.append(_lateral(arr, vehicle, noise, truth, out))
     with pd.option_context("display.width", 120, "display.precision", 4):
         pivot = table.pivot(index="alpha", columns="observer", values="nrmse")[observers]
         print(f"NRMSE (E_ref = {cfg.metric.reference}: {ref[0]:.3f} m, {ref[1]:.3f} m, "
@@ -203,6 +207,22 @@ def _run_grid(cfg: DictConfig, observers: list[str], learned: list[str]
         print(pivot.to_string())
     print(f"evaluation: {csv}")
     return csv, list(nets), written
+
+
+def _lateral(arr: Trajectories, vehicle: Vehicle, noise: Noise, truth: Any, out: Path) -> Path:
+    """lateral.csv: beta, v_y and r scored on a car that slips (:mod:`lbo.scoring.lateral`),
+    printed with beta in degrees."""
+    from lbo.scoring import lateral
+
+    scores = lateral.table(arr, vehicle, noise, truth)
+    path = out / "lateral.csv"
+    with atomic_path(path) as tmp:
+        scores.to_csv(tmp, index=False)
+    print("side slip beta, lateral velocity v_y and yaw rate r, RMSE over the scored rows "
+          "(the classical estimators; the learned observers' are not scored yet):")
+    print(lateral.printable(scores))
+    print(f"lateral states: {path}")
+    return path
 
 
 def _extras(cfg: DictConfig) -> tuple[list[str] | None, bool, bool]:

@@ -1,0 +1,102 @@
+"""The states no sensor gives, scored on a car that slips: the side slip beta (at the centre of
+gravity), the lateral velocity v_y and the yaw rate r, against the truth that a
+``data=dynamic`` test set holds (``Trajectories.lateral``: v_y, r), per noise level.
+
+The estimators that give them, from the pose fixes and the logged inputs only:
+
+- ``oracle_dynamic``: the EKF told the car (:func:`lbo.filters.classical.oracle_dynamic_lateral`),
+  which carries v_y and r and the variance of beta;
+- ``kinematic``: the kinematic bicycle's, from the inputs alone, on the car's geometry:
+  beta = atan(l_r tan(delta) / L), v_y = V tan(beta), r = V tan(delta) / L (lbo's kinematic
+  model turns the heading at that rate);
+- ``zero``: straight ahead, beta = v_y = 0 (no yaw rate).
+
+Each RMSE is over the scored rows of every trajectory of a level, pooled; ``nees_beta`` is the
+mean of beta's squared error over the estimate's variance of it (1 for an honest variance;
+NaN where there is none).
+"""
+
+from __future__ import annotations
+
+from typing import cast
+
+import numpy as np
+import pandas as pd
+
+from lbo.core.errors import LboError
+from lbo.sim.dynamic import SingleTrack
+from lbo.sim.noise import Noise
+from lbo.sim.schema import Trajectories
+from lbo.sim.truth import Truth
+from lbo.sim.vehicle import Vehicle
+
+COLUMNS = ["observer", "alpha", "rmse_beta", "rmse_vy", "rmse_r", "nees_beta"]
+"""A lateral score table's columns: beta in rad, v_y in m/s, r in rad/s."""
+
+ESTIMATORS = ("oracle_dynamic", "kinematic", "zero")
+
+
+def truth_of(arr: Trajectories, truth: Truth) -> dict[str, np.ndarray]:
+    """The true ``beta``, ``vy`` and ``r`` (G, T) of a test set drawn from ``truth``'s car:
+    beta = atan2(v_y, v_x), v_x the speed the car had (the logged one less the speed
+    sensor's scale error)."""
+    if arr.lateral is None or truth.car is None:
+        raise LboError("lateral states: scored on a test set drawn from a car that slips "
+                       "(data=dynamic), whose rows hold its v_y and r")
+    vx = arr.u[..., 0] / (1.0 + truth.sensors.speed_scale)
+    vy, r = arr.lateral[..., 0], arr.lateral[..., 1]
+    return {"beta": np.arctan2(vy, vx), "vy": vy, "r": r}
+
+
+def estimates(arr: Trajectories, vehicle: Vehicle, noise: Noise, truth: Truth
+              ) -> dict[str, dict[str, np.ndarray | None]]:
+    """Each estimator's ``beta``, ``vy``, ``r`` and ``beta_var`` (G, T) on the test arrays
+    (None: not estimated); nothing but the fixes ``arr.m`` and inputs ``arr.u`` is read."""
+    from lbo.filters.classical import oracle_dynamic_lateral
+    from lbo.filters.lateral import kinematic_beta
+
+    car = truth.car
+    if car is None:
+        raise LboError("lateral states: the test set was not drawn from a car that slips")
+    v, delta = arr.u[..., 0], arr.u[..., 1]
+    _, lat = oracle_dynamic_lateral(arr.m, arr.u, vehicle, noise, arr.alpha, truth)
+    out: dict[str, dict[str, np.ndarray | None]] = {"oracle_dynamic": {
+        "beta": lat.beta(v), "vy": lat.mean[..., 0], "r": lat.mean[..., 1],
+        "beta_var": lat.beta_var(v)}}
+    if isinstance(car, SingleTrack):  # a plug-in's car need not say where its centre of gravity is
+        kin = kinematic_beta(delta, car)
+        out["kinematic"] = {"beta": kin, "vy": v * np.tan(kin),
+                            "r": v * np.tan(delta) / car.wheelbase, "beta_var": None}
+    zero = np.zeros_like(v)
+    out["zero"] = {"beta": zero, "vy": zero, "r": None, "beta_var": None}
+    return out
+
+
+def _rmse(est: np.ndarray | None, true: np.ndarray, pick: np.ndarray) -> float:
+    """RMSE of ``est`` against ``true`` (G, T) on the rows ``pick`` (G, T); NaN for None."""
+    return float("nan") if est is None else float(np.sqrt(np.mean((est - true)[pick] ** 2)))
+
+
+def table(arr: Trajectories, vehicle: Vehicle, noise: Noise, truth: Truth) -> pd.DataFrame:
+    """Rows :data:`COLUMNS`, one per estimator and noise level of the test arrays."""
+    true = truth_of(arr, truth)
+    rows = []
+    for name, est in estimates(arr, vehicle, noise, truth).items():
+        for alpha in np.unique(arr.alpha):
+            pick = (arr.alpha == alpha)[:, None] & arr.mask  # the level's scored rows
+            var = est["beta_var"]
+            nees = float("nan") if var is None else float(np.mean(
+                ((cast(np.ndarray, est["beta"]) - true["beta"]) ** 2 / var)[pick]))
+            rows.append({"observer": name, "alpha": float(alpha),
+                         **{f"rmse_{k}": _rmse(est[k], true[k], pick) for k in ("beta", "vy", "r")},
+                         "nees_beta": nees})
+    return pd.DataFrame(rows, columns=COLUMNS)
+
+
+def printable(scores: pd.DataFrame) -> str:
+    """The table as a person reads it: beta in degrees, per level and estimator."""
+    shown = scores.assign(rmse_beta=np.rad2deg(scores["rmse_beta"])).rename(columns={
+        "rmse_beta": "beta (deg)", "rmse_vy": "v_y (m/s)", "rmse_r": "r (rad/s)",
+        "nees_beta": "beta NEES"})
+    with pd.option_context("display.width", 120, "display.precision", 4):
+        return shown.to_string(index=False)
