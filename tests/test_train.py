@@ -225,6 +225,10 @@ def test_multirun_sweep_logs_eight_runs(tmp_path, paper_sweep):
     # the experiment opens in MLflow's model-training view, not its GenAI one
     kind = client.get_experiment(found[0].info.experiment_id).tags["mlflow.experimentKind"]
     assert kind == "custom_model_development"
+    # each run says where its runs stand side by side (lbo.tracking.view; tests/test_mlflow_view)
+    address = ("beside the other runs on its data, in mlflow ui (make ui): http://127.0.0.1:5000"
+               f"/#/experiments/{found[0].info.experiment_id}/runs?viewStateShareKey=lbo")
+    assert paper_sweep["stdout"].count(address) == 8
     for r in found:
         assert r.info.status == "FINISHED"
         for key in ("test_nrmse_alpha_1", "test_nrmse_alpha_3", "test_nrmse_alpha_6"):

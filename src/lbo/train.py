@@ -55,6 +55,7 @@ from lbo.models.slip_filter import SIDE_SLIP as SLIP
 from lbo.sim.datasets import refuse_sideslip
 from lbo.sim.log_sets import is_logs
 from lbo.sim.truth import config_dict as truth_dict
+from lbo.tracking import view
 from lbo.tracking.runs import check_store, dataset_input, ensure_experiment, log_input
 
 if TYPE_CHECKING:  # Lightning takes seconds to import: only a training run needs it
@@ -426,6 +427,13 @@ def _command(cfg: DictConfig) -> float:
     if metrics.get("checkpoint"):
         print(f"trained {metrics['name']}: checkpoint {metrics['checkpoint']}"
               + (f", MLflow run {metrics['run_id']}" if metrics.get("run_id") else ""))
+    if metrics.get("run_id") and cfg.get("logger"):
+        import mlflow
+
+        uri = cfg.logger.tracking_uri
+        experiment = mlflow.MlflowClient(uri).get_run(metrics["run_id"]).info.experiment_id
+        print(f"beside the other runs on its data, in mlflow ui (make ui): "
+              f"{view.address(uri, experiment)}")
     return metrics["val_loss"]
 
 

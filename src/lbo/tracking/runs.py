@@ -18,6 +18,7 @@ from urllib.parse import urlparse
 from lbo.core.errors import LboError
 from lbo.core.paths import sqlite_path
 from lbo.core.redact import scrub
+from lbo.tracking import view
 
 #: Seconds a probe of a tracking server waits before saying it does not answer.
 PROBE_TIMEOUT = 5.0
@@ -240,10 +241,12 @@ def ensure_experiment(uri: str, name: str, artifact_location: str | None):
         if exp is not None:
             if exp.tags.get(KIND_TAG) != KIND:  # one lbo made before it set the kind
                 client.set_experiment_tag(exp.experiment_id, KIND_TAG, KIND)
+            view.keep(client, exp)  # ... or before it kept its runs table's view
             return client, exp.experiment_id
         try:
             return client, client.create_experiment(name, artifact_location=artifact_location,
-                                                    tags={KIND_TAG: KIND})
+                                                    tags={KIND_TAG: KIND,
+                                                          view.TAG: view.state(name)})
         except MlflowException:
             exp = client.get_experiment_by_name(name)
             if exp is None:
