@@ -52,7 +52,8 @@ ablation: install  ## the paper's protocol variant by variant at quick scale, re
 fleet: install  ## train on your own logs, worked example: a simulated fleet -> train -> score -> observe
 	PY=$(CURDIR)/$(PY) bash examples/fleet.sh
 
-ui: install  ## mlflow ui at http://127.0.0.1:5000 (MLFLOW_PORT=...): every run in the repo's mlflow.db
+ui: install  ## mlflow ui at http://127.0.0.1:5000 (MLFLOW_PORT=...): every run in the repo's mlflow.db, each data set's runs side by side at the address it prints
+	@$(PY) -m lbo.tracking.view sqlite:///$(CURDIR)/mlflow.db | sed 's|127.0.0.1:5000|127.0.0.1:$(MLFLOW_PORT)|'
 	$(VENV)/bin/mlflow ui --host 127.0.0.1 --port $(MLFLOW_PORT) \
 		--backend-store-uri sqlite:///$(CURDIR)/mlflow.db
 

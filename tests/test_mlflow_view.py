@@ -63,3 +63,20 @@ def test_the_runs_of_a_fresh_store_show_their_headline_metrics_at_lbos_address(t
     assert "cnn-N20" in shown and repr(run.data.metrics["test_nrmse_alpha_1"]) in shown
     # MLflow's own table, without the view: the metrics hidden among hundreds of columns
     assert " test_nrmse_alpha_1 " not in plain and "Show more columns" in plain
+
+
+def test_make_ui_lists_the_view_of_each_of_lbos_experiments(tmp_path):
+    """``python -m lbo.tracking.view <uri>`` (make ui): an address per experiment of lbo's,
+    its view set first where a store made before lacks it; nothing for a store not made."""
+    from helpers import cli
+
+    uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
+    assert view.addresses(uri) == [] and not (tmp_path / "mlflow.db").exists()
+    client = mlflow.MlflowClient(uri)
+    ids = {name: client.create_experiment(name) for name in ("lbo", "lbo-smoke", "someone's")}
+    res = cli("lbo.tracking.view", uri, process=True)  # a module run as make ui runs it
+    assert res.returncode == 0, res.stderr[-2000:]
+    assert res.stdout.splitlines() == [f"{n}: {view.address(uri, ids[n])}"
+                                       for n in ("lbo", "lbo-smoke")]
+    assert client.get_experiment(ids["lbo-smoke"]).tags[view.TAG] == view.state("lbo-smoke")
+    assert view.TAG not in client.get_experiment(ids["someone's"]).tags

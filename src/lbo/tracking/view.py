@@ -43,7 +43,34 @@ def keep(client: Any, experiment: Any) -> None:
         client.set_experiment_tag(experiment.experiment_id, TAG, wanted)
 
 
+def addresses(uri: str) -> list[str]:
+    """``<experiment>: <address>`` of each of lbo's experiments in the store at ``uri``
+    (``lbo-<data>``, and ``lbo`` of a store made before each data set had its own), their view
+    set first (a store made before lbo kept one); none for a store not made yet."""
+    import mlflow
+
+    from lbo.core.paths import sqlite_path
+
+    path = sqlite_path(uri)
+    if path is not None and not path.is_file():
+        return []
+    client = mlflow.MlflowClient(uri)
+    out = []
+    for exp in sorted(client.search_experiments(), key=lambda e: e.name):
+        if exp.name == "lbo" or exp.name.startswith("lbo-"):
+            keep(client, exp)
+            out.append(f"{exp.name}: {address(uri, exp.experiment_id)}")
+    return out
+
+
 def address(uri: str, experiment_id: str) -> str:
     """The UI's address of the view on experiment ``experiment_id`` of the store at ``uri``."""
     base = uri.rstrip("/") if urlparse(uri).scheme in ("http", "https") else UI
     return f"{base}/#/experiments/{experiment_id}/runs?viewStateShareKey={KEY}"
+
+
+if __name__ == "__main__":  # make ui: where each experiment's runs stand side by side
+    import sys
+
+    for line in addresses(sys.argv[1]):
+        print(line)
