@@ -50,3 +50,16 @@ def test_a_training_says_epoch_k_of_n_on_its_bar(tmp_path, smoke_data):
     assert "log_every_n_steps" not in res.stdout + res.stderr
     # nor its hint at srun where SLURM is installed (lbo's SLURM jobs come through submitit)
     assert "srun" not in res.stdout + res.stderr
+
+
+def test_how_often_the_bar_draws_is_not_part_of_a_runs_identity():
+    """make reproduce hides each run's bar (refresh_rate=0): its runs are the runs of the same
+    config trained with the bar, and of a store made before."""
+    from helpers import compose_cfg
+    from lbo.learn.resume import config_hash
+
+    shown = compose_cfg("train", ["experiment=smoke"])
+    hidden = compose_cfg("train", ["experiment=smoke", "callbacks.progress_bar.refresh_rate=0"])
+    assert config_hash(hidden) == config_hash(shown)
+    assert config_hash(compose_cfg("train", ["experiment=smoke", "window=40"])) != \
+        config_hash(shown)

@@ -67,6 +67,9 @@ def test_reproduce_smoke_killed_and_resumed_without_duplicates(tmp_path):
     assert "5/11 lstm-N20: reused" in out or "5/11 lstm-N20: trained" in out
     assert "9/11 robust (filternet-N100): trained" in out
     assert "10/11 literal-cnn-N20 (cnn-N20): trained" in out
+    # one line per run, no run's progress bars (training or validation) between them
+    said = "".join(seen) + out + done.stderr
+    assert "epoch 1 of" not in said and "Validation DataLoader" not in said
 
     report = tmp_path / "report"
     for name in REPORT_FILES:

@@ -59,6 +59,11 @@ EXPERIMENT_BEFORE = "lbo"
 (``lbo-<data>``): its runs are still found, reused and continued."""
 
 
+BAR_REFRESH = 20
+"""The progress bar's refresh rate every config hashes as, whatever it draws at: the default,
+which the runs of a store made before hashed (``make reproduce`` hides each run's bar)."""
+
+
 def config_hash(cfg: DictConfig) -> str:
     """Fingerprint of what a run computes: the resolved config without where it writes."""
     c = cfg.copy()
@@ -75,6 +80,8 @@ def config_hash(cfg: DictConfig) -> str:
         bar = OmegaConf.select(c, "callbacks.progress_bar")
         if isinstance(bar, DictConfig) and bar.get("_target_") in WAS:
             bar["_target_"] = WAS[bar["_target_"]]  # how it prints, hashed as it was before
+        if isinstance(bar, DictConfig) and "refresh_rate" in bar:
+            bar["refresh_rate"] = BAR_REFRESH  # how often it draws (0: not at all), not what
         for key, default in LATER_DEFAULTS.items():
             *group, name = key.split(".")
             node = OmegaConf.select(c, ".".join(group)) if group else c
