@@ -529,3 +529,13 @@ def test_the_fixes_alone_teach_how_far_off_the_speed_sensor_reads():
                           method="lbfgs")
     assert fitted.noise.speed_scale == pytest.approx(1.03, abs=0.005)
     assert fitted.noise.gyro_scale is not None and fitted.noise.gyro_scale < 1.0
+
+
+def test_the_fit_says_how_long_its_epochs_will_take_after_the_first():
+    lines: list[str] = []
+    gyro_fit.fit(_drawn_log(DRAWN, 20.0, 1), _drawn_log(DRAWN, 10.0, 2), VEHICLE, R, DRAWN,
+                 epochs=2, segment=500, progress=lines.append, objective="innovations")
+    assert [line.split(":")[0] for line in lines] == ["epoch 0/2", "estimate", "epoch 1/2",
+                                                      "epoch 2/2"]
+    assert re.match(r"estimate: 2 more epochs x \d+\.\d s \(epoch 0's time, its step "
+                    r"included\): about \d+ s$", lines[1]), lines[1]

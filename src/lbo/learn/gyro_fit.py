@@ -29,6 +29,7 @@ by gradient descent on the estimates' error against the truth.
 
 from __future__ import annotations
 
+import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from functools import partial
@@ -43,6 +44,7 @@ from lbo.core.angles import wrap_angle
 from lbo.core.errors import LboError
 from lbo.filters import classical, measure
 from lbo.filters.gyro import FixDrift, GyroNoise
+from lbo.learn.eta import duration
 from lbo.models.gyro_filter import GyroFilter, Segments
 from lbo.models.poses import wrap_heading
 from lbo.scoring.receiver import measure_ratio, scored_rows
@@ -337,6 +339,7 @@ def fit(train: pd.DataFrame | Sequence[pd.DataFrame],
             scale = nll.detach()
         return nll - scale
 
+    begin = time.perf_counter()
     for epoch in range(epochs + 1):
         noise = model.noise()
         seg = _batch(train, noise, vehicle, R, segment)
@@ -366,6 +369,10 @@ def fit(train: pd.DataFrame | Sequence[pd.DataFrame],
             opt.step()
         elif epoch < epochs:
             _lbfgs_step(opt, partial(train_loss, seg))
+        if epoch == 0 and epochs > 0 and progress is not None:  # the others take as long
+            took = time.perf_counter() - begin
+            progress(f"estimate: {epochs} more epoch{'s' if epochs > 1 else ''} x {took:.1f} s "
+                     f"(epoch 0's time, its step included): about {duration(epochs * took)}")
     return GyroFit(noise=best[2], start=start, history=pd.DataFrame(history),
                    best_epoch=best[1])
 
