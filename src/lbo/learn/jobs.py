@@ -106,6 +106,6 @@ def train_jobs(cfg: DictConfig, out: Path) -> list[Job]:
                              run_name(data)), data))
     # each run's progress bars hidden: the stage says each run's result as it ends
     return [dataclasses.replace(j, overrides=tuple(respell(
-        [*j.overrides, "resume=true", f"output_dir={out / 'runs' / j.key}",
-         "callbacks.progress_bar.refresh_rate=0", *cfg.overrides, *cfg.train_overrides])))
+        [*j.overrides, "callbacks.progress_bar.refresh_rate=0", "resume=true",
+         f"output_dir={out / 'runs' / j.key}", *cfg.overrides, *cfg.train_overrides])))
         for j in jobs]
