@@ -285,11 +285,10 @@ def _run_study(cfg: DictConfig, space: list[Param], pruner: optuna.pruners.BaseP
         print(_describe(trial, space), flush=True)
         left = remaining - len(new)
         if len(new) == 1 and left > 0 and trial.duration is not None:
-            from lbo.learn.eta import duration
+            from lbo.learn.eta import more
 
             took = trial.duration.total_seconds()  # the first trial, as the rest will run
-            print(f"estimate: {left} more trial{'s' if left > 1 else ''} x {took:.1f} s (the "
-                  f"first's time): about {duration(left * took)}; pruning can only shorten it",
+            print(more(left, "trial", took, "the first's time") + "; pruning can only shorten it",
                   flush=True)
 
     run = StudyRun(cfg, study, shown) if tracking else None

@@ -133,6 +133,13 @@ def duration(seconds: float) -> str:
     return f"{int(seconds // 3600)} h {math.ceil(seconds % 3600 / 60)} min"
 
 
+def more(count: int, unit: str, each_s: float, basis: str) -> str:
+    """The line that says how long ``count`` more ``unit``s will take at ``each_s`` seconds
+    each, the time measured on ``basis`` (the first trial, epoch 0)."""
+    return (f"estimate: {count} more {unit}{'s' if count > 1 else ''} x {each_s:.1f} s "
+            f"({basis}): about {duration(count * each_s)}")
+
+
 class Eta:
     """Remaining time of a list of runs, from their estimates scaled by how the finished ones
     compared with theirs."""

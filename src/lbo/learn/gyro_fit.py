@@ -44,7 +44,7 @@ from lbo.core.angles import wrap_angle
 from lbo.core.errors import LboError
 from lbo.filters import classical, measure
 from lbo.filters.gyro import FixDrift, GyroNoise
-from lbo.learn.eta import duration
+from lbo.learn.eta import more
 from lbo.models.gyro_filter import GyroFilter, Segments
 from lbo.models.poses import wrap_heading
 from lbo.scoring.receiver import measure_ratio, scored_rows
@@ -370,9 +370,8 @@ def fit(train: pd.DataFrame | Sequence[pd.DataFrame],
         elif epoch < epochs:
             _lbfgs_step(opt, partial(train_loss, seg))
         if epoch == 0 and epochs > 0 and progress is not None:  # the others take as long
-            took = time.perf_counter() - begin
-            progress(f"estimate: {epochs} more epoch{'s' if epochs > 1 else ''} x {took:.1f} s "
-                     f"(epoch 0's time, its step included): about {duration(epochs * took)}")
+            progress(more(epochs, "epoch", time.perf_counter() - begin,
+                          "epoch 0's time, its step included"))
     return GyroFit(noise=best[2], start=start, history=pd.DataFrame(history),
                    best_epoch=best[1])
 
