@@ -3,6 +3,8 @@ of the paper's EKF, the variant table, and `python -m lbo.ablation` at smoke siz
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pandas as pd
 import pytest
@@ -28,6 +30,9 @@ def test_jobs_once_each_with_scale_and_resume():
     got = jobs(cfg)
     assert len(got) == 2  # seed=1 is in both sweeps
     assert all(j[0] == "experiment=smoke" and "resume=true" in j for j in got)
+    # each run logs where the command reads its tables, its bars hidden
+    assert all(f"logger.tracking_uri={cfg.tracking_uri}" in j
+               and "callbacks.progress_bar.refresh_rate=0" in j for j in got)
 
 
 def test_variant_names_tell_the_factors_apart_but_not_the_seed():
@@ -158,7 +163,10 @@ def test_variant_table_averages_seeds_and_finds_crossovers():
 
 
 @pytest.mark.slow
-def test_ablation_command_at_smoke_size(tmp_path, smoke_data, tracking, one_torch_thread):
+def test_ablation_command_at_smoke_size(tmp_path, smoke_data, tracking, one_torch_thread,
+                                        capsys):
+    """The command end to end, its store given as ``tracking_uri=`` (not the environment's:
+    the runs log where the tables are read from)."""
     from hydra import compose, initialize_config_dir
 
     from lbo.ablation import ablation
@@ -169,8 +177,16 @@ def test_ablation_command_at_smoke_size(tmp_path, smoke_data, tracking, one_torc
     with initialize_config_dir(str(CONF_DIR), version_base="1.3"):
         cfg = compose("ablation", ["scale=smoke", f"sweeps=['{sweep}']",
                                    f"overrides=['data.root={smoke_data.parent}']",
-                                   f"report_dir={tmp_path / 'abl'}"])
+                                   f"report_dir={tmp_path / 'abl'}",
+                                   f"tracking_uri=sqlite:///{tmp_path / 'given.db'}"])
         out = ablation(cfg)
+    printed = capsys.readouterr().out
+    # the time it will take, measured, before the first run trains; an ETA after the first
+    estimate = re.search(r"expected: about (\d+) s of training at scale smoke", printed)
+    assert estimate and printed.index("expected: about") < printed.index("==> [1/2]")
+    assert len(re.findall(r"cnn-N20 \w+ .*seed \d+: \d+ steps x [\d.]+ ms", printed)) == 2
+    assert re.search(r"trained in \d+ s: MLflow run \w+, ETA", printed)
+    assert (tmp_path / "given.db").is_file() and not (tmp_path / "mlflow.db").exists()
     for name in ("ekf_fit.csv", "scores.csv", "ablation.csv", "ablation.md", "ablation.png"):
         assert (out / name).stat().st_size > 100, name
     summary = pd.read_csv(out / "ablation.csv")

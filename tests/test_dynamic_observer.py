@@ -274,6 +274,12 @@ def test_reproduce_trains_the_study_beside_the_paper_at_quick_scale(tmp_path):
     assert jobs["dynamic"][:2] == ["experiment=dynamic", "data=dynamic"]
     assert jobs["dynamic_drift"][:2] == ["experiment=dynamic", "data=dynamic_drift"]
     assert "resume=true" in jobs["dynamic"]
+    # every run logs where the report reads it: the command's tracking_uri, not only the env's
+    given = compose_cfg("reproduce", ["scale=quick", "tracking_uri=sqlite:///elsewhere.db"])
+    assert all(f"logger.tracking_uri={given.tracking_uri}" in j.overrides
+               and compose_cfg("train", [o for o in j.overrides if not o.startswith(
+                   ("+tuned", "hydra."))]).logger.tracking_uri == "sqlite:///elsewhere.db"
+               for j in train_jobs(given, tmp_path))
     for model in ("cnn", "lstm"):  # the black-box peers, on the first data set only
         assert jobs[f"dynamic-{model}"][:3] == ["experiment=dynamic_blackbox", f"model={model}",
                                                 "data=dynamic"]

@@ -461,6 +461,11 @@ def test_observe_adapts_the_gyro_ekfs_noise_to_the_log_it_filters(tmp_path):
     plain = observe(*args, f"output={tmp_path / 'plain.csv'}", cwd=tmp_path)
     adapted = observe(*args, "adapt=true", f"output={tmp_path / 'adapted.csv'}", cwd=tmp_path)
     assert plain.returncode == 0 and adapted.returncode == 0, adapted.stderr
+    # how long it will take, from epoch 0's time, before the fit goes on; no epoch lines
+    assert re.search(r"^adapting: the gyro EKF's noise to this log's innovations, 12 epochs\n"
+                     r"  estimate: 12 more epochs x [0-9.]+ s \(epoch 0's time, its step "
+                     r"included\): about \d+ s\n", adapted.stdout, re.M)
+    assert "epoch 1/12" not in adapted.stdout
     assert re.search(r"^adapted: the gyro EKF's noise fitted to this log's innovations "
                      r"\(offline: it read the whole log first; no truth read\), 12 epochs in "
                      r"[0-9.]+ s, kept epoch \d+: GyroNoise\(", adapted.stdout, re.M)

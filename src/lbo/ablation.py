@@ -2,10 +2,11 @@
 
     python -m lbo.ablation [scale=quick] [sweeps=[...]]
 
-Trains (or reuses, ``resume=true``) every variant of ``sweeps``: each entry is a sweep of
-``lbo.train`` written as on its command line (``features=absolute,relative`` crosses the
-values). Then it fits the paper's EKF (our EKF with its process noise scaled, R at alpha = 1)
-and writes to ``report_dir``:
+Trains (or reuses, ``resume=true``) every variant of ``sweeps``, after printing how long that
+will take (a few steps of each run measured); each entry is a sweep of ``lbo.train`` written
+as on its command line (``features=absolute,relative`` crosses the values). Then it fits the
+paper's EKF (our EKF with its process noise scaled, R at alpha = 1) and writes to
+``report_dir``:
 
 - ``ekf_fit.csv``: every EKF setting tried, closest to the paper's EKF first;
 - ``scores.csv``: per variant the seed-mean score rows, with our EKF, the oracle, the closest
@@ -19,6 +20,7 @@ from __future__ import annotations
 
 import itertools
 import sys
+import time
 from pathlib import Path
 from typing import Any
 
@@ -87,14 +89,19 @@ def jobs(cfg: DictConfig) -> list[list[str]]:
     out: dict[str, list[str]] = {}
     for sweep in cfg.sweeps:
         for combo in expand(sweep):
-            out.setdefault(" ".join(combo), respell([f"experiment={cfg.scale}", *combo,
-                                                       "resume=true", *cfg.overrides]))
+            # each run's bars hidden (the command says each run's result as it ends); each
+            # run logs to the store the tables are read from
+            out.setdefault(" ".join(combo), respell([
+                f"experiment={cfg.scale}", *combo, "resume=true",
+                "callbacks.progress_bar.refresh_rate=0",
+                f"logger.tracking_uri={cfg.tracking_uri}", *cfg.overrides]))
     return list(out.values())
 
 
 def ablation(cfg: DictConfig) -> Path:
     """Train or reuse the variants, fit the paper's EKF, write the tables and the figure."""
     from lbo.learn.builders import prepare_data
+    from lbo.learn.eta import duration, plan
     from lbo.scoring import paper_protocol as pp
     from lbo.scoring.grid import load_test, reference, score
     from lbo.sim.noise import Noise
@@ -112,12 +119,18 @@ def ablation(cfg: DictConfig) -> Path:
         c.output_dir = str(out / "runs" / f"{key.replace(' ', '_')}_seed{f['seed']}")
         check(c)  # every run's settings before the first one trains
         configs.append((c, f, key))
+    print(f"==> {len(configs)} runs to train or reuse", flush=True)
+    eta = plan([(f"{key}, seed {f['seed']}", c) for c, f, key in configs], scale=cfg.scale)
     per_variant: dict[str, list[pd.DataFrame]] = {}
     variants: dict[str, dict[str, Any]] = {}
     for i, (c, f, key) in enumerate(configs, 1):
         print(f"==> [{i}/{len(configs)}] {key}, seed {f['seed']}", flush=True)
+        start = time.perf_counter()
         run = train(c)
-        print(f"    {'reused' if run.get('reused') else 'trained'}: MLflow run {run['run_id']}",
+        seconds = time.perf_counter() - start
+        left = eta.skipped(i - 1) if run.get("reused") else eta.finished(i - 1, seconds)
+        print(f"    {'reused' if run.get('reused') else f'trained in {seconds:.0f} s'}: MLflow "
+              f"run {run['run_id']}" + (f", ETA {duration(left)}" if i < len(configs) else ""),
               flush=True)
         t = pd.read_csv(run_artifact(run, "evaluation.csv", cfg.tracking_uri))
         per_variant.setdefault(key, []).append(t.assign(observer=t["observer"].replace(

@@ -358,8 +358,12 @@ def _adapted(df: pd.DataFrame, start: Any, vehicle: Any, noise: Any, epochs: int
     from lbo.learn.gyro_fit import adapt
     from lbo.serve.observer import Observer
 
+    print(f"adapting: the gyro EKF's noise to this log's innovations, {epochs} epochs",
+          flush=True)
     began = time.perf_counter()
-    fitted = adapt(df, start, vehicle, noise, epochs=epochs)
+    # only epoch 0's estimate of the rest: the epochs' losses are the fit's business
+    fitted = adapt(df, start, vehicle, noise, epochs=epochs, progress=lambda line: print(
+        "  " + line, flush=True) if line.startswith("estimate:") else None)
     print(f"adapted: the gyro EKF's noise fitted to this log's innovations (offline: it read "
           f"the whole log first; no truth read), {epochs} epochs in "
           f"{time.perf_counter() - began:.1f} s, kept epoch {fitted.best_epoch}: {fitted.noise}")

@@ -34,7 +34,7 @@ from lbo.core.checks import integer, require
 from lbo.core.cli import entry, ready_launcher, respell
 from lbo.core.errors import LboError
 from lbo.filters import classical
-from lbo.learn.eta import Eta, duration, measure
+from lbo.learn.eta import Eta, duration, plan
 from lbo.learn.jobs import DYNAMIC, LITERAL, ROBUST, Job, parts, train_jobs
 from lbo.tracking.runs import check_store, run_artifact
 
@@ -148,6 +148,7 @@ def stage_tune(cfg: DictConfig, out: Path, models: list[str]) -> tuple[dict, str
                                      f"tune.n_trials={cfg.trials}",
                                      f"tune.handoff={out / 'tuned' / f'{model}.yaml'}",
                                      f"tune.storage={cfg.optuna_storage}",
+                                     f"logger.tracking_uri={cfg.tracking_uri}",
                                      f"output_dir={out / 'tune' / model}",
                                      *cfg.tune_overrides,
                                      *cfg.search_overrides[model],
@@ -159,28 +160,8 @@ def stage_tune(cfg: DictConfig, out: Path, models: list[str]) -> tuple[dict, str
 
 def expected(cfg: DictConfig, jobs: list[Job]) -> Eta:
     """Measure a few steps of every run still to train; print the stage's expected time."""
-    from lbo.learn.builders import data_device
-    from lbo.learn.resume import config_hash, finished_run
-
-    estimates = []
-    begin = time.perf_counter()
-    for job in jobs:
-        c = compose("train", list(job.overrides))
-        if finished_run(c, config_hash(c), clean=False) is not None:
-            estimates.append(0.0)
-            continue
-        m = measure(c)
-        estimates.append(m["seconds"])
-        print(f"    {job.key}: {m['steps']} steps x {1e3 * m['step_s']:.1f} ms + "
-              f"{m['setup_s']:.1f} s setup + {m['eval_s']:.1f} s validation and test = "
-              f"{duration(m['seconds'])}", flush=True)
-    total = sum(estimates) / (min(cfg.jobs, len(jobs)) if cfg.launcher == "joblib" else 1)
-    device = data_device(compose("train", list(jobs[0].overrides)))
-    print(f"    expected: about {duration(total)} of training at scale {cfg.scale} on "
-          f"{device} (measured steps x steps per run, and forward passes for validation and "
-          f"the test set, timed in {time.perf_counter() - begin:.0f} s; early stopping can "
-          "only shorten it)", flush=True)
-    return Eta(estimates)
+    return plan([(job.key, compose("train", list(job.overrides))) for job in jobs],
+                cfg.jobs if cfg.launcher == "joblib" else 1, cfg.scale)
 
 
 def stage_train(cfg: DictConfig, out: Path, jobs: list[Job]) -> tuple[dict, str]:

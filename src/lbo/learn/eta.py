@@ -1,7 +1,8 @@
 """How long training will take: a few measured steps of each run, times its step count.
 
-``make reproduce`` prints the expected time of its train stage before it starts, for the
-chosen scale and device, and an ETA after every run.
+``make reproduce`` and ``make ablation`` print the expected time of their training before it
+starts (:func:`plan`), for the chosen scale and device, and an ETA after every run
+(:class:`Eta`).
 """
 
 from __future__ import annotations
@@ -138,6 +139,36 @@ def more(count: int, unit: str, each_s: float, basis: str) -> str:
     each, the time measured on ``basis`` (the first trial, epoch 0)."""
     return (f"estimate: {count} more {unit}{'s' if count > 1 else ''} x {each_s:.1f} s "
             f"({basis}): about {duration(count * each_s)}")
+
+
+def plan(runs: list[tuple[str, DictConfig]], parallel: int = 1, scale: str = "") -> Eta:
+    """Measure a few steps of every run of ``runs`` (``(name, training config)`` pairs) that is
+    still to train, print one line each and the expected total, and return their :class:`Eta`.
+
+    A run that finished before (same config hash) is expected to take nothing; ``parallel``
+    runs train at once (the total is divided by it); ``scale`` is named in the total line.
+    """
+    from lbo.learn.builders import data_device
+    from lbo.learn.resume import config_hash, finished_run
+
+    estimates = []
+    begin = time.perf_counter()
+    for name, cfg in runs:
+        if finished_run(cfg, config_hash(cfg), clean=False) is not None:
+            estimates.append(0.0)
+            continue
+        m = measure(cfg)
+        estimates.append(m["seconds"])
+        print(f"    {name}: {m['steps']} steps x {1e3 * m['step_s']:.1f} ms + "
+              f"{m['setup_s']:.1f} s setup + {m['eval_s']:.1f} s validation and test = "
+              f"{duration(m['seconds'])}", flush=True)
+    total = sum(estimates) / max(min(parallel, len(runs)), 1)
+    at = f" at scale {scale}" if scale else ""
+    print(f"    expected: about {duration(total)} of training{at} on {data_device(runs[0][1])} "
+          f"(measured steps x steps per run, and forward passes for validation and the test "
+          f"set, timed in {time.perf_counter() - begin:.0f} s; early stopping can only shorten "
+          "it)", flush=True)
+    return Eta(estimates)
 
 
 class Eta:

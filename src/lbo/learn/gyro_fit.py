@@ -410,17 +410,18 @@ def fit_and_write(out: Path, name: str, train: pd.DataFrame | Sequence[pd.DataFr
 
 
 def adapt(log: pd.DataFrame, start: GyroNoise, vehicle: Vehicle, preset: Noise,
-          epochs: int = 12, segment_s: float = 10.0, lr: float = 0.1, ahead: int = 0
-          ) -> GyroFit:
+          epochs: int = 12, segment_s: float = 10.0, lr: float = 0.1, ahead: int = 0,
+          progress: Callable[[str], None] | None = None) -> GyroFit:
     """The gyro EKF's noise fitted on the very log it is to filter, by its innovations
     (:func:`fit` with ``objective="innovations"``, the log its own validation): offline, for
     it reads the whole log first. Any truth columns are dropped unread.
 
     preset : the classical observers' noise (its R where a fix reports no accuracy);
-    segment_s : seconds per segment (at least one such span after the first course)."""
+    segment_s : seconds per segment (at least one such span after the first course);
+    progress : as :func:`fit`'s (None: silent)."""
     R = fix_cov(preset)
     blind = log.drop(columns=list(STATE), errors="ignore")
     segment = max(2, round(segment_s / vehicle.dt))
     return fit(blind, blind, vehicle, R, start, epochs=epochs, segment=segment, lr=lr,
-               progress=None, objective="innovations", ahead=ahead)
+               progress=progress, objective="innovations", ahead=ahead)
 

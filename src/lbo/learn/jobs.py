@@ -104,8 +104,10 @@ def train_jobs(cfg: DictConfig, out: Path) -> list[Job]:
                             ("experiment=dynamic", f"model={model}", "~model.drift",
                              f"data={data}", *cfg.dynamic_overrides,
                              run_name(data)), data))
-    # each run's progress bars hidden: the stage says each run's result as it ends
+    # each run's progress bars hidden: the stage says each run's result as it ends; each run
+    # logs to the store the report reads (the command's tracking_uri)
     return [dataclasses.replace(j, overrides=tuple(respell(
         [*j.overrides, "callbacks.progress_bar.refresh_rate=0", "resume=true",
+         f"logger.tracking_uri={cfg.tracking_uri}",
          f"output_dir={out / 'runs' / j.key}", *cfg.overrides, *cfg.train_overrides])))
         for j in jobs]
