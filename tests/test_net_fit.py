@@ -4,6 +4,8 @@ validation logs, and the checkpoint written that every lbo command loads."""
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pandas as pd
 import pytest
@@ -71,7 +73,11 @@ def test_fine_tuning_keeps_the_best_validation_epoch_and_is_repeatable(logs):
     fitted = net_fit.fit(net, train, val, epochs=3, lr=3e-3, batch=64, seed=5,
                          progress=lines.append)
     h = fitted.history
-    assert list(h["epoch"]) == [0, 1, 2, 3] and len(lines) == 3
+    # a line per epoch, and after the first how long the other two will take
+    assert list(h["epoch"]) == [0, 1, 2, 3] and len(lines) == 4
+    assert lines[0].startswith("epoch 1/3: ") and lines[2].startswith("epoch 2/3: ")
+    assert re.fullmatch(r"estimate: 2 more epochs x [0-9.]+ s \(epoch 1's time\): about \d+ s",
+                        lines[1]), lines[1]
     assert fitted.best_epoch == int(h["val"].idxmin())
     assert h["val"].iloc[1:].min() < h["val"].iloc[0]  # it learns from these logs
     assert net_fit._val_loss(fitted.net, val) == pytest.approx(h["val"].min(), rel=1e-6)

@@ -33,6 +33,7 @@ import pandas as pd
 import torch
 
 from lbo.core.errors import LboError
+from lbo.learn.eta import more
 from lbo.models.envelope import Envelope
 from lbo.models.features import window_view
 from lbo.serve.rows import receiver_rows, window_series
@@ -129,7 +130,8 @@ def fit(net: Any, train: LogWindows, val: LogWindows, *, epochs: int, lr: float,
     """Train a copy of ``net`` (a :class:`~lbo.models.net.WindowNet` that reads a receiver) on
     ``train``'s windows, keeping the epoch with the lowest loss on ``val``'s (see the module's
     docstring); ``fresh``: from new parameters drawn from ``seed`` and the train windows'
-    normalisation. ``progress`` gets one line per epoch."""
+    normalisation. ``progress`` gets one line per epoch, and after the first how long the
+    others will take."""
     _check_reads_receiver(net)
     net = copy.deepcopy(net)  # float32 parameters, float64 buffers, as lbo.train keeps them
     g = torch.Generator().manual_seed(seed)
@@ -162,6 +164,8 @@ def fit(net: Any, train: LogWindows, val: LogWindows, *, epochs: int, lr: float,
         if progress is not None:
             progress(f"epoch {epoch}/{epochs}: loss {rows[-1]['loss']:.4f}, val {val_loss:.4f}"
                      f"{' (best)' if best_epoch == epoch else ''}, {rows[-1]['seconds']:.0f} s")
+            if epoch == 1 and epochs > 1:  # the others take as long
+                progress(more(epochs - 1, "epoch", rows[-1]["seconds"], "epoch 1's time"))
     net.load_state_dict(kept)
     return NetFit(net.eval(), pd.DataFrame(rows), best_epoch)
 
