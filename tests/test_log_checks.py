@@ -14,7 +14,7 @@ import pyarrow.parquet as pq
 import pytest
 import torch
 
-from helpers import compose_cfg, observe, one_line_error, train_in_own_store
+from helpers import compose_cfg, observe, observed, one_line_error, train_in_own_store
 from helpers.shared import once
 from lbo.core.errors import LboError
 from lbo.models.features import window_view
@@ -101,23 +101,20 @@ def test_resample_refuses_a_gap_longer_than_max_gap(tmp_path, manoeuvre, every):
 def test_a_raised_max_gap_interpolates_inputs_but_never_fixes(tmp_path, manoeuvre, capsys):
     log, out = tmp_path / "log.csv", tmp_path / "est.csv"
     _gap_log(manoeuvre).to_csv(log, index=False)
-    result = observe_cfg(compose_cfg("observe", ["observer=ekf", f"input={log}", f"output={out}",
-                                         "resample=true", "max_gap=20"]))
+    result = observed(log, out, "resample=true", "max_gap=20")
     rows = len(manoeuvre) + 499  # the 10 s gap is 499 more rows of 0.02 s
     assert result["rows"] == rows
     assert f"fixes: {len(manoeuvre)} of {rows} rows" in capsys.readouterr().out
     est = pd.read_csv(out)
     assert est["valid"].all()  # the EKF predicts through the gap (from interpolated inputs)
     with pytest.raises(LboError, match=r"^max_gap must be a time in seconds > 0, got -1$"):
-        observe_cfg(compose_cfg("observe", ["observer=ekf", f"input={log}",
-                                    f"output={tmp_path / 'b.csv'}", "max_gap=-1"]))
+        observed(log, tmp_path / "b.csv", "max_gap=-1")
 
 
 def test_a_gap_no_longer_than_the_observer_dt_is_not_refused(tmp_path, manoeuvre):
     log, out = tmp_path / "log.csv", tmp_path / "est.csv"
     manoeuvre[LOG].iloc[::50].to_csv(log, index=False)  # 1 s steps, above max_gap=0.5 s
-    result = observe_cfg(compose_cfg("observe", ["observer=ekf", f"input={log}", f"output={out}",
-                                         "resample=true", "vehicle.dt=1.0"]))
+    result = observed(log, out, "resample=true", "vehicle.dt=1.0")
     assert result["rows"] == len(manoeuvre[::50])
 
 
@@ -157,7 +154,7 @@ def test_spaces_after_the_commas_are_stripped(tmp_path, manoeuvre, suffix):
             np.arange(len(manoeuvre))[::-1] * 3)
         df.to_parquet(log)
         assert "__index_level_0__" in pq.read_schema(log).names
-    result = observe_cfg(compose_cfg("observe", ["observer=ekf", f"input={log}", f"output={out}"]))
+    result = observed(log, out)
     assert result["rows"] == len(manoeuvre) and "rmse" in result
 
 
@@ -187,8 +184,7 @@ def test_t_in_milliseconds_is_refused(tmp_path, manoeuvre, unit, factor, median,
 def test_a_log_in_seconds_at_10hz_is_not_taken_for_milliseconds(tmp_path, manoeuvre):
     log, out = tmp_path / "log.csv", tmp_path / "est.csv"
     manoeuvre[LOG].iloc[::5].to_csv(log, index=False)  # 0.1 s steps
-    result = observe_cfg(compose_cfg("observe", ["observer=ekf", f"input={log}", f"output={out}",
-                                         "resample=true"]))
+    result = observed(log, out, "resample=true")
     assert result["rows"] == len(manoeuvre) - 4  # up to the log's last t
 
 
@@ -334,8 +330,7 @@ def test_a_1hz_log_is_refused_for_a_cnn_whose_window_is_shorter(tmp_path, fix_ra
         "longer window, the robust one (experiment=robust), or a classical one"), out)
     # at 5 Hz (a fix every 10 steps) every window holds a fix: every estimate from row 19 on
     _thinned(10).to_csv(log, index=False)
-    result = observe_cfg(compose_cfg("observe", [f"observer={fix_rates_cnn}", f"input={log}",
-                                         f"output={out}"]))
+    result = observed(log, out, observer=fix_rates_cnn)
     assert result["valid"] == result["rows"] - 19
 
 

@@ -22,10 +22,9 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from helpers import compose_cfg
+from helpers import observed
 from lbo.core.angles import wrap_angle
 from lbo.core.errors import LboError
-from lbo.observe import observe as observe_cfg
 from lbo.sim.logcheck import check_samples
 from lbo.sim.logformat import LogFormat, Origin
 from lbo.sim.units import check_conventions
@@ -59,8 +58,7 @@ def observe(tmp_path: Path, log: pd.DataFrame, *overrides: str, name: str = "log
     """``python -m lbo.observe observer=ekf`` on ``log``: its result and its output."""
     path, out = tmp_path / f"{name}.csv", tmp_path / f"{name}_est.csv"
     log.to_csv(path, index=False)
-    result = observe_cfg(compose_cfg("observe", ["observer=ekf", f"input={path}",
-                                                 f"output={out}", *overrides]))
+    result = observed(path, out, *overrides)
     return result, pd.read_csv(out)
 
 

@@ -4,16 +4,14 @@ from __future__ import annotations
 
 import math
 import re
-from pathlib import Path
 
 import numpy as np
 import pandas as pd
 import pymap3d
 import pytest
 
-from helpers import compose_cfg
+from helpers import compose_cfg, observed
 from lbo.core.errors import LboError
-from lbo.observe import observe as observe_cfg
 from lbo.sim.logformat import LogFormat, Origin, to_local
 from lbo.sim.units import check_conventions
 
@@ -58,11 +56,6 @@ LOGGED = ["columns.t=time_s", "columns.lat=gnss_lat", "columns.lon=gnss_lon",
           "units.psi=deg", "units.delta=deg", "steering_ratio=15.5", "heading=compass"]
 
 
-def observe(tmp_path: Path, log: Path, *overrides: str, out: str = "est.csv") -> dict:
-    return observe_cfg(compose_cfg("observe", ["observer=ekf", f"input={log}",
-                                       f"output={tmp_path / out}", *overrides]))
-
-
 # ------------------------------------------------------------------------------ geodesy
 
 
@@ -89,8 +82,8 @@ def test_lat_lon_become_metres_east_and_north_as_published(lat, d_lat, d_lon, no
 def test_a_loggers_log_gives_the_estimates_of_the_same_log_in_lbos_form(tmp_path, plain):
     plain.to_csv(tmp_path / "plain.csv", index=False)
     as_logged(plain).to_csv(tmp_path / "logged.csv", index=False)
-    want = observe(tmp_path, tmp_path / "plain.csv", out="want.csv")
-    got = observe(tmp_path, tmp_path / "logged.csv", *LOGGED)
+    want = observed(tmp_path / "plain.csv", tmp_path / "want.csv")
+    got = observed(tmp_path / "logged.csv", tmp_path / "est.csv", *LOGGED)
     np.testing.assert_allclose(got["rmse"], want["rmse"], rtol=1e-6)
     a, b = pd.read_csv(tmp_path / "want.csv"), pd.read_csv(tmp_path / "est.csv")
     # metres east/north of the first fix: the plain log's frame shifted, and turned by the
@@ -110,7 +103,7 @@ def test_a_loggers_log_gives_the_estimates_of_the_same_log_in_lbos_form(tmp_path
 
 def test_observe_says_how_it_read_the_log(tmp_path, plain, capsys):
     as_logged(plain).to_csv(tmp_path / "logged.csv", index=False)
-    observe(tmp_path, tmp_path / "logged.csv", *LOGGED)
+    observed(tmp_path / "logged.csv", tmp_path / "est.csv", *LOGGED)
     line = next(x for x in capsys.readouterr().out.splitlines() if x.startswith("read as:"))
     assert "V <- speed_kmh" in line and "V in kmh" in line and "steering ratio 15.5" in line
     assert "compass headings" in line and "lat/lon -> metres east/north of 48.77" in line
@@ -154,7 +147,7 @@ def test_a_speed_or_heading_that_contradicts_the_fixes_is_refused(tmp_path, plai
     log = tmp_path / "log.csv"
     edit(plain).to_csv(log, index=False)
     with pytest.raises(LboError, match=re.escape(hint)):
-        observe(tmp_path, log)
+        observed(log, tmp_path / "est.csv")
     assert not (tmp_path / "est.csv").exists()
 
 
@@ -163,7 +156,7 @@ def test_a_compass_log_read_as_enu_the_other_way_round(tmp_path, plain):
     plain.to_csv(log, index=False)
     with pytest.raises(LboError, match=re.escape("(read as heading=compass), but its mirror "
                                                  "image does: pass heading=enu")):
-        observe(tmp_path, log, "heading=compass")
+        observed(log, tmp_path / "est.csv", "heading=compass")
 
 
 def test_no_simulated_log_looks_suspicious(test_set, smoke_data):
@@ -197,7 +190,7 @@ def test_bad_format_settings_are_one_line_and_write_nothing(tmp_path, plain, ove
     log = tmp_path / "log.csv"
     plain.to_csv(log, index=False)
     with pytest.raises(LboError, match=re.escape(message)):
-        observe(tmp_path, log, override)
+        observed(log, tmp_path / "est.csv", override)
     assert not (tmp_path / "est.csv").exists()
 
 
@@ -213,7 +206,7 @@ def test_bad_geodetic_logs_are_one_line(tmp_path, plain, edit, message):
     edit(as_logged(plain)).to_csv(log, index=False)
     overrides = [o for o in LOGGED if "lon=" not in o or "gnss_lon" in pd.read_csv(log).columns]
     with pytest.raises(LboError, match=re.escape(message)):
-        observe(tmp_path, log, *overrides)
+        observed(log, tmp_path / "est.csv", *overrides)
     assert not (tmp_path / "est.csv").exists()
 
 

@@ -6,7 +6,8 @@ hooks stay in ``tests/conftest.py``.
 - :mod:`helpers.training`: training runs at smoke size (``train_in_own_store``)
 - :mod:`helpers.processes`: faults injected into running processes (``kill_when_written``)
 - :mod:`helpers.commands`: lbo's commands as a user types them (``cli``, ``observe``), in the
-  test's process unless ``process=True``, and their one-line refusals (``one_line_error``)
+  test's process unless ``process=True``, ``lbo.observe``'s result on a log (``observed``),
+  and their one-line refusals (``one_line_error``)
 - :mod:`helpers.stepping`: an observer stepped through a log (``step_log``)
 - :mod:`helpers.servers`: real PostgreSQL, MLflow and model servers (import it by name:
   ``from helpers.servers import postgres``)
@@ -14,11 +15,11 @@ hooks stay in ``tests/conftest.py``.
   slurm_cluster``)
 """
 
-from helpers.commands import cli, observe, one_line_error
+from helpers.commands import cli, observe, observed, one_line_error
 from helpers.config import ROBUST_SMOKE, compose_cfg, train_cfg
 from helpers.processes import kill_when_written
 from helpers.stepping import step_log
 from helpers.training import train_in_own_store
 
-__all__ = ["ROBUST_SMOKE", "cli", "compose_cfg", "kill_when_written", "observe",
+__all__ = ["ROBUST_SMOKE", "cli", "compose_cfg", "kill_when_written", "observe", "observed",
            "one_line_error", "step_log", "train_cfg", "train_in_own_store"]

@@ -50,6 +50,16 @@ def observe(*args: str, cwd: Path | None = None, timeout: float = 600, check: bo
     return res
 
 
+def observed(log: Path, output: Path, *overrides: str, observer: str = "ekf") -> dict:
+    """:func:`lbo.observe.observe`'s result for the log file ``log``, its estimates written to
+    ``output``: the command's config composed with ``overrides``, called in this process."""
+    from helpers.config import compose_cfg
+    from lbo.observe import observe as run
+
+    return run(compose_cfg("observe", [f"observer={observer}", f"input={log}",
+                                       f"output={output}", *overrides]))
+
+
 def one_line_error(res: subprocess.CompletedProcess, *words: str) -> str:
     """The single ``error:`` line of a refused command (exit 2, no traceback), which holds
     each of ``words``."""
