@@ -4,11 +4,15 @@ through them are read as the protocol says."""
 
 from __future__ import annotations
 
+import dataclasses
+import re
+
 import numpy as np
 import pandas as pd
 import pytest
 from omegaconf import OmegaConf
 
+from helpers import compose_cfg
 from lbo.core.errors import LboError
 from lbo.core.paths import CONF_DIR
 from lbo.scoring import outages
@@ -29,13 +33,13 @@ def test_outages_fall_every_so_often_where_the_car_moves_throughout():
     dt = 0.1
     t = np.arange(0, 100, dt)
     log = pd.DataFrame({"V": np.where((t >= 40) & (t < 52), 0.0, 10.0)})
-    spans = outages.windows(log, Outages(10.0, 25.0), dt)
+    spans = outages.windows(log["V"], Outages(10.0, 25.0), dt)
     np.testing.assert_array_equal(spans, [[250, 350], [520, 620], [770, 870]])
-    assert outages.windows(log, Outages(10.0, 25.0), dt, first=300).tolist() == \
+    assert outages.windows(log["V"], Outages(10.0, 25.0), dt, first=300).tolist() == \
         [[550, 650], [800, 900]]
-    assert outages.windows(log.iloc[:860], Outages(10.0, 25.0), dt).tolist() == \
+    assert outages.windows(log["V"].iloc[:860], Outages(10.0, 25.0), dt).tolist() == \
         [[250, 350], [520, 620]]
-    assert outages.windows(log.assign(V=0.5), Outages(10.0, 25.0), dt).shape == (0, 2)
+    assert outages.windows(log.assign(V=0.5)["V"], Outages(10.0, 25.0), dt).shape == (0, 2)
     slow = gyro_drive.draw(0).assign(V=0.5)
     with pytest.raises(LboError, match=r"^outages: no window of 10 s fits where the car moves "
                                        r"\(at least 1 m/s throughout\); shorten "
@@ -45,7 +49,7 @@ def test_outages_fall_every_so_often_where_the_car_moves_throughout():
 
 def test_only_the_receivers_columns_are_blanked_and_only_inside_the_outages():
     log = gyro_drive.draw(0)
-    spans = outages.windows(log, Outages(5.0, 15.0), VEHICLE.dt)
+    spans = outages.windows(log["V"], Outages(5.0, 15.0), VEHICLE.dt)
     assert len(spans) == 3
     out = outages.blank(log, spans)
     inside = outages.inside(len(log), spans)
@@ -63,7 +67,7 @@ def test_no_fix_inside_an_outage_reaches_an_observer():
     once blanked, every observer's estimate is the same to the bit as on the log as drawn
     (and without the blanking the planted values do change them: the check can fail)."""
     log = gyro_drive.draw(1)
-    spans = outages.windows(log, Outages(5.0, 15.0), VEHICLE.dt)
+    spans = outages.windows(log["V"], Outages(5.0, 15.0), VEHICLE.dt)
     planted = log.copy()
     rows = outages.inside(len(log), spans)
     planted.loc[rows, ["x_m", "y_m"]] += 3000.0
@@ -182,3 +186,127 @@ def test_the_simulator_drops_the_fixes_in_the_outages_and_keeps_the_truth(tmp_pa
     kept = [c for c in before if c not in blanked]  # the truth, the inputs, the gyro
     pd.testing.assert_frame_equal(after[kept], before[kept])
     assert (before.loc[rows, ["x_m", "y_m"]].notna().any(axis=None))  # there were fixes
+
+
+def grid(alpha=(1.0, 3.0), t=40, dt=0.5):
+    """Two trajectories of ``t`` rows at 2 m/s, the second 10 rows shorter (padded), fixes on
+    every row; their truth at rest at the origin."""
+    from lbo.sim.schema import Trajectories
+
+    g = len(alpha)
+    lengths = np.array([t, t - 10])
+    u = np.zeros((g, t, 2))
+    u[..., 0] = 2.0
+    m = np.ones((g, t, 3))
+    return Trajectories(z=np.zeros((g, t, 3)), u=u, m=m,
+                        mask=np.arange(t) < lengths[:, None], lengths=lengths,
+                        traj=np.arange(g), alpha=np.array(alpha), file=np.full(g, -1))
+
+
+def test_outages_on_the_test_grid_blank_their_rows_and_are_read_per_noise_level():
+    """Outages of 2 s every 5 s at dt 0.5 from the first fix: rows [10, 14) and [20, 24) of
+    the 20 s trajectory (a third, [30, 34), also fits), two in the 15 s one (its padding is
+    not driven); only the fixes of those rows blanked; the errors read per alpha."""
+    arr = grid()
+    spans = outages.grid_windows(arr, Outages(2.0, 5.0), 0.5)
+    assert spans.tolist() == [[0, 10, 14], [0, 20, 24], [0, 30, 34], [1, 10, 14], [1, 20, 24]]
+    blanked = outages.blank_grid(arr, spans)
+    inside = outages.grid_inside(arr.m.shape[:2], spans)
+    assert inside.sum() == 5 * 4 and inside[0, 10:14].all() and not inside[0, 14]
+    assert np.isnan(blanked.m[inside]).all() and np.isfinite(blanked.m[~inside]).all()
+    np.testing.assert_array_equal(blanked.z, arr.z)
+    np.testing.assert_array_equal(blanked.u, arr.u)
+    assert np.isfinite(arr.m).all()  # the grid given is left as it was
+    # "a" ends each outage (3, 4) m off at alpha 1 and twice that at alpha 3; "b" 1 m off
+    a, b = np.zeros_like(arr.z), np.zeros_like(arr.z)
+    a[0, [13, 23, 33], :2] = [3.0, 4.0]
+    a[1, [13, 23], :2] = [6.0, 8.0]
+    b[:, :, 0] = np.where(inside, 1.0, 0.0)
+    table = outages.score_grid({"a": a, "b": b}, arr, spans, 0.5, reference="b")
+    got = table.set_index(["estimator", "alpha"])
+    assert got.loc[("a", 1.0), "outages"] == 3 and got.loc[("a", 3.0), "outages"] == 2
+    assert got.loc[("a", 1.0), "end_m"] == 5.0 and got.loc[("a", 3.0), "end_m"] == 10.0
+    assert got.loc[("b", 3.0), "end_m"] == 1.0 and got.loc[("a", 3.0), "end_vs_b"] == 10.0
+    assert got.loc[("a", 1.0), "drift_pct"] == pytest.approx(100 * 5.0 / 4.0)  # 4 m driven
+    assert got.loc[("a", 1.0), "position_m"] == pytest.approx(np.sqrt(3 * 25 / 12))
+    none = grid(t=12)  # 6 s: no 2 s outage fits 5 s after the first fix and before the end
+    with pytest.raises(LboError, match=r"^outages: no window of 2 s fits in a test trajectory "
+                                       r"\(one every 5 s from its first fix"):
+        outages.grid_windows(none, Outages(2.0, 5.0), 0.5)
+
+
+def test_no_fix_inside_a_grid_outage_reaches_an_observer(smoke_data):
+    """Planted: the fixes inside the outages moved 1 km before blanking; every classical
+    observer's estimates on the blanked grid are the same to the bit."""
+    from lbo.scoring.grid import classical, load_test
+
+    arr = load_test(smoke_data / "test.parquet")
+    spans = outages.grid_windows(arr, Outages(3.0, 6.0), VEHICLE.dt)
+    inside = outages.grid_inside(arr.m.shape[:2], spans)
+    planted = dataclasses.replace(arr, m=np.where(inside[..., None], arr.m + 1000.0, arr.m))
+    noise = Noise.from_cfg(OmegaConf.load(CONF_DIR / "noise" / "paper.yaml"))
+    for name in ("ekf", "oracle", "adaptive", "ukf"):
+        np.testing.assert_array_equal(
+            classical(name, outages.blank_grid(arr, spans), VEHICLE, noise),
+            classical(name, outages.blank_grid(planted, spans), VEHICLE, noise), err_msg=name)
+
+
+def test_evaluate_scores_every_observer_through_outages_on_the_test_grid(
+        smoke_data, robust_smoke, tmp_path, capsys):
+    """``lbo.evaluate outages.length_s=3 outages.every_s=6``: outages.csv holds every observer
+    at every noise level, the robust observer (its recursive form coasts) and the classical
+    ones with an estimate at each outage's end; a window CNN has none, and says so."""
+    from lbo.evaluate import evaluate
+
+    robust = robust_smoke["out"]["checkpoint"]
+    evaluate(compose_cfg("evaluate", [
+        "data=smoke", f"data.root={smoke_data.parent}", f"output_dir={tmp_path}",
+        "observers=[ekf,oracle,pcrb]", f"learned=[{robust}]", "outages.length_s=3",
+        "outages.every_s=6"]))
+    printed = capsys.readouterr().out
+    assert re.search(r"through GNSS outages of 3 s \(every 6 s while moving, \d+ in 21 test "
+                     r"trajectories", printed)
+    table = pd.read_csv(tmp_path / "outages.csv")
+    assert set(table["estimator"]) == {"filternet-N40", "ekf", "oracle"}  # no bound
+    assert table.groupby("estimator")["alpha"].nunique().eq(7).all()
+    assert table[["end_m", "position_m", "psi_mrad", "drift_pct"]].notna().all().all()
+    assert (table.loc[table["estimator"] == "ekf", "end_vs_ekf"] == 1.0).all()
+    assert (table["end_m"] > 0.1).all()  # coasting 3 s drifts, fixes or not
+
+
+def test_outages_are_for_the_test_grid_and_checked_before_any_work(tmp_path):
+    from lbo.evaluate import evaluate
+
+    with pytest.raises(LboError, match=r"^outages: scored on the simulated test grid; on a log "
+                                       r"with truth, python -m lbo.observe outages"):
+        evaluate(compose_cfg("evaluate", ["data=logs", f"data.test=[{tmp_path}]",
+                                          "outages.length_s=10"]))
+    with pytest.raises(LboError, match=r"^outages\.every_s must be longer than"):
+        evaluate(compose_cfg("evaluate", ["data=smoke", f"output_dir={tmp_path}",
+                                          "outages.length_s=10", "outages.every_s=5"]))
+    assert not any(tmp_path.iterdir())
+
+
+def test_an_observers_run_is_told_its_error_at_the_outages_end(tmp_path, monkeypatch):
+    """log_to_run with an outages.csv among the files: ``eval_<data>_outage_end_m_alpha_<a>``
+    for the observer's rows (a real MLflow store)."""
+    import mlflow
+
+    from lbo.evaluate import log_to_run
+
+    uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", uri)
+    client = mlflow.MlflowClient(uri)
+    run = client.create_run(client.create_experiment("e", f"{tmp_path / 'art'}")).info.run_id
+    pd.DataFrame({"observer": ["mine", "mine", "ekf"], "alpha": [1.0, 3.0, 1.0],
+                  "nrmse": [0.9, 2.0, 1.0]}).to_csv(tmp_path / "evaluation.csv", index=False)
+    pd.DataFrame({"estimator": ["mine", "mine", "ekf"], "alpha": [1.0, 3.0, 1.0],
+                  "end_m": [1.5, 2.5, 2.0]}).to_csv(tmp_path / "outages.csv", index=False)
+    log_to_run(run, run, "mine", tmp_path / "evaluation.csv", "smoke",
+               [tmp_path / "evaluation.csv", tmp_path / "outages.csv"])
+    logged = client.get_run(run).data.metrics
+    assert logged == {"eval_smoke_nrmse_alpha_1": 0.9, "eval_smoke_nrmse_alpha_3": 2.0,
+                      "eval_smoke_outage_end_m_alpha_1": 1.5,
+                      "eval_smoke_outage_end_m_alpha_3": 2.5}
+    assert {a.path for a in client.list_artifacts(run, "evaluations/smoke")} == {
+        "evaluations/smoke/evaluation.csv", "evaluations/smoke/outages.csv"}

@@ -19,7 +19,7 @@ from omegaconf import DictConfig
 from lbo.core.atomic import atomic_path
 from lbo.core.cli import entry
 from lbo.core.errors import LboError
-from lbo.filters.classical import BOUND, DYNAMIC, LOG_PEERS, OBSERVERS, TUNED
+from lbo.filters.classical import BOUND, DYNAMIC, LOG_PEERS, NAMES, OBSERVERS, TUNED
 from lbo.filters.classical import estimate as run_classical
 from lbo.scoring.grid import (
     REFERENCES,
@@ -34,6 +34,7 @@ from lbo.scoring.grid import (
     reference,
     score,
 )
+from lbo.scoring.outages import Outages
 from lbo.sim.noise import Noise
 from lbo.sim.schema import Trajectories
 from lbo.sim.vehicle import Vehicle
@@ -53,10 +54,14 @@ def evaluate(cfg: DictConfig) -> Path:
                            f"{one!r} (a run id of digits only: quote it, observer=\"'<id>'\")")
         learned = [one, *learned]
         run_id = run_of(one)
+    outages = Outages.from_cfg(cfg.get("outages"))  # its settings checked before any work
     if is_logs(cfg):
+        if outages is not None:
+            raise LboError("outages: scored on the simulated test grid; on a log with truth, "
+                           "python -m lbo.observe outages.length_s=... scores them")
         csv, names, written = run_logs(cfg, observers, learned)
     else:
-        csv, names, written = _run_grid(cfg, observers, learned)
+        csv, names, written = _run_grid(cfg, observers, learned, outages)
     if one is not None:
         log_to_run(run_id, one, names[0], csv, str(cfg.data.name), written)
     return csv
@@ -88,7 +93,8 @@ def log_to_run(run_id: str | None, source: str, name: str, csv: Path, data: str,
                files: list[Path] | None = None) -> None:
     """Log the scores of the observer ``source``, called ``name`` in ``csv``, to its MLflow run
     ``run_id``: metrics ``eval_<data>_nrmse_alpha_<a>`` per noise level (``eval_<data>_nrmse``
-    pooled over a user's test logs) and ``files``, the files this evaluation wrote (default:
+    pooled over a user's test logs; with an outages.csv among ``files``, also
+    ``eval_<data>_outage_end_m_alpha_<a>``) and ``files``, the files this evaluation wrote (default:
     ``csv`` alone), under ``evaluations/<data>/``. Nothing else in their folder is uploaded: it
     may hold anything of the user's, and the tracking server may be shared."""
     import mlflow
@@ -111,6 +117,12 @@ def log_to_run(run_id: str | None, source: str, name: str, csv: Path, data: str,
     else:
         metrics = {f"eval_{data}_nrmse_alpha_{a:g}": float(v)
                    for a, v in zip(rows["alpha"], rows["nrmse"])}
+    for path in files or []:  # through GNSS outages: the error at an outage's end
+        if Path(path).name == "outages.csv":
+            through = pd.read_csv(path)
+            through = through[through["estimator"] == name]
+            metrics.update({f"eval_{data}_outage_end_m_alpha_{a:g}": float(v)
+                            for a, v in zip(through["alpha"], through["end_m"])})
     client = mlflow.MlflowClient(tracking_uri())
     client.log_batch(run_id, metrics=[Metric(k.replace(".", "_"), v, stamp, 0)
                                       for k, v in metrics.items()])
@@ -120,10 +132,11 @@ def log_to_run(run_id: str | None, source: str, name: str, csv: Path, data: str,
           f"evaluations/{data}/")
 
 
-def _run_grid(cfg: DictConfig, observers: list[str], learned: list[str]
-              ) -> tuple[Path, list[str], list[Path]]:
-    """The simulated test grid of ``cfg.data`` (or ``test_file``): evaluation.csv, the
-    names the ``learned`` observers have in it, in order, and every file written."""
+def _run_grid(cfg: DictConfig, observers: list[str], learned: list[str],
+              outages: Outages | None = None) -> tuple[Path, list[str], list[Path]]:
+    """The simulated test grid of ``cfg.data`` (or ``test_file``): evaluation.csv (and
+    outages.csv through ``outages``), the names the ``learned`` observers have in it, in
+    order, and every file written."""
     from lbo.core import plots
     from lbo.sim.datasets import build, spec_from_cfg
     from lbo.sim.truth import of_config as truth_of_config
@@ -152,6 +165,10 @@ def _run_grid(cfg: DictConfig, observers: list[str], learned: list[str]
                                  else len(observers), name)
     forms, calibrate, smooth = _extras(cfg)
     arr = load_test(path)
+    if outages is not None:  # where they fall, before anything is scored
+        from lbo.scoring.outages import grid_windows
+
+        spans = grid_windows(arr, outages, vehicle.dt)
     ref = reference(arr, vehicle, noise, cfg.metric.reference)
     # estimates (and covariances) of everything that gives a covariance, for calibration
     # and smoothing: the classical filters, and the window filters in their recursive form
@@ -206,6 +223,10 @@ def _run_grid(cfg: DictConfig, observers: list[str], learned: list[str]
               f"{ref[2] * 1e3:.2f} mrad)")
         print(pivot.to_string())
     print(f"evaluation: {csv}")
+    if outages is not None:
+        written.append(_outages(outages, spans, arr, vehicle, noise, truth,
+                                [o for o in observers if o in NAMES and o != BOUND],
+                                nets, out))
     return csv, list(nets), written
 
 
@@ -222,6 +243,41 @@ def _lateral(arr: Trajectories, vehicle: Vehicle, noise: Noise, truth: Any, out:
           "(the classical estimators; the learned observers' are not scored yet):")
     print(lateral.printable(scores))
     print(f"lateral states: {path}")
+    return path
+
+
+def _outages(outages: Outages, spans: np.ndarray, arr: Trajectories, vehicle: Vehicle,
+             noise: Noise, truth: Any, classical: list[str], learned: dict[str, Any],
+             out: Path) -> Path:
+    """outages.csv: every observer (the ``classical`` ones by name, the ``learned`` in their
+    default form) run on the test grid with its fixes blanked in the GNSS outages ``spans``
+    (K, 3) (:mod:`lbo.scoring.outages`), scored inside them per noise level; printed."""
+    from lbo.scoring import outages as outage
+    from lbo.scoring.grid import classical as run
+    from lbo.serve.runners import default_form
+
+    blanked = outage.blank_grid(arr, spans)
+    estimates = {label: predict_recursive(net, blanked)[0]
+                 if default_form(net) == "recursive" else predict_grid(net, blanked, net.window)
+                 for label, net in learned.items()}
+    estimates.update({name: run(name, blanked, vehicle, noise, truth=truth)
+                      for name in classical})
+    table = outage.score_grid(estimates, arr, spans, vehicle.dt,
+                              reference="ekf" if "ekf" in estimates else None)
+    path = out / "outages.csv"
+    with atomic_path(path) as tmp:
+        table.to_csv(tmp, index=False)
+    print(f"through GNSS outages of {outages.length_s:g} s (every {outages.every_s:g} s while "
+          f"moving, {len(spans)} in {len(np.unique(spans[:, 0]))} test trajectories; the fixes "
+          "blanked, the truth kept): the position error at an outage's end (m)")
+    with pd.option_context("display.width", 120, "display.precision", 3):
+        print(table.pivot(index="alpha", columns="estimator", values="end_m")[
+            list(estimates)].to_string())
+    for name in table.groupby("estimator")["end_m"].apply(lambda e: e.isna().all()).pipe(
+            lambda none: none[none].index):
+        print(f"note: {name} has no estimate inside the outages: a window net reads the fixes "
+              "of its window and cannot coast without them")
+    print(f"outages: {path}")
     return path
 
 

@@ -14,6 +14,7 @@ car travelled in the window (the drift per distance, %).
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
@@ -24,9 +25,10 @@ import pandas as pd
 from lbo.core.errors import LboError
 from lbo.scoring.metrics import rmse
 from lbo.sim.columns import MEAS, RECEIVER, STATE
+from lbo.sim.schema import Trajectories
 
-__all__ = ["BLANKED", "MOVING_SPEED", "Outages", "blank", "curves", "inside", "markdown",
-           "place", "score", "windows"]
+__all__ = ["BLANKED", "MOVING_SPEED", "Outages", "blank", "blank_grid", "curves", "grid_inside",
+           "grid_windows", "inside", "markdown", "place", "score", "score_grid", "windows"]
 
 BLANKED = (*MEAS, *(c for c in RECEIVER if c != "r_m"))
 """The columns an outage blanks: what a GNSS receiver gives (the gyro is the car's own)."""
@@ -61,15 +63,15 @@ class Outages:
         return cls(length_s=cfg.length_s, every_s=cfg.get("every_s"))
 
 
-def windows(log: pd.DataFrame, outages: Outages, dt: float,
-            first: int = 0) -> np.ndarray:
-    """(K, 2) the outages' rows ``[start, end)`` in ``log``, in turn: each at the first row,
-    ``every_s`` or more after the last one began (after row ``first`` for the first), from
-    which the car's speed ``V`` stays at least :data:`MOVING_SPEED` for all of ``length_s``
-    (a real drive moves in stretches between stops: a fixed grid would land on them)."""
+def windows(speed: np.ndarray, outages: Outages, dt: float, first: int = 0) -> np.ndarray:
+    """(K, 2) the outages' rows ``[start, end)`` in a log whose speed is ``speed`` (T,) m/s,
+    in turn: each at the first row, ``every_s`` or more after the last one began (after row
+    ``first`` for the first), from which the speed stays at least :data:`MOVING_SPEED` for
+    all of ``length_s`` (a real drive moves in stretches between stops: a fixed grid would
+    land on them)."""
     length, every = round(outages.length_s / dt), round(outages.every_s / dt)
-    slow = np.r_[0, np.cumsum(~(np.abs(log["V"].to_numpy(float)) >= MOVING_SPEED))]
-    k = np.arange(max(len(log) - length + 1, 0))
+    slow = np.r_[0, np.cumsum(~(np.abs(np.asarray(speed, float)) >= MOVING_SPEED))]
+    k = np.arange(max(len(slow) - length, 0))
     fits = k[slow[k + length] - slow[k] == 0]  # no slow row in [k, k + length)
     starts: list[int] = []
     at = first + every
@@ -89,7 +91,7 @@ def place(log: pd.DataFrame, outages: Outages, dt: float) -> np.ndarray:
         first = int(np.argmax(scored_rows(log)))
     else:
         first = int(np.argmax(np.isfinite(log[list(MEAS[:2])].to_numpy(float)).all(1)))
-    spans = windows(log, outages, dt, first)
+    spans = windows(log["V"].to_numpy(float), outages, dt, first)
     if not len(spans):
         raise LboError(f"outages: no window of {outages.length_s:g} s fits where the car moves "
                        f"(at least {MOVING_SPEED:g} m/s throughout); shorten outages.length_s")
@@ -123,6 +125,29 @@ def curves(est: np.ndarray, truth: np.ndarray, spans: np.ndarray) -> np.ndarray:
     return np.hypot(*(est[rows, :2] - truth[rows, :2]).transpose(2, 0, 1))
 
 
+def _errors(est: np.ndarray, truth: np.ndarray, rows: np.ndarray, last: np.ndarray,
+            driven: np.ndarray) -> dict[str, float]:
+    """One estimator's errors through K outages: est, truth (N, 3); rows (N,) bool, the rows
+    inside them; last (K,) each one's last row; driven (K,) m travelled in each."""
+    e = rmse(est, truth, rows)
+    end = np.hypot(*(est[last, :2] - truth[last, :2]).T)
+    return {"outages": len(last), "position_m": float(np.hypot(e[0], e[1])),
+            "psi_mrad": 1e3 * float(e[2]), "end_m": float(np.mean(end)),
+            "end_worst_m": float(np.max(end)), "drift_pct": 100 * float(np.mean(end / driven))}
+
+
+def _against(out: pd.DataFrame, reference: str | None, by: str | None = None) -> pd.DataFrame:
+    """``end_vs_<reference>``: each row's ``end_m`` over the reference's (at the same ``by``,
+    e.g. alpha, where given)."""
+    if reference is None:
+        return out
+    mine = out["estimator"] == reference
+    ref = out.loc[mine, "end_m"].iloc[0] if by is None else \
+        out[by].map(out[mine].set_index(by)["end_m"])
+    out[f"end_vs_{reference.split(',')[0]}"] = out["end_m"] / ref
+    return out
+
+
 def score(estimates: Mapping[str, np.ndarray], log: pd.DataFrame, spans: np.ndarray,
           dt: float, reference: str | None = None) -> pd.DataFrame:
     """Each observer's errors through the outages ``spans`` (K, 2) of ``log`` (which holds the
@@ -137,23 +162,71 @@ def score(estimates: Mapping[str, np.ndarray], log: pd.DataFrame, spans: np.ndar
         raise LboError("outages: no window to score")
     truth = log[list(STATE)].to_numpy(float)
     rows = inside(len(log), spans)
-    last = spans[:, 1] - 1
     travelled = np.r_[0.0, np.cumsum(np.abs(log["V"].to_numpy(float)))] * dt
     driven = travelled[spans[:, 1]] - travelled[spans[:, 0]]  # m in each outage
+    out = pd.DataFrame([{"estimator": label, **_errors(est, truth, rows, spans[:, 1] - 1,
+                                                       driven)}
+                        for label, est in estimates.items()])
+    return _against(out, reference)
+
+
+def grid_windows(arr: Trajectories, outages: Outages, dt: float) -> np.ndarray:
+    """(K, 3) the outages of a simulated test grid ``arr``: each row a trajectory's index and
+    an outage's rows ``[start, end)`` in it (:func:`windows` over its real rows, from its
+    first fix on); one line where none fits in any trajectory."""
+    found = []
+    for g, n in enumerate(arr.lengths):  # per trajectory: each has its own speed profile
+        first = int(np.argmax(np.isfinite(arr.m[g, :n, :2]).all(1)))
+        w = windows(arr.u[g, :n, 0], outages, dt, first)
+        found.append(np.c_[np.full(len(w), g), w])
+    spans = np.concatenate(found).astype(int).reshape(-1, 3)
+    if not len(spans):
+        raise LboError(f"outages: no window of {outages.length_s:g} s fits in a test trajectory "
+                       f"(one every {outages.every_s:g} s from its first fix, at least "
+                       f"{MOVING_SPEED:g} m/s throughout); shorten outages.length_s or "
+                       "outages.every_s")
+    return spans
+
+
+def grid_inside(shape: tuple[int, int], spans: np.ndarray) -> np.ndarray:
+    """(G, T) bool: the rows of a (G, T) grid within one of ``spans`` (K, 3)."""
+    edges = np.zeros((shape[0], shape[1] + 1), dtype=int)
+    np.add.at(edges, (spans[:, 0], spans[:, 1]), 1)
+    np.add.at(edges, (spans[:, 0], spans[:, 2]), -1)
+    return np.cumsum(edges, axis=1)[:, :-1] > 0
+
+
+def blank_grid(arr: Trajectories, spans: np.ndarray) -> Trajectories:
+    """A copy of ``arr`` whose measurements (every fix channel) are NaN inside ``spans``
+    (K, 3); the truth and the inputs as they were."""
+    m = arr.m.copy()
+    m[grid_inside(m.shape[:2], spans)] = np.nan
+    return dataclasses.replace(arr, m=m)
+
+
+def score_grid(estimates: Mapping[str, np.ndarray], arr: Trajectories, spans: np.ndarray,
+               dt: float, reference: str | None = None) -> pd.DataFrame:
+    """Each observer's errors through the outages ``spans`` (K, 3) of the test grid ``arr``,
+    per noise level: one row per estimator of ``estimates`` ((G, T, 3) each) and alpha, the
+    columns of :func:`score` and ``alpha``; ``end_vs_<reference>`` at the same alpha."""
+    G, T = arr.m.shape[:2]
+    flat = (spans[:, 0] * T)[:, None]  # each outage's rows in the (G * T) rows
+    rows = grid_inside((G, T), spans)
+    travelled = np.c_[np.zeros(G), np.cumsum(np.abs(arr.u[..., 0]), axis=1)] * dt
+    driven = travelled[spans[:, 0], spans[:, 2]] - travelled[spans[:, 0], spans[:, 1]]
+    truth = arr.z.reshape(-1, 3)
     table = []
-    for label, est in estimates.items():
-        e = rmse(est, truth, rows)
-        end = np.hypot(*(est[last, :2] - truth[last, :2]).T)
-        table.append({"estimator": label, "outages": len(spans),
-                      "position_m": float(np.hypot(e[0], e[1])),
-                      "psi_mrad": 1e3 * float(e[2]),
-                      "end_m": float(np.mean(end)), "end_worst_m": float(np.max(end)),
-                      "drift_pct": 100 * float(np.mean(end / driven))})
-    out = pd.DataFrame(table)
-    if reference is not None:
-        out[f"end_vs_{reference.split(',')[0]}"] = (
-            out["end_m"] / out.loc[out["estimator"] == reference, "end_m"].iloc[0])
-    return out
+    for alpha in np.unique(arr.alpha):
+        at = arr.alpha[spans[:, 0]] == alpha  # this noise level's outages
+        if not at.any():
+            continue
+        here = rows & (arr.alpha == alpha)[:, None]
+        last = (flat[:, 0] + spans[:, 2] - 1)[at]
+        for label, est in estimates.items():
+            table.append({"estimator": label, "alpha": float(alpha),
+                          **_errors(est.reshape(-1, 3), truth, here.reshape(-1), last,
+                                    driven[at])})
+    return _against(pd.DataFrame(table), reference, "alpha")
 
 
 def markdown(table: pd.DataFrame) -> str:
