@@ -82,7 +82,7 @@ def main() -> None:
         rec = Recorded(net.net)
         mt, ut = (torch.from_numpy(np.require(x, requirements="W")) for x in (m, u))
         with torch.inference_mode():
-            est, cov = (t.numpy() for t in rec.run(mt, ut))
+            est, cov = (t.numpy() for t in rec.run(mt, ut)[:2])
         R = torch.stack(rec.R, 1).numpy()[mask]  # (points, 3, 3)
         var_b = torch.stack(rec.var_b, 1).numpy()[mask] if rec.var_b else np.zeros(len(R))
         err = est - z

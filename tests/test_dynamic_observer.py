@@ -64,6 +64,43 @@ def test_experiment_trains_on_the_car_that_slips_and_scores_against_its_oracle(d
     assert net.log_drift_tau.item() != pytest.approx(math.log(10.0 / 0.02), abs=1e-9)
 
 
+def test_its_lateral_states_are_scored_beside_the_oracle_told_the_car(dynamic, smoke_data,
+                                                                      tmp_path, capsys):
+    """``lbo.evaluate learned=[...]`` on the car that slips: lateral.csv holds the learned
+    observer's beta, v_y and r (the ``[v_y, r]`` its single-track body carries) at every
+    level, beside the EKF told the car; a kinematic-body observer carries none."""
+    from types import SimpleNamespace
+
+    from lbo.evaluate import evaluate
+    from lbo.scoring import lateral
+    from lbo.scoring.grid import learned_nets, load_test
+
+    ckpt = dynamic["out"]["checkpoint"]
+    evaluate(compose_cfg("evaluate", ["data=dynamic_drift", *SMOKE, "observers=[ekf]",
+                                      f"data.root={smoke_data.parent}", f"learned=[{ckpt}]",
+                                      f"output_dir={tmp_path}"]))
+    assert "(a learned observer's where it carries a single-track body)" in \
+        capsys.readouterr().out
+    table = pd.read_csv(tmp_path / "lateral.csv")
+    assert list(dict.fromkeys(table["observer"])) == ["filternet-N60", "oracle_dynamic",
+                                                      "kinematic", "zero"]
+    mine = table[table["observer"] == "filternet-N60"].set_index("alpha")
+    assert len(mine) == 7 and mine[["rmse_beta", "rmse_vy", "rmse_r"]].notna().all().all()
+    assert mine["nees_beta"].isna().all()  # its body carries no variance
+    kin = table[table["observer"] == "kinematic"].set_index("alpha")
+    assert (mine["rmse_r"] < 3 * kin["rmse_r"]).all()  # a yaw rate of the car's size
+    # the body is the recursive form's: its r follows the car's yaw (v tan(delta) / L at
+    # the start); none where the pose has no estimate
+    net = learned_nets([ckpt])["filternet-N60"]
+    arr = load_test(next(smoke_data.parent.glob("dynamic_drift-*")) / "test.parquet")
+    body = lateral.carried(net, arr)
+    assert body.shape == (*arr.m.shape[:2], 2) and np.isfinite(body[arr.mask]).all()
+    r_start = arr.u[:, 0, 0] * np.tan(arr.u[:, 0, 1]) / net.net.wheelbase
+    np.testing.assert_allclose(body[:, 0, 1], r_start, rtol=1e-9, atol=1e-12)
+    assert lateral.carries(net)
+    assert not lateral.carries(SimpleNamespace(net=build_model("filternet", 60)))
+
+
 def test_report_section_where_learning_beats_the_model(dynamic, tmp_path):
     table = pd.read_csv(dynamic["dir"] / "evaluation.csv")
     box = table[table["observer"] == "filternet-N60"].assign(observer="cnn-N80")

@@ -133,8 +133,8 @@ def test_its_recursive_form_is_the_same_ekf_carried_from_step_to_step():
     assert rec.n == 4 and rec.inputs == ("V", "delta", "r_m")
     m, u = torch.from_numpy(win[None, :, :8]), torch.from_numpy(win[None, :, 8:])
     with torch.no_grad():
-        est = rec.run(m, u)[0][0, -1].numpy()
-        plain = rec.run(m, u[..., :2])[0][0, -1].numpy()
+        est = rec.run(m, u).pose[0, -1].numpy()
+        plain = rec.run(m, u[..., :2]).pose[0, -1].numpy()
     want = _hand_gyro_ekf(win, np.array([0.05, 0.05]), 0.004, 0.08, 0.001)
     np.testing.assert_allclose(est, want, rtol=0, atol=1e-9)
     assert abs(plain[2] - want[2]) > 0.01
@@ -186,7 +186,7 @@ def test_rows_without_a_fix_coast_to_the_numbers_of_one_step_each():
     rows, u3 = Observer.from_net(net)._runner.log_rows(m, u, r, None)
     with torch.no_grad():
         est, cov = (t[0].numpy() for t in rec.run(torch.from_numpy(rows[None]),
-                                                   torch.from_numpy(u3[None])))
+                                                   torch.from_numpy(u3[None]))[:2])
     for engine in ("torch", "onnx"):
         obs = Observer.from_net(net, form="recursive", engine=engine)
         coasted, coast = [], obs._runner.coast

@@ -63,7 +63,7 @@ def test_rows_without_a_measurement_coast_to_the_numbers_of_one_step_each():
     assert not any(RecursiveFilter(_net(kind)).coasts for kind in VARIANTS if kind != "fixes")
     m, u = _logs(1, 300, True)
     with torch.no_grad():
-        est, cov = rec.run(torch.from_numpy(m), torch.from_numpy(u))  # one step per row
+        est, cov, _ = rec.run(torch.from_numpy(m), torch.from_numpy(u))  # one step per row
     for engine in ("torch", "onnx"):
         obs = Observer.from_net(net, form="recursive", engine=engine)
         coasted, coast = [], obs._runner.coast
@@ -86,7 +86,7 @@ def test_a_batch_run_gives_what_stepping_one_sample_at_a_time_gives(kind):
     rec = RecursiveFilter(net.net)
     m, u = _logs(3, 300, kind == "fixes")
     with torch.no_grad():
-        est, cov = rec.run(torch.from_numpy(m), torch.from_numpy(u))
+        est, cov, _ = rec.run(torch.from_numpy(m), torch.from_numpy(u))
     obs = Observer.from_net(net, form="recursive")
     for g in range(3):
         obs.reset()
@@ -185,7 +185,7 @@ def test_on_a_window_the_recursive_form_is_the_window_filter_told_one_noise_leve
     rec = RecursiveFilter(net)
     rec._noise = lambda sums, speed, heading: torch.diag(sigma**2).expand(len(sums), 3, 3)
     with torch.no_grad():
-        est, _ = rec.run(torch.from_numpy(m), torch.from_numpy(u))
+        est = rec.run(torch.from_numpy(m), torch.from_numpy(u)).pose
         x = torch.from_numpy(np.concatenate([m, u], -1))
         window = net.double()(x)  # world coordinates in, world out: the filter is equivariant
     np.testing.assert_allclose(est[:, -1].numpy(), window.numpy(), atol=1e-6)
@@ -211,8 +211,9 @@ def test_estimates_move_and_turn_with_the_log(kind):
     rot = np.array([[np.cos(theta), -np.sin(theta)], [np.sin(theta), np.cos(theta)]])
     moved = np.concatenate([m[..., :2] @ rot.T + shift, m[..., 2:] + theta], -1)
     with torch.no_grad():
-        est, cov = (t.numpy() for t in rec.run(torch.from_numpy(m), torch.from_numpy(u)))
-        est_m, cov_m = (t.numpy() for t in rec.run(torch.from_numpy(moved), torch.from_numpy(u)))
+        est, cov = (t.numpy() for t in rec.run(torch.from_numpy(m), torch.from_numpy(u))[:2])
+        est_m, cov_m = (t.numpy()
+                        for t in rec.run(torch.from_numpy(moved), torch.from_numpy(u))[:2])
     np.testing.assert_allclose(est_m[..., :2], est[..., :2] @ rot.T + shift, atol=1e-6)
     turned = np.einsum("ij,gtjk,lk->gtil", rot, cov[..., :2, :2], rot)
     np.testing.assert_allclose(cov_m[..., :2, :2], turned, atol=1e-9, equal_nan=True)

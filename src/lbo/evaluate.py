@@ -216,7 +216,7 @@ def _run_grid(cfg: DictConfig, observers: list[str], learned: list[str],
         calibration(covariant, arr, out)
         written += [out / "nees.csv", out / "nees.png"]
     if truth.car is not None and arr.lateral is not None:  # the states no sensor gives
-        written.append(_lateral(arr, vehicle, noise, truth, out))
+        written.append(_lateral(arr, vehicle, noise, truth, nets, out))
     with pd.option_context("display.width", 120, "display.precision", 4):
         pivot = table.pivot(index="alpha", columns="observer", values="nrmse")[observers]
         print(f"NRMSE (E_ref = {cfg.metric.reference}: {ref[0]:.3f} m, {ref[1]:.3f} m, "
@@ -230,17 +230,20 @@ def _run_grid(cfg: DictConfig, observers: list[str], learned: list[str],
     return csv, list(nets), written
 
 
-def _lateral(arr: Trajectories, vehicle: Vehicle, noise: Noise, truth: Any, out: Path) -> Path:
+def _lateral(arr: Trajectories, vehicle: Vehicle, noise: Noise, truth: Any,
+             nets: dict[str, Any], out: Path) -> Path:
     """lateral.csv: beta, v_y and r scored on a car that slips (:mod:`lbo.scoring.lateral`),
-    printed with beta in degrees."""
+    the learned observers' of ``nets`` that carry a single-track body first; printed with
+    beta in degrees."""
     from lbo.scoring import lateral
 
-    scores = lateral.table(arr, vehicle, noise, truth)
+    scores = lateral.table(arr, vehicle, noise, truth, {
+        name: lateral.carried(net, arr) for name, net in nets.items() if lateral.carries(net)})
     path = out / "lateral.csv"
     with atomic_path(path) as tmp:
         scores.to_csv(tmp, index=False)
     print("side slip beta, lateral velocity v_y and yaw rate r, RMSE over the scored rows "
-          "(the classical estimators; the learned observers' are not scored yet):")
+          "(a learned observer's where it carries a single-track body):")
     print(lateral.printable(scores))
     print(f"lateral states: {path}")
     return path

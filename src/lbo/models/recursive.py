@@ -5,46 +5,37 @@ every estimate, from a cold start at the window's first sample. :class:`Recursiv
 the same filter, with the same learned parts, run the way a Kalman filter runs in a car:
 
 - the filter state ``(z, P)`` carries from step to step, so each estimate costs one prediction
-  and one update, whatever N is, and the estimate draws on everything seen since the start;
-- the noise statistic that the learned noise model reads (the mean square of the
-  measurements' second differences, or of the fixes' residuals against dead reckoning when
-  fixes are missing, and the mean speed) is a running sum over the last N steps: ring buffers
-  of those N steps, one slot written and one dropped per step.
+  and one update, whatever N is, and draws on everything seen since the start;
+- the noise statistic the learned noise model reads (the mean square of the measurements'
+  second differences, or of the fixes' residuals against dead reckoning when fixes are
+  missing, and the mean speed) is a running sum over ring buffers of the last N steps.
 
-The window form reads its window in the frame of its latest fix, so its noise model's x and y
-are along and across that fix's heading. The recursive form keeps the sums of the entries'
-outer products in world axes and turns them into that frame at every step (exactly what the
-window form sees), and turns the noise model's sigmas back into a world-axes R. So the
-estimates move and turn with the log, as the window form's do.
+The window form reads its window in the frame of its latest fix. The recursive form keeps the
+sums of the entries' outer products in world axes, turns them into that frame at every step
+(exactly what the window form sees) and the noise model's sigmas back into a world-axes R; so
+the estimates move and turn with the log, as the window form's do.
 
 Everything lives in explicit state tensors (:meth:`RecursiveFilter.initial_state`), so the
 step exports to TorchScript and ONNX as a pure function ``(m, u, *state) -> (pose, cov,
-*state)``. It runs in float64: a drive's coordinates reach kilometres, and a running sum over
-hours of steps keeps its digits.
-
-Conventions as the filters of :mod:`lbo.filters.start`: ``u_k`` moves ``z_k`` to ``z_{k+1}``, so
-the estimate at step k uses ``m_0 .. m_k`` and ``u_0 .. u_{k-1}``; a measurement of NaN is a step
-without a position fix (for a filter trained with the ``fix`` channel): a prediction only. The
+*state)``, in float64 (kilometres of coordinates; running sums over hours). Conventions as
+:mod:`lbo.filters.start`'s: ``u_k`` moves ``z_k`` to ``z_{k+1}``; a measurement of NaN is a
+step without a fix (a prediction only, for a filter trained with the ``fix`` channel). The
 filter starts at the first fix, with P = 6.5^2 R (:data:`START_SCALE`).
 
-A receiver's rows (``(B, 8)``, :data:`lbo.filters.measure.CHANNELS`) are taken as the classical
-filters take them, channel by channel: a position fix with or without ``psi_m``, the course
-over ground as the heading where a row has no ``psi_m``, and the receiver's reported
-accuracy (and the course's sigma) as the R of those channels in place of the noise model's.
-The update then uses the channels the row holds (a masked Kalman update, exactly the update
-with those channels alone). The noise model's statistic counts full fixes only, as it was
-trained. Before the first row that holds a position and a heading the estimate is NaN. A
-paper row (``(B, 3)``) gives the same numbers as before to the last bit.
-
-A window filter trained with a gyro (``model.gyro``) takes a third input, the gyro's last
-reading ``r_m`` (NaN before the first), and carries the gyro's bias as a fourth state: the
-heading turns by the reading less the bias, as in its window form.
+A receiver's rows (``(B, 8)``, :data:`lbo.filters.measure.CHANNELS`) are taken channel by
+channel, as the classical filters take them: a fix with or without ``psi_m``, the course over
+ground as the heading where a row has no ``psi_m``, the reported accuracy (and the course's
+sigma) as those channels' R (a masked Kalman update). The noise model's statistic counts full
+fixes only, as it was trained. Before the first row with a position and a heading the
+estimate is NaN. A filter trained with a gyro (``model.gyro``) takes a third input, the gyro's
+last reading ``r_m`` (NaN before the first), and carries the gyro's bias as a fourth state.
 """
 
 from __future__ import annotations
 
 import copy
 import math
+from typing import Any, NamedTuple
 
 import numpy as np
 import torch
@@ -67,8 +58,7 @@ ENTRY = ("xx", "yy", "xy", "psi", "counted", "gap")
 
 
 class _Single(nn.Module):
-    """A net run in float32 inside the float64 filter, as it was trained (ONNX Runtime has
-    no float64 Erf, which GELU needs)."""
+    """A net run in float32 inside the float64 filter, as trained (ONNX has no float64 Erf)."""
 
     def __init__(self, net: nn.Module) -> None:
         super().__init__()
@@ -410,23 +400,24 @@ class RecursiveFilter(nn.Module):
                 speed_sum, k + 1, started)
 
     def run(self, m: torch.Tensor, u: torch.Tensor, smooth: bool = False,
-            lengths: np.ndarray | None = None) -> tuple[torch.Tensor, torch.Tensor]:
-        """Every step of G logs: m (G, T, 3) (NaN rows: no fix), u (G, T, 2|3) -> poses
-        (G, T, 3) and their covariances (G, T, 3, 3), the same numbers as T calls of
-        :meth:`forward` from :meth:`initial_state`. ``smooth``: the RTS smoother's instead
-        (:func:`lbo.filters.smoother.rts`), over the full filter state and the first
-        ``lengths`` (G,) steps of each padded log (None: all)."""
+            lengths: np.ndarray | None = None) -> Filtered:
+        """Every step of G logs: m (G, T, 3) (NaN rows: no fix), u (G, T, 2|3) -> their
+        :class:`Filtered`, the numbers of T calls of :meth:`forward` from :meth:`initial_state`.
+        ``smooth``: the RTS smoother's poses and covariances (:func:`lbo.filters.smoother.rts`),
+        over the full state and the first ``lengths`` (G,) steps of each log (None: all)."""
         state = self.initial_state(m.shape[0], m.device)
-        poses, covs, record = [], [], []
+        poses, covs, bodies, record = [], [], [], []
         self.keep_prior = smooth
         for k in range(m.shape[1]):
             pose, cov, *state = self(m[:, k], u[:, k], *state)
             poses.append(pose)
             covs.append(cov)
+            bodies.append(state[2])
             if smooth:
                 record.append((state[0], state[1], *self.last_prior))
+        body = torch.stack(bodies, 1)
         if not smooth:
-            return torch.stack(poses, 1), torch.stack(covs, 1)
+            return Filtered(torch.stack(poses, 1), torch.stack(covs, 1), body)
         from lbo.filters.smoother import rts
 
         x_f, P_f, x_p, P_p, cross = (torch.stack(t, 1).cpu().numpy() for t in zip(*record))
@@ -434,17 +425,25 @@ class RecursiveFilter(nn.Module):
         pose = torch.from_numpy(x_s[..., :3]).to(m.device)
         pose = torch.where(torch.isfinite(torch.stack(poses, 1)), pose,
                            torch.full_like(pose, math.nan))  # before the first fix
-        return pose, torch.from_numpy(P_s[..., :3, :3]).to(m.device)
+        return Filtered(pose, torch.from_numpy(P_s[..., :3, :3]).to(m.device), body)
+
+
+class Filtered(NamedTuple):
+    """:meth:`RecursiveFilter.run`'s result (tensors; numpy arrays from :func:`run_arrays`):
+    pose (G, T, 3), cov (G, T, 3, 3), body (G, T, 2) the carried ``[v_y, r]``."""
+
+    pose: Any
+    cov: Any
+    body: Any
 
 
 def run_arrays(net: WindowFilter, m: np.ndarray, u: np.ndarray, smooth: bool = False,
-               lengths: np.ndarray | None = None, device: str = "cpu"
-               ) -> tuple[np.ndarray, np.ndarray]:
+               lengths: np.ndarray | None = None, device: str = "cpu") -> Filtered:
     """:meth:`RecursiveFilter.run` of the window filter ``net`` on numpy arrays: m (G, T, 3)
-    (NaN rows: no fix), u (G, T, 2) -> estimates (G, T, 3) and covariances (G, T, 3, 3)."""
+    (NaN rows: no fix), u (G, T, 2) -> its :class:`Filtered`, as numpy arrays."""
     rec = RecursiveFilter(net).to(device)
     with torch.inference_mode():
-        est, cov = rec.run(torch.from_numpy(np.require(m, np.float64, "W")).to(device),
-                           torch.from_numpy(np.require(u, np.float64, "W")).to(device),
-                           smooth=smooth, lengths=lengths)
-    return est.cpu().numpy(), cov.cpu().numpy()
+        out = rec.run(torch.from_numpy(np.require(m, np.float64, "W")).to(device),
+                      torch.from_numpy(np.require(u, np.float64, "W")).to(device),
+                      smooth=smooth, lengths=lengths)
+    return Filtered(*(t.cpu().numpy() for t in out))

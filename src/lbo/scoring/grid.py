@@ -280,7 +280,7 @@ def predict_recursive(net, arr: Trajectories, device: str = "cpu",
         return np.where(np.isfinite(est), est, np.nan), None
     from lbo.models.recursive import run_arrays
 
-    est, cov = run_arrays(net.net, arr.m, arr.u, smooth, arr.lengths, device)
+    est, cov, _ = run_arrays(net.net, arr.m, arr.u, smooth, arr.lengths, device)
     est[~arr.mask] = np.nan
     cov[~arr.mask] = np.nan
     return est, cov

@@ -9,7 +9,9 @@ The estimators that give them, from the pose fixes and the logged inputs only:
 - ``kinematic``: the kinematic bicycle's, from the inputs alone, on the car's geometry:
   beta = atan(l_r tan(delta) / L), v_y = V tan(beta), r = V tan(delta) / L (lbo's kinematic
   model turns the heading at that rate);
-- ``zero``: straight ahead, beta = v_y = 0 (no yaw rate).
+- ``zero``: straight ahead, beta = v_y = 0 (no yaw rate);
+- a learned observer with a single-track body (``experiment=dynamic``): the ``[v_y, r]`` its
+  recursive form carries (:func:`carried`), beta = atan2(v_y, V) on the logged speed V.
 
 Each RMSE is over the scored rows of every trajectory of a level, pooled; ``nees_beta`` is the
 mean of beta's squared error over the estimate's variance of it (1 for an honest variance;
@@ -18,7 +20,8 @@ NaN where there is none).
 
 from __future__ import annotations
 
-from typing import cast
+from collections.abc import Mapping
+from typing import Any, cast
 
 import numpy as np
 import pandas as pd
@@ -48,10 +51,31 @@ def truth_of(arr: Trajectories, truth: Truth) -> dict[str, np.ndarray]:
     return {"beta": np.arctan2(vy, vx), "vy": vy, "r": r}
 
 
-def estimates(arr: Trajectories, vehicle: Vehicle, noise: Noise, truth: Truth
+def carries(net: Any) -> bool:
+    """Whether a learned observer carries a single-track body's ``[v_y, r]``: a window filter
+    (``filternet``) with ``model.body=single_track``, in torch."""
+    from lbo.models.filternet import WindowFilter
+
+    model = getattr(net, "net", None)
+    return isinstance(model, WindowFilter) and bool(model.single_track)
+
+
+def carried(net: Any, arr: Trajectories) -> np.ndarray:
+    """(G, T, 2) the ``[v_y, r]`` a learned observer's single-track body (:func:`carries`)
+    carries through the test arrays in its recursive form (NaN where it has no estimate)."""
+    from lbo.models.recursive import run_arrays
+
+    pose, _, body = run_arrays(net.net, arr.m, arr.u)
+    return np.where(np.isfinite(pose[..., :1]), body, np.nan)
+
+
+def estimates(arr: Trajectories, vehicle: Vehicle, noise: Noise, truth: Truth,
+              learned: Mapping[str, np.ndarray] | None = None
               ) -> dict[str, dict[str, np.ndarray | None]]:
     """Each estimator's ``beta``, ``vy``, ``r`` and ``beta_var`` (G, T) on the test arrays
-    (None: not estimated); nothing but the fixes ``arr.m`` and inputs ``arr.u`` is read."""
+    (None: not estimated); nothing but the fixes ``arr.m`` and inputs ``arr.u`` is read.
+    ``learned``: each learned observer's carried ``[v_y, r]`` (G, T, 2) (:func:`carried`),
+    scored first."""
     from lbo.filters.classical import oracle_dynamic_lateral
     from lbo.filters.lateral import kinematic_beta
 
@@ -60,9 +84,11 @@ def estimates(arr: Trajectories, vehicle: Vehicle, noise: Noise, truth: Truth
         raise LboError("lateral states: the test set was not drawn from a car that slips")
     v, delta = arr.u[..., 0], arr.u[..., 1]
     _, lat = oracle_dynamic_lateral(arr.m, arr.u, vehicle, noise, arr.alpha, truth)
-    out: dict[str, dict[str, np.ndarray | None]] = {"oracle_dynamic": {
-        "beta": lat.beta(v), "vy": lat.mean[..., 0], "r": lat.mean[..., 1],
-        "beta_var": lat.beta_var(v)}}
+    out: dict[str, dict[str, np.ndarray | None]] = {
+        name: {"beta": np.arctan2(body[..., 0], v), "vy": body[..., 0], "r": body[..., 1],
+               "beta_var": None} for name, body in (learned or {}).items()}
+    out["oracle_dynamic"] = {"beta": lat.beta(v), "vy": lat.mean[..., 0], "r": lat.mean[..., 1],
+                             "beta_var": lat.beta_var(v)}
     if isinstance(car, SingleTrack):  # a plug-in's car need not say where its centre of gravity is
         kin = kinematic_beta(delta, car)
         out["kinematic"] = {"beta": kin, "vy": v * np.tan(kin),
@@ -73,15 +99,21 @@ def estimates(arr: Trajectories, vehicle: Vehicle, noise: Noise, truth: Truth
 
 
 def _rmse(est: np.ndarray | None, true: np.ndarray, pick: np.ndarray) -> float:
-    """RMSE of ``est`` against ``true`` (G, T) on the rows ``pick`` (G, T); NaN for None."""
-    return float("nan") if est is None else float(np.sqrt(np.mean((est - true)[pick] ** 2)))
+    """RMSE of ``est`` against ``true`` (G, T) on the rows ``pick`` (G, T) where it has an
+    estimate; NaN for None."""
+    if est is None:
+        return float("nan")
+    pick = pick & np.isfinite(est)
+    return float(np.sqrt(np.mean((est - true)[pick] ** 2)))
 
 
-def table(arr: Trajectories, vehicle: Vehicle, noise: Noise, truth: Truth) -> pd.DataFrame:
-    """Rows :data:`COLUMNS`, one per estimator and noise level of the test arrays."""
+def table(arr: Trajectories, vehicle: Vehicle, noise: Noise, truth: Truth,
+          learned: Mapping[str, np.ndarray] | None = None) -> pd.DataFrame:
+    """Rows :data:`COLUMNS`, one per estimator and noise level of the test arrays
+    (``learned``: as :func:`estimates`)."""
     true = truth_of(arr, truth)
     rows = []
-    for name, est in estimates(arr, vehicle, noise, truth).items():
+    for name, est in estimates(arr, vehicle, noise, truth, learned).items():
         for alpha in np.unique(arr.alpha):
             pick = (arr.alpha == alpha)[:, None] & arr.mask  # the level's scored rows
             var = est["beta_var"]

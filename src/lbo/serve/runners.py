@@ -408,9 +408,8 @@ class RecursiveRunner:
                                "only; load it with engine=torch to smooth")
             from lbo.models.recursive import run_arrays
 
-            est, covs = run_arrays(self.net.net, mm[None], u[None], smooth=True,
-                                   device=self.device)
-            return est[0], covs[0]
+            out = run_arrays(self.net.net, mm[None], u[None], smooth=True, device=self.device)
+            return out.pose[0], out.cov[0]
         t = len(m)
         est, covs = np.full((t, 3), np.nan), np.full((t, 3, 3), np.nan)
         state = [x.copy() for x in self.state0]  # through the engine's step, as take() runs
