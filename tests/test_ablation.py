@@ -30,9 +30,13 @@ def test_jobs_once_each_with_scale_and_resume():
     got = jobs(cfg)
     assert len(got) == 2  # seed=1 is in both sweeps
     assert all(j[0] == "experiment=smoke" and "resume=true" in j for j in got)
-    # each run logs where the command reads its tables, its bars hidden
-    assert all(f"logger.tracking_uri={cfg.tracking_uri}" in j
-               and "callbacks.progress_bar.refresh_rate=0" in j for j in got)
+    # its bars hidden; the store is the one a run finds itself, so none is passed on
+    assert all("callbacks.progress_bar.refresh_rate=0" in j and
+               not any(o.startswith("logger.tracking_uri") for o in j) for j in got)
+    # a store given to the command is passed on to every run (only then: it may hold a password)
+    given = compose_cfg("ablation", ["scale=smoke", "sweeps=['model=cnn seed=0,1']",
+                                     "tracking_uri=sqlite:///elsewhere.db"])
+    assert all("logger.tracking_uri=sqlite:///elsewhere.db" in j for j in jobs(given))
 
 
 def test_variant_names_tell_the_factors_apart_but_not_the_seed():

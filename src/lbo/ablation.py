@@ -33,6 +33,7 @@ from lbo.core import plots
 from lbo.core.atomic import atomic_path, write_text
 from lbo.core.cli import entry, respell
 from lbo.core.errors import LboError
+from lbo.core.paths import store_overrides
 from lbo.tracking.runs import check_store, run_artifact
 
 FACTORS = ("features", "train_noise", "activation", "normalisation", "epochs")
@@ -94,7 +95,7 @@ def jobs(cfg: DictConfig) -> list[list[str]]:
             out.setdefault(" ".join(combo), respell([
                 f"experiment={cfg.scale}", *combo, "resume=true",
                 "callbacks.progress_bar.refresh_rate=0",
-                f"logger.tracking_uri={cfg.tracking_uri}", *cfg.overrides]))
+                *store_overrides(cfg.tracking_uri), *cfg.overrides]))
     return list(out.values())
 
 

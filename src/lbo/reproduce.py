@@ -33,6 +33,7 @@ from lbo.core.atomic import write_text
 from lbo.core.checks import integer, require
 from lbo.core.cli import entry, ready_launcher, respell
 from lbo.core.errors import LboError
+from lbo.core.paths import store_overrides
 from lbo.filters import classical
 from lbo.learn.eta import Eta, duration, plan
 from lbo.learn.jobs import DYNAMIC, LITERAL, ROBUST, Job, parts, train_jobs
@@ -148,7 +149,7 @@ def stage_tune(cfg: DictConfig, out: Path, models: list[str]) -> tuple[dict, str
                                      f"tune.n_trials={cfg.trials}",
                                      f"tune.handoff={out / 'tuned' / f'{model}.yaml'}",
                                      f"tune.storage={cfg.optuna_storage}",
-                                     f"logger.tracking_uri={cfg.tracking_uri}",
+                                     *store_overrides(cfg.tracking_uri),
                                      f"output_dir={out / 'tune' / model}",
                                      *cfg.tune_overrides,
                                      *cfg.search_overrides[model],

@@ -53,6 +53,14 @@ def tracking_uri() -> str:
     return os.environ.get("MLFLOW_TRACKING_URI") or f"sqlite:///{REPO_ROOT / 'mlflow.db'}"
 
 
+def store_overrides(uri: str) -> list[str]:
+    """The override a training run composed by a command needs to log to the store ``uri``
+    (``logger.tracking_uri=...``); none where the run finds that store itself
+    (:func:`tracking_uri`), so that a URI, which may hold a password, is not passed on
+    where it need not be."""
+    return [] if str(uri) == tracking_uri() else [f"logger.tracking_uri={uri}"]
+
+
 if not OmegaConf.has_resolver("lbo.tracking_uri"):
     OmegaConf.register_new_resolver("lbo.tracking_uri", tracking_uri)
 

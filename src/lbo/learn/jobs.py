@@ -14,6 +14,7 @@ from omegaconf import DictConfig
 
 from lbo.core.checks import require
 from lbo.core.cli import respell
+from lbo.core.paths import store_overrides
 
 STUDIES = ("paper", "dynamic", "all")
 """``study=``: the paper's study (its eight observers tuned and trained, the robust observer
@@ -108,6 +109,6 @@ def train_jobs(cfg: DictConfig, out: Path) -> list[Job]:
     # logs to the store the report reads (the command's tracking_uri)
     return [dataclasses.replace(j, overrides=tuple(respell(
         [*j.overrides, "callbacks.progress_bar.refresh_rate=0", "resume=true",
-         f"logger.tracking_uri={cfg.tracking_uri}",
+         *store_overrides(cfg.tracking_uri),
          f"output_dir={out / 'runs' / j.key}", *cfg.overrides, *cfg.train_overrides])))
         for j in jobs]
