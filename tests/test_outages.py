@@ -222,8 +222,15 @@ def test_outages_on_the_test_grid_blank_their_rows_and_are_read_per_noise_level(
     a[0, [13, 23, 33], :2] = [3.0, 4.0]
     a[1, [13, 23], :2] = [6.0, 8.0]
     b[:, :, 0] = np.where(inside, 1.0, 0.0)
-    table = outages.score_grid({"a": a, "b": b}, arr, spans, 0.5, reference="b")
+    eye = np.broadcast_to(np.eye(3), (*arr.m.shape[:2], 3, 3))
+    table = outages.score_grid({"a": a, "b": b}, arr, spans, 0.5, reference="b",
+                               covariances={"a": eye})
     got = table.set_index(["estimator", "alpha"])
+    # NEES over the outages' rows only, P = I: 3 ends of 25 m^2 in 12 rows at alpha 1
+    assert got.loc[("a", 1.0), "nees"] == pytest.approx(3 * 25 / 12)
+    assert got.loc[("a", 3.0), "nees"] == pytest.approx(2 * 100 / 8)
+    assert got.loc[("a", 1.0), "nees_low"] < 3 < got.loc[("a", 1.0), "nees_high"]
+    assert np.isnan(got.loc[("b", 1.0), "nees"])  # no covariance given
     assert got.loc[("a", 1.0), "outages"] == 3 and got.loc[("a", 3.0), "outages"] == 2
     assert got.loc[("a", 1.0), "end_m"] == 5.0 and got.loc[("a", 3.0), "end_m"] == 10.0
     assert got.loc[("b", 3.0), "end_m"] == 1.0 and got.loc[("a", 3.0), "end_vs_b"] == 10.0
@@ -272,6 +279,9 @@ def test_evaluate_scores_every_observer_through_outages_on_the_test_grid(
     assert table[["end_m", "position_m", "psi_mrad", "drift_pct"]].notna().all().all()
     assert (table.loc[table["estimator"] == "ekf", "end_vs_ekf"] == 1.0).all()
     assert (table["end_m"] > 0.1).all()  # coasting 3 s drifts, fixes or not
+    # the covariance through the outages: every filter that gives one has its NEES
+    assert table[["nees", "nees_low", "nees_high"]].notna().all().all()
+    assert "NEES inside the outages (3 for an honest covariance" in printed
 
 
 def test_outages_are_for_the_test_grid_and_checked_before_any_work(tmp_path):

@@ -260,13 +260,23 @@ def _outages(outages: Outages, spans: np.ndarray, arr: Trajectories, vehicle: Ve
     from lbo.serve.runners import default_form
 
     blanked = outage.blank_grid(arr, spans)
-    estimates = {label: predict_recursive(net, blanked)[0]
-                 if default_form(net) == "recursive" else predict_grid(net, blanked, net.window)
-                 for label, net in learned.items()}
-    estimates.update({name: run(name, blanked, vehicle, noise, truth=truth)
-                      for name in classical})
+    estimates, covariances = {}, {}
+    for label, net in learned.items():
+        if default_form(net) == "recursive":
+            estimates[label], cov = predict_recursive(net, blanked)
+            if cov is not None:  # a KalmanNet's carried form gives none
+                covariances[label] = cov
+        else:
+            estimates[label] = predict_grid(net, blanked, net.window)
+    for name in classical:
+        if name in OBSERVERS:  # a covariance to check through the outages
+            estimates[name], covariances[name] = run_classical(
+                name, blanked.m, blanked.u, vehicle, noise, alpha=arr.alpha, return_cov=True)
+        else:
+            estimates[name] = run(name, blanked, vehicle, noise, truth=truth)
     table = outage.score_grid(estimates, arr, spans, vehicle.dt,
-                              reference="ekf" if "ekf" in estimates else None)
+                              reference="ekf" if "ekf" in estimates else None,
+                              covariances=covariances)
     path = out / "outages.csv"
     with atomic_path(path) as tmp:
         table.to_csv(tmp, index=False)
@@ -276,6 +286,13 @@ def _outages(outages: Outages, spans: np.ndarray, arr: Trajectories, vehicle: Ve
     with pd.option_context("display.width", 120, "display.precision", 3):
         print(table.pivot(index="alpha", columns="estimator", values="end_m")[
             list(estimates)].to_string())
+        if covariances:
+            print("NEES inside the outages (3 for an honest covariance; the 95% band of the "
+                  "level's mean in brackets):")
+            print(table.pivot(index="alpha", columns="estimator", values="nees")[
+                list(covariances)].join(table[table["estimator"].isin(list(covariances))]
+                                        .drop_duplicates("alpha").set_index("alpha")[
+                                            ["nees_low", "nees_high"]]).to_string())
     for name in table.groupby("estimator")["end_m"].apply(lambda e: e.isna().all()).pipe(
             lambda none: none[none].index):
         print(f"note: {name} has no estimate inside the outages: a window net reads the fixes "

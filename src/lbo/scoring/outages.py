@@ -205,10 +205,16 @@ def blank_grid(arr: Trajectories, spans: np.ndarray) -> Trajectories:
 
 
 def score_grid(estimates: Mapping[str, np.ndarray], arr: Trajectories, spans: np.ndarray,
-               dt: float, reference: str | None = None) -> pd.DataFrame:
+               dt: float, reference: str | None = None,
+               covariances: Mapping[str, np.ndarray] | None = None) -> pd.DataFrame:
     """Each observer's errors through the outages ``spans`` (K, 3) of the test grid ``arr``,
     per noise level: one row per estimator of ``estimates`` ((G, T, 3) each) and alpha, the
-    columns of :func:`score` and ``alpha``; ``end_vs_<reference>`` at the same alpha."""
+    columns of :func:`score` and ``alpha``; ``end_vs_<reference>`` at the same alpha. For an
+    estimator with a covariance in ``covariances`` ((G, T, 3, 3)), its NEES over the rows
+    inside the outages (:func:`lbo.scoring.metrics.nees_table`: ``nees``, 3 for an honest
+    covariance, and its 95% band ``nees_low``, ``nees_high``; NaN for the others)."""
+    from lbo.scoring.metrics import nees_table
+
     G, T = arr.m.shape[:2]
     flat = (spans[:, 0] * T)[:, None]  # each outage's rows in the (G * T) rows
     rows = grid_inside((G, T), spans)
@@ -226,7 +232,15 @@ def score_grid(estimates: Mapping[str, np.ndarray], arr: Trajectories, spans: np
             table.append({"estimator": label, "alpha": float(alpha),
                           **_errors(est.reshape(-1, 3), truth, here.reshape(-1), last,
                                     driven[at])})
-    return _against(pd.DataFrame(table), reference, "alpha")
+    out = _against(pd.DataFrame(table), reference, "alpha")
+    nees = [nees_table(name, estimates[name], cov, arr.z, rows & arr.mask, arr.alpha)
+            for name, cov in (covariances or {}).items()]
+    if not nees:
+        return out.assign(nees=np.nan, nees_low=np.nan, nees_high=np.nan)
+    held = pd.concat(nees).rename(columns={"observer": "estimator", "low": "nees_low",
+                                            "high": "nees_high"})
+    return out.merge(held[["estimator", "alpha", "nees", "nees_low", "nees_high"]],
+                     on=["estimator", "alpha"], how="left")
 
 
 def markdown(table: pd.DataFrame) -> str:
