@@ -16,7 +16,7 @@ from helpers import cli, kill_when_written
 REPORT_FILES = ["rmse_alpha1.csv", "rmse_alpha6.csv", "nrmse.csv", "report.md",
                 "friction_circle.png", "nrmse_cnn.png", "nrmse_lstm.png", "nrmse_all.png",
                 "trajectory_alpha3.png", "nrmse_robust.png", "nrmse_dynamic.png", "dynamic.csv",
-                "nrmse_protocols.png", "literal.csv"]
+                "nrmse_protocols.png", "literal.csv", "outages.csv", "outages_end.png"]
 
 
 def _sha(path: Path) -> str:
@@ -99,6 +99,13 @@ def test_reproduce_smoke_killed_and_resumed_without_duplicates(tmp_path):
     dynamic = pd.read_csv(report / "dynamic.csv")  # scored on its own test set, with its oracle
     assert set(dynamic["observer"]) == {"filternet-N100", "ekf", "oracle", "adaptive",
                                         "oracle_tuned", "oracle_dynamic"}
+    # through GNSS outages (scale/smoke.yaml: 3 s every 6 s): the robust observer, which
+    # coasts, beside the classical filters, each with its NEES through them
+    assert "## Through GNSS outages" in md and "![outages](outages_end.png)" in md
+    through = pd.read_csv(report / "outages.csv")
+    assert set(through["estimator"]) == {"filternet-N100", "ekf", "oracle", "adaptive", "ukf"}
+    assert through.groupby("estimator").size().eq(7).all()
+    assert through[["end_m", "nees"]].notna().all().all()
     stages = json.loads((report / "stages.json").read_text())
     assert list(stages) == ["data", "tune", "train", "evaluate", "report"]
 

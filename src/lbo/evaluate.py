@@ -252,51 +252,18 @@ def _lateral(arr: Trajectories, vehicle: Vehicle, noise: Noise, truth: Any,
 def _outages(outages: Outages, spans: np.ndarray, arr: Trajectories, vehicle: Vehicle,
              noise: Noise, truth: Any, classical: list[str], learned: dict[str, Any],
              out: Path) -> Path:
-    """outages.csv: every observer (the ``classical`` ones by name, the ``learned`` in their
-    default form) run on the test grid with its fixes blanked in the GNSS outages ``spans``
-    (K, 3) (:mod:`lbo.scoring.outages`), scored inside them per noise level; printed."""
+    """outages.csv: every observer through the GNSS outages ``spans`` (K, 3) cut into the test
+    grid (:func:`lbo.scoring.outages.grid_table`), written and printed."""
     from lbo.scoring import outages as outage
-    from lbo.scoring.grid import classical as run
-    from lbo.serve.runners import default_form
 
-    blanked = outage.blank_grid(arr, spans)
-    estimates, covariances = {}, {}
-    for label, net in learned.items():
-        if default_form(net) == "recursive":
-            estimates[label], cov = predict_recursive(net, blanked)
-            if cov is not None:  # a KalmanNet's carried form gives none
-                covariances[label] = cov
-        else:
-            estimates[label] = predict_grid(net, blanked, net.window)
-    for name in classical:
-        if name in OBSERVERS:  # a covariance to check through the outages
-            estimates[name], covariances[name] = run_classical(
-                name, blanked.m, blanked.u, vehicle, noise, alpha=arr.alpha, return_cov=True)
-        else:
-            estimates[name] = run(name, blanked, vehicle, noise, truth=truth)
-    table = outage.score_grid(estimates, arr, spans, vehicle.dt,
-                              reference="ekf" if "ekf" in estimates else None,
-                              covariances=covariances)
+    table = outage.grid_table(arr, spans, vehicle, noise, classical, learned, truth)
     path = out / "outages.csv"
     with atomic_path(path) as tmp:
         table.to_csv(tmp, index=False)
     print(f"through GNSS outages of {outages.length_s:g} s (every {outages.every_s:g} s while "
           f"moving, {len(spans)} in {len(np.unique(spans[:, 0]))} test trajectories; the fixes "
           "blanked, the truth kept): the position error at an outage's end (m)")
-    with pd.option_context("display.width", 120, "display.precision", 3):
-        print(table.pivot(index="alpha", columns="estimator", values="end_m")[
-            list(estimates)].to_string())
-        if covariances:
-            print("NEES inside the outages (3 for an honest covariance; the 95% band of the "
-                  "level's mean in brackets):")
-            print(table.pivot(index="alpha", columns="estimator", values="nees")[
-                list(covariances)].join(table[table["estimator"].isin(list(covariances))]
-                                        .drop_duplicates("alpha").set_index("alpha")[
-                                            ["nees_low", "nees_high"]]).to_string())
-    for name in table.groupby("estimator")["end_m"].apply(lambda e: e.isna().all()).pipe(
-            lambda none: none[none].index):
-        print(f"note: {name} has no estimate inside the outages: a window net reads the fixes "
-              "of its window and cannot coast without them")
+    print(outage.printable(table))
     print(f"outages: {path}")
     return path
 

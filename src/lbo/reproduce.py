@@ -106,9 +106,12 @@ def check_reproduce(cfg: DictConfig) -> None:
     from lbo.scoring.grid import check_observers
     from lbo.train import SLIP, check
 
+    from lbo.scoring.outages import Outages
+
     parts(cfg)
     integer(cfg.trials, "trials", 1)
     integer(cfg.jobs, "jobs", 1)
+    Outages.from_cfg(cfg.get("outages"))  # the report's outages, in one line
     # the pose observers' searches: the side-slip observer's study is of the real run, not a
     # paper table
     searches = sorted(p.stem for p in (CONF_DIR / "hparams_search").glob("*.yaml")
@@ -264,11 +267,38 @@ def stage_report(cfg: DictConfig, out: Path, folder: Path, tuned: dict, runs: di
     robust = [runs[j.key]["name"] for j in jobs if j.kind == ROBUST]
     if robust:  # the robust observer first, the peers trained as it is beside it
         sections.append(studies.Robust(robust[0], tuple(robust[1:])))
+        if cfg.get("outages") and cfg.outages.get("length_s"):  # and through GNSS outages
+            sections.append(_outages(cfg, folder, [runs[j.key] for j in jobs
+                                                   if j.kind == ROBUST]))
     sections += [studies.Dynamic(data, t) for data, t in dynamic.items()]
     files = report.write(out, cfg.scale, table, run_ids, record, traj,
                          folder / "friction_circle.png", sections)
     _log_report(cfg, cfg.scale, out, files, folder.name)
     return files, "done"
+
+
+def _outages(cfg: DictConfig, folder: Path, robust: list[dict]) -> Any:
+    """The report's section on GNSS outages (``cfg.outages``) cut into the test grid: the
+    robust observer and its peers (their runs ``robust``) beside the classical filters."""
+    from lbo.scoring import outages as outage
+    from lbo.scoring import studies
+    from lbo.scoring.grid import learned_nets, load_test
+    from lbo.sim.noise import Noise
+    from lbo.sim.vehicle import Vehicle
+
+    o = outage.Outages.from_cfg(cfg.outages)
+    assert o is not None  # its length is checked by the caller
+    c = compose("evaluate", [f"data={cfg.scale}", *cfg.overrides])  # as the classical stage
+    vehicle, noise = Vehicle.from_cfg(c.vehicle), Noise.from_cfg(c.noise)
+    arr = load_test(folder / "test.parquet")
+    spans = outage.grid_windows(arr, o, vehicle.dt)
+    nets = {r["name"]: next(iter(learned_nets([str(run_artifact(
+        r, "checkpoints/best.ckpt", cfg.tracking_uri))]).values())) for r in robust}
+    table = outage.grid_table(arr, spans, vehicle, noise,
+                              [n for n in cfg.classical if n in classical.OBSERVERS], nets)
+    print(f"    through GNSS outages of {o.length_s:g} s every {o.every_s:g} s: "
+          f"{len(spans)} in the test grid", flush=True)
+    return studies.Outages(table, o.length_s, o.every_s)
 
 
 def finished_runs(jobs: list[Job]) -> dict[str, dict[str, Any]]:

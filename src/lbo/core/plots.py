@@ -96,9 +96,11 @@ def learned_styles():
 
 
 def nrmse_curves(table, title: str = "", observers: list[str] | None = None,
-                 styles: dict[str, dict] | None = None, ylabel: str = "NRMSE"):
-    """NRMSE (or another ratio, named by ``ylabel``) against alpha, one curve per observer,
-    from a score table (columns ``observer, alpha, nrmse``)."""
+                 styles: dict[str, dict] | None = None, ylabel: str = "NRMSE",
+                 reference: float | None = 1.0):
+    """NRMSE (or another measure, named by ``ylabel``) against alpha, one curve per observer,
+    from a score table (columns ``observer, alpha, nrmse``); a dotted line at ``reference``
+    (None: none)."""
     fig, ax = plt.subplots(figsize=(6.4, 4.2))
     names = observers or list(dict.fromkeys(table["observer"]))
     # learned observers take colours the classical ones do not use
@@ -109,7 +111,8 @@ def nrmse_curves(table, title: str = "", observers: list[str] | None = None,
         style = {"marker": ".", "lw": 1.4, "zorder": 2 if name in STYLES else 3,
                  **(STYLES.get(name) or next(palette)), **(styles or {}).get(name, {})}
         ax.plot(rows["alpha"], rows["nrmse"], label=name, **style)
-    ax.axhline(1.0, color="0.6", lw=0.8, ls=":")
+    if reference is not None:
+        ax.axhline(reference, color="0.6", lw=0.8, ls=":")
     ax.set(xlabel=r"noise scale $\alpha$", ylabel=ylabel, title=title)
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8)

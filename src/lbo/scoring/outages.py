@@ -28,7 +28,8 @@ from lbo.sim.columns import MEAS, RECEIVER, STATE
 from lbo.sim.schema import Trajectories
 
 __all__ = ["BLANKED", "MOVING_SPEED", "Outages", "blank", "blank_grid", "curves", "grid_inside",
-           "grid_windows", "inside", "markdown", "place", "score", "score_grid", "windows"]
+           "grid_table", "grid_windows", "inside", "markdown", "place", "printable", "score",
+           "score_grid", "windows"]
 
 BLANKED = (*MEAS, *(c for c in RECEIVER if c != "r_m"))
 """The columns an outage blanks: what a GNSS receiver gives (the gyro is the car's own)."""
@@ -241,6 +242,61 @@ def score_grid(estimates: Mapping[str, np.ndarray], arr: Trajectories, spans: np
                                             "high": "nees_high"})
     return out.merge(held[["estimator", "alpha", "nees", "nees_low", "nees_high"]],
                      on=["estimator", "alpha"], how="left")
+
+
+def grid_table(arr: Trajectories, spans: np.ndarray, vehicle: Any, noise: Any,
+               classical: list[str], learned: Mapping[str, Any], truth: Any = None
+               ) -> pd.DataFrame:
+    """Every observer run on the test grid ``arr`` with its fixes blanked in the outages
+    ``spans`` (K, 3) and scored inside them (:func:`score_grid`, against the EKF where it is
+    one): the ``learned`` nets (by label) in their default form, then the ``classical``
+    observers by name (``truth``: what the set was drawn from, for the oracles of a car that
+    slips). The covariance of each filter that gives one is checked by its NEES."""
+    from lbo.filters.classical import OBSERVERS
+    from lbo.filters.classical import estimate as run_classical
+    from lbo.scoring.grid import classical as run
+    from lbo.scoring.grid import predict_grid, predict_recursive
+    from lbo.serve.runners import default_form
+
+    blanked = blank_grid(arr, spans)
+    estimates, covariances = {}, {}
+    for label, net in learned.items():
+        if default_form(net) == "recursive":
+            estimates[label], cov = predict_recursive(net, blanked)
+            if cov is not None:  # a KalmanNet's carried form gives none
+                covariances[label] = cov
+        else:
+            estimates[label] = predict_grid(net, blanked, net.window)
+    for name in classical:
+        if name in OBSERVERS:  # a covariance to check through the outages
+            estimates[name], covariances[name] = run_classical(
+                name, blanked.m, blanked.u, vehicle, noise, alpha=arr.alpha, return_cov=True)
+        else:
+            estimates[name] = run(name, blanked, vehicle, noise, truth=truth)
+    return score_grid(estimates, arr, spans, vehicle.dt,
+                      reference="ekf" if "ekf" in estimates else None, covariances=covariances)
+
+
+def printable(table: pd.DataFrame) -> str:
+    """:func:`score_grid`'s table as a person reads it: the error at an outage's end per
+    alpha, the NEES of those with a covariance and its band, and a line for each observer
+    with no estimate inside the outages."""
+    names = list(dict.fromkeys(table["estimator"]))
+    held = table.dropna(subset=["nees"])
+    with pd.option_context("display.width", 120, "display.precision", 3):
+        lines = [table.pivot(index="alpha", columns="estimator", values="end_m")[names]
+                 .to_string()]
+        if len(held):
+            lines += ["NEES inside the outages (3 for an honest covariance; the 95% band of "
+                      "the level's mean beside it):",
+                      held.pivot(index="alpha", columns="estimator", values="nees")[
+                          list(dict.fromkeys(held["estimator"]))].join(
+                          held.drop_duplicates("alpha").set_index("alpha")[
+                              ["nees_low", "nees_high"]]).to_string()]
+    none = table.groupby("estimator", sort=False)["end_m"].apply(lambda e: e.isna().all())
+    lines += [f"note: {name} has no estimate inside the outages: a window net reads the fixes "
+              "of its window and cannot coast without them" for name in none[none].index]
+    return "\n".join(lines)
 
 
 def markdown(table: pd.DataFrame) -> str:

@@ -1,7 +1,7 @@
 """The report's sections on the studies beyond the paper's tables: the robust observer and the
-learned peers trained as it is, and the car that slips. Each is a
-:class:`lbo.scoring.report.Section` that :func:`lbo.scoring.report.write` writes after the
-paper's tables.
+learned peers trained as it is, the car that slips, and the observers through GNSS outages.
+Each is a :class:`lbo.scoring.report.Section` that :func:`lbo.scoring.report.write` writes
+after the paper's tables.
 """
 
 from __future__ import annotations
@@ -185,4 +185,47 @@ class Dynamic:
             "kinematic EKFs and the EKF told the car",
             observers=present(self.table, (s["observer"], *s["black_boxes"], *s["peers"],
                                             *classical.DYNAMIC_PEERS))),
+            folder / self.figure)]
+
+
+@dataclass(frozen=True)
+class Outages:
+    """Every observer through GNSS outages cut into the test grid (``table``:
+    :func:`lbo.scoring.outages.score_grid`'s rows, outages of ``length_s`` every ``every_s``
+    seconds): ``outages.csv`` and ``outages_end.png``, the error at an outage's end per
+    alpha."""
+
+    table: pd.DataFrame
+    length_s: float
+    every_s: float
+    headline: tuple[str, ...] = ()
+    figure: str = "outages_end.png"
+
+    def markdown(self, table: pd.DataFrame) -> list[str]:
+        t = self.table[self.table["alpha"].isin([1.0, 3.0, 6.0])]
+        end = t.pivot(index="estimator", columns="alpha", values="end_m")
+        nees = t.pivot(index="estimator", columns="alpha", values="nees")
+        rows = pd.DataFrame({"observer": end.index, **{
+            f"end (m), alpha {a:g}": end[a].to_numpy() for a in end.columns}, **{
+            f"NEES, alpha {a:g}": nees[a].to_numpy() for a in nees.columns}})
+        order = list(dict.fromkeys(self.table["estimator"]))
+        rows = rows.set_index("observer").loc[order].reset_index()
+        band = self.table.dropna(subset=["nees_low"]).drop_duplicates("alpha")
+        inside = (f" The 95% band of a level's mean NEES: {band['nees_low'].min():.2f} to "
+                  f"{band['nees_high'].max():.2f}." if len(band) else "")
+        return ["## Through GNSS outages", "",
+                f"Every test trajectory's fixes blanked for {self.length_s:g} s, one outage "
+                f"every {self.every_s:g} s from its first fix while the car moves "
+                f"({int(t['outages'].max()) if len(t) else 0} outages per level): the "
+                "position error at an outage's end, and the NEES over the outages' rows "
+                f"(3 for an honest covariance; none where an observer gives none).{inside}", "",
+                md_table(rows), "", f"![outages]({self.figure})", ""]
+
+    def write(self, folder: Path, table: pd.DataFrame) -> list[Path]:
+        with atomic_path(folder / "outages.csv") as tmp:
+            self.table.to_csv(tmp, index=False)
+        curves = self.table.rename(columns={"estimator": "observer", "end_m": "nrmse"})
+        return [folder / "outages.csv", plots.save(plots.nrmse_curves(
+            curves, f"through GNSS outages of {self.length_s:g} s: the error at their end",
+            ylabel="position error at an outage's end (m)", reference=None),
             folder / self.figure)]
