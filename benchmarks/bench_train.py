@@ -151,7 +151,7 @@ def lightning(cfg: DictConfig, dm: WindowDataModule, norm: dict, warmup: int,
     """``Trainer.fit`` for ``warmup + measured`` steps."""
     torch.manual_seed(SEED)
     module = TrainingModule(OmegaConf.to_container(cfg.model, resolve=True), cfg.model.window,
-                            cfg.model.features, instantiate(cfg.optimizer))
+                            cfg.model.features, optimizer=instantiate(cfg.optimizer))
     module.observer.set_normalisation(**norm)
     clock = StepClock(warmup)
     trainer = L.Trainer(accelerator="gpu" if dm.device.type == "cuda" else "cpu", devices=1,

@@ -37,7 +37,7 @@ def logs() -> list[pd.DataFrame]:
 
 def _net(seed: int = 0) -> WindowNet:
     torch.manual_seed(seed)
-    return WindowNet("cnn", N, "frame", True, receiver=True).eval()
+    return WindowNet("cnn", N, "frame", fixes=True, receiver=True).eval()
 
 
 def test_the_windows_hold_a_fix_and_never_cross_from_one_log_to_the_next(logs):
@@ -108,7 +108,7 @@ def test_from_scratch_a_window_filter_starts_as_its_constructor_draws_it(logs):
     """Every parameter anew, the filter's own scalars (its process noise's scale, the gyro's
     noises) included: none is the trained net's."""
     def gyro_filter() -> WindowNet:
-        return WindowNet("filternet", N, "frame", True, receiver=True, gyro=True)
+        return WindowNet("filternet", N, "frame", fixes=True, receiver=True, gyro=True)
 
     trained = gyro_filter()
     with torch.no_grad():
@@ -125,7 +125,7 @@ def test_from_scratch_a_window_filter_starts_as_its_constructor_draws_it(logs):
 
 def test_what_cannot_be_trained_on_a_log_is_one_line(logs):
     windows = net_fit.log_windows(logs[:1], N, 2.7)
-    paper = WindowNet("cnn", N, "frame", True)
+    paper = WindowNet("cnn", N, "frame", fixes=True)
     with pytest.raises(LboError, match=r"^training on a log: cnn-N30 does not read a receiver "
                                        r"\(train one with experiment=receiver\)$"):
         net_fit.fit(paper, windows, windows, epochs=1, lr=1e-3)

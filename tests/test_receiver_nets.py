@@ -121,7 +121,7 @@ def test_a_window_without_any_heading_teaches_no_heading():
     """Its anchor's heading is 0, not the car's: the loss leaves the heading out there, and
     keeps it where the window holds a course."""
     torch.manual_seed(0)
-    net = WindowNet("cnn", 8, "frame", True, receiver=True)
+    net = WindowNet("cnn", 8, "frame", fixes=True, receiver=True)
     blind = _window([[float(k), 0.0, NAN, NAN, NAN] for k in range(8)], v=0.5)
     assert not rw.heading_known(blind).any()
     state = torch.tensor([[7.0, 0.0, 0.0]], dtype=torch.float64)
@@ -134,7 +134,7 @@ def test_a_window_without_any_heading_teaches_no_heading():
 
 def test_a_paper_window_is_a_receiver_window_without_its_channels():
     torch.manual_seed(0)
-    net = WindowNet("lstm", 12, "frame", True, receiver=True)
+    net = WindowNet("lstm", 12, "frame", fixes=True, receiver=True)
     paper = torch.randn(3, 12, 5, dtype=torch.float64)
     wide = rw.widen(paper)
     assert wide.shape == (3, 12, rw.WIDTH)
@@ -142,7 +142,7 @@ def test_a_paper_window_is_a_receiver_window_without_its_channels():
     torch.testing.assert_close(net(paper), net(wide))
     with pytest.raises(LboError, match=r"^features: an observer that reads a receiver takes "
                                        r"features=frame"):
-        WindowNet("cnn", 12, "relative", True, receiver=True)
+        WindowNet("cnn", 12, "relative", fixes=True, receiver=True)
 
 
 def _drawn(spec: ReceiverSpec, n: int = 400, steps: int = 50, alpha: float = 1.0,
@@ -205,7 +205,7 @@ def test_a_receiver_net_steps_and_runs_a_single_antenna_log_alike_on_every_engin
     u = log[["V", "delta"]].to_numpy(float)
     r = receiver(log)
     torch.manual_seed(0)
-    net = WindowNet("cnn", 60, "frame", True, receiver=True).eval()
+    net = WindowNet("cnn", 60, "frame", fixes=True, receiver=True).eval()
     obs = Observer.from_net(net)
     assert obs.takes_receiver and obs.reads_gyro
     est, valid = obs.run(m, u, receiver=r)

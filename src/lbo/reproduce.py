@@ -104,9 +104,8 @@ def check_reproduce(cfg: DictConfig) -> None:
     observer or training setting before any stage runs, not hours later in its stage."""
     from lbo.core.paths import CONF_DIR
     from lbo.scoring.grid import check_observers
-    from lbo.train import SLIP, check
-
     from lbo.scoring.outages import Outages
+    from lbo.train import SLIP, check
 
     parts(cfg)
     integer(cfg.trials, "trials", 1)

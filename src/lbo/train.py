@@ -274,11 +274,12 @@ def _fit(cfg: DictConfig, built: Built, callbacks: list[L.Callback] | None,
     L.seed_everything(cfg.seed, workers=True, verbose=False)
     folder, data_hash = prepare_data(cfg)
     dm = datamodule(cfg, folder, built)
-    module = TrainingModule(model_settings(cfg), cfg.model.window,
-                            cfg.model.features, instantiate(cfg.optimizer),
-                            {**meta(cfg, data_hash), "envelope": training_envelope(cfg, dm)},
-                            cfg.get("lr_schedule", "constant"), bool(built.fix_periods),
-                            net=built.net, receiver=built.net.receiver, tbptt=cfg.get("tbptt"),
+    module = TrainingModule(model_settings(cfg), cfg.model.window, cfg.model.features,
+                            optimizer=instantiate(cfg.optimizer),
+                            meta={**meta(cfg, data_hash), "envelope": training_envelope(cfg, dm)},
+                            lr_schedule=cfg.get("lr_schedule", "constant"),
+                            fixes=bool(built.fix_periods), net=built.net,
+                            receiver=built.net.receiver, tbptt=cfg.get("tbptt"),
                             clip=cfg.trainer.get("gradient_clip_val"),
                             nll=float(cfg.get("nll") or 0.0),
                             compiled=bool(cfg.get("compile")),

@@ -69,8 +69,8 @@ def build_net(cfg: DictConfig, periods: tuple[int, ...] | None = None):
     model = model_settings(cfg)
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(cfg.seed)
-        return WindowNet(model.pop("name"), cfg.model.window, cfg.model.features, bool(periods),
-                         receiver=bool(cfg.get("receiver")),
+        return WindowNet(model.pop("name"), cfg.model.window, cfg.model.features,
+                         fixes=bool(periods), receiver=bool(cfg.get("receiver")),
                          motion=(float(cfg.vehicle.dt), float(cfg.vehicle.wheelbase)),
                          carried=cfg.get("tbptt") is not None, **model)
 

@@ -59,7 +59,7 @@ class TrainingModule(L.LightningModule):
         of its truth; None: the MSE against the truth.
     """
 
-    def __init__(self, model: dict[str, Any], window: int, features: str = "relative",
+    def __init__(self, model: dict[str, Any], window: int, features: str = "relative", *,
                  optimizer: Callable[..., torch.optim.Optimizer] | None = None,
                  meta: dict[str, Any] | None = None, lr_schedule: str = "constant",
                  fixes: bool = False, net: WindowNet | None = None,
@@ -75,7 +75,8 @@ class TrainingModule(L.LightningModule):
         self.hparams["provider"] = plugins.provider("model", model["name"])
         kwargs = {k: v for k, v in model.items() if k != "name"}
         self.observer = net if net is not None else WindowNet(
-            model["name"], window, features, fixes, receiver, carried=tbptt is not None, **kwargs)
+            model["name"], window, features, fixes=fixes, receiver=receiver,
+            carried=tbptt is not None, **kwargs)
         self.optimizer_factory = optimizer
         self.tbptt, self.clip, self.nll = tbptt, clip, float(nll)
         self.compiled = bool(compiled)

@@ -74,9 +74,10 @@ def read_checkpoint(path: str | os.PathLike, features: str | None = None,
         # the name is looked up among the installed plug-ins only (nothing the file names is
         # imported); one that is missing says which package provided it
         model_class(model.get("name"), hp.get("provider"))
-        net = WindowNet(model.pop("name"), hp["window"], str(mode), bool(hp.get("fixes", False)),
-                        bool(hp.get("receiver", False)), carried=hp.get("tbptt") is not None,
-                        **model)
+        net = WindowNet(model.pop("name"), hp["window"], str(mode),
+                        fixes=bool(hp.get("fixes", False)),
+                        receiver=bool(hp.get("receiver", False)),
+                        carried=hp.get("tbptt") is not None, **model)
         state = {k.removeprefix("observer."): v for k, v in ckpt["state_dict"].items()
                  if k.startswith("observer.")}
         net.load_state_dict(state)

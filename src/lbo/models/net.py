@@ -80,7 +80,7 @@ class WindowNet(nn.Module):
         out_mean: torch.Tensor
         out_std: torch.Tensor
 
-    def __init__(self, model: str, window: int, features: str = "relative",
+    def __init__(self, model: str, window: int, features: str = "relative", *,
                  fixes: bool = False, receiver: bool = False,
                  motion: tuple[float, float] = (0.02, 2.7), carried: bool = False,
                  **model_kwargs: Any) -> None:
