@@ -386,7 +386,7 @@ def test_the_lateral_states_are_scored_per_level_and_written_by_evaluate(dynamic
     again = lateral.estimates(planted, spec.vehicle, spec.noise, spec.truth)
     first = lateral.estimates(t, spec.vehicle, spec.noise, spec.truth)
     assert all(np.array_equal(again[n]["beta"], first[n]["beta"]) for n in first)
-    path = _lateral(t, spec.vehicle, spec.noise, spec.truth, tmp_path)
+    path = _lateral(t, spec.vehicle, spec.noise, spec.truth, {}, tmp_path)  # no learned one
     pd.testing.assert_frame_equal(pd.read_csv(path), scores)
     said = capsys.readouterr().out
     assert "beta (deg)" in said and f"lateral states: {path}" in said
