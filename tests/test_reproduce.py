@@ -16,7 +16,8 @@ from helpers import cli, kill_when_written
 REPORT_FILES = ["rmse_alpha1.csv", "rmse_alpha6.csv", "nrmse.csv", "report.md",
                 "friction_circle.png", "nrmse_cnn.png", "nrmse_lstm.png", "nrmse_all.png",
                 "trajectory_alpha3.png", "nrmse_robust.png", "nrmse_dynamic.png", "dynamic.csv",
-                "nrmse_protocols.png", "literal.csv", "outages.csv", "outages_end.png"]
+                "nrmse_protocols.png", "literal.csv", "outages.csv", "outages_end.png",
+                "lateral_dynamic.csv"]
 
 
 def _sha(path: Path) -> str:
@@ -96,6 +97,12 @@ def test_reproduce_smoke_killed_and_resumed_without_duplicates(tmp_path):
     assert "## The paper's protocol beside ours" in md and "| literal-cnn-N20 |" in md
     literal = pd.read_csv(report / "literal.csv")
     assert set(literal["observer"]) == {"literal-cnn-N20"} and len(literal) == 7
+    # its lateral states beside the EKF told the car's (its body's v_y and r)
+    assert "The states no sensor gives" in md
+    lateral = pd.read_csv(report / "lateral_dynamic.csv")
+    assert list(dict.fromkeys(lateral["observer"])) == ["filternet-N100", "oracle_dynamic",
+                                                        "kinematic", "zero"]
+    assert lateral.loc[lateral["observer"] == "filternet-N100", "rmse_beta"].notna().all()
     dynamic = pd.read_csv(report / "dynamic.csv")  # scored on its own test set, with its oracle
     assert set(dynamic["observer"]) == {"filternet-N100", "ekf", "oracle", "adaptive",
                                         "oracle_tuned", "oracle_dynamic"}

@@ -240,6 +240,8 @@ def stage_report(cfg: DictConfig, out: Path, folder: Path, tuned: dict, runs: di
                                ignore_index=True).drop_duplicates(["observer", "alpha"])
                for data in dict.fromkeys(mine.values())}
     run_ids = {f"{runs[k]['name']} on data={data}": runs[k]["run_id"] for k, data in mine.items()}
+    # the states no sensor gives: the study's own observer per data set (its job's key)
+    lateral = {j.data: _lateral(cfg, j, runs[j.key]) for j in jobs if j.key == j.data}
     literal = [j.key for j in jobs if j.kind == LITERAL]  # the paper's protocol, a section
     literal_table = pd.concat([_renamed(run_artifact(runs[k], "evaluation.csv", cfg.tracking_uri),
                                         runs[k]["name"], k) for k in literal],
@@ -269,7 +271,8 @@ def stage_report(cfg: DictConfig, out: Path, folder: Path, tuned: dict, runs: di
         if cfg.get("outages") and cfg.outages.get("length_s"):  # and through GNSS outages
             sections.append(_outages(cfg, folder, [runs[j.key] for j in jobs
                                                    if j.kind == ROBUST]))
-    sections += [studies.Dynamic(data, t) for data, t in dynamic.items()]
+    sections += [studies.Dynamic(data, t, lateral=lateral.get(data))
+                 for data, t in dynamic.items()]
     files = report.write(out, cfg.scale, table, run_ids, record, traj,
                          folder / "friction_circle.png", sections)
     _log_report(cfg, cfg.scale, out, files, folder.name)
@@ -279,25 +282,30 @@ def stage_report(cfg: DictConfig, out: Path, folder: Path, tuned: dict, runs: di
 def _outages(cfg: DictConfig, folder: Path, robust: list[dict]) -> Any:
     """The report's section on GNSS outages (``cfg.outages``) cut into the test grid: the
     robust observer and its peers (their runs ``robust``) beside the classical filters."""
-    from lbo.scoring import outages as outage
     from lbo.scoring import studies
-    from lbo.scoring.grid import learned_nets, load_test
-    from lbo.sim.noise import Noise
-    from lbo.sim.vehicle import Vehicle
+    from lbo.scoring.outages import Outages
 
-    o = outage.Outages.from_cfg(cfg.outages)
-    assert o is not None  # its length is checked by the caller
     c = compose("evaluate", [f"data={cfg.scale}", *cfg.overrides])  # as the classical stage
-    vehicle, noise = Vehicle.from_cfg(c.vehicle), Noise.from_cfg(c.noise)
-    arr = load_test(folder / "test.parquet")
-    spans = outage.grid_windows(arr, o, vehicle.dt)
-    nets = {r["name"]: next(iter(learned_nets([str(run_artifact(
-        r, "checkpoints/best.ckpt", cfg.tracking_uri))]).values())) for r in robust}
-    table = outage.grid_table(arr, spans, vehicle, noise,
-                              [n for n in cfg.classical if n in classical.OBSERVERS], nets)
-    print(f"    through GNSS outages of {o.length_s:g} s every {o.every_s:g} s: "
-          f"{len(spans)} in the test grid", flush=True)
-    return studies.Outages(table, o.length_s, o.every_s)
+    return studies.Outages.of(folder / "test.parquet", cast(Outages, Outages.from_cfg(
+        cfg.outages)), c, [n for n in cfg.classical if n in classical.OBSERVERS],
+        {r["name"]: _checkpoint(cfg, r) for r in robust})
+
+
+def _lateral(cfg: DictConfig, job: Job, run: dict) -> pd.DataFrame | None:
+    """The states no sensor gives on the car-that-slips study's test set: its observer's
+    (``job``, trained as ``run``) where it carries a single-track body, and the classical
+    estimators' (:func:`lbo.scoring.lateral.of_data`); None where the set has none."""
+    from lbo.learn.builders import prepare_data
+    from lbo.scoring import lateral
+
+    c = compose("train", list(job.overrides))
+    return lateral.of_data(Path(prepare_data(c)[0]) / "test.parquet", c,
+                           {run["name"]: _checkpoint(cfg, run)})
+
+
+def _checkpoint(cfg: DictConfig, run: dict) -> str:
+    """The best checkpoint of a finished run, a local file."""
+    return str(run_artifact(run, "checkpoints/best.ckpt", cfg.tracking_uri))
 
 
 def finished_runs(jobs: list[Job]) -> dict[str, dict[str, Any]]:

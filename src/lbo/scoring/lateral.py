@@ -98,6 +98,23 @@ def estimates(arr: Trajectories, vehicle: Vehicle, noise: Noise, truth: Truth,
     return out
 
 
+def of_data(test: Any, cfg: Any, learned: Mapping[str, str]) -> pd.DataFrame | None:
+    """:func:`table` of the test file ``test`` of a set drawn from the car of the composed
+    config ``cfg`` (its vehicle, noise, car and sensors), with the ``learned`` observers
+    (label -> checkpoint) that carry a single-track body; None where the set holds no
+    lateral states."""
+    from lbo.scoring.grid import learned_nets, load_test
+    from lbo.sim.truth import of_config
+
+    arr = load_test(test)
+    if arr.lateral is None:
+        return None
+    vehicle, noise = Vehicle.from_cfg(cfg.vehicle), Noise.from_cfg(cfg.noise)
+    nets = {label: next(iter(learned_nets([path]).values())) for label, path in learned.items()}
+    return table(arr, vehicle, noise, of_config(cfg, vehicle.wheelbase),
+                 {label: carried(net, arr) for label, net in nets.items() if carries(net)})
+
+
 def _rmse(est: np.ndarray | None, true: np.ndarray, pick: np.ndarray) -> float:
     """RMSE of ``est`` against ``true`` (G, T) on the rows ``pick`` (G, T) where it has an
     estimate; NaN for None."""

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import cast
+from typing import Any, cast
 
 import numpy as np
 import pandas as pd
@@ -134,6 +134,17 @@ def dynamic_markdown(key: str, table: pd.DataFrame) -> list[str]:
             md_table(pd.DataFrame(rows)), "", f"![{key}](nrmse_{key}.png)", ""]
 
 
+def lateral_markdown(scores: pd.DataFrame) -> list[str]:
+    """The side slip beta (deg), v_y and r of each estimator at alpha 1, 3 and 6."""
+    at = scores[scores["alpha"].isin([1.0, 3.0, 6.0])]
+    shown = pd.DataFrame({"observer": at["observer"], "alpha": at["alpha"],
+                          "beta (deg)": np.rad2deg(at["rmse_beta"]), "v_y (m/s)": at["rmse_vy"],
+                          "r (rad/s)": at["rmse_r"]})
+    return ["The states no sensor gives, RMSE over the scored rows (a learned observer's: the "
+            "v_y and r its single-track body carries; `lateral.csv` of `lbo.evaluate`):", "",
+            md_table(shown), ""]
+
+
 @dataclass(frozen=True)
 class Robust:
     """The robust observer ``name`` of the score table against its classical peers
@@ -163,24 +174,31 @@ class Robust:
 class Dynamic:
     """The car-that-slips study on data set ``key``: its score ``table`` (one learned
     observer, black boxes maybe, and :data:`lbo.filters.classical.DYNAMIC_PEERS`):
-    ``<key>.csv`` and ``nrmse_<key>.png``."""
+    ``<key>.csv`` and ``nrmse_<key>.png``; with ``lateral`` (:func:`lbo.scoring.lateral.table`
+    rows), the states no sensor gives too: ``lateral_<key>.csv``."""
 
     key: str
     table: pd.DataFrame
     headline: tuple[str, ...] = ()
+    lateral: pd.DataFrame | None = None
 
     @property
     def figure(self) -> str:
         return f"nrmse_{self.key}.png"
 
     def markdown(self, table: pd.DataFrame) -> list[str]:
-        return dynamic_markdown(self.key, self.table)
+        return [*dynamic_markdown(self.key, self.table), *([] if self.lateral is None else
+                                                          lateral_markdown(self.lateral))]
 
     def write(self, folder: Path, table: pd.DataFrame) -> list[Path]:
         with atomic_path(folder / f"{self.key}.csv") as tmp:
             self.table.to_csv(tmp, index=False)
         s = dynamic_summary(self.table)
-        return [folder / f"{self.key}.csv", plots.save(plots.nrmse_curves(
+        lateral = [] if self.lateral is None else [folder / f"lateral_{self.key}.csv"]
+        if lateral:
+            with atomic_path(lateral[0]) as tmp:
+                cast(pd.DataFrame, self.lateral).to_csv(tmp, index=False)
+        return [folder / f"{self.key}.csv", *lateral, plots.save(plots.nrmse_curves(
             self.table, f"a car that slips (data={self.key}): {s['observer']} against the "
             "kinematic EKFs and the EKF told the car",
             observers=present(self.table, (s["observer"], *s["black_boxes"], *s["peers"],
@@ -200,6 +218,27 @@ class Outages:
     every_s: float
     headline: tuple[str, ...] = ()
     figure: str = "outages_end.png"
+
+    @classmethod
+    def of(cls, test: Path, outages: Any, cfg: Any, classical_names: list[str],
+           learned: dict[str, str]) -> Outages:
+        """The section for the test file ``test``: the ``learned`` observers (label ->
+        checkpoint) and ``classical_names`` through ``outages``
+        (:func:`lbo.scoring.outages.grid_table`), the car of the composed config ``cfg``."""
+        from lbo.scoring import outages as outage
+        from lbo.scoring.grid import learned_nets, load_test
+        from lbo.sim.noise import Noise
+        from lbo.sim.vehicle import Vehicle
+
+        vehicle, noise = Vehicle.from_cfg(cfg.vehicle), Noise.from_cfg(cfg.noise)
+        arr = load_test(test)
+        spans = outage.grid_windows(arr, outages, vehicle.dt)
+        nets = {label: next(iter(learned_nets([path]).values()))
+                for label, path in learned.items()}
+        print(f"    through GNSS outages of {outages.length_s:g} s every {outages.every_s:g} "
+              f"s: {len(spans)} in the test grid", flush=True)
+        return cls(outage.grid_table(arr, spans, vehicle, noise, classical_names, nets),
+                   outages.length_s, outages.every_s)
 
     def markdown(self, table: pd.DataFrame) -> list[str]:
         t = self.table[self.table["alpha"].isin([1.0, 3.0, 6.0])]
