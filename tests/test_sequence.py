@@ -391,7 +391,7 @@ def test_lbo_train_with_tbptt_trains_the_window_filter_as_its_recursive_form_run
     obs = Observer.load(metrics["checkpoint"], envelope_mode="off")
     assert obs.form == "recursive" and obs.gives_covariance and obs.net.carried
     arr = load_test(smoke_data / "test.parquet")
-    est, cov = predict_recursive(obs.net, arr)
+    est, cov, _ = predict_recursive(obs.net, arr)
     table = pd.read_csv(tmp_path / "out" / "evaluation.csv")
     ours = table[table.observer == "filternet-N40"].set_index("alpha").nrmse
     want = score("x", est, arr, reference(arr, obs.vehicle, obs.noise)).set_index("alpha").nrmse

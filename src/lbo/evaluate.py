@@ -178,7 +178,10 @@ def _run_grid(cfg: DictConfig, observers: list[str], learned: list[str],
     table = classical_table(arr, vehicle, noise, observers, ref, progress=True, truth=truth,
                             given={name: est for name, (est, _) in covariant.items()},
                             keep=keep)
+    from lbo.scoring import lateral
+
     rows, names = [], []
+    bodies: dict[str, np.ndarray] = {}  # the v_y, r a single-track body carried, by net
     for name, net in nets.items():
         from lbo.serve.runners import default_form, has_recursive_form, is_window_filter
 
@@ -188,9 +191,11 @@ def _run_grid(cfg: DictConfig, observers: list[str], learned: list[str],
             if form == "window":
                 est = predict_grid(net, arr, net.window)
             else:
-                est, cov = predict_recursive(net, arr)
+                est, cov, body = predict_recursive(net, arr)
                 if cov is not None:  # a KalmanNet's carried form gives none
                     covariant[label] = (est, cov)
+                if body is not None and lateral.carries(net):  # a single-track body's v_y, r
+                    bodies[name] = body
             rows.append(score(label, est, arr, ref))
             names.append(label)
             if form == "recursive" and smooth and is_window_filter(net):
@@ -216,7 +221,9 @@ def _run_grid(cfg: DictConfig, observers: list[str], learned: list[str],
         calibration(covariant, arr, out)
         written += [out / "nees.csv", out / "nees.png"]
     if truth.car is not None and arr.lateral is not None:  # the states no sensor gives
-        written.append(_lateral(arr, vehicle, noise, truth, nets, out))
+        written.append(_lateral(arr, vehicle, noise, truth, {
+            name: bodies[name] if name in bodies else lateral.carried(net, arr)  # window form
+            for name, net in nets.items() if lateral.carries(net)}, out))
     with pd.option_context("display.width", 120, "display.precision", 4):
         pivot = table.pivot(index="alpha", columns="observer", values="nrmse")[observers]
         print(f"NRMSE (E_ref = {cfg.metric.reference}: {ref[0]:.3f} m, {ref[1]:.3f} m, "
@@ -231,14 +238,13 @@ def _run_grid(cfg: DictConfig, observers: list[str], learned: list[str],
 
 
 def _lateral(arr: Trajectories, vehicle: Vehicle, noise: Noise, truth: Any,
-             nets: dict[str, Any], out: Path) -> Path:
+             bodies: dict[str, np.ndarray], out: Path) -> Path:
     """lateral.csv: beta, v_y and r scored on a car that slips (:mod:`lbo.scoring.lateral`),
-    the learned observers' of ``nets`` that carry a single-track body first; printed with
-    beta in degrees."""
+    first the learned observers' whose single-track body carried ``bodies`` (label -> (G, T,
+    2) ``[v_y, r]``); printed with beta in degrees."""
     from lbo.scoring import lateral
 
-    scores = lateral.table(arr, vehicle, noise, truth, {
-        name: lateral.carried(net, arr) for name, net in nets.items() if lateral.carries(net)})
+    scores = lateral.table(arr, vehicle, noise, truth, bodies)
     path = out / "lateral.csv"
     with atomic_path(path) as tmp:
         scores.to_csv(tmp, index=False)

@@ -11,7 +11,7 @@ from __future__ import annotations
 import functools
 from collections.abc import Sequence
 from pathlib import Path
-from typing import cast
+from typing import TYPE_CHECKING, cast
 
 import numpy as np
 import pandas as pd
@@ -30,6 +30,9 @@ from lbo.sim.noise import Noise
 from lbo.sim.schema import Trajectories
 from lbo.sim.truth import Truth
 from lbo.sim.vehicle import Vehicle
+
+if TYPE_CHECKING:  # torch is imported where a net runs, not with the scoring
+    from lbo.models.recursive import Filtered
 
 REFERENCES = ("ekf", "paper")
 
@@ -261,12 +264,14 @@ def learned_nets(sources: Sequence[str]) -> dict:
 
 
 def predict_recursive(net, arr: Trajectories, device: str = "cpu",
-                      smooth: bool = False) -> tuple[np.ndarray, np.ndarray | None]:
+                      smooth: bool = False) -> Filtered:
     """A learned observer in its recursive form over every trajectory of the padded test
-    arrays, all at once: (G, T, 3) estimates and (G, T, 3, 3) covariances, NaN outside the
-    scored steps (``smooth``: the RTS smoother's). The window filter (an WindowNet of
-    ``filternet``) gives its covariance; a model carried otherwise (KalmanNet's peers,
-    :mod:`lbo.models.carried`) gives none (None), and nothing to smooth."""
+    arrays, all at once: its :class:`~lbo.models.recursive.Filtered`, (G, T, 3) estimates,
+    (G, T, 3, 3) covariances and the (G, T, 2) body it carries, NaN outside the scored steps
+    (``smooth``: the RTS smoother's estimates and covariances). The window filter (an
+    WindowNet of ``filternet``) gives all three; a model carried otherwise (KalmanNet's peers,
+    :mod:`lbo.models.carried`) gives no covariance nor body (None), and nothing to smooth."""
+    from lbo.models.recursive import Filtered
     from lbo.serve.runners import is_window_filter
 
     if not is_window_filter(net):
@@ -277,13 +282,13 @@ def predict_recursive(net, arr: Trajectories, device: str = "cpu",
             raise LboError(f"smooth: {type(net.net).__name__} has no covariance to smooth with")
         est = run_carried(in_float64(net.net).to(device), arr.m, arr.u, device)
         est[~arr.mask] = np.nan
-        return np.where(np.isfinite(est), est, np.nan), None
+        return Filtered(np.where(np.isfinite(est), est, np.nan), None, None)
     from lbo.models.recursive import run_arrays
 
-    est, cov, _ = run_arrays(net.net, arr.m, arr.u, smooth, arr.lengths, device)
-    est[~arr.mask] = np.nan
-    cov[~arr.mask] = np.nan
-    return est, cov
+    out = run_arrays(net.net, arr.m, arr.u, smooth, arr.lengths, device)
+    for part in out:
+        part[~arr.mask] = np.nan
+    return out
 
 
 def predict(net, arr: Trajectories, batch_size: int = 8192,

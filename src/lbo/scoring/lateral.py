@@ -36,9 +36,6 @@ from lbo.sim.vehicle import Vehicle
 COLUMNS = ["observer", "alpha", "rmse_beta", "rmse_vy", "rmse_r", "nees_beta"]
 """A lateral score table's columns: beta in rad, v_y in m/s, r in rad/s."""
 
-ESTIMATORS = ("oracle_dynamic", "kinematic", "zero")
-
-
 def truth_of(arr: Trajectories, truth: Truth) -> dict[str, np.ndarray]:
     """The true ``beta``, ``vy`` and ``r`` (G, T) of a test set drawn from ``truth``'s car:
     beta = atan2(v_y, v_x), v_x the speed the car had (the logged one less the speed
@@ -103,14 +100,15 @@ def of_data(test: Any, cfg: Any, learned: Mapping[str, str]) -> pd.DataFrame | N
     config ``cfg`` (its vehicle, noise, car and sensors), with the ``learned`` observers
     (label -> checkpoint) that carry a single-track body; None where the set holds no
     lateral states."""
-    from lbo.scoring.grid import learned_nets, load_test
+    from lbo.scoring.grid import load_test
     from lbo.sim.truth import of_config
+    from lbo.tracking.artifacts import load_net
 
     arr = load_test(test)
     if arr.lateral is None:
         return None
     vehicle, noise = Vehicle.from_cfg(cfg.vehicle), Noise.from_cfg(cfg.noise)
-    nets = {label: next(iter(learned_nets([path]).values())) for label, path in learned.items()}
+    nets = {label: load_net(path)[0] for label, path in learned.items()}
     return table(arr, vehicle, noise, of_config(cfg, vehicle.wheelbase),
                  {label: carried(net, arr) for label, net in nets.items() if carries(net)})
 

@@ -262,7 +262,7 @@ def grid_table(arr: Trajectories, spans: np.ndarray, vehicle: Any, noise: Any,
     estimates, covariances = {}, {}
     for label, net in learned.items():
         if default_form(net) == "recursive":
-            estimates[label], cov = predict_recursive(net, blanked)
+            estimates[label], cov, _ = predict_recursive(net, blanked)
             if cov is not None:  # a KalmanNet's carried form gives none
                 covariances[label] = cov
         else:

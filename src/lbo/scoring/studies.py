@@ -226,15 +226,16 @@ class Outages:
         checkpoint) and ``classical_names`` through ``outages``
         (:func:`lbo.scoring.outages.grid_table`), the car of the composed config ``cfg``."""
         from lbo.scoring import outages as outage
-        from lbo.scoring.grid import learned_nets, load_test
+        from lbo.scoring.grid import load_test
         from lbo.sim.noise import Noise
         from lbo.sim.vehicle import Vehicle
 
         vehicle, noise = Vehicle.from_cfg(cfg.vehicle), Noise.from_cfg(cfg.noise)
         arr = load_test(test)
         spans = outage.grid_windows(arr, outages, vehicle.dt)
-        nets = {label: next(iter(learned_nets([path]).values()))
-                for label, path in learned.items()}
+        from lbo.tracking.artifacts import load_net
+
+        nets = {label: load_net(path)[0] for label, path in learned.items()}
         print(f"    through GNSS outages of {outages.length_s:g} s every {outages.every_s:g} "
               f"s: {len(spans)} in the test grid", flush=True)
         return cls(outage.grid_table(arr, spans, vehicle, noise, classical_names, nets),
