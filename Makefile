@@ -9,6 +9,7 @@ STUDY ?= paper
 TRAINER ?= cpu
 LAUNCHER ?= null
 JOBS ?= 2
+ARGS ?=
 TEST_JOBS ?= 2
 MLFLOW_PORT ?= 5000
 MLFLOW_BACKEND ?= sqlite:///$(CURDIR)/mlflow-server.db
@@ -42,9 +43,9 @@ slurm-check: install  ## tests/test_slurm.py: sweeps, make reproduce, a killed j
 data: install  ## generate the data sets: make data SCALE=smoke|quick|paper
 	$(PY) -m lbo.datagen data=$(SCALE)
 
-reproduce: install  ## the paper's study, resumable: make reproduce SCALE=paper|quick [STUDY=paper|dynamic|all] [TRAINER=gpu] [LAUNCHER=joblib JOBS=4]
+reproduce: install  ## the paper's study, resumable: make reproduce SCALE=paper|quick [STUDY=paper|dynamic|all] [TRAINER=gpu] [LAUNCHER=joblib JOBS=4] [ARGS="models=[cnn] windows=[20]"]
 	$(PY) -m lbo.reproduce scale=$(SCALE) study=$(STUDY) "train_overrides=['trainer=$(TRAINER)']" \
-		launcher=$(LAUNCHER) jobs=$(JOBS)
+		launcher=$(LAUNCHER) jobs=$(JOBS) $(ARGS)
 
 ablation: install  ## the paper's protocol variant by variant at quick scale, resumable -> reports/ablation/
 	$(PY) -m lbo.ablation "overrides=['trainer=$(TRAINER)']"

@@ -16,6 +16,7 @@ fraction of a second.
 
 from __future__ import annotations
 
+import functools
 import re
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -36,9 +37,16 @@ def options(group: str) -> list[str]:
     return sorted(p.stem for p in (CONF_DIR / group).glob("*.yaml"))
 
 
+@functools.cache
+def read(path: Path) -> dict[str, Any]:
+    """A config file's contents, unresolved; read once per run (conf/ does not change while
+    the tests run, and a few hundred cases read the same files)."""
+    return OmegaConf.to_container(OmegaConf.load(path), resolve=False)
+
+
 def defaults(path: Path) -> list[Any]:
     """The defaults list of a config file, as written."""
-    return OmegaConf.to_container(OmegaConf.load(path)).get("defaults", [])
+    return list(read(path).get("defaults", []))
 
 
 def default_choices(primary: str) -> dict[str, str | None]:
@@ -149,8 +157,7 @@ def own_settings(group: str, option: str) -> dict[str, Any]:
     for entry in defaults(path):  # an option it starts from (`defaults: [paper]`): first
         if isinstance(entry, str) and entry != "_self_":
             out.update(own_settings(group, entry))
-    raw = OmegaConf.to_container(OmegaConf.load(path), resolve=False)
-    raw.pop("defaults", None)
+    raw = {k: v for k, v in read(path).items() if k != "defaults"}
     is_global = path.read_text().lstrip().startswith("# @package _global_")
     return {**out, **flat(raw, "" if is_global else f"{group}.")}
 

@@ -21,7 +21,7 @@ def _train_args(tmp_path, smoke_data, out, *more):
     """``lbo.train``'s arguments; one intra-op thread in this process and in a subprocess
     alike, so that their runs compare to the bit."""
     return ["experiment=smoke", "resume=true", "threads=1", f"data.root={smoke_data.parent}",
-            f"output_dir={out}", "trainer.max_epochs=6", "trainer.limit_train_batches=30",
+            f"output_dir={out}", "trainer.max_epochs=4", "trainer.limit_train_batches=30",
             f"hydra.run.dir={tmp_path / 'hydra'}", *more]
 
 
@@ -98,14 +98,15 @@ def test_a_run_killed_before_its_first_checkpoint_is_replaced(tmp_path, smoke_da
     uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
     env = {**os.environ, "MLFLOW_TRACKING_URI": uri, "PYTHONUNBUFFERED": "1"}
     out = tmp_path / "out"
-    cmd = _train_cmd(tmp_path, smoke_data, out)
+    short = "trainer.max_epochs=2"  # killed before its first epoch ends: two are plenty
+    cmd = _train_cmd(tmp_path, smoke_data, out, short)
     proc = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
                             start_new_session=True)
     watcher = kill_when_written(proc, out / "config.yaml")  # logged, no epoch done
     proc.wait(timeout=300)
     watcher.join()
     assert proc.returncode == -signal.SIGKILL and not (out / "checkpoints" / "last.ckpt").exists()
-    rerun = cli("lbo.train", *_train_args(tmp_path, smoke_data, out),
+    rerun = cli("lbo.train", *_train_args(tmp_path, smoke_data, out, short),
                 env={"MLFLOW_TRACKING_URI": uri})
     assert rerun.returncode == 0, rerun.stderr[-3000:]
     client = mlflow.MlflowClient(uri)

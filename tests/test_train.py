@@ -359,7 +359,8 @@ def test_threads_sets_the_runs_intra_op_threads_and_leaves_its_hash(tmp_path, sm
 @pytest.mark.slow
 def test_verbose_brings_back_the_model_summary_and_is_a_flag(tmp_path, smoke_data):
     args = ("experiment=smoke", f"data.root={smoke_data.parent}", "trainer.max_epochs=1",
-            "keep_onnx=false", f"output_dir={tmp_path / 'out'}", f"hydra.run.dir={tmp_path}")
+            "trainer.limit_train_batches=3", "keep_onnx=false", f"output_dir={tmp_path / 'out'}",
+            f"hydra.run.dir={tmp_path}")
     env = {"MLFLOW_TRACKING_URI": f"sqlite:///{tmp_path / 'mlflow.db'}"}
     # in a process of its own: Lightning's handler writes to the stream it started with
     res = cli("lbo.train", *args, "verbose=true", env=env, process=True)
