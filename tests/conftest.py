@@ -112,18 +112,20 @@ def smoke_cnn(tmp_path_factory, worker_id, smoke_data):
 @pytest.fixture(scope="session")
 def paper_sweep(tmp_path_factory, worker_id, smoke_data):
     """The paper's sweep at smoke size, ``python -m lbo.train -m model=cnn,lstm
-    window=20,40,60,80 experiment=smoke``, run once for the whole run in a process of its own
-    (one torch thread) into an MLflow store of its own: ``uri``, ``sweep`` (its folder),
-    ``returncode``, ``stdout``, ``stderr``. test_train reads the sweep; test_scaling's joblib
-    sweep is compared with its runs."""
+    window=20,40,60,80 experiment=smoke`` with :data:`helpers.SWEEP_BUDGET`, run once for the
+    whole run in a process of its own (one torch thread) into an MLflow store of its own:
+    ``uri``, ``sweep`` (its folder), ``returncode``, ``stdout``, ``stderr``. test_train reads
+    the sweep; test_scaling's joblib sweep is compared with its runs."""
     import subprocess
     import sys
+
+    from helpers import SWEEP_BUDGET
 
     def make(tmp: Path) -> dict:
         uri = f"sqlite:///{tmp / 'mlflow.db'}"
         res = subprocess.run(
             [sys.executable, "-m", "lbo.train", "-m", "model=cnn,lstm", "window=20,40,60,80",
-             "experiment=smoke", f"data.root={smoke_data.parent}",
+             "experiment=smoke", *SWEEP_BUDGET, f"data.root={smoke_data.parent}",
              f"hydra.sweep.dir={tmp / 'sweep'}"], capture_output=True, text=True,
             env={**os.environ, "MLFLOW_TRACKING_URI": uri, "OMP_NUM_THREADS": "1"})
         return {"uri": uri, "sweep": tmp / "sweep", "returncode": res.returncode,

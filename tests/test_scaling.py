@@ -16,7 +16,7 @@ import pandas as pd
 import pytest
 from omegaconf import open_dict
 
-from helpers import cli, compose_cfg, train_cfg
+from helpers import SWEEP_BUDGET, cli, compose_cfg, train_cfg
 from helpers.servers import PG_PASSWORD, free_port, mlflow_server, postgres
 from lbo.core.cli import check_launcher, launcher_from_argv
 from lbo.core.errors import LboError
@@ -167,8 +167,8 @@ def test_joblib_sweep_matches_the_serial_sweep(tmp_path, smoke_data, paper_sweep
     start = time.perf_counter()
     # a process of its own: joblib's workers write to the process's stderr (read for
     # "database is locked"), and joblib keeps them, with their environment, for later sweeps
-    res = cli("lbo.train", "-m", *SWEEP, "experiment=smoke", f"data.root={smoke_data.parent}",
-              "trainer.max_epochs=2", f"hydra.sweep.dir={tmp_path / 'sweep'}",
+    res = cli("lbo.train", "-m", *SWEEP, "experiment=smoke", *SWEEP_BUDGET,
+              f"data.root={smoke_data.parent}", f"hydra.sweep.dir={tmp_path / 'sweep'}",
               "hydra/launcher=joblib", "hydra.launcher.n_jobs=2",
               env={"MLFLOW_TRACKING_URI": uri}, process=True)
     assert res.returncode == 0, res.stderr[-3000:]

@@ -2,7 +2,7 @@
 hooks stay in ``tests/conftest.py``.
 
 - :mod:`helpers.config`: composing configs from conf/ (``compose_cfg``, ``train_cfg``,
-  ``ROBUST_SMOKE``)
+  ``ROBUST_SMOKE``, ``SWEEP_BUDGET``)
 - :mod:`helpers.training`: training runs at smoke size (``train_in_own_store``)
 - :mod:`helpers.processes`: faults injected into running processes (``kill_when_written``)
 - :mod:`helpers.commands`: lbo's commands as a user types them (``cli``, ``observe``), in the
@@ -16,10 +16,10 @@ hooks stay in ``tests/conftest.py``.
 """
 
 from helpers.commands import cli, observe, observed, one_line_error
-from helpers.config import ROBUST_SMOKE, compose_cfg, train_cfg
+from helpers.config import ROBUST_SMOKE, SWEEP_BUDGET, compose_cfg, train_cfg
 from helpers.processes import kill_when_written
 from helpers.stepping import step_log
 from helpers.training import train_in_own_store
 
-__all__ = ["ROBUST_SMOKE", "cli", "compose_cfg", "kill_when_written", "observe", "observed",
-           "one_line_error", "step_log", "train_cfg", "train_in_own_store"]
+__all__ = ["ROBUST_SMOKE", "SWEEP_BUDGET", "cli", "compose_cfg", "kill_when_written", "observe",
+           "observed", "one_line_error", "step_log", "train_cfg", "train_in_own_store"]

@@ -32,3 +32,8 @@ def train_cfg(tmp_path, smoke_data, *overrides):
 ROBUST_SMOKE = ("experiment=robust", "data=smoke", "trainer.max_epochs=1")
 """The robust experiment cut to one short epoch on the smoke sets (add the batches, the
 window and the batch size)."""
+
+
+SWEEP_BUDGET = ("trainer.limit_train_batches=5",)
+"""The paper sweep's budget beyond experiment=smoke (its two epochs, five batches each:
+``paper_sweep`` in conftest); a sweep compared with it runs the same."""
