@@ -19,21 +19,52 @@ pytestmark = [pytest.mark.slow, pytest.mark.usefixtures("one_torch_thread")]
 SCRIPT = REPO_ROOT / "benchmarks" / "learned_table.py"
 
 
+def _smoke(smoke_data: Path) -> list[str]:
+    return ["data=smoke", f"data.root={smoke_data.parent}",
+            "trainer.max_epochs=1", "++trainer.limit_train_batches=2",
+            "++trainer.limit_val_batches=2", "window=20"]
+
+
 def table(tmp_path: Path, smoke_data: Path, *args: str) -> subprocess.CompletedProcess:
-    smoke = ["data=smoke", f"data.root={smoke_data.parent}",
-             "trainer.max_epochs=1", "++trainer.limit_train_batches=2",
-             "++trainer.limit_val_batches=2", "window=20"]
+    """``python benchmarks/learned_table.py --out <tmp>/table <args> -- <smoke>`` in a process
+    of its own (its exit status and stderr as a user sees them)."""
     env = {**os.environ, "MLFLOW_TRACKING_URI": f"sqlite:///{tmp_path / 'mlflow.db'}"}
     return subprocess.run([sys.executable, str(SCRIPT), "--out", str(tmp_path / "table"), *args,
-                           "--", *smoke], capture_output=True, text=True, env=env,
+                           "--", *_smoke(smoke_data)], capture_output=True, text=True, env=env,
                           timeout=900, cwd=tmp_path)
 
 
+def _script(monkeypatch):
+    """benchmarks/learned_table.py as a module (its dataclasses look it up by name)."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("learned_table", SCRIPT)
+    module = importlib.util.module_from_spec(spec)
+    monkeypatch.setitem(sys.modules, "learned_table", module)
+    spec.loader.exec_module(module)
+    return module
+
+
+def table_here(tmp_path: Path, smoke_data: Path, monkeypatch, capsys, *args: str) -> str:
+    """The same command's ``main`` in this process, with the same arguments, environment and
+    folder (each cell is still its own ``python -m lbo.train`` process, as the script starts
+    it): saves an interpreter and lbo's imports a call. Returns what it printed; it exits
+    with an error only by raising SystemExit, which fails the test."""
+    module = _script(monkeypatch)
+    with monkeypatch.context() as mp:
+        mp.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{tmp_path / 'mlflow.db'}")
+        mp.chdir(tmp_path)
+        mp.setattr(sys, "argv", [str(SCRIPT), "--out", str(tmp_path / "table"), *args, "--",
+                                 *_smoke(smoke_data)])
+        capsys.readouterr()
+        module.main()
+        return capsys.readouterr().out
+
+
 def test_each_cell_is_a_run_read_back_and_a_finished_one_is_not_trained_again(
-        tmp_path, smoke_data):
+        tmp_path, smoke_data, monkeypatch, capsys):
     cells = "paper/cnn,robust/split_kalmannet"
-    res = table(tmp_path, smoke_data, "--cells", cells)
-    assert res.returncode == 0, res.stderr[-3000:]
+    printed = table_here(tmp_path, smoke_data, monkeypatch, capsys, "--cells", cells)
     rows = pd.read_csv(tmp_path / "table" / "cells.csv")
     assert list(rows["observer"]) == ["cnn", "split_kalmannet"]
     for row in rows.itertuples():
@@ -49,11 +80,10 @@ def test_each_cell_is_a_run_read_back_and_a_finished_one_is_not_trained_again(
     md = (tmp_path / "table" / "table.md").read_text()
     assert "| paper | CNN (N=80) |" in md and "| robust | Split-KalmanNet |" in md
     assert md.count("| EKF, R at alpha = 1 |") == 2  # a reference line per data set
-    assert "train_noise=paper" in res.stdout and "model=split_kalmannet" in res.stdout
+    assert "train_noise=paper" in printed and "model=split_kalmannet" in printed
     # again: both cells are read from their folders, none trained
-    again = table(tmp_path, smoke_data, "--cells", cells)
-    assert again.returncode == 0, again.stderr[-3000:]
-    assert "model=cnn" not in again.stdout and "train_noise" not in again.stdout
+    again = table_here(tmp_path, smoke_data, monkeypatch, capsys, "--cells", cells)
+    assert "model=cnn" not in again and "train_noise" not in again
     pd.testing.assert_frame_equal(pd.read_csv(tmp_path / "table" / "cells.csv"), rows)
 
 
@@ -71,12 +101,7 @@ def test_a_cell_not_in_the_table_is_refused_in_one_line(tmp_path, smoke_data):
 def test_a_cell_that_sets_a_budget_setting_keeps_its_own(monkeypatch):
     """Split-KalmanNet trained carried sets its batch of sequences: the budget's batch size
     is left out (Hydra refuses a key given twice), the rest of the budget kept."""
-    import importlib.util
-
-    spec = importlib.util.spec_from_file_location("learned_table", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    monkeypatch.setitem(sys.modules, "learned_table", module)  # its dataclasses look it up
-    spec.loader.exec_module(module)
+    module = _script(monkeypatch)
     (carried,) = module.cells("robust/split_kalmannet_carried", Path("out"), {})
     assert [o for o in carried.overrides if o.startswith("batch_size=")] == ["batch_size=100"]
     assert "tbptt=100" in carried.overrides and "trainer.max_epochs=4" in carried.overrides
