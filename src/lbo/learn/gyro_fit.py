@@ -312,6 +312,7 @@ def fit(train: pd.DataFrame | Sequence[pd.DataFrame],
         raise LboError(f"fit: ahead is a number of steps >= 0 for objective='innovations', "
                        f"got {ahead} for {objective!r}")
     check_method(method)
+    own = val is train  # the logs are their own validation (adapt): one pass serves both
     train, val = _logs(train), _logs(val)
     model = GyroFilter(start, vehicle.dt, torch.as_tensor(R))
     opt: torch.optim.Optimizer = (
@@ -324,6 +325,7 @@ def fit(train: pd.DataFrame | Sequence[pd.DataFrame],
     best: tuple[float, int, GyroNoise] = (1.0 if supervised else 0.0, 0, start)
     val_start = 0.0
     history = []
+    nll_now = torch.zeros(())  # the NLL of the train segments at train_loss's last call
 
 
     def train_loss(seg: Segments) -> torch.Tensor:
@@ -334,9 +336,11 @@ def fit(train: pd.DataFrame | Sequence[pd.DataFrame],
             if scale is None:
                 scale = mse.detach()
             return (mse / scale).mean()
+        nonlocal nll_now
         nll = _innovations(model, seg, ahead)
+        nll_now = nll.detach()
         if scale is None:
-            scale = nll.detach()
+            scale = nll_now
         return nll - scale
 
     begin = time.perf_counter()
@@ -350,9 +354,12 @@ def fit(train: pd.DataFrame | Sequence[pd.DataFrame],
         if supervised:
             score = 1.0 if epoch == 0 else _pooled(val, noise, reference, vehicle, R)
         else:
-            with torch.no_grad():
-                held_out = float(_innovations(model, _batch(val, noise, vehicle, R, segment),
-                                              ahead))
+            if own:  # the same segments under the same noise: the number the loss just took
+                held_out = float(nll_now)
+            else:
+                with torch.no_grad():
+                    held_out = float(_innovations(
+                        model, _batch(val, noise, vehicle, R, segment), ahead))
             if epoch == 0:
                 val_start = held_out
             score = held_out - val_start
