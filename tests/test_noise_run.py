@@ -31,24 +31,32 @@ def logs(tmp_path_factory) -> dict[str, Path]:
 
 
 def _train(tmp_path: Path, logs: dict[str, Path], *args: str):
+    """``lbo.train model=gyro_ekf`` on ``logs``: 2 epochs of segments of 2.5 s (the filter
+    steps the segments together: the shorter, the fewer its steps)."""
     uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
     res = cli("lbo.train", "model=gyro_ekf", "data=logs", f"data.train=[{logs['train']}]",
-              f"data.val=[{logs['val']}]", f"data.test=[{logs['test']}]", "model.epochs=4",
-              "model.segment_s=5", f"output_dir={tmp_path / 'out'}",
+              f"data.val=[{logs['val']}]", f"data.test=[{logs['test']}]", "model.epochs=2",
+              "model.segment_s=2.5", f"output_dir={tmp_path / 'out'}",
               f"hydra.run.dir={tmp_path / 'h'}", *args, env={"MLFLOW_TRACKING_URI": uri})
     return res, uri
 
 
+ACROSS = ("model.across_drives=true", "model.lr=0.2")
+"""Two Adam steps of 0.2 (about lr each on the noises' logs) reach the noise four of 0.1 do
+(measured: accuracy_scale 1.491 against 1.493, the test drive's measure 1.2413 against 1.2411
+beside the defaults' 1.2473), the leave-one-drive-out fits too, in half the steps."""
+
+
 @pytest.mark.slow
 def test_the_gyro_ekf_trains_as_a_run_that_observe_takes(tmp_path, logs):
-    res, uri = _train(tmp_path, logs, "model.across_drives=true")
+    res, uri = _train(tmp_path, logs, *ACROSS)
     assert res.returncode == 0, res.stderr[-3000:]
     client = mlflow.MlflowClient(uri)
     [run] = client.search_runs([client.get_experiment_by_name("lbo-logs").experiment_id])
     assert run.info.status == "FINISHED" and run.data.tags["model"] == "gyro_ekf"
     assert run.data.tags["config_hash"] and run.data.params["model.objective"] == "truth"
     val = [m.value for m in client.get_metric_history(run.info.run_id, "val_loss")]
-    assert len(val) == 5 and val[0] == 1.0  # epoch 0 is the start, against itself
+    assert len(val) == 3 and val[0] == 1.0  # epoch 0 is the start, against itself
     metrics = run.data.metrics
     # the receiver reports a third of its error: learning to trust it less gains on the test
     # drive the fit never read, against the defaults it started from
@@ -83,7 +91,7 @@ def test_the_gyro_ekf_trains_as_a_run_that_observe_takes(tmp_path, logs):
         obs = Observer.load(run.info.run_id)
     assert obs.name == "gyro" and obs.gyro_noise == learned
 
-    again, _ = _train(tmp_path, logs, "model.across_drives=true", "resume=true")
+    again, _ = _train(tmp_path, logs, *ACROSS, "resume=true")
     assert again.returncode == 0, again.stderr[-3000:]
     assert f"reusing finished run {run.info.run_id}" in again.stdout
 
