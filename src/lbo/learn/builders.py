@@ -19,7 +19,7 @@ from lbo.core import plugins
 from lbo.core.checks import integer, number, require
 from lbo.core.cli import MODEL_SHORT
 from lbo.core.errors import LboError
-from lbo.learn.draws import SOURCES, AlphaDraw, ReceiverDraw, fix_periods
+from lbo.learn.draws import SOURCES, AlphaDraw, OutageDraw, ReceiverDraw, fix_periods
 
 
 @dataclass(frozen=True)
@@ -35,6 +35,8 @@ class Built:
     """The data module's training-noise arguments (:func:`noise_settings`)."""
     init: dict[str, torch.Tensor] | None
     """``init_from``'s weights for ``net`` (:func:`initial_weights`), or None."""
+    outages: OutageDraw | None = None
+    """The GNSS outages drawn into the training windows (``train_outages``), or None."""
 
 
 def build(cfg: DictConfig) -> Built:
@@ -47,7 +49,14 @@ def build(cfg: DictConfig) -> Built:
     if net.model not in plugins.OWN["model"]:  # lbo's own keep it (tests/test_models.py)
         net.check_output(int(cfg.batch_size))  # on one batch, before any run or folder
     init = initial_weights(cfg, net, say=False) if cfg.get("init_from") else None
-    return Built(net, periods, noise, init)
+    return Built(net, periods, noise, init, outage_draw(cfg, periods))
+
+
+def outage_draw(cfg: DictConfig, periods: tuple[int, ...]) -> OutageDraw | None:
+    """The outages ``train_outages`` draws into training windows, or None (one line naming
+    the field for a bad setting)."""
+    return OutageDraw.from_cfg(cfg.get("train_outages") or {}, float(cfg.vehicle.dt),
+                               bool(periods))
 
 
 def model_settings(cfg: DictConfig) -> dict[str, Any]:
@@ -133,11 +142,13 @@ def datamodule(cfg: DictConfig, folder: Path, built: Built | None = None):
 
     periods = built.fix_periods if built else fix_periods(cfg.get("fix_rates"), cfg.vehicle.dt)
     noise = built.noise if built else noise_settings(cfg)
+    outages = built.outages if built else outage_draw(cfg, periods)
     carried = cfg.get("tbptt") is not None  # its windows: sequences, maybe longer than N
     length = (cfg.get("sequence_length") or cfg.model.window) if carried else cfg.model.window
     dm = WindowDataModule(folder, length, cfg.batch_size, seed=cfg.seed,
                           device=data_device(cfg), fix_periods=periods,
-                          sequences=carried, next_fix=cfg.get("loss") == "next_fix", **noise)
+                          sequences=carried, next_fix=cfg.get("loss") == "next_fix",
+                          outages=outages, **noise)
     dm.setup("fit")
     return dm
 

@@ -30,7 +30,14 @@ from torch.utils.data import (
 )
 
 from lbo.core.errors import LboError
-from lbo.learn.draws import AlphaDraw, ReceiverDraw, draw_fixes, loss_weights, noisy_measurements
+from lbo.learn.draws import (
+    AlphaDraw,
+    OutageDraw,
+    ReceiverDraw,
+    draw_fixes,
+    loss_weights,
+    noisy_measurements,
+)
 from lbo.models.features import window_view
 from lbo.models.net import check_scaling
 from lbo.sim import schema
@@ -77,6 +84,8 @@ class WindowDataset(Dataset):
     weight_offset : loss weights ``1 / (alpha + offset)^2``, or ones when None.
     fix_periods : drop position fixes: each window keeps them every one of these periods
         (steps), see :func:`lbo.learn.draws.draw_fixes`; the dropped ones become NaN. () keeps all.
+    outages : GNSS outages drawn into the windows, every fix of a stretch dropped
+        (:class:`lbo.learn.draws.OutageDraw`, with ``fix_periods``); None: none.
     drift : (sigma (m), tau (steps)) of a Gauss-Markov GNSS drift added to drawn noise, as
         the data set's truth has it; None: white noise only.
     receiver : draw a receiver's windows (B, N, 11) instead
@@ -98,7 +107,10 @@ class WindowDataset(Dataset):
                  fix_periods: tuple[int, ...] = (),
                  drift: tuple[float, float] | None = None,
                  receiver: ReceiverDraw | None = None, sequences: bool = False,
-                 next_fix: bool = False):
+                 next_fix: bool = False, outages: OutageDraw | None = None):
+        if outages is not None and not fix_periods:
+            raise LboError("train_outages: outages need fix rates (fix_rates=[10, 5, 1])")
+        self.outages = outages
         if next_fix and (receiver is not None or sequences):
             raise LboError("loss=next_fix trains on windows of full poses (tbptt=null, no "
                            "receiver)")
@@ -155,7 +167,7 @@ class WindowDataset(Dataset):
         if self.receiver is not None:
             alpha = (torch.ones(len(e), dtype=self.x.dtype, device=e.device)
                      if self.draw is None else self.draw.sample(len(e), generator))
-            fix = draw_fixes(len(e), self.window, self.fix_periods, generator, e.device)
+            fix = self._fixes(len(e), generator, e.device)
             rx = self.receiver.windows(self.truth[s], win[..., 3:5], alpha, fix, generator)
             return rx, truth, loss_weights(alpha, self.weight_offset)
         if self.draw is None:
@@ -174,7 +186,7 @@ class WindowDataset(Dataset):
                 after = noisy_measurements(self.y[e + 1][:, None], alpha, self.sigma, generator)
                 truth = torch.cat([after[:, 0], self.x[e, 3:5]], -1)
         if self.fix_periods:
-            fix = draw_fixes(len(e), self.window, self.fix_periods, generator, e.device)
+            fix = self._fixes(len(e), generator, e.device)
             kept = torch.where(fix[..., None], m, torch.full_like(m, float("nan")))
             # stored measurements with gaps of their own (a user's 10 Hz logs): the mask may
             # miss every fix of a window, which keeps its own fixes then (never on full sets)
@@ -183,6 +195,12 @@ class WindowDataset(Dataset):
         elif self.draw is None:
             return win, truth, weight
         return torch.cat([m, win[..., 3:]], dim=-1), truth, weight
+
+    def _fixes(self, n: int, generator: torch.Generator, device: torch.device) -> torch.Tensor:
+        """The steps of ``n`` windows that hold a fix (n, N) bool: at one of the fix periods,
+        less the outages drawn."""
+        fix = draw_fixes(n, self.window, self.fix_periods, generator, device)
+        return fix if self.outages is None else self.outages.cut(fix, generator)
 
 
 class FixedDataset(Dataset):
@@ -238,6 +256,8 @@ class WindowDataModule(L.LightningDataModule):
         validation windows are as long as the validation set's run-in allows.
     next_fix : batches hold each window's next fix and last inputs, no truth (see
         :class:`WindowDataset`), in training and validation alike.
+    outages : GNSS outages drawn into training and validation windows (see
+        :class:`WindowDataset`); None: none.
     """
 
     def __init__(self, folder: str | Path, window: int, batch_size: int = 256,
@@ -247,7 +267,7 @@ class WindowDataModule(L.LightningDataModule):
                  device: str = "cpu", fix_periods: tuple[int, ...] = (),
                  drift: tuple[float, float] | None = None,
                  receiver: ReceiverDraw | None = None, sequences: bool = False,
-                 next_fix: bool = False) -> None:
+                 next_fix: bool = False, outages: OutageDraw | None = None) -> None:
         super().__init__()
         self.device = torch.device(device)
         self.folder = Path(folder)
@@ -259,7 +279,7 @@ class WindowDataModule(L.LightningDataModule):
         self.val_repeats = int(val_repeats)
         self.fix_periods = tuple(fix_periods)
         self.drift, self.receiver, self.sequences = drift, receiver, bool(sequences)
-        self.next_fix = bool(next_fix)
+        self.next_fix, self.outages = bool(next_fix), outages
         self.val_window = self.window  # shorter when trained carried (setup)
         self.train_set: WindowDataset | None = None
         self.val_set: WindowDataset | FixedDataset | None = None
@@ -288,7 +308,7 @@ class WindowDataModule(L.LightningDataModule):
         noise = {"draw": self.draw, "sigma": self.sigma, "weight_offset": self.weight_offset,
                  "fix_periods": self.fix_periods, "drift": self.drift,
                  "receiver": self.receiver, "sequences": self.sequences,
-                 "next_fix": self.next_fix}
+                 "next_fix": self.next_fix, "outages": self.outages}
         self.train_set = WindowDataset(*rows(train), window_ends(
             train["k"].to_numpy(), self.window, next_step=self.next_fix), self.window,
             seed=self.seed, **noise)

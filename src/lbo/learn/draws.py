@@ -224,6 +224,67 @@ def draw_fixes(n: int, window: int, periods: Sequence[int], generator: torch.Gen
 
 
 @dataclass(frozen=True)
+class OutageDraw:
+    """GNSS outages drawn into training windows, as their noise is drawn: a ``share`` of the
+    windows loses every fix in one stretch of 1 to ``max_steps`` steps (at most the window
+    less one), so that a learned filter sees outages in training as it meets them in a log.
+
+    Half of those stretches run to the window's last step (the estimate is made inside the
+    outage, from dead reckoning), the other half lie anywhere in it (the recovery after one).
+    A window left without a fix keeps the one just before its stretch (or just after)."""
+
+    share: float = 0.0
+    max_steps: int = 500
+
+    def __post_init__(self) -> None:
+        number(self.share, "train_outages.share", low=0.0, high=1.0, form="a share in [0, 1]")
+        integer(self.max_steps, "OutageDraw.max_steps", 1)
+
+    @classmethod
+    def from_cfg(cls, cfg: Any, dt: float, fixes: bool) -> OutageDraw | None:
+        """The draw ``train_outages`` (``share``, ``max_s`` seconds) asks for at steps of
+        ``dt``, or None for none (share 0); ``fixes``: whether the training drops fixes
+        (``fix_rates``), which a net that takes an outage needs. One line naming the field."""
+        share = number(cfg.get("share", 0.0), "train_outages.share", low=0.0, high=1.0,
+                       form="a share in [0, 1]")
+        seconds = number(cfg.get("max_s", 10.0), "train_outages.max_s", low=0.0,
+                         low_open=True, form="a number of seconds > 0")
+        unknown = sorted(set(cfg) - {"share", "max_s"})
+        if unknown:
+            raise LboError(f"train_outages.{unknown[0]}: not a field; accepted: share, max_s")
+        if share == 0:
+            return None
+        if not fixes:
+            raise LboError(f"train_outages.share: outages need a net that reads the fix channel "
+                           f"(fix_rates, e.g. experiment=robust), got {share:g} with "
+                           "fix_rates=null")
+        return cls(share=share, max_steps=max(1, round(seconds / dt)))
+
+    def cut(self, fix: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
+        """``fix`` (B, N) bool (the steps that hold a fix) with the drawn outages taken out;
+        every window keeps at least one fix. Draws nothing when ``share`` is 0, so a run
+        without outages keeps its stream of draws."""
+        if self.share <= 0:
+            return fix
+        b, n = fix.shape
+        dev = fix.device
+        hit = torch.rand(b, generator=generator, device=dev) < self.share
+        longest = max(1, min(self.max_steps, n - 1))
+        length = 1 + (torch.rand(b, generator=generator, device=dev) * longest).long()
+        latest = n - length  # the first step of a stretch that ends at the window's last
+        anywhere = (torch.rand(b, generator=generator, device=dev) * (latest + 1)).long()
+        at_end = torch.rand(b, generator=generator, device=dev) < 0.5
+        start = torch.where(at_end, latest, anywhere)
+        k = torch.arange(n, device=dev)
+        inside = hit[:, None] & (k >= start[:, None]) & (k < (start + length)[:, None])
+        kept = fix & ~inside
+        empty = ~kept.any(1)
+        beside = torch.where(start > 0, start - 1, (start + length).clamp_max(n - 1))
+        kept[empty, beside[empty]] = True
+        return kept
+
+
+@dataclass(frozen=True)
 class ReceiverDraw:
     """A simulated receiver and gyro drawn afresh for every training window (as
     :func:`lbo.sim.receiver.sense` draws them for a log), for nets that read a receiver.

@@ -35,7 +35,8 @@ LATER_DEFAULTS: dict[str, Any] = {"model.normalisation": "standard", "receiver":
                   "receiver_training": {"heading_share": 0.25, "gyro_share": 0.75},
                   "model.gyro": False, "tbptt": None,
                   "sequence_length": None, "nll": 0.0, "train_noise.changes": 0,
-                  "loss": "truth", "data.source": "files"}
+                  "loss": "truth", "data.source": "files",
+                  "train_outages": {"share": 0.0, "max_s": 10.0}}
 """Settings added after runs were stored (a dotted key: one inside a group), with the value
 those runs had: a config holding that value hashes as if it did not have the key, so
 resume=true still finds the old runs."""
