@@ -115,16 +115,17 @@ def test_it_exports_and_runs_as_a_window_and_carried_on_request(name):
 @pytest.mark.parametrize("name", PEERS)
 def test_on_straight_drives_it_learns_to_match_the_ekf(one_torch_thread, name):
     """The linear case: the bicycle driving straight, white fixes at alpha 1, where the EKF is
-    near optimal. 200 Adam steps on 64 windows each (about 15 s) bring each to the EKF's mean
-    square error: measured 0.98, 0.99 and 0.99 of the EKF's on x, y and psi for KalmanNet,
-    0.97, 0.98 and 0.98 for Split-KalmanNet (the EKF's Q allows for process noise these
-    drives do not have); within 1.2."""
+    near optimal. 100 Adam steps on 64 windows each (about 6 s) bring each to the EKF's mean
+    square error: measured 1.01, 1.00 and 1.00 of the EKF's on x, y and psi for KalmanNet,
+    0.99, 0.99 and 0.97 for Split-KalmanNet (the EKF's Q allows for process noise these
+    drives do not have; 200 steps gave 0.98-0.99 and 0.97-0.98, torch seed 1 at 100 steps at
+    most 1.02 for either, 75 steps 1.06 for Split-KalmanNet); within 1.2."""
     torch.manual_seed(0)
     net = WindowNet(name, N, features="frame")
     net.set_normalisation(torch.zeros(5), torch.ones(5), torch.zeros(3),
                           torch.tensor(NOISE.measurement_sigma))
     opt = torch.optim.Adam(net.parameters(), lr=3e-3)
-    for step in range(200):
+    for step in range(100):
         win, truth = straight(64, 100 + step)
         loss = net.loss(win, truth)
         opt.zero_grad()
@@ -246,7 +247,9 @@ def test_a_kinematic_peers_weights_are_those_its_stored_checkpoints_hold(name):
 @pytest.mark.parametrize("name", PEERS)
 def test_around_the_single_track_body_it_learns_the_body_and_exports(name):
     """A few Adam steps on windows of a car turning move the body's constants (a gradient
-    reaches them through the gain filter) and lower the loss; the filter exports."""
+    reaches them through the gain filter) and lower the loss; the filter exports. Ten steps
+    bring the loss to 0.43 and 0.34 of the first (KalmanNet, Split-KalmanNet; 0.34-0.45 over
+    seeds 0-2; 0.21 and 0.24 after the 30 steps it took before); within 0.8."""
     torch.manual_seed(0)
     net = WindowNet(name, N, features="frame", body="single_track", body_lr=3.0)
     win = turning(64, 4).float()
@@ -256,7 +259,7 @@ def test_around_the_single_track_body_it_learns_the_body_and_exports(name):
     body = net.net.log_stiffness.detach().clone()
     opt = torch.optim.Adam(net.parameters(), lr=3e-3)
     losses = []
-    for _ in range(30):
+    for _ in range(10):
         opt.zero_grad()
         loss = ((net(noisy) - target) / torch.tensor([0.3, 0.3, 0.005])).pow(2).mean()
         loss.backward()
