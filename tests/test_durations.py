@@ -3,13 +3,14 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import subprocess
 import sys
 from pathlib import Path
 
 from conftest import SLOW_S
+
+from helpers.scripts import load_script
 
 ROOT = Path(__file__).resolve().parents[1]
 REPORT = """<?xml version="1.0" encoding="utf-8"?><testsuites><testsuite name="pytest">
@@ -19,15 +20,8 @@ REPORT = """<?xml version="1.0" encoding="utf-8"?><testsuites><testsuite name="p
 </testsuite></testsuites>"""
 
 
-def _script():
-    spec = importlib.util.spec_from_file_location(
-        "test_durations_script", ROOT / "benchmarks" / "test_durations.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
-def test_a_report_gives_seconds_per_file_and_the_tests_of_a_second_or_more(tmp_path):
+def test_a_report_gives_seconds_per_file_and_the_tests_of_a_second_or_more(tmp_path,
+                                                                            monkeypatch):
     (tmp_path / "tests.xml").write_text(REPORT)
     out = tmp_path / "durations.json"
     res = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "test_durations.py"),
@@ -37,7 +31,8 @@ def test_a_report_gives_seconds_per_file_and_the_tests_of_a_second_or_more(tmp_p
     assert json.loads(out.read_text()) == {
         "files": {"tests/test_a.py": 3.0, "tests/test_b.py": 1.0},
         "tests": {"tests/test_a.py::test_one": 2.5, "tests/test_b.py::test_three": 1.0}}
-    assert _script().LISTED_S <= SLOW_S  # every test it would mark is listed
+    script = load_script(ROOT / "benchmarks" / "test_durations.py", monkeypatch)
+    assert script.LISTED_S <= SLOW_S  # every test it would mark is listed
 
 
 def test_test_fast_leaves_out_the_tests_listed_as_slow():

@@ -155,22 +155,12 @@ def test_the_drift_calibration_benchmark_reads_the_run_and_prints_each_level(dyn
     folder on the path, as ``python benchmarks/drift_calibration.py`` puts it there): the
     test is about what it reads and prints, not the process, and saves an interpreter and
     lbo's imports."""
-    import importlib.util
-    import sys
-
+    from helpers.scripts import run_script
     from lbo.core.paths import REPO_ROOT
 
-    script = REPO_ROOT / "benchmarks" / "drift_calibration.py"
-    monkeypatch.syspath_prepend(str(script.parent))  # its `from dynamic_segments import`
-    spec = importlib.util.spec_from_file_location("drift_calibration", script)
-    module = importlib.util.module_from_spec(spec)
-    monkeypatch.setitem(sys.modules, "drift_calibration", module)
-    spec.loader.exec_module(module)
-    monkeypatch.setattr(sys, "argv", [str(script), "--run", str(dynamic["dir"]), "--alphas",
-                                      "1", "3", "--data-root", str(dynamic["cfg"].data.root)])
-    capsys.readouterr()
-    module.main()  # an error fails the test (argparse's by SystemExit)
-    lines = capsys.readouterr().out.strip().splitlines()
+    lines = run_script(REPO_ROOT / "benchmarks" / "drift_calibration.py",
+                       ["--run", str(dynamic["dir"]), "--alphas", "1", "3", "--data-root",
+                        str(dynamic["cfg"].data.root)], monkeypatch, capsys).strip().splitlines()
     assert "white sigma 1.0 m, drift sigma 0.5 m at alpha = 1" in lines[0]
     # what the filter learned of the drift, read from its checkpoint, beside the data's
     net = Observer.load(dynamic["out"]["checkpoint"]).net.net

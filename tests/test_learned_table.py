@@ -13,6 +13,7 @@ from pathlib import Path
 import pandas as pd
 import pytest
 
+from helpers.scripts import load_script, run_script
 from lbo.core.paths import REPO_ROOT
 
 pytestmark = [pytest.mark.slow, pytest.mark.usefixtures("one_torch_thread")]
@@ -34,31 +35,15 @@ def table(tmp_path: Path, smoke_data: Path, *args: str) -> subprocess.CompletedP
                           timeout=900, cwd=tmp_path)
 
 
-def _script(monkeypatch):
-    """benchmarks/learned_table.py as a module (its dataclasses look it up by name)."""
-    import importlib.util
-
-    spec = importlib.util.spec_from_file_location("learned_table", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    monkeypatch.setitem(sys.modules, "learned_table", module)
-    spec.loader.exec_module(module)
-    return module
-
-
 def table_here(tmp_path: Path, smoke_data: Path, monkeypatch, capsys, *args: str) -> str:
     """The same command's ``main`` in this process, with the same arguments, environment and
     folder (each cell is still its own ``python -m lbo.train`` process, as the script starts
-    it): saves an interpreter and lbo's imports a call. Returns what it printed; it exits
-    with an error only by raising SystemExit, which fails the test."""
-    module = _script(monkeypatch)
+    it): what it printed."""
     with monkeypatch.context() as mp:
         mp.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{tmp_path / 'mlflow.db'}")
         mp.chdir(tmp_path)
-        mp.setattr(sys, "argv", [str(SCRIPT), "--out", str(tmp_path / "table"), *args, "--",
-                                 *_smoke(smoke_data)])
-        capsys.readouterr()
-        module.main()
-        return capsys.readouterr().out
+        return run_script(SCRIPT, ["--out", str(tmp_path / "table"), *args, "--",
+                                   *_smoke(smoke_data)], monkeypatch, capsys)
 
 
 def test_each_cell_is_a_run_read_back_and_a_finished_one_is_not_trained_again(
@@ -101,7 +86,7 @@ def test_a_cell_not_in_the_table_is_refused_in_one_line(tmp_path, smoke_data):
 def test_a_cell_that_sets_a_budget_setting_keeps_its_own(monkeypatch):
     """Split-KalmanNet trained carried sets its batch of sequences: the budget's batch size
     is left out (Hydra refuses a key given twice), the rest of the budget kept."""
-    module = _script(monkeypatch)
+    module = load_script(SCRIPT, monkeypatch)
     (carried,) = module.cells("robust/split_kalmannet_carried", Path("out"), {})
     assert [o for o in carried.overrides if o.startswith("batch_size=")] == ["batch_size=100"]
     assert "tbptt=100" in carried.overrides and "trainer.max_epochs=4" in carried.overrides

@@ -11,6 +11,8 @@ hooks stay in ``tests/conftest.py``.
 - :mod:`helpers.stepping`: an observer stepped through a log (``step_log``)
 - :mod:`helpers.servers`: real PostgreSQL, MLflow and model servers (import it by name:
   ``from helpers.servers import postgres``)
+- :mod:`helpers.scripts`: the repository's scripts in the test's process (``from
+  helpers.scripts import run_script``)
 - :mod:`helpers.slurm`: a real one-node SLURM cluster (``from helpers.slurm import
   slurm_cluster``)
 """

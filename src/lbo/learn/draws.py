@@ -245,20 +245,19 @@ class OutageDraw:
         """The draw ``train_outages`` (``share``, ``max_s`` seconds) asks for at steps of
         ``dt``, or None for none (share 0); ``fixes``: whether the training drops fixes
         (``fix_rates``), which a net that takes an outage needs. One line naming the field."""
-        share = number(cfg.get("share", 0.0), "train_outages.share", low=0.0, high=1.0,
-                       form="a share in [0, 1]")
-        seconds = number(cfg.get("max_s", 10.0), "train_outages.max_s", low=0.0,
-                         low_open=True, form="a number of seconds > 0")
         unknown = sorted(set(cfg) - {"share", "max_s"})
         if unknown:
             raise LboError(f"train_outages.{unknown[0]}: not a field; accepted: share, max_s")
-        if share == 0:
+        seconds = number(cfg.get("max_s", 10.0), "train_outages.max_s", low=0.0,
+                         low_open=True, form="a number of seconds > 0")
+        draw = cls(share=cfg.get("share", 0.0), max_steps=max(1, round(seconds / dt)))
+        if draw.share == 0:
             return None
         if not fixes:
             raise LboError(f"train_outages.share: outages need a net that reads the fix channel "
-                           f"(fix_rates, e.g. experiment=robust), got {share:g} with "
+                           f"(fix_rates, e.g. experiment=robust), got {draw.share:g} with "
                            "fix_rates=null")
-        return cls(share=share, max_steps=max(1, round(seconds / dt)))
+        return draw
 
     def cut(self, fix: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
         """``fix`` (B, N) bool (the steps that hold a fix) with the drawn outages taken out;

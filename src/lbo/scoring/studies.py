@@ -229,12 +229,11 @@ class Outages:
         from lbo.scoring.grid import load_test
         from lbo.sim.noise import Noise
         from lbo.sim.vehicle import Vehicle
+        from lbo.tracking.artifacts import load_net
 
         vehicle, noise = Vehicle.from_cfg(cfg.vehicle), Noise.from_cfg(cfg.noise)
         arr = load_test(test)
         spans = outage.grid_windows(arr, outages, vehicle.dt)
-        from lbo.tracking.artifacts import load_net
-
         nets = {label: load_net(path)[0] for label, path in learned.items()}
         print(f"    through GNSS outages of {outages.length_s:g} s every {outages.every_s:g} "
               f"s: {len(spans)} in the test grid", flush=True)
