@@ -61,10 +61,10 @@ def test_a_gyro_biased_far_beyond_its_prior_is_flagged_and_learned_again(biased)
     z^2 4.9; from the first update on (1 s: before it no innovation can tell), 5.6% of the
     rows are valid and beyond 3 sigma, and the valid rows' mean z^2 is 2.8."""
     obs = Observer.load("gyro")
-    est, valid, _ = obs.run(biased["m"], biased["u"], receiver=biased["r"], cov=True)
+    est, valid = obs.run(biased["m"], biased["u"], receiver=biased["r"])
     runner = ClassicalRunner("gyro", obs.vehicle, obs.noise, 1.0)
     rows, u = runner.log_rows(biased["m"], biased["u"], biased["r"], None)
-    _, cov = runner.run(rows, u, np.ones(len(rows), bool))  # every row's, flagged or not
+    _, cov, _ = runner.run(rows, u, np.ones(len(rows), bool))  # every row's, flagged or not
     z2 = _heading_z2(est, cov, biased["psi"])
     first = 50  # the first update after the start: the second fix (1 Hz)
     far = z2 > 9
@@ -115,10 +115,10 @@ def test_a_healthy_filter_has_no_flagged_row(manoeuvre, seed, bias):
     """Measured on every test manoeuvre and the stop-and-go drive, seeds 0, 1, 2 (48 logs):
     no row flagged; the stop-and-go drive with the 0.5 rad/s bias neither (mean z^2 0.79)."""
     log = _log(manoeuvre, seed, bias)
-    est, valid, _ = Observer.load("gyro").run(log["m"], log["u"], receiver=log["r"], cov=True)
+    est, valid = Observer.load("gyro").run(log["m"], log["u"], receiver=log["r"])
     assert valid.all()
     runner = ClassicalRunner("gyro", Vehicle(), Noise.preset("paper"), 1.0)
-    _, cov = runner.run(*runner.log_rows(log["m"], log["u"], log["r"], None),
+    _, cov, _ = runner.run(*runner.log_rows(log["m"], log["u"], log["r"], None),
                         np.ones(len(log["m"]), bool))
     assert _heading_z2(est, cov, log["psi"]).mean() < 2.0
 

@@ -11,7 +11,7 @@ import pandas as pd
 import pytest
 import torch
 
-from helpers import compose_cfg, train_in_own_store
+from helpers import compose_cfg, observed, train_in_own_store
 from helpers.shared import once
 from lbo.core.errors import LboError
 from lbo.learn.jobs import train_jobs
@@ -145,6 +145,36 @@ def test_the_observer_streams_a_log_of_the_car(dynamic, tmp_path):
     np.testing.assert_allclose(streamed[59:], est[59:80], atol=1e-6)
     truth = log[["x", "y"]].to_numpy()
     assert np.sqrt(np.mean((est[valid, :2] - truth[valid]) ** 2)) < 2.0  # metres, at alpha 2
+
+
+def test_observe_writes_the_lateral_states_its_recursive_form_carries(dynamic, tmp_path):
+    """``lbo.observe ... form=recursive`` on a log of the car that slips adds beta, v_y and r:
+    the body its filter carries, as Observer.run and Observer.step give it (beta = atan2(v_y,
+    V)), its yaw rate turning with the car; the window form, which starts the body afresh in
+    each window, adds none."""
+    from lbo.simulate import simulate
+
+    log = simulate(compose_cfg("simulate", ["data=dynamic_drift", "manoeuvre=hairpin",
+                                            "alpha=2"]))
+    log.to_csv(tmp_path / "log.csv", index=False)
+    ckpt = dynamic["out"]["checkpoint"]
+    observed(tmp_path / "log.csv", tmp_path / "carried.csv", "form=recursive", observer=ckpt)
+    observed(tmp_path / "log.csv", tmp_path / "window.csv", observer=ckpt)
+    lateral = ["beta", "v_y", "r"]
+    out = pd.read_csv(tmp_path / "carried.csv")
+    assert set(lateral) <= set(out.columns)
+    assert not set(lateral) & set(pd.read_csv(tmp_path / "window.csv").columns)
+    obs = Observer.load(ckpt, form="recursive")
+    assert obs.carries_lateral and not Observer.load(ckpt).carries_lateral
+    m, u = log[["x_m", "y_m", "psi_m"]].to_numpy(), log[["V", "delta"]].to_numpy()
+    found = obs.run(m, u)
+    assert found.valid.all()
+    np.testing.assert_allclose(out[lateral].to_numpy(), found.lateral, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(out["beta"], np.arctan2(out["v_y"], log["V"]), atol=1e-12)
+    streamed = np.array([obs.step(m[k], u[k]).lateral for k in range(80)])
+    np.testing.assert_allclose(streamed, found.lateral[:80], rtol=0, atol=1e-9)
+    turn = log["V"] * np.tan(log["delta"]) / obs.vehicle.wheelbase  # the bicycle's yaw rate
+    assert np.corrcoef(out["r"], turn)[0, 1] > 0.9
 
 
 def test_the_drift_calibration_benchmark_reads_the_run_and_prints_each_level(dynamic,

@@ -58,8 +58,8 @@ def log(manoeuvre):
 
 
 def _run(obs: Observer, frame) -> tuple[np.ndarray, ...]:
-    return obs.run(frame[["x_m", "y_m", "psi_m"]].to_numpy(), frame[["V", "delta"]].to_numpy(),
-                   cov=True)
+    found = obs.run(frame[["x_m", "y_m", "psi_m"]].to_numpy(), frame[["V", "delta"]].to_numpy())
+    return found.state, found.valid, found.cov
 
 
 def test_auto_runs_the_kept_graphs_without_torch_as_pytorch_runs_it(cache, log, tmp_path):
@@ -72,7 +72,7 @@ def test_auto_runs_the_kept_graphs_without_torch_as_pytorch_runs_it(cache, log, 
         f"obs = Observer.load({cache['checkpoint']!r}, engine='auto')\n"
         f"f = pd.read_parquet({str(tmp_path / 'log.parquet')!r})\n"
         "m, u = f[['x_m', 'y_m', 'psi_m']].to_numpy(), f[['V', 'delta']].to_numpy()\n"
-        "est, ok, cov = obs.run(m, u, cov=True)\n"
+        "found = obs.run(m, u); est, ok, cov = found.state, found.valid, found.cov\n"
         "obs.reset()\n"
         "steps = np.array([obs.step(None if np.isnan(a).all() else a, b).state\n"
         "                  for a, b in zip(m, u)])\n"

@@ -77,7 +77,8 @@ def test_observer_run_takes_the_gyro_from_a_receivers_channels(drive):
     r[1::2, RECEIVER.index("r_m")] = np.nan  # a gyro at 25 Hz: each reading held to the next
     check_receiver(m, r)
     obs = Observer.load("gyro")
-    est, valid, cov = obs.run(m, u, receiver=r, cov=True)
+    est, valid = found = obs.run(m, u, receiver=r)
+    cov = found.cov
     assert valid.all() and np.isfinite(est).all() and np.isfinite(cov).all()
     assert np.sqrt(np.mean(wrap_angle(est[1500:, 2] - z[1500:, 2]) ** 2)) < 0.02
     with pytest.raises(LboError, match=r"^gyro needs a gyro's yaw rate: a column r_m"):

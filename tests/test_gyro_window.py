@@ -192,7 +192,8 @@ def test_rows_without_a_fix_coast_to_the_numbers_of_one_step_each():
         coasted, coast = [], obs._runner.coast
         obs._runner.coast = (lambda u, state, seen=coasted, inner=coast:
                              seen.append(len(u)) or inner(u, state))
-        got, valid, got_cov = obs.run(m, u, receiver=r, cov=True)
+        got, valid = found = obs.run(m, u, receiver=r)
+        got_cov = found.cov
         assert max(coasted) > rec.coast_limit and sum(coasted) > len(m) // 2
         atol = 1e-12 if engine == "torch" else 1e-5
         np.testing.assert_allclose(got, est, rtol=0, atol=atol, equal_nan=True)

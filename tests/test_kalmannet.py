@@ -5,6 +5,8 @@ the EKF."""
 
 from __future__ import annotations
 
+from types import SimpleNamespace
+
 import numpy as np
 import pytest
 import torch
@@ -14,6 +16,7 @@ from lbo.core.errors import LboError
 from lbo.filters.kalman import ekf_batch
 from lbo.models import KalmanNet, SplitKalmanNet, build_model
 from lbo.models.net import WindowNet
+from lbo.scoring import lateral
 from lbo.serve.engines import onnx_bytes, onnx_session, trace
 from lbo.serve.observer import Observer
 from lbo.serve.runners import default_form
@@ -300,3 +303,49 @@ def test_streamed_sample_by_sample_it_gives_what_it_gives_over_the_log(name, bod
         assert np.nanmax(np.abs(d)) < 1e-6
         np.testing.assert_array_equal([s.valid for s in steps], valid)
     assert valid[-1] and np.isfinite(est[-1]).all()
+
+
+@pytest.mark.parametrize("name", PEERS)
+def test_carried_around_the_single_track_body_it_gives_the_lateral_states_it_carries(name):
+    """form=recursive: Observer.run and Observer.step give the ``[v_y, r]`` the filter's
+    state carries after its pose (its begin and advance stepped here by hand) and beta =
+    atan2(v_y, V), the same numbers either way, NaN before the first fix; a kinematic body,
+    and the window form, carry none."""
+    torch.manual_seed(2)
+    net = WindowNet(name, N, features="frame", fixes=True, body="single_track", gain=0.3)
+    t = 3 * N
+    m = np.column_stack([np.linspace(0, 30, t), np.linspace(0, 6, t), np.linspace(0, 0.4, t)])
+    m += [0.1, 0.1, 0.001] * np.random.default_rng(0).standard_normal((t, 3))
+    u = np.column_stack([np.linspace(8.0, 12.0, t), np.full(t, 0.05)])
+    m[:3] = np.nan  # the first fix at row 3
+    m[10:20:2] = np.nan
+    obs = Observer.from_net(net, form="recursive")
+    assert obs.carries_lateral
+    found = obs.run(m, u)
+    model = net.net.double().eval()
+    fix = torch.from_numpy(np.isfinite(m).all(1))
+    y, uu = torch.from_numpy(np.nan_to_num(m)), torch.from_numpy(u)
+    bodies = []
+    with torch.no_grad():
+        state = model.begin(y[None, 0], fix[None, 0], uu[None, 0])
+        bodies.append(state[0][0, 3:5].numpy().copy())
+        for k in range(1, t):
+            state, _ = model.advance(state, uu[None, k - 1], y[None, k], fix[None, k],
+                                     uu[None, k])
+            bodies.append(state[0][0, 3:5].numpy().copy())
+    body = np.array(bodies)
+    assert np.isnan(found.lateral[:3]).all() and np.isfinite(found.lateral[3:]).all()
+    np.testing.assert_allclose(found.lateral[3:, 1:], body[3:], rtol=0, atol=1e-9)
+    np.testing.assert_allclose(found.lateral[3:, 0], np.arctan2(body[3:, 0], u[3:, 0]),
+                               rtol=0, atol=1e-9)
+    steps = [obs.step(None if np.isnan(mk).all() else mk, uk).lateral for mk, uk in zip(m, u)]
+    np.testing.assert_allclose(np.array(steps), found.lateral, rtol=0, atol=1e-9,
+                               equal_nan=True)
+    kinematic = WindowNet(name, N, features="frame", fixes=True, gain=0.3)
+    for other in (Observer.from_net(kinematic, form="recursive"), Observer.from_net(net)):
+        assert not other.carries_lateral
+        assert np.isnan(other.run(m, u).lateral).all()
+    # lbo.evaluate's lateral.csv scores the same body (lbo.scoring.lateral)
+    assert lateral.carries(net) and not lateral.carries(kinematic)
+    np.testing.assert_allclose(lateral.carried(net, SimpleNamespace(m=m[None], u=u[None]))[0],
+                               found.lateral[:, 1:], rtol=0, atol=1e-9, equal_nan=True)

@@ -478,7 +478,8 @@ def test_the_recursive_form_predicts_through_a_gap_longer_than_its_window():
     m = np.full((200, 3), np.nan)
     at = np.r_[0:40:5, 100:200:5]
     m[at] = np.stack([0.16 * at, np.zeros(len(at)), np.zeros(len(at))], 1)
-    est, valid, cov = obs.run(m, np.tile([8.0, 0.0], (200, 1)), cov=True)
+    est, valid = found = obs.run(m, np.tile([8.0, 0.0], (200, 1)))
+    cov = found.cov
     assert valid.all() and np.isfinite(est).all()
     # the covariance grows through the gap and shrinks at the next fix
     assert cov[99, 0, 0] > 5 * cov[39, 0, 0] and cov[100, 0, 0] < cov[99, 0, 0]

@@ -69,7 +69,8 @@ def test_rows_without_a_measurement_coast_to_the_numbers_of_one_step_each():
         coasted, coast = [], obs._runner.coast
         obs._runner.coast = (lambda u, state, seen=coasted, inner=coast:
                              seen.append(len(u)) or inner(u, state))
-        got, valid, got_cov = obs.run(m[0], u[0], cov=True)
+        got, valid = found = obs.run(m[0], u[0])
+        got_cov = found.cov
         assert sum(coasted) == np.isnan(m[0, 3:, 0]).sum()  # every empty row once started
         # ONNX Runtime's float32 kernels in the noise model: within the export's tolerance
         atol = 1e-12 if engine == "torch" else TOLERANCE
@@ -86,8 +87,10 @@ def test_a_batch_run_gives_what_stepping_one_sample_at_a_time_gives(kind):
     rec = RecursiveFilter(net.net)
     m, u = _logs(3, 300, kind == "fixes")
     with torch.no_grad():
-        est, cov, _ = rec.run(torch.from_numpy(m), torch.from_numpy(u))
+        est, cov, body = rec.run(torch.from_numpy(m), torch.from_numpy(u))
     obs = Observer.from_net(net, form="recursive")
+    # the single-track body's [v_y, r], beta = atan2(v_y, V); nothing for a kinematic body
+    assert obs.carries_lateral == (kind == "single_track_drift")
     for g in range(3):
         obs.reset()
         steps = [obs.step(None if np.isnan(m[g, k, 0]) else m[g, k], u[g, k])
@@ -96,6 +99,15 @@ def test_a_batch_run_gives_what_stepping_one_sample_at_a_time_gives(kind):
         np.testing.assert_allclose(stepped, est[g].numpy(), atol=1e-6, equal_nan=True)
         np.testing.assert_allclose(np.array([s.cov for s in steps]), cov[g].numpy(),
                                    atol=1e-6, equal_nan=True)
+        lateral = np.array([s.lateral for s in steps])
+        np.testing.assert_allclose(lateral, obs.run(m[g], u[g]).lateral, atol=1e-9,
+                                   equal_nan=True)
+        if obs.carries_lateral:
+            b = body[g].numpy()
+            np.testing.assert_allclose(lateral, np.column_stack(
+                [np.arctan2(b[:, 0], u[g, :, 0]), b]), atol=1e-9)
+        else:
+            assert np.isnan(lateral).all()
     first = int(np.argmax(np.isfinite(m[0, :, 0])))
     assert np.isnan(est[0, :first].numpy()).all() and np.isfinite(est[0, first:].numpy()).all()
 
@@ -142,11 +154,13 @@ def test_a_step_in_inference_leaves_out_what_no_filter_uses_and_keeps_every_bit(
 def test_torchscript_and_onnx_steps_equal_pytorch(kind):
     m, u = _logs(1, 200, kind == "fixes", seed=2)
     net = _observer_net(kind)
-    runs = {e: Observer.from_net(net, engine=e, form="recursive").run(m[0], u[0], cov=True)
+    runs = {e: Observer.from_net(net, engine=e, form="recursive").run(m[0], u[0])
             for e in ("torch", "torchscript", "onnx")}
     for engine in ("torchscript", "onnx"):
-        np.testing.assert_allclose(runs[engine][0], runs["torch"][0], atol=1e-6, equal_nan=True)
-        np.testing.assert_allclose(runs[engine][2], runs["torch"][2], atol=1e-6, equal_nan=True)
+        for part in ("state", "cov", "lateral"):  # lateral: the single-track body's
+            np.testing.assert_allclose(getattr(runs[engine], part),
+                                       getattr(runs["torch"], part), atol=1e-6, equal_nan=True)
+    assert np.isfinite(runs["onnx"].lateral).all() == (kind == "single_track_drift")
 
 
 def test_its_cost_and_state_do_not_grow_with_the_log():

@@ -95,7 +95,8 @@ def test_observe_smooths_the_robust_observer(robust, noisy, tmp_path):
            for s in ("false", "true")}
     assert (res["true"]["rmse"][:2] < 0.95 * res["false"]["rmse"][:2]).all(), res
     m, u = noisy[["x_m", "y_m", "psi_m"]].to_numpy(), noisy[["V", "delta"]].to_numpy()
-    ref, _, cov = Observer.load(ckpt, form="recursive").run(m, u, cov=True, smooth=True)
+    smoothed = Observer.load(ckpt, form="recursive").run(m, u, smooth=True)
+    ref, cov = smoothed.state, smoothed.cov
     est = pd.read_csv(tmp_path / "true.csv")
     np.testing.assert_allclose(est[["x", "y"]].to_numpy(), ref[:, :2], rtol=0, atol=1e-9)
     np.testing.assert_allclose(est["var_y"].to_numpy(), cov[:, 1, 1], rtol=1e-9)

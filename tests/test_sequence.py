@@ -49,7 +49,7 @@ def test_carried_in_chunks_it_runs_as_in_one_pass_and_as_its_window_form(cls):
         whole = carried.run(net, m, u).est
         parts, state, u_prev = [], None, None
         for k in range(0, 40, 7):
-            est, state, _ = carried.run(net, m[:, k:k + 7], u[:, k:k + 7], state, u_prev)
+            est, state, *_ = carried.run(net, m[:, k:k + 7], u[:, k:k + 7], state, u_prev)
             parts.append(est)
             u_prev = u[:, min(k + 7, 40) - 1]
         window = torch.cat([torch.nan_to_num(m), u, torch.isfinite(m).all(-1, keepdim=True)

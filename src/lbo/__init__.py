@@ -16,6 +16,7 @@ from lbo.core import LAYERS as LAYERS  # the layers, bottom up (its home: lbo.co
 _EXPORTS = {
     "Observer": "lbo.serve.observer",
     "Estimate": "lbo.serve.observer",
+    "Estimates": "lbo.serve.observer",
     "Vehicle": "lbo.sim.vehicle",
     "Noise": "lbo.sim.noise",
     "LboError": "lbo.core.errors",

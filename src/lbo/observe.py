@@ -20,7 +20,10 @@ x, y, psi, valid``: ``valid`` is false before the first fix, and on the first N-
 CNN or LSTM, whose window is not full yet (those rows hold the EKF's estimate). An observer
 that knows how sure it is (every classical one, and the robust observer) adds ``var_x,
 var_y`` (m^2), ``var_psi`` (rad^2) and ``cov_xy`` (m^2), its covariance's entries; the CNN
-and the LSTM have none.
+and the LSTM have none. A learned observer with a single-track body (``experiment=dynamic``,
+KalmanNet's peers with ``model.body=single_track``), run with ``form=recursive``, adds the
+lateral states no sensor gives: ``beta`` (rad, the side slip at the centre of gravity),
+``v_y`` (m/s) and ``r`` (rad/s).
 
 ``smooth=true`` runs a Rauch-Tung-Striebel smoother after the filter (:mod:`lbo.filters.smoother`),
 for the best estimate of an offline log from every sample before and after each row: the
@@ -67,7 +70,7 @@ from lbo.models.envelope import check_mode
 from lbo.scoring import outages as outage
 from lbo.scoring.metrics import nrmse
 from lbo.scoring.outages import Outages
-from lbo.sim.columns import COVARIANCE, LOG, RECEIVER, STATE
+from lbo.sim.columns import COVARIANCE, LATERAL_ESTIMATE, LOG, RECEIVER, STATE
 from lbo.sim.logcheck import check_alpha, check_device
 from lbo.sim.logformat import LogFormat
 from lbo.sim.logio import (
@@ -203,8 +206,9 @@ def observe(cfg: DictConfig) -> dict[str, Any]:
     channels = receiver(df)
     with warnings.catch_warnings():  # said below, one line per field
         warnings.simplefilter("ignore", EnvelopeWarning)
-        est, valid, cov = obs.run(m, u, source=where, cov=True, smooth=smooth,
-                                  receiver=channels if obs.takes_receiver else None)
+        found = obs.run(m, u, source=where, smooth=smooth,
+                        receiver=channels if obs.takes_receiver else None)
+    est, valid, cov = found.state, found.valid, found.cov
     envelope = obs.check_envelope(m, u) if mode != "off" else None
     result: dict[str, Any] = {"output": output, "observer": obs.name, "rows": len(df),
                               "valid": int(valid.sum())}
@@ -224,6 +228,9 @@ def observe(cfg: DictConfig) -> dict[str, Any]:
     if obs.gives_covariance:
         for name_, (i, j) in zip(COVARIANCE, ((0, 0), (1, 1), (2, 2), (0, 1))):
             out[name_] = cov[:, i, j]
+    if obs.carries_lateral:
+        for i, name_ in enumerate(LATERAL_ESTIMATE):
+            out[name_] = found.lateral[:, i]
     if envelope is not None:  # the fields of the training envelope each row is outside of
         out["outside"] = envelope.reasons()
     if origin is not None:  # the estimate where the log's positions were: degrees

@@ -187,7 +187,7 @@ def train_batch(model: SequenceModel, m: torch.Tensor, u: torch.Tensor, z: torch
     for k in range(0, t, chunk):
         part = slice(k, k + chunk)
         # the covariances only where the NLL term reads them
-        est, after, cov = run(model, m[:, part], u[:, part], state, u_prev, bool(nll))
+        est, after, cov, _ = run(model, m[:, part], u[:, part], state, u_prev, bool(nll))
         bad = diverged(est, cov)
         if bad.any() and not bad.all():
             keep = ~bad
@@ -196,7 +196,7 @@ def train_batch(model: SequenceModel, m: torch.Tensor, u: torch.Tensor, z: torch
             weight = None if weight is None else weight[keep]
             if state is not None and u_prev is not None:
                 state, u_prev = _rows(state, keep), u_prev[keep]
-            est, after, cov = run(model, m[:, part], u[:, part], state, u_prev, bool(nll))
+            est, after, cov, _ = run(model, m[:, part], u[:, part], state, u_prev, bool(nll))
         w = weight[:, part] if weight is not None and weight.dim() == 2 else weight
         chunk_loss = loss(est, z[:, part], model.units, w, cov, nll)
         if chunk_loss.requires_grad and torch.isfinite(chunk_loss):

@@ -33,7 +33,8 @@ class SequenceModel(Protocol):
     def begin(self, y0: torch.Tensor, fix0: torch.Tensor, u0: torch.Tensor
               ) -> list[torch.Tensor]:
         """The state at a sequence's first step: its measured pose y0 (B, 3), fix0 (B,), its
-        inputs u0 (B, 2); the state's first entry is the estimate, the pose first, and its
+        inputs u0 (B, 2); the state's first entry is the estimate, the pose first (then, for
+        a model with a single-track body, :func:`carries_body`, its ``[v_y, r]``), and its
         fifth (B,) bool whether the filter has started (had a fix)."""
         ...
 
@@ -54,6 +55,12 @@ def covariance_of(model: Any) -> Any:
     covariance (the pose's), or None where it gives none (KalmanNet's peers)."""
     method = getattr(model, "covariance", None)
     return method if callable(method) else None
+
+
+def carries_body(model: Any) -> bool:
+    """Whether a :class:`SequenceModel` carries a single-track body's ``[v_y, r]`` after the
+    pose in its estimate (KalmanNet's peers with ``body="single_track"``)."""
+    return bool(getattr(model, "single_track", False)) and is_sequence_model(model)
 
 
 def is_sequence_model(model: Any) -> bool:
@@ -165,28 +172,33 @@ class CarriedFilter:
 
 class Carried(NamedTuple):
     """What :func:`run` gives: the estimates (B, L, 3) (NaN before a sequence's first fix,
-    inf where the filter diverged), the state after the last step, and the estimates'
-    covariances (B, L, 3, 3) (NaN before the first fix), None for a model that gives none."""
+    inf where the filter diverged), the state after the last step, the estimates'
+    covariances (B, L, 3, 3) (NaN before the first fix), None for a model that gives none,
+    and the single-track body's ``[v_y, r]`` (B, L, 2) where asked for and carried
+    (:func:`carries_body`), else None."""
 
     est: torch.Tensor
     state: list[torch.Tensor]
     cov: torch.Tensor | None
+    body: torch.Tensor | None = None
 
 
 def run(model: SequenceModel, m: torch.Tensor, u: torch.Tensor,
         state: list[torch.Tensor] | None = None, u_prev: torch.Tensor | None = None,
-        covariance: bool = True) -> Carried:
+        covariance: bool = True, body: bool = False) -> Carried:
     """The filter over L >= 1 steps of B sequences, m (B, L, 3) (NaN: no fix), u (B, L, 2):
     started at the first step when ``state`` is None, else carried on from ``state`` with
     the inputs of the step before ``u_prev`` (B, 2); see :class:`Carried`. ``covariance``:
-    also stack the covariances (those of a model that gives them); off, ``cov`` is None."""
+    also stack the covariances (those of a model that gives them); off, ``cov`` is None.
+    ``body``: also stack the carried ``[v_y, r]`` (of a model that :func:`carries_body`)."""
     if state is not None and u_prev is None:
         raise ValueError("u_prev: expected the inputs (B, 2) of the step before state")
     fix = torch.isfinite(m).all(-1)  # a full pose: these filters take no partial fix
     y = torch.nan_to_num(m)
     keep_cov = covariance and covariance_of(model) is not None
+    keep_body = body and carries_body(model)
     step = getattr(model, "recorded_step", None) or functools.partial(recorded_step, model)
-    out, covs = [], []
+    out, covs, bodies = [], [], []
     for k in range(m.shape[1]):  # a recurrence: each step needs the one before
         if state is None or u_prev is None:
             state = model.begin(y[:, 0], fix[:, 0], u[:, 0])
@@ -196,10 +208,13 @@ def run(model: SequenceModel, m: torch.Tensor, u: torch.Tensor,
         out.append(est)
         if cov is not None:
             covs.append(cov)
+        if keep_body:
+            bodies.append(state[0][:, 3:5])
         u_prev = u[:, k]
     if state is None:
         raise ValueError("m: expected at least one step, got shape (B, 0, 3)")
-    return Carried(torch.stack(out, 1), state, torch.stack(covs, 1) if covs else None)
+    return Carried(torch.stack(out, 1), state, torch.stack(covs, 1) if covs else None,
+                   torch.stack(bodies, 1) if bodies else None)
 
 
 def recorded(model: Any, state: list[torch.Tensor], est: torch.Tensor, covariance: bool
@@ -231,13 +246,15 @@ def in_float64(model: Any) -> Any:
     return copy.deepcopy(model).double().eval()
 
 
-def run_arrays(model: Any, m: np.ndarray, u: np.ndarray, device: str = "cpu") -> np.ndarray:
+def run_arrays(model: Any, m: np.ndarray, u: np.ndarray, device: str = "cpu"
+               ) -> tuple[np.ndarray, np.ndarray | None]:
     """:func:`run` of a float64 :class:`SequenceModel` (:func:`in_float64`, on ``device``) over
     numpy arrays: m (G, T, 3) (NaN rows: no fix), u (G, T, 2) -> estimates (G, T, 3), NaN
-    before each sequence's first fix. Rows past a padded sequence's end are run on and should
-    be masked."""
+    before each sequence's first fix, and the carried ``[v_y, r]`` (G, T, 2) of a model that
+    :func:`carries_body` (else None). Rows past a padded sequence's end are run on and
+    should be masked."""
     with torch.inference_mode():
-        est = run(model, torch.as_tensor(np.asarray(m, np.float64), device=device),
+        out = run(model, torch.as_tensor(np.asarray(m, np.float64), device=device),
                   torch.as_tensor(np.nan_to_num(np.asarray(u, np.float64)), device=device),
-                  covariance=False).est
-    return est.cpu().numpy()
+                  covariance=False, body=True)
+    return out.est.cpu().numpy(), None if out.body is None else out.body.cpu().numpy()

@@ -270,7 +270,8 @@ def predict_recursive(net, arr: Trajectories, device: str = "cpu",
     (G, T, 3, 3) covariances and the (G, T, 2) body it carries, NaN outside the scored steps
     (``smooth``: the RTS smoother's estimates and covariances). The window filter (an
     WindowNet of ``filternet``) gives all three; a model carried otherwise (KalmanNet's peers,
-    :mod:`lbo.models.carried`) gives no covariance nor body (None), and nothing to smooth."""
+    :mod:`lbo.models.carried`) gives no covariance (None), its body only around the
+    single-track body (else None), and nothing to smooth."""
     from lbo.models.recursive import Filtered
     from lbo.serve.runners import is_window_filter
 
@@ -280,9 +281,11 @@ def predict_recursive(net, arr: Trajectories, device: str = "cpu",
 
         if smooth:
             raise LboError(f"smooth: {type(net.net).__name__} has no covariance to smooth with")
-        est = run_carried(in_float64(net.net).to(device), arr.m, arr.u, device)
+        est, body = run_carried(in_float64(net.net).to(device), arr.m, arr.u, device)
         est[~arr.mask] = np.nan
-        return Filtered(np.where(np.isfinite(est), est, np.nan), None, None)
+        est = np.where(np.isfinite(est), est, np.nan)
+        return Filtered(est, None, None if body is None else np.where(
+            np.isfinite(est[..., :1]), body, np.nan))
     from lbo.models.recursive import run_arrays
 
     out = run_arrays(net.net, arr.m, arr.u, smooth, arr.lengths, device)

@@ -10,8 +10,9 @@ The estimators that give them, from the pose fixes and the logged inputs only:
   beta = atan(l_r tan(delta) / L), v_y = V tan(beta), r = V tan(delta) / L (lbo's kinematic
   model turns the heading at that rate);
 - ``zero``: straight ahead, beta = v_y = 0 (no yaw rate);
-- a learned observer with a single-track body (``experiment=dynamic``): the ``[v_y, r]`` its
-  recursive form carries (:func:`carried`), beta = atan2(v_y, V) on the logged speed V.
+- a learned observer with a single-track body (``experiment=dynamic``, KalmanNet's peers with
+  ``model.body=single_track``): the ``[v_y, r]`` its recursive form carries (:func:`carried`),
+  beta = atan2(v_y, V) on the logged speed V (:func:`lbo.serve.estimate.side_slip`).
 
 Each RMSE is over the scored rows of every trajectory of a level, pooled; ``nees_beta`` is the
 mean of beta's squared error over the estimate's variance of it (1 for an honest variance;
@@ -27,6 +28,7 @@ import numpy as np
 import pandas as pd
 
 from lbo.core.errors import LboError
+from lbo.serve.estimate import side_slip
 from lbo.sim.dynamic import SingleTrack
 from lbo.sim.noise import Noise
 from lbo.sim.schema import Trajectories
@@ -49,20 +51,27 @@ def truth_of(arr: Trajectories, truth: Truth) -> dict[str, np.ndarray]:
 
 
 def carries(net: Any) -> bool:
-    """Whether a learned observer carries a single-track body's ``[v_y, r]``: a window filter
-    (``filternet``) with ``model.body=single_track``, in torch."""
+    """Whether a learned observer carries a single-track body's ``[v_y, r]`` in its recursive
+    form: a window filter (``filternet``) or a KalmanNet peer with
+    ``model.body=single_track``, in torch."""
+    from lbo.models.carried import carries_body
     from lbo.models.filternet import WindowFilter
 
     model = getattr(net, "net", None)
-    return isinstance(model, WindowFilter) and bool(model.single_track)
+    return (isinstance(model, WindowFilter) and bool(model.single_track)) or carries_body(model)
 
 
 def carried(net: Any, arr: Trajectories) -> np.ndarray:
     """(G, T, 2) the ``[v_y, r]`` a learned observer's single-track body (:func:`carries`)
     carries through the test arrays in its recursive form (NaN where it has no estimate)."""
+    from lbo.models import carried as sequence
     from lbo.models.recursive import run_arrays
+    from lbo.serve.runners import is_window_filter
 
-    pose, _, body = run_arrays(net.net, arr.m, arr.u)
+    if is_window_filter(net):
+        pose, _, body = run_arrays(net.net, arr.m, arr.u)
+    else:
+        pose, body = sequence.run_arrays(sequence.in_float64(net.net), arr.m, arr.u)
     return np.where(np.isfinite(pose[..., :1]), body, np.nan)
 
 
@@ -82,7 +91,7 @@ def estimates(arr: Trajectories, vehicle: Vehicle, noise: Noise, truth: Truth,
     v, delta = arr.u[..., 0], arr.u[..., 1]
     _, lat = oracle_dynamic_lateral(arr.m, arr.u, vehicle, noise, arr.alpha, truth)
     out: dict[str, dict[str, np.ndarray | None]] = {
-        name: {"beta": np.arctan2(body[..., 0], v), "vy": body[..., 0], "r": body[..., 1],
+        name: {"beta": side_slip(body, v)[..., 0], "vy": body[..., 0], "r": body[..., 1],
                "beta_var": None} for name, body in (learned or {}).items()}
     out["oracle_dynamic"] = {"beta": lat.beta(v), "vy": lat.mean[..., 0], "r": lat.mean[..., 1],
                              "beta_var": lat.beta_var(v)}

@@ -136,7 +136,7 @@ def score(log: pd.DataFrame, observers: Sequence[str], vehicle: Vehicle, noise: 
              for label, gyro in (learned or {}).items()]
     runs += [(BLIND, "ekf", None, False, None),
              ("ekf, receiver's channels, smoothed (RTS, offline)", "ekf", r, True, None)]
-    found = {}
+    found: dict[str, tuple[np.ndarray, np.ndarray]] = {}
     for label, name, channels, smooth, gyro in runs:
         obs = Observer.load(name, vehicle, noise, gyro_noise=gyro)
         found[label] = obs.run(m, u, receiver=channels, smooth=smooth)

@@ -5,7 +5,8 @@ form.
 The model runs in float64 (:func:`lbo.models.carried.in_float64`), in the log's own
 coordinates: one step of :func:`lbo.models.carried.run` per sample, or the same run over a
 whole log. It gives no covariance, reads full poses only (no receiver channels), and runs in
-PyTorch only.
+PyTorch only. A model around the single-track body gives the ``[v_y, r]`` it carries
+(``carries_lateral``).
 """
 
 from __future__ import annotations
@@ -16,8 +17,8 @@ import numpy as np
 import torch
 
 from lbo.core.errors import LboError
-from lbo.models.carried import STARTED, in_float64, run, run_arrays
-from lbo.serve.estimate import Estimate
+from lbo.models.carried import STARTED, carries_body, in_float64, run, run_arrays
+from lbo.serve.estimate import Estimate, side_slip
 
 
 class CarriedRunner:
@@ -34,6 +35,7 @@ class CarriedRunner:
                            f"on {engine}")
         self.device = device
         self.model = in_float64(net.net).to(device)
+        self.carries_lateral = carries_body(self.model)
         self.reset()
 
     def reset(self) -> None:
@@ -56,7 +58,7 @@ class CarriedRunner:
         row = np.asarray(m, np.float64) if fix else np.full(3, np.nan)
         uk = torch.as_tensor(np.asarray(u, np.float64), device=self.device)[None, None]
         with torch.inference_mode():
-            est, self.state, _ = run(self.model,
+            est, self.state, *_ = run(self.model,
                                      torch.as_tensor(row, device=self.device)[None, None], uk,
                                      self.state, self.u_prev, covariance=False)
         self.u_prev = uk[:, 0]
@@ -64,12 +66,16 @@ class CarriedRunner:
             return Estimate(np.full(3, np.nan), False, "no position fix yet")
         state = est[0, 0].cpu().numpy()
         finite = bool(np.isfinite(state).all())
+        body = self.state[0][0, 3:5].cpu().numpy() if self.carries_lateral else None
         return Estimate(state if finite else np.full(3, np.nan), finite,
-                        "the network's estimate is not finite (diverged?)")
+                        "the network's estimate is not finite (diverged?)",
+                        lateral=side_slip(body, u[0], state))
 
     def run(self, m: np.ndarray, u: np.ndarray, fix: np.ndarray, smooth: bool = False,
-            batch_size: int = 0) -> tuple[np.ndarray, np.ndarray]:
+            batch_size: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         mm = np.array(m, dtype=float)
         mm[~fix] = np.nan
-        est = run_arrays(self.model, mm[None], u[None], self.device)[0]
-        return np.where(np.isfinite(est), est, np.nan), np.full((len(m), 3, 3), np.nan)
+        est, body = run_arrays(self.model, mm[None], u[None], self.device)
+        est = np.where(np.isfinite(est[0]), est[0], np.nan)
+        return (est, np.full((len(m), 3, 3), np.nan),
+                side_slip(None if body is None else body[0], u[:, 0], est))

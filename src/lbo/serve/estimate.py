@@ -1,5 +1,6 @@
-"""One step's result of an observer: its estimate, whether it is valid and why not, its
-covariance and where it lies outside the training envelope."""
+"""What an observer gives: one step's :class:`Estimate` (its estimate, whether it is valid and
+why not, its covariance, its lateral states and where it lies outside the training envelope)
+and a whole log's :class:`Estimates`."""
 
 from __future__ import annotations
 
@@ -39,11 +40,54 @@ class Estimate(_Pair):
     outside: tuple[str, ...] = ()
     """The fields of the training envelope this sample lies outside (``("speed",)``), in
     every envelope mode but ``"off"``; () inside, or without an envelope."""
+    lateral: np.ndarray
+    """(3,) the lateral states ``[beta, v_y, r]`` (rad, m/s, rad/s; :data:`lbo.sim.columns.
+    LATERAL_ESTIMATE`) of an observer that carries a single-track body
+    (:attr:`lbo.Observer.carries_lateral`); NaN for one that carries none, and where ``state``
+    is NaN."""
 
     def __new__(cls, state: np.ndarray, valid: bool, reason: str | None = None,
-                cov: np.ndarray | None = None, outside: tuple[str, ...] = ()) -> Estimate:
+                cov: np.ndarray | None = None, outside: tuple[str, ...] = (),
+                lateral: np.ndarray | None = None) -> Estimate:
         self = super().__new__(cls, state, valid)
         self.reason = None if valid else (reason or "the estimate is not finite")
         self.cov = np.full((3, 3), np.nan) if cov is None else cov
         self.outside = outside
+        self.lateral = np.full(3, np.nan) if lateral is None else lateral
         return self
+
+
+class _Track(NamedTuple):
+    state: np.ndarray
+    valid: np.ndarray
+
+
+class Estimates(_Track):
+    """A whole log's estimates (:meth:`lbo.Observer.run`): ``state`` (T, 3) ``[x, y, psi]``
+    (psi in (-pi, pi]) and ``valid`` (T,) bool; unpacks as ``state, valid``. Also, not
+    unpacked:"""
+
+    cov: np.ndarray
+    """(T, 3, 3) each estimate's covariance (the filter's P); NaN where the observer gives
+    none (a CNN's or LSTM's windows) and on rows that are not valid."""
+    lateral: np.ndarray
+    """(T, 3) ``[beta, v_y, r]`` per row, as :attr:`Estimate.lateral`."""
+
+    def __new__(cls, state: np.ndarray, valid: np.ndarray, cov: np.ndarray,
+                lateral: np.ndarray) -> Estimates:
+        self = super().__new__(cls, state, valid)
+        self.cov, self.lateral = cov, lateral
+        return self
+
+
+def side_slip(body: np.ndarray | None, speed: np.ndarray,
+              pose: np.ndarray | None = None) -> np.ndarray:
+    """The lateral states (..., 3) ``[beta, v_y, r]`` of a carried single-track body (..., 2)
+    ``[v_y, r]`` at the logged speed (...,) of the same rows: beta = atan2(v_y, V), the side
+    slip at the centre of gravity. ``body`` None (nothing carried): all NaN; NaN too where
+    ``pose`` (..., 3), the estimate of the row, is not finite (no estimate yet)."""
+    if body is None:
+        return np.full((*np.shape(speed), 3), np.nan)
+    out = np.concatenate([np.arctan2(body[..., :1], speed[..., None]), body], -1)
+    return out if pose is None else np.where(np.isfinite(pose).all(-1, keepdims=True), out,
+                                             np.nan)

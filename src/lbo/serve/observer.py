@@ -11,7 +11,9 @@ Each kind of observer makes its estimates through a runner (:mod:`lbo.serve.runn
 classical observer's stepper, a net over the last N samples (the paper's EKF standing in, not
 valid, for a CNN's or LSTM's first N-1 steps), or a filter carried from step to step
 (``form="recursive"``: the robust observer's, a KalmanNet's). The classical observers and the
-robust one give their estimates' covariance (``Estimate.cov``, ``run(..., cov=True)``).
+robust one give their estimates' covariance (``Estimate.cov``, ``Estimates.cov``); a learned
+observer with a single-track body, carried, its lateral states (``Estimate.lateral``:
+the side slip, lateral speed and yaw rate).
 
 Conventions as in :mod:`lbo.filters.start`: ``u_k`` moves ``z_k`` to ``z_{k+1}``, so the
 estimate at step k uses ``m_0 .. m_k`` and ``u_0 .. u_{k-1}`` (the filters) or the window of
@@ -22,7 +24,7 @@ from __future__ import annotations
 
 import os
 import warnings
-from typing import TYPE_CHECKING, Any, Literal, cast, overload
+from typing import TYPE_CHECKING, Any, cast
 
 import numpy as np
 
@@ -33,8 +35,8 @@ from lbo.filters.gyro import GyroNoise
 from lbo.models import checkpoint
 from lbo.models.envelope import Envelope, EnvelopeCheck, EnvelopeWarning, check_mode, observer_terms
 from lbo.serve import exported
-from lbo.serve.estimate import Estimate
-from lbo.serve.refusals import no_fix, no_heading, no_receiver
+from lbo.serve.estimate import Estimate, Estimates
+from lbo.serve.refusals import checked_log, no_fix, no_heading, no_receiver
 from lbo.serve.rows import bicycle_rows
 from lbo.serve.runners import (
     FORMS,
@@ -45,14 +47,10 @@ from lbo.serve.runners import (
     is_window_filter,
     learned_runner,
 )
-from lbo.sim.columns import RECEIVER
 from lbo.sim.logcheck import (
     check_alpha,
     check_device,
-    check_fix_windows,
-    check_receiver,
     check_sample,
-    check_samples,
 )
 from lbo.sim.noise import Noise
 from lbo.sim.vehicle import Vehicle
@@ -61,7 +59,7 @@ from lbo.tracking.artifacts import checkpoint_file, learned_noise
 if TYPE_CHECKING:  # torch, which importing lbo does not load
     from lbo.serve.carried_runner import CarriedRunner
 
-__all__ = ["Estimate", "EnvelopeWarning", "Observer"]
+__all__ = ["Estimate", "Estimates", "EnvelopeWarning", "Observer"]
 
 
 class Observer:
@@ -154,6 +152,15 @@ class Observer:
         trained on a receiver's windows (the window filter only with ``model.gyro``)."""
         return self.name == classical.GYRO or (bool(getattr(self.net, "receiver", False))
                                                and getattr(self.net.net, "gyro", True))
+
+    @property
+    def carries_lateral(self) -> bool:
+        """Whether the estimates come with the lateral states ``[beta, v_y, r]`` of a
+        single-track body (``Estimate.lateral``, ``Estimates.lateral``): a learned observer
+        trained around one (``experiment=dynamic``; KalmanNet's peers with
+        ``model.body=single_track``) in its recursive form. The window form starts the body
+        afresh in each window, and carries none from one estimate to the next."""
+        return bool(getattr(self._runner, "carries_lateral", False))
 
     @property
     def gives_covariance(self) -> bool:
@@ -327,26 +334,19 @@ class Observer:
         why = "outside the training envelope: " + ", ".join(  # outside: there is an envelope
             cast(Envelope, self.envelope).describe(f) for f in outside)
         if self.envelope_mode == "mark":
-            return Estimate(est.state, False, why if est.valid else est.reason, est.cov, outside)
+            return Estimate(est.state, False, why if est.valid else est.reason, est.cov, outside,
+                            est.lateral)
         new = [f for f in outside if f not in self._warned]
         if new:  # once per field until reset: a control loop is not flooded
             self._warned.update(new)
             warnings.warn(f"{self.name}: step {k}: {why}", EnvelopeWarning, stacklevel=2)
-        return Estimate(est.state, est.valid, est.reason, est.cov, outside)
+        return Estimate(est.state, est.valid, est.reason, est.cov, outside, est.lateral)
 
     # ----------------------------------------------------------------------- batch
 
-    @overload
-    def run(self, m: np.ndarray, u: np.ndarray, batch_size: int = ..., *,
-            source: str | None = ..., cov: Literal[False] = ..., smooth: bool = ...,
-            receiver: np.ndarray | None = ...) -> tuple[np.ndarray, np.ndarray]: ...
-    @overload
-    def run(self, m: np.ndarray, u: np.ndarray, batch_size: int = ..., *,
-            source: str | None = ..., cov: Literal[True], smooth: bool = ...,
-            receiver: np.ndarray | None = ...) -> tuple[np.ndarray, np.ndarray, np.ndarray]: ...
     def run(self, m: np.ndarray, u: np.ndarray, batch_size: int = 4096, *,
-            source: str | None = None, cov: bool = False, smooth: bool = False,
-            receiver: np.ndarray | None = None) -> tuple[np.ndarray, ...]:
+            source: str | None = None, smooth: bool = False,
+            receiver: np.ndarray | None = None) -> Estimates:
         """Estimates over a whole log at once (vectorised; the streaming state is untouched).
 
         Parameters
@@ -357,7 +357,6 @@ class Observer:
         u : (T, 2) inputs ``[V, delta]``.
         batch_size : windows per network call.
         source : what to call the log in messages (``"input log.csv"``); None: nothing.
-        cov : also return the covariances.
         smooth : the Rauch-Tung-Striebel smoother's estimates (and covariances) after the
             filter (:mod:`lbo.filters.smoother`): every row drawn on the whole log, for offline
             logs. Classical observers and a window filter in its recursive form only.
@@ -370,15 +369,20 @@ class Observer:
 
         Returns
         -------
-        est : (T, 3) ``[x, y, psi]``, psi in (-pi, pi]; the same numbers as T calls of
-            :meth:`step` after :meth:`reset`.
+        :class:`Estimates`, which unpacks as ``est, valid = obs.run(m, u)``; the same numbers
+        as T calls of :meth:`step` after :meth:`reset`:
+
+        state : (T, 3) ``[x, y, psi]``, psi in (-pi, pi].
         valid : (T,) bool, False on the first N-1 rows of a CNN or LSTM (EKF fallback),
             where the estimate is not finite (before the first fix; for a net that reads a
             receiver, where its window holds no heading), on the gyro EKF's rows that fail
             its consistency test (:mod:`lbo.filters.consistency`), and with ``envelope_mode=
             "mark"`` outside the training envelope (:meth:`check_envelope`; "warn": a warning).
-        covariance : (T, 3, 3), only with ``cov=True``: each estimate's covariance (the
-            filter's P), NaN where the observer gives none (a CNN's or LSTM's windows).
+        cov : (T, 3, 3) each estimate's covariance (the filter's P), NaN where the observer
+            gives none (a CNN's or LSTM's windows) and on rows that are not valid.
+        lateral : (T, 3) ``[beta, v_y, r]`` (rad, m/s, rad/s) where :attr:`carries_lateral`
+            (beta = atan2(v_y, V) on the logged speed), NaN elsewhere and on rows that are
+            not valid.
 
         Raises
         ------
@@ -388,37 +392,12 @@ class Observer:
             receiver's channels, where not :attr:`takes_receiver`; no fix for a net trained
             with one at every step; N steps without a fix for a window net (a NaN estimate).
         """
-        try:
-            m = np.asarray(m, dtype=float)
-            u = np.asarray(u, dtype=float)
-        except (TypeError, ValueError):
-            raise LboError(f"{source + ': ' if source else ''}run needs m (T, 3) and u (T, 2) "
-                           "of numbers") from None
-        if m.ndim != 2 or m.shape[1] != 3 or u.shape != (len(m), 2):
-            raise LboError(f"run needs m (T, 3) and u (T, 2), got {m.shape} and {u.shape}")
         if smooth and not self.gives_covariance:
             raise LboError(f"smooth: {self.name} has no filter to smooth"
                            + (" in its window form; use form=recursive" if self.form == "window"
                               and is_window_filter(self.net) else
                               "; smoothing takes a classical observer or the robust one"))
-        fix = check_samples(m, u, delta_max=self.vehicle.delta_max, source=source)
-        if receiver is not None:
-            receiver = np.asarray(receiver, dtype=float)
-            if receiver.shape != (len(m), len(RECEIVER)):
-                raise LboError(f"run needs receiver ({len(m)}, {len(RECEIVER)}) "
-                               f"[{', '.join(RECEIVER)}], got {receiver.shape}")
-            if not self.takes_receiver:
-                raise LboError(f"receiver: {no_receiver(self.name)}")
-            check_receiver(m, receiver, source)
-        if not self.takes_receiver and (fix & np.isnan(m[:, 2])).any():
-            raise LboError(f"{source + ': ' if source else ''}row "
-                           f"{int(np.argmax(fix & np.isnan(m[:, 2])))}: "
-                           + no_heading(self.name))
-        if not fix.all() and not self.takes_missing_fixes:
-            raise LboError(f"{source + ': ' if source else ''}row "
-                           f"{int(np.flatnonzero(~fix)[0])}: {no_fix(self.name)}")
-        if self.net is not None and self.form == "window":
-            check_fix_windows(fix, self.window, self.name, self.dt, source)
+        m, u, receiver, fix = checked_log(self, m, u, receiver, source)
         # a log may hold its headings on any branch (accumulated rad): one branch for every
         # observer, as step() takes them (absolute features read the angle itself)
         m = m.copy()
@@ -428,7 +407,7 @@ class Observer:
             rows, u = self._runner.log_rows(m, u, receiver, source)
         elif receiver is not None:
             rows = bicycle_rows(m, u, receiver, self.vehicle.wheelbase)
-        est, covs = self._runner.run(rows, u, fix, smooth, batch_size)
+        est, covs, lateral = self._runner.run(rows, u, fix, smooth, batch_size)
         est[:, 2] = wrap_angle(est[:, 2])
         valid = np.isfinite(est).all(1) & (np.arange(len(m)) >= self._runner.first_valid)
         valid &= ~getattr(self._runner, "inconsistent", np.zeros(len(m), bool))  # gyro's test
@@ -441,7 +420,8 @@ class Observer:
                               + "; ".join(check.summary(cast(Envelope, self.envelope), u)),
                               EnvelopeWarning, stacklevel=2)
         covs[~valid] = np.nan
-        return (est, valid, covs) if cov else (est, valid)
+        lateral[~valid] = np.nan
+        return Estimates(est, valid, covs, lateral)
 
     def __repr__(self) -> str:
         extra = (f", window={self.window}, features={self.features!r}, engine={self.engine!r}"

@@ -1,9 +1,17 @@
-"""Why an observer refuses a sample, in one line each: the text of the errors that
-:class:`lbo.Observer` and ``lbo.observe`` raise, naming the observers that take it."""
+"""Why an observer refuses a sample or a log, in one line each: the text of the errors that
+:class:`lbo.Observer` and ``lbo.observe`` raise, naming the observers that take it, and the
+checks of a whole log against an observer (:func:`checked_log`)."""
 
 from __future__ import annotations
 
+from typing import Any
+
+import numpy as np
+
+from lbo.core.errors import LboError
 from lbo.filters import classical
+from lbo.sim.columns import RECEIVER
+from lbo.sim.logcheck import check_fix_windows, check_receiver, check_samples
 
 _ALSO = ("the robust observer (filternet) in its recursive form, and a CNN, LSTM or window "
          "filter trained on a receiver (experiment=receiver)")
@@ -40,3 +48,37 @@ def blind_window(name: str, n: int, dt: float, carries: bool) -> str:
     return (f"no heading in the last {n} steps ({n * dt:g} s): {name} reads the heading from "
             "its window's psi_m or course over ground, and a car that stood or crept that long "
             "gave none (the window filter, model=filternet, carries its own through a stop)")
+
+
+def checked_log(obs: Any, m: Any, u: Any, receiver: Any, source: str | None
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray]:
+    """A log as :meth:`lbo.Observer.run` takes it, checked for ``obs``: m (T, 3), u (T, 2)
+    and receiver (T, 7) or None as float arrays, and which rows hold a position fix (T,)
+    bool; else one line naming the row (:func:`lbo.sim.logcheck.check_samples` and the
+    observer's own limits: a fix without a heading, a receiver's channels, a step without a
+    fix, a window without one)."""
+    where = f"{source}: " if source else ""
+    try:
+        m = np.asarray(m, dtype=float)
+        u = np.asarray(u, dtype=float)
+    except (TypeError, ValueError):
+        raise LboError(f"{where}run needs m (T, 3) and u (T, 2) of numbers") from None
+    if m.ndim != 2 or m.shape[1] != 3 or u.shape != (len(m), 2):
+        raise LboError(f"run needs m (T, 3) and u (T, 2), got {m.shape} and {u.shape}")
+    fix = check_samples(m, u, delta_max=obs.vehicle.delta_max, source=source)
+    if receiver is not None:
+        receiver = np.asarray(receiver, dtype=float)
+        if receiver.shape != (len(m), len(RECEIVER)):
+            raise LboError(f"run needs receiver ({len(m)}, {len(RECEIVER)}) "
+                           f"[{', '.join(RECEIVER)}], got {receiver.shape}")
+        if not obs.takes_receiver:
+            raise LboError(f"receiver: {no_receiver(obs.name)}")
+        check_receiver(m, receiver, source)
+    headless = fix & np.isnan(m[:, 2])
+    if not obs.takes_receiver and headless.any():
+        raise LboError(f"{where}row {int(np.argmax(headless))}: {no_heading(obs.name)}")
+    if not fix.all() and not obs.takes_missing_fixes:
+        raise LboError(f"{where}row {int(np.flatnonzero(~fix)[0])}: {no_fix(obs.name)}")
+    if obs.net is not None and obs.form == "window":
+        check_fix_windows(fix, obs.window, obs.name, obs.dt, source)
+    return m, u, receiver, fix

@@ -13,8 +13,9 @@ over a whole log, with the same numbers either way.
 :class:`lbo.Observer` checks every sample and hands it to its runner, which keeps the runner's
 state between steps. Each runner has ``reset()``, ``take(k, m, u, fix)`` (one checked sample
 -> :class:`Estimate`) and ``run(m, u, fix, smooth, batch_size)`` (a checked log -> estimates
-(T, 3) and covariances (T, 3, 3)), and ``first_valid``: the first row whose estimate is the
-observer's own.
+(T, 3), covariances (T, 3, 3) and lateral states (T, 3), :func:`lbo.serve.estimate.side_slip`,
+NaN where none are carried), ``first_valid``: the first row whose estimate is the observer's
+own, and ``carries_lateral``: whether it carries a single-track body's lateral states.
 """
 
 from __future__ import annotations
@@ -30,7 +31,7 @@ from lbo.filters.gyro import GyroNoise
 from lbo.models.features import held_within, window_view
 from lbo.serve import carry, refusals
 from lbo.serve.engines import make_predictor, make_recursive_step
-from lbo.serve.estimate import Estimate
+from lbo.serve.estimate import Estimate, side_slip
 from lbo.serve.exported import ExportedNet
 from lbo.serve.rows import (
     bicycle_rows,
@@ -139,6 +140,7 @@ class ClassicalRunner:
     their reason the test's: ``inconsistent`` (T,) after :meth:`run`."""
 
     first_valid = 0
+    carries_lateral = False  # oracle_dynamic's are scored on simulated sets only
     reads_receiver = False  # a receiver's channels go through rows() only where given
     inconsistent: np.ndarray | None = None  # the rows the last run()'s test flagged
 
@@ -217,10 +219,10 @@ class ClassicalRunner:
                         why or "no position fix yet", cov)
 
     def run(self, m: np.ndarray, u: np.ndarray, fix: np.ndarray, smooth: bool = False,
-            batch_size: int = 0) -> tuple[np.ndarray, np.ndarray]:
+            batch_size: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         est, cov, self.inconsistent = from_first_fix(self.name, m, u, self.vehicle,
                                                      self.noise, self.alpha, smooth, self.gyro)
-        return est, cov
+        return est, cov, side_slip(None, u[:, 0])
 
 
 class WindowRunner:
@@ -235,6 +237,8 @@ class WindowRunner:
     :meth:`sample` make them; its windows are :data:`lbo.models.receiver_window.COLUMNS`.
     Where its window holds no heading (a stop), the window filter carries its own estimate of
     N-1 steps before (``carries``, :mod:`lbo.serve.carry`); a CNN or an LSTM gives none."""
+
+    carries_lateral = False  # a window's single-track body starts afresh in each window
 
     def __init__(self, name: str, net: Any, vehicle: Vehicle, noise: Noise, engine: str,
                  device: str) -> None:
@@ -317,7 +321,7 @@ class WindowRunner:
                                       "EKF's estimate" if finite else "no position fix yet")
 
     def run(self, m: np.ndarray, u: np.ndarray, fix: np.ndarray, smooth: bool = False,
-            batch_size: int = 4096) -> tuple[np.ndarray, np.ndarray]:
+            batch_size: int = 4096) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         n, t = self.window, len(m)
         est = np.full((t, 3), np.nan)
         head = 0 if self.pads else min(n - 1, t)
@@ -337,7 +341,7 @@ class WindowRunner:
                 est[head + blind] = np.nan
                 if self.carries:
                     carry.run_blind(windows, blind, head, est, self.predict)
-        return est, np.full((t, 3, 3), np.nan)
+        return est, np.full((t, 3, 3), np.nan), side_slip(None, u[:, 0])
 
 
 class RecursiveRunner:
@@ -347,10 +351,13 @@ class RecursiveRunner:
     in one coast (:meth:`lbo.models.recursive.RecursiveFilter.coast`, where the filter
     coasts) and every other row through the engine's step (or, with ``smooth``, the RTS
     smoother's estimates in PyTorch). A filter trained with a gyro (``reads_receiver``) takes
-    inputs (T, 3) ``[V, delta, r_m]``, the gyro's last reading held (:meth:`log_rows`)."""
+    inputs (T, 3) ``[V, delta, r_m]``, the gyro's last reading held (:meth:`log_rows`). One
+    with a single-track body (``carries_lateral``) gives the ``[v_y, r]`` it carries (the
+    state's ``body``, :data:`lbo.models.recursive.STATE_NAMES`), on every engine."""
 
     first_valid = 0
     gyro_last: float  # set by reset
+    _BODY = 2  # the body's place in the state: lbo.models.recursive.STATE_NAMES, unimported
 
     def __init__(self, net: Any, vehicle: Vehicle, engine: str, device: str) -> None:
         self.net, self.vehicle, self.device = net, vehicle, device
@@ -359,6 +366,7 @@ class RecursiveRunner:
             net.recursive_step() if isinstance(net, ExportedNet)
             else make_recursive_step(net, engine, device))
         self.reads_receiver = bool(getattr(net.net, "gyro", False))
+        self.carries_lateral = bool(getattr(net.net, "single_track", False))
         self.reset()
 
     def log_rows(self, m: np.ndarray, u: np.ndarray, receiver: np.ndarray | None,
@@ -391,15 +399,21 @@ class RecursiveRunner:
         self.state = [x.copy() for x in self.state0]
         self.gyro_last = np.nan  # the gyro's last reading
 
+    def _body(self, body: np.ndarray) -> np.ndarray | None:
+        """The carried ``[v_y, r]`` (..., 2), or None where the filter has no single-track
+        body (its body state is the kinematic bicycle's, unread)."""
+        return body if self.carries_lateral else None
+
     def take(self, k: int, m: np.ndarray, u: np.ndarray, fix: bool) -> Estimate:
         pose, cov, self.state = self.step(m[None], u[None], self.state)
         state, cov = pose[0], cov[0]
         state[2] = wrap_angle(state[2])
         valid = bool(np.isfinite(state).all())
-        return Estimate(state, valid, "no position fix yet", cov if valid else None)
+        return Estimate(state, valid, "no position fix yet", cov if valid else None,
+                        lateral=side_slip(self._body(self.state[self._BODY][0]), u[0], state))
 
     def run(self, m: np.ndarray, u: np.ndarray, fix: np.ndarray, smooth: bool = False,
-            batch_size: int = 0) -> tuple[np.ndarray, np.ndarray]:
+            batch_size: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         mm = np.array(m)  # rows (T, 3), or (T, 8) with a receiver's channels
         mm[~fix, :3] = np.nan
         if smooth:
@@ -409,9 +423,11 @@ class RecursiveRunner:
             from lbo.models.recursive import run_arrays
 
             out = run_arrays(self.net.net, mm[None], u[None], smooth=True, device=self.device)
-            return out.pose[0], out.cov[0]
+            # the body is the filter's, not smoothed: the smoother runs over z = the pose
+            return out.pose[0], out.cov[0], side_slip(self._body(out.body[0]), u[:, 0], out.pose[0])
         t = len(m)
         est, covs = np.full((t, 3), np.nan), np.full((t, 3, 3), np.nan)
+        body = np.full((t, 2), np.nan)
         state = [x.copy() for x in self.state0]  # through the engine's step, as take() runs
         # the runs of rows without any measurement, once started, go in one coast each
         # (the same numbers: RecursiveFilter.coast): most rows of a log with slow fixes
@@ -426,6 +442,6 @@ class RecursiveRunner:
                 k = stop
                 continue
             pose, c, state = self.step(mm[k:k + 1], u[k:k + 1], state)
-            est[k], covs[k] = pose[0], c[0]
+            est[k], covs[k], body[k] = pose[0], c[0], state[self._BODY][0]
             k += 1
-        return est, covs
+        return est, covs, side_slip(self._body(body), u[:, 0], est)

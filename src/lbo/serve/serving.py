@@ -71,11 +71,11 @@ def estimates(observer: Any, frame: pd.DataFrame) -> pd.DataFrame:
         m = part[list(MEAS)].to_numpy(dtype=float)
         u = part[list(INPUT)].to_numpy(dtype=float)
         r = part.reindex(columns=list(RECEIVER)).to_numpy(dtype=float)
-        est, ok, cov = observer.run(m, u, cov=True, source="model input",
-                                    receiver=r if np.isfinite(r).any() else None)
-        out[rows, :3] = est
-        out[rows, 3:] = cov[:, [0, 1, 2, 0], [0, 1, 2, 1]]
-        valid[rows] = ok
+        found = observer.run(m, u, source="model input",
+                             receiver=r if np.isfinite(r).any() else None)
+        out[rows, :3] = found.state
+        out[rows, 3:] = found.cov[:, [0, 1, 2, 0], [0, 1, 2, 1]]
+        valid[rows] = found.valid
     result = pd.DataFrame(out, columns=[*STATE, *COVARIANCE])
     result.insert(len(STATE), "valid", valid)
     return result[list(SERVED)]

@@ -29,6 +29,10 @@ LATERAL = ("v_y", "r")
 """The true lateral states of a car that slips (``car=dynamic``), which a validation or test
 set drawn from one also holds: the centre of gravity's lateral speed (m/s) and the yaw rate
 (rad/s). No observer reads them: they score its side slip and yaw rate."""
+LATERAL_ESTIMATE = ("beta", *LATERAL)
+"""The lateral states an observer that carries a single-track body estimates and
+``lbo.observe`` adds to its output: the side slip at the centre of gravity (rad), v_y (m/s) and
+r (rad/s)."""
 OUTPUT = ("t", *STATE, "valid")
 """``lbo.observe``'s output: time, the estimate, and whether the observer has one yet."""
 COVARIANCE = ("var_x", "var_y", "var_psi", "cov_xy")
