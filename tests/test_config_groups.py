@@ -370,8 +370,7 @@ def simulate_checks(cfg) -> None:
 
 def observe_checks(cfg) -> None:
     """``lbo.observe``: the settings it checks before it reads a log or a checkpoint."""
-    from lbo.sim.logcheck import check_alpha
-    from lbo.sim.noise import Noise
+    from lbo.sim.noise import Noise, check_alpha
     from lbo.sim.units import check_max_gap
     from lbo.sim.vehicle import Vehicle
 

@@ -294,7 +294,7 @@ def test_step_takes_an_all_nan_measurement_as_no_fix():
 
 
 def test_alpha_must_be_in_0_to_100(tmp_path, manoeuvre):
-    from lbo.sim.logcheck import check_alpha
+    from lbo.sim.noise import check_alpha
 
     log, out = tmp_path / "log.csv", tmp_path / "est.csv"
     manoeuvre[LOG].to_csv(log, index=False)
@@ -307,6 +307,27 @@ def test_alpha_must_be_in_0_to_100(tmp_path, manoeuvre):
                                                      f"got {shown}")):
             Observer("oracle", alpha=bad)
     assert check_alpha(100) == 100.0 and check_alpha(0) == 0.0
+
+
+@pytest.mark.parametrize(("field", "bad"), [("data.train.alpha", 101), ("data.val.alpha", -1),
+                                            ("data.test.alpha_max", 1001),
+                                            ("train_noise.alpha", 101), ("alpha", -0.5)])
+def test_every_alpha_lbo_is_given_is_checked_by_one_rule(field, bad):
+    """A data set's levels, a training draw's and a simulated log's: the noise scale an
+    observer is told, the same range and the same line (lbo.sim.noise.check_alpha)."""
+    from helpers import compose_cfg
+    from lbo.learn.draws import AlphaDraw
+    from lbo.sim.datasets import spec_from_cfg
+    from lbo.simulate import simulate
+
+    line = rf"^{re.escape(field)} must be a number in \[0, 100\], got {re.escape(f'{bad:g}')}$"
+    with pytest.raises(LboError, match=line):
+        if field.startswith("data."):
+            spec_from_cfg(compose_cfg("datagen", [f"{field}={bad}"]))
+        elif field.startswith("train_noise."):
+            AlphaDraw(alpha=bad)
+        else:
+            simulate(compose_cfg("simulate", [f"alpha={bad}"]))
 
 
 # --- 6. a learned observer that takes missing fixes needs one in every window ----------------

@@ -71,7 +71,7 @@ from lbo.scoring import outages as outage
 from lbo.scoring.metrics import nrmse
 from lbo.scoring.outages import Outages
 from lbo.sim.columns import COVARIANCE, LATERAL_ESTIMATE, LOG, RECEIVER, STATE
-from lbo.sim.logcheck import check_alpha, check_device
+from lbo.sim.logcheck import check_device
 from lbo.sim.logformat import LogFormat
 from lbo.sim.logio import (
     check_log,
@@ -106,7 +106,7 @@ def observe(cfg: DictConfig) -> dict[str, Any]:
     from lbo.serve.observer import EnvelopeWarning, Observer
     from lbo.serve.refusals import no_receiver
     from lbo.serve.runners import is_window_filter
-    from lbo.sim.noise import Noise
+    from lbo.sim.noise import Noise, check_alpha
     from lbo.sim.vehicle import Vehicle
 
     for field in ("observer", "input", "output"):

@@ -45,6 +45,7 @@ from lbo.filters import classical
 from lbo.filters.gyro import FixDrift, GyroNoise
 from lbo.scoring import receiver as scoring
 from lbo.sim.logio import check_output_path, write_table
+from lbo.sim.noise import check_alpha
 
 __all__ = ["LEARNED", "RATIOS", "main", "plot", "receiver_study"]
 
@@ -75,7 +76,7 @@ def _settings(cfg: DictConfig) -> dict[str, Any]:
     """The study's numbers, each checked in one line."""
     from lbo.learn.gyro_fit import Settings  # torch: only once the study runs
 
-    alphas = [number(a, "alphas", low=0.0, form="noise scales >= 0") for a in cfg.alphas]
+    alphas = [check_alpha(a, "alphas") for a in cfg.alphas]
     require(len(alphas) > 0, "alphas", "a list of noise scales >= 0", list(cfg.alphas))
     low, high = (number(a, "learn.alpha_range", low=0.0, form="[low, high], each >= 0")
                  for a in cfg.learn.alpha_range)

@@ -41,6 +41,7 @@ from lbo.sim import schema
 from lbo.sim.columns import INPUT, MEAS, STATE
 from lbo.sim.logcheck import fix_period
 from lbo.sim.manoeuvres import MANOEUVRES
+from lbo.sim.noise import check_alpha
 from lbo.sim.stopgo import drive_stop_and_go
 from lbo.sim.vehicle import Vehicle, measure
 
@@ -99,7 +100,7 @@ def simulate(cfg: DictConfig, seed: int | None = None) -> pd.DataFrame:
     require(name in (STOP_AND_GO, FREE_DRIVE) or name in MANOEUVRES, "manoeuvre",
             f"{STOP_AND_GO}, {FREE_DRIVE} or one of {sorted(MANOEUVRES)}", name)
     alpha = cfg.alpha
-    number(alpha, "alpha", low=0.0, form="a noise scale >= 0")
+    check_alpha(alpha)
     vehicle, noise = Vehicle.from_cfg(cfg.vehicle), Noise.from_cfg(cfg.noise)
     rate = cfg.get("fix_rate")
     if rate is not None:

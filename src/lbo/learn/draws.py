@@ -20,6 +20,7 @@ import torch
 from lbo.core.checks import integer, number
 from lbo.core.errors import LboError
 from lbo.sim.logcheck import fix_period
+from lbo.sim.noise import check_alpha
 
 DISTRIBUTIONS = ("fixed", "uniform", "loguniform", "levels")
 SOURCES = ("stored", "drawn")
@@ -54,10 +55,10 @@ class AlphaDraw:
             raise LboError(f"train_noise.distribution: unknown distribution {d!r}; "
                            f"expected one of {', '.join(DISTRIBUTIONS)}")
         if d == "fixed":
-            _check_alpha("train_noise.alpha", self.alpha)
+            check_alpha(self.alpha, "train_noise.alpha")
         elif d in ("uniform", "loguniform"):
-            _check_alpha("train_noise.low", self.low)
-            _check_alpha("train_noise.high", self.high)
+            check_alpha(self.low, "train_noise.low")
+            check_alpha(self.high, "train_noise.high")
             if not self.high > self.low:
                 raise LboError(f"train_noise.high: expected a range with high > low, got "
                                f"[{self.low}, {self.high}]")
@@ -68,7 +69,7 @@ class AlphaDraw:
                 raise LboError("train_noise.levels: expected a non-empty list of alpha >= 0, "
                                "got []")
             for a in self.levels:
-                _check_alpha("train_noise.levels", a)
+                check_alpha(a, "train_noise.levels")
         integer(self.changes, "train_noise.changes", 0,
                 form="an integer >= 0 (level changes along a sequence)")
 
@@ -118,10 +119,6 @@ class AlphaDraw:
                    alpha=cfg.get("alpha", 1.0), low=cfg.get("low", 0.0),
                    high=cfg.get("high", 6.5), levels=tuple(levels),
                    changes=cfg.get("changes", 0))
-
-
-def _check_alpha(field: str, value) -> None:
-    number(value, field, low=0.0, form="a noise scale alpha >= 0")
 
 
 def loss_weights(alpha: torch.Tensor, offset: float | None) -> torch.Tensor:

@@ -47,12 +47,8 @@ from lbo.serve.runners import (
     is_window_filter,
     learned_runner,
 )
-from lbo.sim.logcheck import (
-    check_alpha,
-    check_device,
-    check_sample,
-)
-from lbo.sim.noise import Noise
+from lbo.sim.logcheck import check_device, check_sample
+from lbo.sim.noise import Noise, check_alpha
 from lbo.sim.vehicle import Vehicle
 from lbo.tracking.artifacts import checkpoint_file, learned_noise
 

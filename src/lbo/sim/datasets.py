@@ -21,7 +21,7 @@ from lbo.sim import clothoid, dynamic, schema
 from lbo.sim.columns import LATERAL
 from lbo.sim.friction import G, Grid, accelerations, generate_train
 from lbo.sim.manoeuvres import MANOEUVRES, validation_path
-from lbo.sim.noise import Noise
+from lbo.sim.noise import Noise, check_alpha
 from lbo.sim.pursuit import drive, smooth_noise
 from lbo.sim.stopgo import generate_stop_and_go
 from lbo.sim.truth import Truth
@@ -111,7 +111,7 @@ def spec_from_cfg(cfg: DictConfig) -> Spec:
     hold = tr["hold"]
     require(len(hold) == 2 and 0 < hold[0] <= hold[1], "data.train.hold",
             "[min, max] seconds with 0 < min <= max", hold)
-    number(tr["alpha"], "data.train.alpha", low=0.0, form="a noise scale >= 0")
+    check_alpha(tr["alpha"], "data.train.alpha")
     share = tr.get("stop_and_go", 0.0)
     number(share, "data.train.stop_and_go", low=0.0, high=1.0,
            form="a share of the trajectories in [0, 1]")
@@ -122,14 +122,14 @@ def spec_from_cfg(cfg: DictConfig) -> Spec:
         positive(va, key, "data.val")
     require(0 <= va["speed_variation"] < 1, "data.val.speed_variation", "in [0, 1)",
             va["speed_variation"])
-    number(va["alpha"], "data.val.alpha", low=0.0, form="a noise scale >= 0")
+    check_alpha(va["alpha"], "data.val.alpha")
     te = cast(dict, OmegaConf.to_container(d.test, resolve=True))
     positive(te, "run_in", "data.test", integer=True)
     require(te["run_in"] >= 80 and va["run_in"] >= 80, "data.test.run_in and data.val.run_in",
             "at least 80 steps, so every window N <= 80 is scored on the same points",
             (te["run_in"], va["run_in"]))
     positive(te, "alpha_step", "data.test")
-    number(te["alpha_max"], "data.test.alpha_max", low=0.0, form="a noise scale >= 0")
+    check_alpha(te["alpha_max"], "data.test.alpha_max")
     require(0 <= te["speed_variation"] < 1, "data.test.speed_variation", "in [0, 1)",
             te["speed_variation"])
     for part, block in (("val", va), ("test", te)):

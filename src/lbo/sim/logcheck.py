@@ -20,7 +20,6 @@ from typing import Any
 
 import numpy as np
 
-from lbo.core.checks import number
 from lbo.core.errors import LboError
 from lbo.sim.columns import INPUT, MEAS, RECEIVER, STATE
 from lbo.sim.units import check_heading_unit, located
@@ -71,18 +70,10 @@ RECEIVER_RULE = ("an accuracy comes with what it is the accuracy of (sx_m and sy
                  f"(m/s, at most {SPEED_LIMIT:g} each) with an optional sv_m in (0, "
                  f"{SPEED_SIGMA_LIMIT:g}] m/s")
 
-ALPHA_MAX = 100.0
-"""Largest measurement-noise scale alpha (the paper's range is 0.25 .. 6; beyond 100 the
-oracle's R overflows towards inf and says nothing)."""
 DEVICE = re.compile(r"cpu|cuda(:[0-9]+)?")
 
 
 # --------------------------------------------------------------------------- settings
-
-
-def check_alpha(alpha: Any, field: str = "alpha") -> float:
-    """alpha as a float, checked: a number in [0, ALPHA_MAX]."""
-    return number(alpha, field, low=0.0, high=ALPHA_MAX)
 
 
 def check_device(device: Any, probe: bool = True) -> str:

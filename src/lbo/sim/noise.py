@@ -9,14 +9,28 @@ The paper's table labels every value "3 sigma". Read literally, its own EKF woul
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
+from lbo.core.checks import number
 from lbo.core.errors import LboError
 
 # Table II of the paper, as printed: x (m), y (m), psi (rad).
 TABLE_PROCESS = (0.2, 0.2, 3.4e-3)
 TABLE_MEASUREMENT = (1.0, 1.0, 17.4e-3)
+
+
+ALPHA_MAX = 100.0
+"""Largest measurement-noise scale alpha (the paper's range is 0.25 .. 6; beyond 100 the
+oracle's R overflows towards inf and says nothing)."""
+
+
+def check_alpha(alpha: Any, field: str = "alpha") -> float:
+    """A measurement-noise scale alpha as a float, or one line naming ``field``: a number in
+    [0, :data:`ALPHA_MAX`]. The one check of every alpha lbo is given (an observer's, a data
+    set's, a training draw's, a simulated log's)."""
+    return number(alpha, field, low=0.0, high=ALPHA_MAX)
 
 
 def _thirds(values: tuple[float, float, float]) -> tuple[float, float, float]:
