@@ -489,14 +489,15 @@ def test_observe_adapts_the_gyro_ekfs_noise_to_the_log_it_filters(tmp_path):
     seen = gyro_fit.adapt(head, START, VEHICLE, _paper_noise(), epochs=1, segment_s=2.5)
     assert blind.best_epoch == 1 and blind.noise != START  # the step was taken, and kept
     assert blind.noise == seen.noise
-    for extra, line in ((["observer=ekf", "adapt=true"],
-                         "adapt: only observer=gyro adapts (its noise, to this log's "
-                         "innovations); got observer=ekf"),
+    for extra, line in ((["observer=model.ckpt", "adapt=true"],
+                         "adapt: observer=gyro adapts its noise, and ekf, oracle, adaptive, ukf "
+                         "the inputs' terms (a speed factor, a steering offset and factor), to "
+                         "this log; got observer=model.ckpt"),
                         (["observer=gyro", "adapt=maybe"],
                          "adapt must be true or false, got 'maybe'"),
                         (["observer=gyro", "adapt_scales=true"],
                          "adapt_scales: the factors on the speed and the gyro are learned by "
-                         "the fit adapt=true makes; pass adapt=true with it")):
+                         "the fit adapt=true makes for observer=gyro; pass both with it")):
         bad = observe(f"input={tmp_path / 'log.csv'}", *extra,
                       f"output={tmp_path / 'bad.csv'}", cwd=tmp_path)
         assert bad.returncode == 2 and bad.stderr.strip().splitlines()[-1] == f"error: {line}"

@@ -13,7 +13,10 @@ step), a GNSS velocity (``ve_m, vn_m`` m/s, ``sv_m``: the course over ground, wh
 moves; :mod:`lbo.filters.measure`) and a gyro's yaw rate ``r_m`` (rad/s), which
 ``observer=gyro`` turns the heading with in place of the steering (:mod:`lbo.filters.gyro`);
 ``gyro_noise=<file.json>`` gives it a noise learned on a drive (:mod:`lbo.learn.gyro_fit`);
-``adapt=true`` fits that noise to the log itself first, by its innovations (offline).
+``adapt=true`` fits that noise to the log itself first, by its innovations (offline); with
+``observer=ekf`` (or oracle, adaptive, ukf) it fits the inputs' terms, a factor on the speed
+and an offset and a factor on the steering (:mod:`lbo.learn.input_fit`), and filters with
+them.
 The whole log is checked before anything is written (:mod:`lbo.sim.logcheck`, the checks
 :class:`lbo.Observer` applies too); a failed run writes no output file. The output has ``t,
 x, y, psi, valid``: ``valid`` is false before the first fix, and on the first N-1 rows of a
@@ -99,7 +102,7 @@ def observe(cfg: DictConfig) -> dict[str, Any]:
     log holds the true state, ``rmse`` (3,) (m, m, rad), ``e_ref`` (3,) (the EKF's RMSE on
     the same rows) and ``nrmse``.
     """
-    from lbo.filters.classical import check_gyro_noise, on_logs
+    from lbo.filters.classical import OBSERVERS, check_gyro_noise, on_logs
     from lbo.filters.gyro import GyroNoise
     from lbo.scoring.unscored import heading_rows, heading_unseen, psi_text, scored_rmse, unscored
     from lbo.serve.engines import engine_device
@@ -140,13 +143,14 @@ def observe(cfg: DictConfig) -> dict[str, Any]:
     adapt = boolean(cfg.get("adapt", False), "adapt")
     adapt_epochs = integer(cfg.get("adapt_epochs", 12), "adapt_epochs", 1)
     adapt_scales = boolean(cfg.get("adapt_scales", False), "adapt_scales")
-    if adapt and name != "gyro":
-        raise LboError(f"adapt: only observer=gyro adapts (its noise, to this log's "
-                       f"innovations); got observer={name}")
+    if adapt and name not in ("gyro", *OBSERVERS):
+        raise LboError(f"adapt: observer=gyro adapts its noise, and {', '.join(OBSERVERS)} "
+                       "the inputs' terms (a speed factor, a steering offset and factor), to "
+                       f"this log; got observer={name}")
     outages = Outages.from_cfg(cfg.get("outages"))
-    if adapt_scales and not adapt:
+    if adapt_scales and not (adapt and name == "gyro"):
         raise LboError("adapt_scales: the factors on the speed and the gyro are learned by "
-                       "the fit adapt=true makes; pass adapt=true with it")
+                       "the fit adapt=true makes for observer=gyro; pass both with it")
     fmt = LogFormat.from_cfg(cfg)
     where = f"input {source}"
     df, origin = fmt.apply(read_log(source), where)
@@ -196,7 +200,7 @@ def observe(cfg: DictConfig) -> dict[str, Any]:
         spans = outage.place(df, outages, obs.dt)
         df = outage.blank(df, spans)
 
-    if adapt:
+    if adapt and name == "gyro":
         start = gyro_noise or GyroNoise.from_q(noise.Q)
         if adapt_scales and start.speed_scale is None:
             start = start.with_scales()
@@ -204,14 +208,18 @@ def observe(cfg: DictConfig) -> dict[str, Any]:
     m = df[["x_m", "y_m", "psi_m"]].to_numpy(dtype=float)
     u = df[["V", "delta"]].to_numpy(dtype=float)
     channels = receiver(df)
+    terms = (_fitted_inputs(m, u, channels, vehicle, noise) if adapt and name != "gyro"
+             else None)
     with warnings.catch_warnings():  # said below, one line per field
         warnings.simplefilter("ignore", EnvelopeWarning)
-        found = obs.run(m, u, source=where, smooth=smooth,
+        found = obs.run(m, u if terms is None else terms.undo(u), source=where, smooth=smooth,
                         receiver=channels if obs.takes_receiver else None)
     est, valid, cov = found.state, found.valid, found.cov
     envelope = obs.check_envelope(m, u) if mode != "off" else None
     result: dict[str, Any] = {"output": output, "observer": obs.name, "rows": len(df),
                               "valid": int(valid.sum())}
+    if terms is not None:
+        result["input_terms"] = dataclasses.asdict(terms)
     # a classical filter's heading before its first one is 0 rad, sd 1 rad, and valid: left
     # out of the heading's RMSE (it is scored for the observers, not for their start)
     unseen = heading_unseen(obs, m, u, channels) if truth else np.zeros(len(df), bool)
@@ -375,6 +383,23 @@ def _adapted(df: pd.DataFrame, start: Any, vehicle: Any, noise: Any, epochs: int
           f"the whole log first; no truth read), {epochs} epochs in "
           f"{time.perf_counter() - began:.1f} s, kept epoch {fitted.best_epoch}: {fitted.noise}")
     return Observer.load("gyro", vehicle, noise, gyro_noise=fitted.noise, **kw)
+
+
+def _fitted_inputs(m: np.ndarray, u: np.ndarray, channels: np.ndarray | None, vehicle: Any,
+                   noise: Any) -> Any:
+    """The inputs' terms of the kinematic EKF fitted on the log by its position innovations
+    (:func:`lbo.learn.input_fit.fit`), said in a line with the time it took."""
+    from lbo.learn import input_fit
+    from lbo.serve.rows import bicycle_rows
+
+    print("adapting: the inputs' terms (speed factor, steering offset and factor) to this "
+          "log's fixes", flush=True)
+    rows = m if channels is None else bicycle_rows(m, u, channels, vehicle.wheelbase)
+    fitted = input_fit.fit(rows, u, vehicle, noise)
+    print(f"adapted: {fitted.terms.describe()} (offline: it read the whole log first; no truth "
+          f"read), {fitted.runs} EKF runs in {fitted.seconds:.1f} s, the fixes' mean square "
+          f"innovation {fitted.start_loss:.3g} -> {fitted.loss:.3g} m^2")
+    return fitted.terms
 
 
 def _compared(compare: Any, plot: Any) -> list[str]:

@@ -1,0 +1,83 @@
+"""Dead reckoning through simulated GNSS outages with a speed sensor that reads 2% high and a
+steering offset of 10 mrad: the kinematic EKF on the logged inputs, told the true terms, and
+with the terms fitted to each blanked log by its fixes (``lbo.observe observer=ekf
+adapt=true``'s fit, :mod:`lbo.learn.input_fit`: no truth, no fix inside an outage), on
+the log itself (offline: it reads the fixes after each outage) and on another drive of the
+same car (what a causal filter can be told). Outages
+of 10 s every 25 s and of 30 s every 45 s (:mod:`lbo.scoring.outages`) on ``DRIVES``
+single-antenna free drives of 180 s at alpha 1.
+
+    python benchmarks/outage_inputs.py
+"""
+
+import dataclasses
+import time
+
+import pandas as pd
+from hydra import compose, initialize_config_dir
+
+from lbo.core.paths import CONF_DIR
+from lbo.learn import input_fit
+from lbo.scoring import outages
+from lbo.serve.observer import Observer
+from lbo.serve.rows import bicycle_rows
+from lbo.sim.logio import receiver
+from lbo.sim.noise import Noise
+from lbo.sim.truth import Sensors
+from lbo.sim.vehicle import Vehicle
+from lbo.simulate import simulate
+
+DRIVES, SPEED_SCALE, OFFSET = 4, 0.02, 0.01
+PLAIN, TOLD = "ekf, logged inputs", "ekf, told the true terms"
+ADAPTED = "ekf, terms fitted to this log (adapt=true, offline)"
+OTHER = "ekf, terms fitted to another drive"
+with initialize_config_dir(str(CONF_DIR), version_base=None):
+    cfg = compose("simulate", ["receiver=single_antenna", "manoeuvre=free_drive", "duration=180",
+                               f"sensors.speed_scale={SPEED_SCALE}",
+                               f"sensors.steering_offset={OFFSET}"])
+vehicle, noise = Vehicle.from_cfg(cfg.vehicle), Noise.from_cfg(cfg.noise)
+vehicle = dataclasses.replace(vehicle, delta_max=0.6)  # the offset reads past 0.5 rad
+told = input_fit.InputTerms.told(Sensors(steering_offset=OFFSET, speed_scale=SPEED_SCALE))
+ekf = Observer.load("ekf", vehicle, noise)
+tables = {}
+for length, every in ((10.0, 25.0), (30.0, 45.0)):
+    drives = []
+    for seed in range(DRIVES):
+        cfg.seed = seed
+        log = simulate(cfg)
+        spans = outages.place(log, outages.Outages(length, every), vehicle.dt)
+        blanked = outages.blank(log, spans)
+        m = blanked[["x_m", "y_m", "psi_m"]].to_numpy(dtype=float)
+        u = blanked[["V", "delta"]].to_numpy(dtype=float)
+        channels = receiver(blanked)
+        began = time.perf_counter()
+        fitted = input_fit.fit(bicycle_rows(m, u, channels, vehicle.wheelbase), u, vehicle, noise)
+        print(f"{length:g} s outages, drive {seed}: {len(spans)} outages; fitted in "
+              f"{time.perf_counter() - began:.1f} s ({fitted.runs} EKF runs): "
+              f"{fitted.terms.describe()} (the truth: {told.describe()})", flush=True)
+        drives.append((log, spans, m, u, channels, fitted.terms))
+    rows = []
+    for seed, (log, spans, m, u, channels, own) in enumerate(drives):
+        other = drives[(seed + 1) % DRIVES][-1]  # the terms another drive of the car gave
+        est = {}
+        for name, terms in ((PLAIN, input_fit.InputTerms()), (TOLD, told), (ADAPTED, own),
+                            (OTHER, other)):
+            e, ok = ekf.run(m, terms.undo(u), receiver=channels)
+            est[name] = e.copy()
+            est[name][~ok] = float("nan")
+        rows.append(outages.score(est, log, spans, vehicle.dt))
+    every_drive = pd.concat(rows)
+    table = every_drive.groupby("estimator", sort=False)[["end_m", "drift_pct"]].mean()
+    table["outages"] = every_drive.groupby("estimator", sort=False)["outages"].sum()
+    table["end_vs_told"] = table["end_m"] / table.loc[TOLD, "end_m"]
+    table["end_vs_plain"] = table["end_m"] / table.loc[PLAIN, "end_m"]
+    tables[length] = table
+    print(f"\n{length:g} s outages every {every:g} s, {DRIVES} drives (mean of the drives' means):")
+    print("| estimator | at the end (m) | drift (% of distance) | end vs told | end vs logged |")
+    print("|---|---:|---:|---:|---:|")
+    for name, r in table.iterrows():
+        print(f"| {name} | {r['end_m']:.2f} | {r['drift_pct']:.2f} | {r['end_vs_told']:.2f} | "
+              f"{r['end_vs_plain']:.2f} |")
+for name in (ADAPTED, OTHER):
+    print(f"\nworst '{name}' vs told over the two lengths:",
+          f"{max(t.loc[name, 'end_vs_told'] for t in tables.values()):.2f}")

@@ -1,0 +1,171 @@
+"""The kinematic EKF's dead-reckoning terms, learned from a log's own fixes: a factor on the
+speed, an offset and a factor on the steering.
+
+Through a GNSS outage a filter runs on its motion model alone, and the kinematic bicycle's
+model is only as good as its inputs: a CAN or wheel speed off by a percent or two, a steering
+angle read with an offset and through a ratio the user guessed (the factor corrects it).
+:class:`InputTerms` undoes
+them (``V = speed_factor * V_logged``, ``delta = steering_factor * (delta_logged -
+steering_offset)``); :func:`fit` finds them on a log without reading any truth, by the
+prediction-error method: the terms that make the EKF's predicted positions land nearest the
+next fixes (the mean square of its position innovations, at every update once the heading is
+known), searched by Nelder-Mead (SciPy) from the terms given. The EKF is lbo's ``ekf`` (R at
+alpha = 1, the vehicle's and noise's), on the log's receiver channels where it has them.
+
+A log's gaps teach the most: over a second of dead reckoning between 1 Hz fixes a speed off
+by 2% moves the prediction 0.3 m at 15 m/s. ``python -m lbo.observe observer=ekf adapt=true``
+fits the terms to the log it observes and filters it with them; ``benchmarks/
+outage_inputs.py`` measures what they buy through outages.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from lbo.core.checks import number
+from lbo.core.errors import LboError
+from lbo.filters import classical
+from lbo.filters.stepper import run_stepper
+from lbo.sim.noise import Noise
+from lbo.sim.truth import Sensors
+from lbo.sim.vehicle import Vehicle
+
+TERMS = ("speed_factor", "steering_offset", "steering_factor")
+"""What :func:`fit` may learn, each :class:`InputTerms`' field of that name."""
+MAX_GAP_S = 2.0
+"""The longest gap (s) after which a fix's innovation counts: the one after an outage measures
+seconds of dead reckoning, with terms off by as much as the search may try from its start, and
+its heavy tail took a search to the ranges' edges (30 s outages, a speed factor of 0.72)."""
+UNITS = {"speed_factor": 0.01, "steering_offset": 0.005, "steering_factor": 0.01}
+"""The search's units (a factor of 1%, 5 mrad of steering): Nelder-Mead's first simplex moves
+each term by one unit, so that each starts as far from its start as the others."""
+
+
+@dataclass(frozen=True)
+class InputTerms:
+    """What undoes a car's input sensors' errors: the true speed is ``speed_factor`` times the
+    logged one, the road-wheel angle ``steering_factor`` times the logged steering less
+    ``steering_offset`` (rad). The defaults undo nothing."""
+
+    speed_factor: float = 1.0
+    steering_offset: float = 0.0
+    steering_factor: float = 1.0
+
+    def __post_init__(self) -> None:
+        number(self.speed_factor, "speed_factor", low=0.5, high=2.0)
+        number(self.steering_offset, "steering_offset", low=-0.2, high=0.2)
+        number(self.steering_factor, "steering_factor", low=0.5, high=2.0)
+
+    @classmethod
+    def told(cls, sensors: Sensors) -> InputTerms:
+        """The terms that undo a simulated car's sensor errors (:class:`lbo.sim.truth.Sensors`:
+        V logged ``1 + speed_scale`` times too high, ``steering_offset`` added to delta)."""
+        return cls(1.0 / (1.0 + sensors.speed_scale), sensors.steering_offset, 1.0)
+
+    def undo(self, u: np.ndarray) -> np.ndarray:
+        """The inputs (..., 2) ``[V, delta]`` the terms make of logged ones (..., 2)."""
+        u = np.asarray(u, dtype=float)
+        return np.stack([u[..., 0] * self.speed_factor,
+                         (u[..., 1] - self.steering_offset) * self.steering_factor], -1)
+
+    def describe(self) -> str:
+        return (f"speed x{self.speed_factor:.4f}, steering offset "
+                f"{self.steering_offset * 1e3:.2f} mrad and factor x{self.steering_factor:.4f}")
+
+
+@dataclass(frozen=True)
+class Fitted:
+    """:func:`fit`'s result: the terms, the mean square position innovation (m^2) at them and
+    at the last search's start (over the fixes it counts), how many EKF runs the searches
+    took, and how long (s)."""
+
+    terms: InputTerms
+    loss: float
+    start_loss: float
+    runs: int
+    seconds: float
+
+
+def innovations(rows: np.ndarray, u: np.ndarray, vehicle: Vehicle, noise: Noise,
+                terms: InputTerms = InputTerms(), max_gap_s: float = MAX_GAP_S) -> np.ndarray:
+    """The EKF's position innovations (K, 2) (m) on a log: at each update whose row holds a
+    position, once the filter knows its heading (a single antenna's log learns it from the
+    course over ground) and no more than ``max_gap_s`` after the fix before it, the fix less
+    the position predicted on the inputs ``terms`` undo. rows (T, 3) ``[x_m, y_m, psi_m]`` or
+    the filters' (T, 8) (:mod:`lbo.filters.measure`), u (T, 2) the logged ``[V, delta]``."""
+    start = int(np.argmax(np.isfinite(rows[:, :2]).all(1)))
+    m, uu = rows[None, start:], terms.undo(u)[None, start:]
+    kf = classical.stepper("ekf", m[:, 0], vehicle, noise)
+    found: list[np.ndarray] = []
+    gap = max_gap_s / vehicle.dt + 0.5  # steps, with room for rounding
+    last = 0  # the row of the fix before
+
+    def record(kf: Any, k: int | slice) -> None:
+        nonlocal last
+        if isinstance(k, int) and k > 0 and np.isfinite(m[0, k, :2]).all():
+            if k - last <= gap and not kf.course.blind[0]:
+                found.append(m[0, k, :2] - kf.prior[0][0, :2])
+            last = k
+
+    run_stepper(kf, m, uu, record=record)
+    return np.array(found).reshape(-1, 2)
+
+
+def loss(rows: np.ndarray, u: np.ndarray, vehicle: Vehicle, noise: Noise,
+         terms: InputTerms, max_gap_s: float = MAX_GAP_S) -> float:
+    """The prediction error :func:`fit` minimises: the mean square of :func:`innovations`
+    (m^2); inf where there is none."""
+    y = innovations(rows, u, vehicle, noise, terms, max_gap_s)
+    return float(np.mean(y**2)) if len(y) else float("inf")
+
+
+def fit(rows: np.ndarray, u: np.ndarray, vehicle: Vehicle, noise: Noise,
+        start: InputTerms = InputTerms(), free: tuple[str, ...] = TERMS,
+        max_runs: int = 300) -> Fitted:
+    """The terms (those named in ``free``, the others held at ``start``'s) that minimise
+    :func:`loss` on one log, by Nelder-Mead from ``start`` (at most ``max_runs`` EKF runs a
+    search). No truth is read. One line names a term lbo does not know or a log without two
+    fixes.
+
+    Two searches where the log has gaps longer than :data:`MAX_GAP_S` (outages): the first
+    counts the fixes that follow a short gap only, the second, from where the first ended,
+    every fix. The fix after a long gap measures its whole dead reckoning, so it tells the
+    terms most finely (a steering offset off by 0.3 mrad turns the heading 0.05 rad in 30 s
+    at 15 m/s); from terms far off it is only a heavy tail."""
+    from scipy.optimize import minimize
+
+    for name in free:
+        if name not in TERMS:
+            raise LboError(f"free: unknown term {name!r}; expected some of {', '.join(TERMS)}")
+    if np.isfinite(rows[:, :2]).all(1).sum() < 2:
+        raise LboError("the inputs' terms are learned from the fixes, and this log has fewer "
+                       "than two")
+    began = time.perf_counter()
+    at = {name: getattr(start, name) for name in free}
+    scale = np.array([UNITS[name] for name in free])
+
+    def terms_of(p: np.ndarray) -> InputTerms | None:
+        try:
+            return dataclasses.replace(start, **dict(zip(free, (p * scale).tolist())))
+        except LboError:  # the search stepped outside the terms' ranges
+            return None
+
+    fixes = np.flatnonzero(np.isfinite(rows[:, :2]).all(1))
+    gaps = [MAX_GAP_S] + ([np.inf] if np.diff(fixes).max() * vehicle.dt > MAX_GAP_S else [])
+    p, runs = np.array([at[name] for name in free]) / scale, 0
+    for gap in gaps:
+        def objective(q: np.ndarray, gap: float = gap) -> float:
+            terms = terms_of(q)
+            return float("inf") if terms is None else loss(rows, u, vehicle, noise, terms, gap)
+
+        first = objective(p)
+        res = minimize(objective, p, method="Nelder-Mead",
+                       options={"maxfev": max_runs, "xatol": 0.01, "fatol": 1e-6 * first})
+        p, runs = res.x, runs + int(res.nfev) + 1
+    best = terms_of(p) or start
+    return Fitted(best, float(res.fun), first, runs, time.perf_counter() - began)
