@@ -3,7 +3,9 @@ for 10 s, every 25 s while the car moves (:mod:`lbo.scoring.outages`), each clas
 (and the gyro EKF with noises given as ``label=path``, files ``python -m lbo.realdrive`` wrote)
 scored through them; and the gyro EKF adapted to the blanked log itself, by its innovations
 (``lbo.observe adapt=true``'s fit: no truth, and no fix inside an outage), with and without
-factors on the speed and the gyro (``adapt_scales=true``). The hill drive's test span is
+factors on the speed and the gyro (``adapt_scales=true``); and the kinematic EKF with its
+inputs' terms fitted to the blanked log (``observer=ekf adapt=true``, :mod:`lbo.learn.input_fit`).
+The hill drive's test span is
 ``python -m lbo.realdrive outages.length_s=10``.
 
     python benchmarks/outages.py ["truth, train span=reports/realdrive/gyro_noise.json" ...]
@@ -12,13 +14,17 @@ factors on the speed and the gyro (``adapt_scales=true``). The hill drive's test
 import sys
 import time
 
+import numpy as np
 from omegaconf import OmegaConf
 
 from lbo.filters.gyro import GyroNoise
-from lbo.learn import gyro_fit
+from lbo.learn import gyro_fit, input_fit
 from lbo.scoring import outages
 from lbo.scoring.receiver import EKF, score
+from lbo.serve.observer import Observer
+from lbo.serve.rows import bicycle_rows
 from lbo.sim import comma2k19
+from lbo.sim.logio import receiver
 from lbo.sim.noise import Noise
 from lbo.sim.vehicle import Vehicle
 
@@ -41,4 +47,14 @@ for label, start in (("adapt=true", defaults), ("adapt=true adapt_scales=true",
           f"{fitted.noise}")
     learned[f"gyro, adapted to the log around the outages ({label})"] = fitted.noise
 _, estimates = score(blanked, ["ekf", "gyro"], vehicle, noise, learned)
+# the kinematic EKF with its inputs' terms fitted to the blanked log (observer=ekf adapt=true)
+m = blanked[["x_m", "y_m", "psi_m"]].to_numpy(dtype=float)
+u = blanked[["V", "delta"]].to_numpy(dtype=float)
+channels = receiver(blanked)
+began = time.perf_counter()
+terms = input_fit.fit(bicycle_rows(m, u, channels, vehicle.wheelbase), u, vehicle, noise).terms
+print(f"observer=ekf adapt=true: {time.perf_counter() - began:.0f} s, {terms.describe()}")
+est, ok = Observer.load("ekf", vehicle, noise).run(m, terms.undo(u), receiver=channels)
+estimates[f"{EKF}, inputs' terms fitted to the log (adapt=true)"] = np.where(ok[:, None], est,
+                                                                             np.nan)
 print(outages.markdown(outages.score(estimates, log, spans, vehicle.dt, reference=EKF)), end="")
