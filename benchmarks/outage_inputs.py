@@ -17,6 +17,7 @@ import pandas as pd
 from hydra import compose, initialize_config_dir
 
 from lbo.core.paths import CONF_DIR
+from lbo.filters.inputs import InputTerms
 from lbo.learn import input_fit
 from lbo.scoring import outages
 from lbo.serve.observer import Observer
@@ -37,7 +38,7 @@ with initialize_config_dir(str(CONF_DIR), version_base=None):
                                f"sensors.steering_offset={OFFSET}"])
 vehicle, noise = Vehicle.from_cfg(cfg.vehicle), Noise.from_cfg(cfg.noise)
 vehicle = dataclasses.replace(vehicle, delta_max=0.6)  # the offset reads past 0.5 rad
-told = input_fit.InputTerms.told(Sensors(steering_offset=OFFSET, speed_scale=SPEED_SCALE))
+told = InputTerms.told(Sensors(steering_offset=OFFSET, speed_scale=SPEED_SCALE))
 ekf = Observer.load("ekf", vehicle, noise)
 tables = {}
 for length, every in ((10.0, 25.0), (30.0, 45.0)):
@@ -60,9 +61,9 @@ for length, every in ((10.0, 25.0), (30.0, 45.0)):
     for seed, (log, spans, m, u, channels, own) in enumerate(drives):
         other = drives[(seed + 1) % DRIVES][-1]  # the terms another drive of the car gave
         est = {}
-        for name, terms in ((PLAIN, input_fit.InputTerms()), (TOLD, told), (ADAPTED, own),
-                            (OTHER, other)):
-            e, ok = ekf.run(m, terms.undo(u), receiver=channels)
+        for name, terms in ((PLAIN, None), (TOLD, told), (ADAPTED, own), (OTHER, other)):
+            ekf.inputs = terms
+            e, ok = ekf.run(m, u, receiver=channels)
             est[name] = e.copy()
             est[name][~ok] = float("nan")
         rows.append(outages.score(est, log, spans, vehicle.dt))

@@ -54,7 +54,7 @@ channels = receiver(blanked)
 began = time.perf_counter()
 terms = input_fit.fit(bicycle_rows(m, u, channels, vehicle.wheelbase), u, vehicle, noise).terms
 print(f"observer=ekf adapt=true: {time.perf_counter() - began:.0f} s, {terms.describe()}")
-est, ok = Observer.load("ekf", vehicle, noise).run(m, terms.undo(u), receiver=channels)
+est, ok = Observer.load("ekf", vehicle, noise, inputs=terms).run(m, u, receiver=channels)
 estimates[f"{EKF}, inputs' terms fitted to the log (adapt=true)"] = np.where(ok[:, None], est,
                                                                              np.nan)
 print(outages.markdown(outages.score(estimates, log, spans, vehicle.dt, reference=EKF)), end="")

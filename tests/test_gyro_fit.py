@@ -489,10 +489,8 @@ def test_observe_adapts_the_gyro_ekfs_noise_to_the_log_it_filters(tmp_path):
     seen = gyro_fit.adapt(head, START, VEHICLE, _paper_noise(), epochs=1, segment_s=2.5)
     assert blind.best_epoch == 1 and blind.noise != START  # the step was taken, and kept
     assert blind.noise == seen.noise
-    for extra, line in ((["observer=model.ckpt", "adapt=true"],
-                         "adapt: observer=gyro adapts its noise, and ekf, oracle, adaptive, ukf "
-                         "the inputs' terms (a speed factor, a steering offset and factor), to "
-                         "this log; got observer=model.ckpt"),
+    for extra, line in ((["observer=gyro", "adapt=true", "adapt_epochs=0"],
+                         "adapt_epochs must be an integer >= 1, got 0"),
                         (["observer=gyro", "adapt=maybe"],
                          "adapt must be true or false, got 'maybe'"),
                         (["observer=gyro", "adapt_scales=true"],

@@ -9,8 +9,8 @@ from hydra import compose, initialize_config_dir
 from helpers import observed
 from lbo.core.errors import LboError
 from lbo.core.paths import CONF_DIR
+from lbo.filters.inputs import InputTerms
 from lbo.learn import input_fit
-from lbo.learn.input_fit import InputTerms
 from lbo.sim.noise import Noise
 from lbo.sim.truth import Sensors
 from lbo.sim.vehicle import Vehicle
@@ -91,3 +91,32 @@ def test_observe_adapt_fits_the_terms_and_ends_the_outages_closer(tmp_path, caps
     end = {name: r["outages"].set_index("estimator").loc["ekf", "end_m"]
            for name, r in (("adapted", adapted), ("plain", plain))}
     assert end["adapted"] < 0.7 * end["plain"], end
+
+
+def test_an_observer_reads_the_inputs_its_terms_undo_and_checks_them_as_logged():
+    """``Observer(inputs=...)`` (or set later, as lbo.observe sets the fitted terms): run and
+    step give the numbers of the same observer given the undone inputs, for the EKF and for a
+    learned window filter; a sample is checked as logged."""
+    from lbo.models.net import WindowNet
+    from lbo.serve.observer import Observer
+
+    rng = np.random.default_rng(3)
+    t = 120
+    psi = np.cumsum(np.full(t, 0.004))
+    m = np.column_stack([np.cumsum(0.2 * np.cos(psi)), np.cumsum(0.2 * np.sin(psi)), psi])
+    m += rng.normal(size=(t, 3)) * [0.5, 0.5, 0.01]
+    u = np.column_stack([np.full(t, 10.0), np.full(t, 0.04)])
+    terms = InputTerms(speed_factor=0.98, steering_offset=0.01, steering_factor=1.05)
+    net = WindowNet("filternet", 20, features="frame")
+    for make in (lambda: Observer.load("ekf"), lambda: Observer.from_net(net, form="recursive")):
+        told, given = make(), make()
+        told.inputs = terms
+        ref = given.run(m, terms.undo(u))
+        got = told.run(m, u)
+        np.testing.assert_array_equal(got.state, ref.state)
+        np.testing.assert_array_equal(got.cov, ref.cov)
+        steps = np.array([told.step(mk, uk).state for mk, uk in zip(m, u)])
+        np.testing.assert_allclose(steps, ref.state, rtol=0, atol=1e-9)
+    told = Observer.load("ekf", inputs=InputTerms(steering_offset=0.05))
+    with pytest.raises(LboError, match=r"^step 0: .*delta=0\.52"):  # 0.47 rad once undone
+        told.step(m[0], [10.0, 0.52])

@@ -14,9 +14,9 @@ moves; :mod:`lbo.filters.measure`) and a gyro's yaw rate ``r_m`` (rad/s), which
 ``observer=gyro`` turns the heading with in place of the steering (:mod:`lbo.filters.gyro`);
 ``gyro_noise=<file.json>`` gives it a noise learned on a drive (:mod:`lbo.learn.gyro_fit`);
 ``adapt=true`` fits that noise to the log itself first, by its innovations (offline); with
-``observer=ekf`` (or oracle, adaptive, ukf) it fits the inputs' terms, a factor on the speed
-and an offset and a factor on the steering (:mod:`lbo.learn.input_fit`), and filters with
-them.
+any other observer (``ekf``, a learned one, ...) it fits the inputs' terms, a factor on the
+speed and an offset and a factor on the steering, by the kinematic EKF's prediction errors
+(:mod:`lbo.learn.input_fit`), and the observer reads the inputs they undo.
 The whole log is checked before anything is written (:mod:`lbo.sim.logcheck`, the checks
 :class:`lbo.Observer` applies too); a failed run writes no output file. The output has ``t,
 x, y, psi, valid``: ``valid`` is false before the first fix, and on the first N-1 rows of a
@@ -102,7 +102,7 @@ def observe(cfg: DictConfig) -> dict[str, Any]:
     log holds the true state, ``rmse`` (3,) (m, m, rad), ``e_ref`` (3,) (the EKF's RMSE on
     the same rows) and ``nrmse``.
     """
-    from lbo.filters.classical import OBSERVERS, check_gyro_noise, on_logs
+    from lbo.filters.classical import check_gyro_noise, on_logs
     from lbo.filters.gyro import GyroNoise
     from lbo.scoring.unscored import heading_rows, heading_unseen, psi_text, scored_rmse, unscored
     from lbo.serve.engines import engine_device
@@ -143,10 +143,6 @@ def observe(cfg: DictConfig) -> dict[str, Any]:
     adapt = boolean(cfg.get("adapt", False), "adapt")
     adapt_epochs = integer(cfg.get("adapt_epochs", 12), "adapt_epochs", 1)
     adapt_scales = boolean(cfg.get("adapt_scales", False), "adapt_scales")
-    if adapt and name not in ("gyro", *OBSERVERS):
-        raise LboError(f"adapt: observer=gyro adapts its noise, and {', '.join(OBSERVERS)} "
-                       "the inputs' terms (a speed factor, a steering offset and factor), to "
-                       f"this log; got observer={name}")
     outages = Outages.from_cfg(cfg.get("outages"))
     if adapt_scales and not (adapt and name == "gyro"):
         raise LboError("adapt_scales: the factors on the speed and the gyro are learned by "
@@ -208,18 +204,18 @@ def observe(cfg: DictConfig) -> dict[str, Any]:
     m = df[["x_m", "y_m", "psi_m"]].to_numpy(dtype=float)
     u = df[["V", "delta"]].to_numpy(dtype=float)
     channels = receiver(df)
-    terms = (_fitted_inputs(m, u, channels, vehicle, noise) if adapt and name != "gyro"
-             else None)
+    if adapt and name != "gyro":  # every other observer takes the inputs' terms
+        obs.inputs = _fitted_inputs(m, u, channels, vehicle, noise)
     with warnings.catch_warnings():  # said below, one line per field
         warnings.simplefilter("ignore", EnvelopeWarning)
-        found = obs.run(m, u if terms is None else terms.undo(u), source=where, smooth=smooth,
+        found = obs.run(m, u, source=where, smooth=smooth,
                         receiver=channels if obs.takes_receiver else None)
     est, valid, cov = found.state, found.valid, found.cov
     envelope = obs.check_envelope(m, u) if mode != "off" else None
     result: dict[str, Any] = {"output": output, "observer": obs.name, "rows": len(df),
                               "valid": int(valid.sum())}
-    if terms is not None:
-        result["input_terms"] = dataclasses.asdict(terms)
+    if obs.inputs is not None:
+        result["input_terms"] = dataclasses.asdict(obs.inputs)
     # a classical filter's heading before its first one is 0 rad, sd 1 rad, and valid: left
     # out of the heading's RMSE (it is scored for the observers, not for their start)
     unseen = heading_unseen(obs, m, u, channels) if truth else np.zeros(len(df), bool)

@@ -2,15 +2,15 @@
 speed, an offset and a factor on the steering.
 
 Through a GNSS outage a filter runs on its motion model alone, and the kinematic bicycle's
-model is only as good as its inputs: a CAN or wheel speed off by a percent or two, a steering
-angle read with an offset and through a ratio the user guessed (the factor corrects it).
-:class:`InputTerms` undoes
-them (``V = speed_factor * V_logged``, ``delta = steering_factor * (delta_logged -
-steering_offset)``); :func:`fit` finds them on a log without reading any truth, by the
-prediction-error method: the terms that make the EKF's predicted positions land nearest the
-next fixes (the mean square of its position innovations, at every update once the heading is
-known), searched by Nelder-Mead (SciPy) from the terms given. The EKF is lbo's ``ekf`` (R at
-alpha = 1, the vehicle's and noise's), on the log's receiver channels where it has them.
+model is only as good as its inputs: a CAN or wheel speed off by a percent or two, a
+steering angle read with an offset and through a ratio the user guessed (the factor corrects
+it). :class:`lbo.filters.inputs.InputTerms` undoes them (``V = speed_factor * V_logged``,
+``delta = steering_factor * (delta_logged - steering_offset)``); :func:`fit` finds them on a
+log without reading any truth, by the prediction-error method: the terms that make the EKF's
+predicted positions land nearest the next fixes (the mean square of its position
+innovations, at every update once the heading is known), searched by Nelder-Mead (SciPy)
+from the terms given. The EKF is lbo's ``ekf`` (R at alpha = 1, the vehicle's and noise's),
+on the log's receiver channels where it has them.
 
 A log's gaps teach the most: over a second of dead reckoning between 1 Hz fixes a speed off
 by 2% moves the prediction 0.3 m at 15 m/s. ``python -m lbo.observe observer=ekf adapt=true``
@@ -27,12 +27,13 @@ from typing import Any
 
 import numpy as np
 
-from lbo.core.checks import number
 from lbo.core.errors import LboError
 from lbo.filters import classical
+from lbo.filters.inputs import InputTerms
+
+__all__ = ["MAX_GAP_S", "TERMS", "UNITS", "Fitted", "InputTerms", "fit", "innovations", "loss"]
 from lbo.filters.stepper import run_stepper
 from lbo.sim.noise import Noise
-from lbo.sim.truth import Sensors
 from lbo.sim.vehicle import Vehicle
 
 TERMS = ("speed_factor", "steering_offset", "steering_factor")
@@ -44,38 +45,6 @@ its heavy tail took a search to the ranges' edges (30 s outages, a speed factor 
 UNITS = {"speed_factor": 0.01, "steering_offset": 0.005, "steering_factor": 0.01}
 """The search's units (a factor of 1%, 5 mrad of steering): Nelder-Mead's first simplex moves
 each term by one unit, so that each starts as far from its start as the others."""
-
-
-@dataclass(frozen=True)
-class InputTerms:
-    """What undoes a car's input sensors' errors: the true speed is ``speed_factor`` times the
-    logged one, the road-wheel angle ``steering_factor`` times the logged steering less
-    ``steering_offset`` (rad). The defaults undo nothing."""
-
-    speed_factor: float = 1.0
-    steering_offset: float = 0.0
-    steering_factor: float = 1.0
-
-    def __post_init__(self) -> None:
-        number(self.speed_factor, "speed_factor", low=0.5, high=2.0)
-        number(self.steering_offset, "steering_offset", low=-0.2, high=0.2)
-        number(self.steering_factor, "steering_factor", low=0.5, high=2.0)
-
-    @classmethod
-    def told(cls, sensors: Sensors) -> InputTerms:
-        """The terms that undo a simulated car's sensor errors (:class:`lbo.sim.truth.Sensors`:
-        V logged ``1 + speed_scale`` times too high, ``steering_offset`` added to delta)."""
-        return cls(1.0 / (1.0 + sensors.speed_scale), sensors.steering_offset, 1.0)
-
-    def undo(self, u: np.ndarray) -> np.ndarray:
-        """The inputs (..., 2) ``[V, delta]`` the terms make of logged ones (..., 2)."""
-        u = np.asarray(u, dtype=float)
-        return np.stack([u[..., 0] * self.speed_factor,
-                         (u[..., 1] - self.steering_offset) * self.steering_factor], -1)
-
-    def describe(self) -> str:
-        return (f"speed x{self.speed_factor:.4f}, steering offset "
-                f"{self.steering_offset * 1e3:.2f} mrad and factor x{self.steering_factor:.4f}")
 
 
 @dataclass(frozen=True)
@@ -92,14 +61,15 @@ class Fitted:
 
 
 def innovations(rows: np.ndarray, u: np.ndarray, vehicle: Vehicle, noise: Noise,
-                terms: InputTerms = InputTerms(), max_gap_s: float = MAX_GAP_S) -> np.ndarray:
+                terms: InputTerms | None = None, max_gap_s: float = MAX_GAP_S) -> np.ndarray:
     """The EKF's position innovations (K, 2) (m) on a log: at each update whose row holds a
     position, once the filter knows its heading (a single antenna's log learns it from the
     course over ground) and no more than ``max_gap_s`` after the fix before it, the fix less
     the position predicted on the inputs ``terms`` undo. rows (T, 3) ``[x_m, y_m, psi_m]`` or
-    the filters' (T, 8) (:mod:`lbo.filters.measure`), u (T, 2) the logged ``[V, delta]``."""
+    the filters' (T, 8) (:mod:`lbo.filters.measure`), u (T, 2) the logged ``[V, delta]``;
+    ``terms`` None: as logged."""
     start = int(np.argmax(np.isfinite(rows[:, :2]).all(1)))
-    m, uu = rows[None, start:], terms.undo(u)[None, start:]
+    m, uu = rows[None, start:], (terms or InputTerms()).undo(u)[None, start:]
     kf = classical.stepper("ekf", m[:, 0], vehicle, noise)
     found: list[np.ndarray] = []
     gap = max_gap_s / vehicle.dt + 0.5  # steps, with room for rounding
@@ -125,12 +95,12 @@ def loss(rows: np.ndarray, u: np.ndarray, vehicle: Vehicle, noise: Noise,
 
 
 def fit(rows: np.ndarray, u: np.ndarray, vehicle: Vehicle, noise: Noise,
-        start: InputTerms = InputTerms(), free: tuple[str, ...] = TERMS,
+        start: InputTerms | None = None, free: tuple[str, ...] = TERMS,
         max_runs: int = 300) -> Fitted:
     """The terms (those named in ``free``, the others held at ``start``'s) that minimise
-    :func:`loss` on one log, by Nelder-Mead from ``start`` (at most ``max_runs`` EKF runs a
-    search). No truth is read. One line names a term lbo does not know or a log without two
-    fixes.
+    :func:`loss` on one log, by Nelder-Mead from ``start`` (None: the terms that undo
+    nothing; at most ``max_runs`` EKF runs a search). No truth is read. One line names a
+    term lbo does not know or a log without two fixes.
 
     Two searches where the log has gaps longer than :data:`MAX_GAP_S` (outages): the first
     counts the fixes that follow a short gap only, the second, from where the first ended,
@@ -146,6 +116,7 @@ def fit(rows: np.ndarray, u: np.ndarray, vehicle: Vehicle, noise: Noise,
         raise LboError("the inputs' terms are learned from the fixes, and this log has fewer "
                        "than two")
     began = time.perf_counter()
+    start = start or InputTerms()
     at = {name: getattr(start, name) for name in free}
     scale = np.array([UNITS[name] for name in free])
 

@@ -32,6 +32,7 @@ from lbo.core.angles import wrap_angle
 from lbo.core.errors import LboError
 from lbo.filters import classical
 from lbo.filters.gyro import GyroNoise
+from lbo.filters.inputs import InputTerms
 from lbo.models import checkpoint
 from lbo.models.envelope import Envelope, EnvelopeCheck, EnvelopeWarning, check_mode, observer_terms
 from lbo.serve import exported
@@ -85,14 +86,17 @@ class Observer:
         inputs, or None (classical, or a checkpoint from before lbo stored it).
     envelope_mode : what :meth:`step` and :meth:`run` do with samples outside ``envelope``:
         ``"warn"`` (an :class:`EnvelopeWarning`), ``"mark"`` (also not valid) or ``"off"``.
+    inputs : the :class:`~lbo.filters.inputs.InputTerms` (a speed factor, a steering offset
+        and factor) every input is undone by before the model reads it, or None (as logged);
+        the samples are checked as logged. May be set (:mod:`lbo.learn.input_fit` learns them).
     """
 
     def __init__(self, name: str, vehicle: Vehicle | None = None, noise: Noise | None = None,
                  *, net: Any = None, alpha: float = 1.0, engine: str = "torch",
                  device: str = "cpu", meta: dict[str, Any] | None = None,
                  form: str | None = None, envelope_mode: str = "warn",
-                 gyro_noise: GyroNoise | None = None) -> None:
-        self.name, self.meta = name, dict(meta or {})
+                 gyro_noise: GyroNoise | None = None, inputs: InputTerms | None = None) -> None:
+        self.name, self.meta, self.inputs = name, dict(meta or {}), inputs
         self.vehicle = vehicle or Vehicle()
         self.noise = noise or Noise.preset("paper")
         self.alpha = check_alpha(alpha)
@@ -120,11 +124,14 @@ class Observer:
         self.reset()
 
     def check_envelope(self, m: np.ndarray, u: np.ndarray) -> EnvelopeCheck | None:
-        """Which rows of a log (``m`` (T, 3), ``u`` (T, 2)) lie outside the envelope of the
-        observer's training inputs; None where there is no envelope to check."""
+        """Which rows of a log (``m`` (T, 3), ``u`` (T, 2) as logged, read as :attr:`inputs`
+        undoes them) lie outside the envelope of the observer's training inputs; None where
+        there is no envelope to check."""
         if self.envelope is None:
             return None
-        return self.envelope.check(np.asarray(m, dtype=float), np.asarray(u, dtype=float),
+        u = np.asarray(u, dtype=float)
+        return self.envelope.check(np.asarray(m, dtype=float),
+                                   u if self.inputs is None else self.inputs.undo(u),
                                    **observer_terms(self.vehicle, self.noise, self.window))
 
     @property
@@ -170,7 +177,8 @@ class Observer:
     def load(cls, source: str | os.PathLike, vehicle: Vehicle | None = None,
              noise: Noise | None = None, *, alpha: float = 1.0, features: str | None = None,
              engine: str = "torch", device: str = "cpu", form: str | None = None,
-             envelope_mode: str = "warn", gyro_noise: GyroNoise | None = None) -> Observer:
+             envelope_mode: str = "warn", gyro_noise: GyroNoise | None = None,
+             inputs: InputTerms | None = None) -> Observer:
         """Load an observer.
 
         Parameters
@@ -198,6 +206,7 @@ class Observer:
             the envelope of a learned observer's training inputs (see :class:`Observer`).
         gyro_noise : the noise of ``"gyro"`` (:class:`lbo.filters.gyro.GyroNoise`, e.g. as
             :mod:`lbo.learn.gyro_fit` learns it from a drive); None: its defaults.
+        inputs : the terms the inputs are undone by (see :class:`Observer`); None: none.
 
         Raises
         ------
@@ -216,11 +225,11 @@ class Observer:
         device = check_device(device, probe=not named)
         if named:
             classical.check(source)  # pcrb: a bound, not an observer
-            return cls(source, vehicle, noise, alpha=alpha, gyro_noise=gyro_noise)
+            return cls(source, vehicle, noise, alpha=alpha, gyro_noise=gyro_noise, inputs=inputs)
         learned = learned_noise(source)  # a run of lbo.train model=gyro_ekf: data, no code
         if learned is not None:
             return cls(classical.GYRO, vehicle or learned[1], noise or learned[2], alpha=alpha,
-                       gyro_noise=learned[0], meta={"source": source})
+                       gyro_noise=learned[0], meta={"source": source}, inputs=inputs)
         with checkpoint_file(source) as path:
             found = (exported.load(path, engine) if engine in ("auto", "onnx") and form in (
                 None, "recursive") and device == "cpu" else None)  # graphs: without torch
@@ -235,7 +244,7 @@ class Observer:
         return cls(f"{hp['model']['name']}-N{hp['window']}", vehicle or trained,
                    noise or trained_noise, net=net, alpha=alpha,
                    engine=engine, device=device, meta={**meta, "source": source}, form=form,
-                   envelope_mode=envelope_mode)
+                   envelope_mode=envelope_mode, inputs=inputs)
 
     @classmethod
     def from_net(cls, net: Any, vehicle: Vehicle | None = None, noise: Noise | None = None,
@@ -318,6 +327,8 @@ class Observer:
             m[2] = wrap_angle(m[2])
         if receiver is not None and not self.takes_receiver:
             raise LboError(f"step {k}: {no_receiver(self.name)}")
+        if self.inputs is not None:  # checked as logged, read as the terms undo them
+            u = self.inputs.undo(u)
         row = m
         if receiver is not None or self.name == classical.GYRO or self._runner.reads_receiver:
             row, u = self._runner.sample(k, m, u, receiver)
@@ -394,6 +405,10 @@ class Observer:
                               and is_window_filter(self.net) else
                               "; smoothing takes a classical observer or the robust one"))
         m, u, receiver, fix = checked_log(self, m, u, receiver, source)
+        logged = u
+        if self.inputs is not None:  # checked as logged, read as the terms undo them
+            u = self.inputs.undo(u)
+        read = u
         # a log may hold its headings on any branch (accumulated rad): one branch for every
         # observer, as step() takes them (absolute features read the angle itself)
         m = m.copy()
@@ -408,12 +423,12 @@ class Observer:
         valid = np.isfinite(est).all(1) & (np.arange(len(m)) >= self._runner.first_valid)
         valid &= ~getattr(self._runner, "inconsistent", np.zeros(len(m), bool))  # gyro's test
         if self._envelope is not None:  # an envelope, and a mode other than off
-            check = cast(EnvelopeCheck, self.check_envelope(m, u))  # there is an envelope
+            check = cast(EnvelopeCheck, self.check_envelope(m, logged))  # there is an envelope
             if self.envelope_mode == "mark":
                 valid &= ~check.outside
             elif check.outside.any():
                 warnings.warn(f"{self.name}{' on ' + source if source else ''}: "
-                              + "; ".join(check.summary(cast(Envelope, self.envelope), u)),
+                              + "; ".join(check.summary(cast(Envelope, self.envelope), read)),
                               EnvelopeWarning, stacklevel=2)
         covs[~valid] = np.nan
         lateral[~valid] = np.nan
