@@ -94,7 +94,7 @@ for name, observer, rmse, worst in rows:
 
 streams = ([(f"slip_gru (window {learned.window})", learned, lateral.ENGINES)]
            if learned is not None else [])
-streams += [("slip_filter", lfilter, ("torch",))] if lfilter is not None else []
+streams += [("slip_filter", lfilter, lateral.ENGINES)] if lfilter is not None else []
 for label, observer, engines in streams:
     torch.set_num_threads(1)
     vx, delta, y = sideslip.observed(spans["test"])

@@ -33,7 +33,7 @@ from __future__ import annotations
 import os
 from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, cast
 
 import numpy as np
 import torch
@@ -172,15 +172,24 @@ class LateralFilter(nn.Module):
             scales = self.noise_scales(vx, delta, y)
         if s.last is None:
             return FilterState(s.x, s.P, (vx, delta, scales[:, 0]))
-        x, P = self._predict(s, *s.last)
+        x, P = self._advance(s, vx, delta, y, scales)
+        return FilterState(x, P, (vx, delta, scales[:, 0]))
+
+    def _advance(self, s: FilterState, vx: torch.Tensor, delta: torch.Tensor, y: torch.Tensor,
+                 scales: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """x (B, 2), P (B, 2, 2) at this row from s (which holds the row before's inputs):
+        predict, then update with the measurements held, R from the row's noise scales
+        (B, 3). Written as ONNX exports it (:class:`StepGraph`): R without diag_embed."""
+        x, P = self._predict(s, *cast(tuple, s.last))
         h, H = self._measure(x, vx, delta)
         held = torch.isfinite(y)
         noise = self.prior.noise
-        R = torch.diag_embed(torch.stack([noise.ay * torch.exp(scales[:, 1]),
-                                          noise.r * torch.exp(scales[:, 2])], -1) ** 2)
-        x, P = masked_update(x, P, torch.where(held, y - h, torch.zeros_like(h)),
+        var_ay = (noise.ay * torch.exp(scales[:, 1])) ** 2
+        var_r = (noise.r * torch.exp(scales[:, 2])) ** 2
+        zero = torch.zeros_like(var_ay)
+        R = torch.stack([torch.stack([var_ay, zero], -1), torch.stack([zero, var_r], -1)], -2)
+        return masked_update(x, P, torch.where(held, y - h, torch.zeros_like(h)),
                              held.to(x.dtype), R, H)
-        return FilterState(x, P, (vx, delta, scales[:, 0]))
 
     def forward(self, vx: torch.Tensor, delta: torch.Tensor, y: torch.Tensor
                 ) -> tuple[torch.Tensor, torch.Tensor]:
@@ -194,6 +203,30 @@ class LateralFilter(nn.Module):
             xs.append(s.x)
             Ps.append(s.P)
         return torch.stack(xs, 1), torch.stack(Ps, 1)
+
+
+class StepGraph(nn.Module):
+    """One row of the filter as a pure function of tensors, as ONNX exports it (float64, B
+    filters): ``(x (B, 2), P (B, 2, 2), vx_prev, delta_prev, sq_prev (B,), started (B,),
+    vx, delta (B,), y (B, 2)) -> (x, P, sq)``, the state after this row and this row's
+    process-noise scale (the next row's ``sq_prev``). ``started`` 0 is the first row (the
+    state holds, as :meth:`LateralFilter.step` starts); there pass this row's inputs as the
+    previous ones, whose prediction is then computed and left out."""
+
+    def __init__(self, net: LateralFilter) -> None:
+        super().__init__()
+        self.net = net
+
+    def forward(self, x: torch.Tensor, P: torch.Tensor, vx_prev: torch.Tensor,
+                delta_prev: torch.Tensor, sq_prev: torch.Tensor, started: torch.Tensor,
+                vx: torch.Tensor, delta: torch.Tensor, y: torch.Tensor
+                ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        scales = self.net.noise_scales(vx, delta, y)
+        x_new, P_new = self.net._advance(FilterState(x, P, (vx_prev, delta_prev, sq_prev)),
+                                         vx, delta, y, scales)
+        go = started > 0.5
+        return (torch.where(go[:, None], x_new, x), torch.where(go[:, None, None], P_new, P),
+                scales[:, 0])
 
 
 class FilterObserver:

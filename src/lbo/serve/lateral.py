@@ -1,5 +1,6 @@
-"""The side-slip observer served: its network as an ONNX model, and its stream run by ONNX
-Runtime, one thread (a car's computer), as ``lbo.observe`` runs the pose observers' graphs.
+"""The side-slip observers served: the network's (``slip_gru``) and the learned filter's
+(``slip_filter``) step as ONNX models, and their streams run by ONNX Runtime, one thread (a
+car's computer), as ``lbo.observe`` runs the pose observers' graphs.
 
     from lbo.serve import lateral
     observer = lateral.load("outputs/slip/checkpoints/best.ckpt")  # or its MLflow run id
@@ -16,7 +17,7 @@ import torch
 
 from lbo.core.errors import LboError
 from lbo.models.slip import FEATURES, SlipObserver, SlipStream
-from lbo.models.slip_filter import FilterObserver, FilterStream, load_any
+from lbo.models.slip_filter import FilterObserver, FilterStream, StepGraph, load_any
 from lbo.serve.engines import legacy_onnx, onnx_session
 
 ENGINES = ("torch", "onnx")
@@ -45,17 +46,56 @@ def onnx_bytes(observer: SlipObserver) -> bytes:
         return legacy_onnx(observer.net.eval(), (example,), (["window"], ["fix"]))
 
 
+STEP_INPUTS = ["x", "P", "vx_prev", "delta_prev", "sq_prev", "started", "vx", "delta", "y"]
+"""The inputs of the learned filter's ONNX step (:class:`lbo.models.slip_filter.StepGraph`)."""
+
+
+def filter_onnx_bytes(observer: FilterObserver) -> bytes:
+    """The learned side-slip filter's one-row step as an ONNX model, float64, batch dynamic
+    (:class:`lbo.models.slip_filter.StepGraph`: inputs :data:`STEP_INPUTS`, outputs ``x``,
+    ``P``, ``sq``), by the TorchScript-based exporter."""
+    one = torch.ones(1, dtype=torch.float64)
+    example = (torch.zeros(1, 2, dtype=torch.float64), torch.eye(2, dtype=torch.float64)[None],
+               10 * one, 0 * one, 0 * one, one, 10 * one, 0 * one,
+               torch.zeros(1, 2, dtype=torch.float64))
+    return legacy_onnx(StepGraph(observer.net).eval(), example,
+                       (STEP_INPUTS, ["x_next", "P_next", "sq"]))
+
+
+class OnnxFilterStream:
+    """The learned side-slip filter one row at a time in ONNX Runtime (one thread): the
+    numbers of :class:`lbo.models.slip_filter.FilterStream` (tested to 1e-9)."""
+
+    def __init__(self, observer: FilterObserver) -> None:
+        self.session = onnx_session(filter_onnx_bytes(observer), threads=1)
+        start = observer.net.start(1)
+        self.x, self.P = start.x.numpy(), start.P.numpy()
+        self.last: tuple[np.ndarray, ...] | None = None
+
+    def step(self, vx: float, delta: float, ay: float, r: float) -> np.ndarray:
+        """The estimate [beta rad, r rad/s] (2,) at this row (a NaN measurement is not
+        held)."""
+        v, d = np.array([vx], np.float64), np.array([delta], np.float64)
+        first = self.last is None
+        prev = (v, d, np.zeros(1)) if self.last is None else self.last
+        out = self.session.run(None, dict(zip(STEP_INPUTS, (
+            self.x, self.P, *prev, np.array([0.0 if first else 1.0]), v, d,
+            np.array([[ay, r]], np.float64)))))
+        self.x, self.P = out[0], out[1]
+        self.last = (v, d, out[2])
+        return self.x[0].copy()
+
+
 def stream(observer: SlipObserver | FilterObserver, engine: str = "torch"
-           ) -> SlipStream | FilterStream:
-    """A stream of rows from the start of a log, its network run by ``engine``: ``torch``,
-    or ``onnx`` (ONNX Runtime, one thread; the side-slip network's alone)."""
+           ) -> SlipStream | FilterStream | OnnxFilterStream:
+    """A stream of rows from the start of a log, run by ``engine``: ``torch``, or ``onnx``
+    (ONNX Runtime, one thread: the side-slip network, or the learned filter's whole step)."""
     if engine not in ENGINES:
         raise LboError(f"engine: expected one of {list(ENGINES)}, got {engine!r}")
     if engine == "torch":
         return observer.stream()
     if isinstance(observer, FilterObserver):
-        raise LboError("engine: the learned side-slip filter (model=slip_filter) runs in "
-                       "PyTorch alone; expected engine='torch'")
+        return OnnxFilterStream(observer)
     session = onnx_session(onnx_bytes(observer), threads=1)
 
     def correct(rows: np.ndarray) -> float:
