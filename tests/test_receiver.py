@@ -389,7 +389,7 @@ def test_runs_without_a_measurement_coast_in_one_call_as_the_steps_would_go():
     takes each run of rows that hold nothing in closed form (KalmanStepper.coast):
     the numbers of one update per row, to rounding; the adaptive EKF and a trajectory that
     has no heading yet step row by row."""
-    from lbo.filters.kalman import KalmanStepper
+    from lbo.filters.kalman import AdaptiveStepper, KalmanStepper
     from lbo.filters.stepper import run_stepper
     from lbo.sim.vehicle import simulate as roll
 
@@ -416,7 +416,8 @@ def test_runs_without_a_measurement_coast_in_one_call_as_the_steps_would_go():
     assert len(calls) == len(range(25, t, 25))  # only the fix rows step one by one
     ref, ref_cov = _stepped(KalmanStepper(m[:, 0], vehicle, Q, R), m, u)
     assert np.abs(est - ref).max() < 1e-9 and np.abs(cov - ref_cov).max() < 1e-12
-    adaptive = KalmanStepper(m[:, 0], vehicle, Q, R, forgetting=0.99, r_floor=np.full((g, 3), 1e-6))
+    adaptive = AdaptiveStepper(m[:, 0], vehicle, Q, R, forgetting=0.99,
+                               r_floor=np.full((g, 3), 1e-6))
     blind = KalmanStepper(measure.widen(np.array([[0.0, 0.0, np.nan]])), vehicle, Q, R[:1])
     assert not adaptive.coasts and not blind.coasts
 

@@ -43,10 +43,11 @@ def _innovation(m: np.ndarray, x: np.ndarray) -> np.ndarray:
 
 
 class KalmanStepper:
-    """The EKF of :func:`ekf_batch` (or, with ``forgetting``, the Sage-Husa EKF of
-    :func:`adaptive_ekf_batch`) one time step per call, over G trajectories.
+    """The EKF of :func:`ekf_batch` one time step per call, over G trajectories: predict,
+    take the row's R (:meth:`_noise`; the Sage-Husa EKF, :class:`AdaptiveStepper`, learns
+    its own there), start the heading from the course where it is not known yet, update.
 
-    Both batch filters loop over it, and :class:`lbo.Observer` steps it one sample at a time,
+    :func:`ekf_batch` loops over it, and :class:`lbo.Observer` steps it one sample at a time,
     so streaming and batch give the same numbers.
 
     Parameters
@@ -55,9 +56,7 @@ class KalmanStepper:
         (a NaN heading: see :func:`start_state` and :class:`CourseStart`).
     vehicle : Vehicle
     Q : (3, 3) process covariance.
-    R : (G, 3, 3) measurement covariance (the starting one when adaptive).
-    forgetting, prior_weight, r_floor : Sage-Husa settings (see :func:`adaptive_ekf_batch`);
-        ``forgetting=None`` is the plain EKF. r_floor: (G, 3) absolute floor on diag(R).
+    R : (G, 3, 3) measurement covariance.
 
     Attributes
     ----------
@@ -68,23 +67,12 @@ class KalmanStepper:
     course : :class:`CourseStart`, the heading of trajectories that started without one.
     """
 
-    def __init__(self, m0: np.ndarray, vehicle: Vehicle, Q: np.ndarray, R: np.ndarray,
-                 forgetting: float | None = None, prior_weight: float = 0.0,
-                 r_floor: np.ndarray | None = None) -> None:
+    def __init__(self, m0: np.ndarray, vehicle: Vehicle, Q: np.ndarray, R: np.ndarray
+                 ) -> None:
         self.vehicle, self.Q = vehicle, Q
-        self.forgetting, self.r_floor = forgetting, r_floor
         self.R = np.array(R, dtype=float)
         m0 = measure.widen(m0)
         held = held_channels(m0[:, :3])
-        if forgetting is not None:
-            m0 = m0.copy()
-            m0[:, 3:6] = np.nan  # it learns R: reported accuracies are not its to take
-            diag = np.arange(3)
-            self.r_hat = self.R[:, diag, diag].copy()           # (G, 3) diagonal of the learned R
-            # innovations r_hat is worth, per channel (a position fix teaches psi nothing)
-            self.weight = np.full(self.r_hat.shape, float(prior_weight))
-            self.R = np.zeros_like(self.R)
-            self.R[:, diag, diag] = self.r_hat
         self.x, self.P = start_state(m0, self.R)
         self.n_fix = held.astype(float)
         self.course = CourseStart(m0, vehicle, Q)
@@ -102,30 +90,7 @@ class KalmanStepper:
         self.course.advance(u_prev)
         cross = self.P @ F.swapaxes(-1, -2)  # cov(x_{k-1|k-1}, x_{k|k-1}), for smoothing
         P = F @ self.P @ F.swapaxes(-1, -2) + self.Q
-        R = self.R
-        if self.forgetting is not None:
-            y = _innovation(m[:, :3], x)
-            diag = np.arange(3)
-            # P_0 = R0 is wrong by the unknown alpha^2; n measurements of noise R cannot give
-            # a prior error below R / n, so hold P there until it settles (channels measured
-            # now and before: a heading never measured has no such bound)
-            hold = held & (self.n_fix > 0)
-            floor = self.r_hat / np.where(hold, self.n_fix, 1.0)
-            P = P.copy()
-            P[:, diag, diag] = np.where(hold, np.maximum(P[:, diag, diag], floor),
-                                        P[:, diag, diag])
-            # Sage-Husa: E[y y^T] = P_prior + R, so y^2 - diag(P_prior) is one sample of R;
-            # exponentially forgotten running mean, weights 1 / (b W + 1); held channels only
-            self.weight = np.where(held, self.forgetting * self.weight + 1.0, self.weight)
-            d = np.where(held, 1.0 / self.weight, 0.0)
-            assert self.r_floor is not None, "forgetting needs r_floor (adaptive_settings)"
-            self.r_hat = np.maximum((1.0 - d) * self.r_hat + d * (y**2 - P[:, diag, diag]),
-                                    self.r_floor)
-            R = R.copy()
-            R[:, diag, diag] = self.r_hat
-            self.R = R
-        else:
-            R = measure.step_cov(m, R)
+        P, R = self._noise(m, x, P, held)
         pos_var = 0.5 * (R[:, 0, 0] + R[:, 1, 1])
         m, R, P, start = self.course.take(m, pos_var, P, R)
         if start.any():
@@ -138,12 +103,19 @@ class KalmanStepper:
         return self.x
 
 
+    def _noise(self, m: np.ndarray, x: np.ndarray, P: np.ndarray, held: np.ndarray
+               ) -> tuple[np.ndarray, np.ndarray]:
+        """The prior covariance (G, 3, 3) the update takes and the row's R (G, 3, 3), for
+        rows m (G, 8) holding the channels ``held`` (G, 3) at the prior x (G, 3), P: the
+        filter's R, with the accuracies the receiver reports (:func:`measure.step_cov`)."""
+        return P, measure.step_cov(m, self.R)
+
     @property
     def coasts(self) -> bool:
-        """Whether :meth:`coast` may stand for a run of prediction-only steps: a plain EKF
-        (the adaptive one updates its R between fixes) whose trajectories all know their
-        heading (a blind one dead-reckons its course start step by step)."""
-        return self.forgetting is None and not self.course.blind.any()
+        """Whether :meth:`coast` may stand for a run of prediction-only steps: trajectories
+        that all know their heading (a blind one dead-reckons its course start step by
+        step)."""
+        return not self.course.blind.any()
 
     def coast(self, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """n prediction-only steps at once, as n calls of :meth:`update` with rows that hold
@@ -235,9 +207,11 @@ def adaptive_settings(R0: np.ndarray, g: int, forgetting: float = 0.99,
 def _ekf_loop(m: np.ndarray, u: np.ndarray, vehicle: Vehicle, Q: np.ndarray, R: np.ndarray,
               return_cov: bool, smooth: bool = False, lengths: np.ndarray | None = None,
               **adaptive: Any) -> np.ndarray | Posterior:
-    """Shared time loop of :func:`ekf_batch` and :func:`adaptive_ekf_batch`."""
+    """Shared time loop of :func:`ekf_batch` and (with ``adaptive`` settings)
+    :func:`adaptive_ekf_batch`."""
     m, u = check_trajectories(m, u)
-    kf = KalmanStepper(m[:, 0], vehicle, check_q(Q), batch_cov(R, m.shape[0], "R"), **adaptive)
+    stepper = AdaptiveStepper if adaptive else KalmanStepper
+    kf = stepper(m[:, 0], vehicle, check_q(Q), batch_cov(R, m.shape[0], "R"), **adaptive)
     return run_stepper(kf, m, u, return_cov, smooth=smooth, lengths=lengths)
 
 
@@ -283,10 +257,59 @@ def ekf_batch(m: np.ndarray, u: np.ndarray, vehicle: Vehicle, Q: np.ndarray, R: 
 class AdaptiveStepper(KalmanStepper):
     """The Sage-Husa EKF of :func:`adaptive_ekf_batch` one step per call, built as every
     classical observer is (``(m0, vehicle, Q, R)``, docs/plugins.md): ``R`` is where it starts,
-    and it learns R from its innovations from then on."""
+    and it learns a diagonal R from its innovations from then on (:meth:`_noise`).
+    ``forgetting``, ``prior_weight``, ``r_floor`` as :func:`adaptive_settings` checks them
+    (None: its defaults; r_floor (G, 3) the absolute floor on diag(R))."""
 
-    def __init__(self, m0: np.ndarray, vehicle: Vehicle, Q: np.ndarray, R: np.ndarray) -> None:
-        super().__init__(m0, vehicle, Q, **adaptive_settings(R, len(m0)))
+    def __init__(self, m0: np.ndarray, vehicle: Vehicle, Q: np.ndarray, R: np.ndarray,
+                 forgetting: float | None = None, prior_weight: float = 0.0,
+                 r_floor: np.ndarray | None = None) -> None:
+        if forgetting is None or r_floor is None:  # built by name: the defaults
+            settings = adaptive_settings(R, len(m0))
+            R, forgetting, prior_weight, r_floor = (settings["R"], settings["forgetting"],
+                                                     settings["prior_weight"],
+                                                     settings["r_floor"])
+        self.forgetting, self.r_floor = float(forgetting), r_floor
+        m0 = measure.widen(m0).copy()
+        m0[:, 3:6] = np.nan  # it learns R: reported accuracies are not its to take
+        diag = np.arange(3)
+        R = np.array(R, dtype=float)
+        self.r_hat = R[:, diag, diag].copy()  # (G, 3) diagonal of the learned R
+        # innovations r_hat is worth, per channel (a position fix teaches psi nothing)
+        self.weight = np.full(self.r_hat.shape, float(prior_weight))
+        start = np.zeros_like(R)
+        start[:, diag, diag] = self.r_hat
+        super().__init__(m0, vehicle, Q, start)
+
+    def _noise(self, m: np.ndarray, x: np.ndarray, P: np.ndarray, held: np.ndarray
+               ) -> tuple[np.ndarray, np.ndarray]:
+        """The Sage-Husa step: the prior's variances held at R / n while they settle, and R's
+        diagonal a forgotten running mean of ``y^2 - diag(P_prior)`` over the held channels."""
+        y = _innovation(m[:, :3], x)
+        diag = np.arange(3)
+        # P_0 = R0 is wrong by the unknown alpha^2; n measurements of noise R cannot give
+        # a prior error below R / n, so hold P there until it settles (channels measured
+        # now and before: a heading never measured has no such bound)
+        hold = held & (self.n_fix > 0)
+        floor = self.r_hat / np.where(hold, self.n_fix, 1.0)
+        P = P.copy()
+        P[:, diag, diag] = np.where(hold, np.maximum(P[:, diag, diag], floor),
+                                    P[:, diag, diag])
+        # Sage-Husa: E[y y^T] = P_prior + R, so y^2 - diag(P_prior) is one sample of R;
+        # exponentially forgotten running mean, weights 1 / (b W + 1); held channels only
+        self.weight = np.where(held, self.forgetting * self.weight + 1.0, self.weight)
+        d = np.where(held, 1.0 / self.weight, 0.0)
+        self.r_hat = np.maximum((1.0 - d) * self.r_hat + d * (y**2 - P[:, diag, diag]),
+                                self.r_floor)
+        R = self.R.copy()
+        R[:, diag, diag] = self.r_hat
+        self.R = R
+        return P, R
+
+    @property
+    def coasts(self) -> bool:
+        """Never: it updates its R between fixes."""
+        return False
 
 
 @overload
