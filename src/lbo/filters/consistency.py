@@ -100,7 +100,7 @@ class NisWindow:
         updates (kept when :meth:`clear` starts a new window, for the reason).
     """
 
-    def __init__(self, g: int, channels: int, window: int = WINDOW,
+    def __init__(self, g: int, channels: int, *, window: int = WINDOW,
                  significance: float = SIGNIFICANCE) -> None:
         self.window, self.significance = window, significance
         self.bounds = chi2_bounds(channels * window, significance)

@@ -296,7 +296,7 @@ class GyroStepper:
         (1: not widened).
     """
 
-    def __init__(self, m0: np.ndarray, vehicle: Vehicle, Q: np.ndarray, R: np.ndarray,
+    def __init__(self, m0: np.ndarray, vehicle: Vehicle, Q: np.ndarray, R: np.ndarray, *,
                  gyro_sigma: float = GYRO_SIGMA, bias_sigma: float = BIAS_SIGMA,
                  bias_walk: float = BIAS_WALK, drift: FixDrift | None = None,
                  speed_scale: float = 1.0, gyro_scale: float = 1.0,

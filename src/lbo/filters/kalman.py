@@ -261,7 +261,7 @@ class AdaptiveStepper(KalmanStepper):
     ``forgetting``, ``prior_weight``, ``r_floor`` as :func:`adaptive_settings` checks them
     (None: its defaults; r_floor (G, 3) the absolute floor on diag(R))."""
 
-    def __init__(self, m0: np.ndarray, vehicle: Vehicle, Q: np.ndarray, R: np.ndarray,
+    def __init__(self, m0: np.ndarray, vehicle: Vehicle, Q: np.ndarray, R: np.ndarray, *,
                  forgetting: float | None = None, prior_weight: float = 0.0,
                  r_floor: np.ndarray | None = None) -> None:
         if forgetting is None or r_floor is None:  # built by name: the defaults

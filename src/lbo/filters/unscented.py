@@ -92,7 +92,7 @@ class UnscentedStepper:
     prior, cross, course : as :class:`lbo.filters.kalman.KalmanStepper`'s.
     """
 
-    def __init__(self, m0: np.ndarray, vehicle: Vehicle, Q: np.ndarray, R: np.ndarray,
+    def __init__(self, m0: np.ndarray, vehicle: Vehicle, Q: np.ndarray, R: np.ndarray, *,
                  spread: float = UKF_SPREAD) -> None:
         self.vehicle, self.Q = vehicle, check_q(Q)
         self.R = floor_diag(R)
@@ -163,6 +163,6 @@ def ukf_batch(m: np.ndarray, u: np.ndarray, vehicle: Vehicle, Q: np.ndarray, R: 
     ``return_cov``.
     """
     m, u = check_trajectories(m, u)
-    flt = UnscentedStepper(m[:, 0], vehicle, Q, batch_cov(R, m.shape[0], "R"), spread)
+    flt = UnscentedStepper(m[:, 0], vehicle, Q, batch_cov(R, m.shape[0], "R"), spread=spread)
     return run_stepper(flt, m, u, return_cov, smooth=smooth,
                        progress="UKF" if progress else None, lengths=lengths)

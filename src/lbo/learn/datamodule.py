@@ -101,7 +101,7 @@ class WindowDataset(Dataset):
         ``ends`` must each have a next step in their trajectory.
     """
 
-    def __init__(self, x: torch.Tensor, y: torch.Tensor, ends: np.ndarray, window: int,
+    def __init__(self, x: torch.Tensor, y: torch.Tensor, ends: np.ndarray, window: int, *,
                  draw: AlphaDraw | None = None, sigma: torch.Tensor | None = None,
                  seed: int = 0, weight_offset: float | None = None,
                  fix_periods: tuple[int, ...] = (),
@@ -260,7 +260,7 @@ class WindowDataModule(L.LightningDataModule):
         :class:`WindowDataset`); None: none.
     """
 
-    def __init__(self, folder: str | Path, window: int, batch_size: int = 256,
+    def __init__(self, folder: str | Path, window: int, batch_size: int = 256, *,
                  eval_batch_size: int = 4096, num_workers: int = 0, seed: int = 0,
                  draw: AlphaDraw | None = None, sigma=None,
                  weight_offset: float | None = None, val_repeats: int = 1,

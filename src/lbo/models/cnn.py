@@ -103,7 +103,7 @@ class WindowCNN(nn.Module):
         meaning; ``conf/model/cnn.yaml`` picks the centred one.
     """
 
-    def __init__(self, window: int, conv_channels: int = 16, feature_channels: int = 16,
+    def __init__(self, window: int, *, conv_channels: int = 16, feature_channels: int = 16,
                  dense_units: int = 64, in_features: int = 5,
                  activation: str = "sigmoid") -> None:
         super().__init__()

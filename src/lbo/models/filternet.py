@@ -102,7 +102,7 @@ class WindowFilter(ProcessModel, nn.Module):
         log_bias_sigma: torch.Tensor
         log_bias_walk: torch.Tensor
 
-    def __init__(self, window: int, dt: float = 0.02, wheelbase: float = 2.7,
+    def __init__(self, window: int, *, dt: float = 0.02, wheelbase: float = 2.7,
                  process_sigma: Sequence[float] = (0.0667, 0.0667, 0.00113),
                  measurement_sigma: Sequence[float] = (1.0, 1.0, 0.0174),
                  hidden: int = 32, in_features: int = 5, residual: int = 0,

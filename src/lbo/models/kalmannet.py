@@ -238,7 +238,7 @@ class KalmanNet(_GainFilter):
         h_sigma: torch.Tensor
         h_s: torch.Tensor
 
-    def __init__(self, window: int, dt: float = 0.02, wheelbase: float = 2.7,
+    def __init__(self, window: int, *, dt: float = 0.02, wheelbase: float = 2.7,
                  measurement_sigma: Sequence[float] = (1.0, 1.0, 0.0174),
                  in_features: int = 5, width: int = 4, hidden: int = 64,
                  gain: float = 0.05, body: str = "kinematic", body_lr: float = 1.0) -> None:
@@ -302,7 +302,7 @@ class SplitKalmanNet(_GainFilter):
         h_p: torch.Tensor
         h_s: torch.Tensor
 
-    def __init__(self, window: int, dt: float = 0.02, wheelbase: float = 2.7,
+    def __init__(self, window: int, *, dt: float = 0.02, wheelbase: float = 2.7,
                  measurement_sigma: Sequence[float] = (1.0, 1.0, 0.0174),
                  in_features: int = 5, width: int = 4, gain: float = 0.05,
                  body: str = "kinematic", body_lr: float = 1.0) -> None:

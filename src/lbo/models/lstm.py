@@ -51,7 +51,7 @@ class WindowLSTM(nn.Module):
     in_features : channels per time step.
     """
 
-    def __init__(self, window: int, hidden_sizes: Sequence[int] = (8, 16, 32, 32),
+    def __init__(self, window: int, *, hidden_sizes: Sequence[int] = (8, 16, 32, 32),
                  dense_units: int = 64, in_features: int = 5) -> None:
         super().__init__()
         self.window = integer(window, "window", POOL)

@@ -28,7 +28,7 @@ class CarriedRunner:
     first_valid = 0
     reads_receiver = False
 
-    def __init__(self, name: str, net: Any, engine: str, device: str) -> None:
+    def __init__(self, name: str, net: Any, *, engine: str, device: str) -> None:
         if engine != "torch":
             raise LboError(f"engine={engine}: {name} carried from step to step runs in torch "
                            "only; use engine=torch, or form=window to run its window form "

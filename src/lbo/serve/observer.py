@@ -108,7 +108,8 @@ class Observer:
         if net is None:
             classical.check(name)
             self.kind, self.window, self.features, self.engine = "classical", 1, None, None
-            self._runner = ClassicalRunner(name, self.vehicle, self.noise, self.alpha, gyro_noise)
+            self._runner = ClassicalRunner(name, self.vehicle, self.noise, self.alpha,
+                                           gyro=gyro_noise)
         else:
             self.kind, self.window, self.features = "learned", int(net.window), net.features
             if engine == "auto":  # ONNX Runtime where the recursive form is kept as graphs

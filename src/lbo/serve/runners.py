@@ -111,12 +111,12 @@ def learned_runner(name: str, net: Any, form: str, vehicle: Vehicle, noise: Nois
                    engine: str, device: str) -> WindowRunner | RecursiveRunner | CarriedRunner:
     """The runner of learned observer ``name`` in ``form`` (checked by :func:`check_form`)."""
     if form == "window":
-        return WindowRunner(name, net, vehicle, noise, engine, device)
+        return WindowRunner(name, net, vehicle, noise, engine=engine, device=device)
     if is_window_filter(net):
-        return RecursiveRunner(net, vehicle, engine, device)
+        return RecursiveRunner(net, vehicle, engine=engine, device=device)
     from lbo.serve.carried_runner import CarriedRunner  # torch: loaded with the net already
 
-    return CarriedRunner(name, net, engine, device)
+    return CarriedRunner(name, net, engine=engine, device=device)
 
 
 def from_first_fix(name: str, m: np.ndarray, u: np.ndarray, vehicle: Vehicle, noise: Noise,
@@ -144,7 +144,7 @@ class ClassicalRunner:
     reads_receiver = False  # a receiver's channels go through rows() only where given
     inconsistent: np.ndarray | None = None  # the rows the last run()'s test flagged
 
-    def __init__(self, name: str, vehicle: Vehicle, noise: Noise, alpha: float,
+    def __init__(self, name: str, vehicle: Vehicle, noise: Noise, alpha: float, *,
                  gyro: GyroNoise | None = None) -> None:
         self.name, self.vehicle, self.noise, self.alpha = name, vehicle, noise, alpha
         self.gyro = gyro
@@ -240,7 +240,7 @@ class WindowRunner:
 
     carries_lateral = False  # a window's single-track body starts afresh in each window
 
-    def __init__(self, name: str, net: Any, vehicle: Vehicle, noise: Noise, engine: str,
+    def __init__(self, name: str, net: Any, vehicle: Vehicle, noise: Noise, *, engine: str,
                  device: str) -> None:
         self.name, self.window, self.dt = name, int(net.window), vehicle.dt
         self.vehicle, self.noise = vehicle, noise
@@ -359,7 +359,7 @@ class RecursiveRunner:
     gyro_last: float  # set by reset
     _BODY = 2  # the body's place in the state: lbo.models.recursive.STATE_NAMES, unimported
 
-    def __init__(self, net: Any, vehicle: Vehicle, engine: str, device: str) -> None:
+    def __init__(self, net: Any, vehicle: Vehicle, *, engine: str, device: str) -> None:
         self.net, self.vehicle, self.device = net, vehicle, device
         self.state0: list[np.ndarray]
         self.step, self.state0, self.coast = (
