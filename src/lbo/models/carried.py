@@ -63,6 +63,12 @@ def carries_body(model: Any) -> bool:
     return bool(getattr(model, "single_track", False)) and is_sequence_model(model)
 
 
+def body(state: list[torch.Tensor]) -> torch.Tensor:
+    """(B, 2) the ``[v_y, r]`` a :class:`SequenceModel` that :func:`carries_body` holds after
+    the pose in its state's estimate."""
+    return state[0][:, 3:5]
+
+
 def is_sequence_model(model: Any) -> bool:
     """Whether ``model`` (a net's inner model) keeps :class:`SequenceModel`: it can be carried
     from step to step, and trained so."""
@@ -185,18 +191,18 @@ class Carried(NamedTuple):
 
 def run(model: SequenceModel, m: torch.Tensor, u: torch.Tensor,
         state: list[torch.Tensor] | None = None, u_prev: torch.Tensor | None = None,
-        covariance: bool = True, body: bool = False) -> Carried:
+        covariance: bool = True, lateral: bool = False) -> Carried:
     """The filter over L >= 1 steps of B sequences, m (B, L, 3) (NaN: no fix), u (B, L, 2):
     started at the first step when ``state`` is None, else carried on from ``state`` with
     the inputs of the step before ``u_prev`` (B, 2); see :class:`Carried`. ``covariance``:
     also stack the covariances (those of a model that gives them); off, ``cov`` is None.
-    ``body``: also stack the carried ``[v_y, r]`` (of a model that :func:`carries_body`)."""
+    ``lateral``: also stack the carried ``[v_y, r]`` (of a model that :func:`carries_body`)."""
     if state is not None and u_prev is None:
         raise ValueError("u_prev: expected the inputs (B, 2) of the step before state")
     fix = torch.isfinite(m).all(-1)  # a full pose: these filters take no partial fix
     y = torch.nan_to_num(m)
     keep_cov = covariance and covariance_of(model) is not None
-    keep_body = body and carries_body(model)
+    keep_body = lateral and carries_body(model)
     step = getattr(model, "recorded_step", None) or functools.partial(recorded_step, model)
     out, covs, bodies = [], [], []
     for k in range(m.shape[1]):  # a recurrence: each step needs the one before
@@ -209,7 +215,7 @@ def run(model: SequenceModel, m: torch.Tensor, u: torch.Tensor,
         if cov is not None:
             covs.append(cov)
         if keep_body:
-            bodies.append(state[0][:, 3:5])
+            bodies.append(body(state))
         u_prev = u[:, k]
     if state is None:
         raise ValueError("m: expected at least one step, got shape (B, 0, 3)")
@@ -256,5 +262,5 @@ def run_arrays(model: Any, m: np.ndarray, u: np.ndarray, device: str = "cpu"
     with torch.inference_mode():
         out = run(model, torch.as_tensor(np.asarray(m, np.float64), device=device),
                   torch.as_tensor(np.nan_to_num(np.asarray(u, np.float64)), device=device),
-                  covariance=False, body=True)
+                  covariance=False, lateral=True)
     return out.est.cpu().numpy(), None if out.body is None else out.body.cpu().numpy()

@@ -17,7 +17,7 @@ import numpy as np
 import torch
 
 from lbo.core.errors import LboError
-from lbo.models.carried import STARTED, carries_body, in_float64, run, run_arrays
+from lbo.models.carried import STARTED, body, carries_body, in_float64, run, run_arrays
 from lbo.serve.estimate import Estimate, side_slip
 
 
@@ -66,16 +66,16 @@ class CarriedRunner:
             return Estimate(np.full(3, np.nan), False, "no position fix yet")
         state = est[0, 0].cpu().numpy()
         finite = bool(np.isfinite(state).all())
-        body = self.state[0][0, 3:5].cpu().numpy() if self.carries_lateral else None
+        carried = body(self.state)[0].cpu().numpy() if self.carries_lateral else None
         return Estimate(state if finite else np.full(3, np.nan), finite,
                         "the network's estimate is not finite (diverged?)",
-                        lateral=side_slip(body, u[0], state))
+                        lateral=side_slip(carried, u[0], state))
 
     def run(self, m: np.ndarray, u: np.ndarray, fix: np.ndarray, smooth: bool = False,
             batch_size: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         mm = np.array(m, dtype=float)
         mm[~fix] = np.nan
-        est, body = run_arrays(self.model, mm[None], u[None], self.device)
+        est, bodies = run_arrays(self.model, mm[None], u[None], self.device)
         est = np.where(np.isfinite(est[0]), est[0], np.nan)
         return (est, np.full((len(m), 3, 3), np.nan),
-                side_slip(None if body is None else body[0], u[:, 0], est))
+                side_slip(None if bodies is None else bodies[0], u[:, 0], est))
