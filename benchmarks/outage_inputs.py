@@ -46,8 +46,7 @@ for length, every in ((10.0, 25.0), (30.0, 45.0)):
     for seed in range(DRIVES):
         cfg.seed = seed
         log = simulate(cfg)
-        spans = outages.place(log, outages.Outages(length, every), vehicle.dt)
-        blanked = outages.blank(log, spans)
+        spans, blanked = outages.cut(log, outages.Outages(length, every), vehicle.dt)
         m = blanked[["x_m", "y_m", "psi_m"]].to_numpy(dtype=float)
         u = blanked[["V", "delta"]].to_numpy(dtype=float)
         channels = receiver(blanked)

@@ -35,8 +35,7 @@ for length, every in ((10.0, 25.0), (30.0, 45.0)):
     for seed in range(DRIVES):
         cfg.seed = seed
         log = simulate(cfg)
-        spans = outages.place(log, outages.Outages(length, every), vehicle.dt)
-        blanked = outages.blank(log, spans)
+        spans, blanked = outages.cut(log, outages.Outages(length, every), vehicle.dt)
         began = time.perf_counter()
         fitted = gyro_fit.adapt(blanked, defaults.with_scales(), vehicle, noise)
         print(f"{length:g} s outages, drive {seed}: {len(spans)} outages; adapted in "

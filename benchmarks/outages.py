@@ -34,10 +34,9 @@ log = comma2k19.to_log(comma2k19.example(), vehicle).log
 learned = {f"gyro, noise learned on the hill drive ({name})": GyroNoise.load(path)
            for name, path in (a.split("=", 1) for a in sys.argv[1:])}
 protocol = outages.Outages(length_s=10.0, every_s=25.0)
-spans = outages.place(log, protocol, vehicle.dt)
+spans, blanked = outages.cut(log, protocol, vehicle.dt)
 print(f"comma2k19 example: {len(log) * vehicle.dt:.0f} s, {len(spans)} outages of "
       f"{protocol.length_s:g} s at {', '.join(f'{s * vehicle.dt:.0f}' for s in spans[:, 0])} s")
-blanked = outages.blank(log, spans)
 defaults = GyroNoise.from_q(noise.Q)
 for label, start in (("adapt=true", defaults), ("adapt=true adapt_scales=true",
                                                 defaults.with_scales())):

@@ -193,8 +193,7 @@ def observe(cfg: DictConfig) -> dict[str, Any]:
         if not truth:
             raise LboError(f"outages: scored against the log's truth (x, y, psi); {where} "
                            "has none")
-        spans = outage.place(df, outages, obs.dt)
-        df = outage.blank(df, spans)
+        spans, df = outage.cut(df, outages, obs.dt)
 
     if adapt and name == "gyro":
         start = gyro_noise or GyroNoise.from_q(noise.Q)

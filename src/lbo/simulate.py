@@ -144,7 +144,7 @@ def simulate(cfg: DictConfig, seed: int | None = None) -> pd.DataFrame:
         df = with_receiver(df, z, u, cfg, vehicle.dt, alpha, seed, slip)
     outages = Outages.from_cfg(cfg.get("outages"))
     if outages is not None:  # the receiver silent in windows while the car moves; truth kept
-        df = outage.blank(df, outage.place(df, outages, vehicle.dt))
+        df = outage.cut(df, outages, vehicle.dt)[1]
     return df
 
 

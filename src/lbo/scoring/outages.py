@@ -107,6 +107,13 @@ def inside(n: int, spans: np.ndarray) -> np.ndarray:
     return np.cumsum(edges)[:n] > 0
 
 
+def cut(log: pd.DataFrame, outages: Outages, dt: float) -> tuple[np.ndarray, pd.DataFrame]:
+    """The outages' rows (K, 2) :func:`place` finds in ``log`` and the log :func:`blank` in
+    them."""
+    spans = place(log, outages, dt)
+    return spans, blank(log, spans)
+
+
 def blank(log: pd.DataFrame, spans: np.ndarray) -> pd.DataFrame:
     """A copy of ``log`` with the :data:`BLANKED` columns it holds NaN on the rows of
     ``spans`` (K, 2); every other column (the truth, the gyro, the inputs) as it was."""
