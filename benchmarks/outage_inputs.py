@@ -2,8 +2,8 @@
 steering offset of 10 mrad: the kinematic EKF on the logged inputs, told the true terms, and
 with the terms fitted to each blanked log by its fixes (``lbo.observe observer=ekf
 adapt=true``'s fit, :mod:`lbo.learn.input_fit`: no truth, no fix inside an outage), on
-the log itself (offline: it reads the fixes after each outage) and on another drive of the
-same car (what a causal filter can be told). Outages
+the log itself (offline: it reads the fixes after each outage), on another drive of the
+same car and on the other drives together (what a causal filter can be told). Outages
 of 10 s every 25 s and of 30 s every 45 s (:mod:`lbo.scoring.outages`) on ``DRIVES``
 single-antenna free drives of 180 s at alpha 1.
 
@@ -32,6 +32,7 @@ DRIVES, SPEED_SCALE, OFFSET = 4, 0.02, 0.01
 PLAIN, TOLD = "ekf, logged inputs", "ekf, told the true terms"
 ADAPTED = "ekf, terms fitted to this log (adapt=true, offline)"
 OTHER = "ekf, terms fitted to another drive"
+FLEET = "ekf, terms fitted to the other drives together"
 with initialize_config_dir(str(CONF_DIR), version_base=None):
     cfg = compose("simulate", ["receiver=single_antenna", "manoeuvre=free_drive", "duration=180",
                                f"sensors.speed_scale={SPEED_SCALE}",
@@ -51,22 +52,29 @@ for length, every in ((10.0, 25.0), (30.0, 45.0)):
         u = blanked[["V", "delta"]].to_numpy(dtype=float)
         channels = receiver(blanked)
         began = time.perf_counter()
-        fitted = input_fit.fit(bicycle_rows(m, u, channels, vehicle.wheelbase), u, vehicle, noise)
+        rows = bicycle_rows(m, u, channels, vehicle.wheelbase)
+        fitted = input_fit.fit(rows, u, vehicle, noise)
         print(f"{length:g} s outages, drive {seed}: {len(spans)} outages; fitted in "
               f"{time.perf_counter() - began:.1f} s ({fitted.runs} EKF runs): "
               f"{fitted.terms.describe()} (the truth: {told.describe()})", flush=True)
-        drives.append((log, spans, m, u, channels, fitted.terms))
-    rows = []
-    for seed, (log, spans, m, u, channels, own) in enumerate(drives):
+        drives.append((log, spans, m, u, channels, rows, fitted.terms))
+    scored = []
+    for seed, (log, spans, m, u, channels, _, own) in enumerate(drives):
         other = drives[(seed + 1) % DRIVES][-1]  # the terms another drive of the car gave
+        rest = [d for j, d in enumerate(drives) if j != seed]
+        began = time.perf_counter()
+        fleet = input_fit.fit([d[5] for d in rest], [d[3] for d in rest], vehicle, noise).terms
+        print(f"{length:g} s outages, drive {seed}: the other {len(rest)} drives' terms fitted "
+              f"together in {time.perf_counter() - began:.1f} s: {fleet.describe()}", flush=True)
         est = {}
-        for name, terms in ((PLAIN, None), (TOLD, told), (ADAPTED, own), (OTHER, other)):
+        for name, terms in ((PLAIN, None), (TOLD, told), (ADAPTED, own), (OTHER, other),
+                            (FLEET, fleet)):
             ekf.inputs = terms
             e, ok = ekf.run(m, u, receiver=channels)
             est[name] = e.copy()
             est[name][~ok] = float("nan")
-        rows.append(outages.score(est, log, spans, vehicle.dt))
-    every_drive = pd.concat(rows)
+        scored.append(outages.score(est, log, spans, vehicle.dt))
+    every_drive = pd.concat(scored)
     table = every_drive.groupby("estimator", sort=False)[["end_m", "drift_pct"]].mean()
     table["outages"] = every_drive.groupby("estimator", sort=False)["outages"].sum()
     table["end_vs_told"] = table["end_m"] / table.loc[TOLD, "end_m"]
@@ -78,6 +86,6 @@ for length, every in ((10.0, 25.0), (30.0, 45.0)):
     for name, r in table.iterrows():
         print(f"| {name} | {r['end_m']:.2f} | {r['drift_pct']:.2f} | {r['end_vs_told']:.2f} | "
               f"{r['end_vs_plain']:.2f} |")
-for name in (ADAPTED, OTHER):
+for name in (ADAPTED, OTHER, FLEET):
     print(f"\nworst '{name}' vs told over the two lengths:",
           f"{max(t.loc[name, 'end_vs_told'] for t in tables.values()):.2f}")

@@ -73,6 +73,23 @@ def test_from_the_fixes_alone_it_finds_the_speed_factor_and_the_steering_offset_
     assert held.terms.steering_factor == 1.1 and held.terms.steering_offset == 0.0
 
 
+def test_several_logs_are_fitted_together_as_one_prediction_error():
+    """Logs of different lengths run as one batch (the shorter padded with rows that hold
+    nothing): their prediction errors are each log's own, pooled, and no padded row adds one."""
+    (one, vehicle, noise), (two, _, _) = _log(seed=0, duration=20), _log(seed=1, duration=30)
+    logs = [(d[["x_m", "y_m", "psi_m"]].to_numpy(), d[["V", "delta"]].to_numpy())
+            for d in (one, two)]
+    terms = InputTerms(speed_factor=0.99, steering_offset=0.005)
+    alone = [input_fit.innovations(m, u, vehicle, noise, terms) for m, u in logs]
+    both = input_fit.innovations([m for m, _ in logs], [u for _, u in logs], vehicle, noise,
+                                 terms)
+    assert len(both) == sum(len(a) for a in alone) > 20
+    np.testing.assert_allclose(np.sort(both, axis=0), np.sort(np.concatenate(alone), axis=0),
+                               rtol=1e-12, atol=1e-12)
+    pooled = input_fit.loss([m for m, _ in logs], [u for _, u in logs], vehicle, noise, terms)
+    assert pooled == pytest.approx(np.mean(np.concatenate(alone) ** 2), rel=1e-12)
+
+
 def test_observe_adapt_fits_the_terms_and_ends_the_outages_closer(tmp_path, capsys):
     """``lbo.observe observer=ekf adapt=true`` on a blanked log (10 s outages): the terms it
     fits from the fixes around the outages are near the truth, and the EKF that filters with

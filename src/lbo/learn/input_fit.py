@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -60,41 +61,65 @@ class Fitted:
     seconds: float
 
 
-def innovations(rows: np.ndarray, u: np.ndarray, vehicle: Vehicle, noise: Noise,
-                terms: InputTerms | None = None, max_gap_s: float = MAX_GAP_S) -> np.ndarray:
-    """The EKF's position innovations (K, 2) (m) on a log: at each update whose row holds a
-    position, once the filter knows its heading (a single antenna's log learns it from the
-    course over ground) and no more than ``max_gap_s`` after the fix before it, the fix less
-    the position predicted on the inputs ``terms`` undo. rows (T, 3) ``[x_m, y_m, psi_m]`` or
-    the filters' (T, 8) (:mod:`lbo.filters.measure`), u (T, 2) the logged ``[V, delta]``;
-    ``terms`` None: as logged."""
-    start = int(np.argmax(np.isfinite(rows[:, :2]).all(1)))
-    m, uu = rows[None, start:], (terms or InputTerms()).undo(u)[None, start:]
+def _stacked(rows: np.ndarray | Sequence[np.ndarray], u: np.ndarray | Sequence[np.ndarray]
+             ) -> tuple[np.ndarray, np.ndarray]:
+    """One log (T, C) and (T, 2), or several (a list of each), as G logs from their first
+    fixes, (G, T, C) and (G, T, 2): the shorter ones' ends padded with rows that hold nothing
+    and inputs of standing still."""
+    logs = [(np.asarray(rows), np.asarray(u))] if np.ndim(rows) == 2 else list(zip(rows, u))
+    cut = []
+    for r, v in logs:
+        fixed = np.isfinite(r[:, :2]).all(1)
+        if fixed.sum() < 2:
+            raise LboError("the inputs' terms are learned from the fixes, and a log has fewer "
+                           "than two")
+        cut.append((r[int(np.argmax(fixed)):], v[int(np.argmax(fixed)):]))
+    t = max(len(r) for r, _ in cut)
+    m = np.full((len(cut), t, cut[0][0].shape[1]), np.nan)
+    uu = np.zeros((len(cut), t, 2))
+    for g, (r, v) in enumerate(cut):
+        m[g, :len(r)], uu[g, :len(v)] = r, v
+    return m, uu
+
+
+def innovations(rows: np.ndarray | Sequence[np.ndarray], u: np.ndarray | Sequence[np.ndarray],
+                vehicle: Vehicle, noise: Noise, terms: InputTerms | None = None,
+                max_gap_s: float = MAX_GAP_S) -> np.ndarray:
+    """The EKF's position innovations (K, 2) (m) on a log, or on several at once (lists): at
+    each update whose row holds a position, once the filter knows its heading (a single
+    antenna's log learns it from the course over ground) and no more than ``max_gap_s`` after
+    the fix before it, the fix less the position predicted on the inputs ``terms`` undo. rows
+    (T, 3) ``[x_m, y_m, psi_m]`` or the filters' (T, 8) (:mod:`lbo.filters.measure`), u (T, 2)
+    the logged ``[V, delta]``; ``terms`` None: as logged."""
+    m, logged = _stacked(rows, u)
+    uu = (terms or InputTerms()).undo(logged)
     kf = classical.stepper("ekf", m[:, 0], vehicle, noise)
     found: list[np.ndarray] = []
     gap = max_gap_s / vehicle.dt + 0.5  # steps, with room for rounding
-    last = 0  # the row of the fix before
+    last = np.zeros(len(m))  # each log's row of the fix before
 
     def record(kf: Any, k: int | slice) -> None:
-        nonlocal last
-        if isinstance(k, int) and k > 0 and np.isfinite(m[0, k, :2]).all():
-            if k - last <= gap and not kf.course.blind[0]:
-                found.append(m[0, k, :2] - kf.prior[0][0, :2])
-            last = k
+        if isinstance(k, int) and k > 0:
+            fix = np.isfinite(m[:, k, :2]).all(1)
+            counted = fix & (k - last <= gap) & ~kf.course.blind
+            found.append(m[counted, k, :2] - kf.prior[0][counted, :2])
+            last[fix] = k
 
     run_stepper(kf, m, uu, record=record)
-    return np.array(found).reshape(-1, 2)
+    return np.concatenate(found).reshape(-1, 2) if found else np.zeros((0, 2))
 
 
-def loss(rows: np.ndarray, u: np.ndarray, vehicle: Vehicle, noise: Noise,
-         terms: InputTerms, max_gap_s: float = MAX_GAP_S) -> float:
+def loss(rows: np.ndarray | Sequence[np.ndarray], u: np.ndarray | Sequence[np.ndarray],
+         vehicle: Vehicle, noise: Noise, terms: InputTerms, max_gap_s: float = MAX_GAP_S
+         ) -> float:
     """The prediction error :func:`fit` minimises: the mean square of :func:`innovations`
     (m^2); inf where there is none."""
     y = innovations(rows, u, vehicle, noise, terms, max_gap_s)
     return float(np.mean(y**2)) if len(y) else float("inf")
 
 
-def fit(rows: np.ndarray, u: np.ndarray, vehicle: Vehicle, noise: Noise,
+def fit(rows: np.ndarray | Sequence[np.ndarray], u: np.ndarray | Sequence[np.ndarray],
+        vehicle: Vehicle, noise: Noise,
         start: InputTerms | None = None, free: tuple[str, ...] = TERMS,
         max_runs: int = 300) -> Fitted:
     """The terms (those named in ``free``, the others held at ``start``'s) that minimise
@@ -112,9 +137,7 @@ def fit(rows: np.ndarray, u: np.ndarray, vehicle: Vehicle, noise: Noise,
     for name in free:
         if name not in TERMS:
             raise LboError(f"free: unknown term {name!r}; expected some of {', '.join(TERMS)}")
-    if np.isfinite(rows[:, :2]).all(1).sum() < 2:
-        raise LboError("the inputs' terms are learned from the fixes, and this log has fewer "
-                       "than two")
+    m = _stacked(rows, u)[0]  # checked: two fixes in every log
     began = time.perf_counter()
     start = start or InputTerms()
     at = {name: getattr(start, name) for name in free}
@@ -126,8 +149,8 @@ def fit(rows: np.ndarray, u: np.ndarray, vehicle: Vehicle, noise: Noise,
         except LboError:  # the search stepped outside the terms' ranges
             return None
 
-    fixes = np.flatnonzero(np.isfinite(rows[:, :2]).all(1))
-    gaps = [MAX_GAP_S] + ([np.inf] if np.diff(fixes).max() * vehicle.dt > MAX_GAP_S else [])
+    longest = max(np.diff(np.flatnonzero(np.isfinite(log[:, :2]).all(1))).max() for log in m)
+    gaps = [MAX_GAP_S] + ([np.inf] if longest * vehicle.dt > MAX_GAP_S else [])
     p, runs = np.array([at[name] for name in free]) / scale, 0
     for gap in gaps:
         def objective(q: np.ndarray, gap: float = gap) -> float:
