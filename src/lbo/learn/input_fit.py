@@ -63,10 +63,12 @@ class Fitted:
 
 def _stacked(rows: np.ndarray | Sequence[np.ndarray], u: np.ndarray | Sequence[np.ndarray]
              ) -> tuple[np.ndarray, np.ndarray]:
-    """One log (T, C) and (T, 2), or several (a list of each), as G logs from their first
+    """One log (T, C) and (T, 2), or several (a list or tuple of each), as G logs from their first
     fixes, (G, T, C) and (G, T, 2): the shorter ones' ends padded with rows that hold nothing
     and inputs of standing still."""
-    logs = [(np.asarray(rows), np.asarray(u))] if np.ndim(rows) == 2 else list(zip(rows, u))
+    several = isinstance(rows, (list, tuple))
+    logs = ([(np.asarray(r), np.asarray(v)) for r, v in zip(rows, u)] if several
+            else [(np.asarray(rows), np.asarray(u))])
     cut = []
     for r, v in logs:
         fixed = np.isfinite(r[:, :2]).all(1)
