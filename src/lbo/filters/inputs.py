@@ -46,5 +46,6 @@ class InputTerms:
                          (u[..., 1] - self.steering_offset) * self.steering_factor], -1)
 
     def describe(self) -> str:
+        """The terms as a line says them (mrad for the offset)."""
         return (f"speed x{self.speed_factor:.4f}, steering offset "
                 f"{self.steering_offset * 1e3:.2f} mrad and factor x{self.steering_factor:.4f}")

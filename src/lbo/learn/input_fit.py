@@ -31,11 +31,11 @@ import numpy as np
 from lbo.core.errors import LboError
 from lbo.filters import classical
 from lbo.filters.inputs import InputTerms
-
-__all__ = ["MAX_GAP_S", "TERMS", "UNITS", "Fitted", "InputTerms", "fit", "innovations", "loss"]
 from lbo.filters.stepper import run_stepper
 from lbo.sim.noise import Noise
 from lbo.sim.vehicle import Vehicle
+
+__all__ = ["MAX_GAP_S", "TERMS", "UNITS", "Fitted", "InputTerms", "fit", "innovations", "loss"]
 
 TERMS = ("speed_factor", "steering_offset", "steering_factor")
 """What :func:`fit` may learn, each :class:`InputTerms`' field of that name."""
