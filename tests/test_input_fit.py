@@ -3,6 +3,7 @@ what they undo, their refusals, each recovered on a simulated log whose sensors'
 known, and lbo.observe adapt=true filtering with them through outages."""
 
 import numpy as np
+import pandas as pd
 import pytest
 from hydra import compose, initialize_config_dir
 
@@ -137,3 +138,26 @@ def test_an_observer_reads_the_inputs_its_terms_undo_and_checks_them_as_logged()
     told = Observer.load("ekf", inputs=InputTerms(steering_offset=0.05))
     with pytest.raises(LboError, match=r"^step 0: .*delta=0\.52"):  # 0.47 rad once undone
         told.step(m[0], [10.0, 0.52])
+
+
+@pytest.mark.slow  # the robust observer trained at smoke scale, shared by the run
+def test_observe_adapt_gives_a_learned_observer_the_terms_it_fits(robust_smoke, manoeuvre,
+                                                                  tmp_path):
+    """``lbo.observe adapt=true`` with a learned observer (the robust one): the terms are fitted
+    by the kinematic EKF on the log's fixes, and the observer reads the inputs they undo: its
+    output is ``Observer.load(..., inputs=terms).run``'s."""
+    from lbo.filters.inputs import InputTerms
+    from lbo.serve.observer import Observer
+    from lbo.sim.columns import LOG
+
+    manoeuvre[list(LOG)].to_csv(tmp_path / "log.csv", index=False)
+    ckpt = robust_smoke["out"]["checkpoint"]
+    result = observed(tmp_path / "log.csv", tmp_path / "est.csv", "adapt=true", observer=ckpt)
+    terms = InputTerms(**result["input_terms"])
+    assert terms != InputTerms()  # fitted, not the start
+    m = manoeuvre[["x_m", "y_m", "psi_m"]].to_numpy()
+    u = manoeuvre[["V", "delta"]].to_numpy()
+    ref = Observer.load(ckpt, inputs=terms).run(m, u)
+    out = pd.read_csv(tmp_path / "est.csv")
+    np.testing.assert_allclose(out[["x", "y", "psi"]].to_numpy()[ref.valid], ref.state[ref.valid],
+                               rtol=0, atol=1e-9)
