@@ -44,7 +44,7 @@ from lbo.models.frame import check_sigmas, frame_model
 from lbo.models.motion import ProcessModel, bicycle_step, pose_jacobian
 from lbo.models.poses import wrap_heading
 from lbo.models.receiver_window import FEATURES
-from lbo.models.update import inverse_sym3, masked_update, step_covariance, turn_xy
+from lbo.models.update import full_update, masked_update, step_covariance, taken, turn_xy
 
 EMPTY_STATISTIC = ("net", "learned")
 """R where the noise statistic is empty (under two fixes; a carried filter's start): ``net``,
@@ -216,17 +216,11 @@ class WindowFilter(ProcessModel, nn.Module):
             P = F @ P @ F.transpose(1, 2) + Qp
             y = x[:, k, :3] - (H @ z.unsqueeze(-1)).squeeze(-1)
             y = wrap_heading(y)
-            PH = P @ H.T  # (B, 5, 3)
-            K = PH @ inverse_sym3(H @ PH + R)
-            z_new = z + (K @ y.unsqueeze(-1)).squeeze(-1)
-            P_new = (e - K @ H) @ P
-            P_new = 0.5 * (P_new + P_new.transpose(1, 2))
+            z_new, P_new = full_update(z, P, y, R, e, H)
             if self.fixes:  # no fix: the prediction; the first fix: start there
                 f = x[:, k, 5] > 0.5
-                first = (f & ~started)[:, None]
                 restart = torch.cat([x[:, k, :3], torch.zeros_like(z[:, 3:])], -1)
-                z = torch.where(first, restart, torch.where(f[:, None], z_new, z))
-                P = torch.where(first[..., None], start, torch.where(f[:, None, None], P_new, P))
+                z, P = taken(f & ~started, f, (restart, start), (z_new, P_new), (z, P))
                 started = started | f
             else:
                 z, P = z_new, P_new
@@ -368,10 +362,9 @@ class WindowFilter(ProcessModel, nn.Module):
             zu, Pu = masked_update(zp, Pp, wrap_heading(meas[:, k] - zp[:, :3]),
                                    held[:, k].to(x.dtype), R[:, k], H)
             first = start[:, k] & ~started
-            update = (held[:, k].any(-1) & started)[:, None]
-            z0, P0 = self.start_at(meas[:, k], R[:, k], start_b)
-            z = torch.where(first[:, None], z0, torch.where(update, zu, zp))
-            P = torch.where(first[:, None, None], P0, torch.where(update[..., None], Pu, Pp))
+            update = held[:, k].any(-1) & started
+            z, P = taken(first, update, self.start_at(meas[:, k], R[:, k], start_b), (zu, Pu),
+                         (zp, Pp))
             body = torch.where(first[:, None], self.body_start(v[:, k], delta[:, k]), body)
             started = started | first
         return torch.where(started[:, None], wrap_heading(z[:, :3]), torch.zeros_like(z[:, :3]))
@@ -424,16 +417,10 @@ class WindowFilter(ProcessModel, nn.Module):
             P = F @ P @ F.transpose(1, 2) + Q
             y = x[:, k, :3] - z
             y = wrap_heading(y)
-            K = P @ inverse_sym3(P + R)
-            z_new = z + (K @ y.unsqueeze(-1)).squeeze(-1)
-            P_new = (eye - K) @ P
-            P_new = 0.5 * (P_new + P_new.transpose(1, 2))
+            z_new, P_new = full_update(z, P, y, R, eye)
             if self.fixes:  # no fix: the prediction; the first fix: start there, P = R
                 f = x[:, k, 5] > 0.5
-                first = (f & ~started)[:, None]
-                z = torch.where(first, x[:, k, :3], torch.where(f[:, None], z_new, z))
-                P = torch.where(first[..., None], R,
-                                torch.where(f[:, None, None], P_new, P))
+                z, P = taken(f & ~started, f, (x[:, k, :3], R), (z_new, P_new), (z, P))
                 started = started | f
             else:
                 z, P = z_new, P_new

@@ -81,6 +81,40 @@ def masked_update(z: torch.Tensor, P: torch.Tensor, y: torch.Tensor, mask: torch
     return z, 0.5 * (P + P.transpose(1, 2))
 
 
+def full_update(z: torch.Tensor, P: torch.Tensor, y: torch.Tensor, R: torch.Tensor,
+                eye: torch.Tensor, H: torch.Tensor | None = None
+                ) -> tuple[torch.Tensor, torch.Tensor]:
+    """The window filter's update with every channel of a pose held: states z (B, n),
+    covariances P (B, n, n), innovations y (B, 3), R (B, 3, 3), ``eye`` the (n, n) identity
+    (made once per window, outside its loop) and H (3, n), or None where the state is the pose
+    (H = I, its products left out). ``K = P H^T (H P H^T + R)^-1``, ``z + K y`` and ``(I - K
+    H) P`` symmetrised: the short form, in the hot loop of a window's training; the Joseph form
+    (:func:`masked_update`) is for rows that hold some channels, and for filters carried for
+    hours."""
+    if H is None:
+        K = P @ inverse_sym3(P + R)
+        P_new = (eye - K) @ P
+    else:
+        PH = P @ H.T  # (B, n, 3)
+        K = PH @ inverse_sym3(H @ PH + R)
+        P_new = (eye - K @ H) @ P
+    z_new = z + (K @ y.unsqueeze(-1)).squeeze(-1)
+    return z_new, 0.5 * (P_new + P_new.transpose(1, 2))
+
+
+def taken(first: torch.Tensor, fix: torch.Tensor, start: tuple[torch.Tensor, torch.Tensor],
+          updated: tuple[torch.Tensor, torch.Tensor], predicted: tuple[torch.Tensor, torch.Tensor]
+          ) -> tuple[torch.Tensor, torch.Tensor]:
+    """The state ``(z (B, n), P (B, n, n))`` of a step of B filters: ``start`` where it is a
+    filter's first fix (``first`` (B,) bool), ``updated`` where it holds a fix it updates with
+    (``fix`` (B,) bool), ``predicted`` elsewhere."""
+    z = torch.where(first[:, None], start[0],
+                    torch.where(fix[:, None], updated[0], predicted[0]))
+    P = torch.where(first[:, None, None], start[1],
+                    torch.where(fix[:, None, None], updated[1], predicted[1]))
+    return z, P
+
+
 def step_covariance(R: torch.Tensor, sigma: torch.Tensor, told: torch.Tensor,
                     course_var: torch.Tensor, measured: torch.Tensor) -> torch.Tensor:
     """A row's R (..., 3, 3) of ``[x, y, heading]`` (x and y in world axes): the filter's R
