@@ -35,7 +35,7 @@ from lbo.filters.stepper import run_stepper
 from lbo.sim.noise import Noise
 from lbo.sim.vehicle import Vehicle
 
-__all__ = ["MAX_GAP_S", "TERMS", "UNITS", "Fitted", "InputTerms", "fit", "innovations", "loss"]
+__all__ = ["MAX_GAP_S", "TERMS", "UNITS", "Fitted", "fit", "innovations", "loss"]
 
 TERMS = ("speed_factor", "steering_offset", "steering_factor")
 """What :func:`fit` may learn, each :class:`InputTerms`' field of that name."""
