@@ -15,7 +15,7 @@ MLFLOW_PORT ?= 5000
 MLFLOW_BACKEND ?= sqlite:///$(CURDIR)/mlflow-server.db
 MLFLOW_ARTIFACTS ?= $(CURDIR)/mlflow-server-artifacts
 
-.PHONY: help install test test-fast slurm-check data reproduce ablation fleet real-drive receiver-study side-slip bench readme-tables lint clean mlflow-server ui
+.PHONY: help install test test-fast coverage slurm-check data reproduce ablation fleet real-drive receiver-study side-slip bench readme-tables lint clean mlflow-server ui
 
 help:  ## list the targets
 	@grep -E '^[a-z-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  make %-10s %s\n", $$1, $$2}'
@@ -36,6 +36,9 @@ test: install  ## run every test, the slow ones included, in TEST_JOBS processes
 
 test-fast: install  ## run the tests without the slow marker
 	$(PY) -m pytest -q -n $(TEST_JOBS) --dist loadfile -m "not slow"
+
+coverage: install  ## the whole suite with line and branch coverage of src/lbo (code run by the tests' subprocesses not counted)
+	$(PY) -m pytest -q -n $(TEST_JOBS) --dist loadfile --cov=lbo --cov-branch --cov-report=term
 
 slurm-check: install  ## tests/test_slurm.py: sweeps, make reproduce, a killed job on a one-node SLURM cluster it starts (slurm-wlm, munge, root)
 	OMP_NUM_THREADS=1 $(PY) -m pytest -q -s -p no:cacheprovider tests/test_slurm.py
