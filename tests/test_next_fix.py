@@ -170,3 +170,105 @@ def test_the_new_settings_keep_the_hashes_of_runs_made_before_them(tmp_path, smo
     with open_dict(old):
         assert old.data.pop("source") == "files"
     assert config_hash(logs) == config_hash(old)
+
+
+# --- a user's logs without the truth (data=logs) ------------------------------------------------
+
+LOG_COLUMNS = ["t", "x_m", "y_m", "psi_m", "V", "delta"]
+
+
+@pytest.fixture(scope="module")
+def fleet(smoke_data, tmp_path_factory):
+    """The smoke test set's manoeuvres as logs, twice: ``truth/`` with the reference's x, y,
+    psi and ``blind/`` the same logs without them, but for the test logs (scored by it)."""
+    root = tmp_path_factory.mktemp("fleet")
+    test = pd.read_parquet(smoke_data / "test.parquet")
+    for (traj, alpha), g in test.groupby(["traj", "alpha"]):
+        part = "val" if alpha == 1.0 else "test" if alpha == 3.0 else "train"
+        log = g.sort_values("k")[[*LOG_COLUMNS, "x", "y", "psi"]]
+        for kind in ("truth", "blind"):
+            (root / kind / part).mkdir(parents=True, exist_ok=True)
+            kept = log if kind == "truth" or part == "test" else log[LOG_COLUMNS]
+            kept.to_csv(root / kind / part / f"m{traj}_a{alpha:g}.csv", index=False)
+    return root
+
+
+def fleet_cfg(logs, tmp, *overrides: str):
+    from helpers import compose_cfg
+
+    return compose_cfg("train", [
+        "experiment=smoke", "data=logs", "train_noise=stored", "data.run_in=100",
+        "keep_onnx=false", *(f"data.{p}=[{logs}/{p}]" for p in ("train", "val", "test")),
+        f"data.root={tmp}/data", f"output_dir={tmp}/out", *overrides])
+
+
+def test_logs_without_the_truth_make_sets_that_say_so(fleet, tmp_path):
+    import json
+
+    from lbo.sim import log_sets
+
+    spec = log_sets.spec_from_cfg(fleet_cfg(fleet / "blind", tmp_path, "loss=next_fix"))
+    folder, sets, _ = log_sets.build(spec, progress=False)
+    for part in ("train", "val"):
+        assert sets[part][["x", "y", "psi"]].isna().all(axis=None)
+        assert sets[part][["x_m", "y_m", "V", "delta"]].notna().all(axis=None)
+    assert sets["val"]["alpha"].isna().all()  # the noise level needs the truth too
+    assert sets["test"][["x", "y", "psi"]].notna().all(axis=None)
+    facts = json.loads((folder / "manifest.json").read_text())["files"]
+    assert {f["truth"] for f in facts["train"] + facts["val"]} == {False}
+    assert {f["truth"] for f in facts["test"]} == {True}
+    said = log_sets.summary(folder, sets, 0.02)
+    assert "15 log(s) without the truth" in said[0] and "without" not in said[2]
+
+
+@pytest.mark.parametrize(("kind", "drop", "words"), [
+    ("test", ["x", "y", "psi"], "data=logs scores the test logs against the reference"),
+    ("train", ["psi"], "missing true-state column psi"),
+])
+def test_a_test_log_without_the_truth_or_a_log_with_part_of_it_is_one_line(
+        fleet, tmp_path, kind, drop, words):
+    import shutil
+
+    from lbo.core.errors import LboError
+    from lbo.sim import log_sets
+
+    logs = tmp_path / "logs"
+    shutil.copytree(fleet / "truth", logs)
+    bad = sorted((logs / kind).iterdir())[0]
+    pd.read_csv(bad).drop(columns=drop).to_csv(bad, index=False)
+    spec = log_sets.spec_from_cfg(fleet_cfg(logs, tmp_path))
+    with pytest.raises(LboError, match=f"^log {bad}: .*{words}"):
+        log_sets.build(spec, progress=False)
+    assert not (tmp_path / "data").exists() or not any((tmp_path / "data").rglob("*.parquet"))
+
+
+@pytest.mark.parametrize(("overrides", "words"), [
+    ((), "train on them with loss=next_fix, or give logs that have it"),
+    (("loss=next_fix", "train_noise=paper"),
+     "train on the logs' own fixes \\(train_noise=stored\\)"),
+])
+def test_the_truth_or_noise_drawn_around_it_on_logs_without_it_is_one_line(
+        fleet, tmp_path, overrides, words):
+    from lbo.core.errors import LboError
+    from lbo.learn.builders import datamodule, prepare_data
+
+    cfg = fleet_cfg(fleet / "blind", tmp_path, *overrides)
+    with pytest.raises(LboError, match=f"^the training set holds logs without the truth.*{words}$"):
+        datamodule(cfg, prepare_data(cfg)[0])
+
+
+@pytest.mark.slow
+def test_logs_without_the_truth_train_as_the_same_logs_with_it(fleet, tmp_path, tracking,
+                                                               one_torch_thread):
+    """loss=next_fix never reads the truth: the same logs with and without it train to the
+    same weights and the same validation losses, scored on the test logs' truth alike."""
+    from lbo.tracking.artifacts import load_net
+    from lbo.train import train
+
+    done = {kind: train(fleet_cfg(fleet / kind, tmp_path / kind, "loss=next_fix"))
+            for kind in ("truth", "blind")}
+    for key in ("val_loss", "test_nrmse"):
+        assert np.isfinite(done["blind"][key]) and done["blind"][key] == done["truth"][key], key
+    nets = {kind: load_net(d["checkpoint"])[0].state_dict() for kind, d in done.items()}
+    for name, value in nets["truth"].items():
+        assert torch.equal(value, nets["blind"][name]), name

@@ -290,8 +290,11 @@ class WindowDataModule(L.LightningDataModule):
         if self.train_set is not None:
             return
         # steps without a position fix (a user's logs, GNSS slower than the inputs) are NaN rows
-        train = schema.read_set(self.folder / "train.parquet", missing_fixes=True)
-        val = schema.read_set(self.folder / "val.parquet", SCORED_SET, missing_fixes=True)
+        train = schema.read_set(self.folder / "train.parquet", missing_fixes=True,
+                                missing_truth=True)
+        val = schema.read_set(self.folder / "val.parquet", SCORED_SET, missing_fixes=True,
+                              missing_truth=True)
+        self._check_truth(train, val)
         first = int(val.loc[val["scored"], "k"].min())
         # a filter trained carried on long windows is validated carried over windows as long
         # as the validation set's run-in allows (it runs carried there, from their first fix)
@@ -323,6 +326,20 @@ class WindowDataModule(L.LightningDataModule):
             self.val_set = FixedDataset(*val_set.batch(idx, g))
         self.train_set.to(self.device, self.seed)
         self.val_set.to(self.device, self.seed)
+
+    def _check_truth(self, train: pd.DataFrame, val: pd.DataFrame) -> None:
+        """Logs without the truth (NaN ``x, y, psi``, :mod:`lbo.sim.log_sets`) train by their
+        own next fixes alone, never by the truth or by noise drawn around it."""
+        for name, df in (("training", train), ("validation", val)):
+            if not df[list(STATE)].isna().to_numpy().any():
+                continue
+            if not self.next_fix:
+                raise LboError(f"the {name} set holds logs without the truth (x, y, psi): "
+                               "train on them with loss=next_fix, or give logs that have it")
+            if self.draw is not None:
+                raise LboError(f"the {name} set holds logs without the truth (x, y, psi), "
+                               "and train_noise draws its noise around the truth: train on "
+                               "the logs' own fixes (train_noise=stored)")
 
     def normalisation(self, net: Any, scaling: str = "standard",
                       n: int = 20_000) -> dict[str, torch.Tensor]:

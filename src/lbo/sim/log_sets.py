@@ -2,11 +2,13 @@
 
 Each set is a list of paths, folders or globs of CSV/Parquet logs with the columns that
 ``python -m lbo.observe`` reads (``t, x_m, y_m, psi_m, V, delta``) plus the reference
-system's true ``x, y, psi``. Every file is checked with the same one-line errors as
-``lbo.observe`` (:mod:`lbo.sim.logcheck`), then cut into segments at every gap in time and every
-jump in dt, so that no window crosses a gap or a file boundary (each segment is a trajectory
-of its own, its step ``k`` restarting at 0), and put onto the vehicle's dt with
-``resample=true``. The split is by file: a file belongs to one set only.
+system's true ``x, y, psi``. The training and validation logs may go without the truth (a
+fleet's logs have none): their sets hold NaN there, and only ``loss=next_fix`` trains on them;
+the test logs are scored against it, so they need it. Every file is checked with the same
+one-line errors as ``lbo.observe`` (:mod:`lbo.sim.logcheck`), then cut into segments at every
+gap in time and every jump in dt, so that no window crosses a gap or a file boundary (each
+segment is a trajectory of its own, its step ``k`` restarting at 0), and put onto the
+vehicle's dt with ``resample=true``. The split is by file: a file belongs to one set only.
 
 The sets are written in the simulated sets' schema to ``<root>/logs-<digest>/`` (``digest``:
 the settings and the bytes of every file), so that training, tuning and evaluation read them
@@ -177,17 +179,18 @@ def spec_from_cfg(cfg: DictConfig, need: tuple[str, ...] = SETS) -> LogSpec:
 # --------------------------------------------------------------------------- reading
 
 
-def segments(path: Path, spec: LogSpec) -> list[pd.DataFrame]:
-    """The checked segments of one log: ``t``, the measurements, the inputs and the truth, on
-    the vehicle's dt, cut at every gap in ``t`` (with ``resample``: longer than ``max_gap``;
-    without: any step more than 1% off dt). Segments shorter than two steps or without a fix
-    are left out.
+def segments(path: Path, spec: LogSpec, part: str = "test") -> list[pd.DataFrame]:
+    """The checked segments of one log of set ``part``: ``t``, the measurements, the inputs
+    and the truth (NaN where a training or validation log has none), on the vehicle's dt, cut
+    at every gap in ``t`` (with ``resample``: longer than ``max_gap``; without: any step more
+    than 1% off dt). Segments shorter than two steps or without a fix are left out.
 
     Raises
     ------
     LboError
-        The checks of ``lbo.observe`` (columns, NaN, units, ranges, steering limit), a missing
-        true-state column, or a period that is not dt without ``resample``.
+        The checks of ``lbo.observe`` (columns, NaN, units, ranges, steering limit), some but
+        not all true-state columns, a test log without them, or a period that is not dt
+        without ``resample``.
     """
     from lbo.sim.logio import (
         DT_TOLERANCE,
@@ -201,12 +204,17 @@ def segments(path: Path, spec: LogSpec) -> list[pd.DataFrame]:
     df, _ = spec.log_format.apply(read_log(path), source)
     missing = [c for c in STATE if c not in df.columns]
     if missing and all(c in df.columns for c in LOG):
-        raise LboError(f"{source}: missing true-state column{'s' if len(missing) > 1 else ''} "
-                       f"{', '.join(missing)} (data=logs trains and scores against the "
-                       "reference system's x, y in m and psi in rad)")
+        if part == "test" or len(missing) < len(STATE):
+            raise LboError(
+                f"{source}: missing true-state column{'s' if len(missing) > 1 else ''} "
+                f"{', '.join(missing)} (data=logs scores the test logs against the reference "
+                "system's x, y in m and psi in rad; the training and validation logs may go "
+                "without all three, for loss=next_fix)")
     # the learned observers train on full fixes (x_m, y_m and psi_m) only
     check_log(df, source, spec.log_format.heading, position_only=False)
     check_steering(df, spec.vehicle, source)
+    if missing:  # no truth: its NaN columns keep the sets' schema; loss=next_fix reads none
+        df = df.assign(**dict.fromkeys(STATE, np.nan))
     dt = spec.vehicle.dt
     t = df["t"].to_numpy(dtype=float)
     check_time_unit(t, dt, source)
@@ -240,8 +248,11 @@ def segments(path: Path, spec: LogSpec) -> list[pd.DataFrame]:
 
 def noise_level(m: np.ndarray, z: np.ndarray, sigma) -> float:
     """The alpha of a log's own noise: the RMS of its measurement errors over ``sigma`` (3,),
-    the noise preset's at alpha=1, over the rows with a fix. m, z: (R, 3)."""
-    fix = np.isfinite(m).all(1)
+    the noise preset's at alpha=1, over the rows with a fix (NaN for a log without the truth).
+    m, z: (R, 3)."""
+    fix = np.isfinite(m).all(1) & np.isfinite(z).all(1)
+    if not fix.any():
+        return float("nan")
     err = m[fix] - z[fix]
     err[:, 2] = wrap_angle(err[:, 2])
     return float(np.sqrt(np.mean(np.square(err / np.asarray(sigma)))))
@@ -254,7 +265,7 @@ def make_set(part: str, spec: LogSpec) -> tuple[pd.DataFrame, list[dict]]:
     facts: list[dict[str, Any]] = []
     traj = 0
     for i, path in enumerate(spec.files[part]):
-        segs = segments(path, spec)
+        segs = segments(path, spec, part)
         z = np.concatenate([s[list(STATE)].to_numpy(float) for s in segs])
         m = np.concatenate([s[list(MEAS)].to_numpy(float) for s in segs])
         level = noise_level(m, z, spec.noise.measurement_sigma)
@@ -272,7 +283,8 @@ def make_set(part: str, spec: LogSpec) -> tuple[pd.DataFrame, list[dict]]:
             frames.append(f)
             traj += 1
         kept = int(sum(len(s) for s in segs))
-        facts.append({"file": str(path), "rows": kept, "segments": len(segs), "alpha": level})
+        facts.append({"file": str(path), "rows": kept, "segments": len(segs), "alpha": level,
+                      "truth": bool(np.isfinite(z).all())})
     df = pd.concat(frames, ignore_index=True)
     if part != "train" and not df["scored"].any():
         longest = max(f["rows"] for f in facts)
@@ -354,8 +366,12 @@ def summary(folder: Path, sets: dict[str, pd.DataFrame], dt: float) -> list[str]
         line = (f"  {part:5s} {len(facts)} log(s), {df['traj'].nunique()} segment(s), "
                 f"{len(df):,} rows ({minutes:.1f} min)")
         if part != "train":
-            levels = [f["alpha"] for f in facts]
-            line += (f", {int(df['scored'].sum()):,} scored; noise level "
-                     f"{min(levels):.2f}-{max(levels):.2f} x the preset")
+            levels = [f["alpha"] for f in facts if np.isfinite(f["alpha"])]
+            line += f", {int(df['scored'].sum()):,} scored"
+            if levels:
+                line += f"; noise level {min(levels):.2f}-{max(levels):.2f} x the preset"
+        blind = sum(not f.get("truth", True) for f in facts)
+        if blind:
+            line += f"; {blind} log(s) without the truth (loss=next_fix trains on them)"
         lines.append(line)
     return lines

@@ -42,11 +42,13 @@ def check_values(df: pd.DataFrame, columns: tuple[str, ...], source: str = "data
 
 
 def check_frame(df: pd.DataFrame, required: tuple[str, ...], source: str = "data",
-                missing_fixes: bool = False) -> None:
+                missing_fixes: bool = False, missing_truth: bool = False) -> None:
     """Raise LboError naming the first missing column, or the first column with NaN/inf.
 
     With ``missing_fixes``, rows whose ``x_m, y_m, psi_m`` are all NaN (steps without a
-    position fix) are allowed, partial ones are not (see :func:`fix_rows`).
+    position fix) are allowed, partial ones are not (see :func:`fix_rows`). With
+    ``missing_truth``, the true ``x, y, psi`` and the noise level ``alpha`` may be NaN (logs
+    without the truth, :mod:`lbo.sim.log_sets`).
     """
     missing = [c for c in required if c not in df.columns]
     if missing:
@@ -54,12 +56,12 @@ def check_frame(df: pd.DataFrame, required: tuple[str, ...], source: str = "data
                        f"{', '.join(required)})")
     if len(df) == 0:
         raise LboError(f"{source}: the file holds no rows")
-    if missing_fixes and all(c in required for c in MEAS):
+    fixes = missing_fixes and all(c in required for c in MEAS)
+    if fixes:
         fix_rows(df, source)
-        check_values(df, tuple(c for c in required if c not in MEAS), source)
-        check_values(df.fillna({c: 0.0 for c in MEAS}), MEAS, source)
-        return
-    check_values(df, required, source)
+    # without the truth, a log's noise level (``alpha``) is unknown too
+    blank = (MEAS if fixes else ()) + ((*STATE, "alpha") if missing_truth else ())
+    check_values(df.fillna(dict.fromkeys(blank, 0.0)) if blank else df, required, source)
 
 
 def fix_rows(df: pd.DataFrame, source: str = "input") -> np.ndarray:
@@ -71,7 +73,7 @@ def fix_rows(df: pd.DataFrame, source: str = "input") -> np.ndarray:
 
 
 def read_set(path: str | Path, required: tuple[str, ...] = SET,
-             missing_fixes: bool = False) -> pd.DataFrame:
+             missing_fixes: bool = False, missing_truth: bool = False) -> pd.DataFrame:
     """Read a Parquet set and check its columns (see :func:`check_frame`). Raises LboError
     for missing or unreadable files (cut short, not Parquet) or missing columns."""
     path = Path(path)
@@ -84,7 +86,8 @@ def read_set(path: str | Path, required: tuple[str, ...] = SET,
                   if is_data_set_folder(path.parent) else "")
         raise LboError(f"{path}: not a readable Parquet file (cut short, or not Parquet: "
                        f"{first_line(e)}){advice}") from None
-    check_frame(df, required, source=str(path), missing_fixes=missing_fixes)
+    check_frame(df, required, source=str(path), missing_fixes=missing_fixes,
+                missing_truth=missing_truth)
     return df
 
 
