@@ -13,8 +13,8 @@ from omegaconf import OmegaConf
 
 from lbo.filters.gyro import GyroNoise
 from lbo.learn import gyro_fit
+from lbo.logs import comma2k19
 from lbo.scoring.receiver import EKF, RAW, RMSE, markdown, ratio_to, score
-from lbo.sim import comma2k19
 from lbo.sim.noise import Noise
 from lbo.sim.vehicle import Vehicle
 

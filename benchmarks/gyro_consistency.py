@@ -28,8 +28,8 @@ from lbo.core.angles import wrap_angle
 from lbo.core.paths import CONF_DIR
 from lbo.filters import classical
 from lbo.filters.gyro import gyro_ekf_batch
+from lbo.logs.io import receiver
 from lbo.serve.runners import ClassicalRunner
-from lbo.sim.logio import receiver
 from lbo.sim.manoeuvres import MANOEUVRES
 from lbo.sim.noise import Noise
 from lbo.sim.vehicle import Vehicle

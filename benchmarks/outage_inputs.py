@@ -19,10 +19,10 @@ from hydra import compose, initialize_config_dir
 from lbo.core.paths import CONF_DIR
 from lbo.filters.inputs import InputTerms
 from lbo.learn import input_fit
+from lbo.logs.io import receiver
 from lbo.scoring import outages
 from lbo.serve.observer import Observer
 from lbo.serve.rows import bicycle_rows
-from lbo.sim.logio import receiver
 from lbo.sim.noise import Noise
 from lbo.sim.truth import Sensors
 from lbo.sim.vehicle import Vehicle

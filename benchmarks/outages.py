@@ -19,12 +19,12 @@ from omegaconf import OmegaConf
 
 from lbo.filters.gyro import GyroNoise
 from lbo.learn import gyro_fit, input_fit
+from lbo.logs import comma2k19
+from lbo.logs.io import receiver
 from lbo.scoring import outages
 from lbo.scoring.receiver import EKF, score
 from lbo.serve.observer import Observer
 from lbo.serve.rows import bicycle_rows
-from lbo.sim import comma2k19
-from lbo.sim.logio import receiver
 from lbo.sim.noise import Noise
 from lbo.sim.vehicle import Vehicle
 

@@ -10,10 +10,10 @@ import pytest
 import torch
 
 from helpers import compose_cfg, step_log
+from lbo.logs.io import receiver
 from lbo.models.net import WindowNet
 from lbo.serve import carry
 from lbo.serve.observer import Observer
-from lbo.sim.logio import receiver
 from lbo.simulate import simulate
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")

@@ -1,4 +1,4 @@
-"""The comma2k19 reader (lbo.sim.comma2k19) on the shipped example segment: units, axes, the
+"""The comma2k19 reader (lbo.logs.comma2k19) on the shipped example segment: units, axes, the
 fixes' latency, the truth's frame, the steering fit, the log's checks, and the reader of a
 segment's original folder layout."""
 
@@ -13,8 +13,8 @@ import pandas as pd
 import pytest
 
 from lbo.core.errors import LboError
-from lbo.sim import comma2k19
-from lbo.sim.logio import check_log, check_period, check_steering
+from lbo.logs import comma2k19
+from lbo.logs.io import check_log, check_period, check_steering
 from lbo.sim.vehicle import Vehicle
 
 DT = Vehicle().dt

@@ -309,8 +309,8 @@ def train_checks(cfg) -> None:
     the data set's settings (``prepare_data``), the run's fingerprint, and every interpolation
     of the config resolved (its config.yaml and MLflow params)."""
     from lbo.learn import noise_run, slip_run
+    from lbo.logs.sets import is_logs
     from lbo.sim.datasets import spec_from_cfg
-    from lbo.sim.log_sets import is_logs
     from lbo.train import check, config_hash
 
     if cfg.model.name == noise_run.NAME:  # lbo.train's own branch: seven noises, no net
@@ -331,7 +331,7 @@ def train_checks(cfg) -> None:
 
 def data_checks(cfg) -> None:
     """``lbo.datagen``: the data set's settings (or the logs named)."""
-    from lbo.sim import log_sets as logs
+    from lbo.logs import sets as logs
     from lbo.sim.datasets import spec_from_cfg
 
     if logs.is_logs(cfg):
@@ -344,8 +344,8 @@ def evaluate_checks(cfg) -> None:
     """``lbo.evaluate``: the observers, the reference, the forms and flags, the vehicle, noise
     car and sensors, and the test grid's settings (or the test logs named)."""
     from lbo import evaluate
+    from lbo.logs import sets as logs
     from lbo.scoring import grid
-    from lbo.sim import log_sets as logs
     from lbo.sim.datasets import spec_from_cfg
     from lbo.sim.truth import of_config
     from lbo.sim.vehicle import Vehicle
@@ -370,8 +370,8 @@ def simulate_checks(cfg) -> None:
 
 def observe_checks(cfg) -> None:
     """``lbo.observe``: the settings it checks before it reads a log or a checkpoint."""
+    from lbo.logs.units import check_max_gap
     from lbo.sim.noise import Noise, check_alpha
-    from lbo.sim.units import check_max_gap
     from lbo.sim.vehicle import Vehicle
 
     Noise.from_cfg(cfg.noise)

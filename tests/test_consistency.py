@@ -22,9 +22,9 @@ from lbo.filters.consistency import (
 )
 from lbo.filters.gyro import gyro_ekf_batch
 from lbo.filters.update import joseph_update
+from lbo.logs.io import receiver
 from lbo.serve.observer import Observer
 from lbo.serve.runners import ClassicalRunner
-from lbo.sim.logio import receiver
 from lbo.sim.noise import Noise
 from lbo.sim.vehicle import Vehicle
 from lbo.simulate import simulate as simulate_log

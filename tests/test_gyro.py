@@ -12,9 +12,9 @@ from lbo.core.errors import LboError
 from lbo.filters import classical
 from lbo.filters.gyro import FixDrift, gyro_ekf_batch
 from lbo.filters.measure import rows
+from lbo.logs.checks import check_receiver
 from lbo.serve.observer import Observer
 from lbo.sim.columns import RECEIVER
-from lbo.sim.logcheck import check_receiver
 from lbo.sim.noise import Noise
 from lbo.sim.receiver import Channel, ReceiverSpec, sense
 from lbo.sim.vehicle import Vehicle, simulate

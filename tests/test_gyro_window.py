@@ -14,12 +14,12 @@ import torch
 from helpers import compose_cfg, step_log
 from lbo.core.errors import LboError
 from lbo.filters import gyro as gyro_model
+from lbo.logs.io import receiver
 from lbo.models import receiver_window as rw
 from lbo.models.filternet import WindowFilter
 from lbo.models.net import WindowNet
 from lbo.models.recursive import RecursiveFilter
 from lbo.serve.observer import Observer
-from lbo.sim.logio import receiver
 from lbo.simulate import simulate
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")

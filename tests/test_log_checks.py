@@ -1,4 +1,4 @@
-"""One validation path for logs (lbo.sim.logcheck): the CLI `lbo.observe` and the library API
+"""One validation path for logs (lbo.logs.checks): the CLI `lbo.observe` and the library API
 (`Observer.run`, `Observer.step`) refuse the same bad input with the same one line."""
 
 from __future__ import annotations
@@ -17,11 +17,11 @@ import torch
 from helpers import compose_cfg, observe, observed, one_line_error, train_in_own_store
 from helpers.shared import once
 from lbo.core.errors import LboError
+from lbo.logs.io import resample
 from lbo.models.features import window_view
 from lbo.models.net import WindowNet
 from lbo.observe import observe as observe_cfg
 from lbo.serve.observer import Observer
-from lbo.sim.logio import resample
 from lbo.simulate import simulate
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")

@@ -25,9 +25,9 @@ import pytest
 from helpers import observed
 from lbo.core.angles import wrap_angle
 from lbo.core.errors import LboError
-from lbo.sim.logcheck import check_samples
-from lbo.sim.logformat import LogFormat, Origin
-from lbo.sim.units import check_conventions
+from lbo.logs.checks import check_samples
+from lbo.logs.formats import LogFormat, Origin
+from lbo.logs.units import check_conventions
 from lbo.sim.vehicle import simulate
 
 DT = 0.02

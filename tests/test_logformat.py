@@ -12,8 +12,8 @@ import pytest
 
 from helpers import compose_cfg, observed
 from lbo.core.errors import LboError
-from lbo.sim.logformat import LogFormat, Origin, to_local
-from lbo.sim.units import check_conventions
+from lbo.logs.formats import LogFormat, Origin, to_local
+from lbo.logs.units import check_conventions
 
 COLUMNS = ["t", "x_m", "y_m", "psi_m", "V", "delta", "x", "y", "psi"]
 ORIGIN = Origin(48.7758, 2.2886)  # near Paris
@@ -214,7 +214,7 @@ def test_bad_geodetic_logs_are_one_line(tmp_path, plain, edit, message):
 
 
 def test_data_logs_reads_a_loggers_logs_as_their_plain_twins(test_set, tmp_path):
-    from lbo.sim import log_sets as logs
+    from lbo.logs import sets as logs
 
     for kind in ("plain", "logged"):
         for part in ("train", "val", "test"):

@@ -43,7 +43,7 @@ def logs_cfg(root: Path, tmp: Path, *overrides: str, name: str = "train"):
 
 
 def built(cfg):
-    from lbo.sim import log_sets as logs
+    from lbo.logs import sets as logs
 
     spec = logs.spec_from_cfg(cfg)
     folder, sets, _ = logs.build(spec, progress=False)

@@ -14,10 +14,10 @@ import torch
 from helpers import compose_cfg, train_in_own_store
 from lbo.core.errors import LboError
 from lbo.learn import net_fit
+from lbo.logs.io import receiver
 from lbo.models.envelope import Envelope
 from lbo.models.net import WindowNet
 from lbo.serve.observer import Observer
-from lbo.sim.logio import receiver
 from lbo.simulate import simulate
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")

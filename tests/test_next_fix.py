@@ -205,7 +205,7 @@ def fleet_cfg(logs, tmp, *overrides: str):
 def test_logs_without_the_truth_make_sets_that_say_so(fleet, tmp_path):
     import json
 
-    from lbo.sim import log_sets
+    from lbo.logs import sets as log_sets
 
     spec = log_sets.spec_from_cfg(fleet_cfg(fleet / "blind", tmp_path, "loss=next_fix"))
     folder, sets, _ = log_sets.build(spec, progress=False)
@@ -230,7 +230,7 @@ def test_a_test_log_without_the_truth_or_a_log_with_part_of_it_is_one_line(
     import shutil
 
     from lbo.core.errors import LboError
-    from lbo.sim import log_sets
+    from lbo.logs import sets as log_sets
 
     logs = tmp_path / "logs"
     shutil.copytree(fleet / "truth", logs)

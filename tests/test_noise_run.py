@@ -142,7 +142,8 @@ def test_other_data_sets_are_one_line_before_any_work(tmp_path, args, words):
 def test_the_hill_drive_is_a_data_set_split_by_drive(tmp_path):
     pytest.importorskip("onavdata", reason="the optional extra lbo[real] is not installed")
     from helpers import compose_cfg
-    from lbo.sim import hguide, log_sets
+    from lbo.logs import hguide
+    from lbo.logs import sets as log_sets
 
     cfg = compose_cfg("train", ["model=gyro_ekf", "data=hill", f"paths.data={tmp_path}",
                                 "data.train=[1,3]", "data.test=[]"])
@@ -158,7 +159,7 @@ def test_the_hill_drive_is_a_data_set_split_by_drive(tmp_path):
     log_sets.spec_from_cfg(cfg, need=("train", "val"))  # written once, then reused
     assert {p: p.stat().st_mtime_ns for p in stamp} == stamp
     with pytest.raises(LboError, match=r"^data\.test: expected a list"):
-        from lbo.sim.hill import check_numbers
+        from lbo.logs.hill import check_numbers
 
         check_numbers([1, 1], "data.test")
     assert np.isfinite(written[0]["x"]).all()  # the truth rides along, for scoring only

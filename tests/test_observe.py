@@ -19,13 +19,13 @@ from lbo.export import register
 from lbo.filters.classical import estimate as run_classical
 from lbo.filters.kalman import ekf_batch
 from lbo.filters.reference import run_filterpy_ekf
+from lbo.logs.io import resample
 from lbo.observe import observe as observe_cfg
 from lbo.scoring.grid import classical, predict_grid
 from lbo.scoring.metrics import nrmse, rmse
 from lbo.serve.engines import TOLERANCE
 from lbo.serve.observer import Observer
 from lbo.sim import schema
-from lbo.sim.logio import resample
 from lbo.sim.noise import Noise
 from lbo.sim.vehicle import Vehicle
 

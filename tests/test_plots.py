@@ -111,7 +111,7 @@ def test_an_observed_log_has_a_panel_per_variable_scaled_after_its_start():
 
 
 def test_the_optuna_figures_name_their_objective(tmp_path, monkeypatch):
-    from lbo.tracking.study_mlflow import _figures
+    from lbo.tuning.mirror import _figures
 
     study = optuna.create_study(direction="minimize")
     for value in (0.5, 0.3):

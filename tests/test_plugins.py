@@ -338,7 +338,7 @@ def test_a_plug_in_breaking_the_output_contract_is_refused_before_any_run(
 
 
 def test_tunes_training_line_keeps_the_studys_search_path(tmp_path):
-    from lbo.tracking.handoff import train_command
+    from lbo.tuning.handoff import train_command
 
     line = train_command(EXAMPLE, tmp_path / "tuned" / "my_gru.yaml",
                          ["pkg://lbo_plugin_example.conf"])

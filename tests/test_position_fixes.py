@@ -13,9 +13,9 @@ from lbo.core.errors import LboError
 from lbo.filters import classical
 from lbo.filters.start import HEADING_VAR0
 from lbo.filters.update import joseph_update
+from lbo.logs.checks import check_fixes, check_sample, check_samples
 from lbo.models.net import WindowNet
 from lbo.serve.observer import Observer
-from lbo.sim.logcheck import check_fixes, check_sample, check_samples
 from lbo.sim.noise import Noise
 from lbo.sim.vehicle import Vehicle
 from lbo.simulate import simulate

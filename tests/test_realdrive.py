@@ -15,9 +15,9 @@ from helpers import cli, observe, train_in_own_store
 from lbo.core.angles import wrap_angle
 from lbo.core.errors import LboError
 from lbo.filters.gyro import GyroNoise
+from lbo.logs import hguide
+from lbo.logs.io import check_log
 from lbo.serve.observer import Observer
-from lbo.sim import hguide
-from lbo.sim.logio import check_log
 from lbo.sim.vehicle import Vehicle
 
 CONF = Path(__file__).resolve().parents[1] / "conf"

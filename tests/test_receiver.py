@@ -12,10 +12,10 @@ from helpers import compose_cfg, observe
 from lbo.core.angles import wrap_angle
 from lbo.core.errors import LboError
 from lbo.filters import classical, measure
+from lbo.logs.checks import check_receiver
+from lbo.logs.io import resample
 from lbo.serve.observer import Observer
 from lbo.sim.columns import RECEIVER
-from lbo.sim.logcheck import check_receiver
-from lbo.sim.logio import resample
 from lbo.sim.noise import Noise
 from lbo.sim.schema import Trajectories
 from lbo.sim.vehicle import Vehicle

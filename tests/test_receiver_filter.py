@@ -14,12 +14,12 @@ import torch
 
 from helpers import compose_cfg, step_log, train_in_own_store
 from lbo.core.errors import LboError
+from lbo.logs.io import receiver
 from lbo.models import receiver_window as rw
 from lbo.models.filternet import WindowFilter
 from lbo.models.net import WindowNet
 from lbo.scoring.receiver import net_rows
 from lbo.serve.observer import Observer
-from lbo.sim.logio import receiver
 from lbo.simulate import simulate
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")

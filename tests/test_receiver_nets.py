@@ -16,10 +16,10 @@ from helpers import cli, compose_cfg, step_log, train_in_own_store
 from lbo.core.errors import LboError
 from lbo.learn.builders import noise_settings
 from lbo.learn.draws import ReceiverDraw, draw_fixes
+from lbo.logs.io import receiver
 from lbo.models import receiver_window as rw
 from lbo.models.net import WindowNet
 from lbo.serve.observer import Observer
-from lbo.sim.logio import receiver
 from lbo.sim.receiver import Channel, ReceiverSpec
 from lbo.sim.vehicle import step
 from lbo.simulate import simulate

@@ -20,7 +20,7 @@ from helpers import SWEEP_BUDGET, cli, compose_cfg, train_cfg
 from helpers.servers import PG_PASSWORD, free_port, mlflow_server, postgres
 from lbo.core.cli import check_launcher, launcher_from_argv
 from lbo.core.errors import LboError
-from lbo.tracking.study_storage import MAX_CONNECTIONS
+from lbo.tuning.storage import MAX_CONNECTIONS
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 optuna.logging.set_verbosity(optuna.logging.WARNING)

@@ -16,10 +16,10 @@ from omegaconf import open_dict
 from helpers import cli, compose_cfg
 from lbo.core.errors import LboError
 from lbo.core.paths import CONF_DIR
-from lbo.tracking.search import TrialSeededTPESampler
-from lbo.tracking.study_mlflow import StudyRun, literal
 from lbo.train import check
 from lbo.tune import open_storage, search_space, trial_config, tune
+from lbo.tuning.mirror import StudyRun, literal
+from lbo.tuning.search import TrialSeededTPESampler
 
 optuna.logging.set_verbosity(optuna.logging.WARNING)
 
@@ -307,7 +307,7 @@ def test_a_diverged_trial_fails_and_the_study_goes_on_until_too_many_diverge(
 
 def test_an_error_after_the_study_run_opened_ends_it_failed(tmp_path, smoke_data, tracking,
                                                            monkeypatch):
-    from lbo.tracking import study_mlflow
+    from lbo.tuning import mirror as study_mlflow
 
     def broken(*args, **kwargs):
         raise RuntimeError("no figures today")
@@ -361,7 +361,7 @@ def test_a_changed_categorical_space_is_refused_before_any_trial(tmp_path, smoke
 ])
 def test_a_changed_distribution_kind_or_scale_is_refused(tmp_path, smoke_data, tracking,
                                                           stored, message):
-    from lbo.tracking.search import check_resumed
+    from lbo.tuning.search import check_resumed
 
     space = search_space(tune_cfg(tmp_path, smoke_data, tracking))
     trial = optuna.trial.create_trial(params={"model.dense_units": 64},
@@ -511,7 +511,7 @@ def test_the_training_line_of_a_hand_off_composes_its_tuned_values(search, where
 
     from omegaconf import OmegaConf
 
-    from lbo.tracking.handoff import write_handoff
+    from lbo.tuning.handoff import write_handoff
 
     folder = CONF_DIR / "tuned" if where == "conf" else tmp_path / "tuned"
     made = not folder.exists()
@@ -635,7 +635,7 @@ def test_locks_live_beside_the_database_not_in_the_temp_folder(tmp_path, smoke_d
 def test_a_recorded_ctrl_c_stops_the_trial_at_each_safe_point(hook):
     """The first Ctrl-C is only recorded; the trial stops at the next epoch start or batch end
     (the epoch-start hook was once left behind, dead, in tune.py)."""
-    from lbo.learn.tune_callbacks import Interrupts
+    from lbo.tuning.callbacks import Interrupts
 
     interrupts = Interrupts()
     getattr(interrupts, hook)(None, None)  # nothing recorded: goes on

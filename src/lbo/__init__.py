@@ -20,7 +20,7 @@ _EXPORTS = {
     "Vehicle": "lbo.sim.vehicle",
     "Noise": "lbo.sim.noise",
     "LboError": "lbo.core.errors",
-    "LogFormat": "lbo.sim.logformat",
+    "LogFormat": "lbo.logs.formats",
 }
 
 __all__ = sorted(_EXPORTS)

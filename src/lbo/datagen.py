@@ -13,7 +13,7 @@ from lbo.core.cli import entry
 
 def generate(cfg: DictConfig) -> str:
     """Generate the sets for ``cfg``, print the summary and return the folder."""
-    from lbo.sim import log_sets as logs
+    from lbo.logs import sets as logs
     from lbo.sim.datasets import build, data_lock, figures, spec_from_cfg, summary
 
     if logs.is_logs(cfg):
@@ -41,7 +41,7 @@ def generate(cfg: DictConfig) -> str:
 
 def _logs(cfg: DictConfig) -> str:
     """``data=logs``: check and cache a user's logs as the three sets; print what they hold."""
-    from lbo.sim import log_sets as logs
+    from lbo.logs import sets as logs
 
     spec = logs.spec_from_cfg(cfg)
     start = time.perf_counter()

@@ -43,7 +43,7 @@ from lbo.sim.vehicle import Vehicle
 def evaluate(cfg: DictConfig) -> Path:
     """Score the configured classical observers (and learned ones: ``learned``, and
     ``observer``, whose MLflow run is told the result); write evaluation.csv and its figure."""
-    from lbo.sim.log_sets import is_logs
+    from lbo.logs.sets import is_logs
 
     observers = list(cfg.observers)
     learned = [str(s) for s in cfg.get("learned") or []]
@@ -299,8 +299,8 @@ def run_logs(cfg: DictConfig, observers: list[str], learned: list[str]
     evaluation.csv and nrmse_logs.png. Returns its path, the learned observers' names and the
     files written."""
     from lbo.core import plots
+    from lbo.logs.sets import build, spec_from_cfg, test_files
     from lbo.scoring import logscore
-    from lbo.sim.log_sets import build, spec_from_cfg, test_files
 
     spec = spec_from_cfg(cfg, need=("test",))
     peers = [o for o in observers if o in LOG_PEERS]

@@ -17,7 +17,7 @@ moves; :mod:`lbo.filters.measure`) and a gyro's yaw rate ``r_m`` (rad/s), which
 any other observer (``ekf``, a learned one, ...) it fits the inputs' terms, a factor on the
 speed and an offset and a factor on the steering, by the kinematic EKF's prediction errors
 (:mod:`lbo.learn.input_fit`), and the observer reads the inputs they undo.
-The whole log is checked before anything is written (:mod:`lbo.sim.logcheck`, the checks
+The whole log is checked before anything is written (:mod:`lbo.logs.checks`, the checks
 :class:`lbo.Observer` applies too); a failed run writes no output file. The output has ``t,
 x, y, psi, valid``: ``valid`` is false before the first fix, and on the first N-1 rows of a
 CNN or LSTM, whose window is not full yet (those rows hold the EKF's estimate). An observer
@@ -69,14 +69,9 @@ from lbo.core.checks import boolean, integer
 from lbo.core.cli import entry
 from lbo.core.errors import LboError
 from lbo.filters.consistency import SIGNIFICANCE, WINDOW
-from lbo.models.envelope import check_mode
-from lbo.scoring import outages as outage
-from lbo.scoring.metrics import nrmse
-from lbo.scoring.outages import Outages
-from lbo.sim.columns import COVARIANCE, LATERAL_ESTIMATE, LOG, RECEIVER, STATE
-from lbo.sim.logcheck import check_device
-from lbo.sim.logformat import LogFormat
-from lbo.sim.logio import (
+from lbo.logs.checks import check_device
+from lbo.logs.formats import LogFormat
+from lbo.logs.io import (
     check_log,
     check_output_path,
     check_period,
@@ -87,7 +82,12 @@ from lbo.sim.logio import (
     resample,
     write_table,
 )
-from lbo.sim.units import MAX_GAP, check_max_gap, check_time_unit
+from lbo.logs.units import MAX_GAP, check_max_gap, check_time_unit
+from lbo.models.envelope import check_mode
+from lbo.scoring import outages as outage
+from lbo.scoring.metrics import nrmse
+from lbo.scoring.outages import Outages
+from lbo.sim.columns import COVARIANCE, LATERAL_ESTIMATE, LOG, RECEIVER, STATE
 
 __all__ = ["main", "observe"]
 

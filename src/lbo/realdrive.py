@@ -4,9 +4,9 @@
                             [learn.epochs=12] [learn.objective=truth|innovations]
                             [across_drives=true] [nets=[<checkpoint>]] [net_fit.epochs=8]
 
-Reads the onavdata hill drive (``pip install 'lbo[real]'``; :mod:`lbo.sim.hguide`), fits the
+Reads the onavdata hill drive (``pip install 'lbo[real]'``; :mod:`lbo.logs.hguide`), fits the
 INS's boresight, the antenna's lever arm and the fixes' latency, and writes it as three lbo
-logs, one per time span (:data:`lbo.sim.hguide.SPANS`): ``hill_train.parquet``,
+logs, one per time span (:data:`lbo.logs.hguide.SPANS`): ``hill_train.parquet``,
 ``hill_val.parquet`` and ``hill_test.parquet``. Each takes ``python -m lbo.observe`` as it is.
 It learns the gyro EKF's noise on the train span, keeping the best on the validation span
 (:mod:`lbo.learn.gyro_fit`; ``gyro_noise.json``, which ``lbo.observe observer=gyro
@@ -26,7 +26,7 @@ antenna:
   ``<name>_span.ckpt``).
 
 Then, leave-one-drive-out (``across_drives``, :mod:`lbo.scoring.drives`): the drive holds
-three drives, standing still between them (:func:`lbo.sim.hguide.drives`); for each, the gyro
+three drives, standing still between them (:func:`lbo.logs.hguide.drives`); for each, the gyro
 EKF's noise is learned as ``learn`` says (its objective included) on the other two, and every
 classical observer and that noise are scored on it (``drives.csv``, ``drives.md``: each
 drive's ratio to the EKF, their mean and the worst; ``gyro_noise_without_drive<k>.json``).
@@ -54,6 +54,8 @@ from lbo.core.errors import LboError
 from lbo.filters import classical
 from lbo.filters.gyro import GyroNoise
 from lbo.learn.noise_run import ACROSS
+from lbo.logs import hguide
+from lbo.logs.io import check_log, check_output_path, write_table
 from lbo.scoring import outages as outage
 from lbo.scoring.outages import Outages
 from lbo.scoring.receiver import (
@@ -66,9 +68,7 @@ from lbo.scoring.receiver import (
     ratio_to,
     score,
 )
-from lbo.sim import hguide
 from lbo.sim.columns import STATE
-from lbo.sim.logio import check_log, check_output_path, write_table
 
 __all__ = ["ACROSS", "FINE_TUNED", "FIT_FINE_TUNED", "FIT_KINDS", "FIT_SPAN", "LEARNED", "RATIOS",
            "SIMULATED", "main", "realdrive"]

@@ -43,8 +43,8 @@ from lbo.core.cli import entry
 from lbo.core.errors import LboError
 from lbo.filters import classical
 from lbo.filters.gyro import FixDrift, GyroNoise
+from lbo.logs.io import check_output_path, write_table
 from lbo.scoring import receiver as scoring
-from lbo.sim.logio import check_output_path, write_table
 from lbo.sim.noise import check_alpha
 
 __all__ = ["LEARNED", "RATIOS", "main", "plot", "receiver_study"]

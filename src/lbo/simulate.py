@@ -35,11 +35,11 @@ from lbo.core.angles import wrap_angle
 from lbo.core.checks import integer, number, require
 from lbo.core.cli import entry
 from lbo.core.errors import LboError
+from lbo.logs.checks import fix_period
 from lbo.scoring import outages as outage
 from lbo.scoring.outages import Outages
 from lbo.sim import schema
 from lbo.sim.columns import INPUT, MEAS, STATE
-from lbo.sim.logcheck import fix_period
 from lbo.sim.manoeuvres import MANOEUVRES
 from lbo.sim.noise import check_alpha
 from lbo.sim.stopgo import drive_stop_and_go
@@ -81,8 +81,8 @@ def check_duration(cfg: DictConfig, dt: float) -> float:
 def check(cfg: DictConfig):
     """The data set's spec (:func:`lbo.sim.datasets.spec_from_cfg`), its data, noise, vehicle
     car and sensors groups checked; one line for a user's logs, which have nothing to simulate."""
+    from lbo.logs.sets import is_logs
     from lbo.sim.datasets import spec_from_cfg
-    from lbo.sim.log_sets import is_logs
 
     if is_logs(cfg):
         raise LboError(f"data={cfg.data.name}: lbo.simulate drives a simulated data set's "
@@ -197,7 +197,7 @@ def describe(cfg: DictConfig, df: pd.DataFrame) -> tuple[str, float]:
 def write_logs(cfg: DictConfig) -> Path:
     """Simulate and write ``cfg.output`` (.csv or .parquet), or ``cfg.drives`` logs beside it;
     print what they hold. Returns the path written (the first one of a fleet)."""
-    from lbo.sim.logio import check_output_path, write_table
+    from lbo.logs.io import check_output_path, write_table
 
     if not cfg.get("output"):
         raise LboError("output must be given: python -m lbo.simulate manoeuvre=stop_and_go "

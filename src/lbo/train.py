@@ -48,12 +48,12 @@ from lbo.learn.resume import (
     write_marker,
 )
 from lbo.learn.trainer_checks import check_device, check_optimizer, check_trainer
+from lbo.logs.sets import is_logs
 from lbo.models.carried import covariance_of, sequence_model
 from lbo.models.features import FEATURE_MODES
 from lbo.models.net import check_scaling
 from lbo.models.slip_filter import SIDE_SLIP as SLIP
 from lbo.sim.datasets import refuse_sideslip
-from lbo.sim.log_sets import is_logs
 from lbo.sim.truth import config_dict as truth_dict
 from lbo.tracking import view
 from lbo.tracking.runs import check_store, dataset_input, ensure_experiment, log_input

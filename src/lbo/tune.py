@@ -19,9 +19,9 @@ refused before any trial.
 
 ``tune(cfg)`` is plain Python: it takes a composed ``tune`` config and returns the study's
 outcome. ``main`` is the thin Hydra shell around it. The parts live beside it: the search
-space, the sampler and the pruner in :mod:`lbo.tracking.search`, the hand-off in
-:mod:`lbo.tracking.handoff`, the database and the claim lock in
-:mod:`lbo.tracking.study_storage`, the MLflow runs and figures in :mod:`lbo.tracking.study_mlflow`.
+space, the sampler and the pruner in :mod:`lbo.tuning.search`, the hand-off in
+:mod:`lbo.tuning.handoff`, the database and the claim lock in
+:mod:`lbo.tuning.storage`, the MLflow runs and figures in :mod:`lbo.tuning.mirror`.
 """
 
 from __future__ import annotations
@@ -45,7 +45,8 @@ from optuna.trial import FrozenTrial, TrialState
 from lbo.core.checks import integer, number, require
 from lbo.core.cli import entry
 from lbo.core.errors import LboError, TrainingDiverged
-from lbo.tracking.handoff import (
+from lbo.train import SLIP, check, train
+from lbo.tuning.handoff import (
     best_trials,
     hydra_searchpath,
     outside_note,
@@ -53,7 +54,8 @@ from lbo.tracking.handoff import (
     train_command,
     write_handoff,
 )
-from lbo.tracking.search import (
+from lbo.tuning.mirror import RUN_ATTR, StudyRun
+from lbo.tuning.search import (
     Param,
     TrialSeededTPESampler,
     check_resumed,
@@ -61,8 +63,7 @@ from lbo.tracking.search import (
     search_space,
     short_value,
 )
-from lbo.tracking.study_mlflow import RUN_ATTR, StudyRun
-from lbo.tracking.study_storage import (
+from lbo.tuning.storage import (
     FINISHED,
     ClaimLock,
     close_storage,
@@ -72,7 +73,6 @@ from lbo.tracking.study_storage import (
     redact,
     worker_id,
 )
-from lbo.train import SLIP, check, train
 
 
 def check_tune(cfg: DictConfig) -> list[Param]:
@@ -199,7 +199,7 @@ def check_same_logs(study: optuna.Study, cfg: DictConfig) -> None:
     bytes): resuming it on other logs would compare losses of different data. Raises one line
     naming ``tune.study_name``; records the digest on a new study."""
     from lbo.learn.builders import logs_spec
-    from lbo.sim.log_sets import is_logs
+    from lbo.logs.sets import is_logs
 
     if not is_logs(cfg):
         return
@@ -247,7 +247,7 @@ def _run_study(cfg: DictConfig, space: list[Param], pruner: optuna.pruners.BaseP
             tags["mlflow.parentRunId"] = run.run_id
         try:
             interrupts.check()
-            from lbo.learn.tune_callbacks import Pruning
+            from lbo.tuning.callbacks import Pruning
 
             return train(trial_cfg, callbacks=[Pruning(trial), interrupts],
                          tags=tags)["val_loss"]
@@ -294,7 +294,7 @@ def _run_study(cfg: DictConfig, space: list[Param], pruner: optuna.pruners.BaseP
     run = StudyRun(cfg, study, shown) if tracking else None
     status, handoff, best = "FAILED", None, None
     remaining = t.n_trials  # the trials this run adds, counted once the study is read
-    from lbo.learn.tune_callbacks import Interrupts
+    from lbo.tuning.callbacks import Interrupts
 
     lightning_log = logging.getLogger("lightning.pytorch")
     lightning_level = lightning_log.level  # put back as tune ends, as Optuna's verbosity is

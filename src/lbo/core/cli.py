@@ -100,7 +100,7 @@ def store_error(err: BaseException, cfg: DictConfig | None) -> LboError | None:
     The store is the one ``cfg`` logs to (``logger.tracking_uri``) or the one lbo reads runs
     from (``MLFLOW_TRACKING_URI``, else the repo's ``mlflow.db``); the one whose schema no
     longer reads is named. An Optuna ``optuna.db`` is opened, and its damage reported, by
-    :func:`lbo.tracking.study_storage.open_storage`."""
+    :func:`lbo.tuning.storage.open_storage`."""
     from lbo.core.paths import sqlite_path, tracking_uri
 
     errors = _database_errors(err)

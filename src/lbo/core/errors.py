@@ -7,3 +7,8 @@ class LboError(ValueError):
 
 class TrainingDiverged(LboError):
     """The loss became NaN or inf: the weights are lost, no checkpoint of them is kept."""
+
+
+def located(source: str | None, text: str) -> str:
+    """``text`` prefixed with where it was found (``"input log.csv: ..."``), if anywhere."""
+    return f"{source}: {text}" if source else text

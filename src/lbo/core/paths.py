@@ -6,6 +6,7 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
+import numpy as np
 from omegaconf import OmegaConf
 
 
@@ -83,3 +84,13 @@ def artifact_location(tracking_uri: str) -> str | None:
 
 if not OmegaConf.has_resolver("lbo.artifacts"):
     OmegaConf.register_new_resolver("lbo.artifacts", artifact_location)
+
+
+def shipped(folder: str, name: str) -> dict[str, np.ndarray]:
+    """The arrays of a real run lbo ships with its licence, ``data/<folder>/<name>`` in
+    lbo.sim's package data (a ``numpy.savez_compressed`` file, no pickles), keyed as saved."""
+    from importlib import resources
+
+    source = resources.files("lbo.sim").joinpath("data", folder, name)
+    with resources.as_file(source) as path, np.load(path, allow_pickle=False) as z:
+        return {k: z[k] for k in z.files}

@@ -72,7 +72,7 @@ NOISE_RANGES = {
 """(smallest, largest, unit) of each noise of :class:`GyroNoise`. Past them a noise says
 nothing a filter can use, and its square runs towards float64's ends (1e200 overflowed ``Q``):
 a car moves under 2 m a step at 100 m/s, a heading that wanders a radian a step is not
-tracked, a gyro reads within 10 rad/s (:data:`lbo.sim.logcheck.GYRO_LIMIT`), an antenna sits
+tracked, a gyro reads within 10 rad/s (:data:`lbo.logs.checks.GYRO_LIMIT`), an antenna sits
 on the car; below 1e-12 a sigma's square is lost to rounding beside any other variance, and a
 covariance made of such zeros turns singular."""
 

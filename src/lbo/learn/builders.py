@@ -129,7 +129,7 @@ def say_fresh(cfg: DictConfig, net, init: dict[str, torch.Tensor]) -> None:
 
 
 def logs_spec(cfg: DictConfig):
-    from lbo.sim.log_sets import spec_from_cfg
+    from lbo.logs.sets import spec_from_cfg
 
     return spec_from_cfg(cfg)
 
@@ -230,16 +230,23 @@ def receiver_draw(cfg: DictConfig) -> ReceiverDraw:
 
 
 def prepare_data(cfg: DictConfig) -> tuple[Path, str]:
-    """The data-set folder (generated if missing, or ``data_dir`` as given) and its hash."""
+    """The data-set folder a composed config names and its digest: ``data_dir`` as given,
+    read from a user's logs with ``data=logs`` (:mod:`lbo.logs.sets`), or generated (or
+    reused) from the ``data`` group."""
     if cfg.get("data_dir"):
         folder = Path(cfg.data_dir)
         if not (folder / "train.parquet").is_file():
             raise LboError(f"data_dir: no train.parquet in {folder} "
                            "(give a folder printed by `python -m lbo.datagen`)")
         return folder, folder.name
-    from lbo.sim.datasets import build_from_cfg
+    from lbo.logs import sets as logs
+    from lbo.sim import datasets
 
-    return build_from_cfg(cfg)
+    if logs.is_logs(cfg):  # a user's logs (data=logs, data=hill)
+        log_spec = logs.spec_from_cfg(cfg)
+        return logs.build(log_spec)[0], log_spec.digest
+    spec = datasets.spec_from_cfg(cfg)
+    return datasets.build(spec)[0], spec.digest
 
 
 def targets(node: Any, kind: type) -> bool:

@@ -17,6 +17,7 @@ from lbo.core import plots
 from lbo.core.atomic import atomic_path
 from lbo.filters.classical import DYNAMIC_PEERS, GRID_PEERS
 from lbo.learn.resume import IDENTITY_KEY
+from lbo.logs.sets import is_log_folder, test_files
 from lbo.models.checkpoint import read_checkpoint, trained_conditions
 from lbo.scoring import logscore, peers_ahead
 from lbo.scoring.grid import (
@@ -29,7 +30,6 @@ from lbo.scoring.grid import (
     score,
     summary,
 )
-from lbo.sim.log_sets import is_log_folder, test_files
 from lbo.sim.truth import Truth, of_folder
 
 LOGGED_ALPHAS = (1.0, 3.0, 6.0)

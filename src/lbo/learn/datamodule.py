@@ -328,7 +328,7 @@ class WindowDataModule(L.LightningDataModule):
         self.val_set.to(self.device, self.seed)
 
     def _check_truth(self, train: pd.DataFrame, val: pd.DataFrame) -> None:
-        """Logs without the truth (NaN ``x, y, psi``, :mod:`lbo.sim.log_sets`) train by their
+        """Logs without the truth (NaN ``x, y, psi``, :mod:`lbo.logs.sets`) train by their
         own next fixes alone, never by the truth or by noise drawn around it."""
         for name, df in (("training", train), ("validation", val)):
             if not df[list(STATE)].isna().to_numpy().any():

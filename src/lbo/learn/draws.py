@@ -19,7 +19,7 @@ import torch
 
 from lbo.core.checks import integer, number
 from lbo.core.errors import LboError
-from lbo.sim.logcheck import fix_period
+from lbo.logs.checks import fix_period
 from lbo.sim.noise import check_alpha
 
 DISTRIBUTIONS = ("fixed", "uniform", "loguniform", "levels")

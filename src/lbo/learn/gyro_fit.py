@@ -45,11 +45,11 @@ from lbo.core.errors import LboError
 from lbo.filters import classical, measure
 from lbo.filters.gyro import FixDrift, GyroNoise
 from lbo.learn.eta import more
+from lbo.logs.io import receiver
 from lbo.models.gyro_filter import GyroFilter, Segments
 from lbo.models.poses import wrap_heading
 from lbo.scoring.receiver import measure_ratio, scored_rows
 from lbo.sim.columns import STATE
-from lbo.sim.logio import receiver
 from lbo.sim.noise import Noise
 from lbo.sim.vehicle import Vehicle
 
@@ -402,7 +402,7 @@ def fit_and_write(out: Path, name: str, train: pd.DataFrame | Sequence[pd.DataFr
     """:func:`fit`, one printed line per epoch, written into the folder ``out`` as
     ``<name>.json`` (the noise kept, :meth:`GyroNoise.save`) and ``<name>_history.csv``;
     ``where`` says in the first line what it learns on. Returns the noise kept."""
-    from lbo.sim.logio import write_table
+    from lbo.logs.io import write_table
 
     how = "" if objective == "truth" else ", by its innovations' likelihood, no truth read"
     print(f"learning the gyro EKF's noise {where} ({epochs} epochs{how}; keeps the best on "

@@ -34,11 +34,11 @@ import torch
 
 from lbo.core.errors import LboError
 from lbo.learn.eta import more
+from lbo.logs.io import receiver
 from lbo.models.envelope import Envelope
 from lbo.models.features import window_view
 from lbo.serve.rows import receiver_rows, window_series
 from lbo.sim.columns import INPUT, MEAS, STATE
-from lbo.sim.logio import receiver
 
 __all__ = ["LogWindows", "NetFit", "fit", "fit_and_write", "log_windows"]
 
@@ -179,8 +179,8 @@ def fit_and_write(path: Path, source: str, train_logs: Sequence[pd.DataFrame],
     ``where`` says what it is trained on (the first line, and ``meta["trained_on"]``).
     Returns ``path``."""
     from lbo.core.atomic import atomic_path
+    from lbo.logs.io import write_table
     from lbo.models.checkpoint import read_checkpoint, stored_envelope
-    from lbo.sim.logio import write_table
     from lbo.tracking.artifacts import checkpoint_file
 
     with checkpoint_file(source) as file:

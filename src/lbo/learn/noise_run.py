@@ -40,8 +40,8 @@ from lbo.core.errors import LboError
 from lbo.core.redact import scrub
 from lbo.filters.gyro import GyroNoise
 from lbo.learn.gyro_fit import GyroFit, Settings
+from lbo.logs.sets import LogSpec, is_logs, spec_from_cfg
 from lbo.sim.columns import STATE
-from lbo.sim.log_sets import LogSpec, is_logs, spec_from_cfg
 
 __all__ = ["ACROSS", "FOLDER", "NAME", "across_drives", "check", "train"]
 
@@ -79,7 +79,7 @@ def check(cfg: DictConfig) -> tuple[Settings, LogSpec]:
 def read(spec: LogSpec, part: str, truth: bool) -> list[pd.DataFrame]:
     """The logs of set ``part`` as :func:`lbo.learn.gyro_fit.fit` takes them, each read and
     checked as ``lbo.observe`` reads a log; without ``truth`` its truth columns dropped."""
-    from lbo.sim.logio import check_log, read_log
+    from lbo.logs.io import check_log, read_log
 
     out = []
     for path in spec.files[part]:
@@ -244,7 +244,7 @@ def _across(spec: LogSpec, settings: Settings, out: Path, logs: list[pd.DataFram
 def _write(out: Path, cfg: DictConfig, fitted: GyroFit, spec: LogSpec,
            table: pd.DataFrame | None) -> dict[str, Path]:
     """The run's files in ``out``, each atomic, by artifact name."""
-    from lbo.sim.logio import write_table
+    from lbo.logs.io import write_table
 
     files = {"gyro_noise.json": out / "gyro_noise.json",
              "conditions.json": write_text(out / "conditions.json", json.dumps(

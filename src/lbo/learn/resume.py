@@ -29,7 +29,7 @@ from lbo.core.cli import MODEL_SHORT
 from lbo.core.errors import LboError
 from lbo.core.paths import sqlite_path
 from lbo.core.runfolder import LOCK_NAME
-from lbo.sim.log_sets import is_logs
+from lbo.logs.sets import is_logs
 
 LATER_DEFAULTS: dict[str, Any] = {"model.normalisation": "standard", "receiver": None,
                   "receiver_training": {"heading_share": 0.25, "gyro_share": 0.75},

@@ -38,7 +38,7 @@ import numpy as np
 
 from lbo.core.angles import wrap_angle
 from lbo.core.errors import LboError
-from lbo.sim.logcheck import fix_mask
+from lbo.logs.checks import fix_mask
 
 if TYPE_CHECKING:
     import torch

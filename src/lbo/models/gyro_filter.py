@@ -28,6 +28,7 @@ from lbo.filters import gyro as gyro_np
 from lbo.filters import measure
 from lbo.filters.gyro import GyroNoise
 from lbo.models.poses import wrap_angle_torch
+from lbo.models.update import joseph
 
 _NAMES = tuple(f.name for f in dataclasses.fields(GyroNoise))
 UNITS = {"speed_scale": 0.02, "gyro_scale": 0.02}
@@ -279,12 +280,11 @@ def _joseph(x: torch.Tensor, P: torch.Tensor, y: torch.Tensor, H: torch.Tensor,
     S = H @ PHt + R
     L = torch.linalg.cholesky(S)
     K = torch.cholesky_solve(PHt.transpose(-1, -2), L).transpose(-1, -2)
-    I_KH = torch.eye(x.shape[-1], dtype=x.dtype) - K @ H
-    post = I_KH @ P @ I_KH.transpose(-1, -2) + K @ R @ K.transpose(-1, -2)
+    x, P = joseph(x, P, K, y, H, R)
     white = torch.linalg.solve_triangular(L, y[..., None], upper=False)[..., 0]
     log_det = 2 * torch.log(torch.diagonal(L, dim1=-2, dim2=-1)).sum(-1)
     nll = 0.5 * ((white**2).sum(-1) + log_det + m * math.log(2 * math.pi))
-    return x + (K @ y[..., None])[..., 0], 0.5 * (post + post.transpose(-1, -2)), nll
+    return x, P, nll
 
 
 def joseph_update(x: torch.Tensor, P: torch.Tensor, y: torch.Tensor, H: torch.Tensor,

@@ -63,7 +63,6 @@ def masked_update(z: torch.Tensor, P: torch.Tensor, y: torch.Tensor, mask: torch
     covariance is updated in Joseph form, ``(I - K H) P (I - K H)^T + K R K^T``: over hours of
     steps, ``(I - K H) P`` loses its symmetry. Returns the updated z (B, n) and P (B, n, n)."""
     m = y.shape[-1]
-    eye = torch.eye(P.shape[-1], dtype=P.dtype, device=P.device)
     eye_m = torch.eye(m, dtype=P.dtype, device=P.device)
     y = y * mask
     Ht = H.transpose(-1, -2)
@@ -74,11 +73,21 @@ def masked_update(z: torch.Tensor, P: torch.Tensor, y: torch.Tensor, mask: torch
         S_inv = inverse_sym3(S)
     else:
         S_inv = inverse_sym2(S)
-    K = mm(PH * mask[:, None, :], S_inv)
-    z = z + mm(K, y.unsqueeze(-1)).squeeze(-1)
+    return joseph(z, P, mm(PH * mask[:, None, :], S_inv), y, H, R)
+
+
+def joseph(z: torch.Tensor, P: torch.Tensor, K: torch.Tensor, y: torch.Tensor,
+           H: torch.Tensor, R: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The Kalman update given its gain: states z (B, n), covariances P (B, n, n), gain
+    K (B, n, m), innovations y (B, m), H (m, n) or (B, m, n), R (B, m, m). Returns
+    ``z + K y`` and Joseph's ``(I - K H) P (I - K H)^T + K R K^T``, symmetrised: every torch
+    filter's update, whichever way it solves for the gain (by cofactors where it exports,
+    :func:`masked_update`; by Cholesky where it also scores the innovation,
+    :mod:`lbo.models.gyro_filter`)."""
+    eye = torch.eye(P.shape[-1], dtype=P.dtype, device=P.device)
     I_KH = eye - mm(K, H)
-    P = mm(mm(I_KH, P), I_KH.transpose(1, 2)) + mm(mm(K, R), K.transpose(1, 2))
-    return z, 0.5 * (P + P.transpose(1, 2))
+    P = mm(mm(I_KH, P), I_KH.transpose(-1, -2)) + mm(mm(K, R), K.transpose(-1, -2))
+    return z + mm(K, y.unsqueeze(-1)).squeeze(-1), 0.5 * (P + P.transpose(-1, -2))
 
 
 def full_update(z: torch.Tensor, P: torch.Tensor, y: torch.Tensor, R: torch.Tensor,

@@ -6,7 +6,7 @@ the one of each drive by a fit that never read it: for each drive in turn, learn
 others and score the one left out (:func:`leave_one_out`). Reported per drive, as the mean
 over drives and as the worst (:func:`summary`): a fit that gains on average and loses on one
 drive is not one to keep. Used by ``python -m lbo.realdrive`` on the hill drive's three
-drives (:func:`lbo.sim.hguide.drives`).
+drives (:func:`lbo.logs.hguide.drives`).
 """
 
 from __future__ import annotations

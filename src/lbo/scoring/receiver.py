@@ -20,10 +20,10 @@ import pandas as pd
 from lbo.core.errors import LboError
 from lbo.filters import classical, measure
 from lbo.filters.gyro import FixDrift, GyroNoise, gyro_ekf_batch
+from lbo.logs.io import receiver
 from lbo.models.features import held_within
 from lbo.scoring.metrics import rmse
 from lbo.sim.columns import STATE
-from lbo.sim.logio import receiver
 from lbo.sim.vehicle import Vehicle
 
 __all__ = ["BLIND", "EKF", "FULL_NOISE_ORACLE", "FULL_ORACLE", "NOISE_ORACLE", "ORACLE", "RAW",

@@ -19,8 +19,8 @@ from typing import Any
 import numpy as np
 
 from lbo.core.errors import LboError
+from lbo.logs.checks import check_device
 from lbo.serve import onnx_cache
-from lbo.sim.logcheck import check_device
 
 ENGINES = ("torch", "torchscript", "onnx", "auto")
 """Inference engines for learned observers; ``auto``: ``onnx`` where the recursive form is

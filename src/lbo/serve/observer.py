@@ -33,6 +33,7 @@ from lbo.core.errors import LboError
 from lbo.filters import classical
 from lbo.filters.gyro import GyroNoise
 from lbo.filters.inputs import InputTerms
+from lbo.logs.checks import check_device, check_sample
 from lbo.models import checkpoint
 from lbo.models.envelope import Envelope, EnvelopeCheck, EnvelopeWarning, check_mode, observer_terms
 from lbo.serve import exported
@@ -48,7 +49,6 @@ from lbo.serve.runners import (
     is_window_filter,
     learned_runner,
 )
-from lbo.sim.logcheck import check_device, check_sample
 from lbo.sim.noise import Noise, check_alpha
 from lbo.sim.vehicle import Vehicle
 from lbo.tracking.artifacts import checkpoint_file, learned_noise
@@ -396,7 +396,7 @@ class Observer:
         ------
         LboError
             One line naming the row: ``python -m lbo.observe``'s checks
-            (:func:`lbo.sim.logcheck.check_samples`); a fix without a heading, or a
+            (:func:`lbo.logs.checks.check_samples`); a fix without a heading, or a
             receiver's channels, where not :attr:`takes_receiver`; no fix for a net trained
             with one at every step; N steps without a fix for a window net (a NaN estimate).
         """

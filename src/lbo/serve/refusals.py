@@ -10,8 +10,8 @@ import numpy as np
 
 from lbo.core.errors import LboError
 from lbo.filters import classical
+from lbo.logs.checks import check_fix_windows, check_receiver, check_samples
 from lbo.sim.columns import RECEIVER
-from lbo.sim.logcheck import check_fix_windows, check_receiver, check_samples
 
 _ALSO = ("the robust observer (filternet) in its recursive form, and a CNN, LSTM or window "
          "filter trained on a receiver (experiment=receiver)")
@@ -54,7 +54,7 @@ def checked_log(obs: Any, m: Any, u: Any, receiver: Any, source: str | None
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray]:
     """A log as :meth:`lbo.Observer.run` takes it, checked for ``obs``: m (T, 3), u (T, 2)
     and receiver (T, 7) or None as float arrays, and which rows hold a position fix (T,)
-    bool; else one line naming the row (:func:`lbo.sim.logcheck.check_samples` and the
+    bool; else one line naming the row (:func:`lbo.logs.checks.check_samples` and the
     observer's own limits: a fix without a heading, a receiver's channels, a step without a
     fix, a window without one)."""
     where = f"{source}: " if source else ""

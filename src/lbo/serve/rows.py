@@ -15,13 +15,13 @@ import numpy as np
 
 from lbo.core.errors import LboError
 from lbo.filters import measure
+from lbo.logs.checks import check_receiver
 from lbo.sim.columns import RECEIVER
-from lbo.sim.logcheck import check_receiver
 
 
 def checked_receiver(k: int, m: np.ndarray, receiver: Any) -> np.ndarray:
     """Step ``k``'s receiver channels (7,) (None: none held, all NaN), checked beside its
-    measurement m (3,) as a log's row is (:func:`lbo.sim.logcheck.check_receiver`)."""
+    measurement m (3,) as a log's row is (:func:`lbo.logs.checks.check_receiver`)."""
     if receiver is None:
         return np.full(len(RECEIVER), np.nan)
     try:

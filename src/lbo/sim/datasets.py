@@ -377,19 +377,6 @@ def build(spec: Spec, progress: bool = True) -> tuple[Path, dict[str, pd.DataFra
         return _build(spec, spec.folder, progress)
 
 
-def build_from_cfg(cfg: DictConfig, progress: bool = True) -> tuple[Path, str]:
-    """The data-set folder a composed config names, generated (or reused) from the ``data``
-    group, or read from a user's logs with ``data=logs`` (:mod:`lbo.sim.log_sets`), and its
-    digest."""
-    from lbo.sim import log_sets as logs
-
-    if logs.is_logs(cfg):
-        log_spec = logs.spec_from_cfg(cfg)
-        return logs.build(log_spec, progress)[0], log_spec.digest
-    spec = spec_from_cfg(cfg)
-    return build(spec, progress)[0], spec.digest
-
-
 def _build(spec: Spec, folder: Path, progress: bool
            ) -> tuple[Path, dict[str, pd.DataFrame], bool]:
     paths = {n: folder / f"{n}.parquet" for n in SETS}

@@ -19,13 +19,15 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from lbo.core.atomic import atomic_path
-from lbo.core.errors import LboError
+from lbo.core.errors import LboError, located
 from lbo.sim.columns import INPUT, LATERAL, MEAS, SCORED_SET, SET, STATE
-from lbo.sim.logcheck import check_fixes
 
 _INT = ("traj", "k")
 MANIFEST = "manifest.json"
 """The file a data-set folder (generated, or a user's logs) records itself in."""
+FIX_RULE = ("a row holds x_m and y_m (a position fix), with or without psi_m, or none of "
+            "them (a step without a fix)")
+"""What a row of a log may hold, as the checks say it."""
 
 
 def check_values(df: pd.DataFrame, columns: tuple[str, ...], source: str = "data",
@@ -48,7 +50,7 @@ def check_frame(df: pd.DataFrame, required: tuple[str, ...], source: str = "data
     With ``missing_fixes``, rows whose ``x_m, y_m, psi_m`` are all NaN (steps without a
     position fix) are allowed, partial ones are not (see :func:`fix_rows`). With
     ``missing_truth``, the true ``x, y, psi`` and the noise level ``alpha`` may be NaN (logs
-    without the truth, :mod:`lbo.sim.log_sets`).
+    without the truth, :mod:`lbo.logs.sets`).
     """
     missing = [c for c in required if c not in df.columns]
     if missing:
@@ -64,10 +66,44 @@ def check_frame(df: pd.DataFrame, required: tuple[str, ...], source: str = "data
     check_values(df.fillna(dict.fromkeys(blank, 0.0)) if blank else df, required, source)
 
 
+def check_fixes(m: np.ndarray, source: str | None = None,
+                position_only: bool = False) -> np.ndarray:
+    """The rows of a log's measurements m (T, 3) that hold a position fix, (T,) bool, checked.
+
+    Each row holds x_m and y_m (a fix) with psi_m, or none of the three; with
+    ``position_only`` (a log for the classical observers) a fix may also lack psi_m. A heading
+    without a position, x_m without y_m (or the reverse), a fix without a heading where one is
+    needed, or a log without any fix, is one :class:`LboError` naming the first such row."""
+    empty = np.isnan(m)
+    pos = ~empty[:, 0] & ~empty[:, 1]
+    rules = [
+        (empty[:, 0] & empty[:, 1] & ~empty[:, 2], "has a heading without a position "
+                                                    "(psi_m without x_m, y_m)"),
+        (empty[:, 0] ^ empty[:, 1], None),
+    ]
+    if not position_only:
+        rules.append((pos & empty[:, 2], "has a position without a heading (psi_m empty)"))
+    firsts = [(int(np.argmax(bad)), i) for i, (bad, _) in enumerate(rules) if bad.any()]
+    if firsts:
+        r, i = min(firsts)
+        what = rules[i][1]
+        if what is None:
+            have, lack = ("x_m", "y_m") if empty[r, 1] else ("y_m", "x_m")
+            what = f"has {have} without {lack}"
+        allowed = FIX_RULE if position_only else (
+            "here a row holds x_m, y_m and psi_m (a fix) or none of them (a step without a "
+            "fix)")
+        raise LboError(located(source, f"row {r} {what}; {allowed}"))
+    if not pos.any():
+        raise LboError(located(source, "no position fix in any row (x_m and y_m are empty "
+                                   "everywhere)"))
+    return pos
+
+
 def fix_rows(df: pd.DataFrame, source: str = "input") -> np.ndarray:
     """(T,) bool, the rows that hold a position fix; a row with only some of ``x_m, y_m,
     psi_m`` empty, or a log without any fix, is one :class:`LboError` (the check of
-    :func:`lbo.sim.logcheck.check_fixes`, which users' logs go through too)."""
+    :func:`check_fixes`, which users' logs go through too)."""
     empty = df[list(MEAS)].isna().to_numpy()  # whatever the dtype: only the gaps count here
     return check_fixes(np.where(empty, np.nan, 0.0), source)
 

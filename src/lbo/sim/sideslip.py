@@ -23,8 +23,8 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
+from lbo.core.paths import shipped
 from lbo.sim.dynamic import G, SingleTrack
-from lbo.sim.logio import shipped
 
 EXAMPLE = "run.npz"
 """The run's arrays (``data/sideslip/``), keyed by the repository's file names."""

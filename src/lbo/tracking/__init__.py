@@ -1,2 +1,2 @@
-"""Where runs and studies are stored: MLflow runs, Optuna storage and its MLflow mirror, and the
-search spaces."""
+"""Where runs are stored: MLflow stores and servers, the checkpoints a run holds, and the runs
+table each experiment keeps for mlflow ui (a study's storage: lbo.tuning)."""

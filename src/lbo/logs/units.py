@@ -13,7 +13,7 @@ import numpy as np
 
 from lbo.core.angles import wrap_angle
 from lbo.core.checks import number
-from lbo.core.errors import LboError
+from lbo.core.errors import LboError, located
 
 YAW_RATE_LIMIT = 2.0
 """Fastest heading change (rad/s) of a car between two headings a :data:`RATE_SPAN` apart:
@@ -33,11 +33,6 @@ MAX_GAP = 0.5
 across (see :func:`check_gaps`)."""
 TIME_UNITS = (("milliseconds", 1e3), ("microseconds", 1e6), ("nanoseconds", 1e9))
 """A median step of ``t`` within a factor 10 of ``dt`` in one of these units looks like it."""
-
-
-def located(source: str | None, text: str) -> str:
-    """``text`` prefixed with where it was found (``"input log.csv: ..."``), if anywhere."""
-    return f"{source}: {text}" if source else text
 
 
 def check_max_gap(max_gap: Any, field: str = "max_gap") -> float:

@@ -1,7 +1,7 @@
 """The hill drive as a data set of logs, split by drive (``data=hill``).
 
-The onavdata hill drive (:mod:`lbo.sim.hguide`) holds three drives, the car standing still
-30 s or more between them (:func:`lbo.sim.hguide.drives`: 254 s, 132 s and 284 s). ``data=hill``
+The onavdata hill drive (:mod:`lbo.logs.hguide`) holds three drives, the car standing still
+30 s or more between them (:func:`lbo.logs.hguide.drives`: 254 s, 132 s and 284 s). ``data=hill``
 names them by number in each set (``data.train=[1] data.val=[2] data.test=[3]`` by default), so
 that every command that reads ``data=logs`` (``lbo.train``, ``lbo.evaluate``, ``lbo.tune``)
 reads the real car too, split by drive rather than by time: what is scored is a drive that
@@ -22,7 +22,7 @@ from pathlib import Path
 
 from lbo.core.atomic import data_lock
 from lbo.core.errors import LboError
-from lbo.sim.logio import write_table
+from lbo.logs.io import write_table
 from lbo.sim.vehicle import Vehicle
 
 __all__ = ["DRIVES", "VERSION", "check_numbers", "check_split", "drive_files"]
@@ -69,7 +69,7 @@ def drive_files(root: str | Path, vehicle: Vehicle,
     paths = [folder / f"drive{k}.parquet" for k in range(1, DRIVES + 1)]
     with data_lock(folder):
         if not all(p.is_file() for p in paths):
-            from lbo.sim import hguide
+            from lbo.logs import hguide
 
             df = hguide.read()
             log = hguide.to_log(df, vehicle, hguide.fit_alignment(df))

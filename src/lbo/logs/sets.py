@@ -5,7 +5,7 @@ Each set is a list of paths, folders or globs of CSV/Parquet logs with the colum
 system's true ``x, y, psi``. The training and validation logs may go without the truth (a
 fleet's logs have none): their sets hold NaN there, and only ``loss=next_fix`` trains on them;
 the test logs are scored against it, so they need it. Every file is checked with the same
-one-line errors as ``lbo.observe`` (:mod:`lbo.sim.logcheck`), then cut into segments at every
+one-line errors as ``lbo.observe`` (:mod:`lbo.logs.checks`), then cut into segments at every
 gap in time and every jump in dt, so that no window crosses a gap or a file boundary (each
 segment is a trajectory of its own, its step ``k`` restarting at 0), and put onto the
 vehicle's dt with ``resample=true``. The split is by file: a file belongs to one set only.
@@ -36,11 +36,11 @@ from lbo.core.angles import wrap_angle
 from lbo.core.atomic import data_lock, remove_stale_temps, write_text
 from lbo.core.checks import integer, require
 from lbo.core.errors import LboError
+from lbo.logs.formats import LogFormat
+from lbo.logs.units import check_max_gap, check_time_unit
 from lbo.sim import schema
 from lbo.sim.columns import INPUT, LOG, MEAS, STATE
-from lbo.sim.logformat import LogFormat
 from lbo.sim.noise import Noise
-from lbo.sim.units import check_max_gap, check_time_unit
 from lbo.sim.vehicle import Vehicle
 
 KIND = "logs"
@@ -142,7 +142,7 @@ def spec_from_cfg(cfg: DictConfig, need: tuple[str, ...] = SETS) -> LogSpec:
     run_in = integer(d.get("run_in"), "data.run_in", 1, form="an integer >= 1 (steps of each "
                      "validation and test segment before it is scored)")
     if d.get("source") == "hill":  # data=hill: the hill drive's drives, named by number
-        from lbo.sim import hill
+        from lbo.logs import hill
 
         numbers = {part: hill.check_numbers(_listed(d.get(part)), f"data.{part}")
                    for part in SETS if part in need or d.get(part)}
@@ -192,7 +192,7 @@ def segments(path: Path, spec: LogSpec, part: str = "test") -> list[pd.DataFrame
         not all true-state columns, a test log without them, or a period that is not dt
         without ``resample``.
     """
-    from lbo.sim.logio import (
+    from lbo.logs.io import (
         DT_TOLERANCE,
         check_log,
         check_steering,

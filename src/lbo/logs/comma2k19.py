@@ -20,7 +20,7 @@ extension, a ``t`` (boot time, s) and a ``value`` per stream; lbo reads:
 :func:`to_log` makes a log of lbo's form at the vehicle's ``dt`` over the span the pose, speed,
 steering and gyro all cover (``t`` from its start):
 
-- the fixes ``x_m, y_m`` (m east and north of the first pose, :func:`lbo.sim.logformat.to_local`),
+- the fixes ``x_m, y_m`` (m east and north of the first pose, :func:`lbo.logs.formats.to_local`),
   no heading (one antenna), no accuracy (``sx_m, sy_m, sv_m`` NaN), the velocity ``ve_m, vn_m``
   from the fix's speed and bearing, each at the row nearest the instant it is valid at (its
   logged time less the latency);
@@ -30,11 +30,11 @@ steering and gyro all cover (``t`` from its start):
   horizontal direction of its forward axis, turned by the boresight.
 
 *Fitted on the segment* (:class:`Converted` reports them; the thresholds:
-:mod:`lbo.sim.alignment`). **Boresight**: the EON sits turned
+:mod:`lbo.logs.alignment`). **Boresight**: the EON sits turned
 on the windshield; driving straight (yaw rate under ``STRAIGHT_RATE``) above
 ``FIT_SPEED`` the pose's velocity points off its forward axis by that angle (-16 mrad on
 the example), and the car's heading is the forward axis's turned by it (as
-:mod:`lbo.sim.hguide` turns its INS's). **Latency** (``latency=None``): of a 10 ms grid over
+:mod:`lbo.logs.hguide` turns its INS's). **Latency** (``latency=None``): of a 10 ms grid over
 ``LATENCIES``, the one leaving the smallest RMS offset of the fixes above
 ``FIT_SPEED`` from the truth (0.08 s on the example). **Steering** (``steering=None``):
 the least-squares line from the wheel's angle to ``atan(L r_m / V)`` (the road-wheel angle
@@ -54,10 +54,10 @@ import pandas as pd
 
 from lbo.core.angles import wrap_angle
 from lbo.core.errors import LboError
-from lbo.sim import alignment as align
-from lbo.sim.alignment import FIT_SPEED, LATENCIES
-from lbo.sim.logformat import Origin, to_local
-from lbo.sim.logio import shipped
+from lbo.core.paths import shipped
+from lbo.logs import alignment as align
+from lbo.logs.alignment import FIT_SPEED, LATENCIES
+from lbo.logs.formats import Origin, to_local
 from lbo.sim.vehicle import Vehicle
 
 EXAMPLE = "segment.npz"
@@ -237,7 +237,7 @@ def _truth(segment: Segment) -> tuple[Origin, dict[str, np.ndarray]]:
 
 def _boresight(pose: dict[str, np.ndarray]) -> float:
     """The angle (rad) from the forward axis's heading to the pose's course, driving straight
-    (:func:`lbo.sim.alignment.boresight`; the yaw rate: the pose heading's)."""
+    (:func:`lbo.logs.alignment.boresight`; the yaw rate: the pose heading's)."""
     return align.boresight(pose["psi"], pose["ve"], pose["vn"],
                            np.gradient(pose["psi"], pose["t"]), "segment's pose")
 
@@ -270,7 +270,7 @@ def _offsets(pose: dict[str, np.ndarray], fix: dict[str, np.ndarray],
 
 
 def fit_latency(segment: Segment) -> float:
-    """The latency (s), on a 10 ms grid over :data:`lbo.sim.alignment.LATENCIES`, that leaves
+    """The latency (s), on a 10 ms grid over :data:`lbo.logs.alignment.LATENCIES`, that leaves
     the smallest RMS offset of the fixes above ``FIT_SPEED`` from the truth at their logged
     time less it."""
     origin, pose = _truth(segment)

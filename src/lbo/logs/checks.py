@@ -8,7 +8,7 @@ with the same line, and a sample refused by :meth:`~lbo.Observer.step` is one th
 :class:`~lbo.core.errors.LboError` line naming the row (or step), the column and the expected form.
 
 Also here: the checks of the settings shared by the CLI and the API (``alpha``, ``device``).
-A log's units and conventions (time, speed, heading) are checked in :mod:`lbo.sim.units`.
+A log's units and conventions (time, speed, heading) are checked in :mod:`lbo.logs.units`.
 This module imports numpy only (torch only to ask whether CUDA is there).
 """
 
@@ -20,13 +20,11 @@ from typing import Any
 
 import numpy as np
 
-from lbo.core.errors import LboError
+from lbo.core.errors import LboError, located
+from lbo.logs.units import check_heading_unit
 from lbo.sim.columns import INPUT, MEAS, RECEIVER, STATE
-from lbo.sim.units import check_heading_unit, located
+from lbo.sim.schema import FIX_RULE, check_fixes
 
-FIX_RULE = ("a row holds x_m and y_m (a position fix), with or without psi_m, or none of "
-            "them (a step without a fix)")
-"""What a row of a log may hold, as the checks say it."""
 GYRO_LIMIT = 10.0
 """Largest |r_m| (rad/s): a car's yaw rate stays within 2 rad/s; beyond 10, the gyro is in
 deg/s or the column is not a yaw rate."""
@@ -127,40 +125,6 @@ def fix_period(rate: float, dt: float) -> int:
 def position_mask(m: np.ndarray) -> np.ndarray:
     """Which rows hold a position (x_m and y_m finite): (..., C) -> (...) bool."""
     return np.isfinite(m[..., 0]) & np.isfinite(m[..., 1])
-
-
-def check_fixes(m: np.ndarray, source: str | None = None,
-                position_only: bool = False) -> np.ndarray:
-    """The rows of a log's measurements m (T, 3) that hold a position fix, (T,) bool, checked.
-
-    Each row holds x_m and y_m (a fix) with psi_m, or none of the three; with
-    ``position_only`` (a log for the classical observers) a fix may also lack psi_m. A heading
-    without a position, x_m without y_m (or the reverse), a fix without a heading where one is
-    needed, or a log without any fix, is one :class:`LboError` naming the first such row."""
-    empty = np.isnan(m)
-    pos = ~empty[:, 0] & ~empty[:, 1]
-    rules = [
-        (empty[:, 0] & empty[:, 1] & ~empty[:, 2], "has a heading without a position "
-                                                    "(psi_m without x_m, y_m)"),
-        (empty[:, 0] ^ empty[:, 1], None),
-    ]
-    if not position_only:
-        rules.append((pos & empty[:, 2], "has a position without a heading (psi_m empty)"))
-    firsts = [(int(np.argmax(bad)), i) for i, (bad, _) in enumerate(rules) if bad.any()]
-    if firsts:
-        r, i = min(firsts)
-        what = rules[i][1]
-        if what is None:
-            have, lack = ("x_m", "y_m") if empty[r, 1] else ("y_m", "x_m")
-            what = f"has {have} without {lack}"
-        allowed = FIX_RULE if position_only else (
-            "here a row holds x_m, y_m and psi_m (a fix) or none of them (a step without a "
-            "fix)")
-        raise LboError(located(source, f"row {r} {what}; {allowed}"))
-    if not pos.any():
-        raise LboError(located(source, "no position fix in any row (x_m and y_m are empty "
-                                   "everywhere)"))
-    return pos
 
 
 def _beyond(where: str, column: str, value: float) -> LboError:

@@ -1,7 +1,7 @@
 """Logs in and estimates out: read a CSV or Parquet log and check it whole (columns, NaN, units,
 ranges, the steering limit, the period), put it on the observer's grid (``resample``), and write a
 table atomically. `python -m lbo.observe`, `python -m lbo.simulate` and the data sets built from
-a user's logs (:mod:`lbo.sim.log_sets`) all read and write through here.
+a user's logs (:mod:`lbo.logs.sets`) all read and write through here.
 """
 
 from __future__ import annotations
@@ -15,11 +15,11 @@ import pandas as pd
 from lbo.core.angles import wrap_angle
 from lbo.core.atomic import atomic_path
 from lbo.core.errors import LboError
+from lbo.logs.checks import check_receiver, check_samples
+from lbo.logs.checks import check_steering as check_delta
+from lbo.logs.units import MAX_GAP, check_conventions, check_gaps, check_time
 from lbo.sim.columns import LOG, MEAS, RECEIVER, STATE
-from lbo.sim.logcheck import check_receiver, check_samples
-from lbo.sim.logcheck import check_steering as check_delta
 from lbo.sim.schema import check_outside_data_sets, check_values, write_set
-from lbo.sim.units import MAX_GAP, check_conventions, check_gaps, check_time
 
 FORMATS = (".csv", ".parquet")
 
@@ -97,14 +97,14 @@ def check_log(df: pd.DataFrame, source: str = "input", heading: str = "enu",
     observers take (``position_only=False``: refused, as for a learned observer's training).
     Raises :class:`LboError` naming the first problem: missing columns (naming those found),
     a non-numeric column, ``t`` with NaN or inf or not strictly increasing, and the value
-    checks of :func:`lbo.sim.logcheck.check_samples` (those :meth:`lbo.Observer.run` applies:
+    checks of :func:`lbo.logs.checks.check_samples` (those :meth:`lbo.Observer.run` applies:
     NaN or inf other than a missing fix or heading, a heading without a position, x_m without
     y_m, no fix at all, a heading that
     looks like degrees, positions and speeds beyond any vehicle's), and a speed or heading
-    that contradicts the fixes (:func:`lbo.sim.units.check_conventions`: km/h, a compass
+    that contradicts the fixes (:func:`lbo.logs.units.check_conventions`: km/h, a compass
     bearing; ``heading`` is the convention it was read in). The steering limit, the
     unit of ``t`` and the sampling period need the observer: :func:`check_steering`,
-    :func:`lbo.sim.units.check_time_unit`, :func:`check_period`.
+    :func:`lbo.logs.units.check_time_unit`, :func:`check_period`.
     """
     if len(df) == 0:
         raise LboError(f"{source}: empty file (no rows)")
@@ -187,7 +187,7 @@ def resample(df: pd.DataFrame, dt: float, columns: tuple[str, ...],
     Raises
     ------
     LboError
-        Two rows more than ``max_gap`` seconds apart (:func:`lbo.sim.units.check_gaps`): the
+        Two rows more than ``max_gap`` seconds apart (:func:`lbo.logs.units.check_gaps`): the
         inputs cannot be interpolated across a gap (None: not checked); a gap of at most
         ``dt`` never is.
     """
@@ -247,13 +247,3 @@ def write_table(df: pd.DataFrame, path: Path) -> Path:
     with atomic_path(path) as tmp:
         df.to_csv(tmp, index=False)
     return path
-
-
-def shipped(folder: str, name: str) -> dict[str, np.ndarray]:
-    """The arrays of a real run lbo ships with its licence, ``data/<folder>/<name>`` in
-    :mod:`lbo.sim` (a ``numpy.savez_compressed`` file, no pickles), keyed as saved."""
-    from importlib import resources
-
-    source = resources.files("lbo.sim").joinpath("data", folder, name)
-    with resources.as_file(source) as path, np.load(path, allow_pickle=False) as z:
-        return {k: z[k] for k in z.files}

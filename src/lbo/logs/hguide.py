@@ -27,7 +27,7 @@ velocities and the 1-sigma accuracies it reports for them.
 *Boresight, lever arm and time.* The INS reports the heading of its case, which is turned
 against the car; the position of its case, while the receiver reports that of its antenna,
 elsewhere on the car; and each fix is logged some time after the instant it is valid at.
-:func:`fit_alignment` fits all three (:mod:`lbo.sim.alignment`'s rules and thresholds). The
+:func:`fit_alignment` fits all three (:mod:`lbo.logs.alignment`'s rules and thresholds). The
 boresight first, on the INS's own rows (not the receiver's): driving straight faster than
 ``FIT_SPEED``, a car moves along its heading, so the mean angle from the INS heading to the
 direction of the INS velocity (plus pi reversing) is the angle by which the case is turned;
@@ -57,9 +57,9 @@ import pandas as pd
 
 from lbo.core.angles import wrap_angle
 from lbo.core.errors import LboError
-from lbo.sim import alignment as align
-from lbo.sim.alignment import FIT_SPEED, LATENCIES, on_rows
-from lbo.sim.logformat import Origin, to_local
+from lbo.logs import alignment as align
+from lbo.logs.alignment import FIT_SPEED, LATENCIES, on_rows
+from lbo.logs.formats import Origin, to_local
 from lbo.sim.vehicle import Vehicle
 
 HILL = "2021-04-27 HGuide n380 Car Hill Driving"

@@ -3,7 +3,7 @@ latency, and the fixes put on the log's rows.
 
 A reference system (an INS, a phone's fused pose) reports the heading of its own case, which
 is turned against the car; a receiver logs each fix some time after the instant it is valid
-at. Both importers of real drives (:mod:`lbo.sim.hguide`, :mod:`lbo.sim.comma2k19`) fit these
+at. Both importers of real drives (:mod:`lbo.logs.hguide`, :mod:`lbo.logs.comma2k19`) fit these
 the same way, here.
 """
 

@@ -14,7 +14,7 @@ from optuna.trial import FrozenTrial, TrialState
 from lbo.core.atomic import write_text
 from lbo.core.paths import CONF_DIR
 from lbo.core.redact import scrub
-from lbo.tracking.search import Param, short_value
+from lbo.tuning.search import Param, short_value
 
 
 def best_trials(study: optuna.Study,

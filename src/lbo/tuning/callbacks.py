@@ -12,7 +12,7 @@ import optuna
 from lightning.pytorch.loggers import MLFlowLogger
 from optuna_integration import PyTorchLightningPruningCallback
 
-from lbo.tracking.study_mlflow import RUN_ATTR
+from lbo.tuning.mirror import RUN_ATTR
 
 
 class Pruning(PyTorchLightningPruningCallback):

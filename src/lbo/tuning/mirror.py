@@ -14,7 +14,7 @@ from optuna.trial import FrozenTrial, TrialState
 
 from lbo.core.redact import scrub
 from lbo.tracking.runs import ensure_experiment
-from lbo.tracking.search import Param
+from lbo.tuning.search import Param
 
 #: MLflow run status for each final Optuna state; the child run also gets tag ``optuna_state``.
 MLFLOW_STATUS = {TrialState.COMPLETE: "FINISHED", TrialState.PRUNED: "KILLED",
