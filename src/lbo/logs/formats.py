@@ -252,7 +252,7 @@ class LogFormat:
                 origin = Origin(float(lat[fixed[0]]), float(lon[fixed[0]]))
             e, n = to_local(lat, lon, origin)
             at = cast(int, out.columns.get_loc(lat_c))  # a column name read appears once
-            out.drop(columns=[lat_c, lon_c], inplace=True)
+            del out[lat_c], out[lon_c]  # in place: the caller's frame is the one converted
             out.insert(at, east_c, e)
             out.insert(at + 1, north_c, n)
             places["psi_m" if lat_c == "lat" else "psi"] = (lat, lon)
