@@ -44,7 +44,7 @@ def run_log(df, bias: float, relearn: bool, course_unbiased: bool) -> dict[str, 
     u = df[["V", "delta"]].to_numpy(float)
     r = receiver(df)
     r[:, 6] += bias
-    runner = ClassicalRunner("gyro", vehicle, noise, 1.0)
+    runner = ClassicalRunner("gyro", vehicle, noise)
     rows, uu = runner.log_rows(m, u, r, None)
     if course_unbiased:
         r[:, 6] -= bias

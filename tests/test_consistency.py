@@ -62,7 +62,7 @@ def test_a_gyro_biased_far_beyond_its_prior_is_flagged_and_learned_again(biased)
     rows are valid and beyond 3 sigma, and the valid rows' mean z^2 is 2.8."""
     obs = Observer.load("gyro")
     est, valid = obs.run(biased["m"], biased["u"], receiver=biased["r"])
-    runner = ClassicalRunner("gyro", obs.vehicle, obs.noise, 1.0)
+    runner = ClassicalRunner("gyro", obs.vehicle, obs.noise)
     rows, u = runner.log_rows(biased["m"], biased["u"], biased["r"], None)
     _, cov, _ = runner.run(rows, u, np.ones(len(rows), bool))  # every row's, flagged or not
     z2 = _heading_z2(est, cov, biased["psi"])
@@ -79,7 +79,7 @@ def test_without_relearning_every_row_beyond_3_sigma_after_the_first_update_is_f
     """``relearn=False``: the filter is left sure of its wrong bias, and the test flags what
     it cannot explain: 90% of the rows, every one beyond 3 sigma from the first update on."""
     vehicle, noise = Vehicle(), Noise.preset("paper")
-    rows, u = ClassicalRunner("gyro", vehicle, noise, 1.0).log_rows(
+    rows, u = ClassicalRunner("gyro", vehicle, noise).log_rows(
         biased["m"], biased["u"], biased["r"], None)
     R = classical.measurement_cov("gyro", noise, 1.0, 1)
     post = gyro_ekf_batch(rows[None], u[None], vehicle, noise.Q, R, return_cov=True,
@@ -117,7 +117,7 @@ def test_a_healthy_filter_has_no_flagged_row(manoeuvre, seed, bias):
     log = _log(manoeuvre, seed, bias)
     est, valid = Observer.load("gyro").run(log["m"], log["u"], receiver=log["r"])
     assert valid.all()
-    runner = ClassicalRunner("gyro", Vehicle(), Noise.preset("paper"), 1.0)
+    runner = ClassicalRunner("gyro", Vehicle(), Noise.preset("paper"))
     _, cov, _ = runner.run(*runner.log_rows(log["m"], log["u"], log["r"], None),
                         np.ones(len(log["m"]), bool))
     assert _heading_z2(est, cov, log["psi"]).mean() < 2.0

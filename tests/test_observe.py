@@ -616,3 +616,22 @@ def test_engine_runs_a_learned_observer_in_torchscript_or_onnx_runtime(trained, 
                                        r"'onnx', 'auto'\], got 'tensorrt'$"):
         observe_cfg(compose_cfg("observe", ["observer=missing.ckpt", f"input={log_csv}",
                                             f"output={tmp_path / 'x.csv'}", "engine=tensorrt"]))
+
+
+@pytest.mark.parametrize("alpha", [0.0, 0.5, 3.0, 6.0])
+def test_the_oracle_told_alpha_runs_and_steps_as_the_grids_oracle(manoeuvre, alpha):
+    """lbo.Observer builds the oracle with its R at alpha when it is made: run and stepped, it
+    gives the grid's oracle told the same alpha (lbo.filters.classical.estimate), estimates
+    and covariances."""
+    m = manoeuvre[["x_m", "y_m", "psi_m"]].to_numpy()
+    u = manoeuvre[["V", "delta"]].to_numpy()
+    ref = run_classical("oracle", m[None], u[None], Vehicle(), Noise.preset("paper"), alpha,
+                        return_cov=True)
+    obs = Observer.load("oracle", alpha=alpha)
+    run = obs.run(m, u)
+    np.testing.assert_allclose(run.state, ref.mean[0], rtol=0, atol=1e-9)
+    np.testing.assert_allclose(run.cov, ref.cov[0], rtol=1e-9, atol=1e-12)
+    obs.reset()
+    steps = np.array([obs.step(m[k], u[k]).state for k in range(len(m))])
+    np.testing.assert_allclose(steps, ref.mean[0], rtol=0, atol=1e-9)
+    assert repr(obs).endswith(f"alpha={alpha:g})") and obs.noise == Noise.preset("paper")

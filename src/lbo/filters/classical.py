@@ -104,6 +104,14 @@ def check(name: str, field: str = "observer") -> None:
                        f"expected one of {', '.join(on_logs())}")
 
 
+def told(name: str, noise: Noise, alpha: float) -> Noise:
+    """The noise classical observer ``name`` runs with when told the noise scale ``alpha``:
+    the measurement sigmas at alpha for the oracle (its R at alpha), ``noise`` itself for every
+    other (R at alpha = 1). Built once where an observer is made, so that nothing after it
+    carries alpha."""
+    return noise.scaled(alpha) if name == "oracle" else noise
+
+
 def measurement_cov(name: str, noise: Noise, alpha: float | np.ndarray, g: int) -> np.ndarray:
     """(G, 3, 3) R of each trajectory: R at its own alpha for the oracle, else R at 1."""
     scale = np.broadcast_to(np.asarray(alpha, dtype=float), (g,)) if name == "oracle" \

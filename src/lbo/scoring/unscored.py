@@ -66,7 +66,7 @@ def heading_unseen(obs: Any, m: np.ndarray, u: np.ndarray, receiver: np.ndarray 
     if obs.kind != "classical":
         return blind
     # run() wraps psi_m first; whether a row holds one is all that matters here
-    runner = ClassicalRunner(obs.name, obs.vehicle, obs.noise, obs.alpha, gyro=obs.gyro_noise)
+    runner = ClassicalRunner(obs.name, obs.vehicle, obs.noise, gyro=obs.gyro_noise)
     rows, u = runner.log_rows(m, u, receiver if obs.takes_receiver else None, None)
     rows = measure.widen(rows)
     pos = np.isfinite(rows[:, :2]).all(1)

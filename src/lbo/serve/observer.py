@@ -108,7 +108,8 @@ class Observer:
         if net is None:
             classical.check(name)
             self.kind, self.window, self.features, self.engine = "classical", 1, None, None
-            self._runner = ClassicalRunner(name, self.vehicle, self.noise, self.alpha,
+            self._runner = ClassicalRunner(name, self.vehicle,
+                                           classical.told(name, self.noise, self.alpha),
                                            gyro=gyro_noise)
         else:
             self.kind, self.window, self.features = "learned", int(net.window), net.features

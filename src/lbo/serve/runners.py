@@ -120,14 +120,14 @@ def learned_runner(name: str, net: Any, form: str, vehicle: Vehicle, noise: Nois
 
 
 def from_first_fix(name: str, m: np.ndarray, u: np.ndarray, vehicle: Vehicle, noise: Noise,
-                   alpha: float, smooth: bool = False, gyro: GyroNoise | None = None
+                   smooth: bool = False, gyro: GyroNoise | None = None
                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Classical observer ``name`` over one log (T, 3) or (T, 8) (a receiver's rows,
     :mod:`lbo.filters.measure`), (T, 2), started at its first fix: (T, 3) estimates and
     (T, 3, 3) covariances, NaN before that fix (``smooth``: the RTS smoother's; ``gyro``:
     the gyro EKF's noise), and (T,) bool: the rows its consistency test flags (the gyro
     EKF's, :mod:`lbo.filters.consistency`; none for the others)."""
-    post = classical.estimate(name, m[None], u[None], vehicle, noise, alpha,
+    post = classical.estimate(name, m[None], u[None], vehicle, noise,
                               return_cov=True, smooth=smooth, gyro=gyro)
     flagged = np.zeros(len(m), bool) if post.checks is None else post.checks.inconsistent[0]
     return post.mean[0], post.cov[0], flagged
@@ -144,9 +144,9 @@ class ClassicalRunner:
     reads_receiver = False  # a receiver's channels go through rows() only where given
     inconsistent: np.ndarray | None = None  # the rows the last run()'s test flagged
 
-    def __init__(self, name: str, vehicle: Vehicle, noise: Noise, alpha: float, *,
+    def __init__(self, name: str, vehicle: Vehicle, noise: Noise, *,
                  gyro: GyroNoise | None = None) -> None:
-        self.name, self.vehicle, self.noise, self.alpha = name, vehicle, noise, alpha
+        self.name, self.vehicle, self.noise = name, vehicle, noise
         self.gyro = gyro
         self.reset()
 
@@ -206,7 +206,7 @@ class ClassicalRunner:
             state = np.full(3, np.nan)
             if np.isfinite(m[:2]).all():
                 self.flt = classical.stepper(self.name, m[None], self.vehicle, self.noise,
-                                             self.alpha, gyro=self.gyro)
+                                             gyro=self.gyro)
                 state = self.flt.x[0, :3].copy()
         else:
             state = self.flt.update(m[None], np.asarray(self.u_prev, float)[None])[0].copy()
@@ -221,7 +221,7 @@ class ClassicalRunner:
     def run(self, m: np.ndarray, u: np.ndarray, fix: np.ndarray, smooth: bool = False,
             batch_size: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         est, cov, self.inconsistent = from_first_fix(self.name, m, u, self.vehicle,
-                                                     self.noise, self.alpha, smooth, self.gyro)
+                                                     self.noise, smooth, self.gyro)
         return est, cov, side_slip(None, u[:, 0])
 
 
@@ -245,7 +245,7 @@ class WindowRunner:
         self.name, self.window, self.dt = name, int(net.window), vehicle.dt
         self.vehicle, self.noise = vehicle, noise
         self.predict = make_predictor(net, engine, device)
-        self.fallback = ClassicalRunner("ekf", vehicle, noise, 1.0)
+        self.fallback = ClassicalRunner("ekf", vehicle, noise)
         self.pads = bool(getattr(net, "fixes", False) and getattr(net, "physical", False))
         self.reads_receiver = bool(getattr(net, "receiver", False))
         # the filter holds a carried heading as a standing car does; a CNN reads it as any
@@ -327,7 +327,7 @@ class WindowRunner:
         head = 0 if self.pads else min(n - 1, t)
         if head:
             est[:head] = from_first_fix("ekf", m[:head, :measure.WIDTH], u[:head], self.vehicle,
-                                        self.noise, 1.0)[0]
+                                        self.noise)[0]
         series = window_series(m, u)
         if self.pads:  # no fix and no motion before the log
             series = np.concatenate([np.tile(self.empty, (n - 1, 1)), series])

@@ -81,6 +81,11 @@ class Noise:
             raise LboError(f"alpha must be >= 0, got {alpha}")
         return alpha[..., None] * np.asarray(self.measurement_sigma)
 
+    def scaled(self, alpha: float) -> Noise:
+        """These sigmas with the measurement ones ``alpha`` times as large: the noise of an
+        observer told alpha (its R is :meth:`R` at alpha), the process's unchanged."""
+        return Noise(self.process_sigma, tuple(self.meas(alpha)), f"{self.name}, alpha={alpha:g}")
+
     @property
     def Q(self) -> np.ndarray:
         """(3, 3) process covariance."""
