@@ -175,6 +175,41 @@ def test_expected_steps_and_eta_arithmetic():
     assert eta.finished(2, 60.0) == 0.0
 
 
+@pytest.mark.parametrize(("each_s", "measured"), [(0.01, 1), (100.0, 4)])
+def test_the_plan_stops_measuring_where_measuring_costs_about_what_training_does(
+        monkeypatch, capsys, each_s, measured):
+    """Timing a run takes 0.05 s here: runs of 0.01 s each (a smoke study) are measured once
+    and the rest expected to take as long; runs of 100 s are each measured."""
+    import time
+
+    from omegaconf import OmegaConf
+
+    from lbo.learn import eta
+
+    calls = []
+
+    def measure(cfg):
+        calls.append(cfg.seed)
+        time.sleep(0.05)
+        return {"steps": 4, "step_s": each_s / 8, "setup_s": 0.0, "eval_s": each_s / 2,
+                "seconds": each_s * (1 + cfg.seed), "timed": 4}
+
+    monkeypatch.setattr(eta, "measure", measure)
+    monkeypatch.setattr("lbo.learn.resume.finished_run", lambda *a, **k: None)
+    monkeypatch.setattr("lbo.learn.resume.config_hash", lambda cfg: "h")
+    runs = [(f"run{i}", OmegaConf.create({"seed": i, "trainer": {"accelerator": "cpu"}}))
+            for i in range(4)]
+    plan = eta.plan(runs, scale="smoke")
+    said = capsys.readouterr().out
+    assert calls == list(range(measured))
+    if measured == 1:
+        assert plan.estimates == [each_s] * 4  # the measured one's time, each
+        assert "the other 3: about 0 s each, as the 1 measured" in said
+    else:
+        assert plan.estimates == [100.0, 200.0, 300.0, 400.0] and "the other" not in said
+    assert "expected: about" in said
+
+
 def test_a_measured_step_gives_the_runs_expected_time(tmp_path, smoke_data):
     from helpers import train_cfg
     from lbo.learn.eta import measure

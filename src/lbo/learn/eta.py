@@ -147,21 +147,35 @@ def plan(runs: list[tuple[str, DictConfig]], parallel: int = 1, scale: str = "")
 
     A run that finished before (same config hash) is expected to take nothing; ``parallel``
     runs train at once (the total is divided by it); ``scale`` is named in the total line.
+    Once measuring has taken more than half as long as the runs measured would train (a smoke
+    study, where timing a run costs about what training it does), the runs left are not
+    measured: each is expected to take the mean of those measured.
     """
     from lbo.learn.builders import data_device
     from lbo.learn.resume import config_hash, finished_run
 
-    estimates = []
+    estimates: list[float] = []
+    measured: list[float] = []
+    guessed = 0
     begin = time.perf_counter()
     for name, cfg in runs:
         if finished_run(cfg, config_hash(cfg), clean=False) is not None:
             estimates.append(0.0)
             continue
+        if measured and time.perf_counter() - begin > sum(measured) / 2:
+            estimates.append(sum(measured) / len(measured))
+            guessed += 1
+            continue
         m = measure(cfg)
         estimates.append(m["seconds"])
+        measured.append(m["seconds"])
         print(f"    {name}: {m['steps']} steps x {1e3 * m['step_s']:.1f} ms + "
               f"{m['setup_s']:.1f} s setup + {m['eval_s']:.1f} s validation and test = "
               f"{duration(m['seconds'])}", flush=True)
+    if guessed:
+        print(f"    the other {guessed}: about {duration(sum(measured) / len(measured))} each, "
+              f"as the {len(measured)} measured (measuring them would cost about what training "
+              "them does)", flush=True)
     total = sum(estimates) / max(min(parallel, len(runs)), 1)
     at = f" at scale {scale}" if scale else ""
     print(f"    expected: about {duration(total)} of training{at} on {data_device(runs[0][1])} "
