@@ -99,9 +99,9 @@ def main() -> None:
     print(f"paper test grid: {g} trajectories (15 manoeuvres x 25 alpha levels) x {t} steps, "
           f"run-ins and padding included = {g * t:,} filter steps (alpha=1 R)\n")
     filters = {
-        "EKF": (lambda m_, u_, R_: ekf_batch(m_, u_, vehicle, Q, R_),
+        "EKF": (lambda m_, u_, R_: ekf_batch(m_, u_, vehicle, Q, R_).mean,
                 lambda m_, u_, R_: run_filterpy_ekf(m_, u_, vehicle, Q, R_), 25, 20.0),
-        "UKF": (lambda m_, u_, R_: ukf_batch(m_, u_, vehicle, Q, R_),
+        "UKF": (lambda m_, u_, R_: ukf_batch(m_, u_, vehicle, Q, R_).mean,
                 lambda m_, u_, R_: ukf(m_, u_, vehicle, Q, R_), 10, 50.0),
     }
     ok = True

@@ -50,8 +50,7 @@ def run_log(df, bias: float, relearn: bool, course_unbiased: bool) -> dict[str, 
         r[:, 6] -= bias
         rows[:, 7] = runner.log_rows(m, u, r, None)[0][:, 7]
     R = classical.measurement_cov("gyro", noise, 1.0, 1)
-    post = gyro_ekf_batch(rows[None], uu[None], vehicle, noise.Q, R, return_cov=True,
-                          relearn=relearn)
+    post = gyro_ekf_batch(rows[None], uu[None], vehicle, noise.Q, R, relearn=relearn)
     err = wrap_angle(post.mean[0, :, 2] - df["psi"].to_numpy(float))
     held = np.isfinite(rows[1:, :2]).all(1) | np.isfinite(rows[1:, 6])
     first = 1 + int(np.argmax(held))  # the first update after the start

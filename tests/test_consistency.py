@@ -82,8 +82,7 @@ def test_without_relearning_every_row_beyond_3_sigma_after_the_first_update_is_f
     rows, u = ClassicalRunner("gyro", vehicle, noise).log_rows(
         biased["m"], biased["u"], biased["r"], None)
     R = classical.measurement_cov("gyro", noise, 1.0, 1)
-    post = gyro_ekf_batch(rows[None], u[None], vehicle, noise.Q, R, return_cov=True,
-                          relearn=False)
+    post = gyro_ekf_batch(rows[None], u[None], vehicle, noise.Q, R, relearn=False)
     assert post.checks is not None
     flagged = post.checks.inconsistent[0]
     z2 = _heading_z2(post.mean[0], post.cov[0], biased["psi"])

@@ -80,9 +80,9 @@ def test_beats_the_kinematic_ekf_on_a_slipping_car(slalom_batch):
     s, u, m, _ = slalom_batch
     z = s[..., :3]
     R = NOISE.R(1.0)
-    dyn = pooled(dynamic_ekf_batch(m, u, VEHICLE, CAR, NOISE.Q, R), z)
-    kin = pooled(filters.ekf_batch(m, u, VEHICLE, NOISE.Q, R), z)
-    wrong = pooled(dynamic_ekf_batch(m, u, VEHICLE, SOFT_CAR, NOISE.Q, R), z)
+    dyn = pooled(dynamic_ekf_batch(m, u, VEHICLE, CAR, NOISE.Q, R).mean, z)
+    kin = pooled(filters.ekf_batch(m, u, VEHICLE, NOISE.Q, R).mean, z)
+    wrong = pooled(dynamic_ekf_batch(m, u, VEHICLE, SOFT_CAR, NOISE.Q, R).mean, z)
     assert dyn[2] < kin[2] / 1.8
     assert np.all(dyn[:2] < 1.02 * kin[:2])
     # a wrong car loses the advantage: the margin above is the model's, not the filter's
@@ -95,9 +95,9 @@ def test_nees_is_consistent(slalom_batch):
     kinematic EKF's 7.1 are overconfident."""
     s, u, m, _ = slalom_batch
     z = s[..., :3]
-    est, P = dynamic_ekf_batch(m, u, VEHICLE, CAR, NOISE.Q, NOISE.R(1.0), return_cov=True)
+    est, P = dynamic_ekf_batch(m, u, VEHICLE, CAR, NOISE.Q, NOISE.R(1.0))
     assert 0.75 * 3 < mean_nees(est, P, z) < 1.33 * 3
-    est, P = dynamic_ekf_batch(m, u, VEHICLE, SOFT_CAR, NOISE.Q, NOISE.R(1.0), return_cov=True)
+    est, P = dynamic_ekf_batch(m, u, VEHICLE, SOFT_CAR, NOISE.Q, NOISE.R(1.0))
     assert mean_nees(est, P, z) > 1.5 * 3
 
 
@@ -111,7 +111,7 @@ def test_its_lateral_states_are_the_cars_and_its_covariance_does_not_understate_
     Q_LATERAL_SIGMA allows noise the truth does not have."""
     s, u, m, _ = slalom_batch
     pose, lateral = dynamic_ekf_lateral(m, u, VEHICLE, CAR, NOISE.Q, NOISE.R(1.0))
-    ref = dynamic_ekf_batch(m, u, VEHICLE, CAR, NOISE.Q, NOISE.R(1.0), return_cov=True)
+    ref = dynamic_ekf_batch(m, u, VEHICLE, CAR, NOISE.Q, NOISE.R(1.0))
     assert np.array_equal(pose.mean, ref.mean) and np.array_equal(pose.cov, ref.cov)
     assert lateral.mean.shape == (16, 1000, 2) and lateral.cov.shape == (16, 1000, 2, 2)
     truth = np.arctan2(s[..., 3], u[..., 0])
@@ -149,9 +149,9 @@ def test_drift_states_beat_a_filter_told_white_noise():
     for k in range(1, 1500):
         est7[:, k] = kf.update(m[:, k], u[:, k - 1])
         P7[:, k], b_hat[:, k] = kf.pose_cov, kf.x[:, 5:]
-    est5, P5 = dynamic_ekf_batch(m, u, VEHICLE, CAR, NOISE.Q, R, return_cov=True)
+    est5, P5 = dynamic_ekf_batch(m, u, VEHICLE, CAR, NOISE.Q, R)
     np.testing.assert_allclose(
-        est7, dynamic_ekf_batch(m, u, VEHICLE, CAR, NOISE.Q, R, gnss_sigma=1.0, gnss_tau=20.0),
+        est7, dynamic_ekf_batch(m, u, VEHICLE, CAR, NOISE.Q, R, gnss_sigma=1.0, gnss_tau=20.0).mean,
         rtol=0, atol=1e-12)
     assert position_rmse(est7, z) < position_rmse(est5, z)
     assert 0.5 * 3 < mean_nees(est7, P7, z) < 2 * 3
@@ -165,11 +165,11 @@ def test_sensor_errors_are_undone():
     estimates as on the true inputs."""
     s, u, m, _ = make_batch(4, 200, seed=2)
     logged = np.stack([u[..., 0] * 1.03, u[..., 1] + 0.01], axis=-1)
-    ref = dynamic_ekf_batch(m, u, VEHICLE, CAR, NOISE.Q, NOISE.R(1.0))
+    ref = dynamic_ekf_batch(m, u, VEHICLE, CAR, NOISE.Q, NOISE.R(1.0)).mean
     est = dynamic_ekf_batch(m, logged, VEHICLE, CAR, NOISE.Q, NOISE.R(1.0),
-                            steering_offset=0.01, speed_scale=0.03)
+                            steering_offset=0.01, speed_scale=0.03).mean
     np.testing.assert_allclose(est, ref, rtol=0, atol=1e-9)
-    assert np.abs(dynamic_ekf_batch(m, logged, VEHICLE, CAR, NOISE.Q, NOISE.R(1.0))
+    assert np.abs(dynamic_ekf_batch(m, logged, VEHICLE, CAR, NOISE.Q, NOISE.R(1.0)).mean
                   - ref).max() > 0.01
 
 
@@ -179,8 +179,7 @@ def test_sensor_errors_are_undone():
 def test_start_and_return_cov():
     s, u, m, _ = make_batch(3, 50, seed=3)
     R = np.stack([NOISE.R(a) for a in (0.5, 1.0, 2.0)])
-    est, P = dynamic_ekf_batch(m, u, VEHICLE, CAR, NOISE.Q, R, gnss_sigma=[0.0, 0.5, 1.0],
-                               return_cov=True)
+    est, P = dynamic_ekf_batch(m, u, VEHICLE, CAR, NOISE.Q, R, gnss_sigma=[0.0, 0.5, 1.0])
     assert est.shape == (3, 50, 3) and P.shape == (3, 50, 3, 3)
     np.testing.assert_array_equal(est[:, 0], m[:, 0])
     expect = R.copy()
@@ -240,7 +239,7 @@ def test_missing_fix_is_prediction_only():
     # the batch filter takes the same NaN rows
     m_gap = m.copy()
     m_gap[:, 5:8] = np.nan
-    est = dynamic_ekf_batch(m_gap, u, VEHICLE, CAR, NOISE.Q, NOISE.R(1.0))
+    est = dynamic_ekf_batch(m_gap, u, VEHICLE, CAR, NOISE.Q, NOISE.R(1.0)).mean
     assert np.isfinite(est).all()
 
 
@@ -248,8 +247,8 @@ def test_heading_branch_does_not_matter():
     s, u, m, _ = make_batch(3, 300, seed=7)
     wrapped = m.copy()
     wrapped[..., 2] = wrap_angle(m[..., 2]) + 2 * np.pi * np.array([0, 1, -3])[:, None]
-    a = dynamic_ekf_batch(m, u, VEHICLE, CAR, NOISE.Q, NOISE.R(1.0))
-    b = dynamic_ekf_batch(wrapped, u, VEHICLE, CAR, NOISE.Q, NOISE.R(1.0))
+    a = dynamic_ekf_batch(m, u, VEHICLE, CAR, NOISE.Q, NOISE.R(1.0)).mean
+    b = dynamic_ekf_batch(wrapped, u, VEHICLE, CAR, NOISE.Q, NOISE.R(1.0)).mean
     np.testing.assert_allclose(a[..., :2], b[..., :2], rtol=0, atol=1e-6)
     np.testing.assert_allclose(wrap_angle(a[..., 2] - b[..., 2]), 0.0, atol=1e-9)
     assert np.all(np.abs(np.diff(b[..., 2], axis=1)) < 0.5)  # continuous, not wrapped
@@ -330,7 +329,7 @@ def test_a_receivers_course_is_the_heading_plus_the_rear_side_slip():
     as_heading[:, fix, 2], as_heading[:, fix, 5] = rows[:, fix, 6], rows[:, fix, 7]
     as_heading[:, :, 6:] = np.nan
     R = NOISE.R(1.0)
-    with_slip = pooled(dynamic_ekf_batch(rows, u, VEHICLE, CAR, NOISE.Q, R), s[..., :3])
-    without = pooled(dynamic_ekf_batch(as_heading, u, VEHICLE, CAR, NOISE.Q, R), s[..., :3])
+    with_slip = pooled(dynamic_ekf_batch(rows, u, VEHICLE, CAR, NOISE.Q, R).mean, s[..., :3])
+    without = pooled(dynamic_ekf_batch(as_heading, u, VEHICLE, CAR, NOISE.Q, R).mean, s[..., :3])
     assert with_slip[2] < 0.6 * without[2], (with_slip, without)
     assert with_slip[0] < 0.3 and with_slip[1] < 0.3  # the reported accuracy taken as R

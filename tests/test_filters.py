@@ -56,7 +56,7 @@ def test_ekf_batch_matches_filterpy_loop():
     R = np.stack([NOISE.R(a) for a in (0.5, 1.0, 4.0)])
     ref = np.stack([run_filterpy_ekf(m[i], u[i], VEHICLE, NOISE.Q, R[i])
                     for i in range(3)])
-    np.testing.assert_allclose(filters.ekf_batch(m, u, VEHICLE, NOISE.Q, R), ref,
+    np.testing.assert_allclose(filters.ekf_batch(m, u, VEHICLE, NOISE.Q, R).mean, ref,
                                rtol=0, atol=1e-9)
 
 
@@ -64,12 +64,13 @@ def test_shared_R_equals_broadcast_R():
     z, u, m = make_batch(4, 200, 2.0, seed=2)
     shared = filters.ekf_batch(m, u, VEHICLE, NOISE.Q, NOISE.R(2.0))
     per_traj = filters.ekf_batch(m, u, VEHICLE, NOISE.Q, np.tile(NOISE.R(2.0), (4, 1, 1)))
-    np.testing.assert_array_equal(shared, per_traj)
+    np.testing.assert_array_equal(shared.mean, per_traj.mean)
+    np.testing.assert_array_equal(shared.cov, per_traj.cov)
 
 
-def test_return_cov_and_start():
+def test_the_covariances_and_the_start():
     z, u, m = make_batch(2, 50, 1.0, seed=3)
-    est, P = filters.ekf_batch(m, u, VEHICLE, NOISE.Q, NOISE.R(1.0), return_cov=True)
+    est, P = filters.ekf_batch(m, u, VEHICLE, NOISE.Q, NOISE.R(1.0))
     assert est.shape == (2, 50, 3) and P.shape == (2, 50, 3, 3)
     np.testing.assert_array_equal(est[:, 0], m[:, 0])
     np.testing.assert_allclose(P[:, 0], np.broadcast_to(NOISE.R(1.0), (2, 3, 3)))
@@ -78,7 +79,7 @@ def test_return_cov_and_start():
 
 
 def test_with_their_covariances_the_filters_give_a_typed_posterior():
-    """Every classical observer's ``return_cov=True`` is a Posterior (mean, cov), started at
+    """Every classical observer's result is a Posterior (mean, cov), started at
     the first row or at the first fix (a log whose first rows hold none)."""
     from lbo.filters.classical import estimate
     from lbo.filters.stepper import Posterior
@@ -88,10 +89,12 @@ def test_with_their_covariances_the_filters_give_a_typed_posterior():
     late[:, :5] = np.nan
     for name in ("ekf", "ukf", "adaptive", "oracle"):
         for rows in (m, late):
-            post = estimate(name, rows, u, VEHICLE, NOISE, return_cov=True)
+            post = estimate(name, rows, u, VEHICLE, NOISE)
             assert isinstance(post, Posterior), name
             assert post.mean.shape == (2, 50, 3) and post.cov.shape == (2, 50, 3, 3)
-            np.testing.assert_array_equal(post.mean, estimate(name, rows, u, VEHICLE, NOISE))
+            # the same run twice gives the same numbers
+            again = estimate(name, rows, u, VEHICLE, NOISE)
+            np.testing.assert_array_equal(post.mean, again.mean)
 
 
 def test_heading_branch_does_not_matter():
@@ -100,8 +103,9 @@ def test_heading_branch_does_not_matter():
     assert np.ptp(z[..., 2]) > np.pi  # the trajectories cross +-pi somewhere
     wrapped = m.copy()
     wrapped[..., 2] = wrap_angle(m[..., 2])
-    for run in (lambda mm: filters.ekf_batch(mm, u, VEHICLE, NOISE.Q, NOISE.R(1.0)),
-                lambda mm: filters.adaptive_ekf_batch(mm, u, VEHICLE, NOISE.Q, NOISE.R(1.0))):
+    for run in (lambda mm: filters.ekf_batch(mm, u, VEHICLE, NOISE.Q, NOISE.R(1.0)).mean,
+                lambda mm: filters.adaptive_ekf_batch(mm, u, VEHICLE, NOISE.Q,
+                                                      NOISE.R(1.0)).mean):
         a, b = run(m), run(wrapped)
         np.testing.assert_allclose(a[..., :2], b[..., :2], atol=1e-9)
         np.testing.assert_allclose(wrap_angle(a[..., 2] - b[..., 2]), 0, atol=1e-9)
@@ -131,13 +135,13 @@ def grid():
         z, u, m = make_batch(PER_ALPHA, 600, alpha, seed=10 + i)
         settled = np.zeros(z.shape[:2], dtype=bool)
         settled[:, 150:] = True
-        adaptive = filters.adaptive_ekf_batch(m, u, VEHICLE, NOISE.Q, NOISE.R(1.0))
-        oracle = filters.ekf_batch(m, u, VEHICLE, NOISE.Q, NOISE.R(alpha))
+        adaptive = filters.adaptive_ekf_batch(m, u, VEHICLE, NOISE.Q, NOISE.R(1.0)).mean
+        oracle = filters.ekf_batch(m, u, VEHICLE, NOISE.Q, NOISE.R(alpha)).mean
         bound = pcrb(z, u, VEHICLE, NOISE.Q, NOISE.R(alpha), n_mc=20, rng=i)
         out[alpha] = {
             "pcrb": np.sqrt(bound.reshape(-1, 3).mean(axis=0)),
             "oracle": pooled(oracle, z),
-            "fixed": pooled(filters.ekf_batch(m, u, VEHICLE, NOISE.Q, NOISE.R(1.0)), z),
+            "fixed": pooled(filters.ekf_batch(m, u, VEHICLE, NOISE.Q, NOISE.R(1.0)).mean, z),
             "adaptive": pooled(adaptive, z),
             "oracle_settled": pooled(oracle, z, settled),
             "adaptive_settled": pooled(adaptive, z, settled),
@@ -188,8 +192,8 @@ def test_adaptive_beats_fixed_at_alpha6(grid):
 
 def test_ukf_close_to_ekf_at_alpha1():
     z, u, m = make_batch(4, 500, 1.0, seed=6)
-    est_ukf = ukf_batch(m, u, VEHICLE, NOISE.Q, NOISE.R(1.0))
-    est_ekf = filters.ekf_batch(m, u, VEHICLE, NOISE.Q, NOISE.R(1.0))
+    est_ukf = ukf_batch(m, u, VEHICLE, NOISE.Q, NOISE.R(1.0)).mean
+    est_ekf = filters.ekf_batch(m, u, VEHICLE, NOISE.Q, NOISE.R(1.0)).mean
     r_ukf, r_ekf = pooled(est_ukf, z), pooled(est_ekf, z)
     assert np.all(np.abs(r_ukf / r_ekf - 1) < 0.05)  # brief allows 15 %; it is ~0.1 %
     np.testing.assert_array_equal(est_ukf[:, 0], m[:, 0])
@@ -203,10 +207,10 @@ def test_alpha0_is_exact_and_finite():
     assert bound.shape == (4, 200, 3) and np.all(np.isfinite(bound))
     np.testing.assert_array_equal(bound[:2], 0.0)
     assert np.all(bound[2:] > 0)
-    np.testing.assert_allclose(filters.ekf_batch(m, u, VEHICLE, NOISE.Q, R)[:2], z[:2],
+    np.testing.assert_allclose(filters.ekf_batch(m, u, VEHICLE, NOISE.Q, R).mean[:2], z[:2],
                                atol=1e-9)
-    for est in (filters.adaptive_ekf_batch(m, u, VEHICLE, NOISE.Q, NOISE.R(1.0)),
-                ukf_batch(m, u, VEHICLE, NOISE.Q, R)):
+    for est in (filters.adaptive_ekf_batch(m, u, VEHICLE, NOISE.Q, NOISE.R(1.0)).mean,
+                ukf_batch(m, u, VEHICLE, NOISE.Q, R).mean):
         assert np.all(np.isfinite(est))
         assert np.all(pooled(est[:2], z[:2]) < 0.1 * np.array(REF))
 
@@ -220,7 +224,7 @@ def test_batched_ukf_gives_filterpy_numbers_on_the_smoke_grid(smoke_data):
     arr = load_test(smoke_data / "test.parquet")
     for R in (NOISE.R(1.0), measurement_cov("oracle", NOISE, arr.alpha, len(arr.alpha))):
         ref = ukf_filterpy_batch(arr.m, arr.u, VEHICLE, NOISE.Q, R)
-        new = ukf_batch(arr.m, arr.u, VEHICLE, NOISE.Q, R)
+        new = ukf_batch(arr.m, arr.u, VEHICLE, NOISE.Q, R).mean
         assert np.isfinite(new[arr.mask]).all()
         assert np.abs(new - ref)[arr.mask].max() <= 1e-9
 

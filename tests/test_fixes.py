@@ -31,7 +31,7 @@ def test_prediction_only_steps_follow_the_straight_line_closed_form(name):
     m = np.full((1, t, 3), np.nan)
     m[0, 0] = [3.0, -2.0, psi0]
     u = np.tile([v, 0.0], (1, t, 1))
-    est = classical.estimate(name, m, u, vehicle, noise, alpha=2.0)[0]
+    est = classical.estimate(name, m, u, vehicle, noise, alpha=2.0).mean[0]
     k = np.arange(t)
     expected = np.stack([3.0 + k * v * vehicle.dt * np.cos(psi0),
                          -2.0 + k * v * vehicle.dt * np.sin(psi0), np.full(t, psi0)], -1)

@@ -10,7 +10,7 @@ from helpers import compose_cfg, observe
 from lbo.core.angles import wrap_angle
 from lbo.core.errors import LboError
 from lbo.filters import classical
-from lbo.filters.gyro import FixDrift, gyro_ekf_batch
+from lbo.filters.gyro import FixDrift, gyro_ekf_batch, gyro_ekf_with_bias
 from lbo.filters.measure import rows
 from lbo.logs.checks import check_receiver
 from lbo.serve.observer import Observer
@@ -58,10 +58,9 @@ def test_the_gyro_ekf_learns_the_bias_and_holds_the_heading_between_fixes(drive)
     one back at every fix."""
     vehicle, noise = Vehicle(), Noise.preset("paper")
     R = classical.measurement_cov("ekf", noise, 1.0, 4)
-    est, bias = gyro_ekf_batch(drive["m"], drive["gyro"], vehicle, noise.Q, R,
-                               return_bias=True)
+    (est, _), bias = gyro_ekf_with_bias(drive["m"], drive["gyro"], vehicle, noise.Q, R)
     blind = gyro_ekf_batch(drive["m"], drive["gyro"], vehicle, noise.Q, R, bias_sigma=1e-6,
-                           bias_walk=0.0, relearn=False)
+                           bias_walk=0.0, relearn=False).mean
     true_bias = drive["out"]["gyro_bias"][:, -1]
     np.testing.assert_allclose(bias, true_bias, atol=0.003)
     assert _psi_rmse(est, drive["z"]) < 0.7 * _psi_rmse(blind, drive["z"])
@@ -112,7 +111,7 @@ def test_at_standstill_the_heading_is_held_and_the_gyro_reads_its_bias():
     u = np.zeros((1, t, 2))
     u[0, :, 1] = 0.02 + 0.01 * rng.standard_normal(t)
     R = classical.measurement_cov("ekf", noise, 1.0, 1)
-    est, bias = gyro_ekf_batch(m, u, vehicle, noise.Q, R, return_bias=True)
+    (est, _), bias = gyro_ekf_with_bias(m, u, vehicle, noise.Q, R)
     assert np.abs(est[0, :, 2] - 0.7).max() < 1e-12
     assert bias[0] == pytest.approx(0.02, abs=0.002)
 
@@ -145,7 +144,7 @@ def test_told_the_fixes_drift_it_matches_a_filter_written_out_by_hand():
     m[:, 0, :6] = [0.1, -0.2, 0.01, 0.5, 0.7, 0.01]  # a full fix to start from
     u = np.zeros((g, t, 2))
     u[..., 1] = 0.02 + 0.01 * rng.standard_normal((g, t))
-    est, cov = gyro_ekf_batch(m, u, vehicle, np.diag(q**2), R1, return_cov=True, **gyro)
+    est, cov = gyro_ekf_batch(m, u, vehicle, np.diag(q**2), R1, **gyro)
     phi = np.exp(-dt / 3.0)
     F = np.diag([1.0, 1.0, 1.0, 1.0, phi, phi])
     Q = np.diag([q[0] ** 2, q[1] ** 2, q[2] ** 2 + (0.01 * dt) ** 2, 1e-6 * dt,

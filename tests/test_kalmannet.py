@@ -138,7 +138,7 @@ def test_on_straight_drives_it_learns_to_match_the_ekf(one_torch_thread, name):
     with torch.no_grad():
         learned = mse(net(win).numpy(), truth.numpy())
     m, u = win[..., :3].numpy(), win[..., 3:].numpy()
-    ekf = mse(ekf_batch(m, u, Vehicle(), NOISE.Q, np.diag(np.square(NOISE.measurement_sigma)))
+    ekf = mse(ekf_batch(m, u, Vehicle(), NOISE.Q, np.diag(np.square(NOISE.measurement_sigma))).mean
               [:, -1], truth.numpy())
     untrained = mse(WindowNet(name, N, features="frame")(win).detach().numpy(),
                     truth.numpy())

@@ -66,7 +66,7 @@ def classical_cov(name, arr):
     """(T, 3, 3) covariances of a classical filter on one log's arrays."""
     from lbo.filters.classical import estimate as run_classical
 
-    return run_classical(name, arr.m, arr.u, VEHICLE, NOISE, return_cov=True)[1][0]
+    return run_classical(name, arr.m, arr.u, VEHICLE, NOISE).cov[0]
 
 
 def printed_rmse(stdout):
@@ -145,8 +145,7 @@ def test_smooth_true_writes_the_rts_smoothers_estimates(tmp_path, manoeuvre, log
     result = observe_cfg(compose_cfg("observe", ["observer=oracle", "alpha=1", f"input={log_csv}",
                                          f"output={out}", "smooth=true"]))
     m, u = manoeuvre[["x_m", "y_m", "psi_m"]].to_numpy(), manoeuvre[["V", "delta"]].to_numpy()
-    want, P = run_classical("oracle", m[None], u[None], VEHICLE, NOISE, return_cov=True,
-                            smooth=True)
+    want, P = run_classical("oracle", m[None], u[None], VEHICLE, NOISE, smooth=True)
     est = pd.read_csv(out)
     np.testing.assert_allclose(est[["x", "y"]], want[0, :, :2], rtol=0, atol=1e-9)
     np.testing.assert_allclose(est["var_x"], P[0, :, 0, 0], rtol=1e-9)
@@ -154,7 +153,7 @@ def test_smooth_true_writes_the_rts_smoothers_estimates(tmp_path, manoeuvre, log
                                            f"output={tmp_path / 'f.csv'}"]))
     assert (result["rmse"][:2] < 0.9 * filtered["rmse"][:2]).all()
     # scored against the same EKF (R at alpha=1, filtering), which the smoother beats
-    ekf = run_classical("ekf", m[None], u[None], VEHICLE, NOISE)[0]
+    ekf = run_classical("ekf", m[None], u[None], VEHICLE, NOISE).mean[0]
     np.testing.assert_allclose(result["e_ref"], rmse(ekf, manoeuvre[["x", "y", "psi"]].to_numpy()),
                                rtol=1e-12)
     assert result["nrmse"] == pytest.approx(nrmse(result["rmse"], result["e_ref"]))
@@ -271,7 +270,7 @@ def test_resample_interpolates_to_the_observer_dt(tmp_path, manoeuvre):
         observe_cfg(compose_cfg("observe", base))
     result = observe_cfg(compose_cfg("observe", [*base, "resample=true"]))
     m, u = manoeuvre[["x_m", "y_m", "psi_m"]].to_numpy(), manoeuvre[["V", "delta"]].to_numpy()
-    ref = ekf_batch(m[None], u[None], VEHICLE, NOISE.Q, NOISE.R(1.0))[0]
+    ref = ekf_batch(m[None], u[None], VEHICLE, NOISE.Q, NOISE.R(1.0)).mean[0]
     est = pd.read_csv(out)
     assert result["rows"] == len(manoeuvre)
     np.testing.assert_allclose(est[["x", "y"]], ref[:, :2], atol=1e-6)
@@ -312,7 +311,7 @@ def test_streaming_equals_batch(trained, smoke_data, source):
     assert valid.sum() == len(m) - n + 1
     if source == "learned":
         # the first N-1 rows are the paper's EKF; from row N-1 on, the network's windows
-        ekf = ekf_batch(m[None], u[None], obs.vehicle, obs.noise.Q, obs.noise.R(1.0))[0]
+        ekf = ekf_batch(m[None], u[None], obs.vehicle, obs.noise.Q, obs.noise.R(1.0)).mean[0]
         np.testing.assert_allclose(est[:n - 1, :2], ekf[:n - 1, :2], atol=1e-12)
         win = torch.from_numpy(np.concatenate([m, u], axis=1)[None, -n:])
         with torch.no_grad():
@@ -529,7 +528,7 @@ def test_the_plot_shows_errors_against_the_truth_or_the_uncertainty(manoeuvre):
     m = manoeuvre[["x_m", "y_m", "psi_m"]].to_numpy()
     z = manoeuvre[["x", "y", "psi"]].to_numpy()
     est, cov = run_classical("ekf", m[None], manoeuvre[["V", "delta"]].to_numpy()[None], VEHICLE,
-                             NOISE, return_cov=True)
+                             NOISE)
     est, cov = est[0], cov[0]
 
     def panels(fig):
@@ -625,8 +624,7 @@ def test_the_oracle_told_alpha_runs_and_steps_as_the_grids_oracle(manoeuvre, alp
     and covariances."""
     m = manoeuvre[["x_m", "y_m", "psi_m"]].to_numpy()
     u = manoeuvre[["V", "delta"]].to_numpy()
-    ref = run_classical("oracle", m[None], u[None], Vehicle(), Noise.preset("paper"), alpha,
-                        return_cov=True)
+    ref = run_classical("oracle", m[None], u[None], Vehicle(), Noise.preset("paper"), alpha)
     obs = Observer.load("oracle", alpha=alpha)
     run = obs.run(m, u)
     np.testing.assert_allclose(run.state, ref.mean[0], rtol=0, atol=1e-9)

@@ -508,7 +508,7 @@ def test_a_plug_in_truth_drives_the_simulator_and_the_ekf_told_the_car(tmp_path)
     noise = Noise.preset("paper")
 
     def heading(name: str) -> float:
-        est = classical.estimate(name, m, u, Vehicle(), noise, truth=truth)[0]
+        est = classical.estimate(name, m, u, Vehicle(), noise, truth=truth).mean[0]
         return float(np.sqrt(np.mean(np.angle(np.exp(1j * (est[:, 2] - z[:, 2]))) ** 2)))
 
     told, kinematic = heading("oracle_dynamic"), heading("oracle")

@@ -50,7 +50,7 @@ def test_per_step_h_and_r_match_a_filter_written_out_by_hand(name):
     m[..., 6:8][~course] = np.nan
     m[:, 0, :6] = [0.1, -0.2, 0.01, 0.5, 0.7, 0.01]  # a full fix to start from
     u = np.zeros((g, t, 2))
-    est, cov = classical.estimate(name, m, u, vehicle, noise, return_cov=True)
+    est, cov = classical.estimate(name, m, u, vehicle, noise)
     for i in range(g):
         x = m[i, 0, :3].copy()
         P = np.diag(m[i, 0, 3:6] ** 2)
@@ -131,8 +131,8 @@ def test_a_gnss_velocity_gives_the_heading_that_a_single_antenna_lacks(drive, na
     vehicle, noise = Vehicle(), Noise.preset("paper")
     rows = np.stack([measure.rows(drive["m"][i], None, drive["vel"][i], None, drive["u"][i, :, 0])
                      for i in range(4)])
-    blind = classical.estimate(name, drive["m"], drive["u"], vehicle, noise)
-    seen = classical.estimate(name, rows, drive["u"], vehicle, noise)
+    blind = classical.estimate(name, drive["m"], drive["u"], vehicle, noise).mean
+    seen = classical.estimate(name, rows, drive["u"], vehicle, noise).mean
     print(name, _psi_rmse(blind, drive["z"]), _psi_rmse(seen, drive["z"]))
     assert _psi_rmse(seen, drive["z"]) < 0.6 * _psi_rmse(blind, drive["z"])
 
@@ -309,13 +309,13 @@ def test_a_log_that_starts_between_fixes_is_filtered_from_its_first_fix(name):
     ms = np.stack([m, np.roll(m, 3, axis=0), np.full_like(m, np.nan)])
     ms[1, :13] = np.nan  # fixes every 10 rows from row 3: the first one left is row 13
     us = np.stack([u, np.roll(u, 3, axis=0), u])
-    est, cov = classical.estimate(name, ms, us, vehicle, noise, return_cov=True)
-    alone = classical.estimate(name, ms[1:2, 13:], us[1:2, 13:], vehicle, noise)
+    est, cov = classical.estimate(name, ms, us, vehicle, noise)
+    alone = classical.estimate(name, ms[1:2, 13:], us[1:2, 13:], vehicle, noise).mean
     # (batched against alone: rounding differs by 1e-12)
     np.testing.assert_allclose(est[1, 13:], alone[0], rtol=0, atol=1e-9)
     assert np.isnan(est[1, :13]).all() and np.isnan(est[2]).all() and np.isnan(cov[2]).all()
     np.testing.assert_allclose(est[0], classical.estimate(name, ms[:1], us[:1], vehicle,
-                                                          noise)[0], rtol=0, atol=1e-9)
+                                                          noise).mean[0], rtol=0, atol=1e-9)
 
 
 def test_logs_scored_from_each_segments_first_fix():
@@ -412,7 +412,7 @@ def test_runs_without_a_measurement_coast_in_one_call_as_the_steps_would_go():
     calls = []
     update = kf.update
     kf.update = lambda *a: calls.append(1) or update(*a)
-    est, cov = run_stepper(kf, m, u, return_cov=True)
+    est, cov = run_stepper(kf, m, u)
     assert len(calls) == len(range(25, t, 25))  # only the fix rows step one by one
     ref, ref_cov = _stepped(KalmanStepper(m[:, 0], vehicle, Q, R), m, u)
     assert np.abs(est - ref).max() < 1e-9 and np.abs(cov - ref_cov).max() < 1e-12

@@ -80,7 +80,7 @@ def test_trained_by_truncated_backpropagation_it_learns_to_match_the_ekf(cls,
     with torch.no_grad():
         est = carried.run(net, *(torch.as_tensor(a, dtype=torch.float32)
                                  for a in (c.m, c.u))).est
-    ekf = ekf_batch(c.m, c.u, Vehicle(), NOISE.Q, np.diag(SIGMA**2))
+    ekf = ekf_batch(c.m, c.u, Vehicle(), NOISE.Q, np.diag(SIGMA**2)).mean
 
     def mse(e):
         d = e[:, 50:] - c.z[:, 50:]

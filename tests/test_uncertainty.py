@@ -87,8 +87,7 @@ def test_grid(smoke_data):
 
 
 def _nees(name, arr):
-    est, cov = run_classical(name, arr.m, arr.u, VEHICLE, NOISE, alpha=arr.alpha,
-                             return_cov=True)
+    est, cov = run_classical(name, arr.m, arr.u, VEHICLE, NOISE, alpha=arr.alpha)
     return nees_table(name, est, cov, arr.z, arr.mask, arr.alpha).set_index("alpha")
 
 
@@ -123,7 +122,7 @@ def _rmse(est, arr):
 @pytest.mark.parametrize("name", ["ekf", "oracle", "adaptive", "ukf"])
 def test_smoothing_beats_filtering_and_narrows_the_covariance(test_grid, name):
     arr = test_grid
-    kw = {"alpha": arr.alpha, "return_cov": True, "lengths": arr.lengths}
+    kw = {"alpha": arr.alpha, "lengths": arr.lengths}
     filt, P_f = run_classical(name, arr.m, arr.u, VEHICLE, NOISE, **kw)
     smooth, P_s = run_classical(name, arr.m, arr.u, VEHICLE, NOISE, smooth=True, **kw)
     noisy = arr.alpha >= 1

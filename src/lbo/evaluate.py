@@ -173,7 +173,7 @@ def _run_grid(cfg: DictConfig, observers: list[str], learned: list[str],
     # estimates (and covariances) of everything that gives a covariance, for calibration
     # and smoothing: the classical filters, and the window filters in their recursive form
     covariant: dict[str, tuple[np.ndarray, np.ndarray]] = {
-        name: run_classical(name, arr.m, arr.u, vehicle, noise, alpha=arr.alpha, return_cov=True)
+        name: run_classical(name, arr.m, arr.u, vehicle, noise, alpha=arr.alpha)
         for name in observers if name in OBSERVERS and (calibrate or smooth)}
     table = classical_table(arr, vehicle, noise, observers, ref, progress=True, truth=truth,
                             given={name: est for name, (est, _) in covariant.items()},
@@ -205,7 +205,7 @@ def _run_grid(cfg: DictConfig, observers: list[str], learned: list[str],
     if smooth:
         for name in [o for o in observers if o in OBSERVERS]:
             est = run_classical(name, arr.m, arr.u, vehicle, noise, alpha=arr.alpha,
-                                smooth=True, lengths=arr.lengths)
+                                smooth=True, lengths=arr.lengths).mean
             rows.append(score(f"{name}-smoothed", est, arr, ref))
             observers.append(f"{name}-smoothed")
     table = pd.concat([*rows, table], ignore_index=True)

@@ -32,7 +32,7 @@ time; over a batch lbo's own run their vectorised forms, a plug-in its stepper s
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import TYPE_CHECKING, Any, Literal, overload
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -119,28 +119,13 @@ def measurement_cov(name: str, noise: Noise, alpha: float | np.ndarray, g: int) 
     return np.einsum("gi,ij->gij", np.square(noise.meas(scale)), np.eye(3))
 
 
-@overload
-def estimate(name: str, m: np.ndarray, u: np.ndarray, vehicle: Vehicle, noise: Noise,
-             alpha: float | np.ndarray = ..., progress: bool = ..., truth: Truth | None = ...,
-             return_cov: Literal[False] = ..., smooth: bool = ...,
-             lengths: np.ndarray | None = ..., gyro: GyroNoise | None = ...) -> np.ndarray: ...
-@overload
-def estimate(name: str, m: np.ndarray, u: np.ndarray, vehicle: Vehicle, noise: Noise,
-             alpha: float | np.ndarray = ..., progress: bool = ..., truth: Truth | None = ...,
-             *, return_cov: Literal[True], smooth: bool = ...,
-             lengths: np.ndarray | None = ..., gyro: GyroNoise | None = ...) -> Posterior: ...
-@overload
-def estimate(name: str, m: np.ndarray, u: np.ndarray, vehicle: Vehicle, noise: Noise,
-             alpha: float | np.ndarray = ..., progress: bool = ..., truth: Truth | None = ...,
-             *, return_cov: bool, smooth: bool = ..., lengths: np.ndarray | None = ...,
-             gyro: GyroNoise | None = ...) -> np.ndarray | Posterior: ...
 def estimate(name: str, m: np.ndarray, u: np.ndarray, vehicle: Vehicle, noise: Noise,
         alpha: float | np.ndarray = 1.0, progress: bool = False,
-        truth: Truth | None = None, return_cov: bool = False, smooth: bool = False,
+        truth: Truth | None = None, smooth: bool = False,
         lengths: np.ndarray | None = None, gyro: GyroNoise | None = None
-        ) -> np.ndarray | Posterior:
-    """Estimates (G, T, 3) of observer ``name`` over G trajectories, and with ``return_cov``
-    their covariances (G, T, 3, 3) (the filter's P of the pose). ``smooth``: the RTS
+        ) -> Posterior:
+    """The :class:`Posterior` of observer ``name`` over G trajectories: its estimates
+    (G, T, 3) and their covariances (G, T, 3, 3) (the filter's P of the pose). ``smooth``: the RTS
     smoother's estimates after the filter (:mod:`lbo.filters.smoother`; not for ``oracle_dynamic``),
     over the first ``lengths`` (G,) steps of each padded trajectory (None: all).
 
@@ -156,12 +141,12 @@ def estimate(name: str, m: np.ndarray, u: np.ndarray, vehicle: Vehicle, noise: N
     if name == DYNAMIC:
         if smooth:
             raise LboError("oracle_dynamic: the floor of a filter; it has no smoother")
-        return _oracle_dynamic(m, u, vehicle, noise, alpha, truth, return_cov)
+        return _oracle_dynamic(m, u, vehicle, noise, alpha, truth)
     check(name)
     m, u = np.asarray(m, dtype=float), np.asarray(u, dtype=float)
     if m.ndim == 3 and m.shape[1] and not np.isfinite(m[:, 0, :2]).all():
-        return _from_first_fixes(name, m, u, vehicle, noise, alpha, progress, return_cov,
-                                 smooth, lengths, gyro)
+        return _from_first_fixes(name, m, u, vehicle, noise, alpha, progress, smooth, lengths,
+                                 gyro)
     R = measurement_cov(name, noise, alpha, np.shape(m)[0])
     try:
         if name not in ON_LOGS:  # a plug-in: its stepper, step by step
@@ -169,22 +154,20 @@ def estimate(name: str, m: np.ndarray, u: np.ndarray, vehicle: Vehicle, noise: N
                 raise LboError(f"{name}: a plug-in's observer has no smoother in lbo; use ekf "
                                "or ukf")
             flt = stepper(name, m[:, 0], vehicle, noise, alpha)
-            return run_stepper(flt, measure.widen(m), u, return_cov,
-                               pose=lambda kf: kf.x[:, :3], cov=lambda kf: kf.P[:, :3, :3])
+            return run_stepper(flt, measure.widen(m), u, pose=lambda kf: kf.x[:, :3],
+                               cov=lambda kf: kf.P[:, :3, :3])
         if name == GYRO:
             if smooth:
                 raise LboError("gyro: the gyro-driven EKF has no smoother yet; use ekf or ukf")
             if gyro is None:
-                return gyro_ekf_batch(m, u, vehicle, noise.Q, R, return_cov=return_cov)
-            return gyro_ekf_batch(m, u, vehicle, gyro.Q, R, return_cov=return_cov,
-                                  **gyro.stepper())
+                return gyro_ekf_batch(m, u, vehicle, noise.Q, R)
+            return gyro_ekf_batch(m, u, vehicle, gyro.Q, R, **gyro.stepper())
         if name == "adaptive":
-            return adaptive_ekf_batch(m, u, vehicle, noise.Q, R, return_cov=return_cov,
-                                      smooth=smooth, lengths=lengths)
+            return adaptive_ekf_batch(m, u, vehicle, noise.Q, R, smooth=smooth, lengths=lengths)
         if name == "ukf":
             return ukf_batch(m, u, vehicle, noise.Q, R, spread=UKF_SPREAD, progress=progress,
-                             return_cov=return_cov, smooth=smooth, lengths=lengths)
-        return ekf_batch(m, u, vehicle, noise.Q, R, return_cov=return_cov, smooth=smooth,
+                             smooth=smooth, lengths=lengths)
+        return ekf_batch(m, u, vehicle, noise.Q, R, smooth=smooth,
                          lengths=lengths)
     except np.linalg.LinAlgError as e:  # a covariance no longer positive definite
         raise LboError(f"{name}: the filter diverged ({e}); check the data's values and "
@@ -206,8 +189,8 @@ def first_fixes(m: np.ndarray) -> np.ndarray:
 
 def _from_first_fixes(name: str, m: np.ndarray, u: np.ndarray, vehicle: Vehicle,
                       noise: Noise, alpha: float | np.ndarray, progress: bool,
-                      return_cov: bool, smooth: bool, lengths: np.ndarray | None,
-                      gyro: GyroNoise | None) -> np.ndarray | Posterior:
+                      smooth: bool, lengths: np.ndarray | None,
+                      gyro: GyroNoise | None) -> Posterior:
     """:func:`estimate` of trajectories that start between fixes (a log cut anywhere): each
     is shifted to start at its first fix, filtered with the others in one batch, and shifted
     back; the rows before it (and a trajectory without any fix) are NaN."""
@@ -221,8 +204,8 @@ def _from_first_fixes(name: str, m: np.ndarray, u: np.ndarray, vehicle: Vehicle,
     none = first == t
     m2[none, 0, :2] = 0.0  # a placeholder start; its estimates are dropped below
     real = (t if lengths is None else np.asarray(lengths)) - np.minimum(first, t)
-    out = estimate(name, m2, u2, vehicle, noise, alpha, progress, return_cov=True,
-                   smooth=smooth, lengths=np.maximum(real, 1), gyro=gyro)
+    out = estimate(name, m2, u2, vehicle, noise, alpha, progress, smooth=smooth,
+                   lengths=np.maximum(real, 1), gyro=gyro)
     est = np.full(m.shape[:2] + (3,), np.nan)
     cov = np.full(m.shape[:2] + (3, 3), np.nan)
     back = np.arange(t) - first[:, None]                          # (G, T) row of the shift
@@ -235,7 +218,7 @@ def _from_first_fixes(name: str, m: np.ndarray, u: np.ndarray, vehicle: Vehicle,
         checks = Checks.empty(g, t)
         for mine, theirs in zip(checks, out.checks):
             mine[gi, ki] = theirs[gi, back[gi, ki]]
-    return Posterior(est, cov, checks) if return_cov else est
+    return Posterior(est, cov, checks)
 
 
 def stepper(name: str, m0: np.ndarray, vehicle: Vehicle, noise: Noise,
@@ -260,12 +243,10 @@ def stepper(name: str, m0: np.ndarray, vehicle: Vehicle, noise: Noise,
 
 
 def _oracle_dynamic(m: np.ndarray, u: np.ndarray, vehicle: Vehicle, noise: Noise,
-                    alpha: float | np.ndarray, truth: Truth | None, return_cov: bool = False
-                    ) -> np.ndarray | Posterior:
+                    alpha: float | np.ndarray, truth: Truth | None) -> Posterior:
     from lbo.filters.dynamic_ekf import dynamic_ekf_batch
 
-    return _told_the_car(dynamic_ekf_batch, m, u, vehicle, noise, alpha, truth,
-                         return_cov=return_cov)
+    return _told_the_car(dynamic_ekf_batch, m, u, vehicle, noise, alpha, truth)
 
 
 def oracle_dynamic_lateral(m: np.ndarray, u: np.ndarray, vehicle: Vehicle, noise: Noise,

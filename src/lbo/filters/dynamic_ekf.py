@@ -37,7 +37,7 @@ and the pose added back: exact, and free of round-off at large coordinates.
 
 from __future__ import annotations
 
-from typing import Literal, NamedTuple, overload
+from typing import NamedTuple
 
 import numpy as np
 
@@ -336,7 +336,7 @@ def dynamic_ekf_lateral(m: np.ndarray, u: np.ndarray, vehicle: Vehicle, car: Car
     def record(kf: DynamicStepper, k: int | slice) -> None:
         mean[:, k], cov[:, k] = kf.x[:, 3:5], kf.P[:, 3:5, 3:5]
 
-    pose = run_stepper(kf, m, u, True, pose=lambda kf: kf.x[:, :3], cov=lambda kf: kf.pose_cov,
+    pose = run_stepper(kf, m, u, pose=lambda kf: kf.x[:, :3], cov=lambda kf: kf.pose_cov,
                        record=record)
     return pose, Lateral(mean, cov)
 
@@ -356,28 +356,10 @@ def _stepper(m: np.ndarray, u: np.ndarray, vehicle: Vehicle, car: Car, Q: np.nda
     return kf, m, u
 
 
-@overload
-def dynamic_ekf_batch(m: np.ndarray, u: np.ndarray, vehicle: Vehicle, car: Car,
-                      Q: np.ndarray, R: np.ndarray, gnss_sigma: np.ndarray | float = ...,
-                      gnss_tau: float = ..., steering_offset: float = ...,
-                      speed_scale: float = ..., return_cov: Literal[False] = ...
-                      ) -> np.ndarray: ...
-@overload
-def dynamic_ekf_batch(m: np.ndarray, u: np.ndarray, vehicle: Vehicle, car: Car,
-                      Q: np.ndarray, R: np.ndarray, gnss_sigma: np.ndarray | float = ...,
-                      gnss_tau: float = ..., steering_offset: float = ...,
-                      speed_scale: float = ..., *, return_cov: Literal[True]) -> Posterior: ...
-@overload
-def dynamic_ekf_batch(m: np.ndarray, u: np.ndarray, vehicle: Vehicle, car: Car,
-                      Q: np.ndarray, R: np.ndarray, gnss_sigma: np.ndarray | float = ...,
-                      gnss_tau: float = ..., steering_offset: float = ...,
-                      speed_scale: float = ..., *, return_cov: bool
-                      ) -> np.ndarray | Posterior: ...
 def dynamic_ekf_batch(m: np.ndarray, u: np.ndarray, vehicle: Vehicle, car: Car,
                       Q: np.ndarray, R: np.ndarray, gnss_sigma: np.ndarray | float = 0.0,
                       gnss_tau: float = 30.0, steering_offset: float = 0.0,
-                      speed_scale: float = 0.0, return_cov: bool = False
-                      ) -> np.ndarray | Posterior:
+                      speed_scale: float = 0.0) -> Posterior:
     """The dynamic oracle: :class:`DynamicStepper` over G trajectories (loop over time only).
 
     Parameters
@@ -392,14 +374,13 @@ def dynamic_ekf_batch(m: np.ndarray, u: np.ndarray, vehicle: Vehicle, car: Car,
     gnss_sigma : float or (G,) GNSS drift standard deviation (m), already times alpha.
     gnss_tau : drift correlation time (s).
     steering_offset, speed_scale : the logged inputs' errors, undone by the filter.
-    return_cov : also return the pose covariances.
 
     Returns
     -------
-    est : (G, T, 3) filtered pose estimates; ``est[:, 0] = m[:, 0]``.
-    P : (G, T, 3, 3) covariances of the pose estimates, only when ``return_cov``.
+    Posterior
+        ``mean`` (G, T, 3) the filtered pose estimates, ``mean[:, 0] = m[:, 0]``, and
+        ``cov`` (G, T, 3, 3) their covariances.
     """
     kf, m, u = _stepper(m, u, vehicle, car, Q, R, gnss_sigma, gnss_tau, steering_offset,
                         speed_scale)
-    return run_stepper(kf, m, u, return_cov, pose=lambda kf: kf.x[:, :3],
-                       cov=lambda kf: kf.pose_cov)
+    return run_stepper(kf, m, u, pose=lambda kf: kf.x[:, :3], cov=lambda kf: kf.pose_cov)

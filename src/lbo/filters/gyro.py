@@ -35,7 +35,7 @@ import json
 import math
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Literal, TypedDict, overload
+from typing import Any, TypedDict
 
 import numpy as np
 
@@ -398,53 +398,27 @@ class GyroStepper:
         return self.x[:, :3]
 
 
-@overload
 def gyro_ekf_batch(m: np.ndarray, u: np.ndarray, vehicle: Vehicle, Q: np.ndarray,
-                   R: np.ndarray, return_cov: Literal[False] = ...,
-                   return_bias: Literal[False] = ..., **gyro: Any) -> np.ndarray: ...
-@overload
-def gyro_ekf_batch(m: np.ndarray, u: np.ndarray, vehicle: Vehicle, Q: np.ndarray,
-                   R: np.ndarray, return_cov: Literal[True],
-                   return_bias: Literal[False] = ..., **gyro: Any) -> Posterior: ...
-@overload
-def gyro_ekf_batch(m: np.ndarray, u: np.ndarray, vehicle: Vehicle, Q: np.ndarray,
-                   R: np.ndarray, return_cov: bool, return_bias: Literal[False] = ...,
-                   **gyro: Any) -> np.ndarray | Posterior: ...
-@overload
-def gyro_ekf_batch(m: np.ndarray, u: np.ndarray, vehicle: Vehicle, Q: np.ndarray,
-                   R: np.ndarray, return_cov: Literal[False] = ..., *,
-                   return_bias: Literal[True], **gyro: Any) -> tuple[np.ndarray, np.ndarray]: ...
-@overload
-def gyro_ekf_batch(m: np.ndarray, u: np.ndarray, vehicle: Vehicle, Q: np.ndarray,
-                   R: np.ndarray, return_cov: Literal[True], return_bias: Literal[True],
-                   **gyro: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]: ...
-@overload
-def gyro_ekf_batch(m: np.ndarray, u: np.ndarray, vehicle: Vehicle, Q: np.ndarray,
-                   R: np.ndarray, return_cov: bool = ..., return_bias: bool = ...,
-                   **gyro: Any) -> np.ndarray | Posterior | tuple[np.ndarray, ...]: ...
-def gyro_ekf_batch(m: np.ndarray, u: np.ndarray, vehicle: Vehicle, Q: np.ndarray,
-                   R: np.ndarray, return_cov: bool = False, return_bias: bool = False,
-                   **gyro: Any) -> np.ndarray | Posterior | tuple[np.ndarray, ...]:
+                   R: np.ndarray, **gyro: Any) -> Posterior:
     """:class:`GyroStepper` over G trajectories (a loop over time only).
 
     m : (G, T, 3) or (G, T, 8) rows; u : (G, T, 2) ``[V, r_m]``; Q (3, 3); R (3, 3) or
     (G, 3, 3); ``gyro``: :class:`GyroStepper`'s keywords (the gyro's errors, the fixes'
-    drift, ``relearn``). Returns the poses (G, T, 3), with ``return_cov`` a
-    :class:`~lbo.filters.stepper.Posterior` of them, their covariances (G, T, 3, 3) and the
-    consistency test at every row (its ``checks``), with ``return_bias`` the bias estimated
-    at the last step (G,) last.
-    """
+    drift, ``relearn``). Returns the :class:`~lbo.filters.stepper.Posterior` of the poses
+    (G, T, 3), their covariances (G, T, 3, 3) and the consistency test at every row (its
+    ``checks``)."""
+    return gyro_ekf_with_bias(m, u, vehicle, Q, R, **gyro)[0]
+
+
+def gyro_ekf_with_bias(m: np.ndarray, u: np.ndarray, vehicle: Vehicle, Q: np.ndarray,
+                       R: np.ndarray, **gyro: Any) -> tuple[Posterior, np.ndarray]:
+    """:func:`gyro_ekf_batch`'s posterior and the gyro's bias it estimated at the last step
+    (G,)."""
     m, u = check_trajectories(m, u)
     if not np.isfinite(u).all():
         raise LboError("the gyro EKF needs V and r_m at every step (NaN or inf found)")
     flt = GyroStepper(m[:, 0], vehicle, Q, batch_cov(R, m.shape[0], "R"), **gyro)
     checks = Checks.empty(*m.shape[:2])
-    out = run_stepper(flt, m, u, return_cov, pose=lambda kf: kf.x[:, :3],
-                      cov=lambda kf: kf.P[:, :3, :3],
+    out = run_stepper(flt, m, u, pose=lambda kf: kf.x[:, :3], cov=lambda kf: kf.P[:, :3, :3],
                       record=lambda kf, k: kf.consistency.record(checks, k))
-    if isinstance(out, Posterior):
-        out = Posterior(*out, checks=checks)
-    if not return_bias:
-        return out
-    # out is a Posterior exactly when return_cov
-    return (*out, flt.x[:, 3]) if isinstance(out, Posterior) else (out, flt.x[:, 3])
+    return Posterior(*out, checks=checks), flt.x[:, 3]

@@ -15,7 +15,7 @@ R nothing.
 
 from __future__ import annotations
 
-from typing import Any, Literal, overload
+from typing import Any
 
 import numpy as np
 
@@ -205,31 +205,18 @@ def adaptive_settings(R0: np.ndarray, g: int, forgetting: float = 0.99,
 
 
 def _ekf_loop(m: np.ndarray, u: np.ndarray, vehicle: Vehicle, Q: np.ndarray, R: np.ndarray,
-              return_cov: bool, smooth: bool = False, lengths: np.ndarray | None = None,
-              **adaptive: Any) -> np.ndarray | Posterior:
+              smooth: bool = False, lengths: np.ndarray | None = None,
+              **adaptive: Any) -> Posterior:
     """Shared time loop of :func:`ekf_batch` and (with ``adaptive`` settings)
     :func:`adaptive_ekf_batch`."""
     m, u = check_trajectories(m, u)
     stepper = AdaptiveStepper if adaptive else KalmanStepper
     kf = stepper(m[:, 0], vehicle, check_q(Q), batch_cov(R, m.shape[0], "R"), **adaptive)
-    return run_stepper(kf, m, u, return_cov, smooth=smooth, lengths=lengths)
+    return run_stepper(kf, m, u, smooth=smooth, lengths=lengths)
 
 
-@overload
 def ekf_batch(m: np.ndarray, u: np.ndarray, vehicle: Vehicle, Q: np.ndarray, R: np.ndarray,
-              return_cov: Literal[False] = ..., smooth: bool = ...,
-              lengths: np.ndarray | None = ...) -> np.ndarray: ...
-@overload
-def ekf_batch(m: np.ndarray, u: np.ndarray, vehicle: Vehicle, Q: np.ndarray, R: np.ndarray,
-              return_cov: Literal[True], smooth: bool = ...,
-              lengths: np.ndarray | None = ...) -> Posterior: ...
-@overload
-def ekf_batch(m: np.ndarray, u: np.ndarray, vehicle: Vehicle, Q: np.ndarray, R: np.ndarray,
-              return_cov: bool, smooth: bool = ...,
-              lengths: np.ndarray | None = ...) -> np.ndarray | Posterior: ...
-def ekf_batch(m: np.ndarray, u: np.ndarray, vehicle: Vehicle, Q: np.ndarray, R: np.ndarray,
-              return_cov: bool = False, smooth: bool = False,
-              lengths: np.ndarray | None = None) -> np.ndarray | Posterior:
+              smooth: bool = False, lengths: np.ndarray | None = None) -> Posterior:
     """The EKF of :class:`lbo.filters.reference.BicycleEKF`, vectorised over G trajectories
     (a loop over time only).
 
@@ -242,16 +229,16 @@ def ekf_batch(m: np.ndarray, u: np.ndarray, vehicle: Vehicle, Q: np.ndarray, R: 
     vehicle : Vehicle
     Q : (3, 3) process covariance.
     R : (3, 3) shared, or (G, 3, 3) per trajectory (e.g. ``noise.R(alpha_g)`` for the oracle).
-    return_cov : also return the posterior covariances.
     smooth : the RTS smoother's estimates and covariances instead (:mod:`lbo.filters.smoother`).
     lengths : (G,) real steps of padded trajectories, for the smoother (None: all).
 
     Returns
     -------
-    est : (G, T, 3) filtered estimates; ``est[:, 0] = m[:, 0]`` (smoothed with ``smooth``).
-    P : (G, T, 3, 3) their covariances, only when ``return_cov``.
+    Posterior
+        ``mean`` (G, T, 3) the filtered estimates, ``mean[:, 0] = m[:, 0]`` (smoothed with
+        ``smooth``), and ``cov`` (G, T, 3, 3) their covariances.
     """
-    return _ekf_loop(m, u, vehicle, Q, R, return_cov, smooth, lengths)
+    return _ekf_loop(m, u, vehicle, Q, R, smooth, lengths)
 
 
 class AdaptiveStepper(KalmanStepper):
@@ -312,27 +299,10 @@ class AdaptiveStepper(KalmanStepper):
         return False
 
 
-@overload
-def adaptive_ekf_batch(m: np.ndarray, u: np.ndarray, vehicle: Vehicle, Q: np.ndarray,
-                       R0: np.ndarray, forgetting: float = ..., prior_weight: float = ...,
-                       r_floor: float = ..., return_cov: Literal[False] = ...,
-                       smooth: bool = ..., lengths: np.ndarray | None = ...) -> np.ndarray: ...
-@overload
-def adaptive_ekf_batch(m: np.ndarray, u: np.ndarray, vehicle: Vehicle, Q: np.ndarray,
-                       R0: np.ndarray, forgetting: float = ..., prior_weight: float = ...,
-                       r_floor: float = ..., *, return_cov: Literal[True],
-                       smooth: bool = ..., lengths: np.ndarray | None = ...) -> Posterior: ...
-@overload
-def adaptive_ekf_batch(m: np.ndarray, u: np.ndarray, vehicle: Vehicle, Q: np.ndarray,
-                       R0: np.ndarray, forgetting: float = ..., prior_weight: float = ...,
-                       r_floor: float = ..., *, return_cov: bool, smooth: bool = ...,
-                       lengths: np.ndarray | None = ...) -> np.ndarray | Posterior: ...
 def adaptive_ekf_batch(m: np.ndarray, u: np.ndarray, vehicle: Vehicle, Q: np.ndarray,
                        R0: np.ndarray, forgetting: float = 0.99, prior_weight: float = 1.0,
-                       r_floor: float = 1e-4,
-                       return_cov: bool = False, smooth: bool = False,
-                       lengths: np.ndarray | None = None
-                       ) -> np.ndarray | Posterior:
+                       r_floor: float = 1e-4, smooth: bool = False,
+                       lengths: np.ndarray | None = None) -> Posterior:
     """Noise-adaptive EKF: learns a diagonal R online from its innovations (Sage-Husa).
 
     It is never told alpha. At each step the innovation ``y = wrap(m_k - x_k^-)`` gives a
@@ -363,13 +333,12 @@ def adaptive_ekf_batch(m: np.ndarray, u: np.ndarray, vehicle: Vehicle, Q: np.nda
         forgotten quickly when alpha is far from 1.
     r_floor : floor on R relative to diag(R0) (1e-4: a sigma of 1 % of R0's); an absolute
         :data:`COV_FLOOR` applies where R0 is zero.
-    return_cov : also return the posterior covariances.
 
     Returns
     -------
-    est : (G, T, 3) filtered estimates.
-    P : (G, T, 3, 3) posterior covariances, only when ``return_cov``.
+    Posterior
+        ``mean`` (G, T, 3) the filtered estimates and ``cov`` (G, T, 3, 3) their covariances.
     """
     settings = adaptive_settings(R0, np.shape(m)[0], forgetting, prior_weight, r_floor)
-    return _ekf_loop(m, u, vehicle, Q, return_cov=return_cov, smooth=smooth, lengths=lengths,
+    return _ekf_loop(m, u, vehicle, Q, smooth=smooth, lengths=lengths,
                      **settings)

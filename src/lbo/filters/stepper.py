@@ -26,7 +26,7 @@ the same numbers. docs/plugins.md states the contract for a user's own observer.
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import Any, Literal, NamedTuple, cast, overload
+from typing import Any, NamedTuple
 
 import numpy as np
 from tqdm.auto import tqdm
@@ -42,8 +42,8 @@ class _MeanCov(NamedTuple):
 
 
 class Posterior(_MeanCov):
-    """A batch filter's estimates with their covariances, as ``return_cov=True`` gives them
-    (it unpacks as ``mean, cov``). ``checks`` (not unpacked): the consistency test of its
+    """A batch filter's estimates with their covariances, what every batch filter returns (it
+    unpacks as ``mean, cov``). ``checks`` (not unpacked): the consistency test of its
     innovations at every row (:class:`lbo.filters.consistency.Checks`) for a filter that
     makes one (the gyro EKF), else None."""
 
@@ -60,31 +60,16 @@ Recorder = Callable[[Any, int | slice], None]
 """``record(kf, k)`` of :func:`run_stepper`."""
 
 
-@overload
-def run_stepper(kf: Any, m: np.ndarray, u: np.ndarray, return_cov: Literal[False] = ...,
-                pose: Callable[[Any], np.ndarray] = ..., cov: Callable[[Any], np.ndarray] = ...,
-                smooth: bool = ..., progress: str | None = ...,
-                lengths: np.ndarray | None = ..., record: Recorder | None = ...) -> np.ndarray: ...
-@overload
-def run_stepper(kf: Any, m: np.ndarray, u: np.ndarray, return_cov: Literal[True],
-                pose: Callable[[Any], np.ndarray] = ..., cov: Callable[[Any], np.ndarray] = ...,
-                smooth: bool = ..., progress: str | None = ...,
-                lengths: np.ndarray | None = ..., record: Recorder | None = ...) -> Posterior: ...
-@overload
-def run_stepper(kf: Any, m: np.ndarray, u: np.ndarray, return_cov: bool,
-                pose: Callable[[Any], np.ndarray] = ..., cov: Callable[[Any], np.ndarray] = ...,
-                smooth: bool = ..., progress: str | None = ...,
-                lengths: np.ndarray | None = ..., record: Recorder | None = ...
-                ) -> np.ndarray | Posterior: ...
-def run_stepper(kf: Any, m: np.ndarray, u: np.ndarray, return_cov: bool = False,
+def run_stepper(kf: Any, m: np.ndarray, u: np.ndarray,
                 pose: Callable[[Any], np.ndarray] = lambda kf: kf.x,
                 cov: Callable[[Any], np.ndarray] = lambda kf: kf.P, smooth: bool = False,
                 progress: str | None = None, lengths: np.ndarray | None = None,
-                record: Recorder | None = None) -> np.ndarray | Posterior:
+                record: Recorder | None = None) -> Posterior:
     """The time loop of a batch filter: a stepper ``kf`` started at ``m[:, 0]``, updated with
     every later step. ``pose(kf)`` (G, 3) and ``cov(kf)`` (G, 3, 3) read its estimate and
-    covariance. Returns (G, T, 3) estimates, or with ``return_cov`` a :class:`Posterior` of
-    them and their (G, T, 3, 3) covariances. With ``smooth`` (a stepper that records
+    covariance. Returns the :class:`Posterior` of the (G, T, 3) estimates and their
+    (G, T, 3, 3) covariances (kept at every step: a copy of 9 numbers a trajectory, next to
+    the step's arithmetic). With ``smooth`` (a stepper that records
     ``prior`` and ``cross``, of three states), the estimates and covariances are the RTS
     smoother's (:mod:`lbo.filters.smoother`).
     ``progress``: show a tqdm bar over the time steps with this name; ``lengths`` (G,): the
@@ -96,9 +81,8 @@ def run_stepper(kf: Any, m: np.ndarray, u: np.ndarray, return_cov: bool = False,
     g, t = m.shape[:2]
     est = np.empty((g, t, 3))
     est[:, 0] = pose(kf)
-    covs = np.empty((g, t, 3, 3)) if return_cov or smooth else None
-    if covs is not None:
-        covs[:, 0] = cov(kf)
+    covs = np.empty((g, t, 3, 3))
+    covs[:, 0] = cov(kf)
     if record is not None:
         record(kf, 0)
     if smooth:
@@ -113,9 +97,7 @@ def run_stepper(kf: Any, m: np.ndarray, u: np.ndarray, return_cov: bool = False,
     while k < t:
         if can_coast and quiet[k] and kf.coasts:
             end = k + int(np.argmin(np.append(quiet[k:], False)))  # the run's end
-            est[:, k:end], run_covs = kf.coast(u[:, k - 1:end - 1])
-            if covs is not None:
-                covs[:, k:end] = run_covs
+            est[:, k:end], covs[:, k:end] = kf.coast(u[:, k - 1:end - 1])
             if record is not None:
                 record(kf, slice(k, end))
             bar.update(end - k)
@@ -123,8 +105,7 @@ def run_stepper(kf: Any, m: np.ndarray, u: np.ndarray, return_cov: bool = False,
             continue
         kf.update(m[:, k], u[:, k - 1])
         est[:, k] = pose(kf)
-        if covs is not None:
-            covs[:, k] = cov(kf)
+        covs[:, k] = cov(kf)
         if record is not None:
             record(kf, k)
         if smooth:
@@ -133,7 +114,6 @@ def run_stepper(kf: Any, m: np.ndarray, u: np.ndarray, return_cov: bool = False,
         bar.update(1)
         k += 1
     bar.close()
-    # covs is an array wherever it is read below: made above for return_cov or smooth
     if smooth:
-        est, covs = rts(est, cast(np.ndarray, covs), x_p, P_p, cross, lengths=lengths)
-    return Posterior(est, cast(np.ndarray, covs)) if return_cov else est
+        est, covs = rts(est, covs, x_p, P_p, cross, lengths=lengths)
+    return Posterior(est, covs)

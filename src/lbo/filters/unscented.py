@@ -7,8 +7,6 @@ conventions of :mod:`lbo.filters.start`.
 
 from __future__ import annotations
 
-from typing import Literal, overload
-
 import numpy as np
 
 from lbo.core.angles import wrap_angle
@@ -124,23 +122,9 @@ class UnscentedStepper:
         return self.x
 
 
-@overload
 def ukf_batch(m: np.ndarray, u: np.ndarray, vehicle: Vehicle, Q: np.ndarray, R: np.ndarray,
-              spread: float = ..., progress: bool = ..., return_cov: Literal[False] = ...,
-              smooth: bool = ..., lengths: np.ndarray | None = ...) -> np.ndarray: ...
-@overload
-def ukf_batch(m: np.ndarray, u: np.ndarray, vehicle: Vehicle, Q: np.ndarray, R: np.ndarray,
-              spread: float = ..., progress: bool = ..., *, return_cov: Literal[True],
-              smooth: bool = ..., lengths: np.ndarray | None = ...) -> Posterior: ...
-@overload
-def ukf_batch(m: np.ndarray, u: np.ndarray, vehicle: Vehicle, Q: np.ndarray, R: np.ndarray,
-              spread: float = ..., progress: bool = ..., *, return_cov: bool,
-              smooth: bool = ..., lengths: np.ndarray | None = ...
-              ) -> np.ndarray | Posterior: ...
-def ukf_batch(m: np.ndarray, u: np.ndarray, vehicle: Vehicle, Q: np.ndarray, R: np.ndarray,
-              spread: float = UKF_SPREAD, progress: bool = False, return_cov: bool = False,
-              smooth: bool = False, lengths: np.ndarray | None = None
-              ) -> np.ndarray | Posterior:
+              spread: float = UKF_SPREAD, progress: bool = False, smooth: bool = False,
+              lengths: np.ndarray | None = None) -> Posterior:
     """:func:`lbo.filters.reference.ukf` vectorised over G trajectories (a loop over time
     only, of :class:`UnscentedStepper`): the numbers of
     :func:`lbo.filters.reference.ukf_filterpy_batch` to rounding.
@@ -154,15 +138,14 @@ def ukf_batch(m: np.ndarray, u: np.ndarray, vehicle: Vehicle, Q: np.ndarray, R: 
     R : (3, 3) shared or (G, 3, 3) per trajectory.
     spread : Merwe's alpha.
     progress : show a tqdm bar over the time steps.
-    return_cov : also return the posterior covariances.
     smooth : the unscented RTS smoother's estimates instead (:mod:`lbo.filters.smoother`).
 
     Returns
     -------
-    (G, T, 3) filtered (or smoothed) estimates, and (G, T, 3, 3) covariances with
-    ``return_cov``.
+    Posterior
+        ``mean`` (G, T, 3) the filtered (or smoothed) estimates, ``cov`` (G, T, 3, 3).
     """
     m, u = check_trajectories(m, u)
     flt = UnscentedStepper(m[:, 0], vehicle, Q, batch_cov(R, m.shape[0], "R"), spread=spread)
-    return run_stepper(flt, m, u, return_cov, smooth=smooth,
+    return run_stepper(flt, m, u, smooth=smooth,
                        progress="UKF" if progress else None, lengths=lengths)

@@ -171,7 +171,7 @@ def estimate(log: pd.DataFrame, noise: GyroNoise, vehicle: Vehicle, R: np.ndarra
     R (3, 3): the fixes' covariance where one reports no accuracy."""
     m, u, rec = _columns(log)
     return classical.estimate(classical.GYRO, noise.rows(m, rec, u)[None], u[None], vehicle,
-                              _preset(noise, R), gyro=noise)[0]
+                              _preset(noise, R), gyro=noise).mean[0]
 
 
 def segments(log: pd.DataFrame, noise: GyroNoise, vehicle: Vehicle, R: np.ndarray,

@@ -66,7 +66,7 @@ def classical(name: str, arr: Trajectories, vehicle: Vehicle, noise: Noise,
         scale = 1.0 if truth is None else truth.process_scale
         return np.sqrt(pcrb(arr.z, arr.u, vehicle, scale**2 * noise.Q, R, rng=seed))
     return run_classical(name, arr.m, arr.u, vehicle, noise, alpha=arr.alpha,
-                         progress=progress, truth=truth)
+                         progress=progress, truth=truth).mean
 
 
 def check_observers(names: Sequence[str], field: str = "observers") -> None:
@@ -90,7 +90,7 @@ def reference(arr: Trajectories, vehicle: Vehicle, noise: Noise,
         raise LboError("metric.reference=ekf needs alpha=1 in the test grid; "
                        "use metric.reference=paper")
     sub = arr.take(at1)
-    est = run_classical("ekf", sub.m, sub.u, vehicle, noise)
+    est = run_classical("ekf", sub.m, sub.u, vehicle, noise).mean
     return pooled_rmse(est, sub.z, sub.mask)
 
 
@@ -161,7 +161,7 @@ def tuned_oracle(arr: Trajectories, vehicle: Vehicle, noise: Noise,
     for fp in Q_GRID[0]:
         for fh in Q_GRID[1]:
             Q = np.diag(np.square(sigma * [fp, fp, fh]))
-            est = ekf_batch(arr.m, arr.u, vehicle, Q, R)
+            est = ekf_batch(arr.m, arr.u, vehicle, Q, R).mean
             for a, nrmse in score(TUNED, est, arr, ref)[["alpha", "nrmse"]].itertuples(
                     index=False):
                 if a not in best or nrmse < best[a][0]:

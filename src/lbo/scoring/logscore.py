@@ -57,7 +57,7 @@ def peer_estimates(arr: Trajectories, vehicle: Vehicle, noise: Noise,
         if name not in LOG_PEERS:
             raise LboError(f"observers: {name!r} cannot score logs ({NOTE}); expected names "
                            f"from {list(LOG_PEERS)}")
-    return {name: estimate(name, arr.m, arr.u, vehicle, noise) for name in peers}
+    return {name: estimate(name, arr.m, arr.u, vehicle, noise).mean for name in peers}
 
 
 def table(estimates: Mapping[str, np.ndarray], arr: Trajectories,

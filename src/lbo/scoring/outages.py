@@ -277,7 +277,7 @@ def grid_table(arr: Trajectories, spans: np.ndarray, vehicle: Any, noise: Any,
     for name in classical:
         if name in OBSERVERS:  # a covariance to check through the outages
             estimates[name], covariances[name] = run_classical(
-                name, blanked.m, blanked.u, vehicle, noise, alpha=arr.alpha, return_cov=True)
+                name, blanked.m, blanked.u, vehicle, noise, alpha=arr.alpha)
         else:
             estimates[name] = run(name, blanked, vehicle, noise, truth=truth)
     return score_grid(estimates, arr, spans, vehicle.dt,

@@ -48,7 +48,7 @@ def run_scaled_ekf(arr: Trajectories, vehicle: Vehicle, noise: Noise,
                    position: float, heading: float) -> np.ndarray:
     """Estimates (G, T, 3) of the EKF with R at alpha = 1 and Q scaled (:func:`scaled_q`)."""
     R = np.diag(np.square(noise.meas(1.0)))
-    return ekf_batch(arr.m, arr.u, vehicle, scaled_q(noise, position, heading), R)
+    return ekf_batch(arr.m, arr.u, vehicle, scaled_q(noise, position, heading), R).mean
 
 
 def fit_paper_ekf(arr: Trajectories, vehicle: Vehicle, noise: Noise,

@@ -269,7 +269,7 @@ def oracle_gyro(log: pd.DataFrame, vehicle: Vehicle, position_sigma: float,
     R = np.diag([position_sigma**2, position_sigma**2, 1.0])  # every fix reports its own
     return gyro_ekf_batch(rows[None], np.column_stack([v, rate])[None], vehicle, Q, R,
                           gyro_sigma=gyro_sigma, bias_sigma=bias[0], bias_walk=bias[1],
-                          drift=drift, relearn=False)[0]
+                          drift=drift, relearn=False).mean[0]
 
 
 def markdown(table: pd.DataFrame, *versus: str) -> str:

@@ -127,8 +127,8 @@ def from_first_fix(name: str, m: np.ndarray, u: np.ndarray, vehicle: Vehicle, no
     (T, 3, 3) covariances, NaN before that fix (``smooth``: the RTS smoother's; ``gyro``:
     the gyro EKF's noise), and (T,) bool: the rows its consistency test flags (the gyro
     EKF's, :mod:`lbo.filters.consistency`; none for the others)."""
-    post = classical.estimate(name, m[None], u[None], vehicle, noise,
-                              return_cov=True, smooth=smooth, gyro=gyro)
+    post = classical.estimate(name, m[None], u[None], vehicle, noise, smooth=smooth,
+                              gyro=gyro)
     flagged = np.zeros(len(m), bool) if post.checks is None else post.checks.inconsistent[0]
     return post.mean[0], post.cov[0], flagged
 
