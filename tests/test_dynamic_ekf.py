@@ -176,7 +176,7 @@ def test_sensor_errors_are_undone():
 # ------------------------------------------------------------------ mechanics
 
 
-def test_start_and_return_cov():
+def test_start_and_the_covariances():
     s, u, m, _ = make_batch(3, 50, seed=3)
     R = np.stack([NOISE.R(a) for a in (0.5, 1.0, 2.0)])
     est, P = dynamic_ekf_batch(m, u, VEHICLE, CAR, NOISE.Q, R, gnss_sigma=[0.0, 0.5, 1.0])
