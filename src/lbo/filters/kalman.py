@@ -43,9 +43,10 @@ def _innovation(m: np.ndarray, x: np.ndarray) -> np.ndarray:
 
 
 class KalmanStepper:
-    """The EKF of :func:`ekf_batch` one time step per call, over G trajectories: predict,
-    take the row's R (:meth:`_noise`; the Sage-Husa EKF, :class:`AdaptiveStepper`, learns
-    its own there), start the heading from the course where it is not known yet, update.
+    """The EKF of :func:`ekf_batch` one time step per call, over G trajectories:
+    :meth:`predict`, then :meth:`correct`: take the row's R (:meth:`_noise`; the Sage-Husa
+    EKF, :class:`AdaptiveStepper`, learns its own there), start the heading from the course
+    where it is not known yet, update.
 
     :func:`ekf_batch` loops over it, and :class:`lbo.Observer` steps it one sample at a time,
     so streaming and batch give the same numbers.
@@ -78,25 +79,37 @@ class KalmanStepper:
         self.course = CourseStart(m0, vehicle, Q)
 
     def update(self, m: np.ndarray, u_prev: np.ndarray) -> np.ndarray:
-        """Predict with u_{k-1} (G, 2), update with what row m_k (G, 3) or (G, 8) holds
-        (:mod:`lbo.filters.measure`); returns x_k (G, 3).
+        """One step (the stepper contract, docs/plugins.md): :meth:`predict` with u_{k-1}
+        (G, 2), then :meth:`correct` with what row m_k (G, 3) or (G, 8) holds
+        (:mod:`lbo.filters.measure`); returns x_k (G, 3)."""
+        self.predict(u_prev)
+        return self.correct(m)
 
-        A row's NaN channels are not measured (all of them: a prediction-only step). The
-        adaptive filter learns its own R and takes no reported accuracy."""
-        m = measure.widen(m)
-        held = held_channels(m[:, :3])
+    def predict(self, u_prev: np.ndarray) -> np.ndarray:
+        """The prior of the next step: x and P moved by the bicycle with u_{k-1} (G, 2) and
+        its Jacobian, plus Q; kept in :attr:`prior` (with :attr:`cross`, for smoothing) for
+        :meth:`correct`. Returns the predicted x (G, 3)."""
         F = jacobian(self.x, u_prev, self.vehicle.dt)
         x = step(self.x, u_prev, self.vehicle.dt, self.vehicle.wheelbase)
         self.course.advance(u_prev)
-        cross = self.P @ F.swapaxes(-1, -2)  # cov(x_{k-1|k-1}, x_{k|k-1}), for smoothing
-        P = F @ self.P @ F.swapaxes(-1, -2) + self.Q
+        self.cross = self.P @ F.swapaxes(-1, -2)  # cov(x_{k-1|k-1}, x_{k|k-1})
+        self.prior = (x, F @ self.P @ F.swapaxes(-1, -2) + self.Q)
+        return x
+
+    def correct(self, m: np.ndarray) -> np.ndarray:
+        """The posterior of the step :meth:`predict` made, from what row m (G, 3) or (G, 8)
+        holds: the row's R (:meth:`_noise`), the heading started from the course where it
+        is not known yet, then the Joseph update. A row's NaN channels are not measured (all
+        of them: the prior is the posterior). Returns x_k (G, 3)."""
+        m = measure.widen(m)
+        held = held_channels(m[:, :3])
+        x, P = self.prior
         P, R = self._noise(m, x, P, held)
         pos_var = 0.5 * (R[:, 0, 0] + R[:, 1, 1])
         m, R, P, start = self.course.take(m, pos_var, P, R)
         if start.any():
-            cross = np.array(cross)
-            cross[start, :, 2] = 0.0  # the flat heading prior owes nothing to the past state
-        self.cross = cross
+            self.cross = np.array(self.cross)
+            self.cross[start, :, 2] = 0.0  # the flat heading prior owes nothing to the past
         self.prior = (x, P)  # the prior each posterior came from
         self.x, self.P = joseph_update(x, P, *measure.model(m, x, R))
         self.n_fix = self.n_fix + held
