@@ -272,3 +272,29 @@ def test_logs_without_the_truth_train_as_the_same_logs_with_it(fleet, tmp_path, 
     nets = {kind: load_net(d["checkpoint"])[0].state_dict() for kind, d in done.items()}
     for name, value in nets["truth"].items():
         assert torch.equal(value, nets["blind"][name]), name
+
+
+@pytest.mark.slow
+def test_a_fleet_without_any_truth_trains_and_is_scored_later_where_there_is_some(
+        fleet, tmp_path, tracking, one_torch_thread, capsys):
+    """No test logs at all (data.test=[]): the training runs to a finished run that says it
+    is not scored; lbo.evaluate observer=<that run> scores it on logs with the truth, into
+    the same run."""
+    import mlflow
+
+    from helpers import cli
+    from lbo.train import train
+
+    done = train(fleet_cfg(fleet / "blind", tmp_path, "loss=next_fix", "data.test=[]"))
+    said = capsys.readouterr().out
+    assert "no test logs (data.test=[]): cnn-N20 is not scored" in said
+    assert not any(k.startswith("test_") for k in done) and np.isfinite(done["val_loss"])
+    client = mlflow.MlflowClient(tracking)
+    run = client.get_run(done["run_id"])
+    assert run.info.status == "FINISHED" and not (tmp_path / "out" / "evaluation.csv").exists()
+    res = cli("lbo.evaluate", "data=logs", f"data.test=[{fleet}/truth/test]", "data.run_in=100",
+              f"data.root={tmp_path}/data", f"observer={done['run_id']}",
+              f"hydra.run.dir={tmp_path}/eval", env={"MLFLOW_TRACKING_URI": tracking})
+    assert res.returncode == 0, res.stderr[-3000:]
+    scored = client.get_run(done["run_id"]).data.metrics
+    assert any(k.startswith("eval_logs_") for k in scored), scored

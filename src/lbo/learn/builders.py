@@ -129,9 +129,11 @@ def say_fresh(cfg: DictConfig, net, init: dict[str, torch.Tensor]) -> None:
 
 
 def logs_spec(cfg: DictConfig):
+    """The checked ``data=logs`` config of a training: its training and validation logs
+    given, its test logs optional (a fleet with no truth at all trains, scored nowhere)."""
     from lbo.logs.sets import spec_from_cfg
 
-    return spec_from_cfg(cfg)
+    return spec_from_cfg(cfg, need=("train", "val"))
 
 
 def datamodule(cfg: DictConfig, folder: Path, built: Built | None = None):
@@ -243,7 +245,7 @@ def prepare_data(cfg: DictConfig) -> tuple[Path, str]:
     from lbo.sim import datasets
 
     if logs.is_logs(cfg):  # a user's logs (data=logs, data=hill)
-        log_spec = logs.spec_from_cfg(cfg)
+        log_spec = logs_spec(cfg)
         return logs.build(log_spec)[0], log_spec.digest
     spec = datasets.spec_from_cfg(cfg)
     return datasets.build(spec)[0], spec.digest

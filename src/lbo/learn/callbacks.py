@@ -117,7 +117,12 @@ class Evaluation(L.Callback):
         folder = Path(trainer.datamodule.folder)  # type: ignore[attr-defined]  # Lightning sets it
         name = f"{hp['model']['name']}-N{hp['window']}"
         device = str(trainer.strategy.root_device)
-        if is_log_folder(folder):
+        if is_log_folder(folder) and not (folder / "test.parquet").is_file():
+            print(f"no test logs (data.test=[]): {name} is not scored; lbo.evaluate "
+                  "data.test=[...] observer=<this run> scores it on logs with the truth",
+                  flush=True)
+            self.description = f"{name}: no test logs, not scored"
+        elif is_log_folder(folder):
             self._score_logs(folder, net, hp, name, vehicle, noise, device)
         else:
             self._score_grid(folder, net, hp, name, vehicle, noise, device)
@@ -129,8 +134,9 @@ class Evaluation(L.Callback):
                 client.log_metric(run, key, value)
             # the run's description in the MLflow UI: its result table
             client.set_tag(run, "mlflow.note.content", self.description)
-            client.log_artifact(run, str(self.output_dir / "evaluation.csv"))
-            client.log_artifact(run, str(self.output_dir / "nrmse.png"))
+            for scored in ("evaluation.csv", "nrmse.png"):  # none without test logs
+                if (self.output_dir / scored).is_file():
+                    client.log_artifact(run, str(self.output_dir / scored))
 
     def _score_logs(self, folder: Path, net, hp: Mapping[str, Any], name: str, vehicle, noise,
                     device: str) -> None:
