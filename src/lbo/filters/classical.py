@@ -211,8 +211,8 @@ def _from_first_fixes(name: str, m: np.ndarray, u: np.ndarray, vehicle: Vehicle,
     back = np.arange(t) - first[:, None]                          # (G, T) row of the shift
     ok = (back >= 0) & ~none[:, None]
     gi, ki = np.nonzero(ok)
-    est[gi, ki] = out[0][gi, back[gi, ki]]
-    cov[gi, ki] = out[1][gi, back[gi, ki]]
+    est[gi, ki] = out.mean[gi, back[gi, ki]]
+    cov[gi, ki] = out.cov[gi, back[gi, ki]]
     checks = None
     if out.checks is not None:  # the consistency test's rows, shifted back as well
         checks = Checks.empty(g, t)

@@ -117,15 +117,15 @@ class Evaluation(L.Callback):
         folder = Path(trainer.datamodule.folder)  # type: ignore[attr-defined]  # Lightning sets it
         name = f"{hp['model']['name']}-N{hp['window']}"
         device = str(trainer.strategy.root_device)
-        if is_log_folder(folder) and not (folder / "test.parquet").is_file():
+        if not is_log_folder(folder):
+            self._score_grid(folder, net, hp, name, vehicle, noise, device)
+        elif (folder / "test.parquet").is_file():
+            self._score_logs(folder, net, hp, name, vehicle, noise, device)
+        else:
             print(f"no test logs (data.test=[]): {name} is not scored; lbo.evaluate "
                   "data.test=[...] observer=<this run> scores it on logs with the truth",
                   flush=True)
             self.description = f"{name}: no test logs, not scored"
-        elif is_log_folder(folder):
-            self._score_logs(folder, net, hp, name, vehicle, noise, device)
-        else:
-            self._score_grid(folder, net, hp, name, vehicle, noise, device)
         self.metrics["eval_seconds"] = time.perf_counter() - start
         logger = self.mlflow or trainer.logger
         if isinstance(logger, MLFlowLogger):

@@ -93,7 +93,13 @@ def innovations(rows: np.ndarray | Sequence[np.ndarray], u: np.ndarray | Sequenc
     the fix before it, the fix less the position predicted on the inputs ``terms`` undo. rows
     (T, 3) ``[x_m, y_m, psi_m]`` or the filters' (T, 8) (:mod:`lbo.filters.measure`), u (T, 2)
     the logged ``[V, delta]``; ``terms`` None: as logged."""
-    m, logged = _stacked(rows, u)
+    return _innovations(*_stacked(rows, u), vehicle, noise, terms, max_gap_s)
+
+
+def _innovations(m: np.ndarray, logged: np.ndarray, vehicle: Vehicle, noise: Noise,
+                 terms: InputTerms | None, max_gap_s: float) -> np.ndarray:
+    """:func:`innovations` of G logs already stacked (:func:`_stacked`): m (G, T, C), the
+    logged inputs (G, T, 2)."""
     uu = (terms or InputTerms()).undo(logged)
     kf = classical.stepper("ekf", m[:, 0], vehicle, noise)
     found: list[np.ndarray] = []
@@ -116,7 +122,10 @@ def loss(rows: np.ndarray | Sequence[np.ndarray], u: np.ndarray | Sequence[np.nd
          ) -> float:
     """The prediction error :func:`fit` minimises: the mean square of :func:`innovations`
     (m^2); inf where there is none."""
-    y = innovations(rows, u, vehicle, noise, terms, max_gap_s)
+    return _mean_square(innovations(rows, u, vehicle, noise, terms, max_gap_s))
+
+
+def _mean_square(y: np.ndarray) -> float:
     return float(np.mean(y**2)) if len(y) else float("inf")
 
 
@@ -139,7 +148,7 @@ def fit(rows: np.ndarray | Sequence[np.ndarray], u: np.ndarray | Sequence[np.nda
     for name in free:
         if name not in TERMS:
             raise LboError(f"free: unknown term {name!r}; expected some of {', '.join(TERMS)}")
-    m = _stacked(rows, u)[0]  # checked: two fixes in every log
+    m, logged = _stacked(rows, u)  # once for every run of the search; two fixes in every log
     began = time.perf_counter()
     start = start or InputTerms()
     at = {name: getattr(start, name) for name in free}
@@ -157,7 +166,8 @@ def fit(rows: np.ndarray | Sequence[np.ndarray], u: np.ndarray | Sequence[np.nda
     for gap in gaps:
         def objective(q: np.ndarray, gap: float = gap) -> float:
             terms = terms_of(q)
-            return float("inf") if terms is None else loss(rows, u, vehicle, noise, terms, gap)
+            return float("inf") if terms is None else _mean_square(
+                _innovations(m, logged, vehicle, noise, terms, gap))
 
         first = objective(p)
         res = minimize(objective, p, method="Nelder-Mead",
