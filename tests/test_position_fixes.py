@@ -49,7 +49,7 @@ def test_a_channel_not_held_adds_nothing_the_subset_update_to_rounding():
     held = np.array([[1, 1, 1], [1, 1, 0], [0, 0, 0], [0, 1, 0], [1, 0, 1], [0, 1, 1],
                      [1, 0, 0], [0, 0, 1]], bool)
     y[~held] = np.nan  # what is not held may be anything
-    xs, Ps = joseph_update(x, P, y, H, R, held)
+    xs, Ps, *_ = joseph_update(x, P, y, H, R, held)
     for i in range(g):
         xe, Pe = _subset_update(x[i], P[i], y[i], H[i], R[i], held[i])
         np.testing.assert_allclose(xs[i], xe, rtol=0, atol=1e-12)
@@ -82,7 +82,7 @@ def test_per_step_h_and_r_match_a_hand_written_constant_velocity_filter():
     for k in range(1, t):
         x, P = x @ F.T, F @ P @ F.T + Q
         held = np.isfinite(m[:, k])
-        x, P = joseph_update(x, P, m[:, k] - x, H, R, held)
+        x, P, *_ = joseph_update(x, P, m[:, k] - x, H, R, held)
         for i in range(g):  # by hand: predict, then K = P H^T S^-1, P = (I - K H) P
             xi, Pi = F @ xh[i], F @ Ph[i] @ F.T + Q
             h = np.eye(4)[held[i]]

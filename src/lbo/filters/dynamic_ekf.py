@@ -260,7 +260,7 @@ class DynamicStepper:
             held = held_channels(m[:, :3])
             y = np.where(held, m[:, :3] - x @ self.H.T, 0.0)
             y[:, 2] = wrap_angle(y[:, 2])
-            self.x, self.P = joseph_update(x, P, y, self.H, R, held)
+            self.x, self.P, *_ = joseph_update(x, P, y, self.H, R, held)
             return self.x[:, :3]
         n = x.shape[1]
         slip, jac = self._course(x, self.true_inputs(_check_inputs(u_prev, g, "u_prev")))
@@ -275,7 +275,7 @@ class DynamicStepper:
         R4 = np.zeros((g, 4, 4))
         R4[:, :3, :3] = R
         R4[:, 3, 3] = np.where(held[:, 3], np.square(np.where(held[:, 3], m[:, 7], 0.0)), 1.0)
-        self.x, self.P = joseph_update(x, P, y, H, R4, held)
+        self.x, self.P, *_ = joseph_update(x, P, y, H, R4, held)
         return self.x[:, :3]
 
     def _course(self, x: np.ndarray, ut: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -45,7 +45,7 @@ from lbo.filters import measure
 from lbo.filters.consistency import Checks, NisWindow, widen
 from lbo.filters.start import CourseStart, batch_cov, check_trajectories, start_state
 from lbo.filters.stepper import Posterior, run_stepper
-from lbo.filters.update import joseph_update
+from lbo.filters.update import joseph_update, nis
 from lbo.sim.vehicle import Vehicle
 
 GYRO_SIGMA = 0.01
@@ -381,12 +381,13 @@ class GyroStepper:
         # the test reads the sensors' channels (fix, heading, course), not the standstill's
         # zero rate: a constraint on a car that may not quite stand (a simulated one's
         # heading walks with its process noise even at rest)
-        self.x, self.P, nis = joseph_update(x, P, y5, self.H, R5, held5, return_nis=True,
-                                            tested=TESTED)
+        update = joseph_update(x, P, y5, self.H, R5, held5)
+        self.x, self.P = update.x, update.P
         dof = (held5 & TESTED).sum(1)
         if not dof.any():  # no fix nor course in any trajectory (most rows): nothing to test
             return self.x[:, :3]
-        failed = self.consistency.push(nis, dof) & (dof > 0)  # failed at this update
+        # failed at this update
+        failed = self.consistency.push(nis(update, held5, TESTED), dof) & (dof > 0)
         self.widened[dof > 0] = 1.0
         if self.relearn and failed.any():
             # innovations its covariance cannot explain: the heading and the bias the gyro

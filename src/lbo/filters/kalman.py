@@ -111,10 +111,9 @@ class KalmanStepper:
             self.cross = np.array(self.cross)
             self.cross[start, :, 2] = 0.0  # the flat heading prior owes nothing to the past
         self.prior = (x, P)  # the prior each posterior came from
-        self.x, self.P = joseph_update(x, P, *measure.model(m, x, R))
+        self.x, self.P, *_ = joseph_update(x, P, *measure.model(m, x, R))
         self.n_fix = self.n_fix + held
         return self.x
-
 
     def _noise(self, m: np.ndarray, x: np.ndarray, P: np.ndarray, held: np.ndarray
                ) -> tuple[np.ndarray, np.ndarray]:

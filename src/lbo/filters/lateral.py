@@ -237,7 +237,7 @@ def _filter(y: np.ndarray, single: bool, noise: LateralNoise, p0: float, step: M
         P = F @ P @ F.transpose(0, 2, 1) + noise.delta**2 * B[:, :, None] * B[:, None, :]
         h, H, _ = measure(x, k)
         held = np.isfinite(y[:, k])
-        x, P = joseph_update(x, P, np.where(held, y[:, k] - h, 0.0), H, R, held)
+        x, P, *_ = joseph_update(x, P, np.where(held, y[:, k] - h, 0.0), H, R, held)
         xs[:, k], Ps[:, k] = x, P
     if single:
         return LateralEstimate(xs[0], Ps[0])

@@ -118,7 +118,7 @@ class UnscentedStepper:
         cross[start, :, 2] = 0.0  # the flat heading prior owes nothing to the past state
         self.cross = cross
         self.prior = (x, P)
-        self.x, self.P = joseph_update(x, P, *measure.model(m, x, R))
+        self.x, self.P, *_ = joseph_update(x, P, *measure.model(m, x, R))
         return self.x
 
 

@@ -24,16 +24,17 @@ holding nothing leaves the prior unchanged (K = 0).
 
 The update is Joseph's, ``P+ = (I - K H) P (I - K H)^T + K R K^T``, symmetrised: it stays
 symmetric and positive semi-definite whatever the rounding, and is filterpy's (the EKF's
-reference) for a full fix. Asked (``return_nis``), it also gives each row's normalised
-innovation squared ``y^T S^-1 y`` of the held channels that are ``tested``, from this S (its
-block of them): chi-square with as many degrees of freedom as those channels while the
-filter's covariance explains its innovations (:mod:`lbo.filters.consistency` tests it).
+reference) for a full fix. It returns an :class:`Update`: the posterior, and the innovation
+and its covariance S as the update used them, from which :func:`nis` gives each row's
+normalised innovation squared ``y^T S^-1 y`` of the held channels that are ``tested``:
+chi-square with as many degrees of freedom as those channels while the filter's covariance
+explains its innovations (:mod:`lbo.filters.consistency` tests it).
 """
 
 from __future__ import annotations
 
 import functools
-from typing import Literal, overload
+from typing import NamedTuple
 
 import numpy as np
 
@@ -53,17 +54,22 @@ def held_channels(m: np.ndarray) -> np.ndarray:
     return np.isfinite(m)
 
 
-@overload
+class Update(NamedTuple):
+    """One measurement update of G filters with p channels and n states."""
+
+    x: np.ndarray
+    """(G, n) posterior mean."""
+    P: np.ndarray
+    """(G, n, n) posterior covariance (Joseph form, symmetrised)."""
+    y: np.ndarray
+    """(G, p) innovation as the update took it: 0 where a channel is not held."""
+    S: np.ndarray
+    """(G, p, p) innovation covariance ``H P H^T + R`` of the held channels, with a unit
+    variance and no correlation where a channel is not held."""
+
+
 def joseph_update(x: np.ndarray, P: np.ndarray, y: np.ndarray, H: np.ndarray, R: np.ndarray,
-                  held: np.ndarray, return_nis: Literal[False] = ...
-                  ) -> tuple[np.ndarray, np.ndarray]: ...
-@overload
-def joseph_update(x: np.ndarray, P: np.ndarray, y: np.ndarray, H: np.ndarray, R: np.ndarray,
-                  held: np.ndarray, return_nis: Literal[True], tested: np.ndarray | None = ...
-                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]: ...
-def joseph_update(x: np.ndarray, P: np.ndarray, y: np.ndarray, H: np.ndarray, R: np.ndarray,
-                  held: np.ndarray, return_nis: bool = False, tested: np.ndarray | None = None
-                  ) -> tuple[np.ndarray, np.ndarray] | tuple[np.ndarray, np.ndarray, np.ndarray]:
+                  held: np.ndarray) -> Update:
     """Kalman measurement update of G priors with the channels each row holds.
 
     Parameters
@@ -74,16 +80,11 @@ def joseph_update(x: np.ndarray, P: np.ndarray, y: np.ndarray, H: np.ndarray, R:
     H : (p, n) or (G, p, n) measurement Jacobian of all p channels.
     R : (p, p) or (G, p, p) measurement covariance of all p channels.
     held : (G, p) bool, the channels this step's row holds.
-    return_nis : also return the normalised innovation squared.
-    tested : (p,) or (G, p) bool, the channels the NIS is of (None: all); a channel not held
-        is never in it.
 
     Returns
     -------
-    x_post : (G, n) posterior mean.
-    P_post : (G, n, n) posterior covariance (Joseph form, symmetrised).
-    nis : (G,) ``y^T S^-1 y`` over the held channels tested (0 where none is), with
-        ``return_nis``.
+    The :class:`Update`: posterior mean and covariance, and the innovation and its covariance
+    as taken (for :func:`nis`).
     """
     x = np.asarray(x, dtype=float)
     P = np.asarray(P, dtype=float)
@@ -100,7 +101,7 @@ def joseph_update(x: np.ndarray, P: np.ndarray, y: np.ndarray, H: np.ndarray, R:
         # a prediction step in every trajectory (most rows of a log between its fixes): K = 0,
         # and the full update below gives exactly this; skipped for its cost
         P = 0.5 * (P + P.swapaxes(-1, -2))
-        return (x, P, np.zeros(g)) if return_nis else (x, P)
+        return Update(x, P, np.zeros((g, p)), np.broadcast_to(_eye(p), (g, p, p)))
     # a channel not held: no row of H, no innovation, uncorrelated with a unit variance, so
     # S is block diagonal and that channel's column of K is exactly zero (np.where broadcasts
     # a shared H and R over the G rows)
@@ -113,15 +114,22 @@ def joseph_update(x: np.ndarray, P: np.ndarray, y: np.ndarray, H: np.ndarray, R:
     K = np.linalg.solve(S, PHt.swapaxes(-1, -2)).swapaxes(-1, -2)   # P H^T S^-1, S symmetric
     I_KH = _eye(n) - K @ H
     post = I_KH @ P @ I_KH.swapaxes(-1, -2) + K @ R @ K.swapaxes(-1, -2)
-    x_post, P_post = x + np.einsum("gij,gj->gi", K, y), 0.5 * (post + post.swapaxes(-1, -2))
-    if not return_nis:
-        return x_post, P_post
-    # the tested channels' block of S, the others set apart as the untaken ones are above:
-    # their innovations' marginal covariance, whatever the other channels of the row say
+    return Update(x + np.einsum("gij,gj->gi", K, y), 0.5 * (post + post.swapaxes(-1, -2)), y, S)
+
+
+def nis(update: Update, held: np.ndarray, tested: np.ndarray | None = None) -> np.ndarray:
+    """Each row's normalised innovation squared ``y^T S^-1 y`` (G,) over the channels it
+    held (``held`` (G, p) bool) that are ``tested`` ((p,) or (G, p) bool; None: all), from the
+    innovation and S of ``update``; 0 where a row holds none of them.
+
+    S is the tested channels' block, the others set apart as the untaken ones are in
+    :func:`joseph_update`: their innovations' marginal covariance, whatever the other channels
+    of the row say."""
+    held = np.asarray(held, dtype=bool)
+    g, p = held.shape
     t = held if tested is None else held & np.asarray(tested, dtype=bool)
     if not t.any():  # nothing tested in any row (a standstill's zero rate alone)
-        return x_post, P_post, np.zeros(g)
-    S_t = np.where(t[:, :, None] & t[:, None, :], S, _eye(p))
-    y_t = np.where(t, y, 0.0)
-    nis = np.einsum("gp,gp->g", y_t, np.linalg.solve(S_t, y_t[..., None])[..., 0])
-    return x_post, P_post, nis
+        return np.zeros(g)
+    S_t = np.where(t[:, :, None] & t[:, None, :], update.S, _eye(p))
+    y_t = np.where(t, update.y, 0.0)
+    return np.einsum("gp,gp->g", y_t, np.linalg.solve(S_t, y_t[..., None])[..., 0])
