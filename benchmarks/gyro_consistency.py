@@ -31,6 +31,7 @@ from lbo.filters.gyro import gyro_ekf_batch
 from lbo.logs.io import receiver
 from lbo.serve.runners import ClassicalRunner
 from lbo.sim.manoeuvres import MANOEUVRES
+from lbo.sim.measurements import Measurements
 from lbo.sim.noise import Noise
 from lbo.sim.vehicle import Vehicle
 from lbo.simulate import STOP_AND_GO, simulate
@@ -45,10 +46,10 @@ def run_log(df, bias: float, relearn: bool, course_unbiased: bool) -> dict[str, 
     r = receiver(df)
     r[:, 6] += bias
     runner = ClassicalRunner("gyro", vehicle, noise)
-    rows, uu = runner.log_rows(m, u, r, None)
+    rows, uu = runner.log_rows(Measurements.of(m, r), u, None)
     if course_unbiased:
         r[:, 6] -= bias
-        rows[:, 7] = runner.log_rows(m, u, r, None)[0][:, 7]
+        rows[:, 7] = runner.log_rows(Measurements.of(m, r), u, None)[0][:, 7]
     R = classical.measurement_cov("gyro", noise, 1.0, 1)
     post = gyro_ekf_batch(rows[None], uu[None], vehicle, noise.Q, R, relearn=relearn)
     err = wrap_angle(post.mean[0, :, 2] - df["psi"].to_numpy(float))

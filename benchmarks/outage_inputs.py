@@ -23,6 +23,7 @@ from lbo.logs.io import receiver
 from lbo.scoring import outages
 from lbo.serve.observer import Observer
 from lbo.serve.rows import bicycle_rows
+from lbo.sim.measurements import Measurements
 from lbo.sim.noise import Noise
 from lbo.sim.truth import Sensors
 from lbo.sim.vehicle import Vehicle
@@ -52,7 +53,7 @@ for length, every in ((10.0, 25.0), (30.0, 45.0)):
         u = blanked[["V", "delta"]].to_numpy(dtype=float)
         channels = receiver(blanked)
         began = time.perf_counter()
-        rows = bicycle_rows(m, u, channels, vehicle.wheelbase)
+        rows = bicycle_rows(Measurements.of(m, channels), u, vehicle.wheelbase)
         fitted = input_fit.fit(rows, u, vehicle, noise)
         print(f"{length:g} s outages, drive {seed}: {len(spans)} outages; fitted in "
               f"{time.perf_counter() - began:.1f} s ({fitted.runs} EKF runs): "

@@ -25,6 +25,7 @@ from lbo.scoring import outages
 from lbo.scoring.receiver import EKF, score
 from lbo.serve.observer import Observer
 from lbo.serve.rows import bicycle_rows
+from lbo.sim.measurements import Measurements
 from lbo.sim.noise import Noise
 from lbo.sim.vehicle import Vehicle
 
@@ -51,7 +52,8 @@ m = blanked[["x_m", "y_m", "psi_m"]].to_numpy(dtype=float)
 u = blanked[["V", "delta"]].to_numpy(dtype=float)
 channels = receiver(blanked)
 began = time.perf_counter()
-terms = input_fit.fit(bicycle_rows(m, u, channels, vehicle.wheelbase), u, vehicle, noise).terms
+terms = input_fit.fit(bicycle_rows(Measurements.of(m, channels), u, vehicle.wheelbase), u,
+                      vehicle, noise).terms
 print(f"observer=ekf adapt=true: {time.perf_counter() - began:.0f} s, {terms.describe()}")
 est, ok = Observer.load("ekf", vehicle, noise, inputs=terms).run(m, u, receiver=channels)
 estimates[f"{EKF}, inputs' terms fitted to the log (adapt=true)"] = np.where(ok[:, None], est,

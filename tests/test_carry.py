@@ -14,6 +14,7 @@ from lbo.logs.io import receiver
 from lbo.models.net import WindowNet
 from lbo.serve import carry
 from lbo.serve.observer import Observer
+from lbo.sim.measurements import Measurements
 from lbo.simulate import simulate
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
@@ -49,7 +50,7 @@ def _blind(obs: Observer, m: np.ndarray, u: np.ndarray, r: np.ndarray, n: int
            ) -> tuple[int, np.ndarray, np.ndarray]:
     """The slice's first row with a heading, and (T,) bool: the rows whose window of n holds
     none, and those whose window the car stood still for."""
-    rows, _ = obs._runner.log_rows(m, u, r, None)
+    rows, _ = obs._runner.log_rows(Measurements.of(m, r), u, None)
     heading = np.isfinite(rows[:, 2]) | np.isfinite(rows[:, 6])
     blind = np.array([k >= n - 1 and not heading[k - n + 1:k + 1].any() for k in range(len(m))])
     still = np.array([k >= n - 1 and (u[k - n + 1:k + 1, 0] == 0).all() for k in range(len(m))])

@@ -26,6 +26,7 @@ from lbo.filters.update import nis as normalised
 from lbo.logs.io import receiver
 from lbo.serve.observer import Observer
 from lbo.serve.runners import ClassicalRunner
+from lbo.sim.measurements import Measurements
 from lbo.sim.noise import Noise
 from lbo.sim.vehicle import Vehicle
 from lbo.simulate import simulate as simulate_log
@@ -64,7 +65,7 @@ def test_a_gyro_biased_far_beyond_its_prior_is_flagged_and_learned_again(biased)
     obs = Observer.load("gyro")
     est, valid = obs.run(biased["m"], biased["u"], receiver=biased["r"])
     runner = ClassicalRunner("gyro", obs.vehicle, obs.noise)
-    rows, u = runner.log_rows(biased["m"], biased["u"], biased["r"], None)
+    rows, u = runner.log_rows(Measurements.of(biased["m"], biased["r"]), biased["u"], None)
     _, cov, _ = runner.run(rows, u, np.ones(len(rows), bool))  # every row's, flagged or not
     z2 = _heading_z2(est, cov, biased["psi"])
     first = 50  # the first update after the start: the second fix (1 Hz)
@@ -81,7 +82,7 @@ def test_without_relearning_every_row_beyond_3_sigma_after_the_first_update_is_f
     it cannot explain: 90% of the rows, every one beyond 3 sigma from the first update on."""
     vehicle, noise = Vehicle(), Noise.preset("paper")
     rows, u = ClassicalRunner("gyro", vehicle, noise).log_rows(
-        biased["m"], biased["u"], biased["r"], None)
+        Measurements.of(biased["m"], biased["r"]), biased["u"], None)
     R = classical.measurement_cov("gyro", noise, 1.0, 1)
     post = gyro_ekf_batch(rows[None], u[None], vehicle, noise.Q, R, relearn=False)
     assert post.checks is not None
@@ -118,7 +119,7 @@ def test_a_healthy_filter_has_no_flagged_row(manoeuvre, seed, bias):
     est, valid = Observer.load("gyro").run(log["m"], log["u"], receiver=log["r"])
     assert valid.all()
     runner = ClassicalRunner("gyro", Vehicle(), Noise.preset("paper"))
-    _, cov, _ = runner.run(*runner.log_rows(log["m"], log["u"], log["r"], None),
+    _, cov, _ = runner.run(*runner.log_rows(Measurements.of(log["m"], log["r"]), log["u"], None),
                         np.ones(len(log["m"]), bool))
     assert _heading_z2(est, cov, log["psi"]).mean() < 2.0
 

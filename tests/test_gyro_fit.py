@@ -27,6 +27,7 @@ from lbo.scoring.receiver import scored_rows
 from lbo.serve.observer import Observer
 from lbo.sim import gyro_drive
 from lbo.sim.columns import RECEIVER
+from lbo.sim.measurements import Measurements
 from lbo.sim.truth import gauss_markov
 from lbo.sim.vehicle import Vehicle
 
@@ -49,11 +50,10 @@ def log() -> pd.DataFrame:
 def test_trusting_the_velocity_less_widens_its_course_but_keeps_its_rows(log):
     """velocity_scale weighs the course; the receiver's reported sigma says which rows hold
     one (a learned factor of 3 must not drop the courses of a car moving at 3 m/s)."""
-    m = log[["x_m", "y_m", "psi_m"]].to_numpy()
-    rec = log[list(RECEIVER)].to_numpy()
+    meas = Measurements.from_frame(log)
     u = log[["V", "delta"]].to_numpy()
-    plain = dataclasses.replace(OTHER, velocity_scale=1.0, course_lever=1e-9).rows(m, rec, u)
-    wide = dataclasses.replace(OTHER, velocity_scale=3.0, course_lever=1e-9).rows(m, rec, u)
+    plain = dataclasses.replace(OTHER, velocity_scale=1.0, course_lever=1e-9).rows(meas, u)
+    wide = dataclasses.replace(OTHER, velocity_scale=3.0, course_lever=1e-9).rows(meas, u)
     held = np.isfinite(plain[:, 6])
     assert held.sum() > 10 and np.array_equal(held, np.isfinite(wide[:, 6]))
     np.testing.assert_allclose(wide[held, 7], 3.0 * plain[held, 7], rtol=1e-9)

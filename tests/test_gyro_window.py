@@ -20,6 +20,7 @@ from lbo.models.filternet import WindowFilter
 from lbo.models.net import WindowNet
 from lbo.models.recursive import RecursiveFilter
 from lbo.serve.observer import Observer
+from lbo.sim.measurements import Measurements
 from lbo.simulate import simulate
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
@@ -183,7 +184,7 @@ def test_rows_without_a_fix_coast_to_the_numbers_of_one_step_each():
     r[120:150, 3:6] = np.nan
     rec = RecursiveFilter(net.net)
     assert rec.coasts
-    rows, u3 = Observer.from_net(net)._runner.log_rows(m, u, r, None)
+    rows, u3 = Observer.from_net(net)._runner.log_rows(Measurements.of(m, r), u, None)
     with torch.no_grad():
         est, cov = (t[0].numpy() for t in rec.run(torch.from_numpy(rows[None]),
                                                    torch.from_numpy(u3[None]))[:2])
@@ -219,7 +220,7 @@ def test_its_export_takes_the_gyros_reading_as_a_third_input(tmp_path):
                                             "receiver=single_antenna", "seed=2"]))
     m, u = log[["x_m", "y_m", "psi_m"]].to_numpy(float), log[["V", "delta"]].to_numpy(float)
     est = obs.run(m, u, receiver=receiver(log))[0]
-    rows, u3 = obs._runner.log_rows(m, u, receiver(log), None)
+    rows, u3 = obs._runner.log_rows(Measurements.of(m, receiver(log)), u, None)
     assert u3.shape == (len(m), 3)
     session = ort.InferenceSession(str(paths["onnx"]), providers=["CPUExecutionProvider"])
     state = {s["name"]: np.zeros([1 if d == "batch" else d for d in s["shape"]])

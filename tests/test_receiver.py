@@ -4,6 +4,8 @@ a GNSS velocity as the course over ground, their one-line errors, and their way 
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pandas as pd
 import pytest
@@ -16,6 +18,7 @@ from lbo.logs.checks import check_receiver
 from lbo.logs.io import resample
 from lbo.serve.observer import Observer
 from lbo.sim.columns import RECEIVER
+from lbo.sim.measurements import Measurements
 from lbo.sim.noise import Noise
 from lbo.sim.schema import Trajectories
 from lbo.sim.vehicle import Vehicle
@@ -129,8 +132,8 @@ def test_a_gnss_velocity_gives_the_heading_that_a_single_antenna_lacks(drive, na
     (0.040 rad for the EKF, oracle and UKF, 0.065 adaptive); their GNSS velocities bring it
     to 0.0085 rad."""
     vehicle, noise = Vehicle(), Noise.preset("paper")
-    rows = np.stack([measure.rows(drive["m"][i], None, drive["vel"][i], None, drive["u"][i, :, 0])
-                     for i in range(4)])
+    meas = dataclasses.replace(Measurements.of(drive["m"]), velocity=drive["vel"])
+    rows = measure.rows(meas, drive["u"][..., 0])
     blind = classical.estimate(name, drive["m"], drive["u"], vehicle, noise).mean
     seen = classical.estimate(name, rows, drive["u"], vehicle, noise).mean
     print(name, _psi_rmse(blind, drive["z"]), _psi_rmse(seen, drive["z"]))

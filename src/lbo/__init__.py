@@ -21,6 +21,7 @@ _EXPORTS = {
     "Noise": "lbo.sim.noise",
     "LboError": "lbo.core.errors",
     "LogFormat": "lbo.logs.formats",
+    "Measurements": "lbo.sim.measurements",
 }
 
 __all__ = sorted(_EXPORTS)

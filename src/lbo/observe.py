@@ -386,10 +386,12 @@ def _fitted_inputs(m: np.ndarray, u: np.ndarray, channels: np.ndarray | None, ve
     (:func:`lbo.learn.input_fit.fit`), said in a line with the time it took."""
     from lbo.learn import input_fit
     from lbo.serve.rows import bicycle_rows
+    from lbo.sim.measurements import Measurements
 
     print("adapting: the inputs' terms (speed factor, steering offset and factor) to this "
           "log's fixes", flush=True)
-    rows = m if channels is None else bicycle_rows(m, u, channels, vehicle.wheelbase)
+    rows = (m if channels is None
+            else bicycle_rows(Measurements.of(m, channels), u, vehicle.wheelbase))
     fitted = input_fit.fit(rows, u, vehicle, noise)
     print(f"adapted: {fitted.terms.describe()} (offline: it read the whole log first; no truth "
           f"read), {fitted.runs} EKF runs in {fitted.seconds:.1f} s, the fixes' mean square "

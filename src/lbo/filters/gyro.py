@@ -46,6 +46,7 @@ from lbo.filters.consistency import Checks, NisWindow, widen
 from lbo.filters.start import CourseStart, batch_cov, check_trajectories, start_state
 from lbo.filters.stepper import Posterior, run_stepper
 from lbo.filters.update import joseph_update, nis
+from lbo.sim.measurements import Measurements
 from lbo.sim.vehicle import Vehicle
 
 GYRO_SIGMA = 0.01
@@ -187,15 +188,14 @@ class GyroNoise:
         """(3, 3) process covariance of ``[x, y, psi]``."""
         return np.diag([self.q_position**2, self.q_position**2, self.q_heading**2])
 
-    def rows(self, m: np.ndarray, receiver: np.ndarray, u: np.ndarray) -> np.ndarray:
-        """The filter's rows (T, 8) of fixes m (T, 3), a receiver's channels (T, 7)
-        (:data:`lbo.sim.columns.RECEIVER`) and inputs u (T, 2) ``[V, r_m]``: the reported
-        accuracies scaled, the course's variance with the velocity's sigma scaled and the
-        allowance at the lever (its rows those the reported sigma gives)."""
-        sigma = receiver[:, :3] * np.array([self.accuracy_scale, self.accuracy_scale, 1.0])
+    def rows(self, meas: Measurements, u: np.ndarray) -> np.ndarray:
+        """The filter's rows (T, 8) of measurements ``meas`` (T steps) and inputs u (T, 2)
+        ``[V, r_m]``: the fixes' reported accuracies scaled, the course's variance with the
+        velocity's sigma scaled and the allowance at the lever (its rows those the reported
+        sigma gives)."""
         u = self.scaled(u)
-        return measure.rows(m, sigma, receiver[:, 3:5], receiver[:, 5], u[:, 0], u[:, 1],
-                            self.course_lever, self.velocity_scale)
+        scaled = dataclasses.replace(meas, fix_sigma=meas.fix_sigma * self.accuracy_scale)
+        return measure.rows(scaled, u[:, 0], u[:, 1], self.course_lever, self.velocity_scale)
 
     def stepper(self) -> GyroKeywords:
         """The keyword arguments of :class:`GyroStepper` and :func:`gyro_ekf_batch`."""

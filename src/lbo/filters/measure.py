@@ -32,6 +32,7 @@ from numpy.typing import ArrayLike
 
 from lbo.core.angles import wrap_angle
 from lbo.core.errors import LboError
+from lbo.sim.measurements import Measurements
 
 CHANNELS = ("x_m", "y_m", "psi_m", "sx_m", "sy_m", "spsi_m", "course", "s_course")
 """The filters' row: the fix, its reported 1-sigma accuracies (NaN: the filter's R), and the
@@ -96,28 +97,19 @@ def course_over_ground(ve: np.ndarray, vn: np.ndarray, sv: np.ndarray, V: np.nda
     return np.where(held, wrap_angle(course), np.nan), np.where(held, sigma, np.nan)
 
 
-def rows(m: np.ndarray, sigma: np.ndarray | None = None, velocity: np.ndarray | None = None,
-         sv: np.ndarray | None = None, V: np.ndarray | None = None,
-         turn: np.ndarray | None = None, lever: float = COURSE_LEVER,
-         trust: float = 1.0) -> np.ndarray:
-    """The filters' rows (T, 8) of a log's columns.
-
-    m : (T, 3) ``[x_m, y_m, psi_m]``.
-    sigma : (T, 3) reported ``[sx_m, sy_m, spsi_m]`` (NaN: none), or None.
-    velocity : (T, 2) ``[ve_m, vn_m]`` (NaN: none), or None; needs ``V`` (T,).
-    sv : (T,) ``sv_m`` or None (:data:`SV_DEFAULT`).
-    turn : (T,) turn rate (rad/s) or None, lever (m) and trust: see
-        :func:`course_over_ground`.
+def rows(meas: Measurements, V: np.ndarray | None = None, turn: np.ndarray | None = None,
+         lever: float = COURSE_LEVER, trust: float = 1.0) -> np.ndarray:
+    """The filters' rows (..., 8) of :data:`CHANNELS` from what the sensors told, ``meas``
+    (leading shape ``...``): the fix and its heading, the reported accuracies, and the course
+    over ground of the GNSS velocity (:func:`course_over_ground`, which reads ``V`` (...),
+    the speed input (None: never reversing), the turn rate ``turn`` (...) or None, ``lever``
+    (m) and ``trust``). The gyro is no channel of these rows.
     """
-    out = widen(m).copy()
-    if sigma is not None:
-        out[:, 3:6] = sigma
-    if velocity is not None:
-        velocity = np.asarray(velocity, dtype=float)
-        spread = np.full(len(out), np.nan) if sv is None else sv
-        out[:, 6], out[:, 7] = course_over_ground(velocity[:, 0], velocity[:, 1], spread, V,
-                                                  turn, lever, trust)
-    return out
+    course = np.full(meas.heading.shape, np.nan), np.full(meas.heading.shape, np.nan)
+    if meas.has_velocity.any():
+        course = course_over_ground(meas.velocity[..., 0], meas.velocity[..., 1],
+                                    meas.velocity_sigma, V, turn, lever, trust)
+    return np.concatenate([meas.pose, meas.sigma, np.stack(course, axis=-1)], axis=-1)
 
 
 def held_last(a: np.ndarray) -> np.ndarray:

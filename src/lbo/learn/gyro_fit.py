@@ -34,7 +34,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
-from typing import Any, cast
+from typing import Any
 
 import numpy as np
 import pandas as pd
@@ -45,11 +45,11 @@ from lbo.core.errors import LboError
 from lbo.filters import classical, measure
 from lbo.filters.gyro import FixDrift, GyroNoise
 from lbo.learn.eta import more
-from lbo.logs.io import receiver
 from lbo.models.gyro_filter import GyroFilter, Segments
 from lbo.models.poses import wrap_heading
 from lbo.scoring.receiver import measure_ratio, scored_rows
 from lbo.sim.columns import STATE
+from lbo.sim.measurements import Measurements
 from lbo.sim.noise import Noise
 from lbo.sim.vehicle import Vehicle
 
@@ -140,16 +140,15 @@ class Settings:
                 "ahead": round(self.ahead_s / dt)}
 
 
-def _columns(log: pd.DataFrame) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Fixes m (T, 3), inputs u (T, 2) ``[V, r_m]`` and the receiver's channels (T, 7)."""
+def _columns(log: pd.DataFrame) -> tuple[Measurements, np.ndarray]:
+    """The log's measurements (T steps) and inputs u (T, 2) ``[V, r_m]``."""
     if "r_m" not in log:
         raise LboError("the gyro EKF's noise is learned from a log with a gyro: no r_m column")
-    m = log[["x_m", "y_m", "psi_m"]].to_numpy(dtype=float)
-    if np.isfinite(m[:, 2]).any():
+    meas = Measurements.from_frame(log)
+    if meas.has_heading.any():
         raise LboError("the gyro EKF's noise is learned from single-antenna logs: psi_m must "
                        "be empty")
-    # r_m is a receiver channel: the log has them
-    return m, log[["V", "r_m"]].to_numpy(dtype=float), cast(np.ndarray, receiver(log))
+    return meas, log[["V", "r_m"]].to_numpy(dtype=float)
 
 
 def fix_cov(preset: Noise) -> np.ndarray:
@@ -169,8 +168,8 @@ def estimate(log: pd.DataFrame, noise: GyroNoise, vehicle: Vehicle, R: np.ndarra
              ) -> np.ndarray:
     """The gyro EKF's estimates (T, 3) of a log under ``noise`` (NaN before its first fix);
     R (3, 3): the fixes' covariance where one reports no accuracy."""
-    m, u, rec = _columns(log)
-    return classical.estimate(classical.GYRO, noise.rows(m, rec, u)[None], u[None], vehicle,
+    meas, u = _columns(log)
+    return classical.estimate(classical.GYRO, noise.rows(meas, u)[None], u[None], vehicle,
                               _preset(noise, R), gyro=noise).mean[0]
 
 
@@ -178,8 +177,8 @@ def segments(log: pd.DataFrame, noise: GyroNoise, vehicle: Vehicle, R: np.ndarra
              length: int) -> Segments:
     """The log's scored rows cut into segments of ``length`` steps (the last, shorter one
     dropped), each started from the NumPy gyro EKF's state under ``noise`` at its first step."""
-    m, u, rec = _columns(log)
-    rows = noise.rows(m, rec, u)
+    meas, u = _columns(log)
+    rows = noise.rows(meas, u)
     first = int(np.argmax(scored_rows(log)))
     starts = np.arange(first, len(log) - length + 1, length)
     if not len(starts):
@@ -198,14 +197,15 @@ def segments(log: pd.DataFrame, noise: GyroNoise, vehicle: Vehicle, R: np.ndarra
         if k in wanted:
             x0[k], P0[k] = flt.x[0].copy(), flt.P[0].copy()
     idx = starts[:, None] + np.arange(length)
-    sv = np.where(np.isfinite(rec[:, 5]), rec[:, 5], measure.SV_DEFAULT)
-    course = np.arctan2(rec[:, 4], rec[:, 3]) + np.where(u[:, 0] < 0, np.pi, 0.0)
+    sv = np.where(np.isfinite(meas.velocity_sigma), meas.velocity_sigma, measure.SV_DEFAULT)
+    ve, vn = meas.velocity[:, 0], meas.velocity[:, 1]
+    course = np.arctan2(vn, ve) + np.where(u[:, 0] < 0, np.pi, 0.0)
     as_t = lambda a: torch.as_tensor(np.ascontiguousarray(a), dtype=torch.float64)  # noqa: E731
     return Segments(x0=as_t(np.stack([x0[k] for k in starts])),
                     P0=as_t(np.stack([P0[k] for k in starts])),
-                    fix=as_t(m[idx][..., :2]), accuracy=as_t(rec[idx][..., :2]),
+                    fix=as_t(meas.fix[idx]), accuracy=as_t(meas.fix_sigma[idx]),
                     course=as_t(wrap_angle(course)[idx]),
-                    speed=as_t(np.hypot(rec[:, 3], rec[:, 4])[idx]), sv=as_t(sv[idx]),
+                    speed=as_t(np.hypot(ve, vn)[idx]), sv=as_t(sv[idx]),
                     u=as_t(u[idx]), truth=as_t(_truth(log)[idx]))
 
 

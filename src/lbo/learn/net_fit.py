@@ -34,11 +34,11 @@ import torch
 
 from lbo.core.errors import LboError
 from lbo.learn.eta import more
-from lbo.logs.io import receiver
 from lbo.models.envelope import Envelope
 from lbo.models.features import window_view
 from lbo.serve.rows import receiver_rows, window_series
 from lbo.sim.columns import INPUT, MEAS, STATE
+from lbo.sim.measurements import Measurements
 
 __all__ = ["LogWindows", "NetFit", "fit", "fit_and_write", "log_windows"]
 
@@ -74,15 +74,14 @@ def log_windows(logs: pd.DataFrame | Sequence[pd.DataFrame], window: int,
     logs = [logs] if isinstance(logs, pd.DataFrame) else list(logs)
     series, truth, ends, offset = [], [], [], 0
     for log in logs:
-        m = log[list(MEAS)].to_numpy(dtype=float)
-        channels = receiver(log)
-        if channels is None:
+        meas = Measurements.from_frame(log)
+        if not meas.reads_receiver:
             raise LboError("training on a log: a net that reads a receiver needs its channels "
                            "(sx_m, sy_m, ve_m, vn_m, sv_m, r_m); this log has none")
         u = log[list(INPUT)].to_numpy(dtype=float)
-        series.append(window_series(receiver_rows(m, u, channels, wheelbase), u))
+        series.append(window_series(receiver_rows(meas, u, wheelbase), u))
         truth.append(log[list(STATE)].to_numpy(dtype=float))
-        fixes = np.concatenate([[0], np.cumsum(np.isfinite(m[:, :2]).all(1))])
+        fixes = np.concatenate([[0], np.cumsum(meas.has_fix)])
         end = np.arange(window - 1, len(log))
         ends.append(offset + end[fixes[end + 1] - fixes[end + 1 - window] > 0])
         offset += len(log)

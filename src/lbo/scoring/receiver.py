@@ -12,6 +12,7 @@ drive) and ``python -m lbo.receiver_study`` (simulated logs, where an oracle can
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -24,6 +25,7 @@ from lbo.logs.io import receiver
 from lbo.models.features import held_within
 from lbo.scoring.metrics import rmse
 from lbo.sim.columns import STATE
+from lbo.sim.measurements import Measurements
 from lbo.sim.vehicle import Vehicle
 
 __all__ = ["BLIND", "EKF", "FULL_NOISE_ORACLE", "FULL_ORACLE", "NOISE_ORACLE", "ORACLE", "RAW",
@@ -59,9 +61,9 @@ MOVING_S = 8.0
 
 def _course(log: pd.DataFrame) -> np.ndarray:
     """(T,) the course over ground of a log's receiver velocity (NaN where it is none)."""
-    r = receiver(log)
-    assert r is not None, "a receiver's log"
-    return measure.course_over_ground(r[:, 3], r[:, 4], r[:, 5], log["V"].to_numpy(float))[0]
+    meas = Measurements.from_frame(log)
+    return measure.course_over_ground(meas.velocity[:, 0], meas.velocity[:, 1],
+                                      meas.velocity_sigma, log["V"].to_numpy(float))[0]
 
 
 def scored_rows(log: pd.DataFrame) -> np.ndarray:
@@ -250,21 +252,20 @@ def oracle_gyro(log: pd.DataFrame, vehicle: Vehicle, position_sigma: float,
     if bias is None and "b" not in log:
         raise LboError("oracle_gyro: the log has no 'b' column (the gyro's true bias): "
                        "simulate it with a receiver (python -m lbo.simulate receiver=...)")
-    m = log[["x_m", "y_m", "psi_m"]].to_numpy(dtype=float)
-    if not np.isfinite(m[0, :2]).all():
+    meas = Measurements.from_frame(log)
+    if not meas.has_fix[0]:
         raise LboError("oracle_gyro: the log's first row holds no fix")
-    r = receiver(log)
-    assert r is not None, "a receiver's log"
-    fix = np.isfinite(m[:, 0])
-    r[:, :2] = np.where(fix[:, None], position_sigma, np.nan)
+    fix = np.isfinite(meas.fix[:, 0])
+    meas = replace(meas, fix_sigma=np.where(fix[:, None], position_sigma, np.nan))
     v = log["V"].to_numpy(dtype=float)
     rate = log["r_m"].to_numpy(float)
     if bias is None:
         rate = rate - log["b"].to_numpy(float)
         bias = (1e-6, 1e-12)
     if any(latency):
-        m[:, :2], r[:, 3:5] = measure.undelayed(m[:, :2], r[:, 3:5], rate, *latency)
-    rows = measure.rows(m, r[:, :3], r[:, 3:5], r[:, 5], v, np.zeros(len(v)), 0.0)
+        fixes, velocity = measure.undelayed(meas.fix, meas.velocity, rate, *latency)
+        meas = replace(meas, fix=fixes, velocity=velocity)
+    rows = measure.rows(meas, v, np.zeros(len(v)), 0.0)
     Q = np.diag([process_sigma**2, process_sigma**2, 0.0])
     R = np.diag([position_sigma**2, position_sigma**2, 1.0])  # every fix reports its own
     return gyro_ekf_batch(rows[None], np.column_stack([v, rate])[None], vehicle, Q, R,

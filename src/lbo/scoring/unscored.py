@@ -27,7 +27,7 @@ import numpy as np
 from lbo.filters import classical, measure
 from lbo.scoring.metrics import rmse
 from lbo.serve.rows import bicycle_rows
-from lbo.sim.columns import RECEIVER
+from lbo.sim.measurements import Measurements
 
 COURSE_TEXT = (f"psi_m, or a course over ground from ve_m, vn_m at |v| >= "
                f"{measure.COURSE_MIN_SPEED:g} m/s")
@@ -41,8 +41,7 @@ def heading_rows(m: np.ndarray, u: np.ndarray, receiver: np.ndarray | None,
     or the course over ground of a GNSS velocity where it is held (the car moving,
     :func:`lbo.filters.measure.course_over_ground`). The robust observer starts at the first
     of them."""
-    r = np.full((len(m), len(RECEIVER)), np.nan) if receiver is None else receiver
-    rows = bicycle_rows(m, u, r, wheelbase)
+    rows = bicycle_rows(Measurements.of(m, receiver), u, wheelbase)
     return np.isfinite(rows[:, :2]).all(1) & measure.heading_held(rows)
 
 
@@ -67,7 +66,8 @@ def heading_unseen(obs: Any, m: np.ndarray, u: np.ndarray, receiver: np.ndarray 
         return blind
     # run() wraps psi_m first; whether a row holds one is all that matters here
     runner = ClassicalRunner(obs.name, obs.vehicle, obs.noise, gyro=obs.gyro_noise)
-    rows, u = runner.log_rows(m, u, receiver if obs.takes_receiver else None, None)
+    rows, u = runner.log_rows(Measurements.of(m, receiver if obs.takes_receiver else None), u,
+                              None)
     rows = measure.widen(rows)
     pos = np.isfinite(rows[:, :2]).all(1)
     if not pos.any():

@@ -19,6 +19,7 @@ import torch
 from lbo.core.errors import LboError
 from lbo.models.carried import STARTED, body, carries_body, in_float64, run, run_arrays
 from lbo.serve.estimate import Estimate, side_slip
+from lbo.sim.measurements import Measurements
 
 
 class CarriedRunner:
@@ -42,15 +43,15 @@ class CarriedRunner:
         self.state: list[torch.Tensor] | None = None
         self.u_prev: torch.Tensor | None = None
 
-    def log_rows(self, m: np.ndarray, u: np.ndarray, receiver: np.ndarray | None,
-                 source: str | None) -> tuple[np.ndarray, np.ndarray]:
-        """A checked log's rows (T, 3) and inputs (T, 2), as they are."""
-        return m, u
+    def log_rows(self, meas: Measurements, u: np.ndarray, source: str | None
+                 ) -> tuple[np.ndarray, np.ndarray]:
+        """A checked log's poses (T, 3) and inputs (T, 2), as they are."""
+        return meas.pose, u
 
-    def sample(self, k: int, m: np.ndarray, u: np.ndarray, receiver: Any
+    def sample(self, k: int, meas: Measurements, u: np.ndarray
                ) -> tuple[np.ndarray, np.ndarray]:
-        """Sample ``k``'s measurement (3,) and inputs (2,), as they are."""
-        return m, u
+        """Sample ``k``'s pose (3,) and inputs (2,), as they are."""
+        return meas.pose, u
 
     def take(self, k: int, m: np.ndarray, u: np.ndarray, fix: bool) -> Estimate:
         """The estimate after measurement m (3,) (NaN: no fix) and inputs u (2,); NaN until

@@ -39,7 +39,7 @@ from lbo.models.envelope import Envelope, EnvelopeCheck, EnvelopeWarning, check_
 from lbo.serve import exported
 from lbo.serve.estimate import Estimate, Estimates
 from lbo.serve.refusals import checked_log, no_fix, no_heading, no_receiver
-from lbo.serve.rows import bicycle_rows
+from lbo.serve.rows import as_arrays, bicycle_rows, sampled
 from lbo.serve.runners import (
     FORMS,
     ClassicalRunner,
@@ -49,6 +49,7 @@ from lbo.serve.runners import (
     is_window_filter,
     learned_runner,
 )
+from lbo.sim.measurements import Measurements
 from lbo.sim.noise import Noise, check_alpha
 from lbo.sim.vehicle import Vehicle
 from lbo.tracking.artifacts import checkpoint_file, learned_noise
@@ -279,7 +280,8 @@ class Observer:
         measurement : (3,) ``[x_m, y_m, psi_m]`` (m, m, rad), or None (or all NaN) when this
             step has no position fix (classical observers, and learned ones trained with
             ``fix_rates``); ``psi_m`` NaN alone: a position fix without a heading (where
-            :attr:`takes_receiver`).
+            :attr:`takes_receiver`). Or one step's :class:`lbo.Measurements`, which holds the
+            receiver's channels too.
         input : (2,) ``[V, delta]`` (m/s, rad) applied from this step to the next.
         receiver : (7,) this sample's receiver channels, a row of :meth:`run`'s ``receiver``,
             or None (where :attr:`takes_receiver`). ``gyro`` needs ``r_m`` at its first step.
@@ -308,6 +310,7 @@ class Observer:
         control loop run torch on one thread, or ``engine="onnx"`` (one thread already).
         """
         k = self._count
+        measurement, receiver = as_arrays(measurement, receiver, f"step {k}")
         try:
             u = np.asarray(input, dtype=float).reshape(2)
             m = (None if measurement is None
@@ -333,7 +336,7 @@ class Observer:
             u = self.inputs.undo(u)
         row = m
         if receiver is not None or self.name == classical.GYRO or self._runner.reads_receiver:
-            row, u = self._runner.sample(k, m, u, receiver)
+            row, u = self._runner.sample(k, sampled(k, m, receiver), u)
         # checked: from here on the sample is taken
         outside = self._envelope(m, u) if self._envelope is not None else ()
         est = self._runner.take(k, row, u, fix)
@@ -362,7 +365,8 @@ class Observer:
         ----------
         m : (T, 3) measurements ``[x_m, y_m, psi_m]``; a row of NaN is a step without a
             position fix, a NaN psi_m alone a position fix without a heading (where
-            :attr:`takes_receiver`; a window net refuses it in one line).
+            :attr:`takes_receiver`; a window net refuses it in one line). Or the log's
+            :class:`lbo.Measurements` (T steps), which holds the receiver's channels too.
         u : (T, 2) inputs ``[V, delta]``.
         batch_size : windows per network call.
         source : what to call the log in messages (``"input log.csv"``); None: nothing.
@@ -415,11 +419,12 @@ class Observer:
         # observer, as step() takes them (absolute features read the angle itself)
         m = m.copy()
         m[:, 2] = wrap_angle(m[:, 2])
+        meas = Measurements.of(m, receiver)
         rows = m
         if self.net is None or self._runner.reads_receiver:
-            rows, u = self._runner.log_rows(m, u, receiver, source)
+            rows, u = self._runner.log_rows(meas, u, source)
         elif receiver is not None:
-            rows = bicycle_rows(m, u, receiver, self.vehicle.wheelbase)
+            rows = bicycle_rows(meas, u, self.vehicle.wheelbase)
         est, covs, lateral = self._runner.run(rows, u, fix, smooth, batch_size)
         est[:, 2] = wrap_angle(est[:, 2])
         valid = np.isfinite(est).all(1) & (np.arange(len(m)) >= self._runner.first_valid)

@@ -11,6 +11,7 @@ import numpy as np
 from lbo.core.errors import LboError
 from lbo.filters import classical
 from lbo.logs.checks import check_fix_windows, check_receiver, check_samples
+from lbo.serve.rows import as_arrays
 from lbo.sim.columns import RECEIVER
 
 _ALSO = ("the robust observer (filternet) in its recursive form, and a CNN, LSTM or window "
@@ -58,6 +59,7 @@ def checked_log(obs: Any, m: Any, u: Any, receiver: Any, source: str | None
     observer's own limits: a fix without a heading, a receiver's channels, a step without a
     fix, a window without one)."""
     where = f"{source}: " if source else ""
+    m, receiver = as_arrays(m, receiver, "run")
     try:
         m = np.asarray(m, dtype=float)
         u = np.asarray(u, dtype=float)

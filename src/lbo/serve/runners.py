@@ -33,13 +33,8 @@ from lbo.serve import carry, refusals
 from lbo.serve.engines import make_predictor, make_recursive_step
 from lbo.serve.estimate import Estimate, side_slip
 from lbo.serve.exported import ExportedNet
-from lbo.serve.rows import (
-    bicycle_rows,
-    checked_receiver,
-    receiver_rows,
-    window_series,
-)
-from lbo.sim.columns import RECEIVER
+from lbo.serve.rows import bicycle_rows, receiver_rows, window_series
+from lbo.sim.measurements import Measurements
 from lbo.sim.noise import Noise
 from lbo.sim.vehicle import Vehicle
 
@@ -155,49 +150,46 @@ class ClassicalRunner:
         self.u_prev: np.ndarray | None = None
         self.gyro_last: float | None = None  # the gyro's last reading (observer gyro)
 
-    def rows(self, m: np.ndarray, u: np.ndarray, receiver: np.ndarray) -> np.ndarray:
-        """The filters' rows (T, 8) of measurements m (T, 3) and a receiver's channels (T, 7)
-        at inputs u (T, 2) (``[V, r_m]`` for ``gyro``): the turn rate the course's variance
-        allows for is the gyro's, or the bicycle's ``V tan(delta) / L``."""
+    def rows(self, meas: Measurements, u: np.ndarray) -> np.ndarray:
+        """The filters' rows (T, 8) of measurements ``meas`` (T steps) at inputs u (T, 2)
+        (``[V, r_m]`` for ``gyro``): the turn rate the course's variance allows for is the
+        gyro's, or the bicycle's ``V tan(delta) / L``."""
         if self.gyro is not None:
-            return self.gyro.rows(m, receiver, u)
+            return self.gyro.rows(meas, u)
         if self.name == classical.GYRO:
-            return measure.rows(m, receiver[:, :3], receiver[:, 3:5], receiver[:, 5], u[:, 0],
-                                u[:, 1])
-        return bicycle_rows(m, u, receiver, self.vehicle.wheelbase)
+            return measure.rows(meas, u[:, 0], u[:, 1])
+        return bicycle_rows(meas, u, self.vehicle.wheelbase)
 
-    def log_rows(self, m: np.ndarray, u: np.ndarray, receiver: np.ndarray | None,
-                 source: str | None) -> tuple[np.ndarray, np.ndarray]:
-        """A checked log's rows (T, 3), or (T, 8) with a receiver's channels (T, 7), and its
-        inputs (T, 2): for ``gyro``, ``[V, r_m]``, the gyro's yaw rate held from each reading
-        to the next (the first reading back to the log's start); one line where the log has
-        no gyro."""
+    def log_rows(self, meas: Measurements, u: np.ndarray, source: str | None
+                 ) -> tuple[np.ndarray, np.ndarray]:
+        """A checked log's rows of its measurements ``meas``, (T, 8), or its poses (T, 3) where
+        no step holds a receiver's channel, and its inputs (T, 2): for
+        ``gyro``, ``[V, r_m]``, the gyro's yaw rate held from each reading to the next (the
+        first reading back to the log's start); one line where the log has no gyro."""
         if self.name == classical.GYRO:
-            rate = None if receiver is None else receiver[:, RECEIVER.index("r_m")]
-            if rate is None or not np.isfinite(rate).any():
+            rate = meas.gyro
+            if not np.isfinite(rate).any():
                 raise LboError(f"{source + ': ' if source else ''}gyro needs a gyro's yaw "
                                "rate: a column r_m (rad/s, counter-clockwise); use ekf or ukf "
                                "for a log without one")
             held = measure.held_last(rate)
             u = np.column_stack([u[:, 0], np.where(np.isnan(held), held[np.isfinite(held)][0],
                                                    held)])
-        return (m if receiver is None else self.rows(m, u, receiver)), u
+        return (self.rows(meas, u) if meas.reads_receiver else meas.pose), u
 
-    def sample(self, k: int, m: np.ndarray, u: np.ndarray, receiver: Any
+    def sample(self, k: int, meas: Measurements, u: np.ndarray
                ) -> tuple[np.ndarray, np.ndarray]:
-        """Sample ``k``'s row (8,) of its checked measurement m (3,) and its receiver channels
-        (7,) (None: none), checked as a log's row is; and its inputs (2,): for ``gyro``,
-        ``[V, r_m]`` with the last reading held. Nothing is kept unless the sample passes."""
-        r = checked_receiver(k, m, receiver)
+        """Sample ``k``'s row (8,) of its checked measurements ``meas`` (one step) and its
+        inputs (2,): for ``gyro``, ``[V, r_m]`` with the last reading held. Nothing is kept
+        unless the sample passes."""
         if self.name == classical.GYRO:
-            rate = r[RECEIVER.index("r_m")]
-            gyro = float(rate) if np.isfinite(rate) else self.gyro_last
+            gyro = float(meas.gyro) if meas.has_gyro else self.gyro_last
             if gyro is None:
                 raise LboError(f"step {k}: gyro needs a gyro's yaw rate r_m at its first step "
-                               f"(receiver[{RECEIVER.index('r_m')}])")
+                               "(the receiver's last channel)")
             self.gyro_last = gyro
             u = np.array([u[0], gyro])
-        return self.rows(m[None], u[None], r[None])[0], u
+        return self.rows(meas[None], u[None])[0], u
 
     def take(self, k: int, m: np.ndarray, u: np.ndarray, fix: bool) -> Estimate:
         """The estimate after row m (3,) or (8,) (NaN: not held) and inputs u (2,); NaN until
@@ -260,18 +252,15 @@ class WindowRunner:
         self.ring = np.zeros((2 * self.window, len(self.empty)))
         self.reset()
 
-    def log_rows(self, m: np.ndarray, u: np.ndarray, receiver: np.ndarray | None,
-                 source: str | None) -> tuple[np.ndarray, np.ndarray]:
-        """A checked log's :func:`receiver_rows` (T, 9); ``receiver`` (T, 7) None: none."""
-        if receiver is None:
-            receiver = np.full((len(m), len(RECEIVER)), np.nan)
-        return receiver_rows(m, u, receiver, self.vehicle.wheelbase), u
+    def log_rows(self, meas: Measurements, u: np.ndarray, source: str | None
+                 ) -> tuple[np.ndarray, np.ndarray]:
+        """A checked log's :func:`receiver_rows` (T, 9) of its measurements ``meas``."""
+        return receiver_rows(meas, u, self.vehicle.wheelbase), u
 
-    def sample(self, k: int, m: np.ndarray, u: np.ndarray, receiver: Any
+    def sample(self, k: int, meas: Measurements, u: np.ndarray
                ) -> tuple[np.ndarray, np.ndarray]:
-        """Sample ``k``'s row (9,), checked as a log's row is (see :meth:`log_rows`)."""
-        r = checked_receiver(k, m, receiver)
-        return self.log_rows(m[None], u[None], r[None], None)[0][0], u
+        """Sample ``k``'s row (9,) of its checked measurements ``meas`` (one step)."""
+        return receiver_rows(meas[None], u[None], self.vehicle.wheelbase)[0], u
 
     @staticmethod
     def _heading_rows(series: np.ndarray) -> np.ndarray:
@@ -369,30 +358,26 @@ class RecursiveRunner:
         self.carries_lateral = bool(getattr(net.net, "single_track", False))
         self.reset()
 
-    def log_rows(self, m: np.ndarray, u: np.ndarray, receiver: np.ndarray | None,
-                 source: str | None) -> tuple[np.ndarray, np.ndarray]:
-        """A checked log's filters' rows (T, 8) (:func:`bicycle_rows`) and, for a gyro filter,
-        inputs (T, 3) ``[V, delta, r_m]``: the gyro's last reading
-        (:func:`lbo.filters.measure.held_last`), NaN before the first (there the bicycle
-        turns the heading)."""
-        if receiver is None:
-            receiver = np.full((len(m), len(RECEIVER)), np.nan)
-        rows = bicycle_rows(m, u, receiver, self.vehicle.wheelbase)
+    def log_rows(self, meas: Measurements, u: np.ndarray, source: str | None
+                 ) -> tuple[np.ndarray, np.ndarray]:
+        """A checked log's filters' rows (T, 8) (:func:`bicycle_rows`) of its measurements
+        ``meas`` and, for a gyro filter, inputs (T, 3) ``[V, delta, r_m]``: the gyro's last
+        reading (:func:`lbo.filters.measure.held_last`), NaN before the first (there the
+        bicycle turns the heading)."""
+        rows = bicycle_rows(meas, u, self.vehicle.wheelbase)
         if not self.reads_receiver:
             return rows, u
-        return rows, np.column_stack([u, measure.held_last(receiver[:, RECEIVER.index("r_m")])])
+        return rows, np.column_stack([u, measure.held_last(meas.gyro)])
 
-    def sample(self, k: int, m: np.ndarray, u: np.ndarray, receiver: Any
+    def sample(self, k: int, meas: Measurements, u: np.ndarray
                ) -> tuple[np.ndarray, np.ndarray]:
-        """Sample ``k``'s row (8,) of its checked measurement m (3,) and its receiver channels
-        (7,), checked as a log's row is, and its inputs u (2,) as they are, or for a gyro
-        filter (3,) with the gyro's last reading (kept only once the sample passes)."""
-        r = checked_receiver(k, m, receiver)
-        row = bicycle_rows(m[None], u[None], r[None], self.vehicle.wheelbase)[0]
+        """Sample ``k``'s row (8,) of its checked measurements ``meas`` (one step), and its
+        inputs u (2,) as they are, or for a gyro filter (3,) with the gyro's last reading
+        (kept only once the sample passes)."""
+        row = bicycle_rows(meas[None], u[None], self.vehicle.wheelbase)[0]
         if not self.reads_receiver:
             return row, u
-        rate = r[RECEIVER.index("r_m")]
-        self.gyro_last = float(rate) if np.isfinite(rate) else self.gyro_last
+        self.gyro_last = float(meas.gyro) if meas.has_gyro else self.gyro_last
         return row, np.array([u[0], u[1], self.gyro_last])
 
     def reset(self) -> None:
