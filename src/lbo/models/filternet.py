@@ -40,6 +40,7 @@ from torch import nn
 from lbo.core.checks import integer, number, require
 from lbo.core.errors import LboError
 from lbo.filters import gyro as gyro_model
+from lbo.models.channels import feature_channels
 from lbo.models.frame import check_sigmas, frame_model
 from lbo.models.motion import ProcessModel, bicycle_step, pose_jacobian
 from lbo.models.poses import wrap_heading
@@ -311,24 +312,24 @@ class WindowFilter(ProcessModel, nn.Module):
         accuracies in its place (in world axes, :func:`step_covariance`); the filter starts
         at the first row that holds a position and a heading, with that row's R."""
         b, n = x.shape[0], x.shape[1]
-        position, measured = x[:, :, 8] > 0.5, x[:, :, 9] > 0.5
-        course = (x[:, :, 10] > 0.5) & ~measured
+        f = feature_channels(x)
+        position, measured = f.has_fix > 0.5, f.has_heading > 0.5
+        course = (f.has_course > 0.5) & ~measured
         held = torch.stack([position, position, measured | course], -1)  # (B, N, 3)
-        meas = torch.stack([x[:, :, 0], x[:, :, 1],
-                            torch.where(measured, x[:, :, 2], x[:, :, 3])], -1)
-        v, delta = x[:, :, 11], x[:, :, 12]
+        meas = torch.cat([f.fix, torch.where(measured, f.heading, f.course)[..., None]], -1)
+        v, delta = f.V, f.delta
         full = (position & measured).to(x.dtype)[..., None]
-        r = self.measurement_sigma(torch.cat([x[:, :, :3], v[..., None], delta[..., None],
-                                              full], -1)) ** 2  # (B, 3), the anchor's frame
+        r = self.measurement_sigma(torch.cat([f.pose, v[..., None], delta[..., None], full],
+                                             -1)) ** 2  # (B, 3), the anchor's frame
         eye = torch.eye(3, dtype=x.dtype, device=x.device)
         if heading is None:
             heading = torch.zeros_like(r[:, 0])
         c, s = torch.cos(heading)[:, None], torch.sin(heading)[:, None]
         world = turn_xy((r.unsqueeze(-1) * eye).unsqueeze(1).expand(b, n, 3, 3), c, s)
-        sigma = x[:, :, 4:7]
+        sigma = f.sigma
         told = torch.stack([sigma[..., 0] > 0, sigma[..., 1] > 0, (sigma[..., 2] > 0) & measured],
                            -1)
-        course_var = torch.where(x[:, :, 7] > 0, x[:, :, 7] ** 2, world[..., 2, 2])
+        course_var = torch.where(f.course_sigma > 0, f.course_sigma ** 2, world[..., 2, 2])
         R = turn_xy(step_covariance(world, sigma, told, course_var, measured), c, -s)
         # four states [x, y, psi, b]: the gyro's bias b moves nothing where no gyro turns the
         # heading (F's d psi / d b is 0 there), so a filter without one is the 3-state filter
@@ -343,11 +344,11 @@ class WindowFilter(ProcessModel, nn.Module):
         z = torch.where(start[:, 0, None], z, torch.zeros_like(z))
         started = start[:, 0]
         body = self.body_start(v[:, 0], delta[:, 0])
-        gyro_rows = x[:, :, 14] > 0.5 if self.gyro else torch.zeros_like(start)
+        gyro_rows = f.has_gyro > 0.5 if self.gyro else torch.zeros_like(start)
         reading = torch.full_like(v[:, 0], math.nan)  # the gyro's last reading (rad/s)
         zero, one = torch.zeros_like(reading), torch.ones_like(reading)
         for k in range(1, n):
-            reading = torch.where(gyro_rows[:, k - 1], x[:, k - 1, 13], reading)
+            reading = torch.where(gyro_rows[:, k - 1], f.gyro[:, k - 1], reading)
             zp, f02, f12, body = self.predict_pose(z[:, :3], v[:, k - 1], delta[:, k - 1], body)
             turn, f23, seen = self.gyro_turn(reading, v[:, k - 1], z[:, 3])
             psi = torch.where(seen, z[:, 2] + turn, zp[:, 2])

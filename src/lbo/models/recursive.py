@@ -42,6 +42,7 @@ import torch
 from torch import nn
 
 from lbo.filters.kalman import coast_covariance, compose_covariance
+from lbo.models.channels import row_channels
 from lbo.models.filternet import WindowFilter
 from lbo.models.motion import bicycle_step
 from lbo.models.poses import wrap_heading
@@ -165,15 +166,14 @@ class RecursiveFilter(nn.Module):
     @staticmethod
     def _step_cov(R: torch.Tensor, row: torch.Tensor, there: torch.Tensor, measured: torch.Tensor
                   ) -> torch.Tensor:
-        """The step's R (B, 3, 3) of ``[x_m, y_m, heading]``: the noise model's ``R``, with
-        the variance of each channel the row (B, 8) reports an accuracy for (``sx_m, sy_m,
-        spsi_m``; ``there`` (B, 8): the row's entries that are not NaN) replaced by its square
-        and that channel's correlations dropped, and the heading's the course's variance
-        where ``measured`` (B,) is False (no ``psi_m``)."""
-        told = there[:, 3:6]
-        sig = torch.where(told, row[:, 3:6], torch.zeros_like(row[:, 3:6]))
+        """The step's R (B, 3, 3) of ``[x_m, y_m, heading]``: the noise model's ``R``, with the
+        variance of each channel the row (B, 8) reports an accuracy for (``there`` (B, 8): its
+        entries not NaN) replaced by its square (:func:`step_covariance`), and the heading's
+        the course's where ``measured`` (B,) is False (no ``psi_m``)."""
+        c, held = row_channels(row), row_channels(there)
+        told, sig = held.sigma, torch.where(held.sigma, c.sigma, torch.zeros_like(c.sigma))
         # a heading the row does not hold gets a variance of 1: finite, and masked out
-        course = torch.where(there[:, 7], row[:, 7], torch.ones_like(row[:, 7]))
+        course = torch.where(held.course_sigma, c.course_sigma, torch.ones_like(c.course_sigma))
         return step_covariance(R, sig, told, course * course, measured)
 
     def _drift_variance(self, R: torch.Tensor) -> torch.Tensor:
@@ -290,17 +290,18 @@ class RecursiveFilter(nn.Module):
             u = torch.cat([u, u[:, :1] * 0.0 + math.nan], 1)
         if m.shape[1] == 3:  # the paper's row: no accuracy, no course
             m = torch.cat([m, (m[:, :1] * 0.0 + math.nan).repeat(1, 5)], 1)
-        row, m = m, m[:, :3]
-        there = row == row  # (B, 8): not NaN
-        position, measured = there[:, 0] & there[:, 1], there[:, 2]
+        row, there = m, m == m  # (B, 8), and where it is not NaN
+        ch, got = row_channels(row), row_channels(there)
+        m = torch.cat([ch.fix, ch.heading[:, None]], 1)  # (B, 3) the pose
+        position, measured = got.fix[:, 0] & got.fix[:, 1], got.heading
         if not self.fixes:
             position, measured = torch.ones_like(position), torch.ones_like(measured)
         fix = position & measured  # a full fix, what the noise statistic counts
-        course = there[:, 6] & ~measured
+        course = got.course & ~measured
         held = torch.stack([position, position, measured | course], 1)  # x_m, y_m, heading
         m0 = torch.where(fix[:, None], m, torch.zeros_like(m))
-        meas = torch.where(held, torch.cat([m[:, :2], torch.where(
-            measured, m[:, 2], row[:, 6])[:, None]], 1), torch.zeros_like(m))
+        meas = torch.where(held, torch.cat([ch.fix, torch.where(
+            measured, ch.heading, ch.course)[:, None]], 1), torch.zeros_like(m))
         first = position & held[:, 2] & (started < 0.5)
         going = started > 0.5
         one = torch.ones_like(m[:, 0])
@@ -336,7 +337,7 @@ class RecursiveFilter(nn.Module):
         lean = not (torch.is_grad_enabled() or torch.jit.is_tracing()
                     or torch.compiler.is_compiling() or torch.onnx.is_in_onnx_export())
         # full fixes alone, no accuracy reported: R is the noise model's
-        plain = lean and bool(measured.all()) and not bool(there[:, 3:].any())
+        plain = lean and bool(measured.all()) and not (got.sigma.any() or got.course.any())
         R = R_model if plain else self._step_cov(R_model, row, there, measured)
 
         # -- the filter: predict with u_{k-1}, update with m_k
