@@ -85,6 +85,7 @@ def test_minmax_puts_the_training_windows_in_the_unit_box(tmp_path, smoke_data):
 def test_normalisation_is_checked_and_keeps_old_hashes(tmp_path, smoke_data):
     from omegaconf import open_dict
 
+    from lbo.learn.migrate import hash_v1, upgraded
     from lbo.train import check, config_hash
 
     with pytest.raises(LboError, match=r"^model.normalisation: expected one of "
@@ -94,7 +95,8 @@ def test_normalisation_is_checked_and_keeps_old_hashes(tmp_path, smoke_data):
     before = standard.copy()  # a config from before the setting existed
     with open_dict(before):
         before.model.pop("normalisation")
-    assert config_hash(standard) == config_hash(before)
+    assert hash_v1(standard) == hash_v1(before)  # the hash those runs carry (version 1)...
+    assert config_hash(upgraded(before)) == config_hash(standard)  # ...migrated: standard's
     assert config_hash(train_cfg(tmp_path, smoke_data, "normalisation=minmax")) \
         != config_hash(standard)
 

@@ -210,19 +210,22 @@ def test_around_the_single_track_body_it_predicts_with_the_body_and_updates_the_
 @pytest.mark.parametrize("name", PEERS)
 def test_its_body_setting_keeps_the_hash_of_runs_stored_before_it(name):
     """``model.body`` was added to the peers' configs after runs of them were stored: at its
-    default it hashes as those runs did (resume=true finds them), and not otherwise; the
-    robust observer, which has always had it, keeps it in its hash."""
+    default its version-1 hash is the one those runs carry, and they, migrated, are its runs
+    (resume=true finds them); not otherwise; the robust observer, which has always had it,
+    keeps it in its hash."""
     from omegaconf import open_dict
 
     from helpers import compose_cfg
-    from lbo.learn.resume import config_hash
+    from lbo.learn.identity import config_hash
+    from lbo.learn.migrate import hash_v1, upgraded
 
     now = compose_cfg("train", ["experiment=robust", f"model={name}"])
     before = now.copy()
     with open_dict(before):
         before.model.pop("body")
         before.model.pop("body_lr")
-    assert config_hash(now) == config_hash(before)
+    assert hash_v1(now) == hash_v1(before)
+    assert config_hash(upgraded(before)) == config_hash(now)
     assert config_hash(compose_cfg("train", ["experiment=robust", f"model={name}",
                                              "model.body=single_track"])) != config_hash(now)
     robust = compose_cfg("train", ["experiment=robust"])
@@ -230,6 +233,7 @@ def test_its_body_setting_keeps_the_hash_of_runs_stored_before_it(name):
     with open_dict(without):
         without.model.pop("body")
     assert config_hash(robust) != config_hash(without)
+    assert hash_v1(robust) != hash_v1(without)
 
 
 @pytest.mark.parametrize("name", PEERS)

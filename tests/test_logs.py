@@ -81,7 +81,7 @@ def test_the_sets_are_the_logs_split_by_file(logs, tmp_path):
     spec3 = built(logs_cfg(logs, tmp_path, f"data.train=[{shutil_copy}]"))[0]
     assert spec3.digest != spec.digest
     # and resume=true never reuses a run trained on the logs' old contents
-    from lbo.learn.resume import config_hash
+    from lbo.learn.identity import config_hash
 
     cfg_copy = logs_cfg(logs, tmp_path, f"data.train=[{shutil_copy}]")
     before = config_hash(cfg_copy)

@@ -152,24 +152,28 @@ def test_kalmannet_trains_without_truth_as_unsupervised_kalmannet(tmp_path, smok
 
 def test_the_new_settings_keep_the_hashes_of_runs_made_before_them(tmp_path, smoke_data):
     """``loss`` (and ``data.source`` of data=logs) came after runs were stored: at their
-    defaults a config hashes as one without them, so resume=true still finds those runs."""
+    defaults a config's version-1 hash is one's without them (the hash those runs carry),
+    and those runs, migrated, are the config's, so resume=true still finds them."""
     from omegaconf import open_dict
 
     from helpers import compose_cfg, train_cfg
+    from lbo.learn.migrate import hash_v1, upgraded
     from lbo.train import config_hash
 
     now = train_cfg(tmp_path, smoke_data)
     before = now.copy()
     with open_dict(before):
         before.pop("loss")
-    assert config_hash(now) == config_hash(before)
+    assert hash_v1(now) == hash_v1(before)
+    assert config_hash(upgraded(before)) == config_hash(now)
     assert config_hash(train_cfg(tmp_path, smoke_data, "loss=next_fix")) != config_hash(now)
     logs = compose_cfg("train", ["experiment=logs"] + [
         f"data.{part}=[{smoke_data / part}.parquet]" for part in ("train", "val", "test")])
     old = logs.copy()
     with open_dict(old):
         assert old.data.pop("source") == "files"
-    assert config_hash(logs) == config_hash(old)
+    assert hash_v1(logs) == hash_v1(old)
+    assert config_hash(upgraded(old)) == config_hash(logs)
 
 
 # --- a user's logs without the truth (data=logs) ------------------------------------------------

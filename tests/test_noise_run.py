@@ -55,6 +55,7 @@ def test_the_gyro_ekf_trains_as_a_run_that_observe_takes(tmp_path, logs):
     [run] = client.search_runs([client.get_experiment_by_name("lbo-logs").experiment_id])
     assert run.info.status == "FINISHED" and run.data.tags["model"] == "gyro_ekf"
     assert run.data.tags["config_hash"] and run.data.params["model.objective"] == "truth"
+    assert run.data.tags["hash_version"] == "2"
     val = [m.value for m in client.get_metric_history(run.info.run_id, "val_loss")]
     assert len(val) == 3 and val[0] == 1.0  # epoch 0 is the start, against itself
     metrics = run.data.metrics

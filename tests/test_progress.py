@@ -56,10 +56,12 @@ def test_how_often_the_bar_draws_is_not_part_of_a_runs_identity():
     """make reproduce hides each run's bar (refresh_rate=0): its runs are the runs of the same
     config trained with the bar, and of a store made before."""
     from helpers import compose_cfg
-    from lbo.learn.resume import config_hash
+    from lbo.learn.identity import config_hash
+    from lbo.learn.migrate import hash_v1
 
     shown = compose_cfg("train", ["experiment=smoke"])
     hidden = compose_cfg("train", ["experiment=smoke", "callbacks.progress_bar.refresh_rate=0"])
     assert config_hash(hidden) == config_hash(shown)
+    assert hash_v1(hidden) == hash_v1(shown)  # the version-1 runs, migrated, are both's
     assert config_hash(compose_cfg("train", ["experiment=smoke", "window=40"])) != \
         config_hash(shown)

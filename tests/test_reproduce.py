@@ -196,7 +196,7 @@ def test_the_plan_stops_measuring_where_measuring_costs_about_what_training_does
 
     monkeypatch.setattr(eta, "measure", measure)
     monkeypatch.setattr("lbo.learn.resume.finished_run", lambda *a, **k: None)
-    monkeypatch.setattr("lbo.learn.resume.config_hash", lambda cfg: "h")
+    monkeypatch.setattr("lbo.learn.identity.config_hash", lambda cfg: "h")
     runs = [(f"run{i}", OmegaConf.create({"seed": i, "trainer": {"accelerator": "cpu"}}))
             for i in range(4)]
     plan = eta.plan(runs, scale="smoke")

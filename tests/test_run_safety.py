@@ -199,7 +199,8 @@ def test_resume_checks_the_marker_the_checkpoint_and_its_best_path(tmp_path):
     """Each check of a folder that a store's run names, on a hand-made folder: this user's
     run-identity file for that run and config, a last.ckpt carrying the same identity, and a
     best checkpoint inside that folder."""
-    from lbo.learn.resume import IDENTITY_KEY, resumable_folder, write_marker
+    from lbo.learn.identity import write_marker
+    from lbo.learn.resume import IDENTITY_KEY, resumable_folder
 
     folder = tmp_path / "run"
     (folder / "checkpoints").mkdir(parents=True)

@@ -339,7 +339,7 @@ def test_an_experiment_made_before_lbo_set_its_kind_gets_it(tmp_path):
 def test_threads_sets_the_runs_intra_op_threads_and_leaves_its_hash(tmp_path, smoke_data,
                                                                    monkeypatch):
     import lbo.train as command
-    from lbo.learn.resume import config_hash
+    from lbo.learn.identity import config_hash
 
     with pytest.raises(LboError, match=r"^threads must be an integer >= 1, got 0$"):
         train(train_cfg(tmp_path, smoke_data, "threads=0"))

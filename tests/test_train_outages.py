@@ -14,7 +14,8 @@ from helpers import ROBUST_SMOKE, train_cfg, train_in_own_store
 from lbo.core.errors import LboError
 from lbo.learn.builders import datamodule
 from lbo.learn.draws import OutageDraw
-from lbo.learn.resume import config_hash
+from lbo.learn.identity import config_hash
+from lbo.learn.migrate import hash_v1, upgraded
 from lbo.train import check
 
 
@@ -97,7 +98,8 @@ def test_the_default_hashes_as_the_runs_stored_before_it(tmp_path, smoke_data):
     stored = cfg.copy()
     with __import__("omegaconf").open_dict(stored):
         stored.pop("train_outages")
-    assert config_hash(cfg) == config_hash(stored)
+    assert hash_v1(cfg) == hash_v1(stored)  # the hash those runs carry (version 1)...
+    assert config_hash(upgraded(stored)) == config_hash(cfg)  # ...migrated: the default's
     drawn = train_cfg(tmp_path, smoke_data, "experiment=robust", "train_outages.share=0.5")
     assert config_hash(drawn) != config_hash(cfg)
 

@@ -313,7 +313,8 @@ def finished_runs(jobs: list[Job]) -> dict[str, dict[str, Any]]:
     training would return them (``reused``), found as it finds them (:func:`prior_runs
     <lbo.learn.resume.prior_runs>`: a shared store's run only where its folder shows it is this
     user's)."""
-    from lbo.learn.resume import config_hash, finished_run
+    from lbo.learn.identity import config_hash
+    from lbo.learn.resume import finished_run
 
     found = {}
     for job in jobs:

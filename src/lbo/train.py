@@ -38,15 +38,8 @@ from lbo.learn.builders import (
     targets,
     training_envelope,
 )
-from lbo.learn.resume import (
-    LAST,
-    check_folder,
-    clear_stale_checkpoints,
-    config_hash,
-    folder_refusal,
-    prior_runs,
-    write_marker,
-)
+from lbo.learn.identity import config_hash, run_tags, write_marker
+from lbo.learn.resume import LAST, check_folder, clear_stale_checkpoints, folder_refusal, prior_runs
 from lbo.learn.trainer_checks import check_device, check_optimizer, check_trainer
 from lbo.logs.sets import is_logs
 from lbo.models.carried import covariance_of, sequence_model
@@ -220,7 +213,7 @@ def train(cfg: DictConfig, callbacks: list[L.Callback] | None = None,
     # as it was. With resume=true, a finished run of this config may be reused from the
     # store (its folder then left alone too): :func:`_train` checks again once that is known
     refusal = folder_refusal(Path(cfg.output_dir), config_hash(cfg), bool(cfg.get("resume")),
-                             finished_ok=bool(cfg.get("resume")))
+                             finished_ok=bool(cfg.get("resume")), cfg=cfg)
     if refusal is not None:
         raise LboError(refusal)
     if cfg.get("threads") is not None:  # e.g. two tune workers on one machine: 1 each
@@ -253,7 +246,8 @@ def _train(cfg: DictConfig, built: Built, callbacks: list[L.Callback] | None,
             resume_ckpt = cast(Path, folder) / "checkpoints" / LAST  # an id comes with its folder
             print(f"resuming the killed run {resume_id} (same config) from {resume_ckpt}")
     if resume_ckpt is None:  # a new run: never into another run's files
-        refusal = folder_refusal(Path(cfg.output_dir), digest, bool(cfg.get("resume")))
+        refusal = folder_refusal(Path(cfg.output_dir), digest, bool(cfg.get("resume")),
+                                 cfg=cfg)
         if refusal is not None:
             raise LboError(refusal)
     with claim(cfg.output_dir):
@@ -296,7 +290,7 @@ def _fit(cfg: DictConfig, built: Built, callbacks: list[L.Callback] | None,
             "model": cfg.model.name, "window": str(cfg.model.window),
             "features": cfg.model.features,
             "train_noise": _noise_tag(cfg),
-            "config_hash": digest, **(tags or {})}
+            **run_tags(digest), **(tags or {})}
     logger = (instantiate(cfg.logger, tags=tags, **({"run_id": resume_id} if resume_id else {}))
               if cfg.get("logger") else None)
     identity = RunIdentity(resume_id, digest)

@@ -152,7 +152,8 @@ def plan(runs: list[tuple[str, DictConfig]], parallel: int = 1, scale: str = "")
     measured: each is expected to take the mean of those measured.
     """
     from lbo.learn.builders import data_device
-    from lbo.learn.resume import config_hash, finished_run
+    from lbo.learn.identity import config_hash
+    from lbo.learn.resume import finished_run
 
     estimates: list[float] = []
     measured: list[float] = []

@@ -167,7 +167,8 @@ def train(cfg: DictConfig, params: dict[str, Any], tags: dict[str, str]) -> dict
     metrics (:func:`test_metrics`)."""
     from lbo.core.runfolder import claim
     from lbo.learn import gyro_fit
-    from lbo.learn.resume import config_hash, prior_runs
+    from lbo.learn.identity import config_hash, run_tags
+    from lbo.learn.resume import prior_runs
 
     settings, spec = check(cfg)
     digest = config_hash(cfg)
@@ -183,7 +184,7 @@ def train(cfg: DictConfig, params: dict[str, Any], tags: dict[str, str]) -> dict
     start = settings.start(spec.noise.Q)
     out = Path(cfg.output_dir)
     with claim(out):
-        run = _Run.open(cfg, {**tags, "config_hash": digest}, params)
+        run = _Run.open(cfg, {**tags, **run_tags(digest)}, params)
         try:
             how = "its truth" if truth else "its fixes' likelihood, no truth read"
             print(f"learning the gyro EKF's noise on {len(train_logs)} log(s) of {spec.name} "

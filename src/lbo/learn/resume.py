@@ -1,7 +1,12 @@
 """What ``resume=true`` may trust, and which folders a training may write into.
 
-A run is known by the hash of what it computes (:func:`config_hash`): the same config, on the
-same data, finds the same run.
+A run is known by the hash of what it computes (:func:`config_hash`, version
+:data:`HASH_VERSION`, :mod:`lbo.learn.identity`): the same config, on the same data, finds the
+same run. The hash reads today's config layout only: a setting added later (or a group moved,
+a class renamed) goes with a version bump and a migration step in :mod:`lbo.learn.migrate`,
+never with old layouts replayed at every hash, as version 1 did. The first search of a store
+whose runs carry an older version's hash migrates them, once
+(:func:`lbo.learn.migrate.migrate_experiments`).
 
 A tracking store without authentication (an MLflow server, a shared database) lets anyone
 add a run with a given config hash, naming any ``output_dir``. So a run's own folder, not the
@@ -14,140 +19,21 @@ this user. A new run never starts in a folder that holds another run's (or anyon
 
 from __future__ import annotations
 
-import hashlib
-import json
 import os
-import stat
 from pathlib import Path
 from typing import Any, cast
 
-from omegaconf import DictConfig, OmegaConf, open_dict
+from omegaconf import DictConfig
 
-from lbo.core import LAYERS
-from lbo.core.atomic import write_text
-from lbo.core.cli import MODEL_SHORT
 from lbo.core.errors import LboError
 from lbo.core.paths import sqlite_path
 from lbo.core.runfolder import LOCK_NAME
-from lbo.logs.sets import is_logs
-
-LATER_DEFAULTS: dict[str, Any] = {"model.normalisation": "standard", "receiver": None,
-                  "receiver_training": {"heading_share": 0.25, "gyro_share": 0.75},
-                  "model.gyro": False, "tbptt": None,
-                  "sequence_length": None, "nll": 0.0, "train_noise.changes": 0,
-                  "loss": "truth", "data.source": "files",
-                  "train_outages": {"share": 0.0, "max_s": 10.0}}
-"""Settings added after runs were stored (a dotted key: one inside a group), with the value
-those runs had: a config holding that value hashes as if it did not have the key, so
-resume=true still finds the old runs."""
-LATER_MODEL_DEFAULTS: dict[str, dict[str, Any]] = {
-    **{name: {"body": "kinematic", "body_lr": 1.0} for name in ("kalmannet", "split_kalmannet")},
-    "filternet": {"empty_statistic": "net", "drift_tau": None},
-    "gyro_ekf": {"drift": False, "scales": False}}
-"""As :data:`LATER_DEFAULTS`, for the settings added to one model's config (``model.body`` of
-the KalmanNet peers, which the robust observer's config has had from the start, and its
-``model.empty_statistic`` and ``model.drift_tau``; the gyro EKF's ``model.drift`` and
-``model.scales``)."""
-
-
-WAS = {"lbo.learn.progress.EpochBar": "lightning.pytorch.callbacks.TQDMProgressBar"}
-"""Callbacks that replaced another in ``conf/``, by what they replaced: a config hash reads
-them as it, so that the runs of a store made before still resume and are reused."""
-
+from lbo.learn.identity import owned, read_marker
+from lbo.learn.migrate import hash_v1, mend_markers, migrate_experiments
 
 EXPERIMENT_BEFORE = "lbo"
 """The one MLflow experiment every run went to before each data set had its own
 (``lbo-<data>``): its runs are still found, reused and continued."""
-
-
-BAR_REFRESH = 20
-"""The progress bar's refresh rate every config hashes as, whatever it draws at: the default,
-which the runs of a store made before hashed (``make reproduce`` hides each run's bar)."""
-
-
-def config_hash(cfg: DictConfig) -> str:
-    """Fingerprint of what a run computes: the resolved config without where it writes."""
-    c = cfg.copy()
-    with open_dict(c):
-        c.output_dir, c.data.root, c.resume, c.data_dir = "-", "-", False, None
-        c.pop("logger", None)
-        c.pop("paths", None)  # where it reads and writes, not what
-        # how fast, not what: a run on other threads, or compiled (the same numbers to
-        # rounding), is reused
-        c.pop("threads", None)
-        c.pop("compile", None)
-        c.pop("keep_onnx", None)  # what lbo.observe finds afterwards, not what is trained
-        c.pop("verbose", None)  # what it prints
-        bar = OmegaConf.select(c, "callbacks.progress_bar")
-        if isinstance(bar, DictConfig) and bar.get("_target_") in WAS:
-            bar["_target_"] = WAS[bar["_target_"]]  # how it prints, hashed as it was before
-        if isinstance(bar, DictConfig) and "refresh_rate" in bar:
-            bar["refresh_rate"] = BAR_REFRESH  # how often it draws (0: not at all), not what
-        for key, default in LATER_DEFAULTS.items():
-            *group, name = key.split(".")
-            node = OmegaConf.select(c, ".".join(group)) if group else c
-            if isinstance(node, DictConfig) and name in node and node.get(name) == default:
-                node.pop(name)
-        model = c.get("model")
-        for name, default in LATER_MODEL_DEFAULTS.get(model.get("name") if model else "",
-                                                      {}).items():
-            if name in model and model.get(name) == default:
-                model.pop(name)
-    text = OmegaConf.to_yaml(OmegaConf.create(_as_before_groups_moved(
-        _unlayered(OmegaConf.to_container(c, resolve=True)))))
-    if is_logs(cfg):  # the same paths with other contents are other data
-        from lbo.learn.builders import logs_spec
-
-        text += f"\nlogs: {logs_spec(cfg).digest}"
-    return hashlib.sha256(text.encode()).hexdigest()[:16]
-
-
-def _as_before_groups_moved(tree: dict[str, Any]) -> dict[str, Any]:
-    """``tree`` (a resolved training config) in the layout it had before its groups moved, in
-    the same key order, so that a run's hash does not depend on either move and the runs of a
-    store made before them are still found:
-
-    - the ``car`` and ``sensors`` groups as the one ``truth`` group they were (the car's keys,
-      then the sensors', where ``car`` stands);
-    - the model's own settings (:data:`lbo.core.cli.MODEL_SHORT`) out of ``model``, back at
-      the top (``window`` before ``seed``, the others before ``batch_size``), and ``model``
-      after ``data``, where its group stood."""
-    model = tree.get("model")
-    moved: dict[str, Any] = {}
-    if isinstance(model, dict) and any(k in model for k in MODEL_SHORT):
-        model = dict(model)
-        moved = {k: model.pop(k) for k in MODEL_SHORT if k in model}
-    out: dict[str, Any] = {}
-    for key, value in tree.items():
-        if key == "seed" and "window" in moved:
-            out["window"] = moved.pop("window")
-        if key == "batch_size":
-            out.update({k: moved.pop(k) for k in ("features", "normalisation") if k in moved})
-        if key == "car":
-            out["truth"] = {**value, **(tree.get("sensors") or {})}
-        elif key != "sensors" and not (key == "model" and "data" in tree):
-            out[key] = value
-        if key == "data" and "model" in tree:
-            out["model"] = model
-    return out
-
-
-def _unlayered(node: Any) -> Any:
-    """``node`` with every lbo ``_target_`` written without its layer (``lbo.learn.callbacks.X``
-    -> ``lbo.callbacks.X``), as it was before lbo's modules moved into layers: a run's hash
-    does not depend on which layer a class lives in, and the runs of a store made before the
-    move are still found by ``resume=true``."""
-    if isinstance(node, dict):
-        out = {k: _unlayered(v) for k, v in node.items()}
-        target = out.get("_target_")
-        if isinstance(target, str) and target.startswith("lbo."):
-            parts = target.split(".")
-            if len(parts) > 3 and parts[1] in LAYERS:
-                out["_target_"] = ".".join([parts[0], *parts[2:]])
-        return out
-    if isinstance(node, list):
-        return [_unlayered(v) for v in node]
-    return node
 
 
 LAST = "last.ckpt"
@@ -176,7 +62,12 @@ def prior_runs(cfg: DictConfig, digest: str, clean: bool = True, keep_resumable:
     with this config hash and any ``output_dir``. In a store that others can write (a server,
     or a SQLite file not this user's alone, :func:`own_store`), a finished run is reused, and
     an unfinished one deleted, only where its folder's :data:`MARKER` shows it is this user's
-    run; in this user's own SQLite file every run is."""
+    run; in this user's own SQLite file every run is.
+
+    The first search of a store whose experiments hold runs of an older config-hash version
+    migrates them (:func:`lbo.learn.migrate.migrate_experiments`), once; a run's marker that
+    someone else's migration left naming the old hash is rewritten where ``cfg`` gives that
+    hash (:func:`lbo.learn.migrate.mend_markers`)."""
     import mlflow
 
     uri = cfg.logger.tracking_uri
@@ -185,8 +76,10 @@ def prior_runs(cfg: DictConfig, digest: str, clean: bool = True, keep_resumable:
         (cfg.logger.experiment_name, EXPERIMENT_BEFORE))) if e is not None]
     if not exps:
         return None, (None, None)
+    migrate_experiments(client, exps)  # once: then no more than a look at their tags
     found = client.search_runs([e.experiment_id for e in exps],
                                f"tags.config_hash = '{digest}'")
+    mend_markers(cfg, found, digest)
     own = own_store(uri)
     done = []
     for r in (r for r in found if r.info.status == "FINISHED"):
@@ -268,54 +161,13 @@ def _resumable(found: list, digest: str) -> tuple[str | None, Path | None]:
     return None, None
 
 
-MARKER = ".lbo-run.json"
-"""The run-identity file a training writes into its output folder when it creates its run:
-the MLflow run id, the config hash, the folder itself and whether the run finished. Owned
-by the user who trained, it is what ``resume=true`` trusts, not the tracking store."""
-
-
-def write_marker(folder: Path, run_id: str | None, digest: str, finished: bool = False) -> Path:
-    """Write (atomically) ``folder``'s run-identity file (:data:`MARKER`)."""
-    return write_text(folder / MARKER, json.dumps(
-        {"run_id": run_id, "config_hash": digest, "folder": str(folder.resolve()),
-         "uid": os.getuid(), "finished": finished}, indent=1) + "\n")
-
-
-def _owned(path: Path, what: str) -> str | None:
-    """Why ``path`` cannot be trusted as this user's own (a link, another user's), or None."""
-    try:
-        st = path.lstat()
-    except OSError:
-        return f"it has no {what}"
-    if stat.S_ISLNK(st.st_mode):
-        return f"its {what} {path} is a symbolic link"
-    if st.st_uid != os.getuid():
-        return f"its {what} {path} belongs to another user (uid {st.st_uid})"
-    return None
-
-
-def read_marker(folder: Path) -> tuple[dict[str, Any] | None, str]:
-    """``folder``'s run-identity file, if this user wrote it for this folder: (its fields, "")
-    or (None, why not)."""
-    folder = folder.resolve()
-    why = _owned(folder, "folder") or _owned(folder / MARKER, f"run-identity file {MARKER}")
-    if why is not None:
-        return None, why
-    try:
-        marker = json.loads((folder / MARKER).read_text())
-    except (OSError, UnicodeDecodeError, ValueError) as e:
-        return None, f"its {MARKER} cannot be read ({type(e).__name__})"
-    if not isinstance(marker, dict) or marker.get("folder") != str(folder):
-        return None, f"its {MARKER} was written for another folder"
-    return marker, ""
-
-
 def resumable_folder(folder: Path, run_id: str, digest: str) -> str | None:
     """Why run ``run_id`` of config ``digest`` may not be continued in ``folder`` (the folder
     its MLflow run names), or None when it may: the folder and its run-identity file are this
     user's, written for that run and config; ``checkpoints/last.ckpt`` is this user's, carries
-    the same identity (``RunIdentity``), and the best checkpoint it names lies in that
-    folder's ``checkpoints``."""
+    the same identity (``RunIdentity``; or, written before the run was migrated, the version-1
+    hash its marker keeps), and the best checkpoint it names lies in that folder's
+    ``checkpoints``."""
     import torch
 
     why: str | None
@@ -327,15 +179,18 @@ def resumable_folder(folder: Path, run_id: str, digest: str) -> str | None:
                 f"{marker.get('config_hash')}")
     ckpts = folder.resolve() / "checkpoints"
     last = ckpts / LAST
-    why = _owned(ckpts, "checkpoint folder") or _owned(last, f"checkpoint {LAST}")
+    why = owned(ckpts, "checkpoint folder") or owned(last, f"checkpoint {LAST}")
     if why is not None:
         return why
     try:  # tensors and plain containers only: a checkpoint is never code to run
         ckpt = torch.load(last, map_location="cpu", weights_only=True)
     except Exception as e:
         return f"its checkpoint {last} cannot be read ({type(e).__name__})"
-    if not isinstance(ckpt, dict) or ckpt.get(IDENTITY_KEY) != {"run_id": run_id,
-                                                                   "config_hash": digest}:
+    # a run killed before its store was migrated: its last checkpoint carries the version-1
+    # hash, which the marker keeps beside the new one (lbo.learn.migrate)
+    ids = [{"run_id": run_id, "config_hash": h}
+           for h in (digest, marker.get("config_hash_v1")) if h]
+    if not isinstance(ckpt, dict) or ckpt.get(IDENTITY_KEY) not in ids:
         return f"its checkpoint {last} was not written by that run"
     for key, state in (ckpt.get("callbacks") or {}).items():
         if str(key).startswith("ModelCheckpoint") and isinstance(state, dict):
@@ -351,7 +206,8 @@ HYDRA_RECORD = (LOCK_NAME, ".hydra")
 
 
 def folder_refusal(folder: Path, digest: str | None, resume: bool,
-                   field: str = "output_dir", finished_ok: bool = False) -> str | None:
+                   field: str = "output_dir", finished_ok: bool = False,
+                   cfg: DictConfig | None = None) -> str | None:
     """Why a training may not start afresh in ``folder``, or None when it may.
 
     It may when the folder is missing or holds nothing but :data:`HYDRA_RECORD`, or (with
@@ -360,7 +216,9 @@ def folder_refusal(folder: Path, digest: str | None, resume: bool,
     run. ``finished_ok``: a finished run of that config there passes too (``resume=true``
     reuses it rather than train). Anything else is another run's or another program's files,
     which a typo or a copied command would otherwise delete or overwrite (``best.ckpt``,
-    ``evaluation.csv``)."""
+    ``evaluation.csv``). With ``cfg`` (whose hash ``digest`` is), a run-identity file written
+    before config-hash version 2 is the same config's where it names ``cfg``'s version-1
+    hash (:func:`lbo.learn.migrate.hash_v1`)."""
     from hydra.core.hydra_config import HydraConfig
 
     job = HydraConfig.get().job.name if HydraConfig.initialized() else "train"
@@ -374,7 +232,9 @@ def folder_refusal(folder: Path, digest: str | None, resume: bool,
     if not held:
         return None
     marker, _ = read_marker(folder)
-    same = marker is not None and (digest is None or marker.get("config_hash") == digest)
+    same = marker is not None and (digest is None or marker.get("config_hash") == digest or (
+        cfg is not None and "hash_version" not in marker
+        and marker.get("config_hash") == hash_v1(cfg)))
     # same: there is a marker
     if same and resume and (finished_ok or not cast(dict, marker).get("finished")):
         return None

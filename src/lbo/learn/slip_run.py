@@ -166,13 +166,8 @@ def train(cfg: DictConfig, params: dict[str, Any], tags: dict[str, str],
     from lbo.learn.builders import targets
     from lbo.learn.callbacks import Evaluation
     from lbo.learn.checkpoint_io import AtomicCheckpointIO
-    from lbo.learn.resume import (
-        clear_stale_checkpoints,
-        config_hash,
-        folder_refusal,
-        prior_runs,
-        write_marker,
-    )
+    from lbo.learn.identity import config_hash, run_tags, write_marker
+    from lbo.learn.resume import clear_stale_checkpoints, folder_refusal, prior_runs
 
     check(cfg)
     digest = config_hash(cfg)
@@ -194,15 +189,15 @@ def train(cfg: DictConfig, params: dict[str, Any], tags: dict[str, str],
                for data, shuffle in ((made.train, True), (made.val, False))]
     out = Path(cfg.output_dir)
     tags = {**tags, "data": str(cfg.data.name), "model": str(cfg.model.name),
-            "config_hash": digest, **({"window": str(cfg.model.window)}
-                                      if "window" in cfg.model else {})}
+            **run_tags(digest),
+            **({"window": str(cfg.model.window)} if "window" in cfg.model else {})}
     logger = instantiate(cfg.logger, tags=tags, run_name=name) if cfg.get("logger") else None
     cbs = [instantiate(c) for c in configured.values() if not targets(c, Evaluation)]
     cbs += callbacks or []
     trainer = instantiate(cfg.trainer, logger=logger if logger is not None else False,
                           callbacks=cbs, plugins=[AtomicCheckpointIO()],
                           enable_model_summary=bool(cfg.get("verbose")))
-    refusal = folder_refusal(out, digest, bool(cfg.get("resume")))
+    refusal = folder_refusal(out, digest, bool(cfg.get("resume")), cfg=cfg)
     if refusal is not None:  # never into another run's files (a finished one was reused above)
         raise LboError(refusal)
     with claim(out):
