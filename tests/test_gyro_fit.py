@@ -22,7 +22,7 @@ from helpers import observe
 from lbo.core.errors import LboError
 from lbo.filters.gyro import NOISE_RANGES, OPTIONAL, FixDrift, GyroNoise
 from lbo.learn import gyro_fit
-from lbo.models.gyro_filter import GyroFilter, joseph_update
+from lbo.models.gyro_filter import GyroFilter, scored_update
 from lbo.scoring.receiver import scored_rows
 from lbo.serve.observer import Observer
 from lbo.sim import gyro_drive
@@ -127,10 +127,10 @@ def test_the_innovations_likelihood_is_the_gaussian_one_of_the_channels_held():
     y = torch.tensor([[0.5, 9.0]], dtype=torch.float64)
     R = torch.eye(2, dtype=torch.float64)[None]
     held = torch.tensor([[True, False]])
-    *_, nll = joseph_update(x, P, y, torch.eye(2, dtype=torch.float64), R, held)
+    *_, nll = scored_update(x, P, y, torch.eye(2, dtype=torch.float64), R, held)
     s = 3.0  # P + R on the one channel held; the other's 9 is not measured
     assert float(nll) == pytest.approx(0.5 * (0.5**2 / s + np.log(s) + np.log(2 * np.pi)))
-    *_, none = joseph_update(x, P, y, torch.eye(2, dtype=torch.float64), R, held & False)
+    *_, none = scored_update(x, P, y, torch.eye(2, dtype=torch.float64), R, held & False)
     assert float(none) == 0.0
 
 

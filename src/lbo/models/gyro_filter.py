@@ -106,7 +106,7 @@ class GyroFilter(nn.Module):
 
     def run(self, seg: Segments) -> tuple[torch.Tensor, torch.Tensor]:
         """Estimates (G, T, 3), as :meth:`forward`, and each step's negative log-likelihood
-        (G, T) of what it measured under the filter's own prediction (:func:`joseph_update`;
+        (G, T) of what it measured under the filter's own prediction (:func:`scored_update`;
         0 at step 0 and where it measured nothing): what the filter is fitted by where a log
         has no truth."""
         x, _, nll = self.states(seg)
@@ -249,7 +249,7 @@ class GyroFilter(nn.Module):
             x, P = self._predict(x, P, drive_k[k - 1], Q, phi, F_k[k - 1])
             y = measured_k[k] - x @ H.T  # the fixes drifted, the heading, the bias
             y = torch.where(angle, wrap_angle_torch(y), y)
-            x, P, step_nll = _joseph(x, P, y * y_held_k[k], Hm_k[k], Rm_k[k], m_k[k])
+            x, P, step_nll = _scored(x, P, y * y_held_k[k], Hm_k[k], Rm_k[k], m_k[k])
             xs.append(x)
             Ps.append(P)
             nll.append(step_nll)
@@ -269,13 +269,14 @@ def _masked(H: torch.Tensor, R: torch.Tensor, held: torch.Tensor
     return H * mask[..., None], torch.where(both, R, eye_p), mask, held.sum(-1)
 
 
-def _joseph(x: torch.Tensor, P: torch.Tensor, y: torch.Tensor, H: torch.Tensor,
+def _scored(x: torch.Tensor, P: torch.Tensor, y: torch.Tensor, H: torch.Tensor,
             R: torch.Tensor, m: torch.Tensor
             ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """The Joseph update of x (G, n), P (G, n, n) by innovations y (G, p) under H (G, p, n)
-    and R (G, p, p) already cut to the m (G,) channels held (:func:`_masked`); S is factored
-    once (Cholesky: S is symmetric positive definite) for the gain, the Mahalanobis distance
-    and log det S."""
+    """The update (:func:`lbo.models.update.joseph`) of x (G, n), P (G, n, n) by innovations
+    y (G, p) under H (G, p, n) and R (G, p, p) already cut to the m (G,) channels held
+    (:func:`_masked`), and the innovation's negative log-likelihood (G,): S is factored once
+    (Cholesky: S is symmetric positive definite) for the gain, the Mahalanobis distance and
+    log det S."""
     PHt = P @ H.transpose(-1, -2)
     S = H @ PHt + R
     L = torch.linalg.cholesky(S)
@@ -287,14 +288,15 @@ def _joseph(x: torch.Tensor, P: torch.Tensor, y: torch.Tensor, H: torch.Tensor,
     return x, P, nll
 
 
-def joseph_update(x: torch.Tensor, P: torch.Tensor, y: torch.Tensor, H: torch.Tensor,
+def scored_update(x: torch.Tensor, P: torch.Tensor, y: torch.Tensor, H: torch.Tensor,
                   R: torch.Tensor, held: torch.Tensor
                   ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """:func:`lbo.filters.update.joseph_update` in torch (differentiable): x (G, n),
+    """The update of the held channels (every torch filter's, :func:`lbo.models.update.joseph`,
+    its gain by Cholesky) with the likelihood of its innovation, differentiable: x (G, n),
     P (G, n, n), y (G, p), H (p, n), R (G, p, p), held (G, p) bool.
 
     Returns the updated x (G, n) and P (G, n, n), and the innovation's negative
     log-likelihood (G,) under its covariance S, ``(y^T S^-1 y + log det S + m log 2 pi) / 2``
     over the m channels held (0 where none is: a channel not held has y = 0 and S = 1)."""
     Hm, Rm, mask, m = _masked(H, R, held)
-    return _joseph(x, P, y * mask, Hm, Rm, m)
+    return _scored(x, P, y * mask, Hm, Rm, m)
