@@ -85,7 +85,7 @@ def test_minmax_puts_the_training_windows_in_the_unit_box(tmp_path, smoke_data):
 def test_normalisation_is_checked_and_keeps_old_hashes(tmp_path, smoke_data):
     from omegaconf import open_dict
 
-    from lbo.learn.migrate import hash_v1, upgraded
+    from lbo.learn.layouts import hash_v1, upgraded
     from lbo.train import check, config_hash
 
     with pytest.raises(LboError, match=r"^model.normalisation: expected one of "

@@ -141,7 +141,7 @@ def test_drift_states_beat_a_filter_told_white_noise():
     s, u, m, b = make_batch(24, 1500, seed=4, gnss_sigma=1.0)
     z = s[..., :3]
     R = np.broadcast_to(NOISE.R(1.0), (24, 3, 3))
-    kf = DynamicStepper(m[:, 0], VEHICLE, CAR, NOISE.Q, R, gnss_sigma=1.0, gnss_tau=20.0,
+    kf = DynamicStepper(m[:, 0], VEHICLE, NOISE.Q, R, car=CAR, gnss_sigma=1.0, gnss_tau=20.0,
                         u0=u[:, 0])
     assert kf.dim_x == 7 and kf.P.shape == (24, 7, 7)
     est7, P7, b_hat = np.empty_like(m), np.empty((24, 1500, 3, 3)), np.empty_like(b)
@@ -187,7 +187,7 @@ def test_start_and_the_covariances():
     np.testing.assert_allclose(P[:, 0], expect)
     np.testing.assert_allclose(P, P.swapaxes(-1, -2), atol=1e-15)
     assert np.all(np.linalg.eigvalsh(P) > 0)
-    kf = DynamicStepper(m[:, 0], VEHICLE, CAR, NOISE.Q, R, u0=u[:, 0])
+    kf = DynamicStepper(m[:, 0], VEHICLE, NOISE.Q, R, car=CAR, u0=u[:, 0])
     v_y, r = dynamic.steady_state(u[:, 0, 0], u[:, 0, 1], CAR)
     np.testing.assert_allclose(kf.x[:, 3:], np.column_stack([v_y, r]))
     assert kf.dim_x == 5 and kf.P.shape == (3, 5, 5)
@@ -199,8 +199,8 @@ def test_jacobian_matches_forward_differences():
     x0 = np.column_stack([rng.normal(0, 100, (g, 2)), rng.uniform(-4, 4, g),
                           rng.normal(0, 0.3, g), rng.normal(0, 0.2, g), rng.normal(0, 0.5, (g, 2))])
     u = np.column_stack([rng.uniform(3, 20, g), rng.uniform(-0.2, 0.2, g)])
-    kf = DynamicStepper(x0[:, :3], VEHICLE, CAR, NOISE.Q, np.broadcast_to(NOISE.R(), (g, 3, 3)),
-                        gnss_sigma=0.5)
+    kf = DynamicStepper(x0[:, :3], VEHICLE, NOISE.Q, np.broadcast_to(NOISE.R(), (g, 3, 3)),
+                        car=CAR, gnss_sigma=0.5)
     kf.x = x0.copy()
     prior, _ = kf.predict(u)
 
@@ -219,7 +219,7 @@ def test_jacobian_matches_forward_differences():
 def test_missing_fix_is_prediction_only():
     s, u, m, _ = make_batch(3, 20, seed=6)
     R = np.broadcast_to(NOISE.R(1.0), (3, 3, 3))
-    kf = DynamicStepper(m[:, 0], VEHICLE, CAR, NOISE.Q, R, gnss_sigma=0.5, u0=u[:, 0])
+    kf = DynamicStepper(m[:, 0], VEHICLE, NOISE.Q, R, car=CAR, gnss_sigma=0.5, u0=u[:, 0])
     for k in range(1, 10):
         kf.update(m[:, k], u[:, k - 1])
     x_before, P_before = kf.x.copy(), kf.P.copy()
@@ -288,10 +288,10 @@ def test_bad_input_is_one_line(kwargs, name):
 def test_stepper_bad_shapes():
     R = np.broadcast_to(R3, (2, 3, 3))
     with pytest.raises(LboError, match="m0 must be"):
-        DynamicStepper(np.zeros(3), VEHICLE, CAR, NOISE.Q, R)
+        DynamicStepper(np.zeros(3), VEHICLE, NOISE.Q, R, car=CAR)
     with pytest.raises(LboError, match="u0 must be"):
-        DynamicStepper(M[:, 0], VEHICLE, CAR, NOISE.Q, R, u0=np.zeros((3, 2)))
-    kf = DynamicStepper(M[:, 0], VEHICLE, CAR, NOISE.Q, R)
+        DynamicStepper(M[:, 0], VEHICLE, NOISE.Q, R, car=CAR, u0=np.zeros((3, 2)))
+    kf = DynamicStepper(M[:, 0], VEHICLE, NOISE.Q, R, car=CAR)
     with pytest.raises(LboError, match="u_prev must be"):
         kf.update(M[:, 1], np.zeros(2))
     with pytest.raises(LboError, match="m must be"):

@@ -15,6 +15,7 @@ from lbo.filters.measure import rows
 from lbo.logs.checks import check_receiver
 from lbo.serve.observer import Observer
 from lbo.sim.columns import RECEIVER
+from lbo.sim.measurements import Measurements
 from lbo.sim.noise import Noise
 from lbo.sim.receiver import Channel, ReceiverSpec, sense
 from lbo.sim.vehicle import Vehicle, simulate
@@ -39,10 +40,11 @@ def drive():
     out = sense(z, u, DT, spec, 1.0, np.random.default_rng(1))
     out["r_m"] = out["r_m"] + 0.03
     out["gyro_bias"] = out["gyro_bias"] + 0.03
-    m = np.stack([rows(np.column_stack([out["x_m"][i], out["y_m"][i], out["psi_m"][i]]),
-                       np.column_stack([out["sx_m"][i], out["sy_m"][i], np.full(t, np.nan)]),
-                       np.column_stack([out["ve_m"][i], out["vn_m"][i]]), out["sv_m"][i],
-                       u[i, :, 0]) for i in range(g)])
+    none = np.full((g, t), np.nan)
+    meas = Measurements.of(np.stack([out["x_m"], out["y_m"], out["psi_m"]], -1),
+                           np.stack([out["sx_m"], out["sy_m"], none, out["ve_m"], out["vn_m"],
+                                     out["sv_m"], none], -1))
+    m = rows(meas, u[..., 0])
     return {"m": m, "u": u, "z": z, "gyro": np.stack([u[..., 0], out["r_m"]], -1), "out": out}
 
 

@@ -217,7 +217,7 @@ def test_its_body_setting_keeps_the_hash_of_runs_stored_before_it(name):
 
     from helpers import compose_cfg
     from lbo.learn.identity import config_hash
-    from lbo.learn.migrate import hash_v1, upgraded
+    from lbo.learn.layouts import hash_v1, upgraded
 
     now = compose_cfg("train", ["experiment=robust", f"model={name}"])
     before = now.copy()

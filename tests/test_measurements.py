@@ -105,3 +105,29 @@ def test_the_readmes_python_block_runs_as_printed_and_its_two_forms_agree(monkey
     assert scope["est"].shape == (len(scope["u"]), 3) and scope["valid"].all()
     np.testing.assert_allclose((scope["x"], scope["y"], scope["psi"]), scope["est"][-1],
                                atol=1e-9)
+
+
+def test_the_torch_twin_names_each_column_of_a_row_and_of_a_receiver_window():
+    """Each field of :func:`lbo.models.channels.row_channels` and ``feature_channels`` is the
+    column of its name (a row whose every column holds its own index)."""
+    import torch
+
+    from lbo.models.channels import feature_channels, row_channels
+    from lbo.models.receiver_window import FEATURES
+
+    row = torch.arange(len(measure.CHANNELS), dtype=torch.float64)
+    c = row_channels(row)
+    at = {n: float(i) for i, n in enumerate(measure.CHANNELS)}
+    assert c.pose.tolist() == [at["x_m"], at["y_m"], at["psi_m"]]
+    assert c.fix.tolist() == [at["x_m"], at["y_m"]] and float(c.heading) == at["psi_m"]
+    assert c.sigma.tolist() == [at["sx_m"], at["sy_m"], at["spsi_m"]]
+    assert (float(c.course), float(c.course_sigma)) == (at["course"], at["s_course"])
+    f = feature_channels(torch.arange(len(FEATURES), dtype=torch.float64))
+    at = {n: float(i) for i, n in enumerate(FEATURES)}
+    named = {"heading": "dpsi", "course": "dcourse", "course_sigma": "s_course",
+             "has_fix": "fix", "has_heading": "heading", "has_course": "course_held",
+             "V": "V", "delta": "delta", "gyro": "r_m", "has_gyro": "gyro"}
+    for field, column in named.items():
+        assert float(getattr(f, field)) == at[column], field
+    assert f.pose.tolist() == [at["dx"], at["dy"], at["dpsi"]] and f.fix.tolist() == [0.0, 1.0]
+    assert f.sigma.tolist() == [at["sx"], at["sy"], at["spsi"]]

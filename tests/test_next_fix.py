@@ -157,7 +157,7 @@ def test_the_new_settings_keep_the_hashes_of_runs_made_before_them(tmp_path, smo
     from omegaconf import open_dict
 
     from helpers import compose_cfg, train_cfg
-    from lbo.learn.migrate import hash_v1, upgraded
+    from lbo.learn.layouts import hash_v1, upgraded
     from lbo.train import config_hash
 
     now = train_cfg(tmp_path, smoke_data)

@@ -57,7 +57,7 @@ def test_how_often_the_bar_draws_is_not_part_of_a_runs_identity():
     config trained with the bar, and of a store made before."""
     from helpers import compose_cfg
     from lbo.learn.identity import config_hash
-    from lbo.learn.migrate import hash_v1
+    from lbo.learn.layouts import hash_v1
 
     shown = compose_cfg("train", ["experiment=smoke"])
     hidden = compose_cfg("train", ["experiment=smoke", "callbacks.progress_bar.refresh_rate=0"])

@@ -1,5 +1,5 @@
 """A run's identity (``config_hash``, version 2: today's layout only) and the runs a store holds
-from before it: each carries its version-1 hash, which :func:`lbo.learn.migrate.hash_v1` still
+from before it: each carries its version-1 hash, which :func:`lbo.learn.layouts.hash_v1` still
 gives for today's configs, and is migrated once to the version-2 hash of today's config, so that
 ``resume=true`` and ``make reproduce`` find it instead of training everything again."""
 
@@ -17,16 +17,8 @@ from omegaconf import OmegaConf, open_dict
 from helpers import cli, train_cfg
 from lbo.core.paths import CONF_DIR, REPO_ROOT
 from lbo.learn.identity import HASH_VERSION, MARKER, config_hash, read_marker
-from lbo.learn.migrate import (
-    LATER_DEFAULTS,
-    LATER_MODEL_DEFAULTS,
-    MIGRATED,
-    V1_TAG,
-    hash_v1,
-    migrate,
-    unlayered,
-    upgraded,
-)
+from lbo.learn.layouts import LATER_DEFAULTS, LATER_MODEL_DEFAULTS, hash_v1, unlayered, upgraded
+from lbo.learn.migrate import MIGRATED, V1_TAG, migrate
 from lbo.learn.resume import EXPERIMENT_BEFORE, IDENTITY_KEY, finished_run
 
 PRE_MOVE = {

@@ -15,7 +15,7 @@ from lbo.core.errors import LboError
 from lbo.learn.builders import datamodule
 from lbo.learn.draws import OutageDraw
 from lbo.learn.identity import config_hash
-from lbo.learn.migrate import hash_v1, upgraded
+from lbo.learn.layouts import hash_v1, upgraded
 from lbo.train import check
 
 

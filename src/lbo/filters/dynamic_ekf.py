@@ -134,8 +134,8 @@ class DynamicStepper:
     phi : (G,) drift correlation per step, ``exp(-dt / gnss_tau)``.
     """
 
-    def __init__(self, m0: np.ndarray, vehicle: Vehicle, car: Car, Q: np.ndarray,
-                 R: np.ndarray, *, gnss_sigma: np.ndarray | float = 0.0, gnss_tau: float = 30.0,
+    def __init__(self, m0: np.ndarray, vehicle: Vehicle, Q: np.ndarray, R: np.ndarray, *,
+                 car: Car, gnss_sigma: np.ndarray | float = 0.0, gnss_tau: float = 30.0,
                  steering_offset: float = 0.0, speed_scale: float = 0.0,
                  u0: np.ndarray | None = None) -> None:
         if not isinstance(vehicle, Vehicle):
@@ -350,7 +350,7 @@ def _stepper(m: np.ndarray, u: np.ndarray, vehicle: Vehicle, car: Car, Q: np.nda
     g, t = m.shape[:2]
     if t == 0:
         raise LboError("measurements m must have at least one step, got T = 0")
-    kf = DynamicStepper(m[:, 0], vehicle, car, Q, np.array(batch_cov(R, g, "R")),
+    kf = DynamicStepper(m[:, 0], vehicle, Q, np.array(batch_cov(R, g, "R")), car=car,
                         gnss_sigma=gnss_sigma, gnss_tau=gnss_tau,
                         steering_offset=steering_offset, speed_scale=speed_scale, u0=u[:, 0])
     return kf, m, u

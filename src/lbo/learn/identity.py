@@ -6,7 +6,7 @@ data, finds the same run (``resume=true``, ``make reproduce``). The hash is vers
 config in today's layout only, and a change that would give a stored run's config another hash
 (a key added later, a group moved, a class renamed) goes with a version bump and a migration
 step that rewrites the runs of a store once (:mod:`lbo.learn.migrate`), never with a table of
-old layouts replayed at every hash. Version 1 did that (:func:`lbo.learn.migrate.hash_v1`);
+old layouts replayed at every hash. Version 1 did that (:func:`lbo.learn.layouts.hash_v1`);
 its runs are migrated the first time ``resume=true`` searches their store.
 
 A run's own folder, not the tracking store, says which run it holds (a store without

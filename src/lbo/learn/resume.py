@@ -29,7 +29,8 @@ from lbo.core.errors import LboError
 from lbo.core.paths import sqlite_path
 from lbo.core.runfolder import LOCK_NAME
 from lbo.learn.identity import owned, read_marker
-from lbo.learn.migrate import hash_v1, mend_markers, migrate_experiments
+from lbo.learn.layouts import hash_v1
+from lbo.learn.migrate import mend_markers, migrate_experiments
 
 EXPERIMENT_BEFORE = "lbo"
 """The one MLflow experiment every run went to before each data set had its own
@@ -218,7 +219,7 @@ def folder_refusal(folder: Path, digest: str | None, resume: bool,
     which a typo or a copied command would otherwise delete or overwrite (``best.ckpt``,
     ``evaluation.csv``). With ``cfg`` (whose hash ``digest`` is), a run-identity file written
     before config-hash version 2 is the same config's where it names ``cfg``'s version-1
-    hash (:func:`lbo.learn.migrate.hash_v1`)."""
+    hash (:func:`lbo.learn.layouts.hash_v1`)."""
     from hydra.core.hydra_config import HydraConfig
 
     job = HydraConfig.get().job.name if HydraConfig.initialized() else "train"

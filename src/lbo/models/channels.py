@@ -7,7 +7,8 @@ course over ground the GNSS velocity gives) and a receiver window's features (..
 :data:`lbo.models.receiver_window.FEATURES`. :func:`row_channels` and :func:`feature_channels`
 give their columns as named views, with the field names of :class:`lbo.Measurements` where
 the two hold the same thing, so that no filter reads a channel by its position. Views only:
-the same numbers, and the same traced and exported graphs, as the indexing they replace.
+the same numbers, and the same traced, scripted and exported graphs, as the indexing they
+replace (plain NamedTuples and slices, which TorchScript compiles).
 """
 
 from __future__ import annotations
@@ -21,90 +22,68 @@ from lbo.models.receiver_window import FEATURES
 
 
 class Row(NamedTuple):
-    """A filter's rows (..., 8) by name; each field (...) or (..., 2), NaN where not held."""
+    """A filter's rows (..., 8) by name; each field (...) or (..., k), NaN where not held.
 
+    pose : (..., 3) ``[x_m, y_m, psi_m]``; fix : (..., 2) ``[x_m, y_m]``; heading : ``psi_m``.
+    sigma : (..., 3) ``[sx_m, sy_m, spsi_m]``, the receiver's reported 1-sigmas.
+    course, course_sigma : the course over ground of the row's GNSS velocity, its 1-sigma.
+    """
+
+    pose: torch.Tensor
     fix: torch.Tensor
-    """(..., 2) ``[x_m, y_m]``."""
     heading: torch.Tensor
-    """``psi_m``."""
-    fix_sigma: torch.Tensor
-    """(..., 2) ``[sx_m, sy_m]``, the receiver's reported 1-sigma of the fix."""
-    heading_sigma: torch.Tensor
-    """``spsi_m``."""
+    sigma: torch.Tensor
     course: torch.Tensor
-    """The course over ground of the row's GNSS velocity."""
     course_sigma: torch.Tensor
-    """Its 1-sigma."""
-
-    @property
-    def sigma(self) -> torch.Tensor:
-        """(..., 3) ``[sx_m, sy_m, spsi_m]``: the reported 1-sigma of each pose channel."""
-        return torch.cat([self.fix_sigma, self.heading_sigma[..., None]], -1)
 
 
-_X, _SX, _PSI, _SPSI, _COURSE, _SCOURSE = (
-    CHANNELS.index(c) for c in ("x_m", "sx_m", "psi_m", "spsi_m", "course", "s_course"))
+assert CHANNELS == ("x_m", "y_m", "psi_m", "sx_m", "sy_m", "spsi_m", "course", "s_course"), \
+    "row_channels reads these columns at these places"
 
 
 def row_channels(row: torch.Tensor) -> Row:
     """The columns of rows (..., 8) (:data:`lbo.filters.measure.CHANNELS`) by name."""
-    return Row(row[..., _X:_X + 2], row[..., _PSI], row[..., _SX:_SX + 2], row[..., _SPSI],
-               row[..., _COURSE], row[..., _SCOURSE])
+    # the places as literals: TorchScript compiles no global ints (checked above)
+    return Row(row[..., 0:3], row[..., 0:2], row[..., 2], row[..., 3:6], row[..., 6],
+               row[..., 7])
 
 
 class Features(NamedTuple):
     """A receiver window's features (..., N, 15) by name, in the frame of its anchor
-    (:func:`lbo.models.receiver_window.features`): each field (..., N) or (..., N, 2), 0
-    where not held, with a mask (1 or 0) per channel."""
+    (:func:`lbo.models.receiver_window.features`): each field (..., N) or (..., N, k), 0 where
+    not held, with a mask (1 or 0) per channel.
 
+    pose : (..., N, 3) ``[dx, dy, dpsi]``, the fix and ``psi_m`` relative to the anchor;
+    fix : (..., N, 2) ``[dx, dy]``; heading : ``dpsi``; course : ``dcourse``.
+    sigma : (..., N, 3) ``[sx, sy, spsi]``, the reported 1-sigmas (0: none); course_sigma.
+    has_fix, has_heading, has_course : the masks of the position, ``psi_m`` and the course.
+    V, delta : the inputs; gyro : ``r_m`` (0: none); has_gyro : its mask.
+    """
+
+    pose: torch.Tensor
     fix: torch.Tensor
-    """(..., N, 2) the fix's position ``dx, dy`` relative to the anchor."""
     heading: torch.Tensor
-    """``dpsi``: ``psi_m`` relative to the anchor's heading."""
     course: torch.Tensor
-    """``dcourse``: the course over ground relative to it."""
-    fix_sigma: torch.Tensor
-    """(..., N, 2) ``sx, sy``: the reported 1-sigma of the fix (0: none)."""
-    heading_sigma: torch.Tensor
-    """``spsi``."""
+    sigma: torch.Tensor
     course_sigma: torch.Tensor
-    """``s_course``."""
     has_fix: torch.Tensor
-    """The masks: a position fix, ..."""
     has_heading: torch.Tensor
-    """... ``psi_m``, ..."""
     has_course: torch.Tensor
-    """... a course over ground."""
     V: torch.Tensor
-    """The speed input."""
     delta: torch.Tensor
-    """The steering input."""
     gyro: torch.Tensor
-    """``r_m``, the gyro's yaw rate (0: none), ..."""
     has_gyro: torch.Tensor
-    """... and its mask."""
-
-    @property
-    def pose(self) -> torch.Tensor:
-        """(..., N, 3) ``[dx, dy, dpsi]``."""
-        return torch.cat([self.fix, self.heading[..., None]], -1)
-
-    @property
-    def sigma(self) -> torch.Tensor:
-        """(..., N, 3) ``[sx, sy, spsi]``."""
-        return torch.cat([self.fix_sigma, self.heading_sigma[..., None]], -1)
 
 
-_F = {name: FEATURES.index(name) for name in FEATURES}
+assert FEATURES == ("dx", "dy", "dpsi", "dcourse", "sx", "sy", "spsi", "s_course", "fix",
+                    "heading", "course_held", "V", "delta", "r_m", "gyro"), \
+    "feature_channels reads these columns at these places"
 
 
 def feature_channels(x: torch.Tensor) -> Features:
     """The columns of a receiver window's features (..., N, 15)
     (:data:`lbo.models.receiver_window.FEATURES`) by name."""
-    def col(name: str) -> torch.Tensor:
-        return x[..., _F[name]]
-
-    return Features(x[..., _F["dx"]:_F["dx"] + 2], col("dpsi"), col("dcourse"),
-                    x[..., _F["sx"]:_F["sx"] + 2], col("spsi"), col("s_course"), col("fix"),
-                    col("heading"), col("course_held"), col("V"), col("delta"), col("r_m"),
-                    col("gyro"))
+    # the places as literals: TorchScript compiles no global ints (checked above)
+    return Features(x[..., 0:3], x[..., 0:2], x[..., 2], x[..., 3], x[..., 4:7], x[..., 7],
+                    x[..., 8], x[..., 9], x[..., 10], x[..., 11], x[..., 12], x[..., 13],
+                    x[..., 14])

@@ -292,7 +292,7 @@ class RecursiveFilter(nn.Module):
             m = torch.cat([m, (m[:, :1] * 0.0 + math.nan).repeat(1, 5)], 1)
         row, there = m, m == m  # (B, 8), and where it is not NaN
         ch, got = row_channels(row), row_channels(there)
-        m = torch.cat([ch.fix, ch.heading[:, None]], 1)  # (B, 3) the pose
+        m = ch.pose  # (B, 3)
         position, measured = got.fix[:, 0] & got.fix[:, 1], got.heading
         if not self.fixes:
             position, measured = torch.ones_like(position), torch.ones_like(measured)

@@ -255,8 +255,7 @@ def oracle_gyro(log: pd.DataFrame, vehicle: Vehicle, position_sigma: float,
     meas = Measurements.from_frame(log)
     if not meas.has_fix[0]:
         raise LboError("oracle_gyro: the log's first row holds no fix")
-    fix = np.isfinite(meas.fix[:, 0])
-    meas = replace(meas, fix_sigma=np.where(fix[:, None], position_sigma, np.nan))
+    meas = replace(meas, fix_sigma=np.where(np.isfinite(meas.fix), position_sigma, np.nan))
     v = log["V"].to_numpy(dtype=float)
     rate = log["r_m"].to_numpy(float)
     if bias is None:

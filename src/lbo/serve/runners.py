@@ -34,6 +34,7 @@ from lbo.serve.engines import make_predictor, make_recursive_step
 from lbo.serve.estimate import Estimate, side_slip
 from lbo.serve.exported import ExportedNet
 from lbo.serve.rows import bicycle_rows, receiver_rows, window_series
+from lbo.sim.columns import RECEIVER
 from lbo.sim.measurements import Measurements
 from lbo.sim.noise import Noise
 from lbo.sim.vehicle import Vehicle
@@ -106,7 +107,8 @@ def learned_runner(name: str, net: Any, form: str, vehicle: Vehicle, noise: Nois
                    engine: str, device: str) -> WindowRunner | RecursiveRunner | CarriedRunner:
     """The runner of learned observer ``name`` in ``form`` (checked by :func:`check_form`)."""
     if form == "window":
-        return WindowRunner(name, net, vehicle, noise, engine=engine, device=device)
+        return WindowRunner(name, net, vehicle=vehicle, noise=noise, engine=engine,
+                            device=device)
     if is_window_filter(net):
         return RecursiveRunner(net, vehicle, engine=engine, device=device)
     from lbo.serve.carried_runner import CarriedRunner  # torch: loaded with the net already
@@ -186,7 +188,7 @@ class ClassicalRunner:
             gyro = float(meas.gyro) if meas.has_gyro else self.gyro_last
             if gyro is None:
                 raise LboError(f"step {k}: gyro needs a gyro's yaw rate r_m at its first step "
-                               "(the receiver's last channel)")
+                               f"(receiver[{RECEIVER.index('r_m')}])")
             self.gyro_last = gyro
             u = np.array([u[0], gyro])
         return self.rows(meas[None], u[None])[0], u
@@ -232,7 +234,7 @@ class WindowRunner:
 
     carries_lateral = False  # a window's single-track body starts afresh in each window
 
-    def __init__(self, name: str, net: Any, vehicle: Vehicle, noise: Noise, *, engine: str,
+    def __init__(self, name: str, net: Any, *, vehicle: Vehicle, noise: Noise, engine: str,
                  device: str) -> None:
         self.name, self.window, self.dt = name, int(net.window), vehicle.dt
         self.vehicle, self.noise = vehicle, noise

@@ -41,6 +41,17 @@ class Measurements:
     velocity_sigma: np.ndarray
     gyro: np.ndarray
 
+    def __post_init__(self) -> None:
+        """Every field over the same steps, the pairs (``fix``, ``fix_sigma``, ``velocity``)
+        two wide: a field cut or widened by mistake is one line here, not a wrong row
+        downstream."""
+        steps = np.shape(self.heading)
+        for f in fields(self):
+            want = steps + (2,) if f.name in _PAIRS else steps
+            if np.shape(getattr(self, f.name)) != want:
+                raise LboError(f"measurements: {f.name} must be {want} over the steps of "
+                               f"heading {steps}, got {np.shape(getattr(self, f.name))}")
+
     @classmethod
     def of(cls, m: Any, receiver: Any = None) -> Measurements:
         """From arrays: fixes m (..., 3) ``[x_m, y_m, psi_m]`` and a receiver's channels
@@ -120,3 +131,7 @@ class Measurements:
     def __getitem__(self, index: Any) -> Measurements:
         """The steps ``index`` selects over the leading axes (a sample: ``meas[k]``)."""
         return replace(self, **{f.name: getattr(self, f.name)[index] for f in fields(self)})
+
+
+_PAIRS = ("fix", "fix_sigma", "velocity")
+"""The fields two wide: ``[x_m, y_m]``, ``[sx_m, sy_m]``, ``[ve_m, vn_m]``."""
