@@ -140,7 +140,9 @@ def _stored_config(client: Any, run_id: str) -> DictConfig | None:
         return None
     if (logged["config.yaml"].file_size or 0) > MAX_CONFIG:
         raise LboError(f"its config.yaml is over {MAX_CONFIG} bytes")
-    with tempfile.TemporaryDirectory() as tmp:
+    from lbo.tracking.runs import no_progress_bar
+
+    with tempfile.TemporaryDirectory() as tmp, no_progress_bar():
         text = Path(client.download_artifacts(run_id, "config.yaml", tmp)).read_text()
     try:
         cfg = OmegaConf.create(text)
