@@ -17,6 +17,7 @@ from lbo.scoring.metrics import rmse
 from lbo.scoring.unscored import heading_unseen, unscored
 from lbo.serve.observer import Observer
 from lbo.sim.columns import RECEIVER
+from lbo.sim.measurements import Measurements
 from lbo.simulate import simulate
 
 LOG = ["t", "x_m", "y_m", "psi_m", "V", "delta", "x", "y", "psi"]
@@ -69,13 +70,13 @@ def test_heading_unseen_is_the_rows_the_filter_itself_ran_blind(monkeypatch, nam
     # no step coasts past a row while the heading is unknown
     ran_blind = 1 + int(np.argmin(seen))
     assert 0 < ran_blind < len(seen)
-    unseen = heading_unseen(obs, m, u, r)
+    unseen = heading_unseen(obs, Measurements.of(m, r), u)
     assert unseen.sum() == ran_blind and unseen[:ran_blind].all()
     assert still < ran_blind < still + 400  # the first metres of the drive
     # a heading with the first fix: nothing unseen, nothing stepped again
     full = m.copy()
     full[0, 2] = log["psi"].iloc[0]
-    assert not heading_unseen(obs, full, u, r).any()
+    assert not heading_unseen(obs, Measurements.of(full, r), u).any()
 
 
 def _observe(tmp_path, log: pd.DataFrame, observer: str = "ekf") -> dict:

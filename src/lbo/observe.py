@@ -78,7 +78,6 @@ from lbo.logs.io import (
     check_steering,
     plot_path,
     read_log,
-    receiver,
     resample,
     write_table,
 )
@@ -88,6 +87,7 @@ from lbo.scoring import outages as outage
 from lbo.scoring.metrics import nrmse
 from lbo.scoring.outages import Outages
 from lbo.sim.columns import COVARIANCE, LATERAL_ESTIMATE, LOG, RECEIVER, STATE
+from lbo.sim.measurements import Measurements
 
 __all__ = ["main", "observe"]
 
@@ -200,15 +200,13 @@ def observe(cfg: DictConfig) -> dict[str, Any]:
         if adapt_scales and start.speed_scale is None:
             start = start.with_scales()
         obs = _adapted(df, start, vehicle, noise, adapt_epochs, kw)
-    m = df[["x_m", "y_m", "psi_m"]].to_numpy(dtype=float)
-    u = df[["V", "delta"]].to_numpy(dtype=float)
-    channels = receiver(df)
+    meas = Measurements.from_frame(df)  # read once: every observer below takes it
+    m, u = meas.pose, df[["V", "delta"]].to_numpy(dtype=float)
     if adapt and name != "gyro":  # every other observer takes the inputs' terms
-        obs.inputs = _fitted_inputs(m, u, channels, vehicle, noise)
+        obs.inputs = _fitted_inputs(meas, u, vehicle, noise)
     with warnings.catch_warnings():  # said below, one line per field
         warnings.simplefilter("ignore", EnvelopeWarning)
-        found = obs.run(m, u, source=where, smooth=smooth,
-                        receiver=channels if obs.takes_receiver else None)
+        found = obs.run(_taken(obs, meas), u, source=where, smooth=smooth)
     est, valid, cov = found.state, found.valid, found.cov
     envelope = obs.check_envelope(m, u) if mode != "off" else None
     result: dict[str, Any] = {"output": output, "observer": obs.name, "rows": len(df),
@@ -217,12 +215,12 @@ def observe(cfg: DictConfig) -> dict[str, Any]:
         result["input_terms"] = dataclasses.asdict(obs.inputs)
     # a classical filter's heading before its first one is 0 rad, sd 1 rad, and valid: left
     # out of the heading's RMSE (it is scored for the observers, not for their start)
-    unseen = heading_unseen(obs, m, u, channels) if truth else np.zeros(len(df), bool)
+    unseen = heading_unseen(obs, meas, u) if truth else np.zeros(len(df), bool)
     if truth:
         z = df[list(STATE)].to_numpy(dtype=float)
         result["rmse"] = scored_rmse(est, z, valid, unseen)
         result["heading_unseen"] = int((valid & unseen).sum())
-        result["e_ref"] = _ekf_reference(obs, m, u, channels, z, valid, unseen, where)
+        result["e_ref"] = _ekf_reference(obs, meas, u, z, valid, unseen, where)
         result["nrmse"] = (nrmse(result["rmse"], result["e_ref"])
                            if valid.any() and np.isfinite(result["e_ref"]).all()
                            else float("nan"))
@@ -241,11 +239,11 @@ def observe(cfg: DictConfig) -> dict[str, Any]:
     write_table(out, output)
     others = {}
     for other, o in compared.items():
-        e, ok = o.run(m, u, source=where, receiver=channels if o.takes_receiver else None)
+        e, ok = o.run(_taken(o, meas), u, source=where)
         others[o.name if o.name not in others and o.name != obs.name else other] = \
             np.where(ok[:, None], e, np.nan)
         if truth:
-            blind = heading_unseen(o, m, u, channels)
+            blind = heading_unseen(o, meas, u)
             r = scored_rmse(e, df[list(STATE)].to_numpy(dtype=float), ok, blind)
             print(f"compare {other}: rmse x {r[0]:.6g} m, y {r[1]:.6g} m, "
                   f"{psi_text(o.name, r[2], ok, blind)} ({int(ok.sum())} valid rows)")
@@ -280,8 +278,8 @@ def observe(cfg: DictConfig) -> dict[str, Any]:
     duration = len(df) * obs.dt
     print(f"fixes: {int(fix.sum())} of {len(df)} rows ({fix.sum() / duration:.3g} Hz; inputs "
           f"at {1 / obs.dt:g} Hz)")
-    if channels is not None:
-        told = [c for c, held in zip(RECEIVER, np.isfinite(channels).any(0)) if held]
+    if any(c in df.columns for c in RECEIVER):
+        told = [c for c, held in zip(RECEIVER, np.isfinite(meas.receiver).any(0)) if held]
         idle = "r_m" in told and obs.takes_receiver and not obs.reads_gyro
         taken = [c for c in told if not (idle and c == "r_m")]
         print(f"receiver: {', '.join(taken) or 'no value'} "
@@ -309,8 +307,8 @@ def observe(cfg: DictConfig) -> dict[str, Any]:
                   f"trained on ({flag}; column outside names the fields)")
     # the reasons that apply, each with its count: a log of position fixes without psi_m nor a
     # velocity never gives the robust observer a heading, not a window or a first fix
-    reasons = unscored(obs, est, valid, fix, heading_rows(
-        m, u, channels if obs.takes_receiver else None, obs.vehicle.wheelbase),
+    reasons = unscored(obs, est, valid, fix, heading_rows(_taken(obs, meas), u,
+                                                          obs.vehicle.wheelbase),
         envelope.outside if envelope is not None and mode == "mark" else None)
     if result["valid"] < len(df):
         print(f"valid: {result['valid']} of {len(df)} rows; not scored: {'; '.join(reasons)}")
@@ -344,9 +342,14 @@ def observe(cfg: DictConfig) -> dict[str, Any]:
     return result
 
 
-def _ekf_reference(obs: Any, m: np.ndarray, u: np.ndarray, channels: np.ndarray | None,
-                   z: np.ndarray, valid: np.ndarray, unseen: np.ndarray, where: str
-                   ) -> np.ndarray:
+def _taken(obs: Any, meas: Measurements) -> Measurements:
+    """What observer ``obs`` is given of a log's measurements: all of them where it takes a
+    receiver's channels, its fixes alone where it does not (lbo.observe says so)."""
+    return meas if obs.takes_receiver else Measurements.of(meas.pose)
+
+
+def _ekf_reference(obs: Any, meas: Measurements, u: np.ndarray, z: np.ndarray,
+                   valid: np.ndarray, unseen: np.ndarray, where: str) -> np.ndarray:
     """E_ref (3,) of the NRMSE on a log: the RMSE of lbo's EKF (R at alpha=1, ``obs``'s
     vehicle and noise) over the rows scored for ``obs`` (``valid`` (T,), the heading without
     ``unseen`` (T,) ones nor those before the EKF's own first heading). As on a user's test
@@ -355,8 +358,8 @@ def _ekf_reference(obs: Any, m: np.ndarray, u: np.ndarray, channels: np.ndarray 
     from lbo.serve.observer import Observer
 
     ekf = Observer.load("ekf", obs.vehicle, obs.noise)
-    est, ok = ekf.run(m, u, source=where, receiver=channels if ekf.takes_receiver else None)
-    return scored_rmse(est, z, valid & ok, unseen | heading_unseen(ekf, m, u, channels))
+    est, ok = ekf.run(_taken(ekf, meas), u, source=where)
+    return scored_rmse(est, z, valid & ok, unseen | heading_unseen(ekf, meas, u))
 
 
 def _adapted(df: pd.DataFrame, start: Any, vehicle: Any, noise: Any, epochs: int,
@@ -380,18 +383,15 @@ def _adapted(df: pd.DataFrame, start: Any, vehicle: Any, noise: Any, epochs: int
     return Observer.load("gyro", vehicle, noise, gyro_noise=fitted.noise, **kw)
 
 
-def _fitted_inputs(m: np.ndarray, u: np.ndarray, channels: np.ndarray | None, vehicle: Any,
-                   noise: Any) -> Any:
+def _fitted_inputs(meas: Measurements, u: np.ndarray, vehicle: Any, noise: Any) -> Any:
     """The inputs' terms of the kinematic EKF fitted on the log by its position innovations
     (:func:`lbo.learn.input_fit.fit`), said in a line with the time it took."""
     from lbo.learn import input_fit
     from lbo.serve.rows import bicycle_rows
-    from lbo.sim.measurements import Measurements
 
     print("adapting: the inputs' terms (speed factor, steering offset and factor) to this "
           "log's fixes", flush=True)
-    rows = (m if channels is None
-            else bicycle_rows(Measurements.of(m, channels), u, vehicle.wheelbase))
+    rows = (bicycle_rows(meas, u, vehicle.wheelbase) if meas.reads_receiver else meas.pose)
     fitted = input_fit.fit(rows, u, vehicle, noise)
     print(f"adapted: {fitted.terms.describe()} (offline: it read the whole log first; no truth "
           f"read), {fitted.runs} EKF runs in {fitted.seconds:.1f} s, the fixes' mean square "

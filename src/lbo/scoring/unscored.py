@@ -34,25 +34,24 @@ COURSE_TEXT = (f"psi_m, or a course over ground from ve_m, vn_m at |v| >= "
 """What gives a row a heading, as the summary says it."""
 
 
-def heading_rows(m: np.ndarray, u: np.ndarray, receiver: np.ndarray | None,
-                 wheelbase: float) -> np.ndarray:
-    """(T,) bool: the rows of a log, m (T, 3) ``[x_m, y_m, psi_m]``, u (T, 2) ``[V, delta]``
-    and a receiver's channels (T, 7) or None, that hold a position and a heading: ``psi_m``,
-    or the course over ground of a GNSS velocity where it is held (the car moving,
+def heading_rows(meas: Measurements, u: np.ndarray, wheelbase: float) -> np.ndarray:
+    """(T,) bool: the rows of a log, its measurements ``meas`` (T steps) at inputs u (T, 2)
+    ``[V, delta]``, that hold a position and a heading: ``psi_m``, or the course over ground
+    of a GNSS velocity where it is held (the car moving,
     :func:`lbo.filters.measure.course_over_ground`). The robust observer starts at the first
     of them."""
-    rows = bicycle_rows(Measurements.of(m, receiver), u, wheelbase)
+    rows = bicycle_rows(meas, u, wheelbase)
     return np.isfinite(rows[:, :2]).all(1) & measure.heading_held(rows)
 
 
-def heading_unseen(obs: Any, m: np.ndarray, u: np.ndarray, receiver: np.ndarray | None
-                   ) -> np.ndarray:
-    """(T,) bool: the rows at which classical observer ``obs`` (an :class:`lbo.Observer`)
-    holds a position but has not observed its heading yet: from its first fix until its
-    filter first takes a heading (a fix's ``psi_m``, the course over ground, or the course
-    from the fixes once the car has moved; :class:`lbo.filters.start.CourseStart`). All False
-    for a learned observer (NaN there, not valid) and for a plug-in's filter that keeps no
-    course start.
+def heading_unseen(obs: Any, meas: Measurements, u: np.ndarray) -> np.ndarray:
+    """(T,) bool: the rows of a log, its measurements ``meas`` (T steps; the receiver's
+    channels read where ``obs`` takes them) at inputs u (T, 2), at which classical observer
+    ``obs`` (an :class:`lbo.Observer`) holds a position but has not observed its heading yet:
+    from its first fix until its filter first takes a heading (a fix's ``psi_m``, the course
+    over ground, or the course from the fixes once the car has moved;
+    :class:`lbo.filters.start.CourseStart`). All False for a learned observer (NaN there, not
+    valid) and for a plug-in's filter that keeps no course start.
 
     Its filter is stepped again over that stretch only, from the first fix to the first
     heading (none where the first fix holds one): the same stepper and the same rows as
@@ -60,13 +59,13 @@ def heading_unseen(obs: Any, m: np.ndarray, u: np.ndarray, receiver: np.ndarray 
     """
     from lbo.serve.runners import ClassicalRunner
 
-    t = len(m)
+    t = len(meas)
     blind = np.zeros(t, bool)
     if obs.kind != "classical":
         return blind
     # run() wraps psi_m first; whether a row holds one is all that matters here
     runner = ClassicalRunner(obs.name, obs.vehicle, obs.noise, gyro=obs.gyro_noise)
-    rows, u = runner.log_rows(Measurements.of(m, receiver if obs.takes_receiver else None), u,
+    rows, u = runner.log_rows(meas if obs.takes_receiver else Measurements.of(meas.pose), u,
                               None)
     rows = measure.widen(rows)
     pos = np.isfinite(rows[:, :2]).all(1)

@@ -271,7 +271,7 @@ class Observer:
         if self._envelope is not None:
             self._envelope.reset()
 
-    def step(self, measurement: np.ndarray | None, input: np.ndarray,
+    def step(self, measurement: np.ndarray | Measurements | None, input: np.ndarray,
              receiver: np.ndarray | None = None) -> Estimate:
         """Take one sample and return the estimate at this step.
 
@@ -356,7 +356,7 @@ class Observer:
 
     # ----------------------------------------------------------------------- batch
 
-    def run(self, m: np.ndarray, u: np.ndarray, batch_size: int = 4096, *,
+    def run(self, m: np.ndarray | Measurements, u: np.ndarray, batch_size: int = 4096, *,
             source: str | None = None, smooth: bool = False,
             receiver: np.ndarray | None = None) -> Estimates:
         """Estimates over a whole log at once (vectorised; the streaming state is untouched).
