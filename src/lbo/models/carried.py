@@ -199,24 +199,28 @@ def run(model: SequenceModel, m: torch.Tensor, u: torch.Tensor,
     ``lateral``: also stack the carried ``[v_y, r]`` (of a model that :func:`carries_body`)."""
     if state is not None and u_prev is None:
         raise ValueError("u_prev: expected the inputs (B, 2) of the step before state")
-    fix = torch.isfinite(m).all(-1)  # a full pose: these filters take no partial fix
-    y = torch.nan_to_num(m)
+    # step-major and contiguous: each step's (B, k) slice has the same strides whatever L is,
+    # so a compiled step is compiled once, not again for every sequence length it meets
+    fix = torch.isfinite(m).all(-1).transpose(0, 1).contiguous()  # a full pose: no partial fix
+    y = torch.nan_to_num(m).transpose(0, 1).contiguous()
+    u = u.transpose(0, 1).contiguous()
+    u_prev = None if u_prev is None else u_prev.contiguous()
     keep_cov = covariance and covariance_of(model) is not None
     keep_body = lateral and carries_body(model)
     step = getattr(model, "recorded_step", None) or functools.partial(recorded_step, model)
     out, covs, bodies = [], [], []
     for k in range(m.shape[1]):  # a recurrence: each step needs the one before
         if state is None or u_prev is None:
-            state = model.begin(y[:, 0], fix[:, 0], u[:, 0])
+            state = model.begin(y[0], fix[0], u[0])
             est, cov = recorded(model, state, wrap_heading(state[0][:, :3]), keep_cov)
         else:
-            state, est, cov = step(state, u_prev, y[:, k], fix[:, k], u[:, k], keep_cov)
+            state, est, cov = step(state, u_prev, y[k], fix[k], u[k], keep_cov)
         out.append(est)
         if cov is not None:
             covs.append(cov)
         if keep_body:
             bodies.append(body(state))
-        u_prev = u[:, k]
+        u_prev = u[k]
     if state is None:
         raise ValueError("m: expected at least one step, got shape (B, 0, 3)")
     return Carried(torch.stack(out, 1), state, torch.stack(covs, 1) if covs else None,
