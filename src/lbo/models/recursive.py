@@ -42,7 +42,7 @@ import torch
 from torch import nn
 
 from lbo.filters.kalman import coast_covariance, compose_covariance
-from lbo.models.channels import row_channels
+from lbo.models.channels import Row, row_channels
 from lbo.models.filternet import WindowFilter
 from lbo.models.motion import bicycle_step
 from lbo.models.poses import wrap_heading
@@ -164,13 +164,11 @@ class RecursiveFilter(nn.Module):
         return torch.stack([rxx, rxy, zero, rxy, ryy, zero, zero, zero, vp], -1).view(-1, 3, 3)
 
     @staticmethod
-    def _step_cov(R: torch.Tensor, row: torch.Tensor, there: torch.Tensor, measured: torch.Tensor
-                  ) -> torch.Tensor:
+    def _step_cov(R: torch.Tensor, c: Row, held: Row, measured: torch.Tensor) -> torch.Tensor:
         """The step's R (B, 3, 3) of ``[x_m, y_m, heading]``: the noise model's ``R``, with the
-        variance of each channel the row (B, 8) reports an accuracy for (``there`` (B, 8): its
-        entries not NaN) replaced by its square (:func:`step_covariance`), and the heading's
-        the course's where ``measured`` (B,) is False (no ``psi_m``)."""
-        c, held = row_channels(row), row_channels(there)
+        variance of each channel the row ``c`` reports an accuracy for (``held``: which of its
+        entries are not NaN) replaced by its square (:func:`step_covariance`), and the
+        heading's the course's where ``measured`` (B,) is False (no ``psi_m``)."""
         told, sig = held.sigma, torch.where(held.sigma, c.sigma, torch.zeros_like(c.sigma))
         # a heading the row does not hold gets a variance of 1: finite, and masked out
         course = torch.where(held.course_sigma, c.course_sigma, torch.ones_like(c.course_sigma))
@@ -338,7 +336,7 @@ class RecursiveFilter(nn.Module):
                     or torch.compiler.is_compiling() or torch.onnx.is_in_onnx_export())
         # full fixes alone, no accuracy reported: R is the noise model's
         plain = lean and bool(measured.all()) and not (got.sigma.any() or got.course.any())
-        R = R_model if plain else self._step_cov(R_model, row, there, measured)
+        R = R_model if plain else self._step_cov(R_model, ch, got, measured)
 
         # -- the filter: predict with u_{k-1}, update with m_k
         pose, f02, f12, body_new = fo.predict_pose(z[:, :3], u_prev[:, 0], u_prev[:, 1], body)
@@ -378,7 +376,7 @@ class RecursiveFilter(nn.Module):
         if not lean or bool(first.any()):  # lean: the start where a filter starts
             # the noise model's R is alpha = 1's at the start (its statistic holds nothing
             # yet); what the receiver reports is as sure as it says
-            R_start = self._step_cov(START_SCALE * R_model, row, there, measured)
+            R_start = self._step_cov(START_SCALE * R_model, ch, got, measured)
             if self.n == 5:
                 start_z = torch.cat([meas, torch.zeros_like(meas[:, :2])], -1)
                 start_P = fo._drift_start(R_start, var_b, eye)

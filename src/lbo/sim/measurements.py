@@ -123,7 +123,7 @@ class Measurements:
     @property
     def reads_receiver(self) -> bool:
         """Whether any step holds any of the receiver's channels."""
-        return bool(np.isfinite(self.receiver).any())
+        return any(bool(np.isfinite(getattr(self, name)).any()) for name in _RECEIVER_FIELDS)
 
     def __len__(self) -> int:
         return len(self.heading)
@@ -135,3 +135,5 @@ class Measurements:
 
 _PAIRS = ("fix", "fix_sigma", "velocity")
 """The fields two wide: ``[x_m, y_m]``, ``[sx_m, sy_m]``, ``[ve_m, vn_m]``."""
+_RECEIVER_FIELDS = ("fix_sigma", "heading_sigma", "velocity", "velocity_sigma", "gyro")
+"""The fields of a receiver's channels (:data:`RECEIVER`), beside the fix."""
