@@ -12,7 +12,7 @@ import time
 
 import torch
 
-from lbo.models import filternet, update
+from lbo.models import filter_step, update
 from lbo.models.net import WindowNet
 
 torch.set_num_threads(1)
@@ -33,7 +33,7 @@ for drift in (False, True):
     times: dict[str, list[float]] = {"short": [], "joseph": []}
     outs = {}
     for name, form in (("short", short), ("joseph", joseph)) * 2:
-        filternet.full_update = form
+        filter_step.full_update = form
         ts = []
         for _ in range(12):
             start = time.perf_counter()
@@ -42,7 +42,7 @@ for drift in (False, True):
             ts.append(time.perf_counter() - start)
         times[name].append(statistics.median(ts[2:]))
         outs[name] = out.detach()
-    filternet.full_update = short
+    filter_step.full_update = short
     s, j = statistics.median(times["short"]), statistics.median(times["joseph"])
     print(f"drift={drift}: short form {1e3 * s:.1f} ms, Joseph {1e3 * j:.1f} ms a pass "
           f"({j / s:.2f}x); largest difference of the estimates "

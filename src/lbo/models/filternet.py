@@ -41,11 +41,12 @@ from lbo.core.checks import integer, number, require
 from lbo.core.errors import LboError
 from lbo.filters import gyro as gyro_model
 from lbo.models.channels import feature_channels
+from lbo.models.filter_step import FilterStep
 from lbo.models.frame import check_sigmas, frame_model
-from lbo.models.motion import ProcessModel, bicycle_step, pose_jacobian
+from lbo.models.motion import ProcessModel, bicycle_step
 from lbo.models.poses import wrap_heading
 from lbo.models.receiver_window import FEATURES
-from lbo.models.update import full_update, masked_update, step_covariance, taken, turn_xy
+from lbo.models.update import step_covariance, taken, turn_xy
 
 EMPTY_STATISTIC = ("net", "learned")
 """R where the noise statistic is empty (under two fixes; a carried filter's start): ``net``,
@@ -56,7 +57,7 @@ SIGMA_RATIO_MAX = 100.0
 far above the noise levels lbo trains on (alpha up to 6.5)."""
 
 
-class WindowFilter(ProcessModel, nn.Module):
+class WindowFilter(ProcessModel, FilterStep, nn.Module):
     """Window EKF on the kinematic bicycle with a learned noise model.
 
     Reads ``"frame"`` features in physical units (:mod:`lbo.models.features`): the window's
@@ -161,6 +162,10 @@ class WindowFilter(ProcessModel, nn.Module):
                 self.register_buffer(name, torch.tensor(value), persistent=drift)
         self.build_process(residual, body, body_lr)
         self._build_gyro(gyro)
+        # the filter's states (lbo.models.filter_step): the pose, and the gyro's bias or the drift;
+        # their identity made once, not at every step of the loop
+        self.states = 5 if drift else 4 if gyro else 3
+        self.register_buffer("eye", torch.eye(self.states), persistent=False)
 
     def _build_gyro(self, gyro: bool) -> None:
         """Register the gyro's learned noise (``gyro``), checked in one line: log 1-sigmas of
@@ -183,57 +188,23 @@ class WindowFilter(ProcessModel, nn.Module):
             else:
                 self.register_buffer(name, torch.tensor(value), persistent=False)
 
-    def _drift_filter(self, x: torch.Tensor, R: torch.Tensor, Q: torch.Tensor) -> torch.Tensor:
-        """The window filter with two more states: a Gauss-Markov GNSS drift b on x and y,
-        ``b' = phi b``, measured as ``m = pose + [b, 0]``. Its correlation time and its size
-        relative to the white position noise are learned. (B, N, C) features, (B, 3, 3) R and
-        (3, 3) Q -> (B, 3) pose.
+    def _drift_noise(self, R: torch.Tensor, Q: torch.Tensor
+                     ) -> tuple[torch.Tensor, torch.Tensor]:
+        """The process noise of the filter with two more states, a Gauss-Markov GNSS drift b on
+        x and y (``b' = phi b``, measured as ``m = pose + [b, 0]``), from the window's R
+        (B, 3, 3) and the pose's Q (3, 3): (B, 5, 5), and the drift's stationary variance
+        (B,). Its correlation time and its size relative to the white position noise are
+        learned.
 
         The drift's mean is unobservable from positions alone; what the states buy is a filter
         that knows its position fixes' errors are correlated, and averages them no further
         than that allows."""
-        phi = torch.exp(-torch.exp(-self.log_drift_tau))  # exp(-1 / tau), tau in steps
+        phi = self.drift_phi()
         white = (R[:, 0, 0] * R[:, 1, 1]) ** 0.25  # (B,) white position sigma
         var_b = (torch.exp(self.log_drift_ratio) * white) ** 2  # (B,) stationary variance
-        e = torch.eye(5, dtype=x.dtype, device=x.device)
-        pose, drift = e[:3], e[3:]  # selectors: (3, 5) and (2, 5)
-        H = pose + torch.cat([drift, torch.zeros_like(drift[:1])])  # m = pose + [b_x, b_y, 0]
-        Qp = pose.T @ Q @ pose + (var_b * (1 - phi**2))[:, None, None] * (drift.T @ drift)
-        start = self._drift_start(R, var_b, e)
-        z = torch.cat([x[:, 0, :3], torch.zeros_like(x[:, 0, :2])], -1)
-        P = start
-        body = self.body_start(x[:, 0, 3], x[:, 0, 4])
-        started = x[:, 0, -1] > 0.5  # read only with the fix channel
-        zero = torch.zeros_like(x[:, 0, 0])
-        one = torch.ones_like(zero)
-        for k in range(1, x.shape[1]):
-            p, f02, f12, body = self.predict_pose(z[:, :3], x[:, k - 1, 3], x[:, k - 1, 4], body)
-            z = torch.cat([p, phi * z[:, 3:]], -1)
-            F = torch.stack([torch.stack([one, zero, f02, zero, zero], -1),
-                             torch.stack([zero, one, f12, zero, zero], -1),
-                             torch.stack([zero, zero, one, zero, zero], -1),
-                             torch.stack([zero, zero, zero, phi * one, zero], -1),
-                             torch.stack([zero, zero, zero, zero, phi * one], -1)], -2)
-            P = F @ P @ F.transpose(1, 2) + Qp
-            y = x[:, k, :3] - (H @ z.unsqueeze(-1)).squeeze(-1)
-            y = wrap_heading(y)
-            z_new, P_new = full_update(z, P, y, R, e, H)
-            if self.fixes:  # no fix: the prediction; the first fix: start there
-                f = x[:, k, 5] > 0.5
-                restart = torch.cat([x[:, k, :3], torch.zeros_like(z[:, 3:])], -1)
-                z, P = taken(f & ~started, f, (restart, start), (z_new, P_new), (z, P))
-                started = started | f
-            else:
-                z, P = z_new, P_new
-        return wrap_heading(z[:, :3])
-
-    @staticmethod
-    def _drift_start(R: torch.Tensor, var_b: torch.Tensor, e: torch.Tensor) -> torch.Tensor:
-        """(B, 5, 5) covariance of starting at a fix with zero drift: the pose's error is minus
-        the fix's white noise and drift, the drift's is the drift."""
-        xy, bb = e[:2].T @ e[:2], e[3:].T @ e[3:]  # ones at (0, 0), (1, 1) / (3, 3), (4, 4)
-        cross = e[:2].T @ e[3:]  # ones at (0, 3), (1, 4)
-        return e[:3].T @ R @ e[:3] + var_b[:, None, None] * (xy - cross - cross.T + bb)
+        pose, drift = self.eye[:3], self.eye[3:]  # selectors: (3, 5) and (2, 5)
+        return (pose.T @ Q @ pose + (var_b * (1 - phi**2))[:, None, None] * (drift.T @ drift),
+                var_b)
 
     def _fix_residuals(self, x: torch.Tensor
                        ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -306,20 +277,20 @@ class WindowFilter(ProcessModel, nn.Module):
         state in that frame; the anchor itself (0) where the window holds no row with a
         position and a heading to start at.
 
-        Each row updates with the channels it holds (:func:`masked_update`): the position,
-        the heading ``psi_m``, or the course over ground where it has none. Their R is the
-        noise model's (read in the anchor's frame, on the full fixes alone) with the reported
-        accuracies in its place (in world axes, :func:`step_covariance`); the filter starts
-        at the first row that holds a position and a heading, with that row's R."""
+        Each row updates with the channels it holds: the position, the heading ``psi_m``, or
+        the course over ground where it has none. Their R is the noise model's (read in the
+        anchor's frame, on the full fixes alone) with the reported accuracies in its place (in
+        world axes, :func:`step_covariance`); the filter starts at the first row that holds a
+        position and a heading, with that row's R. With ``gyro``, the gyro's last reading
+        turns the heading."""
         b, n = x.shape[0], x.shape[1]
         f = feature_channels(x)
         position, measured = f.has_fix > 0.5, f.has_heading > 0.5
         course = (f.has_course > 0.5) & ~measured
         held = torch.stack([position, position, measured | course], -1)  # (B, N, 3)
         meas = torch.cat([f.fix, torch.where(measured, f.heading, f.course)[..., None]], -1)
-        v, delta = f.V, f.delta
         full = (position & measured).to(x.dtype)[..., None]
-        r = self.measurement_sigma(torch.cat([f.pose, v[..., None], delta[..., None], full],
+        r = self.measurement_sigma(torch.cat([f.pose, f.V[..., None], f.delta[..., None], full],
                                              -1)) ** 2  # (B, 3), the anchor's frame
         eye = torch.eye(3, dtype=x.dtype, device=x.device)
         if heading is None:
@@ -331,68 +302,61 @@ class WindowFilter(ProcessModel, nn.Module):
                            -1)
         course_var = torch.where(f.course_sigma > 0, f.course_sigma ** 2, world[..., 2, 2])
         R = turn_xy(step_covariance(world, sigma, told, course_var, measured), c, -s)
-        # four states [x, y, psi, b]: the gyro's bias b moves nothing where no gyro turns the
-        # heading (F's d psi / d b is 0 there), so a filter without one is the 3-state filter
-        q = torch.exp(2 * (self.log_q0 + self.log_q_scale))
-        gyro_var = torch.exp(2 * self.log_gyro_sigma)
-        walk_var = torch.exp(2 * self.log_bias_walk)
-        start_b = torch.exp(2 * self.log_bias_sigma) * torch.ones_like(r[:, :1, None])
-        eye4 = torch.eye(4, dtype=x.dtype, device=x.device)
-        H = eye4[:3]
-        start = position & held[..., 2]  # rows the filter can start at
-        z, P = self.start_at(meas[:, 0], R[:, 0], start_b)
-        z = torch.where(start[:, 0, None], z, torch.zeros_like(z))
-        started = start[:, 0]
-        body = self.body_start(v[:, 0], delta[:, 0])
-        gyro_rows = f.has_gyro > 0.5 if self.gyro else torch.zeros_like(start)
-        reading = torch.full_like(v[:, 0], math.nan)  # the gyro's last reading (rad/s)
-        zero, one = torch.zeros_like(reading), torch.ones_like(reading)
-        for k in range(1, n):
-            reading = torch.where(gyro_rows[:, k - 1], f.gyro[:, k - 1], reading)
-            zp, f02, f12, body = self.predict_pose(z[:, :3], v[:, k - 1], delta[:, k - 1], body)
-            turn, f23, seen = self.gyro_turn(reading, v[:, k - 1], z[:, 3])
-            psi = torch.where(seen, z[:, 2] + turn, zp[:, 2])
-            zp = torch.stack([zp[:, 0], zp[:, 1], psi, z[:, 3]], -1)
-            F = torch.stack([torch.stack([one, zero, f02, zero], -1),
-                             torch.stack([zero, one, f12, zero], -1),
-                             torch.stack([zero, zero, one, f23], -1),
-                             torch.stack([zero, zero, zero, one], -1)], -2)
-            Q = torch.stack([q[0] * one, q[1] * one, torch.where(seen, gyro_var, q[2]),
-                             walk_var * one], -1)[:, :, None] * eye4
-            Pp = F @ P @ F.transpose(1, 2) + Q
-            zu, Pu = masked_update(zp, Pp, wrap_heading(meas[:, k] - zp[:, :3]),
-                                   held[:, k].to(x.dtype), R[:, k], H)
-            first = start[:, k] & ~started
-            update = held[:, k].any(-1) & started
-            z, P = taken(first, update, self.start_at(meas[:, k], R[:, k], start_b), (zu, Pu),
-                         (zp, Pp))
-            body = torch.where(first[:, None], self.body_start(v[:, k], delta[:, k]), body)
-            started = started | first
+        Q = torch.exp(2 * (self.log_q0 + self.log_q_scale)) * eye
+        gyro: torch.Tensor | None = None
+        if self.gyro:  # the bias's walk is the step's (predict)
+            Q = nn.functional.pad(Q, (0, 1, 0, 1))
+            gyro = torch.where(f.has_gyro > 0.5, f.gyro, torch.full_like(f.gyro, math.nan))
+        z, started = self._window(meas, R, Q, f.V, f.delta, held=held.to(x.dtype), gyro=gyro)
         return torch.where(started[:, None], wrap_heading(z[:, :3]), torch.zeros_like(z[:, :3]))
 
-    def gyro_turn(self, reading: torch.Tensor, v: torch.Tensor, bias: torch.Tensor
-                  ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """The gyro-driven heading's turn over one step, for the gyro's last readings
-        (rad/s, NaN: none yet), speeds (m/s) and bias estimates (rad/s), each (B,): the
-        turn ``(r_m - b) dt`` (0 at rest: a car that stands does not turn, whatever the gyro
-        reads), its derivative in b, and whether a reading is held (elsewhere the process
-        model turns the heading); each (B,). One rule for the window form, the recursive
-        form's step and its coast."""
-        seen = reading == reading  # not NaN
-        turning = seen & (v.abs() >= gyro_model.STILL_SPEED)
-        zero = torch.zeros_like(bias)
-        turn = torch.where(turning, reading - bias, zero) * self.dt
-        return turn, torch.where(turning, -self.dt * torch.ones_like(bias), zero), seen
+    def _window(self, meas: torch.Tensor, R: torch.Tensor, Q: torch.Tensor, v: torch.Tensor,
+                delta: torch.Tensor, fix: torch.Tensor | None = None,
+                held: torch.Tensor | None = None, gyro: torch.Tensor | None = None,
+                drift_var: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """The window form: the filter's one step (:mod:`lbo.models.filter_step`) over the
+        rows of a window, from its first. Measurements meas (B, N, 3) of covariance R, the
+        window's (B, 3, 3) or each row's (B, N, 3, 3); the process noise Q ((n, n) or
+        (B, n, n)); the inputs v and delta (B, N), row k - 1's moving the filter to row k.
 
-    @staticmethod
-    def start_at(meas: torch.Tensor, R: torch.Tensor, var_b: torch.Tensor
-                  ) -> tuple[torch.Tensor, torch.Tensor]:
-        """The four-state filter started at a row: its measurement (B, 3) and no bias, (B, 4);
-        its R (B, 3, 3) and the bias's prior variance var_b (B, 1, 1), (B, 4, 4)."""
-        zeros = torch.zeros_like(R[:, :, :1])
-        P = torch.cat([torch.cat([R, zeros], 2), torch.cat([zeros.transpose(1, 2), var_b], 2)],
-                      1)
-        return torch.cat([meas, torch.zeros_like(meas[:, :1])], -1), P
+        Which rows update: every row, with every channel (the paper's windows); with ``fix``
+        (B, N) bool, the rows that hold a fix, the others a prediction only; with ``held``
+        (B, N, 3) (1 or 0), the channels each row holds (a receiver's, Joseph's update). The
+        filter starts at the window's first row and again at its first row that holds a
+        position and a heading, if later (a receiver's window starts its body there too, as
+        the recursive form does). ``gyro`` (B, N): the gyro's readings (NaN: none), the last
+        held turning the heading (``model.gyro``); ``drift_var`` (B,): the drift's stationary
+        variance (``model.drift``). Returns z (B, n) at the last row and whether the filter
+        started (B,). (Its settings are not keyword-only: TorchScript compiles none.)"""
+        each_row = R.dim() == 4
+        z, P = self.start(meas[:, 0], R[:, 0] if each_row else R, drift_var)
+        body = self.body_start(v[:, 0], delta[:, 0])
+        can_start, updates = fix, fix
+        if held is not None:
+            can_start, updates = (held[..., 0] > 0.5) & (held[..., 2] > 0.5), (held > 0.5).any(-1)
+        started = torch.ones_like(v[:, 0], dtype=torch.bool) if can_start is None \
+            else can_start[:, 0]
+        reading = torch.full_like(v[:, 0], math.nan)  # the gyro's last reading (rad/s)
+        for k in range(1, meas.shape[1]):
+            if gyro is not None:
+                reading = torch.where(gyro[:, k - 1] == gyro[:, k - 1], gyro[:, k - 1], reading)
+            prior = self.predict(z, P, v[:, k - 1], delta[:, k - 1], body, Q, reading)
+            R_k = R[:, k] if each_row else R
+            z_upd, P_upd = self.correct(prior.z, prior.P, meas[:, k], R_k,
+                                        None if held is None else held[:, k])
+            body = prior.body
+            if can_start is not None and updates is not None:
+                first = can_start[:, k] & ~started
+                z, P = taken(first, updates[:, k] & started,
+                             self.start(meas[:, k], R_k, drift_var), (z_upd, P_upd),
+                             (prior.z, prior.P))
+                if held is not None:
+                    body = torch.where(first[:, None], self.body_start(v[:, k], delta[:, k]),
+                                       body)
+                started = started | first
+            else:
+                z, P = z_upd, P_upd
+        return z, started
 
     def forward(self, x: torch.Tensor, heading: torch.Tensor | None = None) -> torch.Tensor:
         """(B, N, 5|6|15) features -> (B, 3) state in the anchor's (current measurement's)
@@ -400,29 +364,14 @@ class WindowFilter(ProcessModel, nn.Module):
         features only (:meth:`_receiver_filter`)."""
         if self.receiver:
             return self._receiver_filter(x, heading)
-        n = x.shape[1]
         r = self.measurement_sigma(x) ** 2  # (B, 3)
         q = torch.exp(2 * (self.log_q0 + self.log_q_scale))  # (3,)
         eye = torch.eye(3, dtype=x.dtype, device=x.device)
         R = r.unsqueeze(-1) * eye  # diagonal matrices, written so that ONNX exports them
         Q = q * eye
+        drift_var: torch.Tensor | None = None
         if self.drift:
-            return self._drift_filter(x, R, Q)
-        z = x[:, 0, :3]
-        P = R
-        started = x[:, 0, -1] > 0.5  # read only with the fix channel
-        body = self.body_start(x[:, 0, 3], x[:, 0, 4])
-        for k in range(1, n):
-            z, f02, f12, body = self.predict_pose(z, x[:, k - 1, 3], x[:, k - 1, 4], body)
-            F = pose_jacobian(f02, f12)
-            P = F @ P @ F.transpose(1, 2) + Q
-            y = x[:, k, :3] - z
-            y = wrap_heading(y)
-            z_new, P_new = full_update(z, P, y, R, eye)
-            if self.fixes:  # no fix: the prediction; the first fix: start there, P = R
-                f = x[:, k, 5] > 0.5
-                z, P = taken(f & ~started, f, (x[:, k, :3], R), (z_new, P_new), (z, P))
-                started = started | f
-            else:
-                z, P = z_new, P_new
-        return wrap_heading(z)
+            Q, drift_var = self._drift_noise(R, Q)
+        z, _ = self._window(x[..., :3], R, Q, x[..., 3], x[..., 4],
+                            fix=x[..., 5] > 0.5 if self.fixes else None, drift_var=drift_var)
+        return wrap_heading(z[:, :3])

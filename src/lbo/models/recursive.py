@@ -46,7 +46,7 @@ from lbo.models.channels import Row, row_channels
 from lbo.models.filternet import WindowFilter
 from lbo.models.motion import bicycle_step
 from lbo.models.poses import wrap_heading
-from lbo.models.update import masked_update, mm, step_covariance
+from lbo.models.update import mm, step_covariance
 
 STATE_NAMES = ("z", "P", "body", "u_prev", "last", "dead_reckoning", "gap", "heading",
                "ring", "sums", "speeds", "speed_sum", "k", "started")
@@ -105,7 +105,7 @@ class RecursiveFilter(nn.Module):
         self.fixes = bool(net.fixes)
         self.keep_prior = False
         self.gyro = bool(net.gyro)
-        self.n = 5 if net.drift else 4 if self.gyro else 3
+        self.n = net.states
         self.inputs = ("V", "delta", "r_m") if self.gyro else ("V", "delta")
         # slots of the statistic's ring: N-2 second differences, or N-1 fix residuals
         self.slots = self.window - 1 if self.fixes else self.window - 2
@@ -338,56 +338,34 @@ class RecursiveFilter(nn.Module):
         plain = lean and bool(measured.all()) and not (got.sigma.any() or got.course.any())
         R = R_model if plain else self._step_cov(R_model, ch, got, measured)
 
-        # -- the filter: predict with u_{k-1}, update with m_k
-        pose, f02, f12, body_new = fo.predict_pose(z[:, :3], u_prev[:, 0], u_prev[:, 1], body)
-        eye = torch.eye(self.n, dtype=m.dtype, device=m.device)
-        F = eye.expand(m.shape[0], self.n, self.n).clone()
-        F[:, 0, 2], F[:, 1, 2] = f02, f12
-        Qn = self._process_cov(heading)
-        H = eye[:3]
-        if self.gyro:  # the heading turns by the gyro's reading less the bias, b a state
-            turn, F[:, 2, 3], seen = fo.gyro_turn(u_prev[:, 2], u_prev[:, 0], z[:, 3])
-            psi = torch.where(seen, z[:, 2] + turn, pose[:, 2])
-            Qn[:, 2, 2] = torch.where(seen, torch.exp(2 * fo.log_gyro_sigma) * one,
-                                      Qn[:, 2, 2])
-            Qn[:, 3, 3] = torch.exp(2 * fo.log_bias_walk) * one
-            z_pred = torch.stack([pose[:, 0], pose[:, 1], psi, z[:, 3]], -1)
-        elif self.n == 5:
-            phi = torch.exp(-torch.exp(-fo.log_drift_tau))
-            F[:, 3, 3], F[:, 4, 4] = phi * one, phi * one
-            var_b = self._drift_variance(R)
-            Qn = Qn + (var_b * (1 - phi ** 2))[:, None, None] * (eye[3:].T @ eye[3:])
-            H = H + torch.cat([eye[3:], torch.zeros_like(eye[:1])])
-            z_pred = torch.cat([pose, phi * z[:, 3:]], -1)
-        else:
-            z_pred = pose
-        P_pred = mm(mm(F, P), F.transpose(1, 2)) + Qn
-        y = wrap_heading(meas - mm(H, z_pred.unsqueeze(-1)).squeeze(-1))
-        z_upd, P_upd = masked_update(z_pred, P_pred, y, held.to(m.dtype), R, H)
+        # -- the filter: predict with u_{k-1}, update with m_k (lbo.models.filter_step)
+        Q = self._process_cov(heading)
+        drift_var = None
+        if self.n == 5:
+            drift_var = self._drift_variance(R)
+            drift = fo.eye[3:]  # (2, 5) selector
+            Q = Q + (drift_var * (1 - fo.drift_phi() ** 2))[:, None, None] * (drift.T @ drift)
+        prior = fo.predict(z, P, u_prev[:, 0], u_prev[:, 1], body, Q,
+                           u_prev[:, 2] if self.gyro else None)
+        z_upd, P_upd = fo.correct(prior.z, prior.P, meas, R, held.to(m.dtype))
 
         # -- where the filter goes on, where it has no fix, where it starts (its first fix)
         if self.keep_prior:  # the smoother's: the prior and cov(x_{k-1|k-1}, x_{k|k-1}), the
             # latter none where the filter starts afresh
-            self.last_prior = (z_pred, P_pred, torch.where(
-                going[:, None, None], mm(P, F.transpose(1, 2)), torch.zeros_like(P)))
+            self.last_prior = (prior.z, prior.P, torch.where(
+                going[:, None, None], mm(P, prior.F.transpose(1, 2)), torch.zeros_like(P)))
         update = held.any(1) & going
-        z = torch.where(update[:, None], z_upd, z_pred)
-        P = torch.where(update[:, None, None], P_upd, P_pred)
+        z = torch.where(update[:, None], z_upd, prior.z)
+        P = torch.where(update[:, None, None], P_upd, prior.P)
+        body = prior.body
         if not lean or bool(first.any()):  # lean: the start where a filter starts
             # the noise model's R is alpha = 1's at the start (its statistic holds nothing
             # yet); what the receiver reports is as sure as it says
-            R_start = self._step_cov(START_SCALE * R_model, ch, got, measured)
-            if self.n == 5:
-                start_z = torch.cat([meas, torch.zeros_like(meas[:, :2])], -1)
-                start_P = fo._drift_start(R_start, var_b, eye)
-            elif self.gyro:  # no bias known: its prior
-                start_z, start_P = fo.start_at(meas, R_start, torch.exp(2 * fo.log_bias_sigma)
-                                                * one[:, None, None])
-            else:
-                start_z, start_P = meas, R_start
+            start_z, start_P = fo.start(meas, self._step_cov(START_SCALE * R_model, ch, got,
+                                                             measured), drift_var)
             z = torch.where(first[:, None], start_z, z)
             P = torch.where(first[:, None, None], start_P, P)
-            body_new = torch.where(first[:, None], fo.body_start(u[:, 0], u[:, 1]), body_new)
+            body = torch.where(first[:, None], fo.body_start(u[:, 0], u[:, 1]), body)
             started = torch.where(first, one, started)
         out, cov = wrap_heading(z[:, :3]), P[:, :3, :3]
         if not lean or not bool((started > 0.5).all()):  # lean: NaN before a start
@@ -395,7 +373,7 @@ class RecursiveFilter(nn.Module):
             cov = torch.where(started[:, None, None] > 0.5, cov, torch.full_like(cov, math.nan))
         else:  # never a view of the state: a caller may write into it
             cov = cov.clone()
-        return (out, cov, z, P, body_new, u, last, dr, gap, heading, ring, sums, speeds,
+        return (out, cov, z, P, body, u, last, dr, gap, heading, ring, sums, speeds,
                 speed_sum, k + 1, started)
 
     def run(self, m: torch.Tensor, u: torch.Tensor, smooth: bool = False,
