@@ -8,7 +8,7 @@ import pytest
 from lbo import LboError, Measurements, Observer
 from lbo.filters import measure
 from lbo.sim import gyro_drive
-from lbo.sim.columns import MEAS, RECEIVER
+from lbo.sim.columns import MEAS, RECEIVER, WINDOW
 
 
 @pytest.fixture(scope="module")
@@ -131,3 +131,20 @@ def test_the_torch_twin_names_each_column_of_a_row_and_of_a_receiver_window():
         assert float(getattr(f, field)) == at[column], field
     assert f.pose.tolist() == [at["dx"], at["dy"], at["dpsi"]] and f.fix.tolist() == [0.0, 1.0]
     assert f.sigma.tolist() == [at["sx"], at["sy"], at["spsi"]]
+
+
+def test_the_torch_twin_names_each_column_of_a_paper_window():
+    """:func:`lbo.models.channels.window_channels`: a paper window's columns by name (a window
+    whose every column holds its own index), ``fix`` the sixth where there is one and 1 at
+    every row of a window of five."""
+    import torch
+
+    from lbo.models.channels import window_channels
+
+    at = {n: float(i) for i, n in enumerate((*WINDOW, "fix"))}
+    w = window_channels(torch.arange(6, dtype=torch.float64))
+    assert w.pose.tolist() == [at["x_m"], at["y_m"], at["psi_m"]]
+    assert w.inputs.tolist() == [at["V"], at["delta"]]
+    assert (float(w.V), float(w.delta), float(w.fix)) == (at["V"], at["delta"], at["fix"])
+    five = window_channels(torch.arange(10, dtype=torch.float64).view(2, 5))
+    assert five.fix.tolist() == [1.0, 1.0] and five.V.tolist() == [3.0, 8.0]

@@ -1,12 +1,14 @@
-"""The torch twin of :class:`lbo.Measurements`: a filter's row and a receiver window's
-features read by name, in one place each.
+"""The torch twin of :class:`lbo.Measurements`: a filter's row, a paper window's and a
+receiver window's features read by name, in one place each.
 
 The learned filters take arrays, as their exported graphs do: a filter's row (..., 8) of
 :data:`lbo.filters.measure.CHANNELS` (the fix, its heading, the reported accuracies, and the
-course over ground the GNSS velocity gives) and a receiver window's features (..., 15) of
-:data:`lbo.models.receiver_window.FEATURES`. :func:`row_channels` and :func:`feature_channels`
-give their columns as named views, with the field names of :class:`lbo.Measurements` where
-the two hold the same thing, so that no filter reads a channel by its position. Views only:
+course over ground the GNSS velocity gives), a paper window's features (..., 5|6) of
+:data:`lbo.sim.columns.WINDOW` (and ``fix``) and a receiver window's features (..., 15) of
+:data:`lbo.models.receiver_window.FEATURES`. :func:`row_channels`, :func:`window_channels`
+and :func:`feature_channels` give their columns as named views, with the field names of
+:class:`lbo.Measurements` where the two hold the same thing, so that no filter reads a
+channel by its position. Views only (a window of five's ``fix``, all ones, is made):
 the same numbers, and the same traced, scripted and exported graphs, as the indexing they
 replace (plain NamedTuples and slices, which TorchScript compiles).
 """
@@ -19,6 +21,7 @@ import torch
 
 from lbo.filters.measure import CHANNELS
 from lbo.models.receiver_window import FEATURES
+from lbo.sim.columns import WINDOW
 
 
 class Row(NamedTuple):
@@ -46,6 +49,33 @@ def row_channels(row: torch.Tensor) -> Row:
     # the places as literals: TorchScript compiles no global ints (checked above)
     return Row(row[..., 0:3], row[..., 0:2], row[..., 2], row[..., 3:6], row[..., 6],
                row[..., 7])
+
+
+class Window(NamedTuple):
+    """A paper window's features (..., N, 5|6) by name: each field (..., N) or (..., N, k).
+
+    pose : (..., N, 3) ``[x_m, y_m, psi_m]``, in the frame of the features.
+    inputs : (..., N, 2) ``[V, delta]``; V, delta : each of them.
+    fix : 1 where the row holds a fix (the sixth channel, where fixes may be missing; every
+        row of a window of five).
+    """
+
+    pose: torch.Tensor
+    inputs: torch.Tensor
+    V: torch.Tensor
+    delta: torch.Tensor
+    fix: torch.Tensor
+
+
+assert WINDOW == ("x_m", "y_m", "psi_m", "V", "delta"), \
+    "window_channels reads these columns at these places"
+
+
+def window_channels(x: torch.Tensor) -> Window:
+    """The columns of a paper window's features (..., N, 5|6) (:data:`lbo.sim.columns.WINDOW`,
+    then ``fix``) by name."""
+    fix = x[..., 5] if x.shape[-1] > 5 else torch.ones_like(x[..., 4])
+    return Window(x[..., 0:3], x[..., 3:5], x[..., 3], x[..., 4], fix)
 
 
 class Features(NamedTuple):

@@ -40,7 +40,7 @@ from torch import nn
 from lbo.core.checks import integer, number, require
 from lbo.core.errors import LboError
 from lbo.filters import gyro as gyro_model
-from lbo.models.channels import feature_channels
+from lbo.models.channels import feature_channels, window_channels
 from lbo.models.filter_step import FilterStep
 from lbo.models.frame import check_sigmas, frame_model
 from lbo.models.motion import ProcessModel, bicycle_step
@@ -211,23 +211,24 @@ class WindowFilter(ProcessModel, FilterStep, nn.Module):
         """Mean square residual of each fix against dead reckoning from the previous fix,
         halved (two fixes' noise), (B, 3), the log of the mean gap between fixes (B, 1), and
         whether the window had fewer than two fixes (B,): it gets the alpha=1 variance."""
-        fix = x[:, :, 5] > 0.5
-        dr = x[:, 0, :3]
+        w = window_channels(x)
+        fix = w.fix > 0.5
+        dr = w.pose[:, 0]
         seen = fix[:, 0]
-        gap = torch.zeros_like(x[:, 0, 0])
-        total = torch.zeros_like(x[:, 0, :3])
-        count = torch.zeros_like(x[:, 0, 0])
+        gap = torch.zeros_like(w.V[:, 0])
+        total = torch.zeros_like(dr)
+        count = torch.zeros_like(gap)
         gaps = torch.zeros_like(count)
         for k in range(1, x.shape[1]):
-            dr = bicycle_step(dr, x[:, k - 1, 3], x[:, k - 1, 4], self.dt, self.wheelbase)
+            dr = bicycle_step(dr, w.V[:, k - 1], w.delta[:, k - 1], self.dt, self.wheelbase)
             gap = gap + 1
             f = fix[:, k]
-            r = x[:, k, :3] - dr
+            r = w.pose[:, k] - dr
             r = wrap_heading(r)
             use = (f & seen).to(x.dtype)
             total = total + use[:, None] * r ** 2
             count, gaps = count + use, gaps + use * gap
-            dr = torch.where(f[:, None], x[:, k, :3], dr)
+            dr = torch.where(f[:, None], w.pose[:, k], dr)
             gap = torch.where(f, torch.zeros_like(gap), gap)
             seen = seen | f
         some = count > 0
@@ -238,12 +239,13 @@ class WindowFilter(ProcessModel, FilterStep, nn.Module):
 
     def measurement_sigma(self, x: torch.Tensor) -> torch.Tensor:
         """The noise model: (B, N, 5|6) features -> (B, 3) measurement sigmas."""
-        speed = torch.log1p(x[:, :, 3].abs().mean(1, keepdim=True))
+        w = window_channels(x)
+        speed = torch.log1p(w.V.abs().mean(1, keepdim=True))
         empty = torch.zeros_like(speed[:, 0], dtype=torch.bool)  # differences: never empty
         if self.fixes:
             ms, log_gap, empty = self._fix_residuals(x)
         else:
-            m = x[:, :, :3]
+            m = w.pose
             d2 = m[:, 2:] - 2 * m[:, 1:-1] + m[:, :-2]
             d2 = wrap_heading(d2)
             # second differences of i.i.d. noise of variance s^2 have variance 6 s^2
@@ -372,6 +374,7 @@ class WindowFilter(ProcessModel, FilterStep, nn.Module):
         drift_var: torch.Tensor | None = None
         if self.drift:
             Q, drift_var = self._drift_noise(R, Q)
-        z, _ = self._window(x[..., :3], R, Q, x[..., 3], x[..., 4],
-                            fix=x[..., 5] > 0.5 if self.fixes else None, drift_var=drift_var)
+        w = window_channels(x)
+        z, _ = self._window(w.pose, R, Q, w.V, w.delta,
+                            fix=w.fix > 0.5 if self.fixes else None, drift_var=drift_var)
         return wrap_heading(z[:, :3])

@@ -67,6 +67,7 @@ from torch import nn
 from torch.nn import functional as F
 
 from lbo.core.checks import integer, number
+from lbo.models.channels import window_channels
 from lbo.models.frame import check_sigmas, frame_model
 from lbo.models.motion import ProcessModel, bicycle_step
 from lbo.models.poses import wrap_heading
@@ -203,13 +204,12 @@ class _GainFilter(ProcessModel, nn.Module):
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         """(B, N, 5|6) features -> (B, 3) pose in the frame of the window's latest fix."""
-        b, steps = x.shape[:2]
-        y = x[:, :, :self.n_measured]
-        fix = x[:, :, 5] > 0.5 if self.fixes else torch.ones(b, steps, dtype=torch.bool,
-                                                               device=x.device)
-        state = self.begin(y[:, 0], fix[:, 0], x[:, 0, 3:5])
-        for k in range(1, steps):
-            state, _ = self.advance(state, x[:, k - 1, 3:5], y[:, k], fix[:, k])
+        w = window_channels(x)
+        y, u = w.pose, w.inputs
+        fix = w.fix > 0.5  # every row of a window without the fix channel
+        state = self.begin(y[:, 0], fix[:, 0], u[:, 0])
+        for k in range(1, x.shape[1]):
+            state, _ = self.advance(state, u[:, k - 1], y[:, k], fix[:, k])
         return wrap_heading(state[0][:, :3])
 
 
