@@ -91,7 +91,7 @@ def test_fix_spacing_is_the_mean_over_the_last_window():
 
 
 def test_each_field_is_flagged_beyond_its_slack_only():
-    env = Envelope((1.0, 25.0), (-0.5, 0.5), (1.0, 1.0), (1.0, 1.0))
+    env = Envelope(speed=(1.0, 25.0), steering=(-0.5, 0.5), alpha=(1.0, 1.0), fix_period=(1.0, 1.0))
     kw = {"dt": 0.02, "wheelbase": 2.7, "sigma": float(SIGMA[0]), "window": 20}
     inside = env.check(*arrays(drive(20.0)), **kw)
     assert not inside.outside.any()
@@ -108,7 +108,7 @@ def test_each_field_is_flagged_beyond_its_slack_only():
 
 
 def test_unknown_alpha_is_not_checked():
-    env = Envelope((1.0, 25.0), (-0.5, 0.5), None, (1.0, 1.0))
+    env = Envelope(speed=(1.0, 25.0), steering=(-0.5, 0.5), alpha=None, fix_period=(1.0, 1.0))
     check = env.check(*arrays(drive(15.0, alpha=6.0)), dt=0.02, wheelbase=2.7, sigma=1.0,
                       window=20)
     assert not check.outside.any()
@@ -126,7 +126,7 @@ def test_a_damaged_stored_envelope_is_one_line(stored, message):
 
 
 def test_streaming_flags_equal_the_batch_flags():
-    env = Envelope((1.0, 25.0), (-0.3, 0.3), (0.5, 2.0), (1.0, 2.0))
+    env = Envelope(speed=(1.0, 25.0), steering=(-0.3, 0.3), alpha=(0.5, 2.0), fix_period=(1.0, 2.0))
     rng = np.random.default_rng(3)
     df = drive(20.0, alpha=1.0, steps=900)
     m, u = arrays(df)

@@ -36,7 +36,7 @@ def drive():
     u = np.broadcast_to(u, (g, t, 2)).copy()
     z = simulate(np.zeros((g, 3)), u, DT, vehicle.wheelbase, np.zeros(3),
                  np.random.default_rng(0))
-    spec = ReceiverSpec(gyro=Channel(None, 0.0, 0.005), gyro_bias=0.0, gyro_walk=1e-4)
+    spec = ReceiverSpec(gyro=Channel(white=0.005), gyro_bias=0.0, gyro_walk=1e-4)
     out = sense(z, u, DT, spec, 1.0, np.random.default_rng(1))
     out["r_m"] = out["r_m"] + 0.03
     out["gyro_bias"] = out["gyro_bias"] + 0.03

@@ -6,6 +6,7 @@ import re
 import subprocess
 import sys
 from pathlib import Path
+from typing import cast
 
 import lbo
 
@@ -165,3 +166,43 @@ def test_no_module_is_over_the_line_limit():
     long = {str(f.relative_to(SRC)): n for f in SRC.rglob("*.py")
             if (n := len(f.read_text().splitlines())) > MODULE_LINES}
     assert not long, f"modules over {MODULE_LINES} lines: {long}"
+
+
+POSITIONAL_FIELDS = 3
+"""The most fields a dataclass of src/lbo takes by position: the settings after them are
+keyword-only (``kw_only=True``, or after a ``_: KW_ONLY`` marker)."""
+
+
+def positional_fields(cls: ast.ClassDef) -> int | None:
+    """How many fields of a dataclass's definition are taken by position (None: not a
+    dataclass)."""
+    decorators = [ast.unparse(d) for d in cls.decorator_list]
+    if not any("dataclass" in d for d in decorators):
+        return None
+    if any("kw_only=True" in d for d in decorators):
+        return 0
+    fields = 0
+    for node in cls.body:
+        if isinstance(node, ast.AnnAssign) and isinstance(node.target, ast.Name):
+            if ast.unparse(node.annotation) in ("KW_ONLY", "dataclasses.KW_ONLY"):
+                return fields
+            if "ClassVar" not in ast.unparse(node.annotation):
+                fields += 1
+    return fields
+
+
+def test_no_dataclass_takes_more_than_three_fields_by_position():
+    wide = {f"{f.relative_to(SRC)}:{node.name}": n for f in SRC.rglob("*.py")
+            for node in ast.walk(ast.parse(f.read_text())) if isinstance(node, ast.ClassDef)
+            and (n := positional_fields(node)) is not None and n > POSITIONAL_FIELDS}
+    assert not wide, f"dataclasses with more than {POSITIONAL_FIELDS} positional fields: {wide}"
+
+
+def test_the_positional_field_count_reads_both_forms_of_keyword_only():
+    def count(text: str) -> int | None:
+        return positional_fields(cast(ast.ClassDef, ast.parse(text).body[0]))
+
+    assert count("@dataclass(frozen=True)\nclass A:\n a: int\n b: int\n c: int\n d: int") == 4
+    assert count("@dataclass(frozen=True, kw_only=True)\nclass A:\n a: int\n b: int") == 0
+    assert count("@dataclass\nclass A:\n a: int\n _: KW_ONLY\n b: int\n c: int\n d: int") == 1
+    assert count("class A:\n a: int") is None

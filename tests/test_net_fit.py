@@ -139,8 +139,8 @@ def test_what_cannot_be_trained_on_a_log_is_one_line(logs):
 
 
 def test_an_envelope_union_covers_both_and_keeps_a_known_alpha():
-    a = Envelope((1.0, 20.0), (-0.2, 0.2), (0.0, 6.5), (5.0, 50.0))
-    b = Envelope((-2.0, 15.0), (-0.5, 0.1), None, (50.0, 50.0))
+    a = Envelope(speed=(1.0, 20.0), steering=(-0.2, 0.2), alpha=(0.0, 6.5), fix_period=(5.0, 50.0))
+    b = Envelope(speed=(-2.0, 15.0), steering=(-0.5, 0.1), alpha=None, fix_period=(50.0, 50.0))
     u = a.union(b)
     assert (u.speed, u.steering, u.alpha, u.fix_period) == (
         (-2.0, 20.0), (-0.5, 0.2), (0.0, 6.5), (5.0, 50.0))

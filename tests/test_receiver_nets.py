@@ -181,11 +181,11 @@ def test_the_drawn_receiver_holds_its_channels_where_its_specification_says():
 
 
 def test_a_still_receiver_gives_no_course_and_an_exact_one_gives_the_truth():
-    exact = ReceiverSpec(position=Channel(None, 0.0, 0.0, 0.0), velocity=Channel(None, 0.0, 0.0))
+    exact = ReceiverSpec(position=Channel(), velocity=Channel())  # every step, no error
     z, fix, win = _drawn(exact, period=1)
     torch.testing.assert_close(win[..., :2], z[..., :2])
     torch.testing.assert_close(win[..., 6], torch.zeros_like(win[..., 6]))
-    late = ReceiverSpec(position=Channel(None, 0.05, 0.0, 0.0), velocity=Channel(None, 0.0, 0.0))
+    late = ReceiverSpec(position=Channel(latency=0.05), velocity=Channel())
     z, fix, win = _drawn(late, period=1)  # 50 ms late at 10 m/s: 0.5 m behind
     np.testing.assert_allclose((z[..., 0] - win[..., 0])[:, 3:], 0.5, atol=1e-9)
     spec = ReceiverSpec()

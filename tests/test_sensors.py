@@ -35,8 +35,8 @@ def _drive(g: int, t: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
 
 def _quiet(**changes) -> ReceiverSpec:
     """A spec without any error, but for ``changes``."""
-    spec = ReceiverSpec(position=Channel(1.0, 0.0), velocity=Channel(1.0, 0.0),
-                        gyro=Channel(None, 0.0), gyro_bias=0.0, gyro_walk=0.0,
+    spec = ReceiverSpec(position=Channel(rate=1.0), velocity=Channel(rate=1.0),
+                        gyro=Channel(), gyro_bias=0.0, gyro_walk=0.0,
                         reported_spread=0.0)
     return dataclasses.replace(spec, **changes)
 
@@ -55,7 +55,8 @@ def test_the_gyro_bias_random_walk_has_the_variance_it_is_told():
 
 def test_a_late_channel_holds_the_truth_of_latency_seconds_before():
     z, u = _drive(2, 600)
-    spec = _quiet(position=Channel(10.0, 0.13), velocity=Channel(10.0, 0.13))
+    spec = _quiet(position=Channel(rate=10.0, latency=0.13),
+                  velocity=Channel(rate=10.0, latency=0.13))
     out = sense(z, u, DT, spec, 1.0, np.random.default_rng(0))
     fix = np.isfinite(out["x_m"][0])
     assert np.array_equal(np.flatnonzero(fix), np.arange(0, 600, 5))  # 10 Hz at 50 Hz
@@ -76,7 +77,7 @@ def test_a_late_channel_holds_the_truth_of_latency_seconds_before():
 def test_the_drift_has_its_variance_and_correlation_time():
     z, u = _drive(200, 3000)
     tau, sigma = 4.0, 0.8
-    spec = _quiet(position=Channel(None, 0.0, 0.0, sigma, tau))
+    spec = _quiet(position=Channel(drift=sigma, tau=tau))
     out = sense(z, u, DT, spec, 1.0, np.random.default_rng(1))
     e = out["x_m"] - z[..., 0]
     lag = int(round(tau / DT))
@@ -87,7 +88,7 @@ def test_the_drift_has_its_variance_and_correlation_time():
 
 def test_alpha_scales_the_receiver_and_the_reported_accuracy_tracks_it():
     z, u = _drive(50, 1000)
-    spec = ReceiverSpec(position=Channel(1.0, 0.0, 0.3, 0.5, 5.0))
+    spec = ReceiverSpec(position=Channel(rate=1.0, latency=0.0, white=0.3, drift=0.5, tau=5.0))
     for alpha in (1.0, 3.0):
         out = sense(z, u, DT, spec, alpha, np.random.default_rng(2))
         fix = np.isfinite(out["x_m"])
@@ -170,7 +171,7 @@ def test_the_velocity_leans_by_the_rear_slip_it_is_given():
     z, u = _drive(1, 200)
     slip = 0.03 * np.sin(np.arange(200) / 20.0)[None]
     for given, lean in ((slip, slip), (None, np.zeros_like(slip))):
-        out = sense(z, u, DT, _quiet(velocity=Channel(None, 0.0)), 1.0,
+        out = sense(z, u, DT, _quiet(velocity=Channel()), 1.0,
                     np.random.default_rng(0), slip=given)
         course = np.arctan2(out["vn_m"], out["ve_m"])
         assert np.abs(wrap_angle(course - z[..., 2] - lean)).max() < 1e-12

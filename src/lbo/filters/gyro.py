@@ -99,7 +99,7 @@ class GyroKeywords(TypedDict):
     gyro_scale: float
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class GyroNoise:
     """Every noise the gyro EKF assumes, as a set that :mod:`lbo.learn.gyro_fit` learns from a
     log with truth (all > 0).

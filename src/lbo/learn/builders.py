@@ -22,7 +22,7 @@ from lbo.core.errors import LboError
 from lbo.learn.draws import SOURCES, AlphaDraw, OutageDraw, ReceiverDraw, fix_periods
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class Built:
     """A training run's objects, built once from its config before any data is made or any
     run opens (building them is also how their settings are checked)."""
@@ -49,7 +49,8 @@ def build(cfg: DictConfig) -> Built:
     if net.model not in plugins.OWN["model"]:  # lbo's own keep it (tests/test_models.py)
         net.check_output(int(cfg.batch_size))  # on one batch, before any run or folder
     init = initial_weights(cfg, net, say=False) if cfg.get("init_from") else None
-    return Built(net, periods, noise, init, outage_draw(cfg, periods))
+    return Built(net=net, fix_periods=periods, noise=noise, init=init,
+                 outages=outage_draw(cfg, periods))
 
 
 def outage_draw(cfg: DictConfig, periods: tuple[int, ...]) -> OutageDraw | None:

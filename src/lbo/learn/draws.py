@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import KW_ONLY, dataclass
 from typing import Any, TypedDict
 
 import numpy as np
@@ -43,6 +43,7 @@ class AlphaDraw:
     """
 
     distribution: str = "fixed"
+    _: KW_ONLY
     alpha: float = 1.0
     low: float = 0.0
     high: float = 6.5
@@ -296,6 +297,7 @@ class ReceiverDraw:
     """
 
     spec: Any
+    _: KW_ONLY
     heading_share: float = 0.25
     gyro_share: float = 0.75
     heading_sigma: float = 0.01

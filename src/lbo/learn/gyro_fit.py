@@ -57,7 +57,7 @@ __all__ = ["METHODS", "OBJECTIVES", "GyroFit", "Settings", "adapt", "check_metho
            "check_objective", "estimate", "fit", "fit_and_write", "fix_cov", "segments"]
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class GyroFit:
     """What :func:`fit` learned.
 
@@ -80,7 +80,7 @@ DRIFT_START = FixDrift(sigma=0.3, tau=30.0)
 receiver's multipath and atmosphere (the fit learns both numbers)."""
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class Settings:
     """How a command fits the gyro EKF's noise (its ``learn:`` group), checked.
 

@@ -48,7 +48,7 @@ UNITS = {"speed_factor": 0.01, "steering_offset": 0.005, "steering_factor": 0.01
 each term by one unit, so that each starts as far from its start as the others."""
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class Fitted:
     """:func:`fit`'s result: the terms, the mean square position innovation (m^2) at them and
     at the last search's start (over the fixes it counts), how many EKF runs the searches
@@ -174,4 +174,5 @@ def fit(rows: np.ndarray | Sequence[np.ndarray], u: np.ndarray | Sequence[np.nda
                        options={"maxfev": max_runs, "xatol": 0.01, "fatol": 1e-6 * first})
         p, runs = res.x, runs + int(res.nfev) + 1
     best = terms_of(p) or start
-    return Fitted(best, float(res.fun), first, runs, time.perf_counter() - began)
+    return Fitted(terms=best, loss=float(res.fun), start_loss=first, runs=runs,
+                  seconds=time.perf_counter() - began)

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import dataclasses
 import re
-from dataclasses import dataclass
+from dataclasses import KW_ONLY, dataclass
 from pathlib import Path
 from typing import cast
 
@@ -39,6 +39,7 @@ class Job:
     key: str
     kind: str
     overrides: tuple[str, ...]
+    _: KW_ONLY
     data: str | None = None
 
 
@@ -94,17 +95,17 @@ def train_jobs(cfg: DictConfig, out: Path) -> list[Job]:
     for i, data in enumerate(cfg.dynamic_study if dynamic else []):
         jobs.append(Job(data, DYNAMIC, ("experiment=dynamic", f"data={data}",
                                         *cfg.dynamic_overrides, run_name(data)),
-                        data))
+                        data=data))
         for model in (cfg.dynamic_blackbox if i == 0 else []):
             jobs.append(Job(f"{data}-{model}", DYNAMIC,
                             ("experiment=dynamic_blackbox", f"model={model}", f"data={data}",
-                             *cfg.dynamic_overrides, run_name(data)), data))
+                             *cfg.dynamic_overrides, run_name(data)), data=data))
         # the learned peers around the single-track body, which has no drift states
         for model in (cfg.dynamic_peers if i == 0 else []):
             jobs.append(Job(f"{data}-{model}", DYNAMIC,
                             ("experiment=dynamic", f"model={model}", "~model.drift",
                              f"data={data}", *cfg.dynamic_overrides,
-                             run_name(data)), data))
+                             run_name(data)), data=data))
     # each run's progress bars hidden: the stage says each run's result as it ends; each run
     # logs to the store the report reads (the command's tracking_uri)
     return [dataclasses.replace(j, overrides=tuple(respell(

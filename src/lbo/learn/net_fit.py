@@ -43,7 +43,7 @@ from lbo.sim.measurements import Measurements
 __all__ = ["LogWindows", "NetFit", "fit", "fit_and_write", "log_windows"]
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class LogWindows:
     """The windows of logs with truth, as views.
 
@@ -85,9 +85,9 @@ def log_windows(logs: pd.DataFrame | Sequence[pd.DataFrame], window: int,
         end = np.arange(window - 1, len(log))
         ends.append(offset + end[fixes[end + 1] - fixes[end + 1 - window] > 0])
         offset += len(log)
-    out = LogWindows(torch.from_numpy(np.concatenate(series)),
-                     torch.from_numpy(np.concatenate(truth)),
-                     torch.from_numpy(np.concatenate(ends)), int(window))
+    out = LogWindows(series=torch.from_numpy(np.concatenate(series)),
+                     truth=torch.from_numpy(np.concatenate(truth)),
+                     ends=torch.from_numpy(np.concatenate(ends)), window=int(window))
     if not len(out):
         raise LboError(f"training on a log: no window of {window} rows holds a position fix")
     return out

@@ -58,7 +58,7 @@ def run_name(model: DictConfig) -> str:
 load = slip_filter.load_any
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class Made:
     """A run's module, its training and validation data (tensors), the prior, and what the
     training learns from in words."""
@@ -108,7 +108,8 @@ def make(cfg: DictConfig, optimizer: Any, start: Observer | None) -> Made:
         what = (f"{len(sets.train[0])} sequences of {model.sequence} rows, each filtered "
                 f"afresh, its first {model.warmup} rows unscored")
     train, val = ((torch.from_numpy(a), torch.from_numpy(b)) for a, b in (sets.train, sets.val))
-    return Made(module, train, val, sets.prior, what, int(model.get("window", 0)))
+    return Made(module=module, train=train, val=val, prior=sets.prior, what=what,
+                window=int(model.get("window", 0)))
 
 
 def shape(observer: Observer) -> tuple[Any, ...]:

@@ -78,7 +78,7 @@ _STREAMS = {"pose_t": ("position", "velocity", "orientation"), "speed_t": ("spee
             "steering_t": ("steering",), "gyro_t": ("gyro",), "fix_t": ("fix",)}
 
 
-@dataclass(frozen=True, eq=False)
+@dataclass(frozen=True, eq=False, kw_only=True)
 class Segment:
     """A comma2k19 segment's arrays as logged (read-only), times in boot s.
 
@@ -117,7 +117,7 @@ class Steering:
                            f"ratio={self.ratio}, offset_deg={self.offset_deg}")
 
 
-@dataclass(frozen=True, eq=False)
+@dataclass(frozen=True, eq=False, kw_only=True)
 class Converted:
     """:func:`to_log`'s result.
 

@@ -105,7 +105,7 @@ def to_local(lat: np.ndarray, lon: np.ndarray, origin: Origin) -> tuple[np.ndarr
     return np.asarray(e), np.asarray(n)
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class LogFormat:
     """How a log differs from lbo's form (see the module's docstring)."""
 
@@ -151,8 +151,8 @@ class LogFormat:
             return {str(k): v for k, v in value.items() if v is not None}
 
         get = (lambda k, d: cfg.get(k, d)) if cfg is not None else (lambda k, d: d)
-        return cls(plain("columns"), plain("units"), get("steering_ratio", 1.0),
-                   get("heading", "enu"))
+        return cls(columns=plain("columns"), units=plain("units"),
+                   steering_ratio=get("steering_ratio", 1.0), heading=get("heading", "enu"))
 
     @property
     def is_plain(self) -> bool:

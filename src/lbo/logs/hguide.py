@@ -87,7 +87,7 @@ _GNSS = {"lat": "GNSSPosLat (rad)", "lon": "GNSSPosLon (rad)", "sx": "STD GNSSPo
          "sve": "STD GNSSVelEast (m/s)", "svn": "STD GNSSVelNorth (m/s)"}
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class Alignment:
     """The INS's boresight and the fixes' lever arm and latency (:func:`fit_alignment`).
 

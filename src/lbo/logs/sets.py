@@ -49,7 +49,7 @@ LOGS_VERSION = 1
 FORMATS = (".csv", ".parquet")
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class LogSpec:
     """A checked ``data=logs`` config: the files of each set and how they are read."""
 
@@ -172,8 +172,9 @@ def spec_from_cfg(cfg: DictConfig, need: tuple[str, ...] = SETS) -> LogSpec:
     if not fmt.is_plain:  # (logs in lbo's form keep the folders they were cached in)
         settings["format"] = [dict(fmt.columns), dict(fmt.units), fmt.steering_ratio,
                               fmt.heading]
-    return LogSpec(str(d.name), Path(d.root), files, bool(d.resample), max_gap, run_in,
-                   vehicle, noise, _digest(settings, files), fmt)
+    return LogSpec(name=str(d.name), root=Path(d.root), files=files, resample=bool(d.resample),
+                   max_gap=max_gap, run_in=run_in, vehicle=vehicle, noise=noise,
+                   digest=_digest(settings, files), log_format=fmt)
 
 
 # --------------------------------------------------------------------------- reading

@@ -92,7 +92,7 @@ def check_mode(mode: Any) -> str:
     return mode
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class Envelope:
     """The range of inputs a learned observer was trained on.
 
@@ -130,8 +130,9 @@ class Envelope:
         u = u[np.isfinite(u).all(1)]
         if not len(u):
             raise LboError("envelope: no finite training input to take the envelope of")
-        return cls((float(u[:, 0].min()), float(u[:, 0].max())),
-                   (float(u[:, 1].min()), float(u[:, 1].max())), alpha, fix_period)
+        return cls(speed=(float(u[:, 0].min()), float(u[:, 0].max())),
+                   steering=(float(u[:, 1].min()), float(u[:, 1].max())), alpha=alpha,
+                   fix_period=fix_period)
 
     def union(self, other: Envelope) -> Envelope:
         """The envelope of both training sets; alpha where either knows it (a real log's
@@ -140,8 +141,9 @@ class Envelope:
             return None if a is None or b is None else (min(a[0], b[0]), max(a[1], b[1]))
 
         alpha = both(self.alpha, other.alpha) or self.alpha or other.alpha
-        return Envelope(both(self.speed, other.speed), both(self.steering, other.steering),
-                        alpha, both(self.fix_period, other.fix_period))
+        return Envelope(speed=both(self.speed, other.speed),
+                        steering=both(self.steering, other.steering), alpha=alpha,
+                        fix_period=both(self.fix_period, other.fix_period))
 
     def to_dict(self) -> dict[str, Any]:
         """Plain lists, as a checkpoint (``weights_only``) and a JSON sidecar store them."""

@@ -6,7 +6,7 @@ after the paper's tables.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import KW_ONLY, dataclass
 from pathlib import Path
 from typing import Any, cast
 
@@ -179,6 +179,7 @@ class Dynamic:
 
     key: str
     table: pd.DataFrame
+    _: KW_ONLY
     headline: tuple[str, ...] = ()
     lateral: pd.DataFrame | None = None
 
@@ -214,6 +215,7 @@ class Outages:
     alpha."""
 
     table: pd.DataFrame
+    _: KW_ONLY
     length_s: float
     every_s: float
     headline: tuple[str, ...] = ()
@@ -238,7 +240,7 @@ class Outages:
         print(f"    through GNSS outages of {outages.length_s:g} s every {outages.every_s:g} "
               f"s: {len(spans)} in the test grid", flush=True)
         return cls(outage.grid_table(arr, spans, vehicle, noise, classical_names, nets),
-                   outages.length_s, outages.every_s)
+                   length_s=outages.length_s, every_s=outages.every_s)
 
     def markdown(self, table: pd.DataFrame) -> list[str]:
         t = self.table[self.table["alpha"].isin([1.0, 3.0, 6.0])]

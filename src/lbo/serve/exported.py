@@ -45,7 +45,7 @@ _VERSIONS = ("torch", "onnxscript", "onnxruntime")
 """The packages whose versions make or read the graphs."""
 
 
-@dataclasses.dataclass(frozen=True)
+@dataclasses.dataclass(frozen=True, kw_only=True)
 class ExportedFilter:
     """The settings of a :class:`~lbo.models.filternet.WindowFilter` that an observer reads."""
 
@@ -55,7 +55,7 @@ class ExportedFilter:
     single_track: bool = False
 
 
-@dataclasses.dataclass(frozen=True)
+@dataclasses.dataclass(frozen=True, kw_only=True)
 class ExportedNet:
     """What an :class:`~lbo.serve.observer.Observer` reads of a window filter's
     :class:`~lbo.models.net.WindowNet`, for its recursive form kept as ONNX graphs in

@@ -38,7 +38,7 @@ MANIFEST = schema.MANIFEST
 FILES = (*(f"{n}.parquet" for n in SETS), MANIFEST, *FIGURES)
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class Spec:
     """A checked data config: everything the generators need, nothing from Hydra."""
 
@@ -150,8 +150,8 @@ def spec_from_cfg(cfg: DictConfig) -> Spec:
     if not truth.default:  # the paper's sets keep the folder names they always had
         hashed["truth"] = truth.to_dict()
     digest = hashlib.sha256(json.dumps(hashed, sort_keys=True).encode()).hexdigest()[:12]
-    return Spec(str(d.name), Path(d.root), int(d.seed), vehicle, noise, tr, va, te, digest,
-                truth)
+    return Spec(name=str(d.name), root=Path(d.root), seed=int(d.seed), vehicle=vehicle,
+                noise=noise, train=tr, val=va, test=te, digest=digest, truth=truth)
 
 
 def _rng(spec: Spec, *key: int) -> np.random.Generator:

@@ -40,7 +40,7 @@ G = 9.81  # m/s^2
 STATE = ("x", "y", "psi", "v_y", "r")
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class SingleTrack:
     """Parameters of the dynamic single-track car.
 

@@ -40,7 +40,7 @@ SCALED = ("mass", "yaw_inertia", "l_f", "l_r", "c_f", "c_r")
 """The car's parameters each drawn as the published value times a factor in 1 +- spread."""
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class Settings:
     """What :func:`simulate` draws (checked: one line naming the field ``data.<name>``)."""
 

@@ -8,7 +8,7 @@ add up to the paper's 9,829 scored test points.
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import KW_ONLY, dataclass
 
 import numpy as np
 from pyclothoids import Clothoid
@@ -68,6 +68,7 @@ class Manoeuvre:
 
     build: Callable[[], list[Clothoid]]
     steps: int
+    _: KW_ONLY
     speed_shape: tuple[float, float] = (1.0, 1.0)
     about: str = ""
 
@@ -78,10 +79,10 @@ MANOEUVRES: dict[str, Manoeuvre] = {
         450, about="ISO 3888-1 double lane change"),
     "emergency_avoidance": Manoeuvre(
         lambda: _poses((0, 0, 0), (10, 0, 0), (22, 3.0, 0), (30, 3.0, 0), (42, 0, 0), (70, 0, 0)),
-        350, (1.2, 0.8), "sudden swerve round an obstacle while braking"),
+        350, speed_shape=(1.2, 0.8), about="sudden swerve round an obstacle while braking"),
     "slalom": Manoeuvre(lambda: _weave([18.0] * 9, 1.8), 850, about="nine cones 18 m apart"),
     "hairpin": Manoeuvre(lambda: Chain().straight(15).turn(10, 180, 8).straight(15).segments,
-                         550, (1.1, 0.9), "180 degree turn of radius 10 m"),
+                         550, speed_shape=(1.1, 0.9), about="180 degree turn of radius 10 m"),
     "roundabout": Manoeuvre(
         lambda: Chain().straight(20).turn(12, -35, 5).turn(15, 250, 6).turn(12, -35, 5)
         .straight(20).segments, 1100, about="enter, three quarters round, exit"),
@@ -92,14 +93,14 @@ MANOEUVRES: dict[str, Manoeuvre] = {
         lambda: _poses((0, 0, 0), (20, 0, 0), (30, 4, 45), (40, 8, 0), (50, 4, -45), (60, 0, 0),
                        (80, 0, 0)), 500, about="tight S at 45 degrees"),
     "tightening_spiral": Manoeuvre(
-        lambda: Chain().straight(10).spiral(0.01, 0.12, 120).segments, 700, (1.2, 0.8),
-        "curvature rising from 1/100 to 1/8.3 m"),
+        lambda: Chain().straight(10).spiral(0.01, 0.12, 120).segments, 700,
+        speed_shape=(1.2, 0.8), about="curvature rising from 1/100 to 1/8.3 m"),
     "braking_in_bend": Manoeuvre(
-        lambda: Chain().straight(20).turn(40, 90, 15).straight(20).segments, 500, (1.6, 0.45),
-        "hard braking in a 40 m bend"),
+        lambda: Chain().straight(20).turn(40, 90, 15).straight(20).segments, 500,
+        speed_shape=(1.6, 0.45), about="hard braking in a 40 m bend"),
     "right_angle_turn": Manoeuvre(
-        lambda: Chain().straight(25).turn(8, -90, 4).straight(25).segments, 550, (1.1, 0.9),
-        "urban 90 degree corner"),
+        lambda: Chain().straight(25).turn(8, -90, 4).straight(25).segments, 550,
+        speed_shape=(1.1, 0.9), about="urban 90 degree corner"),
     "cloverleaf_ramp": Manoeuvre(
         lambda: Chain().straight(20).turn(25, 270, 15).straight(20).segments, 750,
         about="270 degree motorway loop"),
@@ -112,8 +113,8 @@ MANOEUVRES: dict[str, Manoeuvre] = {
         lambda: Chain().straight(15).turn(20, 90, 6).turn(20, -90, 6).straight(15).segments,
         620, about="two opposite 90 degree bends"),
     "accelerating_exit": Manoeuvre(
-        lambda: Chain().straight(10).turn(15, 90, 5).straight(70).segments, 559, (0.45, 1.55),
-        "full throttle out of a 15 m corner"),
+        lambda: Chain().straight(10).turn(15, 90, 5).straight(70).segments, 559,
+        speed_shape=(0.45, 1.55), about="full throttle out of a 15 m corner"),
 }
 
 

@@ -19,7 +19,7 @@ from lbo.core.errors import LboError
 from lbo.sim.columns import MEAS, RECEIVER
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class Measurements:
     """The measurements of T steps (any leading shape ``...``: a log's T, a batch's (G, T),
     a sample's nothing), NaN where a step does not hold a channel.

@@ -37,7 +37,7 @@ from lbo.core.errors import LboError
 from lbo.sim.truth import gauss_markov
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class Channel:
     """One sensor channel's timing and errors (at alpha = 1 for the receiver's).
 
@@ -69,7 +69,7 @@ class Channel:
         return float(np.hypot(self.white, self.drift))
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class ReceiverSpec:
     """A single-antenna receiver and a gyro (see the module's docstring).
 
@@ -78,9 +78,12 @@ class ReceiverSpec:
     white at 50 Hz, bias 0.005 rad/s walking at 1e-4 rad/s/sqrt(s)).
     """
 
-    position: Channel = field(default_factory=lambda: Channel(1.0, 0.05, 0.3, 0.5, 60.0))
-    velocity: Channel = field(default_factory=lambda: Channel(1.0, 0.05, 0.05, 0.0, 60.0))
-    gyro: Channel = field(default_factory=lambda: Channel(None, 0.0, 0.005, 0.0, 60.0))
+    position: Channel = field(default_factory=lambda: Channel(rate=1.0, latency=0.05, white=0.3,
+                                                              drift=0.5, tau=60.0))
+    velocity: Channel = field(default_factory=lambda: Channel(rate=1.0, latency=0.05, white=0.05,
+                                                              drift=0.0, tau=60.0))
+    gyro: Channel = field(default_factory=lambda: Channel(rate=None, latency=0.0, white=0.005,
+                                                          drift=0.0, tau=60.0))
     gyro_bias: float = 0.005
     gyro_walk: float = 1e-4
     reported_spread: float = 0.2

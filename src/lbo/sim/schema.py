@@ -148,7 +148,7 @@ def frame(traj: np.ndarray, k: np.ndarray, dt: float, z: np.ndarray, u: np.ndarr
     return pd.DataFrame(cols)
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class Trajectories:
     """A schema frame's trajectories as padded arrays (:func:`to_arrays`): G trajectories of
     up to T steps, the shorter padded by repeating their last row, so that filters can run

@@ -79,7 +79,7 @@ class Kinematic:
     truth models are found by the path a user's is."""
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class Sensors:
     """Sensor errors beyond the white measurement noise (all zero: none).
 
@@ -124,7 +124,7 @@ class Sensors:
         return out
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class Truth:
     """The model a log is drawn from and its sensors' errors.
 
@@ -203,7 +203,7 @@ def from_cfg(car: Any, sensors: Any, wheelbase: float) -> Truth:
         if c:
             raise LboError(f"car.{next(iter(c))}: not a field of car={name}; "
                            "accepted: name, process_scale")
-        return Truth(name, None, Sensors(**s), scale)
+        return Truth(name=name, car=None, sensors=Sensors(**s), process_scale=scale)
     if not dataclasses.is_dataclass(cls):
         raise LboError(f"car.name: truth model {name!r} is registered as {cls!r}, not a "
                        "dataclass of its settings (docs/plugins.md)")
@@ -225,7 +225,7 @@ def from_cfg(car: Any, sensors: Any, wheelbase: float) -> Truth:
     require(abs(float(built.wheelbase) - wheelbase) < 1e-6,
             "car.l_f + car.l_r" if axles else f"car={name}'s wheelbase",
             f"the vehicle's wheelbase ({wheelbase} m)", built.wheelbase)
-    return Truth(name, built, Sensors(**s), scale)
+    return Truth(name=name, car=built, sensors=Sensors(**s), process_scale=scale)
 
 
 def of_config(cfg: Any, wheelbase: float) -> Truth:

@@ -14,7 +14,7 @@ from lbo.core.angles import wrap_angle  # noqa: F401 (user code imports it from 
 from lbo.core.errors import LboError
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class Vehicle:
     """Vehicle parameters and the input limits used by the data generators.
 

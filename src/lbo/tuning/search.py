@@ -4,7 +4,7 @@ distributions), the sampler that proposes settings in it, and the pruner that st
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
+from dataclasses import KW_ONLY, dataclass
 from typing import Any, cast
 
 import numpy as np
@@ -32,6 +32,7 @@ class Param:
 
     key: str
     kind: str
+    _: KW_ONLY
     low: float | int | None = None
     high: float | int | None = None
     log: bool = False
@@ -222,7 +223,7 @@ def _param(cfg: DictConfig, key: str, spec: Any) -> Param:
         else:
             number(step, f"{field}.step", low=0.0, low_open=True, form=form)
         require(not log, f"{field}.step", form, step)
-    return Param(key, kind, low, high, log, step)
+    return Param(key, kind, low=low, high=high, log=log, step=step)
 
 
 _MISSING = object()
