@@ -108,20 +108,22 @@ def test_the_readmes_python_block_runs_as_printed_and_its_two_forms_agree(monkey
 
 
 def test_the_torch_twin_names_each_column_of_a_row_and_of_a_receiver_window():
-    """Each field of :func:`lbo.models.channels.row_channels` and ``feature_channels`` is the
-    column of its name (a row whose every column holds its own index)."""
+    """Each field of :func:`lbo.filters.measure.row_channels` (of a NumPy row and a torch
+    one) and :func:`lbo.models.channels.feature_channels` is the column of its name (a row
+    whose every column holds its own index)."""
     import torch
 
-    from lbo.models.channels import feature_channels, row_channels
+    from lbo.filters.measure import row_channels
+    from lbo.models.channels import feature_channels
     from lbo.models.receiver_window import FEATURES
 
-    row = torch.arange(len(measure.CHANNELS), dtype=torch.float64)
-    c = row_channels(row)
     at = {n: float(i) for i, n in enumerate(measure.CHANNELS)}
-    assert c.pose.tolist() == [at["x_m"], at["y_m"], at["psi_m"]]
-    assert c.fix.tolist() == [at["x_m"], at["y_m"]] and float(c.heading) == at["psi_m"]
-    assert c.sigma.tolist() == [at["sx_m"], at["sy_m"], at["spsi_m"]]
-    assert (float(c.course), float(c.course_sigma)) == (at["course"], at["s_course"])
+    for row in (torch.arange(len(at), dtype=torch.float64), np.arange(len(at), dtype=float)):
+        c = row_channels(row)
+        assert c.pose.tolist() == [at["x_m"], at["y_m"], at["psi_m"]]
+        assert c.fix.tolist() == [at["x_m"], at["y_m"]] and float(c.heading) == at["psi_m"]
+        assert c.sigma.tolist() == [at["sx_m"], at["sy_m"], at["spsi_m"]]
+        assert (float(c.course), float(c.course_sigma)) == (at["course"], at["s_course"])
     f = feature_channels(torch.arange(len(FEATURES), dtype=torch.float64))
     at = {n: float(i) for i, n in enumerate(FEATURES)}
     named = {"heading": "dpsi", "course": "dcourse", "course_sigma": "s_course",

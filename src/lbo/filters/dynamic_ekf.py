@@ -256,7 +256,7 @@ class DynamicStepper:
         m = measure.widen(m)
         x, P = self.predict(u_prev)
         R = measure.step_cov(m, self.R)
-        if not np.isfinite(m[:, 6]).any():  # no course: the pose's channels alone
+        if not np.isfinite(measure.row_channels(m).course).any():  # the pose's channels alone
             held = held_channels(m[:, :3])
             y = np.where(held, m[:, :3] - x @ self.H.T, 0.0)
             y[:, 2] = wrap_angle(y[:, 2])
@@ -264,17 +264,12 @@ class DynamicStepper:
             return self.x[:, :3]
         n = x.shape[1]
         slip, jac = self._course(x, self.true_inputs(_check_inputs(u_prev, g, "u_prev")))
-        meas = np.concatenate([m[:, :3], m[:, 6:7]], axis=1)
-        held = held_channels(meas)
-        pred = np.concatenate([x @ self.H.T, (x[:, 2] + slip)[:, None]], axis=1)
-        y = np.where(held, meas - pred, 0.0)
-        y[:, 2:] = wrap_angle(y[:, 2:])
-        H = np.zeros((g, 4, n))
+        meas, held, R4 = measure.measured(m, R)
+        y = measure.innovation(meas, np.concatenate([x @ self.H.T, (x[:, 2] + slip)[:, None]],
+                                                    axis=1), held)
+        H = np.zeros((g, measure.MEASURED, n))
         H[:, :3] = self.H
-        H[:, 3, 2:5] = jac
-        R4 = np.zeros((g, 4, 4))
-        R4[:, :3, :3] = R
-        R4[:, 3, 3] = np.where(held[:, 3], np.square(np.where(held[:, 3], m[:, 7], 0.0)), 1.0)
+        H[:, 3, 2:5] = jac  # the course: the heading plus the rear axle's slip
         self.x, self.P, *_ = joseph_update(x, P, y, H, R4, held)
         return self.x[:, :3]
 

@@ -27,6 +27,8 @@ course]`` that :func:`lbo.filters.update.joseph_update` takes.
 
 from __future__ import annotations
 
+from typing import Any, Generic, NamedTuple, Protocol, TypeVar
+
 import numpy as np
 from numpy.typing import ArrayLike
 
@@ -38,6 +40,45 @@ CHANNELS = ("x_m", "y_m", "psi_m", "sx_m", "sy_m", "spsi_m", "course", "s_course
 """The filters' row: the fix, its reported 1-sigma accuracies (NaN: the filter's R), and the
 course over ground with its 1-sigma (NaN: not held)."""
 WIDTH = len(CHANNELS)
+
+
+class _Sliceable(Protocol):
+    def __getitem__(self, key: Any, /) -> Any: ...
+
+
+A = TypeVar("A", bound=_Sliceable)
+
+
+class Row(NamedTuple, Generic[A]):
+    """Rows (..., 8) of :data:`CHANNELS` by name, NumPy arrays or torch tensors alike: each
+    field (...) or (..., k), NaN where not held; views of the rows, so that what is written
+    into one is written into them.
+
+    pose : (..., 3) ``[x_m, y_m, psi_m]``; fix : (..., 2) ``[x_m, y_m]``; heading : ``psi_m``.
+    sigma : (..., 3) ``[sx_m, sy_m, spsi_m]``, the receiver's reported 1-sigmas.
+    course, course_sigma : the course over ground of the row's GNSS velocity, its 1-sigma.
+    """
+
+    pose: A
+    fix: A
+    heading: A
+    sigma: A
+    course: A
+    course_sigma: A
+
+
+assert CHANNELS == ("x_m", "y_m", "psi_m", "sx_m", "sy_m", "spsi_m", "course", "s_course"), \
+    "row_channels reads these columns at these places"
+
+
+def row_channels(row: A) -> Row[A]:
+    """The columns of rows (..., 8) (:data:`CHANNELS`; or wider, as a receiver window's
+    :data:`lbo.models.receiver_window.COLUMNS`, which starts with them) by name."""
+    # the places as literals, checked above: the torch filters trace this
+    return Row(row[..., 0:3], row[..., 0:2], row[..., 2], row[..., 3:6], row[..., 6],
+               row[..., 7])
+
+
 MEASURED = 4
 """Channels a row measures: x_m, y_m, psi_m and the course."""
 H = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [0.0, 0.0, 1.0]])
@@ -152,8 +193,9 @@ def undelayed(fix: np.ndarray, velocity: np.ndarray, rate: np.ndarray, fix_laten
 
 
 def heading_held(m: np.ndarray) -> np.ndarray:
-    """Rows (G, 8) that measure the heading, by ``psi_m`` or the course: (G,) bool."""
-    return np.isfinite(m[:, 2]) | np.isfinite(m[:, 6])
+    """Rows (..., 8) that measure the heading, by ``psi_m`` or the course: (...) bool."""
+    c = row_channels(m)
+    return np.isfinite(c.heading) | np.isfinite(c.course)
 
 
 def step_cov(m: np.ndarray, R: np.ndarray) -> np.ndarray:
@@ -161,7 +203,7 @@ def step_cov(m: np.ndarray, R: np.ndarray) -> np.ndarray:
     channel's variance replaced by the square of the accuracy the row reports for it (and
     that channel's correlations dropped: a receiver reports sigmas, not correlations).
     ``R`` itself is returned where no row reports any."""
-    sigma = m[:, 3:6]
+    sigma = row_channels(m).sigma
     told = np.isfinite(sigma)
     if not told.any():
         return R
@@ -184,13 +226,28 @@ def model(m: np.ndarray, x: np.ndarray, R: np.ndarray
     the Jacobian (4, 3); the covariance (G, 4, 4), the course's variance ``s_course^2`` apart;
     the channels held (G, 4) bool.
     """
-    meas = np.concatenate([m[:, :3], m[:, 6:7]], axis=1)
+    meas, held, R4 = measured(m, R)
+    y = innovation(meas, np.concatenate([x, x[:, 2:3]], axis=1), held)
+    return y, H, R4, held
+
+
+def measured(m: np.ndarray, R: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The four measured channels of rows m (G, 8): ``[x_m, y_m, psi_m, course]`` (G, 4),
+    which of them are held (G, 4) bool, and their covariance (G, 4, 4): the step's R (G, 3, 3)
+    (:func:`step_cov`) and the course's ``s_course^2`` apart (1 where not held: finite, and
+    masked out)."""
+    c = row_channels(m)
+    meas = np.concatenate([c.pose, c.course[:, None]], axis=1)
     held = np.isfinite(meas)
-    pred = np.concatenate([x, x[:, 2:3]], axis=1)
+    R4 = np.zeros((len(m), MEASURED, MEASURED))
+    R4[:, :3, :3] = R
+    R4[:, 3, 3] = np.where(held[:, 3], np.square(np.where(held[:, 3], c.course_sigma, 0.0)), 1.0)
+    return meas, held, R4
+
+
+def innovation(meas: np.ndarray, pred: np.ndarray, held: np.ndarray) -> np.ndarray:
+    """The innovation (G, 4) of the measured channels ``meas`` (G, 4) against their prediction
+    ``pred`` (G, 4): 0 where not ``held``, the heading's and the course's wrapped."""
     y = np.where(held, meas - pred, 0.0)
     y[:, 2:] = wrap_angle(y[:, 2:])
-    g = len(m)
-    R4 = np.zeros((g, MEASURED, MEASURED))
-    R4[:, :3, :3] = R
-    R4[:, 3, 3] = np.where(held[:, 3], np.square(np.where(held[:, 3], m[:, 7], 0.0)), 1.0)
-    return y, H, R4, held
+    return y

@@ -77,13 +77,14 @@ def start_state(m0: np.ndarray, R: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     diagonal floored). Its heading is ``psi_m``, else the course over ground (its variance
     ``s_course^2``), else 0 rad with variance :data:`HEADING_VAR0`."""
     m0 = measure.widen(m0)
-    x = np.array(m0[:, :3], dtype=float)
+    x = np.array(measure.row_channels(m0).pose, dtype=float)
     P = floor_diag(measure.step_cov(m0, R))
-    by_course = ~np.isfinite(x[:, 2]) & np.isfinite(m0[:, 6])
+    c = measure.row_channels(m0)
+    by_course = ~np.isfinite(x[:, 2]) & np.isfinite(c.course)
     blind = ~measure.heading_held(m0)
-    x[by_course, 2] = m0[by_course, 6]
+    x[by_course, 2] = c.course[by_course]
     x[blind, 2] = 0.0
-    for rows, var in ((by_course, np.square(m0[:, 7])), (blind, HEADING_VAR0)):
+    for rows, var in ((by_course, np.square(c.course_sigma)), (blind, HEADING_VAR0)):
         P[rows, 2, :] = P[rows, :, 2] = 0.0
         P[rows, 2, 2] = var[rows] if isinstance(var, np.ndarray) else var
     return x, P

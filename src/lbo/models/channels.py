@@ -1,12 +1,13 @@
-"""The torch twin of :class:`lbo.Measurements`: a filter's row, a paper window's and a
-receiver window's features read by name, in one place each.
+"""The torch twin of :class:`lbo.Measurements`: a paper window's and a receiver window's
+features read by name, in one place each.
 
 The learned filters take arrays, as their exported graphs do: a filter's row (..., 8) of
 :data:`lbo.filters.measure.CHANNELS` (the fix, its heading, the reported accuracies, and the
-course over ground the GNSS velocity gives), a paper window's features (..., 5|6) of
+course over ground the GNSS velocity gives; named by :func:`lbo.filters.measure.row_channels`,
+NumPy's and torch's alike), a paper window's features (..., 5|6) of
 :data:`lbo.sim.columns.WINDOW` (and ``fix``) and a receiver window's features (..., 15) of
-:data:`lbo.models.receiver_window.FEATURES`. :func:`row_channels`, :func:`window_channels`
-and :func:`feature_channels` give their columns as named views, with the field names of
+:data:`lbo.models.receiver_window.FEATURES`. :func:`window_channels` and
+:func:`feature_channels` give their columns as named views, with the field names of
 :class:`lbo.Measurements` where the two hold the same thing, so that no filter reads a
 channel by its position. Views only (a window of five's ``fix``, all ones, is made):
 the same numbers, and the same traced, scripted and exported graphs, as the indexing they
@@ -19,36 +20,8 @@ from typing import NamedTuple
 
 import torch
 
-from lbo.filters.measure import CHANNELS
 from lbo.models.receiver_window import FEATURES
 from lbo.sim.columns import WINDOW
-
-
-class Row(NamedTuple):
-    """A filter's rows (..., 8) by name; each field (...) or (..., k), NaN where not held.
-
-    pose : (..., 3) ``[x_m, y_m, psi_m]``; fix : (..., 2) ``[x_m, y_m]``; heading : ``psi_m``.
-    sigma : (..., 3) ``[sx_m, sy_m, spsi_m]``, the receiver's reported 1-sigmas.
-    course, course_sigma : the course over ground of the row's GNSS velocity, its 1-sigma.
-    """
-
-    pose: torch.Tensor
-    fix: torch.Tensor
-    heading: torch.Tensor
-    sigma: torch.Tensor
-    course: torch.Tensor
-    course_sigma: torch.Tensor
-
-
-assert CHANNELS == ("x_m", "y_m", "psi_m", "sx_m", "sy_m", "spsi_m", "course", "s_course"), \
-    "row_channels reads these columns at these places"
-
-
-def row_channels(row: torch.Tensor) -> Row:
-    """The columns of rows (..., 8) (:data:`lbo.filters.measure.CHANNELS`) by name."""
-    # the places as literals: TorchScript compiles no global ints (checked above)
-    return Row(row[..., 0:3], row[..., 0:2], row[..., 2], row[..., 3:6], row[..., 6],
-               row[..., 7])
 
 
 class Window(NamedTuple):

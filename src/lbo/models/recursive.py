@@ -42,7 +42,7 @@ import torch
 from torch import nn
 
 from lbo.filters.kalman import coast_covariance, compose_covariance
-from lbo.models.channels import Row, row_channels
+from lbo.filters.measure import Row, row_channels
 from lbo.models.filternet import WindowFilter
 from lbo.models.motion import bicycle_step
 from lbo.models.poses import wrap_heading

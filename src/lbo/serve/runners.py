@@ -268,7 +268,7 @@ class WindowRunner:
     def _heading_rows(series: np.ndarray) -> np.ndarray:
         """Which rows (..., T, 11) of receiver windows hold a heading, psi_m or a course:
         (..., T) bool (:func:`lbo.models.receiver_window.heading_known`'s rule)."""
-        return np.isfinite(series[..., 2]) | np.isfinite(series[..., 6])
+        return measure.heading_held(series)
 
     def reset(self) -> None:
         self.fallback.reset()
