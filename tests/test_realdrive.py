@@ -187,7 +187,7 @@ def test_leave_one_drive_out_never_shows_a_fold_its_drive(short_drives):
 
     def learn(k, train):
         seen[k] = sorted(int(p["mark"].iloc[0]) for p in train)
-        return {}
+        return across.Fold({}, {})
 
     table = across.leave_one_out(parts, learn, ["ekf"], Vehicle(),
                                  Noise.from_cfg(OmegaConf.load(CONF / "noise" / "paper.yaml")),
@@ -233,6 +233,55 @@ def test_realdrive_learns_on_the_other_drives_and_scores_each(short_drives, tmp_
     assert "leave-one-drive-out over 3 drives: the gyro EKF's noise learned on the others " \
            "(1 epochs, innovations' likelihood, no truth read), scored on each" in out
     assert "drive 2 of 3, learned on drives 1, 3: best " in out
+
+
+@pytest.mark.slow
+def test_leave_one_drive_out_scores_each_net_as_trained_and_fine_tuned_on_the_others(
+        short_drives, tmp_path, smoke_data, monkeypatch, capsys):
+    """With nets (and no noise to learn): each net scored on every drive as it was trained,
+    on simulated receivers alone, and fine-tuned per fold on the drives other than the one
+    scored, trained on the first of them and kept by the second (a planted mark on each drive
+    says which fold saw which)."""
+    from omegaconf import OmegaConf
+
+    from lbo.learn import net_fit
+    from lbo.learn.gyro_fit import Settings
+    from lbo.realdrive import ACROSS, FIT_OTHER_DRIVES, _across_drives
+    from lbo.sim.noise import Noise
+
+    _, out, _ = train_in_own_store(tmp_path, smoke_data, "experiment=receiver", "data=smoke",
+                                   "trainer.max_epochs=1", "trainer.limit_train_batches=2",
+                                   "window=60", "batch_size=64", "~callbacks.evaluation",
+                                   "model.conv_channels=4", "model.feature_channels=4",
+                                   "model.dense_units=16")
+    seen: dict[str, tuple[list[int], list[int]]] = {}
+    real_fit = net_fit.fit_and_write
+
+    def fit_and_write(path, source, train_logs, val_logs, where, **kw):
+        seen[path.name] = ([int(p["mark"].iloc[0]) for p in train_logs],
+                           [int(p["mark"].iloc[0]) for p in val_logs])
+        return real_fit(path, source, train_logs, val_logs, where, **kw)
+
+    monkeypatch.setattr(net_fit, "fit_and_write", fit_and_write)
+    drives = [p.assign(mark=k) for k, p in enumerate(short_drives)]
+    fit = {"epochs": 1, "lr": 3e-4, "batch": 64, "seed": 0}
+    wide = _across_drives(Settings(epochs=0, segment_s=5.0, lr=0.1), ["ekf"], drives, Vehicle(),
+                          Noise.from_cfg(OmegaConf.load(CONF / "noise" / "paper.yaml")),
+                          tmp_path, nets={out["checkpoint"]: Observer.load(out["checkpoint"])},
+                          fit=fit)
+    assert seen == {"cnn-N60_without_drive1.ckpt": ([1], [2]),
+                    "cnn-N60_without_drive2.ckpt": ([0], [2]),
+                    "cnn-N60_without_drive3.ckpt": ([0], [1])}
+    rows = wide.set_index("estimator")
+    for label in ("cnn-N60 (window), receiver's accuracy and velocity",
+                  f"cnn-N60, {FIT_OTHER_DRIVES}"):
+        assert np.isfinite(rows.loc[label, ["drive 1", "drive 2", "drive 3"]].to_numpy(float)).all()
+    assert ACROSS not in rows.index  # no noise learned with 0 epochs
+    for k in (1, 2, 3):
+        obs = Observer.load(tmp_path / f"cnn-N60_without_drive{k}.ckpt")
+        assert obs.meta["trained_on"].startswith(f"on the hill drive's drives but drive {k}")
+    assert ("leave-one-drive-out over 3 drives: 1 learned observer(s) as trained, and "
+            "fine-tuned on the others (1 epochs), scored on each") in capsys.readouterr().out
 
 
 @pytest.mark.slow

@@ -30,6 +30,9 @@ three drives, standing still between them (:func:`lbo.logs.hguide.drives`); for 
 EKF's noise is learned as ``learn`` says (its objective included) on the other two, and every
 classical observer and that noise are scored on it (``drives.csv``, ``drives.md``: each
 drive's ratio to the EKF, their mean and the worst; ``gyro_noise_without_drive<k>.json``).
+Each of ``nets`` is scored on each drive as it was trained (on none of them), and with
+``net_fit.epochs`` each that reads a receiver is also fine-tuned on the other two, the epoch
+kept by the later of them (``<name>_without_drive<k>.ckpt``).
 
 It writes ``results.csv`` and ``results.md`` (RMSE of x, y in m and psi in mrad, over the rows
 each estimates, and the quadratic mean of the three RMSE ratios to the EKF's, :data:`RATIOS`),
@@ -41,6 +44,7 @@ from __future__ import annotations
 
 import json
 import sys
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -70,8 +74,8 @@ from lbo.scoring.receiver import (
 )
 from lbo.sim.columns import STATE
 
-__all__ = ["ACROSS", "FINE_TUNED", "FIT_FINE_TUNED", "FIT_KINDS", "FIT_SPAN", "LEARNED", "RATIOS",
-           "SIMULATED", "main", "realdrive"]
+__all__ = ["ACROSS", "FINE_TUNED", "FIT_FINE_TUNED", "FIT_KINDS", "FIT_OTHER_DRIVES", "FIT_SPAN",
+           "LEARNED", "RATIOS", "SIMULATED", "main", "realdrive"]
 
 LEARNED = "gyro, noise learned on the train span"
 """The row of the gyro EKF whose noise :mod:`lbo.learn.gyro_fit` learned from the defaults."""
@@ -84,6 +88,9 @@ FIT_FINE_TUNED = "fine-tuned on the train span"
 first)."""
 FIT_SPAN = "trained on the train span only"
 """... from scratch, on the train span alone."""
+FIT_OTHER_DRIVES = "fine-tuned on the other drives"
+"""The row of a net of ``nets`` in leave-one-drive-out, trained on the drives other than the
+one scored (the last of them kept for validation) from its own weights (its name first)."""
 FIT_KINDS = ("finetuned", "span")
 """The checkpoints' suffixes: ``<name>_finetuned.ckpt``, ``<name>_span.ckpt``."""
 RATIOS = ("vs_ekf", "vs_ekf_same_rows", "vs_ekf_moving")
@@ -178,8 +185,9 @@ def realdrive(cfg: DictConfig) -> dict[str, Any]:
     through = (_outages(outages, spans, test, observers, vehicle, noise, learned, every_net,
                         out) if outages is not None and spans is not None else None)
     drives = None
-    if across_drives and learn.epochs:
-        drives = _across_drives(learn, observers, hguide.drives(log), vehicle, noise, out)
+    if across_drives and (learn.epochs or nets):
+        drives = _across_drives(learn, observers, hguide.drives(log), vehicle, noise, out,
+                                nets=dict(zip(sources, nets)), fit=fit)
     return {"table": table, "alignment": alignment, "paths": paths, "drives": drives,
             "outages": through}
 
@@ -256,21 +264,33 @@ def _learn(cfg: Any, simulated_epochs: int, simulated: DictConfig,
 
 
 def _across_drives(cfg: Any, observers: list[str], drives: list[pd.DataFrame],
-                   vehicle: Any, noise: Any, out: Path) -> pd.DataFrame:
+                   vehicle: Any, noise: Any, out: Path, nets: Mapping[str, Any] | None = None,
+                   fit: Mapping[str, Any] | None = None) -> pd.DataFrame:
     """Leave-one-drive-out (:mod:`lbo.scoring.drives`): for each of the drive's drives, the
     gyro EKF's noise learned from the defaults on the others as ``cfg``
     (:class:`lbo.learn.gyro_fit.Settings`) says (each fold's best epoch kept by
-    those same drives: none is held out of two), every observer scored on it. Writes
+    those same drives: none is held out of two), every observer scored on it, and each of
+    ``nets`` (learned observers by source) as it is; with ``fit["epochs"]``, each of them that
+    reads a receiver also fine-tuned on the others (:func:`_fold_nets`). Writes
     ``drives.csv`` (each drive's RMSE and ratio) and ``drives.md`` (the ratios to the EKF per
     drive, their mean and the worst), prints the latter and returns the summary."""
     from lbo.learn.noise_run import across_drives
     from lbo.scoring import drives as across
 
-    how = "truth" if cfg.objective == "truth" else "innovations' likelihood, no truth read"
-    print(f"leave-one-drive-out over {len(drives)} drives: the gyro EKF's noise learned on the "
-          f"others ({cfg.epochs} epochs, {how}), scored on each")
+    nets = dict(nets or {})
+    what = []
+    if cfg.epochs:
+        how = "truth" if cfg.objective == "truth" else "innovations' likelihood, no truth read"
+        what.append(f"the gyro EKF's noise learned on the others ({cfg.epochs} epochs, {how})")
+    epochs = fit["epochs"] if fit is not None else 0
+    if nets:
+        what.append(f"{len(nets)} learned observer(s) as trained" + (
+            f", and fine-tuned on the others ({epochs} epochs)" if epochs else ""))
+    print(f"leave-one-drive-out over {len(drives)} drives: {'; '.join(what)}, scored on each")
     table = across_drives(drives, cfg, vehicle, noise, observers, out,
-                          progress=lambda line: print("  " + line))
+                          progress=lambda line: print("  " + line),
+                          nets=(lambda k, train: _fold_nets(k, train, nets, fit, out))
+                          if nets else None)
     wide = across.summary(table)
     write_table(table, out / "drives.csv")
     with atomic_path(out / "drives.md") as tmp:
@@ -279,6 +299,32 @@ def _across_drives(cfg: Any, observers: list[str], drives: list[pd.DataFrame],
     print(across.markdown(wide), end="")
     print(f"written: {out / 'drives.md'}, {out / 'drives.csv'}")
     return wide
+
+
+def _fold_nets(k: int, train: list[pd.DataFrame], nets: Mapping[str, Any],
+               fit: Mapping[str, Any] | None, out: Path) -> dict[str, Any]:
+    """The learned observers of leave-one-drive-out's fold ``k`` (drive k + 1 left out), by
+    row label: each of ``nets`` (by source) as it is, and with ``fit["epochs"]`` each of them
+    that reads a receiver fine-tuned from its weights on the fold's drives but the last,
+    kept by the last (a drive it does not train on: a fine-tuning that does not hold on
+    another drive is not kept), written as ``<name>_without_drive<k + 1>.ckpt``."""
+    from lbo.learn.net_fit import fit_and_write
+    from lbo.serve.observer import Observer
+
+    rows = net_rows(list(nets.values()))
+    if fit is None or not fit["epochs"]:
+        return rows
+    # two drives or more: the last kept apart to keep the epoch by; one: it does both
+    fit_on, keep_by = (train[:-1], train[-1:]) if len(train) > 1 else (train, train)
+    for source, obs in nets.items():
+        if not getattr(obs.net, "receiver", False):
+            continue
+        path = fit_and_write(out / f"{obs.name}_without_drive{k + 1}.ckpt", source, fit_on,
+                             keep_by, f"on the hill drive's drives but drive {k + 1}",
+                             fresh=False, epochs=fit["epochs"], lr=fit["lr"],
+                             batch=fit["batch"], seed=fit["seed"])
+        rows[f"{obs.name}, {FIT_OTHER_DRIVES}"] = Observer.load(path)
+    return rows
 
 
 def _fit_nets(cfg: dict[str, Any], nets: dict[str, Any], parts: dict[str, pd.DataFrame],

@@ -26,7 +26,7 @@ noise (:func:`lbo.tracking.artifacts.learned_noise`). The same files are written
 from __future__ import annotations
 
 import json
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -112,24 +112,31 @@ def score(logs: list[pd.DataFrame], names: list[str], noise: GyroNoise, spec: Lo
 
 def across_drives(drives: list[pd.DataFrame], settings: Settings, vehicle: Any, noise: Any,
                   observers: list[str], out: Path | None = None,
-                  progress: Callable[[str], None] | None = print) -> pd.DataFrame:
+                  progress: Callable[[str], None] | None = print,
+                  nets: Callable[[int, list[pd.DataFrame]], Mapping[str, Any]] | None = None
+                  ) -> pd.DataFrame:
     """Leave-one-drive-out (:func:`lbo.scoring.drives.leave_one_out`): for each drive (a log
     with truth), the gyro EKF's noise learned from the defaults on all the others as
-    ``settings`` says (the epoch kept by those same drives: none is held out of two; by the
-    innovations their truth is not read), it and ``observers`` scored on the one left out.
-    With ``out``, each fold's noise is written as ``gyro_noise_without_drive<k>.json``.
-    Returns the long table (one row per drive and estimator, ``vs_ekf``)."""
+    ``settings`` says (none with 0 epochs; the epoch kept by those same drives: none is held
+    out of two; by the innovations their truth is not read), it, ``observers`` and the
+    learned observers ``nets(k, train)`` gives for the fold (by row label) scored on the one
+    left out. With ``out``, each fold's noise is written as
+    ``gyro_noise_without_drive<k>.json``. Returns the long table (one row per drive and
+    estimator, ``vs_ekf``)."""
     from lbo.learn import gyro_fit
     from lbo.scoring import drives as across
 
     R, start = gyro_fit.fix_cov(noise), settings.start(noise.Q)
 
-    def learn(k: int, train: list[pd.DataFrame]) -> dict[str, GyroNoise]:
-        fitted = gyro_fit.fit(train, train, vehicle, R, start, progress=None,
-                              **settings.kwargs(vehicle.dt))
-        if out is not None:
-            fitted.noise.save(out / f"gyro_noise_without_drive{k + 1}.json")
-        return {ACROSS: fitted.noise}
+    def learn(k: int, train: list[pd.DataFrame]) -> across.Fold:
+        noises = {}
+        if settings.epochs:
+            fitted = gyro_fit.fit(train, train, vehicle, R, start, progress=None,
+                                  **settings.kwargs(vehicle.dt))
+            if out is not None:
+                fitted.noise.save(out / f"gyro_noise_without_drive{k + 1}.json")
+            noises[ACROSS] = fitted.noise
+        return across.Fold(noises, nets(k, train) if nets is not None else {})
 
     return across.leave_one_out(drives, learn, observers, vehicle, noise, progress=progress)
 

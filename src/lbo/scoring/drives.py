@@ -12,7 +12,7 @@ drives (:func:`lbo.logs.hguide.drives`).
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping, Sequence
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 import pandas as pd
@@ -22,11 +22,20 @@ from lbo.filters.gyro import GyroNoise
 from lbo.scoring.receiver import EKF, ratio_to, score
 from lbo.sim.vehicle import Vehicle
 
-__all__ = ["folds", "leave_one_out", "markdown", "summary"]
+__all__ = ["Fold", "folds", "leave_one_out", "markdown", "summary"]
 
-Learner = Callable[[int, list[pd.DataFrame]], Mapping[str, GyroNoise]]
-"""``learn(k, train)``: the noises (by row label) learned for fold ``k`` on ``train``, the
-drives other than ``k``."""
+
+class Fold(NamedTuple):
+    """What a fold learned on its drives, by row label, to be scored on the one left out: the
+    gyro EKF's noises, and learned observers (:class:`lbo.Observer`)."""
+
+    noises: Mapping[str, GyroNoise]
+    nets: Mapping[str, Any]
+
+
+Learner = Callable[[int, list[pd.DataFrame]], Fold]
+"""``learn(k, train)``: the :class:`Fold` learned for fold ``k`` on ``train``, the drives
+other than ``k``."""
 
 
 def folds(n: int) -> list[tuple[list[int], int]]:
@@ -54,8 +63,8 @@ def leave_one_out(drives: Sequence[pd.DataFrame], learn: Learner, observers: Seq
     drive, :func:`lbo.scoring.receiver.ratio_to`)."""
     tables = []
     for train, k in folds(len(drives)):
-        learned = learn(k, [drives[i] for i in train])
-        table, _ = score(drives[k], observers, vehicle, noise, learned)
+        fold = learn(k, [drives[i] for i in train])
+        table, _ = score(drives[k], observers, vehicle, noise, fold.noises, nets=fold.nets)
         table["vs_ekf"] = ratio_to(table, EKF)
         table.insert(0, "drive", k + 1)
         tables.append(table)
