@@ -282,6 +282,43 @@ def test_evaluate_scores_the_peers_on_the_test_logs(logs, tmp_path):
     assert set(table["observer"]) == {"ekf", "adaptive", "ukf"}  # no oracle, no pcrb: no alpha
     assert len(table) == 3 * 4  # pooled and per file
     assert (tmp_path / "nrmse_logs.png").is_file()
+    # across the test logs: each one's ratio to the EKF on it, their mean and the worst
+    per_log = table[table["file"] != "all"]
+    names = [Path(f).name for f in dict.fromkeys(per_log["file"])]
+    text = (tmp_path / "drives.md").read_text()
+    assert text.splitlines()[0] == "| estimator | " + " | ".join(names) + " | mean | worst |"
+    for observer, rows in per_log.groupby("observer"):
+        ratios = rows["ratio_to_ekf"].to_numpy()
+        line = next(r for r in text.splitlines() if r.startswith(f"| {observer} |"))
+        cells = [float(c) for c in line.strip("| ").split(" | ")[1:]]
+        assert cells == pytest.approx([*np.round(ratios, 3), round(ratios.mean(), 3),
+                                       round(ratios.max(), 3)], abs=1e-9), observer
+    assert set(per_log.loc[per_log["observer"] == "ekf", "ratio_to_ekf"]) == {1.0}
+    assert per_log["ratio_to_ekf"].nunique() > 3  # the peers differ from log to log
+
+
+def test_an_observers_run_is_told_its_mean_and_worst_across_the_test_logs(tmp_path,
+                                                                         monkeypatch):
+    """log_to_run on a user's logs: the pooled NRMSE, and with two logs or more the mean and
+    the worst of its ratio to the EKF on each (a real MLflow store)."""
+    import mlflow
+
+    from lbo.evaluate import log_to_run
+
+    uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", uri)
+    client = mlflow.MlflowClient(uri)
+    run = client.create_run(client.create_experiment("e", f"{tmp_path / 'art'}")).info.run_id
+    pd.DataFrame({"observer": ["mine"] * 3 + ["ekf"] * 3,
+                  "file": ["all", "/a/d1.csv", "/b/d2.csv"] * 2,
+                  "nrmse": [0.9, 0.8, 1.1, 1.0, 1.0, 1.0],
+                  "ratio_to_ekf": [0.9, 0.8, 1.1, 1.0, 1.0, 1.0]}).to_csv(
+        tmp_path / "evaluation.csv", index=False)
+    log_to_run(run, run, "mine", tmp_path / "evaluation.csv", "logs")
+    logged = client.get_run(run).data.metrics
+    assert logged == pytest.approx({"eval_logs_nrmse": 0.9,
+                                    "eval_logs_drives_vs_ekf_mean": 0.95,
+                                    "eval_logs_drives_vs_ekf_worst": 1.1})
 
 
 def test_logs_with_gnss_slower_than_the_inputs_train_with_fix_rates(logs, tmp_path):

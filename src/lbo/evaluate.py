@@ -16,7 +16,7 @@ import numpy as np
 import pandas as pd
 from omegaconf import DictConfig
 
-from lbo.core.atomic import atomic_path
+from lbo.core.atomic import atomic_path, write_text
 from lbo.core.cli import entry
 from lbo.core.errors import LboError
 from lbo.filters.classical import BOUND, DYNAMIC, LOG_PEERS, NAMES, OBSERVERS, TUNED
@@ -114,6 +114,13 @@ def log_to_run(run_id: str | None, source: str, name: str, csv: Path, data: str,
 
         pooled = rows[rows["file"] == ALL].iloc[0]
         metrics = {f"eval_{data}_nrmse": float(pooled["nrmse"])}
+        if table["file"].nunique() > 2:  # across the test logs: the mean and the worst
+            from lbo.scoring.logscore import across
+
+            wide = across(table)
+            row = wide[wide["estimator"] == name].iloc[0]
+            metrics |= {f"eval_{data}_drives_vs_ekf_mean": float(row["mean"]),
+                        f"eval_{data}_drives_vs_ekf_worst": float(row["worst"])}
     else:
         metrics = {f"eval_{data}_nrmse_alpha_{a:g}": float(v)
                    for a, v in zip(rows["alpha"], rows["nrmse"])}
@@ -320,12 +327,21 @@ def run_logs(cfg: DictConfig, observers: list[str], learned: list[str]
         table.to_csv(tmp, index=False)
     figure = plots.save(logscore.figure(table, "observers on the test logs"),
                         out / "nrmse_logs.png")
+    written = [csv, figure]
     print(f"note: {logscore.NOTE}"
           + (f" (left out: {', '.join(left_out)})" if left_out else ""))
     print(f"pooled over {len(test_files(folder))} test log(s):")
     print(logscore.printable(table))
+    if table["file"].nunique() > 2:  # two logs or more beside the pooled row: across drives
+        from lbo.scoring.drives import markdown
+
+        text = markdown(logscore.across(table))
+        written.append(write_text(out / "drives.md", text))
+        print("across the test logs, each one's NRMSE over the EKF's on it, their mean and "
+              "the worst:")
+        print(text, end="")
     print(f"evaluation: {csv}")
-    return csv, list(nets), [csv, figure]
+    return csv, list(nets), written
 
 
 main = entry("evaluate", evaluate)

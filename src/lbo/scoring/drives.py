@@ -79,10 +79,13 @@ def leave_one_out(drives: Sequence[pd.DataFrame], learn: Learner, observers: Seq
 
 def summary(table: pd.DataFrame) -> pd.DataFrame:
     """:func:`leave_one_out`'s table as one row per estimator (in their first order): its
-    ``vs_ekf`` on each drive (columns ``drive 1`` ...), their ``mean`` and the ``worst``."""
+    ``vs_ekf`` on each drive (columns ``drive 1`` ... for numbered drives, else the drives'
+    names, in their first order), their ``mean`` and the ``worst``."""
     order = list(dict.fromkeys(table["estimator"]))
-    wide = table.pivot(index="estimator", columns="drive", values="vs_ekf").loc[order]
-    wide.columns = [f"drive {d}" for d in wide.columns]
+    drives = list(dict.fromkeys(table["drive"]))
+    wide = table.pivot(index="estimator", columns="drive", values="vs_ekf").loc[order, drives]
+    wide.columns = [f"drive {d}" if isinstance(d, (int, np.integer)) else str(d)
+                    for d in wide.columns]
     ratios = wide.to_numpy(float)
     wide["mean"] = ratios.mean(axis=1)
     wide["worst"] = ratios.max(axis=1)

@@ -102,6 +102,21 @@ def metrics(scores: pd.DataFrame, observer: str) -> dict[str, float]:
     return out
 
 
+def across(scores: pd.DataFrame) -> pd.DataFrame:
+    """Every observer's ``ratio_to_ekf`` on each test log (a drive), their mean and the worst
+    (:func:`lbo.scoring.drives.summary`: one row per observer, a column per log named by its
+    file's name): a gain pooled over the logs may hide a log it makes worse."""
+    from lbo.scoring.drives import summary
+
+    per_log = scores[scores["file"] != ALL]
+    files = list(dict.fromkeys(per_log["file"]))
+    short = {f: Path(f).name for f in files}
+    names = short if len(set(short.values())) == len(files) else {f: f for f in files}
+    return summary(pd.DataFrame({"drive": [names[f] for f in per_log["file"]],
+                                 "estimator": per_log["observer"],
+                                 "vs_ekf": per_log["ratio_to_ekf"]}))
+
+
 def figure(scores: pd.DataFrame, title: str = ""):
     """NRMSE per test file (and pooled) for every observer, as grouped bars."""
     import matplotlib.pyplot as plt
