@@ -5,6 +5,11 @@ window form's three loops and the recursive form's step became that one step.
 running :func:`outputs` on it): the window form of each kind of window filter, and its
 recursive form run and smoothed over a log, in float64, with weights drawn away from their
 initial values. The same numbers to 1e-9 (they were bit for bit where they were written).
+
+The recursive form runs its nets in float32 (as trained, and as ONNX exports them); here
+they run in float64 as well. A float32 kernel's last bit differs from one CPU to another
+(AVX2 against AVX-512), and the recursion carried that to 1e-7 of the poses and
+covariances: numbers written on one machine failed at 1e-9 on the next.
 """
 
 from __future__ import annotations
@@ -15,6 +20,7 @@ import numpy as np
 import pytest
 import torch
 
+from lbo.models import recursive
 from lbo.models.net import WindowNet
 from lbo.models.recursive import RecursiveFilter
 
@@ -75,10 +81,27 @@ def _receiver(batch: int, seed: int, gyro: bool) -> torch.Tensor:
                       p[..., 3:5], r[..., None]], -1)
 
 
+class _Double(torch.nn.Module):
+    """The recursive form's nets in float64 (in place of its float32 ``_Single``)."""
+
+    def __init__(self, net: torch.nn.Module) -> None:
+        super().__init__()
+        self.net = net.double()
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.net(x)
+
+
 def outputs() -> dict[str, np.ndarray]:
     """Each kind's window estimates (6, 3), and its recursive form's poses and covariances
     over three windows' rows end to end, 1 km from the origin (2, 60, 3), smoothed where
-    fixes are missing."""
+    fixes are missing; every net in float64."""
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(recursive, "_Single", _Double)
+        return _outputs()
+
+
+def _outputs() -> dict[str, np.ndarray]:
     out = {}
     for name, kw in KINDS.items():
         kw = dict(kw)
