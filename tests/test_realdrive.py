@@ -267,8 +267,8 @@ def test_leave_one_drive_out_scores_each_net_as_trained_and_fine_tuned_on_the_ot
     fit = {"epochs": 1, "lr": 3e-4, "batch": 64, "seed": 0}
     wide = _across_drives(Settings(epochs=0, segment_s=5.0, lr=0.1), ["ekf"], drives, Vehicle(),
                           Noise.from_cfg(OmegaConf.load(CONF / "noise" / "paper.yaml")),
-                          tmp_path, nets={out["checkpoint"]: Observer.load(out["checkpoint"])},
-                          fit=fit)
+                          tmp_path, nets=[net := Observer.load(out["checkpoint"])],
+                          trainable={out["checkpoint"]: net}, fit=fit)
     assert seen == {"cnn-N60_without_drive1.ckpt": ([1], [2]),
                     "cnn-N60_without_drive2.ckpt": ([0], [2]),
                     "cnn-N60_without_drive3.ckpt": ([0], [1])}
@@ -280,7 +280,7 @@ def test_leave_one_drive_out_scores_each_net_as_trained_and_fine_tuned_on_the_ot
     for k in (1, 2, 3):
         obs = Observer.load(tmp_path / f"cnn-N60_without_drive{k}.ckpt")
         assert obs.meta["trained_on"].startswith(f"on the hill drive's drives but drive {k}")
-    assert ("leave-one-drive-out over 3 drives: 1 learned observer(s) as trained, and "
+    assert ("leave-one-drive-out over 3 drives: 1 learned observer(s) as trained, and 1 "
             "fine-tuned on the others (1 epochs), scored on each") in capsys.readouterr().out
 
 

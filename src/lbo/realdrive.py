@@ -44,7 +44,7 @@ from __future__ import annotations
 
 import json
 import sys
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -187,7 +187,7 @@ def realdrive(cfg: DictConfig) -> dict[str, Any]:
     drives = None
     if across_drives and (learn.epochs or nets):
         drives = _across_drives(learn, observers, hguide.drives(log), vehicle, noise, out,
-                                nets=dict(zip(sources, nets)), fit=fit)
+                                nets=nets, trainable=trainable, fit=fit)
     return {"table": table, "alignment": alignment, "paths": paths, "drives": drives,
             "outages": through}
 
@@ -264,33 +264,35 @@ def _learn(cfg: Any, simulated_epochs: int, simulated: DictConfig,
 
 
 def _across_drives(cfg: Any, observers: list[str], drives: list[pd.DataFrame],
-                   vehicle: Any, noise: Any, out: Path, nets: Mapping[str, Any] | None = None,
+                   vehicle: Any, noise: Any, out: Path, nets: Sequence[Any] = (),
+                   trainable: Mapping[str, Any] | None = None,
                    fit: Mapping[str, Any] | None = None) -> pd.DataFrame:
     """Leave-one-drive-out (:mod:`lbo.scoring.drives`): for each of the drive's drives, the
     gyro EKF's noise learned from the defaults on the others as ``cfg``
     (:class:`lbo.learn.gyro_fit.Settings`) says (each fold's best epoch kept by
     those same drives: none is held out of two), every observer scored on it, and each of
-    ``nets`` (learned observers by source) as it is; with ``fit["epochs"]``, each of them that
-    reads a receiver also fine-tuned on the others (:func:`_fold_nets`). Writes
+    ``nets`` (learned observers) as it is; with ``fit["epochs"]``, each of ``trainable`` (by
+    source: those that read a receiver) also fine-tuned on the others (:func:`_fold_nets`).
+    Writes
     ``drives.csv`` (each drive's RMSE and ratio) and ``drives.md`` (the ratios to the EKF per
     drive, their mean and the worst), prints the latter and returns the summary."""
     from lbo.learn.noise_run import across_drives
     from lbo.scoring import drives as across
 
-    nets = dict(nets or {})
+    trainable = dict(trainable or {})
     what = []
     if cfg.epochs:
         how = "truth" if cfg.objective == "truth" else "innovations' likelihood, no truth read"
         what.append(f"the gyro EKF's noise learned on the others ({cfg.epochs} epochs, {how})")
-    epochs = fit["epochs"] if fit is not None else 0
     if nets:
         what.append(f"{len(nets)} learned observer(s) as trained" + (
-            f", and fine-tuned on the others ({epochs} epochs)" if epochs else ""))
+            f", and {len(trainable)} fine-tuned on the others ({fit['epochs']} epochs)"
+            if trainable and fit is not None else ""))
     print(f"leave-one-drive-out over {len(drives)} drives: {'; '.join(what)}, scored on each")
     table = across_drives(drives, cfg, vehicle, noise, observers, out,
                           progress=lambda line: print("  " + line),
-                          nets=(lambda k, train: _fold_nets(k, train, nets, fit, out))
-                          if nets else None)
+                          nets=(lambda k, train: _fold_nets(k, train, nets, trainable, fit,
+                                                            out)) if nets else None)
     wide = across.summary(table)
     write_table(table, out / "drives.csv")
     with atomic_path(out / "drives.md") as tmp:
@@ -301,24 +303,23 @@ def _across_drives(cfg: Any, observers: list[str], drives: list[pd.DataFrame],
     return wide
 
 
-def _fold_nets(k: int, train: list[pd.DataFrame], nets: Mapping[str, Any],
-               fit: Mapping[str, Any] | None, out: Path) -> dict[str, Any]:
+def _fold_nets(k: int, train: list[pd.DataFrame], nets: Sequence[Any],
+               trainable: Mapping[str, Any], fit: Mapping[str, Any] | None,
+               out: Path) -> dict[str, Any]:
     """The learned observers of leave-one-drive-out's fold ``k`` (drive k + 1 left out), by
-    row label: each of ``nets`` (by source) as it is, and with ``fit["epochs"]`` each of them
-    that reads a receiver fine-tuned from its weights on the fold's drives but the last,
-    kept by the last (a drive it does not train on: a fine-tuning that does not hold on
-    another drive is not kept), written as ``<name>_without_drive<k + 1>.ckpt``."""
+    row label: each of ``nets`` as it is, and each of ``trainable`` (by source) fine-tuned
+    from its weights as ``fit`` says on the fold's drives but the last, kept by the last (a
+    drive it does not train on: a fine-tuning that does not hold on another drive is not
+    kept), written as ``<name>_without_drive<k + 1>.ckpt``."""
     from lbo.learn.net_fit import fit_and_write
     from lbo.serve.observer import Observer
 
-    rows = net_rows(list(nets.values()))
+    rows = net_rows(list(nets))
     if fit is None or not fit["epochs"]:
         return rows
     # two drives or more: the last kept apart to keep the epoch by; one: it does both
     fit_on, keep_by = (train[:-1], train[-1:]) if len(train) > 1 else (train, train)
-    for source, obs in nets.items():
-        if not getattr(obs.net, "receiver", False):
-            continue
+    for source, obs in trainable.items():
         path = fit_and_write(out / f"{obs.name}_without_drive{k + 1}.ckpt", source, fit_on,
                              keep_by, f"on the hill drive's drives but drive {k + 1}",
                              fresh=False, epochs=fit["epochs"], lr=fit["lr"],
