@@ -355,7 +355,7 @@ def test_realdrive_trains_a_receiver_net_on_the_train_span(tmp_path, smoke_data)
                                    "model.dense_units=16")
     res = cli("lbo.realdrive", f"output_dir={tmp_path / 'rd'}", "observers=[ekf]",
               "learn.epochs=0", "learn.simulated=0", f"nets=[{out['checkpoint']}]",
-              "net_fit.epochs=1", cwd=tmp_path)
+              "net_fit.epochs=1", "across_drives=false", cwd=tmp_path)
     assert res.returncode == 0, res.stderr[-3000:]
     rows = pd.read_csv(tmp_path / "rd" / "results.csv").set_index("estimator")
     for label in ("cnn-N60 (window), receiver's accuracy and velocity",

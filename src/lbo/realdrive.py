@@ -273,9 +273,8 @@ def _across_drives(cfg: Any, observers: list[str], drives: list[pd.DataFrame],
     those same drives: none is held out of two), every observer scored on it, and each of
     ``nets`` (learned observers) as it is; with ``fit["epochs"]``, each of ``trainable`` (by
     source: those that read a receiver) also fine-tuned on the others (:func:`_fold_nets`).
-    Writes
-    ``drives.csv`` (each drive's RMSE and ratio) and ``drives.md`` (the ratios to the EKF per
-    drive, their mean and the worst), prints the latter and returns the summary."""
+    Writes ``drives.csv`` (each drive's RMSE and ratio) and ``drives.md`` (the ratios to the
+    EKF per drive, their mean and the worst), prints the latter and returns the summary."""
     from lbo.learn.noise_run import across_drives
     from lbo.scoring import drives as across
 
