@@ -43,17 +43,22 @@ def _example(net: Any, batch: int = 1, seed: int = 0):
         [100.0, -50.0, 0.5, 10.0, 0.0], dtype=torch.float64)
     if not getattr(net, "receiver", False):
         return win
-    from lbo.models.receiver_window import widen
+    from lbo.filters.measure import WIDTH as MEASURED
+    from lbo.models.receiver_window import COLUMNS, widen
 
+    c = {name: i for i, name in enumerate(COLUMNS)}
     rx = widen(win)
-    rx[:, :, 3:5] = 0.5 + torch.rand(batch, net.window, 2, generator=g, dtype=torch.float64)
-    rx[:, :, 6] = win[:, :, 2] + 0.05 * torch.randn(batch, net.window, generator=g,
-                                                    dtype=torch.float64)
-    rx[:, :, 7] = 0.05
-    rx[:, :, 10] = 0.02 * torch.randn(batch, net.window, generator=g, dtype=torch.float64)
-    rx[:, torch.arange(net.window) % 5 != 0, :8] = float("nan")
-    rx[batch // 2:, :, 2] = float("nan")
-    rx[:, :, 5] = torch.where(torch.isfinite(rx[:, :, 2]), 0.01, float("nan"))
+    rx[:, :, c["sx_m"]:c["sy_m"] + 1] = 0.5 + torch.rand(batch, net.window, 2, generator=g,
+                                                          dtype=torch.float64)
+    rx[:, :, c["course"]] = win[:, :, 2] + 0.05 * torch.randn(batch, net.window, generator=g,
+                                                              dtype=torch.float64)
+    rx[:, :, c["s_course"]] = 0.05
+    rx[:, :, c["r_m"]] = 0.02 * torch.randn(batch, net.window, generator=g,
+                                            dtype=torch.float64)
+    rx[:, torch.arange(net.window) % 5 != 0, :MEASURED] = float("nan")  # a fix every fifth
+    rx[batch // 2:, :, c["psi_m"]] = float("nan")
+    rx[:, :, c["spsi_m"]] = torch.where(torch.isfinite(rx[:, :, c["psi_m"]]), 0.01,
+                                        float("nan"))
     return rx
 
 
