@@ -43,22 +43,17 @@ def _example(net: Any, batch: int = 1, seed: int = 0):
         [100.0, -50.0, 0.5, 10.0, 0.0], dtype=torch.float64)
     if not getattr(net, "receiver", False):
         return win
-    from lbo.filters.measure import WIDTH as MEASURED
     from lbo.models.receiver_window import COLUMNS, widen
 
-    c = {name: i for i, name in enumerate(COLUMNS)}
+    c, b, n, f64 = {name: i for i, name in enumerate(COLUMNS)}, batch, net.window, torch.float64
     rx = widen(win)
-    rx[:, :, c["sx_m"]:c["sy_m"] + 1] = 0.5 + torch.rand(batch, net.window, 2, generator=g,
-                                                          dtype=torch.float64)
-    rx[:, :, c["course"]] = win[:, :, 2] + 0.05 * torch.randn(batch, net.window, generator=g,
-                                                              dtype=torch.float64)
+    rx[:, :, c["sx_m"]:c["sy_m"] + 1] = 0.5 + torch.rand(b, n, 2, generator=g, dtype=f64)
+    rx[:, :, c["course"]] = win[:, :, 2] + 0.05 * torch.randn(b, n, generator=g, dtype=f64)
     rx[:, :, c["s_course"]] = 0.05
-    rx[:, :, c["r_m"]] = 0.02 * torch.randn(batch, net.window, generator=g,
-                                            dtype=torch.float64)
-    rx[:, torch.arange(net.window) % 5 != 0, :MEASURED] = float("nan")  # a fix every fifth
-    rx[batch // 2:, :, c["psi_m"]] = float("nan")
-    rx[:, :, c["spsi_m"]] = torch.where(torch.isfinite(rx[:, :, c["psi_m"]]), 0.01,
-                                        float("nan"))
+    rx[:, :, c["r_m"]] = 0.02 * torch.randn(b, n, generator=g, dtype=f64)
+    rx[:, torch.arange(n) % 5 != 0, :c["s_course"] + 1] = float("nan")  # a fix every fifth
+    rx[b // 2:, :, c["psi_m"]] = float("nan")
+    rx[:, :, c["spsi_m"]] = torch.where(rx[:, :, c["psi_m"]].isfinite(), 0.01, float("nan"))
     return rx
 
 
