@@ -201,9 +201,14 @@ def test_train_on_logs_scores_the_test_files_against_their_peers(logs, tmp_path,
     # the adaptive EKF learns the test logs' alpha=3 noise: better than R at alpha=1
     assert pooled.loc["adaptive", "nrmse"] < 0.95
     assert metrics["test_nrmse"] == pytest.approx(pooled.loc["cnn-N20", "nrmse"])
+    # across the test logs: the mean and the worst of its ratio to the EKF on each
+    mine = table[(table["observer"] == "cnn-N20") & (table["file"] != "all")]["ratio_to_ekf"]
+    assert len(mine) == 3
+    assert metrics["test_drives_vs_ekf_mean"] == pytest.approx(mine.mean())
+    assert metrics["test_drives_vs_ekf_worst"] == pytest.approx(mine.max())
     run = mlflow.MlflowClient(tracking).get_run(metrics["run_id"])
-    assert {"test_nrmse", "test_rmse_x", "ratio_to_ekf", "ratio_to_adaptive"} <= set(
-        run.data.metrics)
+    assert {"test_nrmse", "test_rmse_x", "ratio_to_ekf", "ratio_to_adaptive",
+            "test_drives_vs_ekf_worst"} <= set(run.data.metrics)
     assert (tmp_path / "out" / "nrmse.png").stat().st_size > 0
     # fine-tuning from that run: it starts from its weights
     from lbo.learn.builders import build_net, initial_weights

@@ -110,17 +110,11 @@ def log_to_run(run_id: str | None, source: str, name: str, csv: Path, data: str,
     rows = table[table["observer"] == name]
     stamp = int(time.time() * 1000)
     if "file" in rows:  # a user's test logs: the pooled row
-        from lbo.scoring.logscore import ALL
+        from lbo.scoring.logscore import ALL, drive_metrics
 
         pooled = rows[rows["file"] == ALL].iloc[0]
-        metrics = {f"eval_{data}_nrmse": float(pooled["nrmse"])}
-        if table["file"].nunique() > 2:  # across the test logs: the mean and the worst
-            from lbo.scoring.logscore import across
-
-            wide = across(table)
-            row = wide[wide["estimator"] == name].iloc[0]
-            metrics |= {f"eval_{data}_drives_vs_ekf_mean": float(row["mean"]),
-                        f"eval_{data}_drives_vs_ekf_worst": float(row["worst"])}
+        metrics = {f"eval_{data}_nrmse": float(pooled["nrmse"]),
+                   **drive_metrics(table, name, f"eval_{data}_")}
     else:
         metrics = {f"eval_{data}_nrmse_alpha_{a:g}": float(v)
                    for a, v in zip(rows["alpha"], rows["nrmse"])}

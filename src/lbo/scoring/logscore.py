@@ -94,12 +94,24 @@ def table(estimates: Mapping[str, np.ndarray], arr: Trajectories,
 
 def metrics(scores: pd.DataFrame, observer: str) -> dict[str, float]:
     """The pooled scores of ``observer`` as MLflow metrics: ``test_nrmse``,
-    ``test_rmse_{x,y,psi}`` and ``ratio_to_<peer>``."""
+    ``test_rmse_{x,y,psi}`` and ``ratio_to_<peer>``; across two test logs or more, also
+    ``test_drives_vs_ekf_mean`` and ``_worst`` (:func:`drive_metrics`)."""
     row = scores[(scores["observer"] == observer) & (scores["file"] == ALL)].iloc[0]
     out = {"test_nrmse": float(row["nrmse"])}
     out.update({f"test_rmse_{v}": float(row[f"rmse_{v}"]) for v in ("x", "y", "psi")})
     out.update({c: float(row[c]) for c in scores.columns if c.startswith("ratio_to_")})
-    return out
+    return out | drive_metrics(scores, observer, "test_")
+
+
+def drive_metrics(scores: pd.DataFrame, observer: str, prefix: str) -> dict[str, float]:
+    """``<prefix>drives_vs_ekf_mean`` and ``_worst``: the mean and the worst over the test
+    logs of ``observer``'s ratio to the EKF on each (:func:`across`); none with one log."""
+    if scores["file"].nunique() <= 2:  # the pooled row and one log
+        return {}
+    wide = across(scores)
+    row = wide[wide["estimator"] == observer].iloc[0]
+    return {f"{prefix}drives_vs_ekf_mean": float(row["mean"]),
+            f"{prefix}drives_vs_ekf_worst": float(row["worst"])}
 
 
 def across(scores: pd.DataFrame) -> pd.DataFrame:
