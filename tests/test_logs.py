@@ -326,14 +326,19 @@ def test_an_observers_run_is_told_its_mean_and_worst_across_the_test_logs(tmp_pa
                                     "eval_logs_drives_vs_ekf_worst": 1.1})
 
 
+def ten_hz_fixes(logs: Path, folder: Path) -> Path:
+    """Four of the training logs with a fix at every fifth row only (10 Hz), in ``folder``."""
+    for p in sorted((logs / "train").glob("*.csv"))[:4]:
+        df = pd.read_csv(p)
+        df.loc[df.index % 5 != 0, ["x_m", "y_m", "psi_m"]] = np.nan
+        write(df, folder / p.name)
+    return folder
+
+
 def test_logs_with_gnss_slower_than_the_inputs_train_with_fix_rates(logs, tmp_path):
     from lbo.learn.builders import datamodule, prepare_data
 
-    slow = tmp_path / "slow"
-    for p in sorted((logs / "train").glob("*.csv"))[:4]:
-        df = pd.read_csv(p)
-        df.loc[df.index % 5 != 0, ["x_m", "y_m", "psi_m"]] = np.nan  # 10 Hz fixes
-        write(df, slow / p.name)
+    slow = ten_hz_fixes(logs, tmp_path / "slow")
     cfg = logs_cfg(logs, tmp_path, f"data.train=[{slow}]", "train_noise=stored")
     with pytest.raises(LboError, match="fix_rates"):
         datamodule(cfg, prepare_data(cfg)[0])
@@ -348,11 +353,7 @@ def test_logs_with_gnss_slower_than_the_inputs_train_with_fix_rates(logs, tmp_pa
 def test_dropping_fixes_on_logs_with_gaps_never_leaves_a_window_without_a_fix(logs, tmp_path):
     from lbo.learn.builders import datamodule, prepare_data
 
-    slow = tmp_path / "slow"
-    for p in sorted((logs / "train").glob("*.csv"))[:4]:
-        df = pd.read_csv(p)
-        df.loc[df.index % 5 != 0, ["x_m", "y_m", "psi_m"]] = np.nan  # 10 Hz fixes
-        write(df, slow / p.name)
+    slow = ten_hz_fixes(logs, tmp_path / "slow")
     cfg = logs_cfg(logs, tmp_path, f"data.train=[{slow}]", "train_noise=stored",
                    "fix_rates=[1]")
     dm = datamodule(cfg, prepare_data(cfg)[0])
