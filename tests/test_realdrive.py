@@ -231,8 +231,44 @@ def test_realdrive_learns_on_the_other_drives_and_scores_each(short_drives, tmp_
     assert list(wide.columns) == ["estimator", "drive 1", "drive 2", "drive 3", "mean", "worst"]
     out = capsys.readouterr().out
     assert "leave-one-drive-out over 3 drives: the gyro EKF's noise learned on the others " \
-           "(1 epochs, innovations' likelihood, no truth read), scored on each" in out
+           "(1 epochs, innovations' likelihood, no truth read; the epoch kept by the same " \
+           "drives), scored on each" in out
     assert "drive 2 of 3, learned on drives 1, 3: best " in out
+
+
+@pytest.mark.parametrize(("keep", "expected"), [
+    ("same", [([1, 2], [1, 2]), ([0, 2], [0, 2]), ([0, 1], [0, 1])]),
+    ("held_out", [([1], [2]), ([0], [2]), ([0], [1])])])
+def test_each_folds_noise_is_kept_by_the_drives_across_keep_names(short_drives, tmp_path,
+                                                                   monkeypatch, capsys, keep,
+                                                                   expected):
+    """across_keep: a planted mark on each drive says which drives each fold's noise fit
+    learned on and which kept its epoch (the fit itself stood in for: its start is scored)."""
+    from types import SimpleNamespace
+
+    from omegaconf import OmegaConf
+
+    from lbo.learn import gyro_fit
+    from lbo.learn.gyro_fit import Settings
+    from lbo.realdrive import ACROSS, KEEPS, _across_drives
+    from lbo.sim.noise import Noise
+
+    seen = []
+
+    def fit(train_logs, val_logs, vehicle, R, start, **kw):
+        seen.append(([int(p["mark"].iloc[0]) for p in train_logs],
+                     [int(p["mark"].iloc[0]) for p in val_logs]))
+        return SimpleNamespace(noise=start)
+
+    monkeypatch.setattr(gyro_fit, "fit", fit)
+    drives = [p.assign(mark=k) for k, p in enumerate(short_drives)]
+    wide = _across_drives(Settings(epochs=1, segment_s=5.0, lr=0.1), ["ekf"], drives, Vehicle(),
+                          Noise.from_cfg(OmegaConf.load(CONF / "noise" / "paper.yaml")),
+                          tmp_path, held_out=keep == "held_out")
+    assert keep in KEEPS and seen == expected
+    assert np.isfinite(wide.set_index("estimator").loc[ACROSS, "mean"])
+    kept = "by the last of them" if keep == "held_out" else "by the same drives"
+    assert f"(1 epochs, truth; the epoch kept {kept}), scored on each" in capsys.readouterr().out
 
 
 @pytest.mark.slow
@@ -393,6 +429,9 @@ def test_without_the_extra_and_with_a_bad_observer_it_is_one_line(monkeypatch, t
     res = cli("lbo.realdrive", f"output_dir={tmp_path}", "across_drives=yes", cwd=tmp_path)
     assert res.stderr.strip().splitlines()[-1] == (
         "error: across_drives must be true or false, got 'yes'")
+    res = cli("lbo.realdrive", f"output_dir={tmp_path}", "across_keep=last", cwd=tmp_path)
+    assert res.returncode == 2 and res.stderr.strip().splitlines()[-1] == (
+        "error: across_keep must be one of ['same', 'held_out'], got 'last'")
     res = cli("lbo.realdrive", f"output_dir={tmp_path}", "learn.ahead_s=3", cwd=tmp_path)
     assert res.stderr.strip().splitlines()[-1] == (
         "error: learn.ahead_s applies to learn.objective=innovations (the fit by the fixes' "

@@ -52,7 +52,7 @@ import pandas as pd
 from omegaconf import DictConfig
 
 from lbo.core.atomic import atomic_path
-from lbo.core.checks import boolean, integer, number
+from lbo.core.checks import boolean, integer, number, require
 from lbo.core.cli import entry
 from lbo.core.errors import LboError
 from lbo.filters import classical
@@ -75,7 +75,7 @@ from lbo.scoring.receiver import (
 from lbo.sim.columns import STATE
 
 __all__ = ["ACROSS", "FINE_TUNED", "FIT_FINE_TUNED", "FIT_KINDS", "FIT_OTHER_DRIVES", "FIT_SPAN",
-           "LEARNED", "RATIOS", "SIMULATED", "main", "realdrive"]
+           "KEEPS", "LEARNED", "RATIOS", "SIMULATED", "main", "realdrive"]
 
 LEARNED = "gyro, noise learned on the train span"
 """The row of the gyro EKF whose noise :mod:`lbo.learn.gyro_fit` learned from the defaults."""
@@ -93,6 +93,9 @@ FIT_OTHER_DRIVES = "fine-tuned on the other drives"
 one scored (the last of them kept for validation) from its own weights (its name first)."""
 FIT_KINDS = ("finetuned", "span")
 """The checkpoints' suffixes: ``<name>_finetuned.ckpt``, ``<name>_span.ckpt``."""
+KEEPS = ("same", "held_out")
+"""``across_keep``: the drives that keep a fold's best epoch of the noise, the same it learns
+on, or the last of them, held out of its learning (:func:`lbo.scoring.drives.kept_apart`)."""
 RATIOS = ("vs_ekf", "vs_ekf_same_rows", "vs_ekf_moving")
 """The table's ratio columns: the measure against the EKF over the rows each estimates, over
 the rows both estimate, and over those of them where the car moves
@@ -127,6 +130,8 @@ def realdrive(cfg: DictConfig) -> dict[str, Any]:
     learn = Settings.from_cfg(cfg.learn)
     simulated_epochs = integer(cfg.learn.simulated, "learn.simulated", 0)
     across_drives = boolean(cfg.get("across_drives", True), "across_drives")
+    keep = cfg.get("across_keep", "same")
+    require(keep in KEEPS, "across_keep", f"one of {list(KEEPS)}", keep)
     outages = Outages.from_cfg(cfg.get("outages"))
     out = Path(str(cfg.output_dir))
     paths = {k: check_output_path(out / f"hill_{k}.parquet") for k in hguide.SPANS}
@@ -187,7 +192,8 @@ def realdrive(cfg: DictConfig) -> dict[str, Any]:
     drives = None
     if across_drives and (learn.epochs or nets):
         drives = _across_drives(learn, observers, hguide.drives(log), vehicle, noise, out,
-                                nets=nets, trainable=trainable, fit=fit)
+                                nets=nets, trainable=trainable, fit=fit,
+                                held_out=keep == "held_out")
     return {"table": table, "alignment": alignment, "paths": paths, "drives": drives,
             "outages": through}
 
@@ -266,11 +272,13 @@ def _learn(cfg: Any, simulated_epochs: int, simulated: DictConfig,
 def _across_drives(cfg: Any, observers: list[str], drives: list[pd.DataFrame],
                    vehicle: Any, noise: Any, out: Path, nets: Sequence[Any] = (),
                    trainable: Mapping[str, Any] | None = None,
-                   fit: Mapping[str, Any] | None = None) -> pd.DataFrame:
+                   fit: Mapping[str, Any] | None = None, held_out: bool = False
+                   ) -> pd.DataFrame:
     """Leave-one-drive-out (:mod:`lbo.scoring.drives`): for each of the drive's drives, the
     gyro EKF's noise learned from the defaults on the others as ``cfg``
-    (:class:`lbo.learn.gyro_fit.Settings`) says (each fold's best epoch kept by
-    those same drives: none is held out of two), every observer scored on it, and each of
+    (:class:`lbo.learn.gyro_fit.Settings`) says (each fold's best epoch kept by those same
+    drives, or with ``held_out`` learned on all but the last and kept by the last), every
+    observer scored on it, and each of
     ``nets`` (learned observers) as it is; with ``fit["epochs"]``, each of ``trainable`` (by
     source: those that read a receiver) also fine-tuned on the others (:func:`_fold_nets`).
     Writes ``drives.csv`` (each drive's RMSE and ratio) and ``drives.md`` (the ratios to the
@@ -282,14 +290,16 @@ def _across_drives(cfg: Any, observers: list[str], drives: list[pd.DataFrame],
     what = []
     if cfg.epochs:
         how = "truth" if cfg.objective == "truth" else "innovations' likelihood, no truth read"
-        what.append(f"the gyro EKF's noise learned on the others ({cfg.epochs} epochs, {how})")
+        kept = "by the last of them" if held_out else "by the same drives"
+        what.append(f"the gyro EKF's noise learned on the others ({cfg.epochs} epochs, {how}; "
+                    f"the epoch kept {kept})")
     if nets:
         what.append(f"{len(nets)} learned observer(s) as trained" + (
             f", and {len(trainable)} fine-tuned on the others ({fit['epochs']} epochs)"
             if trainable and fit is not None else ""))
     print(f"leave-one-drive-out over {len(drives)} drives: {'; '.join(what)}, scored on each")
     table = across_drives(drives, cfg, vehicle, noise, observers, out,
-                          progress=lambda line: print("  " + line),
+                          progress=lambda line: print("  " + line), held_out=held_out,
                           nets=(lambda k, train: _fold_nets(k, train, nets, trainable, fit,
                                                             out)) if nets else None)
     wide = across.summary(table)
@@ -311,13 +321,13 @@ def _fold_nets(k: int, train: list[pd.DataFrame], nets: Sequence[Any],
     drive it does not train on: a fine-tuning that does not hold on another drive is not
     kept), written as ``<name>_without_drive<k + 1>.ckpt``."""
     from lbo.learn.net_fit import fit_and_write
+    from lbo.scoring import drives as across
     from lbo.serve.observer import Observer
 
     rows = net_rows(list(nets))
     if fit is None or not fit["epochs"]:
         return rows
-    # two drives or more: the last kept apart to keep the epoch by; one: it does both
-    fit_on, keep_by = (train[:-1], train[-1:]) if len(train) > 1 else (train, train)
+    fit_on, keep_by = across.kept_apart(train)
     for source, obs in trainable.items():
         path = fit_and_write(out / f"{obs.name}_without_drive{k + 1}.ckpt", source, fit_on,
                              keep_by, f"on the hill drive's drives but drive {k + 1}",

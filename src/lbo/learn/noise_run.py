@@ -113,12 +113,13 @@ def score(logs: list[pd.DataFrame], names: list[str], noise: GyroNoise, spec: Lo
 def across_drives(drives: list[pd.DataFrame], settings: Settings, vehicle: Any, noise: Any,
                   observers: list[str], out: Path | None = None,
                   progress: Callable[[str], None] | None = print,
-                  nets: Callable[[int, list[pd.DataFrame]], Mapping[str, Any]] | None = None
-                  ) -> pd.DataFrame:
+                  nets: Callable[[int, list[pd.DataFrame]], Mapping[str, Any]] | None = None,
+                  held_out: bool = False) -> pd.DataFrame:
     """Leave-one-drive-out (:func:`lbo.scoring.drives.leave_one_out`): for each drive (a log
     with truth), the gyro EKF's noise learned from the defaults on all the others as
-    ``settings`` says (none with 0 epochs; the epoch kept by those same drives: none is held
-    out of two; by the innovations their truth is not read), it, ``observers`` and the
+    ``settings`` says (none with 0 epochs; by the innovations their truth is not read), the
+    epoch kept by those same drives, or with ``held_out`` learned on all of them but the last
+    and kept by the last (:func:`lbo.scoring.drives.kept_apart`); it, ``observers`` and the
     learned observers ``nets(k, train)`` gives for the fold (by row label) scored on the one
     left out. With ``out``, each fold's noise is written as
     ``gyro_noise_without_drive<k>.json``. Returns the long table (one row per drive and
@@ -131,7 +132,8 @@ def across_drives(drives: list[pd.DataFrame], settings: Settings, vehicle: Any, 
     def learn(k: int, train: list[pd.DataFrame]) -> across.Fold:
         noises = {}
         if settings.epochs:
-            fitted = gyro_fit.fit(train, train, vehicle, R, start, progress=None,
+            fit_on, keep_by = across.kept_apart(train) if held_out else (train, train)
+            fitted = gyro_fit.fit(fit_on, keep_by, vehicle, R, start, progress=None,
                                   **settings.kwargs(vehicle.dt))
             if out is not None:
                 fitted.noise.save(out / f"gyro_noise_without_drive{k + 1}.json")

@@ -22,7 +22,7 @@ from lbo.filters.gyro import GyroNoise
 from lbo.scoring.receiver import EKF, ratio_to, score
 from lbo.sim.vehicle import Vehicle
 
-__all__ = ["Fold", "folds", "leave_one_out", "markdown", "summary"]
+__all__ = ["Fold", "folds", "kept_apart", "leave_one_out", "markdown", "summary"]
 
 
 class Fold(NamedTuple):
@@ -44,6 +44,13 @@ def folds(n: int) -> list[tuple[list[int], int]]:
     if n < 2:
         raise LboError(f"leave-one-drive-out needs two drives or more, got {n}")
     return [([i for i in range(n) if i != k], k) for k in range(n)]
+
+
+def kept_apart(train: list[pd.DataFrame]) -> tuple[list[pd.DataFrame], list[pd.DataFrame]]:
+    """A fold's drives as ``(learn on, keep the epoch by)``: all but the last, and the last
+    (a drive the fit does not learn on, so an epoch that does not hold on another drive is
+    not kept); one drive does both."""
+    return (train[:-1], train[-1:]) if len(train) > 1 else (train, train)
 
 
 def leave_one_out(drives: Sequence[pd.DataFrame], learn: Learner, observers: Sequence[str],
