@@ -104,7 +104,14 @@ def observe(cfg: DictConfig) -> dict[str, Any]:
     """
     from lbo.filters.classical import check_gyro_noise, on_logs
     from lbo.filters.gyro import GyroNoise
-    from lbo.scoring.unscored import heading_rows, heading_unseen, psi_text, scored_rmse, unscored
+    from lbo.scoring.unscored import (
+        heading_rows,
+        heading_unseen,
+        psi_text,
+        scored_rmse,
+        taken,
+        unscored,
+    )
     from lbo.serve.engines import engine_device
     from lbo.serve.observer import EnvelopeWarning, Observer
     from lbo.serve.refusals import no_receiver
@@ -206,7 +213,7 @@ def observe(cfg: DictConfig) -> dict[str, Any]:
         obs.inputs = _fitted_inputs(meas, u, vehicle, noise)
     with warnings.catch_warnings():  # said below, one line per field
         warnings.simplefilter("ignore", EnvelopeWarning)
-        found = obs.run(_taken(obs, meas), u, source=where, smooth=smooth)
+        found = obs.run(taken(obs, meas), u, source=where, smooth=smooth)
     est, valid, cov = found.state, found.valid, found.cov
     envelope = obs.check_envelope(m, u) if mode != "off" else None
     result: dict[str, Any] = {"output": output, "observer": obs.name, "rows": len(df),
@@ -239,7 +246,7 @@ def observe(cfg: DictConfig) -> dict[str, Any]:
     write_table(out, output)
     others = {}
     for other, o in compared.items():
-        e, ok = o.run(_taken(o, meas), u, source=where)
+        e, ok = o.run(taken(o, meas), u, source=where)
         others[o.name if o.name not in others and o.name != obs.name else other] = \
             np.where(ok[:, None], e, np.nan)
         if truth:
@@ -281,8 +288,8 @@ def observe(cfg: DictConfig) -> dict[str, Any]:
     if any(c in df.columns for c in RECEIVER):
         told = [c for c, held in zip(RECEIVER, np.isfinite(meas.receiver).any(0)) if held]
         idle = "r_m" in told and obs.takes_receiver and not obs.reads_gyro
-        taken = [c for c in told if not (idle and c == "r_m")]
-        print(f"receiver: {', '.join(taken) or 'no value'} "
+        read = [c for c in told if not (idle and c == "r_m")]
+        print(f"receiver: {', '.join(read) or 'no value'} "
               + ("taken (reported accuracy as R, velocity as course over ground)"
                  if obs.takes_receiver else f"not read: {no_receiver(obs.name)}")
               + (f"; r_m not read by {name} (observer=gyro reads it, and a net trained "
@@ -307,7 +314,7 @@ def observe(cfg: DictConfig) -> dict[str, Any]:
                   f"trained on ({flag}; column outside names the fields)")
     # the reasons that apply, each with its count: a log of position fixes without psi_m nor a
     # velocity never gives the robust observer a heading, not a window or a first fix
-    reasons = unscored(obs, est, valid, fix, heading_rows(_taken(obs, meas), u,
+    reasons = unscored(obs, est, valid, fix, heading_rows(taken(obs, meas), u,
                                                           obs.vehicle.wheelbase),
         envelope.outside if envelope is not None and mode == "mark" else None)
     if result["valid"] < len(df):
@@ -342,23 +349,17 @@ def observe(cfg: DictConfig) -> dict[str, Any]:
     return result
 
 
-def _taken(obs: Any, meas: Measurements) -> Measurements:
-    """What observer ``obs`` is given of a log's measurements: all of them where it takes a
-    receiver's channels, its fixes alone where it does not (lbo.observe says so)."""
-    return meas if obs.takes_receiver else Measurements.of(meas.pose)
-
-
 def _ekf_reference(obs: Any, meas: Measurements, u: np.ndarray, z: np.ndarray,
                    valid: np.ndarray, unseen: np.ndarray, where: str) -> np.ndarray:
     """E_ref (3,) of the NRMSE on a log: the RMSE of lbo's EKF (R at alpha=1, ``obs``'s
     vehicle and noise) over the rows scored for ``obs`` (``valid`` (T,), the heading without
     ``unseen`` (T,) ones nor those before the EKF's own first heading). As on a user's test
     logs, where the noise level is unknown: the EKF scores 1, below 1 is better than it."""
-    from lbo.scoring.unscored import heading_unseen, scored_rmse
+    from lbo.scoring.unscored import heading_unseen, scored_rmse, taken
     from lbo.serve.observer import Observer
 
     ekf = Observer.load("ekf", obs.vehicle, obs.noise)
-    est, ok = ekf.run(_taken(ekf, meas), u, source=where)
+    est, ok = ekf.run(taken(ekf, meas), u, source=where)
     return scored_rmse(est, z, valid & ok, unseen | heading_unseen(ekf, meas, u))
 
 

@@ -270,8 +270,8 @@ class AdaptiveStepper(KalmanStepper):
                                                      settings["r_floor"])
         self.forgetting, self.r_floor = float(forgetting), r_floor
         m0 = measure.widen(m0).copy()
-        measure.row_channels(m0).sigma[:] = np.nan  # it learns R: reported accuracies are not
-        # its to take
+        # it learns R: the reported accuracies are not its to take
+        measure.row_channels(m0).sigma[:] = np.nan
         diag = np.arange(3)
         R = np.array(R, dtype=float)
         self.r_hat = R[:, diag, diag].copy()  # (G, 3) diagonal of the learned R

@@ -77,9 +77,9 @@ def start_state(m0: np.ndarray, R: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     diagonal floored). Its heading is ``psi_m``, else the course over ground (its variance
     ``s_course^2``), else 0 rad with variance :data:`HEADING_VAR0`."""
     m0 = measure.widen(m0)
-    x = np.array(measure.row_channels(m0).pose, dtype=float)
-    P = floor_diag(measure.step_cov(m0, R))
     c = measure.row_channels(m0)
+    x = np.array(c.pose, dtype=float)
+    P = floor_diag(measure.step_cov(m0, R))
     by_course = ~np.isfinite(x[:, 2]) & np.isfinite(c.course)
     blind = ~measure.heading_held(m0)
     x[by_course, 2] = c.course[by_course]

@@ -89,6 +89,12 @@ class FilterStep(_Host):
         """The GNSS drift's factor over one step, ``exp(-1 / tau)`` (tau in steps), ()."""
         return torch.exp(-torch.exp(-self.log_drift_tau))
 
+    def drift_walk(self, var_b: torch.Tensor) -> torch.Tensor:
+        """The drift's process noise (B, 5, 5) for its stationary variances var_b (B,):
+        ``var_b (1 - phi^2)`` on ``b_x`` and ``b_y``, so that the drift keeps that variance."""
+        drift = self.eye[3:]  # (2, 5) selector
+        return (var_b * (1 - self.drift_phi() ** 2))[:, None, None] * (drift.T @ drift)
+
     def measurement_matrix(self) -> torch.Tensor:
         """H (3, n): the pose, plus the drift on x and y."""
         eye = self.eye

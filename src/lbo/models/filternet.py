@@ -199,12 +199,10 @@ class WindowFilter(ProcessModel, FilterStep, nn.Module):
         The drift's mean is unobservable from positions alone; what the states buy is a filter
         that knows its position fixes' errors are correlated, and averages them no further
         than that allows."""
-        phi = self.drift_phi()
         white = (R[:, 0, 0] * R[:, 1, 1]) ** 0.25  # (B,) white position sigma
         var_b = (torch.exp(self.log_drift_ratio) * white) ** 2  # (B,) stationary variance
-        pose, drift = self.eye[:3], self.eye[3:]  # selectors: (3, 5) and (2, 5)
-        return (pose.T @ Q @ pose + (var_b * (1 - phi**2))[:, None, None] * (drift.T @ drift),
-                var_b)
+        pose = self.eye[:3]  # (3, 5) selector
+        return pose.T @ Q @ pose + self.drift_walk(var_b), var_b
 
     def _fix_residuals(self, x: torch.Tensor
                        ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:

@@ -343,8 +343,7 @@ class RecursiveFilter(nn.Module):
         drift_var = None
         if self.n == 5:
             drift_var = self._drift_variance(R)
-            drift = fo.eye[3:]  # (2, 5) selector
-            Q = Q + (drift_var * (1 - fo.drift_phi() ** 2))[:, None, None] * (drift.T @ drift)
+            Q = Q + fo.drift_walk(drift_var)
         prior = fo.predict(z, P, u_prev[:, 0], u_prev[:, 1], body, Q,
                            u_prev[:, 2] if self.gyro else None)
         z_upd, P_upd = fo.correct(prior.z, prior.P, meas, R, held.to(m.dtype))

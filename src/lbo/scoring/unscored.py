@@ -44,6 +44,12 @@ def heading_rows(meas: Measurements, u: np.ndarray, wheelbase: float) -> np.ndar
     return np.isfinite(rows[:, :2]).all(1) & measure.heading_held(rows)
 
 
+def taken(obs: Any, meas: Measurements) -> Measurements:
+    """What observer ``obs`` (an :class:`lbo.Observer`) is given of a log's measurements: all
+    of them where it takes a receiver's channels, its fixes alone where it does not."""
+    return meas if obs.takes_receiver else Measurements.of(meas.pose)
+
+
 def heading_unseen(obs: Any, meas: Measurements, u: np.ndarray) -> np.ndarray:
     """(T,) bool: the rows of a log, its measurements ``meas`` (T steps; the receiver's
     channels read where ``obs`` takes them) at inputs u (T, 2), at which classical observer
@@ -65,8 +71,7 @@ def heading_unseen(obs: Any, meas: Measurements, u: np.ndarray) -> np.ndarray:
         return blind
     # run() wraps psi_m first; whether a row holds one is all that matters here
     runner = ClassicalRunner(obs.name, obs.vehicle, obs.noise, gyro=obs.gyro_noise)
-    rows, u = runner.log_rows(meas if obs.takes_receiver else Measurements.of(meas.pose), u,
-                              None)
+    rows, u = runner.log_rows(taken(obs, meas), u, None)
     rows = measure.widen(rows)
     pos = np.isfinite(rows[:, :2]).all(1)
     if not pos.any():
