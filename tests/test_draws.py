@@ -7,7 +7,7 @@ import pytest
 import torch
 from scipy import stats
 
-from helpers import train_cfg
+from helpers import store_client, train_cfg
 from lbo.core.errors import LboError
 from lbo.learn.builders import noise_settings
 from lbo.learn.datamodule import FixedDataset, WindowDataModule, WindowDataset, rows, window_ends
@@ -365,10 +365,9 @@ def test_bad_train_noise_is_one_line_naming_the_field(tmp_path, smoke_data, over
                                        ["train_noise.distribution=gamma"]])
 def test_bad_train_noise_is_refused_before_anything_is_written(tmp_path, smoke_data, tracking,
                                                                overrides):
-    import mlflow
 
     with pytest.raises(LboError, match="^train_noise"):
         train(train_cfg(tmp_path, smoke_data, *overrides))
     assert not (tmp_path / "out").exists()  # no checkpoint folder, no config.yaml
-    exp = mlflow.MlflowClient(tracking).get_experiment_by_name("lbo-smoke")
-    assert exp is None or mlflow.MlflowClient(tracking).search_runs([exp.experiment_id]) == []
+    exp = store_client(tracking).get_experiment_by_name("lbo-smoke")
+    assert exp is None or store_client(tracking).search_runs([exp.experiment_id]) == []

@@ -10,7 +10,7 @@ import pandas as pd
 import pytest
 import torch
 
-from helpers import compose_cfg
+from helpers import compose_cfg, store_client
 from lbo.core.errors import LboError
 
 COLUMNS = ["t", "x_m", "y_m", "psi_m", "V", "delta", "x", "y", "psi"]
@@ -306,13 +306,12 @@ def test_an_observers_run_is_told_its_mean_and_worst_across_the_test_logs(tmp_pa
                                                                          monkeypatch):
     """log_to_run on a user's logs: the pooled NRMSE, and with two logs or more the mean and
     the worst of its ratio to the EKF on each (a real MLflow store)."""
-    import mlflow
 
     from lbo.evaluate import log_to_run
 
     uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
     monkeypatch.setenv("MLFLOW_TRACKING_URI", uri)
-    client = mlflow.MlflowClient(uri)
+    client = store_client(uri)
     run = client.create_run(client.create_experiment("e", f"{tmp_path / 'art'}")).info.run_id
     pd.DataFrame({"observer": ["mine"] * 3 + ["ekf"] * 3,
                   "file": ["all", "/a/d1.csv", "/b/d2.csv"] * 2,

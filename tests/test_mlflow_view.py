@@ -12,6 +12,7 @@ import subprocess
 import mlflow
 import pytest
 
+from helpers import store_client
 from helpers.servers import mlflow_server
 from lbo.core.paths import sqlite_path
 from lbo.tracking import view
@@ -72,7 +73,7 @@ def test_make_ui_lists_the_view_of_each_of_lbos_experiments(tmp_path):
 
     uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
     assert view.addresses(uri) == [] and not (tmp_path / "mlflow.db").exists()
-    client = mlflow.MlflowClient(uri)
+    client = store_client(uri)
     ids = {name: client.create_experiment(name) for name in ("lbo", "lbo-smoke", "someone's")}
     res = cli("lbo.tracking.view", uri, process=True)  # a module run as make ui runs it
     assert res.returncode == 0, res.stderr[-2000:]

@@ -92,3 +92,18 @@ def test_where_no_empty_store_can_be_made_mlflow_makes_the_file(tmp_path, cache,
     _, exp = ensure_experiment(f"sqlite:///{path}", "lbo", None)
     assert MlflowClient(f"sqlite:///{path}").get_experiment(exp).name == "lbo"
     assert not list(cache.glob("*.db")) and not list(cache.glob(".*part"))
+
+
+def test_looking_for_a_configs_runs_in_a_store_not_made_yet_finds_none_and_makes_none(tmp_path):
+    """``resume=true`` and the training plan look for a config's runs before training: a
+    SQLite store that does not exist holds none, and looking must not make the file (MLflow
+    would build it, a second or more, before the training makes it as lbo does)."""
+    from omegaconf import OmegaConf
+
+    from lbo.learn.resume import prior_runs
+
+    path = tmp_path / "mlflow.db"
+    cfg = OmegaConf.create({"logger": {"tracking_uri": f"sqlite:///{path}",
+                                       "experiment_name": "lbo-smoke"}})
+    assert prior_runs(cfg, "0" * 16, keep_resumable=True) == (None, (None, None))
+    assert not path.exists()

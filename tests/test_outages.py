@@ -12,7 +12,7 @@ import pandas as pd
 import pytest
 from omegaconf import OmegaConf
 
-from helpers import compose_cfg
+from helpers import compose_cfg, store_client
 from lbo.core.errors import LboError
 from lbo.core.paths import CONF_DIR
 from lbo.scoring import outages
@@ -300,13 +300,12 @@ def test_outages_are_for_the_test_grid_and_checked_before_any_work(tmp_path):
 def test_an_observers_run_is_told_its_error_at_the_outages_end(tmp_path, monkeypatch):
     """log_to_run with an outages.csv among the files: ``eval_<data>_outage_end_m_alpha_<a>``
     for the observer's rows (a real MLflow store)."""
-    import mlflow
 
     from lbo.evaluate import log_to_run
 
     uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
     monkeypatch.setenv("MLFLOW_TRACKING_URI", uri)
-    client = mlflow.MlflowClient(uri)
+    client = store_client(uri)
     run = client.create_run(client.create_experiment("e", f"{tmp_path / 'art'}")).info.run_id
     pd.DataFrame({"observer": ["mine", "mine", "ekf"], "alpha": [1.0, 3.0, 1.0],
                   "nrmse": [0.9, 2.0, 1.0]}).to_csv(tmp_path / "evaluation.csv", index=False)

@@ -9,7 +9,7 @@ import pandas as pd
 import pytest
 import torch
 
-from helpers import compose_cfg, observe
+from helpers import compose_cfg, observe, store_client
 from lbo.core.angles import wrap_angle
 from lbo.core.errors import LboError
 from lbo.learn.lightning_module import TrainingModule
@@ -161,8 +161,8 @@ def test_filternet_with_relative_features_is_refused_before_training(tmp_path, s
         train(cfg)
     assert "\n" not in str(err.value)
     assert not (tmp_path / "out").exists()
-    exp = mlflow.MlflowClient(uri).get_experiment_by_name("lbo-smoke")
-    assert exp is None or mlflow.MlflowClient(uri).search_runs([exp.experiment_id]) == []
+    exp = store_client(uri).get_experiment_by_name("lbo-smoke")
+    assert exp is None or store_client(uri).search_runs([exp.experiment_id]) == []
 
 
 def test_filternet_with_relative_features_is_refused_before_the_data_is_generated(

@@ -9,13 +9,12 @@ import subprocess
 import sys
 from pathlib import Path
 
-import mlflow
 import numpy as np
 import pandas as pd
 import pytest
 import torch
 
-from helpers import cli, one_line_error, train_cfg
+from helpers import cli, one_line_error, store_client, train_cfg
 from helpers.servers import free_port
 from lbo.core.errors import LboError, TrainingDiverged
 from lbo.core.runfolder import claim
@@ -42,7 +41,7 @@ def tmpfs(folder: Path, options: str) -> None:
 
 
 def runs_in(uri: str) -> list:
-    client = mlflow.MlflowClient(uri)
+    client = store_client(uri)
     exp = client.get_experiment_by_name("lbo-smoke")
     return client.search_runs([exp.experiment_id]) if exp else []
 

@@ -14,7 +14,7 @@ from conftest import compose_cfg
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf, open_dict
 
-from helpers import cli, train_cfg
+from helpers import cli, store_client, train_cfg
 from lbo.core.paths import CONF_DIR, REPO_ROOT
 from lbo.learn.identity import HASH_VERSION, MARKER, config_hash, read_marker
 from lbo.learn.layouts import LATER_DEFAULTS, LATER_MODEL_DEFAULTS, hash_v1, unlayered, upgraded
@@ -73,7 +73,7 @@ def _store(tmp: Path, runs: dict[str, tuple[str, str]]) -> tuple[str, dict[str, 
     tagged ``config_hash`` only, which logged ``config.yaml`` (``runs``: name -> (its text, its
     tag)). Returns the store's URI and the run ids by name."""
     uri = f"sqlite:///{tmp / 'mlflow.db'}"
-    client = mlflow.MlflowClient(uri)
+    client = store_client(uri)
     exp = client.create_experiment(EXPERIMENT_BEFORE,
                                    artifact_location=(tmp / "artifacts").as_uri())
     ids = {}
@@ -468,7 +468,7 @@ def test_a_marker_left_by_someone_elses_migration_is_mended_only_for_its_own_con
     from lbo.learn.resume import own_store
 
     uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
-    client = mlflow.MlflowClient(uri)
+    client = store_client(uri)
     exp = client.create_experiment("lbo-paper", artifact_location=(tmp_path / "a").as_uri())
     client.set_experiment_tag(exp, MIGRATED, str(HASH_VERSION))
     runs = {}

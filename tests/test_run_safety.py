@@ -15,11 +15,10 @@ import shutil
 import subprocess
 from pathlib import Path
 
-import mlflow
 import pytest
 import torch
 
-from helpers import cli, one_line_error, train_cfg
+from helpers import cli, one_line_error, store_client, train_cfg
 from helpers.servers import free_port
 from lbo.core.errors import LboError
 from lbo.core.paths import EXAMPLE_LOG
@@ -129,7 +128,7 @@ def test_a_run_planted_in_the_store_cannot_steer_resume(tmp_path, smoke_data, tr
             state["best_model_path"] = str(evil)
     torch.save(ckpt, last)
     # the planted run in the victim's store: this config's hash, that folder, RUNNING
-    client = mlflow.MlflowClient(tracking)
+    client = store_client(tracking)
     exp = client.create_experiment(victim.logger.experiment_name,
                                    artifact_location=(tmp_path / "artifacts").as_uri())
     run = client.create_run(exp, tags={"config_hash": digest}, run_name="cnn-N20")
@@ -167,7 +166,7 @@ def test_a_shared_store_cannot_hand_over_a_finished_run_nor_lose_another_users_r
 
     victim = train_cfg(tmp_path / "victim", smoke_data, *SHORT, "seed=6", "resume=true")
     digest = config_hash(victim)
-    client = mlflow.MlflowClient(tracking)
+    client = store_client(tracking)
     exp = client.create_experiment(victim.logger.experiment_name,
                                    artifact_location=(tmp_path / "artifacts").as_uri())
     foreign = tmp_path / "foreign"

@@ -16,7 +16,7 @@ import pandas as pd
 import pytest
 from omegaconf import open_dict
 
-from helpers import SWEEP_BUDGET, cli, compose_cfg, train_cfg
+from helpers import SWEEP_BUDGET, cli, compose_cfg, store_client, train_cfg
 from helpers.servers import PG_PASSWORD, free_port, mlflow_server, postgres
 from lbo.core.cli import check_launcher, launcher_from_argv
 from lbo.core.errors import LboError
@@ -444,7 +444,7 @@ def test_a_wrong_postgres_password_is_one_line_and_leaves_no_run(tmp_path, smoke
     assert lines[0].startswith(f"error: tune.storage: cannot open postgresql://lbo:***@"
                                f"127.0.0.1:{pg.port}/postgres (OperationalError: ")
     assert "password authentication failed" in lines[0]
-    client = mlflow.MlflowClient(uri)
+    client = store_client(uri)
     exp = client.get_experiment_by_name("lbo-smoke")
     assert exp is None or client.search_runs([exp.experiment_id]) == []
 

@@ -13,6 +13,7 @@ import pandas as pd
 import pytest
 import requests
 
+from helpers import store_client
 from helpers.servers import model_server
 from lbo.core.errors import LboError
 from lbo.export import register
@@ -94,7 +95,7 @@ def test_every_training_run_logs_a_model_that_pyfunc_loads_in_a_fresh_process(ro
 def test_logging_the_model_prints_no_download_bars(robust, tmp_path, capfd):
     """Training ends with its result: MLflow's bars from saving the model would follow it."""
     uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
-    client = mlflow.MlflowClient(uri)
+    client = store_client(uri)
     run = client.create_run(client.create_experiment(
         "bars", artifact_location=(tmp_path / "artifacts").as_uri()))
     capfd.readouterr()

@@ -1,12 +1,11 @@
 import logging
 
-import mlflow
 import numpy as np
 import pandas as pd
 import pytest
 import torch
 
-from helpers import cli, one_line_error, train_cfg
+from helpers import cli, one_line_error, store_client, train_cfg
 from lbo.core.cli import quiet_lightning
 from lbo.core.errors import LboError
 from lbo.learn.datamodule import WindowDataModule, rows, window_ends
@@ -17,7 +16,7 @@ from lbo.train import train
 
 
 def runs(uri):
-    client = mlflow.MlflowClient(uri)
+    client = store_client(uri)
     exp = client.get_experiment_by_name("lbo-smoke")
     return client, client.search_runs([exp.experiment_id]) if exp else []
 
@@ -325,12 +324,11 @@ def test_training_on_cuda_draws_batches_on_the_gpu(tmp_path, smoke_data, trackin
 
 
 def test_an_experiment_made_before_lbo_set_its_kind_gets_it(tmp_path):
-    from mlflow import MlflowClient
 
     from lbo.tracking.runs import ensure_experiment
 
     uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
-    old = MlflowClient(uri).create_experiment("older", artifact_location=str(tmp_path / "a"))
+    old = store_client(uri).create_experiment("older", artifact_location=str(tmp_path / "a"))
     client, found = ensure_experiment(uri, "older", None)
     assert found == old
     assert client.get_experiment(old).tags["mlflow.experimentKind"] == "custom_model_development"

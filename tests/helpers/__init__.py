@@ -3,7 +3,8 @@ hooks stay in ``tests/conftest.py``.
 
 - :mod:`helpers.config`: composing configs from conf/ (``compose_cfg``, ``train_cfg``,
   ``ROBUST_SMOKE``, ``SWEEP_BUDGET``)
-- :mod:`helpers.training`: training runs at smoke size (``train_in_own_store``)
+- :mod:`helpers.training`: training runs at smoke size (``train_in_own_store``), and a client
+  on a store made as lbo makes one (``store_client``)
 - :mod:`helpers.processes`: faults injected into running processes (``kill_when_written``)
 - :mod:`helpers.commands`: lbo's commands as a user types them (``cli``, ``observe``), in the
   test's process unless ``process=True``, ``lbo.observe``'s result on a log (``observed``),
@@ -21,7 +22,8 @@ from helpers.commands import cli, observe, observed, one_line_error
 from helpers.config import ROBUST_SMOKE, SWEEP_BUDGET, compose_cfg, train_cfg
 from helpers.processes import kill_when_written
 from helpers.stepping import step_log
-from helpers.training import train_in_own_store
+from helpers.training import store_client, train_in_own_store
 
 __all__ = ["ROBUST_SMOKE", "SWEEP_BUDGET", "cli", "compose_cfg", "kill_when_written", "observe",
-           "observed", "one_line_error", "step_log", "train_cfg", "train_in_own_store"]
+           "observed", "one_line_error", "step_log", "store_client", "train_cfg",
+           "train_in_own_store"]

@@ -72,6 +72,9 @@ def prior_runs(cfg: DictConfig, digest: str, clean: bool = True, keep_resumable:
     import mlflow
 
     uri = cfg.logger.tracking_uri
+    store = sqlite_path(uri)
+    if store is not None and not store.exists():  # MLflow would build the file only to look
+        return None, (None, None)
     client = mlflow.MlflowClient(uri)
     exps = [e for e in (client.get_experiment_by_name(n) for n in dict.fromkeys(
         (cfg.logger.experiment_name, EXPERIMENT_BEFORE))) if e is not None]
