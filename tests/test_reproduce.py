@@ -175,11 +175,12 @@ def test_expected_steps_and_eta_arithmetic():
     assert eta.finished(2, 60.0) == 0.0
 
 
-@pytest.mark.parametrize(("each_s", "measured"), [(0.01, 1), (100.0, 4)])
+@pytest.mark.parametrize(("each_s", "measured"), [(0.01, 1), (0.3, 1), (100.0, 4)])
 def test_the_plan_stops_measuring_where_measuring_costs_about_what_training_does(
         monkeypatch, capsys, each_s, measured):
-    """Timing a run takes 0.05 s here: runs of 0.01 s each (a smoke study) are measured once
-    and the rest expected to take as long; runs of 100 s are each measured."""
+    """Timing a run takes 0.05 s here: runs of 0.01 s each (a smoke study), or of 0.3 s (the
+    timing a sixth of the run: more than eta.TIMING_SHARE), are measured once and the rest
+    expected to take as long; runs of 100 s are each measured."""
     import time
 
     from omegaconf import OmegaConf

@@ -141,15 +141,23 @@ def more(count: int, unit: str, each_s: float, basis: str) -> str:
             f"({basis}): about {duration(count * each_s)}")
 
 
+TIMING_SHARE = 0.1
+"""The most that timing the runs of a plan may cost, as a share of what the runs it timed
+would train. A run is timed in a few seconds: every run of a quick or paper study (minutes
+to hours each) is, while a smoke study (seconds each) times its first run only. At a half,
+the rerun of ``tests/test_reproduce.py``'s killed smoke study timed runs for about 6 s beside
+its 28 s of training (py-spy, 2026-12-01)."""
+
+
 def plan(runs: list[tuple[str, DictConfig]], parallel: int = 1, scale: str = "") -> Eta:
     """Measure a few steps of every run of ``runs`` (``(name, training config)`` pairs) that is
     still to train, print one line each and the expected total, and return their :class:`Eta`.
 
     A run that finished before (same config hash) is expected to take nothing; ``parallel``
     runs train at once (the total is divided by it); ``scale`` is named in the total line.
-    Once measuring has taken more than half as long as the runs measured would train (a smoke
-    study, where timing a run costs about what training it does), the runs left are not
-    measured: each is expected to take the mean of those measured.
+    Once measuring has taken more than :data:`TIMING_SHARE` of what the runs measured would
+    train (a smoke study, where timing a run costs about what training it does), the runs
+    left are not measured: each is expected to take the mean of those measured.
     """
     from lbo.learn.builders import data_device
     from lbo.learn.identity import config_hash
@@ -163,7 +171,7 @@ def plan(runs: list[tuple[str, DictConfig]], parallel: int = 1, scale: str = "")
         if finished_run(cfg, config_hash(cfg), clean=False) is not None:
             estimates.append(0.0)
             continue
-        if measured and time.perf_counter() - begin > sum(measured) / 2:
+        if measured and time.perf_counter() - begin > TIMING_SHARE * sum(measured):
             estimates.append(sum(measured) / len(measured))
             guessed += 1
             continue
