@@ -271,9 +271,22 @@ def test_each_folds_noise_is_kept_by_the_drives_across_keep_names(short_drives, 
     assert f"(1 epochs, truth; the epoch kept {kept}), scored on each" in capsys.readouterr().out
 
 
+@pytest.fixture(scope="module")
+def narrow_cnn(smoke_data, tmp_path_factory) -> str:
+    """A receiver CNN-N60 trained on the smoke sets, narrow (4 channels, 16 units; the paper's
+    are 16, 16, 64): realdrive runs it over every window of the drives, and its width is no
+    part of what is checked. Its checkpoint, which the tests read and none changes."""
+    _, out, _ = train_in_own_store(tmp_path_factory.mktemp("narrow_cnn"), smoke_data,
+                                   "experiment=receiver", "data=smoke", "trainer.max_epochs=1",
+                                   "trainer.limit_train_batches=2", "window=60", "batch_size=64",
+                                   "~callbacks.evaluation", "model.conv_channels=4",
+                                   "model.feature_channels=4", "model.dense_units=16")
+    return out["checkpoint"]
+
+
 @pytest.mark.slow
 def test_leave_one_drive_out_scores_each_net_as_trained_and_fine_tuned_on_the_others(
-        short_drives, tmp_path, smoke_data, monkeypatch, capsys):
+        short_drives, narrow_cnn, tmp_path, monkeypatch, capsys):
     """With nets (and no noise to learn): each net scored on every drive as it was trained,
     on simulated receivers alone, and fine-tuned per fold on the drives other than the one
     scored, trained on the first of them and kept by the second (a planted mark on each drive
@@ -285,11 +298,6 @@ def test_leave_one_drive_out_scores_each_net_as_trained_and_fine_tuned_on_the_ot
     from lbo.realdrive import ACROSS, FIT_OTHER_DRIVES, _across_drives
     from lbo.sim.noise import Noise
 
-    _, out, _ = train_in_own_store(tmp_path, smoke_data, "experiment=receiver", "data=smoke",
-                                   "trainer.max_epochs=1", "trainer.limit_train_batches=2",
-                                   "window=60", "batch_size=64", "~callbacks.evaluation",
-                                   "model.conv_channels=4", "model.feature_channels=4",
-                                   "model.dense_units=16")
     seen: dict[str, tuple[list[int], list[int]]] = {}
     real_fit = net_fit.fit_and_write
 
@@ -303,8 +311,8 @@ def test_leave_one_drive_out_scores_each_net_as_trained_and_fine_tuned_on_the_ot
     fit = {"epochs": 1, "lr": 3e-4, "batch": 64, "seed": 0}
     wide = _across_drives(Settings(epochs=0, segment_s=5.0, lr=0.1), ["ekf"], drives, Vehicle(),
                           Noise.from_cfg(OmegaConf.load(CONF / "noise" / "paper.yaml")),
-                          tmp_path, nets=[net := Observer.load(out["checkpoint"])],
-                          trainable={out["checkpoint"]: net}, fit=fit)
+                          tmp_path, nets=[net := Observer.load(narrow_cnn)],
+                          trainable={narrow_cnn: net}, fit=fit)
     assert seen == {"cnn-N60_without_drive1.ckpt": ([1], [2]),
                     "cnn-N60_without_drive2.ckpt": ([0], [2]),
                     "cnn-N60_without_drive3.ckpt": ([0], [1])}
@@ -380,17 +388,11 @@ def test_realdrive_writes_the_spans_and_scores_every_classical_observer(tmp_path
 
 
 @pytest.mark.slow
-def test_realdrive_trains_a_receiver_net_on_the_train_span(tmp_path, smoke_data):
-    # a narrow CNN (4 channels, 16 units; the paper's are 16, 16, 64): realdrive runs it over
-    # every window of the spans three times over (fine-tuned, from scratch, scored), and its
-    # width is no part of what is checked
-    _, out, _ = train_in_own_store(tmp_path, smoke_data, "experiment=receiver", "data=smoke",
-                                   "trainer.max_epochs=1", "trainer.limit_train_batches=2",
-                                   "window=60", "batch_size=64", "~callbacks.evaluation",
-                                   "model.conv_channels=4", "model.feature_channels=4",
-                                   "model.dense_units=16")
+def test_realdrive_trains_a_receiver_net_on_the_train_span(narrow_cnn, tmp_path):
+    # realdrive runs the net over every window of the spans three times over (fine-tuned,
+    # from scratch, scored)
     res = cli("lbo.realdrive", f"output_dir={tmp_path / 'rd'}", "observers=[ekf]",
-              "learn.epochs=0", "learn.simulated=0", f"nets=[{out['checkpoint']}]",
+              "learn.epochs=0", "learn.simulated=0", f"nets=[{narrow_cnn}]",
               "net_fit.epochs=1", "across_drives=false", cwd=tmp_path)
     assert res.returncode == 0, res.stderr[-3000:]
     rows = pd.read_csv(tmp_path / "rd" / "results.csv").set_index("estimator")
