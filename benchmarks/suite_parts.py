@@ -1,7 +1,8 @@
 """Where each test's time goes, by part: a pytest plugin that times, per test, the ONNX exports
 (dynamo and TorchScript-based), TorchScript traces, Lightning's ``Trainer.fit`` in the test's
 process, the gyro EKF's noise fits and the waits on subprocesses (the commands a test starts,
-the sweeps, the SLURM jobs), and a summary of what it wrote.
+the sweeps, the SLURM jobs), MLflow opening SQL stores (and building new ones' tables), Hydra's
+composes, and a summary of what it wrote.
 
     PYTHONPATH=benchmarks .venv/bin/python -m pytest -q -n 2 --dist loadfile \\
         -p suite_parts -p no:cacheprovider          # writes reports/suite_parts.jsonl
@@ -58,6 +59,9 @@ def _timed(owner: Any, name: str, part: str) -> None:
 def pytest_configure(config: Any) -> None:
     """Wrap the parts before any test module imports them by name."""
     import lightning.pytorch as pl
+    from hydra._internal.hydra import Hydra
+    from mlflow.store.db import utils as mlflow_db
+    from mlflow.store.tracking.sqlalchemy_store import SqlAlchemyStore
 
     from lbo.learn import gyro_fit
     from lbo.serve import engines
@@ -67,6 +71,9 @@ def pytest_configure(config: Any) -> None:
                               (engines, "trace", "TorchScript trace"),
                               (pl.Trainer, "fit", "Trainer.fit in-process"),
                               (gyro_fit, "fit", "gyro noise fit"),
+                              (mlflow_db, "_initialize_tables", "MLflow builds a new store"),
+                              (SqlAlchemyStore, "__init__", "MLflow opens a SQL store"),
+                              (Hydra, "compose_config", "Hydra compose"),
                               (subprocess.Popen, "communicate", "subprocess wait"),
                               (subprocess.Popen, "wait", "subprocess wait")):
         _timed(owner, name, part)
