@@ -211,9 +211,10 @@ def observe(cfg: DictConfig) -> dict[str, Any]:
     m, u = meas.pose, df[["V", "delta"]].to_numpy(dtype=float)
     if adapt and name != "gyro":  # every other observer takes the inputs' terms
         obs.inputs = _fitted_inputs(meas, u, vehicle, noise)
+    given = taken(obs, meas)  # what obs reads of the log: its run and its heading rows
     with warnings.catch_warnings():  # said below, one line per field
         warnings.simplefilter("ignore", EnvelopeWarning)
-        found = obs.run(taken(obs, meas), u, source=where, smooth=smooth)
+        found = obs.run(given, u, source=where, smooth=smooth)
     est, valid, cov = found.state, found.valid, found.cov
     envelope = obs.check_envelope(m, u) if mode != "off" else None
     result: dict[str, Any] = {"output": output, "observer": obs.name, "rows": len(df),
@@ -314,8 +315,7 @@ def observe(cfg: DictConfig) -> dict[str, Any]:
                   f"trained on ({flag}; column outside names the fields)")
     # the reasons that apply, each with its count: a log of position fixes without psi_m nor a
     # velocity never gives the robust observer a heading, not a window or a first fix
-    reasons = unscored(obs, est, valid, fix, heading_rows(taken(obs, meas), u,
-                                                          obs.vehicle.wheelbase),
+    reasons = unscored(obs, est, valid, fix, heading_rows(given, u, obs.vehicle.wheelbase),
         envelope.outside if envelope is not None and mode == "mark" else None)
     if result["valid"] < len(df):
         print(f"valid: {result['valid']} of {len(df)} rows; not scored: {'; '.join(reasons)}")

@@ -49,7 +49,7 @@ from lbo.models.slip_filter import SIDE_SLIP as SLIP
 from lbo.sim.datasets import refuse_sideslip
 from lbo.sim.truth import config_dict as truth_dict
 from lbo.tracking import view
-from lbo.tracking.runs import check_store, dataset_input, ensure_experiment, log_input
+from lbo.tracking.runs import check_store, dataset_input, log_input, logger_experiment
 
 if TYPE_CHECKING:  # Lightning takes seconds to import: only a training run needs it
     import lightning as L
@@ -230,8 +230,7 @@ def _train(cfg: DictConfig, built: Built, callbacks: list[L.Callback] | None,
 
     if targets(cfg.get("logger"), MLFlowLogger):
         # under a parallel launcher the first job creates the store and the experiment
-        ensure_experiment(cfg.logger.tracking_uri, cfg.logger.experiment_name,
-                          cfg.logger.get("artifact_location"))
+        logger_experiment(cfg.logger)
     resume_id, resume_ckpt = None, None
     if cfg.get("resume") and cfg.get("logger"):
         reused, (resume_id, folder) = prior_runs(cfg, digest, keep_resumable=True)

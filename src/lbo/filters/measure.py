@@ -193,7 +193,8 @@ def undelayed(fix: np.ndarray, velocity: np.ndarray, rate: np.ndarray, fix_laten
 
 
 def heading_held(m: np.ndarray) -> np.ndarray:
-    """Rows (..., 8) that measure the heading, by ``psi_m`` or the course: (...) bool."""
+    """Rows (..., 8), or wider as a receiver window's (..., T, 11), that measure the heading,
+    by ``psi_m`` or the course: (...) bool."""
     c = row_channels(m)
     return np.isfinite(c.heading) | np.isfinite(c.course)
 

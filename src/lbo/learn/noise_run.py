@@ -285,10 +285,9 @@ class _Run:
             return cls()
         from mlflow.entities import Param
 
-        from lbo.tracking.runs import ensure_experiment
+        from lbo.tracking.runs import logger_experiment
 
-        client, exp = ensure_experiment(logger.tracking_uri, logger.experiment_name,
-                                        logger.get("artifact_location"))
+        client, exp = logger_experiment(logger)
         run_id = client.create_run(exp, run_name=NAME, tags=tags).info.run_id
         items = [Param(k, str(v)[:6000]) for k, v in params.items()]
         for i in range(0, len(items), 100):  # MLflow takes at most 100 params a call

@@ -168,14 +168,13 @@ def train(cfg: DictConfig, params: dict[str, Any], tags: dict[str, str],
     from lbo.learn.checkpoint_io import AtomicCheckpointIO
     from lbo.learn.identity import config_hash, run_tags, write_marker
     from lbo.learn.resume import clear_stale_checkpoints, folder_refusal, prior_runs
-    from lbo.tracking.runs import ensure_experiment
+    from lbo.tracking.runs import logger_experiment
 
     check(cfg)
     digest = config_hash(cfg)
     name = run_name(cfg.model)
     if cfg.get("logger"):  # as training's: the first of jobs started together makes them
-        ensure_experiment(cfg.logger.tracking_uri, cfg.logger.experiment_name,
-                          cfg.logger.get("artifact_location"))
+        logger_experiment(cfg.logger)
     if cfg.get("resume") and cfg.get("logger"):
         reused, _ = prior_runs(cfg, digest)
         if reused is not None:

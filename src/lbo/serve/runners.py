@@ -264,12 +264,6 @@ class WindowRunner:
         """Sample ``k``'s row (9,) of its checked measurements ``meas`` (one step)."""
         return receiver_rows(meas[None], u[None], self.vehicle.wheelbase)[0], u
 
-    @staticmethod
-    def _heading_rows(series: np.ndarray) -> np.ndarray:
-        """Which rows (..., T, 11) of receiver windows hold a heading, psi_m or a course:
-        (..., T) bool (:func:`lbo.models.receiver_window.heading_known`'s rule)."""
-        return measure.heading_held(series)
-
     def reset(self) -> None:
         self.fallback.reset()
         self.last_fix: int | None = None
@@ -296,7 +290,7 @@ class WindowRunner:
                                 f"no fix in the last {n} steps ({n * self.dt:g} s): {self.name} "
                                 f"needs a fix in every window of {n} steps")
             window = self.ring[None, i + 1:i + 1 + n]
-            if self.reads_receiver and not self._heading_rows(window).any():
+            if self.reads_receiver and not measure.heading_held(window).any():
                 prior = self.states[(k + 1) % n]  # the estimate at the window's first row
                 if not self.carries or not np.isfinite(prior).all():
                     return Estimate(np.full(3, np.nan), False,
@@ -328,7 +322,7 @@ class WindowRunner:
                 chunk = np.ascontiguousarray(windows[s:s + batch_size])
                 est[head + s:head + s + len(chunk)] = self.predict(chunk)
             if self.reads_receiver:  # no heading in the window: the one carried (take())
-                blind = np.flatnonzero(~held_within(self._heading_rows(series), n)[n - 1:])
+                blind = np.flatnonzero(~held_within(measure.heading_held(series), n)[n - 1:])
                 est[head + blind] = np.nan
                 if self.carries:
                     carry.run_blind(windows, blind, head, est, self.predict)

@@ -254,6 +254,14 @@ def ensure_experiment(uri: str, name: str, artifact_location: str | None):
             return client, exp.experiment_id
 
 
+def logger_experiment(logger: Any):
+    """:func:`ensure_experiment` for a training config's ``logger`` group (its
+    ``tracking_uri``, ``experiment_name`` and ``artifact_location``, null for the default):
+    ``(client, experiment_id)``."""
+    return ensure_experiment(logger.tracking_uri, logger.experiment_name,
+                             logger.get("artifact_location"))
+
+
 def run_artifact(run: dict[str, Any], path: str, tracking_uri: str) -> Path:
     """A file logged by a training run (``run["run_id"]``), fetched from its MLflow
     artifacts."""

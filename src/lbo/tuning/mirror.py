@@ -13,7 +13,7 @@ from omegaconf import DictConfig, OmegaConf
 from optuna.trial import FrozenTrial, TrialState
 
 from lbo.core.redact import scrub
-from lbo.tracking.runs import ensure_experiment
+from lbo.tracking.runs import logger_experiment
 from lbo.tuning.search import Param
 
 #: MLflow run status for each final Optuna state; the child run also gets tag ``optuna_state``.
@@ -40,10 +40,7 @@ class StudyRun:
     resumed or shared study keeps one parent. Child runs are the trials' training runs."""
 
     def __init__(self, cfg: DictConfig, study: optuna.Study, storage: str) -> None:
-
-        log = cfg.logger
-        self.client, exp_id = ensure_experiment(log.tracking_uri, log.experiment_name,
-                                                log.artifact_location)
+        self.client, exp_id = logger_experiment(cfg.logger)
         self.exp_id = exp_id
         self.run_id = study.user_attrs.get(PARENT_ATTR)
         if self._status(self.run_id) is not None:
