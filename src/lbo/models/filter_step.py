@@ -19,10 +19,8 @@ The states: n = 3, the pose ``[x, y, psi]``; 4, and a gyro's bias b, the heading
 the gyro's last reading less b (``model.gyro``); 5, and a Gauss-Markov GNSS drift
 ``[b_x, b_y]`` that the position fixes measure with the pose (``model.drift``).
 
-The correction is :func:`lbo.models.update.masked_update` (Joseph's form) where rows hold some
-channels (a receiver's) and in the recursive form, carried for hours; the paper's windows,
-whose rows hold every channel or none, take the short form
-(:func:`lbo.models.update.full_update`), as cheap as their training needs.
+The correction is :func:`lbo.models.update.masked_update`, Joseph's form, with the channels a
+row holds (a receiver's rows hold some; the paper's windows every channel or none).
 """
 
 from __future__ import annotations
@@ -35,7 +33,7 @@ from torch import nn
 from lbo.filters import gyro as gyro_model
 from lbo.models.motion import pose_jacobian
 from lbo.models.poses import wrap_heading
-from lbo.models.update import full_update, masked_update, mm
+from lbo.models.update import masked_update, mm
 
 if TYPE_CHECKING:
     _Host = nn.Module
@@ -166,13 +164,10 @@ class FilterStep(_Host):
                 held: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """The update of states z (B, n) and covariances P (B, n, n) by measurements
         ``[x, y, heading]`` (B, 3) of covariance R (B, 3, 3): with the channels where
-        ``held`` (B, 3) is 1, in Joseph's form (:func:`masked_update`); None, every channel,
-        in the short form (:func:`full_update`). Returns the updated z and P."""
-        drift = self.states == 5
-        if held is None and not drift:  # the pose measured, every channel: H's products left out
-            return full_update(z, P, wrap_heading(meas - z), R, self.eye)
+        ``held`` (B, 3) is 1 (None: every channel), in Joseph's form (:func:`masked_update`).
+        Returns the updated z and P."""
+        if self.states == 3:  # the state is the pose measured: H = I, its products left out
+            return masked_update(z, P, wrap_heading(meas - z), R, None, held)
         H = self.measurement_matrix()
-        y = wrap_heading(meas - (mm(H, z.unsqueeze(-1)).squeeze(-1) if drift else z[:, :3]))
-        if held is None:
-            return full_update(z, P, y, R, self.eye, H)
-        return masked_update(z, P, y, held, R, H)
+        y = wrap_heading(meas - mm(H, z.unsqueeze(-1)).squeeze(-1))
+        return masked_update(z, P, y, R, H, held)

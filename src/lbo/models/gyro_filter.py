@@ -281,7 +281,7 @@ def _scored(x: torch.Tensor, P: torch.Tensor, y: torch.Tensor, H: torch.Tensor,
     S = H @ PHt + R
     L = torch.linalg.cholesky(S)
     K = torch.cholesky_solve(PHt.transpose(-1, -2), L).transpose(-1, -2)
-    x, P = joseph(x, P, K, y, H, R)
+    x, P = joseph(x, P, PHt, K, y, R, H)
     white = torch.linalg.solve_triangular(L, y[..., None], upper=False)[..., 0]
     log_det = 2 * torch.log(torch.diagonal(L, dim1=-2, dim2=-1)).sum(-1)
     nll = 0.5 * ((white**2).sum(-1) + log_det + m * math.log(2 * math.pi))

@@ -188,8 +188,8 @@ class LateralFilter(nn.Module):
         var_r = (noise.r * torch.exp(scales[:, 2])) ** 2
         zero = torch.zeros_like(var_ay)
         R = torch.stack([torch.stack([var_ay, zero], -1), torch.stack([zero, var_r], -1)], -2)
-        return masked_update(x, P, torch.where(held, y - h, torch.zeros_like(h)),
-                             held.to(x.dtype), R, H)
+        return masked_update(x, P, torch.where(held, y - h, torch.zeros_like(h)), R, H,
+                             held.to(x.dtype))
 
     def forward(self, vx: torch.Tensor, delta: torch.Tensor, y: torch.Tensor
                 ) -> tuple[torch.Tensor, torch.Tensor]:

@@ -38,6 +38,22 @@ def inverse_sym2(s: torch.Tensor) -> torch.Tensor:
     return torch.stack(rows, -2) / (a * d - b * b)[:, None, None]
 
 
+def inverse_sym(s: torch.Tensor) -> torch.Tensor:
+    """Inverse of symmetric positive-definite (B, m, m) matrices, m 2 or 3: LAPACK's where
+    the step runs as it is written (eager, training or not), by cofactors where it is scripted,
+    traced, compiled or exported (:func:`inverse_sym3`, :func:`inverse_sym2`). The written-out
+    inverse and its gradient take some forty small operations, LAPACK's a few: a window
+    filter's training loop inverts an S at every row, and this saves more there than Joseph's
+    form costs (``benchmarks/bench_update.py``)."""
+    if not torch.jit.is_scripting():  # TorchScript compiles only the other branch
+        if not (torch.jit.is_tracing() or torch.compiler.is_compiling()
+                or torch.onnx.is_in_onnx_export()):
+            return torch.linalg.inv_ex(s)[0]
+    if s.shape[-1] == 3:  # written out, as TorchScript scripts it (no function as a value)
+        return inverse_sym3(s)
+    return inverse_sym2(s)
+
+
 def mm(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     """``a @ b`` for batches of small matrices, a (..., n, k) and b (..., k, m) -> (..., n, m).
 
@@ -51,64 +67,53 @@ def mm(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     return a @ b
 
 
-def masked_update(z: torch.Tensor, P: torch.Tensor, y: torch.Tensor, mask: torch.Tensor,
-                  R: torch.Tensor, H: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+def masked_update(z: torch.Tensor, P: torch.Tensor, y: torch.Tensor, R: torch.Tensor,
+                  H: torch.Tensor | None = None, mask: torch.Tensor | None = None
+                  ) -> tuple[torch.Tensor, torch.Tensor]:
     """The Kalman update of states z (B, n) with covariances P (B, n, n) by the innovations
     y (B, m) (headings wrapped) of a measurement ``H z`` (H (m, n), or (B, m, n) per row: a
-    linearised model's) with covariance R (B, m, m), using only the channels where mask (B, m)
-    is 1; m is 3 (a pose: ``[x, y, heading]``) or 2 (the side-slip filter's ``[ay, r]``).
+    linearised model's; None where the state is what is measured, H = I, whose products are
+    left out) with covariance R (B, m, m), using only the channels where mask (B, m) is 1
+    (None: every channel); m is 3 (a pose: ``[x, y, heading]``) or 2 (the side-slip filter's
+    ``[ay, r]``). The gain by cofactors, the covariance by :func:`joseph`.
 
     The other channels' innovations and gains are zeroed and S gets a 1 on their diagonal, so
-    that S stays invertible and the update equals the one with the held channels alone. The
-    covariance is updated in Joseph form, ``(I - K H) P (I - K H)^T + K R K^T``: over hours of
-    steps, ``(I - K H) P`` loses its symmetry. Returns the updated z (B, n) and P (B, n, n)."""
+    that S stays invertible and the update equals the one with the held channels alone.
+    Returns the updated z (B, n) and P (B, n, n)."""
     m = y.shape[-1]
-    eye_m = torch.eye(m, dtype=P.dtype, device=P.device)
-    y = y * mask
-    Ht = H.transpose(-1, -2)
-    PH = mm(P, Ht)
-    S = (mm(H, PH) + R) * (mask[:, :, None] * mask[:, None, :]) \
-        + (1 - mask)[:, :, None] * eye_m  # diag(1 - mask): ONNX has no diag_embed
-    if m == 3:  # written out, as TorchScript scripts it (no function as a value)
-        S_inv = inverse_sym3(S)
+    PHt = P if H is None else mm(P, H.transpose(-1, -2))  # (B, n, m)
+    S = (P if H is None else mm(H, PHt)) + R
+    if mask is None:
+        gain_rows = PHt
     else:
-        S_inv = inverse_sym2(S)
-    return joseph(z, P, mm(PH * mask[:, None, :], S_inv), y, H, R)
+        eye_m = torch.eye(m, dtype=P.dtype, device=P.device)
+        y = y * mask
+        S = S * (mask[:, :, None] * mask[:, None, :]) \
+            + (1 - mask)[:, :, None] * eye_m  # diag(1 - mask): ONNX has no diag_embed
+        gain_rows = PHt * mask[:, None, :]
+    return joseph(z, P, PHt, mm(gain_rows, inverse_sym(S)), y, R, H)
 
 
-def joseph(z: torch.Tensor, P: torch.Tensor, K: torch.Tensor, y: torch.Tensor,
-           H: torch.Tensor, R: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """The Kalman update given its gain: states z (B, n), covariances P (B, n, n), gain
-    K (B, n, m), innovations y (B, m), H (m, n) or (B, m, n), R (B, m, m). Returns
-    ``z + K y`` and Joseph's ``(I - K H) P (I - K H)^T + K R K^T``, symmetrised: every torch
-    filter's update, whichever way it solves for the gain (by cofactors where it exports,
-    :func:`masked_update`; by Cholesky where it also scores the innovation,
-    :mod:`lbo.models.gyro_filter`)."""
-    eye = torch.eye(P.shape[-1], dtype=P.dtype, device=P.device)
-    I_KH = eye - mm(K, H)
-    P = mm(mm(I_KH, P), I_KH.transpose(-1, -2)) + mm(mm(K, R), K.transpose(-1, -2))
+def joseph(z: torch.Tensor, P: torch.Tensor, PHt: torch.Tensor, K: torch.Tensor,
+           y: torch.Tensor, R: torch.Tensor, H: torch.Tensor | None = None
+           ) -> tuple[torch.Tensor, torch.Tensor]:
+    """The Kalman update given its gain, every torch filter's, whichever way it solves for the
+    gain (by cofactors where it exports, :func:`masked_update`; by Cholesky where it also
+    scores the innovation, :mod:`lbo.models.gyro_filter`): states z (B, n), covariances
+    P (B, n, n), ``P H^T`` (B, n, m) (the gain's), gain K (B, n, m), innovations y (B, m),
+    R (B, m, m), and H (m, n) or (B, m, n), or None for H = I.
+
+    Returns ``z + K y`` and Joseph's covariance ``(I - K H) P (I - K H)^T + K R K^T``,
+    symmetrised: over hours of steps the short form ``(I - K H) P`` loses its symmetry and,
+    where R is small against P, its positive definiteness. Joseph's form is computed
+    factored, ``A P - (A P H^T - K R) K^T`` with ``A P = P - K (P H^T)^T`` (P is symmetric):
+    the same polynomial in K, expanded (so an error in the gain still costs only its square),
+    in two batched products fewer, which the window filter's training loop pays at every
+    row."""
+    AP = P - mm(K, PHt.transpose(-1, -2))
+    APHt = AP if H is None else mm(AP, H.transpose(-1, -2))
+    P = AP - mm(APHt - mm(K, R), K.transpose(-1, -2))
     return z + mm(K, y.unsqueeze(-1)).squeeze(-1), 0.5 * (P + P.transpose(-1, -2))
-
-
-def full_update(z: torch.Tensor, P: torch.Tensor, y: torch.Tensor, R: torch.Tensor,
-                eye: torch.Tensor, H: torch.Tensor | None = None
-                ) -> tuple[torch.Tensor, torch.Tensor]:
-    """The window filter's update with every channel of a pose held: states z (B, n),
-    covariances P (B, n, n), innovations y (B, 3), R (B, 3, 3), ``eye`` the (n, n) identity
-    (made once per window, outside its loop) and H (3, n), or None where the state is the pose
-    (H = I, its products left out). ``K = P H^T (H P H^T + R)^-1``, ``z + K y`` and ``(I - K
-    H) P`` symmetrised: the short form, in the hot loop of a window's training; the Joseph form
-    (:func:`masked_update`) is for rows that hold some channels, and for filters carried for
-    hours."""
-    if H is None:
-        K = P @ inverse_sym3(P + R)
-        P_new = (eye - K) @ P
-    else:
-        PH = P @ H.T  # (B, n, 3)
-        K = PH @ inverse_sym3(H @ PH + R)
-        P_new = (eye - K @ H) @ P
-    z_new = z + (K @ y.unsqueeze(-1)).squeeze(-1)
-    return z_new, 0.5 * (P_new + P_new.transpose(1, 2))
 
 
 def taken(first: torch.Tensor, fix: torch.Tensor, start: tuple[torch.Tensor, torch.Tensor],
