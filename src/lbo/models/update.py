@@ -75,7 +75,8 @@ def masked_update(z: torch.Tensor, P: torch.Tensor, y: torch.Tensor, R: torch.Te
     linearised model's; None where the state is what is measured, H = I, whose products are
     left out) with covariance R (B, m, m), using only the channels where mask (B, m) is 1
     (None: every channel); m is 3 (a pose: ``[x, y, heading]``) or 2 (the side-slip filter's
-    ``[ay, r]``). The gain by cofactors, the covariance by :func:`joseph`.
+    ``[ay, r]``). S is inverted by :func:`inverse_sym`, the covariance updated by
+    :func:`joseph`.
 
     The other channels' innovations and gains are zeroed and S gets a 1 on their diagonal, so
     that S stays invertible and the update equals the one with the held channels alone.
@@ -98,8 +99,8 @@ def joseph(z: torch.Tensor, P: torch.Tensor, PHt: torch.Tensor, K: torch.Tensor,
            y: torch.Tensor, R: torch.Tensor, H: torch.Tensor | None = None
            ) -> tuple[torch.Tensor, torch.Tensor]:
     """The Kalman update given its gain, every torch filter's, whichever way it solves for the
-    gain (by cofactors where it exports, :func:`masked_update`; by Cholesky where it also
-    scores the innovation, :mod:`lbo.models.gyro_filter`): states z (B, n), covariances
+    gain (:func:`masked_update`'s, S inverted by :func:`inverse_sym`; by Cholesky where it
+    also scores the innovation, :mod:`lbo.models.gyro_filter`): states z (B, n), covariances
     P (B, n, n), ``P H^T`` (B, n, m) (the gain's), gain K (B, n, m), innovations y (B, m),
     R (B, m, m), and H (m, n) or (B, m, n), or None for H = I.
 
@@ -108,8 +109,8 @@ def joseph(z: torch.Tensor, P: torch.Tensor, PHt: torch.Tensor, K: torch.Tensor,
     where R is small against P, its positive definiteness. Joseph's form is computed
     factored, ``A P - (A P H^T - K R) K^T`` with ``A P = P - K (P H^T)^T`` (P is symmetric):
     the same polynomial in K, expanded (so an error in the gain still costs only its square),
-    in two batched products fewer, which the window filter's training loop pays at every
-    row."""
+    in one batched product fewer (two where H = I), which the window filter's training loop
+    pays at every row."""
     AP = P - mm(K, PHt.transpose(-1, -2))
     APHt = AP if H is None else mm(AP, H.transpose(-1, -2))
     P = AP - mm(APHt - mm(K, R), K.transpose(-1, -2))
