@@ -164,7 +164,7 @@ def test_a_fix_predicted_steps_ahead_is_scored_under_the_dead_reckoned_covarianc
     S = P[:2, :2] + np.diag(acc**2)
     y = seg.fix[g, k].numpy() - x[:2]
     hand = 0.5 * (y @ np.linalg.solve(S, y) + np.log(np.linalg.det(S)) + 2 * np.log(2 * np.pi))
-    assert float(nll[0]) == pytest.approx(hand, rel=1e-9)
+    assert nll[0].item() == pytest.approx(hand, rel=1e-9)
     nll.mean().backward()
     grads = {name: float(p.grad) for name, p in model.log.items()}
     assert all(np.isfinite(v) and v != 0.0 for v in grads.values()), grads

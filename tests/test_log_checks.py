@@ -65,9 +65,9 @@ def test_resample_puts_each_fix_on_its_nearest_row_and_invents_none(manoeuvre):
     log = manoeuvre[LOG].reset_index(drop=True)
     fine = resample(log, 0.01, tuple(LOG[1:]))
     # a fix on every row of the log: on the 0.01 s grid, every other row has none
-    fix = fine[MEAS].notna().all(1).to_numpy()
+    fix = fine[MEAS].notna().all(axis=1).to_numpy()
     np.testing.assert_array_equal(fix, np.arange(len(fine)) % 2 == 0)
-    assert fine[MEAS].isna().all(1).sum() == len(fine) - len(log)
+    assert fine[MEAS].isna().all(axis=1).sum() == len(fine) - len(log)
     np.testing.assert_array_equal(fine.loc[fix, MEAS].to_numpy(), log[MEAS].to_numpy())
     # inputs and the true state are interpolated
     assert np.isfinite(fine[INPUTS + ["x", "y", "psi"]].to_numpy()).all()

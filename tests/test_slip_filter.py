@@ -134,9 +134,9 @@ def test_its_loss_adds_the_nll_of_beta_under_its_own_variance(slice_and_prior):
     x, P = net(rows[..., 0], rows[..., 1], rows[..., 2:4])
     err = (x[0, 20:, 0] - rows[0, 20:, 4]) / slip.UNIT
     var = P[0, 20:, 0, 0] / slip.UNIT**2
-    assert float(plain) == pytest.approx(float(torch.mean(err**2)), rel=1e-12)
+    assert plain.item() == pytest.approx(torch.mean(err**2).item(), rel=1e-12)
     nll = torch.mean(0.5 * (torch.log(var) + err**2 / var))
-    assert float(weighed) == pytest.approx(float(torch.mean(err**2) + 0.3 * nll), rel=1e-12)
+    assert weighed.item() == pytest.approx((torch.mean(err**2) + 0.3 * nll).item(), rel=1e-12)
 
 
 SMOKE = ["model=slip_filter", "data=sideslip_sim", "data.train=2", "data.val=1",
