@@ -73,6 +73,14 @@ def heading_known(win: torch.Tensor) -> torch.Tensor:
     return (torch.isfinite(win[..., _PSI]) | torch.isfinite(win[..., _COURSE])).any(-1)
 
 
+def _zeroed(t: torch.Tensor) -> torch.Tensor:
+    """t with 0 where it is NaN (a channel not held). Not ``nan_to_num``, which also maps inf
+    to the dtype's largest number: exported, that float64 bound is cast to a float32 attribute
+    and overflows (a warning at every export). lbo refuses inf in every channel it reads, so
+    the numbers are the same."""
+    return torch.where(torch.isnan(t), torch.zeros_like(t), t)
+
+
 def anchor(win: torch.Tensor, dt: float, wheelbase: float) -> torch.Tensor:
     """The frame each window is read in: ``[x_a, y_a, psi_a]`` (..., 3) from receiver
     windows (..., N, 11): the latest fix's position and the latest heading (``psi_m`` or the
@@ -85,8 +93,7 @@ def anchor(win: torch.Tensor, dt: float, wheelbase: float) -> torch.Tensor:
     fix = torch.isfinite(win[..., _X]) & torch.isfinite(win[..., _Y])
     last_fix, any_fix = _latest(fix)
     has_psi = torch.isfinite(win[..., _PSI])
-    heading = torch.where(has_psi, torch.nan_to_num(win[..., _PSI], nan=0.0),
-                          torch.nan_to_num(win[..., _COURSE], nan=0.0))
+    heading = torch.where(has_psi, _zeroed(win[..., _PSI]), _zeroed(win[..., _COURSE]))
     last_h, any_h = _latest(has_psi | torch.isfinite(win[..., _COURSE]))
     zero = torch.zeros_like(win[..., 0])
     # yaw turned before each step (..., N) and the heading at each step, from the latest one
@@ -112,8 +119,8 @@ def features(win: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
     a = a[..., None, :]
     fix = torch.isfinite(win[..., _X]) & torch.isfinite(win[..., _Y])
     c, s = torch.cos(a[..., 2]), torch.sin(a[..., 2])
-    dx = torch.nan_to_num(win[..., _X] - a[..., 0], nan=0.0)
-    dy = torch.nan_to_num(win[..., _Y] - a[..., 1], nan=0.0)
+    dx = _zeroed(win[..., _X] - a[..., 0])
+    dy = _zeroed(win[..., _Y] - a[..., 1])
     zero = torch.zeros_like(dx)
 
     def held(col: int) -> tuple[torch.Tensor, torch.Tensor]:
