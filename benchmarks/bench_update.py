@@ -22,7 +22,8 @@ torch.set_num_threads(1)
 mm = update.mm
 
 
-def _ends(P, K, z, y, A):
+def _ends(P, K, z, y):
+    """``z + K y`` and P symmetrised, as lbo's update ends."""
     return z + mm(K, y.unsqueeze(-1)).squeeze(-1), 0.5 * (P + P.transpose(-1, -2))
 
 
@@ -31,13 +32,13 @@ def textbook(z, P, PHt, K, y, R, H=None):
     eye = torch.eye(P.shape[-1], dtype=P.dtype)
     A = eye - (K if H is None else mm(K, H))
     P = mm(mm(A, P), A.transpose(-1, -2)) + mm(mm(K, R), K.transpose(-1, -2))
-    return _ends(P, K, z, y, A)
+    return _ends(P, K, z, y)
 
 
 def short(z, P, PHt, K, y, R, H=None):
     """The short form ``(I - K H) P``: exact only for the optimal gain."""
     P = P - mm(K, PHt.transpose(-1, -2))
-    return _ends(P, K, z, y, None)
+    return _ends(P, K, z, y)
 
 
 def cofactors(s):

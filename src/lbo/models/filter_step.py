@@ -169,5 +169,6 @@ class FilterStep(_Host):
         if self.states == 3:  # the state is the pose measured: H = I, its products left out
             return masked_update(z, P, wrap_heading(meas - z), R, None, held)
         H = self.measurement_matrix()
-        y = wrap_heading(meas - mm(H, z.unsqueeze(-1)).squeeze(-1))
-        return masked_update(z, P, y, R, H, held)
+        # with the gyro's bias (n = 4) H z is the pose, a slice; the drift's (n = 5) adds to it
+        Hz = mm(H, z.unsqueeze(-1)).squeeze(-1) if self.states == 5 else z[:, :3]
+        return masked_update(z, P, wrap_heading(meas - Hz), R, H, held)
