@@ -354,8 +354,9 @@ def test_the_lateral_states_are_scored_per_level_and_written_by_evaluate(dynamic
                                                                          capsys):
     """lbo.scoring.lateral: beta, v_y and r of each estimator against the set's own, per noise
     level over the scored rows; the EKF told the car far below the kinematic bicycle's and
-    straight ahead's; only the oracle gives beta a variance; no truth column is read.
-    lbo.evaluate's part writes it as lateral.csv and prints beta in degrees."""
+    straight ahead's; only the oracle gives beta a variance, and a learned body told its
+    error; no truth column is read. lbo.evaluate's part writes it as lateral.csv and prints
+    beta in degrees."""
     from dataclasses import replace
 
     from lbo.evaluate import _lateral
@@ -386,7 +387,76 @@ def test_the_lateral_states_are_scored_per_level_and_written_by_evaluate(dynamic
     again = lateral.estimates(planted, spec.vehicle, spec.noise, spec.truth)
     first = lateral.estimates(t, spec.vehicle, spec.noise, spec.truth)
     assert all(np.array_equal(again[n]["beta"], first[n]["beta"]) for n in first)
-    path = _lateral(t, spec.vehicle, spec.noise, spec.truth, {}, tmp_path)  # no learned one
+    path = _lateral(t, spec.vehicle, spec.noise, spec.truth, {}, {}, tmp_path)  # none learned
     pd.testing.assert_frame_equal(pd.read_csv(path), scores)
+    # a learned body 0.05 m/s off in v_y at every row, with its error (measured, uncentred:
+    # a floor of 0.05^2 and no part that grows with v_y): beta's variance from it makes a
+    # NEES of one, to first order in the offset
+    off = t.lateral + np.array([0.05, 0.0])
+    error = lateral.body_error(off, t)
+    np.testing.assert_allclose(error, [[0.05 ** 2, 0.0], [0.0, 0.0]], atol=1e-15)
+    mine = lateral.table(t, spec.vehicle, spec.noise, spec.truth, {"body": off},
+                         {"body": error}).set_index(["observer", "alpha"])
+    assert mine.loc[("body", 1.0), "rmse_vy"] == pytest.approx(0.05)
+    assert mine.loc[("body", 1.0), "nees_beta"] == pytest.approx(1.0, rel=0.02)
+    assert np.isnan(lateral.table(t, spec.vehicle, spec.noise, spec.truth, {"body": off})
+                    .set_index(["observer", "alpha"]).loc[("body", 1.0), "nees_beta"])
     said = capsys.readouterr().out
     assert "beta (deg)" in said and f"lateral states: {path}" in said
+
+
+def test_a_bodys_lateral_variances_come_from_its_error_and_a_bad_one_is_refused_in_one_line():
+    """lbo.serve.estimate.lateral_variance: per state a floor and a part relative to the
+    state's size, beta's v_y's through atan2(v_y, V) to first order; NaN without an error
+    and where the states are NaN. lbo.scoring.lateral.body_error fits them by maximum
+    likelihood, calibrated where the observer reads them (at its estimate): errors that grow
+    with the state give a relative part, errors of one size the floor alone. A checkpoint's
+    stored error that is not a 2 x 2 matrix of finite, non-negative numbers is refused in one
+    line naming it."""
+    from types import SimpleNamespace
+
+    from lbo.models.checkpoint import LATERAL_ERROR, stored_lateral_error
+    from lbo.scoring.lateral import body_error
+    from lbo.serve.estimate import lateral_variance, side_slip
+
+    error = np.array([[1e-4, 0.02], [1e-8, 0.0]])
+    body = np.array([[0.5, 0.2], [np.nan, np.nan], [-1.0, 0.0]])
+    speed = np.array([10.0, 10.0, 4.0])
+    states = side_slip(body, speed)
+    var = lateral_variance(error, states, speed)
+    assert var.shape == (3, 3) and np.isnan(var[1]).all()
+    np.testing.assert_allclose(var[[0, 2], 1], [1e-4 + 0.02 * 0.25, 1e-4 + 0.02 * 1.0])
+    np.testing.assert_allclose(var[[0, 2], 2], [1e-8, 1e-8])
+    eps = 1e-6  # beta's slope in v_y, by a difference
+    slope = (np.arctan2(body[:, 0] + eps, speed) - np.arctan2(body[:, 0] - eps, speed)) / (2 * eps)
+    np.testing.assert_allclose(var[[0, 2], 0], slope[[0, 2]] ** 2 * var[[0, 2], 1], rtol=1e-6)
+    assert np.isnan(lateral_variance(None, states, speed)).all()
+
+    rng = np.random.default_rng(0)
+    v_y = rng.uniform(-0.3, 0.3, (4, 5000))
+    sd = np.sqrt(1e-6 + 0.03 * v_y ** 2)  # errors 17% of v_y, over a floor of 1 mm/s
+    arr = SimpleNamespace(lateral=np.stack([v_y, 0 * v_y], -1), mask=np.ones(v_y.shape, bool))
+    off = arr.lateral + np.stack([sd * rng.standard_normal(v_y.shape), 0 * v_y + 1e-3], -1)
+    fit = body_error(off, arr)
+    # read at the estimate, as an observer reads it: calibrated overall and from the
+    # straightest quarter of the rows to the hardest cornering one
+    e2 = (off[..., 0] - v_y) ** 2
+    nees = e2 / (fit[0, 0] + fit[0, 1] * off[..., 0] ** 2)
+    assert nees.mean() == pytest.approx(1.0, rel=0.05) and fit[0, 1] > 0.02
+    size = np.abs(off[..., 0])
+    for q in range(4):  # within 0.4-1.6 in each quarter; one variance for all is not
+        quarter = (size >= np.quantile(size, q / 4)) & (size <= np.quantile(size, (q + 1) / 4))
+        assert 0.4 < nees[quarter].mean() < 1.6, (q, nees[quarter].mean())
+    assert (e2 / e2.mean())[size <= np.quantile(size, 0.25)].mean() < 0.2
+    np.testing.assert_allclose(fit[1], [1e-6, 0.0], atol=1e-12)  # r off by 1e-3: a floor
+
+    assert stored_lateral_error("x", {}) is None
+    np.testing.assert_array_equal(stored_lateral_error("x", {LATERAL_ERROR: error.tolist()}),
+                                  error)
+    for bad in ([[1.0, -2.0], [3.0, 4.0]], [[np.nan, 0], [0, 1]], [1.0, 2.0], "big",
+                [["a", 0], [0, 1]]):
+        with pytest.raises(LboError, match=r"^checkpoint c.ckpt: its stored meta.lateral_error "
+                                           r"is not the body's error as a 2 x 2 matrix of "
+                                           r"finite, non-negative numbers") as e:
+            stored_lateral_error("checkpoint c.ckpt", {LATERAL_ERROR: bad})
+        assert "\n" not in str(e.value)

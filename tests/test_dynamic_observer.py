@@ -85,7 +85,9 @@ def test_its_lateral_states_are_scored_beside_the_oracle_told_the_car(dynamic, s
                                                       "kinematic", "zero"]
     mine = table[table["observer"] == "filternet-N60"].set_index("alpha")
     assert len(mine) == 7 and mine[["rmse_beta", "rmse_vy", "rmse_r"]].notna().all().all()
-    assert mine["nees_beta"].isna().all()  # its body carries no variance
+    # beta's variance is made of its body's error on the validation set, read from the
+    # checkpoint: the same NEES at every level (the body is driven by the inputs, not the fixes)
+    assert (mine["nees_beta"] > 0).all() and mine["nees_beta"].nunique() == 1
     kin = table[table["observer"] == "kinematic"].set_index("alpha")
     assert (mine["rmse_r"] < 3 * kin["rmse_r"]).all()  # a yaw rate of the car's size
     # the body is the recursive form's: its r follows the car's yaw (v tan(delta) / L at
@@ -98,6 +100,70 @@ def test_its_lateral_states_are_scored_beside_the_oracle_told_the_car(dynamic, s
     np.testing.assert_allclose(body[:, 0, 1], r_start, rtol=1e-9, atol=1e-12)
     assert lateral.carries(net)
     assert not lateral.carries(SimpleNamespace(net=build_model("filternet", 60)))
+
+
+def test_its_checkpoint_holds_its_bodys_error_on_the_validation_set(dynamic, smoke_data):
+    """The training measured the error of the body's ``[v_y, r]`` against the validation
+    set's own after its validation, logged its RMSE and wrote the error into the checkpoint:
+    measured again here from the checkpoint's weights, the same matrix."""
+    from lbo.models.checkpoint import LATERAL_ERROR, hyperparameters
+    from lbo.scoring import lateral
+    from lbo.scoring.grid import load_test
+
+    ckpt = dynamic["out"]["checkpoint"]
+    stored = np.array(hyperparameters(ckpt)["meta"][LATERAL_ERROR])
+    net = Observer.load(ckpt).net
+    np.testing.assert_array_equal(net.lateral_error, stored)
+    val = load_test(next(smoke_data.parent.glob("dynamic_drift-*")) / "val.parquet")
+    assert val.lateral is not None
+    again = lateral.body_error(lateral.carried(net, val), val)
+    np.testing.assert_allclose(again, stored, rtol=1e-6)
+    assert (stored >= 0).all() and (stored.sum(1) > 0).all()
+    body = lateral.carried(net, val)
+    rmse = np.sqrt(np.mean((body - val.lateral)[val.mask] ** 2, axis=0))
+    metrics = mlflow.MlflowClient(dynamic["uri"]).get_run(dynamic["out"]["run_id"]).data.metrics
+    assert metrics["val_body_rmse_vy"] == pytest.approx(rmse[0], rel=1e-5)
+    assert metrics["val_body_rmse_r"] == pytest.approx(rmse[1], rel=1e-5)
+
+
+def test_a_kalmannet_around_the_body_has_its_error_measured_as_lbo_train_measures_it(
+        dynamic, smoke_data):
+    """The callback lbo.train runs (``LateralError``) on a KalmanNet peer around the
+    single-track body, which is carried otherwise than the window filter: after a
+    validation, the error of its body on the validation set, logged and written into a
+    checkpoint's metadata (a copy: the module's own is left as built); nothing in the sanity
+    check, nor for a peer without a body."""
+    from types import SimpleNamespace
+
+    from lbo.learn.callbacks import LateralError
+    from lbo.models.checkpoint import LATERAL_ERROR
+    from lbo.scoring import lateral
+    from lbo.scoring.grid import load_test
+
+    folder = next(smoke_data.parent.glob("dynamic_drift-*"))
+    logged: dict = {}
+    net = WindowNet("kalmannet", 60, "frame", body="single_track")
+    module = SimpleNamespace(observer=net, device=torch.device("cpu"), log_dict=logged.update)
+    trainer = SimpleNamespace(sanity_checking=True, datamodule=SimpleNamespace(folder=folder))
+    measure = LateralError()
+    measure.on_validation_epoch_end(trainer, module)
+    assert measure.error is None and not logged
+    trainer.sanity_checking = False
+    measure.on_validation_epoch_end(trainer, module)
+    val = load_test(folder / "val.parquet")
+    np.testing.assert_allclose(measure.error, lateral.body_error(lateral.carried(net, val), val))
+    assert logged["val_body_rmse_r"] == pytest.approx(np.sqrt(np.mean(
+        (lateral.carried(net, val) - val.lateral)[..., 1][val.mask] ** 2)))
+    meta = {"seed": 0}
+    saved = {"hyper_parameters": {"meta": meta}}
+    measure.on_save_checkpoint(trainer, module, saved)
+    assert saved["hyper_parameters"]["meta"] == {"seed": 0,
+                                                 LATERAL_ERROR: measure.error.tolist()}
+    assert meta == {"seed": 0}
+    plain = LateralError()
+    plain.on_validation_epoch_end(trainer, SimpleNamespace(
+        observer=WindowNet("kalmannet", 60, "frame"), device=torch.device("cpu")))
+    assert plain.error is None
 
 
 def test_report_section_where_learning_beats_the_model(dynamic, tmp_path):
@@ -150,8 +216,8 @@ def test_the_observer_streams_a_log_of_the_car(dynamic, tmp_path):
 def test_observe_writes_the_lateral_states_its_recursive_form_carries(dynamic, tmp_path):
     """``lbo.observe ... form=recursive`` on a log of the car that slips adds beta, v_y and r:
     the body its filter carries, as Observer.run and Observer.step give it (beta = atan2(v_y,
-    V)), its yaw rate turning with the car; the window form, which starts the body afresh in
-    each window, adds none."""
+    V)), its yaw rate turning with the car, and their variances; the window form, which starts
+    the body afresh in each window, adds none."""
     from lbo.simulate import simulate
 
     log = simulate(compose_cfg("simulate", ["data=dynamic_drift", "manoeuvre=hairpin",
@@ -175,6 +241,19 @@ def test_observe_writes_the_lateral_states_its_recursive_form_carries(dynamic, t
     np.testing.assert_allclose(streamed, found.lateral[:80], rtol=0, atol=1e-9)
     turn = log["V"] * np.tan(log["delta"]) / obs.vehicle.wheelbase  # the bicycle's yaw rate
     assert np.corrcoef(out["r"], turn)[0, 1] > 0.9
+    # with their variances, made of the body's error on the validation set (its checkpoint's):
+    # a floor and a part that grows with the state, beta's v_y's through atan2(v_y, V)
+    variances = ["var_beta", "var_v_y", "var_r"]
+    error = obs.lateral_error
+    assert error is not None and not set(variances) & set(pd.read_csv(tmp_path / "window.csv"))
+    np.testing.assert_allclose(out[variances].to_numpy(), found.lateral_var, rtol=0, atol=1e-15)
+    np.testing.assert_allclose(out["var_v_y"], error[0, 0] + error[0, 1] * out["v_y"] ** 2)
+    np.testing.assert_allclose(out["var_r"], error[1, 0] + error[1, 1] * out["r"] ** 2)
+    slope = log["V"] / (log["V"] ** 2 + out["v_y"] ** 2)
+    np.testing.assert_allclose(out["var_beta"], slope ** 2 * out["var_v_y"], rtol=1e-12)
+    obs.reset()
+    np.testing.assert_allclose(np.array([obs.step(m[k], u[k]).lateral_var for k in range(80)]),
+                               found.lateral_var[:80], rtol=1e-9)
 
 
 def test_the_drift_calibration_benchmark_reads_the_run_and_prints_each_level(dynamic,

@@ -187,6 +187,24 @@ def test_settings_written_into_the_kept_folder_are_not_read(copy, log):
         obs.run(m, u)
 
 
+def test_the_bodys_error_is_read_from_the_checkpoint_and_a_bad_one_refused_as_torch_does(
+        cache):
+    """A kept folder's net carries the body's error its checkpoint's metadata holds (what its
+    lateral states' variances are made of), as read_checkpoint's net does; a damaged one is
+    refused in one line naming it, not taken for damaged graphs (which would be exported
+    afresh)."""
+    _, hp = read_checkpoint(cache["checkpoint"])
+    where = exported.folder(cache["checkpoint"])
+    assert exported._read(where, hp).lateral_error is None  # the robust observer has no body
+    error = [[1e-4, 0.02], [1e-8, 0.0]]
+    net = exported._read(where, {**hp, "meta": {**hp["meta"], "lateral_error": error}})
+    np.testing.assert_array_equal(net.lateral_error, error)
+    with pytest.raises(LboError, match=r"^the checkpoint of kept ONNX graphs .*: its stored "
+                                       r"meta.lateral_error is not the body's error") as e:
+        exported._read(where, {**hp, "meta": {**hp["meta"], "lateral_error": [[-1, 0], [0, 0]]}})
+    assert not isinstance(e.value, exported.DamagedGraphs)
+
+
 def _damage(copy, damage: str) -> None:
     folder = copy["folder"]
     if damage == "step cut short":

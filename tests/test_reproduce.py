@@ -103,6 +103,9 @@ def test_reproduce_smoke_killed_and_resumed_without_duplicates(tmp_path):
     assert list(dict.fromkeys(lateral["observer"])) == ["filternet-N100", "oracle_dynamic",
                                                         "kinematic", "zero"]
     assert lateral.loc[lateral["observer"] == "filternet-N100", "rmse_beta"].notna().all()
+    # with beta's NEES: its variance made of the body's error on the validation set
+    assert (lateral.loc[lateral["observer"] == "filternet-N100", "nees_beta"] > 0).all()
+    assert "| observer | alpha | beta (deg) | v_y (m/s) | r (rad/s) | beta NEES |" in md
     dynamic = pd.read_csv(report / "dynamic.csv")  # scored on its own test set, with its oracle
     assert set(dynamic["observer"]) == {"filternet-N100", "ekf", "oracle", "adaptive",
                                         "oracle_tuned", "oracle_dynamic"}

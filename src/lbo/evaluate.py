@@ -224,7 +224,8 @@ def _run_grid(cfg: DictConfig, observers: list[str], learned: list[str],
     if truth.car is not None and arr.lateral is not None:  # the states no sensor gives
         written.append(_lateral(arr, vehicle, noise, truth, {
             name: bodies[name] if name in bodies else lateral.carried(net, arr)  # window form
-            for name, net in nets.items() if lateral.carries(net)}, out))
+            for name, net in nets.items() if lateral.carries(net)},
+            {name: net.lateral_error for name, net in nets.items()}, out))
     with pd.option_context("display.width", 120, "display.precision", 4):
         pivot = table.pivot(index="alpha", columns="observer", values="nrmse")[observers]
         print(f"NRMSE (E_ref = {cfg.metric.reference}: {ref[0]:.3f} m, {ref[1]:.3f} m, "
@@ -239,13 +240,15 @@ def _run_grid(cfg: DictConfig, observers: list[str], learned: list[str],
 
 
 def _lateral(arr: Trajectories, vehicle: Vehicle, noise: Noise, truth: Any,
-             bodies: dict[str, np.ndarray], out: Path) -> Path:
+             bodies: dict[str, np.ndarray], errors: dict[str, np.ndarray | None],
+             out: Path) -> Path:
     """lateral.csv: beta, v_y and r scored on a car that slips (:mod:`lbo.scoring.lateral`),
     first the learned observers' whose single-track body carried ``bodies`` (label -> (G, T,
-    2) ``[v_y, r]``); printed with beta in degrees."""
+    2) ``[v_y, r]``), with the body's ``errors`` their checkpoints hold; printed with beta in
+    degrees."""
     from lbo.scoring import lateral
 
-    scores = lateral.table(arr, vehicle, noise, truth, bodies)
+    scores = lateral.table(arr, vehicle, noise, truth, bodies, errors)
     path = out / "lateral.csv"
     with atomic_path(path) as tmp:
         scores.to_csv(tmp, index=False)

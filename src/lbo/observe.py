@@ -26,7 +26,8 @@ var_y`` (m^2), ``var_psi`` (rad^2) and ``cov_xy`` (m^2), its covariance's entrie
 and the LSTM have none. A learned observer with a single-track body (``experiment=dynamic``,
 KalmanNet's peers with ``model.body=single_track``), run with ``form=recursive``, adds the
 lateral states no sensor gives: ``beta`` (rad, the side slip at the centre of gravity),
-``v_y`` (m/s) and ``r`` (rad/s).
+``v_y`` (m/s) and ``r`` (rad/s), and where its checkpoint holds its body's error on the
+validation set (trained on data with them), their variances ``var_beta, var_v_y, var_r``.
 
 ``smooth=true`` runs a Rauch-Tung-Striebel smoother after the filter (:mod:`lbo.filters.smoother`),
 for the best estimate of an offline log from every sample before and after each row: the
@@ -86,7 +87,7 @@ from lbo.models.envelope import check_mode
 from lbo.scoring import outages as outage
 from lbo.scoring.metrics import nrmse
 from lbo.scoring.outages import Outages
-from lbo.sim.columns import COVARIANCE, LATERAL_ESTIMATE, LOG, RECEIVER, STATE
+from lbo.sim.columns import COVARIANCE, LATERAL_ESTIMATE, LATERAL_VARIANCE, LOG, RECEIVER, STATE
 from lbo.sim.measurements import Measurements
 
 __all__ = ["main", "observe"]
@@ -240,6 +241,9 @@ def observe(cfg: DictConfig) -> dict[str, Any]:
     if obs.carries_lateral:
         for i, name_ in enumerate(LATERAL_ESTIMATE):
             out[name_] = found.lateral[:, i]
+    if obs.lateral_error is not None:
+        for i, name_ in enumerate(LATERAL_VARIANCE):
+            out[name_] = found.lateral_var[:, i]
     if envelope is not None:  # the fields of the training envelope each row is outside of
         out["outside"] = envelope.reasons()
     if origin is not None:  # the estimate where the log's positions were: degrees

@@ -260,7 +260,7 @@ def _fit(cfg: DictConfig, built: Built, callbacks: list[L.Callback] | None,
     from lightning.pytorch.callbacks import ModelCheckpoint
     from lightning.pytorch.loggers import MLFlowLogger
 
-    from lbo.learn.callbacks import Evaluation, RunIdentity
+    from lbo.learn.callbacks import Evaluation, LateralError, RunIdentity
     from lbo.learn.checkpoint_io import AtomicCheckpointIO
     from lbo.learn.lightning_module import TrainingModule
 
@@ -294,7 +294,7 @@ def _fit(cfg: DictConfig, built: Built, callbacks: list[L.Callback] | None,
               if cfg.get("logger") else None)
     identity = RunIdentity(resume_id, digest)
     callbacks = [*(instantiate(c) for c in (cfg.get("callbacks") or {}).values()),
-                 *(callbacks or []), identity]
+                 *(callbacks or []), LateralError(), identity]
     # trained carried, the module clips each chunk's step itself (``clip``)
     manual: dict[str, Any] = ({"gradient_clip_val": None} if cfg.get("tbptt") is not None
                               else {})

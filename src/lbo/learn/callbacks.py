@@ -1,4 +1,6 @@
-"""Lightning callbacks: score the best checkpoint on the whole test grid at the end of fit."""
+"""Lightning callbacks: score the best checkpoint on the whole test grid at the end of fit,
+measure a single-track body's error on the validation set, and mark each checkpoint as the
+run's."""
 
 from __future__ import annotations
 
@@ -18,7 +20,7 @@ from lbo.core.atomic import atomic_path
 from lbo.filters.classical import DYNAMIC_PEERS, GRID_PEERS
 from lbo.learn.resume import IDENTITY_KEY
 from lbo.logs.sets import is_log_folder, test_files
-from lbo.models.checkpoint import read_checkpoint, trained_conditions
+from lbo.models.checkpoint import LATERAL_ERROR, read_checkpoint, trained_conditions
 from lbo.scoring import logscore, peers_ahead
 from lbo.scoring.grid import (
     classical_table,
@@ -30,6 +32,7 @@ from lbo.scoring.grid import (
     score,
     summary,
 )
+from lbo.sim.schema import Trajectories
 from lbo.sim.truth import Truth, of_folder
 
 LOGGED_ALPHAS = (1.0, 3.0, 6.0)
@@ -204,3 +207,41 @@ class RunIdentity(L.Callback):
 
     def on_save_checkpoint(self, trainer: Any, pl_module: Any, checkpoint: dict) -> None:
         checkpoint[IDENTITY_KEY] = {"run_id": self.run_id, "config_hash": self.digest}
+
+
+class LateralError(L.Callback):
+    """After each validation of an observer that carries a single-track body
+    (:func:`lbo.scoring.lateral.carries`) on a set that holds the car's lateral states
+    (``data=dynamic``'s validation set): the error of the ``[v_y, r]`` its recursive form
+    carries there (:func:`lbo.scoring.lateral.body_error`), logged as ``val_body_rmse_vy``
+    (m/s) and ``val_body_rmse_r`` (rad/s) and written into every checkpoint's metadata
+    (:data:`lbo.models.checkpoint.LATERAL_ERROR`): the error of the weights it holds, of
+    which its lateral states' variances are made. Nothing for any other observer or set."""
+
+    def __init__(self) -> None:
+        self.error: np.ndarray | None = None
+        self._val: Trajectories | None = None
+        self._read = False  # the validation set read (None there: nothing to measure on)
+
+    def on_validation_epoch_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        from lbo.scoring import lateral
+
+        net = pl_module.observer  # lbo's TrainingModule
+        if trainer.sanity_checking or not lateral.carries(net):
+            return
+        if not self._read:
+            self._read = True
+            folder = Path(trainer.datamodule.folder)  # type: ignore[attr-defined]
+            val = load_test(folder / "val.parquet") if not is_log_folder(folder) else None
+            self._val = val if val is not None and val.lateral is not None else None
+        if self._val is None:
+            return
+        body = lateral.carried(net, self._val, str(pl_module.device))
+        self.error = lateral.body_error(body, self._val)
+        rmse = np.sqrt(np.nanmean((body - self._val.lateral)[self._val.mask] ** 2, axis=0))
+        pl_module.log_dict({"val_body_rmse_vy": float(rmse[0]), "val_body_rmse_r": float(rmse[1])})
+
+    def on_save_checkpoint(self, trainer: Any, pl_module: Any, checkpoint: dict) -> None:
+        if self.error is not None:  # a copy: the module's own hyperparameters stay as built
+            hp = checkpoint["hyper_parameters"]
+            hp["meta"] = {**(hp.get("meta") or {}), LATERAL_ERROR: self.error.tolist()}

@@ -17,6 +17,8 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from lbo.core.errors import LboError
 from lbo.models.envelope import Envelope
 from lbo.sim.noise import Noise
@@ -92,6 +94,7 @@ def read_checkpoint(path: str | os.PathLike, features: str | None = None,
     if bad is not None:
         raise LboError(f"checkpoint {path}: its weights hold NaN or inf ({bad}: training "
                        "diverged?); retrain it, e.g. with a smaller optimizer.lr")
+    net.lateral_error = stored_lateral_error(f"checkpoint {path}", hp.get("meta") or {})
     return net.to(device).eval(), hp
 
 
@@ -189,3 +192,29 @@ def stored_envelope(name: str, meta: dict[str, Any]) -> Envelope | None:
         return Envelope.from_dict(stored)
     except LboError as e:
         raise LboError(f"observer {name}: its stored {e}") from None
+
+
+LATERAL_ERROR = "lateral_error"
+"""The key of a checkpoint's ``meta`` that holds its single-track body's error on the
+validation set, measured as it trained (:class:`lbo.learn.callbacks.LateralError`): per
+state ``[v_y, r]`` (a row), the floor (m^2/s^2, rad^2/s^2) and the relative part (1) of its
+error's variance, var = floor + part state^2 (:func:`lbo.scoring.lateral.body_error`); absent
+for an observer without a body, or trained on data without lateral states."""
+
+
+def stored_lateral_error(name: str, meta: Mapping[str, Any]) -> np.ndarray | None:
+    """The body's error (2, 2) stored in a checkpoint's metadata (:data:`LATERAL_ERROR`), None
+    where there is none; one line starting with ``name`` (the checkpoint) for one that is not
+    a 2 x 2 matrix of finite, non-negative numbers."""
+    stored = meta.get(LATERAL_ERROR)
+    if stored is None:
+        return None
+    try:
+        error = np.array(stored, dtype=float)
+    except (TypeError, ValueError):
+        error = np.full(1, np.nan)
+    if error.shape != (2, 2) or not np.isfinite(error).all() or (error < 0).any():
+        raise LboError(f"{name}: its stored meta.{LATERAL_ERROR} is not the body's error as "
+                       f"a 2 x 2 matrix of finite, non-negative numbers (per state v_y, r: "
+                       f"the floor and the relative part of its variance): {stored!r}")
+    return error

@@ -9,6 +9,7 @@ from __future__ import annotations
 import numbers
 from typing import TYPE_CHECKING, Any
 
+import numpy as np
 import torch
 from torch import nn
 
@@ -79,6 +80,13 @@ class WindowNet(nn.Module):
         in_std: torch.Tensor
         out_mean: torch.Tensor
         out_std: torch.Tensor
+
+    lateral_error: np.ndarray | None = None
+    """(2, 2) the error of the ``[v_y, r]`` its single-track body carries, fitted on the
+    validation set as it trained (:data:`lbo.models.checkpoint.LATERAL_ERROR`: per state, the
+    floor and the relative part of its variance; set where it is read from a checkpoint that
+    holds one): what its lateral states' variances are made of
+    (:func:`lbo.serve.estimate.lateral_variance`). None: no variance."""
 
     def __init__(self, model: str, window: int, features: str = "relative", *,
                  fixes: bool = False, receiver: bool = False,

@@ -135,14 +135,16 @@ def dynamic_markdown(key: str, table: pd.DataFrame) -> list[str]:
 
 
 def lateral_markdown(scores: pd.DataFrame) -> list[str]:
-    """The side slip beta (deg), v_y and r of each estimator at alpha 1, 3 and 6."""
+    """The side slip beta (deg), v_y and r of each estimator at alpha 1, 3 and 6, and beta's
+    NEES where the estimator gives its variance."""
     at = scores[scores["alpha"].isin([1.0, 3.0, 6.0])]
     shown = pd.DataFrame({"observer": at["observer"], "alpha": at["alpha"],
                           "beta (deg)": np.rad2deg(at["rmse_beta"]), "v_y (m/s)": at["rmse_vy"],
-                          "r (rad/s)": at["rmse_r"]})
+                          "r (rad/s)": at["rmse_r"], "beta NEES": at["nees_beta"]})
     return ["The states no sensor gives, RMSE over the scored rows (a learned observer's: the "
-            "v_y and r its single-track body carries; `lateral.csv` of `lbo.evaluate`):", "",
-            md_table(shown), ""]
+            "v_y and r its single-track body carries, its variances made of the body's error "
+            "on the validation set; `lateral.csv` of `lbo.evaluate`), and beta's NEES (1 for "
+            "an honest variance; nan: none given):", "", md_table(shown), ""]
 
 
 @dataclass(frozen=True)

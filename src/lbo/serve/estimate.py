@@ -45,15 +45,21 @@ class Estimate(_Pair):
     LATERAL_ESTIMATE`) of an observer that carries a single-track body
     (:attr:`lbo.Observer.carries_lateral`); NaN for one that carries none, and where ``state``
     is NaN."""
+    lateral_var: np.ndarray
+    """(3,) the variances of ``lateral`` (rad^2, m^2/s^2, rad^2/s^2;
+    :func:`lateral_variance`) where the observer's checkpoint holds its body's error; NaN
+    elsewhere."""
 
     def __new__(cls, state: np.ndarray, valid: bool, reason: str | None = None,
                 cov: np.ndarray | None = None, outside: tuple[str, ...] = (),
-                lateral: np.ndarray | None = None) -> Estimate:
+                lateral: np.ndarray | None = None,
+                lateral_var: np.ndarray | None = None) -> Estimate:
         self = super().__new__(cls, state, valid)
         self.reason = None if valid else (reason or "the estimate is not finite")
         self.cov = np.full((3, 3), np.nan) if cov is None else cov
         self.outside = outside
         self.lateral = np.full(3, np.nan) if lateral is None else lateral
+        self.lateral_var = np.full(3, np.nan) if lateral_var is None else lateral_var
         return self
 
 
@@ -72,11 +78,13 @@ class Estimates(_Track):
     none (a CNN's or LSTM's windows) and on rows that are not valid."""
     lateral: np.ndarray
     """(T, 3) ``[beta, v_y, r]`` per row, as :attr:`Estimate.lateral`."""
+    lateral_var: np.ndarray
+    """(T, 3) their variances per row, as :attr:`Estimate.lateral_var`."""
 
     def __new__(cls, state: np.ndarray, valid: np.ndarray, cov: np.ndarray,
-                lateral: np.ndarray) -> Estimates:
+                lateral: np.ndarray, lateral_var: np.ndarray) -> Estimates:
         self = super().__new__(cls, state, valid)
-        self.cov, self.lateral = cov, lateral
+        self.cov, self.lateral, self.lateral_var = cov, lateral, lateral_var
         return self
 
 
@@ -91,3 +99,22 @@ def side_slip(body: np.ndarray | None, speed: np.ndarray,
     out = np.concatenate([np.arctan2(body[..., :1], speed[..., None]), body], -1)
     return out if pose is None else np.where(np.isfinite(pose).all(-1, keepdims=True), out,
                                              np.nan)
+
+
+def lateral_variance(error: np.ndarray | None, lateral: np.ndarray,
+                     speed: np.ndarray) -> np.ndarray:
+    """The variances (..., 3) of lateral states (..., 3) ``[beta, v_y, r]`` (as
+    :func:`side_slip` gives them, at the logged speed (...,)) of a single-track body whose
+    error is ``error`` (2, 2) (the checkpoint's, fitted on the validation set:
+    :func:`lbo.scoring.lateral.body_error`): row i of it, for v_y and r, holds a floor and a
+    relative part, var_i = floor_i + part_i state_i^2 (a body whose tyres are off is off in
+    proportion to how hard the car corners). Beta's is v_y's carried through
+    beta = atan2(v_y, V) to first order, (V / (V^2 + v_y^2))^2 var(v_y). NaN where ``error``
+    is None and where ``lateral`` is."""
+    lateral = np.asarray(lateral, dtype=float)
+    if error is None:
+        return np.full(lateral.shape, np.nan)
+    v_y, r, v = lateral[..., 1], lateral[..., 2], np.asarray(speed, dtype=float)
+    var_vy = error[0, 0] + error[0, 1] * v_y ** 2
+    slope = v / (v ** 2 + v_y ** 2)  # d beta / d v_y
+    return np.stack([slope ** 2 * var_vy, var_vy, error[1, 0] + error[1, 1] * r ** 2], -1)

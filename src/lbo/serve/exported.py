@@ -34,7 +34,7 @@ import numpy as np
 from lbo.core import sources
 from lbo.core.errors import LboError
 from lbo.core.paths import cache_dir
-from lbo.models.checkpoint import hyperparameters
+from lbo.models.checkpoint import hyperparameters, stored_lateral_error
 from lbo.serve.engines import OPSET, Coast, RecursiveStep, chunked, onnx_session, onnx_step
 from lbo.serve.onnx_cache import SOURCES, version
 
@@ -73,6 +73,8 @@ class ExportedNet:
     coast_limit: int
     receiver: bool = False
     carried: bool = False
+    lateral_error: np.ndarray | None = None
+    """As :attr:`lbo.models.net.WindowNet.lateral_error`, read from the checkpoint."""
 
     def recursive_step(self) -> tuple[RecursiveStep, list[np.ndarray], Coast | None]:
         """The step on numpy arrays (one-thread ONNX Runtime), the state of a filter that
@@ -193,6 +195,8 @@ def _read(where: Path, hp: dict[str, Any]) -> ExportedNet:
     """The :class:`ExportedNet` kept in the folder ``where`` for a checkpoint of
     hyperparameters ``hp``; raises :class:`DamagedGraphs` naming what fails."""
     name = f"kept ONNX graphs {where}"
+    # the checkpoint's own, refused as read_checkpoint refuses it (not the graphs' damage)
+    error = stored_lateral_error(f"the checkpoint of {name}", hp.get("meta") or {})
     try:
         info = json.loads((where / "observer.json").read_text())
     except (OSError, ValueError) as e:
@@ -219,7 +223,7 @@ def _read(where: Path, hp: dict[str, Any]) -> ExportedNet:
                            net=ExportedFilter(**info["net"]), folder=where,
                            state=tuple((str(n), tuple(int(d) for d in s))
                                        for n, s in info["state"]),
-                           coast_limit=int(info["coast_limit"]))
+                           coast_limit=int(info["coast_limit"]), lateral_error=error)
     except (KeyError, TypeError, ValueError) as e:
         raise DamagedGraphs(f"{name}: observer.json or the checkpoint's settings "
                             f"unreadable ({type(e).__name__}: {e})") from None

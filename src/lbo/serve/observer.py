@@ -33,13 +33,13 @@ from lbo.core.errors import LboError
 from lbo.filters import classical
 from lbo.filters.gyro import GyroNoise
 from lbo.filters.inputs import InputTerms
-from lbo.logs.checks import check_device, check_sample
+from lbo.logs.checks import check_device
 from lbo.models import checkpoint
 from lbo.models.envelope import Envelope, EnvelopeCheck, EnvelopeWarning, check_mode, observer_terms
 from lbo.serve import exported
-from lbo.serve.estimate import Estimate, Estimates
-from lbo.serve.refusals import checked_log, no_fix, no_heading, no_receiver
-from lbo.serve.rows import as_arrays, bicycle_rows, sampled
+from lbo.serve.estimate import Estimate, Estimates, lateral_variance
+from lbo.serve.refusals import checked_log, checked_sample
+from lbo.serve.rows import bicycle_rows, sampled
 from lbo.serve.runners import (
     FORMS,
     ClassicalRunner,
@@ -167,6 +167,14 @@ class Observer:
         ``model.body=single_track``) in its recursive form. The window form starts the body
         afresh in each window, and carries none from one estimate to the next."""
         return bool(getattr(self._runner, "carries_lateral", False))
+
+    @property
+    def lateral_error(self) -> np.ndarray | None:
+        """(2, 2) the error of the ``[v_y, r]`` its body carries, measured on the validation
+        set as it trained (:attr:`lbo.models.net.WindowNet.lateral_error`) where it
+        :attr:`carries_lateral`: the lateral states then come with variances
+        (``Estimate.lateral_var``, ``Estimates.lateral_var``). None: no variance."""
+        return getattr(self.net, "lateral_error", None) if self.carries_lateral else None
 
     @property
     def gives_covariance(self) -> bool:
@@ -310,28 +318,7 @@ class Observer:
         control loop run torch on one thread, or ``engine="onnx"`` (one thread already).
         """
         k = self._count
-        measurement, receiver = as_arrays(measurement, receiver, f"step {k}")
-        try:
-            u = np.asarray(input, dtype=float).reshape(2)
-            m = (None if measurement is None
-                 else np.asarray(measurement, dtype=float).reshape(3))
-        except (TypeError, ValueError):
-            raise LboError(f"step {k}: expected measurement [x_m, y_m, psi_m] (3 numbers, or "
-                           f"None) and input [V, delta] (2 numbers), got {measurement!r} and "
-                           f"{input!r}") from None
-        fix = check_sample(None if m is None else tuple(m.tolist()), tuple(u.tolist()), k,
-                           self.vehicle.delta_max)
-        if fix and not self.takes_receiver and np.isnan(cast(np.ndarray, m)[2]):  # a fix: an m
-            raise LboError(f"step {k}: {no_heading(self.name)}")
-        if not fix:
-            if not self.takes_missing_fixes:
-                raise LboError(f"step {k}: {no_fix(self.name)}")
-            m = np.full(3, np.nan)
-        else:  # one branch for every observer (absolute features read the angle itself)
-            m = cast(np.ndarray, m).copy()  # never the caller's array
-            m[2] = wrap_angle(m[2])
-        if receiver is not None and not self.takes_receiver:
-            raise LboError(f"step {k}: {no_receiver(self.name)}")
+        m, u, receiver, fix = checked_sample(self, measurement, input, receiver, k)
         if self.inputs is not None:  # checked as logged, read as the terms undo them
             u = self.inputs.undo(u)
         row = m
@@ -341,18 +328,18 @@ class Observer:
         outside = self._envelope(m, u) if self._envelope is not None else ()
         est = self._runner.take(k, row, u, fix)
         self._count += 1
-        if not outside:
-            return est
-        why = "outside the training envelope: " + ", ".join(  # outside: there is an envelope
-            cast(Envelope, self.envelope).describe(f) for f in outside)
-        if self.envelope_mode == "mark":
-            return Estimate(est.state, False, why if est.valid else est.reason, est.cov, outside,
-                            est.lateral)
-        new = [f for f in outside if f not in self._warned]
-        if new:  # once per field until reset: a control loop is not flooded
-            self._warned.update(new)
-            warnings.warn(f"{self.name}: step {k}: {why}", EnvelopeWarning, stacklevel=2)
-        return Estimate(est.state, est.valid, est.reason, est.cov, outside, est.lateral)
+        valid, reason = est.valid, est.reason
+        if outside:  # outside: there is an envelope
+            why = "outside the training envelope: " + ", ".join(
+                cast(Envelope, self.envelope).describe(f) for f in outside)
+            new = [f for f in outside if f not in self._warned]
+            if self.envelope_mode == "mark":
+                valid, reason = False, why if est.valid else est.reason
+            elif new:  # once per field until reset: a control loop is not flooded
+                self._warned.update(new)
+                warnings.warn(f"{self.name}: step {k}: {why}", EnvelopeWarning, stacklevel=2)
+        return Estimate(est.state, valid, reason, est.cov, outside, est.lateral,
+                        lateral_variance(self.lateral_error, est.lateral, u[0]))
 
     # ----------------------------------------------------------------------- batch
 
@@ -396,6 +383,8 @@ class Observer:
         lateral : (T, 3) ``[beta, v_y, r]`` (rad, m/s, rad/s) where :attr:`carries_lateral`
             (beta = atan2(v_y, V) on the logged speed), NaN elsewhere and on rows that are
             not valid.
+        lateral_var : (T, 3) their variances where :attr:`lateral_error` is known, NaN
+            elsewhere.
 
         Raises
         ------
@@ -439,7 +428,8 @@ class Observer:
                               EnvelopeWarning, stacklevel=2)
         covs[~valid] = np.nan
         lateral[~valid] = np.nan
-        return Estimates(est, valid, covs, lateral)
+        return Estimates(est, valid, covs, lateral,
+                         lateral_variance(self.lateral_error, lateral, u[:, 0]))
 
     def __repr__(self) -> str:
         extra = (f", window={self.window}, features={self.features!r}, engine={self.engine!r}"

@@ -1,16 +1,18 @@
 """Why an observer refuses a sample or a log, in one line each: the text of the errors that
 :class:`lbo.Observer` and ``lbo.observe`` raise, naming the observers that take it, and the
-checks of a whole log against an observer (:func:`checked_log`)."""
+checks of one sample and of a whole log against an observer (:func:`checked_sample`,
+:func:`checked_log`)."""
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 
+from lbo.core.angles import wrap_angle
 from lbo.core.errors import LboError
 from lbo.filters import classical
-from lbo.logs.checks import check_fix_windows, check_receiver, check_samples
+from lbo.logs.checks import check_fix_windows, check_receiver, check_sample, check_samples
 from lbo.serve.rows import as_arrays
 from lbo.sim.columns import RECEIVER
 
@@ -83,4 +85,36 @@ def checked_log(obs: Any, m: Any, u: Any, receiver: Any, source: str | None
         raise LboError(f"{where}row {int(np.flatnonzero(~fix)[0])}: {no_fix(obs.name)}")
     if obs.net is not None and obs.form == "window":
         check_fix_windows(fix, obs.window, obs.name, obs.dt, source)
+    return m, u, receiver, fix
+
+
+def checked_sample(obs: Any, measurement: Any, input: Any, receiver: Any, k: int
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, bool]:
+    """Sample ``k`` as :meth:`lbo.Observer.step` takes it, checked for ``obs``: m (3,) (a
+    copy, its heading wrapped; NaN where the step has no fix), u (2,), the receiver's
+    channels (7,) or None, and whether it holds a position fix; else one line naming the step
+    (:func:`lbo.logs.checks.check_sample` and the observer's own limits, as
+    :func:`checked_log`)."""
+    measurement, receiver = as_arrays(measurement, receiver, f"step {k}")
+    try:
+        u = np.asarray(input, dtype=float).reshape(2)
+        m = (None if measurement is None
+             else np.asarray(measurement, dtype=float).reshape(3))
+    except (TypeError, ValueError):
+        raise LboError(f"step {k}: expected measurement [x_m, y_m, psi_m] (3 numbers, or "
+                       f"None) and input [V, delta] (2 numbers), got {measurement!r} and "
+                       f"{input!r}") from None
+    fix = check_sample(None if m is None else tuple(m.tolist()), tuple(u.tolist()), k,
+                       obs.vehicle.delta_max)
+    if fix and not obs.takes_receiver and np.isnan(cast(np.ndarray, m)[2]):  # a fix: an m
+        raise LboError(f"step {k}: {no_heading(obs.name)}")
+    if not fix:
+        if not obs.takes_missing_fixes:
+            raise LboError(f"step {k}: {no_fix(obs.name)}")
+        m = np.full(3, np.nan)
+    else:  # one branch for every observer (absolute features read the angle itself)
+        m = cast(np.ndarray, m).copy()  # never the caller's array
+        m[2] = wrap_angle(m[2])
+    if receiver is not None and not obs.takes_receiver:
+        raise LboError(f"step {k}: {no_receiver(obs.name)}")
     return m, u, receiver, fix

@@ -33,6 +33,10 @@ LATERAL_ESTIMATE = ("beta", *LATERAL)
 """The lateral states an observer that carries a single-track body estimates and
 ``lbo.observe`` adds to its output: the side slip at the centre of gravity (rad), v_y (m/s) and
 r (rad/s)."""
+LATERAL_VARIANCE = tuple(f"var_{name}" for name in LATERAL_ESTIMATE)
+"""Their variances (rad^2, m^2/s^2, rad^2/s^2), which ``lbo.observe`` adds where the
+observer's checkpoint holds its body's error on the validation set
+(:func:`lbo.serve.estimate.lateral_variance`)."""
 OUTPUT = ("t", *STATE, "valid")
 """``lbo.observe``'s output: time, the estimate, and whether the observer has one yet."""
 COVARIANCE = ("var_x", "var_y", "var_psi", "cov_xy")
