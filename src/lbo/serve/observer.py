@@ -170,10 +170,11 @@ class Observer:
 
     @property
     def lateral_error(self) -> np.ndarray | None:
-        """(2, 2) the error of the ``[v_y, r]`` its body carries, measured on the validation
-        set as it trained (:attr:`lbo.models.net.WindowNet.lateral_error`) where it
-        :attr:`carries_lateral`: the lateral states then come with variances
-        (``Estimate.lateral_var``, ``Estimates.lateral_var``). None: no variance."""
+        """(2, 2) the error of the ``[v_y, r]`` its body carries, fitted on the validation set
+        as it trained (per state, the floor and the relative part of its variance:
+        :attr:`lbo.models.net.WindowNet.lateral_error`) where it :attr:`carries_lateral`: the
+        lateral states then come with variances (``Estimate.lateral_var``,
+        ``Estimates.lateral_var``). None: no variance."""
         return getattr(self.net, "lateral_error", None) if self.carries_lateral else None
 
     @property
@@ -338,8 +339,9 @@ class Observer:
             elif new:  # once per field until reset: a control loop is not flooded
                 self._warned.update(new)
                 warnings.warn(f"{self.name}: step {k}: {why}", EnvelopeWarning, stacklevel=2)
+        error = self.lateral_error
         return Estimate(est.state, valid, reason, est.cov, outside, est.lateral,
-                        lateral_variance(self.lateral_error, est.lateral, u[0]))
+                        None if error is None else lateral_variance(error, est.lateral, u[0]))
 
     # ----------------------------------------------------------------------- batch
 
