@@ -221,7 +221,7 @@ class LateralError(L.Callback):
     def __init__(self) -> None:
         self.error: np.ndarray | None = None
         self._val: Trajectories | None = None
-        self._read = False  # the validation set read (None there: nothing to measure on)
+        self._read = False  # the validation set read (None: a user's logs)
 
     def on_validation_epoch_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         from lbo.scoring import lateral
@@ -232,14 +232,14 @@ class LateralError(L.Callback):
         if not self._read:
             self._read = True
             folder = Path(trainer.datamodule.folder)  # type: ignore[attr-defined]
-            val = load_test(folder / "val.parquet") if not is_log_folder(folder) else None
-            self._val = val if val is not None and val.lateral is not None else None
-        if self._val is None:
+            self._val = load_test(folder / "val.parquet") if not is_log_folder(folder) else None
+        val = self._val
+        if val is None or val.lateral is None:  # nothing to measure on
             return
-        body = lateral.carried(net, self._val, str(pl_module.device))
-        self.error = lateral.body_error(body, self._val)
-        rmse = np.sqrt(np.nanmean((body - self._val.lateral)[self._val.mask] ** 2, axis=0))
-        pl_module.log_dict({"val_body_rmse_vy": float(rmse[0]), "val_body_rmse_r": float(rmse[1])})
+        body = lateral.carried(net, val, str(pl_module.device))
+        self.error = lateral.body_error(body, val)
+        pl_module.log_dict({f"val_body_rmse_{name}": lateral.rmse(
+            body[..., i], val.lateral[..., i], val.mask) for i, name in enumerate(("vy", "r"))})
 
     def on_save_checkpoint(self, trainer: Any, pl_module: Any, checkpoint: dict) -> None:
         if self.error is not None:  # a copy: the module's own hyperparameters stay as built

@@ -170,9 +170,9 @@ def of_data(test: Any, cfg: Any, learned: Mapping[str, str]) -> pd.DataFrame | N
                  {label: net.lateral_error for label, net in nets.items()})
 
 
-def _rmse(est: np.ndarray | None, true: np.ndarray, pick: np.ndarray) -> float:
-    """RMSE of ``est`` against ``true`` (G, T) on the rows ``pick`` (G, T) where it has an
-    estimate; NaN for None."""
+def rmse(est: np.ndarray | None, true: np.ndarray, pick: np.ndarray) -> float:
+    """RMSE of a lateral state's estimate ``est`` against ``true`` (G, T) on the rows ``pick``
+    (G, T) where it has an estimate; NaN for None."""
     if est is None:
         return float("nan")
     pick = pick & np.isfinite(est)
@@ -193,7 +193,7 @@ def table(arr: Trajectories, vehicle: Vehicle, noise: Noise, truth: Truth,
             nees = float("nan") if var is None else float(np.mean(
                 ((cast(np.ndarray, est["beta"]) - true["beta"]) ** 2 / var)[pick]))
             rows.append({"observer": name, "alpha": float(alpha),
-                         **{f"rmse_{k}": _rmse(est[k], true[k], pick) for k in ("beta", "vy", "r")},
+                         **{f"rmse_{k}": rmse(est[k], true[k], pick) for k in ("beta", "vy", "r")},
                          "nees_beta": nees})
     return pd.DataFrame(rows, columns=COLUMNS)
 
