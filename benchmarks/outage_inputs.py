@@ -7,10 +7,18 @@ same car and on the other drives together (what a causal filter can be told). Ou
 of 10 s every 25 s and of 30 s every 45 s (:mod:`lbo.scoring.outages`) on ``DRIVES``
 single-antenna free drives of 180 s at alpha 1.
 
-    python benchmarks/outage_inputs.py
+Learned filters given as ``label=<run id or checkpoint>`` run beside them in their recursive
+form: a window filter with a learned process-model correction (``model.residual``) trained on
+simulated drives whose sensors carry the same errors learns the terms from its training drives
+(other drives of the car), not from the log it filters. What its correction implies on each
+log is printed (``implied_inputs``: its speed factor and the steering offset its yaw-rate
+correction undoes).
+
+    python benchmarks/outage_inputs.py ["learned filter=<run id>" ...]
 """
 
 import dataclasses
+import sys
 import time
 
 import pandas as pd
@@ -42,6 +50,10 @@ vehicle, noise = Vehicle.from_cfg(cfg.vehicle), Noise.from_cfg(cfg.noise)
 vehicle = dataclasses.replace(vehicle, delta_max=0.6)  # the offset reads past 0.5 rad
 told = InputTerms.told(Sensors(steering_offset=OFFSET, speed_scale=SPEED_SCALE))
 ekf = Observer.load("ekf", vehicle, noise)
+nets = {label: Observer.load(source, vehicle, form="recursive")
+        for label, source in (a.split("=", 1) for a in sys.argv[1:])}
+for label, observer in nets.items():
+    print(f"{label}: model.residual={observer.net.net.residual}", flush=True)
 tables = {}
 for length, every in ((10.0, 25.0), (30.0, 45.0)):
     drives = []
@@ -58,6 +70,10 @@ for length, every in ((10.0, 25.0), (30.0, 45.0)):
         print(f"{length:g} s outages, drive {seed}: {len(spans)} outages; fitted in "
               f"{time.perf_counter() - began:.1f} s ({fitted.runs} EKF runs): "
               f"{fitted.terms.describe()} (the truth: {told.describe()})", flush=True)
+        for label, observer in nets.items():
+            implied = observer.net.net.implied_inputs(u)  # lbo.models.motion.ProcessModel's
+            print(f"{length:g} s outages, drive {seed}: {label}: its correction implies "
+                  f"{implied.describe()}", flush=True)
         drives.append((log, spans, m, u, channels, rows, fitted.terms))
     scored = []
     for seed, (log, spans, m, u, channels, _, own) in enumerate(drives):
@@ -74,6 +90,10 @@ for length, every in ((10.0, 25.0), (30.0, 45.0)):
             e, ok = ekf.run(m, u, receiver=channels)
             est[name] = e.copy()
             est[name][~ok] = float("nan")
+        for label, observer in nets.items():
+            e, ok = observer.run(m, u, receiver=channels)
+            est[label] = e.copy()
+            est[label][~ok] = float("nan")
         scored.append(outages.score(est, log, spans, vehicle.dt))
     every_drive = pd.concat(scored)
     table = every_drive.groupby("estimator", sort=False)[["end_m", "drift_pct"]].mean()
@@ -87,6 +107,6 @@ for length, every in ((10.0, 25.0), (30.0, 45.0)):
     for name, r in table.iterrows():
         print(f"| {name} | {r['end_m']:.2f} | {r['drift_pct']:.2f} | {r['end_vs_told']:.2f} | "
               f"{r['end_vs_plain']:.2f} |")
-for name in (ADAPTED, OTHER, FLEET):
+for name in (ADAPTED, OTHER, FLEET, *nets):
     print(f"\nworst '{name}' vs told over the two lengths:",
           f"{max(t.loc[name, 'end_vs_told'] for t in tables.values()):.2f}")

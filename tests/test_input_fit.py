@@ -161,3 +161,37 @@ def test_observe_adapt_gives_a_learned_observer_the_terms_it_fits(robust_smoke, 
     out = pd.read_csv(tmp_path / "est.csv")
     np.testing.assert_allclose(out[["x", "y", "psi"]].to_numpy()[ref.valid], ref.state[ref.valid],
                                rtol=0, atol=1e-9)
+
+
+def test_a_learned_correction_says_the_input_terms_it_applies():
+    """``implied_inputs``: a window filter's learned correction of the kinematic bicycle read
+    as input terms. A correction that applies a known speed factor and steering offset
+    (written into the correction's place, in its output units) is read back as them; the
+    kinematic bicycle, and the zero-initialised correction, imply none; standstill rows are
+    not read."""
+    import torch
+    from torch import nn
+
+    from lbo.models.filternet import WindowFilter
+
+    factor, offset, wheelbase = 0.98, 0.01, 2.7
+
+    class Known(nn.Module):  # reads [0.1 V, 10 delta, 2 r_kin, 2 r_before]; returns d
+        def forward(self, x: torch.Tensor) -> torch.Tensor:
+            v, delta = 10 * x[:, 0], x[:, 1] / 10
+            rate = factor * v * torch.tan(delta - offset) / wheelbase
+            r_kin = v * torch.tan(delta) / wheelbase
+            return torch.stack([(rate - r_kin) / 0.2, torch.zeros_like(v),
+                                torch.full_like(v, (factor - 1) / 0.05)], -1)
+
+    rng = np.random.default_rng(0)
+    u = np.column_stack([rng.uniform(0, 25, 500), rng.uniform(-0.3, 0.3, 500)])
+    assert WindowFilter(20).implied_inputs(u) == InputTerms()
+    net = WindowFilter(20, residual=8).double()
+    assert net.implied_inputs(u) == InputTerms()  # zero-initialised: the kinematic bicycle
+    net.process = Known()
+    implied = net.implied_inputs(u)
+    assert implied.speed_factor == pytest.approx(factor, abs=1e-12)
+    assert implied.steering_offset == pytest.approx(offset, rel=5e-3)  # to first order
+    assert implied.steering_factor == 1.0
+    assert net.implied_inputs(np.column_stack([np.zeros(5), np.zeros(5)])) == InputTerms()

@@ -24,11 +24,13 @@ from __future__ import annotations
 import math
 from typing import TYPE_CHECKING, cast
 
+import numpy as np
 import torch
 from torch import nn
 
 from lbo.core.checks import integer, number
 from lbo.core.errors import LboError
+from lbo.filters.inputs import InputTerms
 
 SUBSTEPS = 4
 """Euler sub-steps per sampling period of the single-track body's lateral states."""
@@ -172,6 +174,29 @@ class ProcessModel(_Host):
         values = {"k_f": k[0], "k_r": k[1], "peak_f": p[0], "peak_r": p[1], "l_f": l_f,
                   "l_r": l_r, "inertia": inertia, "v_kinematic": v0}
         return {name: float(v.detach()) for name, v in values.items()}
+
+    def implied_inputs(self, u: np.ndarray, moving: float = 3.0) -> InputTerms:
+        """The input terms (:class:`lbo.filters.inputs.InputTerms`) that the learned correction
+        of the kinematic bicycle (``residual > 0``) applies on inputs ``u`` (T, 2) ``[V,
+        delta]``, as medians over the rows faster than ``moving`` (m/s): the speed factor is
+        its speed over V; the steering offset is the one whose yaw rate at that speed,
+        ``f V tan(delta - offset) / L``, is its corrected one, to first order, with the yaw rate
+        of the step before taken as the kinematic one. The steering factor is not told apart
+        from the correction's other parts and stays 1. Without a correction: no terms."""
+        rows = np.asarray(u, dtype=float)
+        rows = rows[rows[:, 0] > moving]
+        if self.residual == 0 or self.single_track or not len(rows):
+            return InputTerms()
+        ref = next(iter(self.parameters()))  # the correction's dtype and device
+        v, delta = (torch.as_tensor(c, dtype=ref.dtype, device=ref.device) for c in rows.T)
+        r = v * tan(delta) / self.wheelbase
+        with torch.no_grad():
+            along, across, rate, _ = self.motion(v, delta, torch.stack([torch.zeros_like(r), r],
+                                                                       -1))
+        speed = torch.hypot(along, across) / v
+        # the yaw rate of the corrected speed: f V tan(delta - offset) / L
+        offset = (speed * r - rate) * self.wheelbase * torch.cos(delta) ** 2 / (speed * v)
+        return InputTerms(float(speed.median()), float(offset.median()))
 
     @staticmethod
     def _lateral_rates(body: torch.Tensor, vx: torch.Tensor, delta: torch.Tensor,
