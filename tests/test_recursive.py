@@ -18,8 +18,8 @@ from lbo.sim.columns import RECEIVER
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 VARIANTS = {"plain": {}, "fixes": {"in_features": 6},
-            "residual": {"residual": 16}, "single_track_drift": {"body": "single_track",
-                                                                  "drift": True}}
+            "residual": {"residual": 16, "input_terms": True},  # the inputs' terms learned too
+            "single_track_drift": {"body": "single_track", "drift": True}}
 
 
 def _observer_net(kind: str, window: int = 60, seed: int = 0) -> WindowNet:

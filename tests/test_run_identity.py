@@ -16,8 +16,15 @@ from omegaconf import OmegaConf, open_dict
 
 from helpers import cli, store_client, train_cfg
 from lbo.core.paths import CONF_DIR, REPO_ROOT
-from lbo.learn.identity import HASH_VERSION, MARKER, config_hash, read_marker
-from lbo.learn.layouts import LATER_DEFAULTS, LATER_MODEL_DEFAULTS, hash_v1, unlayered, upgraded
+from lbo.learn.identity import HASH_VERSION, MARKER, config_hash, read_marker, was_key
+from lbo.learn.layouts import (
+    LATER_DEFAULTS,
+    LATER_MODEL_DEFAULTS,
+    hash_v1,
+    hash_v2,
+    unlayered,
+    upgraded,
+)
 from lbo.learn.migrate import MIGRATED, V1_TAG, migrate
 from lbo.learn.resume import EXPERIMENT_BEFORE, IDENTITY_KEY, finished_run
 
@@ -68,17 +75,31 @@ STORED_RUNS = {
 run carries (that commit's own hash, checked when the file was written)."""
 
 
-def _store(tmp: Path, runs: dict[str, tuple[str, str]]) -> tuple[str, dict[str, str]]:
-    """An MLflow store made before version 2: per name, a FINISHED run in :data:`EXPERIMENT_BEFORE`
-    tagged ``config_hash`` only, which logged ``config.yaml`` (``runs``: name -> (its text, its
-    tag)). Returns the store's URI and the run ids by name."""
+STORED_V2 = {
+    "v2_default": ("0bdf592", (), "84843abcb4f2d3c9"),
+    "v2_robust": ("0bdf592", ("experiment=robust",), "288113fff42ca7aa"),
+    "v2_robust_residual": ("0bdf592", ("experiment=robust", "model.residual=16",
+                                       "sensors.speed_scale=0.02"), "35fe3d5ad4a54bf4"),
+}
+"""Configs stored by runs under version 2 (the last commit before ``model.input_terms``, the
+setting version 3 added to the window filter), written as :data:`STORED`'s are, with that
+commit's own ``config_hash`` tag and ``hash_version`` 2."""
+
+
+def _store(tmp: Path, runs: dict[str, tuple[str, str]], version: int = 1
+           ) -> tuple[str, dict[str, str]]:
+    """An MLflow store made under config-hash ``version``: per name, a FINISHED run in
+    :data:`EXPERIMENT_BEFORE` tagged ``config_hash`` (and, from version 2, ``hash_version``),
+    which logged ``config.yaml`` (``runs``: name -> (its text, its tag)). Returns the store's
+    URI and the run ids by name."""
     uri = f"sqlite:///{tmp / 'mlflow.db'}"
     client = store_client(uri)
     exp = client.create_experiment(EXPERIMENT_BEFORE,
                                    artifact_location=(tmp / "artifacts").as_uri())
     ids = {}
     for name, (text, digest) in runs.items():
-        run = client.create_run(exp, tags={"config_hash": digest}, run_name=name)
+        tags = {"config_hash": digest} | ({"hash_version": str(version)} if version > 1 else {})
+        run = client.create_run(exp, tags=tags, run_name=name)
         logged = tmp / "logged" / name / "config.yaml"
         logged.parent.mkdir(parents=True)
         logged.write_text(text)
@@ -497,3 +518,83 @@ def test_a_marker_left_by_someone_elses_migration_is_mended_only_for_its_own_con
     assert finished_run(cfg, config_hash(cfg), clean=False) is None
     assert f"not reusing the finished run {run_id}" in capsys.readouterr().out
     assert read_marker(folder)[0]["config_hash"] == PRE_MOVE[()]
+
+
+@pytest.mark.parametrize("name", list(STORED_V2))
+def test_a_config_stored_under_version_2_gives_its_tag_and_todays_hash(name):
+    """Version 2 of the stored config, upgraded (``model.input_terms`` filled at its old
+    value), is the tag its run carries, and of today's config too; today's hash of the
+    upgraded config is today's config's. With the terms learned, it is no run of before."""
+    _, overrides, tag = STORED_V2[name]
+    today = compose_cfg("train", list(overrides))
+    stored = upgraded(OmegaConf.create((STORED / f"{name}.yaml").read_text()))
+    assert hash_v2(stored) == hash_v2(today) == tag
+    assert config_hash(stored) == config_hash(today)
+    if today.model.name == "filternet":
+        assert stored.model.input_terms is False and config_hash(today) != tag
+        terms = compose_cfg("train", [*overrides, "model.input_terms=true"])
+        assert tag != hash_v2(terms) != config_hash(today)
+
+
+def test_a_store_made_under_version_2_is_migrated_once_keeping_its_old_hashes(tmp_path,
+                                                                                capsys):
+    """Each version-2 run is found by today's hash and keeps its version-2 hash
+    (``config_hash_v2``); a run tagged with a version lbo never wrote is left, in a line."""
+    texts = {name: (STORED / f"{name}.yaml").read_text() for name in STORED_V2}
+    uri, ids = _store(tmp_path, {name: (texts[name], tag)
+                                 for name, (_, _, tag) in STORED_V2.items()}, version=2)
+    client = mlflow.MlflowClient(uri)
+    odd = client.create_run(client.get_experiment_by_name(EXPERIMENT_BEFORE).experiment_id,
+                            tags={"config_hash": "0123456789abcdef", "hash_version": "x"})
+    capsys.readouterr()
+    for name, (_, overrides, tag) in STORED_V2.items():
+        cfg = compose_cfg("train", [*overrides, f"logger.tracking_uri={uri}"])
+        found = finished_run(cfg, config_hash(cfg), clean=False)
+        assert found is not None and found["run_id"] == ids[name]
+        tags = client.get_run(ids[name]).data.tags
+        assert (tags["config_hash"], tags[was_key(2)], tags["hash_version"]) == (
+            config_hash(cfg), tag, str(HASH_VERSION))
+    said = capsys.readouterr().out.splitlines()
+    assert said == [f"left run {odd.info.run_id} of lbo as it was: its hash_version 'x' is "
+                    "none of [1, 2]",
+                    f"migrated 3 runs of lbo to config hash version {HASH_VERSION} "
+                    "(1 left as they were)"]
+
+
+def test_a_folder_and_a_checkpoint_written_under_version_2_are_their_configs(tmp_path):
+    """A run-identity file written under version 2 names the version-2 hash: an unfinished
+    run there is this config's where that is this config's version 2. Migrated, the file
+    keeps it beside today's, and a killed run's last checkpoint, which carries it, is the
+    run's."""
+    from lbo.learn.migrate import migrate_run
+    from lbo.learn.resume import folder_refusal, resumable_folder
+
+    cfg = compose_cfg("train", ["experiment=robust"])
+    other = compose_cfg("train", ["experiment=robust", "model.input_terms=true"])
+    v2 = STORED_V2["v2_robust"][2]
+    folder = tmp_path / "run"
+    (folder / "checkpoints").mkdir(parents=True)
+    (folder / MARKER).write_text(json.dumps(
+        {"run_id": "r1", "config_hash": v2, "hash_version": 2, "config_hash_v1": "0" * 16,
+         "folder": str(folder.resolve()), "uid": os.getuid(), "finished": False}))
+    assert folder_refusal(folder, config_hash(cfg), True, cfg=cfg) is None
+    why = folder_refusal(folder, config_hash(other), True, cfg=other)
+    assert "already holds the files of run r1 of another config" in why
+
+    uri, ids = _store(tmp_path / "store", {"robust": (
+        (STORED / "v2_robust.yaml").read_text(), v2)}, version=2)
+    client = mlflow.MlflowClient(uri)
+    client.log_param(ids["robust"], "output_dir", str(folder))
+    marker = json.loads((folder / MARKER).read_text()) | {"run_id": ids["robust"]}
+    (folder / MARKER).write_text(json.dumps(marker))
+    assert migrate_run(client, client.get_run(ids["robust"])) is None
+    marker, _ = read_marker(folder)
+    assert (marker["config_hash"], marker[was_key(2)], marker[was_key(1)],
+            marker["hash_version"]) == (config_hash(cfg), v2, "0" * 16, HASH_VERSION)
+    torch.save({IDENTITY_KEY: {"run_id": ids["robust"], "config_hash": v2}},
+               folder / "checkpoints" / "last.ckpt")
+    assert resumable_folder(folder, ids["robust"], config_hash(cfg)) is None
+    torch.save({IDENTITY_KEY: {"run_id": ids["robust"], "config_hash": "f" * 16}},
+               folder / "checkpoints" / "last.ckpt")
+    assert "was not written by that run" in resumable_folder(folder, ids["robust"],
+                                                              config_hash(cfg))

@@ -28,10 +28,12 @@ from omegaconf import DictConfig, OmegaConf, open_dict
 from lbo.core.atomic import write_text
 from lbo.logs.sets import is_logs
 
-HASH_VERSION = 2
+HASH_VERSION = 3
 """The version of :func:`config_hash` a run is tagged with (``hash_version``). A change to
 what the hash reads, or to the layout of the config it reads, bumps it, beside a migration
-step in :mod:`lbo.learn.migrate` that brings the stored runs to it."""
+step in :mod:`lbo.learn.migrate` that brings the stored runs to it, and the older version's
+hash of today's config in :data:`lbo.learn.layouts.OLDER_HASHES`. Version 3 added
+``model.input_terms`` to the window filter's config."""
 
 
 BAR_REFRESH = 20
@@ -50,7 +52,14 @@ def config_hash(cfg: DictConfig) -> str:
     """Fingerprint (version :data:`HASH_VERSION`) of what a run computes: the resolved config,
     keys sorted, without where it writes (:func:`computed`); for ``data=logs``, also the
     digest of the logs' bytes (the same paths with other contents are other data)."""
-    text = OmegaConf.to_yaml(OmegaConf.create(computed(cfg)), sort_keys=True)
+    return tree_hash(computed(cfg), cfg)
+
+
+def tree_hash(tree: dict[str, Any], cfg: DictConfig) -> str:
+    """The hash of ``tree``, the config ``cfg`` as :func:`computed` gives it (or an older
+    version's reading of it, :data:`lbo.learn.layouts.OLDER_HASHES`): its YAML, keys sorted,
+    and for ``data=logs`` the digest of the logs' bytes."""
+    text = OmegaConf.to_yaml(OmegaConf.create(tree), sort_keys=True)
     if is_logs(cfg):
         from lbo.learn.builders import logs_spec
 
@@ -84,14 +93,26 @@ the MLflow run id, the config hash (and its version), the folder itself and whet
 finished. Owned by the user who trained, it is what ``resume=true`` trusts, not the store."""
 
 
+def was_key(version: int) -> str:
+    """The run tag and run-identity field that keep a migrated run's hash of an older
+    ``version``: ``config_hash_v<version>``."""
+    return f"config_hash_v{version}"
+
+
+def older_hashes(fields: dict[str, Any]) -> dict[str, str]:
+    """The older versions' hashes that a run's tags or run-identity file (``fields``) keep,
+    by their key (:func:`was_key`)."""
+    return {k: v for k, v in fields.items()
+            if k.startswith("config_hash_v") and k[13:].isdigit() and isinstance(v, str)}
+
+
 def write_marker(folder: Path, run_id: str | None, digest: str, finished: bool = False,
-                 was: str | None = None) -> Path:
+                 was: dict[str, str] | None = None) -> Path:
     """Write (atomically) ``folder``'s run-identity file (:data:`MARKER`). ``was``: the run's
-    version-1 hash, which a checkpoint written before its migration still carries."""
+    hashes of older versions by :func:`was_key`, which a checkpoint written before a migration
+    still carries."""
     fields: dict[str, Any] = {"run_id": run_id, "config_hash": digest,
-                              "hash_version": HASH_VERSION}
-    if was is not None:
-        fields["config_hash_v1"] = was
+                              "hash_version": HASH_VERSION, **(was or {})}
     fields |= {"folder": str(folder.resolve()), "uid": os.getuid(), "finished": finished}
     return write_text(folder / MARKER, json.dumps(fields, indent=1) + "\n")
 

@@ -1,14 +1,17 @@
-"""Config hash version 1, and a config a run stored in an older layout brought to today's.
+"""Config hash versions 1 and 2, and a config a run stored in an older layout brought to
+today's.
 
 Version 1 of :func:`lbo.learn.identity.config_hash` replayed every older layout of the
 training config at each call (:func:`hash_v1`), so that a run stored before a change kept its
 hash: settings added later hashed as absent at their old value (:data:`LATER_DEFAULTS`), the
 ``car`` and ``sensors`` groups as the one ``truth`` group they were, the model's own settings
-back at the top, lbo's classes without their layer, the epoch bar as Lightning's. Version 2
-hashes today's layout only; :func:`upgraded` brings a stored config to it, so that the
-one-time migration of a store (:mod:`lbo.learn.migrate`) can check a run's version-1 tag and
-give it its version-2 hash. Nothing here runs what a config names: the layer of an old class
-name is found in its module's source text, not by importing it.
+back at the top, lbo's classes without their layer, the epoch bar as Lightning's. Versions
+2 on hash today's layout only; :func:`upgraded` brings a stored config to it, so that the
+one-time migration of a store (:mod:`lbo.learn.migrate`) can check a run's older tag and give
+it today's hash. Version 2 hashed today's layout less the settings added since, which
+:func:`hash_v2` leaves out at the value runs had (:data:`ADDED_V3`). Nothing here runs what a
+config names: the layer of an old class name is found in its module's source text, not by
+importing it.
 """
 
 from __future__ import annotations
@@ -24,6 +27,7 @@ from omegaconf import DictConfig, OmegaConf, open_dict
 from lbo.core import LAYERS
 from lbo.core.cli import MODEL_SHORT
 from lbo.core.errors import LboError
+from lbo.learn.identity import computed, tree_hash
 from lbo.logs.sets import is_logs
 
 # --- version 1 -----------------------------------------------------------------------------
@@ -38,12 +42,12 @@ LATER_DEFAULTS: dict[str, Any] = {"model.normalisation": "standard", "receiver":
 those runs had: version 1 hashed a config holding that value as if it did not have the key."""
 LATER_MODEL_DEFAULTS: dict[str, dict[str, Any]] = {
     **{name: {"body": "kinematic", "body_lr": 1.0} for name in ("kalmannet", "split_kalmannet")},
-    "filternet": {"empty_statistic": "net", "drift_tau": None},
+    "filternet": {"empty_statistic": "net", "drift_tau": None, "input_terms": False},
     "gyro_ekf": {"drift": False, "scales": False}}
 """As :data:`LATER_DEFAULTS`, for the settings added to one model's config (``model.body`` of
 the KalmanNet peers, which the robust observer's config has had from the start, and its
-``model.empty_statistic`` and ``model.drift_tau``; the gyro EKF's ``model.drift`` and
-``model.scales``)."""
+``model.empty_statistic``, ``model.drift_tau`` and ``model.input_terms``; the gyro EKF's
+``model.drift`` and ``model.scales``)."""
 WAS = {"lbo.learn.progress.EpochBar": "lightning.pytorch.callbacks.TQDMProgressBar"}
 """Callbacks that replaced another in ``conf/``, by what they replaced (version 1 hashed them
 as it)."""
@@ -81,6 +85,31 @@ def hash_v1(cfg: DictConfig) -> str:
 
         text += f"\nlogs: {logs_spec(cfg).digest}"
     return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+# --- version 2 -----------------------------------------------------------------------------
+
+ADDED_V3: dict[str, dict[str, Any]] = {"filternet": {"input_terms": False}}
+"""The settings added to a model's config with version 3, by the model's name, with the value
+the runs stored before had: version 2 hashed today's config without them."""
+
+
+def hash_v2(cfg: DictConfig) -> str:
+    """The version-2 config hash of ``cfg`` (today's layout): the hash a run stored between
+    versions 2 and 3 carries, where ``cfg`` holds the settings of :data:`ADDED_V3` at their
+    old values (another value is a config no such run had, and hashes apart)."""
+    tree = computed(cfg)
+    model = tree.get("model")
+    if isinstance(model, dict):
+        for name, default in ADDED_V3.get(str(model.get("name")), {}).items():
+            if name in model and model[name] == default:
+                model.pop(name)
+    return tree_hash(tree, cfg)
+
+
+OLDER_HASHES = {1: hash_v1, 2: hash_v2}
+"""Each older version's hash of today's config, by version: what a run tagged with that
+``hash_version`` (none: 1) carries, which its migration checks before it retags the run."""
 
 
 def as_before_groups_moved(tree: dict[str, Any]) -> dict[str, Any]:

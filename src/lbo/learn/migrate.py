@@ -1,14 +1,15 @@
-"""The one-time migration of a tracking store's runs to config hash version 2.
+"""The one-time migration of a tracking store's runs to the current config hash version.
 
 A store's runs are brought to the current version once (:func:`migrate_experiment`): the config
 each run logged (its ``config.yaml`` artifact, written by every lbo training since the first)
 is read as data, brought to today's layout (:func:`lbo.learn.layouts.upgraded`) and checked
-against the hash the run carries (:func:`lbo.learn.layouts.hash_v1`); the run is then tagged
-with its version-2 hash (``config_hash``), the old one (``config_hash_v1``) and
-``hash_version``, and its folder's run-identity file, where it is this user's, rewritten to
-match. A run whose stored config does not give its tag is left as it was, with a line saying
-why. Nothing read from a store or a file is run: a config is YAML read as data, never
-instantiated.
+against the hash the run carries, in the version it is tagged with
+(:data:`lbo.learn.layouts.OLDER_HASHES`: ``hash_version``, none for version 1); the run is
+then tagged with today's hash (``config_hash``), the old one (``config_hash_v1``,
+``config_hash_v2``: :func:`lbo.learn.identity.was_key`) and ``hash_version``, and its folder's
+run-identity file, where it is this user's, rewritten to match. A run whose stored config
+does not give its tag is left as it was, with a line saying why. Nothing read from a store or
+a file is run: a config is YAML read as data, never instantiated.
 
     python -m lbo.learn.migrate [<tracking uri>]   # every experiment's runs (default: lbo's)
 """
@@ -25,10 +26,17 @@ from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
 from lbo.core.errors import LboError
-from lbo.learn.identity import HASH_VERSION, config_hash, read_marker, write_marker
-from lbo.learn.layouts import hash_v1, upgraded
+from lbo.learn.identity import (
+    HASH_VERSION,
+    config_hash,
+    older_hashes,
+    read_marker,
+    was_key,
+    write_marker,
+)
+from lbo.learn.layouts import OLDER_HASHES, upgraded
 
-V1_TAG = "config_hash_v1"
+V1_TAG = was_key(1)
 """The run tag (and run-identity field) that keeps a migrated run's version-1 hash."""
 MIGRATED = "lbo.hash_version"
 """The experiment tag set once every run of the experiment carries the current hash version:
@@ -83,34 +91,37 @@ def _mark(client: Any, experiment_id: str) -> None:
 
 
 def _unmigrated(client: Any, experiment_id: str) -> Iterator[Any]:
-    """The active runs of the experiment with a ``config_hash`` tag and no ``hash_version``,
-    page by page."""
+    """The active runs of the experiment with a ``config_hash`` tag of an older version than
+    :data:`HASH_VERSION` (or none), page by page."""
     token = None
     while True:
         page = client.search_runs([experiment_id], max_results=1000, page_token=token)
         yield from (r for r in page if "config_hash" in r.data.tags
-                    and "hash_version" not in r.data.tags)
+                    and r.data.tags.get("hash_version") != str(HASH_VERSION))
         token = page.token
         if not token:
             return
 
 
 def migrate_run(client: Any, run: Any) -> str | None:
-    """Tag ``run`` (carrying a version-1 ``config_hash``) with its version-2 hash, worked out
-    from the config it logged, and rewrite its folder's run-identity file where that is this
-    user's and names the run; or say why not (and change nothing)."""
+    """Tag ``run`` (carrying a ``config_hash`` of an older version) with today's hash, worked
+    out from the config it logged, and rewrite its folder's run-identity file where that is
+    this user's and names the run; or say why not (and change nothing)."""
     from mlflow.entities import RunTag
     from mlflow.exceptions import MlflowException
 
-    old = run.data.tags["config_hash"]
+    old, tagged = run.data.tags["config_hash"], run.data.tags.get("hash_version", "1")
+    version = int(tagged) if tagged.isdigit() else 0
+    if version not in OLDER_HASHES:
+        return f"its hash_version {tagged!r} is none of {sorted(OLDER_HASHES)}"
     try:
         stored = _stored_config(client, run.info.run_id)
         if stored is None:
             return "it logged no config.yaml"
         cfg = upgraded(stored)
-        v1 = hash_v1(cfg)
-        if v1 != old:
-            return f"its config.yaml hashes as {v1}, not as its tag {old}"
+        then = OLDER_HASHES[version](cfg)
+        if then != old:
+            return f"its config.yaml hashes as {then}, not as its tag {old}"
         new = config_hash(cfg)
     except LboError as e:
         return str(e)
@@ -118,10 +129,12 @@ def migrate_run(client: Any, run: Any) -> str | None:
         return f"its config.yaml cannot be read ({type(e).__name__})"
     folder = run.data.params.get("output_dir")
     marker, _ = read_marker(Path(folder)) if folder else (None, "")
+    was = {was_key(version): old}
     if marker is not None and marker.get("run_id") == run.info.run_id and (
-            marker.get("config_hash") == old or marker.get(V1_TAG) == old):
-        write_marker(Path(folder), run.info.run_id, new, bool(marker.get("finished")), was=old)
-    tags = {"config_hash": new, V1_TAG: old, "hash_version": str(HASH_VERSION)}
+            marker.get("config_hash") == old or old in older_hashes(marker).values()):
+        write_marker(Path(folder), run.info.run_id, new, bool(marker.get("finished")),
+                     was=older_hashes(marker) | was)
+    tags = {"config_hash": new, **was, "hash_version": str(HASH_VERSION)}
     try:
         client.log_batch(run.info.run_id, tags=[RunTag(k, v) for k, v in tags.items()])
     except MlflowException:
@@ -155,20 +168,22 @@ def _stored_config(client: Any, run_id: str) -> DictConfig | None:
 
 def mend_markers(cfg: DictConfig, runs: Iterable[Any], digest: str) -> None:
     """Rewrite this user's run-identity files that still name a run (among ``runs``, found by
-    ``digest``, the hash of ``cfg``) by its version-1 hash, which someone else's migration of
-    a shared store could not: where the file names the run, and ``cfg``'s own version-1 hash
-    is the one it holds (so the store's word is not taken for it)."""
-    v1 = None
+    ``digest``, the hash of ``cfg``) by an older version's hash, which someone else's migration
+    of a shared store could not: where the file names the run, and ``cfg``'s own hash of that
+    version is the one it holds (so the store's word is not taken for it)."""
     for run in runs:
-        was, folder = run.data.tags.get(V1_TAG), run.data.params.get("output_dir")
-        marker, _ = read_marker(Path(folder)) if was and folder else (None, "")
-        if marker is None or marker.get("run_id") != run.info.run_id or \
-                marker.get("config_hash") != was:
+        folder = run.data.params.get("output_dir")
+        kept = older_hashes(run.data.tags)
+        marker, _ = read_marker(Path(folder)) if kept and folder else (None, "")
+        if marker is None or marker.get("run_id") != run.info.run_id:
             continue
-        v1 = v1 or hash_v1(cfg)
-        if v1 == was:
-            write_marker(Path(folder), run.info.run_id, digest, bool(marker.get("finished")),
-                         was=was)
+        for version, then in OLDER_HASHES.items():
+            was = kept.get(was_key(version))
+            if was is not None and marker.get("config_hash") == was and then(cfg) == was:
+                write_marker(Path(folder), run.info.run_id, digest,
+                             bool(marker.get("finished")), was=older_hashes(marker) | {
+                                 was_key(version): was})
+                break
 
 
 def migrate(uri: str) -> int:

@@ -28,8 +28,8 @@ from omegaconf import DictConfig
 from lbo.core.errors import LboError
 from lbo.core.paths import sqlite_path
 from lbo.core.runfolder import LOCK_NAME
-from lbo.learn.identity import owned, read_marker
-from lbo.learn.layouts import hash_v1
+from lbo.learn.identity import HASH_VERSION, older_hashes, owned, read_marker
+from lbo.learn.layouts import OLDER_HASHES
 from lbo.learn.migrate import mend_markers, migrate_experiments
 
 EXPERIMENT_BEFORE = "lbo"
@@ -169,8 +169,8 @@ def resumable_folder(folder: Path, run_id: str, digest: str) -> str | None:
     """Why run ``run_id`` of config ``digest`` may not be continued in ``folder`` (the folder
     its MLflow run names), or None when it may: the folder and its run-identity file are this
     user's, written for that run and config; ``checkpoints/last.ckpt`` is this user's, carries
-    the same identity (``RunIdentity``; or, written before the run was migrated, the version-1
-    hash its marker keeps), and the best checkpoint it names lies in that folder's
+    the same identity (``RunIdentity``; or, written before the run was migrated, an older
+    version's hash its marker keeps), and the best checkpoint it names lies in that folder's
     ``checkpoints``."""
     import torch
 
@@ -190,10 +190,10 @@ def resumable_folder(folder: Path, run_id: str, digest: str) -> str | None:
         ckpt = torch.load(last, map_location="cpu", weights_only=True)
     except Exception as e:
         return f"its checkpoint {last} cannot be read ({type(e).__name__})"
-    # a run killed before its store was migrated: its last checkpoint carries the version-1
-    # hash, which the marker keeps beside the new one (lbo.learn.migrate)
+    # a run killed before its store was migrated: its last checkpoint carries an older
+    # version's hash, which the marker keeps beside the new one (lbo.learn.migrate)
     ids = [{"run_id": run_id, "config_hash": h}
-           for h in (digest, marker.get("config_hash_v1")) if h]
+           for h in (digest, *older_hashes(marker).values())]
     if not isinstance(ckpt, dict) or ckpt.get(IDENTITY_KEY) not in ids:
         return f"its checkpoint {last} was not written by that run"
     for key, state in (ckpt.get("callbacks") or {}).items():
@@ -221,8 +221,8 @@ def folder_refusal(folder: Path, digest: str | None, resume: bool,
     reuses it rather than train). Anything else is another run's or another program's files,
     which a typo or a copied command would otherwise delete or overwrite (``best.ckpt``,
     ``evaluation.csv``). With ``cfg`` (whose hash ``digest`` is), a run-identity file written
-    before config-hash version 2 is the same config's where it names ``cfg``'s version-1
-    hash (:func:`lbo.learn.layouts.hash_v1`)."""
+    under an older config-hash version is the same config's where it names ``cfg``'s hash of
+    that version (:data:`lbo.learn.layouts.OLDER_HASHES`)."""
     from hydra.core.hydra_config import HydraConfig
 
     job = HydraConfig.get().job.name if HydraConfig.initialized() else "train"
@@ -237,8 +237,7 @@ def folder_refusal(folder: Path, digest: str | None, resume: bool,
         return None
     marker, _ = read_marker(folder)
     same = marker is not None and (digest is None or marker.get("config_hash") == digest or (
-        cfg is not None and "hash_version" not in marker
-        and marker.get("config_hash") == hash_v1(cfg)))
+        cfg is not None and _older_hash(marker, cfg)))
     # same: there is a marker
     if same and resume and (finished_ok or not cast(dict, marker).get("finished")):
         return None
@@ -254,6 +253,14 @@ def folder_refusal(folder: Path, digest: str | None, resume: bool,
         what = f"files that are not this run's ({shown})"
     return (f"{field}: {folder} already holds {what}; nothing there was changed: give "
             f"{field}=<a new or empty folder> (or remove that folder)")
+
+
+def _older_hash(marker: dict[str, Any], cfg: DictConfig) -> bool:
+    """Whether run-identity file ``marker``, written under an older config-hash version (none
+    named: 1), holds ``cfg``'s hash of that version."""
+    version = marker.get("hash_version", 1)
+    then = OLDER_HASHES.get(version) if version != HASH_VERSION else None
+    return then is not None and marker.get("config_hash") == then(cfg)
 
 
 def check_folder(cfg: DictConfig) -> None:

@@ -92,6 +92,9 @@ class WindowFilter(ProcessModel, FilterStep, nn.Module):
         Needs a receiver's features and the kinematic bicycle without a residual.
     empty_statistic : R where the noise statistic holds nothing yet, one of
         :data:`EMPTY_STATISTIC`.
+    input_terms : learn what undoes the input sensors' errors (a factor on the speed, an
+        offset and a factor on the steering) and undo them before the process model reads
+        the inputs (:meth:`learned_inputs`).
     """
 
     if TYPE_CHECKING:  # its buffers (or parameters) registered by name, for the type checker
@@ -110,7 +113,7 @@ class WindowFilter(ProcessModel, FilterStep, nn.Module):
                  hidden: int = 32, in_features: int = 5, residual: int = 0,
                  drift: bool = False, body: str = "kinematic", body_lr: float = 1.0,
                  gyro: bool = False, empty_statistic: str = "net",
-                 drift_tau: float | None = None) -> None:
+                 drift_tau: float | None = None, input_terms: bool = False) -> None:
         super().__init__()
         frame_model(self, window, in_features, dt, wheelbase, receiver=True)
         if empty_statistic not in EMPTY_STATISTIC:
@@ -160,7 +163,7 @@ class WindowFilter(ProcessModel, FilterStep, nn.Module):
                 self.register_parameter(name, nn.Parameter(torch.tensor(value)))
             else:  # held: saved with the drift, so a checkpoint has the key either way
                 self.register_buffer(name, torch.tensor(value), persistent=drift)
-        self.build_process(residual, body, body_lr)
+        self.build_process(residual, body, body_lr, input_terms)
         self._build_gyro(gyro)
         # the filter's states (lbo.models.filter_step): the pose, and the gyro's bias or the drift;
         # their identity made once, not at every step of the loop

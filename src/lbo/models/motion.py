@@ -17,6 +17,10 @@ form (:mod:`lbo.models.recursive`) both step with.
   inertia per unit mass, and the speed below which the car rolls as the kinematic bicycle
   (there the slip angles are singular). It starts at a generic car (equal axles, 0.5 g each,
   the centre of gravity mid-way), not at the truth's.
+- ``input_terms``: what undoes the input sensors' errors, learned as three numbers (a factor
+  on the speed, an offset and a factor on the steering; :class:`lbo.filters.inputs.InputTerms`)
+  and applied to V and delta before either body reads them: the dead reckoning through an
+  outage is mostly these. They start at nothing undone.
 """
 
 from __future__ import annotations
@@ -38,6 +42,10 @@ BODIES = ("kinematic", "single_track")
 """The process model's bodies (``model.body``)."""
 BODY_PARAMETERS = ("log_stiffness", "log_peak", "front_logit", "log_gyration", "log_v_kinematic")
 """The single-track body's learned constants (:meth:`ProcessModel.body_parameters`)."""
+TERMS_SCALE = 0.1
+"""The input terms' parameters move their terms (the speed's and steering's log factors, the
+offset in rad) this much per unit: an optimiser's step of 1e-3 moves an offset by 0.1 mrad,
+and its rate's whole schedule reaches the few percent and tens of mrad sensors are off."""
 
 
 def tan(a: torch.Tensor) -> torch.Tensor:
@@ -93,12 +101,14 @@ class ProcessModel(_Host):
         front_logit: torch.Tensor
         log_gyration: torch.Tensor
         log_v_kinematic: torch.Tensor
+        input_term_values: torch.Tensor
 
-    def build_process(self, residual: int, body: str, body_lr: float) -> None:
+    def build_process(self, residual: int, body: str, body_lr: float,
+                      input_terms: bool = False) -> None:
         """Register the process model: ``residual`` the width of the kinematic bicycle's
         learned correction (0: none), ``body`` one of :data:`BODIES`, ``body_lr`` the
-        single-track body's learning rate as a multiple of the optimiser's; each checked in
-        one line."""
+        single-track body's learning rate as a multiple of the optimiser's, ``input_terms``
+        whether the inputs' terms are learned; each checked in one line."""
         assert isinstance(self, nn.Module)
         self.residual = integer(residual, "model.residual", 0,
                                 form="an integer >= 0 (0: the kinematic bicycle)")
@@ -134,6 +144,28 @@ class ProcessModel(_Host):
             head = cast(nn.Linear, self.process[-1])  # the Linear made just above
             nn.init.zeros_(head.weight)
             nn.init.zeros_(head.bias)
+        if not isinstance(input_terms, bool):
+            raise LboError(f"model.input_terms: expected true or false, got {input_terms!r}")
+        self.input_terms = input_terms
+        self.terms_scale = TERMS_SCALE  # an attribute: TorchScript reads no module-level float
+        # (log speed factor, steering offset, log steering factor) / TERMS_SCALE; without,
+        # the same zeros ride along unsaved, so TorchScript compiles either model
+        if input_terms:
+            self.input_term_values = nn.Parameter(torch.zeros(3))
+        else:
+            self.register_buffer("input_term_values", torch.zeros(3), persistent=False)
+
+    def learned_inputs(self) -> InputTerms:
+        """The input terms learned (``input_terms``; otherwise none undo anything)."""
+        a, b, c = (float(v) * TERMS_SCALE for v in self.input_term_values.detach().cpu())
+        return InputTerms(math.exp(a), b, math.exp(c))
+
+    def _undo_inputs(self, v: torch.Tensor, delta: torch.Tensor
+                     ) -> tuple[torch.Tensor, torch.Tensor]:
+        """The inputs V and delta (B,) with the learned terms' errors undone
+        (:meth:`lbo.filters.inputs.InputTerms.undo` in torch)."""
+        t = self.input_term_values * self.terms_scale
+        return v * torch.exp(t[0]), (delta - t[1]) * torch.exp(t[2])
 
     def _axles(self) -> tuple[torch.Tensor, torch.Tensor]:
         """The learned distances (l_f, l_r) from the centre of gravity to the front and rear
@@ -182,11 +214,12 @@ class ProcessModel(_Host):
         its speed over V; the steering offset is the one whose yaw rate at that speed,
         ``f V tan(delta - offset) / L``, is its corrected one, to first order, with the yaw rate
         of the step before taken as the kinematic one. The steering factor is not told apart
-        from the correction's other parts and stays 1. Without a correction: no terms."""
+        from the correction's other parts and stays 1. Without a correction: the learned terms
+        (:meth:`learned_inputs`), or none."""
         rows = np.asarray(u, dtype=float)
         rows = rows[rows[:, 0] > moving]
         if self.residual == 0 or self.single_track or not len(rows):
-            return InputTerms()
+            return self.learned_inputs()
         ref = next(iter(self.parameters()))  # the correction's dtype and device
         v, delta = (torch.as_tensor(c, dtype=ref.dtype, device=ref.device) for c in rows.T)
         r = v * tan(delta) / self.wheelbase
@@ -221,7 +254,10 @@ class ProcessModel(_Host):
         (which reads the yaw rate of the step before, carried as ``r``). The single-track body:
         :data:`SUBSTEPS` Euler sub-steps of its lateral states, whose trapezoid-rule mean over
         the step moves the pose, blended (smoothstep) into the kinematic bicycle below the
-        learned speed."""
+        learned speed. With ``input_terms``, both read V and delta with the learned terms'
+        errors undone."""
+        if self.input_terms:
+            v, delta = self._undo_inputs(v, delta)
         r_kin = v * tan(delta) / self.wheelbase
         if self.single_track:
             k, p, l_f, l_r, inertia, v0 = self._body_constants()
