@@ -8,11 +8,11 @@ of 10 s every 25 s and of 30 s every 45 s (:mod:`lbo.scoring.outages`) on ``DRIV
 single-antenna free drives of 180 s at alpha 1.
 
 Learned filters given as ``label=<run id or checkpoint>`` run beside them in their recursive
-form: a window filter with a learned process-model correction (``model.residual``) trained on
-simulated drives whose sensors carry the same errors learns the terms from its training drives
-(other drives of the car), not from the log it filters. What its correction implies on each
-log is printed (``implied_inputs``: its speed factor and the steering offset its yaw-rate
-correction undoes).
+form: a window filter with learned input terms (``model.input_terms=true``) or a learned
+process-model correction (``model.residual``), trained on simulated drives whose sensors carry
+the same errors, learns the terms from its training drives (other drives of the car), not from
+the log it filters. What its process model undoes on each log is printed (``implied_inputs``:
+its learned terms, or the speed factor and the steering offset its correction applies).
 
     python benchmarks/outage_inputs.py ["learned filter=<run id>" ...]
 """
@@ -72,7 +72,7 @@ for length, every in ((10.0, 25.0), (30.0, 45.0)):
               f"{fitted.terms.describe()} (the truth: {told.describe()})", flush=True)
         for label, observer in nets.items():
             implied = observer.net.net.implied_inputs(u)  # lbo.models.motion.ProcessModel's
-            print(f"{length:g} s outages, drive {seed}: {label}: its correction implies "
+            print(f"{length:g} s outages, drive {seed}: {label}: its process model undoes "
                   f"{implied.describe()}", flush=True)
         drives.append((log, spans, m, u, channels, rows, fitted.terms))
     scored = []
