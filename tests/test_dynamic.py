@@ -132,6 +132,9 @@ def test_gauss_markov_drift_has_its_variance_and_correlation_time():
     ({"name": "dynamic", "substeps": 0}, {}, "car.substeps"),
     ({"name": "dynamic", "process_scale": -0.1}, {}, "car.process_scale"),
     ({"name": "kinematic", "process_scale": "a lot"}, {}, "car.process_scale"),
+    ({"name": "kinematic", "lateral_sigma": [0.01, 0.0]}, {}, "car.lateral_sigma"),
+    ({"name": "dynamic", "lateral_sigma": 0.01}, {}, "car.lateral_sigma"),
+    ({"name": "dynamic", "lateral_sigma": [0.01, -0.1]}, {}, "car.lateral_sigma"),
 ])
 def test_bad_car_or_sensors_names_the_field(car, sensors, field):
     with pytest.raises(LboError, match=field.replace("+", r"\+")) as e:
@@ -270,6 +273,38 @@ def test_process_scale_1_keeps_the_dynamic_sets_of_the_papers_random_walk(tmp_pa
     np.testing.assert_allclose(half.motion_noise.process_sigma,
                                0.5 * np.asarray(kin.noise.process_sigma))
     assert half.motion_noise.measurement_sigma == kin.noise.measurement_sigma
+
+
+def test_a_car_pushed_about_carries_its_disturbances_in_its_lateral_states_alone(dynamic_sets):
+    """``car=gusty`` (``car.lateral_sigma``): white disturbances of v_y and r after each step.
+    Rolled one step from each true state of a test set with the true car, what is left on v_y
+    and r is that disturbance, and on the pose the process noise alone; the training set moves
+    too. A car without them keeps its sets' digest (the field is not in its truth's mapping),
+    and the EKF told the car is told them in its process noise."""
+    from lbo.filters.dynamic_ekf import Q_LATERAL_SIGMA, DynamicStepper
+    from lbo.sim.columns import LATERAL
+    from lbo.sim.vehicle import Vehicle
+
+    gusty = from_cfg(compose_cfg("datagen", ["car=gusty"]).car, None, 2.7)
+    plain = from_cfg(compose_cfg("datagen", ["car=dynamic"]).car, None, 2.7)
+    assert gusty.lateral_sigma == (0.01, 0.002) and from_dict(gusty.to_dict(), 2.7) == gusty
+    assert "lateral_sigma" not in plain.to_dict() and plain.lateral_sigma == (0.0, 0.0)
+    pushed = dynamic_sets("+car.lateral_sigma=[0.01,0.002]")
+    test = pushed["test"]
+    t = test[test["alpha"] == 0].sort_values(["traj", "k"])
+    s = t[["x", "y", "psi", *LATERAL]].to_numpy()
+    u = t[["V", "delta"]].to_numpy()
+    same = (t["traj"].to_numpy()[1:] == t["traj"].to_numpy()[:-1]) & (np.diff(t["k"]) == 1)
+    w = (s[1:] - step(s[:-1], u[:-1], DT, CAR))[same]
+    assert len(w) > 1000
+    np.testing.assert_allclose(w[:, 3:].std(0), [0.01, 0.002], rtol=0.05)
+    np.testing.assert_allclose(w[:, :2].std(0), 0.2 / 3 * 0.1, rtol=0.05)  # the pose's own
+    assert not np.allclose(pushed["train"][["x", "y"]], dynamic_sets()["train"][["x", "y"]])
+    m0 = np.zeros((1, 3))
+    told = DynamicStepper(m0, Vehicle(), np.eye(3), np.eye(3)[None], car=CAR,
+                          lateral_sigma=gusty.lateral_sigma)
+    np.testing.assert_allclose([told.Q[0, 3, 3], told.Q[0, 4, 4]],
+                               np.square(Q_LATERAL_SIGMA) + np.square([0.01, 0.002]))
 
 
 def test_no_test_manoeuvre_corners_harder_than_the_cap(dynamic_sets):

@@ -15,6 +15,7 @@ import pytest
 from helpers import cli, observe, one_line_error
 from lbo.core.errors import LboError
 from lbo.filters.gyro import GyroNoise
+from lbo.learn.identity import HASH_VERSION
 from lbo.serve.observer import Observer
 from lbo.sim import gyro_drive
 
@@ -55,7 +56,7 @@ def test_the_gyro_ekf_trains_as_a_run_that_observe_takes(tmp_path, logs):
     [run] = client.search_runs([client.get_experiment_by_name("lbo-logs").experiment_id])
     assert run.info.status == "FINISHED" and run.data.tags["model"] == "gyro_ekf"
     assert run.data.tags["config_hash"] and run.data.params["model.objective"] == "truth"
-    assert run.data.tags["hash_version"] == "2"
+    assert run.data.tags["hash_version"] == str(HASH_VERSION)
     val = [m.value for m in client.get_metric_history(run.info.run_id, "val_loss")]
     assert len(val) == 3 and val[0] == 1.0  # epoch 0 is the start, against itself
     metrics = run.data.metrics

@@ -498,8 +498,8 @@ def test_a_marker_left_by_someone_elses_migration_is_mended_only_for_its_own_con
         folder = tmp_path / f"run{seed}"
         folder.mkdir()
         # both markers name the default config's version-1 hash
-        run = client.create_run(exp, tags={"config_hash": config_hash(cfg),
-                                           V1_TAG: PRE_MOVE[()], "hash_version": "2"})
+        run = client.create_run(exp, tags={"config_hash": config_hash(cfg), V1_TAG: PRE_MOVE[()],
+                                           "hash_version": str(HASH_VERSION)})
         client.log_param(run.info.run_id, "output_dir", str(folder))
         client.log_metric(run.info.run_id, "val_loss", 0.5, step=0)
         client.set_terminated(run.info.run_id, "FINISHED")

@@ -264,7 +264,8 @@ def _told_the_car(run: Callable[..., Any], m: np.ndarray, u: np.ndarray, vehicle
                   noise: Noise, alpha: float | np.ndarray, truth: Truth | None,
                   **kwargs: Any) -> Any:
     """``run`` (the dynamic EKF) told what the set was drawn from: the car, its sensors'
-    errors, the process noise's scale and each trajectory's alpha."""
+    errors, the process noise's scale, its lateral states' disturbances and each trajectory's
+    alpha."""
     if truth is None or truth.car is None:
         raise LboError("oracle_dynamic: the test set was not drawn from car=dynamic, so there "
                        "is no car to tell it; score it on data=dynamic (or car=dynamic)")
@@ -276,7 +277,7 @@ def _told_the_car(run: Callable[..., Any], m: np.ndarray, u: np.ndarray, vehicle
         return run(m, u, vehicle, truth.car, truth.process_scale**2 * noise.Q, R,
                    gnss_sigma=scale * sensors.gnss_sigma, gnss_tau=sensors.gnss_tau,
                    steering_offset=sensors.steering_offset, speed_scale=sensors.speed_scale,
-                   **kwargs)
+                   lateral_sigma=truth.lateral_sigma, **kwargs)
     except np.linalg.LinAlgError as e:
         raise LboError(f"oracle_dynamic: the filter diverged ({e}); check the data's values "
                        "and units") from None

@@ -108,6 +108,8 @@ class DynamicStepper:
     gnss_tau : correlation time (s) of the drift.
     steering_offset : what the logged steering angle reads above the road-wheel angle (rad).
     speed_scale : relative error of the logged speed (0.02: V reads 2 % high); > -1.
+    lateral_sigma : (2,) standard deviations of the disturbances of v_y (m/s) and r (rad/s)
+        per step, added to the process noise the filter keeps on them.
     u0 : (G, 2) logged inputs at step 0, or None. Given, v_y and r start in the steady state
         (``car.start``) of the true inputs they stand for; else at 0.
 
@@ -137,6 +139,7 @@ class DynamicStepper:
     def __init__(self, m0: np.ndarray, vehicle: Vehicle, Q: np.ndarray, R: np.ndarray, *,
                  car: Car, gnss_sigma: np.ndarray | float = 0.0, gnss_tau: float = 30.0,
                  steering_offset: float = 0.0, speed_scale: float = 0.0,
+                 lateral_sigma: tuple[float, float] = (0.0, 0.0),
                  u0: np.ndarray | None = None) -> None:
         if not isinstance(vehicle, Vehicle):
             raise LboError(f"vehicle must be a lbo.sim.vehicle.Vehicle, got "
@@ -182,7 +185,10 @@ class DynamicStepper:
         self.phi = np.full(g, np.exp(-vehicle.dt / self.gnss_tau))
         self.Q = np.zeros((g, n, n))
         self.Q[:, :3, :3] = Q3
-        self.Q[:, 3, 3], self.Q[:, 4, 4] = np.square(Q_LATERAL_SIGMA)
+        # the disturbances the car's lateral states carry, where it is told them, beside the
+        # little that keeps P well conditioned
+        told = np.square(np.asarray(lateral_sigma, dtype=float))
+        self.Q[:, 3, 3], self.Q[:, 4, 4] = np.square(Q_LATERAL_SIGMA) + told
         var_b = sigma**2
         if drift:
             self.Q[:, 5, 5] = self.Q[:, 6, 6] = (1.0 - self.phi**2) * var_b
@@ -318,13 +324,15 @@ class Lateral(NamedTuple):
 def dynamic_ekf_lateral(m: np.ndarray, u: np.ndarray, vehicle: Vehicle, car: Car, Q: np.ndarray,
                         R: np.ndarray, gnss_sigma: np.ndarray | float = 0.0,
                         gnss_tau: float = 30.0, steering_offset: float = 0.0,
-                        speed_scale: float = 0.0) -> tuple[Posterior, Lateral]:
+                        speed_scale: float = 0.0,
+                        lateral_sigma: tuple[float, float] = (0.0, 0.0)
+                        ) -> tuple[Posterior, Lateral]:
     """The dynamic oracle of :func:`dynamic_ekf_batch` (the same arguments, the same run) with
     what it carries beside the pose: the pose's :class:`~lbo.filters.stepper.Posterior` and
     the :class:`Lateral` states, v_y and r, with their covariances, each (G, T, ...). The
     lateral states start at the steady state of the first inputs (``car.start``)."""
     kf, m, u = _stepper(m, u, vehicle, car, Q, R, gnss_sigma, gnss_tau, steering_offset,
-                        speed_scale)
+                        speed_scale, lateral_sigma)
     g, t = m.shape[:2]
     mean, cov = np.empty((g, t, 2)), np.empty((g, t, 2, 2))
 
@@ -338,7 +346,7 @@ def dynamic_ekf_lateral(m: np.ndarray, u: np.ndarray, vehicle: Vehicle, car: Car
 
 def _stepper(m: np.ndarray, u: np.ndarray, vehicle: Vehicle, car: Car, Q: np.ndarray,
              R: np.ndarray, gnss_sigma: np.ndarray | float, gnss_tau: float,
-             steering_offset: float, speed_scale: float
+             steering_offset: float, speed_scale: float, lateral_sigma: tuple[float, float]
              ) -> tuple[DynamicStepper, np.ndarray, np.ndarray]:
     """The checked m (G, T, 3), u (G, T, 2) and the stepper started at their first row."""
     m, u = check_trajectories(m, u)
@@ -347,14 +355,16 @@ def _stepper(m: np.ndarray, u: np.ndarray, vehicle: Vehicle, car: Car, Q: np.nda
         raise LboError("measurements m must have at least one step, got T = 0")
     kf = DynamicStepper(m[:, 0], vehicle, Q, np.array(batch_cov(R, g, "R")), car=car,
                         gnss_sigma=gnss_sigma, gnss_tau=gnss_tau,
-                        steering_offset=steering_offset, speed_scale=speed_scale, u0=u[:, 0])
+                        steering_offset=steering_offset, speed_scale=speed_scale,
+                        lateral_sigma=lateral_sigma, u0=u[:, 0])
     return kf, m, u
 
 
 def dynamic_ekf_batch(m: np.ndarray, u: np.ndarray, vehicle: Vehicle, car: Car,
                       Q: np.ndarray, R: np.ndarray, gnss_sigma: np.ndarray | float = 0.0,
                       gnss_tau: float = 30.0, steering_offset: float = 0.0,
-                      speed_scale: float = 0.0) -> Posterior:
+                      speed_scale: float = 0.0,
+                      lateral_sigma: tuple[float, float] = (0.0, 0.0)) -> Posterior:
     """The dynamic oracle: :class:`DynamicStepper` over G trajectories (loop over time only).
 
     Parameters
@@ -369,6 +379,8 @@ def dynamic_ekf_batch(m: np.ndarray, u: np.ndarray, vehicle: Vehicle, car: Car,
     gnss_sigma : float or (G,) GNSS drift standard deviation (m), already times alpha.
     gnss_tau : drift correlation time (s).
     steering_offset, speed_scale : the logged inputs' errors, undone by the filter.
+    lateral_sigma : (2,) the disturbances of the car's v_y (m/s) and r (rad/s) per step,
+        added to the filter's process noise on them.
 
     Returns
     -------
@@ -377,5 +389,5 @@ def dynamic_ekf_batch(m: np.ndarray, u: np.ndarray, vehicle: Vehicle, car: Car,
         ``cov`` (G, T, 3, 3) their covariances.
     """
     kf, m, u = _stepper(m, u, vehicle, car, Q, R, gnss_sigma, gnss_tau, steering_offset,
-                        speed_scale)
+                        speed_scale, lateral_sigma)
     return run_stepper(kf, m, u, pose=lambda kf: kf.x[:, :3], cov=lambda kf: kf.pose_cov)

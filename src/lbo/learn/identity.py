@@ -93,17 +93,22 @@ the MLflow run id, the config hash (and its version), the folder itself and whet
 finished. Owned by the user who trained, it is what ``resume=true`` trusts, not the store."""
 
 
+WAS_PREFIX = "config_hash_v"
+"""The start of the run tags and run-identity fields that keep a migrated run's older hashes
+(:func:`was_key`)."""
+
+
 def was_key(version: int) -> str:
     """The run tag and run-identity field that keep a migrated run's hash of an older
     ``version``: ``config_hash_v<version>``."""
-    return f"config_hash_v{version}"
+    return f"{WAS_PREFIX}{version}"
 
 
 def older_hashes(fields: dict[str, Any]) -> dict[str, str]:
     """The older versions' hashes that a run's tags or run-identity file (``fields``) keep,
     by their key (:func:`was_key`)."""
-    return {k: v for k, v in fields.items()
-            if k.startswith("config_hash_v") and k[13:].isdigit() and isinstance(v, str)}
+    return {k: v for k, v in fields.items() if k.startswith(WAS_PREFIX)
+            and k.removeprefix(WAS_PREFIX).isdigit() and isinstance(v, str)}
 
 
 def write_marker(folder: Path, run_id: str | None, digest: str, finished: bool = False,

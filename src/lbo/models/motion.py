@@ -208,14 +208,15 @@ class ProcessModel(_Host):
         return {name: float(v.detach()) for name, v in values.items()}
 
     def implied_inputs(self, u: np.ndarray, moving: float = 3.0) -> InputTerms:
-        """The input terms (:class:`lbo.filters.inputs.InputTerms`) that the learned correction
-        of the kinematic bicycle (``residual > 0``) applies on inputs ``u`` (T, 2) ``[V,
-        delta]``, as medians over the rows faster than ``moving`` (m/s): the speed factor is
-        its speed over V; the steering offset is the one whose yaw rate at that speed,
-        ``f V tan(delta - offset) / L``, is its corrected one, to first order, with the yaw rate
-        of the step before taken as the kinematic one. The steering factor is not told apart
-        from the correction's other parts and stays 1. Without a correction: the learned terms
-        (:meth:`learned_inputs`), or none."""
+        """The input terms (:class:`lbo.filters.inputs.InputTerms`) that the process model
+        undoes on inputs ``u`` (T, 2) ``[V, delta]``. Without a learned correction of the
+        kinematic bicycle: the learned terms (:meth:`learned_inputs`), or none. With one
+        (``residual > 0``, after the learned terms where there are), as medians over the rows
+        faster than ``moving`` (m/s): the speed factor is its speed over V; the steering offset
+        is the one whose yaw rate at that speed, ``f V tan(delta - offset) / L``, is its
+        corrected one, to first order, with the yaw rate of the step before taken as the
+        kinematic one. The steering factor is not told apart from the correction's other parts
+        there and stays 1."""
         rows = np.asarray(u, dtype=float)
         rows = rows[rows[:, 0] > moving]
         if self.residual == 0 or self.single_track or not len(rows):

@@ -166,7 +166,8 @@ def start(z0: np.ndarray, u0: np.ndarray, p: SingleTrack) -> np.ndarray:
 
 def simulate(z0: np.ndarray, u: np.ndarray, dt: float, p: Car,
              process_sigma: np.ndarray | Sequence[float] | None = None,
-             rng: np.random.Generator | None = None) -> np.ndarray:
+             rng: np.random.Generator | None = None,
+             lateral_sigma: Sequence[float] | None = None) -> np.ndarray:
     """Roll the car forward over known inputs, as :func:`lbo.sim.vehicle.simulate` does.
 
     Parameters
@@ -175,6 +176,8 @@ def simulate(z0: np.ndarray, u: np.ndarray, dt: float, p: Car,
     z0 : (B, 3) initial poses; the lateral states start as ``p.start`` sets them.
     u : (B, T, 2) inputs; ``u[:, k]`` moves ``s_k`` to ``s_{k+1}``.
     process_sigma : (3,) standard deviations of the noise added to x, y, psi after each step.
+    lateral_sigma : (2,) standard deviations of the disturbances added to v_y and r after each
+        step (:attr:`lbo.sim.truth.Truth.lateral_sigma`), drawn after the process noise.
 
     Returns
     -------
@@ -183,13 +186,13 @@ def simulate(z0: np.ndarray, u: np.ndarray, dt: float, p: Car,
     b, t = u.shape[:2]
     s = np.empty((b, t, 5))
     s[:, 0] = p.start(z0, u[:, 0])
-    if process_sigma is not None:
-        assert rng is not None, "process_sigma needs an rng"
-        w = rng.standard_normal((b, t - 1, 3)) * np.asarray(process_sigma)
+    w = np.zeros((b, max(t - 1, 0), 5))
+    for part, sigma in ((slice(0, 3), process_sigma), (slice(3, 5), lateral_sigma)):
+        if sigma is not None:
+            assert rng is not None, "process_sigma and lateral_sigma need an rng"
+            w[..., part] = rng.standard_normal(w[..., part].shape) * np.asarray(sigma)
     for k in range(t - 1):  # sequential in time, vectorised over the batch
-        s[:, k + 1] = p.step(s[:, k], u[:, k], dt)
-        if process_sigma is not None:
-            s[:, k + 1, :3] += w[:, k]
+        s[:, k + 1] = p.step(s[:, k], u[:, k], dt) + w[:, k]
     return s
 
 

@@ -21,7 +21,8 @@ def smooth_noise(n_traj: int, n_steps: int, dt: float, rng: np.random.Generator,
 def drive(paths: list[np.ndarray], speed: np.ndarray, vehicle: Vehicle,
           process_sigma: np.ndarray, rng: np.random.Generator, ds: float = 0.1,
           gain: float = 0.4, lookahead: tuple[float, float] = (3.0, 15.0),
-          car: Car | None = None) -> dict[str, np.ndarray]:
+          car: Car | None = None, lateral_sigma: np.ndarray | None = None
+          ) -> dict[str, np.ndarray]:
     """Drive every path with a pure-pursuit controller at the given speed profile.
 
     Parameters
@@ -33,6 +34,9 @@ def drive(paths: list[np.ndarray], speed: np.ndarray, vehicle: Vehicle,
     car : None drives the kinematic bicycle; else this car that slips (:class:`Car`: the
         single-track of :mod:`lbo.sim.dynamic`, or a registered one), which the controller
         steers all the same.
+    lateral_sigma : (2,) standard deviations of the disturbances added to the car's v_y and r
+        after each step (:attr:`lbo.sim.truth.Truth.lateral_sigma`), drawn after the process
+        noise; None: none.
 
     Returns
     -------
@@ -49,6 +53,8 @@ def drive(paths: list[np.ndarray], speed: np.ndarray, vehicle: Vehicle,
     z[:, 0] = [(p[0, 1], p[0, 2], p[0, 3]) for p in paths]
     u = np.zeros((g, n_steps, 2))
     w = rng.standard_normal((g, n_steps, 3)) * np.asarray(process_sigma)
+    gusts = (np.zeros((g, n_steps, 2)) if lateral_sigma is None
+             else rng.standard_normal((g, n_steps, 2)) * np.asarray(lateral_sigma))
     rows = np.arange(g)
     window = int(np.ceil(2.0 * vehicle.v_max * vehicle.dt / ds)) + 20
     idx = np.zeros(g, np.int64)
@@ -75,7 +81,7 @@ def drive(paths: list[np.ndarray], speed: np.ndarray, vehicle: Vehicle,
             z[:, k + 1] = z[:, k] + f(z[:, k], u[:, k], vehicle.wheelbase) * vehicle.dt + w[:, k]
         else:
             s = car.step(np.concatenate([z[:, k], lateral], axis=-1), u[:, k], vehicle.dt)
-            z[:, k + 1], lateral = s[:, :3] + w[:, k], s[:, 3:]
+            z[:, k + 1], lateral = s[:, :3] + w[:, k], s[:, 3:] + gusts[:, k]
             lateral_k[:, k + 1] = lateral
     slip = (np.zeros((g, n_steps)) if car is None
             else car.rear_slip(np.concatenate([z, lateral_k], axis=-1), u))

@@ -21,12 +21,16 @@ Three sensor errors beside the white measurement noise, each off by default (``s
 Beside the car's own settings, ``car.process_scale`` sets how much of the noise preset's process
 noise the truth itself carries: the paper's kinematic truth adds all of it (1), a car's pose
 moves as its dynamics say, up to a small unmodelled rest. The classical filters are still told
-the preset's Q, the one a filter designer would choose.
+the preset's Q, the one a filter designer would choose. A car that slips may also carry
+disturbances of its lateral states (``car.lateral_sigma``: white noise on v_y and r after each
+step, as gusts, a road's bank and tyres that vary push a real car), which only the EKF told the
+car is told.
 """
 
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
 from typing import TYPE_CHECKING, Any, ClassVar, Protocol, cast, runtime_checkable
 
@@ -135,16 +139,33 @@ class Truth:
     sensors : the sensor errors.
     process_scale : the truth's process noise is this times the noise preset's
         ``process_sigma`` (1: the paper's random walk on x, y and psi).
+    lateral_sigma : (2,) standard deviations of the white disturbances added to a car's
+        lateral states v_y (m/s) and r (rad/s) after each step; none by default, and none for
+        the kinematic bicycle, which has no lateral states.
     """
 
     name: str = "kinematic"
     car: Car | None = None
     sensors: Sensors = field(default_factory=Sensors)
     process_scale: float = 1.0
+    lateral_sigma: tuple[float, float] = (0.0, 0.0)
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "process_scale", number(self.process_scale,
                                                          "car.process_scale", low=0.0))
+        form = "two standard deviations >= 0 [v_y (m/s), r (rad/s)] per step"
+        sigma = self.lateral_sigma
+        require(isinstance(sigma, (list, tuple)) and len(sigma) == 2, "car.lateral_sigma",
+                form, sigma)
+        sigma = tuple(number(s, "car.lateral_sigma", low=0.0, form=form) for s in sigma)
+        require(self.car is not None or sigma == (0.0, 0.0), "car.lateral_sigma",
+                "[0, 0] for the kinematic bicycle, which has no lateral states", list(sigma))
+        object.__setattr__(self, "lateral_sigma", sigma)
+
+    @property
+    def disturbed(self) -> bool:
+        """Whether the car's lateral states carry disturbances (``lateral_sigma``)."""
+        return self.lateral_sigma != (0.0, 0.0)
 
     @property
     def default(self) -> bool:
@@ -160,6 +181,8 @@ class Truth:
         out: dict[str, Any] = {"name": self.name, **asdict(self.sensors)}
         if self.process_scale != 1.0:  # the digests of sets drawn before this field stay
             out["process_scale"] = self.process_scale
+        if self.disturbed:  # ... and before this one
+            out["lateral_sigma"] = list(self.lateral_sigma)
         if self.car is not None:
             out.update(asdict(self.car))
         return out
@@ -198,12 +221,16 @@ def from_cfg(car: Any, sensors: Any, wheelbase: float) -> Truth:
     c = dict(car or {})
     name = c.pop("name", "kinematic")
     scale = c.pop("process_scale", 1.0)
+    lateral = c.pop("lateral_sigma", (0.0, 0.0))
+    if isinstance(lateral, Sequence) and not isinstance(lateral, str):  # a ListConfig too
+        lateral = tuple(lateral)
     cls: type[Any] = plugins.load("truth", name, "car.name")  # a class, Kinematic or a car
     if cls is Kinematic:
         if c:
             raise LboError(f"car.{next(iter(c))}: not a field of car={name}; "
                            "accepted: name, process_scale")
-        return Truth(name=name, car=None, sensors=Sensors(**s), process_scale=scale)
+        return Truth(name=name, car=None, sensors=Sensors(**s), process_scale=scale,
+                     lateral_sigma=lateral)
     if not dataclasses.is_dataclass(cls):
         raise LboError(f"car.name: truth model {name!r} is registered as {cls!r}, not a "
                        "dataclass of its settings (docs/plugins.md)")
@@ -211,7 +238,7 @@ def from_cfg(car: Any, sensors: Any, wheelbase: float) -> Truth:
     unknown = [k for k in c if k not in car_keys]
     if unknown:
         raise LboError(f"car.{unknown[0]}: not a field of car={name}; accepted: "
-                       f"name, process_scale, {', '.join(car_keys)}")
+                       f"name, process_scale, lateral_sigma, {', '.join(car_keys)}")
     try:
         built = cast(Car, cls(**c))  # that it keeps Car's members is checked below
     except (TypeError, ValueError) as e:  # a plug-in's own check, said in lbo's one line
@@ -225,7 +252,8 @@ def from_cfg(car: Any, sensors: Any, wheelbase: float) -> Truth:
     require(abs(float(built.wheelbase) - wheelbase) < 1e-6,
             "car.l_f + car.l_r" if axles else f"car={name}'s wheelbase",
             f"the vehicle's wheelbase ({wheelbase} m)", built.wheelbase)
-    return Truth(name=name, car=built, sensors=Sensors(**s), process_scale=scale)
+    return Truth(name=name, car=built, sensors=Sensors(**s), process_scale=scale,
+                 lateral_sigma=lateral)
 
 
 def of_config(cfg: Any, wheelbase: float) -> Truth:
