@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 
 from lbo.core.angles import wrap_angle
@@ -21,7 +23,7 @@ def smooth_noise(n_traj: int, n_steps: int, dt: float, rng: np.random.Generator,
 def drive(paths: list[np.ndarray], speed: np.ndarray, vehicle: Vehicle,
           process_sigma: np.ndarray, rng: np.random.Generator, ds: float = 0.1,
           gain: float = 0.4, lookahead: tuple[float, float] = (3.0, 15.0),
-          car: Car | None = None, lateral_sigma: np.ndarray | None = None
+          car: Car | None = None, lateral_sigma: Sequence[float] | None = None
           ) -> dict[str, np.ndarray]:
     """Drive every path with a pure-pursuit controller at the given speed profile.
 

@@ -154,13 +154,13 @@ class Truth:
         object.__setattr__(self, "process_scale", number(self.process_scale,
                                                          "car.process_scale", low=0.0))
         form = "two standard deviations >= 0 [v_y (m/s), r (rad/s)] per step"
-        sigma = self.lateral_sigma
-        require(isinstance(sigma, (list, tuple)) and len(sigma) == 2, "car.lateral_sigma",
-                form, sigma)
-        sigma = tuple(number(s, "car.lateral_sigma", low=0.0, form=form) for s in sigma)
-        require(self.car is not None or sigma == (0.0, 0.0), "car.lateral_sigma",
-                "[0, 0] for the kinematic bicycle, which has no lateral states", list(sigma))
-        object.__setattr__(self, "lateral_sigma", sigma)
+        given = self.lateral_sigma
+        require(isinstance(given, (list, tuple)) and len(given) == 2, "car.lateral_sigma",
+                form, given)
+        v_y, r = (number(s, "car.lateral_sigma", low=0.0, form=form) for s in given)
+        require(self.car is not None or (v_y, r) == (0.0, 0.0), "car.lateral_sigma",
+                "[0, 0] for the kinematic bicycle, which has no lateral states", [v_y, r])
+        object.__setattr__(self, "lateral_sigma", (v_y, r))
 
     @property
     def disturbed(self) -> bool:
