@@ -557,7 +557,7 @@ def test_a_truth_model_that_is_not_installed_or_breaks_the_contract_is_one_line(
                                        r"not a dataclass"):
         from_cfg({"name": "plain"}, None, 2.7)
     with pytest.raises(LboError, match=r"^car.mass: not a field of car=cart; accepted: "
-                                       r"name, process_scale, wheelbase$"):
+                                       r"name, process_scale, lateral_sigma, wheelbase$"):
         from_cfg({"name": "cart", "mass": 1.0}, None, 2.7)
     with pytest.raises(LboError, match=r"^car: truth model 'linear_car' refused its "
                                        r"settings \(car.mass must be a number > 0"):
