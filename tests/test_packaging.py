@@ -129,7 +129,7 @@ def test_each_commands_help_lists_its_own_groups_and_explains_its_settings():
             "split_kalmannet (default: cnn)") in train
     assert "receiver: single_antenna (default: none)" in train
     assert "  normalisation: standard  # standard: each channel's mean and std" in train
-    assert "car: dynamic, kinematic (default: kinematic)" in train
+    assert "car: dynamic, gusty, kinematic (default: kinematic)" in train
     assert "sensors: drift, white (default: white)" in train
 
 
