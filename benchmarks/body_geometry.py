@@ -15,14 +15,15 @@ from pathlib import Path
 import numpy as np
 
 from lbo.scoring.grid import load_test
-from lbo.scoring.lateral import carried
+from lbo.scoring.lateral import carried, rmse, truth_of
 from lbo.sim.truth import of_folder
 from lbo.sim.vehicle import Vehicle
 from lbo.tracking.artifacts import load_net
 
 ckpt, folder = sys.argv[1], Path(sys.argv[2])
 alpha = float(sys.argv[3]) if len(sys.argv) > 3 else 1.0
-car = of_folder(folder, Vehicle().wheelbase).car
+truth = of_folder(folder, Vehicle().wheelbase)
+car = truth.car
 if car is None or not hasattr(car, "l_r"):
     sys.exit(f"{folder}: not a set drawn from a single-track car")
 arr = load_test(folder / "test.parquet")
@@ -30,20 +31,16 @@ arr = arr.take(np.isclose(arr.alpha, alpha))
 net = load_net(ckpt)[0]
 body = carried(net, arr)  # (G, T, 2) [v_y, r]
 learned = net.net.body_parameters()["l_r"]
-vx, (vy, r) = arr.u[..., 0], np.moveaxis(arr.lateral, -1, 0)
-pick = arr.mask & np.isfinite(body).all(-1)
-
-
-def rmse(e: np.ndarray) -> float:
-    return float(np.sqrt(np.mean(e[pick] ** 2)))
-
-
-beta = np.arctan2(vy, vx)
+true = truth_of(arr, truth)  # beta, vy, r (G, T)
+vx, pick = arr.u[..., 0], arr.mask
 moved = body[..., 0] + (car.l_r - learned) * body[..., 1]
 print(f"alpha {alpha:g}: the body's l_r {learned:.3f} m, the car's {car.l_r:.3f} m")
-print(f"beta RMSE as carried: {np.degrees(rmse(np.arctan2(body[..., 0], vx) - beta)):.3f} deg")
+print(f"beta RMSE as carried: "
+      f"{np.degrees(rmse(np.arctan2(body[..., 0], vx), true['beta'], pick)):.3f} deg")
 print(f"beta RMSE at the car's centre of gravity: "
-      f"{np.degrees(rmse(np.arctan2(moved, vx) - beta)):.3f} deg")
-rear, rear_true = body[..., 0] - learned * body[..., 1], vy - car.l_r * r
-print(f"the rear axle's lateral speed: RMSE {rmse(rear - rear_true):.4f} m/s (its own RMS "
-      f"{rmse(rear_true):.4f} m/s); r: RMSE {rmse(body[..., 1] - r):.2e} rad/s")
+      f"{np.degrees(rmse(np.arctan2(moved, vx), true['beta'], pick)):.3f} deg")
+rear_true = true["vy"] - car.l_r * true["r"]
+print(f"the rear axle's lateral speed: RMSE "
+      f"{rmse(body[..., 0] - learned * body[..., 1], rear_true, pick):.4f} m/s (its own RMS "
+      f"{rmse(rear_true, np.zeros_like(rear_true), pick):.4f} m/s); "
+      f"r: RMSE {rmse(body[..., 1], true['r'], pick):.2e} rad/s")

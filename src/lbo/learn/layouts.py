@@ -40,9 +40,13 @@ LATER_DEFAULTS: dict[str, Any] = {"model.normalisation": "standard", "receiver":
                   "train_outages": {"share": 0.0, "max_s": 10.0}}
 """Settings added after runs were stored (a dotted key: one inside a group), with the value
 those runs had: version 1 hashed a config holding that value as if it did not have the key."""
+ADDED_V3: dict[str, dict[str, Any]] = {"filternet": {"input_terms": False}}
+"""The settings added to a model's config with version 3, by the model's name, with the value
+the runs stored before had: version 2 hashed today's config without them (:func:`hash_v2`),
+and version 1 too (:data:`LATER_MODEL_DEFAULTS` holds them)."""
 LATER_MODEL_DEFAULTS: dict[str, dict[str, Any]] = {
     **{name: {"body": "kinematic", "body_lr": 1.0} for name in ("kalmannet", "split_kalmannet")},
-    "filternet": {"empty_statistic": "net", "drift_tau": None, "input_terms": False},
+    "filternet": {"empty_statistic": "net", "drift_tau": None, **ADDED_V3["filternet"]},
     "gyro_ekf": {"drift": False, "scales": False}}
 """As :data:`LATER_DEFAULTS`, for the settings added to one model's config (``model.body`` of
 the KalmanNet peers, which the robust observer's config has had from the start, and its
@@ -88,11 +92,6 @@ def hash_v1(cfg: DictConfig) -> str:
 
 
 # --- version 2 -----------------------------------------------------------------------------
-
-ADDED_V3: dict[str, dict[str, Any]] = {"filternet": {"input_terms": False}}
-"""The settings added to a model's config with version 3, by the model's name, with the value
-the runs stored before had: version 2 hashed today's config without them."""
-
 
 def hash_v2(cfg: DictConfig) -> str:
     """The version-2 config hash of ``cfg`` (today's layout): the hash a run stored between

@@ -157,7 +157,7 @@ class ProcessModel(_Host):
 
     def learned_inputs(self) -> InputTerms:
         """The input terms learned (``input_terms``; otherwise none undo anything)."""
-        a, b, c = (float(v) * TERMS_SCALE for v in self.input_term_values.detach().cpu())
+        a, b, c = (float(v) * self.terms_scale for v in self.input_term_values.detach().cpu())
         return InputTerms(math.exp(a), b, math.exp(c))
 
     def _undo_inputs(self, v: torch.Tensor, delta: torch.Tensor

@@ -171,7 +171,7 @@ def _sensed(spec: Spec, out: dict[str, np.ndarray], alpha: float, key: int
     if truth.car is not None:
         rng = _rng(spec, key)
         z = dynamic.simulate(z[:, 0], u, v.dt, truth.car, spec.motion_noise.process_sigma,
-                             rng, truth.lateral_sigma if truth.disturbed else None)[..., :3]
+                             rng, truth.lateral_sigma)[..., :3]
         z[..., 2] = wrap_angle(z[..., 2])
         m = measure(z, spec.noise.meas(alpha), rng)
     m = m + truth.sensors.drift(z.shape[:2], v.dt, alpha, _rng(spec, key, 1))
@@ -223,9 +223,8 @@ def drive_paths(spec: Spec, segments: list, steps: np.ndarray, shapes: np.ndarra
     lead = run_in * v.dt * speed[:, :run_in].mean(axis=1)
     paths = [clothoid.sample(s, DS, lead_in=li, tail=0.6 * L + 60)
              for s, li, L in zip(segments, lead, lengths)]
-    truth = spec.truth
     return drive(paths, speed, v, np.asarray(spec.motion_noise.process_sigma), rng, ds=DS,
-                 car=truth.car, lateral_sigma=truth.lateral_sigma if truth.disturbed else None)
+                 car=spec.truth.car, lateral_sigma=spec.truth.lateral_sigma)
 
 
 def _scored_frame(spec: Spec, z: np.ndarray, u: np.ndarray, n_real: np.ndarray, run_in: int,

@@ -177,7 +177,7 @@ def simulate(z0: np.ndarray, u: np.ndarray, dt: float, p: Car,
     u : (B, T, 2) inputs; ``u[:, k]`` moves ``s_k`` to ``s_{k+1}``.
     process_sigma : (3,) standard deviations of the noise added to x, y, psi after each step.
     lateral_sigma : (2,) standard deviations of the disturbances added to v_y and r after each
-        step (:attr:`lbo.sim.truth.Truth.lateral_sigma`), drawn after the process noise.
+        step (:func:`lateral_noise`), drawn after the process noise.
 
     Returns
     -------
@@ -187,13 +187,24 @@ def simulate(z0: np.ndarray, u: np.ndarray, dt: float, p: Car,
     s = np.empty((b, t, 5))
     s[:, 0] = p.start(z0, u[:, 0])
     w = np.zeros((b, max(t - 1, 0), 5))
-    for part, sigma in ((slice(0, 3), process_sigma), (slice(3, 5), lateral_sigma)):
-        if sigma is not None:
-            assert rng is not None, "process_sigma and lateral_sigma need an rng"
-            w[..., part] = rng.standard_normal(w[..., part].shape) * np.asarray(sigma)
+    if process_sigma is not None:
+        assert rng is not None, "process_sigma needs an rng"
+        w[..., :3] = rng.standard_normal(w[..., :3].shape) * np.asarray(process_sigma)
+    w[..., 3:] = lateral_noise(rng, w.shape[:2], lateral_sigma)
     for k in range(t - 1):  # sequential in time, vectorised over the batch
         s[:, k + 1] = p.step(s[:, k], u[:, k], dt) + w[:, k]
     return s
+
+
+def lateral_noise(rng: np.random.Generator | None, shape: tuple[int, ...],
+                  sigma: Sequence[float] | None) -> np.ndarray:
+    """(*shape, 2) white disturbances of v_y and r, standard deviations ``sigma`` (2,)
+    (:attr:`lbo.sim.truth.Truth.lateral_sigma`). Zeros where there are none (None, or both 0),
+    and then ``rng`` is not drawn: the sets drawn without them keep their draws."""
+    if sigma is None or not np.any(np.asarray(sigma) > 0):
+        return np.zeros((*shape, 2))
+    assert rng is not None, "lateral_sigma needs an rng"
+    return rng.standard_normal((*shape, 2)) * np.asarray(sigma)
 
 
 def steady_state(v: np.ndarray, delta: np.ndarray, p: SingleTrack

@@ -7,6 +7,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from lbo.core.angles import wrap_angle
+from lbo.sim.dynamic import lateral_noise
 from lbo.sim.truth import Car
 from lbo.sim.vehicle import Vehicle, f
 
@@ -37,8 +38,8 @@ def drive(paths: list[np.ndarray], speed: np.ndarray, vehicle: Vehicle,
         single-track of :mod:`lbo.sim.dynamic`, or a registered one), which the controller
         steers all the same.
     lateral_sigma : (2,) standard deviations of the disturbances added to the car's v_y and r
-        after each step (:attr:`lbo.sim.truth.Truth.lateral_sigma`), drawn after the process
-        noise; None: none.
+        after each step (:func:`lbo.sim.dynamic.lateral_noise`), drawn after the process
+        noise; None or zeros: none.
 
     Returns
     -------
@@ -55,8 +56,7 @@ def drive(paths: list[np.ndarray], speed: np.ndarray, vehicle: Vehicle,
     z[:, 0] = [(p[0, 1], p[0, 2], p[0, 3]) for p in paths]
     u = np.zeros((g, n_steps, 2))
     w = rng.standard_normal((g, n_steps, 3)) * np.asarray(process_sigma)
-    gusts = (np.zeros((g, n_steps, 2)) if lateral_sigma is None
-             else rng.standard_normal((g, n_steps, 2)) * np.asarray(lateral_sigma))
+    gusts = lateral_noise(rng, (g, n_steps), lateral_sigma)
     rows = np.arange(g)
     window = int(np.ceil(2.0 * vehicle.v_max * vehicle.dt / ds)) + 20
     idx = np.zeros(g, np.int64)

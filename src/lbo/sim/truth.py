@@ -163,11 +163,6 @@ class Truth:
         object.__setattr__(self, "lateral_sigma", (v_y, r))
 
     @property
-    def disturbed(self) -> bool:
-        """Whether the car's lateral states carry disturbances (``lateral_sigma``)."""
-        return self.lateral_sigma != (0.0, 0.0)
-
-    @property
     def default(self) -> bool:
         """The paper's setting: kinematic bicycle, its process noise, white measurement noise,
         exact inputs."""
@@ -181,7 +176,7 @@ class Truth:
         out: dict[str, Any] = {"name": self.name, **asdict(self.sensors)}
         if self.process_scale != 1.0:  # the digests of sets drawn before this field stay
             out["process_scale"] = self.process_scale
-        if self.disturbed:  # ... and before this one
+        if any(self.lateral_sigma):  # ... and before this one
             out["lateral_sigma"] = list(self.lateral_sigma)
         if self.car is not None:
             out.update(asdict(self.car))
