@@ -379,11 +379,40 @@ def test_the_single_track_body_told_the_cars_parameters_follows_the_car():
                                             "model.drift_tau"),
                                            ({"drift": True, "drift_tau": "10 s"},
                                             "model.drift_tau"),
-                                           ({"drift_tau": 10.0}, "model.drift_tau")])
+                                           ({"drift_tau": 10.0}, "model.drift_tau"),
+                                           ({"body_rear": 1.5}, "model.body_rear"),
+                                           ({"body": "single_track", "body_rear": 0.0},
+                                            "model.body_rear"),
+                                           ({"body": "single_track", "body_rear": 2.7},
+                                            "model.body_rear"),
+                                           ({"body": "single_track", "body_rear": "1.5 m"},
+                                            "model.body_rear")])
 def test_bad_residual_drift_or_body_names_the_field(kwargs, field):
     with pytest.raises(LboError, match=field) as e:
         build_model("filternet", 40, **kwargs)
     assert "\n" not in str(e.value)
+
+
+def test_a_centre_of_gravity_given_is_held_through_training_and_saved():
+    """``model.body_rear``: the body's l_r is the one given, no parameter the optimiser moves,
+    and a checkpoint's state holds it; the other constants still learn."""
+    module = TrainingModule({"name": "filternet", "body": "single_track", "body_rear": 1.5},
+                            40, features="frame",
+                            optimizer=functools.partial(torch.optim.Adam, lr=1e-2))
+    net = module.observer.net
+    assert net.body_parameters()["l_r"] == pytest.approx(1.5)
+    assert "front_logit" not in dict(net.named_parameters())
+    opt = module.configure_optimizers()
+    x = torch.randn(8, 40, 5, generator=torch.Generator().manual_seed(0)) * 0.3
+    x[..., 3], x[..., 4] = 10.0, 0.1
+    before = net.body_parameters()
+    net(x).pow(2).sum().backward()
+    opt.step()
+    after = net.body_parameters()
+    assert after["l_r"] == pytest.approx(1.5) and after["k_f"] != before["k_f"]
+    fresh = build_model("filternet", 40, body="single_track")
+    fresh.load_state_dict(net.state_dict())  # a learned body reads the held one's checkpoint
+    assert fresh.body_parameters()["l_r"] == pytest.approx(1.5)
 
 
 @pytest.mark.parametrize("body_lr", [1.0, 3.0])

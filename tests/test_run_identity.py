@@ -1,7 +1,8 @@
-"""A run's identity (``config_hash``, version 2: today's layout only) and the runs a store holds
-from before it: each carries its version-1 hash, which :func:`lbo.learn.layouts.hash_v1` still
-gives for today's configs, and is migrated once to the version-2 hash of today's config, so that
-``resume=true`` and ``make reproduce`` find it instead of training everything again."""
+"""A run's identity (``config_hash``, from version 2: today's layout only) and the runs a store
+holds from before it: each carries its older version's hash, which
+:data:`lbo.learn.layouts.OLDER_HASHES` still gives for today's configs, and is migrated once to
+today's hash of today's config, so that ``resume=true`` and ``make reproduce`` find it instead
+of training everything again."""
 
 import json
 import os
@@ -20,8 +21,8 @@ from lbo.learn.identity import HASH_VERSION, MARKER, config_hash, read_marker, w
 from lbo.learn.layouts import (
     LATER_DEFAULTS,
     LATER_MODEL_DEFAULTS,
+    OLDER_HASHES,
     hash_v1,
-    hash_v2,
     unlayered,
     upgraded,
 )
@@ -84,6 +85,16 @@ STORED_V2 = {
 """Configs stored by runs under version 2 (the last commit before ``model.input_terms``, the
 setting version 3 added to the window filter), written as :data:`STORED`'s are, with that
 commit's own ``config_hash`` tag and ``hash_version`` 2."""
+STORED_V3 = {
+    "v3_dynamic": ("60c5527", ("experiment=dynamic",), "f8e0cb36103e4feb"),
+    "v3_robust_terms": ("60c5527", ("experiment=robust", "model.input_terms=true"),
+                        "6d7f376695456efb"),
+}
+"""... and under version 3 (the last commit before ``model.body_rear``, which version 4
+added), with ``hash_version`` 3."""
+LATER_SETTING = {2: ("model.input_terms", False, True), 3: ("model.body_rear", None, 1.5)}
+"""The window filter's setting added after each version, its value in the runs stored under
+it, and another value, which no such run had."""
 
 
 def _store(tmp: Path, runs: dict[str, tuple[str, str]], version: int = 1
@@ -520,44 +531,51 @@ def test_a_marker_left_by_someone_elses_migration_is_mended_only_for_its_own_con
     assert read_marker(folder)[0]["config_hash"] == PRE_MOVE[()]
 
 
-@pytest.mark.parametrize("name", list(STORED_V2))
-def test_a_config_stored_under_version_2_gives_its_tag_and_todays_hash(name):
-    """Version 2 of the stored config, upgraded (``model.input_terms`` filled at its old
-    value), is the tag its run carries, and of today's config too; today's hash of the
-    upgraded config is today's config's. With the terms learned, it is no run of before."""
-    _, overrides, tag = STORED_V2[name]
+@pytest.mark.parametrize("version, name", [(2, n) for n in STORED_V2]
+                         + [(3, n) for n in STORED_V3])
+def test_a_config_stored_under_an_older_version_gives_its_tag_and_todays_hash(version, name):
+    """That version of the stored config, upgraded (the settings added since filled at their
+    old values), is the tag its run carries, and of today's config too; today's hash of the
+    upgraded config is today's config's. With the setting added next at another value, it is
+    no run of before."""
+    _, overrides, tag = (STORED_V2 | STORED_V3)[name]
+    then = OLDER_HASHES[version]
     today = compose_cfg("train", list(overrides))
     stored = upgraded(OmegaConf.create((STORED / f"{name}.yaml").read_text()))
-    assert hash_v2(stored) == hash_v2(today) == tag
+    assert then(stored) == then(today) == tag
     assert config_hash(stored) == config_hash(today)
     if today.model.name == "filternet":
-        assert stored.model.input_terms is False and config_hash(today) != tag
-        terms = compose_cfg("train", [*overrides, "model.input_terms=true"])
-        assert tag != hash_v2(terms) != config_hash(today)
+        key, old, other = LATER_SETTING[version]
+        assert OmegaConf.select(stored, key) == old and config_hash(today) != tag
+        changed = compose_cfg("train", [*overrides, f"{key}={other}"])
+        assert tag != then(changed) != config_hash(today)
 
 
-def test_a_store_made_under_version_2_is_migrated_once_keeping_its_old_hashes(tmp_path,
-                                                                                capsys):
-    """Each version-2 run is found by today's hash and keeps its version-2 hash
-    (``config_hash_v2``); a run tagged with a version lbo never wrote is left, in a line."""
-    texts = {name: (STORED / f"{name}.yaml").read_text() for name in STORED_V2}
+@pytest.mark.parametrize("version", [2, 3])
+def test_a_store_made_under_an_older_version_is_migrated_once_keeping_its_old_hashes(
+        version, tmp_path, capsys):
+    """Each run of that version is found by today's hash and keeps its hash of that version
+    (``config_hash_v2``, ``config_hash_v3``); a run tagged with a version lbo never wrote is
+    left, in a line."""
+    runs = STORED_V2 if version == 2 else STORED_V3
+    texts = {name: (STORED / f"{name}.yaml").read_text() for name in runs}
     uri, ids = _store(tmp_path, {name: (texts[name], tag)
-                                 for name, (_, _, tag) in STORED_V2.items()}, version=2)
+                                 for name, (_, _, tag) in runs.items()}, version=version)
     client = mlflow.MlflowClient(uri)
     odd = client.create_run(client.get_experiment_by_name(EXPERIMENT_BEFORE).experiment_id,
                             tags={"config_hash": "0123456789abcdef", "hash_version": "x"})
     capsys.readouterr()
-    for name, (_, overrides, tag) in STORED_V2.items():
+    for name, (_, overrides, tag) in runs.items():
         cfg = compose_cfg("train", [*overrides, f"logger.tracking_uri={uri}"])
         found = finished_run(cfg, config_hash(cfg), clean=False)
         assert found is not None and found["run_id"] == ids[name]
         tags = client.get_run(ids[name]).data.tags
-        assert (tags["config_hash"], tags[was_key(2)], tags["hash_version"]) == (
+        assert (tags["config_hash"], tags[was_key(version)], tags["hash_version"]) == (
             config_hash(cfg), tag, str(HASH_VERSION))
     said = capsys.readouterr().out.splitlines()
     assert said == [f"left run {odd.info.run_id} of lbo as it was: its hash_version 'x' is "
-                    "none of [1, 2]",
-                    f"migrated 3 runs of lbo to config hash version {HASH_VERSION} "
+                    "none of [1, 2, 3]",
+                    f"migrated {len(runs)} runs of lbo to config hash version {HASH_VERSION} "
                     "(1 left as they were)"]
 
 

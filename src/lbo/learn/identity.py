@@ -28,12 +28,12 @@ from omegaconf import DictConfig, OmegaConf, open_dict
 from lbo.core.atomic import write_text
 from lbo.logs.sets import is_logs
 
-HASH_VERSION = 3
+HASH_VERSION = 4
 """The version of :func:`config_hash` a run is tagged with (``hash_version``). A change to
 what the hash reads, or to the layout of the config it reads, bumps it, beside a migration
 step in :mod:`lbo.learn.migrate` that brings the stored runs to it, and the older version's
 hash of today's config in :data:`lbo.learn.layouts.OLDER_HASHES`. Version 3 added
-``model.input_terms`` to the window filter's config."""
+``model.input_terms`` to the window filter's config, version 4 ``model.body_rear``."""
 
 
 BAR_REFRESH = 20

@@ -1,4 +1,4 @@
-"""Config hash versions 1 and 2, and a config a run stored in an older layout brought to
+"""The older config hash versions, and a config a run stored in an older layout brought to
 today's.
 
 Version 1 of :func:`lbo.learn.identity.config_hash` replayed every older layout of the
@@ -8,8 +8,8 @@ hash: settings added later hashed as absent at their old value (:data:`LATER_DEF
 back at the top, lbo's classes without their layer, the epoch bar as Lightning's. Versions
 2 on hash today's layout only; :func:`upgraded` brings a stored config to it, so that the
 one-time migration of a store (:mod:`lbo.learn.migrate`) can check a run's older tag and give
-it today's hash. Version 2 hashed today's layout less the settings added since, which
-:func:`hash_v2` leaves out at the value runs had (:data:`ADDED_V3`). Nothing here runs what a
+it today's hash. Versions 2 and 3 hashed today's layout less the settings added since, which
+:func:`hash_before` leaves out at the value runs had (:data:`ADDED`). Nothing here runs what a
 config names: the layer of an old class name is found in its module's source text, not by
 importing it.
 """
@@ -19,6 +19,8 @@ from __future__ import annotations
 import ast
 import copy
 import hashlib
+from collections.abc import Callable
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -40,18 +42,33 @@ LATER_DEFAULTS: dict[str, Any] = {"model.normalisation": "standard", "receiver":
                   "train_outages": {"share": 0.0, "max_s": 10.0}}
 """Settings added after runs were stored (a dotted key: one inside a group), with the value
 those runs had: version 1 hashed a config holding that value as if it did not have the key."""
-ADDED_V3: dict[str, dict[str, Any]] = {"filternet": {"input_terms": False}}
-"""The settings added to a model's config with version 3, by the model's name, with the value
-the runs stored before had: version 2 hashed today's config without them (:func:`hash_v2`),
-and version 1 too (:data:`LATER_MODEL_DEFAULTS` holds them)."""
+ADDED: dict[int, dict[str, dict[str, Any]]] = {
+    3: {"filternet": {"input_terms": False}},
+    4: {"filternet": {"body_rear": None}}}
+"""The settings added to a model's config with each version from 3 on, by the version and the
+model's name, with the value the runs stored before had: an older version hashed today's
+config without them (:func:`hash_before`), and version 1 too (:data:`LATER_MODEL_DEFAULTS`
+holds them)."""
+
+
+def added_after(version: int) -> dict[str, dict[str, Any]]:
+    """The settings of :data:`ADDED` that versions after ``version`` added, by model name."""
+    out: dict[str, dict[str, Any]] = {}
+    for v, models in ADDED.items():
+        if v > version:
+            for name, settings in models.items():
+                out.setdefault(name, {}).update(settings)
+    return out
+
+
 LATER_MODEL_DEFAULTS: dict[str, dict[str, Any]] = {
     **{name: {"body": "kinematic", "body_lr": 1.0} for name in ("kalmannet", "split_kalmannet")},
-    "filternet": {"empty_statistic": "net", "drift_tau": None, **ADDED_V3["filternet"]},
+    "filternet": {"empty_statistic": "net", "drift_tau": None, **added_after(2)["filternet"]},
     "gyro_ekf": {"drift": False, "scales": False}}
 """As :data:`LATER_DEFAULTS`, for the settings added to one model's config (``model.body`` of
 the KalmanNet peers, which the robust observer's config has had from the start, and its
-``model.empty_statistic``, ``model.drift_tau`` and ``model.input_terms``; the gyro EKF's
-``model.drift`` and ``model.scales``)."""
+``model.empty_statistic``, ``model.drift_tau``, ``model.input_terms`` and
+``model.body_rear``; the gyro EKF's ``model.drift`` and ``model.scales``)."""
 WAS = {"lbo.learn.progress.EpochBar": "lightning.pytorch.callbacks.TQDMProgressBar"}
 """Callbacks that replaced another in ``conf/``, by what they replaced (version 1 hashed them
 as it)."""
@@ -91,22 +108,24 @@ def hash_v1(cfg: DictConfig) -> str:
     return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 
-# --- version 2 -----------------------------------------------------------------------------
+# --- versions 2 and 3 ---------------------------------------------------------------------
 
-def hash_v2(cfg: DictConfig) -> str:
-    """The version-2 config hash of ``cfg`` (today's layout): the hash a run stored between
-    versions 2 and 3 carries, where ``cfg`` holds the settings of :data:`ADDED_V3` at their
-    old values (another value is a config no such run had, and hashes apart)."""
+def hash_before(version: int, cfg: DictConfig) -> str:
+    """The config hash of ``cfg`` (today's layout) under ``version`` (2 or more): the hash a
+    run stored under that version carries, where ``cfg`` holds the settings added since
+    (:data:`ADDED`) at their old values (another value is a config no such run had, and
+    hashes apart)."""
     tree = computed(cfg)
     model = tree.get("model")
     if isinstance(model, dict):
-        for name, default in ADDED_V3.get(str(model.get("name")), {}).items():
+        for name, default in added_after(version).get(str(model.get("name")), {}).items():
             if name in model and model[name] == default:
                 model.pop(name)
     return tree_hash(tree, cfg)
 
 
-OLDER_HASHES = {1: hash_v1, 2: hash_v2}
+OLDER_HASHES: dict[int, Callable[[DictConfig], str]] = {
+    1: hash_v1, 2: partial(hash_before, 2), 3: partial(hash_before, 3)}
 """Each older version's hash of today's config, by version: what a run tagged with that
 ``hash_version`` (none: 1) carries, which its migration checks before it retags the run."""
 

@@ -95,6 +95,8 @@ class WindowFilter(ProcessModel, FilterStep, nn.Module):
     input_terms : learn what undoes the input sensors' errors (a factor on the speed, an
         offset and a factor on the steering) and undo them before the process model reads
         the inputs (:meth:`learned_inputs`).
+    body_rear : the single-track body's centre of gravity ahead of the rear axle (m), held
+        where given (the car's geometry, weighed at its axles); None learns where it sits.
     """
 
     if TYPE_CHECKING:  # its buffers (or parameters) registered by name, for the type checker
@@ -113,7 +115,8 @@ class WindowFilter(ProcessModel, FilterStep, nn.Module):
                  hidden: int = 32, in_features: int = 5, residual: int = 0,
                  drift: bool = False, body: str = "kinematic", body_lr: float = 1.0,
                  gyro: bool = False, empty_statistic: str = "net",
-                 drift_tau: float | None = None, input_terms: bool = False) -> None:
+                 drift_tau: float | None = None, input_terms: bool = False,
+                 body_rear: float | None = None) -> None:
         super().__init__()
         frame_model(self, window, in_features, dt, wheelbase, receiver=True)
         if empty_statistic not in EMPTY_STATISTIC:
@@ -163,7 +166,7 @@ class WindowFilter(ProcessModel, FilterStep, nn.Module):
                 self.register_parameter(name, nn.Parameter(torch.tensor(value)))
             else:  # held: saved with the drift, so a checkpoint has the key either way
                 self.register_buffer(name, torch.tensor(value), persistent=drift)
-        self.build_process(residual, body, body_lr, input_terms)
+        self.build_process(residual, body, body_lr, input_terms, body_rear)
         self._build_gyro(gyro)
         # the filter's states (lbo.models.filter_step): the pose, and the gyro's bias or the drift;
         # their identity made once, not at every step of the loop

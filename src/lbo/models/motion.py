@@ -16,7 +16,10 @@ form (:mod:`lbo.models.recursive`) both step with.
   and peak force p (per unit mass), where the centre of gravity sits between them, the yaw
   inertia per unit mass, and the speed below which the car rolls as the kinematic bicycle
   (there the slip angles are singular). It starts at a generic car (equal axles, 0.5 g each,
-  the centre of gravity mid-way), not at the truth's.
+  the centre of gravity mid-way), not at the truth's. Where the car's geometry is known
+  (``body_rear``, weighed at the axles or read from a data sheet), the centre of gravity is
+  held there: position fixes see the rear axle, and nothing in them pins how far ahead of it
+  the centre of gravity sits, where beta is read.
 - ``input_terms``: what undoes the input sensors' errors, learned as three numbers (a factor
   on the speed, an offset and a factor on the steering; :class:`lbo.filters.inputs.InputTerms`)
   and applied to V and delta before either body reads them: the dead reckoning through an
@@ -32,7 +35,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from lbo.core.checks import integer, number
+from lbo.core.checks import integer, number, require
 from lbo.core.errors import LboError
 from lbo.filters.inputs import InputTerms
 
@@ -104,11 +107,13 @@ class ProcessModel(_Host):
         input_term_values: torch.Tensor
 
     def build_process(self, residual: int, body: str, body_lr: float,
-                      input_terms: bool = False) -> None:
+                      input_terms: bool = False, body_rear: float | None = None) -> None:
         """Register the process model: ``residual`` the width of the kinematic bicycle's
         learned correction (0: none), ``body`` one of :data:`BODIES`, ``body_lr`` the
         single-track body's learning rate as a multiple of the optimiser's, ``input_terms``
-        whether the inputs' terms are learned; each checked in one line."""
+        whether the inputs' terms are learned, ``body_rear`` the single-track body's centre
+        of gravity ahead of the rear axle (m), held (None: learned); each checked in one
+        line."""
         assert isinstance(self, nn.Module)
         self.residual = integer(residual, "model.residual", 0,
                                 form="an integer >= 0 (0: the kinematic bicycle)")
@@ -121,19 +126,28 @@ class ProcessModel(_Host):
         self.body_lr = number(body_lr, "model.body_lr", low=0.0, low_open=True,
                               form="a multiple of the learning rate > 0")
         self.substeps = SUBSTEPS  # an attribute: TorchScript reads no module-level int
+        front = 0.0
+        if body_rear is not None:
+            form = (f"null (learned) or the centre of gravity's distance ahead of the rear "
+                    f"axle in m, in (0, {self.wheelbase:g}) (the wheelbase), with "
+                    f"model.body=single_track")
+            body_rear = number(body_rear, "model.body_rear", low=0.0, low_open=True, form=form)
+            require(body_rear < self.wheelbase and self.single_track, "model.body_rear", form,
+                    body_rear)
+            front = math.log((self.wheelbase - body_rear) / body_rear)  # logit(l_f / L)
         # (front, rear) cornering stiffness and peak force per unit mass (m/s^2 per rad, m/s^2),
         # the front axle's share of the wheelbase behind the centre of gravity (l_f / L, as a
         # logit), the yaw inertia per unit mass in units of l_f l_r, and the speed (m/s) below
         # which the body is the kinematic bicycle; unsaved buffers for the kinematic body
         for name, value in (("log_stiffness", torch.full((2,), math.log(50.0))),
                             ("log_peak", torch.full((2,), math.log(0.5 * 9.81))),
-                            ("front_logit", torch.tensor(0.0)),
+                            ("front_logit", torch.tensor(front)),
                             ("log_gyration", torch.tensor(0.0)),
                             ("log_v_kinematic", torch.tensor(math.log(3.0)))):
-            if self.single_track:
+            if self.single_track and not (name == "front_logit" and body_rear is not None):
                 self.register_parameter(name, nn.Parameter(value))
-            else:
-                self.register_buffer(name, value, persistent=False)
+            else:  # held: saved with the body, so its checkpoint has the key either way
+                self.register_buffer(name, value, persistent=self.single_track)
         self.process: nn.Module = nn.Identity()  # scripted whether or not it is used
         if residual:
             # in: V, delta, the kinematic and the previous yaw rate, each scaled to about 1;
