@@ -393,10 +393,11 @@ def test_bad_residual_drift_or_body_names_the_field(kwargs, field):
     assert "\n" not in str(e.value)
 
 
-def test_a_centre_of_gravity_given_is_held_through_training_and_saved():
+@pytest.mark.parametrize("name", ["filternet", "kalmannet", "split_kalmannet"])
+def test_a_centre_of_gravity_given_is_held_through_training_and_saved(name):
     """``model.body_rear``: the body's l_r is the one given, no parameter the optimiser moves,
     and a checkpoint's state holds it; the other constants still learn."""
-    module = TrainingModule({"name": "filternet", "body": "single_track", "body_rear": 1.5},
+    module = TrainingModule({"name": name, "body": "single_track", "body_rear": 1.5},
                             40, features="frame",
                             optimizer=functools.partial(torch.optim.Adam, lr=1e-2))
     net = module.observer.net
@@ -410,7 +411,7 @@ def test_a_centre_of_gravity_given_is_held_through_training_and_saved():
     opt.step()
     after = net.body_parameters()
     assert after["l_r"] == pytest.approx(1.5) and after["k_f"] != before["k_f"]
-    fresh = build_model("filternet", 40, body="single_track")
+    fresh = build_model(name, 40, body="single_track")
     fresh.load_state_dict(net.state_dict())  # a learned body reads the held one's checkpoint
     assert fresh.body_parameters()["l_r"] == pytest.approx(1.5)
 

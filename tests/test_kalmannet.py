@@ -222,8 +222,8 @@ def test_its_body_setting_keeps_the_hash_of_runs_stored_before_it(name):
     now = compose_cfg("train", ["experiment=robust", f"model={name}"])
     before = now.copy()
     with open_dict(before):
-        before.model.pop("body")
-        before.model.pop("body_lr")
+        for key in ("body", "body_lr", "body_rear"):
+            before.model.pop(key)
     assert hash_v1(now) == hash_v1(before)
     assert config_hash(upgraded(before)) == config_hash(now)
     assert config_hash(compose_cfg("train", ["experiment=robust", f"model={name}",

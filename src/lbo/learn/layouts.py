@@ -44,7 +44,7 @@ LATER_DEFAULTS: dict[str, Any] = {"model.normalisation": "standard", "receiver":
 those runs had: version 1 hashed a config holding that value as if it did not have the key."""
 ADDED: dict[int, dict[str, dict[str, Any]]] = {
     3: {"filternet": {"input_terms": False}},
-    4: {"filternet": {"body_rear": None}}}
+    4: {name: {"body_rear": None} for name in ("filternet", "kalmannet", "split_kalmannet")}}
 """The settings added to a model's config with each version from 3 on, by the version and the
 model's name, with the value the runs stored before had: an older version hashed today's
 config without them (:func:`hash_before`), and version 1 too (:data:`LATER_MODEL_DEFAULTS`
@@ -62,13 +62,15 @@ def added_after(version: int) -> dict[str, dict[str, Any]]:
 
 
 LATER_MODEL_DEFAULTS: dict[str, dict[str, Any]] = {
-    **{name: {"body": "kinematic", "body_lr": 1.0} for name in ("kalmannet", "split_kalmannet")},
+    **{name: {"body": "kinematic", "body_lr": 1.0, **added_after(2)[name]}
+       for name in ("kalmannet", "split_kalmannet")},
     "filternet": {"empty_statistic": "net", "drift_tau": None, **added_after(2)["filternet"]},
     "gyro_ekf": {"drift": False, "scales": False}}
 """As :data:`LATER_DEFAULTS`, for the settings added to one model's config (``model.body`` of
-the KalmanNet peers, which the robust observer's config has had from the start, and its
-``model.empty_statistic``, ``model.drift_tau``, ``model.input_terms`` and
-``model.body_rear``; the gyro EKF's ``model.drift`` and ``model.scales``)."""
+the KalmanNet peers, which the robust observer's config has had from the start, and their
+``model.body_rear``; the robust observer's ``model.empty_statistic``, ``model.drift_tau``,
+``model.input_terms`` and ``model.body_rear``; the gyro EKF's ``model.drift`` and
+``model.scales``)."""
 WAS = {"lbo.learn.progress.EpochBar": "lightning.pytorch.callbacks.TQDMProgressBar"}
 """Callbacks that replaced another in ``conf/``, by what they replaced (version 1 hashed them
 as it)."""

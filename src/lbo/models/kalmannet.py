@@ -123,9 +123,9 @@ class _GainFilter(ProcessModel, nn.Module):
 
     def _setup(self, window: int, dt: float, wheelbase: float,
                measurement_sigma: Sequence[float], in_features: int, body: str,
-               body_lr: float) -> None:
+               body_lr: float, body_rear: float | None) -> None:
         frame_model(self, window, in_features, dt, wheelbase)
-        self.build_process(0, body, body_lr)
+        self.build_process(0, body, body_lr, body_rear=body_rear)
         units = check_sigmas("measurement_sigma", measurement_sigma)
         self.register_buffer("units", torch.tensor(units))
         # not saved: derived, and checkpoints stored before it must still load
@@ -231,6 +231,8 @@ class KalmanNet(_GainFilter):
         reckoning).
     body, body_lr : the process model, ``"kinematic"`` or ``"single_track"`` (see the module),
         and the single-track body's learning rate as a multiple of the optimiser's.
+    body_rear : the single-track body's centre of gravity ahead of the rear axle (m), held
+        where given; None learns it (:meth:`lbo.models.motion.ProcessModel.build_process`).
     """
 
     if TYPE_CHECKING:  # parameters registered by name, for the type checker
@@ -241,9 +243,11 @@ class KalmanNet(_GainFilter):
     def __init__(self, window: int, *, dt: float = 0.02, wheelbase: float = 2.7,
                  measurement_sigma: Sequence[float] = (1.0, 1.0, 0.0174),
                  in_features: int = 5, width: int = 4, hidden: int = 64,
-                 gain: float = 0.05, body: str = "kinematic", body_lr: float = 1.0) -> None:
+                 gain: float = 0.05, body: str = "kinematic", body_lr: float = 1.0,
+                 body_rear: float | None = None) -> None:
         super().__init__()
-        self._setup(window, dt, wheelbase, measurement_sigma, in_features, body, body_lr)
+        self._setup(window, dt, wheelbase, measurement_sigma, in_features, body, body_lr,
+                    body_rear)
         width = integer(width, "model.width", 1)
         hidden = integer(hidden, "model.hidden", 1)
         gain = number(gain, "model.gain", low=0.0, high=1.0, form="a number in [0, 1]")
@@ -292,7 +296,7 @@ class SplitKalmanNet(_GainFilter):
 
     Parameters
     ----------
-    window, dt, wheelbase, measurement_sigma, in_features, body, body_lr : as
+    window, dt, wheelbase, measurement_sigma, in_features, body, body_lr, body_rear : as
         :class:`KalmanNet`'s.
     width : P's GRU holds ``width * n^2`` units, S's ``width * 9``.
     gain : the gain's starting value, ``gain * [I 0]^T`` (P and S^-1 each ``sqrt(gain) I``).
@@ -305,9 +309,11 @@ class SplitKalmanNet(_GainFilter):
     def __init__(self, window: int, *, dt: float = 0.02, wheelbase: float = 2.7,
                  measurement_sigma: Sequence[float] = (1.0, 1.0, 0.0174),
                  in_features: int = 5, width: int = 4, gain: float = 0.05,
-                 body: str = "kinematic", body_lr: float = 1.0) -> None:
+                 body: str = "kinematic", body_lr: float = 1.0,
+                 body_rear: float | None = None) -> None:
         super().__init__()
-        self._setup(window, dt, wheelbase, measurement_sigma, in_features, body, body_lr)
+        self._setup(window, dt, wheelbase, measurement_sigma, in_features, body, body_lr,
+                    body_rear)
         width = integer(width, "model.width", 1)
         gain = number(gain, "model.gain", low=0.0, high=1.0, form="a number in [0, 1]")
         n, m = self.n_state, self.n_measured
