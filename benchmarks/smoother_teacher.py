@@ -27,8 +27,7 @@ teacher = sys.argv[1] if len(sys.argv) > 1 else "ekf"
 cfg = OmegaConf.load("conf/realdrive.yaml")
 vehicle = Vehicle()
 noise = Noise.from_cfg(OmegaConf.load("conf/noise/paper.yaml"))  # lbo.realdrive's default
-df = hguide.read()
-drives = hguide.drives(hguide.to_log(df, vehicle, hguide.fit_alignment(df)))
+drives = hguide.drives(hguide.to_log(hguide.read(), vehicle))  # its alignment fitted
 settings = Settings.from_cfg(cfg.learn)
 R, start = gyro_fit.fix_cov(noise), settings.start(noise.Q)
 

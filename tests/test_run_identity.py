@@ -94,6 +94,8 @@ STORED_V3 = {
 }
 """... and under version 3 (the last commit before ``model.body_rear``, which version 4
 added), with ``hash_version`` 3."""
+STORED_OLDER = {2: STORED_V2, 3: STORED_V3}
+"""The configs stored under each older version from 2 on, by version."""
 LATER_SETTING = {2: ("model.input_terms", False, True), 3: ("model.body_rear", None, 1.5)}
 """A setting added after each version (to the window filter's config; the one after 3 to the
 KalmanNet peers' too), its value in the runs stored under it, and another value, which no such
@@ -534,14 +536,14 @@ def test_a_marker_left_by_someone_elses_migration_is_mended_only_for_its_own_con
     assert read_marker(folder)[0]["config_hash"] == PRE_MOVE[()]
 
 
-@pytest.mark.parametrize("version, name", [(2, n) for n in STORED_V2]
-                         + [(3, n) for n in STORED_V3])
+@pytest.mark.parametrize("version, name", [(v, n) for v, runs in STORED_OLDER.items()
+                                            for n in runs])
 def test_a_config_stored_under_an_older_version_gives_its_tag_and_todays_hash(version, name):
     """That version of the stored config, upgraded (the settings added since filled at their
     old values), is the tag its run carries, and of today's config too; today's hash of the
     upgraded config is today's config's. With the setting added next at another value, it is
     no run of before."""
-    _, overrides, tag = (STORED_V2 | STORED_V3)[name]
+    _, overrides, tag = STORED_OLDER[version][name]
     then = OLDER_HASHES[version]
     today = compose_cfg("train", list(overrides))
     stored = upgraded(OmegaConf.create((STORED / f"{name}.yaml").read_text()))
@@ -554,13 +556,13 @@ def test_a_config_stored_under_an_older_version_gives_its_tag_and_todays_hash(ve
         assert tag != then(changed) != config_hash(today)
 
 
-@pytest.mark.parametrize("version", [2, 3])
+@pytest.mark.parametrize("version", list(STORED_OLDER))
 def test_a_store_made_under_an_older_version_is_migrated_once_keeping_its_old_hashes(
         version, tmp_path, capsys):
     """Each run of that version is found by today's hash and keeps its hash of that version
     (``config_hash_v2``, ``config_hash_v3``); a run tagged with a version lbo never wrote is
     left, in a line."""
-    runs = STORED_V2 if version == 2 else STORED_V3
+    runs = STORED_OLDER[version]
     texts = {name: (STORED / f"{name}.yaml").read_text() for name in runs}
     uri, ids = _store(tmp_path, {name: (texts[name], tag)
                                  for name, (_, _, tag) in runs.items()}, version=version)

@@ -8,7 +8,7 @@ hash: settings added later hashed as absent at their old value (:data:`LATER_DEF
 back at the top, lbo's classes without their layer, the epoch bar as Lightning's. Versions
 2 on hash today's layout only; :func:`upgraded` brings a stored config to it, so that the
 one-time migration of a store (:mod:`lbo.learn.migrate`) can check a run's older tag and give
-it today's hash. Versions 2 and 3 hashed today's layout less the settings added since, which
+it today's hash. Versions 2 on hashed today's layout less the settings added since, which
 :func:`hash_before` leaves out at the value runs had (:data:`ADDED`). Nothing here runs what a
 config names: the layer of an old class name is found in its module's source text, not by
 importing it.
@@ -29,7 +29,7 @@ from omegaconf import DictConfig, OmegaConf, open_dict
 from lbo.core import LAYERS
 from lbo.core.cli import MODEL_SHORT
 from lbo.core.errors import LboError
-from lbo.learn.identity import computed, tree_hash
+from lbo.learn.identity import HASH_VERSION, computed, tree_hash
 from lbo.logs.sets import is_logs
 
 # --- version 1 -----------------------------------------------------------------------------
@@ -110,7 +110,7 @@ def hash_v1(cfg: DictConfig) -> str:
     return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 
-# --- versions 2 and 3 ---------------------------------------------------------------------
+# --- versions 2 on ---------------------------------------------------------------------------
 
 def hash_before(version: int, cfg: DictConfig) -> str:
     """The config hash of ``cfg`` (today's layout) under ``version`` (2 or more): the hash a
@@ -127,9 +127,11 @@ def hash_before(version: int, cfg: DictConfig) -> str:
 
 
 OLDER_HASHES: dict[int, Callable[[DictConfig], str]] = {
-    1: hash_v1, 2: partial(hash_before, 2), 3: partial(hash_before, 3)}
+    1: hash_v1, **{v: partial(hash_before, v) for v in range(2, HASH_VERSION)}}
 """Each older version's hash of today's config, by version: what a run tagged with that
-``hash_version`` (none: 1) carries, which its migration checks before it retags the run."""
+``hash_version`` (none: 1) carries, which its migration checks before it retags the run.
+Versions 2 on are :func:`hash_before` theirs, so a new version adds only its settings to
+:data:`ADDED`."""
 
 
 def as_before_groups_moved(tree: dict[str, Any]) -> dict[str, Any]:
