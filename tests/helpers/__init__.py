@@ -16,7 +16,8 @@ hooks stay in ``tests/conftest.py``.
   helpers.scripts import run_script``)
 - :mod:`helpers.slurm`: a real one-node SLURM cluster (``from helpers.slurm import
   slurm_cluster``)
-- :mod:`helpers.hydra_cache`: Hydra's config files read once per version for the session
+- :mod:`helpers.hydra_cache`: Hydra's config files read, and each shape of command line built,
+  once per version for the session
   (``tests/conftest.py`` installs it)
 """
 

@@ -1,4 +1,5 @@
-"""Hydra's config files read once per test run, not once per compose.
+"""Hydra's config files read, and each shape of command line built, once per test run, not
+once per compose.
 
 The tests compose about 1,600 configs in-process (:func:`helpers.compose_cfg`, and the commands
 they run through Hydra's main), and each compose re-reads and re-parses every YAML file of
@@ -18,17 +19,35 @@ parse, is Hydra's own read, which raises what it always raised; failures are not
 The class patched is the one Hydra's ``SourcesRegistry`` resolves ``file://`` to, not the one
 ``from hydra._internal.core_plugins.file_config_source import FileConfigSource`` gives: Hydra's
 plugin scan (on its first compose) executes that module again and registers the class made then.
+
+It also keeps what Hydra builds from those files for each shape of command line: the defaults
+list (``create_defaults_list``) and the configs merged along it
+(``ConfigLoaderImpl._compose_config_from_defaults_list``): most of what a compose costs once
+the files are kept (``benchmarks/compose_cache.py``: 88 ms a compose, 17 ms with the builds
+kept). Neither reads the overrides that set values
+(``data.root=...``, ``seed=3``): Hydra applies those to a copy of the merged config
+afterwards, as it always does. So the key is the config's name, the config sources, and the
+overrides Hydra reads as group choices (told apart from values exactly as
+``defaults_list.Overrides`` tells them: a dict, or a key that is no config group, is a value);
+a command line with other values takes the kept list and a copy of the kept config. The files
+the first build read (the primary config included) are checked unchanged before the kept
+build is used, as above.
 """
 
 from __future__ import annotations
 
 import contextlib
 import copy
+import dataclasses
 import os
 from collections.abc import Callable
 from typing import Any
 
+from hydra._internal import config_loader_impl
+from hydra._internal.config_loader_impl import ConfigLoaderImpl
+from hydra._internal.defaults_list import DefaultsList
 from hydra._internal.sources_registry import SourcesRegistry
+from hydra.core.override_parser.types import Override
 from hydra.core.plugins import Plugins
 from hydra.plugins.config_source import ConfigResult
 
@@ -37,13 +56,47 @@ LoadConfig = Callable[[Any, str], ConfigResult]
 _patched: dict[Any, LoadConfig] = {}
 """The class patched -> Hydra's own ``load_config``."""
 
+_patched_too: dict[str, dict[Any, Callable[..., Any]]] = {}
+"""name -> {owner: Hydra's own} for the build's methods wrapped (``_PATCHES``)."""
+
 _read: dict[tuple[str, int, int], tuple[dict[str, str | None], Any]] = {}
 """(real path, mtime_ns, size) -> the header and config Hydra read from that file."""
 
 
-def _key(path: str) -> tuple[str, int, int]:
+FileKey = tuple[str, int, int]
+
+_reading: list[set[FileKey]] = []
+"""The file versions read by the compose under way (one set per ``_load_configuration_impl``
+entered): what a kept build depends on."""
+
+
+@dataclasses.dataclass
+class _Built:
+    """What Hydra built for one shape of command line."""
+
+    files: frozenset[FileKey]
+    defaults: DefaultsList
+    merged: Any = None  # the config merged along the defaults, before any value is set
+    merges: int = 0  # kept from the second merge on: most shapes are composed once
+
+
+_built: dict[tuple[Any, ...], _Built] = {}
+"""shape of a command line (see the module's docstring) -> what Hydra built for it."""
+
+_by_list: dict[int, _Built] = {}
+"""id of a kept defaults list -> its build (kept builds hold their lists, so ids are unique)."""
+
+
+def _key(path: str) -> FileKey:
     st = os.stat(path)
     return path, st.st_mtime_ns, st.st_size
+
+
+def _unchanged(key: FileKey) -> bool:
+    try:
+        return _key(key[0]) == key
+    except OSError:
+        return False
 
 
 def _caching(hydras: LoadConfig) -> LoadConfig:
@@ -56,6 +109,8 @@ def _caching(hydras: LoadConfig) -> LoadConfig:
             key = _key(path)
         except OSError:  # missing: Hydra raises its ConfigLoadError
             return hydras(self, config_path)
+        if _reading:
+            _reading[-1].add(key)
         kept = _read.get(key)
         if kept is None:
             loaded = hydras(self, config_path)  # raises as it did; nothing kept then
@@ -70,13 +125,94 @@ def _caching(hydras: LoadConfig) -> LoadConfig:
     return load_config
 
 
-def install() -> None:
-    """Hydra's file configs read once per version of each file, from now on."""
+def _recording(hydras: Callable[..., Any]) -> Callable[..., Any]:
+    """``ConfigLoaderImpl._load_configuration_impl`` noting the files its compose reads."""
+
+    def load_configuration_impl(self: Any, *args: Any, **kwargs: Any) -> Any:
+        _reading.append(set())
+        try:
+            return hydras(self, *args, **kwargs)
+        finally:
+            _reading.pop()
+
+    return load_configuration_impl
+
+
+def _values(repo: Any, overrides: list[Override]) -> list[Override]:
+    """The overrides Hydra applies as values, in their order: as ``defaults_list.Overrides``
+    sorts them (sweeps are neither: the launcher expands them)."""
+    return [o for o in overrides if not o.is_sweep_override()
+            and (isinstance(o.value(), dict) or not repo.group_exists(o.key_or_group))]
+
+
+def _defaults_kept(hydras: Callable[..., DefaultsList]) -> Callable[..., DefaultsList]:
+    """``create_defaults_list`` that builds each shape of command line once."""
+
+    def create_defaults_list(repo: Any, config_name: str | None, overrides_list: list[Override],
+                             prepend_hydra: bool, skip_missing: bool) -> DefaultsList:
+        def build() -> DefaultsList:
+            return hydras(repo=repo, config_name=config_name, overrides_list=overrides_list,
+                          prepend_hydra=prepend_hydra, skip_missing=skip_missing)
+
+        if not _reading:  # not inside a compose (``--info defaults``): Hydra's own
+            return build()
+        values = _values(repo, overrides_list)
+        chosen = tuple(o.input_line for o in overrides_list if all(o is not v for v in values))
+        shape = (config_name, chosen, prepend_hydra, skip_missing,
+                 tuple((s.scheme(), s.path) for s in repo.get_sources()))
+        kept = _built.get(shape)
+        if kept is not None and all(_unchanged(f) for f in kept.files):
+            return dataclasses.replace(kept.defaults, config_overrides=values)
+        built = build()
+        if [id(o) for o in built.config_overrides] == [id(o) for o in values]:
+            if kept is not None:
+                _by_list.pop(id(kept.defaults.defaults), None)
+            _built[shape] = _by_list[id(built.defaults)] = _Built(frozenset(_reading[-1]), built)
+        return built
+
+    return create_defaults_list
+
+
+def _merged_kept(hydras: Callable[..., Any]) -> Callable[..., Any]:
+    """``ConfigLoaderImpl._compose_config_from_defaults_list`` that keeps the merge of a kept
+    defaults list once it is asked for twice and gives a copy each time after (Hydra then sets
+    values in what it is given)."""
+
+    def compose_config_from_defaults_list(self: Any, defaults: list[Any], repo: Any) -> Any:
+        kept = _by_list.get(id(defaults))
+        if kept is None or kept.defaults.defaults is not defaults:
+            return hydras(self, defaults, repo)
+        if kept.merged is None:
+            kept.merges += 1
+            merged = hydras(self, defaults, repo)
+            if kept.merges > 1:  # a copy costs a tenth of a merge
+                kept.merged = copy.deepcopy(merged)
+            return merged
+        return copy.deepcopy(kept.merged)
+
+    return compose_config_from_defaults_list
+
+
+_PATCHES: tuple[tuple[Any, str, Callable[[Any], Any]], ...] = (
+    (ConfigLoaderImpl, "_load_configuration_impl", _recording),
+    (config_loader_impl, "create_defaults_list", _defaults_kept),
+    (ConfigLoaderImpl, "_compose_config_from_defaults_list", _merged_kept),
+)
+"""(owner, name, wrapper) of what :func:`install` wraps beside the file source's read."""
+
+
+def install(builds: bool = True) -> None:
+    """Hydra's file configs read once per version of each file, and (``builds``) each shape of
+    command line built once, from now on."""
     Plugins.instance()  # Hydra's plugin scan, which makes the class it uses
     cls: Any = SourcesRegistry.instance().resolve("file")
     if cls not in _patched:
         _patched[cls] = cls.__dict__["load_config"]
         cls.load_config = _caching(_patched[cls])
+    for owner, name, wrap in _PATCHES if builds else ():
+        if owner not in _patched_too.setdefault(name, {}):
+            _patched_too[name][owner] = getattr(owner, name)
+            setattr(owner, name, wrap(_patched_too[name][owner]))
 
 
 def uninstall() -> None:
@@ -84,4 +220,10 @@ def uninstall() -> None:
     while _patched:
         cls, hydras = _patched.popitem()
         cls.load_config = hydras
+    for name, owners in _patched_too.items():
+        while owners:
+            owner, hydras = owners.popitem()
+            setattr(owner, name, hydras)
     _read.clear()
+    _built.clear()
+    _by_list.clear()
