@@ -56,14 +56,15 @@ LoadConfig = Callable[[Any, str], ConfigResult]
 _patched: dict[Any, LoadConfig] = {}
 """The class patched -> Hydra's own ``load_config``."""
 
-_patched_too: dict[str, dict[Any, Callable[..., Any]]] = {}
+_wrapped: dict[str, dict[Any, Callable[..., Any]]] = {}
 """name -> {owner: Hydra's own} for the build's methods wrapped (``_PATCHES``)."""
 
-_read: dict[tuple[str, int, int], tuple[dict[str, str | None], Any]] = {}
+FileKey = tuple[str, int, int]
+"""A version of a file: its real path, ``st_mtime_ns`` and ``st_size``."""
+
+_read: dict[FileKey, tuple[dict[str, str | None], Any]] = {}
 """(real path, mtime_ns, size) -> the header and config Hydra read from that file."""
 
-
-FileKey = tuple[str, int, int]
 
 _reading: list[set[FileKey]] = []
 """The file versions read by the compose under way (one set per ``_load_configuration_impl``
@@ -77,7 +78,7 @@ class _Built:
     files: frozenset[FileKey]
     defaults: DefaultsList
     merged: Any = None  # the config merged along the defaults, before any value is set
-    merges: int = 0  # kept from the second merge on: most shapes are composed once
+    merges: int = 0  # the merge is kept from its second time on
 
 
 _built: dict[tuple[Any, ...], _Built] = {}
@@ -157,7 +158,8 @@ def _defaults_kept(hydras: Callable[..., DefaultsList]) -> Callable[..., Default
         if not _reading:  # not inside a compose (``--info defaults``): Hydra's own
             return build()
         values = _values(repo, overrides_list)
-        chosen = tuple(o.input_line for o in overrides_list if all(o is not v for v in values))
+        set_values = {id(o) for o in values}
+        chosen = tuple(o.input_line for o in overrides_list if id(o) not in set_values)
         shape = (config_name, chosen, prepend_hydra, skip_missing,
                  tuple((s.scheme(), s.path) for s in repo.get_sources()))
         kept = _built.get(shape)
@@ -185,7 +187,7 @@ def _merged_kept(hydras: Callable[..., Any]) -> Callable[..., Any]:
         if kept.merged is None:
             kept.merges += 1
             merged = hydras(self, defaults, repo)
-            if kept.merges > 1:  # a copy costs a tenth of a merge
+            if kept.merges > 1:  # most shapes are merged once: no copy for those
                 kept.merged = copy.deepcopy(merged)
             return merged
         return copy.deepcopy(kept.merged)
@@ -210,9 +212,9 @@ def install(builds: bool = True) -> None:
         _patched[cls] = cls.__dict__["load_config"]
         cls.load_config = _caching(_patched[cls])
     for owner, name, wrap in _PATCHES if builds else ():
-        if owner not in _patched_too.setdefault(name, {}):
-            _patched_too[name][owner] = getattr(owner, name)
-            setattr(owner, name, wrap(_patched_too[name][owner]))
+        if owner not in _wrapped.setdefault(name, {}):
+            _wrapped[name][owner] = getattr(owner, name)
+            setattr(owner, name, wrap(_wrapped[name][owner]))
 
 
 def uninstall() -> None:
@@ -220,7 +222,7 @@ def uninstall() -> None:
     while _patched:
         cls, hydras = _patched.popitem()
         cls.load_config = hydras
-    for name, owners in _patched_too.items():
+    for name, owners in _wrapped.items():
         while owners:
             owner, hydras = owners.popitem()
             setattr(owner, name, hydras)
