@@ -31,8 +31,8 @@ def conf_read_once():
     """Hydra reads each version of a config file once for the session, not once per compose,
     and builds each shape of command line once (:mod:`helpers.hydra_cache`): conf/ is composed
     about 1,600 times a run, unchanged, most of them the same choices with other values
-    (``benchmarks/compose_cache.py``: 136 ms a compose with Hydra's own reads, 88 ms with the
-    files kept, 17 ms with the builds kept too). A file a test writes or changes is read
+    (``benchmarks/compose_cache.py``: 132-178 ms a compose with Hydra's own reads, 97-110 ms
+    with the files kept, 17-21 ms with the builds kept too). A file a test writes or changes is read
     afresh. Hydra's own methods are back at the session's end."""
     hydra_cache.install()
     yield

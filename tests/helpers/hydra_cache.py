@@ -23,10 +23,9 @@ plugin scan (on its first compose) executes that module again and registers the 
 It also keeps what Hydra builds from those files for each shape of command line: the defaults
 list (``create_defaults_list``) and the configs merged along it
 (``ConfigLoaderImpl._compose_config_from_defaults_list``): most of what a compose costs once
-the files are kept (``benchmarks/compose_cache.py``: 88 ms a compose, 17 ms with the builds
-kept). Neither reads the overrides that set values
-(``data.root=...``, ``seed=3``): Hydra applies those to a copy of the merged config
-afterwards, as it always does. So the key is the config's name, the config sources, and the
+the files are kept (``benchmarks/compose_cache.py``: 97-110 ms a compose, 17-21 ms with the
+builds kept). Neither reads the overrides that set values (``data.root=...``, ``seed=3``):
+Hydra applies those to a copy of the merged config afterwards, as it always does. So the key is the config's name, the config sources, and the
 overrides Hydra reads as group choices (told apart from values exactly as
 ``defaults_list.Overrides`` tells them: a dict, or a key that is no config group, is a value);
 a command line with other values takes the kept list and a copy of the kept config. The files
