@@ -25,12 +25,12 @@ list (``create_defaults_list``) and the configs merged along it
 (``ConfigLoaderImpl._compose_config_from_defaults_list``): most of what a compose costs once
 the files are kept (``benchmarks/compose_cache.py``: 97-110 ms a compose, 17-21 ms with the
 builds kept). Neither reads the overrides that set values (``data.root=...``, ``seed=3``):
-Hydra applies those to a copy of the merged config afterwards, as it always does. So the key is the config's name, the config sources, and the
-overrides Hydra reads as group choices (told apart from values exactly as
-``defaults_list.Overrides`` tells them: a dict, or a key that is no config group, is a value);
-a command line with other values takes the kept list and a copy of the kept config. The files
-the first build read (the primary config included) are checked unchanged before the kept
-build is used, as above.
+Hydra applies those to a copy of the merged config afterwards, as it always does. So the key is
+the config's name, the config sources, and the overrides Hydra reads as group choices (told
+apart from values exactly as ``defaults_list.Overrides`` tells them: a dict, or a key that is
+no config group, is a value); a command line with other values takes the kept list and a copy
+of the kept config. The files the first build read (the primary config included) are checked
+unchanged before the kept build is used, as above.
 """
 
 from __future__ import annotations
