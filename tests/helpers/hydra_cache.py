@@ -14,7 +14,7 @@ a test writes or changes is read afresh. Each call returns a deep copy, as Hydra
 it is given (it pops ``defaults``, merges into the config); a copy is faster than
 ``OmegaConf.create`` from the parsed YAML (measured). A missing file, or one that does not
 parse, is Hydra's own read, which raises what it always raised; failures are not kept.
-:func:`uninstall` puts Hydra's method back.
+:func:`uninstall` puts Hydra's methods back.
 
 The class patched is the one Hydra's ``SourcesRegistry`` resolves ``file://`` to, not the one
 ``from hydra._internal.core_plugins.file_config_source import FileConfigSource`` gives: Hydra's
@@ -52,17 +52,14 @@ from hydra.plugins.config_source import ConfigResult
 
 LoadConfig = Callable[[Any, str], ConfigResult]
 
-_patched: dict[Any, LoadConfig] = {}
-"""The class patched -> Hydra's own ``load_config``."""
-
-_wrapped: dict[str, dict[Any, Callable[..., Any]]] = {}
-"""name -> {owner: Hydra's own} for the build's methods wrapped (``_PATCHES``)."""
+_wrapped: dict[tuple[Any, str], Callable[..., Any]] = {}
+"""(owner, name) -> Hydra's own, for each function or method :func:`install` wrapped."""
 
 FileKey = tuple[str, int, int]
 """A version of a file: its real path, ``st_mtime_ns`` and ``st_size``."""
 
 _read: dict[FileKey, tuple[dict[str, str | None], Any]] = {}
-"""(real path, mtime_ns, size) -> the header and config Hydra read from that file."""
+"""A file's version -> the header and config Hydra read from it."""
 
 
 _reading: list[set[FileKey]] = []
@@ -77,7 +74,7 @@ class _Built:
     files: frozenset[FileKey]
     defaults: DefaultsList
     merged: Any = None  # the config merged along the defaults, before any value is set
-    merges: int = 0  # the merge is kept from its second time on
+    merged_once: bool = False  # the merge is kept from its second time on
 
 
 _built: dict[tuple[Any, ...], _Built] = {}
@@ -184,47 +181,40 @@ def _merged_kept(hydras: Callable[..., Any]) -> Callable[..., Any]:
         if kept is None or kept.defaults.defaults is not defaults:
             return hydras(self, defaults, repo)
         if kept.merged is None:
-            kept.merges += 1
             merged = hydras(self, defaults, repo)
-            if kept.merges > 1:  # most shapes are merged once: no copy for those
+            if kept.merged_once:  # most shapes are merged once: no copy for those
                 kept.merged = copy.deepcopy(merged)
+            kept.merged_once = True
             return merged
         return copy.deepcopy(kept.merged)
 
     return compose_config_from_defaults_list
 
 
-_PATCHES: tuple[tuple[Any, str, Callable[[Any], Any]], ...] = (
+_BUILDS: tuple[tuple[Any, str, Callable[[Any], Any]], ...] = (
     (ConfigLoaderImpl, "_load_configuration_impl", _recording),
     (config_loader_impl, "create_defaults_list", _defaults_kept),
     (ConfigLoaderImpl, "_compose_config_from_defaults_list", _merged_kept),
 )
-"""(owner, name, wrapper) of what :func:`install` wraps beside the file source's read."""
+"""(owner, name, wrapper) of what :func:`install` wraps to keep the builds."""
 
 
 def install(builds: bool = True) -> None:
     """Hydra's file configs read once per version of each file, and (``builds``) each shape of
     command line built once, from now on."""
     Plugins.instance()  # Hydra's plugin scan, which makes the class it uses
-    cls: Any = SourcesRegistry.instance().resolve("file")
-    if cls not in _patched:
-        _patched[cls] = cls.__dict__["load_config"]
-        cls.load_config = _caching(_patched[cls])
-    for owner, name, wrap in _PATCHES if builds else ():
-        if owner not in _wrapped.setdefault(name, {}):
-            _wrapped[name][owner] = getattr(owner, name)
-            setattr(owner, name, wrap(_wrapped[name][owner]))
+    files: Any = SourcesRegistry.instance().resolve("file")
+    for owner, name, wrap in ((files, "load_config", _caching), *(_BUILDS if builds else ())):
+        if (owner, name) not in _wrapped:
+            _wrapped[owner, name] = getattr(owner, name)
+            setattr(owner, name, wrap(_wrapped[owner, name]))
 
 
 def uninstall() -> None:
-    """Hydra's own ``load_config`` back, and what was read dropped."""
-    while _patched:
-        cls, hydras = _patched.popitem()
-        cls.load_config = hydras
-    for name, owners in _wrapped.items():
-        while owners:
-            owner, hydras = owners.popitem()
-            setattr(owner, name, hydras)
+    """Hydra's own functions back, and what was read and built dropped."""
+    while _wrapped:
+        (owner, name), hydras = _wrapped.popitem()
+        setattr(owner, name, hydras)
     _read.clear()
     _built.clear()
     _by_list.clear()
