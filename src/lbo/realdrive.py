@@ -290,6 +290,8 @@ def _across_drives(cfg: Any, observers: list[str], drives: list[pd.DataFrame],
     what = []
     if cfg.epochs:
         how = "truth" if cfg.objective == "truth" else "innovations' likelihood, no truth read"
+        if cfg.receiver_noise == "variogram":
+            how += ", the receiver's noise by its variogram"
         kept = "by the last of them" if held_out else "by the same drives"
         what.append(f"the gyro EKF's noise learned on the others ({cfg.epochs} epochs, {how}; "
                     f"the epoch kept {kept})")

@@ -24,6 +24,12 @@ def boolean(value: Any, field: str) -> bool:
     return bool(value)
 
 
+def one_of(value: Any, choices: tuple[str, ...], field: str) -> str:
+    """``value`` if it is one of ``choices``, else one line naming ``field`` and them."""
+    require(value in choices, field, f"one of {list(choices)}", value)
+    return str(value)
+
+
 def positive(cfg, key: str, prefix: str, integer: bool = False) -> float:
     """``cfg[key]`` checked by :func:`integer` (an integer >= 1, with ``integer``) or
     :func:`number` (a number > 0) under the field name ``<prefix>.<key>``."""

@@ -22,6 +22,10 @@ by gradient descent on the estimates' error against the truth.
   its own predicted covariance, the maximum-likelihood fit of a Kalman filter's noise; the
   noise kept is the one with the lowest such loss on the validation segments. The truth is
   neither needed nor read. ``ahead`` adds each fix as predicted seconds before it.
+- ``receiver_noise="variogram"``: the factors on the receiver's accuracy and velocity sigma are
+  not learned but set from the train logs (:mod:`lbo.learn.variogram`: how slow the fixes'
+  and the course's errors are, which the innovations cannot see), and the rest learned as the
+  objective says.
 - ``method="lbfgs"``: the classical maximum-likelihood fit, by L-BFGS (a quasi-Newton
   optimiser with a line search) in place of Adam's small steps: the peer of the learned fit.
   On a log drawn from the filter's own model it finds the noise that drew it.
@@ -29,6 +33,7 @@ by gradient descent on the estimates' error against the truth.
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -41,6 +46,7 @@ import pandas as pd
 import torch
 
 from lbo.core.angles import wrap_angle
+from lbo.core.checks import one_of
 from lbo.core.errors import LboError
 from lbo.filters import classical, measure
 from lbo.filters.gyro import FixDrift, GyroNoise
@@ -53,8 +59,8 @@ from lbo.sim.measurements import Measurements
 from lbo.sim.noise import Noise
 from lbo.sim.vehicle import Vehicle
 
-__all__ = ["METHODS", "OBJECTIVES", "GyroFit", "Settings", "adapt", "check_method",
-           "check_objective", "estimate", "fit", "fit_and_write", "fix_cov", "segments"]
+__all__ = ["METHODS", "OBJECTIVES", "RECEIVER_NOISES", "GyroFit", "Settings", "adapt", "estimate",
+           "fit", "fit_and_write", "fix_cov", "segments"]
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -89,7 +95,9 @@ class Settings:
     ahead_s : s ahead each fix is also predicted (``innovations`` only; 0: none);
     drift : the filter carries the fixes' drift as two more states, its size and correlation
         time learned from :data:`DRIFT_START` (:meth:`starting`);
-    scales : factors on the speed and the gyro's rate are learned too, from 1.
+    scales : factors on the speed and the gyro's rate are learned too, from 1;
+    receiver_noise : one of :data:`RECEIVER_NOISES`, how the factors on the receiver's
+        accuracy and velocity sigma are found.
     """
 
     epochs: int
@@ -100,6 +108,7 @@ class Settings:
     ahead_s: float = 0.0
     drift: bool = False
     scales: bool = False
+    receiver_noise: str = "learned"
 
     @classmethod
     def from_cfg(cls, learn: Any, prefix: str = "learn") -> Settings:
@@ -109,12 +118,14 @@ class Settings:
         out = cls(epochs=integer(learn.epochs, f"{prefix}.epochs", 0),
                   segment_s=number(learn.segment_s, f"{prefix}.segment_s", 0.0, low_open=True),
                   lr=number(learn.lr, f"{prefix}.lr", 0.0, low_open=True),
-                  objective=check_objective(learn.get("objective", "truth"),
-                                            f"{prefix}.objective"),
-                  method=check_method(learn.get("method", "adam"), f"{prefix}.method"),
+                  objective=one_of(learn.get("objective", "truth"), OBJECTIVES,
+                                   f"{prefix}.objective"),
+                  method=one_of(learn.get("method", "adam"), METHODS, f"{prefix}.method"),
                   ahead_s=number(learn.get("ahead_s", 0.0), f"{prefix}.ahead_s", 0.0),
                   drift=boolean(learn.get("drift", False), f"{prefix}.drift"),
-                  scales=boolean(learn.get("scales", False), f"{prefix}.scales"))
+                  scales=boolean(learn.get("scales", False), f"{prefix}.scales"),
+                  receiver_noise=one_of(learn.get("receiver_noise", "learned"),
+                                        RECEIVER_NOISES, f"{prefix}.receiver_noise"))
         if out.ahead_s and out.objective != "innovations":
             raise LboError(f"{prefix}.ahead_s applies to {prefix}.objective=innovations (the "
                            f"fit by the fixes' likelihood), got {prefix}.objective="
@@ -134,10 +145,10 @@ class Settings:
 
     def kwargs(self, dt: float) -> dict[str, Any]:
         """The keywords of :func:`fit` (and :func:`fit_and_write`) for a log of period
-        ``dt``: epochs, segment and ahead in steps, lr, objective and method."""
+        ``dt``: epochs, segment and ahead in steps, lr, objective, method and receiver_noise."""
         return {"epochs": self.epochs, "segment": max(2, round(self.segment_s / dt)),
                 "lr": self.lr, "objective": self.objective, "method": self.method,
-                "ahead": round(self.ahead_s / dt)}
+                "ahead": round(self.ahead_s / dt), "receiver_noise": self.receiver_noise}
 
 
 def _columns(log: pd.DataFrame) -> tuple[Measurements, np.ndarray]:
@@ -252,20 +263,10 @@ LBFGS_ITERATIONS = 5
 OBJECTIVES = ("truth", "innovations")
 """What :func:`fit` minimises: the estimates' error against the truth, or the filter's
 innovations' negative log-likelihood, which needs no truth."""
-
-
-def check_method(value: object, field: str = "method") -> str:
-    """``value`` if it is one of :data:`METHODS`, else one line naming ``field``."""
-    if value not in METHODS:
-        raise LboError(f"{field} must be one of {list(METHODS)}, got {value!r}")
-    return str(value)
-
-
-def check_objective(value: object, field: str = "objective") -> str:
-    """``value`` if it is one of :data:`OBJECTIVES`, else one line naming ``field``."""
-    if value not in OBJECTIVES:
-        raise LboError(f"{field} must be one of {list(OBJECTIVES)}, got {value!r}")
-    return str(value)
+RECEIVER_NOISES = ("learned", "variogram")
+"""How :func:`fit` finds the factors on the receiver's reported accuracy and velocity sigma:
+learned with the other noises, or set from the train logs by the variogram of their fixes
+and course (:func:`lbo.learn.variogram.receiver_scales`) and kept while the rest is learned."""
 
 
 def _innovations(model: GyroFilter, seg: Segments, ahead: int = 0) -> torch.Tensor:
@@ -284,7 +285,8 @@ def fit(train: pd.DataFrame | Sequence[pd.DataFrame],
         val: pd.DataFrame | Sequence[pd.DataFrame], vehicle: Vehicle, R: np.ndarray,
         start: GyroNoise, epochs: int = 12, segment: int = 500, lr: float = 0.1,
         progress: Callable[[str], None] | None = print,
-        objective: str = "truth", ahead: int = 0, method: str = "adam") -> GyroFit:
+        objective: str = "truth", ahead: int = 0, method: str = "adam",
+        receiver_noise: str = "learned") -> GyroFit:
     """Learn the gyro EKF's noise on ``train`` (one log or several), keep the best on ``val``
     (one or several).
 
@@ -303,21 +305,34 @@ def fit(train: pd.DataFrame | Sequence[pd.DataFrame],
     method : ``adam`` (``epochs`` steps of Adam at ``lr``) or ``lbfgs``, the classical
         maximum-likelihood fit by a quasi-Newton optimiser (:data:`METHODS`: each epoch up to
         :data:`LBFGS_ITERATIONS` L-BFGS iterations with a strong-Wolfe line search on that
-        epoch's segments; ``lr`` unused).
+        epoch's segments; ``lr`` unused);
+    receiver_noise : ``learned``, or ``variogram``: ``start``'s factors on the receiver's
+        accuracy and velocity sigma replaced by those ``train`` calls for
+        (:func:`lbo.learn.variogram.receiver_scales`) and not learned
+        (:data:`RECEIVER_NOISES`); the history's ratios are then against that start.
     """
     if epochs < 0 or segment < 2:
         raise LboError(f"fit needs epochs >= 0 and segment >= 2, got {epochs} and {segment}")
-    check_objective(objective)
+    one_of(objective, OBJECTIVES, "objective")
     if ahead < 0 or (ahead and objective != "innovations"):
         raise LboError(f"fit: ahead is a number of steps >= 0 for objective='innovations', "
                        f"got {ahead} for {objective!r}")
-    check_method(method)
+    one_of(method, METHODS, "method")
+    one_of(receiver_noise, RECEIVER_NOISES, "receiver_noise")
     own = val is train  # the logs are their own validation (adapt): one pass serves both
     train, val = _logs(train), _logs(val)
+    set_by_logs = ("accuracy_scale", "velocity_scale") if receiver_noise == "variogram" else ()
+    if set_by_logs:
+        from lbo.learn.variogram import receiver_scales
+
+        start = dataclasses.replace(start, **dict(zip(set_by_logs, receiver_scales(train))))
     model = GyroFilter(start, vehicle.dt, torch.as_tensor(R))
+    for name in set_by_logs:  # what the innovations cannot judge stays as the logs say
+        model.log[name].requires_grad_(False)
+    learned = [p for p in model.parameters() if p.requires_grad]
     opt: torch.optim.Optimizer = (
-        torch.optim.Adam(model.parameters(), lr=lr) if method == "adam" else
-        torch.optim.LBFGS(model.parameters(), lr=1.0, max_iter=LBFGS_ITERATIONS,
+        torch.optim.Adam(learned, lr=lr) if method == "adam" else
+        torch.optim.LBFGS(learned, lr=1.0, max_iter=LBFGS_ITERATIONS,
                           line_search_fn="strong_wolfe"))
     supervised = objective == "truth"
     reference = [estimate(log, start, vehicle, R) for log in val] if supervised else []
@@ -396,20 +411,21 @@ def _lbfgs_step(opt: torch.optim.Optimizer, loss: Callable[[], torch.Tensor]) ->
 
 def fit_and_write(out: Path, name: str, train: pd.DataFrame | Sequence[pd.DataFrame],
                   val: pd.DataFrame | Sequence[pd.DataFrame], vehicle: Vehicle, R: np.ndarray,
-                  start: GyroNoise, where: str, epochs: int, segment: int, lr: float,
-                  objective: str = "truth", ahead: int = 0, method: str = "adam"
-                  ) -> GyroNoise:
-    """:func:`fit`, one printed line per epoch, written into the folder ``out`` as
-    ``<name>.json`` (the noise kept, :meth:`GyroNoise.save`) and ``<name>_history.csv``;
-    ``where`` says in the first line what it learns on. Returns the noise kept."""
+                  start: GyroNoise, where: str, **how: Any) -> GyroNoise:
+    """:func:`fit` (``how``: its keywords from ``epochs`` on, progress aside), one printed line
+    per epoch, written into the folder ``out`` as ``<name>.json`` (the noise kept,
+    :meth:`GyroNoise.save`) and ``<name>_history.csv``; ``where`` says in the first line what
+    it learns on. Returns the noise kept."""
     from lbo.logs.io import write_table
 
-    how = "" if objective == "truth" else ", by its innovations' likelihood, no truth read"
-    print(f"learning the gyro EKF's noise {where} ({epochs} epochs{how}; keeps the best on "
-          "its validation drives)")
-    fitted = fit(train, val, vehicle, R, start, epochs=epochs, segment=segment, lr=lr,
-                 progress=lambda line: print("  " + line), objective=objective, ahead=ahead,
-                 method=method)
+    said = [f"{how.get('epochs', 12)} epochs"]
+    if how.get("objective", "truth") != "truth":
+        said.append("by its innovations' likelihood, no truth read")
+    if how.get("receiver_noise") == "variogram":
+        said.append("the receiver's noise set by its variogram")
+    print(f"learning the gyro EKF's noise {where} ({', '.join(said)}; keeps the best on its "
+          "validation drives)")
+    fitted = fit(train, val, vehicle, R, start, progress=lambda line: print("  " + line), **how)
     fitted.noise.save(Path(out) / f"{name}.json")
     write_table(fitted.history, Path(out) / f"{name}_history.csv")
     print(f"  kept epoch {fitted.best_epoch}: {fitted.noise}")

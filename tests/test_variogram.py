@@ -1,0 +1,171 @@
+"""The receiver's variogram (lbo.learn.variogram): on fixes and courses whose slow and white
+errors are known it reads their size and correlation, it reads no truth, a gap is no lag, and
+the gyro EKF's fit with ``receiver_noise="variogram"`` keeps the factors it gives and learns
+the rest (issue 70)."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pandas as pd
+import pytest
+from omegaconf import OmegaConf
+
+from lbo.core.errors import LboError
+from lbo.filters.gyro import GyroNoise
+from lbo.learn import gyro_fit
+from lbo.learn.gyro_fit import Settings
+from lbo.learn.variogram import (
+    COURSE_SILL_S,
+    SILL_S,
+    course_errors,
+    fix_errors,
+    offsets,
+    receiver_scales,
+)
+from lbo.sim import gyro_drive
+from lbo.sim.truth import gauss_markov
+
+WHITE, DRIFT, TAU = 0.1, 0.4, 4.0  # m, m, s: slow errors four times the white ones
+COURSE_WHITE, COURSE_DRIFT = 0.002, 0.01  # rad, the course's, with the same time
+
+
+def drive(seed: int, fixes: int = 2000, sv: float = 0.02, course: bool = False
+          ) -> pd.DataFrame:
+    """A receiver's log at 1 Hz (fixes at every row): the antenna on a circle of 200 m at
+    10 m/s, its fixes off by white noise and a Gauss-Markov drift of known sizes, its speed
+    off by ``sv`` m/s white, the accuracy reported as 0.5 m; the gyro's exact turn; the truth
+    in x, y, psi. With ``course``, the velocity's direction is off by the course's errors too
+    (integrated, they would move the fixes' variogram by metres)."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(fixes, dtype=float)
+    angle = t * 10.0 / 200.0
+    x, y = 200.0 * np.cos(angle), 200.0 * np.sin(angle)
+    error = (WHITE * rng.standard_normal((fixes, 2))
+             + gauss_markov((1, fixes, 2), 1.0, TAU, DRIFT, rng)[0])
+    off = (COURSE_WHITE * rng.standard_normal(fixes)
+           + gauss_markov((1, fixes), 1.0, TAU, COURSE_DRIFT, rng)[0]) * course
+    speed = 10.0 + sv * rng.standard_normal(fixes)
+    v = speed[:, None] * np.stack([-np.sin(angle + off), np.cos(angle + off)], 1)
+    return pd.DataFrame({"t": t, "x_m": x + error[:, 0], "y_m": y + error[:, 1],
+                         "sx_m": 0.5, "sy_m": 0.5, "ve_m": v[:, 0], "vn_m": v[:, 1], "sv_m": sv,
+                         "V": 10.0, "r_m": 0.05, "x": x, "y": y, "psi": angle + np.pi / 2})
+
+
+def expected(lag: float, white: float = WHITE, drift: float = DRIFT) -> float:
+    """Half the mean square change of the error over ``lag`` s, per axis."""
+    return white**2 + drift**2 * (1.0 - np.exp(-lag / TAU))
+
+
+def test_it_reads_the_size_and_the_correlation_of_errors_it_was_not_told():
+    logs = [drive(seed) for seed in range(3)]
+    got = fix_errors(logs)
+    assert got.step == pytest.approx(expected(1.0), rel=0.1)
+    assert got.sill == pytest.approx(np.mean([expected(s) for s in SILL_S]), rel=0.1)
+    assert got.reported == pytest.approx(0.25)
+    assert got.pairs == 3 * 1999
+    # the errors' correlation from one fix to the next, and the variance a white-noise
+    # filter should give each fix: far above both the errors' and the reported variance
+    sill = WHITE**2 + DRIFT**2
+    assert got.rho == pytest.approx(1.0 - expected(1.0) / sill, abs=0.03)
+    assert got.long_run == pytest.approx(got.sill * (1 + got.rho) / (1 - got.rho))
+    assert got.long_run > 5 * sill
+    assert got.accuracy_scale == pytest.approx(np.sqrt(got.long_run / 0.25))
+    # white errors alone: no correlation, and the factor is the true sigma over the reported
+    white = fix_errors([drive(seed).assign(x_m=lambda d, s=seed: d.x + WHITE * np.random
+                                           .default_rng(s + 9).standard_normal(len(d)))
+                        .assign(y_m=lambda d, s=seed: d.y + WHITE * np.random
+                                .default_rng(s + 19).standard_normal(len(d)))
+                        for seed in range(3)])
+    assert white.rho < 0.05
+    assert white.accuracy_scale == pytest.approx(WHITE / 0.5, rel=0.15)
+
+
+def test_it_reads_how_slow_the_courses_errors_are_and_widens_its_sigma_by_that_alone():
+    logs = [drive(seed, course=True) for seed in range(3)]
+    got = course_errors(logs)
+    assert got.step == pytest.approx(expected(1.0, COURSE_WHITE, COURSE_DRIFT), rel=0.1)
+    assert got.sill == pytest.approx(np.mean([expected(s, COURSE_WHITE, COURSE_DRIFT)
+                                              for s in COURSE_SILL_S]), rel=0.1)
+    assert got.widening == pytest.approx(np.sqrt((1 + got.rho) / (1 - got.rho)))
+    assert got.widening > 2.0
+    # what it reads is the course less the gyro's turn: a gyro reading twice the turn swamps it
+    wrong = [d.assign(r_m=0.1) for d in logs]
+    assert course_errors(wrong).sill > 10 * got.sill
+    assert receiver_scales(logs) == pytest.approx((fix_errors(logs).accuracy_scale,
+                                                   got.widening), rel=1e-12)
+
+
+def test_it_reads_no_truth_and_a_gap_or_a_missing_velocity_is_no_lag():
+    log = drive(0)
+    blind = log.drop(columns=["x", "y", "psi"])
+    assert fix_errors(blind) == fix_errors(log)
+    moved = log.assign(x=log.x + 5.0, psi=0.0)
+    assert fix_errors(moved) == fix_errors(log)
+    # a gap of 100 s in the fixes: the two sides are two runs, no pair straddles it
+    gap = log.copy()
+    gap.loc[1000:1099, ["x_m", "y_m"]] = np.nan
+    pieces = [log.iloc[:1000], log.iloc[1100:]]
+    split, apart = fix_errors(gap), fix_errors(pieces)
+    assert split.pairs == apart.pairs == 1898
+    assert (split.step, split.sill) == pytest.approx((apart.step, apart.sill), rel=1e-12)
+    # a fix without a velocity breaks the integral: the runs on its two sides pair no more
+    d, run = offsets(log.t.to_numpy(), log[["x_m", "y_m"]].to_numpy(),
+                     log[["ve_m", "vn_m"]].to_numpy().copy())
+    assert (run == 0).all()
+    v = log[["ve_m", "vn_m"]].to_numpy().copy()
+    v[500] = np.nan
+    _, run = offsets(log.t.to_numpy(), log[["x_m", "y_m"]].to_numpy(), v)
+    assert run[499] == 0 and run[500] == 1 and run[501] == 2 and run[-1] == 2
+
+
+def test_a_log_it_cannot_read_is_one_line():
+    with pytest.raises(LboError, match=r"^the fixes' variogram reads .*: log 0 has no ve_m, "
+                                       r"vn_m column$"):
+        fix_errors(drive(0).drop(columns=["ve_m", "vn_m"]))
+    with pytest.raises(LboError, match=r"needs runs of fixes with a velocity over 30 s or more: "
+                                       r"the logs give 11 pairs of consecutive fixes and 2 "
+                                       r"over 10, 20, 30 s$"):
+        fix_errors(drive(0, fixes=12))
+    # the setting's own line names the field and the choices
+    learn = OmegaConf.create({"epochs": 1, "segment_s": 10.0, "lr": 0.1,
+                              "receiver_noise": "fixed"})
+    with pytest.raises(LboError, match=r"^learn.receiver_noise must be one of \['learned', "
+                                       r"'variogram'\], got 'fixed'$"):
+        Settings.from_cfg(learn)
+
+
+@pytest.mark.parametrize("path, group", [("conf/realdrive.yaml", "learn"),
+                                         ("conf/receiver_study.yaml", "learn"),
+                                         ("conf/model/gyro_ekf.yaml", None)])
+def test_every_command_that_fits_the_gyro_ekf_takes_the_setting(path, group):
+    cfg = OmegaConf.load(path)
+    learn = cfg[group] if group else cfg
+    assert Settings.from_cfg(learn).kwargs(0.02)["receiver_noise"] == "learned"  # the default
+    learn.receiver_noise = "variogram"
+    assert Settings.from_cfg(learn).kwargs(0.02)["receiver_noise"] == "variogram"
+
+
+def test_the_fit_keeps_the_factors_the_receiver_calls_for_and_learns_the_rest():
+    logs = [gyro_drive.draw(seed) for seed in (0, 1)]
+    start = GyroNoise.from_q(np.diag([0.0667**2, 0.0667**2, 0.00113**2]))
+    R = np.diag([1.0, 1.0, 0.0174**2])
+    blind = [log.drop(columns=["x", "y", "psi"]) for log in logs]
+    fitted = gyro_fit.fit(blind, blind, gyro_drive.VEHICLE, R, start, epochs=2, segment=500,
+                          progress=None, objective="innovations", receiver_noise="variogram")
+    accuracy, velocity = receiver_scales(blind)
+    assert fitted.start == dataclasses.replace(start, accuracy_scale=accuracy,
+                                               velocity_scale=velocity)
+    assert accuracy != pytest.approx(1.0, abs=0.05) and velocity != pytest.approx(1.0, abs=0.05)
+    assert fitted.best_epoch > 0
+    # kept through the fit (to the rounding of the log they are held as)
+    assert (fitted.noise.accuracy_scale, fitted.noise.velocity_scale) == pytest.approx(
+        (accuracy, velocity), rel=1e-12)
+    assert fitted.noise.q_position != pytest.approx(start.q_position, rel=1e-3)
+    # learned, the same factors move from there
+    learned = gyro_fit.fit(blind, blind, gyro_drive.VEHICLE, R, fitted.start, epochs=2,
+                           segment=500, progress=None, objective="innovations")
+    assert learned.best_epoch > 0
+    assert learned.noise.accuracy_scale != pytest.approx(accuracy, rel=1e-3)
+    assert learned.noise.velocity_scale != pytest.approx(velocity, rel=1e-3)
