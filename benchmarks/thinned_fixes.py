@@ -7,7 +7,7 @@ Why: a receiver's slow errors make consecutive fixes' errors alike, and the like
 filter that takes them as white rewards following them. Fixes far enough apart have errors
 that are nearly independent, and their innovations judge the receiver by its whole error.
 
-    python benchmarks/thinned_fixes.py 10 positions     # about 7 min on a 2-core CPU
+    python benchmarks/thinned_fixes.py 10 positions     # about 4 min on a 2-core CPU
 """
 
 import sys
