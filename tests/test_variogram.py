@@ -148,24 +148,18 @@ def test_every_command_that_fits_the_gyro_ekf_takes_the_setting(path, group):
 
 
 def test_the_fit_keeps_the_factors_the_receiver_calls_for_and_learns_the_rest():
-    logs = [gyro_drive.draw(seed) for seed in (0, 1)]
+    log = gyro_drive.draw(0).drop(columns=["x", "y", "psi"])  # no truth to read
     start = GyroNoise.from_q(np.diag([0.0667**2, 0.0667**2, 0.00113**2]))
     R = np.diag([1.0, 1.0, 0.0174**2])
-    blind = [log.drop(columns=["x", "y", "psi"]) for log in logs]
-    fitted = gyro_fit.fit(blind, blind, gyro_drive.VEHICLE, R, start, epochs=2, segment=500,
+    fitted = gyro_fit.fit(log, log, gyro_drive.VEHICLE, R, start, epochs=1, segment=500,
                           progress=None, objective="innovations", receiver_noise="variogram")
-    accuracy, velocity = receiver_scales(blind)
+    accuracy, velocity = receiver_scales(log)
     assert fitted.start == dataclasses.replace(start, accuracy_scale=accuracy,
                                                velocity_scale=velocity)
     assert accuracy != pytest.approx(1.0, abs=0.05) and velocity != pytest.approx(1.0, abs=0.05)
-    assert fitted.best_epoch > 0
-    # kept through the fit (to the rounding of the log they are held as)
+    # a step was taken and kept: the other noises moved, these two stayed (to the rounding
+    # of the log they are held as; this fails if the fit frees them, which moves them too)
+    assert fitted.best_epoch == 1
+    assert fitted.noise.q_position != pytest.approx(start.q_position, rel=1e-3)
     assert (fitted.noise.accuracy_scale, fitted.noise.velocity_scale) == pytest.approx(
         (accuracy, velocity), rel=1e-12)
-    assert fitted.noise.q_position != pytest.approx(start.q_position, rel=1e-3)
-    # learned, the same factors move from there
-    learned = gyro_fit.fit(blind, blind, gyro_drive.VEHICLE, R, fitted.start, epochs=2,
-                           segment=500, progress=None, objective="innovations")
-    assert learned.best_epoch > 0
-    assert learned.noise.accuracy_scale != pytest.approx(accuracy, rel=1e-3)
-    assert learned.noise.velocity_scale != pytest.approx(velocity, rel=1e-3)
