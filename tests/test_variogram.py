@@ -147,6 +147,7 @@ def test_every_command_that_fits_the_gyro_ekf_takes_the_setting(path, group):
     assert Settings.from_cfg(learn).kwargs(0.02)["receiver_noise"] == "variogram"
 
 
+@pytest.mark.slow  # a fit: about 5 s
 def test_the_fit_keeps_the_factors_the_receiver_calls_for_and_learns_the_rest():
     log = gyro_drive.draw(0).drop(columns=["x", "y", "psi"])  # no truth to read
     start = GyroNoise.from_q(np.diag([0.0667**2, 0.0667**2, 0.00113**2]))
