@@ -6,12 +6,14 @@ the rest (issue 70)."""
 from __future__ import annotations
 
 import dataclasses
+import re
 
 import numpy as np
 import pandas as pd
 import pytest
 from omegaconf import OmegaConf
 
+from helpers.commands import observe, one_line_error
 from lbo.core.errors import LboError
 from lbo.filters.gyro import GyroNoise
 from lbo.learn import gyro_fit
@@ -164,3 +166,32 @@ def test_the_fit_keeps_the_factors_the_receiver_calls_for_and_learns_the_rest():
     assert fitted.noise.q_position != pytest.approx(start.q_position, rel=1e-3)
     assert (fitted.noise.accuracy_scale, fitted.noise.velocity_scale) == pytest.approx(
         (accuracy, velocity), rel=1e-12)
+
+
+@pytest.mark.slow  # a fit: about 5 s
+def test_observe_adapt_reads_the_receivers_factors_from_the_log_it_filters(tmp_path):
+    """``adapt_receiver_noise=variogram``: the fit adapt=true makes sets the receiver's factors
+    from the log itself (the truth in it unread) and says so; without adapt, or with a value
+    not known, one line and no output."""
+    log = gyro_drive.draw(0)
+    log.to_csv(tmp_path / "log.csv", index=False)
+    out = tmp_path / "est.csv"
+    args = [f"input={tmp_path / 'log.csv'}", "observer=gyro", f"output={out}"]
+    done = observe(*args, "adapt=true", "adapt_epochs=1", "adapt_receiver_noise=variogram",
+                   cwd=tmp_path)
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert ("adapting: the gyro EKF's noise to this log's innovations, the receiver's noise by "
+            "its variogram, 1 epochs") in done.stdout
+    kept = re.search(r"accuracy_scale=([0-9.e-]+), velocity_scale=([0-9.e-]+)", done.stdout)
+    accuracy, velocity = receiver_scales(log.drop(columns=["x", "y", "psi"]))
+    assert (float(kept[1]), float(kept[2])) == pytest.approx((accuracy, velocity), rel=1e-9)
+    assert out.is_file()
+    out.unlink()
+    for extra, line in ((["adapt_receiver_noise=variogram"],
+                         "adapt_receiver_noise: how the fit adapt=true makes for observer=gyro "
+                         "finds the receiver's factors; pass both with it"),
+                        (["adapt=true", "adapt_receiver_noise=fixed"],
+                         "adapt_receiver_noise must be one of ['learned', 'variogram'], got "
+                         "'fixed'")):
+        assert one_line_error(observe(*args, *extra, cwd=tmp_path)) == f"error: {line}"
+        assert not out.exists()

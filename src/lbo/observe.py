@@ -66,10 +66,11 @@ import numpy as np
 import pandas as pd
 from omegaconf import DictConfig
 
-from lbo.core.checks import boolean, integer
+from lbo.core.checks import boolean, integer, one_of
 from lbo.core.cli import entry
 from lbo.core.errors import LboError
 from lbo.filters.consistency import SIGNIFICANCE, WINDOW
+from lbo.learn.variogram import RECEIVER_NOISES
 from lbo.logs.checks import check_device
 from lbo.logs.formats import LogFormat
 from lbo.logs.io import (
@@ -151,10 +152,15 @@ def observe(cfg: DictConfig) -> dict[str, Any]:
     adapt = boolean(cfg.get("adapt", False), "adapt")
     adapt_epochs = integer(cfg.get("adapt_epochs", 12), "adapt_epochs", 1)
     adapt_scales = boolean(cfg.get("adapt_scales", False), "adapt_scales")
+    receiver_noise = one_of(cfg.get("adapt_receiver_noise", "learned"), RECEIVER_NOISES,
+                            "adapt_receiver_noise")
     outages = Outages.from_cfg(cfg.get("outages"))
     if adapt_scales and not (adapt and name == "gyro"):
         raise LboError("adapt_scales: the factors on the speed and the gyro are learned by "
                        "the fit adapt=true makes for observer=gyro; pass both with it")
+    if receiver_noise != "learned" and not (adapt and name == "gyro"):
+        raise LboError("adapt_receiver_noise: how the fit adapt=true makes for observer=gyro "
+                       "finds the receiver's factors; pass both with it")
     fmt = LogFormat.from_cfg(cfg)
     where = f"input {source}"
     df, origin = fmt.apply(read_log(source), where)
@@ -207,7 +213,7 @@ def observe(cfg: DictConfig) -> dict[str, Any]:
         start = gyro_noise or GyroNoise.from_q(noise.Q)
         if adapt_scales and start.speed_scale is None:
             start = start.with_scales()
-        obs = _adapted(df, start, vehicle, noise, adapt_epochs, kw)
+        obs = _adapted(df, start, vehicle, noise, adapt_epochs, receiver_noise, kw)
     meas = Measurements.from_frame(df)  # read once: every observer below takes it
     m, u = meas.pose, df[["V", "delta"]].to_numpy(dtype=float)
     if adapt and name != "gyro":  # every other observer takes the inputs' terms
@@ -368,20 +374,23 @@ def _ekf_reference(obs: Any, meas: Measurements, u: np.ndarray, z: np.ndarray,
 
 
 def _adapted(df: pd.DataFrame, start: Any, vehicle: Any, noise: Any, epochs: int,
-             kw: dict[str, Any]) -> Any:
+             receiver_noise: str, kw: dict[str, Any]) -> Any:
     """The gyro EKF with its noise fitted on the log ``df`` by its innovations, from
-    ``start`` (:func:`lbo.learn.gyro_fit.adapt`), said in one line with the time it took."""
+    ``start``, the receiver's factors as ``receiver_noise`` says
+    (:func:`lbo.learn.gyro_fit.adapt`), said in one line with the time it took."""
     import time
 
     from lbo.learn.gyro_fit import adapt
     from lbo.serve.observer import Observer
 
-    print(f"adapting: the gyro EKF's noise to this log's innovations, {epochs} epochs",
+    how = (", the receiver's noise by its variogram" if receiver_noise == "variogram" else "")
+    print(f"adapting: the gyro EKF's noise to this log's innovations{how}, {epochs} epochs",
           flush=True)
     began = time.perf_counter()
     # only epoch 0's estimate of the rest: the epochs' losses are the fit's business
     fitted = adapt(df, start, vehicle, noise, epochs=epochs, progress=lambda line: print(
-        "  " + line, flush=True) if line.startswith("estimate:") else None)
+        "  " + line, flush=True) if line.startswith("estimate:") else None,
+        receiver_noise=receiver_noise)
     print(f"adapted: the gyro EKF's noise fitted to this log's innovations (offline: it read "
           f"the whole log first; no truth read), {epochs} epochs in "
           f"{time.perf_counter() - began:.1f} s, kept epoch {fitted.best_epoch}: {fitted.noise}")

@@ -51,6 +51,7 @@ from lbo.core.errors import LboError
 from lbo.filters import classical, measure
 from lbo.filters.gyro import FixDrift, GyroNoise
 from lbo.learn.eta import more
+from lbo.learn.variogram import RECEIVER_NOISES, receiver_scales
 from lbo.models.gyro_filter import GyroFilter, Segments
 from lbo.models.poses import wrap_heading
 from lbo.scoring.receiver import measure_ratio, scored_rows
@@ -59,8 +60,8 @@ from lbo.sim.measurements import Measurements
 from lbo.sim.noise import Noise
 from lbo.sim.vehicle import Vehicle
 
-__all__ = ["METHODS", "OBJECTIVES", "RECEIVER_NOISES", "GyroFit", "Settings", "adapt", "estimate",
-           "fit", "fit_and_write", "fix_cov", "segments"]
+__all__ = ["METHODS", "OBJECTIVES", "GyroFit", "Settings", "adapt", "estimate", "fit",
+           "fit_and_write", "fix_cov", "segments"]
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -263,10 +264,6 @@ LBFGS_ITERATIONS = 5
 OBJECTIVES = ("truth", "innovations")
 """What :func:`fit` minimises: the estimates' error against the truth, or the filter's
 innovations' negative log-likelihood, which needs no truth."""
-RECEIVER_NOISES = ("learned", "variogram")
-"""How :func:`fit` finds the factors on the receiver's reported accuracy and velocity sigma:
-learned with the other noises, or set from the train logs by the variogram of their fixes
-and course (:func:`lbo.learn.variogram.receiver_scales`) and kept while the rest is learned."""
 
 
 def _innovations(model: GyroFilter, seg: Segments, ahead: int = 0) -> torch.Tensor:
@@ -323,8 +320,6 @@ def fit(train: pd.DataFrame | Sequence[pd.DataFrame],
     train, val = _logs(train), _logs(val)
     set_by_logs = ("accuracy_scale", "velocity_scale") if receiver_noise == "variogram" else ()
     if set_by_logs:
-        from lbo.learn.variogram import receiver_scales
-
         start = dataclasses.replace(start, **dict(zip(set_by_logs, receiver_scales(train))))
     model = GyroFilter(start, vehicle.dt, torch.as_tensor(R))
     for name in set_by_logs:  # what the innovations cannot judge stays as the logs say
@@ -434,17 +429,19 @@ def fit_and_write(out: Path, name: str, train: pd.DataFrame | Sequence[pd.DataFr
 
 def adapt(log: pd.DataFrame, start: GyroNoise, vehicle: Vehicle, preset: Noise,
           epochs: int = 12, segment_s: float = 10.0, lr: float = 0.1, ahead: int = 0,
-          progress: Callable[[str], None] | None = None) -> GyroFit:
+          progress: Callable[[str], None] | None = None, receiver_noise: str = "learned"
+          ) -> GyroFit:
     """The gyro EKF's noise fitted on the very log it is to filter, by its innovations
     (:func:`fit` with ``objective="innovations"``, the log its own validation): offline, for
     it reads the whole log first. Any truth columns are dropped unread.
 
     preset : the classical observers' noise (its R where a fix reports no accuracy);
     segment_s : seconds per segment (at least one such span after the first course);
-    progress : as :func:`fit`'s (None: silent)."""
+    progress, receiver_noise : as :func:`fit`'s (None: silent)."""
     R = fix_cov(preset)
     blind = log.drop(columns=list(STATE), errors="ignore")
     segment = max(2, round(segment_s / vehicle.dt))
     return fit(blind, blind, vehicle, R, start, epochs=epochs, segment=segment, lr=lr,
-               progress=progress, objective="innovations", ahead=ahead)
+               progress=progress, objective="innovations", ahead=ahead,
+               receiver_noise=receiver_noise)
 

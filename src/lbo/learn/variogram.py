@@ -45,9 +45,13 @@ import pandas as pd
 from lbo.core.angles import wrap_angle
 from lbo.core.errors import LboError
 
-__all__ = ["COURSE_SILL_S", "SILL_S", "FixErrors", "Variogram", "course_errors", "fix_errors",
-           "offsets", "receiver_scales"]
+__all__ = ["COURSE_SILL_S", "RECEIVER_NOISES", "SILL_S", "FixErrors", "Variogram",
+           "course_errors", "fix_errors", "offsets", "receiver_scales"]
 
+RECEIVER_NOISES = ("learned", "variogram")
+"""How a fit of the gyro EKF's noise (:func:`lbo.learn.gyro_fit.fit`) finds the factors on the
+receiver's reported accuracy and velocity sigma: learned with the other noises, or set from
+its logs by :func:`receiver_scales` and kept while the rest is learned."""
 SILL_S = (10.0, 20.0, 30.0)
 """Lags (s) whose variogram is pooled as the fixes' whole variance: longer than the
 correlation time of a receiver's errors in the open (on the hill drive their correlation from
