@@ -30,7 +30,7 @@ factors on the receiver so (:func:`receiver_scales`) and learns the rest
 (:func:`lbo.learn.gyro_fit.fit`).
 
 On the hill drive the variogram of the fixes less the integrated velocity equals the one of
-the fixes' error against the truth to 5 mm at one fix and to 10% over 10 s
+the fixes' error against the truth to 4 mm at one fix and within 20% over 10-30 s
 (docs/logs.md, section 7).
 """
 
