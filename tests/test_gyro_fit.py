@@ -21,7 +21,7 @@ import torch
 from helpers import observe
 from lbo.core.errors import LboError
 from lbo.filters.gyro import NOISE_RANGES, OPTIONAL, FixDrift, GyroNoise
-from lbo.learn import gyro_fit
+from lbo.learn import gyro_fit, gyro_logs
 from lbo.models.gyro_filter import GyroFilter, scored_update
 from lbo.scoring.receiver import scored_rows
 from lbo.serve.observer import Observer
@@ -61,10 +61,10 @@ def test_trusting_the_velocity_less_widens_its_course_but_keeps_its_rows(log):
 
 @pytest.mark.parametrize("noise", [OTHER, DRIFTING, SCALED], ids=["white", "drift", "scales"])
 def test_the_torch_twin_steps_as_the_numpy_gyro_ekf(log, noise):
-    seg = gyro_fit.segments(log, noise, VEHICLE, R, 400)
+    seg = gyro_logs.segments(log, noise, VEHICLE, R, 400)
     assert seg.x0.shape[1] == (4 if noise.drift is None else 6)
     est = GyroFilter(noise, VEHICLE.dt, torch.as_tensor(R))(seg).detach().numpy()
-    full = gyro_fit.estimate(log, noise, VEHICLE, R)
+    full = gyro_logs.estimates(log, noise, VEHICLE, R)[0]
     first = int(np.argmax(scored_rows(log)))
     rows = first + 400 * np.arange(len(est))[:, None] + np.arange(400)
     assert len(est) >= 5 and np.abs(est - full[rows]).max() < 1e-9
@@ -75,10 +75,32 @@ def test_the_torch_twin_steps_as_the_numpy_gyro_ekf(log, noise):
     assert np.abs(other - full[rows]).max() > 1e-3
 
 
+@pytest.mark.parametrize("noise", [OTHER, DRIFTING], ids=["white", "drift"])
+def test_logs_in_one_batch_get_the_numbers_each_has_alone(log, noise):
+    """The fit's logs run through the NumPy filter in one batch (lbo.learn.gyro_logs): a
+    shorter log whose fixes start later, padded beside a longer one, gets its own segments'
+    starts and estimates, and each log's segments keep their order."""
+    late = gyro_drive.draw(3, 30.0)
+    late.loc[:150, list(RECEIVER) + ["x_m", "y_m"]] = np.nan  # its first fix 1.5 s in
+    logs = [late, log]
+    together = gyro_logs.segments(logs, noise, VEHICLE, R, 400)
+    alone = [gyro_logs.segments(one, noise, VEHICLE, R, 400) for one in logs]
+    assert len(together.x0) == sum(len(a.x0) for a in alone) and len(alone[0].x0) < 4
+    for name in ("x0", "P0", "fix", "u", "truth"):
+        joined = torch.cat([getattr(a, name) for a in alone])
+        assert torch.allclose(getattr(together, name), joined, rtol=0, atol=1e-12,
+                              equal_nan=True), name
+    est = gyro_logs.estimates(logs, noise, VEHICLE, R)
+    for one, e in zip(logs, est):
+        np.testing.assert_allclose(e, gyro_logs.estimates(one, noise, VEHICLE, R)[0],
+                                   rtol=0, atol=1e-12)
+    assert [len(e) for e in est] == [len(late), len(log)] and np.isnan(est[0][:150]).all()
+
+
 @pytest.mark.parametrize("noise", [START, START.with_drift(FixDrift(0.3, 30.0)),
                                    START.with_scales()], ids=["white", "drift", "scales"])
 def test_every_noise_gets_a_gradient_through_the_filter(log, noise):
-    seg = gyro_fit.segments(log, noise, VEHICLE, R, 400)
+    seg = gyro_logs.segments(log, noise, VEHICLE, R, 400)
     model = GyroFilter(noise, VEHICLE.dt, torch.as_tensor(R))
     ((model(seg) - seg.truth) ** 2).mean().backward()
     grads = {k: float(p.grad) for k, p in model.log.items()}
@@ -112,7 +134,7 @@ def test_without_truth_the_innovations_learn_how_far_to_trust_the_receiver():
     rows = np.concatenate([scored_rows(v) for v in val])
 
     def rmse(noise):
-        est = np.concatenate([gyro_fit.estimate(v, noise, VEHICLE, R) for v in val])
+        est = np.concatenate(gyro_logs.estimates(val, noise, VEHICLE, R))
         d = est[rows] - truth[rows]
         return np.sqrt(np.mean(d[:, :2] ** 2))
 
@@ -141,7 +163,7 @@ def test_a_fix_predicted_steps_ahead_is_scored_under_the_dead_reckoned_covarianc
     (checked by hand in NumPy for one fix, the car moving); every noise gets a gradient
     through it."""
     steps = 30
-    seg = gyro_fit.segments(log, START, VEHICLE, R, 400)
+    seg = gyro_logs.segments(log, START, VEHICLE, R, 400)
     model = GyroFilter(START, VEHICLE.dt, torch.as_tensor(R))
     nll = model.ahead(seg, steps)
     held = torch.isfinite(seg.fix).all(-1)
@@ -224,7 +246,7 @@ def test_the_innovations_likelihood_is_least_at_the_noise_that_drew_the_log(draw
     1.6, has a higher loss (measured on 200 s: 0.5, 0.7, 1, 1.4, 2 give the least at 1 for
     each of the four)."""
     def loss(noise):
-        seg = gyro_fit.segments(drawn, noise, VEHICLE, R, 500)
+        seg = gyro_logs.segments(drawn, noise, VEHICLE, R, 500)
         with torch.no_grad():
             return float(gyro_fit._innovations(GyroFilter(noise, VEHICLE.dt,
                                                           torch.as_tensor(R)), seg))
@@ -238,7 +260,7 @@ def test_the_innovations_likelihood_is_least_at_the_noise_that_drew_the_log(draw
 
 def _likelihood(log: pd.DataFrame, noise: GyroNoise) -> float:
     """The innovations' mean negative log-likelihood of ``log`` under ``noise``."""
-    seg = gyro_fit.segments(log, noise, VEHICLE, R, 500)
+    seg = gyro_logs.segments(log, noise, VEHICLE, R, 500)
     with torch.no_grad():
         return float(gyro_fit._innovations(GyroFilter(noise, VEHICLE.dt, torch.as_tensor(R)),
                                            seg))
@@ -307,7 +329,7 @@ def test_the_learned_noise_steps_as_it_runs_in_an_observer(log, noise):
     u = log[["V", "delta"]].to_numpy()
     rec = log[list(RECEIVER)].to_numpy()
     est, valid = obs.run(m, u, receiver=rec)
-    assert np.allclose(est[valid], gyro_fit.estimate(log, noise, VEHICLE, R)[valid], atol=1e-9)
+    assert np.allclose(est[valid], gyro_logs.estimates(log, noise, VEHICLE, R)[0][valid], atol=1e-9)
     obs.reset()
     stepped = np.array([obs.step(m[k], u[k], receiver=rec[k]).state for k in range(400)])
     assert np.allclose(stepped[valid[:400]], est[:400][valid[:400]], atol=1e-9)
@@ -359,7 +381,7 @@ def test_gyro_noise_is_checked_saved_and_read_back(tmp_path):
                                        r"\(observer=gyro\), not of ekf$"):
         Observer.load("ekf", gyro_noise=OTHER)
     with pytest.raises(LboError, match="single-antenna logs: psi_m must be empty"):
-        gyro_fit.segments(gyro_drive.draw(3, 10.0).assign(psi_m=0.0), START, VEHICLE, R, 100)
+        gyro_logs.segments(gyro_drive.draw(3, 10.0).assign(psi_m=0.0), START, VEHICLE, R, 100)
 
 
 @pytest.mark.parametrize("field, value, line", [
@@ -444,7 +466,7 @@ def test_observe_reads_a_learned_noise_for_the_gyro_ekf_only(log, tmp_path):
     ok = observe(*args, "observer=gyro", f"output={tmp_path / 'est.csv'}", cwd=tmp_path)
     assert ok.returncode == 0, ok.stderr
     out = pd.read_csv(tmp_path / "est.csv")
-    full = gyro_fit.estimate(log, OTHER, VEHICLE, R)
+    full = gyro_logs.estimates(log, OTHER, VEHICLE, R)[0]
     valid = out["valid"].to_numpy()
     assert np.allclose(out.loc[valid, ["x", "y"]], full[valid, :2], atol=1e-6)
     bad = observe(*args, "observer=ekf", f"output={tmp_path / 'ekf.csv'}", cwd=tmp_path)

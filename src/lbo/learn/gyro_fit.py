@@ -10,8 +10,8 @@ by gradient descent on the estimates' error against the truth.
 
 - The train log is cut into segments of ``segment`` steps from its first course over ground
   on (before it a car standing since the log began has no heading to learn from); each starts
-  from the NumPy filter's state there under the current noise (recomputed every epoch), and
-  all run as one batch.
+  from the NumPy filter's state there under the current noise (recomputed every epoch, every
+  log in one batch of that filter: :mod:`lbo.learn.gyro_logs`), and all run as one batch.
 - The loss is the mean over x, y and psi of each one's mean square error, divided by the
   starting noise's: the square of the measure the real drive is scored by (the quadratic mean
   of RMSE ratios), against the filter the fit starts from.
@@ -45,23 +45,22 @@ import numpy as np
 import pandas as pd
 import torch
 
-from lbo.core.angles import wrap_angle
 from lbo.core.checks import one_of
 from lbo.core.errors import LboError
-from lbo.filters import classical, measure
+from lbo.filters import classical
 from lbo.filters.gyro import FixDrift, GyroNoise
 from lbo.learn.eta import more
+from lbo.learn.gyro_logs import as_logs, estimates, segments
 from lbo.learn.variogram import RECEIVER_NOISES, receiver_scales
 from lbo.models.gyro_filter import GyroFilter, Segments
 from lbo.models.poses import wrap_heading
 from lbo.scoring.receiver import measure_ratio, scored_rows
 from lbo.sim.columns import STATE
-from lbo.sim.measurements import Measurements
 from lbo.sim.noise import Noise
 from lbo.sim.vehicle import Vehicle
 
-__all__ = ["METHODS", "OBJECTIVES", "GyroFit", "Settings", "adapt", "estimate", "fit",
-           "fit_and_write", "fix_cov", "segments"]
+__all__ = ["METHODS", "OBJECTIVES", "GyroFit", "Settings", "adapt", "fit", "fit_and_write",
+           "fix_cov"]
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -152,81 +151,10 @@ class Settings:
                 "ahead": round(self.ahead_s / dt), "receiver_noise": self.receiver_noise}
 
 
-def _columns(log: pd.DataFrame) -> tuple[Measurements, np.ndarray]:
-    """The log's measurements (T steps) and inputs u (T, 2) ``[V, r_m]``."""
-    if "r_m" not in log:
-        raise LboError("the gyro EKF's noise is learned from a log with a gyro: no r_m column")
-    meas = Measurements.from_frame(log)
-    if meas.has_heading.any():
-        raise LboError("the gyro EKF's noise is learned from single-antenna logs: psi_m must "
-                       "be empty")
-    return meas, log[["V", "r_m"]].to_numpy(dtype=float)
-
-
 def fix_cov(preset: Noise) -> np.ndarray:
     """(3, 3) the fixes' covariance where one reports no accuracy: the EKF's R under the
     classical observers' noise ``preset``, at alpha 1 (the R every fit here takes)."""
     return classical.measurement_cov("ekf", preset, 1.0, 1)[0]
-
-
-def _preset(noise: GyroNoise, R: np.ndarray) -> Noise:
-    """The classical observers' noise preset that carries R (3, 3), the fixes' covariance
-    where one reports no accuracy (the gyro EKF takes its Q from ``noise``)."""
-    return Noise(process_sigma=tuple(np.sqrt(np.diag(noise.Q))),
-                 measurement_sigma=tuple(np.sqrt(np.diag(R))))
-
-
-def estimate(log: pd.DataFrame, noise: GyroNoise, vehicle: Vehicle, R: np.ndarray
-             ) -> np.ndarray:
-    """The gyro EKF's estimates (T, 3) of a log under ``noise`` (NaN before its first fix);
-    R (3, 3): the fixes' covariance where one reports no accuracy."""
-    meas, u = _columns(log)
-    return classical.estimate(classical.GYRO, noise.rows(meas, u)[None], u[None], vehicle,
-                              _preset(noise, R), gyro=noise).mean[0]
-
-
-def segments(log: pd.DataFrame, noise: GyroNoise, vehicle: Vehicle, R: np.ndarray,
-             length: int) -> Segments:
-    """The log's scored rows cut into segments of ``length`` steps (the last, shorter one
-    dropped), each started from the NumPy gyro EKF's state under ``noise`` at its first step."""
-    meas, u = _columns(log)
-    rows = noise.rows(meas, u)
-    first = int(np.argmax(scored_rows(log)))
-    starts = np.arange(first, len(log) - length + 1, length)
-    if not len(starts):
-        raise LboError(f"the log has {len(log) - first} steps from its first course over "
-                       f"ground, fewer than one segment of {length}")
-    begin = int(np.argmax(np.isfinite(rows[:, 0]) & np.isfinite(rows[:, 1])))
-    flt = classical.stepper(classical.GYRO, rows[begin][None], vehicle, _preset(noise, R),
-                            gyro=noise)
-    # by step, read back at NumPy integers (which hash as the ints)
-    x0: dict[int | np.integer, np.ndarray] = {}
-    P0: dict[int | np.integer, np.ndarray] = {}
-    wanted = set(starts.tolist())
-    for k in range(begin, starts[-1] + 1):
-        if k > begin:
-            flt.update(rows[k][None], u[k - 1][None])
-        if k in wanted:
-            x0[k], P0[k] = flt.x[0].copy(), flt.P[0].copy()
-    idx = starts[:, None] + np.arange(length)
-    sv = np.where(np.isfinite(meas.velocity_sigma), meas.velocity_sigma, measure.SV_DEFAULT)
-    ve, vn = meas.velocity[:, 0], meas.velocity[:, 1]
-    course = np.arctan2(vn, ve) + np.where(u[:, 0] < 0, np.pi, 0.0)
-    as_t = lambda a: torch.as_tensor(np.ascontiguousarray(a), dtype=torch.float64)  # noqa: E731
-    return Segments(x0=as_t(np.stack([x0[k] for k in starts])),
-                    P0=as_t(np.stack([P0[k] for k in starts])),
-                    fix=as_t(meas.fix[idx]), accuracy=as_t(meas.fix_sigma[idx]),
-                    course=as_t(wrap_angle(course)[idx]),
-                    speed=as_t(np.hypot(ve, vn)[idx]), sv=as_t(sv[idx]),
-                    u=as_t(u[idx]), truth=as_t(_truth(log)[idx]))
-
-
-def _truth(log: pd.DataFrame) -> np.ndarray:
-    """The log's truth (T, 3) ``[x, y, psi]``; NaN where it has none (a fleet's log: learned
-    from its innovations, ``objective="innovations"``)."""
-    if all(c in log for c in STATE):
-        return log[list(STATE)].to_numpy(float)
-    return np.full((len(log), len(STATE)), np.nan)
 
 
 def _mse(est: torch.Tensor, truth: torch.Tensor) -> torch.Tensor:
@@ -235,22 +163,11 @@ def _mse(est: torch.Tensor, truth: torch.Tensor) -> torch.Tensor:
     return (d**2).mean(dim=(0, 1))
 
 
-def _logs(logs: pd.DataFrame | Sequence[pd.DataFrame]) -> list[pd.DataFrame]:
-    return [logs] if isinstance(logs, pd.DataFrame) else list(logs)
-
-
-def _batch(logs: list[pd.DataFrame], noise: GyroNoise, vehicle: Vehicle, R: np.ndarray,
-           length: int) -> Segments:
-    """The segments of every log, in one batch."""
-    parts = [segments(log, noise, vehicle, R, length) for log in logs]
-    return Segments(*(torch.cat(f) for f in zip(*parts)))
-
-
 def _pooled(logs: list[pd.DataFrame], noise: GyroNoise, reference: list[np.ndarray],
             vehicle: Vehicle, R: np.ndarray) -> float:
     """:func:`measure_ratio` of ``noise`` against the reference estimates, over the scored
     rows of every log pooled."""
-    est = np.concatenate([estimate(log, noise, vehicle, R) for log in logs])
+    est = np.concatenate(estimates(logs, noise, vehicle, R))
     truth = np.concatenate([log[list(STATE)].to_numpy(float) for log in logs])
     rows = np.concatenate([scored_rows(log) for log in logs])
     return measure_ratio(est, np.concatenate(reference), truth, rows)
@@ -317,7 +234,7 @@ def fit(train: pd.DataFrame | Sequence[pd.DataFrame],
     one_of(method, METHODS, "method")
     one_of(receiver_noise, RECEIVER_NOISES, "receiver_noise")
     own = val is train  # the logs are their own validation (adapt): one pass serves both
-    train, val = _logs(train), _logs(val)
+    train, val = as_logs(train), as_logs(val)
     set_by_logs = ("accuracy_scale", "velocity_scale") if receiver_noise == "variogram" else ()
     if set_by_logs:
         start = dataclasses.replace(start, **dict(zip(set_by_logs, receiver_scales(train))))
@@ -330,7 +247,7 @@ def fit(train: pd.DataFrame | Sequence[pd.DataFrame],
         torch.optim.LBFGS(learned, lr=1.0, max_iter=LBFGS_ITERATIONS,
                           line_search_fn="strong_wolfe"))
     supervised = objective == "truth"
-    reference = [estimate(log, start, vehicle, R) for log in val] if supervised else []
+    reference = estimates(val, start, vehicle, R) if supervised else []
     scale: torch.Tensor | None = None
     best: tuple[float, int, GyroNoise] = (1.0 if supervised else 0.0, 0, start)
     val_start = 0.0
@@ -356,7 +273,7 @@ def fit(train: pd.DataFrame | Sequence[pd.DataFrame],
     begin = time.perf_counter()
     for epoch in range(epochs + 1):
         noise = model.noise()
-        seg = _batch(train, noise, vehicle, R, segment)
+        seg = segments(train, noise, vehicle, R, segment)
         loss = train_loss(seg)
         if not torch.isfinite(loss):
             raise LboError(f"gyro noise fit: the loss is not finite at epoch {epoch} (noise "
@@ -369,7 +286,7 @@ def fit(train: pd.DataFrame | Sequence[pd.DataFrame],
             else:
                 with torch.no_grad():
                     held_out = float(_innovations(
-                        model, _batch(val, noise, vehicle, R, segment), ahead))
+                        model, segments(val, noise, vehicle, R, segment), ahead))
             if epoch == 0:
                 val_start = held_out
             score = held_out - val_start
