@@ -11,7 +11,7 @@ import time
 import pandas as pd
 from omegaconf import OmegaConf
 
-from lbo.filters.gyro import GyroNoise
+from lbo.filters.gyro_noise import GyroNoise
 from lbo.learn import gyro_fit
 from lbo.logs import hguide
 from lbo.scoring import drives as across

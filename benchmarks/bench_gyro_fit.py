@@ -27,7 +27,7 @@ import time
 import numpy as np
 import torch
 
-from lbo.filters.gyro import GyroNoise
+from lbo.filters.gyro_noise import GyroNoise
 from lbo.learn import gyro_fit, gyro_logs
 from lbo.models.gyro_filter import GyroFilter
 from lbo.sim import gyro_drive

@@ -11,7 +11,7 @@ import time
 
 from omegaconf import OmegaConf
 
-from lbo.filters.gyro import GyroNoise
+from lbo.filters.gyro_noise import GyroNoise
 from lbo.learn import gyro_fit
 from lbo.logs import comma2k19
 from lbo.scoring.receiver import EKF, RAW, RMSE, markdown, ratio_to, score

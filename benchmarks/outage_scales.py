@@ -14,7 +14,7 @@ import pandas as pd
 from hydra import compose, initialize_config_dir
 
 from lbo.core.paths import CONF_DIR
-from lbo.filters.gyro import GyroNoise
+from lbo.filters.gyro_noise import GyroNoise
 from lbo.learn import gyro_fit
 from lbo.scoring import outages
 from lbo.scoring.receiver import EKF, score

@@ -17,7 +17,7 @@ import time
 import numpy as np
 from omegaconf import OmegaConf
 
-from lbo.filters.gyro import GyroNoise
+from lbo.filters.gyro_noise import GyroNoise
 from lbo.learn import gyro_fit, input_fit
 from lbo.logs import comma2k19
 from lbo.logs.io import receiver

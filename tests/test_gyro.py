@@ -10,7 +10,8 @@ from helpers import compose_cfg, observe
 from lbo.core.angles import wrap_angle
 from lbo.core.errors import LboError
 from lbo.filters import classical
-from lbo.filters.gyro import FixDrift, gyro_ekf_batch, gyro_ekf_with_bias
+from lbo.filters.gyro import GyroStepper, gyro_ekf_batch, gyro_ekf_with_bias
+from lbo.filters.gyro_noise import FixDrift
 from lbo.filters.measure import rows
 from lbo.logs.checks import check_receiver
 from lbo.serve.observer import Observer
@@ -178,6 +179,61 @@ def test_told_the_fixes_drift_it_matches_a_filter_written_out_by_hand():
             P = (np.eye(6) - K @ h) @ P
             np.testing.assert_allclose(est[i, k], x[:3], rtol=0, atol=1e-9)
             np.testing.assert_allclose(cov[i, k], P[:3, :3], rtol=0, atol=1e-9)
+
+
+@pytest.mark.parametrize("drift", [None, FixDrift(0.5, 30.0)], ids=["white", "drift"])
+def test_rows_without_a_measurement_coast_to_the_numbers_of_one_step_each(drive, drift):
+    """gyro_ekf_batch takes each run of rows that hold nothing in one call (GyroStepper.coast:
+    while moving in closed form, a standstill's zero-rate update row by row); stepped one row
+    at a time, the same stepper gives the same poses and covariances. Two drives of 1 Hz fixes
+    whose inputs differ, with standstills that start and end apart (one drive stands while the
+    other moves), and a speed and gyro scale."""
+    m, u = drive["m"][:2, :2000].copy(), drive["gyro"][:2, :2000].copy()
+    u[0, 400:700, 0] = 0.0
+    u[1, 550:900, 0] = 0.01
+    kw = {"drift": drift, "speed_scale": 1.02, "gyro_scale": 0.98}
+    vehicle, noise = Vehicle(), Noise.preset("paper")
+    R = classical.measurement_cov("ekf", noise, 1.0, 2)
+    est, cov = gyro_ekf_batch(m, u, vehicle, noise.Q, R, **kw)
+    flt = GyroStepper(m[:, 0], vehicle, noise.Q, R, **kw)
+    for k in range(1, m.shape[1]):
+        pose = flt.update(m[:, k], u[:, k - 1])
+        np.testing.assert_allclose(est[:, k], pose, rtol=0, atol=1e-9)
+        np.testing.assert_allclose(cov[:, k], flt.P[:, :3, :3], rtol=1e-9, atol=1e-15)
+    coasted = []  # ... and the batch coasted
+    real = GyroStepper.coast
+
+    def counted(self, uu):
+        coasted.append(uu.shape[1])
+        return real(self, uu)
+
+    GyroStepper.coast = counted  # type: ignore[method-assign]
+    try:
+        gyro_ekf_batch(m, u, vehicle, noise.Q, R, **kw)
+    finally:
+        GyroStepper.coast = real  # type: ignore[method-assign]
+    assert sum(coasted) > 0.9 * m.shape[1]  # 1 Hz fixes at 50 Hz: most rows coast
+
+
+def test_a_row_without_a_measurement_is_the_joseph_update_of_the_standstills_channel():
+    """A row that holds nothing takes, where the car stands, the gyro's reading of the bias
+    alone (gyro._standstill), the general update of that one channel; elsewhere the prior."""
+    from lbo.filters.gyro import _standstill
+    from lbo.filters.update import joseph_update
+
+    rng = np.random.default_rng(3)
+    g, n = 4, 6
+    A = rng.normal(size=(g, n, n))
+    P = A @ A.swapaxes(-1, -2) + np.eye(n)  # the bias correlated with every state
+    x, rate = rng.normal(size=(g, n)), rng.normal(size=g)
+    still = np.array([True, False, True, False])
+    got_x, got_P = _standstill(x, P, still, rate, 0.01**2)
+    H = (np.arange(n) == 3)[None].astype(float)
+    want = joseph_update(x, P, (rate - x[:, 3])[:, None], H, np.array([[0.01**2]]),
+                         still[:, None])
+    np.testing.assert_allclose(got_x, want.x, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(got_P, want.P, rtol=1e-10, atol=1e-12)
+    assert np.array_equal(got_x[~still], x[~still]) and not np.allclose(got_x[still], x[still])
 
 
 @pytest.mark.parametrize("kwargs, line", [

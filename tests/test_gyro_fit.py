@@ -20,7 +20,7 @@ import torch
 
 from helpers import observe
 from lbo.core.errors import LboError
-from lbo.filters.gyro import NOISE_RANGES, OPTIONAL, FixDrift, GyroNoise
+from lbo.filters.gyro_noise import NOISE_RANGES, OPTIONAL, FixDrift, GyroNoise
 from lbo.learn import gyro_fit, gyro_logs
 from lbo.models.gyro_filter import GyroFilter, scored_update
 from lbo.scoring.receiver import scored_rows
@@ -447,7 +447,7 @@ def test_a_noise_path_is_read_only_as_a_small_regular_file(tmp_path):
     # /dev/zero, in a process of its own with 1 GiB of memory, in case it reads it whole
     script = ("import resource, sys\n"
               "resource.setrlimit(resource.RLIMIT_AS, (1 << 30, 1 << 30))\n"
-              "from lbo.filters.gyro import GyroNoise\n"
+              "from lbo.filters.gyro_noise import GyroNoise\n"
               "GyroNoise.load('/dev/zero')\n")
     res = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
                          timeout=120)

@@ -14,7 +14,7 @@ import pytest
 
 from helpers import cli, observe, one_line_error
 from lbo.core.errors import LboError
-from lbo.filters.gyro import GyroNoise
+from lbo.filters.gyro_noise import GyroNoise
 from lbo.learn.identity import HASH_VERSION
 from lbo.serve.observer import Observer
 from lbo.sim import gyro_drive

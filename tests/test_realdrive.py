@@ -14,7 +14,7 @@ import pytest
 from helpers import cli, observe, train_in_own_store
 from lbo.core.angles import wrap_angle
 from lbo.core.errors import LboError
-from lbo.filters.gyro import GyroNoise
+from lbo.filters.gyro_noise import GyroNoise
 from lbo.logs import hguide
 from lbo.logs.io import check_log
 from lbo.serve.observer import Observer

@@ -12,7 +12,7 @@ import pytest
 from helpers import compose_cfg
 from lbo.core.angles import wrap_angle
 from lbo.core.errors import LboError
-from lbo.filters.gyro import FixDrift
+from lbo.filters.gyro_noise import FixDrift
 from lbo.scoring import receiver as scoring
 from lbo.scoring.metrics import rmse
 from lbo.sim.noise import Noise

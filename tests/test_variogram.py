@@ -15,7 +15,7 @@ from omegaconf import OmegaConf
 
 from helpers.commands import observe, one_line_error
 from lbo.core.errors import LboError
-from lbo.filters.gyro import GyroNoise
+from lbo.filters.gyro_noise import GyroNoise
 from lbo.learn import gyro_fit
 from lbo.learn.gyro_fit import Settings
 from lbo.learn.variogram import (

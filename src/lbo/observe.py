@@ -105,7 +105,7 @@ def observe(cfg: DictConfig) -> dict[str, Any]:
     the same rows) and ``nrmse``.
     """
     from lbo.filters.classical import check_gyro_noise, on_logs
-    from lbo.filters.gyro import GyroNoise
+    from lbo.filters.gyro_noise import GyroNoise
     from lbo.scoring.unscored import (
         heading_rows,
         heading_unseen,

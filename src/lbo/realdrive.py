@@ -56,7 +56,7 @@ from lbo.core.checks import boolean, integer, number, require
 from lbo.core.cli import entry
 from lbo.core.errors import LboError
 from lbo.filters import classical
-from lbo.filters.gyro import GyroNoise
+from lbo.filters.gyro_noise import GyroNoise
 from lbo.learn.noise_run import ACROSS
 from lbo.logs import hguide
 from lbo.logs.io import check_log, check_output_path, write_table

@@ -42,7 +42,7 @@ from lbo.core.checks import integer, number, require
 from lbo.core.cli import entry
 from lbo.core.errors import LboError
 from lbo.filters import classical
-from lbo.filters.gyro import FixDrift, GyroNoise
+from lbo.filters.gyro_noise import FixDrift, GyroNoise
 from lbo.logs.io import check_output_path, write_table
 from lbo.scoring import receiver as scoring
 from lbo.sim.noise import check_alpha

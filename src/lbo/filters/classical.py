@@ -40,7 +40,8 @@ from lbo.core import plugins
 from lbo.core.errors import LboError
 from lbo.filters import measure
 from lbo.filters.consistency import Checks
-from lbo.filters.gyro import GyroNoise, gyro_ekf_batch
+from lbo.filters.gyro import gyro_ekf_batch
+from lbo.filters.gyro_noise import GyroNoise
 from lbo.filters.kalman import adaptive_ekf_batch, ekf_batch
 from lbo.filters.stepper import Posterior, run_stepper
 from lbo.filters.unscented import UKF_SPREAD, ukf_batch

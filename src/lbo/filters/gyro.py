@@ -30,227 +30,23 @@ filter learns the bias again (docs/observe.md has the numbers).
 
 from __future__ import annotations
 
-import dataclasses
-import json
 import math
-from dataclasses import dataclass
-from pathlib import Path
-from typing import Any, TypedDict
+from typing import Any
 
 import numpy as np
 
 from lbo.core.errors import LboError
-from lbo.core.smallfile import read_small
 from lbo.filters import measure
 from lbo.filters.consistency import Checks, NisWindow, widen
+from lbo.filters.gyro_noise import BIAS_SIGMA, BIAS_WALK, GYRO_SIGMA, FixDrift
 from lbo.filters.start import CourseStart, batch_cov, check_trajectories, start_state
 from lbo.filters.stepper import Posterior, run_stepper
 from lbo.filters.update import joseph_update, nis
-from lbo.sim.measurements import Measurements
 from lbo.sim.vehicle import Vehicle
-
-GYRO_SIGMA = 0.01
-"""1-sigma (rad/s) of the gyro's white noise a step, by default: an automotive ESC gyro's."""
-BIAS_SIGMA = 0.02
-"""1-sigma (rad/s) of the bias before any fix, by default (about 1 deg/s: an uncalibrated
-MEMS gyro's turn-on bias)."""
-BIAS_WALK = 1e-3
-"""Random walk (rad/s/sqrt(s)) of the bias, by default: it drifts with temperature."""
-
-NOISE_RANGES = {
-    "q_position": (1e-12, 100.0, "m per step"),
-    "q_heading": (1e-12, 1.0, "rad per step"),
-    "gyro_sigma": (1e-12, 10.0, "rad/s"),
-    "bias_walk": (1e-12, 10.0, "rad/s/sqrt(s)"),
-    "accuracy_scale": (1e-12, 1e3, "a factor"),
-    "velocity_scale": (1e-12, 1e3, "a factor"),
-    "course_lever": (1e-12, 100.0, "m"),
-    "drift_sigma": (1e-6, 1e3, "m"),
-    "drift_tau": (1e-2, 1e6, "s"),
-    "speed_scale": (0.5, 2.0, "a factor"),
-    "gyro_scale": (0.5, 2.0, "a factor"),
-}
-"""(smallest, largest, unit) of each noise of :class:`GyroNoise`. Past them a noise says
-nothing a filter can use, and its square runs towards float64's ends (1e200 overflowed ``Q``):
-a car moves under 2 m a step at 100 m/s, a heading that wanders a radian a step is not
-tracked, a gyro reads within 10 rad/s (:data:`lbo.logs.checks.GYRO_LIMIT`), an antenna sits
-on the car; below 1e-12 a sigma's square is lost to rounding beside any other variance, and a
-covariance made of such zeros turns singular."""
-
-DRIFT = ("drift_sigma", "drift_tau")
-"""The two noises of :class:`GyroNoise` that carry the fixes' drift (both or neither)."""
-SCALES = ("speed_scale", "gyro_scale")
-"""The two factors of :class:`GyroNoise` on the inputs (both or neither)."""
-OPTIONAL = (*DRIFT, *SCALES)
-"""What a :class:`GyroNoise` may leave None (and its file leave out)."""
 
 STILL_SPEED = 0.05
 """Speed (m/s) below which the car stands: it does not turn, so its heading is held and the
 gyro's reading is its bias (a zero-rate update, as INS filters make at standstill)."""
-
-
-class GyroKeywords(TypedDict):
-    """What :meth:`GyroNoise.stepper` gives: keywords of :class:`GyroStepper`."""
-
-    gyro_sigma: float
-    bias_walk: float
-    drift: FixDrift | None
-    speed_scale: float
-    gyro_scale: float
-
-
-@dataclass(frozen=True, kw_only=True)
-class GyroNoise:
-    """Every noise the gyro EKF assumes, as a set that :mod:`lbo.learn.gyro_fit` learns from a
-    log with truth (all > 0).
-
-    q_position : 1-sigma (m) of x and y per step of the process noise.
-    q_heading : 1-sigma (rad) of psi per step (the gyro's white noise adds to it).
-    gyro_sigma, bias_walk : the gyro's white noise (rad/s) and bias walk (rad/s/sqrt(s)).
-    accuracy_scale : factor on the receiver's reported ``sx_m, sy_m`` (a receiver's reported
-        accuracy is a scale of its error, not its size).
-    velocity_scale : factor on its ``sv_m`` (or :data:`lbo.filters.measure.SV_DEFAULT`) in
-        the course's variance; which rows hold a course is the reported sigma's to say.
-    course_lever : the antenna's distance (m) from the rear axle that the course's variance
-        allows for (:data:`lbo.filters.measure.COURSE_LEVER`).
-    drift_sigma, drift_tau : the fixes' slow error (:class:`FixDrift`: its stationary
-        1-sigma, m, and correlation time, s), carried as two more states; both None (the
-        default): the fixes' error is taken as white.
-    speed_scale, gyro_scale : factors on the speed ``V`` and the gyro's rate ``r_m`` that the
-        model reads (a wheel or CAN speed off by a percent, a gyro's scale error): what dead
-        reckoning through a GNSS outage needs; both None (the default): 1, not learned.
-    """
-
-    q_position: float
-    q_heading: float
-    gyro_sigma: float = GYRO_SIGMA
-    bias_walk: float = BIAS_WALK
-    accuracy_scale: float = 1.0
-    velocity_scale: float = 1.0
-    course_lever: float = measure.COURSE_LEVER
-    drift_sigma: float | None = None
-    drift_tau: float | None = None
-    speed_scale: float | None = None
-    gyro_scale: float | None = None
-
-    def __post_init__(self) -> None:
-        for pair, what in ((DRIFT, "the fixes' drift"), (SCALES, "the inputs' scales")):
-            if len({getattr(self, k) is None for k in pair}) > 1:
-                raise LboError(f"gyro noise {', '.join(pair)}: expected both ({what}) or "
-                               "neither, got one")
-        for f in dataclasses.fields(self):
-            v = getattr(self, f.name)
-            if v is None and f.name in OPTIONAL:
-                continue
-            low, high, unit = NOISE_RANGES[f.name]
-            # a bool is an int to Python, not a noise; a comparison, unlike float(), takes an
-            # int of any size, and NaN fails it
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not low <= v <= high:
-                got = repr(v) if len(repr(v)) <= 40 else repr(v)[:37] + "..."  # one short line
-                raise LboError(f"gyro noise {f.name}: expected a number in [{low:g}, {high:g}] "
-                               f"({unit}), got {got}")
-            object.__setattr__(self, f.name, float(v))  # frozen: set once, checked
-
-    def __str__(self) -> str:
-        held = (f"{f.name}={getattr(self, f.name)!r}" for f in dataclasses.fields(self)
-                if getattr(self, f.name) is not None)  # the drift's only where it has one
-        return f"GyroNoise({', '.join(held)})"
-
-    @property
-    def drift(self) -> FixDrift | None:
-        """The fixes' drift it carries, None where it takes their error as white."""
-        if self.drift_sigma is None or self.drift_tau is None:
-            return None
-        return FixDrift(self.drift_sigma, self.drift_tau)
-
-    def with_drift(self, drift: FixDrift | None) -> GyroNoise:
-        """The same noise carrying ``drift`` (None: none)."""
-        if drift is None:
-            return dataclasses.replace(self, drift_sigma=None, drift_tau=None)
-        return dataclasses.replace(self, drift_sigma=drift.sigma, drift_tau=drift.tau)
-
-    def with_scales(self, speed: float | None = 1.0, gyro: float | None = 1.0) -> GyroNoise:
-        """The same noise with these factors on the speed and the gyro (None: none held)."""
-        return dataclasses.replace(self, speed_scale=speed, gyro_scale=gyro)
-
-    def scaled(self, u: np.ndarray) -> np.ndarray:
-        """Inputs u (..., 2) ``[V, r_m]`` times the speed's and the gyro's scales."""
-        return u * np.array([self.speed_scale or 1.0, self.gyro_scale or 1.0])
-
-    @classmethod
-    def from_q(cls, Q: np.ndarray) -> GyroNoise:
-        """The defaults, with the process sigmas of a diagonal (3, 3) ``Q``."""
-        q = np.sqrt(np.diag(np.asarray(Q, dtype=float)))
-        return cls(q_position=float(np.sqrt(q[0] * q[1])), q_heading=float(q[2]))
-
-    @property
-    def Q(self) -> np.ndarray:
-        """(3, 3) process covariance of ``[x, y, psi]``."""
-        return np.diag([self.q_position**2, self.q_position**2, self.q_heading**2])
-
-    def rows(self, meas: Measurements, u: np.ndarray) -> np.ndarray:
-        """The filter's rows (T, 8) of measurements ``meas`` (T steps) and inputs u (T, 2)
-        ``[V, r_m]``: the fixes' reported accuracies scaled, the course's variance with the
-        velocity's sigma scaled and the allowance at the lever (its rows those the reported
-        sigma gives)."""
-        u = self.scaled(u)
-        scaled = dataclasses.replace(meas, fix_sigma=meas.fix_sigma * self.accuracy_scale)
-        return measure.rows(scaled, u[:, 0], u[:, 1], self.course_lever, self.velocity_scale)
-
-    def stepper(self) -> GyroKeywords:
-        """The keyword arguments of :class:`GyroStepper` and :func:`gyro_ekf_batch`."""
-        return {"gyro_sigma": self.gyro_sigma, "bias_walk": self.bias_walk,
-                "drift": self.drift, "speed_scale": self.speed_scale or 1.0,
-                "gyro_scale": self.gyro_scale or 1.0}
-
-    def save(self, path: str | Path) -> None:
-        """Write it as JSON (atomically); the drift's two numbers only where it carries one."""
-        from lbo.core.atomic import atomic_path
-
-        data = {k: v for k, v in dataclasses.asdict(self).items() if v is not None}
-        with atomic_path(Path(path)) as tmp:
-            Path(tmp).write_text(json.dumps(data, indent=1) + "\n")
-
-    @classmethod
-    def load(cls, path: str | Path) -> GyroNoise:
-        """Read what :meth:`save` wrote; anything else is a one-line error: a path that is
-        not a regular file of at most 64 KiB (:func:`lbo.core.smallfile.read_small`), not
-        JSON, not an object of the seven noises (with or without the drift's two and the
-        scales' two), or a noise that is not a number in its range (:data:`NOISE_RANGES`;
-        ``true`` is not 1)."""
-        names = [f.name for f in dataclasses.fields(cls) if f.name not in OPTIONAL]
-        form = (f"a JSON object of numbers with exactly {', '.join(sorted(names))} (and "
-                f"{' and '.join(DRIFT)} for the fixes' drift, {' and '.join(SCALES)} for the "
-                "inputs' scales, each pair both null for none)")
-        raw = read_small(path, f"gyro noise {path}", form)
-        try:
-            data: Any = json.loads(raw.decode("utf-8"))
-        except (ValueError, RecursionError) as e:  # UnicodeDecodeError is a ValueError
-            raise LboError(f"gyro noise {path}: not a readable JSON file ({e})") from None
-        if not isinstance(data, dict) or not set(names) <= set(data) or any(
-                set(data) & set(pair) not in (set(), set(pair)) for pair in (DRIFT, SCALES)) \
-                or not set(data) <= {*names, *OPTIONAL}:
-            raise LboError(f"gyro noise {path}: expected {form}")
-        return cls(**data)
-
-
-@dataclass(frozen=True)
-class FixDrift:
-    """The slow part of the fixes' error, as two more states of :class:`GyroStepper`: a
-    first-order Gauss-Markov drift on x and one on y, of stationary 1-sigma ``sigma`` (m) and
-    correlation time ``tau`` (s) (:func:`lbo.sim.truth.gauss_markov`'s). A fix then measures
-    the position plus its drift, and its R is the white rest of its error. An EKF with a white
-    R cannot tell a drift from the car's own motion; told its model, it can weigh two fixes a
-    second apart as the nearly common error they share."""
-
-    sigma: float
-    tau: float
-
-    def __post_init__(self) -> None:
-        for name in ("sigma", "tau"):
-            v = getattr(self, name)
-            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
-                raise LboError(f"fix drift {name}: expected a number > 0, got {v!r}")
 
 
 TESTED = np.arange(measure.MEASURED + 1) < measure.MEASURED
@@ -343,10 +139,70 @@ class GyroStepper:
         return (f"{why}; the heading's and the gyro bias's variances widened "
                 f"{self.widened[g]:.3g}-fold to learn the bias again")
 
-    def update(self, m: np.ndarray, u_prev: np.ndarray) -> np.ndarray:
-        """Predict with ``u_prev`` (G, 2) ``[V, r_m]`` of the last step, update with what row
-        m (G, 3) or (G, 8) holds; returns the pose (G, 3)."""
-        m = measure.widen(m)
+    @property
+    def coasts(self) -> bool:
+        """Whether :meth:`coast` may stand for a run of rows without a measurement: every
+        trajectory knows its heading (a blind one dead-reckons its course start)."""
+        return not self.course.blind.any()
+
+    def coast(self, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """n rows without a measurement at once, as n calls of :meth:`update` would give them
+        (poses to the last bit, covariances to rounding), where :attr:`coasts`. u : (G, n, 2)
+        ``u_{k-1}`` of each row. Returns the poses (G, n, 3) and their covariances (G, n, 3, 3).
+
+        A row where a trajectory stands takes its zero-rate update, as :meth:`update` does;
+        each run of rows between such rows is predicted at once (:meth:`_moving`)."""
+        g, n = u.shape[:2]
+        poses, covs = np.empty((g, n, 3)), np.empty((g, n, 3, 3))
+        still = (np.abs(u[..., 0] * self.scales[0]) < STILL_SPEED).any(0)
+        k = 0
+        while k < n:
+            if still[k]:
+                poses[:, k] = self.update(np.full((g, 3), np.nan), u[:, k])
+                covs[:, k] = self.P[:, :3, :3]
+                k += 1
+                continue
+            end = k + int(np.argmin(np.append(~still[k:], False)))  # the run's end
+            poses[:, k:end], covs[:, k:end] = self._moving(u[:, k:end])
+            k = end
+        return poses, covs
+
+    def _moving(self, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """j prediction-only steps of trajectories that all move, u (G, j, 2): the poses
+        (G, j, 3) and their covariances (G, j, 3, 3); the state is left at the last step's.
+
+        The bias is held, so the heading moves by the gyro alone and the poses are cumulative
+        sums, added in the order :meth:`_predict` adds them; the drift decays by a constant
+        factor; the covariance is the steps' maps composed
+        (:func:`lbo.filters.kalman.compose_covariance`)."""
+        from lbo.filters.kalman import compose_covariance
+
+        g, j = u.shape[:2]
+        v, rate = np.moveaxis(u * self.scales, -1, 0)  # (G, j) each
+        dt, x = self.dt, self.x
+        psi = np.cumsum(np.concatenate([x[:, 2:3], (rate - x[:, 3:4]) * dt], 1), 1)
+        before = psi[:, :-1]  # the heading each step starts from
+        east = np.cumsum(np.concatenate([x[:, :1], v * np.cos(before) * dt], 1), 1)
+        north = np.cumsum(np.concatenate([x[:, 1:2], v * np.sin(before) * dt], 1), 1)
+        drift = np.cumprod(np.concatenate(  # (G, j + 1, 0) without a drift
+            [x[:, None, 4:], np.full((g, j, x.shape[1] - 4), self.phi)], 1), 1)
+        F = np.tile(np.eye(x.shape[1]), (j, g, 1, 1))  # (j, G, n, n): the steps' Jacobians
+        F[..., 0, 2] = (-v * np.sin(before) * dt).T
+        F[..., 1, 2] = (v * np.cos(before) * dt).T
+        F[..., 2, 3] = -dt
+        F[..., 4:, 4:] *= self.phi
+        A, B = compose_covariance(F, np.broadcast_to(self.Q, F.shape))
+        P = A @ self.P @ A.swapaxes(-1, -2) + B
+        P = np.moveaxis(0.5 * (P + P.swapaxes(-1, -2)), 0, 1)  # (G, j, n, n)
+        self.x = np.concatenate([east[:, -1:], north[:, -1:], psi[:, -1:], x[:, 3:4],
+                                 drift[:, -1]], axis=1)
+        self.P = P[:, -1].copy()
+        return np.stack([east[:, 1:], north[:, 1:], psi[:, 1:]], -1), P[..., :3, :3]
+
+    def _predict(self, u_prev: np.ndarray) -> tuple[np.ndarray, ...]:
+        """One step of the model with ``u_prev`` (G, 2) ``[V, r_m]`` (the course start
+        dead-reckoned with it): the prior ``x, P``, ``cross``, and ``still`` (G,) bool and the
+        gyro's ``rate`` (G,) as read."""
         dt = self.dt
         u_prev = u_prev * self.scales
         v, rate = u_prev[:, 0], u_prev[:, 1]
@@ -365,6 +221,20 @@ class GyroStepper:
         cross = self.P @ F.swapaxes(-1, -2)
         P = F @ self.P @ F.swapaxes(-1, -2) + self.Q
         self.course.advance(u_prev, turn=np.where(still, 0.0, rate - bias))
+        return x, P, cross, still, rate
+
+    def update(self, m: np.ndarray, u_prev: np.ndarray) -> np.ndarray:
+        """Predict with ``u_prev`` (G, 2) ``[V, r_m]`` of the last step, update with what row
+        m (G, 3) or (G, 8) holds; returns the pose (G, 3)."""
+        m = measure.widen(m)
+        x, P, cross, still, rate = self._predict(u_prev)
+        if self.coasts and not np.isfinite(m).any():
+            # no channel in any trajectory (most rows of a log) and every heading known: at
+            # most the gyro's zero rate at standstill, one scalar update of the bias, taken
+            # without the general one
+            self.cross, self.prior = cross, (x, P)
+            self.x, self.P = _standstill(x, P, still, rate, self.gyro_var)
+            return self.x[:, :3]
         R = measure.step_cov(m, self.R)
         m, R, P, start = self.course.take(m, 0.5 * (R[:, 0, 0] + R[:, 1, 1]), P, R)
         cross[start, :, 2] = 0.0
@@ -397,6 +267,18 @@ class GyroStepper:
             self.P = widen(self.P, (2, 3), self.widened, failed)
             self.consistency.clear(failed)
         return self.x[:, :3]
+
+
+def _standstill(x: np.ndarray, P: np.ndarray, still: np.ndarray, rate: np.ndarray,
+                var: float) -> tuple[np.ndarray, np.ndarray]:
+    """The prior x (G, n), P (G, n, n) updated, where ``still`` (G,), with the gyro's reading
+    ``rate`` (G,) of the bias (variance ``var``): :func:`lbo.filters.update.joseph_update`
+    of that one channel, to rounding; P only symmetrised elsewhere."""
+    K = np.where(still[:, None], P[:, :, 3] / (P[:, 3, 3] + var)[:, None], 0.0)  # (G, n)
+    x = x + K * (rate - x[:, 3])[:, None]
+    I_KH = np.eye(x.shape[1]) - K[:, :, None] * (np.arange(x.shape[1]) == 3)
+    post = I_KH @ P @ I_KH.swapaxes(-1, -2) + var * K[:, :, None] * K[:, None, :]
+    return x, 0.5 * (post + post.swapaxes(-1, -2))
 
 
 def gyro_ekf_batch(m: np.ndarray, u: np.ndarray, vehicle: Vehicle, Q: np.ndarray,

@@ -48,7 +48,7 @@ import torch
 from lbo.core.checks import one_of
 from lbo.core.errors import LboError
 from lbo.filters import classical
-from lbo.filters.gyro import FixDrift, GyroNoise
+from lbo.filters.gyro_noise import FixDrift, GyroNoise
 from lbo.learn.eta import more
 from lbo.learn.gyro_logs import as_logs, estimates, segments
 from lbo.learn.variogram import RECEIVER_NOISES, receiver_scales

@@ -19,7 +19,7 @@ import torch
 from lbo.core.angles import wrap_angle
 from lbo.core.errors import LboError
 from lbo.filters import classical, measure
-from lbo.filters.gyro import GyroNoise
+from lbo.filters.gyro_noise import GyroNoise
 from lbo.models.gyro_filter import Segments
 from lbo.scoring.receiver import scored_rows
 from lbo.sim.columns import STATE

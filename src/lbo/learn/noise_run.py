@@ -38,7 +38,7 @@ from lbo.core.atomic import write_text
 from lbo.core.checks import require
 from lbo.core.errors import LboError
 from lbo.core.redact import scrub
-from lbo.filters.gyro import GyroNoise
+from lbo.filters.gyro_noise import GyroNoise
 from lbo.learn.gyro_fit import GyroFit, Settings
 from lbo.logs.sets import LogSpec, is_logs, spec_from_cfg
 from lbo.sim.columns import STATE

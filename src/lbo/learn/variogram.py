@@ -242,7 +242,7 @@ def course_errors(logs: pd.DataFrame | Sequence[pd.DataFrame],
 
 
 def receiver_scales(logs: pd.DataFrame | Sequence[pd.DataFrame]) -> tuple[float, float]:
-    """``(accuracy_scale, velocity_scale)`` of the gyro EKF (:class:`lbo.filters.gyro.
+    """``(accuracy_scale, velocity_scale)`` of the gyro EKF (:class:`lbo.filters.gyro_noise.
     GyroNoise`) the logs' receiver calls for: the fixes' :attr:`FixErrors.accuracy_scale` and
     the course's :attr:`Variogram.widening`."""
     return fix_errors(logs).accuracy_scale, course_errors(logs).widening

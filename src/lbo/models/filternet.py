@@ -39,7 +39,7 @@ from torch import nn
 
 from lbo.core.checks import integer, number, require
 from lbo.core.errors import LboError
-from lbo.filters import gyro as gyro_model
+from lbo.filters import gyro_noise
 from lbo.models.channels import feature_channels, window_channels
 from lbo.models.filter_step import FilterStep
 from lbo.models.frame import check_sigmas, frame_model
@@ -88,7 +88,7 @@ class WindowFilter(ProcessModel, FilterStep, nn.Module):
         corner, and travel from the generic car to the one in the data in fewer steps.
     gyro : turn the heading with a gyro's yaw rate less a bias (a fourth state) where a
         receiver's window holds one (:meth:`_receiver_filter`); the gyro's white noise, the
-        bias's start and its walk are learned, from :mod:`lbo.filters.gyro`'s defaults.
+        bias's start and its walk are learned, from :mod:`lbo.filters.gyro_noise`'s defaults.
         Needs a receiver's features and the kinematic bicycle without a residual.
     empty_statistic : R where the noise statistic holds nothing yet, one of
         :data:`EMPTY_STATISTIC`.
@@ -185,9 +185,9 @@ class WindowFilter(ProcessModel, FilterStep, nn.Module):
                            f"(in_features={len(FEATURES)}) on the kinematic bicycle without a "
                            f"residual, got True")
         self.gyro = gyro
-        for name, value in (("log_gyro_sigma", math.log(gyro_model.GYRO_SIGMA * self.dt)),
-                            ("log_bias_sigma", math.log(gyro_model.BIAS_SIGMA)),
-                            ("log_bias_walk", math.log(gyro_model.BIAS_WALK
+        for name, value in (("log_gyro_sigma", math.log(gyro_noise.GYRO_SIGMA * self.dt)),
+                            ("log_bias_sigma", math.log(gyro_noise.BIAS_SIGMA)),
+                            ("log_bias_walk", math.log(gyro_noise.BIAS_WALK
                                                        * math.sqrt(self.dt)))):
             if gyro:
                 self.register_parameter(name, nn.Parameter(torch.tensor(value)))

@@ -3,7 +3,7 @@
 :class:`GyroFilter` steps the same model and the same update as the NumPy stepper (a fix's
 reported accuracy as R, the course over ground, the zero-rate update at standstill; the
 Joseph form with the channels each row holds) in torch, so that a loss on its estimates
-reaches the seven numbers of :class:`lbo.filters.gyro.GyroNoise`, held here as their logs
+reaches the seven numbers of :class:`lbo.filters.gyro_noise.GyroNoise`, held here as their logs
 (:data:`UNITS`).
 It runs from a state the NumPy stepper gives (after the heading is known: the course start is
 the stepper's), over G segments at once; the noise it learns goes back into the NumPy
@@ -26,7 +26,7 @@ from torch import nn
 
 from lbo.filters import gyro as gyro_np
 from lbo.filters import measure
-from lbo.filters.gyro import GyroNoise
+from lbo.filters.gyro_noise import GyroNoise
 from lbo.models.poses import wrap_angle_torch
 from lbo.models.update import joseph
 

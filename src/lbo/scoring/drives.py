@@ -18,7 +18,7 @@ import numpy as np
 import pandas as pd
 
 from lbo.core.errors import LboError
-from lbo.filters.gyro import GyroNoise
+from lbo.filters.gyro_noise import GyroNoise
 from lbo.scoring.receiver import EKF, ratio_to, score
 from lbo.sim.vehicle import Vehicle
 

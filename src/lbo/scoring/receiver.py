@@ -20,7 +20,8 @@ import pandas as pd
 
 from lbo.core.errors import LboError
 from lbo.filters import classical, measure
-from lbo.filters.gyro import FixDrift, GyroNoise, gyro_ekf_batch
+from lbo.filters.gyro import gyro_ekf_batch
+from lbo.filters.gyro_noise import FixDrift, GyroNoise
 from lbo.logs.io import receiver
 from lbo.models.features import held_within
 from lbo.scoring.metrics import rmse
@@ -235,7 +236,7 @@ def oracle_gyro(log: pd.DataFrame, vehicle: Vehicle, position_sigma: float,
       the log as any causal filter must (:data:`NOISE_ORACLE`).
     - Each fix's R is its true 1-sigma ``position_sigma`` (m) in place of the reported
       accuracy: alpha times the receiver's white noise and drift combined, or, told the
-      ``drift`` (:class:`lbo.filters.gyro.FixDrift`, two more states), its white part.
+      ``drift`` (:class:`lbo.filters.gyro_noise.FixDrift`, two more states), its white part.
     - The process noise is the truth's on x and y (``process_sigma``, m a step) and none on the
       heading beyond the gyro's white noise ``gyro_sigma`` (rad/s): the gyro reads the true
       turn, process noise included.

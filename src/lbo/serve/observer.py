@@ -31,7 +31,7 @@ import numpy as np
 from lbo.core.angles import wrap_angle
 from lbo.core.errors import LboError
 from lbo.filters import classical
-from lbo.filters.gyro import GyroNoise
+from lbo.filters.gyro_noise import GyroNoise
 from lbo.filters.inputs import InputTerms
 from lbo.logs.checks import check_device
 from lbo.models import checkpoint
@@ -216,7 +216,7 @@ class Observer:
         form : how a learned filter runs (:data:`FORMS`); None: :func:`default_form`.
         envelope_mode : ``"warn"``, ``"mark"`` or ``"off"``: what to do with samples outside
             the envelope of a learned observer's training inputs (see :class:`Observer`).
-        gyro_noise : the noise of ``"gyro"`` (:class:`lbo.filters.gyro.GyroNoise`, e.g. as
+        gyro_noise : the noise of ``"gyro"`` (:class:`lbo.filters.gyro_noise.GyroNoise`, e.g. as
             :mod:`lbo.learn.gyro_fit` learns it from a drive); None: its defaults.
         inputs : the terms the inputs are undone by (see :class:`Observer`); None: none.
 

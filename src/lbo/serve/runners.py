@@ -27,7 +27,7 @@ import numpy as np
 from lbo.core.angles import wrap_angle
 from lbo.core.errors import LboError
 from lbo.filters import classical, measure
-from lbo.filters.gyro import GyroNoise
+from lbo.filters.gyro_noise import GyroNoise
 from lbo.models.features import held_within, window_view
 from lbo.serve import carry, refusals
 from lbo.serve.engines import make_predictor, make_recursive_step

@@ -108,7 +108,7 @@ def learned_noise(source: str) -> tuple[Any, Any, Any] | None:
     run's id: ``(GyroNoise, Vehicle, Noise)`` (its noise, and the vehicle and classical preset
     it was learned with), read as data, never run. None for any other source (a checkpoint, a
     learned observer's run), which is then loaded as a checkpoint."""
-    from lbo.filters.gyro import GyroNoise
+    from lbo.filters.gyro_noise import GyroNoise
     from lbo.models.checkpoint import trained_conditions
 
     if not RUN_ID.fullmatch(source):
