@@ -116,13 +116,12 @@ def segments(logs: pd.DataFrame | Sequence[pd.DataFrame], noise: GyroNoise, vehi
     parts = []
     for (meas, u_g), log, s in zip(read, logs, starts):
         idx = s[:, None] + np.arange(length)
-        sv = np.where(np.isfinite(meas.velocity_sigma), meas.velocity_sigma, measure.SV_DEFAULT)
+        sigma = np.where(np.isfinite(meas.velocity_sigma), meas.velocity_sigma,
+                         measure.SV_DEFAULT)
         ve, vn = meas.velocity[:, 0], meas.velocity[:, 1]
-        course = np.arctan2(vn, ve) + np.where(u_g[:, 0] < 0, np.pi, 0.0)
-        parts.append([meas.fix[idx], meas.fix_sigma[idx], wrap_angle(course)[idx],
-                      np.hypot(ve, vn)[idx], sv[idx], u_g[idx], truth(log)[idx]])
-    as_t = lambda a: torch.as_tensor(np.ascontiguousarray(a), dtype=torch.float64)  # noqa: E731
-    fix, accuracy, course, speed, sv, u_seg, true = (as_t(np.concatenate(f))
-                                                     for f in zip(*parts))
-    return Segments(x0=as_t(x0), P0=as_t(P0), fix=fix, accuracy=accuracy, course=course,
-                    speed=speed, sv=sv, u=u_seg, truth=true)
+        heading = np.arctan2(vn, ve) + np.where(u_g[:, 0] < 0, np.pi, 0.0)
+        parts.append([meas.fix[idx], meas.fix_sigma[idx], wrap_angle(heading)[idx],
+                      np.hypot(ve, vn)[idx], sigma[idx], u_g[idx], truth(log)[idx]])
+    joined = [torch.as_tensor(np.ascontiguousarray(np.concatenate(f)), dtype=torch.float64)
+              for f in zip(*parts)]
+    return Segments(torch.as_tensor(x0), torch.as_tensor(P0), *joined)
