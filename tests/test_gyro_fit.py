@@ -61,12 +61,14 @@ def test_trusting_the_velocity_less_widens_its_course_but_keeps_its_rows(log):
 
 @pytest.mark.parametrize("noise", [OTHER, DRIFTING, SCALED], ids=["white", "drift", "scales"])
 def test_the_torch_twin_steps_as_the_numpy_gyro_ekf(log, noise):
-    seg = gyro_logs.segments(log, noise, VEHICLE, R, 400)
+    # 333 steps: every segment but the first starts between two fixes (one every 50 steps),
+    # inside a run of rows the NumPy filter coasts through
+    seg = gyro_logs.segments(log, noise, VEHICLE, R, 333)
     assert seg.x0.shape[1] == (4 if noise.drift is None else 6)
     est = GyroFilter(noise, VEHICLE.dt, torch.as_tensor(R))(seg).detach().numpy()
     full = gyro_logs.estimates(log, noise, VEHICLE, R)[0]
     first = int(np.argmax(scored_rows(log)))
-    rows = first + 400 * np.arange(len(est))[:, None] + np.arange(400)
+    rows = first + 333 * np.arange(len(est))[:, None] + np.arange(333)
     assert len(est) >= 5 and np.abs(est - full[rows]).max() < 1e-9
     # ... the same stretches under another noise differ: the comparison can fail
     other = GyroFilter(dataclasses.replace(START, **{k: getattr(noise, k) for k in OPTIONAL}),

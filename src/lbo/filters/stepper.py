@@ -64,7 +64,8 @@ def run_stepper(kf: Any, m: np.ndarray, u: np.ndarray,
                 pose: Callable[[Any], np.ndarray] = lambda kf: kf.x,
                 cov: Callable[[Any], np.ndarray] = lambda kf: kf.P, smooth: bool = False,
                 progress: str | None = None, lengths: np.ndarray | None = None,
-                record: Recorder | None = None) -> Posterior:
+                record: Recorder | None = None, stops: np.ndarray | None = None
+                ) -> Posterior:
     """The time loop of a batch filter: a stepper ``kf`` started at ``m[:, 0]``, updated with
     every later step. ``pose(kf)`` (G, 3) and ``cov(kf)`` (G, 3, 3) read its estimate and
     covariance. Returns the :class:`Posterior` of the (G, T, 3) estimates and their
@@ -75,7 +76,9 @@ def run_stepper(kf: Any, m: np.ndarray, u: np.ndarray,
     ``progress``: show a tqdm bar over the time steps with this name; ``lengths`` (G,): the
     real steps of padded trajectories, which the smoother does not smooth across;
     ``record(kf, k)``: called after the start (k = 0), each update (k) and each coast
-    (k a slice of its rows), to keep what else the stepper says of a row."""
+    (k a slice of its rows), to keep what else the stepper says of a row; ``stops`` (T,)
+    bool: rows no coast runs past, so that ``record`` sees the stepper's state there (a
+    coast leaves it at its last row)."""
     from lbo.filters.smoother import rts
 
     g, t = m.shape[:2]
@@ -92,11 +95,14 @@ def run_stepper(kf: Any, m: np.ndarray, u: np.ndarray,
     # rows where no trajectory holds any channel: a stepper that can (``coasts``) takes each
     # run of them in one call (most rows of a log with 1-10 Hz fixes at 50 Hz)
     quiet = ~np.isfinite(m).any(axis=(0, 2))
+    ends = quiet.copy()  # where a run may go on past a row: quiet, and not a stop
+    if stops is not None:
+        ends &= ~np.asarray(stops, dtype=bool)
     can_coast = not smooth and hasattr(kf, "coast")
     k = 1
     while k < t:
         if can_coast and quiet[k] and kf.coasts:
-            end = k + int(np.argmin(np.append(quiet[k:], False)))  # the run's end
+            end = k + 1 + int(np.argmin(np.append(ends[k:-1] & quiet[k + 1:], False)))
             est[:, k:end], covs[:, k:end] = kf.coast(u[:, k - 1:end - 1])
             if record is not None:
                 record(kf, slice(k, end))

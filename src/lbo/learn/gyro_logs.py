@@ -3,14 +3,16 @@ estimates, and the segments its torch twin learns on with the states they start 
 
 Every log of a call runs in one batch of the filter (each its own trajectory, padded to the
 longest), so a fit on several drives loops over the time steps of one drive, not of them all:
-the filter is recursive, so its Python loop is over time, and everything else is an array op
-across the logs. Each trajectory is independent of the others in the batch (its own update,
+the filter is recursive, so its Python loop is over time (the rows between fixes taken a run at
+a time, :meth:`lbo.filters.gyro.GyroStepper.coast`), and everything else is an array op across
+the logs. Each trajectory is independent of the others in the batch (its own update,
 consistency window and course start), so a log's numbers are those it has alone.
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 import pandas as pd
@@ -20,6 +22,7 @@ from lbo.core.angles import wrap_angle
 from lbo.core.errors import LboError
 from lbo.filters import classical, measure
 from lbo.filters.gyro_noise import GyroNoise
+from lbo.filters.stepper import run_stepper
 from lbo.models.gyro_filter import Segments
 from lbo.scoring.receiver import scored_rows
 from lbo.sim.columns import STATE
@@ -107,12 +110,14 @@ def segments(logs: pd.DataFrame | Sequence[pd.DataFrame], noise: GyroNoise, vehi
     x0 = np.empty((len(log_of),) + flt.x.shape[1:])
     P0 = np.empty((len(log_of),) + flt.P.shape[1:])
     taken = {int(k): np.flatnonzero(step_of == k) for k in np.unique(step_of)}
-    for k in range(m.shape[1]):
-        if k:
-            flt.update(m[:, k], u[:, k - 1])
-        if k in taken:
-            now = taken[k]
-            x0[now], P0[now] = flt.x[log_of[now]], flt.P[log_of[now]]
+
+    def keep(kf: Any, k: int | slice) -> None:  # the state at a segment's first step
+        now = taken.get(k.stop - 1 if isinstance(k, slice) else k)
+        if now is not None:
+            x0[now], P0[now] = kf.x[log_of[now]], kf.P[log_of[now]]
+
+    run_stepper(flt, m, u, pose=lambda kf: kf.x[:, :3], cov=lambda kf: kf.P[:, :3, :3],
+                record=keep, stops=np.isin(np.arange(m.shape[1]), step_of))
     parts = []
     for (meas, u_g), log, s in zip(read, logs, starts):
         idx = s[:, None] + np.arange(length)
