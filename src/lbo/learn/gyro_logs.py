@@ -6,7 +6,8 @@ longest), so a fit on several drives loops over the time steps of one drive, not
 the filter is recursive, so its Python loop is over time (the rows between fixes taken a run at
 a time, :meth:`lbo.filters.gyro.GyroStepper.coast`), and everything else is an array op across
 the logs. Each trajectory is independent of the others in the batch (its own update,
-consistency window and course start), so a log's numbers are those it has alone.
+consistency window and course start), so a log's numbers are those it has alone, to rounding
+(which rows coast, and which step one by one, depends on every log's fixes and standstills).
 """
 
 from __future__ import annotations
@@ -30,7 +31,7 @@ from lbo.sim.measurements import Measurements
 from lbo.sim.noise import Noise
 from lbo.sim.vehicle import Vehicle
 
-__all__ = ["as_logs", "columns", "estimates", "segments", "truth"]
+__all__ = ["as_logs", "estimates", "segments"]
 
 
 def as_logs(logs: pd.DataFrame | Sequence[pd.DataFrame]) -> list[pd.DataFrame]:
@@ -38,7 +39,7 @@ def as_logs(logs: pd.DataFrame | Sequence[pd.DataFrame]) -> list[pd.DataFrame]:
     return [logs] if isinstance(logs, pd.DataFrame) else list(logs)
 
 
-def columns(log: pd.DataFrame) -> tuple[Measurements, np.ndarray]:
+def _columns(log: pd.DataFrame) -> tuple[Measurements, np.ndarray]:
     """The log's measurements (T steps) and inputs u (T, 2) ``[V, r_m]``."""
     if "r_m" not in log:
         raise LboError("the gyro EKF's noise is learned from a log with a gyro: no r_m column")
@@ -49,7 +50,7 @@ def columns(log: pd.DataFrame) -> tuple[Measurements, np.ndarray]:
     return meas, log[["V", "r_m"]].to_numpy(dtype=float)
 
 
-def truth(log: pd.DataFrame) -> np.ndarray:
+def _truth(log: pd.DataFrame) -> np.ndarray:
     """The log's truth (T, 3) ``[x, y, psi]``; NaN where it has none (a fleet's log: learned
     from its innovations)."""
     if all(c in log for c in STATE):
@@ -77,7 +78,7 @@ def estimates(logs: pd.DataFrame | Sequence[pd.DataFrame], noise: GyroNoise, veh
     """The gyro EKF's estimates (T_g, 3) of each log under ``noise`` (NaN before its first
     fix); R (3, 3): the fixes' covariance where one reports no accuracy."""
     logs = as_logs(logs)
-    read = [columns(log) for log in logs]
+    read = [_columns(log) for log in logs]
     rows = _padded([measure.widen(noise.rows(meas, u)) for meas, u in read], np.nan)
     est = classical.estimate(classical.GYRO, rows, _padded([u for _, u in read], 0.0),
                              vehicle, _preset(noise, R), gyro=noise).mean
@@ -90,7 +91,7 @@ def segments(logs: pd.DataFrame | Sequence[pd.DataFrame], noise: GyroNoise, vehi
     one dropped), each started from the NumPy gyro EKF's state under ``noise`` at its first
     step; the logs' segments in turn, each log's in time order."""
     logs = as_logs(logs)
-    read = [columns(log) for log in logs]
+    read = [_columns(log) for log in logs]
     rows = [measure.widen(noise.rows(meas, u)) for meas, u in read]
     starts, begins = [], []
     for log, r in zip(logs, rows):
@@ -126,7 +127,7 @@ def segments(logs: pd.DataFrame | Sequence[pd.DataFrame], noise: GyroNoise, vehi
         ve, vn = meas.velocity[:, 0], meas.velocity[:, 1]
         heading = np.arctan2(vn, ve) + np.where(u_g[:, 0] < 0, np.pi, 0.0)
         parts.append([meas.fix[idx], meas.fix_sigma[idx], wrap_angle(heading)[idx],
-                      np.hypot(ve, vn)[idx], sigma[idx], u_g[idx], truth(log)[idx]])
+                      np.hypot(ve, vn)[idx], sigma[idx], u_g[idx], _truth(log)[idx]])
     joined = [torch.as_tensor(np.ascontiguousarray(np.concatenate(f)), dtype=torch.float64)
               for f in zip(*parts)]
     return Segments(torch.as_tensor(x0), torch.as_tensor(P0), *joined)
