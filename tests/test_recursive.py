@@ -37,9 +37,11 @@ def _net(kind: str, window: int = 60, seed: int = 0) -> WindowFilter:
     return _observer_net(kind, window, seed).net
 
 
-def _logs(g: int, t: int, fixes: bool, seed: int = 1) -> tuple[np.ndarray, np.ndarray]:
+def _logs(g: int, t: int, fixes: bool, seed: int = 1,
+          gap: int = 40) -> tuple[np.ndarray, np.ndarray]:
     """G noisy logs of a car turning gently, (G, T, 3) and (G, T, 2); with ``fixes``, two of
-    three rows and a stretch of 40 have no fix, and the first fix comes at row 3."""
+    three rows and a stretch of ``gap`` from row 100 have no fix, and the first fix comes at
+    row 3."""
     rng = np.random.default_rng(seed)
     k = np.arange(t)
     psi = 0.002 * k[None, :] + rng.uniform(-3, 3, (g, 1))
@@ -49,19 +51,20 @@ def _logs(g: int, t: int, fixes: bool, seed: int = 1) -> tuple[np.ndarray, np.nd
     m[..., 2] = (m[..., 2] + np.pi) % (2 * np.pi) - np.pi
     u = np.stack([np.full((g, t), 10.0), np.full((g, t), 0.002 * 2.7 / 0.2)], -1)
     if fixes:
-        m[:, (k % 3 != 0) | ((k > 100) & (k < 140)) | (k < 3)] = np.nan
+        m[:, (k % 3 != 0) | ((k > 100) & (k < 100 + gap)) | (k < 3)] = np.nan
     return m, u
 
 
 def test_rows_without_a_measurement_coast_to_the_numbers_of_one_step_each():
     """A log's run takes each stretch of rows without any measurement in one coast
     (RecursiveFilter.coast): the poses and covariances of one step per row, in chunks of
-    coast_limit rows (a 40-row gap at N=30), on every engine."""
-    net = _observer_net("fixes", window=30)
+    coast_limit rows (a 70-row gap at N=60), on every engine. The net is the one whose ONNX
+    step test_torchscript_and_onnx_steps_equal_pytorch[fixes] checks: one export for both."""
+    net = _observer_net("fixes")
     rec = RecursiveFilter(net.net)
-    assert rec.coasts and rec.coast_limit == 29
+    assert rec.coasts and rec.coast_limit == 59
     assert not any(RecursiveFilter(_net(kind)).coasts for kind in VARIANTS if kind != "fixes")
-    m, u = _logs(1, 300, True)
+    m, u = _logs(1, 300, True, gap=70)
     with torch.no_grad():
         est, cov, _ = rec.run(torch.from_numpy(m), torch.from_numpy(u))  # one step per row
     for engine in ("torch", "onnx"):
@@ -78,7 +81,7 @@ def test_rows_without_a_measurement_coast_to_the_numbers_of_one_step_each():
         np.testing.assert_allclose(got_cov, cov[0].numpy(), rtol=0, atol=atol, equal_nan=True)
         assert valid.sum() == np.isfinite(est[0, :, 0].numpy()).sum()
     with pytest.raises(ValueError, match="coast takes 1 to coast_limit rows"):
-        rec.coast(torch.from_numpy(u[0, :30]), *rec.initial_state(1))
+        rec.coast(torch.from_numpy(u[0, :60]), *rec.initial_state(1))
 
 
 @pytest.mark.parametrize("kind", list(VARIANTS))
