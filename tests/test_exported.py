@@ -26,7 +26,8 @@ NO_TORCH = "import sys; sys.modules['torch'] = None  # any import of torch fails
 
 @pytest.fixture(scope="module")
 def kept(robust_smoke, tmp_path_factory):
-    """The robust observer's checkpoint, its graphs kept in a cache folder of this module."""
+    """The robust observer's checkpoint, its graphs kept (exported: lbo's ONNX cache, a folder
+    of this module, is empty), and in that cache too."""
     cache = tmp_path_factory.mktemp("cache")
     with pytest.MonkeyPatch.context() as mp:
         mp.setenv("LBO_CACHE_DIR", str(cache))
@@ -36,6 +37,8 @@ def kept(robust_smoke, tmp_path_factory):
         assert folder == exported.folder(checkpoint)
         assert sorted(p.name for p in folder.iterdir()) == ["coast.onnx", "observer.json",
                                                             "step.onnx"]
+        assert sorted(p.name.split("-")[0] for p in (cache / "onnx").glob("*.onnx")) == [
+            "coast", "recursive"]  # beside the kept folder, onnx/observer-<key>/
         yield {"checkpoint": checkpoint, "cache": str(cache), "folder": folder}
 
 
@@ -237,14 +240,24 @@ def test_a_damaged_kept_folder_is_said_and_runs_in_pytorch(copy, log, damage):
         np.testing.assert_array_equal(got, want)
 
 
-def test_engine_onnx_exports_a_damaged_kept_folder_afresh(copy, log):
-    """``engine=onnx`` on a folder that fails its check exports the graphs again and keeps
-    them; the next ``auto`` runs them, with PyTorch's numbers."""
+def test_engine_onnx_keeps_a_damaged_kept_folder_again_from_lbos_onnx_cache(copy, log,
+                                                                           monkeypatch):
+    """``engine=onnx`` on a folder that fails its check keeps the graphs again, from lbo's
+    ONNX cache, which holds the graphs the folder was first kept with (``kept``: exported
+    there, into an empty cache): the same bytes, no export; the next ``auto`` runs them, with
+    PyTorch's numbers."""
+    def exporting(*args):
+        raise AssertionError("exported again, though lbo's ONNX cache holds the graphs")
+
+    monkeypatch.setattr(exported, "recursive_onnx_bytes", exporting)
+    monkeypatch.setattr(exported, "_coast_bytes", exporting)
     _damage(copy, "step cut short")
-    with pytest.warns(exported.KeptGraphsWarning, match="exporting them afresh"):
+    with pytest.warns(exported.KeptGraphsWarning, match="keeping them again"):
         obs = Observer.load(copy["checkpoint"], engine="onnx")
     assert isinstance(obs.net, exported.ExportedNet)
     assert exported.find(copy["checkpoint"]) is not None
+    for name in ("step.onnx", "coast.onnx"):
+        assert (copy["folder"] / name).read_bytes() == copy["files"][name]
     obs = Observer.load(copy["checkpoint"], engine="auto")
     assert obs.engine == "onnx"
     est, ok, _ = _run(obs, log)

@@ -35,7 +35,16 @@ from lbo.core import sources
 from lbo.core.errors import LboError
 from lbo.core.paths import cache_dir
 from lbo.models.checkpoint import hyperparameters, stored_lateral_error
-from lbo.serve.engines import OPSET, Coast, RecursiveStep, chunked, onnx_session, onnx_step
+from lbo.serve.engines import (
+    OPSET,
+    Coast,
+    RecursiveStep,
+    chunked,
+    kept_export,
+    onnx_session,
+    onnx_step,
+    recursive_onnx_bytes,
+)
 from lbo.serve.onnx_cache import SOURCES, version
 
 FORMAT = 2
@@ -158,14 +167,15 @@ def _find(checkpoint: str | os.PathLike) -> tuple[ExportedNet, dict[str, Any]] |
 def load(checkpoint: str | os.PathLike, engine: str) -> tuple[ExportedNet, dict[str, Any]] | None:
     """:func:`find`'s answer for ``Observer.load`` on ``engine`` (``auto`` or ``onnx``); a
     folder that fails its check is removed and said (:class:`KeptGraphsWarning`): ``auto``
-    then runs the observer in PyTorch, ``onnx`` exports its graphs afresh and keeps them
-    (torch, about 20 s)."""
+    then runs the observer in PyTorch, ``onnx`` keeps its graphs again (:func:`keep`: from
+    lbo's ONNX cache, else exported afresh, about 20 s; torch either way)."""
     try:
         return _find(checkpoint)
     except DamagedGraphs as e:
         discard(folder(checkpoint))
-        then = ("running it in PyTorch (engine=onnx exports them afresh)" if engine == "auto"
-                else "exporting them afresh (about 20 s)")
+        then = ("running it in PyTorch (engine=onnx keeps them again)" if engine == "auto"
+                else "keeping them again (an export, about 20 s, where lbo's ONNX cache "
+                     "holds none)")
         warnings.warn(f"{e}; removed them, {then}", KeptGraphsWarning, stacklevel=3)
         if engine == "auto":
             return None
@@ -232,10 +242,12 @@ def _read(where: Path, hp: dict[str, Any]) -> ExportedNet:
 def keep(net: Any, checkpoint: str | os.PathLike) -> Path:
     """Export the recursive form of ``net`` (a window filter's
     :class:`~lbo.models.net.WindowNet`, read from ``checkpoint``) and keep it for
-    :func:`find`, replacing a folder that fails its check; returns the folder. Needs torch;
-    raises :class:`~lbo.core.errors.LboError` where the model does not export."""
+    :func:`find`, replacing a folder that fails its check; returns the folder. Each graph
+    comes through lbo's ONNX cache (:func:`lbo.serve.engines.kept_export`): a folder kept
+    again, an ``engine=onnx`` session and ``lbo.export`` of the same model export nothing
+    anew. Needs torch; raises :class:`~lbo.core.errors.LboError` where the model does not
+    export."""
     from lbo.models.recursive import STATE_NAMES, RecursiveFilter
-    from lbo.serve.engines import recursive_onnx_bytes
 
     target = folder(checkpoint)
     try:
@@ -243,11 +255,19 @@ def keep(net: Any, checkpoint: str | os.PathLike) -> Path:
             return target
     except DamagedGraphs:
         discard(target)
-    rec = RecursiveFilter(net.net.cpu()).eval()
+
+    def fresh() -> Any:
+        # built as lbo.export and engine=onnx build it, and each export puts its module in
+        # eval mode: one filter a graph, so that each graph's cache key is theirs
+        return RecursiveFilter(net.net.cpu())
+
+    rec = fresh()
     inner = net.net
-    graphs = {"step.onnx": recursive_onnx_bytes(rec)}
+    graphs = {"step.onnx": kept_export(rec, "recursive", lambda: recursive_onnx_bytes(rec))[0]}
     if rec.coasts:
-        graphs["coast.onnx"] = _coast_bytes(rec)
+        coasting = fresh()
+        graphs["coast.onnx"] = kept_export(coasting, "coast",
+                                           lambda: _coast_bytes(coasting))[0]
     # only what the checkpoint's hyperparameters do not hold, and each graph's digest:
     # whatever an observer is told about its training (vehicle, noise, envelope) is read
     # from the checkpoint itself (find)
