@@ -266,6 +266,21 @@ def test_engine_onnx_keeps_a_damaged_kept_folder_again_from_lbos_onnx_cache(copy
     np.testing.assert_allclose(est[ok], ref[ok], rtol=0, atol=TOLERANCE)
 
 
+def test_lbo_export_of_the_kept_observer_exports_nothing_anew(cache, tmp_path, monkeypatch):
+    """The graphs kept for a checkpoint are in lbo's ONNX cache: ``lbo.export`` of its observer
+    writes the kept step (checked against PyTorch, as always) without exporting again."""
+    import lbo.export as command
+
+    def exporting(*args):
+        raise AssertionError("exported again, though lbo's ONNX cache holds the step")
+
+    monkeypatch.setattr(command, "recursive_onnx_bytes", exporting)
+    obs = Observer.load(cache["checkpoint"], engine="torch")
+    assert obs.form == "recursive"
+    paths = command.export(obs, tmp_path)
+    assert paths["onnx"].read_bytes() == (cache["folder"] / "step.onnx").read_bytes()
+
+
 def test_what_the_kept_graphs_refuse_is_said_in_one_line(cache, log):
     obs = Observer.load(cache["checkpoint"], engine="onnx")
     assert isinstance(obs.net, exported.ExportedNet)
