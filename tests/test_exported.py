@@ -222,6 +222,11 @@ def _damage(copy, damage: str) -> None:
         (folder / "observer.json").write_text(json.dumps(info))
 
 
+def _exporting(*args) -> bytes:
+    """In place of an exporter where lbo's ONNX cache holds the graph: fails the test."""
+    raise AssertionError("exported again, though lbo's ONNX cache holds the graph")
+
+
 @pytest.mark.parametrize("damage", ["step cut short", "coast empty", "coast as step",
                                     "digest edited"])
 def test_a_damaged_kept_folder_is_said_and_runs_in_pytorch(copy, log, damage):
@@ -246,11 +251,8 @@ def test_engine_onnx_keeps_a_damaged_kept_folder_again_from_lbos_onnx_cache(copy
     ONNX cache, which holds the graphs the folder was first kept with (``kept``: exported
     there, into an empty cache): the same bytes, no export; the next ``auto`` runs them, with
     PyTorch's numbers."""
-    def exporting(*args):
-        raise AssertionError("exported again, though lbo's ONNX cache holds the graphs")
-
-    monkeypatch.setattr(exported, "recursive_onnx_bytes", exporting)
-    monkeypatch.setattr(exported, "_coast_bytes", exporting)
+    monkeypatch.setattr(exported, "recursive_onnx_bytes", _exporting)
+    monkeypatch.setattr(exported, "_coast_bytes", _exporting)
     _damage(copy, "step cut short")
     with pytest.warns(exported.KeptGraphsWarning, match="keeping them again"):
         obs = Observer.load(copy["checkpoint"], engine="onnx")
@@ -271,10 +273,7 @@ def test_lbo_export_of_the_kept_observer_exports_nothing_anew(cache, tmp_path, m
     writes the kept step (checked against PyTorch, as always) without exporting again."""
     import lbo.export as command
 
-    def exporting(*args):
-        raise AssertionError("exported again, though lbo's ONNX cache holds the step")
-
-    monkeypatch.setattr(command, "recursive_onnx_bytes", exporting)
+    monkeypatch.setattr(command, "recursive_onnx_bytes", _exporting)
     obs = Observer.load(cache["checkpoint"], engine="torch")
     assert obs.form == "recursive"
     paths = command.export(obs, tmp_path)

@@ -40,8 +40,7 @@ def _net(kind: str, window: int = 60, seed: int = 0) -> WindowFilter:
 def _logs(g: int, t: int, fixes: bool, seed: int = 1,
           gap: int = 40) -> tuple[np.ndarray, np.ndarray]:
     """G noisy logs of a car turning gently, (G, T, 3) and (G, T, 2); with ``fixes``, two of
-    three rows and a stretch of ``gap`` from row 100 have no fix, and the first fix comes at
-    row 3."""
+    three rows and rows 101 to 99 + ``gap`` have no fix, and the first fix comes at row 3."""
     rng = np.random.default_rng(seed)
     k = np.arange(t)
     psi = 0.002 * k[None, :] + rng.uniform(-3, 3, (g, 1))

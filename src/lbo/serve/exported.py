@@ -257,8 +257,9 @@ def keep(net: Any, checkpoint: str | os.PathLike) -> Path:
         discard(target)
 
     def fresh() -> Any:
-        # built as lbo.export and engine=onnx build it, and each export puts its module in
-        # eval mode: one filter a graph, so that each graph's cache key is theirs
+        # a filter per graph, each as lbo.export and engine=onnx build theirs: the cache key
+        # reads the module's train/eval flag, and an export sets it to eval, so a filter
+        # exported once keys the next graph differently from a cache hit's
         return RecursiveFilter(net.net.cpu())
 
     rec = fresh()
