@@ -145,17 +145,50 @@ def test_every_command_that_fits_the_gyro_ekf_takes_the_setting(path, group):
     cfg = OmegaConf.load(path)
     learn = cfg[group] if group else cfg
     assert Settings.from_cfg(learn).kwargs(0.02)["receiver_noise"] == "learned"  # the default
+    assert Settings.from_cfg(learn).kwargs(0.02)["hold"] == ()  # nothing held by default
     learn.receiver_noise = "variogram"
+    learn.hold = ["q_position", "course_lever"]
     assert Settings.from_cfg(learn).kwargs(0.02)["receiver_noise"] == "variogram"
+    assert Settings.from_cfg(learn).kwargs(0.02)["hold"] == ("q_position", "course_lever")
+
+
+@pytest.mark.parametrize("hold, line", [
+    (["q_pos"], "learn.hold: expected names among q_position, q_heading, gyro_sigma, "
+                "bias_walk, accuracy_scale, velocity_scale, course_lever, drift_sigma, "
+                "drift_tau, speed_scale, gyro_scale, got 'q_pos'"),
+    ("q_position", "learn.hold: expected a list of the gyro EKF's noise names, got "
+                   "'q_position'"),
+    ([1], "learn.hold: expected a list of the gyro EKF's noise names, got [1]")])
+def test_a_hold_that_names_no_noise_is_one_line(hold, line):
+    learn = OmegaConf.create({"epochs": 1, "segment_s": 10.0, "lr": 0.1, "hold": hold})
+    with pytest.raises(LboError, match=f"^{re.escape(line)}$"):
+        Settings.from_cfg(learn)
+
+
+def test_a_fit_holds_only_noises_its_filter_carries_and_leaves_one_to_learn():
+    """Checked before any step: a drift's noise without the drift, and every noise held."""
+    log = gyro_drive.draw(0).drop(columns=["x", "y", "psi"])
+    start = GyroNoise.from_q(np.diag([0.0667**2, 0.0667**2, 0.00113**2]))
+    R = np.diag([1.0, 1.0, 0.0174**2])
+    with pytest.raises(LboError, match=r"^hold: drift_sigma is not a noise of this filter \(it "
+                                       r"carries q_position, .*, course_lever\)$"):
+        gyro_fit.fit(log, log, gyro_drive.VEHICLE, R, start, progress=None,
+                     objective="innovations", hold=["drift_sigma"])
+    every = [f.name for f in dataclasses.fields(start) if getattr(start, f.name) is not None]
+    with pytest.raises(LboError, match=r"^hold: every noise of the filter is held or set by its "
+                                       r"logs \(.*\): nothing is left to learn$"):
+        gyro_fit.fit(log, log, gyro_drive.VEHICLE, R, start, progress=None,
+                     objective="innovations", hold=every)
 
 
 @pytest.mark.slow  # a fit: about 5 s
-def test_the_fit_keeps_the_factors_the_receiver_calls_for_and_learns_the_rest():
+def test_the_fit_keeps_the_factors_the_receiver_calls_for_and_what_it_holds_and_learns_the_rest():
     log = gyro_drive.draw(0).drop(columns=["x", "y", "psi"])  # no truth to read
     start = GyroNoise.from_q(np.diag([0.0667**2, 0.0667**2, 0.00113**2]))
     R = np.diag([1.0, 1.0, 0.0174**2])
     fitted = gyro_fit.fit(log, log, gyro_drive.VEHICLE, R, start, epochs=1, segment=500,
-                          progress=None, objective="innovations", receiver_noise="variogram")
+                          progress=None, objective="innovations", receiver_noise="variogram",
+                          hold=["course_lever"])
     accuracy, velocity = receiver_scales(log)
     assert fitted.start == dataclasses.replace(start, accuracy_scale=accuracy,
                                                velocity_scale=velocity)
@@ -166,6 +199,9 @@ def test_the_fit_keeps_the_factors_the_receiver_calls_for_and_learns_the_rest():
     assert fitted.noise.q_position != pytest.approx(start.q_position, rel=1e-3)
     assert (fitted.noise.accuracy_scale, fitted.noise.velocity_scale) == pytest.approx(
         (accuracy, velocity), rel=1e-12)
+    # held: where it started (a noise learned moves in that step, as q_position did)
+    assert fitted.noise.course_lever == pytest.approx(start.course_lever, rel=1e-12)
+    assert fitted.noise.q_heading != pytest.approx(start.q_heading, rel=1e-3)
 
 
 @pytest.mark.slow  # a fit: about 5 s

@@ -26,6 +26,11 @@ by gradient descent on the estimates' error against the truth.
   not learned but set from the train logs (:mod:`lbo.learn.variogram`: how slow the fixes'
   and the course's errors are, which the innovations cannot see), and the rest learned as the
   objective says.
+- ``hold``: noises kept at ``start``'s values, not learned. With the variogram's factors, the
+  innovations' likelihood sees the fixes vary less from one to the next than the widened
+  factors say, and shrinks whatever else widens those innovations (the position's process
+  noise, the course's lever); holding those at their priors keeps the widening
+  (docs/logs.md, section 8).
 - ``method="lbfgs"``: the classical maximum-likelihood fit, by L-BFGS (a quasi-Newton
   optimiser with a line search) in place of Adam's small steps: the peer of the learned fit.
   On a log drawn from the filter's own model it finds the noise that drew it.
@@ -48,7 +53,7 @@ import torch
 from lbo.core.checks import one_of
 from lbo.core.errors import LboError
 from lbo.filters import classical
-from lbo.filters.gyro_noise import FixDrift, GyroNoise
+from lbo.filters.gyro_noise import NOISE_RANGES, FixDrift, GyroNoise
 from lbo.learn.eta import more
 from lbo.learn.gyro_logs import as_logs, estimates, segments
 from lbo.learn.variogram import RECEIVER_NOISES, receiver_scales
@@ -60,7 +65,7 @@ from lbo.sim.noise import Noise
 from lbo.sim.vehicle import Vehicle
 
 __all__ = ["METHODS", "OBJECTIVES", "GyroFit", "Settings", "adapt", "fit", "fit_and_write",
-           "fix_cov"]
+           "fix_cov", "held"]
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -97,7 +102,8 @@ class Settings:
         time learned from :data:`DRIFT_START` (:meth:`starting`);
     scales : factors on the speed and the gyro's rate are learned too, from 1;
     receiver_noise : one of :data:`RECEIVER_NOISES`, how the factors on the receiver's
-        accuracy and velocity sigma are found.
+        accuracy and velocity sigma are found;
+    hold : names of :class:`GyroNoise`'s noises kept at the start, not learned.
     """
 
     epochs: int
@@ -109,6 +115,7 @@ class Settings:
     drift: bool = False
     scales: bool = False
     receiver_noise: str = "learned"
+    hold: tuple[str, ...] = ()
 
     @classmethod
     def from_cfg(cls, learn: Any, prefix: str = "learn") -> Settings:
@@ -125,7 +132,8 @@ class Settings:
                   drift=boolean(learn.get("drift", False), f"{prefix}.drift"),
                   scales=boolean(learn.get("scales", False), f"{prefix}.scales"),
                   receiver_noise=one_of(learn.get("receiver_noise", "learned"),
-                                        RECEIVER_NOISES, f"{prefix}.receiver_noise"))
+                                        RECEIVER_NOISES, f"{prefix}.receiver_noise"),
+                  hold=held(learn.get("hold", []), f"{prefix}.hold"))
         if out.ahead_s and out.objective != "innovations":
             raise LboError(f"{prefix}.ahead_s applies to {prefix}.objective=innovations (the "
                            f"fit by the fixes' likelihood), got {prefix}.objective="
@@ -145,10 +153,29 @@ class Settings:
 
     def kwargs(self, dt: float) -> dict[str, Any]:
         """The keywords of :func:`fit` (and :func:`fit_and_write`) for a log of period
-        ``dt``: epochs, segment and ahead in steps, lr, objective, method and receiver_noise."""
+        ``dt``: epochs, segment and ahead in steps, lr, objective, method, receiver_noise
+        and hold."""
         return {"epochs": self.epochs, "segment": max(2, round(self.segment_s / dt)),
                 "lr": self.lr, "objective": self.objective, "method": self.method,
-                "ahead": round(self.ahead_s / dt), "receiver_noise": self.receiver_noise}
+                "ahead": round(self.ahead_s / dt), "receiver_noise": self.receiver_noise,
+                "hold": self.hold}
+
+
+def held(names: Any, field: str = "hold") -> tuple[str, ...]:
+    """``names`` (a list of noise names, or None) as a tuple, each one of
+    :data:`lbo.filters.gyro_noise.NOISE_RANGES`'s, or one line naming ``field``."""
+    from omegaconf import ListConfig
+
+    if names is None:
+        return ()
+    if not isinstance(names, list | tuple | ListConfig) or not all(
+            isinstance(n, str) for n in names):
+        raise LboError(f"{field}: expected a list of the gyro EKF's noise names, got {names!r}")
+    unknown = [n for n in names if n not in NOISE_RANGES]
+    if unknown:
+        raise LboError(f"{field}: expected names among {', '.join(NOISE_RANGES)}, got "
+                       f"{', '.join(map(repr, unknown))}")
+    return tuple(dict.fromkeys(names))
 
 
 def fix_cov(preset: Noise) -> np.ndarray:
@@ -200,7 +227,7 @@ def fit(train: pd.DataFrame | Sequence[pd.DataFrame],
         start: GyroNoise, epochs: int = 12, segment: int = 500, lr: float = 0.1,
         progress: Callable[[str], None] | None = print,
         objective: str = "truth", ahead: int = 0, method: str = "adam",
-        receiver_noise: str = "learned") -> GyroFit:
+        receiver_noise: str = "learned", hold: Sequence[str] = ()) -> GyroFit:
     """Learn the gyro EKF's noise on ``train`` (one log or several), keep the best on ``val``
     (one or several).
 
@@ -223,7 +250,10 @@ def fit(train: pd.DataFrame | Sequence[pd.DataFrame],
     receiver_noise : ``learned``, or ``variogram``: ``start``'s factors on the receiver's
         accuracy and velocity sigma replaced by those ``train`` calls for
         (:func:`lbo.learn.variogram.receiver_scales`) and not learned
-        (:data:`RECEIVER_NOISES`); the history's ratios are then against that start.
+        (:data:`RECEIVER_NOISES`); the history's ratios are then against that start;
+    hold : names of noises kept at ``start``'s values (:func:`held`); each one the filter
+        carries (``drift_*`` with ``start``'s drift, ``*_scale`` of the speed and the gyro
+        with its scales), and at least one noise left to learn.
     """
     if epochs < 0 or segment < 2:
         raise LboError(f"fit needs epochs >= 0 and segment >= 2, got {epochs} and {segment}")
@@ -239,9 +269,19 @@ def fit(train: pd.DataFrame | Sequence[pd.DataFrame],
     if set_by_logs:
         start = dataclasses.replace(start, **dict(zip(set_by_logs, receiver_scales(train))))
     model = GyroFilter(start, vehicle.dt, torch.as_tensor(R))
-    for name in set_by_logs:  # what the innovations cannot judge stays as the logs say
+    hold = held(hold)
+    carried = ", ".join(n for n in NOISE_RANGES if n in model.log)
+    absent = [name for name in hold if name not in model.log]
+    if absent:
+        raise LboError(f"hold: {', '.join(absent)} is not a noise of this filter (it "
+                       f"carries {carried})")
+    # what the innovations cannot judge stays as the logs say; what is held, as it starts
+    for name in (*set_by_logs, *hold):
         model.log[name].requires_grad_(False)
     learned = [p for p in model.parameters() if p.requires_grad]
+    if epochs and not learned:
+        raise LboError(f"hold: every noise of the filter is held or set by its logs "
+                       f"({carried}): nothing is left to learn")
     opt: torch.optim.Optimizer = (
         torch.optim.Adam(learned, lr=lr) if method == "adam" else
         torch.optim.LBFGS(learned, lr=1.0, max_iter=LBFGS_ITERATIONS,
@@ -335,6 +375,8 @@ def fit_and_write(out: Path, name: str, train: pd.DataFrame | Sequence[pd.DataFr
         said.append("by its innovations' likelihood, no truth read")
     if how.get("receiver_noise") == "variogram":
         said.append("the receiver's noise set by its variogram")
+    if how.get("hold"):
+        said.append(f"{', '.join(how['hold'])} held")
     print(f"learning the gyro EKF's noise {where} ({', '.join(said)}; keeps the best on its "
           "validation drives)")
     fitted = fit(train, val, vehicle, R, start, progress=lambda line: print("  " + line), **how)

@@ -65,12 +65,12 @@ LATER_MODEL_DEFAULTS: dict[str, dict[str, Any]] = {
     **{name: {"body": "kinematic", "body_lr": 1.0, **added_after(2)[name]}
        for name in ("kalmannet", "split_kalmannet")},
     "filternet": {"empty_statistic": "net", "drift_tau": None, **added_after(2)["filternet"]},
-    "gyro_ekf": {"drift": False, "scales": False, "receiver_noise": "learned"}}
+    "gyro_ekf": {"drift": False, "scales": False, "receiver_noise": "learned", "hold": []}}
 """As :data:`LATER_DEFAULTS`, for the settings added to one model's config (``model.body`` of
 the KalmanNet peers, which the robust observer's config has had from the start, and their
 ``model.body_rear``; the robust observer's ``model.empty_statistic``, ``model.drift_tau``,
 ``model.input_terms`` and ``model.body_rear``; the gyro EKF's ``model.drift``,
-``model.scales`` and ``model.receiver_noise``)."""
+``model.scales``, ``model.receiver_noise`` and ``model.hold``)."""
 WAS = {"lbo.learn.progress.EpochBar": "lightning.pytorch.callbacks.TQDMProgressBar"}
 """Callbacks that replaced another in ``conf/``, by what they replaced (version 1 hashed them
 as it)."""

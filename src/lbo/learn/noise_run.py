@@ -198,6 +198,8 @@ def train(cfg: DictConfig, params: dict[str, Any], tags: dict[str, str]) -> dict
             how = "its truth" if truth else "its fixes' likelihood, no truth read"
             if settings.receiver_noise == "variogram":
                 how += ", the receiver's noise by its variogram"
+            if settings.hold:
+                how += f", {', '.join(settings.hold)} held"
             print(f"learning the gyro EKF's noise on {len(train_logs)} log(s) of {spec.name} "
                   f"by {how} ({settings.epochs} epochs, {settings.method}); the best on "
                   f"{len(val_logs)} validation log(s) is kept")
