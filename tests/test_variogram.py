@@ -165,6 +165,26 @@ def test_a_hold_that_names_no_noise_is_one_line(hold, line):
         Settings.from_cfg(learn)
 
 
+def test_a_hold_is_checked_against_the_noises_the_fit_learns_before_any_run():
+    base = {"epochs": 1, "segment_s": 10.0, "lr": 0.1}
+    with pytest.raises(LboError, match=r"^model.hold: drift_sigma is not a noise this fit "
+                                       r"learns \(it learns q_position, .*, course_lever; "
+                                       r"drift_sigma and drift_tau with model.drift=true, "
+                                       r"speed_scale and gyro_scale with model.scales=true\)$"):
+        Settings.from_cfg(OmegaConf.create({**base, "hold": ["drift_sigma"]}), "model")
+    drift = Settings.from_cfg(OmegaConf.create({**base, "drift": True, "hold": ["drift_sigma"]}))
+    assert drift.hold == ("drift_sigma",)
+    every = ["q_position", "q_heading", "gyro_sigma", "bias_walk", "course_lever"]
+    with pytest.raises(LboError, match=r"^learn.hold: every noise this fit learns is held or "
+                                       r"set by its logs \(.*\): nothing is left to learn$"):
+        Settings.from_cfg(OmegaConf.create({**base, "receiver_noise": "variogram",
+                                            "hold": every}))
+    # one left to learn (the receiver's factors), or no epoch to learn in: taken
+    assert Settings.from_cfg(OmegaConf.create({**base, "hold": every})).hold == tuple(every)
+    assert Settings.from_cfg(OmegaConf.create({**base, "epochs": 0, "receiver_noise":
+                                               "variogram", "hold": every})).epochs == 0
+
+
 def test_a_fit_holds_only_noises_its_filter_carries_and_leaves_one_to_learn():
     """Checked before any step: a drift's noise without the drift, and every noise held."""
     log = gyro_drive.draw(0).drop(columns=["x", "y", "psi"])

@@ -91,6 +91,10 @@ DRIFT_START = FixDrift(sigma=0.3, tau=30.0)
 receiver's multipath and atmosphere (the fit learns both numbers)."""
 
 
+VARIOGRAM_SET = ("accuracy_scale", "velocity_scale")
+"""The noises ``receiver_noise="variogram"`` sets from the train logs rather than learns."""
+
+
 @dataclass(frozen=True, kw_only=True)
 class Settings:
     """How a command fits the gyro EKF's noise (its ``learn:`` group), checked.
@@ -138,7 +142,24 @@ class Settings:
             raise LboError(f"{prefix}.ahead_s applies to {prefix}.objective=innovations (the "
                            f"fit by the fixes' likelihood), got {prefix}.objective="
                            f"{out.objective}")
+        out._check_hold(prefix)
         return out
+
+    def _check_hold(self, prefix: str) -> None:
+        """Before any run opens: each noise held is one the fit's filter carries, and one
+        is left to learn (as :func:`fit` checks on the filter itself)."""
+        noises = dataclasses.asdict(self.starting(GyroNoise(q_position=1.0, q_heading=1.0)))
+        carried = [n for n in NOISE_RANGES if noises.get(n) is not None]
+        absent = [n for n in self.hold if n not in carried]
+        if absent:
+            raise LboError(f"{prefix}.hold: {', '.join(absent)} is not a noise this fit "
+                           f"learns (it learns {', '.join(carried)}; drift_sigma and "
+                           f"drift_tau with {prefix}.drift=true, speed_scale and gyro_scale "
+                           f"with {prefix}.scales=true)")
+        set_by_logs = VARIOGRAM_SET if self.receiver_noise == "variogram" else ()
+        if self.epochs and set(carried) <= {*self.hold, *set_by_logs}:
+            raise LboError(f"{prefix}.hold: every noise this fit learns is held or set by "
+                           f"its logs ({', '.join(carried)}): nothing is left to learn")
 
     def starting(self, noise: GyroNoise) -> GyroNoise:
         """The noise a fit starts from: ``noise``, with :data:`DRIFT_START` if ``drift``, with
@@ -265,7 +286,7 @@ def fit(train: pd.DataFrame | Sequence[pd.DataFrame],
     one_of(receiver_noise, RECEIVER_NOISES, "receiver_noise")
     own = val is train  # the logs are their own validation (adapt): one pass serves both
     train, val = as_logs(train), as_logs(val)
-    set_by_logs = ("accuracy_scale", "velocity_scale") if receiver_noise == "variogram" else ()
+    set_by_logs = VARIOGRAM_SET if receiver_noise == "variogram" else ()
     if set_by_logs:
         start = dataclasses.replace(start, **dict(zip(set_by_logs, receiver_scales(train))))
     model = GyroFilter(start, vehicle.dt, torch.as_tensor(R))
