@@ -5,7 +5,7 @@ from the fixes' variogram over longer lags, or with noises held at their priors
 (``learn.hold``), each against the supervised fit (lbo's measure, as
 ``learned_vs_supervised.py`` gives it), with the noise each learned.
 
-    python benchmarks/variogram_lags.py [out_folder] [override ...]   # 4 min on a 2-core CPU
+    python benchmarks/variogram_lags.py [out_folder] [override ...]   # about 6 min on a 2-core CPU
 
 The longer lags are no setting: they go through the name the fit reads its factors by
 (``gyro_fit.receiver_scales``), a study no one would run, measured to say where the miss lies.
