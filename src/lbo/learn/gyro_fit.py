@@ -147,17 +147,16 @@ class Settings:
 
     def _check_hold(self, prefix: str) -> None:
         """Before any run opens: each noise held is one the fit's filter carries, and one
-        is left to learn (as :func:`fit` checks on the filter itself)."""
-        noises = dataclasses.asdict(self.starting(GyroNoise(q_position=1.0, q_heading=1.0)))
-        carried = [n for n in NOISE_RANGES if noises.get(n) is not None]
-        absent = [n for n in self.hold if n not in carried]
+        is left to learn (:func:`_holding`, which :func:`fit` checks too)."""
+        set_by_logs = VARIOGRAM_SET if self.receiver_noise == "variogram" else ()
+        carried, absent, none_left = _holding(
+            self.starting(GyroNoise(q_position=1.0, q_heading=1.0)), self.hold, set_by_logs)
         if absent:
             raise LboError(f"{prefix}.hold: {', '.join(absent)} is not a noise this fit "
                            f"learns (it learns {', '.join(carried)}; drift_sigma and "
                            f"drift_tau with {prefix}.drift=true, speed_scale and gyro_scale "
                            f"with {prefix}.scales=true)")
-        set_by_logs = VARIOGRAM_SET if self.receiver_noise == "variogram" else ()
-        if self.epochs and set(carried) <= {*self.hold, *set_by_logs}:
+        if self.epochs and none_left:
             raise LboError(f"{prefix}.hold: every noise this fit learns is held or set by "
                            f"its logs ({', '.join(carried)}): nothing is left to learn")
 
@@ -180,6 +179,17 @@ class Settings:
                 "lr": self.lr, "objective": self.objective, "method": self.method,
                 "ahead": round(self.ahead_s / dt), "receiver_noise": self.receiver_noise,
                 "hold": self.hold}
+
+
+def _holding(start: GyroNoise, hold: Sequence[str], set_by_logs: Sequence[str]
+             ) -> tuple[list[str], list[str], bool]:
+    """What holding ``hold`` does to a fit from ``start``: the noises its filter carries
+    (those ``start`` holds, in :data:`NOISE_RANGES`' order), the names of ``hold`` it does
+    not carry, and whether every one it carries is held or set by the logs."""
+    values = dataclasses.asdict(start)
+    carried = [n for n in NOISE_RANGES if values.get(n) is not None]
+    return (carried, [n for n in hold if n not in carried],
+            set(carried) <= {*hold, *set_by_logs})
 
 
 def held(names: Any, field: str = "hold") -> tuple[str, ...]:
@@ -289,20 +299,19 @@ def fit(train: pd.DataFrame | Sequence[pd.DataFrame],
     set_by_logs = VARIOGRAM_SET if receiver_noise == "variogram" else ()
     if set_by_logs:
         start = dataclasses.replace(start, **dict(zip(set_by_logs, receiver_scales(train))))
-    model = GyroFilter(start, vehicle.dt, torch.as_tensor(R))
     hold = held(hold)
-    carried = ", ".join(n for n in NOISE_RANGES if n in model.log)
-    absent = [name for name in hold if name not in model.log]
+    carried, absent, none_left = _holding(start, hold, set_by_logs)
     if absent:
         raise LboError(f"hold: {', '.join(absent)} is not a noise of this filter (it "
-                       f"carries {carried})")
+                       f"carries {', '.join(carried)})")
+    if epochs and none_left:
+        raise LboError(f"hold: every noise of the filter is held or set by its logs "
+                       f"({', '.join(carried)}): nothing is left to learn")
+    model = GyroFilter(start, vehicle.dt, torch.as_tensor(R))
     # what the innovations cannot judge stays as the logs say; what is held, as it starts
     for name in (*set_by_logs, *hold):
         model.log[name].requires_grad_(False)
     learned = [p for p in model.parameters() if p.requires_grad]
-    if epochs and not learned:
-        raise LboError(f"hold: every noise of the filter is held or set by its logs "
-                       f"({carried}): nothing is left to learn")
     opt: torch.optim.Optimizer = (
         torch.optim.Adam(learned, lr=lr) if method == "adam" else
         torch.optim.LBFGS(learned, lr=1.0, max_iter=LBFGS_ITERATIONS,
