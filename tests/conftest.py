@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 
 from helpers import compose_cfg, hydra_cache
-from helpers.shared import once
+from helpers.shared import once, shared_root
 
 
 def pytest_configure(config) -> None:
@@ -40,11 +40,15 @@ def conf_read_once():
 
 
 @pytest.fixture(scope="session", autouse=True)
-def own_cache_dir(tmp_path_factory):
-    """lbo's cache folder (kept ONNX exports) in the session's temp folder, for this process
-    and the commands it starts: the tests never write into the user's ~/.cache."""
+def own_cache_dir(tmp_path_factory, worker_id):
+    """lbo's cache folder (kept ONNX exports, the empty MLflow store) in the run's temp folder
+    that every worker shares, for this process and the commands it starts: the tests never
+    write into the user's ~/.cache, and an observer both workers run (``robust_smoke``) is
+    exported once, as two sessions of a user share it (lbo writes each kept file atomically)."""
+    folder = shared_root(tmp_path_factory, worker_id) / "lbo-cache"
+    folder.mkdir(exist_ok=True)
     with pytest.MonkeyPatch.context() as mp:
-        mp.setenv("LBO_CACHE_DIR", str(tmp_path_factory.mktemp("lbo-cache")))
+        mp.setenv("LBO_CACHE_DIR", str(folder))
         yield
 
 
