@@ -47,3 +47,24 @@ def test_test_fast_leaves_out_the_tests_listed_as_slow():
     kept = [line for line in res.stdout.splitlines() if "::" in line]
     assert slow[-1] not in kept
     assert all(tests.get(t, 0.0) < SLOW_S for t in kept)
+
+
+def test_each_process_logs_its_cpu_time_at_exit_and_the_summary_sums_them_by_kind(tmp_path):
+    """benchmarks/process_cpu: a process started with its folder on PYTHONPATH writes one line
+    at exit, naming the test that started it; the summary adds them up by kind."""
+    import os
+
+    log = tmp_path / "cpu.jsonl"
+    env = {**os.environ, "PYTHONPATH": str(ROOT / "benchmarks" / "process_cpu"),
+           "PROCESS_CPU_LOG": str(log), "PYTEST_CURRENT_TEST": "tests/test_x.py::test_y (call)"}
+    spin = "import time\nt = time.process_time()\nwhile time.process_time() - t < 0.2: pass"
+    for _ in range(2):
+        subprocess.run([sys.executable, "-c", spin], env=env, check=True)
+    lines = [json.loads(x) for x in log.read_text().splitlines()]
+    assert len(lines) == 2 and all(x["cpu"] >= 0.2 and x["wall"] > 0 for x in lines)
+    assert {x["test"] for x in lines} == {"tests/test_x.py::test_y (call)"}
+    res = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "process_cpu.py"), str(log)],
+                         capture_output=True, text=True)
+    assert res.returncode == 0, res.stderr
+    assert res.stdout.startswith("2 processes, ")
+    assert "   2  python -c (a test's script)" in res.stdout
