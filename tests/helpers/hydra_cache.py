@@ -10,9 +10,11 @@ they run through Hydra's main), and each compose re-reads and re-parses every YA
 :func:`install` (``tests/conftest.py``, for the whole session) wraps
 ``FileConfigSource.load_config`` so that it keeps what Hydra read from each file (its config and
 ``# @package`` header), keyed by the file's real path, ``st_mtime_ns`` and ``st_size``: a file
-a test writes or changes is read afresh. Each call returns a deep copy, as Hydra mutates what
-it is given (it pops ``defaults``, merges into the config); a copy is faster than
-``OmegaConf.create`` from the parsed YAML (measured). A missing file, or one that does not
+a test writes or changes is read afresh. Each call returns a copy, as Hydra mutates what it is
+given (it pops ``defaults``, merges into the config): the config is kept pickled and each copy
+unpickled, which is seven times faster than ``copy.deepcopy`` of an OmegaConf config (1.2
+against 9.1 ms for ``train``'s, measured) and faster than ``OmegaConf.create`` from the parsed
+YAML. A missing file, or one that does not
 parse, is Hydra's own read, which raises what it always raised; failures are not kept.
 :func:`uninstall` puts Hydra's methods back.
 
@@ -36,9 +38,9 @@ unchanged before the kept build is used, as above.
 from __future__ import annotations
 
 import contextlib
-import copy
 import dataclasses
 import os
+import pickle
 from collections.abc import Callable
 from typing import Any
 
@@ -58,8 +60,18 @@ _wrapped: dict[tuple[Any, str], Callable[..., Any]] = {}
 FileKey = tuple[str, int, int]
 """A version of a file: its real path, ``st_mtime_ns`` and ``st_size``."""
 
-_read: dict[FileKey, tuple[dict[str, str | None], Any]] = {}
-"""A file's version -> the header and config Hydra read from it."""
+_read: dict[FileKey, tuple[dict[str, str | None], bytes]] = {}
+"""A file's version -> the header and config (:func:`_kept`) Hydra read from it."""
+
+
+def _kept(config: Any) -> bytes:
+    """An OmegaConf config as the caches keep it: pickled, so that :func:`_copy` is cheap."""
+    return pickle.dumps(config, protocol=pickle.HIGHEST_PROTOCOL)
+
+
+def _copy(kept: bytes) -> Any:
+    """A new config from what :func:`_kept` made, shared with no other copy."""
+    return pickle.loads(kept)
 
 
 _reading: list[set[FileKey]] = []
@@ -73,7 +85,8 @@ class _Built:
 
     files: frozenset[FileKey]
     defaults: DefaultsList
-    merged: Any = None  # the config merged along the defaults, before any value is set
+    merged: bytes | None = None  # the config merged along the defaults (:func:`_kept`), before
+    # any value is set
     merged_once: bool = False  # the merge is kept from its second time on
 
 
@@ -113,10 +126,10 @@ def _caching(hydras: LoadConfig) -> LoadConfig:
             loaded = hydras(self, config_path)  # raises as it did; nothing kept then
             with contextlib.suppress(OSError):
                 if _key(path) == key:  # not changed while Hydra read it
-                    _read[key] = (dict(loaded.header), copy.deepcopy(loaded.config))
+                    _read[key] = (dict(loaded.header), _kept(loaded.config))
             return loaded
         header, config = kept
-        return ConfigResult(config=copy.deepcopy(config), header=dict(header),
+        return ConfigResult(config=_copy(config), header=dict(header),
                             path=f"{self.scheme()}://{self.path}", provider=self.provider)
 
     return load_config
@@ -183,10 +196,10 @@ def _merged_kept(hydras: Callable[..., Any]) -> Callable[..., Any]:
         if kept.merged is None:
             merged = hydras(self, defaults, repo)
             if kept.merged_once:  # most shapes are merged once: no copy for those
-                kept.merged = copy.deepcopy(merged)
+                kept.merged = _kept(merged)
             kept.merged_once = True
             return merged
-        return copy.deepcopy(kept.merged)
+        return _copy(kept.merged)
 
     return compose_config_from_defaults_list
 
