@@ -4,6 +4,7 @@ holds from before it: each carries its older version's hash, which
 today's hash of today's config, so that ``resume=true`` and ``make reproduce`` find it instead
 of training everything again."""
 
+import enum
 import json
 import os
 from pathlib import Path
@@ -17,7 +18,15 @@ from omegaconf import OmegaConf, open_dict
 
 from helpers import cli, store_client, train_cfg
 from lbo.core.paths import CONF_DIR, REPO_ROOT
-from lbo.learn.identity import HASH_VERSION, MARKER, config_hash, read_marker, was_key
+from lbo.learn.identity import (
+    HASH_VERSION,
+    MARKER,
+    computed,
+    config_hash,
+    read_marker,
+    was_key,
+    yaml_text,
+)
 from lbo.learn.layouts import (
     LATER_DEFAULTS,
     LATER_MODEL_DEFAULTS,
@@ -132,6 +141,22 @@ def old_store(tmp_path_factory):
     return _store(tmp_path_factory.mktemp("store"), {
         name: ((STORED / f"{name}.yaml").read_text(), tag)
         for name, (_, _, tag) in STORED_RUNS.items()})
+
+
+class _Side(enum.Enum):
+    LEFT = 1
+
+
+@pytest.mark.parametrize("overrides", [["experiment=smoke"], ["model=kalmannet"],
+                                       ["experiment=dynamic"], ["data=logs"]])
+def test_the_hashed_yaml_is_omegaconfs_to_yaml_of_the_tree(overrides):
+    """The text a config hash reads is what ``OmegaConf.to_yaml`` writes of the tree, without
+    building a config from it: the same quotes on strings that read as numbers or bools, and
+    enums by name."""
+    tree = computed(compose_cfg("train", overrides))
+    tree["odd"] = {"float": "1e3", "int": "7", "bool": "yes", "none": None, "side": _Side.LEFT,
+                   "list": [1.5, "0.5", [True]]}
+    assert yaml_text(tree) == OmegaConf.to_yaml(OmegaConf.create(tree), sort_keys=True)
 
 
 @pytest.mark.parametrize("name", list(STORED_RUNS))
