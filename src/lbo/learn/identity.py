@@ -24,7 +24,7 @@ from enum import Enum
 from pathlib import Path
 from typing import Any, cast
 
-import yaml
+import yaml  # type: ignore[import-untyped]  # no stubs installed; OmegaConf dumps with it
 from omegaconf import DictConfig, OmegaConf, open_dict
 from omegaconf._utils import get_omega_conf_dumper
 
