@@ -14,8 +14,9 @@ a test writes or changes is read afresh. Each call returns a copy, as Hydra muta
 given (it pops ``defaults``, merges into the config): the config is kept pickled and each copy
 unpickled, nine times faster than ``copy.deepcopy`` of an OmegaConf config, which walks every
 node in Python (0.52 against 4.63 ms for ``experiment=smoke``'s: docs/design.md, "Measured on
-2026-12-03, night"), and faster than ``OmegaConf.create`` from the parsed YAML. A missing file, or one that does not
-parse, is Hydra's own read, which raises what it always raised; failures are not kept.
+2026-12-03, night"), and faster than ``OmegaConf.create`` from the parsed YAML. A missing
+file, or one that does not parse, is Hydra's own read, which raises what it always raised;
+failures are not kept.
 :func:`uninstall` puts Hydra's methods back.
 
 The class patched is the one Hydra's ``SourcesRegistry`` resolves ``file://`` to, not the one
