@@ -27,7 +27,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass, fields
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 
@@ -123,24 +123,58 @@ def _blend(v: np.ndarray, p: SingleTrack) -> np.ndarray:
 def lateral_rates(v_y: np.ndarray, r: np.ndarray, v: np.ndarray, delta: np.ndarray,
                   p: SingleTrack) -> tuple[np.ndarray, np.ndarray]:
     """(dv_y/dt, dr/dt) of the single-track equations at speed ``max(v, v_kinematic)``."""
-    vx = np.maximum(v, p.v_kinematic)
+    return _lateral(v_y, r, np.maximum(v, p.v_kinematic), delta, np.cos(delta), p)
+
+
+def _lateral(v_y: np.ndarray, r: np.ndarray, vx: np.ndarray, delta: np.ndarray,
+             cos_delta: np.ndarray, p: SingleTrack) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`lateral_rates` at the speed ``vx`` it integrates at, with ``cos(delta)`` given."""
     fzf, fzr = p.axle_loads
     a_f = delta - (v_y + p.l_f * r) / vx
     a_r = -(v_y - p.l_r * r) / vx
-    f_yf = tyre_force(a_f, p.c_f, p.mu * fzf) * np.cos(delta)
+    f_yf = tyre_force(a_f, p.c_f, p.mu * fzf) * cos_delta
     f_yr = tyre_force(a_r, p.c_r, p.mu * fzr)
     return (f_yf + f_yr) / p.mass - vx * r, (p.l_f * f_yf - p.l_r * f_yr) / p.yaw_inertia
 
 
-def derivatives(s: np.ndarray, u: np.ndarray, p: SingleTrack) -> np.ndarray:
-    """Continuous dynamics ``ds/dt``. s: (..., 5), u: (..., 2) -> (..., 5)."""
-    psi, v_y, r = s[..., 2], s[..., 3], s[..., 4]
+class _Held(NamedTuple):
+    """What inputs u (..., 2), held over a sampling period, give :func:`derivatives`: made
+    once a period, where RK4 evaluates the derivatives four times a sub-step. Each (...)."""
+
+    v: np.ndarray
+    """V, the speed input (m/s)."""
+    w: np.ndarray
+    """The dynamic model's weight (:func:`_blend`)."""
+    turn: np.ndarray
+    """``(1 - w) V tan(delta) / L``: the kinematic bicycle's share of the yaw rate."""
+    vx: np.ndarray
+    """``max(V, v_kinematic)``, the speed the lateral states are integrated at."""
+    delta: np.ndarray
+    """The steering angle (rad)."""
+    cos_delta: np.ndarray
+    """Its cosine."""
+
+
+def _held(u: np.ndarray, p: SingleTrack) -> _Held:
     v, delta = u[..., 0], u[..., 1]
     w = _blend(v, p)
-    r_eff = w * r + (1 - w) * v * np.tan(delta) / p.wheelbase
+    return _Held(v, w, (1 - w) * v * np.tan(delta) / p.wheelbase,
+                 np.maximum(v, p.v_kinematic), delta, np.cos(delta))
+
+
+def derivatives(s: np.ndarray, u: np.ndarray, p: SingleTrack) -> np.ndarray:
+    """Continuous dynamics ``ds/dt``. s: (..., 5), u: (..., 2) -> (..., 5)."""
+    return _rates(s, _held(u, p), p)
+
+
+def _rates(s: np.ndarray, held: _Held, p: SingleTrack) -> np.ndarray:
+    """:func:`derivatives` at states s (..., 5) with what the inputs give (:func:`_held`)."""
+    psi, v_y, r = s[..., 2], s[..., 3], s[..., 4]
+    v, w = held.v, held.w
+    r_eff = w * r + held.turn
     lat = w * (v_y - p.l_r * r)  # lateral speed of the rear axle; 0 for the kinematic bicycle
     c, sn = np.cos(psi), np.sin(psi)
-    dv_y, dr = lateral_rates(v_y, r, v, delta, p)
+    dv_y, dr = _lateral(v_y, r, held.vx, held.delta, held.cos_delta, p)
     return np.stack([v * c - lat * sn, v * sn + lat * c, r_eff, dv_y, dr], axis=-1)
 
 
@@ -149,11 +183,12 @@ def step(s: np.ndarray, u: np.ndarray, dt: float, p: SingleTrack,
     """One sampling period of RK4 sub-steps, the input held. s: (..., 5), u: (..., 2)."""
     n = p.substeps if substeps is None else substeps
     h = dt / n
+    held = _held(u, p)
     for _ in range(n):
-        k1 = derivatives(s, u, p)
-        k2 = derivatives(s + 0.5 * h * k1, u, p)
-        k3 = derivatives(s + 0.5 * h * k2, u, p)
-        k4 = derivatives(s + h * k3, u, p)
+        k1 = _rates(s, held, p)
+        k2 = _rates(s + 0.5 * h * k1, held, p)
+        k3 = _rates(s + 0.5 * h * k2, held, p)
+        k4 = _rates(s + h * k3, held, p)
         s = s + h / 6.0 * (k1 + 2 * k2 + 2 * k3 + k4)
     return s
 
