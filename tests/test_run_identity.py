@@ -151,11 +151,11 @@ class _Side(enum.Enum):
                                        ["experiment=dynamic"], ["data=logs"]])
 def test_the_hashed_yaml_is_omegaconfs_to_yaml_of_the_tree(overrides):
     """The text a config hash reads is what ``OmegaConf.to_yaml`` writes of the tree, without
-    building a config from it: the same quotes on strings that read as numbers or bools, and
-    enums by name."""
+    building a config from it: the same quotes on strings that read as numbers or bools,
+    enums by name and tuples as lists."""
     tree = computed(compose_cfg("train", overrides))
     tree["odd"] = {"float": "1e3", "int": "7", "bool": "yes", "none": None, "side": _Side.LEFT,
-                   "list": [1.5, "0.5", [True]]}
+                   "list": [1.5, "0.5", [True]], "tuple": (1, "2")}
     assert yaml_text(tree) == OmegaConf.to_yaml(OmegaConf.create(tree), sort_keys=True)
 
 
