@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -52,8 +53,6 @@ def test_test_fast_leaves_out_the_tests_listed_as_slow():
 def test_each_process_logs_its_cpu_time_at_exit_and_the_summary_sums_them_by_kind(tmp_path):
     """benchmarks/process_cpu: a process started with its folder on PYTHONPATH writes one line
     at exit, naming the test that started it; the summary adds them up by kind."""
-    import os
-
     log = tmp_path / "cpu.jsonl"
     env = {**os.environ, "PYTHONPATH": str(ROOT / "benchmarks" / "process_cpu"),
            "PROCESS_CPU_LOG": str(log), "PYTEST_CURRENT_TEST": "tests/test_x.py::test_y (call)"}
